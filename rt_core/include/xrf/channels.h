@@ -1,0 +1,353 @@
+/*
+ * xrf/channels.h — the one definition of the shared memory between a loop process and its host
+ * side (appliance, CLI, ROS 2 bridge). The C/C++ runtime includes it; the Python side binds the
+ * part between the cffi markers with cffi (appliance/xrflab/channels.py), so there is no second
+ * copy of this layout anywhere.
+ *
+ * Rules for the part between the markers (cffi parses it): plain integer #defines, structs of
+ * fixed-width fields with explicit padding (no attributes), and prototypes. Every struct keeps
+ * 8-byte alignment by construction so that C, C++ and cffi agree on offsets.
+ *
+ * Concurrency: every channel has exactly one writer side that never waits.
+ *  - status:   seqlock, written by the loop each cycle, read by any number of hosts.
+ *  - commands: bounded multi-producer ring (any host process may send), one consumer (the loop).
+ *  - ros2xeno: latest-wins seqlock buffer, host writers serialise among themselves; the loop
+ *              only try-reads (a torn read keeps last cycle's message).
+ *  - telemetry, monitor: broadcast rings; the loop overwrites the oldest slot, each reader keeps
+ *              its own cursor and learns exactly how many publications it lost.
+ *  - log:      lossless single-producer/single-consumer ring; when full the loop drops the record
+ *              and counts it (the loop never blocks), sequence numbers make the gap visible.
+ *  - doorbell: a futex word; the loop bumps it after publishing and wakes waiters only when some
+ *              host announced it is waiting, at most once per doorbell period.
+ */
+#ifndef XRF_CHANNELS_H
+#define XRF_CHANNELS_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* cffi-begin */
+#define XRF_SHM_MAGIC 827740760 /* "XRF1" read as a little-endian uint32 */
+#define XRF_SHM_VERSION 1
+
+#define XRF_NAME_MAX 64
+#define XRF_REASON_MAX 128
+#define XRF_SCHEMA_MAX 2048
+#define XRF_MSG_MAX 512
+#define XRF_PATH_MAX 512
+
+#define XRF_HIST_BUCKETS 512
+#define XRF_HIST_SUB_BITS 4 /* 16 sub-buckets per power of two: 6 % resolution */
+
+/* Stages timed each cycle; index into xrf_status.hist. */
+#define XRF_STAGE_WAKEUP 0 /* wake-up jitter: actual start - deadline */
+#define XRF_STAGE_FPGA 1
+#define XRF_STAGE_DATA 2
+#define XRF_STAGE_CMD 3
+#define XRF_STAGE_MONITOR 4
+#define XRF_STAGE_HOOK 5
+#define XRF_STAGE_LOGGER 6
+#define XRF_STAGE_CYCLE 7 /* whole step(), wake-up to end of work */
+#define XRF_STAGE_COUNT 8
+
+/* FullStateMachine states and commands (XRF2_API.md). */
+#define XRF_STATE_IDLE 1
+#define XRF_STATE_INITIALISING 2
+#define XRF_STATE_INITIALISED 3
+#define XRF_STATE_RUN 4
+#define XRF_STATE_STOPPING 5
+#define XRF_STATE_STOPPED 6
+#define XRF_STATE_PAUSING 7
+#define XRF_STATE_PAUSED 8
+#define XRF_STATE_ERROR 9
+#define XRF_STATE_QUIT 10
+
+#define XRF_CMD_INITIALISE 1
+#define XRF_CMD_START 2
+#define XRF_CMD_STOP 3
+#define XRF_CMD_RESET 4
+#define XRF_CMD_PAUSE 5
+#define XRF_CMD_QUIT 6
+
+/* Why a command was rejected (xrf_status.reject_code). */
+#define XRF_REJECT_NONE 0
+#define XRF_REJECT_UNKNOWN 1     /* not a command number */
+#define XRF_REJECT_NOT_ALLOWED 2 /* a command, but not in the current state */
+
+/* Who sent a command (xrf_cmd_slot.source); informational, for the audit trail. */
+#define XRF_SOURCE_UNKNOWN 0
+#define XRF_SOURCE_CLI 1
+#define XRF_SOURCE_APPLIANCE 2
+#define XRF_SOURCE_ROS 3
+#define XRF_SOURCE_LOOP 4 /* the loop itself, e.g. host heartbeat lost */
+
+/* What the loop does when the host heartbeat goes stale (xrf_shm.host_timeout_action). */
+#define XRF_HOST_LOST_IGNORE 0
+#define XRF_HOST_LOST_PAUSE 1
+#define XRF_HOST_LOST_STOP 2
+
+#define XRF_CMD_SLOTS 64 /* power of two */
+#define XRF_TELEM_SLOTS 1024
+#define XRF_MONITOR_SLOTS 256
+#define XRF_MONITOR_TEXT 240
+#define XRF_LOG_RING_BYTES 8388608
+#define XRF_LOG_VARS_MAX 100
+
+/* Log variable types (XRF2 codes). */
+#define XRF_LOG_BOOL 1
+#define XRF_LOG_CHAR 2
+#define XRF_LOG_INT 3
+#define XRF_LOG_FLOAT 4
+#define XRF_LOG_DOUBLE 5
+#define XRF_LOG_LONG_INT 6
+
+/* Log writer (xrf_log_meta.writer): who drains the log ring into the file. */
+#define XRF_LOG_WRITER_PROCESS 0 /* an in-band thread of the loop process */
+#define XRF_LOG_WRITER_HOST 1    /* the appliance (set XRF_LOG_WRITER=host) */
+
+struct xrf_hist {
+    uint64_t count;
+    uint64_t sum_ns;
+    uint64_t min_ns;
+    uint64_t max_ns;
+    uint64_t buckets[XRF_HIST_BUCKETS];
+};
+
+/* Written once by the loop before it sets xrf_shm.ready; constant for the run. */
+struct xrf_info {
+    int32_t pid;
+    uint32_t cycle_freq;
+    uint32_t write_decimator_freq;
+    uint32_t monitor_freq;
+    uint32_t ros2xeno_size;
+    uint32_t xeno2ros_size;
+    int32_t rt_sched;    /* 1 if the loop thread got real-time scheduling */
+    int32_t cpu;         /* CPU the loop thread is pinned to, -1 if not pinned */
+    int32_t priority;    /* SCHED_FIFO priority, 0 if none */
+    uint32_t doorbell_period_cycles;
+    char backend[16];    /* "posix" | "evl" */
+    char transport[16];  /* "sim" | "spidev" | "evl-spidev" */
+    char sim[16];        /* "relbot" | "jiwy" | "" */
+    char program[XRF_NAME_MAX];
+    char ros2xeno_schema[XRF_SCHEMA_MAX]; /* normalised .msg text: "float64 steer_left\n..." */
+    char xeno2ros_schema[XRF_SCHEMA_MAX];
+};
+
+/* Loop -> host, under the seqlock in `seq` (odd while the loop writes). */
+struct xrf_status {
+    uint32_t seq;
+    int32_t state;
+    int32_t last_error;        /* last negative hook return */
+    int32_t last_cmd;          /* last accepted command */
+    int32_t last_rejected_cmd; /* value of the last rejected command */
+    int32_t reject_code;       /* XRF_REJECT_* of the last rejected command */
+    uint32_t rejected_count;
+    int32_t running;           /* 1 while loop() cycles, 0 after it returned */
+    uint64_t cmd_done;         /* ticket of the last command handled (accepted or rejected) */
+    uint64_t cmd_rejected;     /* ticket of the last rejected command */
+    uint64_t cycles;
+    uint64_t missed;
+    int64_t t_start_ns;        /* CLOCK_MONOTONIC at the first deadline */
+    int64_t heartbeat_ns;      /* CLOCK_MONOTONIC at the start of the last cycle */
+    uint64_t idle_ns;          /* total time slept */
+    uint64_t demotions;        /* EVL: switches to in-band (EVL_T_WOSS); posix: 0 */
+    uint64_t log_written;      /* records put into the log ring */
+    uint64_t log_lost;         /* records dropped because the ring was full */
+    uint64_t telem_published;
+    uint64_t monitor_dropped;  /* monitor.printf calls that did not fit */
+    uint64_t host_lost;        /* times the host heartbeat went stale */
+    char reject_reason[XRF_REASON_MAX];
+    struct xrf_hist hist[XRF_STAGE_COUNT];
+};
+
+struct xrf_cmd_slot {
+    uint64_t seq; /* Vyukov bounded-queue sequence */
+    uint64_t ticket;
+    int64_t t_sent_ns;
+    int32_t cmd;
+    int32_t source;
+};
+
+struct xrf_cmd_ring {
+    uint64_t head; /* producers claim with compare-and-swap */
+    uint64_t pad0[7];
+    uint64_t tail; /* the loop only */
+    uint64_t pad1[7];
+    struct xrf_cmd_slot slot[XRF_CMD_SLOTS];
+};
+
+/* Host -> loop, latest wins. `seq` odd while a host writes; writers claim it by CAS. */
+struct xrf_data_in {
+    uint32_t seq;
+    uint32_t size;
+    uint64_t writes;
+    int64_t t_sent_ns;
+    uint64_t pad;
+    uint8_t data[XRF_MSG_MAX];
+};
+
+/* Header of a ring of fixed-size slots (broadcast or SPSC). */
+struct xrf_ring {
+    uint64_t head;       /* publications so far; written by the producer only */
+    uint64_t pad0[7];
+    uint64_t tail;       /* SPSC only: records consumed; written by the consumer only */
+    uint64_t pad1[7];
+    uint32_t slots;      /* number of slots */
+    uint32_t slot_size;  /* bytes per slot, a multiple of 8, including the slot header */
+    uint64_t dropped;    /* SPSC only: records the producer could not store */
+    uint64_t pad2[6];
+};
+
+/* Every slot of a ring starts with this header. Broadcast rings use `seq` as a per-slot seqlock:
+ * 2n+1 while publication n is written, 2n+2 once it is complete. */
+struct xrf_slot_hdr {
+    uint64_t seq;
+    uint64_t cycle;
+    int64_t t_ns;
+};
+
+/* One telemetry publication (at write_decimator_freq): Xeno2Ros plus the raw I/O. */
+struct xrf_telemetry {
+    struct xrf_slot_hdr hdr;
+    int32_t state;
+    int32_t enc[4];
+    uint8_t din[8];      /* channel1_1, channel1_2, ..., channel4_2 */
+    int16_t pwm[4];
+    uint8_t dout[4];
+    uint32_t size;       /* bytes of xeno2ros in data */
+    int64_t ros2xeno_t_sent_ns; /* t_sent_ns of the Ros2Xeno in use, for latency measurement */
+    uint8_t data[XRF_MSG_MAX];
+};
+
+struct xrf_monitor_line {
+    struct xrf_slot_hdr hdr;
+    uint32_t len;
+    char text[XRF_MONITOR_TEXT];
+    uint32_t pad;
+};
+
+struct xrf_log_var {
+    char name[XRF_NAME_MAX];
+    int32_t type;   /* XRF_LOG_* */
+    int32_t offset; /* byte offset in the packed record */
+};
+
+/* Set by the logger's initialise(); `ready` is stored last. */
+struct xrf_log_meta {
+    uint32_t ready;
+    uint32_t nvars;
+    uint32_t record_size; /* payload bytes of one record (the packed struct) */
+    uint32_t writer;      /* XRF_LOG_WRITER_* */
+    uint64_t generation;  /* bumped by each initialise() that changes the file */
+    char path[XRF_PATH_MAX];
+    struct xrf_log_var vars[XRF_LOG_VARS_MAX];
+};
+
+/* The simulated board's outputs as the plant sees them. The host may force them to zero after
+ * the loop died (the simulated counterpart of an FPGA RESET). */
+struct xrf_sim_outputs {
+    uint32_t active;     /* 1 while a simulated board is in use */
+    uint32_t forced_off; /* set by the host: the plant ignores pwm from now on */
+    int16_t pwm[4];
+    uint8_t dout[4];
+    uint32_t pad;
+    double plant[8];     /* plant state for viewers: jiwy pan, tilt (rad); relbot x, y, theta */
+};
+
+struct xrf_shm {
+    uint32_t magic;
+    uint32_t version;
+    uint32_t size;       /* sizeof(struct xrf_shm), checked by every reader */
+    uint32_t ready;      /* stored last by the loop once info is complete */
+    struct xrf_info info;
+
+    /* host -> loop */
+    int64_t host_heartbeat_ns;  /* CLOCK_MONOTONIC, written by the supervising host */
+    uint32_t host_timeout_ms;   /* 0: no host supervision */
+    uint32_t host_timeout_action; /* XRF_HOST_LOST_* */
+
+    /* doorbell (futex word) */
+    uint32_t doorbell;
+    uint32_t doorbell_waiters;
+
+    struct xrf_status status;
+    struct xrf_cmd_ring cmd;
+    struct xrf_data_in ros2xeno;
+    struct xrf_sim_outputs sim;
+
+    struct xrf_ring telem_ring;
+    struct xrf_telemetry telem[XRF_TELEM_SLOTS];
+    struct xrf_ring monitor_ring;
+    struct xrf_monitor_line monitor[XRF_MONITOR_SLOTS];
+
+    struct xrf_log_meta log_meta;
+    struct xrf_ring log_ring;
+    uint8_t log_data[XRF_LOG_RING_BYTES];
+};
+
+/* Layout and lifecycle (loop side). */
+void xrf_shm_init(struct xrf_shm *shm);
+void xrf_shm_publish_ready(struct xrf_shm *shm);
+
+/* Histograms: log-linear buckets over nanoseconds. */
+int xrf_hist_bucket(uint64_t ns);
+uint64_t xrf_hist_bucket_low(int bucket);
+void xrf_hist_add(struct xrf_hist *h, uint64_t ns);
+
+/* Status seqlock. */
+void xrf_status_write_begin(struct xrf_status *s);
+void xrf_status_write_end(struct xrf_status *s);
+int xrf_status_read(const struct xrf_status *s, struct xrf_status *out); /* 0 or -EAGAIN */
+
+/* Commands. Returns the ticket (> 0) or -EAGAIN when the ring is full. */
+int64_t xrf_cmd_send(struct xrf_cmd_ring *r, int32_t cmd, int32_t source, int64_t t_sent_ns);
+int xrf_cmd_poll(struct xrf_cmd_ring *r, struct xrf_cmd_slot *out); /* 1 taken, 0 empty */
+
+/* Ros2Xeno, latest wins. */
+int xrf_data_in_write(struct xrf_data_in *d, const void *data, uint32_t size, int64_t t_sent_ns);
+/* Loop side: copies into out only if a complete message newer than *last_seq exists.
+ * Returns 1 copied, 0 nothing new (or a write in progress: keep the old one). */
+int xrf_data_in_try_read(struct xrf_data_in *d, uint32_t *last_seq, void *out, uint32_t size,
+                         int64_t *t_sent_ns);
+
+/* Rings of fixed-size slots. `slots` points at slot 0. */
+void xrf_ring_init(struct xrf_ring *r, uint32_t slots, uint32_t slot_size);
+void *xrf_bcast_begin(struct xrf_ring *r, void *slots);           /* producer */
+void xrf_bcast_commit(struct xrf_ring *r, void *slot);             /* producer */
+/* Reader: copies publication *cursor into out (slot_size bytes) and advances the cursor.
+ * Returns 1 copied, 0 nothing new. Publications overwritten before this reader got to them are
+ * added to *lost and skipped (the cursor moves to the oldest one still present). */
+int xrf_bcast_read(const struct xrf_ring *r, const void *slots, uint64_t *cursor, void *out,
+                   uint64_t *lost);
+void *xrf_spsc_begin(struct xrf_ring *r, void *slots);   /* NULL when full (counted in dropped) */
+void xrf_spsc_commit(struct xrf_ring *r, void *slot);
+const void *xrf_spsc_peek(const struct xrf_ring *r, const void *slots); /* NULL when empty */
+void xrf_spsc_release(struct xrf_ring *r);
+uint32_t xrf_log_slots_for(uint32_t record_size, uint32_t ring_bytes, uint32_t *slot_size);
+
+/* Doorbell. */
+int xrf_doorbell_should_ring(struct xrf_shm *shm); /* loop: bump the word; 1 if someone waits */
+int xrf_doorbell_wake(struct xrf_shm *shm);        /* in-band: FUTEX_WAKE all waiters */
+/* Host: wait until the word differs from `seen` or timeout_ms passes. Returns the new value. */
+uint32_t xrf_doorbell_wait(struct xrf_shm *shm, uint32_t seen, int timeout_ms);
+
+/* The command table of FullStateMachine: the state `cmd` leads to from `state`, or
+ * -XRF_REJECT_UNKNOWN / -XRF_REJECT_NOT_ALLOWED. The loop and the host both use it. */
+int32_t xrf_cmd_transition(int32_t state, int32_t cmd);
+/* Human-readable reason for a rejection, into buf (always NUL-terminated). */
+void xrf_cmd_reject_reason(int32_t state, int32_t cmd, char *buf, size_t len);
+
+/* Names for humans (static strings). */
+const char *xrf_state_name(int32_t state);
+const char *xrf_cmd_name(int32_t cmd);
+/* cffi-end */
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* XRF_CHANNELS_H */

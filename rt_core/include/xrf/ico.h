@@ -1,0 +1,79 @@
+/*
+ * xrf/ico.h — the ico-board FPGA protocol (12-byte full-duplex frames, XRF2_API.md) and the
+ * transport interface every way of reaching a board implements (Linux spidev, EVL out-of-band
+ * spidev, the simulated board).
+ *
+ * Frames here are logical: byte 0 is the opcode. The wire is LSB-first; transports that talk to
+ * real hardware bit-reverse each byte (the bcm2835 SPI controller cannot shift LSB-first).
+ */
+#ifndef XRF_ICO_H
+#define XRF_ICO_H
+
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define XRF_ICO_FRAME 12
+
+#define XRF_ICO_NOOP 0
+#define XRF_ICO_INIT 1
+#define XRF_ICO_RESET 2
+#define XRF_ICO_ALL 3
+#define XRF_ICO_PWM_1 4 /* ..PWM_4 = 7 */
+#define XRF_ICO_ENC_1 8 /* ..ENC_4 = 11 */
+#define XRF_ICO_TEST 12
+
+#define XRF_ICO_INIT_REPLY_BYTE 4
+#define XRF_ICO_INIT_REPLY 11
+#define XRF_ICO_PWM_FULL 2047
+#define XRF_ICO_ENC_MODULO 16384
+#define XRF_ICO_DEFAULT_PWM_LIMIT 0.2 /* XRF2's MAX_PWM_OUTPUT */
+
+/* What the loop wants on the board's outputs / what it read from its inputs. */
+struct xrf_ico_out {
+    int16_t pwm[4];  /* signed duty, full scale +-2047 */
+    uint8_t dout[4]; /* digital output per channel */
+};
+
+struct xrf_ico_in {
+    int32_t enc[4];  /* 14-bit unsigned counter, 0..16383 */
+    uint8_t din[8];  /* channel1 pin1, channel1 pin2, ..., channel4 pin2 */
+};
+
+/* Largest |pwm| allowed for a limit given as a fraction of full scale (0.2 -> 409). */
+int16_t xrf_ico_pwm_max(double limit_fraction);
+
+/* Frame builders and parsers (pure functions, no I/O). */
+void xrf_ico_frame_op(uint8_t op, uint8_t frame[XRF_ICO_FRAME]);
+void xrf_ico_encode_all(const struct xrf_ico_out *out, int16_t pwm_max,
+                        uint8_t frame[XRF_ICO_FRAME]);
+void xrf_ico_decode_all(const uint8_t reply[XRF_ICO_FRAME], struct xrf_ico_in *in);
+void xrf_ico_encode_pwm(int channel /* 1..4 */, int16_t pwm, int16_t pwm_max,
+                        uint8_t frame[XRF_ICO_FRAME]);
+int32_t xrf_ico_decode_enc(const uint8_t reply[XRF_ICO_FRAME]);
+/* The TEST frame's echo pattern and its check: returns the number of wrong bits (0 = intact). */
+void xrf_ico_test_pattern(uint8_t frame[XRF_ICO_FRAME]);
+int xrf_ico_test_bit_errors(const uint8_t reply[XRF_ICO_FRAME]);
+uint8_t xrf_ico_bitrev8(uint8_t b);
+
+/* A way to exchange one frame with a board. xfer is called from the real-time thread: it must
+ * not allocate or block beyond the transfer itself. Returns 0 or -errno. */
+struct xrf_ico_transport {
+    const char *name;
+    int (*xfer)(struct xrf_ico_transport *t, const uint8_t tx[XRF_ICO_FRAME],
+                uint8_t rx[XRF_ICO_FRAME]);
+    void (*close)(struct xrf_ico_transport *t); /* also frees t */
+};
+
+/* Linux spidev: mode 0, 8 bits, speed_hz (XRF2: 31 MHz); bytes bit-reversed on the wire. */
+int xrf_spidev_open(const char *device, uint32_t speed_hz, struct xrf_ico_transport **out);
+/* EVL out-of-band spidev (only in builds with XRF_HAVE_EVL; elsewhere returns -ENOSYS). */
+int xrf_evl_spidev_open(const char *device, uint32_t speed_hz, struct xrf_ico_transport **out);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* XRF_ICO_H */

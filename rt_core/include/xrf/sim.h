@@ -1,0 +1,53 @@
+/*
+ * xrf/sim.h — the simulated ico board: answers the 12-byte protocol byte for byte and drives a
+ * plant model (Jiwy pan/tilt or RELbot differential drive) advanced in time at each transfer.
+ * Faults can be injected so the self-check and the error paths are testable without hardware.
+ */
+#ifndef XRF_SIM_H
+#define XRF_SIM_H
+
+#include <stdint.h>
+
+#include "xrf/channels.h"
+#include "xrf/ico.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define XRF_SIM_RELBOT 1
+#define XRF_SIM_JIWY 2
+
+struct xrf_sim_faults {
+    int no_init_reply;       /* INIT answers without the 11 in byte 4 */
+    uint8_t dead_encoder;    /* bit n-1: encoder n never counts */
+    uint8_t reversed_motor;  /* bit n-1: motor n turns the other way */
+    uint8_t stuck_input;     /* bit k: input pin k (0..7, order of xrf_ico_in.din) is stuck */
+    uint8_t stuck_value;     /* bit k: the value it is stuck at */
+    int corrupt_echo;        /* TEST replies with flipped bits */
+    uint32_t slow_link_us;   /* each transfer takes at least this long */
+    uint8_t loopback;        /* bit n-1: digital output n is wired back to input pin 1 of n */
+};
+
+/* Parses "dead_encoder=2,reversed_motor=1,no_init,corrupt_echo,stuck_input=3:1,slow_link_us=200,
+ * loopback=1" (channels 1-based, stuck_input=<pin 1..8>:<value>). Returns 0 or -EINVAL. */
+int xrf_sim_parse_faults(const char *spec, struct xrf_sim_faults *faults);
+
+/* Opens a simulated board with the given plant (XRF_SIM_RELBOT / XRF_SIM_JIWY). The plant advances
+ * by the CLOCK_MONOTONIC time since the previous transfer (vDSO read, no system call), in
+ * sub-steps of at most 100 us; with fixed_dt_s > 0 it advances by exactly that per transfer
+ * instead (deterministic tests). `outputs` (may be NULL) mirrors the outputs and plant state into
+ * shared memory and lets the host force the outputs off. */
+int xrf_sim_open(int robot, const struct xrf_sim_faults *faults, double fixed_dt_s,
+                 struct xrf_sim_outputs *outputs, struct xrf_ico_transport **out);
+int xrf_sim_robot_from_name(const char *name); /* "relbot"/"jiwy" -> XRF_SIM_*, else -EINVAL */
+
+/* Plant state for tests and viewers: jiwy {pan, tilt, pan_rate, tilt_rate} (rad, rad/s at the
+ * camera), relbot {x, y, theta, wheel_left, wheel_right} (m, rad, wheel rad/s). */
+int xrf_sim_plant_state(struct xrf_ico_transport *t, double *state, int n);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* XRF_SIM_H */

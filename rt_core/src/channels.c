@@ -1,0 +1,412 @@
+/*
+ * The channel operations of xrf/channels.h. Compiled into the runtime library and, unchanged,
+ * into the Python binding, so the loop and every host use the very same code.
+ *
+ * Nothing on the loop's side of these functions allocates, locks or makes a system call, except
+ * xrf_doorbell_wake(), which the engine calls at most once per doorbell period and only when a
+ * host is waiting.
+ */
+#define _GNU_SOURCE
+#include "xrf/channels.h"
+
+#include <errno.h>
+#include <limits.h>
+#include <linux/futex.h>
+#include <stdio.h>
+#include <string.h>
+#include <sys/syscall.h>
+#include <time.h>
+#include <unistd.h>
+
+#define LOAD_ACQ(p) __atomic_load_n((p), __ATOMIC_ACQUIRE)
+#define LOAD_RLX(p) __atomic_load_n((p), __ATOMIC_RELAXED)
+#define STORE_REL(p, v) __atomic_store_n((p), (v), __ATOMIC_RELEASE)
+#define STORE_RLX(p, v) __atomic_store_n((p), (v), __ATOMIC_RELAXED)
+
+/* How often a reader retries a slot that a (possibly dead) writer holds before giving up. */
+#define XRF_SPIN_LIMIT 100000
+
+_Static_assert(sizeof(struct xrf_telemetry) % 8 == 0, "telemetry slot must keep 8-byte alignment");
+_Static_assert(sizeof(struct xrf_monitor_line) % 8 == 0, "monitor slot must keep 8-byte alignment");
+_Static_assert((XRF_CMD_SLOTS & (XRF_CMD_SLOTS - 1)) == 0, "command slots: power of two");
+_Static_assert((XRF_TELEM_SLOTS & (XRF_TELEM_SLOTS - 1)) == 0, "telemetry slots: power of two");
+_Static_assert((XRF_MONITOR_SLOTS & (XRF_MONITOR_SLOTS - 1)) == 0, "monitor slots: power of two");
+_Static_assert(offsetof(struct xrf_shm, log_data) % 8 == 0, "log data must be 8-byte aligned");
+
+void xrf_shm_init(struct xrf_shm *shm)
+{
+    /* The caller hands over zeroed memory (a fresh ftruncate'd object). */
+    shm->magic = XRF_SHM_MAGIC;
+    shm->version = XRF_SHM_VERSION;
+    shm->size = (uint32_t)sizeof(struct xrf_shm);
+    shm->status.state = XRF_STATE_IDLE;
+    for (int i = 0; i < XRF_STAGE_COUNT; i++)
+        shm->status.hist[i].min_ns = UINT64_MAX;
+    for (uint32_t i = 0; i < XRF_CMD_SLOTS; i++)
+        shm->cmd.slot[i].seq = i;
+    xrf_ring_init(&shm->telem_ring, XRF_TELEM_SLOTS, sizeof(struct xrf_telemetry));
+    xrf_ring_init(&shm->monitor_ring, XRF_MONITOR_SLOTS, sizeof(struct xrf_monitor_line));
+}
+
+void xrf_shm_publish_ready(struct xrf_shm *shm)
+{
+    STORE_REL(&shm->ready, 1u);
+}
+
+/* ---- histograms ---------------------------------------------------------------------------- */
+
+#define XRF_HIST_SUB (1 << XRF_HIST_SUB_BITS)
+#define XRF_HIST_LINEAR (2 * XRF_HIST_SUB) /* below this, one bucket per nanosecond */
+
+int xrf_hist_bucket(uint64_t ns)
+{
+    if (ns < XRF_HIST_LINEAR)
+        return (int)ns;
+    int e = 63 - __builtin_clzll(ns); /* >= XRF_HIST_SUB_BITS + 1 */
+    int sub = (int)((ns >> (e - XRF_HIST_SUB_BITS)) & (XRF_HIST_SUB - 1));
+    int b = XRF_HIST_LINEAR + (e - XRF_HIST_SUB_BITS - 1) * XRF_HIST_SUB + sub;
+    return b < XRF_HIST_BUCKETS ? b : XRF_HIST_BUCKETS - 1;
+}
+
+uint64_t xrf_hist_bucket_low(int bucket)
+{
+    if (bucket < XRF_HIST_LINEAR)
+        return (uint64_t)(bucket < 0 ? 0 : bucket);
+    int e = (bucket - XRF_HIST_LINEAR) / XRF_HIST_SUB + XRF_HIST_SUB_BITS + 1;
+    int sub = (bucket - XRF_HIST_LINEAR) % XRF_HIST_SUB;
+    return (uint64_t)(XRF_HIST_SUB + sub) << (e - XRF_HIST_SUB_BITS);
+}
+
+void xrf_hist_add(struct xrf_hist *h, uint64_t ns)
+{
+    h->count++;
+    h->sum_ns += ns;
+    if (ns < h->min_ns)
+        h->min_ns = ns;
+    if (ns > h->max_ns)
+        h->max_ns = ns;
+    h->buckets[xrf_hist_bucket(ns)]++;
+}
+
+/* ---- status seqlock ------------------------------------------------------------------------ */
+
+void xrf_status_write_begin(struct xrf_status *s)
+{
+    STORE_RLX(&s->seq, s->seq + 1);
+    __atomic_thread_fence(__ATOMIC_RELEASE); /* odd seq visible before any data store */
+}
+
+void xrf_status_write_end(struct xrf_status *s)
+{
+    STORE_REL(&s->seq, s->seq + 1);
+}
+
+int xrf_status_read(const struct xrf_status *s, struct xrf_status *out)
+{
+    for (int tries = 0; tries < XRF_SPIN_LIMIT; tries++) {
+        uint32_t s1 = LOAD_ACQ(&s->seq);
+        if (s1 & 1u)
+            continue;
+        memcpy(out, s, sizeof *out);
+        __atomic_thread_fence(__ATOMIC_ACQUIRE);
+        if (LOAD_RLX(&s->seq) == s1)
+            return 0;
+    }
+    return -EAGAIN;
+}
+
+/* ---- commands: bounded multi-producer queue (Vyukov), one consumer -------------------------- */
+
+int64_t xrf_cmd_send(struct xrf_cmd_ring *r, int32_t cmd, int32_t source, int64_t t_sent_ns)
+{
+    uint64_t pos = LOAD_RLX(&r->head);
+    struct xrf_cmd_slot *slot;
+    for (;;) {
+        slot = &r->slot[pos & (XRF_CMD_SLOTS - 1)];
+        int64_t dif = (int64_t)LOAD_ACQ(&slot->seq) - (int64_t)pos;
+        if (dif == 0) {
+            if (__atomic_compare_exchange_n(&r->head, &pos, pos + 1, 0, __ATOMIC_RELAXED,
+                                            __ATOMIC_RELAXED))
+                break;
+        } else if (dif < 0) {
+            return -EAGAIN; /* full: the loop is not consuming */
+        } else {
+            pos = LOAD_RLX(&r->head);
+        }
+    }
+    slot->ticket = pos + 1;
+    slot->cmd = cmd;
+    slot->source = source;
+    slot->t_sent_ns = t_sent_ns;
+    STORE_REL(&slot->seq, pos + 1);
+    return (int64_t)(pos + 1);
+}
+
+int xrf_cmd_poll(struct xrf_cmd_ring *r, struct xrf_cmd_slot *out)
+{
+    uint64_t pos = r->tail;
+    struct xrf_cmd_slot *slot = &r->slot[pos & (XRF_CMD_SLOTS - 1)];
+    if (LOAD_ACQ(&slot->seq) != pos + 1)
+        return 0;
+    *out = *slot;
+    STORE_REL(&slot->seq, pos + XRF_CMD_SLOTS);
+    STORE_REL(&r->tail, pos + 1);
+    return 1;
+}
+
+/* ---- Ros2Xeno: latest-wins seqlock buffer -------------------------------------------------- */
+
+int xrf_data_in_write(struct xrf_data_in *d, const void *data, uint32_t size, int64_t t_sent_ns)
+{
+    if (size > XRF_MSG_MAX)
+        return -EMSGSIZE;
+    uint32_t s = 0;
+    int tries = 0;
+    for (;; tries++) {
+        if (tries > XRF_SPIN_LIMIT)
+            return -EBUSY; /* another host holds the buffer (or died holding it) */
+        s = LOAD_RLX(&d->seq);
+        if (s & 1u)
+            continue;
+        if (__atomic_compare_exchange_n(&d->seq, &s, s + 1, 0, __ATOMIC_ACQUIRE,
+                                        __ATOMIC_RELAXED))
+            break;
+    }
+    __atomic_thread_fence(__ATOMIC_RELEASE);
+    memcpy(d->data, data, size);
+    d->size = size;
+    d->t_sent_ns = t_sent_ns;
+    d->writes++;
+    STORE_REL(&d->seq, s + 2);
+    return 0;
+}
+
+int xrf_data_in_try_read(struct xrf_data_in *d, uint32_t *last_seq, void *out, uint32_t size,
+                         int64_t *t_sent_ns)
+{
+    uint8_t staging[XRF_MSG_MAX];
+    uint32_t s1 = LOAD_ACQ(&d->seq);
+    if ((s1 & 1u) || s1 == *last_seq)
+        return 0;
+    if (size > XRF_MSG_MAX)
+        size = XRF_MSG_MAX;
+    memcpy(staging, d->data, size);
+    int64_t t = d->t_sent_ns;
+    __atomic_thread_fence(__ATOMIC_ACQUIRE);
+    if (LOAD_RLX(&d->seq) != s1)
+        return 0; /* torn: keep last cycle's message, take the new one next cycle */
+    memcpy(out, staging, size);
+    if (t_sent_ns)
+        *t_sent_ns = t;
+    *last_seq = s1;
+    return 1;
+}
+
+/* ---- rings of fixed-size slots ------------------------------------------------------------- */
+
+static inline struct xrf_slot_hdr *slot_at(const struct xrf_ring *r, const void *slots, uint64_t n)
+{
+    return (struct xrf_slot_hdr *)((uint8_t *)slots + (size_t)(n & (r->slots - 1)) * r->slot_size);
+}
+
+void xrf_ring_init(struct xrf_ring *r, uint32_t slots, uint32_t slot_size)
+{
+    r->head = 0;
+    r->tail = 0;
+    r->dropped = 0;
+    r->slot_size = slot_size;
+    STORE_REL(&r->slots, slots);
+}
+
+void *xrf_bcast_begin(struct xrf_ring *r, void *slots)
+{
+    uint64_t n = r->head;
+    struct xrf_slot_hdr *slot = slot_at(r, slots, n);
+    STORE_RLX(&slot->seq, 2 * n + 1);
+    __atomic_thread_fence(__ATOMIC_RELEASE);
+    return slot;
+}
+
+void xrf_bcast_commit(struct xrf_ring *r, void *slot)
+{
+    uint64_t n = r->head;
+    STORE_REL(&((struct xrf_slot_hdr *)slot)->seq, 2 * n + 2);
+    STORE_REL(&r->head, n + 1);
+}
+
+int xrf_bcast_read(const struct xrf_ring *r, const void *slots, uint64_t *cursor, void *out,
+                   uint64_t *lost)
+{
+    uint32_t nslots = LOAD_ACQ(&r->slots);
+    if (nslots == 0)
+        return 0;
+    for (int tries = 0; tries < XRF_SPIN_LIMIT; tries++) {
+        uint64_t head = LOAD_ACQ(&r->head);
+        uint64_t c = *cursor;
+        if (c >= head)
+            return 0;
+        if (head - c > nslots) {
+            *lost += head - nslots - c;
+            c = head - nslots;
+            *cursor = c;
+        }
+        const struct xrf_slot_hdr *slot = slot_at(r, slots, c);
+        uint64_t s1 = LOAD_ACQ(&slot->seq);
+        if (s1 == 2 * c + 2) {
+            memcpy(out, slot, r->slot_size);
+            __atomic_thread_fence(__ATOMIC_ACQUIRE);
+            if (LOAD_RLX(&slot->seq) == s1) {
+                *cursor = c + 1;
+                return 1;
+            }
+        }
+        /* The producer lapped this reader while it copied; the head check above catches up. */
+        if (tries > 1000) {
+            *lost += 1;
+            *cursor = c + 1;
+        }
+    }
+    return 0;
+}
+
+void *xrf_spsc_begin(struct xrf_ring *r, void *slots)
+{
+    uint64_t head = r->head;
+    if (head - LOAD_ACQ(&r->tail) >= r->slots) {
+        STORE_RLX(&r->dropped, r->dropped + 1);
+        return NULL;
+    }
+    return slot_at(r, slots, head);
+}
+
+void xrf_spsc_commit(struct xrf_ring *r, void *slot)
+{
+    (void)slot;
+    STORE_REL(&r->head, r->head + 1);
+}
+
+const void *xrf_spsc_peek(const struct xrf_ring *r, const void *slots)
+{
+    uint64_t tail = r->tail;
+    if (LOAD_ACQ(&r->slots) == 0 || LOAD_ACQ(&r->head) == tail)
+        return NULL;
+    return slot_at(r, slots, tail);
+}
+
+void xrf_spsc_release(struct xrf_ring *r)
+{
+    STORE_REL(&r->tail, r->tail + 1);
+}
+
+uint32_t xrf_log_slots_for(uint32_t record_size, uint32_t ring_bytes, uint32_t *slot_size)
+{
+    uint32_t ss = (uint32_t)((sizeof(struct xrf_slot_hdr) + record_size + 7u) & ~7u);
+    uint32_t n = ring_bytes / ss;
+    uint32_t p = 1;
+    while (p * 2 <= n)
+        p *= 2;
+    if (slot_size)
+        *slot_size = ss;
+    return n ? p : 0;
+}
+
+/* ---- doorbell ------------------------------------------------------------------------------ */
+
+int xrf_doorbell_should_ring(struct xrf_shm *shm)
+{
+    __atomic_add_fetch(&shm->doorbell, 1u, __ATOMIC_RELEASE);
+    return LOAD_ACQ(&shm->doorbell_waiters) != 0;
+}
+
+int xrf_doorbell_wake(struct xrf_shm *shm)
+{
+    long r = syscall(SYS_futex, &shm->doorbell, FUTEX_WAKE, INT_MAX, NULL, NULL, 0);
+    return r < 0 ? -errno : (int)r;
+}
+
+uint32_t xrf_doorbell_wait(struct xrf_shm *shm, uint32_t seen, int timeout_ms)
+{
+    __atomic_add_fetch(&shm->doorbell_waiters, 1u, __ATOMIC_ACQ_REL);
+    if (LOAD_ACQ(&shm->doorbell) == seen) {
+        struct timespec ts = {timeout_ms / 1000, (long)(timeout_ms % 1000) * 1000000L};
+        syscall(SYS_futex, &shm->doorbell, FUTEX_WAIT, seen, timeout_ms >= 0 ? &ts : NULL, NULL,
+                0);
+    }
+    __atomic_sub_fetch(&shm->doorbell_waiters, 1u, __ATOMIC_ACQ_REL);
+    return LOAD_ACQ(&shm->doorbell);
+}
+
+/* ---- the command table --------------------------------------------------------------------- */
+
+int32_t xrf_cmd_transition(int32_t state, int32_t cmd)
+{
+    switch (cmd) {
+    case XRF_CMD_INITIALISE:
+        if (state == XRF_STATE_IDLE)
+            return XRF_STATE_INITIALISING;
+        break;
+    case XRF_CMD_START:
+        if (state == XRF_STATE_INITIALISED || state == XRF_STATE_PAUSED)
+            return XRF_STATE_RUN;
+        break;
+    case XRF_CMD_STOP:
+        if (state == XRF_STATE_RUN || state == XRF_STATE_PAUSED)
+            return XRF_STATE_STOPPING;
+        break;
+    case XRF_CMD_RESET:
+        /* PAUSED is allowed too (the thesis lists it): reset is allowed from RUN, and a paused
+         * controller is no further from a safe re-initialisation than a running one. */
+        if (state == XRF_STATE_RUN || state == XRF_STATE_STOPPED || state == XRF_STATE_ERROR ||
+            state == XRF_STATE_PAUSED)
+            return XRF_STATE_INITIALISING;
+        break;
+    case XRF_CMD_PAUSE:
+        if (state == XRF_STATE_RUN)
+            return XRF_STATE_PAUSING;
+        break;
+    case XRF_CMD_QUIT:
+        if (state == XRF_STATE_STOPPED || state == XRF_STATE_ERROR)
+            return XRF_STATE_QUIT;
+        break;
+    default:
+        return -XRF_REJECT_UNKNOWN;
+    }
+    return -XRF_REJECT_NOT_ALLOWED;
+}
+
+void xrf_cmd_reject_reason(int32_t state, int32_t cmd, char *buf, size_t len)
+{
+    if (len == 0)
+        return;
+    if (xrf_cmd_transition(state, cmd) == -XRF_REJECT_UNKNOWN) {
+        snprintf(buf, len, "%d is not a command (1 initialise, 2 start, 3 stop, 4 reset, "
+                           "5 pause, 6 quit)", cmd);
+        return;
+    }
+    int n = snprintf(buf, len, "%s is not allowed in state %s; allowed:", xrf_cmd_name(cmd),
+                     xrf_state_name(state));
+    int any = 0;
+    for (int32_t c = XRF_CMD_INITIALISE; c <= XRF_CMD_QUIT && n > 0 && (size_t)n < len; c++) {
+        if (xrf_cmd_transition(state, c) > 0) {
+            n += snprintf(buf + n, len - (size_t)n, " %s", xrf_cmd_name(c));
+            any = 1;
+        }
+    }
+    if (!any && n > 0 && (size_t)n < len)
+        snprintf(buf + n, len - (size_t)n, " none");
+}
+
+const char *xrf_state_name(int32_t state)
+{
+    static const char *const names[] = {"?",        "IDLE",    "INITIALISING", "INITIALISED",
+                                        "RUN",      "STOPPING", "STOPPED",     "PAUSING",
+                                        "PAUSED",   "ERROR",   "QUIT"};
+    return (state >= 1 && state <= 10) ? names[state] : "?";
+}
+
+const char *xrf_cmd_name(int32_t cmd)
+{
+    static const char *const names[] = {"?", "initialise", "start", "stop", "reset", "pause",
+                                        "quit"};
+    return (cmd >= 1 && cmd <= 6) ? names[cmd] : "?";
+}
