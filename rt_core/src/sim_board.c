@@ -1,0 +1,423 @@
+/*
+ * sim_board.c — a simulated ico board: answers the 12-byte protocol as the FPGA does and drives
+ * a plant model advanced at each transfer. Faults are injected here, at the board's pins, so
+ * the framework sees exactly what broken hardware would show it. See docs/rt_core/simulator.md.
+ */
+#define _POSIX_C_SOURCE 200809L
+
+#include <errno.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+#include <strings.h>
+#include <time.h>
+
+#include "plant.h"
+#include "xrf/sim.h"
+
+#ifndef M_PI
+#define M_PI 3.14159265358979323846
+#endif
+
+#define SIM_COUNTS_PER_REV 4096.0 /* 1024-line encoder, quadrature */
+#define SIM_MAX_SUBSTEP_S 100e-6
+#define SIM_MAX_GAP_S 0.050 /* a stalled caller must not make the plant jump */
+
+struct sim_board {
+    struct xrf_ico_transport t; /* first, so the transport pointer is the object pointer */
+    int robot;
+    union {
+        struct xrf_jiwy jiwy;
+        struct xrf_relbot relbot;
+    } plant;
+    struct xrf_sim_faults faults;
+    double fixed_dt;
+    struct xrf_sim_outputs *outputs;
+
+    /* The board's registers. */
+    int16_t pwm[4];      /* signed duty as decoded, magnitude up to 14 bits */
+    uint8_t dout[4];
+    double enc_zero[4];  /* motor angle at the last RESET (the counters' zero) */
+
+    struct timespec last;
+    int have_last;
+};
+
+static double ts_diff(const struct timespec *a, const struct timespec *b)
+{
+    return (double)(a->tv_sec - b->tv_sec) + 1e-9 * (double)(a->tv_nsec - b->tv_nsec);
+}
+
+static double motor_angle(const struct sim_board *s, int ch)
+{
+    return s->robot == XRF_SIM_JIWY ? xrf_jiwy_motor_angle(&s->plant.jiwy, ch)
+                                    : xrf_relbot_motor_angle(&s->plant.relbot, ch);
+}
+
+static int forced_off(const struct sim_board *s)
+{
+    return s->outputs && __atomic_load_n(&s->outputs->forced_off, __ATOMIC_RELAXED) != 0;
+}
+
+static void advance(struct sim_board *s, double dt)
+{
+    if (!(dt > 0.0))
+        return;
+    double duty[4] = {0, 0, 0, 0};
+    if (!forced_off(s)) {
+        for (int ch = 0; ch < 4; ch++) {
+            double d = s->pwm[ch] / (double)XRF_ICO_PWM_FULL;
+            /* The 14-bit field can hold more than full scale; the PWM saturates at 100 %. */
+            if (d > 1.0)
+                d = 1.0;
+            else if (d < -1.0)
+                d = -1.0;
+            if (s->faults.reversed_motor & (1u << ch))
+                d = -d;
+            duty[ch] = d;
+        }
+    }
+    int n = (int)ceil(dt / SIM_MAX_SUBSTEP_S);
+    double h = dt / n;
+    for (int i = 0; i < n; i++) {
+        if (s->robot == XRF_SIM_JIWY)
+            xrf_jiwy_step(&s->plant.jiwy, duty, h);
+        else
+            xrf_relbot_step(&s->plant.relbot, duty, h);
+    }
+}
+
+static uint16_t encoder(const struct sim_board *s, int ch)
+{
+    if (s->faults.dead_encoder & (1u << ch))
+        return 0;
+    double a = motor_angle(s, ch);
+    if (isnan(a))
+        return 0;
+    double counts = floor((a - s->enc_zero[ch]) * (SIM_COUNTS_PER_REV / (2.0 * M_PI)));
+    /* fmod keeps the sign of the dividend; shift negatives into 0..16383. */
+    double w = fmod(counts, (double)XRF_ICO_ENC_MODULO);
+    if (w < 0)
+        w += XRF_ICO_ENC_MODULO;
+    return (uint16_t)w;
+}
+
+/* Input pin k (0..7 in xrf_ico_in.din order). Nothing is wired to the pins unless a fault or
+ * the loopback plug says so. */
+static int input_pin(const struct sim_board *s, int k)
+{
+    if (s->faults.stuck_input & (1u << k))
+        return (s->faults.stuck_value >> k) & 1u;
+    int ch = k / 2;
+    if ((k & 1) == 0 && (s->faults.loopback & (1u << ch)))
+        return s->dout[ch] && !forced_off(s);
+    return 0;
+}
+
+static uint16_t in_word(const struct sim_board *s, int ch)
+{
+    uint16_t w = encoder(s, ch);
+    if (input_pin(s, 2 * ch))
+        w |= 0x4000u;
+    if (input_pin(s, 2 * ch + 1))
+        w |= 0x8000u;
+    return w;
+}
+
+static void put_le16(uint8_t *p, uint16_t w)
+{
+    p[0] = (uint8_t)(w & 0xFF);
+    p[1] = (uint8_t)(w >> 8);
+}
+
+static int16_t word_pwm(uint16_t w)
+{
+    int16_t mag = (int16_t)(w & 0x3FFFu);
+    return (w & 0x4000u) ? mag : (int16_t)-mag;
+}
+
+static void reset_board(struct sim_board *s)
+{
+    for (int ch = 0; ch < 4; ch++) {
+        s->pwm[ch] = 0;
+        s->dout[ch] = 0;
+        double a = motor_angle(s, ch);
+        s->enc_zero[ch] = isnan(a) ? 0.0 : a;
+    }
+}
+
+static void mirror(struct sim_board *s)
+{
+    struct xrf_sim_outputs *o = s->outputs;
+    if (!o)
+        return;
+    int off = forced_off(s);
+    for (int ch = 0; ch < 4; ch++) {
+        o->pwm[ch] = off ? 0 : s->pwm[ch];
+        o->dout[ch] = off ? 0 : s->dout[ch];
+    }
+    if (s->robot == XRF_SIM_JIWY)
+        xrf_jiwy_mirror(&s->plant.jiwy, o->plant);
+    else
+        xrf_relbot_mirror(&s->plant.relbot, o->plant);
+    __atomic_store_n(&o->active, 1u, __ATOMIC_RELEASE);
+}
+
+static void busy_wait_until(const struct timespec *start, uint32_t us)
+{
+    /* Spinning on the vDSO clock holds the caller for the whole transfer like a slow wire would,
+     * without a system call that could demote an EVL thread. */
+    struct timespec now;
+    do
+        clock_gettime(CLOCK_MONOTONIC, &now);
+    while (ts_diff(&now, start) * 1e6 < (double)us);
+}
+
+static int sim_xfer(struct xrf_ico_transport *t, const uint8_t tx[XRF_ICO_FRAME],
+                    uint8_t rx[XRF_ICO_FRAME])
+{
+    struct sim_board *s = (struct sim_board *)t;
+    struct timespec now;
+    clock_gettime(CLOCK_MONOTONIC, &now);
+
+    /* The outputs set by the previous frame acted until now; this frame's take over after. */
+    double dt;
+    if (s->fixed_dt > 0.0) {
+        dt = s->fixed_dt;
+    } else {
+        dt = s->have_last ? ts_diff(&now, &s->last) : 0.0;
+        if (dt > SIM_MAX_GAP_S)
+            dt = SIM_MAX_GAP_S;
+    }
+    s->last = now;
+    s->have_last = 1;
+    advance(s, dt);
+
+    /* Copy first: tx and rx may be the same buffer. */
+    uint8_t in[XRF_ICO_FRAME];
+    memcpy(in, tx, XRF_ICO_FRAME);
+    memset(rx, 0, XRF_ICO_FRAME);
+
+    uint8_t op = in[0];
+    switch (op) {
+    case XRF_ICO_INIT:
+        if (!s->faults.no_init_reply)
+            rx[XRF_ICO_INIT_REPLY_BYTE] = XRF_ICO_INIT_REPLY;
+        break;
+    case XRF_ICO_RESET:
+        reset_board(s);
+        break;
+    case XRF_ICO_ALL:
+        /* Inputs are latched before the new outputs apply, so a loopback shows last frame's
+         * output, as on the FPGA where the reply is shifted out while the frame comes in. */
+        for (int ch = 0; ch < 4; ch++)
+            put_le16(&rx[1 + 2 * ch], in_word(s, ch));
+        for (int ch = 0; ch < 4; ch++) {
+            uint16_t w = (uint16_t)(in[2 + 2 * ch] | (in[3 + 2 * ch] << 8));
+            s->pwm[ch] = word_pwm(w);
+            s->dout[ch] = (w & 0x8000u) ? 1 : 0;
+        }
+        break;
+    case XRF_ICO_PWM_1:
+    case XRF_ICO_PWM_1 + 1:
+    case XRF_ICO_PWM_1 + 2:
+    case XRF_ICO_PWM_1 + 3:
+        s->pwm[op - XRF_ICO_PWM_1] = word_pwm((uint16_t)(in[2] | (in[3] << 8)));
+        break;
+    case XRF_ICO_ENC_1:
+    case XRF_ICO_ENC_1 + 1:
+    case XRF_ICO_ENC_1 + 2:
+    case XRF_ICO_ENC_1 + 3:
+        put_le16(&rx[1], encoder(s, op - XRF_ICO_ENC_1));
+        break;
+    case XRF_ICO_TEST: {
+        uint8_t pattern[XRF_ICO_FRAME];
+        xrf_ico_test_pattern(pattern);
+        memcpy(&rx[1], &pattern[1], XRF_ICO_FRAME - 1);
+        rx[0] = 0;
+        if (s->faults.corrupt_echo) {
+            /* A few scattered bits, as a marginal clock or a bad ground would flip them. */
+            rx[2] ^= 0x10;
+            rx[7] ^= 0x01;
+            rx[11] ^= 0x80;
+        }
+        break;
+    }
+    default: /* NOOP and unknown opcodes: the FPGA shifts out zeros */
+        break;
+    }
+
+    mirror(s);
+    if (s->faults.slow_link_us)
+        busy_wait_until(&now, s->faults.slow_link_us);
+    return 0;
+}
+
+static void sim_close(struct xrf_ico_transport *t)
+{
+    struct sim_board *s = (struct sim_board *)t;
+    if (!s)
+        return;
+    if (s->outputs)
+        __atomic_store_n(&s->outputs->active, 0u, __ATOMIC_RELEASE);
+    free(s);
+}
+
+int xrf_sim_open(int robot, const struct xrf_sim_faults *faults, double fixed_dt_s,
+                 struct xrf_sim_outputs *outputs, struct xrf_ico_transport **out)
+{
+    if (!out)
+        return -EINVAL;
+    *out = NULL;
+    if (robot != XRF_SIM_RELBOT && robot != XRF_SIM_JIWY)
+        return -EINVAL;
+    struct sim_board *s = calloc(1, sizeof *s);
+    if (!s)
+        return -ENOMEM;
+    s->robot = robot;
+    if (robot == XRF_SIM_JIWY)
+        xrf_jiwy_init(&s->plant.jiwy);
+    else
+        xrf_relbot_init(&s->plant.relbot);
+    if (faults)
+        s->faults = *faults;
+    s->fixed_dt = fixed_dt_s > 0.0 ? fixed_dt_s : 0.0;
+    s->outputs = outputs;
+    reset_board(s);
+    s->t.name = "sim";
+    s->t.xfer = sim_xfer;
+    s->t.close = sim_close;
+    mirror(s);
+    *out = &s->t;
+    return 0;
+}
+
+int xrf_sim_robot_from_name(const char *name)
+{
+    if (name && strcasecmp(name, "relbot") == 0)
+        return XRF_SIM_RELBOT;
+    if (name && strcasecmp(name, "jiwy") == 0)
+        return XRF_SIM_JIWY;
+    return -EINVAL;
+}
+
+int xrf_sim_plant_state(struct xrf_ico_transport *t, double *state, int n)
+{
+    if (!t || t->xfer != sim_xfer || (!state && n > 0) || n < 0)
+        return -EINVAL;
+    const struct sim_board *s = (const struct sim_board *)t;
+    return s->robot == XRF_SIM_JIWY ? xrf_jiwy_state(&s->plant.jiwy, state, n)
+                                    : xrf_relbot_state(&s->plant.relbot, state, n);
+}
+
+/* --- fault spec ------------------------------------------------------------------------- */
+
+/* Parses a whole decimal number in [lo, hi] from [p, end). */
+static int parse_uint(const char *p, const char *end, unsigned long lo, unsigned long hi,
+                      unsigned long *v)
+{
+    if (p == end)
+        return -EINVAL;
+    unsigned long x = 0;
+    for (; p < end; p++) {
+        if (*p < '0' || *p > '9')
+            return -EINVAL;
+        x = x * 10 + (unsigned long)(*p - '0');
+        if (x > hi)
+            return -EINVAL;
+    }
+    if (x < lo)
+        return -EINVAL;
+    *v = x;
+    return 0;
+}
+
+static int key_is(const char *k, size_t klen, const char *name)
+{
+    return strlen(name) == klen && strncmp(k, name, klen) == 0;
+}
+
+static int parse_item(const char *p, const char *end, struct xrf_sim_faults *f)
+{
+    const char *eq = memchr(p, '=', (size_t)(end - p));
+    const char *k = p;
+    size_t klen = (size_t)((eq ? eq : end) - p);
+    const char *v = eq ? eq + 1 : end;
+    unsigned long x, y;
+
+    if (key_is(k, klen, "no_init") || key_is(k, klen, "no_init_reply") ||
+        key_is(k, klen, "corrupt_echo")) {
+        int on = 1;
+        if (eq) {
+            if (parse_uint(v, end, 0, 1, &x))
+                return -EINVAL;
+            on = (int)x;
+        }
+        if (key_is(k, klen, "corrupt_echo"))
+            f->corrupt_echo = on;
+        else
+            f->no_init_reply = on;
+        return 0;
+    }
+    if (!eq)
+        return -EINVAL;
+    if (key_is(k, klen, "dead_encoder") || key_is(k, klen, "reversed_motor") ||
+        key_is(k, klen, "loopback")) {
+        if (parse_uint(v, end, 1, 4, &x))
+            return -EINVAL;
+        uint8_t bit = (uint8_t)(1u << (x - 1));
+        if (key_is(k, klen, "dead_encoder"))
+            f->dead_encoder |= bit;
+        else if (key_is(k, klen, "reversed_motor"))
+            f->reversed_motor |= bit;
+        else
+            f->loopback |= bit;
+        return 0;
+    }
+    if (key_is(k, klen, "stuck_input")) {
+        const char *colon = memchr(v, ':', (size_t)(end - v));
+        if (!colon || parse_uint(v, colon, 1, 8, &x) || parse_uint(colon + 1, end, 0, 1, &y))
+            return -EINVAL;
+        uint8_t bit = (uint8_t)(1u << (x - 1));
+        f->stuck_input |= bit;
+        if (y)
+            f->stuck_value |= bit;
+        else
+            f->stuck_value &= (uint8_t)~bit;
+        return 0;
+    }
+    if (key_is(k, klen, "slow_link_us")) {
+        if (parse_uint(v, end, 0, 10000000, &x))
+            return -EINVAL;
+        f->slow_link_us = (uint32_t)x;
+        return 0;
+    }
+    return -EINVAL;
+}
+
+int xrf_sim_parse_faults(const char *spec, struct xrf_sim_faults *faults)
+{
+    if (!faults)
+        return -EINVAL;
+    memset(faults, 0, sizeof *faults);
+    if (!spec)
+        return 0;
+    const char *p = spec;
+    while (*p) {
+        const char *end = strchr(p, ',');
+        if (!end)
+            end = p + strlen(p);
+        /* Spaces around items are a typing convenience, not part of a name. */
+        const char *a = p, *b = end;
+        while (a < b && (*a == ' ' || *a == '\t'))
+            a++;
+        while (b > a && (b[-1] == ' ' || b[-1] == '\t'))
+            b--;
+        if (a < b && parse_item(a, b, faults) != 0) {
+            memset(faults, 0, sizeof *faults);
+            return -EINVAL;
+        }
+        p = *end ? end + 1 : end;
+    }
+    return 0;
+}
