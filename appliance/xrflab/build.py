@@ -1,0 +1,492 @@
+"""Building rt_core and student controller projects.
+
+Two entry points:
+
+- ``ensure_rt_core()`` configures, builds and installs rt_core once per content hash into a
+  cache prefix and returns that prefix (the ``CMAKE_PREFIX_PATH`` for ``find_package(XrfRt)``).
+- ``build_project()`` builds a student project against it and returns the executable.
+
+A project comes in one of two layouts:
+
+- ``xrf``: its CMakeLists.txt uses ``find_package(XrfRt)`` + ``xrf_add_controller()``;
+  built as it is.
+- ``xrf2``: written for XRF2 (its CMakeLists.txt compiles ``../XRF2/XenoRosFramework`` and
+  links evl/rclcpp as an ament package). Its C++ files are built unchanged against rt_core
+  with a CMakeLists.txt we generate in the build folder; the project folder is never written.
+
+Output streams line by line to ``log``; a failure raises ``BuildError`` carrying the tail of
+the output so the user sees the compiler's or CMake's own message.
+"""
+
+from __future__ import annotations
+
+import collections
+import fcntl
+import hashlib
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, Literal, Optional
+
+Log = Callable[[str], None]
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+LOG_TAIL_LINES = 200
+
+# Files XRF2 shipped as framework sources. A project folder that carries a copy (some students
+# copied the framework next to their code) must not compile it: rt_core provides these.
+XRF2_FRAMEWORK_STEMS = {
+    "XenoFrtLoop", "XenoFrtRosIco", "XenoFrt20Sim", "FullStateMachine", "XenoFrtLogger",
+    "XenoFileHandler", "XenoFrtMonitor", "IcoIo", "XenoSpiControllerHandler",
+    "XenoRosCommunication", "XenoRosDataBridge", "XenoRosCommandBridge", "configuration",
+}
+_MAIN_RE = re.compile(r"^\s*int\s+main\s*\(", re.MULTILINE)
+_SKIP_DIRS = {"build", "install", "log", ".git", "__pycache__", ".vscode", ".idea"}
+
+
+class BuildError(Exception):
+    """A build step failed. ``str()`` is the reason followed by the output's last lines."""
+
+    def __init__(self, message: str, log_tail: str = "") -> None:
+        self.message = message
+        self.log_tail = log_tail
+        super().__init__(f"{message}\n{log_tail}" if log_tail else message)
+
+
+@dataclass
+class BuildResult:
+    executable: Path
+    build_dir: Path
+    layout: Literal["xrf", "xrf2"]
+    taken: list[str] = field(default_factory=list)
+    left_out: dict[str, str] = field(default_factory=dict)
+    twenty_sim: Optional[dict] = None
+
+
+# ---------------------------------------------------------------------------------------
+# running commands
+
+def _run(cmd: list[str], log: Log, cwd: Optional[Path] = None, what: str = "") -> list[str]:
+    """Run ``cmd``, passing each output line to ``log`` as it arrives; return all lines.
+
+    stderr is merged into stdout so errors appear in order with the lines around them.
+    """
+    log("$ " + " ".join(cmd))
+    tail: collections.deque[str] = collections.deque(maxlen=LOG_TAIL_LINES)
+    lines: list[str] = []
+    env = dict(os.environ)
+    env.setdefault("CLICOLOR_FORCE", "0")
+    try:
+        proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                text=True, errors="replace", bufsize=1, env=env)
+    except OSError as exc:
+        raise BuildError(f"{what or cmd[0]}: cannot run {cmd[0]}: {exc}") from exc
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        line = line.rstrip("\n")
+        tail.append(line)
+        lines.append(line)
+        log(line)
+    rc = proc.wait()
+    if rc != 0:
+        raise BuildError(f"{what or ' '.join(cmd)} failed (exit {rc})", "\n".join(tail))
+    return lines
+
+
+def _generator_args(build_dir: Path) -> list[str]:
+    # A build folder keeps the generator it was configured with; only choose for a new one.
+    if (build_dir / "CMakeCache.txt").exists():
+        return []
+    return ["-G", "Ninja"] if shutil.which("ninja") else []
+
+
+def _jobs() -> str:
+    return str(max(1, (os.cpu_count() or 2)))
+
+
+# ---------------------------------------------------------------------------------------
+# rt_core
+
+def _content_hash(paths: Iterable[Path]) -> str:
+    """Hash of file names and contents under ``paths`` (build folders and caches skipped)."""
+    h = hashlib.sha256()
+    for root in paths:
+        files = [root] if root.is_file() else sorted(
+            p for p in root.rglob("*")
+            if p.is_file() and not any(part in _SKIP_DIRS or part.startswith("build")
+                                       for part in p.relative_to(root).parts))
+        for p in files:
+            h.update(str(p.relative_to(root.parent)).encode())
+            h.update(b"\0")
+            h.update(p.read_bytes())
+            h.update(b"\0")
+    return h.hexdigest()[:16]
+
+
+def _cache_root() -> Path:
+    base = os.environ.get("XRF_CACHE_DIR")
+    return Path(base) if base else Path.home() / ".cache" / "xrf-lab"
+
+
+def ensure_rt_core(log: Log = print, source_root: Optional[Path] = None) -> Path:
+    """Build and install rt_core unless an install with the same content hash exists.
+
+    Returns the install prefix. Concurrent callers (two builds started at once) serialise on
+    a file lock; the second finds the first's install and reuses it.
+    """
+    root = Path(source_root) if source_root else REPO_ROOT
+    rt_core = root / "rt_core"
+    msgdef = root / "appliance" / "xrflab" / "msgdef.py"
+    for p in (rt_core / "CMakeLists.txt", msgdef):
+        if not p.exists():
+            raise BuildError(f"{p}: not found (cannot build rt_core)")
+    digest = _content_hash([rt_core, msgdef])
+    cache = _cache_root() / "rt_core"
+    prefix = cache / digest
+    done = prefix / ".xrf-complete"
+    if done.exists():
+        return prefix
+    cache.mkdir(parents=True, exist_ok=True)
+    with open(cache / f"{digest}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if done.exists():
+            return prefix
+        log(f"rt_core: building into {prefix} (content hash {digest})")
+        shutil.rmtree(prefix, ignore_errors=True)
+        work = cache / f"{digest}.build"
+        shutil.rmtree(work, ignore_errors=True)
+        _run(["cmake", "-S", str(rt_core), "-B", str(work), *_generator_args(work),
+              "-DCMAKE_BUILD_TYPE=RelWithDebInfo", f"-DCMAKE_INSTALL_PREFIX={prefix}",
+              # Keep the library in lib/ on every distro: the prefix is private anyway.
+              "-DCMAKE_INSTALL_LIBDIR=lib"], log, what="rt_core configure")
+        _run(["cmake", "--build", str(work), "--parallel", _jobs()], log, what="rt_core build")
+        _run(["cmake", "--install", str(work)], log, what="rt_core install")
+        done.write_text(digest + "\n")
+        shutil.rmtree(work, ignore_errors=True)
+        log(f"rt_core: installed in {prefix}")
+    return prefix
+
+
+# ---------------------------------------------------------------------------------------
+# project layouts
+
+def detect_layout(project_dir: Path) -> Literal["xrf", "xrf2"]:
+    cml = project_dir / "CMakeLists.txt"
+    if not cml.exists():
+        raise BuildError(f"{cml}: not found (a project needs a CMakeLists.txt)")
+    text = _strip_cmake_comments(cml.read_text(errors="replace"))
+    if "xrf_add_controller" in text or re.search(r"find_package\s*\(\s*XrfRt", text):
+        return "xrf"
+    if re.search(r"XenoRosFramework|ament_cmake|\brclcpp\b|ament_package", text):
+        return "xrf2"
+    # Neither: a plain CMake project. Build it as it is; the executable is found by the
+    # CMake file API.
+    return "xrf"
+
+
+def _strip_cmake_comments(text: str) -> str:
+    return "\n".join(line.split("#", 1)[0] for line in text.splitlines())
+
+
+def _rel(p: Path, base: Path) -> str:
+    try:
+        return str(p.resolve().relative_to(base.resolve()))
+    except ValueError:
+        return str(p)
+
+
+def _has_main(path: Path) -> bool:
+    return bool(_MAIN_RE.search(path.read_text(errors="replace")))
+
+
+def _walk(project: Path) -> list[Path]:
+    out: list[Path] = []
+    for dirpath, dirnames, filenames in os.walk(project):
+        dirnames[:] = sorted(d for d in dirnames if d not in _SKIP_DIRS and not d.startswith("."))
+        out.extend(Path(dirpath) / f for f in sorted(filenames))
+    return out
+
+
+@dataclass
+class _Xrf2Plan:
+    name: str
+    sources: list[Path]
+    include_dirs: list[Path]
+    msg_dir: Path
+    twenty_sim: Optional[Path]
+    taken: list[str]
+    left_out: dict[str, str]
+
+
+def _xrf2_executable_name(cml_text: str, project: Path) -> str:
+    m = re.search(r"add_executable\s*\(\s*([A-Za-z0-9_.+-]+)", _strip_cmake_comments(cml_text))
+    name = m.group(1) if m and "$" not in m.group(1) else project.name
+    name = re.sub(r"[^A-Za-z0-9_.+-]", "_", name) or "controller"
+    return name
+
+
+def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
+    """Decide which files of an XRF2-layout project to compile, and why others are not."""
+    project = project.resolve()
+    cml_text = (project / "CMakeLists.txt").read_text(errors="replace")
+    taken: list[str] = []
+    left_out: dict[str, str] = {
+        "CMakeLists.txt": "XRF2 build file (compiles ../XRF2/XenoRosFramework, links evl/rclcpp); "
+                          "replaced by a generated one that uses rt_core",
+    }
+    controller = project / "controller"
+    twenty_sim: Optional[Path] = None
+    if controller.is_dir() and any(controller.glob("*_tokens.xml")):
+        twenty_sim = controller
+
+    sources: list[Path] = []
+    include_dirs: list[Path] = []
+    mains: list[Path] = []
+    for path in _walk(project):
+        rel = _rel(path, project)
+        parts = Path(rel).parts
+        suffix = path.suffix.lower()
+        if twenty_sim is not None and parts[0] == "controller":
+            # xrf_add_controller(TWENTY_SIM) takes the model and common/ itself.
+            if suffix in (".cpp", ".c", ".h", ".hpp"):
+                if path.name.startswith("test_") and suffix in (".cpp", ".c"):
+                    left_out[rel] = "20-sim test program with its own main()"
+                elif len(parts) <= 2 or parts[1] == "common":
+                    taken.append(rel)
+                else:
+                    left_out[rel] = "not in the 20-sim folder or its common/"
+            elif path.name.endswith("_tokens.xml"):
+                taken.append(rel)
+            continue
+        if path.stem in XRF2_FRAMEWORK_STEMS and suffix in (".cpp", ".hpp", ".h", ".c"):
+            left_out[rel] = "XRF2 framework file; rt_core provides this class"
+            continue
+        if path.name == "package.xml":
+            left_out[rel] = "ROS 2 package manifest; not used with rt_core"
+        elif suffix == ".py":
+            left_out[rel] = ("script (XRF2's token extraction is done by xrf_add_controller)"
+                             if "token" in path.name.lower() else "script; not part of the controller")
+        elif suffix in (".cpp", ".cc", ".cxx", ".c"):
+            if path.name.startswith("test_") and _has_main(path):
+                left_out[rel] = "test program with its own main()"
+            elif _has_main(path):
+                mains.append(path)
+                sources.append(path)
+            else:
+                sources.append(path)
+        elif suffix in (".h", ".hpp", ".hh"):
+            if path.parent not in include_dirs:
+                include_dirs.append(path.parent)
+            taken.append(rel)
+        elif suffix == ".msg" and (msg_dir is None):
+            pass  # reported below with the message folder
+    if len(mains) > 1:
+        # XRF2 projects have one main.cpp; keep it and leave any other program out.
+        keep = next((m for m in mains if m.name == "main.cpp"), None)
+        if keep is None:
+            raise BuildError("several files define main(): "
+                             + ", ".join(_rel(m, project) for m in mains)
+                             + "; cannot tell which one is the controller")
+        for m in mains:
+            if m != keep:
+                sources.remove(m)
+                left_out[_rel(m, project)] = f"has its own main(); {_rel(keep, project)} is the program"
+    if not mains:
+        raise BuildError(f"{project}: no C++ file defines main() (XRF2 projects have src/main.cpp)")
+    for s in sources:
+        taken.append(_rel(s, project))
+    inc = project / "include"
+    if inc.is_dir() and inc not in include_dirs:
+        include_dirs.insert(0, inc)
+
+    mdir = Path(msg_dir).resolve() if msg_dir else project / "msg"
+    for f in ("Ros2Xeno.msg", "Xeno2Ros.msg"):
+        if (mdir / f).exists():
+            taken.append(_rel(mdir / f, project))
+    return _Xrf2Plan(_xrf2_executable_name(cml_text, project), sources, include_dirs, mdir,
+                     twenty_sim, sorted(set(taken)), dict(sorted(left_out.items())))
+
+
+def _cmake_quote(p: Path | str) -> str:
+    s = str(p).replace("\\", "/")
+    return '"' + s.replace('"', '\\"') + '"'
+
+
+def _write_xrf2_wrapper(plan: _Xrf2Plan, project: Path, dest: Path) -> None:
+    dest.mkdir(parents=True, exist_ok=True)
+    lines = [
+        "# Generated by xrflab.build for the XRF2-layout project",
+        f"#   {project}",
+        "# Its own CMakeLists.txt builds against XRF2 (ament, rclcpp, evl); this one builds the",
+        "# same C++ files, unchanged, against rt_core. Do not edit: it is rewritten every build.",
+        "cmake_minimum_required(VERSION 3.16)",
+        f"project({re.sub(r'[^A-Za-z0-9_]', '_', plan.name)}_xrf LANGUAGES C CXX)",
+        "find_package(XrfRt REQUIRED)",
+        f"xrf_add_controller({plan.name}",
+        "  SOURCES " + " ".join(_cmake_quote(s) for s in plan.sources),
+    ]
+    if plan.include_dirs:
+        lines.append("  INCLUDE_DIRS " + " ".join(_cmake_quote(d) for d in plan.include_dirs))
+    lines.append(f"  MSG_DIR {_cmake_quote(plan.msg_dir)}")
+    if plan.twenty_sim:
+        lines.append(f"  TWENTY_SIM {_cmake_quote(plan.twenty_sim)}")
+    lines.append(")")
+    text = "\n".join(lines) + "\n"
+    target = dest / "CMakeLists.txt"
+    # Unchanged content keeps its timestamp, so an incremental build does not reconfigure.
+    if not target.exists() or target.read_text() != text:
+        target.write_text(text)
+
+
+# ---------------------------------------------------------------------------------------
+# finding the executable
+
+def _controller_records(build_dir: Path) -> list[dict]:
+    out = []
+    for f in sorted((build_dir / "xrf_controllers").glob("*.json")):
+        try:
+            out.append(json.loads(f.read_text()))
+        except json.JSONDecodeError as exc:
+            raise BuildError(f"{f}: unreadable controller record ({exc}); "
+                             "is a path with a quote or backslash involved?") from exc
+    return out
+
+
+_FILE_API_QUERY = Path(".cmake/api/v1/query/client-xrflab/query.json")
+
+
+def _write_file_api_query(build_dir: Path) -> None:
+    q = build_dir / _FILE_API_QUERY
+    q.parent.mkdir(parents=True, exist_ok=True)
+    q.write_text(json.dumps({"requests": [{"kind": "codemodel", "version": 2}]}))
+
+
+def _executables_from_file_api(build_dir: Path) -> list[Path]:
+    reply = build_dir / ".cmake/api/v1/reply"
+    indexes = sorted(reply.glob("index-*.json"))
+    if not indexes:
+        return []
+    index = json.loads(indexes[-1].read_text())
+    resp = index.get("reply", {}).get("client-xrflab", {}).get("query.json", {})
+    cm = next((r for r in resp.get("responses", []) if r.get("kind") == "codemodel"), None)
+    if not cm:
+        return []
+    codemodel = json.loads((reply / cm["jsonFile"]).read_text())
+    exes: list[Path] = []
+    for conf in codemodel.get("configurations", [])[:1]:
+        for t in conf.get("targets", []):
+            target = json.loads((reply / t["jsonFile"]).read_text())
+            if target.get("type") == "EXECUTABLE":
+                for a in target.get("artifacts", []):
+                    p = Path(a["path"])
+                    exes.append(p if p.is_absolute() else build_dir / p)
+    return exes
+
+
+def _find_executable(build_dir: Path) -> tuple[Path, Optional[dict]]:
+    records = _controller_records(build_dir)
+    if len(records) == 1:
+        return Path(records[0]["executable"]), records[0]
+    if len(records) > 1:
+        raise BuildError("the project defines several controllers ("
+                         + ", ".join(r["target"] for r in records) + "); one project, one controller")
+    exes = _executables_from_file_api(build_dir)
+    if len(exes) == 1:
+        return exes[0], None
+    if not exes:
+        raise BuildError("the project builds no executable (call xrf_add_controller())")
+    raise BuildError("the project builds several executables (" + ", ".join(str(e) for e in exes)
+                     + "); use xrf_add_controller() for the controller")
+
+
+# ---------------------------------------------------------------------------------------
+# the build
+
+def build_project(project_dir: Path | str, build_dir: Path | str | None = None, log: Log = print,
+                  msg_dir: Path | str | None = None) -> BuildResult:
+    """Configure and build a student project against rt_core; return what was built.
+
+    ``build_dir`` defaults to ``<project>/build``. ``msg_dir`` overrides where Ros2Xeno.msg and
+    Xeno2Ros.msg come from (the project's ``msg/`` otherwise).
+    """
+    project = Path(project_dir).resolve()
+    if not project.is_dir():
+        raise BuildError(f"{project}: project folder not found")
+    build = Path(build_dir).resolve() if build_dir else project / "build"
+    layout = detect_layout(project)
+    prefix = ensure_rt_core(log)
+
+    plan: Optional[_Xrf2Plan] = None
+    if layout == "xrf2":
+        plan = plan_xrf2(project, Path(msg_dir) if msg_dir else None)
+        log(f"XRF2-layout project: building its files unchanged against rt_core")
+        for t in plan.taken:
+            log(f"  taken:    {t}")
+        for f, why in plan.left_out.items():
+            log(f"  left out: {f}: {why}")
+        source = build / "xrf2-wrapper"
+        _write_xrf2_wrapper(plan, project, source)
+        binary = build / "cmake"
+    else:
+        source = project
+        binary = build
+    binary.mkdir(parents=True, exist_ok=True)
+    _write_file_api_query(binary)
+
+    cmd = ["cmake", "-S", str(source), "-B", str(binary), *_generator_args(binary),
+           "-DCMAKE_BUILD_TYPE=Release", f"-DCMAKE_PREFIX_PATH={prefix}",
+           f"-DPython3_EXECUTABLE={sys.executable}"]
+    if msg_dir and layout == "xrf":
+        cmd.append(f"-DXRF_MSG_DIR={Path(msg_dir).resolve()}")
+    _run(cmd, log, what="configure")
+    _run(["cmake", "--build", str(binary), "--parallel", _jobs()], log, what="build")
+
+    exe, record = _find_executable(binary)
+    if not exe.exists():
+        raise BuildError(f"{exe}: the build finished but the executable is missing")
+
+    taken: list[str]
+    left_out: dict[str, str]
+    twenty: Optional[dict] = None
+    if record and record.get("twenty_sim"):
+        twenty = dict(record["twenty_sim"])
+        for k in ("folder", "tokens_file"):
+            twenty[k] = _rel(Path(twenty[k]), project)
+    if plan is not None:
+        taken, left_out = plan.taken, plan.left_out
+    elif record:
+        taken = sorted(_rel(Path(s), project) for s in record["sources"])
+        left_out = {_rel(Path(s), project): "20-sim test program with its own main()"
+                    for s in record.get("left_out_test_programs", [])}
+    else:
+        taken, left_out = [], {}
+    log(f"built {exe}")
+    return BuildResult(executable=exe, build_dir=build, layout=layout, taken=taken,
+                       left_out=left_out, twenty_sim=twenty)
+
+
+def _main(argv: list[str]) -> int:
+    import argparse
+
+    ap = argparse.ArgumentParser(description="Build an XRF Lab (or XRF2) controller project.")
+    ap.add_argument("project")
+    ap.add_argument("--build-dir")
+    ap.add_argument("--msg-dir")
+    a = ap.parse_args(argv)
+    try:
+        r = build_project(a.project, a.build_dir, msg_dir=a.msg_dir)
+    except BuildError as exc:
+        print(f"error: {exc.message}", file=sys.stderr)
+        return 1
+    print(json.dumps({"executable": str(r.executable), "layout": r.layout, "taken": r.taken,
+                      "left_out": r.left_out, "twenty_sim": r.twenty_sim}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_main(sys.argv[1:]))
