@@ -1,0 +1,141 @@
+"""Builds the cffi binding of rt_core's channels (API mode) on first use and caches it.
+
+The cdef is the text between the ``/* cffi-begin */`` and ``/* cffi-end */`` markers of
+``rt_core/include/xrf/channels.h`` and the extension compiles ``rt_core/src/channels.c`` itself,
+so Python uses the very layout and ring code the loop uses: nothing is written down twice.
+
+The compiled module lives in ``$XRF_CACHE_DIR/<hash>/`` (default ``~/.cache/xrf-lab/cffi/<hash>/``)
+where the hash covers channels.h, channels.c, this script and the Python ABI. A file lock keeps
+concurrent first imports (tests in parallel, the appliance and a CLI) from building over each
+other.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import importlib.util
+import os
+import sys
+import sysconfig
+from pathlib import Path
+from types import ModuleType
+
+MODULE_NAME = "_xrf_channels"
+CDEF_BEGIN = "/* cffi-begin */"
+CDEF_END = "/* cffi-end */"
+
+# Host-side helpers that channels.h does not need to offer the C runtime: plain Python attribute
+# access compiles to ordinary loads and stores, which is not enough for the words that publish
+# something (ready, ring heads) on a weakly ordered CPU such as the Pi's.
+HELPERS_CDEF = """
+uint32_t xrfpy_load_u32(const uint32_t *p);
+uint64_t xrfpy_load_u64(const uint64_t *p);
+void xrfpy_store_u32(uint32_t *p, uint32_t v);
+void xrfpy_store_i64(int64_t *p, int64_t v);
+"""
+HELPERS_SOURCE = """
+uint32_t xrfpy_load_u32(const uint32_t *p) { return __atomic_load_n(p, __ATOMIC_ACQUIRE); }
+uint64_t xrfpy_load_u64(const uint64_t *p) { return __atomic_load_n(p, __ATOMIC_ACQUIRE); }
+void xrfpy_store_u32(uint32_t *p, uint32_t v) { __atomic_store_n(p, v, __ATOMIC_RELEASE); }
+void xrfpy_store_i64(int64_t *p, int64_t v) { __atomic_store_n(p, v, __ATOMIC_RELEASE); }
+"""
+
+
+def rt_core_dir() -> Path:
+    """rt_core beside the package (``<repo>/appliance/xrflab`` -> ``<repo>/rt_core``)."""
+    override = os.environ.get("XRF_RT_CORE")
+    if override:
+        return Path(override).resolve()
+    return Path(__file__).resolve().parents[2] / "rt_core"
+
+
+def _sources() -> tuple[Path, Path]:
+    rt = rt_core_dir()
+    header = rt / "include" / "xrf" / "channels.h"
+    source = rt / "src" / "channels.c"
+    for path in (header, source):
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"{path} not found: xrflab.channels needs rt_core beside the package "
+                "(or XRF_RT_CORE pointing at it)"
+            )
+    return header, source
+
+
+def extract_cdef(header_text: str) -> str:
+    """The part of channels.h meant for cffi."""
+    start = header_text.find(CDEF_BEGIN)
+    end = header_text.find(CDEF_END)
+    if start < 0 or end < start:
+        raise ValueError(f"channels.h lacks the {CDEF_BEGIN} ... {CDEF_END} markers")
+    return header_text[start + len(CDEF_BEGIN) : end]
+
+
+def build_hash() -> str:
+    header, source = _sources()
+    digest = hashlib.sha256()
+    for path in (header, source, Path(__file__).resolve()):
+        digest.update(path.read_bytes())
+    # The same home directory may serve several interpreters; an extension fits only one ABI.
+    digest.update(sys.implementation.cache_tag.encode())
+    digest.update(sysconfig.get_platform().encode())
+    return digest.hexdigest()[:16]
+
+
+def cache_dir() -> Path:
+    base = os.environ.get("XRF_CACHE_DIR")
+    root = Path(base) if base else Path.home() / ".cache" / "xrf-lab" / "cffi"
+    return root / build_hash()
+
+
+def _compile_into(target: Path) -> None:
+    import cffi  # imported here: only a first build needs the compiler side of cffi
+
+    header, source = _sources()
+    ffi = cffi.FFI()
+    ffi.cdef(extract_cdef(header.read_text()))
+    ffi.cdef(HELPERS_CDEF)
+    ffi.set_source(
+        MODULE_NAME,
+        '#include "xrf/channels.h"\n' + HELPERS_SOURCE,
+        sources=[str(source)],
+        include_dirs=[str(header.parent.parent)],
+        extra_compile_args=["-O2", "-std=gnu11"],
+    )
+    ffi.compile(tmpdir=str(target), verbose=False)
+
+
+def _find_extension(directory: Path) -> Path | None:
+    for candidate in sorted(directory.glob(MODULE_NAME + "*.so")):
+        return candidate
+    return None
+
+
+def load() -> ModuleType:
+    """Import the compiled binding, building it first if this source version has none yet."""
+    if MODULE_NAME in sys.modules:
+        return sys.modules[MODULE_NAME]
+    target = cache_dir()
+    target.mkdir(parents=True, exist_ok=True)
+    done_marker = target / "complete"
+    if not done_marker.exists():
+        with open(target.parent / (target.name + ".lock"), "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            # Another process may have finished the build while this one waited for the lock.
+            if not done_marker.exists():
+                _compile_into(target)
+                done_marker.write_text("ok\n")
+    extension = _find_extension(target)
+    if extension is None:
+        raise ImportError(f"cffi build in {target} produced no {MODULE_NAME} extension")
+    spec = importlib.util.spec_from_file_location(MODULE_NAME, extension)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    sys.modules[MODULE_NAME] = module
+    return module
+
+
+if __name__ == "__main__":
+    print(load().__file__)
