@@ -36,6 +36,14 @@
 #else
 #error "libevl headers define neither EVL_T_WOSS nor T_WOSS"
 #endif
+/* Report health-monitoring events through SIGDEBUG (the core's default, made explicit). */
+#if defined(EVL_T_HMSIG)
+#define XRF_EVL_HMSIG EVL_T_HMSIG
+#elif defined(T_HMSIG)
+#define XRF_EVL_HMSIG T_HMSIG
+#else
+#define XRF_EVL_HMSIG 0
+#endif
 
 #ifndef SIGDEBUG
 #define SIGDEBUG SIGXCPU
@@ -300,7 +308,7 @@ static int evl_thread_setup(const struct xrf_rt_config *cfg, int *rt_sched)
                         "(SCHED_OTHER becomes SCHED_WEAK): no timing guarantees. Set XRF_PRIO.\n");
 
     /* 9. Warn on stage switch: every demotion to in-band raises SIGDEBUG, counted above. */
-    r = evl_set_thread_mode(efd, XRF_EVL_WOSS, NULL);
+    r = evl_set_thread_mode(efd, XRF_EVL_WOSS | XRF_EVL_HMSIG, NULL);
     if (r < 0)
         fprintf(stderr, "xrf: warning: cannot enable demotion detection (EVL_T_WOSS): %s\n",
                 strerror(-r));
