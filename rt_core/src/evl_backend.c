@@ -180,7 +180,16 @@ static int evl_doorbell_open(unsigned instance)
     }
     g_bell_proxy = pfd;
     g_relay_stop = 0;
-    int r = pthread_create(&g_relay, NULL, evl_doorbell_relay, NULL);
+    /* The relay is ordinary in-band work: SCHED_OTHER, never the loop's FIFO priority. */
+    pthread_attr_t attr;
+    struct sched_param sp;
+    memset(&sp, 0, sizeof sp);
+    pthread_attr_init(&attr);
+    pthread_attr_setinheritsched(&attr, PTHREAD_EXPLICIT_SCHED);
+    pthread_attr_setschedpolicy(&attr, SCHED_OTHER);
+    pthread_attr_setschedparam(&attr, &sp);
+    int r = pthread_create(&g_relay, &attr, evl_doorbell_relay, NULL);
+    pthread_attr_destroy(&attr);
     if (r != 0) {
         evl_doorbell_close();
         return -r;
@@ -217,8 +226,26 @@ static int evl_thread_setup(const struct xrf_rt_config *cfg, int *rt_sched)
     *rt_sched = 0;
     unsigned instance = ++g_setup_count;
 
-    /* 1. CPU affinity first: EVL pins the thread to the CPU it attaches on, and changing the
-     * affinity after attaching would demote it. */
+    /* 1. libevl: evl_init also does mlockall(MCL_CURRENT | MCL_FUTURE). */
+    int r = evl_init();
+    if (r < 0) {
+        fprintf(stderr, "xrf: evl backend: evl_init failed: %s (%s)\n", strerror(-r),
+                evl_init_hint(r));
+        return r;
+    }
+
+    /* 2. Doorbell path, created in-band before attaching and before the loop thread is pinned
+     * and raised to SCHED_FIFO, so the relay thread stays off the RT CPU. */
+    r = evl_doorbell_open(instance);
+    if (r < 0) {
+        fprintf(stderr, "xrf: evl backend: cannot create the doorbell proxy/relay: %s\n",
+                strerror(-r));
+        return r;
+    }
+
+    /* 3. CPU affinity before attaching (and after the relay exists, which must not inherit
+     * it): EVL keeps the thread on the CPU it attaches on; changing the affinity afterwards
+     * would demote it. */
     if (cfg->cpu >= 0) {
         cpu_set_t set;
         CPU_ZERO(&set);
@@ -228,31 +255,15 @@ static int evl_thread_setup(const struct xrf_rt_config *cfg, int *rt_sched)
                             "CPU it attaches on\n", cfg->cpu, strerror(errno));
     }
 
-    /* 2. In-band SCHED_FIFO, carried over by evl_attach_self (set explicitly again below). */
+    /* 4. In-band SCHED_FIFO, carried over by evl_attach_self (set explicitly again below). */
     if (cfg->priority > 0) {
         struct sched_param sp;
         memset(&sp, 0, sizeof sp);
         sp.sched_priority = cfg->priority;
-        int r = pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);
-        if (r != 0)
+        int pr = pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);
+        if (pr != 0)
             fprintf(stderr, "xrf: warning: in-band SCHED_FIFO %d refused (%s); trying "
-                            "evl_set_schedattr after attaching\n", cfg->priority, strerror(r));
-    }
-
-    /* 3. libevl: evl_init also does mlockall(MCL_CURRENT | MCL_FUTURE). */
-    int r = evl_init();
-    if (r < 0) {
-        fprintf(stderr, "xrf: evl backend: evl_init failed: %s (%s)\n", strerror(-r),
-                evl_init_hint(r));
-        return r;
-    }
-
-    /* 4. Doorbell path, created in-band before attaching. */
-    r = evl_doorbell_open(instance);
-    if (r < 0) {
-        fprintf(stderr, "xrf: evl backend: cannot create the doorbell proxy/relay: %s\n",
-                strerror(-r));
-        return r;
+                            "evl_set_schedattr after attaching\n", cfg->priority, strerror(pr));
     }
 
     /* 5. Demotion counter: handler first, mode bit after attaching. */
