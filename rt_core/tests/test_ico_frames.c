@@ -1,4 +1,5 @@
 /* Golden frames for the ico protocol, hand-computed from XRF2_API.md ("IcoIo"). */
+#include <errno.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -147,6 +148,19 @@ static void test_bitrev(void)
     CHECK(involution);
 }
 
+static void test_transport_open_errors(void)
+{
+    /* Start from a non-NULL pointer to see that a failed open clears it. */
+    static struct xrf_ico_transport dummy;
+    struct xrf_ico_transport *t = &dummy;
+    CHECK(xrf_spidev_open("/nonexistent/spidev9.9", 31000000, &t) == -ENOENT && t == NULL);
+    CHECK(xrf_spidev_open(NULL, 31000000, &t) == -EINVAL);
+#ifndef XRF_HAVE_EVL
+    t = &dummy;
+    CHECK(xrf_evl_spidev_open("/dev/spidev0.0", 31000000, &t) == -ENOSYS && t == NULL);
+#endif
+}
+
 int main(void)
 {
     test_pwm_max();
@@ -155,6 +169,7 @@ int main(void)
     test_pwm_enc_ops();
     test_test_pattern();
     test_bitrev();
+    test_transport_open_errors();
     printf("test_ico_frames: %d passed, %d failed\n", passed, failed);
     return failed ? 1 : 0;
 }
