@@ -1,0 +1,55 @@
+"""Fixtures of general use for every test suite; suite-specific ones live in sub-folder conftests."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import uuid
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+# Tests import the package from the source tree even when it is not installed (editable or not).
+if str(REPO_ROOT / "appliance") not in sys.path:
+    sys.path.insert(0, str(REPO_ROOT / "appliance"))
+
+try:
+    from hypothesis import settings
+    from hypothesis.database import DirectoryBasedExampleDatabase
+
+    # Keep hypothesis' example database in the ignored .cache/ folder, not in the repo root.
+    settings.register_profile("xrf", database=DirectoryBasedExampleDatabase(str(REPO_ROOT / ".cache" / "hypothesis")))
+    settings.load_profile("xrf")
+except ImportError:  # hypothesis is a test extra; suites that need it import it themselves
+    pass
+
+
+@pytest.fixture(scope="session")
+def repo_root() -> Path:
+    return REPO_ROOT
+
+
+@pytest.fixture
+def shm_name() -> str:
+    """A shared-memory name unique to this test; /dev/shm/<name> is removed afterwards."""
+    name = f"xrf-test-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    yield name
+    try:
+        (Path("/dev/shm") / name).unlink()
+    except FileNotFoundError:
+        pass
+
+
+@pytest.fixture(scope="session")
+def chromium_path() -> str:
+    """The system Chromium for browser tests. Missing is a failure, never a skip: the UI must
+    be tested wherever the suite runs (./lab installs Chromium and exports XRF_CHROMIUM)."""
+    candidates = [os.environ.get("XRF_CHROMIUM", "")]
+    candidates += [shutil.which(n) or "" for n in ("chromium", "chromium-browser", "google-chrome")]
+    for path in candidates:
+        if path and os.access(path, os.X_OK):
+            return path
+    pytest.fail("no Chromium found (set XRF_CHROMIUM or install the 'chromium' package): UI tests cannot run")
