@@ -298,6 +298,26 @@ void xrf_spsc_release(struct xrf_ring *r)
     STORE_REL(&r->tail, r->tail + 1);
 }
 
+const void *xrf_spsc_peek_run(const struct xrf_ring *r, const void *slots, uint32_t *count)
+{
+    uint64_t tail = r->tail;
+    uint32_t n = LOAD_ACQ(&r->slots);
+    uint64_t head = LOAD_ACQ(&r->head);
+    if (n == 0 || head == tail) {
+        *count = 0;
+        return NULL;
+    }
+    uint64_t ready = head - tail;
+    uint64_t to_end = n - (tail & (n - 1));
+    *count = (uint32_t)(ready < to_end ? ready : to_end);
+    return slot_at(r, slots, tail);
+}
+
+void xrf_spsc_release_n(struct xrf_ring *r, uint32_t n)
+{
+    STORE_REL(&r->tail, r->tail + n);
+}
+
 uint32_t xrf_log_slots_for(uint32_t record_size, uint32_t ring_bytes, uint32_t *slot_size)
 {
     uint32_t ss = (uint32_t)((sizeof(struct xrf_slot_hdr) + record_size + 7u) & ~7u);

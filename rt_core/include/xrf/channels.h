@@ -243,6 +243,8 @@ struct xrf_log_meta {
     uint32_t record_size; /* payload bytes of one record (the packed struct) */
     uint32_t writer;      /* XRF_LOG_WRITER_* */
     uint64_t generation;  /* bumped by each initialise() that changes the file */
+    uint32_t file_mode;   /* permission bits for a new file (XenoFileHandler's mode) */
+    uint32_t pad;
     char path[XRF_PATH_MAX];
     struct xrf_log_var vars[XRF_LOG_VARS_MAX];
 };
@@ -327,6 +329,10 @@ void *xrf_spsc_begin(struct xrf_ring *r, void *slots);   /* NULL when full (coun
 void xrf_spsc_commit(struct xrf_ring *r, void *slot);
 const void *xrf_spsc_peek(const struct xrf_ring *r, const void *slots); /* NULL when empty */
 void xrf_spsc_release(struct xrf_ring *r);
+/* Consumer: the longest run of ready slots that is contiguous in memory (for one write()).
+ * Returns its first slot and sets *count, or NULL when empty. */
+const void *xrf_spsc_peek_run(const struct xrf_ring *r, const void *slots, uint32_t *count);
+void xrf_spsc_release_n(struct xrf_ring *r, uint32_t n);
 uint32_t xrf_log_slots_for(uint32_t record_size, uint32_t ring_bytes, uint32_t *slot_size);
 
 /* Doorbell. */

@@ -1,0 +1,152 @@
+// xrf/runtime.hpp — the per-process runtime behind the XRF2 classes: options from the
+// environment, the run's shared memory, the backend, the ico transport, the in-band helper
+// thread (monitor printing, log file writing) and the per-cycle status publication.
+//
+// Everything that may allocate, print or make a system call happens in enter() and leave(), or
+// on the helper thread. The per-cycle functions touch only memory that exists since enter().
+#pragma once
+
+#include <atomic>
+#include <cstdarg>
+#include <cstdint>
+#include <pthread.h>
+
+#include "xrf/backend.h"
+#include "xrf/channels.h"
+#include "xrf/ico.h"
+
+namespace xrf {
+
+struct Options {
+    char shm_name[XRF_NAME_MAX] = "xrf";
+    char backend[16] = "auto";
+    char transport[16] = "auto";
+    char sim[16] = "relbot";
+    char sim_faults[256] = "";
+    char spi_device[128] = "/dev/spidev0.0";
+    uint32_t spi_speed = 31000000;
+    unsigned freq_override = 0;
+    int cpu = -1;
+    int priority = 0;
+    double pwm_limit = XRF_ICO_DEFAULT_PWM_LIMIT;
+    char log_dir[XRF_PATH_MAX] = "";
+    int log_writer = XRF_LOG_WRITER_PROCESS;
+    uint32_t host_timeout_ms = 0;
+    uint32_t host_timeout_action = XRF_HOST_LOST_STOP;
+    uint64_t max_cycles = 0;
+    bool quiet = false;
+
+    // Reads XRF_* (docs/developers/architecture.md). Returns 0 or -EINVAL after printing why.
+    int fromEnvironment();
+};
+
+// What one cycle reports; published to xrf_status under the seqlock at the end of the cycle.
+struct CycleReport {
+    int32_t state = XRF_STATE_IDLE;
+    int32_t last_error = 0;
+    int32_t last_cmd = 0;
+    int32_t last_rejected_cmd = 0;
+    int32_t reject_code = XRF_REJECT_NONE;
+    uint32_t rejected_count = 0;
+    uint64_t cmd_done = 0;
+    uint64_t cmd_rejected = 0;
+    bool reason_changed = false;
+    char reject_reason[XRF_REASON_MAX] = "";
+    int64_t stage_ns[XRF_STAGE_COUNT] = {};
+    bool stage_set[XRF_STAGE_COUNT] = {};
+};
+
+class Runtime {
+public:
+    static Runtime &instance();
+
+    // --- before the loop (constructors, in-band) ---
+    const Options &options();
+    // Message layout of a XenoFrtRosIco, recorded for the info block.
+    void describe(unsigned write_decimator_freq, unsigned monitor_freq,
+                  const char *ros2xeno_schema, uint32_t ros2xeno_size,
+                  const char *xeno2ros_schema, uint32_t xeno2ros_size);
+    unsigned effectiveFrequency(unsigned requested);
+    // The ico-board transport chosen by XRF_TRANSPORT; opened on first use. NULL on failure
+    // (reason printed once).
+    xrf_ico_transport *transport();
+    int16_t pwmMax();
+    void setProgramName(const char *name);
+
+    // --- loop lifecycle (loop thread) ---
+    int enter(unsigned cycle_freq); // 0, or -errno after printing why
+    void leave();
+    bool active() const { return shm_ != nullptr; }
+
+    // --- per cycle (loop thread, real-time) ---
+    int64_t now() const { return backend_->now_ns(); }
+    int sleepUntil(int64_t t) const { return backend_->sleep_until(t); }
+    xrf_shm *shm() { return shm_; }
+    uint64_t cycle() const { return cycles_; }
+    void beginCycle(int64_t wake_ns) { cycle_start_ns_ = wake_ns; }
+    int64_t cycleStart() const { return cycle_start_ns_; }
+    uint64_t missed() const { return missed_; }
+    uint64_t idleNs() const { return idle_total_; }
+    bool onLoopThread() const { return shm_ != nullptr && pthread_equal(pthread_self(), loop_thread_); }
+    CycleReport &report() { return report_; }
+    void stage(int idx, int64_t ns)
+    {
+        report_.stage_ns[idx] = ns;
+        report_.stage_set[idx] = true;
+    }
+    void notifyHost() { pending_doorbell_ = true; }
+    // Publishes status and histograms for the cycle that just ended; rings the doorbell.
+    void endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, bool missed,
+                  int64_t idle_ns);
+    // Set by SIGINT/SIGTERM, XRF_MAX_CYCLES, or the host.
+    bool stopRequested() const;
+    void requestStop() { stop_.store(true, std::memory_order_relaxed); }
+    // The host's heartbeat went stale this cycle (edge-triggered); 0 or an XRF_HOST_LOST_*.
+    uint32_t checkHostHeartbeat(int64_t now_ns);
+
+    // Monitor text (rate limiting is XenoFrtMonitor's job): never blocks, drops when the host is
+    // far behind (counted).
+    void monitorWrite(const char *fmt, va_list ap);
+
+private:
+    Runtime() = default;
+    int createShm();
+    void startHelper();
+    static void *helperMain(void *self);
+    void helperDrain(bool final);
+
+    Options options_;
+    bool options_loaded_ = false;
+    xrf_shm *shm_ = nullptr;
+    size_t shm_size_ = 0;
+    const xrf_backend *backend_ = nullptr;
+    xrf_ico_transport *transport_ = nullptr;
+    bool transport_failed_ = false;
+    char transport_name_[16] = "";
+    char program_[XRF_NAME_MAX] = "";
+
+    unsigned write_decimator_freq_ = 0, monitor_freq_ = 0;
+    const char *ros2xeno_schema_ = "";
+    const char *xeno2ros_schema_ = "";
+    uint32_t ros2xeno_size_ = 0, xeno2ros_size_ = 0;
+
+    CycleReport report_;
+    uint64_t cycles_ = 0, missed_ = 0, idle_total_ = 0;
+    uint32_t doorbell_period_ = 1;
+    bool pending_doorbell_ = false;
+    bool host_lost_ = false;
+    uint64_t host_lost_count_ = 0;
+    int rt_sched_ = 0;
+    int64_t cycle_start_ns_ = 0;
+    pthread_t loop_thread_{};
+
+    std::atomic<bool> stop_{false};
+    std::atomic<bool> helper_run_{false};
+    pthread_t helper_{};
+    bool helper_started_ = false;
+    uint64_t monitor_cursor_ = 0;
+    int log_fd_ = -1;
+    uint64_t log_generation_ = 0;
+};
+
+} // namespace xrf

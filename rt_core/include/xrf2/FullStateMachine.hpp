@@ -1,0 +1,50 @@
+// FullStateMachine — XRF2's coordination state machine. The command table is the one of
+// channels.h (xrf_cmd_transition), shared with every host.
+#pragma once
+
+#include <functional>
+
+enum STATE {
+    IDLE_STATE = 1,
+    INITIALISING_STATE,
+    INITIALISED_STATE,
+    RUN_STATE,
+    STOPPING_STATE,
+    STOPPED_STATE,
+    PAUSING_STATE,
+    PAUSED_STATE,
+    ERROR_STATE,
+    QUIT_STATE
+};
+
+enum COMMANDS { INITIALISE_CMD = 1, START_CMD, STOP_CMD, RESET_CMD, PAUSE_CMD, QUIT_CMD };
+
+class FullStateMachine {
+public:
+    using Hook = std::function<int()>;
+    FullStateMachine(Hook initialising, Hook initialised, Hook run, Hook stopping, Hook stopped,
+                     Hook pausing, Hook paused, Hook error);
+
+    // Runs the current state's hook: 0 stays, 1 completes the state, < 0 goes to ERROR.
+    // Returns 1 only in QUIT.
+    int step();
+
+    // Commands return 0 when accepted, or -1 (unknown) / -2 (not allowed in this state).
+    int initialise() { return command(INITIALISE_CMD); }
+    int start() { return command(START_CMD); }
+    int stop() { return command(STOP_CMD); }
+    int reset() { return command(RESET_CMD); }
+    int pause() { return command(PAUSE_CMD); }
+    int quit() { return command(QUIT_CMD); }
+    int command(int cmd);
+    // Goes to ERROR with `error` as the last error (used by the framework, e.g. no FPGA).
+    void fail(int error);
+
+    int getState() const { return state_; }
+    int getError() const { return error_; }
+
+private:
+    Hook hooks_[8];
+    int state_ = IDLE_STATE;
+    int error_ = 0;
+};

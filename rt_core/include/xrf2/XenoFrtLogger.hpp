@@ -1,0 +1,47 @@
+// XenoFrtLogger — logs a packed struct once per cycle into the lossless log ring. The file is
+// written in-band (see XenoFileHandler). initialise() is idempotent.
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "XenoFileHandler.hpp"
+
+// XRF2's spelling and the course guide's; both name the same codes.
+enum VariableTypes { boolean = 1, character, integer, float_, double_, long_int };
+enum VariableTypeIds { id_bool = 1, id_char, id_int, id_float, id_double, id_long_int };
+
+class XenoFrtLogger {
+public:
+    static constexpr int max_variables = 100;
+
+    XenoFrtLogger(XenoFileHandler &file, void *data);
+    // In the order of the packed struct's fields. Returns 0, or -1 (full, unknown type, or
+    // after initialise() with a different set).
+    int addVariable(const char *name, int type);
+    int addVariable(const std::string &name, int type) { return addVariable(name.c_str(), type); }
+    int initialise();
+    bool isInitialised() const { return initialised_; }
+    int start();
+    int stop();
+    bool isStarted() const { return started_; }
+    // One record; -1 when not started, -2 when the ring was full (the record is counted lost).
+    int log();
+    uint32_t recordSize() const { return record_size_; }
+
+private:
+    bool publish();
+    XenoFileHandler &file_;
+    const void *data_;
+    struct Var {
+        char name[64];
+        int type;
+        int offset;
+    } vars_[max_variables];
+    int nvars_ = 0;
+    uint32_t record_size_ = 0;
+    bool initialised_ = false;
+    bool published_ = false;
+    bool started_ = false;
+    uint64_t seq_ = 0;
+};

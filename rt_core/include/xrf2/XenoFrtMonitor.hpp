@@ -1,0 +1,16 @@
+// XenoFrtMonitor — rate-limited printf: prints only on every round(cycle_freq / monitor_freq)-th
+// cycle; monitor_freq 0 silences it. Text goes into the monitor ring; it never blocks the loop.
+#pragma once
+
+class XenoFrtMonitor {
+public:
+    XenoFrtMonitor(unsigned cycle_freq, unsigned monitor_freq);
+    void update();
+    void printf(const char *fmt, ...) __attribute__((format(printf, 2, 3)));
+    bool isDue() const { return due_; }
+
+private:
+    unsigned divider_;
+    unsigned long counter_ = 0;
+    bool due_ = false;
+};

@@ -1,0 +1,554 @@
+// The per-process runtime (xrf/runtime.hpp).
+#include "xrf/runtime.hpp"
+
+#include <cerrno>
+#include <csignal>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <fcntl.h>
+#include <sys/mman.h>
+#include <sys/stat.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "logfile.h"
+#include "xrf/sim.h"
+
+namespace xrf {
+
+namespace {
+
+volatile sig_atomic_t g_signal_stop = 0;
+
+void onStopSignal(int)
+{
+    g_signal_stop = 1;
+}
+
+void copyString(char *dst, size_t n, const char *src)
+{
+    if (n == 0)
+        return;
+    std::snprintf(dst, n, "%s", src ? src : "");
+}
+
+bool envString(const char *name, char *dst, size_t n)
+{
+    const char *v = std::getenv(name);
+    if (v == nullptr || v[0] == '\0')
+        return false;
+    copyString(dst, n, v);
+    return true;
+}
+
+// Parses an integer variable; prints and returns false when it is set but malformed.
+bool envLong(const char *name, long lo, long hi, long *out)
+{
+    const char *v = std::getenv(name);
+    if (v == nullptr || v[0] == '\0')
+        return true;
+    char *end = nullptr;
+    errno = 0;
+    long x = std::strtol(v, &end, 10);
+    if (errno != 0 || end == v || *end != '\0' || x < lo || x > hi) {
+        std::fprintf(stderr, "xrf: %s=%s is not a whole number in %ld..%ld\n", name, v, lo, hi);
+        return false;
+    }
+    *out = x;
+    return true;
+}
+
+} // namespace
+
+int Options::fromEnvironment()
+{
+    bool ok = true;
+    envString("XRF_SHM", shm_name, sizeof shm_name);
+    envString("XRF_BACKEND", backend, sizeof backend);
+    envString("XRF_TRANSPORT", transport, sizeof transport);
+    envString("XRF_SIM", sim, sizeof sim);
+    envString("XRF_SIM_FAULTS", sim_faults, sizeof sim_faults);
+    envString("XRF_SPI_DEVICE", spi_device, sizeof spi_device);
+    envString("XRF_LOG_DIR", log_dir, sizeof log_dir);
+    long x;
+    x = spi_speed;
+    ok &= envLong("XRF_SPI_SPEED", 1000, 100000000, &x);
+    spi_speed = (uint32_t)x;
+    x = 0;
+    ok &= envLong("XRF_FREQ", 100, 10000, &x);
+    freq_override = (unsigned)x;
+    x = cpu;
+    ok &= envLong("XRF_CPU", -1, 1023, &x);
+    cpu = (int)x;
+    x = priority;
+    ok &= envLong("XRF_PRIO", 0, 99, &x);
+    priority = (int)x;
+    x = 0;
+    ok &= envLong("XRF_HOST_TIMEOUT_MS", 0, 600000, &x);
+    host_timeout_ms = (uint32_t)x;
+    x = 0;
+    ok &= envLong("XRF_MAX_CYCLES", 0, 0x7fffffffffffffffL, &x);
+    max_cycles = (uint64_t)x;
+    const char *v = std::getenv("XRF_PWM_LIMIT");
+    if (v && *v) {
+        char *end = nullptr;
+        double d = std::strtod(v, &end);
+        if (end == v || *end != '\0' || d < 0.0 || d > 1.0) {
+            std::fprintf(stderr, "xrf: XRF_PWM_LIMIT=%s must be a fraction 0..1 (0.2 = 20 %%)\n", v);
+            ok = false;
+        } else {
+            pwm_limit = d;
+        }
+    }
+    v = std::getenv("XRF_LOG_WRITER");
+    if (v && *v) {
+        if (std::strcmp(v, "host") == 0)
+            log_writer = XRF_LOG_WRITER_HOST;
+        else if (std::strcmp(v, "process") == 0)
+            log_writer = XRF_LOG_WRITER_PROCESS;
+        else {
+            std::fprintf(stderr, "xrf: XRF_LOG_WRITER=%s: use 'process' or 'host'\n", v);
+            ok = false;
+        }
+    }
+    v = std::getenv("XRF_HOST_TIMEOUT_ACTION");
+    if (v && *v) {
+        if (std::strcmp(v, "pause") == 0)
+            host_timeout_action = XRF_HOST_LOST_PAUSE;
+        else if (std::strcmp(v, "stop") == 0)
+            host_timeout_action = XRF_HOST_LOST_STOP;
+        else if (std::strcmp(v, "ignore") == 0)
+            host_timeout_action = XRF_HOST_LOST_IGNORE;
+        else {
+            std::fprintf(stderr, "xrf: XRF_HOST_TIMEOUT_ACTION=%s: use pause, stop or ignore\n", v);
+            ok = false;
+        }
+    }
+    v = std::getenv("XRF_QUIET");
+    quiet = v && *v && std::strcmp(v, "0") != 0;
+    if (std::strchr(shm_name, '/') != nullptr) {
+        std::fprintf(stderr, "xrf: XRF_SHM=%s must be a plain name without '/'\n", shm_name);
+        ok = false;
+    }
+    return ok ? 0 : -EINVAL;
+}
+
+Runtime &Runtime::instance()
+{
+    static Runtime rt;
+    return rt;
+}
+
+const Options &Runtime::options()
+{
+    if (!options_loaded_) {
+        options_loaded_ = true;
+        if (options_.fromEnvironment() != 0)
+            std::exit(2); // a mistyped option must not silently run with defaults on a robot
+    }
+    return options_;
+}
+
+void Runtime::describe(unsigned write_decimator_freq, unsigned monitor_freq,
+                       const char *ros2xeno_schema, uint32_t ros2xeno_size,
+                       const char *xeno2ros_schema, uint32_t xeno2ros_size)
+{
+    write_decimator_freq_ = write_decimator_freq;
+    monitor_freq_ = monitor_freq;
+    ros2xeno_schema_ = ros2xeno_schema;
+    ros2xeno_size_ = ros2xeno_size;
+    xeno2ros_schema_ = xeno2ros_schema;
+    xeno2ros_size_ = xeno2ros_size;
+}
+
+unsigned Runtime::effectiveFrequency(unsigned requested)
+{
+    unsigned f = options().freq_override ? options().freq_override : requested;
+    return f;
+}
+
+void Runtime::setProgramName(const char *name)
+{
+    copyString(program_, sizeof program_, name);
+}
+
+int16_t Runtime::pwmMax()
+{
+    return xrf_ico_pwm_max(options().pwm_limit);
+}
+
+xrf_ico_transport *Runtime::transport()
+{
+    if (transport_ != nullptr || transport_failed_)
+        return transport_;
+    const Options &o = options();
+    const char *want = o.transport;
+    if (std::strcmp(want, "auto") == 0)
+        want = access(o.spi_device, F_OK) == 0 ? "spidev" : "sim";
+    int r = -EINVAL;
+    if (std::strcmp(want, "sim") == 0) {
+        int robot = xrf_sim_robot_from_name(o.sim);
+        if (robot < 0) {
+            std::fprintf(stderr, "xrf: XRF_SIM=%s: use relbot or jiwy\n", o.sim);
+        } else {
+            xrf_sim_faults faults;
+            std::memset(&faults, 0, sizeof faults);
+            r = xrf_sim_parse_faults(o.sim_faults, &faults);
+            if (r != 0)
+                std::fprintf(stderr, "xrf: XRF_SIM_FAULTS=%s is not a valid fault list\n",
+                             o.sim_faults);
+            else
+                r = xrf_sim_open(robot, &faults, 0.0, shm_ ? &shm_->sim : nullptr, &transport_);
+        }
+    } else if (std::strcmp(want, "spidev") == 0) {
+        r = xrf_spidev_open(o.spi_device, o.spi_speed, &transport_);
+    } else if (std::strcmp(want, "evl-spidev") == 0) {
+        r = xrf_evl_spidev_open(o.spi_device, o.spi_speed, &transport_);
+    } else {
+        std::fprintf(stderr, "xrf: XRF_TRANSPORT=%s: use sim, spidev, evl-spidev or auto\n", want);
+    }
+    if (r != 0 || transport_ == nullptr) {
+        if (r != -EINVAL)
+            std::fprintf(stderr, "xrf: cannot open the ico board (%s %s): %s\n", want,
+                         std::strcmp(want, "sim") == 0 ? o.sim : o.spi_device, std::strerror(-r));
+        transport_ = nullptr;
+        transport_failed_ = true;
+        return nullptr;
+    }
+    copyString(transport_name_, sizeof transport_name_, want);
+    return transport_;
+}
+
+int Runtime::createShm()
+{
+    const Options &o = options();
+    char path[XRF_NAME_MAX + 16];
+    std::snprintf(path, sizeof path, "/%s", o.shm_name);
+    int fd = shm_open(path, O_RDWR | O_CREAT | O_EXCL, 0660);
+    if (fd < 0 && errno == EEXIST) {
+        // A leftover of an earlier run is replaced, but never one whose loop is still alive.
+        int old = shm_open(path, O_RDONLY, 0);
+        if (old >= 0) {
+            struct stat st;
+            if (fstat(old, &st) == 0 && (size_t)st.st_size >= sizeof(xrf_shm)) {
+                void *p = mmap(nullptr, sizeof(xrf_shm), PROT_READ, MAP_SHARED, old, 0);
+                if (p != MAP_FAILED) {
+                    const xrf_shm *prev = static_cast<const xrf_shm *>(p);
+                    int32_t pid = prev->info.pid;
+                    bool alive = prev->magic == XRF_SHM_MAGIC && prev->status.running && pid > 0 &&
+                                 pid != getpid() && kill(pid, 0) == 0;
+                    munmap(p, sizeof(xrf_shm));
+                    if (alive) {
+                        close(old);
+                        std::fprintf(stderr,
+                                     "xrf: another loop (pid %d) is running on shared memory '%s'; "
+                                     "stop it or choose another name with XRF_SHM\n",
+                                     (int)pid, o.shm_name);
+                        return -EBUSY;
+                    }
+                }
+            }
+            close(old);
+        }
+        shm_unlink(path);
+        fd = shm_open(path, O_RDWR | O_CREAT | O_EXCL, 0660);
+    }
+    if (fd < 0) {
+        int e = errno;
+        std::fprintf(stderr, "xrf: cannot create shared memory %s: %s\n", path, std::strerror(e));
+        return -e;
+    }
+    fchmod(fd, 0660); // the umask must not make it world-writable nor unreadable for the group
+    shm_size_ = sizeof(xrf_shm);
+    if (ftruncate(fd, (off_t)shm_size_) != 0) {
+        int e = errno;
+        close(fd);
+        std::fprintf(stderr, "xrf: cannot size shared memory %s: %s\n", path, std::strerror(e));
+        return -e;
+    }
+    void *p = mmap(nullptr, shm_size_, PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
+    close(fd);
+    if (p == MAP_FAILED) {
+        int e = errno;
+        std::fprintf(stderr, "xrf: cannot map shared memory %s: %s\n", path, std::strerror(e));
+        return -e;
+    }
+    // Touch every page now: the loop must not take a page fault on its first telemetry slot.
+    std::memset(p, 0, shm_size_);
+    shm_ = static_cast<xrf_shm *>(p);
+    xrf_shm_init(shm_);
+    return 0;
+}
+
+int Runtime::enter(unsigned cycle_freq)
+{
+    const Options &o = options();
+    backend_ = xrf_backend_by_name(o.backend);
+    if (backend_ == nullptr) {
+        std::fprintf(stderr, "xrf: XRF_BACKEND=%s is not available in this build (have: posix%s)\n",
+                     o.backend, xrf_backend_evl() ? ", evl" : "");
+        return -EINVAL;
+    }
+    if (cycle_freq < 1 || cycle_freq > 100000) {
+        std::fprintf(stderr, "xrf: cycle frequency %u Hz is out of range\n", cycle_freq);
+        return -EINVAL;
+    }
+    if (program_[0] == '\0')
+        copyString(program_, sizeof program_, program_invocation_short_name);
+    int r = createShm();
+    if (r != 0)
+        return r;
+    // Opened in-band, before the thread goes real-time. A board opened earlier (a constructor
+    // that called ico_io.init()) keeps working, without the simulator's shared-memory mirror.
+    if (transport_ == nullptr && !transport_failed_)
+        transport();
+
+    shm_->host_timeout_ms = o.host_timeout_ms;
+    shm_->host_timeout_action = o.host_timeout_action;
+    shm_->host_heartbeat_ns = 0;
+
+    xrf_info &info = shm_->info;
+    info.pid = (int32_t)getpid();
+    info.cycle_freq = cycle_freq;
+    info.write_decimator_freq = write_decimator_freq_;
+    info.monitor_freq = monitor_freq_;
+    info.ros2xeno_size = ros2xeno_size_;
+    info.xeno2ros_size = xeno2ros_size_;
+    info.cpu = o.cpu;
+    info.priority = o.priority;
+    // Ring the host at most once per millisecond: bounded wake-ups whatever the cycle rate.
+    doorbell_period_ = cycle_freq > 1000 ? cycle_freq / 1000 : 1;
+    info.doorbell_period_cycles = doorbell_period_;
+    copyString(info.backend, sizeof info.backend, backend_->name);
+    copyString(info.transport, sizeof info.transport, transport_name_);
+    copyString(info.sim, sizeof info.sim, std::strcmp(transport_name_, "sim") == 0 ? o.sim : "");
+    copyString(info.program, sizeof info.program, program_);
+    copyString(info.ros2xeno_schema, sizeof info.ros2xeno_schema, ros2xeno_schema_);
+    copyString(info.xeno2ros_schema, sizeof info.xeno2ros_schema, xeno2ros_schema_);
+    shm_->log_meta.writer = (uint32_t)o.log_writer;
+
+    struct sigaction sa;
+    std::memset(&sa, 0, sizeof sa);
+    sa.sa_handler = onStopSignal;
+    sigemptyset(&sa.sa_mask);
+    sigaction(SIGINT, &sa, nullptr);
+    sigaction(SIGTERM, &sa, nullptr);
+
+    startHelper();
+    loop_thread_ = pthread_self();
+
+    xrf_rt_config cfg;
+    cfg.cpu = o.cpu;
+    cfg.priority = o.priority;
+    cfg.lock_memory = 1;
+    cfg.stack_prefault = 256 * 1024;
+    r = backend_->thread_setup(&cfg, &rt_sched_);
+    if (r != 0) {
+        std::fprintf(stderr, "xrf: the %s backend could not set up the loop thread: %s\n",
+                     backend_->name, std::strerror(-r));
+        return r;
+    }
+    info.rt_sched = rt_sched_;
+    if (!o.quiet)
+        std::fprintf(stderr,
+                     "xrf: loop '%s' at %u Hz, backend %s, board %s%s%s, shared memory /dev/shm/%s\n",
+                     program_, cycle_freq, backend_->name, transport_name_[0] ? transport_name_ : "none",
+                     info.sim[0] ? " " : "", info.sim, o.shm_name);
+
+    xrf_status_write_begin(&shm_->status);
+    shm_->status.running = 1;
+    shm_->status.state = report_.state;
+    xrf_status_write_end(&shm_->status);
+    xrf_shm_publish_ready(shm_);
+    return 0;
+}
+
+bool Runtime::stopRequested() const
+{
+    if (g_signal_stop)
+        return true;
+    if (options_.max_cycles && cycles_ >= options_.max_cycles)
+        return true;
+    return stop_.load(std::memory_order_relaxed);
+}
+
+uint32_t Runtime::checkHostHeartbeat(int64_t now_ns)
+{
+    uint32_t timeout_ms = __atomic_load_n(&shm_->host_timeout_ms, __ATOMIC_RELAXED);
+    if (timeout_ms == 0)
+        return XRF_HOST_LOST_IGNORE;
+    int64_t hb = __atomic_load_n(&shm_->host_heartbeat_ns, __ATOMIC_RELAXED);
+    // No heartbeat yet: the host has not attached; supervision starts with the first one.
+    bool stale = hb != 0 && now_ns - hb > (int64_t)timeout_ms * 1000000LL;
+    if (stale && !host_lost_) {
+        host_lost_ = true;
+        host_lost_count_++;
+        return __atomic_load_n(&shm_->host_timeout_action, __ATOMIC_RELAXED);
+    }
+    if (!stale)
+        host_lost_ = false;
+    return XRF_HOST_LOST_IGNORE;
+}
+
+void Runtime::endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, bool missed,
+                       int64_t idle_ns)
+{
+    cycles_++;
+    if (missed)
+        missed_++;
+    if (idle_ns > 0)
+        idle_total_ += (uint64_t)idle_ns;
+    xrf_status *s = &shm_->status;
+    xrf_status_write_begin(s);
+    s->state = report_.state;
+    s->last_error = report_.last_error;
+    s->last_cmd = report_.last_cmd;
+    s->last_rejected_cmd = report_.last_rejected_cmd;
+    s->reject_code = report_.reject_code;
+    s->rejected_count = report_.rejected_count;
+    s->cmd_done = report_.cmd_done;
+    s->cmd_rejected = report_.cmd_rejected;
+    if (report_.reason_changed) {
+        std::memcpy(s->reject_reason, report_.reject_reason, sizeof s->reject_reason);
+        report_.reason_changed = false;
+    }
+    s->cycles = cycles_;
+    s->missed = missed_;
+    if (cycles_ == 1)
+        s->t_start_ns = deadline_ns;
+    s->heartbeat_ns = wake_ns;
+    s->idle_ns = idle_total_;
+    s->demotions = backend_->demotions();
+    s->log_written = shm_->log_ring.head;
+    s->log_lost = shm_->log_ring.dropped;
+    s->telem_published = shm_->telem_ring.head;
+    s->host_lost = host_lost_count_;
+    int64_t jitter = wake_ns - deadline_ns;
+    xrf_hist_add(&s->hist[XRF_STAGE_WAKEUP], (uint64_t)(jitter > 0 ? jitter : 0));
+    xrf_hist_add(&s->hist[XRF_STAGE_CYCLE], (uint64_t)(end_ns - wake_ns));
+    for (int i = XRF_STAGE_FPGA; i <= XRF_STAGE_LOGGER; i++) {
+        if (report_.stage_set[i]) {
+            int64_t d = report_.stage_ns[i];
+            xrf_hist_add(&s->hist[i], (uint64_t)(d > 0 ? d : 0));
+            report_.stage_set[i] = false;
+        }
+    }
+    xrf_status_write_end(s);
+
+    if (pending_doorbell_ && cycles_ % doorbell_period_ == 0) {
+        pending_doorbell_ = false;
+        if (xrf_doorbell_should_ring(shm_))
+            backend_->ring_doorbell(shm_);
+    }
+}
+
+void Runtime::monitorWrite(const char *fmt, va_list ap)
+{
+    if (!onLoopThread()) {
+        // Before the loop, or from another thread: the monitor ring has one producer, the loop.
+        std::vfprintf(stdout, fmt, ap);
+        return;
+    }
+    auto *line = static_cast<xrf_monitor_line *>(xrf_bcast_begin(&shm_->monitor_ring, shm_->monitor));
+    int n = std::vsnprintf(line->text, sizeof line->text, fmt, ap);
+    if (n < 0)
+        n = 0;
+    if ((size_t)n >= sizeof line->text) {
+        n = (int)sizeof line->text - 1;
+        shm_->status.monitor_dropped++; // truncated text counts as a loss the host can show
+    }
+    line->len = (uint32_t)n;
+    line->hdr.cycle = cycles_;
+    line->hdr.t_ns = now();
+    xrf_bcast_commit(&shm_->monitor_ring, line);
+    pending_doorbell_ = true;
+}
+
+void Runtime::startHelper()
+{
+    helper_run_.store(true);
+    monitor_cursor_ = 0;
+    if (pthread_create(&helper_, nullptr, &Runtime::helperMain, this) == 0)
+        helper_started_ = true;
+    else
+        std::fprintf(stderr, "xrf: warning: no helper thread: monitor and log file disabled\n");
+}
+
+void *Runtime::helperMain(void *self)
+{
+    auto *rt = static_cast<Runtime *>(self);
+    // The helper is in-band housekeeping; a 10 ms poll keeps it off the loop's doorbell, whose
+    // wake-ups are for hosts.
+    while (rt->helper_run_.load()) {
+        rt->helperDrain(false);
+        struct timespec ts = {0, 10 * 1000 * 1000};
+        nanosleep(&ts, nullptr);
+    }
+    rt->helperDrain(true);
+    return nullptr;
+}
+
+void Runtime::helperDrain(bool final)
+{
+    xrf_monitor_line line;
+    uint64_t lost = 0;
+    while (xrf_bcast_read(&shm_->monitor_ring, shm_->monitor, &monitor_cursor_, &line, &lost) == 1) {
+        if (!options_.quiet) {
+            std::fwrite(line.text, 1, line.len, stdout);
+            if (line.len == 0 || line.text[line.len - 1] != '\n')
+                std::fputc('\n', stdout);
+        }
+    }
+    if (lost && !options_.quiet)
+        std::fprintf(stdout, "xrf: %llu monitor lines were overwritten before printing\n",
+                     (unsigned long long)lost);
+    std::fflush(stdout);
+    if (shm_->log_meta.writer == XRF_LOG_WRITER_PROCESS)
+        logfile_drain(shm_, &log_fd_, &log_generation_, program_, final);
+}
+
+void Runtime::leave()
+{
+    if (shm_ == nullptr)
+        return;
+    xrf_status_write_begin(&shm_->status);
+    shm_->status.running = 0;
+    xrf_status_write_end(&shm_->status);
+    if (backend_ != nullptr)
+        backend_->thread_teardown();
+    if (helper_started_) {
+        helper_run_.store(false);
+        pthread_join(helper_, nullptr);
+        helper_started_ = false;
+    }
+    if (xrf_doorbell_should_ring(shm_))
+        xrf_doorbell_wake(shm_);
+    if (log_fd_ >= 0) {
+        fsync(log_fd_);
+        close(log_fd_);
+        log_fd_ = -1;
+    }
+}
+
+} // namespace xrf
+
+// --- the few EVL calls XRF2 student code makes, for builds without libevl -----------------------
+#ifndef XRF_HAVE_EVL
+extern "C" int evl_init(void)
+{
+    // libevl's evl_init also locks memory; keep that meaning.
+    if (mlockall(MCL_CURRENT | MCL_FUTURE) != 0)
+        std::fprintf(stderr, "xrf: warning: mlockall failed (%s)\n", std::strerror(errno));
+    return 0;
+}
+
+extern "C" int evl_printf(const char *fmt, ...)
+{
+    va_list ap;
+    va_start(ap, fmt);
+    xrf::Runtime::instance().monitorWrite(fmt, ap);
+    va_end(ap);
+    return 0;
+}
+#endif

@@ -1,0 +1,54 @@
+// FullStateMachine over the shared command table.
+#include "FullStateMachine.hpp"
+
+#include <utility>
+
+#include "xrf/channels.h"
+
+FullStateMachine::FullStateMachine(Hook initialising, Hook initialised, Hook run, Hook stopping,
+                                   Hook stopped, Hook pausing, Hook paused, Hook error)
+    : hooks_{std::move(initialising), std::move(initialised), std::move(run),
+             std::move(stopping),     std::move(stopped),     std::move(pausing),
+             std::move(paused),       std::move(error)}
+{
+}
+
+int FullStateMachine::command(int cmd)
+{
+    int32_t next = xrf_cmd_transition(state_, cmd);
+    if (next < 0)
+        return next == -XRF_REJECT_UNKNOWN ? -1 : -2;
+    state_ = next;
+    return 0;
+}
+
+void FullStateMachine::fail(int error)
+{
+    error_ = error;
+    state_ = ERROR_STATE;
+}
+
+int FullStateMachine::step()
+{
+    if (state_ == QUIT_STATE)
+        return 1;
+    if (state_ == IDLE_STATE)
+        return 0;
+    Hook &hook = hooks_[state_ - INITIALISING_STATE];
+    const int r = hook ? hook() : 0;
+    if (r < 0) {
+        fail(r);
+        return 0;
+    }
+    if (r == 1) {
+        switch (state_) {
+        case INITIALISING_STATE: state_ = INITIALISED_STATE; break;
+        case INITIALISED_STATE: state_ = RUN_STATE; break;
+        case RUN_STATE: state_ = STOPPING_STATE; break;
+        case STOPPING_STATE: state_ = STOPPED_STATE; break;
+        case PAUSING_STATE: state_ = PAUSED_STATE; break;
+        default: break; // STOPPED, PAUSED, ERROR: "complete" leads nowhere
+        }
+    }
+    return 0;
+}
