@@ -89,8 +89,9 @@ void xrf_ico_encode_pwm(int channel, int16_t pwm, int16_t pwm_max, uint8_t frame
         return;
     }
     xrf_ico_frame_op((uint8_t)(XRF_ICO_PWM_1 + channel - 1), frame);
-    /* PWM_n changes only the duty: bit 15 goes out as 0 and the board leaves the digital
-     * output alone, so a PWM-only update cannot toggle an output by accident. */
+    /* The word is the channel's whole ALL word, digital output included; this builder has no
+     * output argument, so bit 15 goes out as 0 (off) and a caller that wants the output on
+     * sets it in byte 3 (0x80), as IcoIo::setOutput does. */
     put_le16(&frame[2], out_word(pwm, 0, pwm_max));
 }
 

@@ -221,9 +221,13 @@ static int sim_xfer(struct xrf_ico_transport *t, const uint8_t tx[XRF_ICO_FRAME]
     case XRF_ICO_PWM_1:
     case XRF_ICO_PWM_1 + 1:
     case XRF_ICO_PWM_1 + 2:
-    case XRF_ICO_PWM_1 + 3:
-        s->pwm[op - XRF_ICO_PWM_1] = word_pwm((uint16_t)(in[2] | (in[3] << 8)));
+    case XRF_ICO_PWM_1 + 3: {
+        /* The same word as in ALL: duty, direction and the channel's digital output. */
+        uint16_t w = (uint16_t)(in[2] | (in[3] << 8));
+        s->pwm[op - XRF_ICO_PWM_1] = word_pwm(w);
+        s->dout[op - XRF_ICO_PWM_1] = (w & 0x8000u) ? 1 : 0;
         break;
+    }
     case XRF_ICO_ENC_1:
     case XRF_ICO_ENC_1 + 1:
     case XRF_ICO_ENC_1 + 2:

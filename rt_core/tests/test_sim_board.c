@@ -190,6 +190,23 @@ static void test_faults(void)
     CHECK(memcmp(in.din, only_pin3, 8) == 0);
     t->close(t);
 
+    /* PWM_n sets the channel's digital output from bit 15 of its word, like ALL. */
+    t = open_sim(XRF_SIM_RELBOT, "loopback=3", NULL);
+    xrf_ico_encode_pwm(3, 0, LIMIT, tx);
+    tx[3] |= 0x80;
+    CHECK(t->xfer(t, tx, rx) == 0);
+    op(t, XRF_ICO_NOOP, rx);
+    struct xrf_ico_out keep = {.pwm = {0}, .dout = {0, 0, 1, 0}};
+    xrf_ico_encode_all(&keep, LIMIT, tx);
+    CHECK(t->xfer(t, tx, rx) == 0);
+    xrf_ico_decode_all(rx, &in);
+    CHECK(in.din[4] == 1);
+    xrf_ico_encode_pwm(3, 0, LIMIT, tx);
+    CHECK(t->xfer(t, tx, rx) == 0);
+    all(t, 0, 0, NULL, &in);
+    CHECK(in.din[4] == 0);
+    t->close(t);
+
     /* Loopback: the reply is latched before the frame's outputs apply, so it shows the
      * previous frame's output. */
     t = open_sim(XRF_SIM_RELBOT, "loopback=2", NULL);
