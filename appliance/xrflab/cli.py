@@ -50,7 +50,7 @@ SUBCOMMANDS: dict[str, Subcommand] = {}
 
 # name -> module providing HELP, add_arguments(parser), run(args); imported when the parser is built.
 EXTERNAL_SUBCOMMANDS: dict[str, str] = {
-    "serve": "xrflab.server.cli",
+    "serve": "xrflab.server.cli_serve",
 }
 
 

@@ -1,0 +1,1 @@
+"""The XRF Lab appliance: FastAPI app, run supervisor, WebSocket hub (see app.create_app)."""

@@ -1,0 +1,248 @@
+"""HTTP routes and the WebSocket endpoint. The pydantic models here are the API's contract
+(they are what /openapi.json publishes); the dashboard and the CLI use nothing else.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import struct
+from typing import Any, Literal
+
+from fastapi import APIRouter, HTTPException, Request, WebSocket
+from pydantic import BaseModel, Field
+from starlette.websockets import WebSocketDisconnect, WebSocketState
+
+from .. import channels as chmod
+from .hub import TOPICS, Client
+from .supervisor import Supervisor, SupervisorError
+
+router = APIRouter(prefix="/api")
+
+
+# ---- models -------------------------------------------------------------------------------------
+
+
+class BenchInfo(BaseModel):
+    mode: Literal["sim", "real"]
+    sim: str = Field(description="simulated plant when mode is sim")
+    profile: str
+    evl: bool
+    spidev: bool
+    telemetry_hz: float
+
+
+class BuildInfo(BaseModel):
+    name: str
+    kind: Literal["example", "template"]
+    path: str
+    sim: str = Field(description="plant a run of this build simulates by default")
+    status: Literal["not built", "building", "ready", "failed"]
+    error: str = ""
+
+
+class RunRecord(BaseModel):
+    id: int
+    build: str
+    program: str
+    sim: str
+    shm: str
+    pid: int | None
+    started: float = Field(description="Unix time")
+    ended: float | None
+    status: Literal["starting", "running", "ended", "crashed", "failed"]
+    crashed: bool
+    crash_reason: str = Field(description="signal | exit | hang | appliance, empty if not crashed")
+    exit_code: int | None
+    exit_signal: int | None
+    state: str = Field(description="last loop state seen")
+    cycles: int
+    misses: int
+    cycle_freq: int
+    run_dir: str
+    message: str
+
+
+class StartRun(BaseModel):
+    build: str = Field(description="a name from GET /api/builds")
+    sim: Literal["relbot", "jiwy"] | None = Field(default=None, description="override the build's plant")
+    max_cycles: int | None = Field(default=None, ge=1, description="leave the loop after N cycles")
+
+
+class CommandRequest(BaseModel):
+    cmd: str | int
+
+
+class CommandReply(BaseModel):
+    ticket: int
+    accepted: bool
+    state: int
+    state_name: str
+    reason: str
+
+
+def _supervisor(request: Request) -> Supervisor:
+    return request.app.state.supervisor
+
+
+def _http(exc: SupervisorError) -> HTTPException:
+    return HTTPException(status_code=exc.status, detail=str(exc))
+
+
+# ---- REST ---------------------------------------------------------------------------------------
+
+
+@router.get("/bench", response_model=BenchInfo)
+async def get_bench(request: Request) -> dict[str, Any]:
+    return _supervisor(request).bench()
+
+
+@router.get("/builds", response_model=list[BuildInfo])
+async def get_builds(request: Request) -> list[dict[str, Any]]:
+    return [
+        {"name": e.name, "kind": e.kind, "path": str(e.path), "sim": e.sim, "status": e.status, "error": e.error}
+        for e in _supervisor(request).catalog.entries()
+    ]
+
+
+@router.post("/runs", response_model=RunRecord, status_code=201)
+async def start_run(body: StartRun, request: Request) -> dict[str, Any]:
+    try:
+        row = await _supervisor(request).start_run(body.build, body.sim, body.max_cycles)
+    except SupervisorError as exc:
+        raise _http(exc) from None
+    return row.as_dict()
+
+
+@router.post("/runs/current/stop", response_model=RunRecord)
+async def stop_run(request: Request) -> dict[str, Any]:
+    try:
+        row = await _supervisor(request).stop_current()
+    except SupervisorError as exc:
+        raise _http(exc) from None
+    return row.as_dict()
+
+
+@router.post("/runs/current/command", response_model=CommandReply)
+async def command(body: CommandRequest, request: Request) -> dict[str, Any]:
+    try:
+        result = await _supervisor(request).command(body.cmd)
+    except SupervisorError as exc:
+        raise _http(exc) from None
+    except ValueError as exc:
+        raise HTTPException(status_code=422, detail=str(exc)) from None
+    except chmod.ChannelsError as exc:
+        raise HTTPException(status_code=503, detail=str(exc)) from None
+    return {"ticket": result.ticket, "accepted": result.accepted, "state": result.state,
+            "state_name": result.state_name, "reason": result.reason}
+
+
+@router.get("/runs", response_model=list[RunRecord])
+async def list_runs(request: Request, limit: int = 100) -> list[dict[str, Any]]:
+    return [r.as_dict() for r in _supervisor(request).store.list(limit)]
+
+
+@router.get("/runs/{run_id}", response_model=RunRecord)
+async def get_run(run_id: int, request: Request) -> dict[str, Any]:
+    row = _supervisor(request).store.get(run_id)
+    if row is None:
+        raise HTTPException(status_code=404, detail=f"no run {run_id}")
+    return row.as_dict()
+
+
+# ---- WebSocket ----------------------------------------------------------------------------------
+
+ws_router = APIRouter()
+
+
+@ws_router.websocket("/ws")
+async def websocket(ws: WebSocket) -> None:
+    sup: Supervisor = ws.app.state.supervisor
+    await ws.accept()
+    client = sup.hub.new_client(ws)
+    pump = asyncio.create_task(client.pump())
+    receive = asyncio.create_task(_receive(ws, client, sup))
+    kicked = asyncio.create_task(client.kicked.wait())
+    try:
+        await asyncio.wait({pump, receive, kicked}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        sup.hub.remove(client)
+        for task in (pump, receive, kicked):
+            task.cancel()
+        if client.kicked.is_set() and ws.client_state == WebSocketState.CONNECTED:
+            # 1008 policy violation: the client could not keep up. Bounded: its socket is full.
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(ws.close(code=1008, reason="too slow"), 1.0)
+
+
+async def _receive(ws: WebSocket, client: Client, sup: Supervisor) -> None:
+    limit = sup.settings.max_frame_bytes
+    while True:
+        try:
+            message = await ws.receive()
+        except (WebSocketDisconnect, RuntimeError):
+            return
+        if message["type"] == "websocket.disconnect":
+            return
+        text = message.get("text")
+        if text is None:
+            client.reply("error", {"error": "binary frames are not accepted; send JSON text"})
+            continue
+        if len(text) > limit:
+            client.reply("error", {"error": f"frame of {len(text)} bytes is over the {limit} byte limit"})
+            continue
+        await _handle(text, client, sup)
+
+
+async def _handle(text: str, client: Client, sup: Supervisor) -> None:
+    """One client message. Every failure becomes an `error` reply; nothing here can end the
+    connection or reach the loop with bad data."""
+    try:
+        msg = json.loads(text)
+    except ValueError as exc:
+        client.reply("error", {"error": f"malformed JSON: {exc}"})
+        return
+    if not isinstance(msg, dict) or not isinstance(msg.get("type"), str):
+        client.reply("error", {"error": "a message is a JSON object with a string 'type'"})
+        return
+    kind = msg["type"]
+    ref = msg.get("id")  # echoed so a client can match replies to requests
+    try:
+        if kind == "command":
+            cmd = msg.get("cmd")
+            if isinstance(cmd, bool) or not isinstance(cmd, (str, int)):
+                raise ValueError("command needs 'cmd': a command name or number")
+            result = await sup.command(cmd)
+            client.reply("ack", {"id": ref, "cmd": cmd, "ticket": result.ticket, "accepted": result.accepted,
+                                 "state": result.state, "name": result.state_name, "reason": result.reason})
+        elif kind == "setpoint":
+            fields = msg.get("fields")
+            if not isinstance(fields, dict) or not fields:
+                raise ValueError("setpoint needs 'fields': an object of field name -> value")
+            for name, value in fields.items():
+                if isinstance(value, bool):
+                    continue
+                if not isinstance(value, (int, float)) and not (
+                    isinstance(value, list) and all(isinstance(v, (int, float)) for v in value)
+                ):
+                    raise ValueError(f"field {name}: {value!r} is not a number")
+            merged = sup.setpoint(fields)
+            client.reply("ack", {"id": ref, "setpoint": merged})
+        elif kind == "subscribe":
+            topics = msg.get("topics")
+            if not isinstance(topics, list) or not all(isinstance(t, str) for t in topics):
+                raise ValueError("subscribe needs 'topics': a list of topic names")
+            unknown = sorted(set(topics) - TOPICS)
+            if unknown:
+                raise ValueError(f"unknown topic(s) {', '.join(unknown)}; topics: {', '.join(sorted(TOPICS))}")
+            client.topics = set(topics)
+            client.reply("ack", {"id": ref, "topics": sorted(client.topics)})
+        elif kind == "ping":
+            client.reply("pong", {"id": ref, "t": msg.get("t")})
+        else:
+            raise ValueError(f"unknown message type {kind!r}; types: command, setpoint, subscribe, ping")
+    except SupervisorError as exc:
+        client.reply("error", {"id": ref, "request": kind, "error": str(exc)})
+    except (ValueError, OverflowError, TypeError, struct.error, chmod.ChannelsError) as exc:
+        client.reply("error", {"id": ref, "request": kind, "error": str(exc)})

@@ -1,0 +1,52 @@
+"""``xrf serve``: the appliance on uvicorn. Registered in cli.py's EXTERNAL_SUBCOMMANDS; heavy
+imports stay inside ``run`` because every ``xrf`` call imports this module to build its parser."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+HELP = "serve the dashboard and API (simulated bench unless EVL and the ico board are present)"
+
+# Frames beyond this are refused by the WebSocket layer itself (close 1009); between the
+# appliance's own 64 KiB limit and this one the client gets an `error` message instead.
+WS_PROTOCOL_MAX = 4 * 1024 * 1024
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from .settings import SIM_PLANTS, default_data_dir
+
+    parser.add_argument("--sim", choices=SIM_PLANTS, default="relbot", help="simulated plant (default relbot)")
+    parser.add_argument("--data", type=Path, default=None, help=f"data folder (default {default_data_dir()})")
+    parser.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0 for the lab network)")
+    parser.add_argument("--port", type=int, default=8000)
+    parser.add_argument("--telemetry-hz", type=float, default=30.0, help="telemetry rate to browsers (default 30)")
+    parser.add_argument("--hang-ms", type=int, default=200, help="no loop cycle for this long = hung (default 200)")
+
+
+def run(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from .app import create_app
+    from .settings import Settings, default_data_dir
+
+    settings = Settings(
+        data_dir=(args.data or default_data_dir()).expanduser(),
+        sim=args.sim,
+        host=args.host,
+        port=args.port,
+        telemetry_hz=args.telemetry_hz,
+        hang_timeout_ms=args.hang_ms,
+    )
+    shown = "localhost" if args.host in ("127.0.0.1", "0.0.0.0", "::") else args.host
+    bench = "real ico board" if settings.bench_is_real() else f"simulated {settings.sim}"
+    print(f"XRF Lab: {bench} bench, data in {settings.data_dir}", flush=True)
+    print(f"XRF Lab: open http://{shown}:{args.port}/ in a browser", flush=True)
+    uvicorn.run(
+        create_app(settings),
+        host=args.host,
+        port=args.port,
+        log_level="warning",
+        ws_max_size=WS_PROTOCOL_MAX,
+    )
+    return 0

@@ -1,0 +1,148 @@
+"""WebSocket fan-out: one producer (the run's reader task) to many browsers, none able to slow
+the others down.
+
+Every message is encoded to JSON once and the same string is queued for each client, so 30
+clients cost 30 queue appends, not 30 encodings. Each client has its own bounded queue and its
+own sender task: a browser that reads slowly only fills its own queue. Telemetry is the only
+topic that is allowed to be lossy (a newer sample supersedes an older one), so a full telemetry
+queue drops its oldest entry and counts it; everything else (state, alarms, run events, errors,
+monitor lines) is kept, and a client whose queue grows past a hard limit, or that has been
+losing telemetry continuously for `slow_client_s`, is disconnected.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from typing import Any
+
+from starlette.websockets import WebSocket
+
+# Topics a client may subscribe to. `error` and `ack` replies go to the asking client only.
+TOPICS = frozenset({"state", "monitor", "telemetry", "timing", "alarm", "run", "build"})
+LOSSY = "telemetry"
+
+
+def encode(message_type: str, payload: dict[str, Any]) -> str:
+    return json.dumps({"type": message_type, **payload}, separators=(",", ":"), allow_nan=False)
+
+
+class SlowClient(Exception):
+    """The client cannot keep up and is being disconnected."""
+
+
+class ClientQueue:
+    """Two deques: lossy telemetry (drop-oldest) and everything else (kept, hard-capped)."""
+
+    def __init__(self, max_telemetry: int, max_total: int, slow_after_s: float) -> None:
+        self._telemetry: deque[str] = deque()
+        self._other: deque[str] = deque()
+        self._max_telemetry = max_telemetry
+        self._max_total = max_total
+        self._slow_after_s = slow_after_s
+        self._ready = asyncio.Event()
+        self.dropped = 0
+        # monotonic time since which every telemetry put had to drop something; None = keeping up
+        self._pressure_since: float | None = None
+
+    def __len__(self) -> int:
+        return len(self._telemetry) + len(self._other)
+
+    def put(self, topic: str, text: str) -> None:
+        """Queue a message; raises SlowClient when the client has to go."""
+        if topic == LOSSY:
+            if len(self._telemetry) >= self._max_telemetry:
+                self._telemetry.popleft()
+                self.dropped += 1
+                now = time.monotonic()
+                if self._pressure_since is None:
+                    self._pressure_since = now
+                elif now - self._pressure_since > self._slow_after_s:
+                    raise SlowClient(
+                        f"dropped telemetry for {now - self._pressure_since:.1f} s ({self.dropped} messages)"
+                    )
+            self._telemetry.append(text)
+        else:
+            if len(self._other) >= self._max_total:
+                raise SlowClient(f"{len(self._other)} messages waiting")
+            self._other.append(text)
+        self._ready.set()
+
+    async def get(self) -> str:
+        while True:
+            # Control messages first: a state change must not wait behind a backlog of samples.
+            if self._other:
+                return self._other.popleft()
+            if self._telemetry:
+                text = self._telemetry.popleft()
+                if len(self._telemetry) <= self._max_telemetry // 2:
+                    self._pressure_since = None  # drained to half: the client is keeping up
+                return text
+            self._ready.clear()
+            await self._ready.wait()
+
+
+class Client:
+    def __init__(self, ws: WebSocket, queue: ClientQueue) -> None:
+        self.ws = ws
+        self.queue = queue
+        self.topics: set[str] = set(TOPICS)
+        self.kicked = asyncio.Event()
+        self.kick_reason = ""
+
+    def deliver(self, topic: str, text: str) -> None:
+        if self.kicked.is_set():
+            return
+        try:
+            self.queue.put(topic, text)
+        except SlowClient as exc:
+            self.kick_reason = str(exc)
+            self.kicked.set()
+
+    def reply(self, message_type: str, payload: dict[str, Any]) -> None:
+        """A message for this client only (errors, acks); never dropped as telemetry is."""
+        self.deliver(message_type, encode(message_type, payload))
+
+    async def pump(self) -> None:
+        """Sender task: the only place that awaits this client's socket."""
+        while True:
+            text = await self.queue.get()
+            await self.ws.send_text(text)
+
+
+class Hub:
+    def __init__(self, max_telemetry: int = 64, max_total: int = 2048, slow_after_s: float = 3.0) -> None:
+        self._clients: set[Client] = set()
+        self._max_telemetry = max_telemetry
+        self._max_total = max_total
+        self._slow_after_s = slow_after_s
+        self.published = 0
+        # Filled in by the app: messages a new client needs first (current run, state, ...).
+        self.snapshot: Callable[[], Iterable[tuple[str, dict[str, Any]]]] = lambda: ()
+
+    @property
+    def clients(self) -> int:
+        return len(self._clients)
+
+    def new_client(self, ws: WebSocket) -> Client:
+        client = Client(ws, ClientQueue(self._max_telemetry, self._max_total, self._slow_after_s))
+        for message_type, payload in self.snapshot():
+            client.deliver(message_type, encode(message_type, payload))
+        self._clients.add(client)
+        return client
+
+    def remove(self, client: Client) -> None:
+        self._clients.discard(client)
+
+    def publish(self, message_type: str, payload: dict[str, Any]) -> None:
+        """Fan a message out to every subscribed client. Never blocks, never raises per client."""
+        if not self._clients:
+            return
+        text = encode(message_type, payload)
+        self.published += 1
+        for client in tuple(self._clients):
+            if message_type in client.topics:
+                client.deliver(message_type, text)

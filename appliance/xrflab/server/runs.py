@@ -1,0 +1,122 @@
+"""Run records in SQLite: which build ran, on which bench, how it ended.
+
+Writes are a handful per run (start, end), so the stdlib sqlite3 module is used synchronously
+from the event loop: each statement is sub-millisecond and a thread hop would cost more than it
+saves. One connection, autocommit, WAL so a reader (a second `xrf` process) never blocks us.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import time
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS runs (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    build TEXT NOT NULL,
+    program TEXT NOT NULL DEFAULT '',
+    sim TEXT NOT NULL DEFAULT '',
+    shm TEXT NOT NULL DEFAULT '',
+    pid INTEGER,
+    started REAL NOT NULL,
+    ended REAL,
+    status TEXT NOT NULL,          -- starting | running | ended | crashed | failed
+    crashed INTEGER NOT NULL DEFAULT 0,
+    crash_reason TEXT NOT NULL DEFAULT '',   -- signal | exit | hang | ''
+    exit_code INTEGER,
+    exit_signal INTEGER,
+    state TEXT NOT NULL DEFAULT '',  -- last loop state seen
+    cycles INTEGER NOT NULL DEFAULT 0,
+    misses INTEGER NOT NULL DEFAULT 0,
+    cycle_freq INTEGER NOT NULL DEFAULT 0,
+    run_dir TEXT NOT NULL DEFAULT '',
+    message TEXT NOT NULL DEFAULT ''
+);
+"""
+
+
+@dataclass
+class RunRow:
+    id: int
+    build: str
+    program: str
+    sim: str
+    shm: str
+    pid: int | None
+    started: float
+    ended: float | None
+    status: str
+    crashed: bool
+    crash_reason: str
+    exit_code: int | None
+    exit_signal: int | None
+    state: str
+    cycles: int
+    misses: int
+    cycle_freq: int
+    run_dir: str
+    message: str
+
+    def as_dict(self) -> dict[str, Any]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+_COLUMNS = [f.name for f in fields(RunRow)]
+
+
+class RunStore:
+    def __init__(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._db = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.executescript(_SCHEMA)
+        # A previous appliance process that died mid-run left rows 'running': they did not end
+        # cleanly and nobody watched them end, so say so rather than show them as live.
+        self._db.execute(
+            "UPDATE runs SET status='crashed', crashed=1, crash_reason='appliance', "
+            "message='the appliance stopped while this run was live', ended=COALESCE(ended, ?) "
+            "WHERE status IN ('starting', 'running')",
+            (time.time(),),
+        )
+
+    def close(self) -> None:
+        self._db.close()
+
+    def create(self, build: str, sim: str, shm: str, run_dir: str) -> RunRow:
+        cur = self._db.execute(
+            "INSERT INTO runs (build, sim, shm, started, status, run_dir) VALUES (?, ?, ?, ?, 'starting', ?)",
+            (build, sim, shm, time.time(), run_dir),
+        )
+        row = self.get(int(cur.lastrowid or 0))
+        assert row is not None
+        return row
+
+    def update(self, run_id: int, **values: Any) -> RunRow:
+        unknown = set(values) - set(_COLUMNS)
+        if unknown:
+            raise KeyError(f"unknown run columns {sorted(unknown)}")
+        if values:
+            assignments = ", ".join(f"{k}=?" for k in values)
+            self._db.execute(f"UPDATE runs SET {assignments} WHERE id=?", (*values.values(), run_id))
+        row = self.get(run_id)
+        if row is None:
+            raise KeyError(run_id)
+        return row
+
+    def get(self, run_id: int) -> RunRow | None:
+        cur = self._db.execute(f"SELECT {', '.join(_COLUMNS)} FROM runs WHERE id=?", (run_id,))
+        r = cur.fetchone()
+        return _row(r) if r else None
+
+    def list(self, limit: int = 100) -> list[RunRow]:
+        cur = self._db.execute(f"SELECT {', '.join(_COLUMNS)} FROM runs ORDER BY id DESC LIMIT ?", (limit,))
+        return [_row(r) for r in cur.fetchall()]
+
+
+def _row(r: tuple[Any, ...]) -> RunRow:
+    d = dict(zip(_COLUMNS, r))
+    d["crashed"] = bool(d["crashed"])
+    return RunRow(**d)

@@ -1,0 +1,80 @@
+"""Settings of one appliance process: where data lives, which bench, how hard to supervise.
+
+Plain dataclass, no settings framework: the values come from ``xrf serve``'s options (or a test),
+and every knob has a default a newcomer never needs to change.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+SIM_PLANTS = ("relbot", "jiwy")
+
+# The repository root, found from this file: appliance/xrflab/server/settings.py.
+REPO_ROOT = Path(__file__).resolve().parents[3]
+
+
+def default_data_dir() -> Path:
+    """XDG data dir like platformdirs' user_data_dir, without the dependency."""
+    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(base) / "xrf-lab"
+
+
+def real_bench_present(spi_device: str = "/dev/spidev0.0") -> bool:
+    """A real bench needs the EVL core and an SPI device to the ico board; else we simulate."""
+    return Path("/dev/evl").exists() and Path(spi_device).exists()
+
+
+@dataclass(frozen=True)
+class Settings:
+    data_dir: Path = field(default_factory=default_data_dir)
+    # Plant of the simulated board when a build does not name one (examples do: relbot, jiwy).
+    sim: str = "relbot"
+    host: str = "127.0.0.1"
+    port: int = 8000
+    # None = detect (real only with /dev/evl and the spidev present); False forces simulation.
+    real_bench: bool | None = None
+    spi_device: str = "/dev/spidev0.0"
+
+    frontend_dir: Path = REPO_ROOT / "frontend"
+    projects_dir: Path = REPO_ROOT / "student_projects"
+
+    # Telemetry to browsers, decimated from the loop's write rate.
+    telemetry_hz: float = 30.0
+    timing_period_s: float = 1.0
+
+    # Supervision. The loop pauses itself when our heartbeat is older than host_timeout_ms
+    # (the appliance died or hangs); we call the loop hung when its heartbeat is older than
+    # hang_timeout_ms while the process lives.
+    host_heartbeat_period_s: float = 0.05
+    host_timeout_ms: int = 1000
+    host_timeout_action: str = "pause"
+    hang_timeout_ms: int = 200
+    open_timeout_s: float = 10.0
+    stop_state_timeout_s: float = 2.0  # stop -> STOPPED, quit -> exit
+    signal_timeout_s: float = 2.0  # SIGINT -> exit, SIGTERM -> exit, then SIGKILL
+    # Environment passed to every loop process on top of ours (e.g. XRF_FREQ in benchmarks).
+    loop_env: dict[str, str] = field(default_factory=dict)
+
+    # WebSocket fan-out.
+    max_frame_bytes: int = 64 * 1024
+    client_queue_telemetry: int = 64  # telemetry messages kept per client before dropping oldest
+    client_queue_max: int = 2048  # any messages; beyond this the client is disconnected
+    slow_client_s: float = 3.0  # dropping continuously this long -> disconnect
+
+    def bench_is_real(self) -> bool:
+        return real_bench_present(self.spi_device) if self.real_bench is None else self.real_bench
+
+    @property
+    def runs_db(self) -> Path:
+        return self.data_dir / "runs.sqlite3"
+
+    @property
+    def runs_dir(self) -> Path:
+        return self.data_dir / "runs"
+
+    @property
+    def builds_dir(self) -> Path:
+        return self.data_dir / "builds"

@@ -1,0 +1,658 @@
+"""The supervisor: builds, starts, watches and stops loop processes, one run at a time.
+
+A run is one loop process plus its shared memory (/dev/shm/<name>, a fresh name per run). The
+supervisor owns that memory: it opens it with ``Channels``, writes the host heartbeat the loop
+checks (XRF_HOST_TIMEOUT_MS: the loop pauses itself if we die), reads state/telemetry/monitor
+when the loop rings the doorbell, and unlinks the object when the run is over.
+
+Safety: the process exit is noticed at once (asyncio's child watcher wakes on the exit, no
+polling) and the outputs go to a safe state before anything else happens: the simulated board's
+``forced_off`` flag, or an FPGA RESET over spidev on a real bench. A loop that stops cycling while
+its process lives (hang) is found from its heartbeat within ``hang_timeout_ms`` and killed; the
+same safe state follows.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .. import channels as chmod
+from ..channels import Channels, ChannelsError
+from .hub import Hub
+from .runs import RunRow, RunStore
+from .safety import fpga_reset
+from .settings import SIM_PLANTS, Settings
+
+STATE_RUN = chmod.lib.XRF_STATE_RUN
+STATE_PAUSED = chmod.lib.XRF_STATE_PAUSED
+STATE_STOPPED = chmod.lib.XRF_STATE_STOPPED
+STATE_ERROR = chmod.lib.XRF_STATE_ERROR
+SETTLING = {
+    chmod.lib.XRF_STATE_INITIALISING,
+    chmod.lib.XRF_STATE_STOPPING,
+    chmod.lib.XRF_STATE_PAUSING,
+}
+SOURCE_APPLIANCE = chmod.lib.XRF_SOURCE_APPLIANCE
+DOORBELL_WAIT_MS = 50  # also the fallback poll period if a loop never rings
+
+
+class SupervisorError(Exception):
+    """A request the supervisor cannot honour; `status` is the HTTP status to answer with."""
+
+    def __init__(self, message: str, status: int = 409) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+# ---- bundled builds -----------------------------------------------------------------------------
+
+
+@dataclass
+class BuildEntry:
+    name: str
+    kind: str  # example | template
+    path: Path
+    sim: str
+    status: str = "not built"  # not built | building | ready | failed
+    executable: Path | None = None
+    error: str = ""
+    log_tail: list[str] = field(default_factory=list)
+    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+
+
+class BuildCatalog:
+    """The projects that come with the appliance, built on first use in a worker thread."""
+
+    def __init__(self, settings: Settings, publish: Callable[[str, dict[str, Any]], None]) -> None:
+        self._settings = settings
+        self._publish = publish
+        self._entries: dict[str, BuildEntry] = {}
+        self.scan()
+
+    def scan(self) -> None:
+        for kind, folder in (("example", "examples"), ("template", "templates")):
+            root = self._settings.projects_dir / folder
+            if not root.is_dir():
+                continue
+            for project in sorted(p for p in root.iterdir() if (p / "CMakeLists.txt").is_file()):
+                name = project.name if kind == "example" else f"template-{project.name}"
+                if name not in self._entries:
+                    sim = project.name if project.name in SIM_PLANTS else self._settings.sim
+                    self._entries[name] = BuildEntry(name, kind, project, sim)
+
+    def entries(self) -> list[BuildEntry]:
+        self.scan()  # examples may appear while we run (a fresh checkout being filled in)
+        return list(self._entries.values())
+
+    def get(self, name: str) -> BuildEntry:
+        self.scan()
+        if name not in self._entries:
+            raise SupervisorError(f"no build named {name!r}; have: {', '.join(self._entries)}", 404)
+        return self._entries[name]
+
+    async def ensure_built(self, name: str) -> BuildEntry:
+        entry = self.get(name)
+        async with entry.lock:  # one build per project at a time; later callers reuse it
+            if entry.status == "ready" and entry.executable and entry.executable.exists():
+                return entry
+            entry.status, entry.error, entry.log_tail = "building", "", []
+            loop = asyncio.get_running_loop()
+
+            def log(line: str) -> None:  # called from the build thread
+                entry.log_tail = (entry.log_tail + [line])[-200:]
+                loop.call_soon_threadsafe(self._publish, "build", {"build": name, "line": line})
+
+            def work() -> Path:
+                from .. import build
+
+                result = build.build_project(entry.path, self._settings.builds_dir / name, log=log)
+                return Path(result.executable)
+
+            self._publish("build", {"build": name, "status": "building"})
+            try:
+                entry.executable = await asyncio.to_thread(work)
+            except Exception as exc:  # BuildError and anything unexpected: the user sees why
+                entry.status, entry.error = "failed", str(exc).splitlines()[0] if str(exc) else repr(exc)
+                self._publish("build", {"build": name, "status": "failed", "error": entry.error})
+                raise SupervisorError(f"build {name} failed: {entry.error}", 422) from exc
+            entry.status = "ready"
+            self._publish("build", {"build": name, "status": "ready"})
+            return entry
+
+
+# ---- one run ------------------------------------------------------------------------------------
+
+
+def schema_fields(schema: str) -> list[dict[str, Any]]:
+    """[{name, type}] from a normalised .msg text, for the dashboard's controls and plots."""
+    from ..msgdef import Codec
+
+    return [{"name": f.name, "type": f.type, "count": f.count} for f in Codec(schema).fields]
+
+
+@dataclass
+class Run:
+    row: RunRow
+    proc: asyncio.subprocess.Process
+    shm: str
+    run_dir: Path
+    build: BuildEntry
+    channels: Channels | None = None
+    stop_requested: bool = False
+    hang: bool = False
+    safe_state: str = ""
+    exited_at: float = 0.0
+    safe_at: float = 0.0
+    ended: asyncio.Event = field(default_factory=asyncio.Event)
+    tasks: list[asyncio.Task[Any]] = field(default_factory=list)
+    setpoint: dict[str, Any] = field(default_factory=dict)
+    # doorbell thread <-> reader task
+    wake: asyncio.Event = field(default_factory=asyncio.Event)
+    wake_pending: bool = False
+    thread_stop: threading.Event = field(default_factory=threading.Event)
+    thread: threading.Thread | None = None
+    last_state_key: tuple[Any, ...] | None = None
+    last_status: chmod.Status | None = None
+    last_missed: int = 0
+    telemetry_sent: int = 0
+    telemetry_lost: int = 0
+
+    @property
+    def alive(self) -> bool:
+        return self.proc.returncode is None
+
+
+class Supervisor:
+    def __init__(self, settings: Settings, hub: Hub, store: RunStore) -> None:
+        self.settings = settings
+        self.hub = hub
+        self.store = store
+        self.catalog = BuildCatalog(settings, hub.publish)
+        self.current: Run | None = None
+        self.last_row: RunRow | None = None
+        self._start_lock = asyncio.Lock()
+
+    # -- queries ------------------------------------------------------------------------------
+
+    def bench(self) -> dict[str, Any]:
+        real = self.settings.bench_is_real()
+        return {
+            "mode": "real" if real else "sim",
+            "sim": "" if real else self.settings.sim,
+            "profile": "ico-board over EVL spidev" if real else f"simulated ico board + {self.settings.sim} plant",
+            "evl": Path("/dev/evl").exists(),
+            "spidev": Path(self.settings.spi_device).exists(),
+            "telemetry_hz": self.settings.telemetry_hz,
+        }
+
+    def run_payload(self, run: Run | None = None, event: str = "current") -> dict[str, Any]:
+        run = run or self.current
+        row = run.row if run else self.last_row
+        payload: dict[str, Any] = {"event": event, "run": row.as_dict() if row else None, "active": bool(run and run.alive)}
+        if run and run.channels is not None:
+            info = run.channels.info
+            payload.update(
+                program=info["program"],
+                cycle_freq=info["cycle_freq"],
+                backend=info["backend"],
+                transport=info["transport"],
+                ros2xeno=schema_fields(info["ros2xeno_schema"]),
+                xeno2ros=schema_fields(info["xeno2ros_schema"]),
+                setpoint=run.setpoint,
+            )
+        return payload
+
+    def state_payload(self, run: Run | None = None) -> dict[str, Any]:
+        run = run or self.current
+        if run is None or run.channels is None or run.last_status is None:
+            return {"run_id": run.row.id if run else None, "active": False, "state": 0, "name": "NO RUN",
+                    "allowed": [], "rejected": None, "last_error": 0}
+        s = run.last_status
+        rejected = None
+        if s.cmd_rejected:
+            rejected = {
+                "ticket": s.cmd_rejected,
+                "cmd": s.last_rejected_cmd,
+                "name": chmod.command_name(s.last_rejected_cmd),
+                "reason": s.reject_reason,
+            }
+        alive = run.alive and s.running
+        return {
+            "run_id": run.row.id,
+            "active": alive,
+            "state": s.state,
+            "name": s.state_name,
+            "allowed": chmod.allowed_commands(s.state) if alive else [],
+            "rejected": rejected,
+            "last_error": s.last_error,
+            "cycles": s.cycles,
+        }
+
+    def snapshot(self) -> list[tuple[str, dict[str, Any]]]:
+        return [("run", self.run_payload()), ("state", self.state_payload())]
+
+    # -- starting -----------------------------------------------------------------------------
+
+    async def start_run(self, build: str, sim: str | None = None, max_cycles: int | None = None) -> RunRow:
+        async with self._start_lock:
+            if self.current is not None and not self.current.ended.is_set():
+                raise SupervisorError(f"run {self.current.row.id} is still active; stop it first")
+            entry = await self.catalog.ensure_built(build)
+            assert entry.executable is not None
+            plant = sim or entry.sim
+            if plant not in SIM_PLANTS:
+                raise SupervisorError(f"unknown simulated plant {plant!r}; have: {', '.join(SIM_PLANTS)}", 422)
+            row = self.store.create(build, plant, "", "")
+            shm = f"xrf-lab-{os.getpid()}-{row.id}"
+            run_dir = self.settings.runs_dir / str(row.id)
+            run_dir.mkdir(parents=True, exist_ok=True)
+            row = self.store.update(row.id, shm=shm, run_dir=str(run_dir))
+
+            env = dict(os.environ)
+            env.update(
+                XRF_SHM=shm,
+                XRF_SIM=plant,
+                XRF_LOG_DIR=str(run_dir),
+                XRF_HOST_TIMEOUT_MS=str(self.settings.host_timeout_ms),
+                XRF_HOST_TIMEOUT_ACTION=self.settings.host_timeout_action,
+            )
+            if not self.settings.bench_is_real():
+                env["XRF_TRANSPORT"] = "sim"
+            if max_cycles:
+                env["XRF_MAX_CYCLES"] = str(max_cycles)
+            env.update(self.settings.loop_env)
+            try:
+                proc = await asyncio.create_subprocess_exec(
+                    str(entry.executable),
+                    cwd=run_dir,
+                    env=env,
+                    stdin=asyncio.subprocess.DEVNULL,
+                    stdout=asyncio.subprocess.PIPE,
+                    stderr=asyncio.subprocess.STDOUT,
+                    # Own session: a Ctrl-C on the appliance's terminal reaches the appliance only,
+                    # which then stops the run in order (quit, signals) instead of both at once.
+                    start_new_session=True,
+                )
+            except OSError as exc:
+                self.store.update(row.id, status="failed", ended=time.time(), message=str(exc))
+                raise SupervisorError(f"cannot start {entry.executable}: {exc}", 500) from exc
+            row = self.store.update(row.id, pid=proc.pid, status="starting")
+            run = Run(row=row, proc=proc, shm=shm, run_dir=run_dir, build=entry)
+            self.current = run
+            run.tasks.append(asyncio.create_task(self._watch_exit(run), name=f"run{row.id}-exit"))
+            run.tasks.append(asyncio.create_task(self._pipe_output(run), name=f"run{row.id}-output"))
+
+            opened = await self._open_channels(run)
+            if not opened:
+                await run.ended.wait()
+                assert self.last_row is not None
+                return self.last_row
+            info = run.channels.info if run.channels else {}
+            run.row = self.store.update(
+                row.id, status="running", program=info.get("program", ""), cycle_freq=info.get("cycle_freq", 0)
+            )
+            run.tasks.append(asyncio.create_task(self._supervise(run), name=f"run{row.id}-heartbeat"))
+            run.tasks.append(asyncio.create_task(self._reader(run), name=f"run{row.id}-reader"))
+            run.tasks.append(asyncio.create_task(self._timing(run), name=f"run{row.id}-timing"))
+            run.thread = threading.Thread(target=self._doorbell_thread, args=(run, asyncio.get_running_loop()),
+                                          name=f"xrf-doorbell-{row.id}", daemon=True)
+            run.thread.start()
+            self._refresh_state(run)
+            self.hub.publish("run", self.run_payload(run, "started"))
+            return run.row
+
+    async def _open_channels(self, run: Run) -> bool:
+        """Map the run's shm once the loop marks it ready, unless the process dies first."""
+        opening = asyncio.ensure_future(asyncio.to_thread(Channels.open, run.shm, self.settings.open_timeout_s))
+        exited = asyncio.ensure_future(run.ended.wait())
+        done, _ = await asyncio.wait({opening, exited}, return_when=asyncio.FIRST_COMPLETED)
+        exited.cancel()
+        if opening in done and opening.exception() is None:
+            ch = opening.result()
+            if run.ended.is_set():
+                return False
+            run.channels = ch
+            ch.configure_host_timeout(self.settings.host_timeout_ms, self.settings.host_timeout_action)
+            run.last_status = ch.status()
+            return True
+        if opening in done:  # the loop never made its shm ready: treat as a failed start
+            message = f"loop did not open its shared memory: {opening.exception()}"
+            run.row = self.store.update(run.row.id, message=message)
+            await self._terminate(run)
+        else:
+            opening.add_done_callback(lambda f: f.exception())  # let the thread finish quietly
+        return False
+
+    # -- watching -----------------------------------------------------------------------------
+
+    async def _watch_exit(self, run: Run) -> None:
+        returncode = await run.proc.wait()
+        run.exited_at = time.monotonic()
+        self._safe_state(run)
+        await self._finish(run, returncode)
+
+    def _safe_state(self, run: Run) -> None:
+        """Outputs off, first thing after the loop is gone (or found hung)."""
+        if run.safe_state:
+            return
+        transport = run.channels.info.get("transport", "sim") if run.channels else ""
+        if run.channels is not None and transport == "sim":
+            run.channels.force_sim_outputs_off()
+            run.safe_state = "sim outputs forced off"
+        elif self.settings.bench_is_real():
+            try:
+                run.safe_state = "FPGA RESET sent" if fpga_reset(self.settings.spi_device) else "no spidev to reset"
+            except OSError as exc:
+                run.safe_state = f"FPGA RESET failed: {exc}"
+        else:
+            # The simulated board lives inside the loop process: with no shm it died with it.
+            run.safe_state = "simulated board ended with the process"
+        run.safe_at = time.monotonic()
+
+    async def _finish(self, run: Run, returncode: int) -> None:
+        # Stop everything that touches the mapping before letting go of it.
+        run.thread_stop.set()
+        if run.thread is not None:
+            await asyncio.to_thread(run.thread.join, 1.0)
+        current = asyncio.current_task()
+        for task in run.tasks:
+            if task is not current and task.get_name().endswith(("heartbeat", "reader", "timing")):
+                task.cancel()
+        status: chmod.Status | None = None
+        if run.channels is not None:
+            with contextlib.suppress(ChannelsError):
+                status = run.channels.status()
+        if status is not None:
+            run.last_status = status
+        exit_signal = -returncode if returncode < 0 else None
+        exit_code = returncode if returncode >= 0 else None
+        if run.hang:
+            crashed, reason = True, "hang"
+        elif run.stop_requested and (returncode == 0 or exit_signal in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL)):
+            crashed, reason = False, ""
+        elif returncode == 0:
+            crashed, reason = False, ""  # the loop left by itself (quit from elsewhere, XRF_MAX_CYCLES)
+        else:
+            crashed, reason = True, "signal" if exit_signal else "exit"
+        how = f"signal {signal.Signals(exit_signal).name}" if exit_signal else f"exit status {exit_code}"
+        message = run.row.message or (
+            f"loop hung (no cycle for > {self.settings.hang_timeout_ms} ms), killed" if run.hang
+            else f"loop process ended with {how}"
+        )
+        safe_ms = (run.safe_at - run.exited_at) * 1000 if run.exited_at and run.safe_at >= run.exited_at else 0.0
+        run.row = self.store.update(
+            run.row.id,
+            ended=time.time(),
+            status="crashed" if crashed else "ended",
+            crashed=int(crashed),
+            crash_reason=reason,
+            exit_code=exit_code,
+            exit_signal=exit_signal,
+            state=status.state_name if status else (run.last_status.state_name if run.last_status else ""),
+            cycles=status.cycles if status else 0,
+            misses=status.missed if status else 0,
+            message=f"{message}; {run.safe_state}" + (f" {safe_ms:.1f} ms after exit" if crashed and not run.hang else ""),
+        )
+        with contextlib.suppress(FileNotFoundError, ValueError):
+            chmod.shm_path(run.shm).unlink()
+        # No explicit unmap: a worker thread may still hold the Channels (a command wait); the
+        # mapping goes with the last reference, and the name is already unlinked.
+        self.last_row = run.row
+        if crashed:
+            self.hub.publish("alarm", {
+                "kind": "hang" if run.hang else "crash",
+                "run_id": run.row.id,
+                "message": run.row.message,
+                "exit_code": exit_code,
+                "exit_signal": exit_signal,
+                "safe_state": run.safe_state,
+            })
+        run.ended.set()
+        self.hub.publish("run", self.run_payload(run, "ended") | {"active": False})
+        self.hub.publish("state", self.state_payload(run) | {"active": False, "allowed": []})
+
+    async def _pipe_output(self, run: Run) -> None:
+        """The loop's stdout/stderr: kept in the run folder and shown in the monitor console."""
+        assert run.proc.stdout is not None
+        with open(run.run_dir / "output.txt", "ab") as out:
+            while line := await run.proc.stdout.readline():
+                out.write(line)
+                out.flush()
+                text = line.decode("utf-8", "replace").rstrip("\n")
+                self.hub.publish("monitor", {"run_id": run.row.id, "source": "stdout", "lines": [{"text": text}]})
+
+    async def _supervise(self, run: Run) -> None:
+        """Host heartbeat out, loop heartbeat in (hang detection)."""
+        ch = run.channels
+        assert ch is not None
+        hang_ns = self.settings.hang_timeout_ms * 1_000_000
+        last_good = time.monotonic_ns()
+        while run.alive:
+            ch.host_heartbeat()
+            now = time.monotonic_ns()
+            try:
+                s = ch.status()
+            except ChannelsError:
+                s = None  # seqlock held: a loop stopped mid-write looks exactly like this
+            if s is not None:
+                run.last_status = s
+                stale = s.running and s.heartbeat_ns > 0 and now - s.heartbeat_ns > hang_ns
+                if not stale:
+                    last_good = now
+            if now - last_good > hang_ns and run.alive:
+                run.hang = True
+                self._safe_state(run)
+                run.exited_at = time.monotonic()
+                with contextlib.suppress(ProcessLookupError):
+                    run.proc.send_signal(signal.SIGKILL)
+                return
+            await asyncio.sleep(min(self.settings.host_heartbeat_period_s, self.settings.hang_timeout_ms / 4000))
+
+    def _doorbell_thread(self, run: Run, loop: asyncio.AbstractEventLoop) -> None:
+        """Blocks in the futex wait so the event loop never polls; wakes the reader task."""
+        ch = run.channels
+        assert ch is not None
+        seen = ch.doorbell
+        while not run.thread_stop.is_set():
+            seen = ch.wait_doorbell(seen, DOORBELL_WAIT_MS)
+            if not run.wake_pending:  # coalesce: one pending wake-up is enough
+                run.wake_pending = True
+                try:
+                    loop.call_soon_threadsafe(run.wake.set)
+                except RuntimeError:  # event loop closed (shutdown)
+                    return
+
+    async def _reader(self, run: Run) -> None:
+        ch = run.channels
+        assert ch is not None
+        telemetry = ch.telemetry_reader()
+        monitor = ch.monitor_reader()
+        period_ns = int(1e9 / self.settings.telemetry_hz) if self.settings.telemetry_hz > 0 else 0
+        last_sent_ns = 0
+        run_id = run.row.id
+        while True:
+            await run.wake.wait()
+            run.wake.clear()
+            run.wake_pending = False
+            samples = telemetry.read()
+            t0 = ch.status().t_start_ns if samples else 0
+            for sample in samples:
+                if period_ns and sample.t_ns - last_sent_ns < period_ns:
+                    continue
+                last_sent_ns = sample.t_ns
+                run.telemetry_sent += 1
+                self.hub.publish("telemetry", {
+                    "run_id": run_id,
+                    "cycle": sample.cycle,
+                    "t_ns": sample.t_ns,
+                    "t": (sample.t_ns - t0) / 1e9 if t0 else sample.t_ns / 1e9,
+                    "state": sample.state,
+                    "enc": sample.enc,
+                    "din": sample.din,
+                    "pwm": sample.pwm,
+                    "dout": sample.dout,
+                    "xeno2ros": sample.xeno2ros,
+                    "ros2xeno_t_sent_ns": sample.ros2xeno_t_sent_ns,
+                    "lost": telemetry.lost,
+                })
+            lines = monitor.read()
+            if lines:
+                self.hub.publish("monitor", {
+                    "run_id": run_id,
+                    "source": "monitor",
+                    "lines": [{"cycle": m.cycle, "t_ns": m.t_ns, "text": m.text} for m in lines],
+                    "lost": monitor.lost,
+                })
+            self._refresh_state(run)
+
+    def _refresh_state(self, run: Run) -> None:
+        """Publish `state` when the state, a rejection, or liveness changed."""
+        if run.channels is None:
+            return
+        with contextlib.suppress(ChannelsError):
+            run.last_status = run.channels.status()
+        s = run.last_status
+        if s is None:
+            return
+        key = (s.state, s.cmd_rejected, s.running, s.last_error, run.alive)
+        if key != run.last_state_key:
+            run.last_state_key = key
+            self.hub.publish("state", self.state_payload(run))
+
+    async def _timing(self, run: Run) -> None:
+        ch = run.channels
+        assert ch is not None
+        while True:
+            await asyncio.sleep(self.settings.timing_period_s)
+            try:
+                s = ch.status()
+                hists = ch.histograms()
+            except ChannelsError:
+                continue
+            stages = {
+                name: {"count": h.count, "min": h.min, "max": h.max, "mean": h.mean,
+                       "p50": h.percentile(50), "p99": h.percentile(99)}
+                for name, h in hists.items()
+            }
+            wake = hists.get("wakeup")
+            self.hub.publish("timing", {
+                "run_id": run.row.id,
+                "cycles": s.cycles,
+                "misses": s.missed,
+                "cycle_freq": ch.info["cycle_freq"],
+                "stages": stages,
+                "jitter": {"edges": wake.edges, "counts": wake.counts} if wake else {"edges": [], "counts": []},
+                "telemetry_sent": run.telemetry_sent,
+                "log_lost": s.log_lost,
+                "host_lost": s.host_lost,
+            })
+            if s.missed > run.last_missed:
+                self.hub.publish("alarm", {
+                    "kind": "deadline_miss",
+                    "run_id": run.row.id,
+                    "misses": s.missed,
+                    "new": s.missed - run.last_missed,
+                    "message": f"{s.missed - run.last_missed} deadline miss(es) in the last second ({s.missed} in total)",
+                })
+                run.last_missed = s.missed
+
+    # -- controlling --------------------------------------------------------------------------
+
+    def _active(self) -> Run:
+        run = self.current
+        if run is None or not run.alive or run.ended.is_set():
+            raise SupervisorError("no run is active; start one first")
+        if run.channels is None:
+            raise SupervisorError("the run is still starting")
+        return run
+
+    async def command(self, cmd: str | int) -> chmod.CommandResult:
+        """Queue a command, wait until the loop handled it, publish the state at once."""
+        number = chmod.command_number(cmd)  # ValueError for unknown names
+        run = self._active()
+        ch = run.channels
+        assert ch is not None
+        ticket = ch.send_command(number, source=SOURCE_APPLIANCE)
+        try:
+            result = await asyncio.to_thread(ch.wait_command, ticket, 2.0)
+        finally:
+            if not run.ended.is_set():
+                self._refresh_state(run)
+        return result
+
+    def setpoint(self, fields: dict[str, Any]) -> dict[str, Any]:
+        """Merge into the run's Ros2Xeno (latest wins, so the whole message is written)."""
+        run = self._active()
+        ch = run.channels
+        assert ch is not None
+        merged = {**run.setpoint, **fields}
+        ch.write_ros2xeno(merged)  # ValueError on unknown fields or bad values
+        run.setpoint = merged
+        return merged
+
+    async def stop_current(self) -> RunRow:
+        run = self.current
+        if run is None or run.ended.is_set():
+            raise SupervisorError("no run is active")
+        run.stop_requested = True
+        await self._graceful_stop(run)
+        if not run.ended.is_set():
+            await self._terminate(run)
+        await run.ended.wait()
+        return run.row
+
+    async def _graceful_stop(self, run: Run) -> None:
+        """stop (from RUN/PAUSED), then quit, each waiting for the loop to get there."""
+        ch = run.channels
+        if ch is None or not run.alive:
+            return
+        timeout = self.settings.stop_state_timeout_s
+        try:
+            state = await self._settled_state(run, timeout)
+            if state in (STATE_RUN, STATE_PAUSED):
+                ch.send_command("stop", source=SOURCE_APPLIANCE)
+                state = await self._settled_state(run, timeout, want={STATE_STOPPED, STATE_ERROR})
+            if state in (STATE_STOPPED, STATE_ERROR):
+                ch.send_command("quit", source=SOURCE_APPLIANCE)
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(asyncio.shield(run.ended.wait()), timeout)
+        except ChannelsError:
+            pass  # command ring full or status locked: fall through to signals
+
+    async def _settled_state(self, run: Run, timeout: float, want: set[int] | None = None) -> int:
+        ch = run.channels
+        assert ch is not None
+        deadline = time.monotonic() + timeout
+        while True:
+            state = ch.status().state
+            done = state in want if want else state not in SETTLING
+            if done or time.monotonic() > deadline or not run.alive:
+                return state
+            await asyncio.sleep(0.005)
+
+    async def _terminate(self, run: Run) -> None:
+        """SIGINT (the runtime's safe stop), then SIGTERM, then SIGKILL."""
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+            if not run.alive:
+                break
+            with contextlib.suppress(ProcessLookupError):
+                run.proc.send_signal(sig)
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(asyncio.shield(run.ended.wait()), self.settings.signal_timeout_s)
+            if run.ended.is_set():
+                break
+
+    async def shutdown(self) -> None:
+        """Appliance stopping: end the run in order so the loop leaves its outputs off."""
+        if self.current is not None and not self.current.ended.is_set():
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self.stop_current(), 15)
