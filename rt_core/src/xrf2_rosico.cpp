@@ -27,6 +27,7 @@ XenoFrtRosIcoCore::XenoFrtRosIcoCore(unsigned cycle_freq, unsigned write_decimat
                     [this] { return stopped(); }, [this] { return pausing(); },
                     [this] { return paused(); }, [this] { return error(); })
 {
+    monitor_freq_ = monitor_freq;
     const unsigned f = xrf::Runtime::instance().effectiveFrequency(cycle_freq);
     // 0 disables publishing (XRF2 divided by zero here).
     decimator_ = write_decimator_freq == 0 ? 0 : (f + write_decimator_freq / 2) / write_decimator_freq;
@@ -43,10 +44,9 @@ void XenoFrtRosIcoCore::xrfMessages(void *ros_msg, uint32_t ros_size, const char
     ros_size_ = ros_size;
     xeno_msg_ = xeno_msg;
     xeno_size_ = xeno_size;
-    xrf::Runtime::instance().describe(0, 0, ros_schema, ros_size, xeno_schema, xeno_size);
-    unsigned f = getCycleFrequency();
+    const unsigned f = xrf::Runtime::instance().effectiveFrequency(getCycleFrequency());
     xrf::Runtime::instance().describe(decimator_ ? (f + decimator_ / 2) / decimator_ : 0,
-                                      0, ros_schema, ros_size, xeno_schema, xeno_size);
+                                      monitor_freq_, ros_schema, ros_size, xeno_schema, xeno_size);
 }
 
 void XenoFrtRosIcoCore::publishTelemetry(int state)

@@ -48,6 +48,6 @@ private:
     uint32_t ros_size_ = 0, xeno_size_ = 0;
     uint32_t ros_seq_ = 0;
     int64_t ros_t_sent_ = 0;
-    unsigned decimator_ = 0, decimator_count_ = 0;
+    unsigned decimator_ = 0, decimator_count_ = 0, monitor_freq_ = 0;
     int published_state_ = 0;
 };
