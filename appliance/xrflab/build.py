@@ -262,6 +262,8 @@ def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
                     left_out[rel] = "not in the 20-sim folder or its common/"
             elif path.name.endswith("_tokens.xml"):
                 taken.append(rel)
+            else:
+                left_out[rel] = "20-sim side file; not compiled"
             continue
         if path.stem in XRF2_FRAMEWORK_STEMS and suffix in (".cpp", ".hpp", ".h", ".c"):
             left_out[rel] = "XRF2 framework file; rt_core provides this class"
