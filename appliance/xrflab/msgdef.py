@@ -102,7 +102,7 @@ class Field:
 
 
 def _parse_field(text: str, path: str, lineno: int) -> Field:
-    if "=" in text:
+    if "=" in text.replace("<=", ""):  # `<=` is a bound (type[<=N], string<=N), not a constant
         raise MsgError(path, lineno, f"constants are not supported: {text!r}")
     tokens = text.split()
     if len(tokens) == 1:
