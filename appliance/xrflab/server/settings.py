@@ -55,6 +55,8 @@ class Settings:
     open_timeout_s: float = 10.0
     stop_state_timeout_s: float = 2.0  # stop -> STOPPED, quit -> exit
     signal_timeout_s: float = 2.0  # SIGINT -> exit, SIGTERM -> exit, then SIGKILL
+    # Where bundled projects are built; None = <data_dir>/builds. Tests share one across servers.
+    builds_root: Path | None = None
     # Environment passed to every loop process on top of ours (e.g. XRF_FREQ in benchmarks).
     loop_env: dict[str, str] = field(default_factory=dict)
 
@@ -77,4 +79,4 @@ class Settings:
 
     @property
     def builds_dir(self) -> Path:
-        return self.data_dir / "builds"
+        return self.builds_root or self.data_dir / "builds"

@@ -477,7 +477,7 @@ class Supervisor:
         telemetry = ch.telemetry_reader()
         monitor = ch.monitor_reader()
         period_ns = int(1e9 / self.settings.telemetry_hz) if self.settings.telemetry_hz > 0 else 0
-        last_sent_ns = 0
+        next_due_ns = 0
         run_id = run.row.id
         while True:
             await run.wake.wait()
@@ -486,9 +486,12 @@ class Supervisor:
             samples = telemetry.read()
             t0 = ch.status().t_start_ns if samples else 0
             for sample in samples:
-                if period_ns and sample.t_ns - last_sent_ns < period_ns:
-                    continue
-                last_sent_ns = sample.t_ns
+                # Credit-based decimation: the average rate is telemetry_hz exactly even when the
+                # loop's own rate is not a multiple of it (100 Hz -> 30 Hz sends 3 of every 10).
+                if period_ns:
+                    if sample.t_ns < next_due_ns:
+                        continue
+                    next_due_ns = max(next_due_ns + period_ns, sample.t_ns - period_ns)
                 run.telemetry_sent += 1
                 self.hub.publish("telemetry", {
                     "run_id": run_id,

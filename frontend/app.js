@@ -1,0 +1,477 @@
+// XRF Lab dashboard: one WebSocket to the appliance, plain DOM, uPlot for the plots.
+// Everything the page shows comes from WebSocket messages (state, run, telemetry, timing,
+// monitor, alarm); REST is used only for the build list, starting/ending runs and the run list.
+"use strict";
+
+const WINDOW_S = 10;         // seconds of history in the live plots
+const SETPOINT_HZ = 20;      // slider drags are sent at most this often
+const MONITOR_LINES = 500;
+
+const $ = (id) => document.getElementById(id);
+
+const xrf = {                // also the test hook: tests read window.xrf
+  ws: null,
+  state: { state: 0, name: "NO RUN", allowed: [], active: false },
+  run: null,
+  plots: {},
+  telemetryCount: 0,
+  lastTelemetry: null,
+  schema: { ros2xeno: [], xeno2ros: [] },
+};
+window.xrf = xrf;
+
+// ---- state machine drawing ------------------------------------------------------------------
+
+const NODES = {
+  IDLE: [70, 50], INITIALISING: [230, 50], INITIALISED: [400, 50], RUN: [560, 50], PAUSING: [720, 50],
+  QUIT: [70, 190], ERROR: [230, 190], STOPPED: [400, 190], STOPPING: [560, 190], PAUSED: [720, 190],
+};
+const NODE_W = 136, NODE_H = 36;
+// [from, to, command or "" for a hook completing, optional curve control point]
+const EDGES = [
+  ["IDLE", "INITIALISING", "initialise"],
+  ["INITIALISING", "INITIALISED", ""],
+  ["INITIALISED", "RUN", "start"],
+  ["RUN", "PAUSING", "pause"],
+  ["PAUSING", "PAUSED", ""],
+  ["PAUSED", "RUN", "start"],
+  ["PAUSED", "STOPPING", "stop"],
+  ["RUN", "STOPPING", "stop"],
+  ["STOPPING", "STOPPED", ""],
+  ["STOPPED", "INITIALISING", "reset"],
+  ["ERROR", "INITIALISING", "reset"],
+  ["RUN", "INITIALISING", "reset", [395, -20]],
+  ["PAUSED", "INITIALISING", "reset", [560, 120]],
+  ["ERROR", "QUIT", "quit"],
+  ["STOPPED", "QUIT", "quit", [235, 262]],
+];
+const SVGNS = "http://www.w3.org/2000/svg";
+
+function svgEl(tag, attrs, parent) {
+  const el = document.createElementNS(SVGNS, tag);
+  for (const [k, v] of Object.entries(attrs)) el.setAttribute(k, v);
+  if (parent) parent.appendChild(el);
+  return el;
+}
+
+// Point where the segment from the centre of a node towards (tx, ty) leaves its rectangle.
+function border([cx, cy], [tx, ty]) {
+  const dx = tx - cx, dy = ty - cy;
+  const sx = dx ? (NODE_W / 2 + 4) / Math.abs(dx) : Infinity;
+  const sy = dy ? (NODE_H / 2 + 4) / Math.abs(dy) : Infinity;
+  const s = Math.min(sx, sy);
+  return [cx + dx * s, cy + dy * s];
+}
+
+function drawStateMachine() {
+  const svg = $("state-machine");
+  const defs = svgEl("defs", {}, svg);
+  for (const [id, color] of [["arrow", "#9ca3af"], ["arrow-on", "#1f6feb"]]) {
+    const m = svgEl("marker", { id, viewBox: "0 0 10 10", refX: 9, refY: 5, markerWidth: 7, markerHeight: 7, orient: "auto-start-reverse" }, defs);
+    svgEl("path", { d: "M0,0 L10,5 L0,10 z", fill: color }, m);
+  }
+  for (const [from, to, cmd, ctrl] of EDGES) {
+    const g = svgEl("g", { class: "edge" + (cmd ? "" : " auto"), "data-from": from, "data-cmd": cmd }, svg);
+    const a = NODES[from], b = NODES[to];
+    const [x1, y1] = border(a, ctrl || b), [x2, y2] = border(b, ctrl || a);
+    const d = ctrl ? `M${x1},${y1} Q${ctrl[0]},${ctrl[1]} ${x2},${y2}` : `M${x1},${y1} L${x2},${y2}`;
+    svgEl("path", { d }, g);
+    const mid = ctrl ? [(x1 + 2 * ctrl[0] + x2) / 4, (y1 + 2 * ctrl[1] + y2) / 4] : [(x1 + x2) / 2, (y1 + y2) / 2];
+    const t = svgEl("text", { x: mid[0] + (y1 === y2 ? 0 : 8), y: mid[1] - 5 }, g);
+    t.textContent = cmd || "done";
+  }
+  for (const [name, [x, y]] of Object.entries(NODES)) {
+    const g = svgEl("g", { class: "node", id: "node-" + name }, svg);
+    svgEl("rect", { x: x - NODE_W / 2, y: y - NODE_H / 2, width: NODE_W, height: NODE_H, rx: 8 }, g);
+    svgEl("text", { x, y }, g).textContent = name;
+  }
+}
+
+// ---- state ----------------------------------------------------------------------------------
+
+function applyState(s) {
+  xrf.state = s;
+  const name = $("state-name");
+  name.textContent = s.name;
+  name.classList.toggle("none", !s.active);
+  document.querySelectorAll("#state-machine .node").forEach((n) => n.classList.toggle("current", s.active && n.id === "node-" + s.name));
+  const allowed = new Set(s.active ? s.allowed : []);
+  document.querySelectorAll("#state-machine .edge").forEach((e) => {
+    e.classList.toggle("enabled", e.dataset.from === s.name && allowed.has(e.dataset.cmd));
+  });
+  document.querySelectorAll("#commands button").forEach((b) => { b.disabled = !allowed.has(b.dataset.cmd); });
+  const rej = $("rejected");
+  if (s.rejected && s.rejected.ticket !== xrf.dismissedReject) {
+    rej.textContent = `Rejected: ${s.rejected.name} (${s.rejected.cmd}) — ${s.rejected.reason}`;
+    rej.classList.remove("hidden");
+  } else {
+    rej.classList.add("hidden");
+  }
+  if (s.last_error) $("run-detail").dataset.error = s.last_error;
+  updateRunSummary();
+}
+
+function sendCommand(cmd) {
+  if (!xrf.ws || xrf.ws.readyState !== WebSocket.OPEN) return;
+  xrf.ws.send(JSON.stringify({ type: "command", cmd }));
+}
+
+// The documented stop rule (docs/students/dashboard.md): RUN or PAUSED -> `stop` (the
+// controller's own safe stop); in any other state of a live run, end the run (quit, then signals).
+function emergencyStop() {
+  const s = xrf.state;
+  if (s.active && (s.name === "RUN" || s.name === "PAUSED")) {
+    sendCommand("stop");
+  } else if (xrf.run && xrf.run.active) {
+    endRun();
+  }
+}
+
+// ---- run ------------------------------------------------------------------------------------
+
+async function api(method, path, body) {
+  const res = await fetch(path, {
+    method, headers: body ? { "Content-Type": "application/json" } : {}, body: body ? JSON.stringify(body) : undefined,
+  });
+  const data = await res.json().catch(() => ({}));
+  if (!res.ok) throw new Error(data.detail ? (typeof data.detail === "string" ? data.detail : JSON.stringify(data.detail)) : res.statusText);
+  return data;
+}
+
+async function loadBench() {
+  try {
+    const b = await api("GET", "/api/bench");
+    $("bench").textContent = b.mode === "sim" ? `simulated · ${b.sim}` : "real bench";
+    $("bench").title = b.profile;
+  } catch (e) { $("bench").textContent = "bench ?"; }
+}
+
+async function loadBuilds() {
+  const sel = $("build-select");
+  const keep = sel.value;
+  const builds = await api("GET", "/api/builds");
+  sel.innerHTML = "";
+  for (const b of builds) {
+    const o = document.createElement("option");
+    o.value = b.name;
+    o.textContent = `${b.name} (${b.kind}${b.status === "ready" ? "" : ", " + b.status})`;
+    sel.appendChild(o);
+  }
+  if (keep) sel.value = keep;
+}
+
+async function startRun() {
+  const btn = $("btn-start-run");
+  btn.disabled = true;
+  $("run-detail").textContent = `Building and starting ${$("build-select").value}…`;
+  try {
+    const body = { build: $("build-select").value };
+    if ($("sim-select").value) body.sim = $("sim-select").value;
+    await api("POST", "/api/runs", body);
+  } catch (e) {
+    $("run-detail").textContent = "Could not start: " + e.message;
+  } finally {
+    btn.disabled = false;
+    loadBuilds().catch(() => {});
+  }
+}
+
+async function endRun() {
+  try { await api("POST", "/api/runs/current/stop"); } catch (e) { $("run-detail").textContent = e.message; }
+}
+
+async function loadRuns() {
+  const runs = await api("GET", "/api/runs?limit=8");
+  const body = $("runs-body");
+  body.innerHTML = "";
+  for (const r of runs) {
+    const tr = document.createElement("tr");
+    const cells = [r.id, r.build, r.status + (r.crash_reason ? ` (${r.crash_reason})` : ""), r.state, r.cycles, r.misses];
+    cells.forEach((c, i) => {
+      const td = document.createElement("td");
+      td.textContent = c;
+      if (i === 2 && r.crashed) td.className = "crashed";
+      tr.appendChild(td);
+    });
+    tr.title = r.message;
+    body.appendChild(tr);
+  }
+}
+
+function applyRun(m) {
+  xrf.run = m;
+  const r = m.run;
+  if (m.ros2xeno && (m.event === "started" || m.event === "current")) {
+    xrf.schema = { ros2xeno: m.ros2xeno, xeno2ros: m.xeno2ros };
+    buildSetpoints(m.ros2xeno, m.setpoint || {});
+    buildPlots(m.xeno2ros);
+  }
+  if (r) {
+    const what = m.active ? `run #${r.id}: ${r.build} on ${r.sim}` + (m.cycle_freq ? ` @ ${m.cycle_freq} Hz` : "")
+      : `run #${r.id} ${r.status}` + (r.crashed ? ` (${r.crash_reason})` : "");
+    $("run-detail").textContent = m.active ? `${what} · ${m.program || ""} · ${m.backend || ""}/${m.transport || ""}` : `${what}: ${r.message}`;
+  }
+  if (m.event === "ended" && !m.active) {
+    $("setpoints").querySelectorAll("input").forEach((i) => { i.disabled = true; });
+  }
+  updateRunSummary();
+  loadRuns().catch(() => {});
+}
+
+function updateRunSummary() {
+  const r = xrf.run && xrf.run.run;
+  $("run-summary").textContent = xrf.run && xrf.run.active && r ? `#${r.id} ${r.build} · ${xrf.state.name}` : "no active run";
+  $("btn-end-run").disabled = !(xrf.run && xrf.run.active);
+}
+
+// ---- setpoints ------------------------------------------------------------------------------
+
+let pendingSetpoint = {}, setpointTimer = null;
+
+function queueSetpoint(name, value) {
+  pendingSetpoint[name] = value;
+  if (setpointTimer) return;
+  setpointTimer = setTimeout(() => {
+    setpointTimer = null;
+    const fields = pendingSetpoint;
+    pendingSetpoint = {};
+    if (xrf.ws && xrf.ws.readyState === WebSocket.OPEN) xrf.ws.send(JSON.stringify({ type: "setpoint", fields }));
+  }, 1000 / SETPOINT_HZ);
+}
+
+function buildSetpoints(fields, current) {
+  const box = $("setpoints");
+  box.innerHTML = "";
+  if (!fields.length) { box.innerHTML = '<div class="muted">This build has no Ros2Xeno fields.</div>'; return; }
+  for (const f of fields) {
+    const row = document.createElement("div");
+    row.className = "sp";
+    const label = document.createElement("label");
+    label.textContent = f.name;
+    label.title = `${f.type} ${f.name}`;
+    row.appendChild(label);
+    if (f.count) {  // arrays: a number box per element would crowd a tablet; show as read-only
+      const span = document.createElement("span");
+      span.className = "muted small";
+      span.textContent = `${f.type}[${f.count}] (set from ROS 2 or the CLI)`;
+      row.appendChild(span);
+      box.appendChild(row);
+      continue;
+    }
+    if (f.type === "bool") {
+      const cb = document.createElement("input");
+      cb.type = "checkbox"; cb.id = "sp-" + f.name; cb.checked = !!current[f.name];
+      cb.addEventListener("change", () => queueSetpoint(f.name, cb.checked));
+      row.appendChild(cb);
+      box.appendChild(row);
+      continue;
+    }
+    const isInt = /int/.test(f.type);
+    const range = document.createElement("input");
+    range.type = "range"; range.id = "sp-range-" + f.name;
+    range.min = -10; range.max = 10; range.step = isInt ? 1 : 0.01;
+    const num = document.createElement("input");
+    num.type = "number"; num.id = "sp-" + f.name; num.step = isInt ? 1 : 0.01;
+    range.value = num.value = current[f.name] ?? 0;
+    label.htmlFor = num.id;
+    const parse = (v) => (isInt ? Math.round(Number(v)) : Number(v));
+    range.addEventListener("input", () => { num.value = range.value; queueSetpoint(f.name, parse(range.value)); });
+    num.addEventListener("input", () => {
+      if (num.value === "" || !isFinite(Number(num.value))) return;
+      const v = parse(num.value);
+      if (Math.abs(v) > Number(range.max)) { range.max = Math.abs(v); range.min = -Math.abs(v); }
+      range.value = v;
+      queueSetpoint(f.name, v);
+    });
+    row.appendChild(range);
+    row.appendChild(num);
+    box.appendChild(row);
+  }
+}
+
+// ---- plots ----------------------------------------------------------------------------------
+
+const COLORS = ["#1f6feb", "#d73a49", "#28a745", "#f6a01a", "#6f42c1", "#17a2b8", "#e83e8c", "#6c757d"];
+
+function makePlot(id, names) {
+  const el = $(id);
+  el.innerHTML = "";
+  const width = Math.max(200, el.clientWidth || el.parentElement.clientWidth || 300);
+  const opts = {
+    width, height: 180,
+    legend: { show: true },
+    cursor: { drag: { x: false, y: false } },
+    scales: { x: { time: false } },
+    axes: [{ label: "", size: 30 }, { size: 50 }],
+    series: [{ label: "t (s)" }, ...names.map((n, i) => ({ label: n, stroke: COLORS[i % COLORS.length], width: 1.5 }))],
+  };
+  const data = [[], ...names.map(() => [])];
+  const plot = new uPlot(opts, data, el);
+  return { plot, data, names, dirty: false };
+}
+
+function buildPlots(xeno2ros) {
+  const scalar = xeno2ros.filter((f) => !f.count).map((f) => f.name);
+  xrf.plots.xeno2ros = makePlot("plot-xeno2ros", scalar);
+  xrf.plots.enc = makePlot("plot-enc", ["enc1", "enc2", "enc3", "enc4"]);
+  xrf.plots.pwm = makePlot("plot-pwm", ["pwm1", "pwm2", "pwm3", "pwm4"]);
+}
+
+function pushSample(p, t, values) {
+  if (!p) return;
+  const d = p.data;
+  d[0].push(t);
+  values.forEach((v, i) => d[i + 1].push(typeof v === "boolean" ? Number(v) : v));
+  while (d[0].length && d[0][0] < t - WINDOW_S) d.forEach((a) => a.shift());
+  p.dirty = true;
+}
+
+function applyTelemetry(m) {
+  xrf.telemetryCount += 1;
+  xrf.lastTelemetry = m;
+  const p = xrf.plots.xeno2ros;
+  if (p) pushSample(p, m.t, p.names.map((n) => m.xeno2ros[n]));
+  pushSample(xrf.plots.enc, m.t, m.enc);
+  pushSample(xrf.plots.pwm, m.t, m.pwm);
+}
+
+// Redraw at most once per animation frame, however fast samples arrive.
+function redraw() {
+  for (const p of Object.values(xrf.plots)) {
+    if (p && p.dirty) { p.plot.setData(p.data); p.dirty = false; }
+  }
+  const m = xrf.lastTelemetry;
+  if (m) {
+    $("xeno2ros-values").textContent = Object.entries(m.xeno2ros)
+      .map(([k, v]) => `${k}=${typeof v === "number" ? v.toFixed(3) : v}`).join("  ");
+  }
+  requestAnimationFrame(redraw);
+}
+
+function resizePlots() {
+  for (const [key, p] of Object.entries(xrf.plots)) {
+    if (!p) continue;
+    const el = key === "jitter" ? $("plot-jitter") : $("plot-" + key);
+    p.plot.setSize({ width: Math.max(200, el.clientWidth), height: key === "jitter" ? 140 : 180 });
+  }
+}
+
+// ---- timing ---------------------------------------------------------------------------------
+
+function us(ns) { return ns === undefined ? "–" : (ns / 1000).toFixed(ns < 10000 ? 1 : 0) + " µs"; }
+
+function applyTiming(m) {
+  $("t-cycles").textContent = m.cycles;
+  $("t-misses").textContent = m.misses;
+  $("t-misses").classList.toggle("bad", m.misses > 0);
+  $("t-freq").textContent = m.cycle_freq + " Hz";
+  const w = m.stages.wakeup || {};
+  $("t-p50").textContent = us(w.p50);
+  $("t-p99").textContent = us(w.p99);
+  $("t-max").textContent = us(w.max);
+  $("t-work").textContent = us((m.stages.cycle || {}).p99);
+  const el = $("plot-jitter");
+  if (!xrf.plots.jitter) {
+    xrf.plots.jitter = {
+      plot: new uPlot({
+        width: Math.max(200, el.clientWidth), height: 140, legend: { show: false },
+        scales: { x: { time: false, distr: 3 }, y: { distr: 3 } },
+        axes: [{ size: 30 }, { size: 50 }],
+        series: [{}, { label: "cycles", stroke: "#1f6feb", fill: "rgba(31,111,235,.35)", paths: uPlot.paths.bars({ size: [0.9, 40] }), points: { show: false } }],
+      }, [[], []], el),
+      data: [[], []], dirty: false,
+    };
+  }
+  const j = xrf.plots.jitter;
+  // Log-log bars: x = bucket lower edge in µs (0 pushed to 0.01 so the log scale can show it).
+  j.data = [m.jitter.edges.map((e) => Math.max(e / 1000, 0.01)), m.jitter.counts];
+  j.dirty = true;
+}
+
+// ---- monitor, alarms ------------------------------------------------------------------------
+
+function appendMonitor(lines, source) {
+  const pre = $("monitor");
+  const atBottom = pre.scrollTop + pre.clientHeight >= pre.scrollHeight - 4;
+  const text = lines.map((l) => (source === "stdout" ? "│ " : "") + l.text).join("\n") + "\n";
+  pre.textContent += text;
+  const all = pre.textContent.split("\n");
+  if (all.length > MONITOR_LINES) pre.textContent = all.slice(-MONITOR_LINES).join("\n");
+  if (atBottom) pre.scrollTop = pre.scrollHeight;
+}
+
+function showAlarm(m) {
+  const box = $("alarm");
+  box.classList.toggle("warn", m.kind === "deadline_miss");
+  $("alarm-text").textContent = (m.kind === "crash" ? "Loop crashed: " : m.kind === "hang" ? "Loop hung: " : "Timing: ") + m.message;
+  box.dataset.kind = m.kind;
+  box.classList.remove("hidden");
+  if (m.kind === "deadline_miss") {
+    clearTimeout(showAlarm.timer);
+    showAlarm.timer = setTimeout(() => { if (box.dataset.kind === "deadline_miss") box.classList.add("hidden"); }, 5000);
+  }
+}
+
+// ---- the WebSocket --------------------------------------------------------------------------
+
+function connect() {
+  const ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws");
+  xrf.ws = ws;
+  ws.onopen = () => { $("conn").textContent = "connected"; $("conn").className = "badge ok"; };
+  ws.onclose = () => {
+    $("conn").textContent = "disconnected — retrying"; $("conn").className = "badge bad";
+    setTimeout(connect, 1000);
+  };
+  ws.onmessage = (ev) => {
+    const m = JSON.parse(ev.data);
+    switch (m.type) {
+      case "state": applyState(m); break;
+      case "run": applyRun(m); break;
+      case "telemetry": applyTelemetry(m); break;
+      case "timing": applyTiming(m); break;
+      case "monitor": appendMonitor(m.lines, m.source); break;
+      case "alarm": showAlarm(m); break;
+      case "build": if (m.line) appendMonitor([{ text: m.line }], "stdout"); else loadBuilds().catch(() => {}); break;
+      case "ack": if (m.accepted === false) applyState({ ...xrf.state }); break;
+      case "error": appendMonitor([{ text: "! " + m.error }], "error"); break;
+    }
+  };
+}
+
+// ---- keys -----------------------------------------------------------------------------------
+
+function onKey(ev) {
+  if (ev.key === "Escape") {  // works everywhere, even while typing in a setpoint box
+    ev.preventDefault();
+    emergencyStop();
+    return;
+  }
+  const typing = ["INPUT", "SELECT", "TEXTAREA"].includes(document.activeElement && document.activeElement.tagName);
+  if (typing || ev.ctrlKey || ev.metaKey || ev.altKey) return;
+  const cmd = { p: "pause", s: "start", i: "initialise" }[ev.key.toLowerCase()];
+  if (cmd && xrf.state.allowed.includes(cmd)) sendCommand(cmd);
+}
+
+// ---- start ----------------------------------------------------------------------------------
+
+function init() {
+  drawStateMachine();
+  applyState(xrf.state);
+  document.querySelectorAll("#commands button").forEach((b) => b.addEventListener("click", () => sendCommand(b.dataset.cmd)));
+  $("btn-estop").addEventListener("click", emergencyStop);
+  $("btn-start-run").addEventListener("click", startRun);
+  $("btn-end-run").addEventListener("click", endRun);
+  $("btn-clear").addEventListener("click", () => { $("monitor").textContent = ""; });
+  $("alarm-close").addEventListener("click", () => $("alarm").classList.add("hidden"));
+  $("rejected").addEventListener("click", () => { xrf.dismissedReject = xrf.state.rejected && xrf.state.rejected.ticket; $("rejected").classList.add("hidden"); });
+  document.addEventListener("keydown", onKey, true);
+  window.addEventListener("resize", () => { clearTimeout(init.t); init.t = setTimeout(resizePlots, 150); });
+  loadBench();
+  loadBuilds().catch(() => {});
+  loadRuns().catch(() => {});
+  buildPlots([]);
+  connect();
+  requestAnimationFrame(redraw);
+}
+
+document.addEventListener("DOMContentLoaded", init);
