@@ -254,6 +254,14 @@ class _Running:
         res = self.ch.wait_command(self.ch.send_command(cmd), timeout=3.0)
         assert res.accepted, f"{cmd}: {res.reason}"
 
+    def wait_state(self, state: str, timeout: float = 3.0) -> None:
+        # A state hook may take several cycles (the examples zero the encoders one cycle
+        # after initialising the board), so wait for the state rather than assume it.
+        deadline = time.monotonic() + timeout
+        while self.ch.status().state_name != state:
+            assert time.monotonic() < deadline, f"not {state}: {self.ch.status().state_name}"
+            time.sleep(0.005)
+
     def stop(self) -> str:
         if self.proc.poll() is None:
             self.proc.terminate()
@@ -308,6 +316,7 @@ def _converge(run: _Running, targets: dict[str, float], tol: float, within_s: fl
 def test_relbot_reaches_wheel_positions(run_example) -> None:
     run = run_example("relbot", "relbot")
     run.command("initialise")
+    run.wait_state("INITIALISED")
     run.command("start")
     targets = {"pos_left": 3.0, "pos_right": -2.0}
     run.ch.write_ros2xeno({"steer_left": 3.0, "steer_right": -2.0})
@@ -318,6 +327,7 @@ def test_relbot_reaches_wheel_positions(run_example) -> None:
 def test_jiwy_reaches_camera_angles(run_example) -> None:
     run = run_example("jiwy", "jiwy")
     run.command("initialise")
+    run.wait_state("INITIALISED")
     run.command("start")
     targets = {"pan": 0.5, "tilt": -0.3}
     run.ch.write_ros2xeno({"pan_setpoint": 0.5, "tilt_setpoint": -0.3})
