@@ -244,7 +244,8 @@ def _build(project: Path) -> Path:
     from . import build  # the build module pulls in more than the other subcommands need
 
     try:
-        result = build.build_project(project)
+        # The build's log goes to stderr: stdout stays the executable's path, for scripts.
+        result = build.build_project(project, log=lambda line: print(line, file=sys.stderr, flush=True))
     except Exception as exc:  # any build failure is reported the same way: one line, exit 1
         raise CliError(f"build of {project} failed: {exc}") from None
     return Path(result.executable)
