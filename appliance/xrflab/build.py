@@ -285,8 +285,6 @@ def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
             if path.parent not in include_dirs:
                 include_dirs.append(path.parent)
             taken.append(rel)
-        elif suffix == ".msg" and (msg_dir is None):
-            pass  # reported below with the message folder
     if len(mains) > 1:
         # XRF2 projects have one main.cpp; keep it and leave any other program out.
         keep = next((m for m in mains if m.name == "main.cpp"), None)
@@ -426,7 +424,7 @@ def build_project(project_dir: Path | str, build_dir: Path | str | None = None, 
     plan: Optional[_Xrf2Plan] = None
     if layout == "xrf2":
         plan = plan_xrf2(project, Path(msg_dir) if msg_dir else None)
-        log(f"XRF2-layout project: building its files unchanged against rt_core")
+        log("XRF2-layout project: building its files unchanged against rt_core")
         for t in plan.taken:
             log(f"  taken:    {t}")
         for f, why in plan.left_out.items():
@@ -443,8 +441,10 @@ def build_project(project_dir: Path | str, build_dir: Path | str | None = None, 
     cmd = ["cmake", "-S", str(source), "-B", str(binary), *_generator_args(binary),
            "-DCMAKE_BUILD_TYPE=Release", f"-DCMAKE_PREFIX_PATH={prefix}",
            f"-DPython3_EXECUTABLE={sys.executable}"]
-    if msg_dir and layout == "xrf":
-        cmd.append(f"-DXRF_MSG_DIR={Path(msg_dir).resolve()}")
+    if layout == "xrf":
+        # Always passed: XRF_MSG_DIR lands in the cache, and an override from an earlier build
+        # must not outlive the call that asked for it.
+        cmd.append(f"-DXRF_MSG_DIR={Path(msg_dir).resolve() if msg_dir else ''}")
     _run(cmd, log, what="configure")
     _run(["cmake", "--build", str(binary), "--parallel", _jobs()], log, what="build")
 
