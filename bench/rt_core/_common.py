@@ -139,3 +139,33 @@ def bucket_high(low: int) -> int:
 
 def tmpdir(prefix: str) -> str:
     return tempfile.mkdtemp(prefix=prefix)
+
+
+class HostReader:
+    """A host that follows the loop like the appliance does: waits on the doorbell (futex) and
+    drains telemetry and monitor rings, in a background thread. Counts what it read."""
+
+    def __init__(self, ch: Channels):
+        import threading
+
+        self.ch = ch
+        self.telemetry = 0
+        self.monitor = 0
+        self.wakeups = 0
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+        self._t.start()
+
+    def _run(self):
+        tr = self.ch.telemetry_reader()
+        mr = self.ch.monitor_reader()
+        seen = 0
+        while not self._stop.is_set():
+            seen = self.ch.wait_doorbell(seen, 100)
+            self.wakeups += 1
+            self.telemetry += len(tr.read())
+            self.monitor += len(mr.read())
+
+    def stop(self):
+        self._stop.set()
+        self._t.join(2.0)
