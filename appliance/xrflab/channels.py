@@ -435,21 +435,29 @@ class Channels:
 
     def wait_command(self, ticket: int, timeout: float = 2.0) -> CommandResult:
         deadline = time.monotonic() + timeout
+        slot = ticket % lib.XRF_CMD_RESULTS
         while True:
-            s = self.status()
+            s = self._status_struct()
             if s.cmd_done >= ticket:
-                accepted = s.cmd_rejected != ticket
+                result = int(s.cmd_results[slot])
+                if result >> 1 == ticket:
+                    accepted = not (result & 1)
+                    reason = "" if accepted else _c_str(s.cmd_reasons[slot])
+                else:
+                    # More than XRF_CMD_RESULTS commands were handled since: the outcome is gone.
+                    accepted, reason = False, "outcome no longer known (too many commands since)"
                 return CommandResult(
                     ticket=ticket,
                     accepted=accepted,
-                    state=s.state,
-                    state_name=s.state_name,
-                    reason="" if accepted else s.reject_reason,
+                    state=int(s.state),
+                    state_name=state_name(int(s.state)),
+                    reason=reason,
                 )
             if time.monotonic() >= deadline:
+                st = _status_from_struct(s)
                 raise CommandTimeout(
                     f"{self.name}: command #{ticket} not handled within {timeout:g} s "
-                    f"(state {s.state_name}, loop {'running' if s.running else 'not running'})"
+                    f"(state {st.state_name}, loop {'running' if st.running else 'not running'})"
                 )
             time.sleep(0.001)
 
@@ -626,12 +634,15 @@ class LoopSide:
 
         def update(s: Any) -> None:
             s.cmd_done = ticket
+            slot = ticket % lib.XRF_CMD_RESULTS
+            s.cmd_results[slot] = (ticket << 1) | (0 if target > 0 else 1)
             if target > 0:
                 s.state = target
                 s.last_cmd = cmd
                 return
             reason = ffi.new("char[]", lib.XRF_REASON_MAX)
             lib.xrf_cmd_reject_reason(current, cmd, reason, lib.XRF_REASON_MAX)
+            ffi.memmove(s.cmd_reasons[slot], reason, lib.XRF_REASON_MAX)
             s.cmd_rejected = ticket
             s.last_rejected_cmd = cmd
             s.reject_code = -target

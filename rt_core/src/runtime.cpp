@@ -413,6 +413,13 @@ void Runtime::endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, boo
         std::memcpy(s->reject_reason, report_.reject_reason, sizeof s->reject_reason);
         report_.reason_changed = false;
     }
+    if (report_.result_slot >= 0) {
+        s->cmd_results[report_.result_slot] = report_.result;
+        if (report_.result & 1u)
+            std::memcpy(s->cmd_reasons[report_.result_slot], report_.reject_reason,
+                        sizeof s->cmd_reasons[0]);
+        report_.result_slot = -1;
+    }
     s->cycles = cycles_;
     s->missed = missed_;
     if (cycles_ == 1)

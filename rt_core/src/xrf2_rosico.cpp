@@ -88,7 +88,10 @@ void XenoFrtRosIcoCore::applyCommand()
     // so "initialise, start" sent back to back works as a student expects.
     if (xrf_cmd_poll(&shm->cmd, &c)) {
         const int before = state_machine.getState();
-        if (state_machine.command(c.cmd) == 0) {
+        const bool accepted = state_machine.command(c.cmd) == 0;
+        rep.result_slot = (int)(c.ticket % XRF_CMD_RESULTS);
+        rep.result = (c.ticket << 1) | (accepted ? 0u : 1u);
+        if (accepted) {
             rep.last_cmd = c.cmd;
         } else {
             rep.last_rejected_cmd = c.cmd;

@@ -219,3 +219,17 @@ def test_log_file_is_self_describing_with_continuous_sequence(run_loop, probe_ex
         seqs.append(seq)
     assert seqs == list(range(n))
     assert lp.ch.status().log_lost == 0
+
+
+def test_each_sender_learns_its_own_commands_fate(run_loop, probe_exe):
+    lp = run_loop(probe_exe)
+    # Three commands queued back to back: the loop takes one per cycle. The first is accepted
+    # even though a later one is rejected before anybody reads the status.
+    t1 = lp.ch.send_command("initialise")
+    t2 = lp.ch.send_command(99)
+    t3 = lp.ch.send_command("quit")
+    r3 = lp.ch.wait_command(t3)
+    r1, r2 = lp.ch.wait_command(t1), lp.ch.wait_command(t2)
+    assert r1.accepted and r1.reason == ""
+    assert not r2.accepted and "99 is not a command" in r2.reason
+    assert not r3.accepted and "quit is not allowed" in r3.reason

@@ -91,6 +91,7 @@ extern "C" {
 #define XRF_HOST_LOST_STOP 2
 
 #define XRF_CMD_SLOTS 64 /* power of two */
+#define XRF_CMD_RESULTS 16 /* recent command outcomes kept in the status block */
 #define XRF_TELEM_SLOTS 1024
 #define XRF_MONITOR_SLOTS 256
 #define XRF_MONITOR_TEXT 240
@@ -161,6 +162,10 @@ struct xrf_status {
     uint64_t monitor_dropped;  /* monitor.printf calls that did not fit */
     uint64_t host_lost;        /* times the host heartbeat went stale */
     char reject_reason[XRF_REASON_MAX];
+    /* Outcome of command ticket t in slot t % XRF_CMD_RESULTS: (t << 1) | rejected, with the
+     * reason beside it, so a host learns its own command's fate even when others follow. */
+    uint64_t cmd_results[XRF_CMD_RESULTS];
+    char cmd_reasons[XRF_CMD_RESULTS][XRF_REASON_MAX];
     struct xrf_hist hist[XRF_STAGE_COUNT];
 };
 

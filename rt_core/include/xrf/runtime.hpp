@@ -51,6 +51,8 @@ struct CycleReport {
     uint64_t cmd_done = 0;
     uint64_t cmd_rejected = 0;
     bool reason_changed = false;
+    int result_slot = -1; // the cmd_results slot written this cycle, -1 if none
+    uint64_t result = 0;
     char reject_reason[XRF_REASON_MAX] = "";
     int64_t stage_ns[XRF_STAGE_COUNT] = {};
     bool stage_set[XRF_STAGE_COUNT] = {};
