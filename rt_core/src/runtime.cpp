@@ -3,6 +3,7 @@
 
 #include <cerrno>
 #include <csignal>
+#include <sched.h>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
@@ -82,7 +83,7 @@ int Options::fromEnvironment()
     ok &= envLong("XRF_CPU", -1, 1023, &x);
     cpu = (int)x;
     x = priority;
-    ok &= envLong("XRF_PRIO", 0, 99, &x);
+    ok &= envLong("XRF_PRIO", -1, 99, &x);
     priority = (int)x;
     x = 0;
     ok &= envLong("XRF_HOST_TIMEOUT_MS", 0, 600000, &x);
@@ -316,7 +317,6 @@ int Runtime::enter(unsigned cycle_freq)
     info.ros2xeno_size = ros2xeno_size_;
     info.xeno2ros_size = xeno2ros_size_;
     info.cpu = o.cpu;
-    info.priority = o.priority;
     // Ring the host at most once per millisecond: bounded wake-ups whatever the cycle rate.
     doorbell_period_ = cycle_freq > 1000 ? cycle_freq / 1000 : 1;
     info.doorbell_period_cycles = doorbell_period_;
@@ -341,6 +341,16 @@ int Runtime::enter(unsigned cycle_freq)
     xrf_rt_config cfg;
     cfg.cpu = o.cpu;
     cfg.priority = o.priority;
+    // Asked here, before the backend runs: after an EVL attach this call would demote the thread.
+    int policy = SCHED_OTHER;
+    sched_param sp{};
+    pthread_getschedparam(pthread_self(), &policy, &sp);
+    const bool main_chose_rt = policy == SCHED_FIFO || policy == SCHED_RR;
+    if (cfg.priority < 0) {
+        // A short main asks for nothing: make the loop real-time as an XRF2 main would. A main
+        // that already chose SCHED_FIFO/RR keeps its choice (XRF_PRIO=0 keeps any policy).
+        cfg.priority = main_chose_rt ? 0 : kDefaultPriority;
+    }
     cfg.lock_memory = 1;
     cfg.stack_prefault = 256 * 1024;
     r = backend_->thread_setup(&cfg, &rt_sched_);
@@ -350,6 +360,7 @@ int Runtime::enter(unsigned cycle_freq)
         return r;
     }
     info.rt_sched = rt_sched_;
+    info.priority = !rt_sched_ ? 0 : (cfg.priority > 0 ? cfg.priority : sp.sched_priority);
     if (!o.quiet)
         std::fprintf(stderr,
                      "xrf: loop '%s' at %u Hz, backend %s, board %s%s%s, shared memory /dev/shm/%s\n",

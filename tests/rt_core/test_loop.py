@@ -233,3 +233,25 @@ def test_each_sender_learns_its_own_commands_fate(run_loop, probe_exe):
     assert r1.accepted and r1.reason == ""
     assert not r2.accepted and "99 is not a command" in r2.reason
     assert not r3.accepted and "quit is not allowed" in r3.reason
+
+
+def _may_use_fifo(prio: int) -> bool:
+    import os
+    import resource
+    return os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_RTPRIO)[0] >= prio
+
+
+def test_a_short_main_gets_real_time_scheduling_by_default(run_loop, probe_exe):
+    lp = run_loop(probe_exe)
+    info = lp.ch.info
+    if _may_use_fifo(80):
+        assert info["rt_sched"] == 1 and info["priority"] == 80
+    else:
+        lp.stop()
+        code, out = lp.proc.returncode, lp.proc.stdout.read() if lp.proc.stdout else ""
+        assert info["rt_sched"] == 0 and "WARNING: real-time scheduling" in out
+
+
+def test_xrf_prio_zero_keeps_the_policy_main_chose(run_loop, probe_exe):
+    lp = run_loop(probe_exe, XRF_PRIO="0")
+    assert lp.ch.info["rt_sched"] == 0 and lp.ch.info["priority"] == 0

@@ -17,6 +17,9 @@
 
 namespace xrf {
 
+// Priority the loop thread gets when neither XRF_PRIO nor the student's main chose one.
+constexpr int kDefaultPriority = 80;
+
 struct Options {
     char shm_name[XRF_NAME_MAX] = "xrf";
     char backend[16] = "auto";
@@ -27,7 +30,7 @@ struct Options {
     uint32_t spi_speed = 31000000;
     unsigned freq_override = 0;
     int cpu = -1;
-    int priority = 0;
+    int priority = -1; // -1: SCHED_FIFO kDefaultPriority unless main already made the thread real-time
     double pwm_limit = XRF_ICO_DEFAULT_PWM_LIMIT;
     char log_dir[XRF_PATH_MAX] = "";
     int log_writer = XRF_LOG_WRITER_PROCESS;
