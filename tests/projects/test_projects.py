@@ -31,7 +31,30 @@ PROJECTS = {
     "relbot": REPO / "student_projects/examples/relbot",
     "jiwy": REPO / "student_projects/examples/jiwy",
 }
-XRF2_FIXTURE = REPO / "tests/fixtures/xrf2_project"
+XRF2_FIXTURE_PARTS = REPO / "tests/fixtures/xrf2_project"
+TWENTY_SIM_TEMPLATE = REPO / "student_projects/templates/20sim/controller"
+
+
+def _xrf2_fixture(root: Path) -> Path:
+    """The XRF2-layout fixture: its own files plus a 20-sim controller folder made from the
+    template's, renamed to submodel PanTiltController with a 0.002 s step, so that the name and
+    the step size can only come from the tokens file."""
+    project = root / "xrf2_project"
+    shutil.copytree(XRF2_FIXTURE_PARTS, project)
+    controller = project / "controller"
+    shutil.copytree(TWENTY_SIM_TEMPLATE, controller)
+    for path in sorted(controller.rglob("*")):
+        if not path.is_file():
+            continue
+        text = path.read_text().replace("LoopController", "PanTiltController")
+        if path.name in ("LoopController.cpp", "LoopController.info", "LoopController_tokens.xml"):
+            text = (text.replace("m_step_size = 0.001;", "m_step_size = 0.002;")
+                        .replace("Step size:   0.001", "Step size:   0.002")
+                        .replace("<![CDATA[0.001]]>", "<![CDATA[0.002]]>"))
+        path.write_text(text)
+        if "LoopController" in path.name:
+            path.rename(path.with_name(path.name.replace("LoopController", "PanTiltController")))
+    return project
 
 
 def _quiet(_line: str) -> None:
@@ -129,10 +152,11 @@ def test_editing_a_msg_regenerates_on_rebuild(tmp_path: Path) -> None:
 
 
 def test_xrf2_project_builds_unchanged(tmp_path: Path) -> None:
-    before = _tree_digest(XRF2_FIXTURE)
+    fixture = _xrf2_fixture(tmp_path)
+    before = _tree_digest(fixture)
     lines: list[str] = []
-    r = build_project(XRF2_FIXTURE, tmp_path / "build", log=lines.append)
-    assert _tree_digest(XRF2_FIXTURE) == before, "the project folder must not be written"
+    r = build_project(fixture, tmp_path / "build", log=lines.append)
+    assert _tree_digest(fixture) == before, "the project folder must not be written"
     assert r.layout == "xrf2"
     assert r.executable.is_file()
     for f in ("src/main.cpp", "src/ControlLoop.cpp", "include/ControlLoop.hpp",
@@ -152,7 +176,7 @@ def test_xrf2_project_builds_unchanged(tmp_path: Path) -> None:
 
 def test_xrf2_project_main_runs(tmp_path: Path) -> None:
     """The XRF2 main (evl_init, mlockall, SCHED_FIFO pthread on CPU 1) works on posix."""
-    r = build_project(XRF2_FIXTURE, tmp_path / "build", log=_quiet)
+    r = build_project(_xrf2_fixture(tmp_path), tmp_path / "build", log=_quiet)
     name = _shm()
     try:
         out = subprocess.run([str(r.executable)], capture_output=True, text=True, timeout=30,
@@ -167,8 +191,7 @@ def test_xrf2_project_main_runs(tmp_path: Path) -> None:
 
 def test_xrf2_msg_dir_option(tmp_path: Path) -> None:
     """XRF2 projects often kept their messages in a separate package: msg_dir points there."""
-    project = tmp_path / "proj"
-    shutil.copytree(XRF2_FIXTURE, project)
+    project = _xrf2_fixture(tmp_path)
     shutil.move(str(project / "msg"), str(tmp_path / "xrf2_msgs"))
     with pytest.raises(BuildError) as exc:
         build_project(project, tmp_path / "b1", log=_quiet)
