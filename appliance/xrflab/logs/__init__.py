@@ -1,0 +1,14 @@
+"""Log files: reading xrflog and XRF2 `.bin` files, converting them to CSV, MAT, Parquet, rrd.
+
+    from xrflab.logs import open_log, convert, iter_csv_chunks
+    log = open_log("probe_260101_120000.xrf")   # LogFile: .segments, .records, .lost, .skipped
+    convert(log.path, "parquet")                # -> Path of the written file
+
+Heavy optional libraries (scipy, pyarrow, rerun) are imported only by the converter that needs
+them.
+"""
+
+from .convert import FORMATS, convert, iter_csv_chunks
+from .reader import LogFile, LogFormatError, Segment, Variable, open_log
+
+__all__ = ["FORMATS", "LogFile", "LogFormatError", "Segment", "Variable", "convert", "iter_csv_chunks", "open_log"]

@@ -1,0 +1,271 @@
+"""Converting a log file to CSV, MAT v5, Parquet or rerun `.rrd`, in bounded memory.
+
+Every converter walks `LogFile.iter_chunks` (CHUNK_ROWS records at a time), so a file of any
+length converts with memory proportional to one chunk (MAT: to one column, since a MAT v5
+variable is written whole). Output goes to a temporary file beside the target and is renamed
+into place at the end: a download never sees a half-written file.
+
+Column types, the same in every format: seq and cycle uint64, t_ns int64, bool as bool (CSV:
+0/1), char as its unsigned byte value uint8 (reader.py says why), int int32, float float32,
+double float64, long int int64. rerun stores every scalar as float64 (see _to_rrd).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import re
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping
+
+import numpy as np
+
+from .reader import LogFile, open_log
+
+FORMATS = ("csv", "mat", "parquet", "rrd")
+SUFFIX = {"csv": ".csv", "mat": ".mat", "parquet": ".parquet", "rrd": ".rrd"}
+CHUNK_ROWS = 1 << 17
+
+
+def _plain(col: np.ndarray) -> np.ndarray:
+    """A column in an output-friendly dtype: char bytes as uint8, everything else unchanged."""
+    if col.dtype.kind == "S":
+        return np.ascontiguousarray(col).view(np.uint8)
+    return col
+
+
+# ---- CSV ------------------------------------------------------------------------------------
+
+
+def _csv_table(cols: dict[str, np.ndarray]):
+    import pyarrow as pa
+
+    arrays = []
+    for col in cols.values():
+        col = _plain(col)
+        if col.dtype == np.bool_:
+            col = col.view(np.uint8)  # 0/1 reads back in MATLAB, spreadsheets and NumPy alike
+        arrays.append(pa.array(np.ascontiguousarray(col)))
+    return pa.Table.from_arrays(arrays, names=list(cols))
+
+
+def iter_csv_chunks(path: str | Path, chunk_rows: int = CHUNK_ROWS, log: LogFile | None = None) -> Iterator[bytes]:
+    """The CSV text of a log file, as byte chunks (header row first), for streaming responses.
+
+    Numbers are written by Arrow's shortest round-trip formatting: every float64 and float32
+    reads back to the identical value (`nan`, `inf`, `-inf` for the specials), integers in full.
+    """
+    import pyarrow.csv as pcsv
+
+    log = log or open_log(path)
+    sink = io.BytesIO()
+    # The header row is ours (Arrow quotes every name); names are quoted only when they must be.
+    head = io.StringIO()
+    csv.writer(head, lineterminator="\n").writerow(log.columns)
+    yield head.getvalue().encode()
+    options = pcsv.WriteOptions(include_header=False, quoting_style="needed")
+    writer = None
+    for _seg, cols in log.iter_chunks(chunk_rows):
+        table = _csv_table(cols)
+        if writer is None:
+            writer = pcsv.CSVWriter(sink, table.schema, write_options=options)
+        writer.write_table(table)
+        yield sink.getvalue()
+        sink.seek(0)
+        sink.truncate()
+    if writer is not None:
+        writer.close()
+        rest = sink.getvalue()
+        if rest:
+            yield rest
+
+
+def _to_csv(log: LogFile, out: Path, chunk_rows: int) -> None:
+    with open(out, "wb") as f:
+        for chunk in iter_csv_chunks(log.path, chunk_rows, log=log):
+            f.write(chunk)
+
+
+# ---- MAT ------------------------------------------------------------------------------------
+
+_MATLAB_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,62}$")
+
+
+def matlab_names(names: list[str], reserved: tuple[str, ...] = ()) -> list[str]:
+    """Valid, unique MATLAB identifiers: other characters become `_`, a name that does not start
+    with a letter gets `x` in front, at most 63 characters, clashes get `_2`, `_3`, ..."""
+    taken = set(reserved)
+    out = []
+    for name in names:
+        ident = re.sub(r"[^A-Za-z0-9_]", "_", name)
+        if not ident or not ident[0].isalpha():
+            ident = "x" + ident
+        ident = ident[:63]
+        candidate, k = ident, 2
+        while candidate in taken:
+            suffix = f"_{k}"
+            candidate, k = ident[:63 - len(suffix)] + suffix, k + 1
+        assert _MATLAB_NAME.match(candidate)
+        taken.add(candidate)
+        out.append(candidate)
+    return out
+
+
+class _LazyColumns(Mapping[str, Any]):
+    """A dict for scipy.io.savemat whose columns are built one at a time as savemat writes
+    them (savemat only iterates items()), so the peak is one column, not the whole table."""
+
+    def __init__(self, items: list[tuple[str, Callable[[], Any]]]) -> None:
+        self._items = items
+
+    def __getitem__(self, key: str) -> Any:
+        for k, make in self._items:
+            if k == key:
+                return make()
+        raise KeyError(key)
+
+    def __iter__(self):
+        return (k for k, _ in self._items)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def items(self):  # type: ignore[override]
+        for k, make in self._items:
+            yield k, make()
+
+
+def _column(log: LogFile, name: str) -> np.ndarray:
+    parts = [_plain(seg.column(name)) for seg in log.segments]
+    if not parts:
+        return np.empty(0)
+    return np.ascontiguousarray(parts[0]) if len(parts) == 1 else np.concatenate(parts)
+
+
+def _to_mat(log: LogFile, out: Path, chunk_rows: int) -> None:
+    from scipy.io import savemat
+
+    log.check_uniform()
+    columns = log.columns
+    header_names = columns[: len(columns) - len(log.variables)]
+    var_names = matlab_names([v.field for v in log.variables], reserved=tuple(header_names) + ("log_header",))
+    items: list[tuple[str, Callable[[], Any]]] = [(n, (lambda n=n: _column(log, n))) for n in header_names]
+    items += [(mname, (lambda f=v.field: _column(log, f))) for mname, v in zip(var_names, log.variables)]
+    # The headers (cycle frequency, start time, identity; original names) as one JSON string.
+    items.append(("log_header", lambda: json.dumps([s.header for s in log.segments])))
+    with open(out, "wb") as f:
+        savemat(f, _LazyColumns(items), format="5", oned_as="column", long_field_names=True, do_compression=False)
+
+
+# ---- Parquet --------------------------------------------------------------------------------
+
+
+def _to_parquet(log: LogFile, out: Path, chunk_rows: int) -> None:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    writer = None
+    kinds = {v.field: v.type_name for v in log.variables}
+    try:
+        for _seg, cols in log.iter_chunks(chunk_rows):
+            arrays = [pa.array(np.ascontiguousarray(_plain(c))) for c in cols.values()]
+            if writer is None:
+                fields = [pa.field(n, a.type, nullable=False,
+                                   metadata={"xrf_type": kinds[n]} if n in kinds else None)
+                          for n, a in zip(cols, arrays)]
+                meta = {"xrflog.headers": json.dumps([s.header for s in log.segments])}
+                schema = pa.schema(fields, metadata=meta)
+                writer = pq.ParquetWriter(out, schema)
+            # One row group per chunk: readers can stream the file back in the same steps.
+            writer.write_table(pa.Table.from_arrays(arrays, schema=schema))
+        if writer is None:  # no records: still a valid, typed, empty file
+            empty = {c: np.empty(0, dtype=np.uint64 if c in ("seq", "cycle") else np.int64 if c == "t_ns" else np.float64)
+                     for c in log.columns}
+            empty.update({v.field: _plain(np.empty(0, dtype=v.dtype)) for v in log.variables})
+            pq.write_table(pa.table(empty), out)
+    finally:
+        if writer is not None:
+            writer.close()
+
+
+# ---- rerun ----------------------------------------------------------------------------------
+
+
+def variable_groups(names: list[str]) -> dict[str, str]:
+    """name -> group: the part before the first `_` or `.` when two or more variables share it
+    (pos_left, pos_right -> pos); every other variable goes to the group `signals`."""
+    prefix = {n: re.split(r"[_.]", n, maxsplit=1)[0] if re.search(r"[_.]", n) else "" for n in names}
+    counts: dict[str, int] = {}
+    for p in prefix.values():
+        if p:
+            counts[p] = counts.get(p, 0) + 1
+    return {n: p if p and counts[p] >= 2 else "signals" for n, p in prefix.items()}
+
+
+def entity_paths(names: list[str]) -> dict[str, str]:
+    """name -> rerun entity path `log/<group>/<name>` (parts escaped for rerun's path syntax)."""
+    import rerun as rr
+
+    groups = variable_groups(names)
+    return {n: f"log/{rr.escape_entity_path_part(groups[n])}/{rr.escape_entity_path_part(n)}" for n in names}
+
+
+def rrd_blueprint(names: list[str]):
+    """One TimeSeriesView per variable group, in a grid."""
+    import rerun as rr
+    import rerun.blueprint as rrb
+
+    groups = sorted(set(variable_groups(names).values()))
+    views = [rrb.TimeSeriesView(origin=f"/log/{rr.escape_entity_path_part(g)}", name=g) for g in groups]
+    return rrb.Blueprint(rrb.Grid(*views), collapse_panels=False)
+
+
+def _to_rrd(log: LogFile, out: Path, chunk_rows: int) -> None:
+    """Timelines `cycle` (sequence; the record index for XRF2 files) and `time` (wall clock from
+    t_ns; absent for XRF2 files). rerun's Scalars are float64: int64 values beyond 2**53 are
+    rounded, every other type is exact."""
+    import rerun as rr
+
+    names = [v.field for v in log.variables]
+    paths = entity_paths(names)
+    rec = rr.RecordingStream("xrflab", recording_id=str(log.path.name))
+    rec.save(out, default_blueprint=rrd_blueprint(names))
+    try:
+        for seg, cols in log.iter_chunks(chunk_rows):
+            cycle = cols.get("cycle", cols["seq"]).astype(np.int64)
+            indexes = [rr.TimeColumn("cycle", sequence=cycle)]
+            if "t_ns" in cols:
+                indexes.append(rr.TimeColumn("time", timestamp=seg.wall_ns(cols["t_ns"]).view("datetime64[ns]")))
+            for name in names:
+                values = _plain(cols[name]).astype(np.float64)
+                rec.send_columns(paths[name], indexes=indexes, columns=rr.Scalars.columns(scalars=values))
+    finally:
+        rec.flush()
+        rec.disconnect()
+
+
+# ---- entry point ----------------------------------------------------------------------------
+
+_WRITERS: dict[str, Callable[[LogFile, Path, int], None]] = {
+    "csv": _to_csv, "mat": _to_mat, "parquet": _to_parquet, "rrd": _to_rrd,
+}
+
+
+def convert(path: str | Path, fmt: str, out: str | Path | None = None, *, chunk_rows: int = CHUNK_ROWS,
+            log: LogFile | None = None) -> Path:
+    """Write `path` (xrflog or XRF2 .bin) as `fmt` to `out` (default: beside it, with the
+    format's suffix); returns the written path. Raises LogFormatError for undecodable input."""
+    if fmt not in _WRITERS:
+        raise ValueError(f"unknown format {fmt!r}; formats: {', '.join(FORMATS)}")
+    log = log or open_log(path)
+    target = Path(out) if out is not None else Path(path).with_suffix(SUFFIX[fmt])
+    tmp = target.with_name(f".{target.name}.{os.getpid()}.part")
+    try:
+        _WRITERS[fmt](log, tmp, chunk_rows)
+        os.replace(tmp, target)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return target
