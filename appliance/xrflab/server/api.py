@@ -70,6 +70,13 @@ class StartRun(BaseModel):
     max_cycles: int | None = Field(default=None, ge=1, description="leave the loop after N cycles")
 
 
+class ApplianceStatus(BaseModel):
+    clients: int = Field(description="WebSocket clients connected")
+    published: int = Field(description="messages fanned out since start")
+    run_active: bool
+    run_id: int | None
+
+
 class CommandRequest(BaseModel):
     cmd: str | int
 
@@ -96,6 +103,14 @@ def _http(exc: SupervisorError) -> HTTPException:
 @router.get("/bench", response_model=BenchInfo)
 async def get_bench(request: Request) -> dict[str, Any]:
     return _supervisor(request).bench()
+
+
+@router.get("/status", response_model=ApplianceStatus)
+async def get_status(request: Request) -> dict[str, Any]:
+    sup = _supervisor(request)
+    run = sup.current
+    return {"clients": sup.hub.clients, "published": sup.hub.published,
+            "run_active": bool(run and run.alive), "run_id": run.row.id if run else None}
 
 
 @router.get("/builds", response_model=list[BuildInfo])

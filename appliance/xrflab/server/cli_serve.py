@@ -4,7 +4,12 @@ imports stay inside ``run`` because every ``xrf`` call imports this module to bu
 from __future__ import annotations
 
 import argparse
+import socket
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .settings import Settings
 
 HELP = "serve the dashboard and API (simulated bench unless EVL and the ico board are present)"
 
@@ -25,8 +30,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import uvicorn
-
     from .app import create_app
     from .settings import Settings, default_data_dir
 
@@ -42,11 +45,24 @@ def run(args: argparse.Namespace) -> int:
     bench = "real ico board" if settings.bench_is_real() else f"simulated {settings.sim}"
     print(f"XRF Lab: {bench} bench, data in {settings.data_dir}", flush=True)
     print(f"XRF Lab: open http://{shown}:{args.port}/ in a browser", flush=True)
-    uvicorn.run(
-        create_app(settings),
-        host=args.host,
-        port=args.port,
-        log_level="warning",
-        ws_max_size=WS_PROTOCOL_MAX,
-    )
+    serve(create_app(settings), settings)
     return 0
+
+
+def listening_socket(settings: Settings) -> socket.socket:
+    """The server socket, with a bounded send buffer every accepted connection inherits."""
+    family = socket.AF_INET6 if ":" in settings.host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, settings.send_buffer_bytes)
+    sock.bind((settings.host, settings.port))
+    sock.listen(128)
+    sock.set_inheritable(True)
+    return sock
+
+
+def serve(app: Any, settings: Settings) -> None:
+    import uvicorn
+
+    config = uvicorn.Config(app, log_level="warning", ws_max_size=WS_PROTOCOL_MAX)
+    uvicorn.Server(config).run(sockets=[listening_socket(settings)])

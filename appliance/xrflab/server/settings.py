@@ -65,6 +65,10 @@ class Settings:
     client_queue_telemetry: int = 64  # telemetry messages kept per client before dropping oldest
     client_queue_max: int = 2048  # any messages; beyond this the client is disconnected
     slow_client_s: float = 3.0  # dropping continuously this long -> disconnect
+    # Kernel send buffer per connection (SO_SNDBUF on the listening socket, inherited by each
+    # accepted one). Bounded on purpose: with Linux autotuning a stalled browser could soak up
+    # megabytes of stale telemetry in the kernel before our queue ever noticed it was slow.
+    send_buffer_bytes: int = 256 * 1024
 
     def bench_is_real(self) -> bool:
         return real_bench_present(self.spi_device) if self.real_bench is None else self.real_bench

@@ -114,7 +114,11 @@ class BuildCatalog:
             def work() -> Path:
                 from .. import build
 
-                result = build.build_project(entry.path, self._settings.builds_dir / name, log=log)
+                # One build folder per rt_core install: a CMake cache remembers the XrfRt it
+                # found first, so reusing a folder across rt_core versions would link the old one.
+                prefix = build.ensure_rt_core(log)
+                build_dir = self._settings.builds_dir / name / Path(prefix).name
+                result = build.build_project(entry.path, build_dir, log=log)
                 return Path(result.executable)
 
             self._publish("build", {"build": name, "status": "building"})
@@ -392,7 +396,7 @@ class Supervisor:
         run.row = self.store.update(
             run.row.id,
             ended=time.time(),
-            status="crashed" if crashed else "ended",
+            status="crashed" if crashed else ("ended" if run.channels is not None else "failed"),
             crashed=int(crashed),
             crash_reason=reason,
             exit_code=exit_code,

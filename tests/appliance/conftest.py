@@ -1,0 +1,34 @@
+"""Fixtures for the appliance tests: a real server per module, real relbot runs."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from harness import Server, start_server, stop_server, shared_builds_root  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def builds_root() -> Path:
+    return shared_builds_root()
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory, builds_root: Path) -> Iterator[Server]:
+    s = start_server(tmp_path_factory.mktemp("data"), builds_root)
+    yield s
+    stop_server(s)
+
+
+@pytest.fixture
+def running(server: Server) -> Iterator[dict[str, Any]]:
+    """A relbot run in IDLE; ended after the test whatever happened."""
+    server.stop_run()
+    run = server.start_run("relbot")
+    yield run
+    server.stop_run()

@@ -1,0 +1,25 @@
+"""Run the appliance on uvicorn with Settings given as JSON (argv[1]); used by the test fixtures
+to get a real server in its own process (its own event loop, child watcher and signals)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from xrflab.server.app import create_app
+from xrflab.server.cli_serve import serve
+from xrflab.server.settings import Settings
+
+PATH_FIELDS = {"data_dir", "frontend_dir", "projects_dir", "builds_root"}
+
+
+def main() -> None:
+    raw = json.loads(sys.argv[1])
+    values = {k: Path(v) if k in PATH_FIELDS and v is not None else v for k, v in raw.items()}
+    settings = Settings(**values)
+    serve(create_app(settings), settings)
+
+
+if __name__ == "__main__":
+    main()
