@@ -300,7 +300,7 @@ def _parse_segment_header(path: Path, m: _Mapped, pos: int) -> tuple[dict[str, A
     if end > record_size or RECORD_HEADER_SIZE + record_size > stride:
         raise LogFormatError(f"{path}: segment at offset {pos}: variables need {end} bytes, record_size is "
                              f"{record_size}, stride {stride}: inconsistent header")
-    data = (pos + 16 + jlen + 7) // 8 * 8
+    data = pos + (16 + jlen + 7) // 8 * 8  # align8 counts from the segment's start
     return header, variables, stride, data
 
 
@@ -329,7 +329,8 @@ class _SegmentScanner:
         S = self.stride
         a = pos
         while a + RECORD_HEADER_SIZE <= end:
-            count = min(RESYNC_WINDOW, end - RECORD_HEADER_SIZE + 1 - a)
+            # One stride more than the step, so every hit's competitors (below) are in view.
+            count = min(RESYNC_WINDOW + S, end - RECORD_HEADER_SIZE + 1 - a)
             seq = self.m.u64_at_each_byte(a, count)
             cyc = self.m.u64_at_each_byte(a + 8, count)
             t = self.m.i64_at_each_byte(a + 16, count)
@@ -350,9 +351,13 @@ class _SegmentScanner:
                 ok[k:] = False
             ok &= (np.arange(count) + a + S) <= end  # the record itself must be complete
             hits = np.flatnonzero(ok)
-            if len(hits):
-                return a + int(hits[0])
-            a += count
+            if len(hits) and hits[0] < RESYNC_WINDOW:
+                # Reading a good run one byte early or late also looks like a chained run (seq
+                # shifted by 8 bits, a little-endian neighbour's byte below): of the hits within
+                # one stride, the true record boundary is the one with the smallest seq.
+                near = hits[hits < hits[0] + S]
+                return a + int(near[np.argmin(seq[near])])
+            a += RESYNC_WINDOW
         return None
 
     def scan(self, start: int, end: int) -> tuple[list[tuple[int, int]], list[tuple[int, int, str]]]:
