@@ -23,10 +23,10 @@ window.xrf = xrf;
 // ---- state machine drawing ------------------------------------------------------------------
 
 const NODES = {
-  IDLE: [70, 50], INITIALISING: [230, 50], INITIALISED: [400, 50], RUN: [560, 50], PAUSING: [720, 50],
-  QUIT: [70, 190], ERROR: [230, 190], STOPPED: [400, 190], STOPPING: [560, 190], PAUSED: [720, 190],
+  IDLE: [70, 60], INITIALISING: [250, 60], INITIALISED: [430, 60], RUN: [610, 60], PAUSING: [790, 60],
+  QUIT: [70, 200], ERROR: [250, 200], STOPPED: [430, 200], STOPPING: [610, 200], PAUSED: [790, 200],
 };
-const NODE_W = 136, NODE_H = 36;
+const NODE_W = 124, NODE_H = 36;
 // [from, to, command or "" for a hook completing, optional curve control point]
 const EDGES = [
   ["IDLE", "INITIALISING", "initialise"],
@@ -40,10 +40,10 @@ const EDGES = [
   ["STOPPING", "STOPPED", ""],
   ["STOPPED", "INITIALISING", "reset"],
   ["ERROR", "INITIALISING", "reset"],
-  ["RUN", "INITIALISING", "reset", [395, -20]],
-  ["PAUSED", "INITIALISING", "reset", [560, 120]],
+  ["RUN", "INITIALISING", "reset", [430, -15]],
+  ["PAUSED", "INITIALISING", "reset", [610, 125]],
   ["ERROR", "QUIT", "quit"],
-  ["STOPPED", "QUIT", "quit", [235, 262]],
+  ["STOPPED", "QUIT", "quit", [250, 275]],
 ];
 const SVGNS = "http://www.w3.org/2000/svg";
 
@@ -302,7 +302,7 @@ function makePlot(id, names) {
     legend: { show: true },
     cursor: { drag: { x: false, y: false } },
     scales: { x: { time: false } },
-    axes: [{ label: "", size: 30 }, { size: 50 }],
+    axes: [{ label: "", size: 30 }, { size: 62 }],
     series: [{ label: "t (s)" }, ...names.map((n, i) => ({ label: n, stroke: COLORS[i % COLORS.length], width: 1.5 }))],
   };
   const data = [[], ...names.map(() => [])];
@@ -393,7 +393,8 @@ function applyTiming(m) {
 function appendMonitor(lines, source) {
   const pre = $("monitor");
   const atBottom = pre.scrollTop + pre.clientHeight >= pre.scrollHeight - 4;
-  const text = lines.map((l) => (source === "stdout" ? "│ " : "") + l.text).join("\n") + "\n";
+  // monitor.printf text usually ends in its own newline; one line per entry here.
+  const text = lines.map((l) => (source === "stdout" ? "│ " : "") + l.text.replace(/\n+$/, "")).join("\n") + "\n";
   pre.textContent += text;
   const all = pre.textContent.split("\n");
   if (all.length > MONITOR_LINES) pre.textContent = all.slice(-MONITOR_LINES).join("\n");

@@ -88,8 +88,9 @@ class WsClient:
             if pred(m):
                 return m
 
-    def wait_type(self, kind: str, timeout: float = 5.0, seen: bool = False, **fields: Any) -> dict[str, Any]:
-        return self.wait_for(lambda m: m.get("type") == kind and all(m.get(k) == v for k, v in fields.items()),
+    def wait_type(self, message_type: str, /, timeout: float = 5.0, seen: bool = False,
+                  **fields: Any) -> dict[str, Any]:
+        return self.wait_for(lambda m: m.get("type") == message_type and all(m.get(k) == v for k, v in fields.items()),
                              timeout, seen)
 
     def wait_state(self, name: str, timeout: float = 5.0) -> dict[str, Any]:

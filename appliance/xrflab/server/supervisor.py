@@ -268,6 +268,9 @@ class Supervisor:
                 XRF_LOG_DIR=str(run_dir),
                 XRF_HOST_TIMEOUT_MS=str(self.settings.host_timeout_ms),
                 XRF_HOST_TIMEOUT_ACTION=self.settings.host_timeout_action,
+                # We read monitor lines from the ring; the process echoing them to stdout as well
+                # would show every line twice in the console.
+                XRF_QUIET="1",
             )
             if not self.settings.bench_is_real():
                 env["XRF_TRANSPORT"] = "sim"

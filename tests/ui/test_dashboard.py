@@ -1,0 +1,100 @@
+"""The dashboard in a real browser: start a run, command it, watch plots, move a setpoint,
+stop it with the button and with Esc."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from harness import Server
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+SHOTS = REPO_ROOT / "test-results"
+
+
+def state_is(page, name: str, timeout: float = 10_000) -> None:
+    page.wait_for_function(f"document.getElementById('state-name').textContent === {name!r}", timeout=timeout)
+
+
+def test_dashboard_drives_a_relbot_run(server: Server, browser) -> None:
+    server.stop_run()
+    page = browser.new_page(viewport={"width": 1400, "height": 1000})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(server.url + "/")
+    page.wait_for_function("document.getElementById('conn').textContent === 'connected'")
+    assert "simulated" in page.inner_text("#bench")
+
+    # Start a run of the bundled RELbot example.
+    page.wait_for_selector("#build-select option[value=relbot]", state="attached")
+    page.select_option("#build-select", "relbot")
+    page.click("#btn-start-run")
+    state_is(page, "IDLE", timeout=120_000)  # first use builds the example
+    assert page.is_enabled("#commands [data-cmd=initialise]") and page.is_disabled("#commands [data-cmd=start]")
+    assert "current" in page.get_attribute("#node-IDLE", "class")
+
+    page.click("#commands [data-cmd=initialise]")
+    state_is(page, "INITIALISED")
+    page.click("#commands [data-cmd=start]")
+    state_is(page, "RUN")
+    assert "current" in page.get_attribute("#node-RUN", "class")
+    assert page.is_disabled("#commands [data-cmd=start]") and page.is_enabled("#commands [data-cmd=stop]")
+    assert page.is_enabled("#commands [data-cmd=pause]") and page.is_disabled("#commands [data-cmd=quit]")
+
+    # The plot receives data.
+    page.wait_for_function("window.xrf.plots.xeno2ros.data[0].length > 20")
+    page.wait_for_function("window.xrf.plots.enc.data[0].length > 20")
+
+    # Setpoint controls come from Ros2Xeno.msg; moving one makes Xeno2Ros follow.
+    assert page.is_visible("#sp-range-steer_left") and page.is_visible("#sp-steer_right")
+    page.fill("#sp-range-steer_left", "3")
+    page.fill("#sp-steer_right", "-2")
+    page.wait_for_function(
+        "Math.abs(window.xrf.lastTelemetry.xeno2ros.pos_left - 3) < 0.1"
+        " && Math.abs(window.xrf.lastTelemetry.xeno2ros.pos_right + 2) < 0.1",
+        timeout=15_000,
+    )
+    page.wait_for_function("document.getElementById('t-cycles').textContent !== '–'")
+    SHOTS.mkdir(exist_ok=True)
+    page.screenshot(path=str(SHOTS / "dashboard.png"), full_page=True)
+
+    # The always-visible STOP button: RUN -> stop.
+    page.click("#btn-estop")
+    state_is(page, "STOPPED")
+    page.click("#commands [data-cmd=reset]")
+    state_is(page, "INITIALISED")
+    page.click("#commands [data-cmd=start]")
+    state_is(page, "RUN")
+
+    # Esc stops too, even while typing in a setpoint box.
+    page.focus("#sp-steer_left")
+    page.keyboard.press("Escape")
+    state_is(page, "STOPPED")
+    # Esc outside RUN/PAUSED ends the run.
+    page.keyboard.press("Escape")
+    page.wait_for_function("document.getElementById('state-name').textContent === 'QUIT'"
+                           " || document.getElementById('state-name').textContent === 'NO RUN'"
+                           " || /ended/.test(document.getElementById('run-detail').textContent)")
+    page.wait_for_function("/ended/.test(document.getElementById('run-detail').textContent)")
+    assert page.is_disabled("#commands [data-cmd=start]")
+    assert not errors, errors
+    page.close()
+
+
+def test_dashboard_shows_a_crash(server: Server, browser) -> None:
+    import os
+    import signal
+
+    server.stop_run()
+    run = server.start_run("relbot")
+    page = browser.new_page(viewport={"width": 820, "height": 1180})  # a tablet, portrait
+    page.goto(server.url + "/")
+    state_is(page, "IDLE")
+    assert page.is_visible("#btn-estop")
+    os.kill(run["pid"], signal.SIGKILL)
+    page.wait_for_selector("#alarm:not(.hidden)")
+    assert "crashed" in page.inner_text("#alarm-text")
+    page.wait_for_function("/crashed/.test(document.getElementById('run-detail').textContent)")
+    # The stop button stays on screen after scrolling (sticky bar).
+    page.mouse.wheel(0, 3000)
+    assert page.locator("#btn-estop").bounding_box()["y"] < 100
+    page.close()
