@@ -1,0 +1,206 @@
+"""Every output format decodes back to the logged values, bit for bit."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import VARIABLES, columns_of, edge_rows, same_bits
+from writers import xrf2_bin, xrflog_segment
+from xrflab.cli import main as xrf_main
+from xrflab.logs import convert, iter_csv_chunks, open_log
+from xrflab.logs.convert import matlab_names, variable_groups
+
+CSV_TYPES = {"flag": np.uint8, "letter": np.uint8, "count": np.int32, "ratio": np.float32, "value": np.float64,
+             "big": np.int64, "pos_left": np.float64, "pos_right": np.float64, "cycle_2": np.int64, "2 bad-name": np.int32}
+
+
+def _expected(rows):
+    want = columns_of(rows)
+    want["flag"] = want["flag"].view(np.uint8)
+    return want
+
+
+def _same_or_both_nan(got: np.ndarray, want: np.ndarray) -> bool:
+    """CSV text carries no NaN payload: a NaN reads back as NaN; every other value bit-exactly."""
+    nan = np.isnan(want) if want.dtype.kind == "f" else np.zeros(len(want), bool)
+    return bool(np.isnan(got[nan]).all()) and same_bits(got[~nan], want[~nan])
+
+
+def test_csv_round_trip(edge_file: Path) -> None:
+    out = convert(edge_file, "csv")
+    assert out == edge_file.with_suffix(".csv")
+    rows = list(csv.reader(io.StringIO(out.read_text())))
+    head, body = rows[0], rows[1:]
+    assert head == ["seq", "cycle", "t_ns"] + list(CSV_TYPES)
+    want = _expected(edge_rows())
+    for j, name in enumerate(head[3:], start=3):
+        text = [r[j] for r in body]
+        t = CSV_TYPES[name]
+        got = np.array([t(float(x)) if np.issubdtype(t, np.floating) else int(x) for x in text], dtype=t) \
+            if np.issubdtype(t, np.floating) else np.array([int(x) for x in text], dtype=t)
+        assert _same_or_both_nan(got, want[name].astype(t, copy=False)), name
+    assert [int(r[0]) for r in body] == list(range(len(body)))
+
+
+def test_csv_float32_is_written_shortest_not_widened(edge_file: Path) -> None:
+    text = convert(edge_file, "csv").read_text().splitlines()
+    ratio = [line.split(",")[6] for line in text[1:]]
+    assert "0.1" in ratio and "1e-45" in ratio  # float32 0.1 would be 0.10000000149011612 as double
+
+
+def test_iter_csv_chunks_matches_the_file_and_streams(edge_file: Path) -> None:
+    chunks = list(iter_csv_chunks(edge_file, chunk_rows=7))
+    assert len(chunks) >= 64 // 7
+    assert b"".join(chunks) == convert(edge_file, "csv").read_bytes()
+
+
+def test_mat_round_trip(edge_file: Path) -> None:
+    from scipy.io import loadmat
+
+    out = convert(edge_file, "mat", edge_file.parent / "x.mat")
+    mat = loadmat(out)
+    want = _expected(edge_rows())
+    names = dict(zip(CSV_TYPES, matlab_names(list(CSV_TYPES), reserved=("seq", "cycle", "t_ns", "log_header"))))
+    assert names["2 bad-name"] == "x2_bad_name" and names["cycle_2"] == "cycle_2"
+    for name, mname in names.items():
+        got = mat[mname].ravel()
+        w = want[name]
+        if name == "flag":
+            got = got.astype(np.uint8)
+        assert got.dtype.itemsize == w.dtype.itemsize and same_bits(got, w), name
+    assert mat["seq"].dtype == np.uint64 and mat["seq"].ravel().tolist() == list(range(64))
+    assert mat["t_ns"].dtype == np.int64
+    assert '"cycle_freq": 1000' in str(mat["log_header"][0])
+
+
+def test_parquet_round_trip_keeps_dtypes(edge_file: Path) -> None:
+    import pyarrow.parquet as pq
+
+    out = convert(edge_file, "parquet", chunk_rows=10)
+    pf = pq.ParquetFile(out)
+    assert pf.metadata.num_row_groups == 7
+    table = pf.read()
+    want = _expected(edge_rows())
+    want["flag"] = want["flag"].view(bool)
+    for name, w in want.items():
+        got = table.column(name).to_numpy()
+        assert got.dtype == w.dtype or (name == "letter" and got.dtype == np.uint8), name
+        assert same_bits(got, w), name
+    assert table.schema.field("seq").type == "uint64"
+    assert table.schema.field("letter").metadata == {b"xrf_type": b"char"}
+    assert b"xrflog.headers" in table.schema.metadata
+
+
+def _rrd_scalars(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """entity path -> (cycle, value) read back with rerun's own RRD reader."""
+    from rerun.chunk import RrdReader
+
+    out: dict[str, list] = {}
+    reader = RrdReader(path)
+    assert reader.blueprints(), "the blueprint is stored in the file"
+    for chunk in reader.stream():
+        batch = chunk.to_record_batch()
+        if "Scalars:scalars" not in batch.schema.names:
+            continue
+        entity = batch.schema.metadata[b"rerun:entity_path"].decode()
+        cyc = batch.column("cycle").to_numpy()
+        vals = np.array([v[0] for v in batch.column("Scalars:scalars").to_pylist()], dtype=np.float64)
+        out.setdefault(entity, []).append((cyc, vals))
+    result = {}
+    for e, parts in out.items():
+        cyc = np.concatenate([p[0] for p in parts])
+        val = np.concatenate([p[1] for p in parts])
+        order = np.argsort(cyc, kind="stable")
+        result[e] = (cyc[order], val[order])
+    return result
+
+
+def test_rrd_round_trip(edge_file: Path) -> None:
+    out = convert(edge_file, "rrd", chunk_rows=20)
+    scalars = _rrd_scalars(out)
+    want = _expected(edge_rows())
+    assert "/log/pos/pos_left" in scalars and "/log/pos/pos_right" in scalars
+    assert "/log/signals/value" in scalars
+    for name, w in want.items():
+        entity = [e for e in scalars if e.rsplit("/", 1)[-1] in (name, name.replace(" ", "\\ "))]
+        assert len(entity) == 1, (name, list(scalars))
+        cyc, got = scalars[entity[0]]
+        assert cyc.tolist() == [s + 10 for s in range(64)]
+        # rerun scalars are float64: exact for every type but int64 beyond 2**53.
+        assert _same_or_both_nan(got, w.astype(np.float64)) or name in ("value",), name
+        if name == "value":  # the NaN payload survives too: float64 passes through untouched
+            assert same_bits(got, w)
+
+
+def test_variable_groups() -> None:
+    assert variable_groups(["pos_left", "pos_right", "x", "steer_left"]) == {
+        "pos_left": "pos", "pos_right": "pos", "x": "signals", "steer_left": "signals"}
+
+
+def test_matlab_names() -> None:
+    assert matlab_names(["a b", "_x", "1", "a_b", "ok", "z" * 80]) == ["a_b", "x_x", "x1", "a_b_2", "ok", "z" * 63]
+
+
+def test_two_segments_and_damage_convert(tmp_path: Path) -> None:
+    rows = edge_rows(30)
+    path = tmp_path / "two.xrf"
+    path.write_bytes(xrflog_segment(VARIABLES, rows[:10]) + b"junk" + xrflog_segment(VARIABLES, rows[10:])[:-3])
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(convert(path, "parquet"))
+    assert table.num_rows == 29
+    assert same_bits(table.column("big").to_numpy(), columns_of(rows)["big"][:29])
+
+
+def test_segments_with_other_variables_refuse_to_merge(tmp_path: Path) -> None:
+    path = tmp_path / "mixed.xrf"
+    path.write_bytes(xrflog_segment([("x", 5)], [(1.0,)]) + xrflog_segment([("y", 3)], [(2,)]))
+    log = open_log(path)
+    assert [s.records.dtype.names[3] for s in log.segments] == ["x", "y"]
+    with pytest.raises(ValueError, match="segment 1"):
+        convert(path, "csv")
+    assert not list(tmp_path.glob("*.part")) and not (tmp_path / "mixed.csv").exists()
+
+
+def test_xrf2_bin_converts(tmp_path: Path) -> None:
+    rows = [r[:6] for r in edge_rows(40)]
+    path = tmp_path / "old.bin"
+    path.write_bytes(xrf2_bin(VARIABLES[:6], rows))
+    text = convert(path, "csv").read_text().splitlines()
+    assert text[0] == "seq,flag,letter,count,ratio,value,big" and len(text) == 41
+    from scipy.io import loadmat
+
+    mat = loadmat(convert(path, "mat"))
+    assert same_bits(mat["big"].ravel(), columns_of(edge_rows(40))["big"])
+    scalars = _rrd_scalars(convert(path, "rrd"))
+    assert scalars["/log/signals/count"][0].tolist() == list(range(40))
+
+
+def test_empty_log_converts(tmp_path: Path) -> None:
+    path = tmp_path / "empty.xrf"
+    path.write_bytes(xrflog_segment(VARIABLES, []))
+    assert convert(path, "csv").read_text().startswith("seq,cycle,t_ns,flag")
+    import pyarrow.parquet as pq
+
+    assert pq.read_table(convert(path, "parquet")).num_rows == 0
+    convert(path, "mat")
+    convert(path, "rrd")
+
+
+def test_cli_decode(edge_file: Path, tmp_path: Path, capsys) -> None:
+    assert xrf_main(["decode", str(edge_file), "--to", "parquet", "-o", str(tmp_path / "o.parquet")]) == 0
+    capsys.readouterr()
+    assert (tmp_path / "o.parquet").exists()
+    assert xrf_main(["decode", str(edge_file)]) == 0
+    assert Path(capsys.readouterr().out.strip()) == edge_file.with_suffix(".csv")
+    bad = tmp_path / "bad.xrf"
+    bad.write_bytes(xrflog_segment([("x", 5)], [(1.0,)]).replace(b'"type": 5', b'"type": 42'))
+    assert xrf_main(["decode", str(bad)]) == 1
+    assert "unknown type code 42" in capsys.readouterr().err
