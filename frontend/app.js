@@ -186,6 +186,7 @@ async function loadRuns() {
   body.innerHTML = "";
   for (const r of runs) {
     const tr = document.createElement("tr");
+    tr.id = "run-row-" + r.id;
     const cells = [r.id, r.build, r.status + (r.crash_reason ? ` (${r.crash_reason})` : ""), r.state, r.cycles, r.misses];
     cells.forEach((c, i) => {
       const td = document.createElement("td");
@@ -361,6 +362,12 @@ function resizePlots() {
 function us(ns) { return ns === undefined ? "–" : (ns / 1000).toFixed(ns < 10000 ? 1 : 0) + " µs"; }
 
 function applyTiming(m) {
+  const row = $("run-row-" + m.run_id);  // the live run's row: the stored record is written at its end
+  if (row) {
+    row.cells[3].textContent = xrf.state.name;
+    row.cells[4].textContent = m.cycles;
+    row.cells[5].textContent = m.misses;
+  }
   $("t-cycles").textContent = m.cycles;
   $("t-misses").textContent = m.misses;
   $("t-misses").classList.toggle("bad", m.misses > 0);

@@ -22,6 +22,13 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent
 
 
+# Debian's chromium for the browser tests and the docs screenshot (never a downloaded browser).
+CHROMIUM_ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+]
+
+
 def shared_builds_root() -> Path:
     """Builds shared by every server of every session (the ignored .cache/ folder): the bundled
     examples compile once, later servers and sessions only re-check them (incremental CMake)."""

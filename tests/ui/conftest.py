@@ -9,12 +9,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "appliance"))
-from harness import Server, shared_builds_root, start_server, stop_server  # noqa: E402
-
-CHROMIUM_ARGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-]
+from harness import CHROMIUM_ARGS, Server, shared_builds_root, start_server, stop_server  # noqa: E402
 
 
 @pytest.fixture(scope="module")
