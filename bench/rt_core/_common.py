@@ -24,7 +24,11 @@ from xrflab.channels import Channels  # noqa: E402
 
 
 def build(project: Path, build_dir: Path) -> Path:
-    """Build a controller project quietly; return the executable."""
+    """Build a controller project quietly, from scratch (a kept CMake cache would keep pointing at
+    an older rt_core install whose shared-memory layout the Python side no longer speaks)."""
+    import shutil
+
+    shutil.rmtree(build_dir, ignore_errors=True)
     lines: list[str] = []
     res = build_project(project, build_dir=build_dir, log=lines.append)
     return Path(res.executable)
@@ -75,7 +79,16 @@ def start_loop(exe: Path, env: dict, shm: str, cmd_prefix: list[str] | None = No
                stdout=subprocess.DEVNULL, wait_s: float = 20.0) -> Loop:
     argv = (cmd_prefix or []) + [str(exe)]
     proc = subprocess.Popen(argv, env=env, stdout=stdout, stderr=subprocess.STDOUT)
-    ch = Channels.open(shm, wait_s=wait_s)
+    try:
+        ch = Channels.open(shm, wait_s=wait_s)
+    except BaseException:
+        proc.kill()
+        proc.wait()
+        try:
+            os.unlink(f"/dev/shm/{shm}")
+        except OSError:
+            pass
+        raise
     return Loop(proc, ch, shm)
 
 
