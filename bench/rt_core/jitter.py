@@ -150,16 +150,23 @@ def main() -> int:
         ct_cmd = ""
         for i in range(a.slices):
             order = ("ours", "ct") if i % 2 == 0 else ("ct", "ours")
+            slice_notes: list[str] = []
             for who in order:
                 if who == "ours":
                     w, miss = run_ours(exe, freq, a.prio, a.cpu, a.seconds, log_dir, i)
                     ours.add(w.edges, w.counts, w.max)
                     missed += miss
+                    one = Merged(lambda e: C.bucket_high(e) - e)
+                    one.add(w.edges, w.counts, w.max)
+                    slice_notes.append(f"ours p99 {one.pct(99) / 1000:.1f} max {w.max / 1000:.0f}")
                 else:
                     e, c, mx, ov, ct_cmd = run_cyclictest(freq, a.prio, a.cpu, a.seconds)
                     ct.add(e, c, mx)
                     ct.overflow += ov
-            print(f"#   {freq} Hz slice {i + 1}/{a.slices} done", flush=True)
+                    one = Merged(lambda e: 1000)
+                    one.add(e, c, mx)
+                    slice_notes.append(f"cyclictest p99 {one.pct(99) / 1000:.1f} max {mx / 1000:.0f}")
+            print(f"#   {freq} Hz slice {i + 1}/{a.slices} (us): " + "; ".join(slice_notes), flush=True)
         results[freq] = (ours, ct, missed, ct_cmd)
 
     print()
