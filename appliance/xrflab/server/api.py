@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import math
 import struct
 from typing import Any, Literal
 
@@ -236,12 +237,13 @@ async def _handle(text: str, client: Client, sup: Supervisor) -> None:
             if not isinstance(fields, dict) or not fields:
                 raise ValueError("setpoint needs 'fields': an object of field name -> value")
             for name, value in fields.items():
-                if isinstance(value, bool):
-                    continue
-                if not isinstance(value, (int, float)) and not (
-                    isinstance(value, list) and all(isinstance(v, (int, float)) for v in value)
-                ):
-                    raise ValueError(f"field {name}: {value!r} is not a number")
+                for v in value if isinstance(value, list) else [value]:
+                    if isinstance(v, bool):
+                        continue
+                    if not isinstance(v, (int, float)):
+                        raise ValueError(f"field {name}: {value!r} is not a number")
+                    if not math.isfinite(v):
+                        raise ValueError(f"field {name}: {v!r} is not a finite number")
             merged = sup.setpoint(fields)
             client.reply("ack", {"id": ref, "setpoint": merged})
         elif kind == "subscribe":

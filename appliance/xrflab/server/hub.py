@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
@@ -27,7 +28,23 @@ LOSSY = "telemetry"
 
 
 def encode(message_type: str, payload: dict[str, Any]) -> str:
-    return json.dumps({"type": message_type, **payload}, separators=(",", ":"), allow_nan=False)
+    message = {"type": message_type, **payload}
+    try:
+        return json.dumps(message, separators=(",", ":"), allow_nan=False)
+    except ValueError:
+        # A controller computing NaN/inf must not break the fan-out, and browsers' JSON.parse
+        # rejects those tokens: they go out as null.
+        return json.dumps(_finite(message), separators=(",", ":"), allow_nan=False)
+
+
+def _finite(value: Any) -> Any:
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    return value
 
 
 class SlowClient(Exception):

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import os
 import signal
 import threading
@@ -42,6 +43,7 @@ SETTLING = {
     chmod.lib.XRF_STATE_PAUSING,
 }
 SOURCE_APPLIANCE = chmod.lib.XRF_SOURCE_APPLIANCE
+log = logging.getLogger("xrflab.supervisor")
 DOORBELL_WAIT_MS = 50  # also the fallback poll period if a loop never rings
 
 
@@ -308,14 +310,29 @@ class Supervisor:
                 row.id, status="running", program=info.get("program", ""), cycle_freq=info.get("cycle_freq", 0)
             )
             run.tasks.append(asyncio.create_task(self._supervise(run), name=f"run{row.id}-heartbeat"))
-            run.tasks.append(asyncio.create_task(self._reader(run), name=f"run{row.id}-reader"))
-            run.tasks.append(asyncio.create_task(self._timing(run), name=f"run{row.id}-timing"))
+            run.tasks.append(asyncio.create_task(self._guarded(self._reader, run), name=f"run{row.id}-reader"))
+            run.tasks.append(asyncio.create_task(self._guarded(self._timing, run), name=f"run{row.id}-timing"))
             run.thread = threading.Thread(target=self._doorbell_thread, args=(run, asyncio.get_running_loop()),
                                           name=f"xrf-doorbell-{row.id}", daemon=True)
             run.thread.start()
             self._refresh_state(run)
             self.hub.publish("run", self.run_payload(run, "started"))
             return run.row
+
+    async def _guarded(self, body: Callable[[Run], Any], run: Run) -> None:
+        """Restart a reader-type task after an unexpected error (a sample the codec cannot
+        decode, say) instead of silently losing telemetry for the rest of the run."""
+        while not run.ended.is_set():
+            try:
+                await body(run)
+                return
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:  # reported to the dashboards, then carry on
+                log.exception("run %s: %s failed", run.row.id, body.__name__)
+                self.hub.publish("monitor", {"run_id": run.row.id, "source": "appliance",
+                                             "lines": [{"text": f"appliance: {body.__name__} failed: {exc!r}"}]})
+                await asyncio.sleep(0.5)
 
     async def _open_channels(self, run: Run) -> bool:
         """Map the run's shm once the loop marks it ready, unless the process dies first."""
