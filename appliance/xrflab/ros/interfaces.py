@@ -33,7 +33,7 @@ from ..msgdef import PROJECT_MESSAGES, MsgError, parse_msg_file
 
 PACKAGE = "xrf2_msgs"
 # Bump when the generated package files change, so cached prefixes are rebuilt.
-_GENERATOR_VERSION = "1"
+_GENERATOR_VERSION = "2"
 _STAMP = "xrf2_msgs.built"
 
 
@@ -173,6 +173,41 @@ def runtime_env(prefix: str | Path, base: dict[str, str] | None = None) -> dict[
     }
 
 
+def use_in_this_process(prefix: str | Path) -> None:
+    """Make ``import xrf2_msgs`` work in the running interpreter (no re-exec needed).
+
+    sys.path gets the package; os.environ gets LD_LIBRARY_PATH/AMENT_PREFIX_PATH, which
+    rosidl_typesupport_c reads when it looks up the type-support library by name (the libraries'
+    own dependencies resolve through the RUNPATH set at build time).
+    """
+    env = runtime_env(prefix)
+    for path in reversed(env["PYTHONPATH"].split(os.pathsep)):
+        if path and path not in sys.path:
+            sys.path.insert(0, path)
+    os.environ["LD_LIBRARY_PATH"] = env["LD_LIBRARY_PATH"]
+    os.environ["AMENT_PREFIX_PATH"] = env["AMENT_PREFIX_PATH"]
+    # The type-support dispatch dlopen()s libraries by bare name, which the dynamic loader
+    # resolves with the LD_LIBRARY_PATH it saw at start-up. A library already loaded under that
+    # soname is found regardless, so load ours by absolute path first.
+    import ctypes
+
+    libs = sorted(Path(prefix, "lib").glob(f"lib{PACKAGE}__*.so"))
+    pending = list(libs)
+    for _ in range(len(libs) + 1):  # dependency order is not known: retry until all load
+        failed = []
+        for lib in pending:
+            try:
+                ctypes.CDLL(str(lib), mode=ctypes.RTLD_GLOBAL)
+            except OSError:
+                failed.append(lib)
+        if not failed or len(failed) == len(pending):
+            pending = failed
+            break
+        pending = failed
+    if pending:
+        raise InterfaceBuildError(f"cannot load {', '.join(p.name for p in pending)} from {prefix}")
+
+
 def build_interface_package(
     msg_dir: str | Path,
     prefix: str | Path | None = None,
@@ -212,7 +247,10 @@ def build_interface_package(
         py = [f"-DPython3_EXECUTABLE={tools.python}", f"-DPYTHON_EXECUTABLE={tools.python}"]
         steps = [
             ["cmake", "-S", str(src), "-B", str(build), f"-DCMAKE_INSTALL_PREFIX={prefix}",
-             "-DBUILD_TESTING=OFF", "-DCMAKE_BUILD_TYPE=Release", *py],
+             "-DBUILD_TESTING=OFF", "-DCMAKE_BUILD_TYPE=Release",
+             # RUNPATH to the prefix: the Python extension then finds its libraries without
+             # LD_LIBRARY_PATH at interpreter start (see use_in_this_process).
+             f"-DCMAKE_INSTALL_RPATH={prefix / 'lib'}", *py],
             ["cmake", "--build", str(build), "-j", str(jobs or os.cpu_count() or 2)],
             ["cmake", "--install", str(build)],
         ]

@@ -1,0 +1,406 @@
+"""``ros_xeno_bridge``: XRF2's ROS 2 topics on top of a loop's shared memory.
+
+Topics (names and types as in XRF2, so existing nodes need no change):
+
+* ``XenoCmd``  (std_msgs/Int32, subscribed) -> the command ring, source ROS, after the
+  ``command_gate``; the outcome (accepted / rejected + reason) goes to the node's log.
+* ``Ros2Xeno`` (xrf2_msgs/msg/Ros2Xeno, subscribed) -> the data channel (latest wins).
+* ``XenoState`` (std_msgs/Int32, published) on every state change and every ``state_period``.
+* ``Xeno2Ros`` (xrf2_msgs/msg/Xeno2Ros, published) for every decimated telemetry sample.
+
+Event-driven: a reader thread blocks in ``Channels.wait_doorbell`` (a futex; the GIL is
+released) and publishes what the loop produced as soon as it rings; there is no polling timer.
+Every sample is read from the broadcast ring with the bridge's own cursor, so none is skipped
+by the bridge; samples the loop overwrote before the bridge read them are counted (``lost``)
+and reported.
+
+The bench lease is not part of this module: ``command_gate(user, cmd) -> (allowed, reason)``
+is called for every XenoCmd; the appliance plugs its lease check in there. The default allows
+everything.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+HELP = "run the ROS 2 bridge node (XenoCmd, XenoState, Ros2Xeno, Xeno2Ros)"
+
+NODE_NAME = "ros_xeno_bridge"
+TOPIC_CMD = "XenoCmd"
+TOPIC_STATE = "XenoState"
+TOPIC_ROS2XENO = "Ros2Xeno"
+TOPIC_XENO2ROS = "Xeno2Ros"
+DEFAULT_DEPTH = 1000
+DEFAULT_STATE_PERIOD_S = 1.0
+SHUTDOWN_TIMEOUT_S = 5.0
+# Upper bound of one doorbell wait: only for noticing shutdown and the periodic XenoState; every
+# publication is woken by the doorbell itself.
+_WAIT_SLICE_MS = 100
+
+CommandGate = Callable[[str, int], "tuple[bool, str]"]
+
+
+def allow_all(user: str, cmd: int) -> tuple[bool, str]:
+    """The default gate: every command goes through (no bench lease yet)."""
+    return True, ""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--shm", default=os.environ.get("XRF_SHM", "xrf"), help="shared-memory name (default: $XRF_SHM or xrf)")
+    parser.add_argument("--msg-dir", default=None,
+                        help="folder with Ros2Xeno.msg and Xeno2Ros.msg (default: the schemas the running loop publishes)")
+    parser.add_argument("--user", default=os.environ.get("XRF_USER", os.environ.get("USER", "")),
+                        help="the user the bridge acts for (checked against the bench lease)")
+    parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the loop (default 10)")
+    parser.add_argument("--depth", type=int, default=DEFAULT_DEPTH, help=f"QoS history depth (default {DEFAULT_DEPTH})")
+    parser.add_argument("--state-period", type=float, default=DEFAULT_STATE_PERIOD_S,
+                        help="seconds between periodic XenoState messages (default 1)")
+
+
+# ---- message conversion -------------------------------------------------------------------------
+
+
+def _to_ros(ftype: str) -> Callable[[Any], Any]:
+    # msgdef decodes char/byte as integers; rosidl's Python types want str / bytes for them.
+    if ftype == "char":
+        return lambda v: [chr(x) for x in v] if isinstance(v, list) else chr(v)
+    if ftype == "byte":
+        return lambda v: [bytes([x]) for x in v] if isinstance(v, list) else bytes([v])
+    return lambda v: v
+
+
+def _from_ros(ftype: str) -> Callable[[Any], Any]:
+    def one(x: Any) -> Any:
+        if isinstance(x, (bytes, bytearray)):
+            return x[0] if x else 0
+        if isinstance(x, str):
+            return ord(x) if x else 0
+        return x
+
+    if ftype in ("char", "byte"):
+        return lambda v: [one(x) for x in v] if not isinstance(v, (str, bytes, int)) else one(v)
+    return lambda v: v
+
+
+class MessageMap:
+    """Field-by-field mapping between a ROS message class and the loop's Codec (by field name)."""
+
+    def __init__(self, codec: Any, msg_type: type) -> None:
+        ros_fields = set(msg_type.get_fields_and_field_types())
+        missing = [n for n in codec.field_names if n not in ros_fields]
+        if missing or len(ros_fields) != len(codec.field_names):
+            raise RuntimeError(
+                f"{msg_type.__name__}: the ROS type's fields {sorted(ros_fields)} differ from the loop's "
+                f"{codec.field_names} (was xrf2_msgs built from another project's msg/?)"
+            )
+        self.msg_type = msg_type
+        self._to = [(f.name, _to_ros(f.type), f.count is not None) for f in codec.fields]
+        self._from = [(f.name, _from_ros(f.type), f.count is not None) for f in codec.fields]
+
+    def to_msg(self, values: dict[str, Any]) -> Any:
+        msg = self.msg_type()
+        for name, conv, _array in self._to:
+            if name in values:
+                setattr(msg, name, conv(values[name]))
+        return msg
+
+    def from_msg(self, msg: Any) -> dict[str, Any]:
+        out = {}
+        for name, conv, array in self._from:
+            v = getattr(msg, name)
+            out[name] = conv(list(v) if array else v)
+        return out
+
+
+def msg_dir_from_loop(channels: Any, into: str | Path) -> Path:
+    """Write Ros2Xeno.msg / Xeno2Ros.msg from the schemas the loop publishes in its shared
+    memory (same fields, types and order as the project's files; comments are not kept)."""
+    out = Path(into)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "Ros2Xeno.msg").write_text(channels.ros2xeno_codec.schema + "\n")
+    (out / "Xeno2Ros.msg").write_text(channels.xeno2ros_codec.schema + "\n")
+    return out
+
+
+# ---- the node -----------------------------------------------------------------------------------
+
+
+class Bridge:
+    """The bridge node on one loop. ``start()`` creates the ROS entities and the reader thread;
+    the caller spins ``node`` (or uses ``spin_until``); ``stop()`` ends the threads."""
+
+    def __init__(
+        self,
+        channels: Any,
+        ros2xeno_type: type,
+        xeno2ros_type: type,
+        *,
+        user: str = "",
+        command_gate: CommandGate = allow_all,
+        depth: int = DEFAULT_DEPTH,
+        state_period: float = DEFAULT_STATE_PERIOD_S,
+        node_name: str = NODE_NAME,
+        context: Any = None,
+    ) -> None:
+        from rclpy.node import Node
+        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+        from std_msgs.msg import Int32
+
+        from ..channels import lib
+
+        self.ch = channels
+        self.user = user
+        self.command_gate = command_gate
+        self.state_period = state_period
+        self._source_ros = lib.XRF_SOURCE_ROS
+        self._Int32 = Int32
+        self.out_map = MessageMap(channels.xeno2ros_codec, xeno2ros_type)
+        self.in_map = MessageMap(channels.ros2xeno_codec, ros2xeno_type)
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=depth,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.VOLATILE,
+        )
+        self.node = Node(node_name, context=context)
+        self.log = self.node.get_logger()
+        self.pub_state = self.node.create_publisher(Int32, TOPIC_STATE, qos)
+        self.pub_xeno2ros = self.node.create_publisher(xeno2ros_type, TOPIC_XENO2ROS, qos)
+        self.node.create_subscription(Int32, TOPIC_CMD, self._on_cmd, qos)
+        self.node.create_subscription(ros2xeno_type, TOPIC_ROS2XENO, self._on_ros2xeno, qos)
+
+        self._stop = threading.Event()
+        self._cmd_cv = threading.Condition()
+        self._cmd_queue: list[int] = []
+        self._threads: list[threading.Thread] = []
+        self.published = 0
+        self.lost = 0
+        self.commands_sent = 0
+        self.ros2xeno_written = 0
+        self.last_state: int | None = None
+
+    # -- ROS -> loop --------------------------------------------------------------------------
+
+    def _on_cmd(self, msg: Any) -> None:
+        # Handed to a worker: waiting for the loop's verdict must not block the executor (and
+        # with it Ros2Xeno). The worker keeps the commands' order.
+        with self._cmd_cv:
+            self._cmd_queue.append(int(msg.data))
+            self._cmd_cv.notify()
+
+    def _command_worker(self) -> None:
+        from ..channels import ChannelsError, command_name
+
+        while True:
+            with self._cmd_cv:
+                while not self._cmd_queue and not self._stop.is_set():
+                    self._cmd_cv.wait(0.5)
+                if self._stop.is_set():
+                    return
+                cmd = self._cmd_queue.pop(0)
+            name = f"{cmd} ({command_name(cmd)})"
+            try:
+                allowed, reason = self.command_gate(self.user, cmd)
+            except Exception as exc:  # a broken gate refuses, it does not let everything through
+                allowed, reason = False, f"command gate failed: {exc}"
+            if not allowed:
+                self.log.warning(f"XenoCmd {name} refused for user '{self.user}': {reason}")
+                continue
+            try:
+                ticket = self.ch.send_command(cmd, source=self._source_ros)
+                self.commands_sent += 1
+                result = self.ch.wait_command(ticket, timeout=2.0)
+            except ChannelsError as exc:
+                self.log.error(f"XenoCmd {name}: {exc}")
+                continue
+            if result.accepted:
+                self.log.info(f"XenoCmd {name} accepted: state {result.state_name}")
+            else:
+                self.log.warning(f"XenoCmd {name} rejected: {result.reason}")
+
+    def _on_ros2xeno(self, msg: Any) -> None:
+        try:
+            self.ch.write_ros2xeno(self.in_map.from_msg(msg))
+            self.ros2xeno_written += 1
+        except (ValueError, RuntimeError) as exc:
+            self.log.error(f"Ros2Xeno not written: {exc}")
+
+    # -- loop -> ROS --------------------------------------------------------------------------
+
+    def _publish_state(self, state: int) -> None:
+        m = self._Int32()
+        m.data = int(state)
+        self.pub_state.publish(m)
+        self.last_state = int(state)
+
+    def _reader(self) -> None:
+        reader = self.ch.telemetry_reader()
+        last_periodic = 0.0
+        loop_pid = int(self.ch.info.get("pid", 0))
+        seen = self.ch.doorbell
+        while not self._stop.is_set():
+            # Read the doorbell before draining: a ring that comes while we publish is not missed.
+            seen = self.ch.doorbell
+            for sample in reader.read():
+                self.pub_xeno2ros.publish(self.out_map.to_msg(sample.xeno2ros))
+                self.published += 1
+            if reader.lost != self.lost:
+                self.log.warning(
+                    f"{reader.lost - self.lost} Xeno2Ros sample(s) overwritten by the loop before the bridge "
+                    f"read them ({reader.lost} in total)"
+                )
+                self.lost = reader.lost
+            state = self.ch.status().state
+            now = time.monotonic()
+            if state != self.last_state or now - last_periodic >= self.state_period:
+                self._publish_state(state)
+                last_periodic = now
+                if loop_pid and not _alive(loop_pid):
+                    self.log.error(f"the loop process (pid {loop_pid}) is gone; bridge stops")
+                    self._stop.set()
+                    self.loop_gone = True
+                    return
+            self.ch.wait_doorbell(seen, _WAIT_SLICE_MS)
+
+    loop_gone = False
+
+    # -- life cycle ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        for target, name in ((self._reader, "xrf-ros-reader"), (self._command_worker, "xrf-ros-cmd")):
+            t = threading.Thread(target=target, name=name, daemon=True)
+            t.start()
+            self._threads.append(t)
+        self.log.info(
+            f"bridging shm '{self.ch.name}' (program {self.ch.info.get('program')}, "
+            f"Xeno2Ros at {self.ch.info.get('write_decimator_freq')} Hz) for user '{self.user}'"
+        )
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    def stop(self, timeout: float = SHUTDOWN_TIMEOUT_S) -> bool:
+        """Stop the threads; True when both ended within timeout."""
+        self._stop.set()
+        with self._cmd_cv:
+            self._cmd_cv.notify_all()
+        deadline = time.monotonic() + timeout
+        for t in self._threads:
+            t.join(max(0.0, deadline - time.monotonic()))
+        return not any(t.is_alive() for t in self._threads)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+# ---- running it ---------------------------------------------------------------------------------
+
+
+def prepare_messages(channels: Any, msg_dir: str | Path | None, log: Callable[[str], None] = print) -> tuple[type, type]:
+    """Build (cached) and import xrf2_msgs for this loop; returns (Ros2Xeno, Xeno2Ros)."""
+    from ..msgdef import Codec, parse_msg_file
+    from .interfaces import build_interface_package, use_in_this_process
+
+    with tempfile.TemporaryDirectory(prefix="xrf-ros-msg-") as tmp:
+        if msg_dir is None:
+            msg_dir = msg_dir_from_loop(channels, tmp)
+        else:
+            for name, codec in (("Ros2Xeno", channels.ros2xeno_codec), ("Xeno2Ros", channels.xeno2ros_codec)):
+                theirs = Codec(parse_msg_file(Path(msg_dir) / f"{name}.msg")).schema
+                if theirs != codec.schema:
+                    raise RuntimeError(
+                        f"{msg_dir}/{name}.msg does not match the running loop's {name} "
+                        f"({theirs!r} vs {codec.schema!r}): rebuild the controller or pick the right --msg-dir"
+                    )
+        prefix = build_interface_package(msg_dir, log=log)
+    use_in_this_process(prefix)
+    from xrf2_msgs.msg import Ros2Xeno, Xeno2Ros  # noqa: E402  (importable only now)
+
+    return Ros2Xeno, Xeno2Ros
+
+
+def run(args: argparse.Namespace, command_gate: CommandGate = allow_all) -> int:
+    from ..channels import Channels, ChannelsError
+
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: Any) -> None:
+        stop.set()
+
+    # Explicit handlers (rclpy's own are disabled below): SIGTERM from the appliance's
+    # supervisor and Ctrl-C both end the spin loop and run the orderly shutdown.
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+
+    def say(text: str) -> None:
+        print(f"xrf ros-bridge: {text}", file=sys.stderr, flush=True)
+
+    try:
+        ch = Channels.open(args.shm, wait_s=args.timeout)
+    except (ChannelsError, ValueError, PermissionError) as exc:
+        say(f"cannot reach a loop on shared memory '{args.shm}': {exc}")
+        return 1
+    try:
+        ros2xeno_type, xeno2ros_type = prepare_messages(ch, args.msg_dir, log=say)
+    except Exception as exc:
+        say(f"cannot provide xrf2_msgs: {exc}")
+        return 1
+
+    try:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
+    except ImportError as exc:
+        say(f"rclpy is not available ({exc}): pip install ros-rclpy ros-std-msgs ros-rmw-fastrtps-cpp, "
+            "or source /opt/ros/<distro>/setup.bash")
+        return 1
+
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    bridge = Bridge(ch, ros2xeno_type, xeno2ros_type, user=args.user, command_gate=command_gate,
+                    depth=args.depth, state_period=args.state_period)
+    executor = SingleThreadedExecutor()
+    executor.add_node(bridge.node)
+    bridge.start()
+    try:
+        while not stop.is_set() and not bridge.stopping:
+            executor.spin_once(timeout_sec=0.1)
+    finally:
+        # Shutdown with a watchdog: a rare hang in DDS teardown must not keep the process alive.
+        watchdog = threading.Timer(SHUTDOWN_TIMEOUT_S, lambda: os._exit(1 if bridge.loop_gone else 0))
+        watchdog.daemon = True
+        watchdog.start()
+        clean = bridge.stop(SHUTDOWN_TIMEOUT_S / 2)
+        say(f"stopping: {bridge.published} Xeno2Ros published, {bridge.lost} lost in the ring, "
+            f"{bridge.commands_sent} commands, {bridge.ros2xeno_written} Ros2Xeno written"
+            + ("" if clean else " (threads did not end in time)"))
+        executor.shutdown(timeout_sec=1.0)
+        bridge.node.destroy_node()
+        rclpy.try_shutdown()
+        watchdog.cancel()
+    return 1 if bridge.loop_gone else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="xrf ros-bridge", description=HELP)
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
