@@ -93,3 +93,46 @@ def test_loop_exit_on_its_own_is_not_a_crash(server: Server) -> None:
         ended = ws.wait_type("run", event="ended", timeout=10)
     assert not ended["run"]["crashed"] and ended["run"]["exit_code"] == 0
     assert server.http.get(f"/api/runs/{run['id']}").json()["status"] == "ended"
+
+
+def test_appliance_death_pauses_the_loop_and_restart_cleans_up(tmp_path) -> None:
+    from harness import shared_builds_root, start_server, stop_server
+
+    s = start_server(tmp_path, shared_builds_root())
+    restarted = None
+    try:
+        run = s.start_run("relbot")
+        ch = Channels.open(run["shm"], wait_s=5)
+        with s.ws() as ws:
+            drive_motors(ws)
+        os.kill(s.proc.pid, signal.SIGKILL)  # the appliance dies; the loop must not care...
+        s.proc.wait()
+        t0 = time.monotonic()
+        while ch.status().state_name != "PAUSED":  # ...except that it pauses itself (1 s timeout)
+            assert time.monotonic() - t0 < 3, ch.status().state_name
+            time.sleep(0.01)
+        assert ch.status().running and ch.status().host_lost >= 1
+        # A new appliance on the same data folder stops the orphan and records what happened.
+        restarted = start_server(tmp_path, shared_builds_root())
+        deadline = time.monotonic() + 10
+        while _alive(run["pid"]) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert not _alive(run["pid"]), "orphaned loop still running"
+        assert not os.path.exists(f"/dev/shm/{run['shm']}")
+        row = restarted.http.get(f"/api/runs/{run['id']}").json()
+        assert row["crashed"] and row["crash_reason"] == "appliance"
+        ch.close()
+    finally:
+        if _alive(run["pid"]):
+            os.kill(run["pid"], signal.SIGKILL)
+        for server in (restarted, s):
+            if server is not None and server.proc.poll() is None:
+                stop_server(server)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False

@@ -75,6 +75,11 @@ class RunStore:
         self._db.executescript(_SCHEMA)
         # A previous appliance process that died mid-run left rows 'running': they did not end
         # cleanly and nobody watched them end, so say so rather than show them as live.
+        self.orphans: list[RunRow] = [
+            _row(r) for r in self._db.execute(
+                f"SELECT {', '.join(_COLUMNS)} FROM runs WHERE status IN ('starting', 'running')"
+            ).fetchall()
+        ]
         self._db.execute(
             "UPDATE runs SET status='crashed', crashed=1, crash_reason='appliance', "
             "message='the appliance stopped while this run was live', ended=COALESCE(ended, ?) "

@@ -186,6 +186,25 @@ class Supervisor:
         self.current: Run | None = None
         self.last_row: RunRow | None = None
         self._start_lock = asyncio.Lock()
+        for row in store.orphans:
+            self._reap_orphan(row)
+
+    def _reap_orphan(self, row: RunRow) -> None:
+        """A loop left running by an appliance that died: it has paused itself (no heartbeat);
+        stop it (SIGINT = the runtime's safe stop) and remove its shared memory. The pid is only
+        signalled if that process really is this run's loop (its XRF_SHM names the run's shm)."""
+        if row.pid:
+            try:
+                environ = Path(f"/proc/{row.pid}/environ").read_bytes().split(b"\0")
+            except OSError:
+                environ = []
+            if f"XRF_SHM={row.shm}".encode() in environ:
+                log.warning("run %s: stopping loop pid %s left by a previous appliance", row.id, row.pid)
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(row.pid, signal.SIGINT)
+        if row.shm:
+            with contextlib.suppress(FileNotFoundError, ValueError):
+                chmod.shm_path(row.shm).unlink()
 
     # -- queries ------------------------------------------------------------------------------
 
@@ -280,17 +299,20 @@ class Supervisor:
                 env["XRF_MAX_CYCLES"] = str(max_cycles)
             env.update(self.settings.loop_env)
             try:
-                proc = await asyncio.create_subprocess_exec(
-                    str(entry.executable),
-                    cwd=run_dir,
-                    env=env,
-                    stdin=asyncio.subprocess.DEVNULL,
-                    stdout=asyncio.subprocess.PIPE,
-                    stderr=asyncio.subprocess.STDOUT,
-                    # Own session: a Ctrl-C on the appliance's terminal reaches the appliance only,
-                    # which then stops the run in order (quit, signals) instead of both at once.
-                    start_new_session=True,
-                )
+                # Output goes to a file, not a pipe to us: if the appliance dies, a pipe would
+                # turn the loop's next printf into SIGPIPE; a file keeps it running, and kept.
+                with open(run_dir / "output.txt", "ab") as output:
+                    proc = await asyncio.create_subprocess_exec(
+                        str(entry.executable),
+                        cwd=run_dir,
+                        env=env,
+                        stdin=asyncio.subprocess.DEVNULL,
+                        stdout=output,
+                        stderr=asyncio.subprocess.STDOUT,
+                        # Own session: a Ctrl-C on the appliance's terminal reaches the appliance
+                        # only, which then stops the run in order (quit, signals).
+                        start_new_session=True,
+                    )
             except OSError as exc:
                 self.store.update(row.id, status="failed", ended=time.time(), message=str(exc))
                 raise SupervisorError(f"cannot start {entry.executable}: {exc}", 500) from exc
@@ -445,14 +467,27 @@ class Supervisor:
         self.hub.publish("state", self.state_payload(run) | {"active": False, "allowed": []})
 
     async def _pipe_output(self, run: Run) -> None:
-        """The loop's stdout/stderr: kept in the run folder and shown in the monitor console."""
-        assert run.proc.stdout is not None
-        with open(run.run_dir / "output.txt", "ab") as out:
-            while line := await run.proc.stdout.readline():
-                out.write(line)
-                out.flush()
-                text = line.decode("utf-8", "replace").rstrip("\n")
-                self.hub.publish("monitor", {"run_id": run.row.id, "source": "stdout", "lines": [{"text": text}]})
+        """Follow the loop's stdout/stderr file into the monitor console. Polled every 100 ms:
+        this is for people reading, nothing safety-related waits on it."""
+        pending = b""
+        with open(run.run_dir / "output.txt", "rb") as f:
+            while True:
+                alive = run.alive  # sampled before reading, so the last output is not missed
+                chunk = f.read(65536)
+                if chunk:
+                    *lines, pending = (pending + chunk).split(b"\n")
+                    self.hub.publish("monitor", {
+                        "run_id": run.row.id,
+                        "source": "stdout",
+                        "lines": [{"text": line.decode("utf-8", "replace")} for line in lines],
+                    })
+                elif not alive:
+                    if pending:
+                        self.hub.publish("monitor", {"run_id": run.row.id, "source": "stdout",
+                                                     "lines": [{"text": pending.decode("utf-8", "replace")}]})
+                    return
+                else:
+                    await asyncio.sleep(0.1)
 
     async def _supervise(self, run: Run) -> None:
         """Host heartbeat out, loop heartbeat in (hang detection)."""
