@@ -70,11 +70,16 @@ class Merged:
         return self.max  # in cyclictest's overflow
 
 
-def run_ours(exe: Path, freq: int, prio: int, cpu: int, seconds: float, log_dir: str, idx: int):
+def run_ours(exe: Path, freq: int, prio: int, cpu: int, seconds: float, log_dir: str, idx: int,
+             helper_cpu: int | None = None):
     shm = f"bench_jitter_{os.getpid()}_{idx}"
     env = C.loop_env(shm, freq, prio, cpu, log_dir,
                      {"XRF_MAX_CYCLES": int(freq * (seconds + 30))})
-    loop = C.start_loop(exe, env, shm)
+    # The runtime starts its in-band helper thread before it pins the loop thread, so the helper
+    # inherits the process's affinity; --helper-cpu starts the process on that CPU (the loop
+    # thread then moves itself to XRF_CPU), keeping the helper off the loop's CPU.
+    prefix = ["taskset", "-c", str(helper_cpu)] if helper_cpu is not None else None
+    loop = C.start_loop(exe, env, shm, cmd_prefix=prefix)
     try:
         C.go_to_run(loop)
         h0 = loop.ch.histograms()["wakeup"]
@@ -127,6 +132,8 @@ def main() -> int:
     ap.add_argument("--prio", type=int, default=80)
     ap.add_argument("--cpu", type=int, default=1)
     ap.add_argument("--build-dir", default="/tmp/xrf_bench/loop_probe")
+    ap.add_argument("--helper-cpu", type=int, default=None,
+                    help="start the loop process on this CPU so its in-band helper thread stays off --cpu")
     a = ap.parse_args()
     if shutil.which("cyclictest") is None:
         print("cyclictest not found: apt-get install rt-tests", file=sys.stderr)
@@ -139,6 +146,8 @@ def main() -> int:
     ct_version = subprocess.run(["cyclictest", "--help"], capture_output=True, text=True).stdout.splitlines()[0]
     print(f"# rt_core wake-up jitter vs cyclictest   {datetime.datetime.now().isoformat(timespec='seconds')}")
     print(f"# host {platform.node()} kernel {platform.release()} cpus {os.cpu_count()}; {ct_version}")
+    if a.helper_cpu is not None:
+        print(f"# loop process started with taskset -c {a.helper_cpu}: its helper thread runs on CPU {a.helper_cpu}")
     print(f"# SCHED_FIFO {a.prio}, CPU {a.cpu}, {a.slices} alternating slices x {a.seconds:g} s per program")
     print(f"# ours: {exe.relative_to(C.REPO) if exe.is_relative_to(C.REPO) else exe} in RUN, WAKEUP histogram"
           " (6 % buckets); cyclictest: 1 us buckets; percentiles = bucket middles")
@@ -153,7 +162,7 @@ def main() -> int:
             slice_notes: list[str] = []
             for who in order:
                 if who == "ours":
-                    w, miss = run_ours(exe, freq, a.prio, a.cpu, a.seconds, log_dir, i)
+                    w, miss = run_ours(exe, freq, a.prio, a.cpu, a.seconds, log_dir, i, a.helper_cpu)
                     ours.add(w.edges, w.counts, w.max)
                     missed += miss
                     one = Merged(lambda e: C.bucket_high(e) - e)

@@ -232,6 +232,10 @@ def main() -> int:
     print(f"    cross-check, nested --toggle-collect also on {HOOK} and sim_xfer: program total "
           f"{r2['total']:,} over {r2['n']} cycles = {r2['total'] / r2['n']:.1f}/cycle")
     shutil.rmtree(out2, ignore_errors=True)
+    alloc = {k: v for k, v in r["calls"].items()
+             if re.match(r"^(malloc|calloc|realloc|free|posix_memalign|aligned_alloc|operator new|operator delete)\b", k)}
+    print(f"    heap calls in the collected region (step + endCycle, hook and wire included): "
+          f"{sum(alloc.values())} {alloc if alloc else ''}")
     verdict = "PASS" if fw / n <= 2000 else "FAIL"
     print(f"    framework instructions per cycle = {fw / n:.0f} (target <= 2000): {verdict}")
 
