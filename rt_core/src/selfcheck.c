@@ -1,0 +1,1390 @@
+/*
+ * selfcheck.c — the bench self-check (xrf/selfcheck.h, docs/educators/selfcheck.md).
+ *
+ * Every frame goes through the loop's own transport and frame builders (ico.c). Pulses are
+ * driven with ALL frames in a timed loop (clock_nanosleep on an absolute grid) and the encoders
+ * are read from the ALL replies and unwrapped (14 bits). The abort flag is checked between
+ * frames; whatever ends the run, the outputs are zeroed (RESET, then ALL with zeros).
+ */
+#define _POSIX_C_SOURCE 200809L
+
+#include <errno.h>
+#include <fcntl.h>
+#include <math.h>
+#include <stdarg.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "xrf/selfcheck.h"
+#include "xrf/sim.h"
+
+/* ---- small helpers ------------------------------------------------------------------------- */
+
+const char *xrf_selfcheck_status_name(int status)
+{
+    switch (status) {
+    case XRF_SC_PASS:
+        return "pass";
+    case XRF_SC_WARN:
+        return "warn";
+    case XRF_SC_FAIL:
+        return "fail";
+    default:
+        return "skipped";
+    }
+}
+
+char *xrf_selfcheck_json_string(const char *s, char *buf, size_t len)
+{
+    size_t o = 0;
+    if (len < 3) {
+        if (len)
+            buf[0] = 0;
+        return buf;
+    }
+    buf[o++] = '"';
+    for (const unsigned char *p = (const unsigned char *)(s ? s : ""); *p; p++) {
+        char tmp[8];
+        const char *e = NULL;
+        switch (*p) {
+        case '"': e = "\\\""; break;
+        case '\\': e = "\\\\"; break;
+        case '\n': e = "\\n"; break;
+        case '\r': e = "\\r"; break;
+        case '\t': e = "\\t"; break;
+        default:
+            if (*p < 0x20) {
+                snprintf(tmp, sizeof tmp, "\\u%04x", *p);
+                e = tmp;
+            }
+        }
+        size_t n = e ? strlen(e) : 1;
+        if (o + n + 2 > len)
+            break;
+        if (e) {
+            memcpy(buf + o, e, n);
+            o += n;
+        } else {
+            buf[o++] = (char)*p;
+        }
+    }
+    buf[o++] = '"';
+    buf[o] = 0;
+    return buf;
+}
+
+static void set_text(char *dst, size_t len, const char *fmt, ...)
+{
+    va_list ap;
+    va_start(ap, fmt);
+    vsnprintf(dst, len, fmt, ap);
+    va_end(ap);
+}
+
+#define SETF(field, ...) set_text((field), sizeof(field), __VA_ARGS__)
+
+static void result_init(struct xrf_selfcheck_result *r, const char *id, int channel,
+                        const char *title)
+{
+    memset(r, 0, sizeof *r);
+    SETF(r->id, "%s", id);
+    r->channel = channel;
+    r->status = XRF_SC_SKIP;
+    SETF(r->title, "%s", title);
+    SETF(r->data, "{}");
+}
+
+/* ---- profile ------------------------------------------------------------------------------- */
+
+void xrf_selfcheck_profile_defaults(struct xrf_selfcheck_profile *p)
+{
+    memset(p, 0, sizeof *p);
+    SETF(p->name, "default");
+    p->pwm_limit = XRF_SC_MAX_DUTY;
+    p->period_us = 1000;
+    p->settle_ms = 150;
+    p->reset_tolerance = 2;
+    p->echo_frames = 1000;
+    p->timing_frames = 1000;
+    p->warn_median_us = 60.0;
+    p->fail_median_us = 150.0;
+    p->warn_max_us = 500.0;
+    for (int i = 0; i < 4; i++) {
+        struct xrf_sc_channel *c = &p->ch[i];
+        SETF(c->name, "channel %d", i + 1);
+        SETF(c->connector, "PMOD %d", i + 1);
+        c->direction = 1;
+        c->duty = 0.1;
+        c->duration_ms = 100;
+        c->min_counts = 50;
+        c->din_idle[0] = c->din_idle[1] = -1;
+        SETF(c->pin_name[0], "pin 1");
+        SETF(c->pin_name[1], "pin 2");
+    }
+}
+
+/* A minimal JSON reader: enough for bench profiles (objects, arrays, strings, numbers, true,
+ * false, null), with the position of the first error. */
+enum { J_NULL, J_BOOL, J_NUM, J_STR, J_ARR, J_OBJ };
+
+struct jnode {
+    int type;
+    double num;
+    char *str;
+    char *key;
+    struct jnode *child, *next;
+};
+
+struct jparser {
+    const char *s, *p;
+    char *err;
+    size_t errlen;
+    int depth;
+};
+
+static void jfree(struct jnode *n)
+{
+    while (n) {
+        struct jnode *next = n->next;
+        jfree(n->child);
+        free(n->str);
+        free(n->key);
+        free(n);
+        n = next;
+    }
+}
+
+static int jerr(struct jparser *j, const char *what)
+{
+    int line = 1;
+    for (const char *q = j->s; q < j->p; q++)
+        line += *q == '\n';
+    if (j->err && !j->err[0])
+        snprintf(j->err, j->errlen, "profile is not valid JSON: %s (line %d)", what, line);
+    return -EINVAL;
+}
+
+static void jws(struct jparser *j)
+{
+    while (*j->p == ' ' || *j->p == '\t' || *j->p == '\n' || *j->p == '\r')
+        j->p++;
+}
+
+static int jstring(struct jparser *j, char **out)
+{
+    if (*j->p != '"')
+        return jerr(j, "expected a string");
+    j->p++;
+    size_t cap = 32, n = 0;
+    char *b = malloc(cap);
+    if (!b)
+        return -ENOMEM;
+    while (*j->p != '"') {
+        char c = *j->p;
+        if (!c || c == '\n') {
+            free(b);
+            return jerr(j, "unterminated string");
+        }
+        if (c == '\\') {
+            j->p++;
+            switch (*j->p) {
+            case 'n': c = '\n'; break;
+            case 't': c = '\t'; break;
+            case 'r': c = '\r'; break;
+            case 'b': c = '\b'; break;
+            case 'f': c = '\f'; break;
+            case 'u': {
+                unsigned v = 0;
+                for (int i = 1; i <= 4; i++) {
+                    char h = j->p[i];
+                    v <<= 4;
+                    if (h >= '0' && h <= '9') v |= (unsigned)(h - '0');
+                    else if (h >= 'a' && h <= 'f') v |= (unsigned)(h - 'a' + 10);
+                    else if (h >= 'A' && h <= 'F') v |= (unsigned)(h - 'A' + 10);
+                    else {
+                        free(b);
+                        return jerr(j, "bad \\u escape");
+                    }
+                }
+                j->p += 4;
+                c = v < 0x80 ? (char)v : '?'; /* names in profiles are ASCII; keep it simple */
+                break;
+            }
+            case '"': case '\\': case '/': c = *j->p; break;
+            default:
+                free(b);
+                return jerr(j, "bad escape");
+            }
+        }
+        if (n + 2 > cap) {
+            cap *= 2;
+            char *nb = realloc(b, cap);
+            if (!nb) {
+                free(b);
+                return -ENOMEM;
+            }
+            b = nb;
+        }
+        b[n++] = c;
+        j->p++;
+    }
+    j->p++;
+    b[n] = 0;
+    *out = b;
+    return 0;
+}
+
+static int jvalue(struct jparser *j, struct jnode **out);
+
+static int jcontainer(struct jparser *j, struct jnode *n, char close)
+{
+    struct jnode **tail = &n->child;
+    j->p++;
+    jws(j);
+    if (*j->p == close) {
+        j->p++;
+        return 0;
+    }
+    for (;;) {
+        char *key = NULL;
+        jws(j);
+        if (close == '}') {
+            int r = jstring(j, &key);
+            if (r)
+                return r;
+            jws(j);
+            if (*j->p != ':') {
+                free(key);
+                return jerr(j, "expected ':'");
+            }
+            j->p++;
+        }
+        struct jnode *kid = NULL;
+        int r = jvalue(j, &kid);
+        if (r) {
+            free(key);
+            return r;
+        }
+        kid->key = key;
+        *tail = kid;
+        tail = &kid->next;
+        jws(j);
+        if (*j->p == ',') {
+            j->p++;
+            continue;
+        }
+        if (*j->p == close) {
+            j->p++;
+            return 0;
+        }
+        return jerr(j, close == '}' ? "expected ',' or '}'" : "expected ',' or ']'");
+    }
+}
+
+static int jvalue(struct jparser *j, struct jnode **out)
+{
+    jws(j);
+    if (++j->depth > 32)
+        return jerr(j, "nested too deeply");
+    struct jnode *n = calloc(1, sizeof *n);
+    if (!n)
+        return -ENOMEM;
+    *out = n;
+    int r = 0;
+    char c = *j->p;
+    if (c == '{') {
+        n->type = J_OBJ;
+        r = jcontainer(j, n, '}');
+    } else if (c == '[') {
+        n->type = J_ARR;
+        r = jcontainer(j, n, ']');
+    } else if (c == '"') {
+        n->type = J_STR;
+        r = jstring(j, &n->str);
+    } else if (strncmp(j->p, "true", 4) == 0) {
+        n->type = J_BOOL;
+        n->num = 1;
+        j->p += 4;
+    } else if (strncmp(j->p, "false", 5) == 0) {
+        n->type = J_BOOL;
+        j->p += 5;
+    } else if (strncmp(j->p, "null", 4) == 0) {
+        n->type = J_NULL;
+        j->p += 4;
+    } else if (c == '-' || (c >= '0' && c <= '9')) {
+        char *end;
+        n->type = J_NUM;
+        n->num = strtod(j->p, &end);
+        if (end == j->p)
+            r = jerr(j, "bad number");
+        j->p = end;
+    } else {
+        r = jerr(j, "unexpected character");
+    }
+    j->depth--;
+    return r;
+}
+
+static const struct jnode *jget(const struct jnode *obj, const char *key)
+{
+    if (!obj || obj->type != J_OBJ)
+        return NULL;
+    for (const struct jnode *k = obj->child; k; k = k->next)
+        if (k->key && strcmp(k->key, key) == 0)
+            return k;
+    return NULL;
+}
+
+struct pctx {
+    char *err;
+    size_t errlen;
+};
+
+static int perr(struct pctx *c, const char *fmt, ...)
+{
+    if (c->err && c->errlen && !c->err[0]) {
+        va_list ap;
+        va_start(ap, fmt);
+        vsnprintf(c->err, c->errlen, fmt, ap);
+        va_end(ap);
+    }
+    return -EINVAL;
+}
+
+/* Number field `key` of `obj` into *v if present, checked against [lo, hi]. */
+static int pnum(struct pctx *c, const struct jnode *obj, const char *where, const char *key,
+                double lo, double hi, double *v)
+{
+    const struct jnode *n = jget(obj, key);
+    if (!n || n->type == J_NULL)
+        return 0;
+    if (n->type != J_NUM)
+        return perr(c, "%s.%s must be a number", where, key);
+    if (!(n->num >= lo && n->num <= hi))
+        return perr(c, "%s.%s = %g is outside %g..%g", where, key, n->num, lo, hi);
+    *v = n->num;
+    return 0;
+}
+
+static int pint(struct pctx *c, const struct jnode *obj, const char *where, const char *key,
+                double lo, double hi, int *v)
+{
+    double d = *v;
+    int r = pnum(c, obj, where, key, lo, hi, &d);
+    if (r)
+        return r;
+    if (d != floor(d))
+        return perr(c, "%s.%s must be a whole number", where, key);
+    *v = (int)d;
+    return 0;
+}
+
+static int pbool(struct pctx *c, const struct jnode *obj, const char *where, const char *key,
+                 int *v)
+{
+    const struct jnode *n = jget(obj, key);
+    if (!n || n->type == J_NULL)
+        return 0;
+    if (n->type != J_BOOL)
+        return perr(c, "%s.%s must be true or false", where, key);
+    *v = (int)n->num;
+    return 0;
+}
+
+static int pstr(struct pctx *c, const struct jnode *obj, const char *where, const char *key,
+                char *dst, size_t len)
+{
+    const struct jnode *n = jget(obj, key);
+    if (!n || n->type == J_NULL)
+        return 0;
+    if (n->type != J_STR)
+        return perr(c, "%s.%s must be a string", where, key);
+    snprintf(dst, len, "%s", n->str);
+    return 0;
+}
+
+static int parse_channel(struct pctx *c, const struct jnode *o, struct xrf_selfcheck_profile *p)
+{
+    int chn = 0;
+    if (!o || o->type != J_OBJ)
+        return perr(c, "each entry of channels must be an object");
+    if (!jget(o, "channel"))
+        return perr(c, "a channels entry has no \"channel\" number (1..4)");
+    int r = pint(c, o, "channels[]", "channel", 1, 4, &chn);
+    if (r)
+        return r;
+    char where[32];
+    snprintf(where, sizeof where, "channels[%d]", chn);
+    struct xrf_sc_channel *ch = &p->ch[chn - 1];
+    int dir = ch->direction;
+    if ((r = pstr(c, o, where, "name", ch->name, sizeof ch->name)) ||
+        (r = pstr(c, o, where, "connector", ch->connector, sizeof ch->connector)) ||
+        (r = pbool(c, o, where, "motor", &ch->motor)) ||
+        (r = pint(c, o, where, "direction", -1, 1, &dir)) ||
+        (r = pnum(c, o, where, "duty", 0.0, XRF_SC_MAX_DUTY, &ch->duty)) ||
+        (r = pint(c, o, where, "duration_ms", 1, XRF_SC_MAX_PULSE_MS, &ch->duration_ms)) ||
+        (r = pint(c, o, where, "min_counts", 1, 1e7, &ch->min_counts)) ||
+        (r = pint(c, o, where, "max_counts", 0, 1e9, &ch->max_counts)) ||
+        (r = pbool(c, o, where, "loopback", &ch->loopback)))
+        return r;
+    if (dir == 0)
+        return perr(c, "%s.direction must be 1 or -1", where);
+    ch->direction = dir;
+    if (ch->motor && !(ch->duty > 0.0))
+        return perr(c, "%s.duty must be above 0 for a motor channel", where);
+    if (ch->max_counts && ch->max_counts < ch->min_counts)
+        return perr(c, "%s.max_counts is below min_counts", where);
+    const struct jnode *ins = jget(o, "inputs");
+    if (ins && ins->type != J_NULL) {
+        if (ins->type != J_ARR)
+            return perr(c, "%s.inputs must be a list", where);
+        for (const struct jnode *in = ins->child; in; in = in->next) {
+            int pin = 0;
+            if (in->type != J_OBJ || !jget(in, "pin"))
+                return perr(c, "%s.inputs: each entry needs a \"pin\" (1 or 2)", where);
+            if ((r = pint(c, in, where, "pin", 1, 2, &pin)))
+                return r;
+            if ((r = pstr(c, in, where, "name", ch->pin_name[pin - 1], sizeof ch->pin_name[0])))
+                return r;
+            const struct jnode *idle = jget(in, "idle");
+            if (!idle || idle->type == J_NULL) {
+                ch->din_idle[pin - 1] = -1;
+            } else {
+                int v = 0;
+                if ((r = pint(c, in, where, "idle", 0, 1, &v)))
+                    return r;
+                ch->din_idle[pin - 1] = v;
+            }
+        }
+    }
+    return 0;
+}
+
+int xrf_selfcheck_profile_parse(const char *json, struct xrf_selfcheck_profile *p, char *err,
+                                size_t errlen)
+{
+    if (err && errlen)
+        err[0] = 0;
+    if (!json || !p)
+        return -EINVAL;
+    xrf_selfcheck_profile_defaults(p);
+    struct jparser j = {json, json, err, errlen, 0};
+    struct jnode *root = NULL;
+    int r = jvalue(&j, &root);
+    if (!r) {
+        jws(&j);
+        if (*j.p)
+            r = jerr(&j, "text after the end");
+    }
+    struct pctx c = {err, errlen};
+    if (!r && root->type != J_OBJ)
+        r = perr(&c, "a bench profile is a JSON object");
+    if (!r)
+        r = pstr(&c, root, "profile", "name", p->name, sizeof p->name);
+    const struct jnode *limits = jget(root, "limits");
+    const struct jnode *pulse = jget(root, "pulse");
+    const struct jnode *link = jget(root, "link");
+    if (!r)
+        r = pnum(&c, limits, "limits", "pwm_limit", 0.0, XRF_SC_MAX_DUTY, &p->pwm_limit);
+    if (!r)
+        r = pint(&c, pulse, "pulse", "period_us", 200, 20000, &p->period_us);
+    if (!r)
+        r = pint(&c, pulse, "pulse", "settle_ms", 0, XRF_SC_MAX_SETTLE_MS, &p->settle_ms);
+    if (!r)
+        r = pint(&c, pulse, "pulse", "reset_tolerance_counts", 0, 1000, &p->reset_tolerance);
+    if (!r)
+        r = pint(&c, link, "link", "echo_frames", 1, XRF_SC_MAX_FRAMES, &p->echo_frames);
+    if (!r)
+        r = pint(&c, link, "link", "timing_frames", 1, XRF_SC_MAX_FRAMES, &p->timing_frames);
+    if (!r)
+        r = pnum(&c, link, "link", "warn_median_us", 0, 1e6, &p->warn_median_us);
+    if (!r)
+        r = pnum(&c, link, "link", "fail_median_us", 0, 1e6, &p->fail_median_us);
+    if (!r)
+        r = pnum(&c, link, "link", "warn_max_us", 0, 1e7, &p->warn_max_us);
+    const struct jnode *chans = jget(root, "channels");
+    if (!r && chans && chans->type != J_ARR)
+        r = perr(&c, "channels must be a list");
+    if (!r && chans)
+        for (const struct jnode *o = chans->child; o && !r; o = o->next)
+            r = parse_channel(&c, o, p);
+    if (!r)
+        for (int i = 0; i < 4 && !r; i++)
+            if (p->ch[i].motor && p->ch[i].duty > p->pwm_limit + 1e-12)
+                r = perr(&c, "channels[%d].duty %g is above limits.pwm_limit %g", i + 1,
+                         p->ch[i].duty, p->pwm_limit);
+    jfree(root);
+    if (r == -ENOMEM && err && errlen && !err[0])
+        snprintf(err, errlen, "out of memory reading the profile");
+    return r ? -EINVAL : 0;
+}
+
+/* ---- opening (the "spi" step) -------------------------------------------------------------- */
+
+int xrf_selfcheck_open(const struct xrf_selfcheck_target *tg, struct xrf_ico_transport **out,
+                       struct xrf_selfcheck_result *r)
+{
+    result_init(r, "spi", 0, "SPI link opened and configured");
+    if (out)
+        *out = NULL;
+    if (!tg || !out || !tg->transport) {
+        r->status = XRF_SC_FAIL;
+        SETF(r->message, "no transport given");
+        return -EINVAL;
+    }
+    const char *dev = tg->device && tg->device[0] ? tg->device : "/dev/spidev0.0";
+    uint32_t speed = tg->speed_hz ? tg->speed_hz : 31000000u;
+    int rc;
+    char js[160];
+    if (strcmp(tg->transport, "sim") == 0) {
+        struct xrf_sim_faults f;
+        int robot = xrf_sim_robot_from_name(tg->sim ? tg->sim : "relbot");
+        if (robot < 0) {
+            r->status = XRF_SC_FAIL;
+            SETF(r->message, "unknown simulated robot '%s' (use relbot or jiwy)", tg->sim);
+            return -EINVAL;
+        }
+        if (xrf_sim_parse_faults(tg->faults, &f) != 0) {
+            r->status = XRF_SC_FAIL;
+            SETF(r->message, "'%s' is not a valid fault list", tg->faults ? tg->faults : "");
+            SETF(r->action, "see docs/rt_core/simulator.md, section Faults");
+            return -EINVAL;
+        }
+        rc = xrf_sim_open(robot, &f, 0.0, tg->sim_outputs, out);
+        if (rc == 0) {
+            r->status = XRF_SC_PASS;
+            SETF(r->message, "simulated %s board opened (no SPI wire)", tg->sim ? tg->sim : "relbot");
+            SETF(r->data, "{\"transport\":\"sim\",\"sim\":%s}",
+                 xrf_selfcheck_json_string(tg->sim ? tg->sim : "relbot", js, sizeof js));
+            return 0;
+        }
+    } else if (strcmp(tg->transport, "spidev") == 0) {
+        rc = xrf_spidev_open(dev, speed, out);
+    } else if (strcmp(tg->transport, "evl-spidev") == 0) {
+        rc = xrf_evl_spidev_open(dev, speed, out);
+    } else {
+        r->status = XRF_SC_FAIL;
+        SETF(r->message, "unknown transport '%s' (use sim, spidev or evl-spidev)", tg->transport);
+        return -EINVAL;
+    }
+    SETF(r->data, "{\"transport\":\"%s\",\"device\":%s,\"speed_hz\":%u}", tg->transport,
+         xrf_selfcheck_json_string(dev, js, sizeof js), speed);
+    if (rc == 0) {
+        r->status = XRF_SC_PASS;
+        SETF(r->message, "%s opened: SPI mode 0, 8 bits per word, %.1f MHz", dev, speed / 1e6);
+        return 0;
+    }
+    r->status = XRF_SC_FAIL;
+    switch (-rc) {
+    case ENOENT:
+        SETF(r->message, "%s does not exist: the SPI interface is not enabled", dev);
+        SETF(r->action, "enable SPI (dtparam=spi=on in /boot/firmware/config.txt) and reboot");
+        break;
+    case EACCES:
+    case EPERM:
+        SETF(r->message, "no permission to open %s", dev);
+        SETF(r->action, "run the check as a user in the 'spi' group (or as the appliance)");
+        break;
+    case EBUSY:
+        SETF(r->message, "%s is busy: another program holds the SPI bus", dev);
+        SETF(r->action, "stop the running loop (or other SPI program) and run the check again");
+        break;
+    case ENOSYS:
+        SETF(r->message, "the %s transport is not built into this rt_core (no libevl)", tg->transport);
+        SETF(r->action, "use --transport spidev, or build rt_core on the EVL kernel image");
+        break;
+    default:
+        SETF(r->message, "%s cannot be opened or configured (mode 0, 8 bits, %.1f MHz): %s", dev,
+             speed / 1e6, strerror(-rc));
+        SETF(r->action, "check that the SPI driver is loaded and supports this speed");
+    }
+    return rc;
+}
+
+/* ---- running ------------------------------------------------------------------------------- */
+
+struct sc {
+    struct xrf_ico_transport *t;
+    const struct xrf_selfcheck_profile *p;
+    const struct xrf_selfcheck_hooks *h;
+    struct xrf_selfcheck_summary *sum;
+    int16_t pwm_max;
+    struct timespec next;
+    int32_t raw[4];
+    int64_t pos[4];
+    int have_raw;
+    struct xrf_ico_in in;
+    int xfer_err;
+    unsigned done;          /* bit i: planned step i reported */
+};
+
+/* The steps after "spi", in the order they run. */
+static const char *const planned[] = {"init",   "echo",   "reset",  "motor.1", "motor.2",
+                                      "motor.3", "motor.4", "dout.1", "dout.2",  "dout.3",
+                                      "dout.4", "din.1",  "din.2",  "din.3",   "din.4",
+                                      "timing"};
+#define N_PLANNED ((int)(sizeof planned / sizeof planned[0]))
+
+static void planned_title(const struct sc *s, int i, char *buf, size_t len)
+{
+    const char *id = planned[i];
+    int ch = id[strlen(id) - 1] - '0';
+    if (strncmp(id, "motor.", 6) == 0)
+        snprintf(buf, len, "channel %d (%s): motor and encoder", ch, s->p->ch[ch - 1].name);
+    else if (strncmp(id, "dout.", 5) == 0)
+        snprintf(buf, len, "channel %d: digital output read back", ch);
+    else if (strncmp(id, "din.", 4) == 0)
+        snprintf(buf, len, "channel %d: digital inputs", ch);
+    else if (strcmp(id, "echo") == 0)
+        snprintf(buf, len, "SPI link integrity (TEST echo)");
+    else if (strcmp(id, "reset") == 0)
+        snprintf(buf, len, "RESET: encoders read zero, outputs off");
+    else if (strcmp(id, "timing") == 0)
+        snprintf(buf, len, "SPI link timing");
+    else
+        snprintf(buf, len, "ico board present (INIT answered)");
+}
+
+static int aborted(const struct sc *s)
+{
+    return s->h && s->h->abort_flag && *s->h->abort_flag;
+}
+
+static void emit(struct sc *s, const struct xrf_selfcheck_result *r)
+{
+    switch (r->status) {
+    case XRF_SC_PASS: s->sum->passed++; break;
+    case XRF_SC_WARN: s->sum->warned++; break;
+    case XRF_SC_FAIL: s->sum->failed++; break;
+    default: s->sum->skipped++;
+    }
+    for (int i = 0; i < N_PLANNED; i++)
+        if (strcmp(planned[i], r->id) == 0)
+            s->done |= 1u << i;
+    if (s->h && s->h->result)
+        s->h->result(s->h->user, r);
+}
+
+static void progress(struct sc *s, const char *id, int ch, double frac, const char *fmt, ...)
+{
+    if (!s->h || !s->h->progress)
+        return;
+    char text[XRF_SC_TEXT];
+    va_list ap;
+    va_start(ap, fmt);
+    vsnprintf(text, sizeof text, fmt, ap);
+    va_end(ap);
+    s->h->progress(s->h->user, id, ch, text, frac);
+}
+
+static void skip(struct sc *s, const char *id, int ch, const char *title, const char *why)
+{
+    struct xrf_selfcheck_result r;
+    result_init(&r, id, ch, title);
+    r.status = XRF_SC_SKIP;
+    SETF(r.message, "%s", why);
+    emit(s, &r);
+}
+
+static int xfer(struct sc *s, const uint8_t tx[XRF_ICO_FRAME], uint8_t rx[XRF_ICO_FRAME])
+{
+    int rc = s->t->xfer(s->t, tx, rx);
+    if (rc && !s->xfer_err)
+        s->xfer_err = rc;
+    return rc;
+}
+
+static int op(struct sc *s, uint8_t opcode, uint8_t rx[XRF_ICO_FRAME])
+{
+    uint8_t tx[XRF_ICO_FRAME];
+    xrf_ico_frame_op(opcode, tx);
+    return xfer(s, tx, rx);
+}
+
+static void clock_start(struct sc *s)
+{
+    clock_gettime(CLOCK_MONOTONIC, &s->next);
+}
+
+/* Waits for the next slot of the frame grid. Returns non-zero when aborted. */
+static int tick(struct sc *s)
+{
+    long period_ns = (long)s->p->period_us * 1000L;
+    s->next.tv_nsec += period_ns;
+    while (s->next.tv_nsec >= 1000000000L) {
+        s->next.tv_nsec -= 1000000000L;
+        s->next.tv_sec++;
+    }
+    struct timespec now;
+    clock_gettime(CLOCK_MONOTONIC, &now);
+    double late = (double)(now.tv_sec - s->next.tv_sec) * 1e9 + (double)(now.tv_nsec - s->next.tv_nsec);
+    if (late > (double)period_ns) {
+        s->next = now; /* fell behind (slow link, preemption): re-anchor, never burst */
+    } else {
+        while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &s->next, NULL) == EINTR)
+            if (aborted(s))
+                return 1;
+    }
+    return aborted(s);
+}
+
+/* One ALL frame; the reply's counters are unwrapped into s->pos. */
+static int frame_all(struct sc *s, const struct xrf_ico_out *out)
+{
+    uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
+    xrf_ico_encode_all(out, s->pwm_max, tx);
+    int rc = xfer(s, tx, rx);
+    if (rc)
+        return rc;
+    xrf_ico_decode_all(rx, &s->in);
+    for (int i = 0; i < 4; i++) {
+        int32_t v = s->in.enc[i];
+        if (s->have_raw) {
+            int32_t d = (v - s->raw[i]) & (XRF_ICO_ENC_MODULO - 1);
+            if (d >= XRF_ICO_ENC_MODULO / 2)
+                d -= XRF_ICO_ENC_MODULO;
+            s->pos[i] += d;
+        } else {
+            s->pos[i] = v >= XRF_ICO_ENC_MODULO / 2 ? v - XRF_ICO_ENC_MODULO : v;
+        }
+        s->raw[i] = v;
+    }
+    s->have_raw = 1;
+    return 0;
+}
+
+static const struct xrf_ico_out zero_out;
+
+int xrf_selfcheck_zero_outputs(struct xrf_ico_transport *t)
+{
+    if (!t)
+        return -EINVAL;
+    uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
+    xrf_ico_frame_op(XRF_ICO_RESET, tx);
+    int first = t->xfer(t, tx, rx);
+    xrf_ico_encode_all(&zero_out, 0, tx);
+    int rc = t->xfer(t, tx, rx);
+    if (!first)
+        first = rc;
+    /* Once more: a board that answers one frame late has certainly taken the zeros now. */
+    rc = t->xfer(t, tx, rx);
+    return first ? first : rc;
+}
+
+static void link_broken(struct sc *s, struct xrf_selfcheck_result *r)
+{
+    r->status = XRF_SC_FAIL;
+    SETF(r->message, "an SPI transfer failed: %s", strerror(-s->xfer_err));
+    SETF(r->action, "check the connection between the Pi and the ico board and run the check again");
+}
+
+/* -- INIT -- */
+static int step_init(struct sc *s)
+{
+    struct xrf_selfcheck_result r;
+    result_init(&r, "init", 0, "ico board present (INIT answered)");
+    progress(s, "init", 0, 0.0, "asking the ico board to identify itself (INIT)");
+    uint8_t rx[XRF_ICO_FRAME];
+    int got = -1, ok = 0;
+    for (int i = 0; i < 3 && !ok; i++) {
+        if (op(s, XRF_ICO_INIT, rx)) {
+            link_broken(s, &r);
+            emit(s, &r);
+            return -1;
+        }
+        got = rx[XRF_ICO_INIT_REPLY_BYTE];
+        ok = got == XRF_ICO_INIT_REPLY;
+    }
+    SETF(r.data, "{\"reply_byte4\":%d,\"expected\":%d}", got, XRF_ICO_INIT_REPLY);
+    if (ok) {
+        r.status = XRF_SC_PASS;
+        SETF(r.message, "the ico board answered INIT with %d: it is there", XRF_ICO_INIT_REPLY);
+    } else {
+        r.status = XRF_SC_FAIL;
+        SETF(r.message,
+             "the ico board did not answer INIT (byte 4 of the reply is %d, expected %d): no "
+             "board is there, it has no power, or its FPGA is not programmed",
+             got, XRF_ICO_INIT_REPLY);
+        SETF(r.action,
+             "check that the ico board sits on the Pi's header and is powered (LED on), and that "
+             "its FPGA image is loaded; then run the check again");
+    }
+    emit(s, &r);
+    return ok ? 0 : -1;
+}
+
+/* -- TEST echo -- */
+static int bit_errors_reversed(const uint8_t rx[XRF_ICO_FRAME])
+{
+    uint8_t rev[XRF_ICO_FRAME];
+    for (int i = 0; i < XRF_ICO_FRAME; i++)
+        rev[i] = xrf_ico_bitrev8(rx[i]);
+    return xrf_ico_test_bit_errors(rev);
+}
+
+static int step_echo(struct sc *s)
+{
+    struct xrf_selfcheck_result r;
+    result_init(&r, "echo", 0, "SPI link integrity (TEST echo)");
+    int n = s->p->echo_frames;
+    uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
+    xrf_ico_test_pattern(tx);
+    /* One warm-up frame: a board that answers one frame late echoes this one next time. */
+    if (xfer(s, tx, rx)) {
+        link_broken(s, &r);
+        emit(s, &r);
+        return -1;
+    }
+    long bits = 0;
+    int bad = 0, zero_replies = 0, reversed = 0, done = 0;
+    for (int i = 0; i < n; i++) {
+        if (aborted(s))
+            return -EINTR;
+        if (i % 100 == 0)
+            progress(s, "echo", 0, (double)i / n, "TEST frame %d of %d", i, n);
+        if (xfer(s, tx, rx)) {
+            link_broken(s, &r);
+            emit(s, &r);
+            return -1;
+        }
+        done++;
+        int e = xrf_ico_test_bit_errors(rx);
+        if (e) {
+            bad++;
+            bits += e;
+            int allzero = 1;
+            for (int k = 1; k < XRF_ICO_FRAME; k++)
+                allzero &= rx[k] == 0;
+            zero_replies += allzero;
+            reversed += bit_errors_reversed(rx) == 0;
+        }
+    }
+    double ber = done ? (double)bits / (88.0 * done) : 0.0;
+    SETF(r.data, "{\"frames\":%d,\"bad_frames\":%d,\"bit_errors\":%ld,\"bit_error_rate\":%.3g}",
+         done, bad, bits, ber);
+    if (bad == 0) {
+        r.status = XRF_SC_PASS;
+        SETF(r.message, "%d TEST frames came back exactly (0 bit errors in %ld bits)", done,
+             88L * done);
+    } else if (zero_replies == bad) {
+        r.status = XRF_SC_FAIL;
+        SETF(r.message, "the TEST echo came back as all zeros in %d of %d frames: nothing is "
+             "sent back on the MISO line", bad, done);
+        SETF(r.action, "check the SPI ribbon/wires between Pi and ico board (MISO) and the "
+             "board's power");
+    } else if (reversed == bad) {
+        r.status = XRF_SC_FAIL;
+        SETF(r.message, "the TEST echo comes back bit-reversed: the transport does not match the "
+             "board's LSB-first bit order");
+        SETF(r.action, "this is a software/transport problem, not the bench: report it to the "
+             "lab's developers");
+    } else {
+        r.status = XRF_SC_FAIL;
+        SETF(r.message, "%ld bit errors in %d of %d TEST frames (bit error rate %.2g): the SPI "
+             "link is unreliable", bits, bad, done, ber);
+        SETF(r.action, "reseat the ico board and check the SPI wires and ground; a loose or long "
+             "cable at 31 MHz flips bits (try a lower SPI speed to confirm)");
+    }
+    emit(s, &r);
+    return 0;
+}
+
+/* -- RESET -- */
+static int step_reset(struct sc *s)
+{
+    struct xrf_selfcheck_result r;
+    result_init(&r, "reset", 0, "RESET: encoders read zero, outputs off");
+    progress(s, "reset", 0, 0.0, "RESET, then reading every encoder");
+    uint8_t rx[XRF_ICO_FRAME];
+    int32_t enc_after[4];
+    if (op(s, XRF_ICO_RESET, rx))
+        goto broken;
+    for (int ch = 0; ch < 4; ch++) {
+        if (op(s, (uint8_t)(XRF_ICO_ENC_1 + ch), rx))
+            goto broken;
+        int32_t v = xrf_ico_decode_enc(rx);
+        enc_after[ch] = v >= XRF_ICO_ENC_MODULO / 2 ? v - XRF_ICO_ENC_MODULO : v;
+    }
+    /* 50 ms with every output off: nothing may move. */
+    s->have_raw = 0;
+    clock_start(s);
+    if (frame_all(s, &zero_out))
+        goto broken;
+    int64_t start[4];
+    memcpy(start, s->pos, sizeof start);
+    int frames = 50000 / s->p->period_us + 1;
+    for (int i = 0; i < frames; i++) {
+        if (tick(s))
+            return -EINTR;
+        if (frame_all(s, &zero_out))
+            goto broken;
+    }
+    int tol = s->p->reset_tolerance;
+    int not_zero = 0, moving = 0;
+    int64_t drift[4];
+    for (int ch = 0; ch < 4; ch++) {
+        drift[ch] = s->pos[ch] - start[ch];
+        if (abs(enc_after[ch]) > tol && !not_zero)
+            not_zero = ch + 1;
+        if (llabs(drift[ch]) > tol && !moving)
+            moving = ch + 1;
+    }
+    SETF(r.data,
+         "{\"after_reset\":[%d,%d,%d,%d],\"drift_with_outputs_off\":[%lld,%lld,%lld,%lld],"
+         "\"tolerance\":%d}",
+         enc_after[0], enc_after[1], enc_after[2], enc_after[3], (long long)drift[0],
+         (long long)drift[1], (long long)drift[2], (long long)drift[3], tol);
+    if (not_zero) {
+        r.channel = not_zero;
+        r.status = XRF_SC_FAIL;
+        SETF(r.message, "encoder %d reads %d right after RESET (expected 0): the board did not "
+             "reset its counters", not_zero, enc_after[not_zero - 1]);
+        SETF(r.action, "power-cycle the ico board and run the check again; if it stays, the FPGA "
+             "image on the board is wrong");
+    } else if (moving) {
+        r.channel = moving;
+        r.status = XRF_SC_FAIL;
+        SETF(r.message, "encoder %d moved %lld counts in 50 ms with every output off: something "
+             "drives or turns that axis", moving, (long long)drift[moving - 1]);
+        SETF(r.action, "keep hands off the robot during the check; if nobody touched it, the "
+             "motor driver of %s does not switch off (or the encoder signal is noisy)",
+             s->p->ch[moving - 1].connector);
+    } else {
+        r.status = XRF_SC_PASS;
+        SETF(r.message, "after RESET all four encoders read 0 and stay there with the outputs off");
+    }
+    emit(s, &r);
+    return 0;
+broken:
+    link_broken(s, &r);
+    emit(s, &r);
+    return -1;
+}
+
+/* -- motor pulses -- */
+enum { P_OK, P_WEAK, P_NONE, P_WRONG, P_HIGH };
+
+static int pulse(struct sc *s, int ch, int16_t pwm, int ms, int64_t delta[4], const char *what)
+{
+    struct xrf_ico_out out = zero_out;
+    int64_t start[4];
+    memcpy(start, s->pos, sizeof start);
+    int on = ms * 1000 / s->p->period_us;
+    int settle = s->p->settle_ms * 1000 / s->p->period_us;
+    char id[16];
+    snprintf(id, sizeof id, "motor.%d", ch + 1);
+    progress(s, id, ch + 1, 0.0, "%s", what);
+    for (int i = 0; i < on + settle; i++) {
+        if (tick(s))
+            return -EINTR;
+        out.pwm[ch] = i < on ? pwm : 0;
+        int rc = frame_all(s, &out);
+        if (rc)
+            return rc;
+    }
+    for (int k = 0; k < 4; k++)
+        delta[k] = s->pos[k] - start[k];
+    return 0;
+}
+
+static int classify(int64_t d, int expect_sign, const struct xrf_sc_channel *c)
+{
+    int64_t noise = c->min_counts / 10 > 3 ? c->min_counts / 10 : 3;
+    if (llabs(d) <= noise)
+        return P_NONE;
+    if ((d > 0 ? 1 : -1) != expect_sign)
+        return P_WRONG;
+    if (llabs(d) < c->min_counts)
+        return P_WEAK;
+    if (c->max_counts && llabs(d) > c->max_counts)
+        return P_HIGH;
+    return P_OK;
+}
+
+static int step_motor(struct sc *s, int ch)
+{
+    const struct xrf_sc_channel *c = &s->p->ch[ch];
+    char id[16], title[96];
+    snprintf(id, sizeof id, "motor.%d", ch + 1);
+    snprintf(title, sizeof title, "channel %d (%s): motor and encoder", ch + 1, c->name);
+    if (!c->motor) {
+        skip(s, id, ch + 1, title, "no motor on this channel in the bench profile");
+        return 0;
+    }
+    struct xrf_selfcheck_result r;
+    result_init(&r, id, ch + 1, title);
+    double duty = c->duty;
+    if (duty > s->p->pwm_limit)
+        duty = s->p->pwm_limit;
+    if (duty > XRF_SC_MAX_DUTY)
+        duty = XRF_SC_MAX_DUTY;
+    int16_t pwm = (int16_t)lround(duty * XRF_ICO_PWM_FULL);
+    if (pwm > s->pwm_max)
+        pwm = s->pwm_max;
+    int ms = c->duration_ms > XRF_SC_MAX_PULSE_MS ? XRF_SC_MAX_PULSE_MS : c->duration_ms;
+    int64_t dp[4], dm[4];
+    char what[128];
+    s->have_raw = 0;
+    clock_start(s);
+    int rc = frame_all(s, &zero_out);
+    snprintf(what, sizeof what, "channel %d (%s): PWM +%.0f %% for %d ms", ch + 1, c->name,
+             duty * 100, ms);
+    if (!rc)
+        rc = pulse(s, ch, pwm, ms, dp, what);
+    snprintf(what, sizeof what, "channel %d (%s): PWM -%.0f %% for %d ms", ch + 1, c->name,
+             duty * 100, ms);
+    if (!rc)
+        rc = pulse(s, ch, (int16_t)-pwm, ms, dm, what);
+    if (rc == -EINTR)
+        return rc;
+    if (rc) {
+        link_broken(s, &r);
+        emit(s, &r);
+        return -1;
+    }
+    int sp = classify(dp[ch], c->direction, c);
+    int sm = classify(dm[ch], -c->direction, c);
+    /* Another encoder that followed both pulses while this one did not: crossed cables. */
+    int other = 0;
+    for (int k = 0; k < 4; k++)
+        if (k != ch && llabs(dp[k]) >= c->min_counts && llabs(dm[k]) >= c->min_counts)
+            other = k + 1;
+    SETF(r.data,
+         "{\"pwm\":%d,\"duty\":%.3f,\"duration_ms\":%d,\"direction\":%d,\"counts_plus\":%lld,"
+         "\"counts_minus\":%lld,\"min_counts\":%d,\"max_counts\":%d,"
+         "\"all_plus\":[%lld,%lld,%lld,%lld],\"all_minus\":[%lld,%lld,%lld,%lld]}",
+         pwm, duty, ms, c->direction, (long long)dp[ch], (long long)dm[ch], c->min_counts,
+         c->max_counts, (long long)dp[0], (long long)dp[1], (long long)dp[2], (long long)dp[3],
+         (long long)dm[0], (long long)dm[1], (long long)dm[2], (long long)dm[3]);
+    const char *conn = c->connector;
+    r.status = XRF_SC_FAIL;
+    if (sp == P_OK && sm == P_OK) {
+        r.status = XRF_SC_PASS;
+        SETF(r.message, "a %.0f %% pulse of %d ms moved encoder %d by %+lld counts, the opposite "
+             "pulse by %+lld: direction and amount as expected", duty * 100, ms, ch + 1,
+             (long long)dp[ch], (long long)dm[ch]);
+    } else if (sp == P_NONE && sm == P_NONE && other) {
+        SETF(r.message, "driving motor %d moved encoder %d, not encoder %d: the encoder cables "
+             "of channels %d and %d are swapped", ch + 1, other, ch + 1, ch + 1, other);
+        SETF(r.action, "plug each encoder cable into the connector of its own motor (%s and %s)",
+             conn, s->p->ch[other - 1].connector);
+    } else if (sp == P_NONE && sm == P_NONE) {
+        SETF(r.message, "encoder %d does not count: it stayed at %+lld / %+lld counts while motor "
+             "%d was driven %.0f %% each way for %d ms", ch + 1, (long long)dp[ch],
+             (long long)dm[ch], ch + 1, duty * 100, ms);
+        SETF(r.action, "check the encoder cable on %s; if the motor did not turn either, check "
+             "the motor cable on %s and the motor power supply", conn, conn);
+    } else if (sp == P_WRONG && sm == P_WRONG) {
+        SETF(r.message, "motor %d turns the wrong way: positive PWM moved encoder %d by %+lld "
+             "counts (expected %s)", ch + 1, ch + 1, (long long)dp[ch],
+             c->direction > 0 ? "up" : "down");
+        SETF(r.action, "the two motor wires (or the encoder's A/B wires) on %s are swapped: swap "
+             "them back; if this bench is wired so on purpose, set direction to %d for channel %d "
+             "in the bench profile", conn, -c->direction, ch + 1);
+    } else if (sp == P_HIGH || sm == P_HIGH) {
+        SETF(r.message, "encoder %d counted %+lld / %+lld, more than the plausible %d counts for "
+             "this pulse", ch + 1, (long long)dp[ch], (long long)dm[ch], c->max_counts);
+        SETF(r.action, "check that the right motor/encoder is fitted (counts per revolution, "
+             "gear) or raise max_counts in the bench profile");
+    } else if ((sp == P_NONE) != (sm == P_NONE) && (sp == P_OK || sp == P_WEAK || sm == P_OK ||
+                                                    sm == P_WEAK)) {
+        SETF(r.message, "channel %d moves only one way: %+lld counts for the positive pulse, %+lld "
+             "for the negative one", ch + 1, (long long)dp[ch], (long long)dm[ch]);
+        SETF(r.action, "if the axis sits at an end stop, move it to the middle and run the check "
+             "again; otherwise the motor driver on %s is faulty", conn);
+    } else if ((sp == P_OK || sp == P_WEAK) && (sm == P_OK || sm == P_WEAK)) {
+        SETF(r.message, "motor %d moves too little: %+lld / %+lld counts, expected at least %d "
+             "each way", ch + 1, (long long)dp[ch], (long long)dm[ch], c->min_counts);
+        SETF(r.action, "check for stiff or blocked mechanics, a slipping coupling or belt, and "
+             "the motor supply voltage");
+    } else {
+        SETF(r.message, "encoder %d counts inconsistently: %+lld for the positive pulse, %+lld "
+             "for the negative one", ch + 1, (long long)dp[ch], (long long)dm[ch]);
+        SETF(r.action, "one of the encoder's A/B wires on %s is loose or the signal is noisy: "
+             "check the encoder cable", conn);
+    }
+    emit(s, &r);
+    return 0;
+}
+
+/* -- digital output loopback -- */
+static int wait_pin(struct sc *s, int ch, int dout, int want, int frames, int *seen_after)
+{
+    struct xrf_ico_out out = zero_out;
+    out.dout[ch] = (uint8_t)dout;
+    for (int i = 0; i < frames; i++) {
+        if (tick(s))
+            return -EINTR;
+        int rc = frame_all(s, &out);
+        if (rc)
+            return rc;
+        if (s->in.din[2 * ch] == want) {
+            *seen_after = i + 1;
+            return 1;
+        }
+    }
+    return 0;
+}
+
+static int step_dout(struct sc *s, int ch)
+{
+    const struct xrf_sc_channel *c = &s->p->ch[ch];
+    char id[16], title[96];
+    snprintf(id, sizeof id, "dout.%d", ch + 1);
+    snprintf(title, sizeof title, "channel %d: digital output read back", ch + 1);
+    if (!c->loopback) {
+        skip(s, id, ch + 1, title, "no loopback declared for this output in the bench profile: not "
+             "toggled, nothing could read it back");
+        return 0;
+    }
+    struct xrf_selfcheck_result r;
+    result_init(&r, id, ch + 1, title);
+    progress(s, id, ch + 1, 0.0, "toggling digital output %d, reading input %d pin 1", ch + 1, ch + 1);
+    s->have_raw = 0;
+    clock_start(s);
+    int toggles = 3, ok_on = 0, ok_off = 0, lat_on = 0, lat_off = 0, rc = 0;
+    /* Start from off, as the reply shows it. */
+    int d;
+    rc = wait_pin(s, ch, 0, 0, 10, &d);
+    int start_low = rc == 1;
+    for (int i = 0; i < toggles && rc >= 0; i++) {
+        rc = wait_pin(s, ch, 1, 1, 10, &d);
+        if (rc == 1) {
+            ok_on++;
+            lat_on = d;
+        }
+        if (rc < 0)
+            break;
+        rc = wait_pin(s, ch, 0, 0, 10, &d);
+        if (rc == 1) {
+            ok_off++;
+            lat_off = d;
+        }
+    }
+    if (rc == -EINTR)
+        return rc;
+    if (rc < 0) {
+        link_broken(s, &r);
+        emit(s, &r);
+        return -1;
+    }
+    SETF(r.data, "{\"toggles\":%d,\"seen_on\":%d,\"seen_off\":%d,\"frames_on\":%d,\"frames_off\":%d}",
+         toggles, ok_on, ok_off, lat_on, lat_off);
+    if (start_low && ok_on == toggles && ok_off == toggles) {
+        r.status = XRF_SC_PASS;
+        SETF(r.message, "output %d switched on and off %d times and came back on input %d pin 1 "
+             "each time (%d frame(s) later)", ch + 1, toggles, ch + 1, lat_on);
+    } else if (ok_on == 0 && start_low) {
+        r.status = XRF_SC_FAIL;
+        SETF(r.message, "output %d does not come back on input %d pin 1: the input stayed 0 while "
+             "the output was on", ch + 1, ch + 1);
+        SETF(r.action, "check the loopback wire/plug on %s (output to input pin 1)", c->connector);
+    } else if (!start_low || ok_off < toggles) {
+        r.status = XRF_SC_FAIL;
+        SETF(r.message, "input %d pin 1 stays 1 while output %d is off: the input is stuck or "
+             "shorted", ch + 1, ch + 1);
+        SETF(r.action, "check the loopback wire and the input on %s for a short", c->connector);
+    } else {
+        r.status = XRF_SC_FAIL;
+        SETF(r.message, "output %d came back only %d of %d times: a loose loopback connection",
+             ch + 1, ok_on, toggles);
+        SETF(r.action, "reseat the loopback plug on %s", c->connector);
+    }
+    emit(s, &r);
+    return 0;
+}
+
+/* -- digital inputs -- */
+static int step_din(struct sc *s, int ch)
+{
+    const struct xrf_sc_channel *c = &s->p->ch[ch];
+    char id[16], title[96];
+    snprintf(id, sizeof id, "din.%d", ch + 1);
+    snprintf(title, sizeof title, "channel %d: digital inputs", ch + 1);
+    struct xrf_selfcheck_result r;
+    result_init(&r, id, ch + 1, title);
+    progress(s, id, ch + 1, 0.0, "reading input pins of channel %d with the outputs off", ch + 1);
+    int ones[2] = {0, 0}, frames = 20;
+    s->have_raw = 0;
+    clock_start(s);
+    /* Outputs off for a few frames first: a loopback shows the previous frame's output. */
+    for (int i = 0; i < 2 + frames; i++) {
+        if (tick(s))
+            return -EINTR;
+        if (frame_all(s, &zero_out)) {
+            link_broken(s, &r);
+            emit(s, &r);
+            return -1;
+        }
+        if (i >= 2)
+            for (int k = 0; k < 2; k++)
+                ones[k] += s->in.din[2 * ch + k];
+    }
+    int level[2];
+    const char *desc[2];
+    for (int k = 0; k < 2; k++) {
+        level[k] = ones[k] == 0 ? 0 : ones[k] == frames ? 1 : -1;
+        desc[k] = level[k] == 0 ? "0" : level[k] == 1 ? "1" : "flickering";
+    }
+    SETF(r.data, "{\"pin1\":%d,\"pin2\":%d,\"pin1_ones\":%d,\"pin2_ones\":%d,\"frames\":%d,"
+         "\"idle\":[%d,%d]}", level[0] < 0 ? 2 : level[0], level[1] < 0 ? 2 : level[1], ones[0],
+         ones[1], frames, c->din_idle[0], c->din_idle[1]);
+    int bad = 0;
+    for (int k = 0; k < 2 && !bad; k++) {
+        if (c->din_idle[k] < 0 || level[k] == c->din_idle[k])
+            continue;
+        bad = k + 1;
+    }
+    if (!bad) {
+        r.status = XRF_SC_PASS;
+        SETF(r.message, "pin 1 (%s) reads %s, pin 2 (%s) reads %s%s", c->pin_name[0], desc[0],
+             c->pin_name[1], desc[1],
+             c->din_idle[0] < 0 && c->din_idle[1] < 0 ? " (reported only: the profile expects "
+                                                          "no level)" : ", as expected");
+    } else {
+        int k = bad - 1;
+        r.status = XRF_SC_FAIL;
+        if (level[k] < 0)
+            SETF(r.message, "input pin %d of channel %d (%s) flickers (1 in %d of %d frames) with "
+                 "nothing connected to drive it", bad, ch + 1, c->pin_name[k], ones[k], frames);
+        else
+            SETF(r.message, "input pin %d of channel %d (%s) reads %d with the outputs off "
+                 "(expected %d): the input is stuck or its wire is shorted", bad, ch + 1,
+                 c->pin_name[k], level[k], c->din_idle[k]);
+        SETF(r.action, "check the wiring on %s (a pressed switch also reads 1); if nothing is "
+             "connected there, the input on the ico board is damaged", c->connector);
+    }
+    emit(s, &r);
+    return 0;
+}
+
+/* -- link timing -- */
+static int cmp_double(const void *a, const void *b)
+{
+    double x = *(const double *)a, y = *(const double *)b;
+    return x < y ? -1 : x > y;
+}
+
+static int step_timing(struct sc *s)
+{
+    struct xrf_selfcheck_result r;
+    result_init(&r, "timing", 0, "SPI link timing");
+    int n = s->p->timing_frames;
+    double *us = malloc(sizeof *us * (size_t)n);
+    if (!us) {
+        r.status = XRF_SC_FAIL;
+        SETF(r.message, "out of memory");
+        emit(s, &r);
+        return -1;
+    }
+    uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
+    xrf_ico_encode_all(&zero_out, 0, tx);
+    double sum = 0;
+    for (int i = 0; i < n; i++) {
+        if (aborted(s)) {
+            free(us);
+            return -EINTR;
+        }
+        if (i % 100 == 0)
+            progress(s, "timing", 0, (double)i / n, "timing frame %d of %d", i, n);
+        struct timespec a, b;
+        clock_gettime(CLOCK_MONOTONIC, &a);
+        int rc = xfer(s, tx, rx);
+        clock_gettime(CLOCK_MONOTONIC, &b);
+        if (rc) {
+            free(us);
+            link_broken(s, &r);
+            emit(s, &r);
+            return -1;
+        }
+        us[i] = (double)(b.tv_sec - a.tv_sec) * 1e6 + (double)(b.tv_nsec - a.tv_nsec) / 1e3;
+        sum += us[i];
+    }
+    qsort(us, (size_t)n, sizeof *us, cmp_double);
+    double mn = us[0], mx = us[n - 1], med = us[n / 2], mean = sum / n;
+    double p99 = us[(int)((n - 1) * 0.99)];
+    free(us);
+    SETF(r.data, "{\"frames\":%d,\"min_us\":%.2f,\"median_us\":%.2f,\"mean_us\":%.2f,"
+         "\"p99_us\":%.2f,\"max_us\":%.2f,\"warn_median_us\":%.1f,\"fail_median_us\":%.1f,"
+         "\"warn_max_us\":%.1f}", n, mn, med, mean, p99, mx, s->p->warn_median_us,
+         s->p->fail_median_us, s->p->warn_max_us);
+    if (med > s->p->fail_median_us) {
+        r.status = XRF_SC_FAIL;
+        SETF(r.message, "the link is slow: one frame takes %.1f us (median; min %.1f, max %.1f), "
+             "above the %.0f us this bench allows; a 1 kHz loop spends that much of every "
+             "1000 us cycle waiting for the board", med, mn, mx, s->p->fail_median_us);
+        SETF(r.action, "check the SPI clock setting and CPU load (stop other programs); the EVL "
+             "out-of-band transport (evl-spidev) is faster than in-band spidev");
+    } else if (med > s->p->warn_median_us || mx > s->p->warn_max_us) {
+        r.status = XRF_SC_WARN;
+        SETF(r.message, "the link is slower than expected: median %.1f us, max %.1f us (warn "
+             "above %.0f us median or %.0f us max)", med, mx, s->p->warn_median_us,
+             s->p->warn_max_us);
+        SETF(r.action, "usable, but look at the CPU load and the SPI clock if loops miss deadlines");
+    } else {
+        r.status = XRF_SC_PASS;
+        SETF(r.message, "one frame takes %.1f us (median; min %.1f, max %.1f over %d frames)", med,
+             mn, mx, n);
+    }
+    emit(s, &r);
+    return 0;
+}
+
+int xrf_selfcheck_run(struct xrf_ico_transport *t, const struct xrf_selfcheck_profile *p,
+                      const struct xrf_selfcheck_hooks *hooks, struct xrf_selfcheck_summary *sum)
+{
+    if (!t || !p || !sum)
+        return -EINVAL;
+    memset(sum, 0, sizeof *sum);
+    struct xrf_selfcheck_profile prof = *p;
+    if (prof.period_us < 200)
+        prof.period_us = 200;
+    if (prof.echo_frames < 1)
+        prof.echo_frames = 1;
+    if (prof.timing_frames < 1)
+        prof.timing_frames = 1;
+    double limit = prof.pwm_limit > XRF_SC_MAX_DUTY ? XRF_SC_MAX_DUTY : prof.pwm_limit;
+    struct sc s = {.t = t, .p = &prof, .h = hooks, .sum = sum};
+    /* The frame builder clamps to this whatever a step asks for: never beyond 20 %. */
+    s.pwm_max = xrf_ico_pwm_max(limit);
+
+    int rc = step_init(&s);
+    if (rc == 0)
+        xrf_selfcheck_zero_outputs(t);
+    if (rc == 0 && !aborted(&s))
+        rc = step_echo(&s);
+    if (rc == 0 && !aborted(&s))
+        rc = step_reset(&s);
+    for (int ch = 0; ch < 4 && rc == 0 && !aborted(&s); ch++)
+        rc = step_motor(&s, ch);
+    for (int ch = 0; ch < 4 && rc == 0 && !aborted(&s); ch++)
+        rc = step_dout(&s, ch);
+    for (int ch = 0; ch < 4 && rc == 0 && !aborted(&s); ch++)
+        rc = step_din(&s, ch);
+    if (rc == 0 && !aborted(&s))
+        rc = step_timing(&s);
+
+    if (aborted(&s) || rc == -EINTR) {
+        sum->aborted = 1;
+    } else if (rc < 0) {
+        /* Board absent or link broken: every step not yet reported is skipped with the reason. */
+        const char *why = s.xfer_err ? "not run: an SPI transfer failed earlier"
+                                     : "not run: the ico board did not answer INIT";
+        for (int i = 0; i < N_PLANNED; i++) {
+            if (s.done & (1u << i))
+                continue;
+            char title[96];
+            planned_title(&s, i, title, sizeof title);
+            const char *id = planned[i];
+            int ch = strchr(id, '.') ? id[strlen(id) - 1] - '0' : 0;
+            skip(&s, id, ch, title, why);
+        }
+    }
+    sum->outputs_zeroed = xrf_selfcheck_zero_outputs(t) == 0;
+    if (sum->aborted)
+        return -EINTR;
+    return sum->failed ? 1 : 0;
+}
