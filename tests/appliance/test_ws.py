@@ -71,6 +71,8 @@ def test_timing_messages(server: Server, running: dict[str, Any]) -> None:
         assert timing["cycles"] > 0 and timing["cycle_freq"] == running["cycle_freq"]
         assert timing["stages"]["wakeup"]["count"] > 0
         assert len(timing["jitter"]["edges"]) == len(timing["jitter"]["counts"]) > 0
+        assert {"wakeup", "fpga", "hook", "cycle"} <= set(timing["histograms"])
+        assert sum(timing["histograms"]["cycle"]["counts"]) == timing["stages"]["cycle"]["count"]
 
 
 def test_subscribe_filters_topics(server: Server, running: dict[str, Any]) -> None:

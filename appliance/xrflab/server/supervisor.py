@@ -613,6 +613,8 @@ class Supervisor:
                 "cycle_freq": ch.info["cycle_freq"],
                 "stages": stages,
                 "jitter": {"edges": wake.edges, "counts": wake.counts} if wake else {"edges": [], "counts": []},
+                # every stage's histogram (non-empty buckets: lower edge ns, count), for tools
+                "histograms": {name: {"edges": h.edges, "counts": h.counts} for name, h in hists.items()},
                 "telemetry_sent": run.telemetry_sent,
                 "log_lost": s.log_lost,
                 "host_lost": s.host_lost,
