@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from ..msgdef import PROJECT_MESSAGES, MsgError, parse_msg_file
+from ..msgdef import PROJECT_MESSAGES, MsgError, parse_msg_file, schema_text
 
 PACKAGE = "xrf2_msgs"
 # Bump when the generated package files change, so cached prefixes are rebuilt.
@@ -85,10 +85,14 @@ def _read_messages(msg_dir: Path) -> dict[str, bytes]:
 
 
 def messages_hash(msg_dir: str | Path) -> str:
-    """Cache key: the two .msg files' bytes (and the generator version)."""
+    """Cache key: the two messages' fields (and the generator version)."""
+    # Keyed by the normalised fields (type name per line, via msgdef): a project's files and the
+    # schema a running loop publishes for them share one build, comments do not matter.
     h = hashlib.sha256(_GENERATOR_VERSION.encode())
-    for name, data in sorted(_read_messages(Path(msg_dir)).items()):
-        h.update(name.encode() + b"\0" + data + b"\0")
+    _read_messages(Path(msg_dir))  # existence and layout checks
+    for name in PROJECT_MESSAGES:
+        fields = parse_msg_file(Path(msg_dir) / f"{name}.msg")
+        h.update(name.encode() + b"\0" + schema_text(fields).encode() + b"\0")
     return h.hexdigest()[:16]
 
 
