@@ -141,6 +141,7 @@ async function api(method, path, body) {
 async function loadBench() {
   try {
     const b = await api("GET", "/api/bench");
+    xrf.benchSim = b.sim;
     $("bench").textContent = b.mode === "sim" ? `simulated · ${b.sim}` : "real bench";
     $("bench").title = b.profile;
   } catch (e) { $("bench").textContent = "bench ?"; }
@@ -157,7 +158,11 @@ async function loadBuilds() {
     o.textContent = `${b.name} (${b.kind}${b.status === "ready" ? "" : ", " + b.status})`;
     sel.appendChild(o);
   }
-  if (keep) sel.value = keep;
+  // Keep the user's choice; else the build of the current run; else the example for this bench's plant.
+  const current = xrf.run && xrf.run.run && xrf.run.run.build;
+  const plant = builds.find((b) => b.kind === "example" && b.name === xrf.benchSim);
+  const pick = keep || current || (plant && plant.name);
+  if (pick && builds.some((b) => b.name === pick)) sel.value = pick;
 }
 
 async function startRun() {
@@ -474,8 +479,7 @@ function init() {
   $("rejected").addEventListener("click", () => { xrf.dismissedReject = xrf.state.rejected && xrf.state.rejected.ticket; $("rejected").classList.add("hidden"); });
   document.addEventListener("keydown", onKey, true);
   window.addEventListener("resize", () => { clearTimeout(init.t); init.t = setTimeout(resizePlots, 150); });
-  loadBench();
-  loadBuilds().catch(() => {});
+  loadBench().then(() => loadBuilds()).catch(() => {});
   loadRuns().catch(() => {});
   buildPlots([]);
   connect();
