@@ -1,0 +1,159 @@
+"""The ROS 2 bridge end to end: loop process <-> bridge process <-> a separate ROS 2 node process.
+
+Real rclpy and Fast DDS on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, a random
+ROS_DOMAIN_ID per run); the loops are real controller processes on the simulated board.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+RELBOT = REPO / "student_projects/examples/relbot"
+PROBE = REPO / "bench/ros/probe_project"
+
+pytestmark = pytest.mark.ros
+
+
+def _result(rc: int, out: str) -> dict:
+    lines = [line for line in out.splitlines() if line.startswith("{")]
+    assert lines, f"the peer node printed no result (exit {rc}):\n{out}"
+    result = json.loads(lines[-1])
+    assert rc == 0 and result["ok"], f"peer failed: {result}\n{out}"
+    return result
+
+
+# ---- the interface package ----------------------------------------------------------------------
+
+
+def test_interface_package_is_a_real_ros2_package(ros_env, tmp_path):
+    from xrflab.ros.interfaces import build_interface_package, runtime_env
+
+    prefix = build_interface_package(RELBOT / "msg")
+    share = prefix / "share" / "xrf2_msgs"
+    xml = (share / "package.xml").read_text()
+    assert '<package format="3">' in xml and "<member_of_group>rosidl_interface_packages</member_of_group>" in xml
+    assert (share / "msg" / "Ros2Xeno.msg").read_text().startswith("# Wheel position setpoints")
+    assert (prefix / "include" / "xrf2_msgs" / "xrf2_msgs" / "msg" / "ros2_xeno.hpp").is_file()  # for C++ nodes
+    assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "xrf2_msgs").is_file()
+    t0 = time.monotonic()
+    assert build_interface_package(RELBOT / "msg") == prefix  # cached by message contents
+    assert time.monotonic() - t0 < 1.0
+    # A fresh interpreter with only the returned variables imports the types as an XRF2 node does.
+    code = (
+        "from xrf2_msgs.msg import Ros2Xeno, Xeno2Ros; import rclpy; rclpy.init(); "
+        "n = rclpy.create_node('t'); n.create_publisher(Ros2Xeno, 'Ros2Xeno', 10).publish(Ros2Xeno(steer_left=1.5)); "
+        "print(Ros2Xeno.get_fields_and_field_types(), Xeno2Ros.get_fields_and_field_types())"
+    )
+    import os
+
+    r = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, **ros_env, **runtime_env(prefix)),
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert "{'steer_left': 'double', 'steer_right': 'double'} {'pos_left': 'double', 'pos_right': 'double'}" in r.stdout
+
+
+def test_different_messages_get_their_own_prefix(tmp_path):
+    from xrflab.ros.interfaces import messages_hash
+
+    other = tmp_path / "msg"
+    other.mkdir()
+    (other / "Ros2Xeno.msg").write_text("float64 steer_left\nfloat64 steer_right")  # no comments, no newline
+    (other / "Xeno2Ros.msg").write_text("float64 pos_left\nfloat64 pos_right\n")
+    assert messages_hash(other) == messages_hash(RELBOT / "msg")  # same fields, same package
+    (other / "Xeno2Ros.msg").write_text("float64 pos_left\nfloat32 pos_right\n")
+    assert messages_hash(other) != messages_hash(RELBOT / "msg")
+
+
+# ---- RELbot: commands, state, setpoints ---------------------------------------------------------
+
+
+def test_relbot_commands_state_and_tracking(procs, relbot_exe, shm_name):
+    loop = procs.loop(relbot_exe, shm_name)
+    bridge = procs.bridge(shm_name, "--user", "alice", "--msg-dir", str(RELBOT / "msg"))
+    rc, out = procs.peer(RELBOT / "msg", "relbot", "--left", "1.0", "--right", "-0.5", "--tol", "0.05", timeout=90)
+    result = _result(rc, out)
+    states = result["states"]
+    assert states[0] == 1, states  # IDLE before anything was sent
+    assert states.index(3) < states.index(4), states  # INITIALISED, then RUN
+    assert loop.ch.status().state_name == "RUN"
+    # Xeno2Ros started at the origin and followed the setpoints.
+    assert abs(result["first"][0]) < 0.5 and abs(result["first"][1]) < 0.5, result
+    assert result["settled"], result
+    assert abs(result["final"][0] - 1.0) < 0.05 and abs(result["final"][1] + 0.5) < 0.05, result
+    assert bridge.terminate() == 0  # SIGTERM: orderly shutdown, exit 0
+    log = bridge.output
+    assert "XenoCmd 1 (initialise) accepted" in log and "XenoCmd 2 (start) accepted: state RUN" in log, log
+    assert "for user 'alice'" in log
+    assert ", 0 lost in the ring" in log, log
+
+
+def test_rejected_command_is_reported_and_gate_is_asked(procs, probe_exe, shm_name, ros_env):
+    """In-process bridge (real rclpy): the command gate sees (user, cmd) and can refuse; the
+    loop's rejection reason reaches the node's log."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from std_msgs.msg import Int32
+
+    from xrflab.ros.bridge import Bridge, prepare_messages
+
+    loop = procs.loop(probe_exe, shm_name)
+    ros2xeno, xeno2ros = prepare_messages(loop.ch, PROBE / "msg", log=lambda s: None)
+    asked: list[tuple[str, int]] = []
+
+    def gate(user: str, cmd: int):
+        asked.append((user, cmd))
+        return (cmd != 1, "bench is leased to bob")
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        bridge = Bridge(loop.ch, ros2xeno, xeno2ros, user="alice", command_gate=gate, context=ctx)
+        pub_node = rclpy.create_node("gate_test", context=ctx)
+        pub = pub_node.create_publisher(Int32, "XenoCmd", 10)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(bridge.node)
+        ex.add_node(pub_node)
+        bridge.start()
+        deadline = time.monotonic() + 10
+        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.05)
+        for cmd in (1, 2):  # initialise refused by the gate; start rejected by the loop (IDLE)
+            pub.publish(Int32(data=cmd))
+        deadline = time.monotonic() + 5
+        while len(asked) < 2 and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.05)
+        time.sleep(0.2)
+        assert asked == [("alice", 1), ("alice", 2)]
+        status = loop.ch.status()
+        assert status.state_name == "IDLE"
+        assert status.last_rejected_cmd == 2 and status.reject_reason, status
+        assert bridge.commands_sent == 1  # only the one the gate let through reached the loop
+        assert bridge.stop(5.0)
+        ex.shutdown(timeout_sec=1)
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
+# ---- no loss over 60 s --------------------------------------------------------------------------
+
+
+def test_no_xeno2ros_lost_over_60_s(procs, probe_exe, shm_name):
+    """1 kHz loop, Xeno2Ros decimated to 100 Hz: a separate node receives every sample; the
+    cycle numbers they carry advance by exactly 10, with no gap, for 60 s."""
+    loop = procs.loop(probe_exe, shm_name)
+    assert loop.ch.info["cycle_freq"] == 1000 and loop.ch.info["write_decimator_freq"] == 100
+    assert loop.command("initialise").accepted and loop.command("start").accepted
+    bridge = procs.bridge(shm_name)
+    rc, out = procs.peer(PROBE / "msg", "seq", "--seconds", "60", timeout=150)
+    result = _result(rc, out)
+    assert result["steps"] == {"10": result["count"] - 1}, result  # every step exactly the decimation
+    assert 5900 <= result["count"] <= 6100, result
+    assert bridge.terminate() == 0
+    assert ", 0 lost in the ring" in bridge.output, bridge.output
