@@ -1,0 +1,340 @@
+"""Bench profiles: what is wired where on a bench (RELbot, Jiwy), read by the self-check, the 3D
+view and odometry.
+
+Defaults ship in ``deploy/profiles/<name>.json``. Educators edit copies: ``save_profile()``
+writes ``<data>/profiles/<name>.json``, which then overrides the default of the same name
+(``delete_profile()`` goes back to the default). Everything loaded or saved is validated first;
+a bad value raises ``ProfileError`` whose ``errors`` list says which field and why, in words an
+educator can act on. The native checker (rt_core/src/selfcheck.c) applies the same hard limits.
+
+Stdlib only.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+DEFAULTS_DIR = REPO_ROOT / "deploy" / "profiles"
+
+# Hard limits of the self-check (XRF_SC_MAX_DUTY, XRF_SC_MAX_PULSE_MS in xrf/selfcheck.h).
+MAX_DUTY = 0.2
+MAX_PULSE_MS = 200
+MAX_SETTLE_MS = 2000
+MAX_FRAMES = 100000
+NAME_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,47}$")
+
+
+class ProfileError(ValueError):
+    """A profile that cannot be used; ``errors`` lists every problem found."""
+
+    def __init__(self, errors: list[str], source: str = "") -> None:
+        self.errors = list(errors)
+        self.source = source
+        head = f"{source}: " if source else ""
+        super().__init__(head + "; ".join(self.errors))
+
+
+@dataclass(frozen=True)
+class ProfileInfo:
+    name: str
+    title: str
+    robot: str
+    path: Path
+    source: str  # "default" (deploy/profiles) or "edited" (data folder)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "title": self.title, "robot": self.robot, "path": str(self.path),
+                "source": self.source}
+
+
+def default_data_dir() -> Path:
+    """The appliance's data folder (same rule as xrflab.server.settings.default_data_dir)."""
+    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(base) / "xrf-lab"
+
+
+def profiles_dir(data_dir: Optional[Path] = None) -> Path:
+    """Where edited profiles live: <data>/profiles."""
+    return Path(data_dir or default_data_dir()) / "profiles"
+
+
+# ---- validation ---------------------------------------------------------------------------------
+
+
+def _is_num(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and v == v
+
+
+def _is_int(v: Any) -> bool:
+    return _is_num(v) and float(v).is_integer()
+
+
+class _Checker:
+    def __init__(self) -> None:
+        self.errors: list[str] = []
+
+    def err(self, msg: str) -> None:
+        self.errors.append(msg)
+
+    def num(self, obj: dict, where: str, key: str, lo: float, hi: float, *, required: bool = False,
+            integer: bool = False, lo_open: bool = False) -> Any:
+        if key not in obj or obj[key] is None:
+            if required:
+                self.err(f"{where}.{key} is missing")
+            return None
+        v = obj[key]
+        if not (_is_int(v) if integer else _is_num(v)):
+            self.err(f"{where}.{key} must be a {'whole number' if integer else 'number'} (got {v!r})")
+            return None
+        if v < lo or v > hi or (lo_open and v == lo):
+            lo_txt = f"above {lo:g}" if lo_open else f"at least {lo:g}"
+            self.err(f"{where}.{key} = {v:g} is out of range: it must be {lo_txt} and at most {hi:g}")
+            return None
+        return v
+
+    def boolean(self, obj: dict, where: str, key: str) -> Any:
+        if key in obj and obj[key] is not None and not isinstance(obj[key], bool):
+            self.err(f"{where}.{key} must be true or false (got {obj[key]!r})")
+            return None
+        return obj.get(key)
+
+    def string(self, obj: dict, where: str, key: str, *, required: bool = False) -> Any:
+        if key not in obj or obj[key] is None:
+            if required:
+                self.err(f"{where}.{key} is missing")
+            return None
+        if not isinstance(obj[key], str):
+            self.err(f"{where}.{key} must be text (got {obj[key]!r})")
+            return None
+        return obj[key]
+
+    def section(self, obj: dict, key: str) -> dict:
+        v = obj.get(key)
+        if v is None:
+            return {}
+        if not isinstance(v, dict):
+            self.err(f"{key} must be an object")
+            return {}
+        return v
+
+
+def validate_profile(profile: Any, source: str = "") -> dict[str, Any]:
+    """Check a profile (the parsed JSON); returns it unchanged or raises ProfileError with all
+    problems found."""
+    c = _Checker()
+    if not isinstance(profile, dict):
+        raise ProfileError(["a bench profile is a JSON object"], source)
+    fmt = profile.get("format", 1)
+    if fmt != 1:
+        c.err(f"format {fmt!r} is not known (this version reads format 1)")
+    name = c.string(profile, "profile", "name", required=True)
+    if name is not None and not NAME_RE.match(name):
+        c.err(f"name {name!r} must be lower-case letters, digits, '-' or '_' (at most 48)")
+    c.string(profile, "profile", "title")
+    c.string(profile, "profile", "robot")
+    c.string(profile, "profile", "description")
+
+    limits = c.section(profile, "limits")
+    pwm_limit = c.num(limits, "limits", "pwm_limit", 0, MAX_DUTY, lo_open=True)
+    if pwm_limit is None:
+        pwm_limit = MAX_DUTY
+    pulse = c.section(profile, "pulse")
+    c.num(pulse, "pulse", "period_us", 200, 20000, integer=True)
+    c.num(pulse, "pulse", "settle_ms", 0, MAX_SETTLE_MS, integer=True)
+    c.num(pulse, "pulse", "reset_tolerance_counts", 0, 1000, integer=True)
+    link = c.section(profile, "link")
+    c.num(link, "link", "spi_speed_hz", 1000, 200_000_000, integer=True)
+    c.num(link, "link", "echo_frames", 1, MAX_FRAMES, integer=True)
+    c.num(link, "link", "timing_frames", 1, MAX_FRAMES, integer=True)
+    c.num(link, "link", "warn_median_us", 0, 1e6)
+    c.num(link, "link", "fail_median_us", 0, 1e6)
+    c.num(link, "link", "warn_max_us", 0, 1e7)
+    if _is_num(link.get("warn_median_us")) and _is_num(link.get("fail_median_us")) and \
+            link["fail_median_us"] < link["warn_median_us"]:
+        c.err("link.fail_median_us must not be below link.warn_median_us")
+
+    chans = profile.get("channels", [])
+    if not isinstance(chans, list):
+        c.err("channels must be a list")
+        chans = []
+    seen: set[int] = set()
+    for i, ch in enumerate(chans):
+        if not isinstance(ch, dict):
+            c.err(f"channels[{i}] must be an object")
+            continue
+        n = c.num(ch, f"channels[{i}]", "channel", 1, 4, required=True, integer=True)
+        where = f"channel {int(n)}" if n is not None else f"channels[{i}]"
+        if n is not None:
+            if n in seen:
+                c.err(f"channel {int(n)} is listed twice")
+            seen.add(int(n))
+        c.string(ch, where, "name")
+        c.string(ch, where, "connector")
+        motor = c.boolean(ch, where, "motor")
+        c.boolean(ch, where, "loopback")
+        if "direction" in ch and ch["direction"] not in (1, -1) or isinstance(ch.get("direction"), bool):
+            c.err(f"{where}.direction must be 1 (positive PWM counts up) or -1 (counts down)")
+        if motor:
+            for key in ("duty", "duration_ms", "min_counts"):
+                if key not in ch:
+                    c.err(f"{where}.{key} is missing (needed for a motor channel)")
+        duty = c.num(ch, where, "duty", 0, MAX_DUTY, lo_open=bool(motor))
+        if duty is not None and duty > pwm_limit + 1e-12:
+            c.err(f"{where}.duty = {duty:g} is above limits.pwm_limit = {pwm_limit:g}")
+        c.num(ch, where, "duration_ms", 1, MAX_PULSE_MS, integer=True)
+        lo = c.num(ch, where, "min_counts", 1, 1e7, integer=True)
+        hi = c.num(ch, where, "max_counts", 0, 1e9, integer=True)
+        if lo is not None and hi and hi < lo:
+            c.err(f"{where}.max_counts ({hi}) is below min_counts ({lo})")
+        enc = ch.get("encoder")
+        if enc is not None:
+            if not isinstance(enc, dict):
+                c.err(f"{where}.encoder must be an object")
+            else:
+                c.num(enc, f"{where}.encoder", "counts_per_rev", 1, 1e7, integer=True, lo_open=False)
+                c.boolean(enc, f"{where}.encoder", "inverted")
+        ins = ch.get("inputs")
+        if ins is not None:
+            if not isinstance(ins, list):
+                c.err(f"{where}.inputs must be a list")
+            else:
+                pins: set[int] = set()
+                for pin in ins:
+                    if not isinstance(pin, dict):
+                        c.err(f"{where}.inputs: each entry must be an object")
+                        continue
+                    p = c.num(pin, f"{where}.inputs", "pin", 1, 2, required=True, integer=True)
+                    if p in pins:
+                        c.err(f"{where}: input pin {int(p)} is listed twice")
+                    if p is not None:
+                        pins.add(int(p))
+                    c.string(pin, f"{where}.inputs", "name")
+                    if pin.get("idle") not in (None, 0, 1) or isinstance(pin.get("idle"), bool):
+                        c.err(f"{where}.inputs pin {pin.get('pin')}: idle must be 0, 1 or null (not checked)")
+
+    mech = c.section(profile, "mechanics")
+    if mech:
+        c.num(mech, "mechanics", "counts_per_rev", 1, 1e7, required=True, integer=True)
+        c.num(mech, "mechanics", "gear_ratio", 0, 1e4, required=True, lo_open=True)
+        kind = mech.get("kind")
+        if kind == "differential_drive":
+            c.num(mech, "mechanics", "wheel_diameter", 0, 2.0, required=True, lo_open=True)
+            c.num(mech, "mechanics", "track_width", 0, 5.0, required=True, lo_open=True)
+            for key in ("left_channel", "right_channel"):
+                c.num(mech, "mechanics", key, 1, 4, required=True, integer=True)
+            for key in ("left_encoder_inverted", "right_encoder_inverted"):
+                c.boolean(mech, "mechanics", key)
+        elif kind == "pan_tilt":
+            axes = mech.get("axes")
+            if not isinstance(axes, dict) or not axes:
+                c.err("mechanics.axes must name each axis (pan, tilt)")
+            else:
+                for axis, a in axes.items():
+                    w = f"mechanics.axes.{axis}"
+                    if not isinstance(a, dict):
+                        c.err(f"{w} must be an object")
+                        continue
+                    c.num(a, w, "channel", 1, 4, required=True, integer=True)
+                    c.num(a, w, "belt_ratio", 0, 100, required=True, lo_open=True)
+                    c.num(a, w, "zero_offset_counts", -1e9, 1e9, integer=True)
+                    lim = a.get("limits_deg")
+                    if lim is not None and not (isinstance(lim, list) and len(lim) == 2 and all(_is_num(x) for x in lim)
+                                                and lim[0] < lim[1]):
+                        c.err(f"{w}.limits_deg must be [low, high] in degrees")
+        elif kind is not None:
+            c.err(f"mechanics.kind {kind!r} is not known (differential_drive or pan_tilt)")
+    if c.errors:
+        raise ProfileError(c.errors, source)
+    return profile
+
+
+# ---- finding, loading, saving -------------------------------------------------------------------
+
+
+def _read(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ProfileError([f"cannot read it: {exc.strerror or exc}"], str(path)) from None
+    try:
+        obj = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ProfileError([f"not valid JSON: {exc.msg} (line {exc.lineno}, column {exc.colno})"],
+                           str(path)) from None
+    return validate_profile(obj, str(path))
+
+
+def find_profile(name_or_path: str | Path, data_dir: Optional[Path] = None) -> Path:
+    """The file for a profile name (edited copy first, then the default) or a path as given."""
+    s = str(name_or_path)
+    if s.endswith(".json") or "/" in s or os.sep in s:
+        p = Path(s).expanduser()
+        if not p.exists():
+            raise ProfileError([f"no such file"], s)
+        return p
+    for folder in (profiles_dir(data_dir), DEFAULTS_DIR):
+        p = folder / f"{s}.json"
+        if p.exists():
+            return p
+    known = ", ".join(i.name for i in list_profiles(data_dir)) or "none"
+    raise ProfileError([f"no bench profile named {s!r} (known: {known})"])
+
+
+def load_profile(name_or_path: str | Path, data_dir: Optional[Path] = None) -> dict[str, Any]:
+    """Load and validate a profile by name or path."""
+    return _read(find_profile(name_or_path, data_dir))
+
+
+def list_profiles(data_dir: Optional[Path] = None) -> list[ProfileInfo]:
+    """Every profile by name; an edited copy hides the default of the same name. Files that do
+    not validate are left out (load them by path to see why)."""
+    found: dict[str, ProfileInfo] = {}
+    for folder, source in ((DEFAULTS_DIR, "default"), (profiles_dir(data_dir), "edited")):
+        if not folder.is_dir():
+            continue
+        for p in sorted(folder.glob("*.json")):
+            try:
+                obj = _read(p)
+            except ProfileError:
+                continue
+            found[p.stem] = ProfileInfo(p.stem, obj.get("title", p.stem), obj.get("robot", ""), p, source)
+    return [found[k] for k in sorted(found)]
+
+
+def save_profile(profile: dict[str, Any], data_dir: Optional[Path] = None) -> Path:
+    """Validate and write an edited profile to <data>/profiles/<name>.json (atomic replace)."""
+    validate_profile(profile)
+    folder = profiles_dir(data_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    dest = folder / f"{profile['name']}.json"
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".profile-", suffix=".json")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(profile, f, indent=2)
+            f.write("\n")
+        os.replace(tmp, dest)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return dest
+
+
+def delete_profile(name: str, data_dir: Optional[Path] = None) -> bool:
+    """Remove an edited copy (the default comes back). True if there was one."""
+    if not NAME_RE.match(name):
+        raise ProfileError([f"bad profile name {name!r}"])
+    try:
+        (profiles_dir(data_dir) / f"{name}.json").unlink()
+        return True
+    except FileNotFoundError:
+        return False
