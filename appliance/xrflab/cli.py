@@ -52,6 +52,7 @@ SUBCOMMANDS: dict[str, Subcommand] = {}
 EXTERNAL_SUBCOMMANDS: dict[str, str] = {
     "serve": "xrflab.server.cli_serve",
     "decode": "xrflab.logs.cli",
+    "doctor": "xrflab.doctor",
     "selfcheck": "xrflab.selfcheck",
     "ros-bridge": "xrflab.ros.bridge",
 }
