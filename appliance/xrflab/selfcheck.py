@@ -38,7 +38,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator, Optional, Union
 
-from .profiles import ProfileError, default_data_dir, find_profile, validate_profile
+from .profiles import ProfileError, default_data_dir, find_profile, load_profile, validate_profile
 
 EXIT_PASS = 0
 EXIT_FAIL = 1
@@ -299,8 +299,7 @@ class SelfCheck:
                 self.profile_path.write_text(json.dumps(self.profile), encoding="utf-8")
             else:
                 self.profile_path = find_profile(profile, data_dir)
-                self.profile = validate_profile(json.loads(self.profile_path.read_text(encoding="utf-8")),
-                                                str(self.profile_path))
+                self.profile = load_profile(self.profile_path)
         except ProfileError:
             raise
         except (OSError, json.JSONDecodeError) as exc:

@@ -1,0 +1,314 @@
+"""The bench self-check on the simulated board: healthy benches pass, each injected fault is
+found with the right diagnosis and nothing else fails, abort leaves PWM at 0, a running loop is
+refused, bad profiles are explained."""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from xrflab import profiles as prof
+from xrflab.selfcheck import (BenchBusy, Report, SelfCheck, export_report, list_reports, load_report,
+                              run_selfcheck, save_report)
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def check(profile, faults="", **kw) -> Report:
+    kw.setdefault("shm", None)
+    return run_selfcheck(profile, transport="sim", faults=faults, **kw)
+
+
+def statuses(report: Report) -> dict[str, str]:
+    return {s.id: s.status for s in report.steps}
+
+
+EXPECTED_IDS = ["spi", "init", "echo", "reset", "motor.1", "motor.2", "motor.3", "motor.4",
+                "dout.1", "dout.2", "dout.3", "dout.4", "din.1", "din.2", "din.3", "din.4", "timing"]
+
+
+@pytest.mark.parametrize("bench", ["relbot", "jiwy"])
+def test_healthy_bench_passes(checker_exe, bench):
+    r = check(bench, exe=checker_exe)
+    assert [s.id for s in r.steps] == EXPECTED_IDS
+    st = statuses(r)
+    assert r.verdict == "pass" and r.exit_code == 0, r.to_text()
+    assert all(v in ("pass", "skipped") for v in st.values()), r.to_text()
+    for step in ("spi", "init", "echo", "reset", "motor.1", "motor.2", "din.1", "din.2", "din.3", "din.4", "timing"):
+        assert st[step] == "pass", (step, r.to_text())
+    assert st["motor.3"] == st["motor.4"] == "skipped"
+    assert r.outputs_zeroed
+    assert r.bench == bench and r.sim == bench and r.host and r.started
+    m1 = r.step("motor.1").data
+    assert m1["counts_plus"] >= m1["min_counts"] and m1["counts_minus"] <= -m1["min_counts"]
+    assert abs(m1["pwm"]) <= 409  # never beyond 20 %
+
+
+FAULTS = [
+    # fault spec, failing step, channel, words the diagnosis must contain
+    ("dead_encoder=2", "motor.2", 2, ["encoder 2 does not count", "PMOD 2"]),
+    ("dead_encoder=1", "motor.1", 1, ["encoder 1 does not count", "PMOD 1"]),
+    ("reversed_motor=1", "motor.1", 1, ["motor 1 turns the wrong way", "PMOD 1", "swap"]),
+    ("reversed_motor=2", "motor.2", 2, ["motor 2 turns the wrong way", "PMOD 2"]),
+    ("stuck_input=3:1", "din.2", 2, ["input pin 1 of channel 2", "PMOD 2"]),
+    ("stuck_input=8:1", "din.4", 4, ["input pin 2 of channel 4", "PMOD 4"]),
+    ("corrupt_echo", "echo", 0, ["bit errors", "1000 of 1000"]),
+    ("slow_link_us=200", "timing", 0, ["slow", "us"]),
+]
+
+
+@pytest.mark.parametrize("bench", ["relbot", "jiwy"])
+@pytest.mark.parametrize("faults,step,channel,words", FAULTS, ids=[f[0] for f in FAULTS])
+def test_fault_is_diagnosed_and_nothing_else_fails(checker_exe, bench, faults, step, channel, words):
+    r = check(bench, faults, exe=checker_exe)
+    assert r.verdict == "fail" and r.exit_code == 1, r.to_text()
+    failed = r.failed()
+    assert [s.id for s in failed] == [step], r.to_text()
+    s = failed[0]
+    assert s.channel == channel
+    text = s.message + " " + s.action
+    for w in words:
+        assert w in text, (w, text)
+    assert s.action, "every failure says what to do"
+    assert r.outputs_zeroed
+
+
+@pytest.mark.parametrize("bench", ["relbot", "jiwy"])
+def test_no_init_reply_skips_everything_else(checker_exe, bench):
+    r = check(bench, "no_init", exe=checker_exe)
+    st = statuses(r)
+    assert r.verdict == "fail" and r.exit_code == 1
+    assert [s.id for s in r.steps] == EXPECTED_IDS
+    assert st["spi"] == "pass" and st["init"] == "fail"
+    assert all(st[i] == "skipped" for i in EXPECTED_IDS[2:]), r.to_text()
+    init = r.step("init")
+    assert "did not answer INIT" in init.message and "byte 4" in init.message
+    assert "powered" in init.action
+    assert all("did not answer INIT" in r.step(i).message for i in EXPECTED_IDS[2:])
+
+
+def loopback_profile(bench="relbot"):
+    p = prof.load_profile(bench)
+    p = copy.deepcopy(p)
+    p["name"] = f"{bench}-loop"
+    p["channels"][0]["loopback"] = True
+    return p
+
+
+def test_declared_loopback_is_read_back(checker_exe):
+    r = check(loopback_profile(), "loopback=1", exe=checker_exe)
+    assert r.verdict == "pass", r.to_text()
+    s = r.step("dout.1")
+    assert s.status == "pass" and s.data["seen_on"] == s.data["toggles"] == 3
+    assert s.data["frames_on"] >= 1  # the reply shows the previous frame's output
+
+
+def test_missing_loopback_is_diagnosed(checker_exe):
+    r = check(loopback_profile(), "", exe=checker_exe)
+    assert [s.id for s in r.failed()] == ["dout.1"], r.to_text()
+    s = r.step("dout.1")
+    assert s.channel == 1 and "does not come back" in s.message and "PMOD 1" in s.action
+
+
+def test_swapped_encoder_cables_named(checker_exe, tmp_path):
+    # Not a simulator fault, but the diagnosis exists: a profile that puts channel 1's motor on
+    # a channel whose encoder reads another one's would show it. Here: crossed via the profile
+    # declaring a motor on 3 (no motor there: encoder 3 never counts) is "does not count".
+    p = copy.deepcopy(prof.load_profile("relbot"))
+    p["name"] = "relbot-three"
+    p["channels"][2].update({"motor": True, "duty": 0.1, "duration_ms": 50, "min_counts": 100})
+    r = check(p, exe=checker_exe)
+    assert [s.id for s in r.failed()] == ["motor.3"]
+    assert "encoder 3 does not count" in r.step("motor.3").message
+
+
+def test_abort_while_pulsing_leaves_pwm_zero(checker_exe, shm_name):
+    from xrflab.channels import create_for_test
+
+    ch = create_for_test(shm_name)
+    try:
+        sc = SelfCheck("relbot", transport="sim", shm=None, sim_outputs_shm=shm_name, exe=checker_exe)
+        seen_pwm = None
+        for ev in sc.events():
+            if ev["event"] == "progress" and ev["step"] == "motor.1" and "PWM +" in ev["text"]:
+                time.sleep(0.06)  # well inside the 150 ms pulse
+                seen_pwm = int(ch.shm.sim.pwm[0])
+                sc.abort()
+        r = sc.report
+        assert seen_pwm and seen_pwm > 0, "the pulse was under way when the abort came"
+        assert r.verdict == "aborted" and r.exit_code == 2
+        assert r.outputs_zeroed
+        assert [int(ch.shm.sim.pwm[i]) for i in range(4)] == [0, 0, 0, 0]
+        assert [int(ch.shm.sim.dout[i]) for i in range(4)] == [0, 0, 0, 0]
+        assert "timing" not in {s.id for s in r.steps}
+    finally:
+        ch.close()
+
+
+def test_checker_sigint_directly(checker_exe, shm_name):
+    """The native tool on its own: SIGINT mid-pulse -> end event aborted, exit 2, PWM 0."""
+    import signal
+
+    from xrflab.channels import create_for_test
+
+    ch = create_for_test(shm_name)
+    try:
+        proc = subprocess.Popen([str(checker_exe), "--sim", "jiwy", "--profile", str(prof.find_profile("jiwy")),
+                                 "--sim-outputs-shm", shm_name], stdout=subprocess.PIPE, text=True)
+        events = []
+        for line in proc.stdout:
+            ev = json.loads(line)
+            events.append(ev)
+            if ev["event"] == "progress" and ev["step"] == "motor.2" and "PWM -" in ev["text"]:
+                time.sleep(0.03)
+                assert int(ch.shm.sim.pwm[1]) < 0
+                proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=5) == 2
+        assert events[-1]["event"] == "end" and events[-1]["verdict"] == "aborted"
+        assert events[-1]["outputs_zeroed"] is True
+        assert [int(ch.shm.sim.pwm[i]) for i in range(4)] == [0, 0, 0, 0]
+    finally:
+        ch.close()
+
+
+def test_refuses_over_active_loop(checker_exe, running_loop, shm_name):
+    with pytest.raises(BenchBusy, match="running on the bench"):
+        SelfCheck("relbot", transport="sim", shm=shm_name, exe=checker_exe).run()
+    # The CLI says so and exits 2.
+    res = subprocess.run([sys.executable, "-m", "xrflab.cli", "selfcheck", "--sim", "relbot", "--shm", shm_name,
+                          "--no-save"], capture_output=True, text=True, env=_env(), timeout=60)
+    assert res.returncode == 2 and "stop it first" in res.stderr
+    # Once the loop is gone (pid dead), the check runs.
+    running_loop.kill()
+    running_loop.wait(timeout=5)
+    r = SelfCheck("relbot", transport="sim", shm=shm_name, exe=checker_exe).run()
+    assert r.verdict == "pass"
+
+
+def test_caller_bench_busy_callable(checker_exe):
+    with pytest.raises(BenchBusy, match="student run 42"):
+        SelfCheck("relbot", bench_busy=lambda: "student run 42 is active", exe=checker_exe).run()
+
+
+def _env():
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO / "appliance") + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+def test_cli_report_marks_and_exit_codes(checker_exe, tmp_path):
+    res = subprocess.run([sys.executable, "-m", "xrflab.cli", "selfcheck", "--sim", "jiwy", "--faults",
+                          "dead_encoder=2", "--shm", "xrf-none-here", "--save", str(tmp_path), "-q"],
+                         capture_output=True, text=True, env=_env(), timeout=120)
+    assert res.returncode == 1, res.stderr
+    assert "✗ motor.2" in res.stdout and "✓ motor.1" in res.stdout and "– motor.3" in res.stdout
+    assert "encoder 2 does not count" in res.stdout
+    saved = list(tmp_path.glob("*-jiwy.json"))
+    assert len(saved) == 1
+    assert load_report(saved[0]).step("motor.2").status == "fail"
+    res = subprocess.run([sys.executable, "-m", "xrflab.cli", "selfcheck", "--profile", "relbot", "--sim", "relbot",
+                          "--json", "--no-save", "--shm", "xrf-none-here", "-q"],
+                         capture_output=True, text=True, env=_env(), timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)["verdict"] == "pass"
+
+
+def test_reports_saved_listed_exported(checker_exe, tmp_path):
+    r = check("relbot", "reversed_motor=2", exe=checker_exe)
+    p1 = save_report(r, data_dir=tmp_path)
+    p2 = save_report(r, data_dir=tmp_path)
+    assert p1.parent == tmp_path / "selfcheck" and p1.name.endswith("-relbot.json") and p1 != p2
+    assert list_reports(data_dir=tmp_path)[0] in (p1, p2) and len(list_reports(data_dir=tmp_path)) == 2
+    back = load_report(p1)
+    assert back.as_dict() == r.as_dict()
+    md = export_report(r, "markdown")
+    assert md.startswith("# Self-check: relbot bench") and "| ✗ |" in md and "motor 2 turns the wrong way" in md
+    txt = export_report(r, "text")
+    assert "✗ motor.2" in txt and "→ " in txt
+    assert json.loads(export_report(r, "json"))["exit_code"] == 1
+
+
+# ---- profiles -----------------------------------------------------------------------------------
+
+
+def test_default_profiles_valid_and_consistent_with_simulator():
+    names = [i.name for i in prof.list_profiles(data_dir=Path("/nonexistent"))]
+    assert {"relbot", "jiwy"} <= set(names)
+    rel = prof.load_profile("relbot")["mechanics"]
+    assert (rel["counts_per_rev"], rel["gear_ratio"], rel["wheel_diameter"], rel["track_width"]) == (4096, 15.58, 0.101, 0.20)
+    assert rel["right_encoder_inverted"] is True and rel["left_encoder_inverted"] is False
+    jiwy = prof.load_profile("jiwy")["mechanics"]
+    assert jiwy["counts_per_rev"] == 4096 and jiwy["gear_ratio"] == 19
+    assert jiwy["axes"]["pan"]["belt_ratio"] == 1.0 and jiwy["axes"]["tilt"]["belt_ratio"] == 0.25
+    assert "zero_offset_counts" in jiwy["axes"]["pan"]
+    for name in ("relbot", "jiwy"):
+        for c in prof.load_profile(name)["channels"]:
+            if c.get("motor"):
+                assert c["duty"] <= 0.2 and c["duration_ms"] <= 200
+
+
+@pytest.mark.parametrize("path,value,words", [
+    (("channels", 0, "duty"), 0.5, "channel 1.duty = 0.5 is out of range"),
+    (("channels", 1, "duration_ms"), 500, "channel 2.duration_ms = 500 is out of range"),
+    (("channels", 0, "direction"), 0, "channel 1.direction must be 1"),
+    (("channels", 0, "min_counts"), "lots", "channel 1.min_counts must be a whole number"),
+    (("limits", "pwm_limit"), 0.1, "channel 1.duty = 0.15 is above limits.pwm_limit = 0.1"),
+    (("mechanics", "gear_ratio"), -3, "mechanics.gear_ratio = -3 is out of range"),
+    (("channels", 0, "inputs", 0, "idle"), 2, "idle must be 0, 1 or null"),
+    (("name",), "Bad Name!", "name 'Bad Name!' must be lower-case"),
+])
+def test_bad_profile_values_are_explained(path, value, words, tmp_path):
+    p = copy.deepcopy(prof.load_profile("relbot"))
+    obj = p
+    for k in path[:-1]:
+        obj = obj[k]
+    obj[path[-1]] = value
+    with pytest.raises(prof.ProfileError) as info:
+        prof.validate_profile(p)
+    assert any(words in e for e in info.value.errors), info.value.errors
+    with pytest.raises(prof.ProfileError):
+        prof.save_profile(p, data_dir=tmp_path)
+    with pytest.raises(prof.ProfileError):
+        SelfCheck(p, shm=None)
+
+
+def test_native_checker_rejects_bad_profile_too(checker_exe, tmp_path):
+    p = copy.deepcopy(prof.load_profile("relbot"))
+    p["channels"][0]["duty"] = 0.9
+    f = tmp_path / "bad.json"
+    f.write_text(json.dumps(p))
+    res = subprocess.run([str(checker_exe), "--profile", str(f)], capture_output=True, text=True, timeout=30)
+    assert res.returncode == 2
+    ev = json.loads(res.stdout.strip().splitlines()[-1])
+    assert ev["event"] == "error" and "duty" in ev["message"] and "0.9" in ev["message"]
+    f.write_text("{ not json")
+    res = subprocess.run([str(checker_exe), "--profile", str(f)], capture_output=True, text=True, timeout=30)
+    assert res.returncode == 2 and "not valid JSON" in res.stdout
+    # The CLI reports the validator's sentence.
+    res = subprocess.run([sys.executable, "-m", "xrflab.cli", "selfcheck", "--profile", str(f), "--sim", "relbot"],
+                         capture_output=True, text=True, env=_env(), timeout=60)
+    assert res.returncode == 2 and "not valid JSON" in res.stderr
+
+
+def test_edited_profile_overrides_default(checker_exe, tmp_path):
+    p = copy.deepcopy(prof.load_profile("jiwy"))
+    p["title"] = "Jiwy, bench 3"
+    p["channels"][0]["duty"] = 0.12
+    path = prof.save_profile(p, data_dir=tmp_path)
+    assert path == tmp_path / "profiles" / "jiwy.json"
+    info = {i.name: i for i in prof.list_profiles(tmp_path)}
+    assert info["jiwy"].source == "edited" and info["jiwy"].title == "Jiwy, bench 3"
+    assert info["relbot"].source == "default"
+    r = check("jiwy", data_dir=tmp_path, exe=checker_exe)
+    assert r.verdict == "pass" and abs(r.step("motor.1").data["duty"] - 0.12) < 1e-9
+    assert prof.delete_profile("jiwy", tmp_path) is True
+    assert prof.load_profile("jiwy", tmp_path)["title"] != "Jiwy, bench 3"
+    with pytest.raises(prof.ProfileError, match="no bench profile named 'nope'"):
+        prof.load_profile("nope", tmp_path)
