@@ -87,11 +87,27 @@ def fresh_root(dest: Path) -> Path:
     return dest
 
 
-def run_install(root: Path, *args: str, script: str = "install") -> subprocess.CompletedProcess:
+def source_snapshot(dest: Path) -> Path:
+    """A frozen copy of the checkout's files (tracked and untracked, not ignored): others may
+    edit the checkout while the tests run, and the idempotency test needs a source that
+    does not change between the two runs. The copy has no .git, so the installer's
+    non-git file listing is what runs."""
+    files = subprocess.run(["git", "-C", str(REPO), "ls-files", "-co", "--exclude-standard"],
+                           capture_output=True, text=True, check=True).stdout.splitlines()
+    dest.mkdir(parents=True)
+    for f in files:
+        src = REPO / f
+        if src.is_file() and not src.is_symlink():
+            (dest / f).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src, dest / f)
+    return dest
+
+
+def run_install(root: Path, *args: str, script: str = "install", source: Path = REPO) -> subprocess.CompletedProcess:
     # The host's PIP_* settings point at paths that do not exist inside the chroot.
     env = {k: v for k, v in os.environ.items() if not k.startswith("PIP_")}
     env["PIP_DISABLE_PIP_VERSION_CHECK"] = "1"
-    proc = subprocess.run([str(REPO / "deploy" / script), "--root", str(root), *args],
+    proc = subprocess.run([str(source / "deploy" / script), "--root", str(root), *args],
                           capture_output=True, text=True, env=env, timeout=900)
     return proc
 
@@ -132,3 +148,8 @@ def requirements_or_skip() -> None:
 def debian_root(tmp_path_factory) -> Path:
     requirements_or_skip()
     return fresh_root(tmp_path_factory.mktemp("deploy") / "root")
+
+
+@pytest.fixture(scope="module")
+def source(tmp_path_factory) -> Path:
+    return source_snapshot(tmp_path_factory.mktemp("source") / "xrf-lab")
