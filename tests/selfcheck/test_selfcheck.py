@@ -117,10 +117,9 @@ def test_missing_loopback_is_diagnosed(checker_exe):
     assert s.channel == 1 and "does not come back" in s.message and "PMOD 1" in s.action
 
 
-def test_swapped_encoder_cables_named(checker_exe, tmp_path):
-    # Not a simulator fault, but the diagnosis exists: a profile that puts channel 1's motor on
-    # a channel whose encoder reads another one's would show it. Here: crossed via the profile
-    # declaring a motor on 3 (no motor there: encoder 3 never counts) is "does not count".
+def test_motor_declared_on_empty_channel(checker_exe, tmp_path):
+    # A profile declaring a motor where none is wired (channel 3 of the simulated RELbot):
+    # encoder 3 never counts, and only that step fails.
     p = copy.deepcopy(prof.load_profile("relbot"))
     p["name"] = "relbot-three"
     p["channels"][2].update({"motor": True, "duty": 0.1, "duration_ms": 50, "min_counts": 100})
