@@ -116,6 +116,28 @@ def test_units_pass_systemd_analyze_verify(installed):
     assert "xrf-lab.service" not in proc.stderr, proc.stderr  # no warnings about our units
 
 
+def test_boot_settings_only_with_boot_flag(installed, source):
+    root, *_ = installed
+    fw = root / "boot/firmware"
+    fw.mkdir(parents=True, exist_ok=True)
+    (fw / "cmdline.txt").write_text("console=serial0,115200 root=LABEL=writable rootwait isolcpus=1\n")
+    (fw / "config.txt").write_text("[all]\narm_64bit=1\n")
+    plain = run_install(root, "--no-deps", source=source)
+    assert "nothing to change" in plain.stdout
+    assert "isolcpus=1\n" in (fw / "cmdline.txt").read_text()  # untouched without --boot
+    boot = run_install(root, "--no-deps", "--boot", source=source)
+    assert boot.returncode == 0, boot.stdout + boot.stderr
+    line = (fw / "cmdline.txt").read_text()
+    assert line.count("\n") == 1
+    words = line.split()
+    assert "isolcpus=3" in words and "isolcpus=1" not in words and "evl.oobcpus=3" in words
+    assert words[:3] == ["console=serial0,115200", "root=LABEL=writable", "rootwait"]
+    assert (fw / "cmdline.txt.xrf-backup").read_text().endswith("isolcpus=1\n")
+    assert "dtparam=spi=on" in (fw / "config.txt").read_text().splitlines()
+    again = run_install(root, "--no-deps", "--boot", source=source)
+    assert "nothing to change" in again.stdout, again.stdout
+
+
 def test_uninstall_keeps_data_then_purge_removes_it(installed, source):
     root, *_ = installed
     marker = root / "var/lib/xrf-lab/runs-keep.txt"
