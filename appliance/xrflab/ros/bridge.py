@@ -329,6 +329,12 @@ def prepare_messages(channels: Any, msg_dir: str | Path | None, log: Callable[[s
                         f"({theirs!r} vs {codec.schema!r}): rebuild the controller or pick the right --msg-dir"
                     )
         prefix = build_interface_package(msg_dir, log=log)
+    loaded = sys.modules.get("xrf2_msgs")
+    if loaded is not None and not str(getattr(loaded, "__file__", "")).startswith(str(prefix) + os.sep):
+        # Python modules and the shared libraries (one soname each) cannot be swapped in a
+        # running process: one project's xrf2_msgs per process.
+        raise RuntimeError(f"this process already uses xrf2_msgs from {loaded.__file__}; "
+                           f"another project's messages ({prefix}) need their own process")
     use_in_this_process(prefix)
     from xrf2_msgs.msg import Ros2Xeno, Xeno2Ros  # noqa: E402  (importable only now)
 
