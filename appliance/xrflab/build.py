@@ -407,6 +407,14 @@ def _find_executable(build_dir: Path) -> tuple[Path, Optional[dict]]:
 # ---------------------------------------------------------------------------------------
 # the build
 
+def _xrfrt_config_dir(prefix: Path) -> Path:
+    """Where rt_core's install put XrfRtConfig.cmake (lib/ or lib64/, by platform)."""
+    found = sorted(prefix.glob("lib*/cmake/XrfRt/XrfRtConfig.cmake"))
+    if not found:
+        raise BuildError(f"rt_core install at {prefix} has no XrfRtConfig.cmake", "")
+    return found[0].parent
+
+
 def build_project(project_dir: Path | str, build_dir: Path | str | None = None, log: Log = print,
                   msg_dir: Path | str | None = None) -> BuildResult:
     """Configure and build a student project against rt_core; return what was built.
@@ -440,6 +448,9 @@ def build_project(project_dir: Path | str, build_dir: Path | str | None = None, 
 
     cmd = ["cmake", "-S", str(source), "-B", str(binary), *_generator_args(binary),
            "-DCMAKE_BUILD_TYPE=Release", f"-DCMAKE_PREFIX_PATH={prefix}",
+           # Named explicitly: a reused build folder's cache would otherwise keep the XrfRt of an
+           # older rt_core, whose shared-memory layout no longer matches the host's.
+           f"-DXrfRt_DIR={_xrfrt_config_dir(prefix)}",
            f"-DPython3_EXECUTABLE={sys.executable}"]
     if layout == "xrf":
         # Always passed: XRF_MSG_DIR lands in the cache, and an override from an earlier build

@@ -515,7 +515,14 @@ def _try_map(path: Path) -> mmap.mmap | None:
     except FileNotFoundError:
         return None
     try:
-        if os.fstat(fd).st_size < SHM_SIZE:
+        size = os.fstat(fd).st_size
+        if 0 < size < SHM_SIZE:
+            # Not a loop still sizing it (ftruncate is immediate): a loop built against another
+            # layout. Say so instead of waiting for an object that will never fit.
+            raise ChannelsError(
+                f"{path}: {size} bytes, this host expects {SHM_SIZE}: the controller was built "
+                "against another rt_core; rebuild it")
+        if size < SHM_SIZE:
             return None
         return mmap.mmap(fd, SHM_SIZE, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
     finally:

@@ -334,6 +334,8 @@ int Runtime::enter(unsigned cycle_freq)
     sigemptyset(&sa.sa_mask);
     sigaction(SIGINT, &sa, nullptr);
     sigaction(SIGTERM, &sa, nullptr);
+    // stdout may be a pipe whose reader goes away (`xrf run | head`): an EPIPE, not a dead loop.
+    std::signal(SIGPIPE, SIG_IGN);
 
     startHelper();
     loop_thread_ = pthread_self();
@@ -442,6 +444,7 @@ void Runtime::endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, boo
     s->log_lost = shm_->log_ring.dropped;
     s->telem_published = shm_->telem_ring.head;
     s->host_lost = host_lost_count_;
+    s->monitor_dropped = monitor_truncated_;
     int64_t jitter = wake_ns - deadline_ns;
     xrf_hist_add(&s->hist[XRF_STAGE_WAKEUP], (uint64_t)(jitter > 0 ? jitter : 0));
     xrf_hist_add(&s->hist[XRF_STAGE_CYCLE], (uint64_t)(end_ns - wake_ns));
@@ -474,7 +477,7 @@ void Runtime::monitorWrite(const char *fmt, va_list ap)
         n = 0;
     if ((size_t)n >= sizeof line->text) {
         n = (int)sizeof line->text - 1;
-        shm_->status.monitor_dropped++; // truncated text counts as a loss the host can show
+        monitor_truncated_++; // published with the status: a loss the host can show
     }
     line->len = (uint32_t)n;
     line->hdr.cycle = cycles_;
@@ -487,10 +490,39 @@ void Runtime::startHelper()
 {
     helper_run_.store(true);
     monitor_cursor_ = 0;
-    if (pthread_create(&helper_, nullptr, &Runtime::helperMain, this) == 0)
+    // Keep the helper (disk writes, stdout) off the loop's CPU: the loop's CPU is XRF_CPU, or
+    // the one CPU an XRF2 main pinned the thread to.
+    int loop_cpu = options_.cpu;
+    cpu_set_t current;
+    CPU_ZERO(&current);
+    if (loop_cpu < 0 && pthread_getaffinity_np(pthread_self(), sizeof current, &current) == 0 &&
+        CPU_COUNT(&current) == 1) {
+        for (int c = 0; c < CPU_SETSIZE; c++)
+            if (CPU_ISSET(c, &current))
+                loop_cpu = c;
+    }
+    pthread_attr_t attr;
+    pthread_attr_init(&attr);
+    if (loop_cpu >= 0) {
+        cpu_set_t others;
+        CPU_ZERO(&others);
+        const long n = sysconf(_SC_NPROCESSORS_ONLN);
+        for (int c = 0; c < n && c < CPU_SETSIZE; c++)
+            if (c != loop_cpu)
+                CPU_SET(c, &others);
+        if (CPU_COUNT(&others) > 0)
+            pthread_attr_setaffinity_np(&attr, sizeof others, &others);
+    }
+    // In-band work: never the loop's real-time priority, whatever the creating thread has.
+    pthread_attr_setinheritsched(&attr, PTHREAD_EXPLICIT_SCHED);
+    pthread_attr_setschedpolicy(&attr, SCHED_OTHER);
+    sched_param sp{};
+    pthread_attr_setschedparam(&attr, &sp);
+    if (pthread_create(&helper_, &attr, &Runtime::helperMain, this) == 0)
         helper_started_ = true;
     else
         std::fprintf(stderr, "xrf: warning: no helper thread: monitor and log file disabled\n");
+    pthread_attr_destroy(&attr);
 }
 
 void *Runtime::helperMain(void *self)

@@ -141,6 +141,7 @@ private:
     bool pending_doorbell_ = false;
     bool host_lost_ = false;
     uint64_t host_lost_count_ = 0;
+    uint64_t monitor_truncated_ = 0;
     int rt_sched_ = 0;
     int64_t cycle_start_ns_ = 0;
     pthread_t loop_thread_{};
