@@ -11,6 +11,8 @@ const $ = (id) => document.getElementById(id);
 
 const xrf = {                // also the test hook: tests read window.xrf
   ws: null,
+  pages: {},                 // id -> {id, title, order, el, init, show}: see addPage()
+  listeners: {},             // message type -> [fn]: see on()
   state: { state: 0, name: "NO RUN", allowed: [], active: false },
   run: null,
   plots: {},
@@ -425,6 +427,62 @@ function showAlarm(m) {
   }
 }
 
+// ---- pages ----------------------------------------------------------------------------------
+// The bench page is index.html's <main id="page-bench">. Every other page is a module in
+// frontend/pages/ that calls xrf.addPage({id, title, order, init(el), show(el)}); its element is
+// made here. The header (state, STOP) and the Esc key stay on every page.
+
+xrf.addPage = function (page) {
+  let el = document.getElementById("page-" + page.id);
+  if (!el) {
+    el = document.createElement("main");
+    el.id = "page-" + page.id;
+    el.className = "page hidden";
+    document.querySelector("footer.foot").before(el);
+  }
+  xrf.pages[page.id] = { order: 50, ...page, el, ready: false };
+  if (xrf.started) { renderNav(); route(); }  // before the page has started, init() does both
+};
+
+// Subscribe to a WebSocket message type ("*" for every message).
+xrf.on = function (type, fn) { (xrf.listeners[type] = xrf.listeners[type] || []).push(fn); };
+xrf.send = function (msg) { if (xrf.ws && xrf.ws.readyState === 1) xrf.ws.send(JSON.stringify(msg)); };
+xrf.api = (method, path, body) => api(method, path, body);
+
+function renderNav() {
+  const nav = $("nav");
+  nav.textContent = "";
+  Object.values(xrf.pages).sort((a, b) => a.order - b.order).forEach((p) => {
+    const a = document.createElement("a");
+    a.href = "#" + p.id;
+    a.textContent = p.title;
+    a.dataset.page = p.id;
+    nav.appendChild(a);
+  });
+  highlightNav();
+}
+
+function highlightNav() {
+  const current = (location.hash || "#bench").slice(1);
+  document.querySelectorAll("#nav a").forEach((a) => a.classList.toggle("current", a.dataset.page === current));
+}
+
+function route() {
+  const id = (location.hash || "#bench").slice(1);
+  const target = xrf.pages[id] ? id : "bench";
+  for (const p of Object.values(xrf.pages)) {
+    const on = p.id === target;
+    p.el.classList.toggle("hidden", !on);
+    if (on) {
+      if (!p.ready && p.init) { p.init(p.el); }
+      p.ready = true;
+      if (p.show) p.show(p.el);
+    }
+  }
+  highlightNav();
+  if (target === "bench") resizePlots();
+}
+
 // ---- the WebSocket --------------------------------------------------------------------------
 
 function connect() {
@@ -437,6 +495,9 @@ function connect() {
   };
   ws.onmessage = (ev) => {
     const m = JSON.parse(ev.data);
+    for (const fn of (xrf.listeners[m.type] || []).concat(xrf.listeners["*"] || [])) {
+      try { fn(m); } catch (e) { console.error(e); }
+    }
     switch (m.type) {
       case "state": applyState(m); break;
       case "run": applyRun(m); break;
@@ -468,6 +529,11 @@ function onKey(ev) {
 // ---- start ----------------------------------------------------------------------------------
 
 function init() {
+  xrf.pages.bench = { id: "bench", title: "Bench", order: 0, el: $("page-bench"), ready: true };
+  xrf.started = true;
+  renderNav();
+  window.addEventListener("hashchange", route);
+  route();
   drawStateMachine();
   applyState(xrf.state);
   document.querySelectorAll("#commands button").forEach((b) => b.addEventListener("click", () => sendCommand(b.dataset.cmd)));
