@@ -7,6 +7,8 @@ uninstall --purge (data and users gone).
 
 from __future__ import annotations
 
+import json
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -114,6 +116,30 @@ def test_units_pass_systemd_analyze_verify(installed):
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "xrf-lab.service" not in proc.stderr, proc.stderr  # no warnings about our units
+
+
+def test_doctor_runs_in_the_installed_root(installed):
+    """The installed `xrf doctor` inside the chroot sees the installer's users and groups: a
+    /dev/spidev0.0 of group spi, mode 0660 is usable by xrf-loop; mode 0600 is not."""
+    root, *_ = installed
+    dev = root / "dev/spidev0.0"
+    dev.write_text("")
+    os.chown(dev, 0, int(_group(root)["spi"][2]))
+    os.chmod(dev, 0o660)
+    try:
+        def doctor() -> dict:
+            proc = subprocess.run(["chroot", str(root), "/usr/local/bin/xrf", "doctor", "--json", "--no-live"],
+                                  capture_output=True, text=True)
+            assert proc.returncode in (0, 1), proc.stderr
+            return {r["id"]: r for r in json.loads(proc.stdout)}
+
+        spi = doctor()["spi"]
+        assert spi["status"] == "ok" and "xrf-loop" in spi["detail"], spi
+        os.chmod(dev, 0o600)
+        spi = doctor()["spi"]
+        assert spi["status"] == "failure" and "udevadm trigger" in spi["fix"], spi
+    finally:
+        dev.unlink()
 
 
 def test_boot_settings_only_with_boot_flag(installed, source):
