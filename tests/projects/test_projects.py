@@ -107,6 +107,42 @@ def test_project_builds(name: str, build_root: Path) -> None:
     assert "src/main.cpp" in r.taken
 
 
+@pytest.mark.parametrize("name", list(PROJECTS))
+def test_project_runs_cycles_in_simulation(name: str, build_root: Path, tmp_path: Path) -> None:
+    """Each template and example, on the simulated RELbot and Jiwy: initialise, start, 500
+    cycles in RUN without an error, then Ctrl-C ends it cleanly with PWM 0."""
+    from xrflab.channels import Channels
+
+    exe = _build(name, build_root).executable
+    for sim in ("relbot", "jiwy"):
+        shm = _shm()
+        proc = subprocess.Popen([str(exe)], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                text=True, env={**os.environ, "XRF_SHM": shm, "XRF_SIM": sim,
+                                                "XRF_TRANSPORT": "sim", "XRF_PRIO": "0"})
+        try:
+            ch = Channels.open(shm, wait_s=10)
+            assert ch.wait_command(ch.send_command("initialise")).accepted
+            deadline = time.monotonic() + 5
+            while ch.status().state_name != "INITIALISED":
+                assert time.monotonic() < deadline, ch.status()
+                time.sleep(0.01)
+            assert ch.wait_command(ch.send_command("start")).accepted
+            start = ch.status().cycles
+            while ch.status().cycles < start + 500:
+                assert ch.status().state_name == "RUN", ch.status()
+                time.sleep(0.01)
+            proc.send_signal(2)
+            out = proc.communicate(timeout=10)[0]
+            assert proc.returncode == 0, out
+            assert list(ch.shm.sim.pwm) == [0, 0, 0, 0]
+            ch.close()
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+            _unlink_shm(shm)
+
+
 def test_20sim_template_reports_model(build_root: Path) -> None:
     r = _build("20sim", build_root)
     assert r.twenty_sim is not None
