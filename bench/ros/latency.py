@@ -76,6 +76,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--rate", type=float, default=100.0, help="Ros2Xeno publish rate (Hz)")
+    ap.add_argument("--bridge-executor", choices=("single", "events"), default="single",
+                    help="the bridge's rclpy executor (xrf ros-bridge --executor)")
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = ap.parse_args()
 
@@ -104,25 +106,29 @@ def main() -> int:
             res = ch.wait_command(ch.send_command(cmd), timeout=2)
             assert res.accepted, res
         bridge_log = open(work / "bridge.log", "w")
-        bridge = subprocess.Popen([sys.executable, "-m", "xrflab.ros.bridge", "--shm", shm],
+        bridge = subprocess.Popen([sys.executable, "-m", "xrflab.ros.bridge", "--shm", shm,
+                                   "--executor", args.bridge_executor],
                                   env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")),
                                   stdout=bridge_log, stderr=subprocess.STDOUT)
 
         rclpy.init()
         node = rclpy.create_node("xrf_latency_bench")
         qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-        recv: list[tuple[int, int, int, int, int]] = []  # (t_recv, cycle, t_publish, echo, t_seen)
+        recv: list[tuple] = []  # (t_recv, cycle, t_publish, echo[4], t_seen[4], t_written[4], msgs_seen)
         measuring = threading.Event()
 
         def on_sample(m: Xeno2Ros) -> None:
             t = time.monotonic_ns()
             if measuring.is_set():
-                recv.append((t, m.cycle, m.t_publish_ns, m.echo_t_sent_ns, m.t_seen_ns))
+                recv.append((t, m.cycle, m.t_publish_ns, list(m.echo_t_sent_ns), list(m.t_seen_ns),
+                             list(m.t_written_ns), m.msgs_seen))
 
         node.create_subscription(Xeno2Ros, "Xeno2Ros", on_sample, qos)
         pub = node.create_publisher(Ros2Xeno, "Ros2Xeno", qos)
         sent: list[int] = []
         stop_pub = threading.Event()
+
+        rng = random.Random(1)
 
         def publisher() -> None:
             period = 1.0 / args.rate
@@ -133,7 +139,9 @@ def main() -> int:
                 pub.publish(msg)
                 if measuring.is_set():
                     sent.append(msg.t_sent_ns)
-                next_t += period
+                # Dithered (+-25 % of the period), so the send phase relative to the 1 ms cycle is
+                # sampled uniformly instead of locking to whatever phase the two timers start at.
+                next_t += period * (0.75 + 0.5 * rng.random())
                 if next_t < time.monotonic():  # late (scheduling): no catch-up burst
                     next_t = time.monotonic() + period
                 time.sleep(max(0.0, next_t - time.monotonic()))
@@ -182,8 +190,8 @@ def main() -> int:
         rclpy.try_shutdown()
 
     # loop -> ROS
-    l2r = [t - tp for t, _c, tp, _e, _s in recv]
-    cycles = [c for _t, c, _tp, _e, _s in recv]
+    l2r = [r[0] - r[2] for r in recv]
+    cycles = [r[1] for r in recv]
     steps: dict[int, int] = {}
     for a, b in zip(cycles, cycles[1:]):
         steps[b - a] = steps.get(b - a, 0) + 1
@@ -194,11 +202,18 @@ def main() -> int:
     ring_lost = int(m.group(1)) if m else -1
     # ROS -> loop: first sighting of each echoed t_sent
     seen: dict[int, int] = {}
-    for _t, _c, _tp, echo, t_seen in recv:
-        if echo and echo not in seen:
-            seen[echo] = t_seen
+    written: dict[int, int] = {}
+    for r in recv:
+        for echo, t_seen, t_written in zip(r[3], r[4], r[5]):
+            if echo and echo not in seen:
+                seen[echo] = t_seen
+                written[echo] = t_written
     considered = [s for s in sent if s <= sent[-1] - 100_000_000] if sent else []  # not the last 100 ms
     r2l = [seen[s] - s for s in considered if s in seen]
+    # Split: node -> bridge's shared-memory write (DDS + the bridge's executor), and write -> the
+    # loop's hook (waiting for the next cycle, 0..1 ms). Only where the write time is plausible.
+    to_write = [written[s] - s for s in considered if s in seen and s <= written[s] <= seen[s]]
+    write_to_loop = [seen[s] - written[s] for s in considered if s in seen and s <= written[s] <= seen[s]]
     missed = [i for i, s in enumerate(considered) if s not in seen]
     r2l_lost = len(missed)
     # A missed one was overwritten by the next before a cycle read it: how far apart were they
@@ -208,16 +223,21 @@ def main() -> int:
     result = {
         "machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} CPUs, kernel {platform.release()}",
         "seconds": args.seconds,
+        "bridge_executor": args.bridge_executor,
         "loop_to_ros": {**summary(l2r), "lost": l2r_lost, "ring_lost": ring_lost,
                          "steps": {str(k): v for k, v in sorted(steps.items())}},
         "ros_to_loop": {**summary(r2l), "sent": len(considered), "lost": r2l_lost,
-                        "lost_send_gap_ms": sorted(round(g, 3) for g in gaps)},
+                        "lost_send_gap_ms": sorted(round(g, 3) for g in gaps),
+                        "node_to_shm_write": summary(to_write), "shm_write_to_loop": summary(write_to_loop)},
         "loop_missed_cycles": status.missed,
         "xrf2_thesis": XRF2,
     }
     a, b = result["ros_to_loop"], result["loop_to_ros"]
     print(f"\n{'direction':<14}{'n':>8}{'mean':>9}{'p50':>9}{'p99':>9}{'max':>9}{'lost':>7}   (ms)")
     print(f"{'ROS -> loop':<14}{a['n']:>8}{a['mean_ms']:>9.3f}{a['p50_ms']:>9.3f}{a['p99_ms']:>9.3f}{a['max_ms']:>9.3f}{a['lost']:>7}")  # lost: superseded (latest wins)
+    for label, key in (("  node->shm", "node_to_shm_write"), ("  shm->loop", "shm_write_to_loop")):
+        c = a[key]
+        print(f"{label:<14}{c['n']:>8}{c['mean_ms']:>9.3f}{c['p50_ms']:>9.3f}{c['p99_ms']:>9.3f}{c['max_ms']:>9.3f}")
     print(f"{'loop -> ROS':<14}{b['n']:>8}{b['mean_ms']:>9.3f}{b['p50_ms']:>9.3f}{b['p99_ms']:>9.3f}{b['max_ms']:>9.3f}{b['lost']:>7}")
     if gaps:
         print(f"ROS -> loop: {r2l_lost} superseded (latest wins) before a cycle read them; send gap to the next "

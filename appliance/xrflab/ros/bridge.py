@@ -61,6 +61,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the user the bridge acts for (checked against the bench lease)")
     parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the loop (default 10)")
     parser.add_argument("--depth", type=int, default=DEFAULT_DEPTH, help=f"QoS history depth (default {DEFAULT_DEPTH})")
+    parser.add_argument("--executor", choices=("single", "events"), default="single",
+                        help="rclpy executor: single (SingleThreadedExecutor, default) or events "
+                             "(rclpy.experimental.EventsExecutor, C++ dispatch)")
     parser.add_argument("--state-period", type=float, default=DEFAULT_STATE_PERIOD_S,
                         help="seconds between periodic XenoState messages (default 1)")
 
@@ -380,7 +383,12 @@ def run(args: argparse.Namespace, command_gate: CommandGate = allow_all) -> int:
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     bridge = Bridge(ch, ros2xeno_type, xeno2ros_type, user=args.user, command_gate=command_gate,
                     depth=args.depth, state_period=args.state_period)
-    executor = SingleThreadedExecutor()
+    if getattr(args, "executor", "single") == "events":
+        from rclpy.experimental import EventsExecutor
+
+        executor = EventsExecutor()
+    else:
+        executor = SingleThreadedExecutor()
     executor.add_node(bridge.node)
     bridge.start()
     try:

@@ -30,21 +30,28 @@ private:
     void report()
     {
         xrf::Runtime &rt = xrf::Runtime::instance();
-        if (ros_msg.t_sent_ns != last_sent_) {
-            last_sent_ = ros_msg.t_sent_ns;
-            t_seen_ = monotonicNs();
+        if (ros_msg.t_sent_ns != 0 && ros_msg.t_sent_ns != xeno_msg.echo_t_sent_ns[0]) {
+            // A new Ros2Xeno: remember it (newest first); the sample carries the last four, so
+            // none is hidden by the decimation even when two arrive between samples.
+            for (int i = 3; i > 0; i--) {
+                xeno_msg.echo_t_sent_ns[i] = xeno_msg.echo_t_sent_ns[i - 1];
+                xeno_msg.t_seen_ns[i] = xeno_msg.t_seen_ns[i - 1];
+                xeno_msg.t_written_ns[i] = xeno_msg.t_written_ns[i - 1];
+            }
+            xeno_msg.echo_t_sent_ns[0] = ros_msg.t_sent_ns;
+            xeno_msg.t_seen_ns[0] = monotonicNs();
+            // The host's write time of the message this cycle read (the data channel's t_sent).
+            xeno_msg.t_written_ns[0] = __atomic_load_n(&rt.shm()->ros2xeno.t_sent_ns, __ATOMIC_ACQUIRE);
+            xeno_msg.msgs_seen++;
         }
         // This hook runs after the cycle's telemetry went out: the sample is published by the
         // next cycle, scheduled one period after this one's start.
         const int64_t period = 1000000000LL / (int64_t)rt.effectiveFrequency(getCycleFrequency());
         xeno_msg.cycle = (int64_t)getCyclesCount();
         xeno_msg.t_publish_ns = rt.cycleStart() + period;
-        xeno_msg.echo_t_sent_ns = last_sent_;
-        xeno_msg.t_seen_ns = t_seen_;
     }
 
     XenoFileHandler file;
-    int64_t last_sent_ = 0, t_seen_ = 0;
 };
 
 int main()
