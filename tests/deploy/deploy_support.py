@@ -21,8 +21,6 @@ import shutil
 import subprocess
 from pathlib import Path
 
-import pytest
-
 REPO = Path(__file__).resolve().parents[2]
 SUITE = "bookworm"
 PACKAGES = ["python3", "python3-venv", "cmake", "g++", "make", "ca-certificates", "systemd"]
@@ -137,19 +135,3 @@ def tree_digest(root: Path, skip: tuple[str, ...] = ("proc", "sys", "dev", "run"
             else:
                 out[rel] = f"other {meta} {st.st_rdev}"
     return out
-
-
-def requirements_or_skip() -> None:
-    if os.geteuid() != 0:
-        pytest.skip("installer tests need root (chroot, useradd)")
-
-
-@pytest.fixture(scope="module")
-def debian_root(tmp_path_factory) -> Path:
-    requirements_or_skip()
-    return fresh_root(tmp_path_factory.mktemp("deploy") / "root")
-
-
-@pytest.fixture(scope="module")
-def source(tmp_path_factory) -> Path:
-    return source_snapshot(tmp_path_factory.mktemp("source") / "xrf-lab")

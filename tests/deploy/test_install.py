@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO, run_install, tree_digest
+from deploy_support import REPO, run_install, tree_digest
 
 pytestmark = pytest.mark.timeout(1800)
 
