@@ -1,0 +1,238 @@
+"""Encoder counts -> joint angles (Jiwy) and a floor pose (RELbot), from a bench profile.
+
+Pure Python, no numpy: the same code runs live (fed by the appliance's telemetry) and in replay
+(fed by a run's recording), and the tests check it against hand-computed cases.
+
+Counters. The ico board's counters are 14-bit and wrap at 16384. A counter is unwrapped by taking
+the difference between successive samples modulo 16384 into [-8192, 8191] (the course code's rule:
+a jump of more than half the range is a wrap). That is right as long as a shaft turns less than
+half the range (2 motor revolutions at 4096 counts/rev) between two samples we look at; the
+recorder keeps samples at least every 5 ms, which leaves a wide margin on both robots.
+The first sample is read as a signed 14-bit number (16383 = -1), so a counter that was zeroed
+and then moved backwards a little starts negative, not near +4 turns.
+
+Profile fields used (``mechanics`` of deploy/profiles/*.json):
+- both: ``counts_per_rev`` (at the motor shaft), ``gear_ratio`` (motor turns per output turn);
+- pan_tilt: ``axes.<pan|tilt>.channel``, ``belt_ratio`` (camera turn per gearbox output turn),
+  ``zero_offset_counts`` (count at which the axis is at 0), ``inverted``, ``limits_deg``;
+- differential_drive: ``wheel_diameter``, ``track_width`` (m), ``left_channel``, ``right_channel``,
+  ``left_encoder_inverted``, ``right_encoder_inverted`` (true: the counter counts down when the
+  wheel rolls forward, the RELbot's mirrored right motor).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Optional, Sequence
+
+COUNTER_RANGE = 16384  # 14-bit counters
+HALF_RANGE = COUNTER_RANGE // 2
+
+
+class KinematicsError(ValueError):
+    """The profile does not describe a robot the 3D view can draw."""
+
+
+def signed14(raw: int) -> int:
+    """A raw 14-bit count read as signed: 0..8191 as is, 8192..16383 as -8192..-1."""
+    raw = int(raw) % COUNTER_RANGE
+    return raw - COUNTER_RANGE if raw >= HALF_RANGE else raw
+
+
+def wrap_delta(new: int, old: int) -> int:
+    """The change from `old` to `new` raw counts, across a wrap: in [-8192, 8191]."""
+    return signed14(int(new) - int(old))
+
+
+class Unwrapper:
+    """Raw 14-bit counts in, a continuous count out (an int that never wraps)."""
+
+    def __init__(self) -> None:
+        self.raw: Optional[int] = None
+        self.count = 0
+
+    def update(self, raw: int) -> int:
+        if self.raw is None:
+            self.count = signed14(raw)
+        else:
+            self.count += wrap_delta(raw, self.raw)
+        self.raw = int(raw) % COUNTER_RANGE
+        return self.count
+
+    def reset(self) -> None:
+        self.raw = None
+        self.count = 0
+
+
+def _mechanics(profile: dict[str, Any]) -> dict[str, Any]:
+    mech = profile.get("mechanics") if isinstance(profile, dict) else None
+    if not isinstance(mech, dict) or not mech:
+        name = profile.get("name", "?") if isinstance(profile, dict) else "?"
+        raise KinematicsError(f"bench profile {name!r} has no 'mechanics' section: the 3D view needs "
+                              "counts per revolution, gear ratio and the robot's geometry")
+    return mech
+
+
+# ---- Jiwy: pan/tilt --------------------------------------------------------------------------
+
+
+@dataclass
+class Axis:
+    name: str
+    channel: int  # 1..4
+    rad_per_count: float  # camera rad per motor count, sign included
+    zero_offset: int = 0
+    limits: tuple[float, float] = (-math.inf, math.inf)  # rad
+    unwrap: Unwrapper = field(default_factory=Unwrapper)
+
+    def angle_of(self, count: int) -> float:
+        """Camera angle (rad) for a continuous (unwrapped) count."""
+        return (count - self.zero_offset) * self.rad_per_count
+
+    def counts_of(self, angle: float) -> float:
+        """The inverse of angle_of (tests, setpoint ghosts)."""
+        return angle / self.rad_per_count + self.zero_offset
+
+
+class PanTilt:
+    """Jiwy: two revolute axes, camera angle = (count - zero) * 2π / cpr / gear * belt."""
+
+    kind = "pan_tilt"
+
+    def __init__(self, profile: dict[str, Any]) -> None:
+        mech = _mechanics(profile)
+        if mech.get("kind") != "pan_tilt":
+            raise KinematicsError(f"mechanics.kind is {mech.get('kind')!r}, not pan_tilt")
+        cpr = float(mech["counts_per_rev"])
+        gear = float(mech["gear_ratio"])
+        axes = mech.get("axes") or {}
+        self.axes: dict[str, Axis] = {}
+        for name in ("pan", "tilt"):
+            a = axes.get(name)
+            if not isinstance(a, dict):
+                raise KinematicsError(f"mechanics.axes.{name} is missing")
+            sign = -1.0 if a.get("inverted") else 1.0
+            lim = a.get("limits_deg")
+            limits = (math.radians(lim[0]), math.radians(lim[1])) if lim else (-math.inf, math.inf)
+            self.axes[name] = Axis(
+                name=name,
+                channel=int(a["channel"]),
+                rad_per_count=sign * 2 * math.pi / cpr / gear * float(a["belt_ratio"]),
+                zero_offset=int(a.get("zero_offset_counts") or 0),
+                limits=limits,
+            )
+        self.angles = {name: 0.0 for name in self.axes}
+
+    def update(self, enc: Sequence[int]) -> dict[str, float]:
+        """One sample of raw counts (enc[0] = channel 1); returns {pan, tilt} in rad."""
+        for name, axis in self.axes.items():
+            self.angles[name] = axis.angle_of(axis.unwrap.update(enc[axis.channel - 1]))
+        return dict(self.angles)
+
+    def reset(self) -> None:
+        for axis in self.axes.values():
+            axis.unwrap.reset()
+        self.angles = {name: 0.0 for name in self.axes}
+
+    def state(self) -> dict[str, Any]:
+        return {"kind": self.kind, "joints": dict(self.angles),
+                "counts": {n: a.unwrap.count for n, a in self.axes.items()}}
+
+
+# ---- RELbot: differential drive odometry -----------------------------------------------------
+
+
+@dataclass
+class Pose:
+    x: float = 0.0
+    y: float = 0.0
+    theta: float = 0.0
+
+
+class DiffDrive:
+    """RELbot: wheel odometry from the two encoders (unicycle model, midpoint heading).
+
+    Per sample: dl, dr = wheel travel (m, + = forward); ds = (dl + dr) / 2; dθ = (dr - dl) / track;
+    x += ds·cos(θ + dθ/2); y += ds·sin(θ + dθ/2); θ += dθ. The same integration as the simulated
+    plant, so on the simulated bench the odometry follows the true pose up to the counts' resolution
+    (the wheels do not slip there; on the floor they do, and the odometry drifts).
+    """
+
+    kind = "differential_drive"
+
+    def __init__(self, profile: dict[str, Any], trail_len: int = 600, trail_step_m: float = 0.005) -> None:
+        mech = _mechanics(profile)
+        if mech.get("kind") != "differential_drive":
+            raise KinematicsError(f"mechanics.kind is {mech.get('kind')!r}, not differential_drive")
+        cpr = float(mech["counts_per_rev"])
+        gear = float(mech["gear_ratio"])
+        self.wheel_radius = float(mech["wheel_diameter"]) / 2
+        self.track = float(mech["track_width"])
+        self.left_channel = int(mech["left_channel"])
+        self.right_channel = int(mech["right_channel"])
+        rad_per_count = 2 * math.pi / cpr / gear  # wheel rad per motor count
+        self.left_rad_per_count = -rad_per_count if mech.get("left_encoder_inverted") else rad_per_count
+        self.right_rad_per_count = -rad_per_count if mech.get("right_encoder_inverted") else rad_per_count
+        self.left = Unwrapper()
+        self.right = Unwrapper()
+        self.pose = Pose()
+        self.wheel = {"left": 0.0, "right": 0.0}  # rad at the wheel since the first sample, + = forward
+        self.trail_len = trail_len
+        self.trail_step_m = trail_step_m
+        self.trail: list[tuple[float, float]] = [(0.0, 0.0)]
+        self._last: Optional[tuple[int, int]] = None
+
+    def update(self, enc: Sequence[int]) -> Pose:
+        cl = self.left.update(enc[self.left_channel - 1])
+        cr = self.right.update(enc[self.right_channel - 1])
+        if self._last is not None:
+            dl = (cl - self._last[0]) * self.left_rad_per_count * self.wheel_radius
+            dr = (cr - self._last[1]) * self.right_rad_per_count * self.wheel_radius
+            self.step(dl, dr)
+        self._last = (cl, cr)
+        self.wheel = {"left": cl * self.left_rad_per_count, "right": cr * self.right_rad_per_count}
+        return self.pose
+
+    def step(self, dl: float, dr: float) -> None:
+        """Integrate wheel travels dl, dr (m, + = forward)."""
+        p = self.pose
+        ds = (dl + dr) / 2
+        dth = (dr - dl) / self.track
+        mid = p.theta + dth / 2
+        p.x += ds * math.cos(mid)
+        p.y += ds * math.sin(mid)
+        p.theta += dth
+        lx, ly = self.trail[-1]
+        if math.hypot(p.x - lx, p.y - ly) >= self.trail_step_m:
+            self.trail.append((p.x, p.y))
+            if len(self.trail) > self.trail_len:
+                del self.trail[: len(self.trail) - self.trail_len]
+
+    def reset_pose(self) -> None:
+        """Reset odometry: the robot is at (0, 0), heading +x, from now on (counters keep counting)."""
+        self.pose = Pose()
+        self.trail = [(0.0, 0.0)]
+
+    def reset(self) -> None:
+        self.left.reset()
+        self.right.reset()
+        self._last = None
+        self.wheel = {"left": 0.0, "right": 0.0}
+        self.reset_pose()
+
+    def state(self) -> dict[str, Any]:
+        p = self.pose
+        return {"kind": self.kind, "pose": {"x": p.x, "y": p.y, "theta": p.theta},
+                "wheels": dict(self.wheel), "trail_points": len(self.trail)}
+
+
+def from_profile(profile: dict[str, Any]) -> PanTilt | DiffDrive:
+    """The kinematics a profile describes; KinematicsError if it does not describe one."""
+    kind = _mechanics(profile).get("kind")
+    if kind == "pan_tilt":
+        return PanTilt(profile)
+    if kind == "differential_drive":
+        return DiffDrive(profile)
+    raise KinematicsError(f"mechanics.kind {kind!r} is not one the 3D view can draw "
+                          "(pan_tilt or differential_drive)")

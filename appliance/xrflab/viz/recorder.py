@@ -1,0 +1,160 @@
+"""Per-run telemetry recording for the 3D view's replay.
+
+The loop's own log (xrflab.logs) holds the variables a program logs, not the encoder counts, so
+the appliance keeps its own compact recording of every run, written from the telemetry the
+supervisor's reader already takes (nothing is added to the loop):
+
+    <run_dir>/viz/meta.json        {"format": 1, "record": "<qI4H", "plant", "robot", "profile", ...}
+    <run_dir>/viz/telemetry.bin    fixed 20-byte records: t_ns (int64), cycle (uint32), enc[4] (uint16)
+    <run_dir>/viz/events.jsonl     {"t_ns": .., "setpoint": {...}} / {"t_ns": .., "reset_odometry": true}
+
+At most one sample per ``min_period_s`` (5 ms: 200 Hz, 4 kB/s) is kept; a slower loop has every
+sample kept. That is fast enough to unwrap the 14-bit counters (a shaft would have to turn two
+motor revolutions in 5 ms to be misread) and small enough to keep for every run. The raw counts
+are recorded, not angles: a corrected profile replays an old run correctly.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Optional, Sequence
+
+RECORD = struct.Struct("<qI4H")
+FORMAT = 1
+SUBDIR = "viz"
+
+
+def recording_dir(run_dir: Path | str) -> Path:
+    return Path(run_dir) / SUBDIR
+
+
+class Recorder:
+    """Writes one run's recording. Not thread-safe: called from the appliance's event loop only."""
+
+    def __init__(self, run_dir: Path | str, meta: dict[str, Any], min_period_s: float = 0.005,
+                 flush_period_s: float = 1.0) -> None:
+        self.dir = recording_dir(run_dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.min_period_ns = int(min_period_s * 1e9)
+        self.flush_period_s = flush_period_s
+        self.meta = {"format": FORMAT, "record": RECORD.format, "min_period_s": min_period_s,
+                     "created": time.time(), **meta}
+        (self.dir / "meta.json").write_text(json.dumps(self.meta, indent=1) + "\n")
+        self._bin = open(self.dir / "telemetry.bin", "wb")
+        self._events = open(self.dir / "events.jsonl", "a", encoding="utf-8")
+        self._last_kept_ns: Optional[int] = None
+        self._pending: Optional[tuple[int, int, tuple[int, ...]]] = None  # newest sample not kept
+        self._last_flush = time.monotonic()
+        self.samples = 0
+        self.last_t_ns = 0
+        self.closed = False
+
+    def add(self, t_ns: int, cycle: int, enc: Sequence[int]) -> bool:
+        """Offer one sample; True if it was kept (the caller feeds kept samples to the live view,
+        so live and replay see the same samples)."""
+        if self.closed:
+            return False
+        self.last_t_ns = t_ns
+        if self._last_kept_ns is not None and t_ns - self._last_kept_ns < self.min_period_ns:
+            self._pending = (t_ns, cycle, tuple(enc))
+            return False
+        self._write(t_ns, cycle, enc)
+        return True
+
+    def _write(self, t_ns: int, cycle: int, enc: Sequence[int]) -> None:
+        self._bin.write(RECORD.pack(t_ns, cycle & 0xFFFFFFFF, *(int(e) & 0xFFFF for e in enc[:4])))
+        self._last_kept_ns = t_ns
+        self._pending = None
+        self.samples += 1
+        now = time.monotonic()
+        if now - self._last_flush >= self.flush_period_s:
+            self.flush()
+
+    def event(self, t_ns: int, **fields: Any) -> None:
+        if self.closed:
+            return
+        self._events.write(json.dumps({"t_ns": t_ns, **fields}, allow_nan=False, default=str) + "\n")
+        self._events.flush()
+
+    def flush(self) -> None:
+        self._bin.flush()
+        self._last_flush = time.monotonic()
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        if self._pending is not None:  # the run's last position, even if it came < 5 ms after
+            self._write(*self._pending)
+        self.closed = True
+        self._bin.close()
+        self._events.close()
+        self.meta["samples"] = self.samples
+        self.meta["closed"] = time.time()
+        (self.dir / "meta.json").write_text(json.dumps(self.meta, indent=1) + "\n")
+
+
+@dataclass
+class Recording:
+    meta: dict[str, Any]
+    t_ns: list[int]
+    cycle: list[int]
+    enc: list[tuple[int, int, int, int]]
+    events: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def duration_s(self) -> float:
+        return (self.t_ns[-1] - self.t_ns[0]) / 1e9 if self.t_ns else 0.0
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+
+def has_recording(run_dir: Path | str) -> bool:
+    d = recording_dir(run_dir)
+    return (d / "meta.json").is_file() and (d / "telemetry.bin").is_file()
+
+
+def load_recording(run_dir: Path | str) -> Recording:
+    """Read a run's recording (FileNotFoundError if there is none). A torn last record (the
+    appliance died mid-write) is ignored."""
+    d = recording_dir(run_dir)
+    meta = json.loads((d / "meta.json").read_text())
+    if meta.get("format") != FORMAT:
+        raise ValueError(f"{d}: recording format {meta.get('format')!r} is not known")
+    data = (d / "telemetry.bin").read_bytes()
+    n = len(data) // RECORD.size
+    t_ns: list[int] = []
+    cycle: list[int] = []
+    enc: list[tuple[int, int, int, int]] = []
+    for t, c, e1, e2, e3, e4 in RECORD.iter_unpack(data[: n * RECORD.size]):
+        t_ns.append(t)
+        cycle.append(c)
+        enc.append((e1, e2, e3, e4))
+    events: list[dict[str, Any]] = []
+    ev_path = d / "events.jsonl"
+    if ev_path.is_file():
+        for line in ev_path.read_text(encoding="utf-8").splitlines():
+            try:
+                events.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue  # a torn last line
+    events.sort(key=lambda e: e.get("t_ns", 0))
+    return Recording(meta, t_ns, cycle, enc, events)
+
+
+def write_recording(run_dir: Path | str, meta: dict[str, Any],
+                    samples: Iterable[tuple[int, Sequence[int]]],
+                    events: Iterable[dict[str, Any]] = ()) -> Path:
+    """A recording from (t_ns, enc) pairs, every sample kept (tests, converted data)."""
+    rec = Recorder(run_dir, meta, min_period_s=0.0)
+    for i, (t, enc) in enumerate(samples):
+        rec.add(t, i, enc)
+    for ev in events:
+        ev = dict(ev)
+        rec.event(int(ev.pop("t_ns")), **ev)
+    rec.close()
+    return rec.dir

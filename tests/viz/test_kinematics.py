@@ -1,0 +1,224 @@
+"""Counts -> angles / pose against hand-computed cases (xrflab.viz.kinematics), the recording
+round trip and the replay built from it. No server, no viser: fast."""
+
+from __future__ import annotations
+
+import copy
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "appliance"))
+from xrflab.profiles import load_profile  # noqa: E402
+from xrflab.viz import kinematics as kin  # noqa: E402
+from xrflab.viz.recorder import Recorder, load_recording, write_recording  # noqa: E402
+from xrflab.viz.scene import build_replay, resolve_profile, setpoint_angles  # noqa: E402
+
+JIWY = load_profile("jiwy")
+RELBOT = load_profile("relbot")
+# RELbot: counts per wheel turn = 4096 * 15.58 = 63815.68; wheel radius 0.0505 m; track 0.20 m.
+COUNTS_PER_WHEEL_REV = 63815.68
+
+
+def raw(count: int) -> int:
+    """What a 14-bit counter shows for a continuous count."""
+    return count % 16384
+
+
+def feed(model, counts_per_channel, steps: int = 50):
+    """Move each channel from 0 to its target count in `steps` equal steps (raw, wrapped)."""
+    targets = list(counts_per_channel) + [0] * (4 - len(counts_per_channel))
+    out = None
+    for k in range(steps + 1):
+        out = model.update([raw(round(t * k / steps)) for t in targets])
+    return out
+
+
+# ---- counters --------------------------------------------------------------------------------
+
+
+def test_signed_and_wrap_deltas() -> None:
+    assert kin.signed14(0) == 0 and kin.signed14(8191) == 8191
+    assert kin.signed14(8192) == -8192 and kin.signed14(16383) == -1
+    assert kin.wrap_delta(2, 16380) == 6  # forward across the wrap
+    assert kin.wrap_delta(16383, 5) == -6  # backward across the wrap
+    assert kin.wrap_delta(8000, 100) == 7900
+    assert kin.wrap_delta(100, 8000) == -7900
+
+
+def test_unwrapper_forward_and_backward() -> None:
+    u = kin.Unwrapper()
+    assert [u.update(r) for r in (0, 6000, 12000, 1616, 7616)] == [0, 6000, 12000, 18000, 24000]
+    u = kin.Unwrapper()
+    assert [u.update(r) for r in (0, 16000, 10000, 4000)] == [0, -384, -6384, -12384]
+    u = kin.Unwrapper()
+    assert u.update(16383) == -1  # first sample read as signed: just below zero, not +4 turns
+
+
+# ---- Jiwy ------------------------------------------------------------------------------------
+
+
+def test_jiwy_counts_per_radian() -> None:
+    m = kin.PanTilt(JIWY)
+    assert m.axes["pan"].rad_per_count == pytest.approx(2 * math.pi / 4096 / 19)
+    assert m.axes["tilt"].rad_per_count == pytest.approx(2 * math.pi / 4096 / 19 * 0.25)
+
+
+def test_jiwy_end_stops_after_wraps() -> None:
+    # simulator.md: 90 deg pan = 19/4 motor turns = 19456 counts (reads 3072 after one wrap);
+    # 45 deg tilt = 76/8 turns = 38912 counts (reads 6144 after two wraps).
+    m = kin.PanTilt(JIWY)
+    a = feed(m, [19456, 38912], steps=10)
+    assert m.axes["pan"].unwrap.raw == 3072 and m.axes["tilt"].unwrap.raw == 6144
+    assert a["pan"] == pytest.approx(math.pi / 2)
+    assert a["tilt"] == pytest.approx(math.pi / 4)
+
+
+def test_jiwy_reverse_direction() -> None:
+    m = kin.PanTilt(JIWY)
+    a = feed(m, [-19456, -38912], steps=10)
+    assert a["pan"] == pytest.approx(-math.pi / 2)
+    assert a["tilt"] == pytest.approx(-math.pi / 4)
+    # and back through zero
+    for k in range(10, -1, -1):
+        a = m.update([raw(-1945 * k), raw(-3891 * k), 0, 0])
+    assert a["pan"] == pytest.approx(0) and a["tilt"] == pytest.approx(0)
+
+
+def test_jiwy_zero_offset_and_inverted_axis() -> None:
+    p = copy.deepcopy(JIWY)
+    p["mechanics"]["axes"]["pan"]["zero_offset_counts"] = 1000
+    p["mechanics"]["axes"]["tilt"]["inverted"] = True
+    m = kin.PanTilt(p)
+    a = m.update([1000, 2000, 0, 0])
+    assert a["pan"] == pytest.approx(0.0)
+    assert a["tilt"] == pytest.approx(-2000 * 2 * math.pi / 4096 / 19 * 0.25)
+    a = feed(m, [1000 + 19456, 0], steps=10)
+    assert a["pan"] == pytest.approx(math.pi / 2)
+
+
+def test_setpoint_fields_of_the_jiwy_example() -> None:
+    assert setpoint_angles({"pan_setpoint": 0.5, "tilt_setpoint": -0.2}) == {"pan": 0.5, "tilt": -0.2}
+    assert setpoint_angles({"steer_left": 1.0}) == {}
+
+
+# ---- RELbot ----------------------------------------------------------------------------------
+
+
+def test_relbot_straight_line_forward_and_backward() -> None:
+    # 32000 counts = 32000 / 63815.68 wheel turns = 3.150667 rad = 0.159109 m at r = 0.0505 m.
+    # Forward: left counts up, right (mirrored, inverted) counts down.
+    m = kin.DiffDrive(RELBOT)
+    p = feed(m, [32000, -32000])
+    assert p.x == pytest.approx(0.159109, abs=1e-6)
+    assert p.y == pytest.approx(0.0, abs=1e-12) and p.theta == pytest.approx(0.0, abs=1e-12)
+    assert m.wheel["left"] == pytest.approx(3.150667, abs=1e-6)
+    assert m.wheel["right"] == pytest.approx(3.150667, abs=1e-6)
+    m = kin.DiffDrive(RELBOT)
+    p = feed(m, [-32000, 32000])
+    assert p.x == pytest.approx(-0.159109, abs=1e-6) and p.theta == pytest.approx(0.0, abs=1e-12)
+
+
+def test_relbot_turn_on_the_spot() -> None:
+    # theta = (dr - dl) / track; a quarter turn: each wheel pi/2 * 0.1 m = 0.157080 m
+    # = 3.110494 rad = 31591.8 counts. Left backwards (counts down), right forwards (counts down).
+    m = kin.DiffDrive(RELBOT)
+    p = feed(m, [-31592, -31592])
+    assert p.theta == pytest.approx(math.pi / 2, abs=1e-4)
+    assert p.x == pytest.approx(0.0, abs=1e-12) and p.y == pytest.approx(0.0, abs=1e-12)
+    # the other way: clockwise
+    m = kin.DiffDrive(RELBOT)
+    assert feed(m, [31592, 31592]).theta == pytest.approx(-math.pi / 2, abs=1e-4)
+
+
+def test_relbot_full_turn_on_the_spot() -> None:
+    m = kin.DiffDrive(RELBOT)
+    p = feed(m, [-4 * 31592, -4 * 31592], steps=200)
+    assert p.theta == pytest.approx(2 * math.pi, abs=4e-4)
+    assert math.hypot(p.x, p.y) < 1e-9
+
+
+def test_relbot_full_circle() -> None:
+    # A circle of radius 0.5 m, counter-clockwise: centre travel 2*pi*0.5 = pi m, and
+    # dr - dl = 2*pi*track = 0.4*pi m: dl = 0.8*pi m, dr = 1.2*pi m; in counts
+    # 0.8*pi / (2*pi*0.0505) * 63815.68 = 505470.7 and 0.6/0.0505 * 63815.68 = 758206.1.
+    m = kin.DiffDrive(RELBOT)
+    left, right = 505470.7, 758206.1
+    half = None
+    steps = 2000
+    for k in range(steps + 1):
+        p = m.update([raw(round(left * k / steps)), raw(-round(right * k / steps)), 0, 0])
+        if k == steps // 2:
+            half = (p.x, p.y, p.theta)
+    assert half[0] == pytest.approx(0.0, abs=2e-3) and half[1] == pytest.approx(1.0, abs=2e-3)
+    assert half[2] == pytest.approx(math.pi, abs=1e-3)
+    assert p.theta == pytest.approx(2 * math.pi, abs=1e-3)
+    assert math.hypot(p.x, p.y) < 2e-3
+    assert len(m.trail) > 100  # the trail followed the circle
+
+
+def test_relbot_reset_odometry_keeps_counting() -> None:
+    m = kin.DiffDrive(RELBOT)
+    feed(m, [32000, -32000])
+    m.reset_pose()
+    assert (m.pose.x, m.pose.y, m.pose.theta) == (0.0, 0.0, 0.0) and m.trail == [(0.0, 0.0)]
+    for k in range(1, 11):  # 32000 more counts, in steps well under half the counter range
+        p = m.update([raw(32000 + 3200 * k), raw(-32000 - 3200 * k), 0, 0])
+    assert p.x == pytest.approx(0.159109, abs=1e-6)
+
+
+def test_profile_without_mechanics_is_refused() -> None:
+    p = copy.deepcopy(RELBOT)
+    del p["mechanics"]
+    with pytest.raises(kin.KinematicsError, match="mechanics"):
+        kin.from_profile(p)
+
+
+def test_no_profile_gives_a_message(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.delenv("XRF_BENCH_PROFILE", raising=False)
+    profile, name, message = resolve_profile("relbot", real_bench=True, data_dir=tmp_path)
+    assert profile is None and "no profile" in message
+    profile, name, message = resolve_profile("nosuchplant", real_bench=False, data_dir=tmp_path)
+    assert profile is None and "nosuchplant" in message
+    profile, name, message = resolve_profile("jiwy", real_bench=False, data_dir=tmp_path)
+    assert profile is not None and message == ""
+
+
+# ---- recording and replay --------------------------------------------------------------------
+
+
+def test_recorder_thins_to_200_hz_and_keeps_the_last_sample(tmp_path: Path) -> None:
+    rec = Recorder(tmp_path, {"plant": "jiwy"})
+    kept = [rec.add(t * 1_000_000, t, [t % 16384, 0, 0, 0]) for t in range(0, 101)]  # 1 kHz, 100 ms
+    rec.close()
+    assert sum(kept) == 21  # t = 0, 5, ..., 100 ms
+    r = load_recording(tmp_path)
+    assert len(r) == 21 and r.t_ns[-1] == 100_000_000 and r.enc[-1] == (100, 0, 0, 0)
+
+
+def test_replay_of_a_recorded_circle_and_jiwy(tmp_path: Path) -> None:
+    left, right, steps = 505470.7, 758206.1, 2000
+    samples = [(k * 5_000_000, (raw(round(left * k / steps)), raw(-round(right * k / steps)), 0, 0))
+               for k in range(steps + 1)]
+    write_recording(tmp_path / "1", {"profile": RELBOT, "profile_name": "relbot"}, samples,
+                    [{"t_ns": 0, "setpoint": {"steer_left": 1.0}}])
+    r = build_replay(1, tmp_path / "1")
+    assert r.kind == "differential_drive" and r.duration == pytest.approx(10.0)
+    x, y, th = r.poses[r.index(5.0)]
+    assert (x, y) == (pytest.approx(0.0, abs=2e-3), pytest.approx(1.0, abs=2e-3))
+    assert r.setpoint_at(1.0) == {"steer_left": 1.0}
+
+    samples = [(k * 5_000_000, (raw(k * 1945), raw(-k * 3891), 0, 0)) for k in range(11)]
+    write_recording(tmp_path / "2", {"profile": JIWY, "profile_name": "jiwy"}, samples,
+                    [{"t_ns": 20_000_000, "setpoint": {"pan_setpoint": 0.5}}])
+    r = build_replay(2, tmp_path / "2")
+    pan, tilt = r.joints[-1]
+    assert pan == pytest.approx(19450 * 2 * math.pi / 4096 / 19)
+    assert tilt == pytest.approx(-38910 * 2 * math.pi / 4096 / 19 * 0.25)
+    assert r.setpoint_at(0.01) == {} and r.setpoint_at(0.03) == {"pan_setpoint": 0.5}
+
+    write_recording(tmp_path / "3", {"profile": None, "message": "no profile"}, samples)
+    r = build_replay(3, tmp_path / "3")
+    assert r.kind == "" and "no profile" in r.message
