@@ -11,6 +11,7 @@ from fastapi.staticfiles import StaticFiles
 
 from .api import router, ws_router
 from .hub import Hub
+from .routes_logs import router as logs_router
 from .runs import RunStore
 from .settings import Settings
 from .supervisor import Supervisor
@@ -43,6 +44,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.include_router(router)
     app.include_router(ws_router)
+    app.include_router(logs_router)
 
     frontend = settings.frontend_dir
     if frontend.is_dir():

@@ -37,6 +37,15 @@ CREATE TABLE IF NOT EXISTS runs (
 );
 """
 
+# Columns added after the first release: (name, declaration). Added with ALTER TABLE when an
+# older database lacks them, so existing run records survive an upgrade.
+_ADDED_COLUMNS = (
+    ("owner", "TEXT NOT NULL DEFAULT ''"),        # user who started the run (issue 7 fills it)
+    ("log_records", "INTEGER NOT NULL DEFAULT 0"),  # records in the run's log files
+    ("log_lost", "INTEGER NOT NULL DEFAULT 0"),     # ring drops + records drained after a write failure
+    ("log_note", "TEXT NOT NULL DEFAULT ''"),       # why logging stopped (disk full, ...), '' = it did not
+)
+
 
 @dataclass
 class RunRow:
@@ -59,6 +68,10 @@ class RunRow:
     cycle_freq: int
     run_dir: str
     message: str
+    owner: str = ""
+    log_records: int = 0
+    log_lost: int = 0
+    log_note: str = ""
 
     def as_dict(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -73,6 +86,10 @@ class RunStore:
         self._db = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False)
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.executescript(_SCHEMA)
+        have = {r[1] for r in self._db.execute("PRAGMA table_info(runs)")}
+        for name, decl in _ADDED_COLUMNS:
+            if name not in have:
+                self._db.execute(f"ALTER TABLE runs ADD COLUMN {name} {decl}")
         # A previous appliance process that died mid-run left rows 'running': they did not end
         # cleanly and nobody watched them end, so say so rather than show them as live.
         self.orphans: list[RunRow] = [

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import channels as chmod
+from ..logs import live as loglive
 from ..channels import Channels, ChannelsError
 from .hub import Hub
 from .runs import RunRow, RunStore
@@ -171,6 +172,7 @@ class Run:
     last_missed: int = 0
     telemetry_sent: int = 0
     telemetry_lost: int = 0
+    logging: Any = None  # xrflab.logs.live.RunLogging: host log writer, live rerun
 
     @property
     def alive(self) -> bool:
@@ -293,6 +295,7 @@ class Supervisor:
                 # would show every line twice in the console.
                 XRF_QUIET="1",
             )
+            env.update(loglive.loop_env(row.id, build))
             if not self.settings.bench_is_real():
                 env["XRF_TRANSPORT"] = "sim"
             if max_cycles:
@@ -331,6 +334,7 @@ class Supervisor:
             run.row = self.store.update(
                 row.id, status="running", program=info.get("program", ""), cycle_freq=info.get("cycle_freq", 0)
             )
+            run.logging = loglive.start_for(self, run)
             run.tasks.append(asyncio.create_task(self._supervise(run), name=f"run{row.id}-heartbeat"))
             run.tasks.append(asyncio.create_task(self._guarded(self._reader, run), name=f"run{row.id}-reader"))
             run.tasks.append(asyncio.create_task(self._guarded(self._timing, run), name=f"run{row.id}-timing"))
@@ -409,6 +413,7 @@ class Supervisor:
         run.thread_stop.set()
         if run.thread is not None:
             await asyncio.to_thread(run.thread.join, 1.0)
+        await loglive.finish_for(self, run)  # the rest of the log ring, even after a crash
         current = asyncio.current_task()
         for task in run.tasks:
             if task is not current and task.get_name().endswith(("heartbeat", "reader", "timing")):

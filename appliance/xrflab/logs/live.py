@@ -1,0 +1,582 @@
+"""The appliance side of a run's logging: the host log writer, the per-second timing series and
+the live rerun stream.
+
+**Host log writer** (the loop runs with ``XRF_LOG_WRITER=host``): a thread of the appliance
+drains the loop's lossless log ring (``xrf_spsc_peek_run``: the longest run of ready slots that
+is contiguous, one ``write()`` each) into the file named in ``log_meta.path``, in the format of
+docs/logging/file-format.md (the same bytes rt_core/src/logfile.cpp writes). It wakes on the
+loop's doorbell (futex, no polling; at most ``WAIT_MS`` between drains). Because the appliance
+keeps the run's shared memory mapped after the loop process is gone, a crashed or killed loop
+loses nothing that reached the ring: ``finish()`` drains the rest.
+
+Faults: the loop never waits on us: if we stall, the ring fills and the loop counts
+``log_lost`` (sequence numbers make the gap visible). A write that fails (disk full, I/O error,
+file too large) stops logging for the run, cuts the file back to its last complete record (what
+was written stays decodable) and raises an alarm once; records drained after that are counted
+as ``unwritten`` so the run record still adds up: ``seq`` of the last record + 1 = records in the
+file + lost + unwritten.
+
+**Timing** (issue 4 item 2, without an rt_core change): once per second the framework's stage
+histograms are sampled into ``timing.jsonl`` in the run folder: per stage the interval's count,
+mean, and the cumulative p50/p99/max, wake-up jitter included.
+
+**Live rerun**: the records the writer hands over (decimated to ``LIVE_HZ``) and the loop's
+telemetry are sent to a rerun recording per run (``recording_id = run-<id>``), connected to one
+gRPC message proxy per appliance (``rerun+http://<host>:<grpc_port>/proxy``) that the rerun web
+viewer reads; a run's blueprint has one time-series view per variable group plus encoders, PWM
+and Xeno2Ros. See docs/logging/appliance.md.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import queue
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger("xrflab.logs.live")
+
+WAIT_MS = 20            # longest time between two drains when no doorbell rings
+LIVE_HZ = 100.0         # log records per second sent to the live rerun recording
+TELEMETRY_HZ = 50.0     # telemetry samples per second sent to it
+TIMING_PERIOD_S = 1.0
+MAGIC = b"XRFLOG1\n"
+TYPE_NAMES = {1: "bool", 2: "char", 3: "int32", 4: "float32", 5: "float64", 6: "int64"}
+
+
+def _json_str(s: str) -> str:
+    # logfile.cpp escapes '"', '\\' and control characters only; json.dumps with
+    # ensure_ascii=False gives the same for every name a C identifier-ish logger uses.
+    return json.dumps(s, ensure_ascii=False)
+
+
+def segment_header(meta: dict[str, Any], stride: int) -> bytes:
+    """A segment header (magic, JSON length, stride, JSON, zero padding), byte-compatible with
+    rt_core's writer. `meta`: program, project, build, run, pid, cycle_freq, start_unix_ns,
+    start_mono_ns, record_size, variables [(name, type, offset)]."""
+    parts = [
+        '{"format":"xrflog","version":1,"program":', _json_str(meta["program"]),
+        ',"project":', _json_str(meta.get("project", "")),
+        ',"build":', _json_str(meta.get("build", "")),
+        ',"run":', _json_str(meta.get("run", "")),
+        f',"pid":{int(meta["pid"])},"cycle_freq":{int(meta["cycle_freq"])},'
+        f'"start_unix_ns":{int(meta["start_unix_ns"])},"start_mono_ns":{int(meta["start_mono_ns"])},'
+        '"record_header":[["seq","uint64"],["cycle","uint64"],["t_ns","int64"]],'
+        f'"record_size":{int(meta["record_size"])},"variables":[',
+    ]
+    for i, (name, code, offset) in enumerate(meta["variables"]):
+        parts.append(("," if i else "") + '{"name":' + _json_str(name)
+                     + f',"type":{int(code)},"dtype":"{TYPE_NAMES.get(int(code), "?")}","offset":{int(offset)}}}')
+    parts.append("]}\n")
+    j = "".join(parts).encode()
+    pad = (8 - (16 + len(j)) % 8) % 8
+    return MAGIC + len(j).to_bytes(4, "little") + stride.to_bytes(4, "little") + j + b"\0" * pad
+
+
+@dataclass
+class WriterStats:
+    files: list[str] = field(default_factory=list)   # paths written, in order
+    records: int = 0            # records in the files
+    unwritten: int = 0          # drained after a write failure, so not in any file
+    bytes: int = 0
+    failed: str = ""            # why logging stopped ("" = it did not)
+    lost: int = 0               # the loop's ring drops (status.log_lost), filled in by finish()
+
+
+class HostLogWriter:
+    """Drains one run's log ring into its file; a thread of the appliance."""
+
+    def __init__(self, ch: Any, identity: dict[str, str], run_dir: Path,
+                 on_alarm: Callable[[str], None] | None = None,
+                 on_records: Callable[[np.ndarray], None] | None = None,
+                 timing: bool = True) -> None:
+        from .. import channels as chmod
+
+        self._ch = ch
+        self._lib, self._ffi = chmod.lib, chmod.ffi
+        self._identity = identity
+        self._run_dir = run_dir
+        self._on_alarm = on_alarm
+        self._on_records = on_records
+        self._timing = timing
+        self.stats = WriterStats()
+        self._fd = -1
+        self._size = 0
+        self._generation = 0
+        self._stride = 0
+        self._dtype: np.dtype | None = None
+        self._stop = threading.Event()
+        self._lock = threading.Lock()   # one drain at a time (thread vs finish())
+        self._thread: threading.Thread | None = None
+        self._last_timing = 0.0
+        self._last_hist: dict[str, tuple[int, float]] = {}
+        self._count = self._ffi.new("uint32_t *")
+
+    # -- life cycle -------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._main, name="xrf-logwriter", daemon=True)
+        self._thread.start()
+
+    def finish(self) -> WriterStats:
+        """Stop the thread and drain what is left (the loop may be dead: the mapping is ours)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+        self.drain(final=True)
+        with self._lock:
+            if self._fd >= 0:
+                try:
+                    os.fsync(self._fd)
+                except OSError:
+                    pass
+                os.close(self._fd)
+                self._fd = -1
+        try:
+            status = self._ch.status()
+            self.stats.lost = int(status.log_lost)
+            if not self._host_writes() and self._lib.xrfpy_load_u32(
+                    self._ffi.addressof(self._ch.shm.log_meta, "ready")):
+                self.stats.records = int(status.log_written)  # XRF_LOG_WRITER=process wrote them
+        except Exception:  # status locked by a loop that died mid-write: the ring knows too
+            self.stats.lost = int(self._ch.shm.log_ring.dropped)
+        self._sample_timing(force=True)
+        return self.stats
+
+    def _main(self) -> None:
+        seen = self._ch.doorbell
+        while not self._stop.is_set():
+            try:
+                self.drain()
+                self._sample_timing()
+            except Exception:  # never let a bug end logging silently
+                log.exception("log writer")
+                time.sleep(0.1)
+            seen = self._ch.wait_doorbell(seen, WAIT_MS)
+
+    def set_on_records(self, fn: Callable[[np.ndarray], None] | None) -> None:
+        with self._lock:
+            self._on_records = fn
+
+    # -- draining ----------------------------------------------------------------------------
+
+    def _host_writes(self) -> bool:
+        m = self._ch.shm.log_meta
+        if not self._lib.xrfpy_load_u32(self._ffi.addressof(m, "ready")):
+            return False
+        return int(m.writer) == self._lib.XRF_LOG_WRITER_HOST
+
+    def drain(self, final: bool = False) -> int:
+        """Write every ready record; returns how many were taken from the ring."""
+        with self._lock:
+            if not self._host_writes():
+                return 0
+            shm = self._ch.shm
+            gen = self._lib.xrfpy_load_u64(self._ffi.addressof(shm.log_meta, "generation"))
+            if gen != self._generation:
+                self._open_segment(gen)
+            taken = 0
+            ring = self._ffi.addressof(shm, "log_ring")
+            while True:
+                p = self._lib.xrf_spsc_peek_run(ring, shm.log_data, self._count)
+                if p == self._ffi.NULL:
+                    break
+                n = int(self._count[0])
+                buf = self._ffi.buffer(p, n * self._stride)
+                if self._on_records is not None and self._dtype is not None:
+                    # A copy: the slots are reused as soon as they are released.
+                    self._on_records(np.frombuffer(bytes(buf), dtype=self._dtype))
+                self._write(buf, n)
+                self._lib.xrf_spsc_release_n(ring, n)
+                taken += n
+            return taken
+
+    def _open_segment(self, gen: int) -> None:
+        from .reader import make_variables, record_dtype
+
+        shm = self._ch.shm
+        m = shm.log_meta
+        self._generation = gen
+        self._stride = int(shm.log_ring.slot_size)
+        variables = []
+        for i in range(min(int(m.nvars), self._lib.XRF_LOG_VARS_MAX)):
+            v = m.vars[i]
+            variables.append((self._ffi.string(v.name, self._lib.XRF_NAME_MAX).decode("utf-8", "replace"),
+                              int(v.type), int(v.offset)))
+        try:
+            vs = make_variables(Path("<ring>"), [v[0] for v in variables], [v[1] for v in variables],
+                                [v[2] for v in variables], ("seq", "cycle", "t_ns"))
+            self._dtype = record_dtype(vs, self._stride)
+        except Exception:
+            self._dtype = None
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+        if self.stats.failed:
+            return
+        path = self._ffi.string(m.path, self._lib.XRF_PATH_MAX).decode("utf-8", "replace")
+        if not os.path.isabs(path):
+            path = str(self._run_dir / path)
+        info = self._ch.info
+        meta = {
+            "program": info.get("program", ""), **self._identity, "pid": info.get("pid", 0),
+            "cycle_freq": info.get("cycle_freq", 0), "start_unix_ns": time.time_ns(),
+            "start_mono_ns": time.monotonic_ns(), "record_size": int(m.record_size), "variables": variables,
+        }
+        try:
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC,
+                               int(m.file_mode) or 0o644)
+            self._size = os.fstat(self._fd).st_size
+            self._write_all(segment_header(meta, self._stride))
+        except OSError as exc:
+            self._fail(f"cannot write the log file {path}: {exc.strerror or exc}", path)
+            return
+        self.stats.files.append(path)
+
+    def _write_all(self, data: Any) -> None:
+        view = memoryview(data)
+        while view:
+            n = os.write(self._fd, view)
+            self._size += n
+            view = view[n:]
+
+    def _write(self, buf: Any, n: int) -> None:
+        if self._fd < 0:
+            self.stats.unwritten += n
+            return
+        before = self._size
+        try:
+            self._write_all(buf)
+        except OSError as exc:
+            # Keep whole records only: the file ends at its last complete record.
+            done = (self._size - before) // self._stride
+            try:
+                os.ftruncate(self._fd, before + done * self._stride)
+            except OSError:
+                pass
+            self.stats.records += done
+            self.stats.bytes += done * self._stride
+            self.stats.unwritten += n - done
+            self._fail(f"writing the log file failed ({exc.strerror or exc}) after "
+                       f"{self.stats.records} records; logging stopped, the run goes on",
+                       self.stats.files[-1] if self.stats.files else "")
+            return
+        self.stats.records += n
+        self.stats.bytes += n * self._stride
+
+    def _fail(self, message: str, path: str) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+        if not self.stats.failed:
+            self.stats.failed = message
+            log.error("%s", message)
+            if self._on_alarm is not None:
+                self._on_alarm(message)
+
+    # -- timing series -----------------------------------------------------------------------
+
+    def _sample_timing(self, force: bool = False) -> None:
+        if not self._timing:
+            return
+        now = time.monotonic()
+        if not force and now - self._last_timing < TIMING_PERIOD_S:
+            return
+        self._last_timing = now
+        try:
+            hists = self._ch.histograms()
+            s = self._ch.status()
+        except Exception:
+            return
+        stages = {}
+        for name, h in hists.items():
+            prev_n, prev_sum = self._last_hist.get(name, (0, 0.0))
+            total = h.mean * h.count
+            dn = h.count - prev_n
+            stages[name] = {"n": dn, "mean_ns": round((total - prev_sum) / dn, 1) if dn > 0 else None,
+                            "p50_ns": h.percentile(50) if h.count else None,
+                            "p99_ns": h.percentile(99) if h.count else None,
+                            "max_ns": h.max if h.count else None}
+            self._last_hist[name] = (h.count, total)
+        line = {"t_unix": time.time(), "cycles": s.cycles, "missed": s.missed, "log_written": s.log_written,
+                "log_lost": s.log_lost, "stages": stages}
+        try:
+            with open(self._run_dir / "timing.jsonl", "a") as f:
+                f.write(json.dumps(line, separators=(",", ":")) + "\n")
+        except OSError:
+            pass  # a full disk already raised the log alarm; timing is best effort
+
+
+# ---- live rerun -----------------------------------------------------------------------------
+
+
+def _free_port(preferred: int) -> int:
+    for port in (preferred, 0):
+        with socket.socket() as s:
+            try:
+                s.bind(("0.0.0.0", port))
+            except OSError:
+                continue
+            return s.getsockname()[1]
+    raise OSError("no free port")
+
+
+class RerunServer:
+    """One per appliance: a rerun gRPC message proxy (live recordings) and the rerun web viewer
+    (its assets come from the installed rerun-sdk; nothing from the internet). Started on first
+    use. Ports from XRF_RERUN_GRPC_PORT / XRF_RERUN_WEB_PORT (default 9876 / 9090; a taken port
+    falls back to a free one). Browsers load the viewer through the appliance (/rerun/), and the
+    viewer connects to the gRPC port directly (gRPC-web), so that port accepts the appliance's
+    origins: any host on the appliance's own port."""
+
+    _instance: RerunServer | None = None
+    _lock = threading.Lock()
+
+    def __init__(self, appliance_port: int) -> None:
+        import rerun as rr
+
+        self.grpc_port = _free_port(int(os.environ.get("XRF_RERUN_GRPC_PORT", "9876")))
+        self.web_port = _free_port(int(os.environ.get("XRF_RERUN_WEB_PORT", "9090")))
+        origins = [f"http://*:{appliance_port}", f"https://*:{appliance_port}"]
+        extra = os.environ.get("XRF_RERUN_ORIGINS", "")
+        origins += [o for o in extra.split(",") if o]
+        self._hub = rr.RecordingStream("xrflab-live", recording_id="xrflab-live-hub")
+        self.url = self._hub.serve_grpc(grpc_port=self.grpc_port, server_memory_limit=os.environ.get(
+            "XRF_RERUN_MEMORY", "256MiB"), cors_allow_origin=origins)
+        rr.serve_web_viewer(web_port=self.web_port, open_browser=False)
+        self.local_url = f"rerun+http://127.0.0.1:{self.grpc_port}/proxy"
+
+    @classmethod
+    def get(cls, appliance_port: int) -> RerunServer:
+        with cls._lock:
+            if cls._instance is None:
+                cls._instance = cls(appliance_port)
+            return cls._instance
+
+    @classmethod
+    def running(cls) -> RerunServer | None:
+        return cls._instance
+
+
+def live_blueprint(names: list[str], telemetry: list[str]):
+    import rerun as rr
+    import rerun.blueprint as rrb
+
+    from .convert import variable_groups
+
+    groups = sorted(set(variable_groups(names).values()))
+    views = [rrb.TimeSeriesView(origin=f"/log/{rr.escape_entity_path_part(g)}", name=f"log: {g}") for g in groups]
+    views += [rrb.TimeSeriesView(origin=f"/telemetry/{t}", name=t) for t in telemetry]
+    return rrb.Blueprint(rrb.Grid(*views), rrb.TimePanel(timeline="cycle"), collapse_panels=True)
+
+
+class LiveRerun:
+    """One run's live recording: log records (decimated) and telemetry, off the writer's thread."""
+
+    def __init__(self, server: RerunServer, ch: Any, run_id: int) -> None:
+        import rerun as rr
+
+        self._rr = rr
+        self._ch = ch
+        self._freq = max(1, int(ch.info.get("cycle_freq", 1000)))
+        self._every = max(1, int(round(self._freq / LIVE_HZ)))
+        self._q: queue.Queue[np.ndarray | None] = queue.Queue(maxsize=256)
+        self.dropped = 0
+        self._wall_offset = time.time_ns() - time.monotonic_ns()
+        self._names: list[str] | None = None
+        self._paths: dict[str, str] = {}
+        self.rec = rr.RecordingStream("xrflab", recording_id=f"run-{run_id}")
+        self.rec.connect_grpc(server.local_url)
+        self._telemetry_reader = ch.telemetry_reader()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._main, name=f"xrf-rerun-{run_id}", daemon=True)
+        self._thread.start()
+
+    def feed(self, records: np.ndarray) -> None:
+        """From the writer thread: keep every k-th record (by cycle) and queue it; never blocks."""
+        if "cycle" not in records.dtype.names:
+            return
+        keep = records[records["cycle"] % self._every == 0]
+        if len(keep) == 0:
+            return
+        try:
+            self._q.put_nowait(keep)
+        except queue.Full:
+            self.dropped += len(keep)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._q.put(None)
+        self._thread.join(5.0)
+        try:
+            self.rec.flush()
+            self.rec.disconnect()
+        except Exception:
+            pass
+
+    def _indexes(self, cycle: np.ndarray, t_ns: np.ndarray) -> list[Any]:
+        rr = self._rr
+        return [rr.TimeColumn("cycle", sequence=cycle.astype(np.int64)),
+                rr.TimeColumn("time", timestamp=(t_ns.astype(np.int64) + self._wall_offset).view("datetime64[ns]"))]
+
+    def _send_records(self, rec: np.ndarray) -> None:
+        from .convert import _plain, entity_paths
+
+        rr = self._rr
+        names = [n for n in rec.dtype.names if n not in ("seq", "cycle", "t_ns")]
+        if names != self._names:
+            self._names = names
+            self._paths = entity_paths(names)
+            self.rec.send_blueprint(live_blueprint(names, ["enc", "pwm", "xeno2ros"]))
+        idx = self._indexes(rec["cycle"], rec["t_ns"])
+        for n in names:
+            self.rec.send_columns(self._paths[n], indexes=idx,
+                                  columns=rr.Scalars.columns(scalars=_plain(rec[n]).astype(np.float64)))
+
+    def _send_telemetry(self) -> None:
+        rr = self._rr
+        samples = self._telemetry_reader.read()
+        if not samples:
+            return
+        step = max(1, int(round(len(samples) / max(1.0, TELEMETRY_HZ * WAIT_MS * 5 / 1000))))
+        samples = samples[::step]
+        cycle = np.array([s.cycle for s in samples], dtype=np.int64)
+        t_ns = np.array([s.t_ns for s in samples], dtype=np.int64)
+        idx = self._indexes(cycle, t_ns)
+        for group, key in (("enc", "enc"), ("pwm", "pwm")):
+            values = np.array([getattr(s, key) for s in samples], dtype=np.float64)
+            for i in range(values.shape[1] if values.ndim == 2 else 0):
+                self.rec.send_columns(f"telemetry/{group}/{i + 1}", indexes=idx,
+                                      columns=rr.Scalars.columns(scalars=values[:, i]))
+        fields = samples[0].xeno2ros.keys() if isinstance(samples[0].xeno2ros, dict) else []
+        for name in fields:
+            try:
+                values = np.array([float(s.xeno2ros[name]) for s in samples], dtype=np.float64)
+            except (TypeError, ValueError):
+                continue  # arrays and strings are not plotted
+            self.rec.send_columns(f"telemetry/xeno2ros/{rr.escape_entity_path_part(name)}", indexes=idx,
+                                  columns=rr.Scalars.columns(scalars=values))
+
+    def _main(self) -> None:
+        last_telemetry = 0.0
+        while True:
+            try:
+                item = self._q.get(timeout=0.1)
+            except queue.Empty:
+                item = ...
+            try:
+                if isinstance(item, np.ndarray):
+                    self._send_records(item)
+                now = time.monotonic()
+                if now - last_telemetry >= 0.1:
+                    last_telemetry = now
+                    self._send_telemetry()
+            except Exception:
+                log.exception("live rerun")
+            if item is None or (self._stop.is_set() and self._q.empty()):
+                return
+
+
+# ---- per run --------------------------------------------------------------------------------
+
+
+@dataclass
+class RunLogging:
+    writer: HostLogWriter
+    live: LiveRerun | None
+    starting: threading.Thread | None = None
+
+
+def start(ch: Any, run_id: int, run_dir: Path, identity: dict[str, str], appliance_port: int,
+          on_alarm: Callable[[str], None], live: bool = True) -> RunLogging:
+    """Start the host writer (and the live rerun stream unless disabled or unavailable)."""
+    writer = HostLogWriter(ch, identity, run_dir, on_alarm=on_alarm)
+    writer.start()
+    rl = RunLogging(writer, None)
+    if live and os.environ.get("XRF_LIVE_RERUN", "1") != "0":
+        # rerun's import and servers take a moment on the first run: not on the event loop,
+        # and the writer does not wait for them (records before the stream is up are not sent live).
+        def connect() -> None:
+            try:
+                rl.live = LiveRerun(RerunServer.get(appliance_port), ch, run_id)
+                writer.set_on_records(rl.live.feed)
+            except Exception:
+                log.exception("live rerun unavailable")
+        rl.starting = threading.Thread(target=connect, name=f"xrf-rerun-start-{run_id}", daemon=True)
+        rl.starting.start()
+    return rl
+
+
+def finish(rl: RunLogging) -> WriterStats:
+    stats = rl.writer.finish()
+    if rl.starting is not None:
+        rl.starting.join(30.0)
+    if rl.live is not None:
+        rl.live.close()
+    return stats
+
+
+__all__ = ["HostLogWriter", "LiveRerun", "RerunServer", "RunLogging", "WriterStats", "finish", "segment_header",
+           "start"]
+
+
+# ---- supervisor hooks (appliance/xrflab/server/supervisor.py calls these) -------------------
+
+
+def loop_env(run_id: int, build: str) -> dict[str, str]:
+    """Environment for a run's loop process: the appliance writes the log file (host writer)."""
+    return {"XRF_LOG_WRITER": "host", "XRF_RUN_ID": str(run_id), "XRF_BUILD_ID": build, "XRF_PROJECT": build}
+
+
+def start_for(sup: Any, run: Any) -> RunLogging | None:
+    """After the run's shared memory is open: host writer + live rerun for this run."""
+    ch = run.channels
+    if ch is None:
+        return None
+    row = run.row
+    hub, store = sup.hub, sup.store
+
+    def alarm(message: str) -> None:  # called from the writer thread
+        def publish() -> None:
+            hub.publish("alarm", {"kind": "log", "run_id": row.id, "message": message})
+            try:
+                store.update(row.id, log_note=message)
+            except Exception:  # the database may sit on the same full disk
+                log.exception("run %s: cannot record the log note", row.id)
+        try:
+            loop.call_soon_threadsafe(publish)
+        except RuntimeError:
+            pass
+
+    import asyncio
+
+    loop = asyncio.get_running_loop()
+    identity = {"project": row.build, "build": row.build, "run": str(row.id)}
+    return start(ch, row.id, run.run_dir, identity, sup.settings.port, alarm,
+                 live=os.environ.get("XRF_LIVE_RERUN", "1") != "0")
+
+
+async def finish_for(sup: Any, run: Any) -> None:
+    """Once the loop process is gone: drain the rest of the ring, close, record the counts."""
+    import asyncio
+
+    rl = getattr(run, "logging", None)
+    if rl is None:
+        return
+    stats = await asyncio.to_thread(finish, rl)
+    note = stats.failed
+    try:
+        run.row = sup.store.update(run.row.id, log_records=stats.records, log_lost=stats.lost + stats.unwritten,
+                                   log_note=note)
+    except Exception:
+        log.exception("run %s: cannot record the log counts", run.row.id)

@@ -1,0 +1,366 @@
+"""Runs and their logs: the run list with logging figures, downloads in every format, the rerun
+viewer (live and recorded), and `read_run_log()` for other parts of the appliance (the 3D view
+replays a finished run from it).
+
+Downloads: `raw` is the file itself (FileResponse); `csv` streams (`iter_csv_chunks`, iterated
+in Starlette's thread pool, memory bounded by one chunk); `mat`, `parquet` and `rrd` are
+converted once, off the event loop, into `<run>/.cache/` (keyed by the source's size and mtime,
+so a file that grew is converted again) and then served as files. Every output is what
+`xrf decode` writes for the same file: the same code (`xrflab.logs.convert`).
+
+rerun: the viewer (from the installed rerun-sdk, no CDN) is served by rerun's own small HTTP
+server on an internal port and reached by browsers through `/rerun/` here (same origin as the
+dashboard, so it can fetch a finished run's `.rrd` from the API with the session cookie). Live
+data comes from the appliance's rerun gRPC proxy: its URL is built from the request's Host, so
+the viewer works when the Pi is opened by its LAN address.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import re
+import time
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi.responses import FileResponse, Response, StreamingResponse
+from pydantic import BaseModel, Field
+
+from . import auth
+from .auth import Perm, requires
+
+router = APIRouter()
+
+LOG_SUFFIXES = (".xrf", ".bin")
+CACHE_DIR = ".cache"
+MEDIA = {
+    "raw": "application/octet-stream",
+    "csv": "text/csv; charset=utf-8",
+    "mat": "application/x-matlab-data",
+    "parquet": "application/vnd.apache.parquet",
+    "rrd": "application/octet-stream",
+}
+_convert_locks: dict[str, asyncio.Lock] = {}
+
+
+# ---- finding a run's logs (also for other modules) ------------------------------------------
+
+
+def _is_log(path: Path) -> bool:
+    if path.suffix == ".bin":
+        return True
+    try:
+        with open(path, "rb") as f:
+            return f.read(8) == b"XRFLOG1\n"
+    except OSError:
+        return False
+
+
+def run_log_files(run_dir: str | Path) -> list[Path]:
+    """The log files of a run folder (xrflog by content, XRF2 .bin by name), oldest first;
+    conversions (.cache/) and the loop's output are not logs."""
+    root = Path(run_dir)
+    if not root.is_dir():
+        return []
+    found = []
+    for path in root.rglob("*"):
+        rel = path.relative_to(root)
+        if rel.parts[0] == CACHE_DIR or not path.is_file() or path.name in ("output.txt", "timing.jsonl"):
+            continue
+        if _is_log(path):
+            found.append(path)
+    return sorted(found, key=lambda p: (p.stat().st_mtime_ns, str(p)))
+
+
+def read_run_log(run_dir: str | Path, name: str | None = None) -> dict[str, np.ndarray]:
+    """A run's log as NumPy arrays: {column: 1-D array} with `seq`, `cycle`, `t_ns` (xrflog) and
+    one array per logged variable (char as uint8), plus `t` (seconds since the first record,
+    float64) when the file has a clock. `name`: a file name relative to the run folder (default:
+    the newest log). Raises FileNotFoundError when the run has no log; damaged files give every
+    complete record (see docs/logging/decoding.md). Blocking: call it off the event loop."""
+    from ..logs import open_log
+    from ..logs.convert import _plain
+
+    files = run_log_files(run_dir)
+    if name is not None:
+        files = [p for p in files if p.relative_to(run_dir).as_posix() == name]
+    if not files:
+        raise FileNotFoundError(f"{run_dir}: no log file" + (f" named {name!r}" if name else ""))
+    log = open_log(files[-1])
+    rec = log.records
+    out = {col: np.array(_plain(rec[col])) for col in log.columns if col in rec.dtype.names}
+    if log.kind == "xrf2":
+        out["seq"] = np.arange(len(rec), dtype=np.uint64)
+    if "t_ns" in out and len(out["t_ns"]):
+        out["t"] = (out["t_ns"] - out["t_ns"][0]) / 1e9
+    return out
+
+
+# ---- models ---------------------------------------------------------------------------------
+
+
+class RunLogRecord(BaseModel):
+    id: int
+    owner: str = Field(description="user who started the run ('' before accounts)")
+    build: str
+    program: str
+    sim: str
+    started: float = Field(description="Unix time")
+    ended: float | None
+    duration_s: float | None = Field(description="ended (or now, while live) - started")
+    status: str
+    crashed: bool
+    crash_reason: str
+    state: str
+    cycles: int
+    misses: int
+    cycle_freq: int
+    log_records: int = Field(description="records written to the run's log files")
+    log_lost: int = Field(description="records lost: ring full (writer stalled) or not written after a disk error")
+    log_note: str = Field(description="why logging stopped (disk full, ...); '' normally")
+    live: bool = Field(description="the run is active; counts are the loop's, live")
+    message: str
+
+
+class LogFileInfo(BaseModel):
+    name: str = Field(description="path relative to the run folder; use it in download URLs")
+    size: int
+    kind: str = Field(description="xrflog | xrf2 | unreadable")
+    records: int
+    lost: int
+    segments: int
+    variables: list[dict[str, str]]
+    skipped: list[str] = Field(description="what the decoder could not use (damage, truncation)")
+    skipped_bytes: int
+    error: str = ""
+
+
+class RunLogs(BaseModel):
+    run: RunLogRecord
+    files: list[LogFileInfo]
+    timing: bool = Field(description="timing.jsonl (per-second stage timing) exists")
+
+
+class RerunInfo(BaseModel):
+    available: bool
+    error: str = ""
+    viewer: str = Field(description="viewer page on this appliance (append ?url=...)")
+    live_url: str = Field(description="rerun+http URL of the live gRPC proxy, for this request's host")
+    grpc_port: int
+    live_recording: str = Field(description="recording id of the active run, '' if none")
+
+
+# ---- helpers --------------------------------------------------------------------------------
+
+
+def _sup(request: Request) -> Any:
+    return request.app.state.supervisor
+
+
+def may_read(request: Request, row: Any) -> bool:
+    """Whether this request may read the run's logs: its owner, or anyone with EDUCATOR.
+    The single place issue 7's accounts plug into (auth.owns); until then everyone may."""
+    owns = getattr(auth, "owns", None)
+    if owns is None:
+        return True
+    try:
+        return bool(owns(request, row.owner))
+    except TypeError:
+        return bool(owns(request, row))
+
+
+def _record(sup: Any, row: Any) -> dict[str, Any]:
+    d = row.as_dict()
+    run = sup.current
+    live = bool(run is not None and run.row.id == row.id and run.alive and not run.ended.is_set())
+    if live and run.last_status is not None:
+        s = run.last_status
+        d.update(cycles=s.cycles, misses=s.missed, log_lost=s.log_lost)
+        rl = run.logging
+        d["log_records"] = rl.writer.stats.records if rl is not None else s.log_written
+    end = d["ended"] if d["ended"] is not None else (time.time() if live else None)
+    d["duration_s"] = round(end - d["started"], 3) if end is not None else None
+    d["live"] = live
+    return d
+
+
+def _row(request: Request, run_id: int) -> Any:
+    row = _sup(request).store.get(run_id)
+    if row is None:
+        raise HTTPException(404, f"no run {run_id}")
+    if not may_read(request, row):
+        raise HTTPException(403, f"run {run_id} is not yours")
+    return row
+
+
+def _file(row: Any, name: str) -> Path:
+    """A log of the run by its relative name; only names the listing would give are accepted."""
+    root = Path(row.run_dir)
+    for p in run_log_files(root):
+        if p.relative_to(root).as_posix() == name:
+            return p
+    raise HTTPException(404, f"run {row.id} has no log file {name!r}")
+
+
+def _file_info(root: Path, path: Path) -> dict[str, Any]:
+    from ..logs import LogFormatError, open_log
+
+    base = {"name": path.relative_to(root).as_posix(), "size": path.stat().st_size}
+    try:
+        log = open_log(path)
+    except (OSError, LogFormatError) as exc:
+        return base | {"kind": "unreadable", "records": 0, "lost": 0, "segments": 0, "variables": [],
+                       "skipped": [], "skipped_bytes": 0, "error": str(exc)}
+    return base | {"kind": log.kind, "records": len(log), "lost": log.lost, "segments": len(log.segments),
+                   "variables": [{"name": v.name, "column": v.field, "type": v.type_name} for v in log.variables],
+                   "skipped": list(log.skipped), "skipped_bytes": log.skipped_bytes}
+
+
+def _download_name(row: Any, path: Path, fmt: str) -> str:
+    stem = re.sub(r"[^A-Za-z0-9._-]", "_", path.stem) or "log"
+    suffix = path.suffix if fmt == "raw" else "." + fmt
+    return f"run{row.id}_{stem}{suffix}"
+
+
+async def _cached(path: Path, root: Path, fmt: str) -> Path:
+    from ..logs import convert
+
+    st = path.stat()
+    key = re.sub(r"[^A-Za-z0-9._-]", "_", path.relative_to(root).as_posix())
+    target = root / CACHE_DIR / f"{key}.{st.st_size}-{st.st_mtime_ns}.{fmt}"
+    lock = _convert_locks.setdefault(str(target), asyncio.Lock())
+    async with lock:
+        if not target.exists():
+            target.parent.mkdir(exist_ok=True)
+            for old in target.parent.glob(f"{key}.*.{fmt}"):  # superseded conversions of a grown file
+                old.unlink(missing_ok=True)
+            await asyncio.to_thread(convert, path, fmt, target)
+    return target
+
+
+# ---- runs and files -------------------------------------------------------------------------
+
+
+@router.get("/api/logs/runs", response_model=list[RunLogRecord], dependencies=[requires(Perm.WATCH)],
+            summary="runs with their logging figures (newest first)")
+async def list_runs(request: Request, limit: int = Query(100, ge=1, le=10000)) -> list[dict[str, Any]]:
+    sup = _sup(request)
+    return [_record(sup, r) for r in sup.store.list(limit)]
+
+
+@router.get("/api/logs/runs/{run_id}", response_model=RunLogs, dependencies=[requires(Perm.WATCH)],
+            summary="one run and its log files, with what the decoder skipped")
+async def run_logs(run_id: int, request: Request) -> dict[str, Any]:
+    row = _row(request, run_id)
+    root = Path(row.run_dir)
+
+    def work() -> list[dict[str, Any]]:
+        return [_file_info(root, p) for p in run_log_files(root)]
+
+    files = await asyncio.to_thread(work)
+    return {"run": _record(_sup(request), row), "files": files, "timing": (root / "timing.jsonl").is_file()}
+
+
+@router.get("/api/logs/runs/{run_id}/files/{name:path}", dependencies=[requires(Perm.WATCH)],
+            summary="download a log: raw, csv (streamed), mat, parquet or rrd",
+            response_class=Response)
+async def download(run_id: int, name: str, request: Request,
+                   fmt: Literal["raw", "csv", "mat", "parquet", "rrd"] = "raw") -> Response:
+    from ..logs import LogFormatError, iter_csv_chunks, open_log
+
+    row = _row(request, run_id)
+    path = _file(row, name)
+    headers = {"Content-Disposition": f'attachment; filename="{_download_name(row, path, fmt)}"'}
+    if fmt == "raw":
+        return FileResponse(path, media_type=MEDIA["raw"], headers=headers)
+    try:
+        if fmt == "csv":
+            log = await asyncio.to_thread(open_log, path)
+            log.check_uniform()
+            headers["X-Log-Skipped"] = str(len(log.skipped))
+            headers["X-Log-Lost"] = str(log.lost)
+            return StreamingResponse(iter_csv_chunks(path, log=log), media_type=MEDIA["csv"], headers=headers)
+        target = await _cached(path, Path(row.run_dir), fmt)
+    except LogFormatError as exc:
+        raise HTTPException(422, str(exc)) from None
+    return FileResponse(target, media_type=MEDIA[fmt], headers=headers)
+
+
+@router.get("/api/logs/runs/{run_id}/timing", dependencies=[requires(Perm.WATCH)],
+            summary="per-second framework timing of the run (JSON lines)", response_class=Response)
+async def timing(run_id: int, request: Request) -> Response:
+    row = _row(request, run_id)
+    path = Path(row.run_dir) / "timing.jsonl"
+    if not path.is_file():
+        raise HTTPException(404, f"run {run_id} has no timing series")
+    return FileResponse(path, media_type="application/x-ndjson",
+                        headers={"Content-Disposition": f'attachment; filename="run{run_id}_timing.jsonl"'})
+
+
+# ---- rerun ----------------------------------------------------------------------------------
+
+
+def _host_only(request: Request) -> str:
+    host = request.headers.get("host") or request.url.hostname or "localhost"
+    if host.startswith("["):  # IPv6 literal
+        return host[: host.index("]") + 1]
+    return host.rsplit(":", 1)[0] if ":" in host else host
+
+
+async def _server(request: Request) -> Any:
+    from ..logs import live
+
+    port = request.app.state.settings.port
+    return await asyncio.to_thread(live.RerunServer.get, port)
+
+
+@router.get("/api/logs/rerun", response_model=RerunInfo, dependencies=[requires(Perm.WATCH)],
+            summary="where the rerun viewer and the live stream are, for this request's host")
+async def rerun_info(request: Request) -> dict[str, Any]:
+    sup = _sup(request)
+    run = sup.current
+    active = f"run-{run.row.id}" if run is not None and run.alive and not run.ended.is_set() else ""
+    try:
+        server = await _server(request)
+    except Exception as exc:  # rerun-sdk missing or a port problem: the page says so
+        return {"available": False, "error": str(exc), "viewer": "/rerun/", "live_url": "", "grpc_port": 0,
+                "live_recording": active}
+    scheme = "https" if request.url.scheme == "https" else "http"
+    return {"available": True, "viewer": "/rerun/",
+            "live_url": f"rerun+{scheme}://{_host_only(request)}:{server.grpc_port}/proxy",
+            "grpc_port": server.grpc_port, "live_recording": active}
+
+
+_ASSET = re.compile(r"^[A-Za-z0-9._-]*$")
+
+
+@router.get("/rerun/{asset:path}", dependencies=[requires(Perm.WATCH)], include_in_schema=False)
+async def rerun_viewer(asset: str, request: Request) -> Response:
+    """The rerun web viewer's files, fetched once from rerun's internal server and kept on disk
+    (keyed by the rerun version): the 40 MB wasm is served by us, with our caching and auth."""
+    import httpx
+    import rerun
+
+    asset = asset or "index.html"
+    if not _ASSET.match(asset) or asset.startswith("."):
+        raise HTTPException(404, "no such viewer file")
+    settings = request.app.state.settings
+    cache = Path(settings.data_dir) / "rerun-viewer" / rerun.__version__
+    path = cache / asset
+    if not path.is_file():
+        server = await _server(request)
+        async with httpx.AsyncClient(timeout=60) as client:
+            r = await client.get(f"http://127.0.0.1:{server.web_port}/{asset}")
+        if r.status_code != 200:
+            raise HTTPException(404, f"the rerun viewer has no {asset}")
+        cache.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{asset}.{os.getpid()}.part")
+        tmp.write_bytes(r.content)
+        os.replace(tmp, path)
+    media = {".html": "text/html", ".js": "text/javascript", ".wasm": "application/wasm",
+             ".ico": "image/x-icon", ".png": "image/png", ".css": "text/css"}.get(path.suffix)
+    cache_control = "no-cache" if asset == "index.html" else "public, max-age=86400"
+    return FileResponse(path, media_type=media, headers={"Cache-Control": cache_control})

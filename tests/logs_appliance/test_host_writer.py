@@ -1,0 +1,139 @@
+"""The host log writer (xrflab.logs.live.HostLogWriter) against a real loop process run with
+XRF_LOG_WRITER=host: continuous records, kill -9 loses nothing that reached the ring, a full
+disk stops logging cleanly (whole records only) while the loop goes on."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import REPO
+
+from xrflab.build import build_project
+from xrflab.channels import Channels
+from xrflab.logs import open_log
+from xrflab.logs.live import HostLogWriter
+
+
+@pytest.fixture(scope="module")
+def probe(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = REPO / ".cache" / "logs-appliance-builds" / "probe"
+    return build_project(REPO / "tests/fixtures/loop_probe", build_dir=out, log=lambda line: None).executable
+
+
+class Loop:
+    def __init__(self, exe: Path, shm: str, log_dir: Path, **env: str) -> None:
+        full = dict(os.environ, XRF_SHM=shm, XRF_LOG_DIR=str(log_dir), XRF_LOG_WRITER="host", XRF_TRANSPORT="sim",
+                    **env)
+        self.proc = subprocess.Popen([str(exe)], env=full, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + 10
+        while True:
+            try:
+                self.ch = Channels.open(shm, wait_s=0.5)
+                if self.ch.info["pid"] == self.proc.pid:
+                    break
+                self.ch.close()
+            except Exception:
+                if self.proc.poll() is not None or time.monotonic() > deadline:
+                    raise
+            time.sleep(0.02)
+
+    def command(self, cmd: str, state: str) -> None:
+        assert self.ch.wait_command(self.ch.send_command(cmd), timeout=3).accepted
+        deadline = time.monotonic() + 3
+        while self.ch.status().state_name != state:
+            assert time.monotonic() < deadline
+            time.sleep(0.005)
+
+    def wait_cycles(self, n: int) -> None:
+        target = self.ch.status().cycles + n
+        while self.ch.status().cycles < target:
+            time.sleep(0.005)
+
+
+@pytest.fixture
+def loop(probe: Path, shm_name: str):
+    started: list[Loop] = []
+
+    def start(log_dir: Path, **env: str) -> Loop:
+        lp = Loop(probe, shm_name, log_dir, **env)
+        started.append(lp)
+        return lp
+
+    yield start
+    for lp in started:
+        if lp.proc.poll() is None:
+            lp.proc.kill()
+            lp.proc.wait(5)
+
+
+def _probe_ok(rec: np.ndarray) -> None:
+    c = rec["cycle_2"]
+    assert np.array_equal(rec["count"], c.astype(np.int32))
+    assert np.array_equal(rec["value"], c * 0.25)
+
+
+def test_kill_9_loses_nothing_that_reached_the_ring(loop, tmp_path: Path) -> None:
+    lp = loop(tmp_path)
+    w = HostLogWriter(lp.ch, {"run": "7"}, tmp_path)
+    w.start()
+    lp.command("initialise", "INITIALISED")
+    lp.command("start", "RUN")
+    lp.wait_cycles(500)
+    os.kill(lp.proc.pid, signal.SIGKILL)
+    lp.proc.wait(5)
+    stats = w.finish()
+    status = lp.ch.status()
+    assert stats.failed == "" and stats.lost == 0 and stats.unwritten == 0
+    # every record the loop put into the ring is in the file: the appliance drained the rest
+    assert stats.records == status.log_written
+    log = open_log(Path(stats.files[0]))
+    assert log.skipped == [] and log.lost == 0 and len(log) == stats.records
+    assert np.array_equal(log.records["seq"], np.arange(len(log), dtype=np.uint64))
+    assert log.segments[0].header["run"] == "7"
+    _probe_ok(log.records)
+
+
+def test_disk_full_stops_logging_cleanly_and_the_loop_goes_on(loop, tmp_path: Path) -> None:
+    if os.geteuid() != 0:
+        pytest.skip("needs root to mount a tiny tmpfs")
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(disk)], check=True)
+    try:
+        lp = loop(disk)
+        alarms: list[str] = []
+        w = HostLogWriter(lp.ch, {}, disk, on_alarm=alarms.append, timing=False)
+        w.start()
+        lp.command("initialise", "INITIALISED")
+        lp.command("start", "RUN")
+        # 48-byte stride at 1 kHz: 256 KiB fill in ~5 s
+        deadline = time.monotonic() + 20
+        while not w.stats.failed:
+            assert time.monotonic() < deadline, "the disk never filled"
+            time.sleep(0.05)
+        c = lp.ch.status().cycles
+        lp.wait_cycles(300)  # the loop goes on
+        assert lp.ch.status().state_name == "RUN" and lp.ch.status().cycles >= c + 300
+        lp.ch.send_command("stop")
+        time.sleep(0.1)
+        lp.ch.send_command("quit")
+        assert lp.proc.wait(10) == 0
+        stats = w.finish()
+        assert len(alarms) == 1 and "No space left" in alarms[0] and "logging stopped" in alarms[0]
+        assert stats.unwritten > 0
+        log = open_log(Path(stats.files[0]))
+        # nothing written is damaged: whole records only, continuous, correct values
+        assert log.skipped == [] and log.lost == 0 and len(log) == stats.records > 1000
+        assert np.array_equal(log.records["seq"], np.arange(len(log), dtype=np.uint64))
+        _probe_ok(log.records)
+        # the counts add up: every record the loop logged is in the file or counted as unwritten
+        assert stats.records + stats.unwritten + stats.lost == lp.ch.status().log_written + stats.lost
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
