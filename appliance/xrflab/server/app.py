@@ -10,6 +10,7 @@ from fastapi.responses import FileResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
 from .api import router, ws_router
+from .routes_projects import router as projects_router
 from .hub import Hub
 from .routes_logs import router as logs_router
 from .runs import RunStore
@@ -44,6 +45,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.include_router(router)
     app.include_router(ws_router)
+    app.include_router(projects_router)
     app.include_router(logs_router)
 
     frontend = settings.frontend_dir

@@ -79,6 +79,8 @@ class BuildCatalog:
         self._settings = settings
         self._publish = publish
         self._entries: dict[str, BuildEntry] = {}
+        # Builds made elsewhere (uploaded projects, xrflab.projects): runnable by name, not listed.
+        self._external: dict[str, BuildEntry] = {}
         self.scan()
 
     def scan(self) -> None:
@@ -96,7 +98,15 @@ class BuildCatalog:
         self.scan()  # examples may appear while we run (a fresh checkout being filled in)
         return list(self._entries.values())
 
+    def add_external(self, name: str, path: Path, executable: Path, sim: str) -> BuildEntry:
+        """Register a finished build of an uploaded project so start_run() can start it by name."""
+        entry = BuildEntry(name, "project", path, sim, status="ready", executable=executable)
+        self._external[name] = entry
+        return entry
+
     def get(self, name: str) -> BuildEntry:
+        if name in self._external:
+            return self._external[name]
         self.scan()
         if name not in self._entries:
             raise SupervisorError(f"no build named {name!r}; have: {', '.join(self._entries)}", 404)
