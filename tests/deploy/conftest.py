@@ -4,6 +4,7 @@ so `import` never picks up another suite's conftest)."""
 from __future__ import annotations
 
 import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -20,9 +21,11 @@ def requirements_or_skip() -> None:
 
 
 @pytest.fixture(scope="module")
-def debian_root(tmp_path_factory) -> Path:
+def debian_root(tmp_path_factory):
     requirements_or_skip()
-    return fresh_root(tmp_path_factory.mktemp("deploy") / "root")
+    root = fresh_root(tmp_path_factory.mktemp("deploy") / "root")
+    yield root
+    shutil.rmtree(root, ignore_errors=True)  # 700 MB; pytest keeps its last tmp folders
 
 
 @pytest.fixture(scope="module")

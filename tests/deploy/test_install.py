@@ -187,6 +187,26 @@ def test_uninstall_keeps_data_then_purge_removes_it(installed, source):
     assert "spi" in groups  # shared groups stay
 
 
+def test_other_prefix_and_data_folder(installed, source):
+    """After the purge above, the same tree takes an install with --prefix/--data elsewhere:
+    the units name those paths and still pass verify; a second run changes nothing."""
+    root, *_ = installed
+    args = ("--no-deps", "--prefix", "/srv/xrf", "--data", "/srv/xrf-data")
+    first = run_install(root, *args, source=source)
+    assert first.returncode == 0, first.stdout + first.stderr
+    unit = (root / "etc/systemd/system/xrf-lab.service").read_text()
+    assert "ExecStart=/srv/xrf/venv/bin/xrf serve --host 0.0.0.0 --data /srv/xrf-data" in unit
+    assert "ReadWritePaths=/srv/xrf-data" in unit and "/opt/xrf-lab" not in unit.replace("file:///opt", "")
+    assert "/srv/xrf-data/loops/%i.env" in (root / "etc/systemd/system/xrf-loop@.service").read_text()
+    assert _passwd(root)["xrf"][5] == "/srv/xrf-data"
+    assert str((root / "usr/local/bin/xrf").readlink()) == "/srv/xrf/venv/bin/xrf"
+    proc = subprocess.run([_systemd_analyze(), "verify", f"--root={root}", "--man=no",
+                           "/etc/systemd/system/xrf-lab.service"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    again = run_install(root, *args, source=source)
+    assert "nothing to change" in again.stdout, again.stdout
+
+
 def test_install_refuses_a_root_without_a_system(tmp_path):
     if not shutil.which("chroot"):
         pytest.skip("no chroot")
