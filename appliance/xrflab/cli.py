@@ -55,6 +55,8 @@ EXTERNAL_SUBCOMMANDS: dict[str, str] = {
     "doctor": "xrflab.doctor",
     "selfcheck": "xrflab.selfcheck",
     "ros-bridge": "xrflab.ros.bridge",
+    "upload": "xrflab.projects_cli",
+    "new": "xrflab.projects.cli_new",
 }
 
 

@@ -1,0 +1,111 @@
+"""``xrf upload DIR``: pack a project folder as tar.gz and upload it to the appliance.
+
+    xrf upload my_project                       # new project, prints its id
+    xrf upload my_project --project 3 --build   # new version of project 3, build it, wait
+    XRF_URL=http://pi.local:8000 XRF_TOKEN=... xrf upload my_project
+
+Build folders, .git and editor folders are not packed; links are left out (the appliance refuses
+them), with a warning.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import os
+import sys
+import tarfile
+import time
+from pathlib import Path
+
+HELP = "upload a project folder to the appliance (packed as tar.gz); optionally build it"
+SKIP = {"build", "install", "log", ".git", "__pycache__", ".vscode", ".idea"}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dir", type=Path, help="the project folder (with CMakeLists.txt and msg/)")
+    p.add_argument("--url", default=os.environ.get("XRF_URL", "http://127.0.0.1:8000"),
+                   help="the appliance (default $XRF_URL or http://127.0.0.1:8000)")
+    p.add_argument("--token", default=os.environ.get("XRF_TOKEN", ""), help="API token (default $XRF_TOKEN)")
+    p.add_argument("--name", default="", help="project name (default: the folder's name)")
+    p.add_argument("--project", type=int, help="upload as a new version of this project id")
+    p.add_argument("--build", action="store_true", help="build it after uploading and wait for the result")
+
+
+def pack(folder: Path) -> tuple[bytes, list[str]]:
+    """tar.gz of the folder's contents (names relative to it); (bytes, warnings)."""
+    folder = folder.resolve()
+    warnings: list[str] = []
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w:gz", format=tarfile.PAX_FORMAT) as tar:
+        for dirpath, dirnames, filenames in os.walk(folder):
+            dirnames[:] = sorted(d for d in dirnames if d not in SKIP and not d.startswith(".")
+                                 and not _link(Path(dirpath) / d, folder, warnings))
+            for f in sorted(filenames):
+                p = Path(dirpath) / f
+                if _link(p, folder, warnings) or not p.is_file():
+                    continue
+                info = tar.gettarinfo(str(p), arcname=p.relative_to(folder).as_posix())
+                info.uid = info.gid = 0
+                info.uname = info.gname = ""
+                with open(p, "rb") as fh:
+                    tar.addfile(info, fh)
+    return buf.getvalue(), warnings
+
+
+def _link(p: Path, root: Path, warnings: list[str]) -> bool:
+    if p.is_symlink():
+        warnings.append(f"left out {p.relative_to(root)}: a link (the appliance accepts files and folders only)")
+        return True
+    return False
+
+
+def run(args: argparse.Namespace) -> int:
+    import httpx
+
+    folder: Path = args.dir
+    if not (folder / "CMakeLists.txt").is_file():
+        print(f"error: {folder}: no CMakeLists.txt (is this a project folder? `xrf new` makes one)", file=sys.stderr)
+        return 1
+    data, warnings = pack(folder)
+    for w in warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    headers = {"Authorization": f"Bearer {args.token}"} if args.token else {}
+    name = args.name or folder.resolve().name
+    with httpx.Client(base_url=args.url, headers=headers, timeout=60) as http:
+        files = {"file": (f"{name}.tar.gz", data, "application/gzip")}
+        if args.project:
+            r = http.put(f"/api/projects/{args.project}/source", files=files)
+        else:
+            r = http.post("/api/projects", files=files, data={"name": name})
+        if r.status_code >= 400:
+            detail = r.json().get("detail") if r.headers.get("content-type", "").startswith("application/json") else r.text
+            if isinstance(detail, dict):
+                detail = detail.get("error") or detail
+            print(f"error: upload refused ({r.status_code}): {detail}", file=sys.stderr)
+            return 1
+        up = r.json()
+        pid = up["project"]["id"]
+        print(f"project {pid} ({up['project']['name']}): {up['files']} files, {len(data)} bytes packed")
+        if not args.build:
+            return 0
+        r = http.post(f"/api/projects/{pid}/builds")
+        if r.status_code >= 400:
+            print(f"error: build refused ({r.status_code}): {r.text}", file=sys.stderr)
+            return 1
+        b = r.json()
+        if b.get("reused"):
+            print(f"unchanged source: build {b['id']} reused ({b['result']})")
+            return 0 if b["status"] == "ok" else 1
+        print(f"build {b['id']} queued")
+        while b["status"] in ("queued", "building"):
+            time.sleep(0.5)
+            b = http.get(f"/api/projects/{pid}/builds/{b['id']}").json()
+        print(f"build {b['id']}: {b['status']}: {b['result']}")
+        if b["status"] != "ok":
+            for d in b.get("details", {}).get("diagnostics", [])[:10]:
+                if d["kind"] == "error":
+                    loc = f"{d['file']}:{d['line']}" + (f":{d['col']}" if d.get("col") else "") if d["file"] else ""
+                    print(f"  {loc} {d['message']}".rstrip())
+            return 1
+        return 0
