@@ -43,16 +43,36 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+# The harness's educator: created through XRF_BOOTSTRAP_ADMIN_PASSWORD, which only the tests set
+# (a production first start prints a one-time secret instead; there is no default password).
+ADMIN_USER = "admin"
+ADMIN_PASSWORD = "harness-educator-pw"
+
+
 @dataclass
 class Server:
     url: str
     ws_url: str
     proc: subprocess.Popen[bytes]
     data_dir: Path
-    http: httpx.Client
+    http: httpx.Client  # logged in as the harness's educator (ADMIN_USER)
 
     def ws(self, **kw: Any) -> WsClient:
-        return WsClient(connect(self.ws_url, max_size=None, **kw).__enter__())
+        """A WebSocket logged in as the harness's educator (cookie and same Origin)."""
+        return ws_connect(self.ws_url, self.http, **kw)
+
+    def login(self, username: str, password: str) -> tuple[httpx.Client, Callable[..., WsClient]]:
+        """A new logged-in client for `username` and a factory of WebSockets in that session."""
+        http = login_client(self.url, username, password)
+        return http, lambda **kw: ws_connect(self.ws_url, http, **kw)
+
+    def create_user(self, username: str, role: str = "student", password: str | None = None) -> str:
+        """Create an account (as the educator) and return its password, ready to log in with."""
+        password = password or f"{username}-pw-{os.urandom(4).hex()}"
+        r = self.http.post("/api/users", json={"username": username, "role": role, "password": password,
+                                               "must_change": False})
+        assert r.status_code == 201, r.text
+        return password
 
     def start_run(self, build: str = "relbot", **body: Any) -> dict[str, Any]:
         r = self.http.post("/api/runs", json={"build": build, **body}, timeout=300)
@@ -62,6 +82,28 @@ class Server:
     def stop_run(self) -> dict[str, Any] | None:
         r = self.http.post("/api/runs/current/stop", timeout=30)
         return r.json() if r.status_code == 200 else None
+
+
+def login_client(url: str, username: str, password: str, timeout: float = 30) -> httpx.Client:
+    """An httpx client holding a session cookie and sending the CSRF header and Origin a browser
+    page on the appliance would send."""
+    http = httpx.Client(base_url=url, timeout=timeout, headers={"Origin": url})
+    r = http.post("/api/auth/login", json={"username": username, "password": password})
+    if r.status_code != 200:
+        http.close()
+        raise AssertionError(f"login as {username} failed: {r.status_code} {r.text}")
+    http.headers["X-CSRF-Token"] = r.json()["csrf"]
+    return http
+
+
+def ws_connect(ws_url: str, http: httpx.Client, **kw: Any) -> WsClient:
+    """A WebSocket in the session of `http` (its cookie), from the appliance's own Origin."""
+    headers = dict(kw.pop("additional_headers", None) or {})
+    token = http.cookies.get("xrf_session")
+    if token and "Cookie" not in headers:
+        headers["Cookie"] = f"xrf_session={token}"
+    kw.setdefault("origin", str(http.base_url).rstrip("/"))
+    return WsClient(connect(ws_url, max_size=None, additional_headers=headers, **kw).__enter__())
 
 
 class WsClient:
@@ -122,14 +164,16 @@ def start_server(data_dir: Path, builds_root: Path, **settings: Any) -> Server:
     port = free_port()
     config = {"data_dir": str(data_dir), "builds_root": str(builds_root), "port": port, "host": "127.0.0.1",
               "real_bench": False, **settings}
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO_ROOT / "appliance"), str(HERE)]))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO_ROOT / "appliance"), str(HERE)]),
+               XRF_BOOTSTRAP_ADMIN_PASSWORD=ADMIN_PASSWORD)
     proc = subprocess.Popen([sys.executable, str(HERE / "serve_for_test.py"), json.dumps(config)], env=env)
     url = f"http://127.0.0.1:{port}"
-    http = httpx.Client(base_url=url, timeout=30)
+    probe = httpx.Client(base_url=url, timeout=30)
     deadline = time.monotonic() + 20
     while True:
         try:
-            if http.get("/api/bench").status_code == 200:
+            if probe.get("/api/health").status_code == 200:
+                probe.close()
                 break
         except httpx.TransportError:
             pass
@@ -137,6 +181,7 @@ def start_server(data_dir: Path, builds_root: Path, **settings: Any) -> Server:
             proc.kill()
             raise RuntimeError(f"appliance did not start (exit {proc.poll()})")
         time.sleep(0.05)
+    http = login_client(url, ADMIN_USER, ADMIN_PASSWORD)
     return Server(url, f"ws://127.0.0.1:{port}/ws", proc, data_dir, http)
 
 

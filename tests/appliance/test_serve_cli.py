@@ -11,7 +11,7 @@ from pathlib import Path
 
 import httpx
 
-from harness import REPO_ROOT, free_port
+from harness import REPO_ROOT, free_port, login_client
 
 from xrflab.server.safety import reset_frame
 
@@ -19,6 +19,7 @@ from xrflab.server.safety import reset_frame
 def test_xrf_serve_prints_url_and_serves(tmp_path: Path) -> None:
     port = free_port()
     env = dict(os.environ, PYTHONPATH=str(REPO_ROOT / "appliance"))
+    env.pop("XRF_BOOTSTRAP_ADMIN_PASSWORD", None)
     proc = subprocess.Popen(
         [sys.executable, "-m", "xrflab.cli", "serve", "--data", str(tmp_path / "data"), "--port", str(port),
          "--sim", "jiwy"],
@@ -27,20 +28,31 @@ def test_xrf_serve_prints_url_and_serves(tmp_path: Path) -> None:
     try:
         lines = []
         deadline = time.monotonic() + 20
-        while not any("http://" in line for line in lines):
+        while not any("not shown again" in line for line in lines):  # the URL, then the first-start secret
             assert time.monotonic() < deadline and proc.poll() is None, lines
             lines.append(proc.stdout.readline())
         assert f"http://localhost:{port}/" in "".join(lines)
+        # First start: the educator `admin` and its one-time password, printed once.
+        text = "".join(lines)
+        assert "one-time password" in text, text
+        secret = [line.split()[-1] for line in lines if line.startswith("XRF Lab:     ")][0]
+        url = f"http://127.0.0.1:{port}"
         for _ in range(100):
             try:
-                bench = httpx.get(f"http://127.0.0.1:{port}/api/bench").json()
+                assert httpx.get(f"{url}/api/bench").status_code == 401  # nothing without a login
                 break
             except httpx.TransportError:
                 time.sleep(0.05)
+        http = login_client(url, "admin", secret)
+        assert http.get("/api/me").json()["must_change"]
+        assert http.get("/api/bench").status_code == 403  # the one-time password must be changed first
+        assert http.post("/api/auth/password", json={"current": secret, "new": "a new password!"}).status_code == 204
+        http.headers["X-CSRF-Token"] = http.cookies.get("xrf_csrf")
+        bench = http.get("/api/bench").json()
         assert bench["mode"] == "sim" and bench["sim"] == "jiwy"
         assert (tmp_path / "data" / "runs.sqlite3").exists()
         # Ctrl-C with a run active ends the run in order before the appliance exits.
-        run = httpx.post(f"http://127.0.0.1:{port}/api/runs", json={"build": "relbot"}, timeout=300).json()
+        run = http.post("/api/runs", json={"build": "relbot"}, timeout=300).json()
         assert run["status"] == "running"
     finally:
         proc.send_signal(signal.SIGINT)

@@ -149,7 +149,7 @@ def test_slow_client_is_dropped_others_unaffected(tmp_path) -> None:
                      send_buffer_bytes=4096)
     try:
         s.start_run("relbot")
-        slow = _never_reading_client(int(s.url.rsplit(":", 1)[1]))
+        slow = _never_reading_client(int(s.url.rsplit(":", 1)[1]), s.http.cookies.get("xrf_session"))
         with s.ws() as fast:
             fast.wait_type("state")
             cycles: list[int] = []
@@ -169,7 +169,7 @@ def test_slow_client_is_dropped_others_unaffected(tmp_path) -> None:
         stop_server(s)
 
 
-def _never_reading_client(port: int) -> socket.socket:
+def _never_reading_client(port: int, session: str) -> socket.socket:
     """A WebSocket handshake by hand and then silence: no library reader thread draining the
     socket behind our back, and a tiny receive buffer so the server's sends back up quickly."""
     sock = socket.socket()
@@ -178,7 +178,8 @@ def _never_reading_client(port: int) -> socket.socket:
     key = base64.b64encode(os.urandom(16)).decode()
     sock.sendall(
         f"GET /ws HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode()
+        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
+        f"Origin: http://127.0.0.1:{port}\r\nCookie: xrf_session={session}\r\n\r\n".encode()
     )
     head = b""
     while b"\r\n\r\n" not in head:

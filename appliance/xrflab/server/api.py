@@ -11,11 +11,13 @@ import math
 import struct
 from typing import Any, Literal
 
-from fastapi import APIRouter, HTTPException, Request, WebSocket
+from fastapi import APIRouter, Depends, HTTPException, Request, WebSocket
 from pydantic import BaseModel, Field
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from .. import channels as chmod
+from . import audit
+from .auth import SAFE_COMMANDS, Perm, User, check, client_address, current_user, may, owns, requires
 from .hub import TOPICS, Client
 from .supervisor import Supervisor, SupervisorError
 
@@ -63,6 +65,7 @@ class RunRecord(BaseModel):
     cycle_freq: int
     run_dir: str
     message: str
+    owner: str = Field(default="", description="username of who started the run ('' = an educator before accounts)")
 
 
 class StartRun(BaseModel):
@@ -101,12 +104,12 @@ def _http(exc: SupervisorError) -> HTTPException:
 # ---- REST ---------------------------------------------------------------------------------------
 
 
-@router.get("/bench", response_model=BenchInfo)
+@router.get("/bench", response_model=BenchInfo, dependencies=[requires(Perm.WATCH)])
 async def get_bench(request: Request) -> dict[str, Any]:
     return _supervisor(request).bench()
 
 
-@router.get("/status", response_model=ApplianceStatus)
+@router.get("/status", response_model=ApplianceStatus, dependencies=[requires(Perm.WATCH)])
 async def get_status(request: Request) -> dict[str, Any]:
     sup = _supervisor(request)
     run = sup.current
@@ -114,7 +117,7 @@ async def get_status(request: Request) -> dict[str, Any]:
             "run_active": bool(run and run.alive), "run_id": run.row.id if run else None}
 
 
-@router.get("/builds", response_model=list[BuildInfo])
+@router.get("/builds", response_model=list[BuildInfo], dependencies=[requires(Perm.WATCH)])
 async def get_builds(request: Request) -> list[dict[str, Any]]:
     return [
         {"name": e.name, "kind": e.kind, "path": str(e.path), "sim": e.sim, "status": e.status, "error": e.error}
@@ -122,28 +125,56 @@ async def get_builds(request: Request) -> list[dict[str, Any]]:
     ]
 
 
-@router.post("/runs", response_model=RunRecord, status_code=201)
-async def start_run(body: StartRun, request: Request) -> dict[str, Any]:
+@router.post("/runs", response_model=RunRecord, status_code=201, dependencies=[requires(Perm.DRIVE)])
+async def start_run(body: StartRun, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
+    sup = _supervisor(request)
     try:
-        row = await _supervisor(request).start_run(body.build, body.sim, body.max_cycles)
+        row = await sup.start_run(body.build, body.sim, body.max_cycles)
     except SupervisorError as exc:
+        audit.record(user, "run.start_failed", {"build": body.build, "error": str(exc)}, client_address(request))
         raise _http(exc) from None
+    if not row.owner:
+        row = sup.store.update(row.id, owner=user.username)
+        if sup.current is not None and sup.current.row.id == row.id:
+            sup.current.row = row
+    lease = request.app.state.security.lease
+    if lease is not None:
+        lease.started_run(user, row.id)
+    audit.record(user, "run.start", {"run": row.id, "build": body.build, "sim": row.sim}, client_address(request))
     return row.as_dict()
 
 
-@router.post("/runs/current/stop", response_model=RunRecord)
-async def stop_run(request: Request) -> dict[str, Any]:
+@router.post("/runs/current/stop", response_model=RunRecord, dependencies=[requires(Perm.DRIVE)])
+async def stop_run(request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
     try:
         row = await _supervisor(request).stop_current()
     except SupervisorError as exc:
         raise _http(exc) from None
+    audit.record(user, "run.stop", {"run": row.id}, client_address(request))
     return row.as_dict()
 
 
-@router.post("/runs/current/command", response_model=CommandReply)
-async def command(body: CommandRequest, request: Request) -> dict[str, Any]:
+def command_name(cmd: str | int) -> str:
+    """The command's name (for the STOP rule and the audit); ValueError for unknown names. An
+    unknown number stays a number (never a safe command; the loop rejects it)."""
+    number = chmod.command_number(cmd)
+    return next((name for name, n in chmod.COMMAND_NUMBERS.items() if n == number), str(number))
+
+
+# Declared STOP: stop and pause are the safety exception anyone but an observer may send; every
+# other command needs DRIVE, checked in the handler once the body names the command.
+@router.post("/runs/current/command", response_model=CommandReply, dependencies=[requires(Perm.STOP)])
+async def command(body: CommandRequest, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
+    try:
+        name = command_name(body.cmd)
+    except ValueError as exc:
+        raise HTTPException(status_code=422, detail=str(exc)) from None
+    if name not in SAFE_COMMANDS:
+        check(request, Perm.DRIVE)
     try:
         result = await _supervisor(request).command(body.cmd)
+        audit.record(user, "command", {"cmd": name, "accepted": result.accepted, "via": "http"},
+                     client_address(request))
     except SupervisorError as exc:
         raise _http(exc) from None
     except ValueError as exc:
@@ -154,15 +185,26 @@ async def command(body: CommandRequest, request: Request) -> dict[str, Any]:
             "state_name": result.state_name, "reason": result.reason}
 
 
-@router.get("/runs", response_model=list[RunRecord])
-async def list_runs(request: Request, limit: int = 100) -> list[dict[str, Any]]:
-    return [r.as_dict() for r in _supervisor(request).store.list(limit)]
+@router.get("/runs", response_model=list[RunRecord], dependencies=[requires(Perm.WATCH)])
+async def list_runs(request: Request, limit: int = 100, user: User = Depends(current_user)) -> list[dict[str, Any]]:
+    """Runs the user may see: all for educators, their own for students and observers."""
+    store = _supervisor(request).store
+    if user.is_educator:
+        return [r.as_dict() for r in store.list(limit)]
+    limit = max(0, min(limit, 10_000))
+    mine: list[dict[str, Any]] = []
+    for r in store.list(10_000):
+        if len(mine) >= limit:
+            break
+        if owns(user, r.owner):
+            mine.append(r.as_dict())
+    return mine
 
 
-@router.get("/runs/{run_id}", response_model=RunRecord)
-async def get_run(run_id: int, request: Request) -> dict[str, Any]:
+@router.get("/runs/{run_id}", response_model=RunRecord, dependencies=[requires(Perm.WATCH)])
+async def get_run(run_id: int, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
     row = _supervisor(request).store.get(run_id)
-    if row is None:
+    if row is None or not owns(user, row.owner):  # someone else's run: as if it did not exist
         raise HTTPException(status_code=404, detail=f"no run {run_id}")
     return row.as_dict()
 
@@ -172,11 +214,53 @@ async def get_run(run_id: int, request: Request) -> dict[str, Any]:
 ws_router = APIRouter()
 
 
-@ws_router.websocket("/ws")
+# Every client->server message type and the permission it needs. A type not listed here is
+# refused as unknown before anything else happens: a new type cannot skip its declaration.
+# `command` is STOP (stop and pause are the safety exception); any other command needs DRIVE.
+WS_PERMS: dict[str, Perm] = {
+    "command": Perm.STOP,
+    "setpoint": Perm.DRIVE,
+    "subscribe": Perm.WATCH,
+    "ping": Perm.WATCH,
+}
+
+
+class WsDenied(Exception):
+    """The message is refused (error reply); `close` when the session itself is gone."""
+
+    def __init__(self, message: str, close: bool = False) -> None:
+        super().__init__(message)
+        self.close = close
+
+
+def _ws_authorize(ws: WebSocket, client: Client, perm: Perm) -> User:
+    """Re-checks the session on every message: a logout, expiry, disabled account or lost lease
+    takes effect at once, not at the next connection."""
+    security = ws.app.state.security
+    ws.scope.pop("xrf_auth", None)
+    user, _, _ = security.resolve(ws)
+    if user is None:
+        raise WsDenied("your session ended; log in again", close=True)
+    client.user = user
+    if user.must_change:
+        raise WsDenied("change your password first")
+    if not may(user, perm, security.lease):
+        if perm is Perm.DRIVE and user.role == "student":
+            holder = security.lease.holder if security.lease else None
+            who = f"{holder.user.username} holds it" if holder else "nobody holds it; take it first"
+            raise WsDenied(f"you do not hold the bench ({who})")
+        raise WsDenied(f"{user.role}s may not do this (needs {perm.value})")
+    if perm is Perm.DRIVE and security.lease is not None:
+        security.lease.touch(user)
+    return user
+
+
+@ws_router.websocket("/ws", dependencies=[requires(Perm.WATCH)])
 async def websocket(ws: WebSocket) -> None:
     sup: Supervisor = ws.app.state.supervisor
     await ws.accept()
     client = sup.hub.new_client(ws)
+    client.user = ws.app.state.security.resolve(ws)[0]
     pump = asyncio.create_task(client.pump())
     receive = asyncio.create_task(_receive(ws, client, sup))
     kicked = asyncio.create_task(client.kicked.wait())
@@ -187,9 +271,11 @@ async def websocket(ws: WebSocket) -> None:
         for task in (pump, receive, kicked):
             task.cancel()
         if client.kicked.is_set() and ws.client_state == WebSocketState.CONNECTED:
-            # 1008 policy violation: the client could not keep up. Bounded: its socket is full.
+            # 1008 policy violation: the client could not keep up (or its session ended).
+            # Bounded: its socket may be full.
+            reason = "session ended" if client.kick_reason.startswith("your session") else "too slow"
             with contextlib.suppress(Exception):
-                await asyncio.wait_for(ws.close(code=1008, reason="too slow"), 1.0)
+                await asyncio.wait_for(ws.close(code=1008, reason=reason), 1.0)
 
 
 async def _receive(ws: WebSocket, client: Client, sup: Supervisor) -> None:
@@ -224,12 +310,23 @@ async def _handle(text: str, client: Client, sup: Supervisor) -> None:
         return
     kind = msg["type"]
     ref = msg.get("id")  # echoed so a client can match replies to requests
+    perm = WS_PERMS.get(kind)
+    if perm is None:
+        client.reply("error", {"id": ref, "request": kind,
+                               "error": f"unknown message type {kind!r}; types: {', '.join(WS_PERMS)}"})
+        return
     try:
+        user = _ws_authorize(client.ws, client, perm)
         if kind == "command":
             cmd = msg.get("cmd")
             if isinstance(cmd, bool) or not isinstance(cmd, (str, int)):
                 raise ValueError("command needs 'cmd': a command name or number")
+            name = command_name(cmd)
+            if name not in SAFE_COMMANDS:
+                user = _ws_authorize(client.ws, client, Perm.DRIVE)
             result = await sup.command(cmd)
+            audit.record(user, "command", {"cmd": name, "accepted": result.accepted, "via": "ws"},
+                         client_address(client.ws))
             client.reply("ack", {"id": ref, "cmd": cmd, "ticket": result.ticket, "accepted": result.accepted,
                                  "state": result.state, "name": result.state_name, "reason": result.reason})
         elif kind == "setpoint":
@@ -258,7 +355,12 @@ async def _handle(text: str, client: Client, sup: Supervisor) -> None:
         elif kind == "ping":
             client.reply("pong", {"id": ref, "t": msg.get("t")})
         else:
-            raise ValueError(f"unknown message type {kind!r}; types: command, setpoint, subscribe, ping")
+            raise ValueError(f"unknown message type {kind!r}; types: {', '.join(WS_PERMS)}")
+    except WsDenied as exc:
+        client.reply("error", {"id": ref, "request": kind, "error": str(exc), "denied": True})
+        if exc.close:
+            client.kick_reason = str(exc)
+            client.kicked.set()
     except SupervisorError as exc:
         client.reply("error", {"id": ref, "request": kind, "error": str(exc)})
     except (ValueError, OverflowError, TypeError, struct.error, chmod.ChannelsError) as exc:

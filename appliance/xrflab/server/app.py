@@ -5,9 +5,13 @@ from __future__ import annotations
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI
-from fastapi.responses import FileResponse, RedirectResponse
+from fastapi import FastAPI, Request, Response
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
+
+from .auth import Perm, Security, optional_user, requires
+from .routes_accounts import router as accounts_router
 
 from .api import router, ws_router
 from .routes_projects import router as projects_router
@@ -30,9 +34,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         supervisor = Supervisor(settings, hub, store)
         hub.snapshot = supervisor.snapshot
         app.state.supervisor = supervisor
+        security.open(hub, supervisor)  # accounts, audit trail, bench lease (issue 7)
         try:
             yield
         finally:
+            security.close()
             await supervisor.shutdown()
             store.close()
 
@@ -41,8 +47,21 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         summary="Run, command and watch firm real-time controllers on an ico-board bench.",
         version="0.1.0",
         lifespan=lifespan,
+        # The schema and its browser are behind the login like everything else (routes below).
+        openapi_url=None, docs_url=None, redoc_url=None,
     )
     app.state.settings = settings
+    security = Security(settings)
+    app.state.security = security
+    app.include_router(accounts_router)
+
+    @app.get("/openapi.json", include_in_schema=False, dependencies=[requires(Perm.WATCH)])
+    async def openapi_schema() -> JSONResponse:
+        return JSONResponse(app.openapi())
+
+    @app.get("/docs", include_in_schema=False, dependencies=[requires(Perm.WATCH)])
+    async def api_docs() -> HTMLResponse:
+        return get_swagger_ui_html(openapi_url="/openapi.json", title="XRF Lab API")
     app.include_router(router)
     app.include_router(ws_router)
     app.include_router(projects_router)
@@ -52,13 +71,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if frontend.is_dir():
         app.mount("/static", StaticFiles(directory=frontend), name="static")
 
-        @app.get("/", include_in_schema=False)
-        async def index() -> FileResponse:
+        # PUBLIC so that it can answer a logged-out browser with the login page (a 303): the
+        # dashboard itself is only sent to a logged-in user. /static is public (code, no data).
+        @app.get("/", include_in_schema=False, dependencies=[requires(Perm.PUBLIC)])
+        async def index(request: Request) -> Response:
+            if optional_user(request) is None:
+                return RedirectResponse("/login", status_code=303)
             # no-cache: a dashboard left open over an upgrade must fetch the new page
             return FileResponse(frontend / "index.html", headers={"Cache-Control": "no-cache"})
     else:
 
-        @app.get("/", include_in_schema=False)
+        @app.get("/", include_in_schema=False, dependencies=[requires(Perm.PUBLIC)])
         async def no_frontend() -> RedirectResponse:
             return RedirectResponse("/docs")
 

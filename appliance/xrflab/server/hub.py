@@ -23,7 +23,7 @@ from typing import Any
 from starlette.websockets import WebSocket
 
 # Topics a client may subscribe to. `error` and `ack` replies go to the asking client only.
-TOPICS = frozenset({"state", "monitor", "telemetry", "timing", "alarm", "run", "build"})
+TOPICS = frozenset({"state", "monitor", "telemetry", "timing", "alarm", "run", "build", "lease"})
 LOSSY = "telemetry"
 
 
@@ -109,6 +109,7 @@ class Client:
         self.topics: set[str] = set(TOPICS)
         self.kicked = asyncio.Event()
         self.kick_reason = ""
+        self.user: Any = None  # the logged-in accounts.User (set by the /ws handler)
 
     def deliver(self, topic: str, text: str) -> None:
         if self.kicked.is_set():
@@ -139,6 +140,8 @@ class Hub:
         self.published = 0
         # Filled in by the app: messages a new client needs first (current run, state, ...).
         self.snapshot: Callable[[], Iterable[tuple[str, dict[str, Any]]]] = lambda: ()
+        # Called with every published message before the fan-out (the bench lease watches runs end).
+        self.listeners: list[Callable[[str, dict[str, Any]], None]] = []
 
     @property
     def clients(self) -> int:
@@ -156,6 +159,13 @@ class Hub:
 
     def publish(self, message_type: str, payload: dict[str, Any]) -> None:
         """Fan a message out to every subscribed client. Never blocks, never raises per client."""
+        for listener in self.listeners:
+            try:
+                listener(message_type, payload)
+            except Exception:  # a listener's bug must not stop the fan-out
+                import logging
+
+                logging.getLogger(__name__).exception("hub listener failed")
         if not self._clients:
             return
         text = encode(message_type, payload)

@@ -70,12 +70,29 @@ class Settings:
     # megabytes of stale telemetry in the kernel before our queue ever noticed it was slow.
     send_buffer_bytes: int = 256 * 1024
 
+    # Accounts and the bench lease (docs/developers/security.md). Origins besides the page's own
+    # (same origin = the Host header) allowed to call the API and open the WebSocket with a cookie.
+    allow_origins: tuple[str, ...] = ()
+    session_max_s: float = 12 * 3600  # a login lasts at most this long
+    session_idle_s: float = 2 * 3600  # ...and ends after this long unused
+    login_max_failures: int = 5  # per account and per address within login_window_s, then locked
+    login_window_s: float = 60.0  # lock time; doubles with each further lock, up to 15 min
+    lease_idle_s: float = 600.0  # the bench lease is released after this long without driving
+
     def bench_is_real(self) -> bool:
         return real_bench_present(self.spi_device) if self.real_bench is None else self.real_bench
 
     @property
     def runs_db(self) -> Path:
         return self.data_dir / "runs.sqlite3"
+
+    @property
+    def accounts_db(self) -> Path:
+        return self.data_dir / "accounts.sqlite3"
+
+    @property
+    def audit_db(self) -> Path:
+        return self.data_dir / "audit.sqlite3"
 
     @property
     def runs_dir(self) -> Path:
