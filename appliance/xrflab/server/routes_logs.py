@@ -50,13 +50,19 @@ _convert_locks: dict[str, asyncio.Lock] = {}
 
 
 def _is_log(path: Path) -> bool:
-    if path.suffix == ".bin":
-        return True
+    """xrflog by its magic; an XRF2 .bin by its two header lines (names, type codes)."""
     try:
         with open(path, "rb") as f:
-            return f.read(8) == b"XRFLOG1\n"
+            head = f.read(64 * 1024)
     except OSError:
         return False
+    if head[:8] == b"XRFLOG1\n":
+        return True
+    if path.suffix != ".bin":
+        return False
+    lines = head.split(b"\n", 2)
+    return (len(lines) == 3 and bool(lines[0]) and bool(lines[1])
+            and re.fullmatch(rb"[0-9 ,\r]+", lines[1]) is not None and b"\0" not in lines[0])
 
 
 def run_log_files(run_dir: str | Path) -> list[Path]:
@@ -68,7 +74,7 @@ def run_log_files(run_dir: str | Path) -> list[Path]:
     found = []
     for path in root.rglob("*"):
         rel = path.relative_to(root)
-        if rel.parts[0] == CACHE_DIR or not path.is_file() or path.name in ("output.txt", "timing.jsonl"):
+        if rel.parts[0] in (CACHE_DIR, "viz") or not path.is_file() or path.name in ("output.txt", "timing.jsonl"):
             continue
         if _is_log(path):
             found.append(path)
