@@ -17,9 +17,11 @@ from .api import router, ws_router
 from .routes_projects import router as projects_router
 from .hub import Hub
 from .routes_logs import router as logs_router
+from .routes_viz import router as viz_router
 from .runs import RunStore
 from .settings import Settings
 from .supervisor import Supervisor
+from ..viz.scene import VizService
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -34,12 +36,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         supervisor = Supervisor(settings, hub, store)
         hub.snapshot = supervisor.snapshot
         app.state.supervisor = supervisor
+        # 3D view: viser on its own port (settings.port + 1), fed by the supervisor's reader
+        viz = VizService(settings, supervisor)
+        supervisor.telemetry_observers.append(viz.on_telemetry)
+        await viz.start()
+        app.state.viz = viz
         security.open(hub, supervisor)  # accounts, audit trail, bench lease (issue 7)
         try:
             yield
         finally:
             security.close()
             await supervisor.shutdown()
+            await viz.stop()
             store.close()
 
     app = FastAPI(
@@ -64,6 +72,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return get_swagger_ui_html(openapi_url="/openapi.json", title="XRF Lab API")
     app.include_router(router)
     app.include_router(ws_router)
+    app.include_router(viz_router)
     app.include_router(projects_router)
     app.include_router(logs_router)
 

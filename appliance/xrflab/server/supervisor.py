@@ -198,6 +198,10 @@ class Supervisor:
         self.current: Run | None = None
         self.last_row: RunRow | None = None
         self._start_lock = asyncio.Lock()
+        # Observers of the telemetry the reader takes (the 3D view and its per-run recording):
+        # fn(run, samples) for every batch read, fn(run, None) once when the run has ended. Called
+        # in the event loop; they must be quick. One that raises is logged and dropped.
+        self.telemetry_observers: list[Callable[[Run, list[Any] | None], None]] = []
         for row in store.orphans:
             self._reap_orphan(row)
 
@@ -477,6 +481,7 @@ class Supervisor:
                 "exit_signal": exit_signal,
                 "safe_state": run.safe_state,
             })
+        self._observe(run, None)
         run.ended.set()
         self.hub.publish("run", self.run_payload(run, "ended") | {"active": False})
         self.hub.publish("state", self.state_payload(run) | {"active": False, "allowed": []})
@@ -558,6 +563,8 @@ class Supervisor:
             run.wake.clear()
             run.wake_pending = False
             samples = telemetry.read()
+            if samples and self.telemetry_observers:
+                self._observe(run, samples)
             t0 = ch.status().t_start_ns if samples else 0
             for sample in samples:
                 # Credit-based decimation: the average rate is telemetry_hz exactly even when the
@@ -590,6 +597,14 @@ class Supervisor:
                     "lost": monitor.lost,
                 })
             self._refresh_state(run)
+
+    def _observe(self, run: Run, samples: list[Any] | None) -> None:
+        for fn in tuple(self.telemetry_observers):
+            try:
+                fn(run, samples)
+            except Exception:
+                log.exception("telemetry observer %r failed; removed", fn)
+                self.telemetry_observers.remove(fn)
 
     def _refresh_state(self, run: Run) -> None:
         """Publish `state` when the state, a rejection, or liveness changed."""

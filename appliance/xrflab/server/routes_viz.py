@@ -1,0 +1,88 @@
+"""HTTP routes of the 3D view (xrflab.viz): where its viser server listens, what the scene shows
+now, reset odometry, replay a finished run. The scene itself is served by viser on its own port;
+the dashboard embeds it in an iframe at ``<location.hostname>:<port>``."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any, Optional
+
+from fastapi import APIRouter, HTTPException, Request
+from pydantic import BaseModel, Field
+
+from .auth import Perm, requires
+
+router = APIRouter(prefix="/api/viz", tags=["3d view"])
+
+
+class VizInfo(BaseModel):
+    available: bool = Field(description="false when viser could not start; `error` says why")
+    port: Optional[int] = Field(description="port of the viser server (same host as the appliance)")
+    error: str
+    update_hz: float
+
+
+class ReplayRequest(BaseModel):
+    run_id: int
+
+
+class SeekRequest(BaseModel):
+    t: float = Field(description="seconds from the start of the recording")
+
+
+def _viz(request: Request) -> Any:
+    viz = getattr(request.app.state, "viz", None)
+    if viz is None:
+        raise HTTPException(503, "the 3D view is not running")
+    return viz
+
+
+@router.get("", response_model=VizInfo, dependencies=[requires(Perm.WATCH)])
+async def viz_info(request: Request) -> dict[str, Any]:
+    return _viz(request).info()
+
+
+@router.get("/state", dependencies=[requires(Perm.WATCH)])
+async def viz_state(request: Request) -> dict[str, Any]:
+    """What the scene shows now: mode (idle/live/replay), robot kind, joint angles (rad) or
+    pose (m, rad), the setpoint ghost, and a message when there is no usable profile."""
+    viz = _viz(request)
+    return {**viz.info(), **viz.shown}
+
+
+@router.post("/reset-odometry", dependencies=[requires(Perm.WATCH)])
+async def reset_odometry(request: Request) -> dict[str, Any]:
+    if not _viz(request).reset_odometry():
+        raise HTTPException(409, "no RELbot is shown live: nothing to reset")
+    return {"ok": True}
+
+
+@router.get("/recordings", dependencies=[requires(Perm.WATCH)])
+async def recordings(request: Request) -> list[dict[str, Any]]:
+    return _viz(request).recordings()
+
+
+@router.post("/replay", dependencies=[requires(Perm.WATCH)])
+async def replay(body: ReplayRequest, request: Request) -> dict[str, Any]:
+    viz = _viz(request)
+    try:
+        r = await asyncio.to_thread(viz.load_replay, body.run_id)
+    except LookupError as exc:
+        raise HTTPException(404, str(exc)) from None
+    except ValueError as exc:
+        raise HTTPException(409, str(exc)) from None
+    return {"run_id": r.run_id, "duration": r.duration, "kind": r.kind, "samples": len(r.t), "message": r.message}
+
+
+@router.post("/replay/seek", dependencies=[requires(Perm.WATCH)])
+async def seek(body: SeekRequest, request: Request) -> dict[str, Any]:
+    try:
+        return {"t": _viz(request).seek(body.t)}
+    except LookupError as exc:
+        raise HTTPException(409, str(exc)) from None
+
+
+@router.post("/live", dependencies=[requires(Perm.WATCH)])
+async def live(request: Request) -> dict[str, Any]:
+    _viz(request).go_live()
+    return {"ok": True}

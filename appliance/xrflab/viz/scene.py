@@ -1,0 +1,586 @@
+"""The 3D view: a viser server run by the appliance, showing the bench's robot as its encoders say.
+
+- Jiwy: ``urdf/jiwy.urdf`` loaded with viser's URDF support (``viser.extras.ViserUrdf``, which
+  uses yourdfpy); pan/tilt follow the counts; a translucent green copy (the ghost) shows the
+  setpoint (Ros2Xeno ``pan_setpoint``/``tilt_setpoint``, the jiwy example's fields).
+- RELbot: a body with two wheels whose pose on the floor is the wheel odometry, with a trail
+  that fades with age; "Reset odometry" puts it back at the origin.
+
+Data path (nothing touches the loop): the supervisor's telemetry reader hands every batch it
+reads to ``VizService.on_telemetry`` (``Supervisor.telemetry_observers``). Samples are thinned to
+200 Hz by the run's ``Recorder`` (the replay file), and the same kept samples drive the live
+kinematics, so a replay shows exactly what the live view showed. The scene itself is pushed to
+the browsers at 30 Hz by ``run()``, in a thread of its own (scene building never holds up the
+event loop, where the supervisor's heartbeat runs).
+
+Which profile: on the simulated bench the run's plant names it (``relbot`` / ``jiwy``); on a real
+bench ``XRF_BENCH_PROFILE`` (environment) names it. No profile, or one without ``mechanics``:
+the robot is hidden and the view says so (a wrong picture is worse than none).
+
+Threads: ``on_telemetry`` runs in the appliance's event loop and only does arithmetic; the 30 Hz
+updater and viser's GUI callbacks run in other threads. Shared state is under ``self._lock``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import bisect
+import logging
+import math
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+from .. import profiles as profmod
+from . import kinematics as kin
+from .recorder import Recorder, has_recording, load_recording
+
+log = logging.getLogger("xrflab.viz")
+URDF_JIWY = Path(__file__).resolve().parent / "urdf" / "jiwy.urdf"
+UPDATE_HZ = 30.0
+TRAIL_SEND_HZ = 5.0
+TRAIL_MAX = 400
+BACKGROUND = (1.0, 1.0, 1.0)
+TRAIL_COLOR = (0.85, 0.35, 0.05)
+
+
+def wxyz_z(theta: float) -> tuple[float, float, float, float]:
+    """Quaternion (w, x, y, z) of a rotation by theta about +z."""
+    return (math.cos(theta / 2), 0.0, 0.0, math.sin(theta / 2))
+
+
+def setpoint_angles(fields: dict[str, Any]) -> dict[str, float]:
+    """{pan, tilt} from Ros2Xeno fields: <axis>_setpoint, else the first <axis>*set* field."""
+    out: dict[str, float] = {}
+    for axis in ("pan", "tilt"):
+        key = f"{axis}_setpoint" if f"{axis}_setpoint" in fields else next(
+            (k for k in fields if k.startswith(axis) and "set" in k), None)
+        v = fields.get(key) if key else None
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+            out[axis] = float(v)
+    return out
+
+
+def resolve_profile(plant: str, real_bench: bool, data_dir: Optional[Path]) -> tuple[Optional[dict], str, str]:
+    """(profile, name, message): profile None with a message when there is none to use."""
+    name = os.environ.get("XRF_BENCH_PROFILE", "") if real_bench else plant
+    if not name:
+        return None, "", ("This bench has no profile: the 3D view cannot know what is connected. "
+                          "Start the appliance with XRF_BENCH_PROFILE=<profile name> (e.g. relbot, jiwy).")
+    try:
+        profile = profmod.load_profile(name, data_dir)
+    except profmod.ProfileError as exc:
+        return None, name, f"No usable bench profile {name!r}: {'; '.join(exc.errors)}"
+    try:
+        kin.from_profile(profile)
+    except (kin.KinematicsError, KeyError, TypeError, ValueError) as exc:
+        return None, name, f"Bench profile {name!r} cannot be drawn: {exc}"
+    return profile, name, ""
+
+
+# ---- replay ---------------------------------------------------------------------------------
+
+
+@dataclass
+class Replay:
+    run_id: int
+    kind: str  # pan_tilt | differential_drive | "" (no profile)
+    profile_name: str
+    message: str
+    t: list[float]  # s since the first sample
+    joints: list[tuple[float, float]] = field(default_factory=list)
+    poses: list[tuple[float, float, float]] = field(default_factory=list)
+    trail_lo: list[int] = field(default_factory=list)  # trail of sample i: trail[trail_lo[i]:trail_n[i]]
+    trail_n: list[int] = field(default_factory=list)
+    trail: list[tuple[float, float]] = field(default_factory=list)
+    setpoint_t: list[float] = field(default_factory=list)
+    setpoints: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def duration(self) -> float:
+        return self.t[-1] if self.t else 0.0
+
+    def index(self, t: float) -> int:
+        return max(0, bisect.bisect_right(self.t, t) - 1)
+
+    def setpoint_at(self, t: float) -> dict[str, Any]:
+        i = bisect.bisect_right(self.setpoint_t, t) - 1
+        return self.setpoints[i] if i >= 0 else {}
+
+
+def build_replay(run_id: int, run_dir: Path, data_dir: Optional[Path] = None) -> Replay:
+    """Run a recording through the same kinematics as the live view (in a worker thread)."""
+    rec = load_recording(run_dir)
+    t0 = rec.t_ns[0] if rec.t_ns else 0
+    times = [(t - t0) / 1e9 for t in rec.t_ns]
+    profile = rec.meta.get("profile")
+    message = ""
+    model: Any = None
+    if profile:
+        try:
+            model = kin.from_profile(profile)
+        except (kin.KinematicsError, KeyError, TypeError, ValueError) as exc:
+            message = f"the recorded profile cannot be drawn: {exc}"
+    else:
+        message = rec.meta.get("message") or "this run was recorded without a bench profile"
+    r = Replay(run_id, model.kind if model else "", rec.meta.get("profile_name", ""), message, times)
+    events = [(max(0.0, (e["t_ns"] - t0) / 1e9), e) for e in rec.events]
+    current: dict[str, Any] = {}
+    for te, e in events:
+        if "setpoint" in e:
+            current = {**current, **e["setpoint"]}
+            r.setpoint_t.append(te)
+            r.setpoints.append(dict(current))
+    resets = [te for te, e in events if e.get("reset_odometry")]
+    if isinstance(model, kin.PanTilt):
+        for enc in rec.enc:
+            a = model.update(enc)
+            r.joints.append((a["pan"], a["tilt"]))
+    elif isinstance(model, kin.DiffDrive):
+        lo, ri = 0, 0
+        for ti, enc in zip(times, rec.enc):
+            while ri < len(resets) and resets[ri] <= ti:
+                model.reset_pose()
+                lo = len(r.trail)  # the trail restarts at a reset, as it does live
+                ri += 1
+            p = model.update(enc)
+            r.poses.append((p.x, p.y, p.theta))
+            if len(r.trail) == lo or math.hypot(p.x - r.trail[-1][0], p.y - r.trail[-1][1]) >= model.trail_step_m:
+                r.trail.append((p.x, p.y))
+            r.trail_lo.append(lo)
+            r.trail_n.append(len(r.trail))
+    return r
+
+
+# ---- the service ----------------------------------------------------------------------------
+
+
+class VizService:
+    def __init__(self, settings: Any, supervisor: Any = None) -> None:
+        self.settings = settings
+        self.supervisor = supervisor
+        self.server: Any = None
+        self.error = ""  # viser could not start: the page shows this
+        self.port: Optional[int] = None
+        self._lock = threading.Lock()
+        self._thread: Optional[threading.Thread] = None
+        self._stop = threading.Event()
+        # live
+        self.mode = "idle"  # idle | live | replay
+        self.run_id: Optional[int] = None
+        self.run_active = False
+        self.plant = ""
+        self.profile_name = ""
+        self.message = ""
+        self.model: Any = None
+        self.recorder: Optional[Recorder] = None
+        self.setpoint: dict[str, Any] = {}
+        self._setpoint_seen: dict[str, Any] = {}
+        self.samples = 0
+        self.last_t_ns = 0
+        self._trail_dirty = True
+        # replay
+        self.replay: Optional[Replay] = None
+        self.replay_t = 0.0
+        # requests from viser's thread / the API
+        self._want_reset = False
+        # what the scene shows now (GET /api/viz/state)
+        self.shown: dict[str, Any] = {}
+        self.frames = 0
+        self._scene_kind = None  # kind the scene's robot nodes were built for
+        self._nodes: dict[str, Any] = {}
+        self._gui: dict[str, Any] = {}
+        self._last_trail_send = 0.0
+        self._last_md = ""
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    @property
+    def data_dir(self) -> Optional[Path]:
+        return getattr(self.settings, "data_dir", None)
+
+    def _real_bench(self) -> bool:
+        try:
+            return bool(self.settings.bench_is_real())
+        except Exception:
+            return False
+
+    async def start(self) -> None:
+        """Start viser (own thread, own port: settings.viz_port, else port + 1; viser moves up
+        to the next free port if that one is taken) and the 30 Hz task."""
+        try:
+            await asyncio.to_thread(self._start_viser)
+        except Exception as exc:  # missing package, no port: the appliance runs without 3D
+            self.error = f"3D view unavailable: {exc}"
+            log.warning("%s", self.error)
+            return
+        plant = getattr(self.settings, "sim", "relbot")
+        profile, name, message = resolve_profile(plant, self._real_bench(), self.data_dir)
+        self._set_robot(profile, name, message, plant)
+        # Its own thread, not a task: building a scene (loading the URDF) takes long enough to
+        # delay the supervisor's heartbeat if it ran in the event loop.
+        self._thread = threading.Thread(target=self.run, name="viz-30hz", daemon=True)
+        self._thread.start()
+
+    def _start_viser(self) -> None:
+        import viser
+
+        port = getattr(self.settings, "viz_port", None) or int(self.settings.port) + 1
+        self.server = viser.ViserServer(host=self.settings.host, port=port, label="XRF Lab 3D", verbose=False)
+        self.port = int(self.server.get_port())
+        from viser.extras import ViserUrdf  # noqa: F401  (import cost paid here, not on first draw)
+        self.server.scene.set_up_direction("+z")
+        self._build_gui()
+
+    async def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            await asyncio.to_thread(self._thread.join, 2.0)
+        with self._lock:
+            if self.recorder is not None:
+                self.recorder.close()
+        if self.server is not None:
+            await asyncio.to_thread(self.server.stop)
+
+    def info(self) -> dict[str, Any]:
+        return {"available": self.server is not None, "port": self.port, "error": self.error,
+                "update_hz": UPDATE_HZ}
+
+    # -- telemetry in (supervisor hook, event loop) ---------------------------------------------
+
+    def on_telemetry(self, run: Any, samples: Optional[list[Any]]) -> None:
+        """Supervisor.telemetry_observers: (run, samples) per reader batch, (run, None) at the end."""
+        with self._lock:
+            if samples is None:
+                if run.row.id == self.run_id:
+                    self.run_active = False
+                    if self.recorder is not None:
+                        self.recorder.close()
+                return
+            if run.row.id != self.run_id:
+                self._new_run(run)
+            rec = self.recorder
+            for s in samples:
+                if rec is None or rec.add(s.t_ns, s.cycle, s.enc):
+                    self.samples += 1
+                    self.last_t_ns = s.t_ns
+                    if self.model is not None:
+                        self.model.update(s.enc)
+                        self._trail_dirty = True
+            sp = getattr(run, "setpoint", None) or {}
+            if sp != self._setpoint_seen:
+                self._setpoint_seen = dict(sp)
+                self.setpoint = dict(sp)
+                if rec is not None:
+                    rec.event(self.last_t_ns, setpoint=self.setpoint)
+
+    def _new_run(self, run: Any) -> None:
+        if self.recorder is not None:
+            self.recorder.close()
+        row = run.row
+        self.run_id = row.id
+        self.run_active = True
+        self.samples = 0
+        self.setpoint, self._setpoint_seen = {}, {}
+        plant = getattr(row, "sim", "") or getattr(self.settings, "sim", "")
+        profile, name, message = resolve_profile(plant, self._real_bench(), self.data_dir)
+        self._set_robot(profile, name, message, plant)
+        meta = {"run_id": row.id, "build": row.build, "plant": plant, "profile_name": name,
+                "profile": profile, "message": message, "real_bench": self._real_bench()}
+        try:
+            self.recorder = Recorder(run.run_dir, meta)
+        except OSError as exc:
+            log.warning("run %s: no 3D recording: %s", row.id, exc)
+            self.recorder = None
+        if self.mode != "replay":
+            self.mode = "live"
+
+    def _set_robot(self, profile: Optional[dict], name: str, message: str, plant: str) -> None:
+        self.plant = plant
+        self.profile_name = name
+        self.message = message
+        self.model = kin.from_profile(profile) if profile else None
+        self._trail_dirty = True
+
+    # -- requests (API and viser GUI; any thread) -----------------------------------------------
+
+    def reset_odometry(self) -> bool:
+        with self._lock:
+            if not isinstance(self.model, kin.DiffDrive):
+                return False
+            self.model.reset_pose()
+            self._trail_dirty = True
+            if self.recorder is not None:
+                self.recorder.event(self.last_t_ns, reset_odometry=True)
+            return True
+
+    def load_replay(self, run_id: int) -> Replay:
+        """Switch to replaying a finished run (blocking: call from a worker thread)."""
+        run_dir = self._run_dir(run_id)
+        if run_dir is None or not has_recording(run_dir):
+            raise LookupError(f"run {run_id} has no 3D recording")
+        with self._lock:
+            if run_id == self.run_id and self.run_active:
+                raise ValueError(f"run {run_id} is still running: it is shown live")
+        replay = build_replay(run_id, run_dir, self.data_dir)
+        with self._lock:
+            self.replay, self.replay_t, self.mode = replay, 0.0, "replay"
+            self._trail_dirty = True
+        self._sync_replay_gui()
+        return replay
+
+    def seek(self, t: float) -> float:
+        with self._lock:
+            if self.replay is None:
+                raise LookupError("no replay loaded")
+            self.replay_t = min(max(0.0, float(t)), self.replay.duration)
+            self._trail_dirty = True
+            t = self.replay_t
+        slider = self._gui.get("slider")
+        if slider is not None and abs(slider.value - t) > 1e-9:
+            slider.value = t
+        return t
+
+    def go_live(self) -> None:
+        with self._lock:
+            self.mode = "live" if self.run_id is not None else "idle"
+            self.replay = None
+            self._trail_dirty = True
+        self._sync_replay_gui()
+
+    def _run_dir(self, run_id: int) -> Optional[Path]:
+        sup = self.supervisor
+        if sup is not None:
+            try:
+                row = sup.store.get(run_id)
+            except Exception:
+                row = None
+            if row is not None and getattr(row, "run_dir", ""):
+                return Path(row.run_dir)
+        runs_dir = getattr(self.settings, "runs_dir", None)
+        return Path(runs_dir) / str(run_id) if runs_dir else None
+
+    def recordings(self) -> list[dict[str, Any]]:
+        runs_dir = getattr(self.settings, "runs_dir", None)
+        out = []
+        if runs_dir and Path(runs_dir).is_dir():
+            for d in Path(runs_dir).iterdir():
+                if d.name.isdigit() and has_recording(d):
+                    active = int(d.name) == self.run_id and self.run_active
+                    out.append({"run_id": int(d.name), "active": active,
+                                "bytes": (d / "viz" / "telemetry.bin").stat().st_size})
+        return sorted(out, key=lambda r: -r["run_id"])
+
+    # -- the 30 Hz update -------------------------------------------------------------------------
+
+    def run(self) -> None:
+        """The 30 Hz updater (own thread)."""
+        period = 1.0 / UPDATE_HZ
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                self.tick()
+            except Exception:  # a scene problem must not end the updates
+                log.exception("3D view update failed")
+            next_t += period
+            delay = next_t - time.monotonic()
+            if delay < 0:
+                next_t, delay = time.monotonic(), 0
+            self._stop.wait(delay)
+
+    def frame(self) -> dict[str, Any]:
+        """What the scene should show now (under the lock)."""
+        if self.mode == "replay" and self.replay is not None:
+            r = self.replay
+            i = r.index(self.replay_t)
+            f: dict[str, Any] = {"mode": "replay", "kind": r.kind, "message": r.message, "run_id": r.run_id,
+                                 "profile": r.profile_name, "t": self.replay_t, "duration": r.duration,
+                                 "setpoint": r.setpoint_at(self.replay_t)}
+            if r.kind == "pan_tilt" and r.joints:
+                f["joints"] = dict(zip(("pan", "tilt"), r.joints[i]))
+            elif r.kind == "differential_drive" and r.poses:
+                f["pose"] = dict(zip(("x", "y", "theta"), r.poses[i]))
+                n = r.trail_n[i]
+                f["trail"] = r.trail[max(r.trail_lo[i], n - TRAIL_MAX):n]
+            return f
+        m = self.model
+        f = {"mode": self.mode, "kind": m.kind if m else "", "message": self.message, "run_id": self.run_id,
+             "profile": self.profile_name, "active": self.run_active, "samples": self.samples,
+             "setpoint": dict(self.setpoint)}
+        if isinstance(m, kin.PanTilt):
+            f["joints"] = dict(m.angles)
+        elif isinstance(m, kin.DiffDrive):
+            p = m.pose
+            f["pose"] = {"x": p.x, "y": p.y, "theta": p.theta}
+            f["trail"] = m.trail[-TRAIL_MAX:]
+        return f
+
+    def tick(self) -> None:
+        with self._lock:
+            f = self.frame()
+            trail_dirty = self._trail_dirty
+        if self.server is None:
+            return
+        self._ensure_scene(f["kind"])
+        n = self._nodes
+        if f["kind"] == "pan_tilt":
+            import numpy as np
+
+            j = f.get("joints") or {"pan": 0.0, "tilt": 0.0}
+            n["urdf"].update_cfg(np.array([j["pan"], j["tilt"]]))
+            sp = setpoint_angles(f.get("setpoint") or {})
+            ghost = n["ghost"]
+            if sp:
+                ghost.update_cfg(np.array([sp.get("pan", j["pan"]), sp.get("tilt", j["tilt"])]))
+            ghost.show_visual = bool(sp)
+            f["ghost"] = sp or None
+        elif f["kind"] == "differential_drive":
+            p = f.get("pose") or {"x": 0.0, "y": 0.0, "theta": 0.0}
+            n["robot"].position = (p["x"], p["y"], 0.0)
+            n["robot"].wxyz = wxyz_z(p["theta"])
+            now = time.monotonic()
+            if trail_dirty and now - self._last_trail_send >= 1.0 / TRAIL_SEND_HZ:
+                self._send_trail(f.get("trail") or [])
+                self._last_trail_send = now
+                with self._lock:
+                    self._trail_dirty = False
+        self.frames += 1
+        f.pop("trail", None)
+        f["frame"] = self.frames
+        self.shown = f
+        self._update_status(f)
+
+    # -- scene building ---------------------------------------------------------------------------
+
+    def _ensure_scene(self, kind: str) -> None:
+        if kind == self._scene_kind:
+            return
+        for node in self._nodes.values():
+            try:
+                node.remove()
+            except Exception:
+                pass
+        self._nodes = {}
+        self._scene_kind = kind
+        scene = self.server.scene
+        if kind == "pan_tilt":
+            from viser.extras import ViserUrdf
+
+            self._nodes["grid"] = scene.add_grid("/floor", width=1.0, height=1.0, cell_size=0.05, section_size=0.25)
+            self._nodes["urdf"] = ViserUrdf(self.server, URDF_JIWY, root_node_name="/jiwy")
+            self._nodes["ghost"] = ViserUrdf(self.server, URDF_JIWY, root_node_name="/jiwy_setpoint",
+                                             mesh_color_override=(0.1, 0.8, 0.3, 0.3))
+            self.server.initial_camera.position = (0.55, -0.45, 0.45)
+            self.server.initial_camera.look_at = (0.0, 0.0, 0.15)
+        elif kind == "differential_drive":
+            m = self.model
+            r = getattr(m, "wheel_radius", 0.0505)
+            track = getattr(m, "track", 0.20)
+            self._nodes["grid"] = scene.add_grid("/floor", width=6.0, height=6.0, cell_size=0.1, section_size=1.0)
+            robot = scene.add_frame("/relbot", show_axes=False)
+            self._nodes["robot"] = robot
+            scene.add_box("/relbot/body", color=(60, 110, 190), dimensions=(0.22, track - 0.04, 0.08),
+                          position=(0.0, 0.0, r + 0.02))
+            wheel_q = (math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0)  # cylinder axis z -> y
+            for side, y in (("left", track / 2), ("right", -track / 2)):
+                scene.add_cylinder(f"/relbot/wheel_{side}", radius=r, height=0.025, color=(30, 30, 30),
+                                   wxyz=wheel_q, position=(0.0, y, r))
+            scene.add_icosphere("/relbot/caster", radius=0.015, color=(120, 120, 120), position=(-0.09, 0.0, 0.015))
+            scene.add_box("/relbot/front", color=(230, 60, 40), dimensions=(0.06, 0.03, 0.01),
+                          position=(0.12, 0.0, r + 0.065))
+            self.server.initial_camera.position = (-0.9, -1.1, 1.0)
+            self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
+            self._send_trail([])
+        else:
+            self._nodes["grid"] = scene.add_grid("/floor", width=1.0, height=1.0, cell_size=0.1, section_size=0.5)
+
+    def _send_trail(self, trail: list[tuple[float, float]]) -> None:
+        import numpy as np
+
+        scene = self.server.scene
+        if len(trail) < 2:
+            if "trail" in self._nodes:
+                self._nodes["trail"].visible = False
+            return
+        pts = np.asarray(trail, dtype=np.float32)
+        seg = np.zeros((len(pts) - 1, 2, 3), dtype=np.float32)
+        seg[:, 0, :2], seg[:, 1, :2] = pts[:-1], pts[1:]
+        seg[:, :, 2] = 0.002
+        # Fading: the newest segment in the trail colour, the oldest nearly the background.
+        age = np.linspace(0.9, 0.0, len(seg), dtype=np.float32)[:, None]
+        col = np.asarray(TRAIL_COLOR, np.float32) * (1 - age) + np.asarray(BACKGROUND, np.float32) * age
+        colors = np.repeat((col * 255).astype(np.uint8)[:, None, :], 2, axis=1)
+        self._nodes["trail"] = scene.add_line_segments("/trail", points=seg, colors=colors, thickness=0.012)
+
+    # -- GUI ----------------------------------------------------------------------------------------
+
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        self._gui["status"] = gui.add_markdown("Starting…")
+        btn = gui.add_button("Reset odometry", hint="RELbot: put the robot back at the origin, heading +x")
+        btn.on_click(lambda _e: self.reset_odometry())
+        self._gui["reset"] = btn
+        with gui.add_folder("Replay a finished run"):
+            num = gui.add_number("Run #", initial_value=0, min=0, step=1)
+            load = gui.add_button("Load")
+            slider = gui.add_slider("Time (s)", min=0.0, max=1.0, step=0.01, initial_value=0.0, disabled=True)
+            live = gui.add_button("Back to live")
+        self._gui.update(run=num, load=load, slider=slider, live=live)
+
+        def on_load(_e: Any) -> None:
+            try:
+                self.load_replay(int(num.value))
+            except (LookupError, ValueError, OSError) as exc:
+                with self._lock:
+                    self.message = str(exc)
+
+        load.on_click(on_load)
+        slider.on_update(lambda _e: self.seek(slider.value) if self.replay is not None else None)
+        live.on_click(lambda _e: self.go_live())
+
+    def _sync_replay_gui(self) -> None:
+        g = self._gui
+        if not g:
+            return
+        r = self.replay
+        if r is not None:
+            g["slider"].max = max(r.duration, 0.01)
+            g["slider"].value = 0.0
+            g["slider"].disabled = False
+            g["run"].value = r.run_id
+        else:
+            g["slider"].disabled = True
+
+    def _update_status(self, f: dict[str, Any]) -> None:
+        if "status" not in self._gui:
+            return
+        lines = []
+        if f["mode"] == "replay":
+            lines.append(f"**Replay** of run {f['run_id']}: {f['t']:.2f} / {f['duration']:.2f} s")
+        elif f["mode"] == "live":
+            lines.append(f"**Live**: run {f['run_id']}" + ("" if f.get("active") else " (ended)"))
+        else:
+            lines.append("**No run yet**: the robot is shown at rest")
+        if f.get("message"):
+            lines.append(f"⚠ {f['message']}")
+        if "joints" in f:
+            j = f["joints"]
+            lines.append(f"pan {math.degrees(j['pan']):.1f}°, tilt {math.degrees(j['tilt']):.1f}°")
+            if f.get("ghost"):
+                g = f["ghost"]
+                lines.append("setpoint (green): " + ", ".join(f"{k} {math.degrees(v):.1f}°" for k, v in g.items()))
+        if "pose" in f:
+            p = f["pose"]
+            lines.append(f"x {p['x']:.3f} m, y {p['y']:.3f} m, θ {math.degrees(p['theta']):.1f}°")
+        md = "  \n".join(lines)
+        if md != self._last_md:  # markdown is re-sent only when the text changes (at most 30 Hz)
+            self._gui["status"].content = md
+            self._last_md = md
+        self._gui["reset"].disabled = f["kind"] != "differential_drive" or f["mode"] == "replay"
+        if "no_profile" not in self._nodes and f.get("message") and not f["kind"]:
+            self._nodes["no_profile"] = self.server.scene.add_label("/no_profile", f["message"], position=(0, 0, 0.1))
+        elif "no_profile" in self._nodes and f["kind"]:
+            self._nodes.pop("no_profile").remove()
