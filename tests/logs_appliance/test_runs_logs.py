@@ -210,3 +210,34 @@ def test_lost_records_are_counted_and_shown(tmp_path: Path) -> None:
         assert int(log.records["seq"][-1]) + 1 == len(log) + log.lost
     finally:
         stop_server(s)
+
+
+def test_disk_full_alarm_note_and_the_run_goes_on(server: Server) -> None:
+    """The run's log folder is a 256 KiB tmpfs: logging stops with an alarm and a note on the
+    run record, the loop keeps running, the file holds whole records only."""
+    if os.geteuid() != 0:
+        pytest.skip("needs root to mount a tiny tmpfs")
+    server.stop_run()
+    next_id = max([x["id"] for x in server.http.get("/api/logs/runs").json()], default=0) + 1
+    logs = server.data_dir / "runs" / str(next_id) / "logs"
+    logs.mkdir(parents=True)
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(logs)], check=True)
+    try:
+        with server.ws() as ws:
+            ws.send({"type": "subscribe", "topics": ["alarm", "state"]})
+            run = _run_probe(server, cycles=10)
+            assert run["id"] == next_id
+            alarm = ws.wait_for(lambda m: m.get("type") == "alarm" and m.get("kind") == "log", timeout=30)
+        assert "No space left on device" in alarm["message"] and "logging stopped" in alarm["message"]
+        c = _logs(server, run["id"])["run"]["cycles"]
+        _wait(lambda: _logs(server, run["id"])["run"]["cycles"] > c + 500, what="the loop to go on")
+        server.stop_run()
+        info = _logs(server, run["id"])
+        r, f = info["run"], info["files"][0]
+        assert r["status"] == "ended" and "No space left" in r["log_note"]
+        assert r["log_lost"] > 0 and f["records"] == r["log_records"] > 1000
+        assert f["skipped"] == [] and f["lost"] == 0  # nothing written was damaged
+        log = open_log(logs / Path(f["name"]).name)
+        _check_probe(log.records)
+    finally:
+        subprocess.run(["umount", "-l", str(logs)], check=False)
