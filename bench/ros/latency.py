@@ -78,9 +78,15 @@ def main() -> int:
     ap.add_argument("--rate", type=float, default=100.0, help="Ros2Xeno publish rate (Hz)")
     ap.add_argument("--bridge-executor", choices=("single", "events"), default="single",
                     help="the bridge's rclpy executor (xrf ros-bridge --executor)")
+    ap.add_argument("--bridge-priority", type=int, default=0,
+                    help="SCHED_FIFO priority for the bridge (xrf ros-bridge --priority; 0 = normal)")
+    ap.add_argument("--node-priority", type=int, default=0,
+                    help="SCHED_FIFO priority for this benchmark node (0 = normal, as a course node)")
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = ap.parse_args()
 
+    if args.node_priority:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.node_priority))
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 100)))
 
@@ -107,7 +113,7 @@ def main() -> int:
             assert res.accepted, res
         bridge_log = open(work / "bridge.log", "w")
         bridge = subprocess.Popen([sys.executable, "-m", "xrflab.ros.bridge", "--shm", shm,
-                                   "--executor", args.bridge_executor],
+                                   "--executor", args.bridge_executor, "--priority", str(args.bridge_priority)],
                                   env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")),
                                   stdout=bridge_log, stderr=subprocess.STDOUT)
 
@@ -224,6 +230,8 @@ def main() -> int:
         "machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} CPUs, kernel {platform.release()}",
         "seconds": args.seconds,
         "bridge_executor": args.bridge_executor,
+        "bridge_priority": args.bridge_priority,
+        "node_priority": args.node_priority,
         "loop_to_ros": {**summary(l2r), "lost": l2r_lost, "ring_lost": ring_lost,
                          "steps": {str(k): v for k, v in sorted(steps.items())}},
         "ros_to_loop": {**summary(r2l), "sent": len(considered), "lost": r2l_lost,
@@ -242,6 +250,8 @@ def main() -> int:
     if gaps:
         print(f"ROS -> loop: {r2l_lost} superseded (latest wins) before a cycle read them; send gap to the next "
               f"message: min {min(gaps):.3f} ms, median {sorted(gaps)[len(gaps) // 2]:.3f} ms")
+    print(f"bridge: executor {args.bridge_executor}, SCHED_FIFO {args.bridge_priority or 'off'}; "
+          f"node SCHED_FIFO {args.node_priority or 'off'}; machine load average {os.getloadavg()[0]:.1f}")
     print(f"bridge ring overwrites: {ring_lost}; cycle steps {b['steps']}; loop missed cycles: {status.missed}")
     print(f"XRF2 (thesis): ROS -> loop mean 0.83 ms; loop -> ROS mean 5.7 ms, max 19 ms; lost 47 of 100 000")
     # The target is about the bridge losing nothing: Xeno2Ros samples (every one must arrive).

@@ -64,6 +64,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--executor", choices=("single", "events"), default="single",
                         help="rclpy executor: single (SingleThreadedExecutor, default) or events "
                              "(rclpy.experimental.EventsExecutor, C++ dispatch)")
+    parser.add_argument("--priority", type=int, default=int(os.environ.get("XRF_ROS_BRIDGE_PRIO", "0")),
+                        help="SCHED_FIFO priority for the bridge's threads (1..79, below the loop's; "
+                             "0 = leave the scheduling alone; needs CAP_SYS_NICE). Default $XRF_ROS_BRIDGE_PRIO or 0")
     parser.add_argument("--state-period", type=float, default=DEFAULT_STATE_PERIOD_S,
                         help="seconds between periodic XenoState messages (default 1)")
 
@@ -359,6 +362,15 @@ def run(args: argparse.Namespace, command_gate: CommandGate = allow_all) -> int:
 
     def say(text: str) -> None:
         print(f"xrf ros-bridge: {text}", file=sys.stderr, flush=True)
+
+    prio = getattr(args, "priority", 0)
+    if prio:
+        # Before any thread exists: the reader, the command worker and the DDS threads inherit
+        # it, so a busy host delays the bridge no more than it delays other real-time work.
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+        except (PermissionError, OSError, ValueError) as exc:
+            say(f"cannot use SCHED_FIFO priority {prio} ({exc}); running with normal scheduling")
 
     try:
         ch = Channels.open(args.shm, wait_s=args.timeout)
