@@ -145,7 +145,11 @@ def ensure_rt_core(log: Log = print, source_root: Optional[Path] = None) -> Path
     for p in (rt_core / "CMakeLists.txt", msgdef):
         if not p.exists():
             raise BuildError(f"{p}: not found (cannot build rt_core)")
-    digest = _content_hash([rt_core, msgdef])
+    # The installed libevl is part of what gets built (the evl backend exists only with it):
+    # installing or upgrading libevl must not reuse a posix-only build.
+    evl = Path("/usr/evl/lib/libevl.so")
+    evl_tag = f"evl:{evl.stat().st_mtime_ns}" if evl.exists() else "evl:none"
+    digest = hashlib.sha256((_content_hash([rt_core, msgdef]) + evl_tag).encode()).hexdigest()[:16]
     cache = _cache_root() / "rt_core"
     prefix = cache / digest
     done = prefix / ".xrf-complete"
