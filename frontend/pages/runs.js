@@ -1,0 +1,184 @@
+// Runs page: every run with who/when/build/duration/cycles/misses and its logging figures (records
+// written, a "lost: N" badge that is normally 0, the note when logging stopped), each log file
+// downloadable as the raw file, CSV, MAT, Parquet and rerun .rrd, and the rerun web viewer
+// (served by the appliance under /rerun/) showing the live run or a finished run's .rrd.
+"use strict";
+(function () {
+  const REFRESH_MS = 2000;
+  const FORMATS = [["raw", "raw"], ["csv", "CSV"], ["mat", "MAT"], ["parquet", "Parquet"], ["rrd", ".rrd"]];
+  let el0 = null, timer = null, selected = null, rerun = null;
+
+  const esc = (s) => String(s).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
+  const when = (t) => new Date(t * 1000).toLocaleString();
+  const dur = (s) => s == null ? "–" : s < 60 ? s.toFixed(1) + " s" : s < 3600 ? `${Math.floor(s / 60)} min ${Math.round(s % 60)} s` : `${(s / 3600).toFixed(1)} h`;
+  const num = (n) => (n == null ? "–" : Number(n).toLocaleString("en-US"));
+
+  function css() {
+    if (document.querySelector('link[href="/static/pages/runs.css"]')) return;
+    const l = document.createElement("link");
+    l.rel = "stylesheet"; l.href = "/static/pages/runs.css";
+    document.head.appendChild(l);
+  }
+
+  function html(el) {
+    el.innerHTML = `
+      <section class="panel wide" id="panel-runs">
+        <h2>Runs <span class="muted small">logs: raw · CSV · MAT · Parquet · rerun</span></h2>
+        <div class="runs-scroll">
+          <table class="runs runs-table" id="runs-table">
+            <thead><tr><th>#</th><th>who</th><th>when</th><th>build</th><th>duration</th><th>status</th>
+              <th>cycles</th><th>misses</th><th>records</th><th>lost</th></tr></thead>
+            <tbody id="runs-list"></tbody>
+          </table>
+        </div>
+      </section>
+      <section class="panel wide hidden" id="panel-run-logs">
+        <h2>Run <span id="rl-title"></span></h2>
+        <div class="rejected hidden" id="rl-note" role="status"></div>
+        <div id="rl-files"></div>
+      </section>
+      <section class="panel wide" id="panel-rerun">
+        <h2>Plots (rerun) <span class="muted small" id="rr-what">–</span>
+          <button id="rr-live" class="secondary small">Live run</button></h2>
+        <div class="rejected hidden" id="rr-message" role="status"></div>
+        <iframe id="rr-frame" title="rerun viewer" class="rerun-frame"></iframe>
+      </section>`;
+    el.querySelector("#rr-live").addEventListener("click", () => openLive(el));
+  }
+
+  function lostBadge(n) {
+    const b = document.createElement("span");
+    b.className = "lost-badge" + (n > 0 ? " bad" : "");
+    b.textContent = `lost: ${num(n)}`;
+    b.title = n > 0 ? "records the loop could not hand over (ring full) or that could not be written" : "no record lost";
+    return b;
+  }
+
+  async function loadList(el) {
+    let runs;
+    try { runs = await xrf.api("GET", "/api/logs/runs?limit=200"); } catch (e) { return; }
+    xrf.runsList = runs;  // test hook
+    const body = el.querySelector("#runs-list");
+    body.textContent = "";
+    for (const r of runs) {
+      const tr = document.createElement("tr");
+      tr.id = "runs-row-" + r.id;
+      tr.className = (r.id === selected ? "selected " : "") + (r.live ? "live" : "");
+      const status = r.status + (r.crash_reason ? ` (${r.crash_reason})` : "") + (r.live ? " · live" : "");
+      const cells = [r.id, r.owner || "–", when(r.started), r.build, dur(r.duration_s), status,
+        num(r.cycles), num(r.misses), num(r.log_records)];
+      cells.forEach((c, i) => {
+        const td = document.createElement("td");
+        td.textContent = c;
+        if (i === 5 && r.crashed) td.className = "crashed";
+        if (i === 7 && r.misses > 0) td.className = "warn-text";
+        tr.appendChild(td);
+      });
+      const td = document.createElement("td");
+      td.appendChild(lostBadge(r.log_lost));
+      if (r.log_note) {
+        const w = document.createElement("span");
+        w.className = "log-note"; w.textContent = "⚠"; w.title = r.log_note;
+        td.appendChild(w);
+      }
+      tr.appendChild(td);
+      tr.title = r.log_note || r.message;
+      tr.addEventListener("click", () => select(el, r.id));
+      body.appendChild(tr);
+    }
+  }
+
+  async function select(el, id) {
+    selected = id;
+    el.querySelectorAll("#runs-list tr").forEach((tr) => tr.classList.toggle("selected", tr.id === "runs-row-" + id));
+    let d;
+    try { d = await xrf.api("GET", `/api/logs/runs/${id}`); } catch (e) { return; }
+    if (selected !== id) return;
+    xrf.runLogs = d;  // test hook
+    const $ = (i) => el.querySelector("#" + i);
+    $("panel-run-logs").classList.remove("hidden");
+    const r = d.run;
+    $("rl-title").textContent = `#${r.id} · ${r.build} · ${r.status}${r.live ? " (live)" : ""}`;
+    $("rl-note").textContent = r.log_note ? "Logging stopped: " + r.log_note : "";
+    $("rl-note").classList.toggle("hidden", !r.log_note);
+    const box = $("rl-files");
+    box.textContent = "";
+    if (!d.files.length) {
+      box.innerHTML = '<div class="muted">This run has no log file (its controller did not start a logger).</div>';
+    }
+    for (const f of d.files) {
+      const div = document.createElement("div");
+      div.className = "log-file";
+      const base = `/api/logs/runs/${r.id}/files/${f.name.split("/").map(encodeURIComponent).join("/")}`;
+      const links = FORMATS.map(([fmt, label]) =>
+        `<a class="dl" data-fmt="${fmt}" href="${base}?fmt=${fmt}" download>${label}</a>`).join(" ");
+      const vars = f.variables.map((v) => `${esc(v.name)} <span class="muted">${esc(v.type)}</span>`).join(", ");
+      div.innerHTML = `
+        <div class="row"><strong>${esc(f.name)}</strong>
+          <span class="muted">${num(f.size)} bytes · ${num(f.records)} records · ${f.kind}</span>
+          <span class="badge-slot"></span>
+          <span class="downloads">${links}</span>
+          <button class="secondary small open-rrd">Open in rerun</button></div>
+        <div class="small vars">${vars}</div>
+        ${f.error ? `<div class="rejected">${esc(f.error)}</div>` : ""}
+        ${f.skipped.length ? `<div class="skipped"><strong>The decoder skipped ${num(f.skipped_bytes)} bytes:</strong><ul>${f.skipped.map((s) => `<li>${esc(s)}</li>`).join("")}</ul></div>` : ""}`;
+      div.querySelector(".badge-slot").appendChild(lostBadge(f.lost));
+      div.querySelector(".open-rrd").addEventListener("click", () => openRrd(el, r.id, `${base}?fmt=rrd`));
+      box.appendChild(div);
+    }
+    if (d.timing) {
+      const t = document.createElement("div");
+      t.className = "small";
+      t.innerHTML = `<a href="/api/logs/runs/${r.id}/timing" download>framework timing per second (JSON lines)</a>`;
+      box.appendChild(t);
+    }
+  }
+
+  async function rerunInfo(el) {
+    try { rerun = await xrf.api("GET", "/api/logs/rerun"); } catch (e) { rerun = { available: false, error: e.message }; }
+    const msg = el.querySelector("#rr-message");
+    msg.textContent = rerun.available ? "" : "The rerun viewer is not available: " + (rerun.error || "?");
+    msg.classList.toggle("hidden", !!rerun.available);
+    return rerun;
+  }
+
+  function show(el, url, what) {
+    const frame = el.querySelector("#rr-frame");
+    const src = "/rerun/?url=" + encodeURIComponent(url);
+    if (frame.getAttribute("src") !== src) frame.setAttribute("src", src);
+    el.querySelector("#rr-what").textContent = what;
+  }
+
+  async function openLive(el) {
+    const info = await rerunInfo(el);
+    if (info.available) show(el, info.live_url, info.live_recording ? `live: ${info.live_recording}` : "live (no run active)");
+  }
+
+  async function openRrd(el, id, path) {
+    const info = await rerunInfo(el);
+    if (info.available) show(el, location.origin + path, `run ${id} (.rrd)`);
+  }
+
+  xrf.addPage({
+    id: "runs",
+    title: "Runs",
+    order: 20,
+    init(el) {
+      el0 = el;
+      css();
+      html(el);
+      xrf.on("run", () => { if (!el.classList.contains("hidden")) { loadList(el); if (selected) select(el, selected); } });
+      xrf.on("alarm", (m) => { if (m.kind === "log" && !el.classList.contains("hidden")) loadList(el); });
+    },
+    show(el) {
+      loadList(el);
+      if (selected) select(el, selected);
+      if (!el.querySelector("#rr-frame").getAttribute("src")) openLive(el);
+      clearInterval(timer);
+      timer = setInterval(() => {
+        if (el.classList.contains("hidden")) { clearInterval(timer); timer = null; return; }
+        loadList(el);
+      }, REFRESH_MS);
+    },
+  });
+})();
