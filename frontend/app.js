@@ -22,6 +22,20 @@ const xrf = {                // also the test hook: tests read window.xrf
 };
 window.xrf = xrf;
 
+// ---- who is logged in (docs/developers/security.md) -----------------------------------------
+// The session cookie is HttpOnly; the CSRF token is in the readable xrf_csrf cookie and goes back
+// in X-CSRF-Token on every state-changing request. No session: the login page.
+xrf.csrfHeaders = function () {
+  const m = document.cookie.match(/(?:^|;\s*)xrf_csrf=([^;]+)/);
+  return m ? { "X-CSRF-Token": decodeURIComponent(m[1]) } : {};
+};
+xrf.toLogin = function () { location.href = "/login?next=" + encodeURIComponent(location.pathname + location.hash); };
+xrf.me = null;
+xrf.meReady = fetch("/api/me").then((r) => {
+  if (r.status === 401) { xrf.toLogin(); return new Promise(() => {}); }
+  return r.json();
+}).then((me) => { xrf.me = me; if (me.must_change) xrf.toLogin(); return me; });
+
 // ---- state machine drawing ------------------------------------------------------------------
 
 const NODES = {
@@ -121,6 +135,9 @@ function sendCommand(cmd) {
 // The documented stop rule (docs/students/dashboard.md): RUN or PAUSED -> `stop` (the
 // controller's own safe stop); in any other state of a live run, end the run (quit, then signals).
 function emergencyStop() {
+  // Who may: pages/lease.js explains to whoever may not (observers; students without the bench
+  // when stopping would end the run). Stop and pause themselves work for every student.
+  if (xrf.stopBlocked && xrf.stopBlocked()) return;
   const s = xrf.state;
   if (s.active && (s.name === "RUN" || s.name === "PAUSED")) {
     sendCommand("stop");
@@ -132,9 +149,10 @@ function emergencyStop() {
 // ---- run ------------------------------------------------------------------------------------
 
 async function api(method, path, body) {
-  const res = await fetch(path, {
-    method, headers: body ? { "Content-Type": "application/json" } : {}, body: body ? JSON.stringify(body) : undefined,
-  });
+  const headers = method === "GET" ? {} : xrf.csrfHeaders();
+  if (body) headers["Content-Type"] = "application/json";
+  const res = await fetch(path, { method, headers, body: body ? JSON.stringify(body) : undefined });
+  if (res.status === 401) { xrf.toLogin(); throw new Error("logged out"); }
   const data = await res.json().catch(() => ({}));
   if (!res.ok) throw new Error(data.detail ? (typeof data.detail === "string" ? data.detail : JSON.stringify(data.detail)) : res.statusText);
   return data;
@@ -491,7 +509,8 @@ function connect() {
   ws.onopen = () => { $("conn").textContent = "connected"; $("conn").className = "badge ok"; };
   ws.onclose = () => {
     $("conn").textContent = "disconnected — retrying"; $("conn").className = "badge bad";
-    setTimeout(connect, 1000);
+    // A refused handshake or a session that ended: back to the login page, else retry.
+    setTimeout(() => fetch("/api/me").then((r) => (r.status === 401 ? xrf.toLogin() : connect())).catch(connect), 1000);
   };
   ws.onmessage = (ev) => {
     const m = JSON.parse(ev.data);

@@ -106,6 +106,25 @@ def ws_connect(ws_url: str, http: httpx.Client, **kw: Any) -> WsClient:
     return WsClient(connect(ws_url, max_size=None, additional_headers=headers, **kw).__enter__())
 
 
+def session_cookies(http: httpx.Client, url: str) -> list[dict[str, Any]]:
+    """The session of `http` as Playwright cookies (browser_context.add_cookies)."""
+    return [
+        {"name": "xrf_session", "value": http.cookies.get("xrf_session"), "url": url, "httpOnly": True, "sameSite": "Strict"},
+        {"name": "xrf_csrf", "value": http.cookies.get("xrf_csrf"), "url": url, "sameSite": "Strict"},
+    ]
+
+
+def browser_login(page: Any, url: str, username: str, password: str) -> None:
+    """Log a Playwright page in through the login page, as a person would."""
+    page.goto(url + "/")  # not logged in: redirected to the login page
+    page.wait_for_selector("#login-user")
+    page.fill("#login-user", username)
+    page.fill("#login-pass", password)
+    page.click("#login-submit")
+    page.wait_for_function("location.pathname === '/'")
+    page.wait_for_function("window.xrf && window.xrf.me && window.xrf.me.username === " + json.dumps(username))
+
+
 class WsClient:
     """A WebSocket client that keeps every message, so tests wait for conditions, not sleeps."""
 

@@ -15,7 +15,7 @@ REPO_ROOT = HERE.parents[1]
 sys.path.insert(0, str(REPO_ROOT / "appliance"))
 sys.path.insert(0, str(REPO_ROOT / "tests" / "appliance"))
 
-from harness import CHROMIUM_ARGS, shared_builds_root, start_server, stop_server  # noqa: E402
+from harness import CHROMIUM_ARGS, session_cookies, shared_builds_root, start_server, stop_server  # noqa: E402
 from playwright.sync_api import sync_playwright  # noqa: E402
 
 
@@ -28,7 +28,9 @@ def main() -> None:
         try:
             with sync_playwright() as p:
                 browser = p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
-                page = browser.new_page(viewport={"width": 1400, "height": 1000})
+                ctx = browser.new_context(viewport={"width": 1400, "height": 1000})
+                ctx.add_cookies(session_cookies(server.http, server.url))  # logged in as the educator
+                page = ctx.new_page()
                 page.goto(server.url + "/")
                 page.wait_for_selector("#build-select option[value=relbot]", state="attached")
                 page.select_option("#build-select", "relbot")
