@@ -344,14 +344,15 @@ def summarise(ok: bool, lines: list[str], diags: list[dict[str, Any]], cfg: Sand
               error: str, duration: float) -> str:
     if ok:
         return f"built in {duration:.1f} s"
-    if timed_out:
-        return f"the build took longer than {cfg.timeout_s:.0f} s and was stopped (is something in the build waiting or looping?)"
     hint = ""
     text = "\n".join(lines[-400:])
     for rx, msg in _HINTS:
         if rx.search(text):
             hint = msg.format(**asdict(cfg))
             break
+    if timed_out:
+        return (f"the build took longer than {cfg.timeout_s:.0f} s and was stopped (is something in the build "
+                "waiting or looping?)" + (f" — {hint}" if hint else ""))
     first = next((d for d in diags if d["kind"] == "error"), None)
     if first and first["source"] == "linker":
         head = first["message"] + (f" (in {first['context']})" if first.get("context") else "")

@@ -1,0 +1,56 @@
+"""Fixtures: a data folder the build user can reach (not under /tmp/pytest-of-root, which is
+private to root), a Builder for sandbox tests, an appliance for the API tests."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+HERE = Path(__file__).resolve().parent
+for p in (REPO / "appliance", REPO / "tests" / "appliance", HERE):
+    if str(p) not in sys.path:
+        sys.path.insert(0, str(p))
+
+
+def reachable_tmp(prefix: str) -> Path:
+    """A fresh folder under the repo's ignored .cache/ (traversable by the xrf-build user)."""
+    root = REPO / ".cache" / "projects-tests"
+    root.mkdir(parents=True, exist_ok=True)
+    os.chmod(root, 0o755)
+    d = root / f"{prefix}-{uuid.uuid4().hex[:8]}"
+    d.mkdir()
+    os.chmod(d, 0o755)
+    return d
+
+
+@pytest.fixture
+def data_dir() -> Iterator[Path]:
+    d = reachable_tmp("data")
+    yield d
+    shutil.rmtree(d, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def module_data_dir() -> Iterator[Path]:
+    d = reachable_tmp("data")
+    yield d
+    shutil.rmtree(d, ignore_errors=True)
+
+
+def wait_build(store, bid: int, timeout: float = 300):  # noqa: ANN001
+    deadline = time.monotonic() + timeout
+    while True:
+        b = store.build(bid)
+        if b.status not in ("queued", "building"):
+            return b
+        if time.monotonic() > deadline:
+            raise AssertionError(f"build {bid} still {b.status} after {timeout} s")
+        time.sleep(0.1)
