@@ -253,7 +253,7 @@ def main() -> int:
     print(f"bridge: executor {args.bridge_executor}, SCHED_FIFO {args.bridge_priority or 'off'}; "
           f"node SCHED_FIFO {args.node_priority or 'off'}; machine load average {os.getloadavg()[0]:.1f}")
     print(f"bridge ring overwrites: {ring_lost}; cycle steps {b['steps']}; loop missed cycles: {status.missed}")
-    print(f"XRF2 (thesis): ROS -> loop mean 0.83 ms; loop -> ROS mean 5.7 ms, max 19 ms; lost 47 of 100 000")
+    print("XRF2 (thesis): ROS -> loop mean 0.83 ms; loop -> ROS mean 5.7 ms, max 19 ms; lost 47 of 100 000")
     # The target is about the bridge losing nothing: Xeno2Ros samples (every one must arrive).
     # Ros2Xeno is latest-wins by the design; superseded ones are reported, not counted.
     target = b["p50_ms"] < 1.0 and b["lost"] == 0 and ring_lost == 0

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from xrflab.channels import Channels, create_for_test, shm_path
+from xrflab.channels import create_for_test, shm_path
 
 pytestmark = pytest.mark.ros
 

@@ -53,11 +53,20 @@ def allow_all(user: str, cmd: int) -> tuple[bool, str]:
     return True, ""
 
 
+def _login_name() -> str:
+    import getpass
+
+    try:
+        return getpass.getuser()
+    except Exception:  # no USER/LOGNAME and no passwd entry
+        return ""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--shm", default=os.environ.get("XRF_SHM", "xrf"), help="shared-memory name (default: $XRF_SHM or xrf)")
     parser.add_argument("--msg-dir", default=None,
                         help="folder with Ros2Xeno.msg and Xeno2Ros.msg (default: the schemas the running loop publishes)")
-    parser.add_argument("--user", default=os.environ.get("XRF_USER", os.environ.get("USER", "")),
+    parser.add_argument("--user", default=os.environ.get("XRF_USER") or _login_name(),
                         help="the user the bridge acts for (checked against the bench lease)")
     parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the loop (default 10)")
     parser.add_argument("--depth", type=int, default=DEFAULT_DEPTH, help=f"QoS history depth (default {DEFAULT_DEPTH})")
