@@ -110,3 +110,29 @@ def test_no_xeno2ros_lost_over_60_s(procs, probe_exe, shm_name):
     assert 5900 <= result["count"] <= 6100, result
     assert bridge.terminate() == 0
     assert ", 0 lost in the ring" in bridge.output, bridge.output
+
+
+def test_cpp_node_code_compiles_against_the_package(tmp_path):
+    """A C++ node's use of the types (XRF2's includes and names) compiles against the installed
+    package's headers (rclcpp is not on PyPI; the message code is what must not change)."""
+    import shutil
+
+    from xrflab.ros.interfaces import build_interface_package
+
+    prefix = build_interface_package(RELBOT / "msg")
+    src = tmp_path / "node.cpp"
+    src.write_text(
+        '#include "xrf2_msgs/msg/ros2_xeno.hpp"\n#include "xrf2_msgs/msg/xeno2_ros.hpp"\n#include <cstdio>\n'
+        "int main() { xrf2_msgs::msg::Ros2Xeno m; m.steer_left = 1.5; m.steer_right = -0.5;\n"
+        "  xrf2_msgs::msg::Xeno2Ros r; r.pos_left = m.steer_left; r.pos_right = m.steer_right;\n"
+        '  std::printf("%g %g\\n", r.pos_left, r.pos_right); return m == xrf2_msgs::msg::Ros2Xeno() ? 1 : 0; }\n'
+    )
+    venv_include = Path(sys.prefix) / "include"
+    includes = [f"-I{prefix / 'include' / 'xrf2_msgs'}"] + [f"-I{d}" for d in sorted(venv_include.iterdir()) if d.is_dir()]
+    cxx = shutil.which("g++") or shutil.which("c++")
+    assert cxx, "no C++ compiler"
+    r = subprocess.run([cxx, "-std=c++17", *includes, str(src), "-o", str(tmp_path / "node")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = subprocess.run([str(tmp_path / "node")], capture_output=True, text=True, timeout=10)
+    assert out.returncode == 0 and out.stdout.split() == ["1.5", "-0.5"], out
