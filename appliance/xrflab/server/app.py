@@ -17,6 +17,8 @@ from .api import router, ws_router
 from .routes_projects import router as projects_router
 from .hub import Hub
 from .routes_logs import router as logs_router
+from .routes_selfcheck import router as selfcheck_router
+from .routes_system import router as system_router
 from .routes_viz import router as viz_router
 from .runs import RunStore
 from .settings import Settings
@@ -75,6 +77,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(viz_router)
     app.include_router(projects_router)
     app.include_router(logs_router)
+    app.include_router(selfcheck_router)
+    app.include_router(system_router)
 
     frontend = settings.frontend_dir
     if frontend.is_dir():
