@@ -3,32 +3,20 @@ private to root), a Builder for sandbox tests, an appliance for the API tests.""
 
 from __future__ import annotations
 
-import os
 import shutil
 import sys
 import time
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from projects_support import reachable_tmp
 
 REPO = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent
 for p in (REPO / "appliance", REPO / "tests" / "appliance", HERE):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
-
-
-def reachable_tmp(prefix: str) -> Path:
-    """A fresh folder under the repo's ignored .cache/ (traversable by the xrf-build user)."""
-    root = REPO / ".cache" / "projects-tests"
-    root.mkdir(parents=True, exist_ok=True)
-    os.chmod(root, 0o755)
-    d = root / f"{prefix}-{uuid.uuid4().hex[:8]}"
-    d.mkdir()
-    os.chmod(d, 0o755)
-    return d
 
 
 @pytest.fixture

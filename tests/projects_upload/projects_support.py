@@ -1,0 +1,21 @@
+"""Helpers shared by tests/projects_upload and tests/ui/test_projects_ui.py (no conftest name clash)."""
+
+from __future__ import annotations
+
+import os
+import uuid
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def reachable_tmp(prefix: str) -> Path:
+    """A fresh folder under the repo's ignored .cache/ that the xrf-build user can traverse
+    (pytest's tmp folders live under root's private /tmp/pytest-of-root)."""
+    root = REPO / ".cache" / "projects-tests"
+    root.mkdir(parents=True, exist_ok=True)
+    os.chmod(root, 0o755)
+    d = root / f"{prefix}-{uuid.uuid4().hex[:8]}"
+    d.mkdir()
+    os.chmod(d, 0o755)
+    return d
