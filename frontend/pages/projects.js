@@ -237,7 +237,7 @@
         <div id="proj-status" class="proj-status" role="status"></div>
         <ul id="proj-list" class="proj-list"></ul>
       </section>
-      <section class="panel wide hidden" id="proj-detail">
+      <section class="panel hidden" id="proj-detail">
         <h2><span id="proj-name"></span>
           <button id="proj-build">Build</button>
           <a id="proj-download" class="button secondary small" href="#">Download (zip)</a>
