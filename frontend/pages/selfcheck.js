@@ -153,6 +153,7 @@
   }
 
   function onMessage(m) {
+    if (!$("sc-steps")) return;  // the page has not been opened yet: show() loads the state
     if (m.event === "begin") { beginView(m.check, m); return; }
     if (st.running !== null && m.check !== st.running) return;
     if (st.running === null && m.event !== "report" && m.event !== "error") { beginView(m.check, m); }
