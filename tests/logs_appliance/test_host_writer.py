@@ -137,3 +137,31 @@ def test_disk_full_stops_logging_cleanly_and_the_loop_goes_on(loop, tmp_path: Pa
         assert stats.records + stats.unwritten + stats.lost == lp.ch.status().log_written + stats.lost
     finally:
         subprocess.run(["umount", "-l", str(disk)], check=False)
+
+
+def test_live_rerun_stream_takes_records_and_telemetry(loop, tmp_path: Path, caplog) -> None:
+    """The live stream (decimated records + telemetry) into the appliance's rerun proxy runs
+    without errors; its blueprint has one view per variable group and the telemetry views."""
+    import logging
+
+    from xrflab.logs.live import LiveRerun, RerunServer, live_blueprint
+
+    caplog.set_level(logging.ERROR, logger="xrflab.logs.live")
+    lp = loop(tmp_path)
+    server = RerunServer.get(appliance_port=8000)
+    assert server.url.startswith("rerun+http://") and server.grpc_port > 0
+    stream = LiveRerun(server, lp.ch, run_id=42)
+    w = HostLogWriter(lp.ch, {}, tmp_path, on_records=stream.feed, timing=False)
+    w.start()
+    lp.command("initialise", "INITIALISED")
+    lp.command("start", "RUN")
+    lp.wait_cycles(1000)
+    os.kill(lp.proc.pid, signal.SIGKILL)
+    lp.proc.wait(5)
+    w.finish()
+    stream.close()
+    assert stream._names == ["cycle_2", "flag", "letter", "count", "ratio", "value"]
+    assert stream.dropped == 0
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR], caplog.text
+    bp = live_blueprint(stream._names, ["enc", "pwm", "xeno2ros"])
+    assert bp is not None
