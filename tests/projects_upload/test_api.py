@@ -213,9 +213,20 @@ def test_templates_new_and_download(server: Server) -> None:
 def test_students_do_not_see_each_other(server: Server) -> None:
     pw_a = server.create_user("proj_alice")
     pw_b = server.create_user("proj_bob")
-    alice, _ = server.login("proj_alice", pw_a)
-    bob, _ = server.login("proj_bob", pw_b)
+    alice, alice_ws = server.login("proj_alice", pw_a)
+    bob, bob_ws = server.login("proj_bob", pw_b)
     pid = upload(alice, targz(hostile.project_files(BASE))).json()["project"]["id"]
+    # build output goes to the owner (and educators), not to other students
+    with alice_ws() as wa, bob_ws() as wb, server.ws() as we:
+        for w in (wa, wb, we):
+            w.send({"type": "subscribe", "topics": ["build"]})
+            w.wait_type("ack")
+        b = build_and_wait(alice, pid)
+        assert b["status"] == "ok"
+        for w in (wa, we):
+            w.wait_for(lambda m: m.get("build_id") == b["id"] and m.get("status") == "ok", timeout=10, seen=True)
+        with pytest.raises(AssertionError):
+            wb.wait_for(lambda m: m.get("build_id") == b["id"], timeout=1, seen=True)
     assert [p["id"] for p in alice.get("/api/projects").json()] == [pid]
     assert pid not in [p["id"] for p in bob.get("/api/projects").json()]
     for method, path in (("GET", f"/api/projects/{pid}"), ("POST", f"/api/projects/{pid}/builds"),

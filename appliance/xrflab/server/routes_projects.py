@@ -57,7 +57,7 @@ class ProjectsService:
 
         def publish(kind: str, payload: dict[str, Any]) -> None:
             try:
-                loop.call_soon_threadsafe(hub.publish, kind, payload)
+                loop.call_soon_threadsafe(_publish_to_owner, hub, kind, payload)
             except RuntimeError:  # loop closed: the appliance is stopping
                 pass
 
@@ -68,6 +68,26 @@ class ProjectsService:
 
     def src(self, project: ProjectRow) -> Path:
         return self.folder(project) / "src"
+
+
+def _publish_to_owner(hub: Any, kind: str, payload: dict[str, Any]) -> None:
+    """A project's build messages go to the WebSockets of its owner (and educators) only: one
+    student's compiler output is nobody else's business. The hub has no per-user fan-out, so its
+    clients (each with the ``user`` the /ws handler set) are walked here; without that (an older
+    hub), plain publish."""
+    clients = getattr(hub, "_clients", None)
+    owns = getattr(authmod, "owns", None)
+    if clients is None or owns is None:
+        hub.publish(kind, payload)
+        return
+    from .hub import encode
+
+    text = encode(kind, payload)
+    owner = payload.get("owner", "")
+    for client in tuple(clients):
+        user = getattr(client, "user", None)
+        if kind in client.topics and (owns(user, owner) if user is not None else owner == "local"):
+            client.deliver(kind, text)
 
 
 _lock = asyncio.Lock()
