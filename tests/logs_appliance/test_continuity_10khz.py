@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import COST, start
+from logs_support import COST, start
 from harness import stop_server
 
 from xrflab.logs import open_log

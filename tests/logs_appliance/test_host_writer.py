@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import REPO
+from logs_support import REPO
 
 from xrflab.build import build_project
 from xrflab.channels import Channels

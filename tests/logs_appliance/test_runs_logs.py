@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from conftest import COST, PROBE, REPO, start
+from logs_support import COST, PROBE, REPO, start
 from harness import Server, stop_server
 
 from xrflab.logs import open_log

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from harness import Server, shared_builds_root, start_server, stop_server
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "appliance"))
+from harness import Server, shared_builds_root, start_server, stop_server  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 PROBE = "logs-probe"

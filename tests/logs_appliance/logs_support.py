@@ -1,0 +1,33 @@
+"""Helpers for the logging tests through the appliance (a module of its own, not conftest, so that
+importing it never clashes with another suite's conftest): a real server (tests/appliance/harness.py)
+whose bundled projects are the loop probe (all six log types every cycle) and the logger-cost
+controller (N doubles every cycle, bench/logs/logger_cost_project)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+if str(REPO / "tests" / "appliance") not in sys.path:
+    sys.path.insert(0, str(REPO / "tests" / "appliance"))
+from harness import Server, shared_builds_root, start_server  # noqa: E402
+
+PROBE = "logs-probe"
+COST = "logs-cost"
+
+
+def projects_dir() -> Path:
+    """A stable folder of symlinks (the shared build folders' CMake caches remember the source
+    path, so it must not change between sessions)."""
+    root = REPO / ".cache" / "logs-appliance-projects" / "examples"
+    root.mkdir(parents=True, exist_ok=True)
+    for name, target in ((PROBE, REPO / "tests/fixtures/loop_probe"), (COST, REPO / "bench/logs/logger_cost_project")):
+        link = root / name
+        if not link.is_symlink():
+            link.symlink_to(target)
+    return root.parent
+
+
+def start(data_dir: Path, **settings) -> Server:
+    return start_server(data_dir, shared_builds_root(), projects_dir=str(projects_dir()), **settings)
