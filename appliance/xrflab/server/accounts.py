@@ -1,8 +1,8 @@
 """Accounts, sessions and API tokens in SQLite (<data dir>/accounts.sqlite3).
 
 Roles: educator (everything), student (own projects/runs, drives while holding the bench lease),
-observer (read-only). Passwords are hashed with argon2id (argon2-cffi's defaults: 64 MiB,
-3 passes). Session and API tokens are 256-bit random strings; only their SHA-256 is stored (they
+observer (read-only). Passwords are hashed with argon2id (19 MiB, 2 passes, 1 lane:
+OWASP's minimum profile, light enough for a login rush on a Pi). Session and API tokens are 256-bit random strings; only their SHA-256 is stored (they
 are not guessable, so a fast hash is enough and a stolen database holds no usable token).
 
 Used synchronously from the event loop like runs.py (a few sub-millisecond statements per
@@ -61,7 +61,9 @@ CREATE TABLE IF NOT EXISTS api_tokens (
 );
 """
 
-_hasher = PasswordHasher()
+# argon2id with OWASP's minimum profile (19 MiB, 2 passes, 1 lane): memory-hard, yet 40 students
+# logging in at the start of a lab do not exhaust a Pi's memory (callers also bound concurrency).
+_hasher = PasswordHasher(time_cost=2, memory_cost=19 * 1024, parallelism=1)
 # Verified against when the username does not exist, so a wrong username costs as much time as a
 # wrong password and timing does not tell which accounts exist.
 _DUMMY_HASH = _hasher.hash(secrets.token_urlsafe(16))
@@ -332,7 +334,7 @@ class Accounts:
         user = self.get(user_id)
         if user is None or user.disabled:
             return None
-        if now - last_seen > 30:
+        if now - last_seen > min(30.0, self.session_idle_s / 4):
             self._db.execute("UPDATE sessions SET last_seen=? WHERE token_hash=?", (now, h))
         return Session(h, user, csrf, expires)
 
@@ -343,11 +345,6 @@ class Accounts:
         """End every session (but `keep`, a token hash) and the API token of a user."""
         self._db.execute("DELETE FROM sessions WHERE user_id=? AND token_hash IS NOT ?", (user_id, keep))
         self._db.execute("DELETE FROM api_tokens WHERE user_id=?", (user_id,))
-
-    def age_sessions(self, user_id: int, seconds: float) -> None:
-        """Test hook: pretend a user's sessions were last used `seconds` ago."""
-        self._db.execute("UPDATE sessions SET last_seen=last_seen-?, created=created-?, expires=expires-? "
-                         "WHERE user_id=?", (seconds, seconds, seconds, user_id))
 
     # -- API tokens (the CLI) ---------------------------------------------------------------------
 
@@ -387,11 +384,11 @@ def _text(value: Any, what: str, limit: int) -> str:
 
 class RateLimiter:
     """Failed logins per key (an account name, an address): `limit` failures within `window_s`
-    lock the key for window_s, doubling with each further lock (capped at `max_lock_s`); a
+    lock the key for lock_s, doubling with each further lock (capped at `max_lock_s`); a
     success clears the key. In memory: a restart forgets, which is fine for a lab appliance."""
 
-    def __init__(self, limit: int = 5, window_s: float = 60.0, max_lock_s: float = 900.0) -> None:
-        self.limit, self.window_s, self.max_lock_s = limit, window_s, max_lock_s
+    def __init__(self, limit: int = 5, window_s: float = 60.0, lock_s: float = 60.0, max_lock_s: float = 900.0) -> None:
+        self.limit, self.window_s, self.lock_s, self.max_lock_s = limit, window_s, lock_s, max_lock_s
         self._fails: dict[str, list[float]] = {}
         self._locked: dict[str, float] = {}
         self._strikes: dict[str, int] = {}
@@ -407,7 +404,7 @@ class RateLimiter:
         fails.append(now)
         if len(fails) >= self.limit:
             strikes = self._strikes.get(key, 0)
-            self._locked[key] = now + min(self.max_lock_s, self.window_s * 2 ** strikes)
+            self._locked[key] = now + min(self.max_lock_s, self.lock_s * 2 ** strikes)
             self._strikes[key] = strikes + 1
             fails = []
         self._fails[key] = fails

@@ -129,14 +129,10 @@ async def get_builds(request: Request) -> list[dict[str, Any]]:
 async def start_run(body: StartRun, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
     sup = _supervisor(request)
     try:
-        row = await sup.start_run(body.build, body.sim, body.max_cycles)
+        row = await sup.start_run(body.build, body.sim, body.max_cycles, owner=user.username)
     except SupervisorError as exc:
         audit.record(user, "run.start_failed", {"build": body.build, "error": str(exc)}, client_address(request))
         raise _http(exc) from None
-    if not row.owner:
-        row = sup.store.update(row.id, owner=user.username)
-        if sup.current is not None and sup.current.row.id == row.id:
-            sup.current.row = row
     lease = request.app.state.security.lease
     if lease is not None:
         lease.started_run(user, row.id)

@@ -11,6 +11,7 @@ How to protect a new endpoint: docs/developers/security.md.
 
 from __future__ import annotations
 
+import asyncio
 import hmac
 import time
 from enum import Enum
@@ -64,7 +65,12 @@ class Security:
         self.accounts: Accounts | None = None
         self.lease: Lease | None = None
         self.audit: AuditLog | None = None
-        self.limiter = RateLimiter(settings.login_max_failures, settings.login_window_s)
+        self.limiter = RateLimiter(settings.login_max_failures, settings.login_window_s,  # per account
+                                   settings.login_lock_s)
+        self.address_limiter = RateLimiter(settings.login_max_failures_address, settings.login_window_s,
+                                           settings.login_lock_s)
+        # argon2 is memory-hard on purpose: at most this many checks at once (a login rush on a Pi).
+        self.hash_slots = asyncio.Semaphore(4)
 
     def open(self, hub: Any, supervisor: Any) -> None:
         """In the app's lifespan, once the hub and supervisor exist."""

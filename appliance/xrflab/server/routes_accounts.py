@@ -157,19 +157,20 @@ async def _authenticate(request: Request, username: str, password: str) -> User:
     sec = _sec(request)
     accounts = _accounts(request)
     address = client_address(request)
-    keys = (f"user:{username.strip().lower()}", f"addr:{address}")
-    wait = max(sec.limiter.retry_after(k) for k in keys)
+    name = username.strip().lower()
+    wait = max(sec.limiter.retry_after(name), sec.address_limiter.retry_after(address))
     if wait > 0:
         audit.record(None, "auth.locked", {"username": username[:64]}, address)
         raise HTTPException(429, f"too many failed logins; try again in {int(wait) + 1} s",
                             headers={"Retry-After": str(int(wait) + 1)})
-    user = await run_in_threadpool(accounts.verify, username, password)
+    async with sec.hash_slots:
+        user = await run_in_threadpool(accounts.verify, username, password)
     if user is None:
-        for k in keys:
-            sec.limiter.failed(k)
+        sec.limiter.failed(name)
+        sec.address_limiter.failed(address)
         audit.record(None, "auth.failed", {"username": username[:64]}, address)
         raise HTTPException(401, "wrong username or password")
-    sec.limiter.succeeded(keys[0])
+    sec.limiter.succeeded(name)
     return user
 
 
@@ -324,6 +325,8 @@ async def change_user(user_id: int, body: UserChange, request: Request,
     target = accounts.get(user_id)
     if target is None:
         raise HTTPException(404, f"no user {user_id}")
+    if target.id == user.id and (body.disabled or (body.role is not None and body.role != user.role)):
+        raise HTTPException(409, "you cannot disable your own account or change your own role")
     _guard_last_educator(request, target, body)
     try:
         changed = accounts.update(user_id, **body.model_dump(exclude_none=True))

@@ -75,8 +75,10 @@ class Settings:
     allow_origins: tuple[str, ...] = ()
     session_max_s: float = 12 * 3600  # a login lasts at most this long
     session_idle_s: float = 2 * 3600  # ...and ends after this long unused
-    login_max_failures: int = 5  # per account and per address within login_window_s, then locked
-    login_window_s: float = 60.0  # lock time; doubles with each further lock, up to 15 min
+    login_max_failures: int = 5  # per account within login_window_s, then locked
+    login_max_failures_address: int = 20  # per client address (a lab's NAT is many students)
+    login_window_s: float = 60.0  # failures are counted over this long
+    login_lock_s: float = 60.0  # then the account/address is locked this long; doubles with each further lock, up to 15 min
     lease_idle_s: float = 600.0  # the bench lease is released after this long without driving
 
     def bench_is_real(self) -> bool:

@@ -283,7 +283,9 @@ class Supervisor:
 
     # -- starting -----------------------------------------------------------------------------
 
-    async def start_run(self, build: str, sim: str | None = None, max_cycles: int | None = None) -> RunRow:
+    async def start_run(self, build: str, sim: str | None = None, max_cycles: int | None = None,
+                        owner: str = "") -> RunRow:
+        """`owner`: username of who starts it (auth.owns() decides who may see the run)."""
         async with self._start_lock:
             if self.current is not None and not self.current.ended.is_set():
                 raise SupervisorError(f"run {self.current.row.id} is still active; stop it first")
@@ -293,6 +295,8 @@ class Supervisor:
             if plant not in SIM_PLANTS:
                 raise SupervisorError(f"unknown simulated plant {plant!r}; have: {', '.join(SIM_PLANTS)}", 422)
             row = self.store.create(build, plant, "", "")
+            if owner:
+                row = self.store.update(row.id, owner=owner)
             shm = f"xrf-lab-{os.getpid()}-{row.id}"
             run_dir = self.settings.runs_dir / str(row.id)
             run_dir.mkdir(parents=True, exist_ok=True)
