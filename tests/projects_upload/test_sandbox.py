@@ -28,7 +28,8 @@ def _builder(data_dir: Path, **cfg) -> tuple[Builder, ProjectStore, list]:  # no
     root.mkdir(exist_ok=True)
     os.chmod(root, 0o711)
     messages: list = []
-    return Builder(store, root, lambda t, p: messages.append(p), SandboxConfig(**cfg)), store, messages
+    return (Builder(store, root, lambda t, p: messages.append(p), SandboxConfig(**cfg), hide_dir=data_dir),
+            store, messages)
 
 
 def _project(store: ProjectStore, builder: Builder, cmakelists: str | None = None,
@@ -169,3 +170,23 @@ def test_unchanged_source_reuses_build_and_builds_queue(data_dir: Path) -> None:
     third, reused = builder.submit(p1, s1)
     assert not reused and third.id != b1.id
     wait_build(store, third.id)
+
+
+def test_other_projects_and_the_data_folder_are_invisible(data_dir: Path) -> None:
+    builder, store, _ = _builder(data_dir)
+    _, other_src = _project(store, builder)
+    (data_dir / "secret.sqlite3").write_text("grades")
+    cml = PRELUDE + (f'file(GLOB seen "{builder.projects_root}/*")\n'
+                     'message(STATUS "seen: ${seen}")\n'
+                     f'if(EXISTS "{other_src}/CMakeLists.txt" OR EXISTS "{data_dir}/secret.sqlite3")\n'
+                     '  message(FATAL_ERROR "LEAK")\nendif()\n'
+                     'file(WRITE "${CMAKE_SOURCE_DIR}/written.txt" "x")\n') + TAIL
+    project, src = _project(store, builder, cml)
+    row, _ = builder.submit(project, src)
+    b = wait_build(store, row.id)
+    log = Path(b.log_path).read_text()
+    assert "LEAK" not in log, log[-2000:]
+    seen = next(l for l in log.splitlines() if "seen: " in l)
+    assert other_src.parent.name not in seen and src.parent.name in seen, seen
+    assert b.status == "failed" and "only write inside its own build folder" in b.result, b.result
+    assert not (src / "written.txt").exists()

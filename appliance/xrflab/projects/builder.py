@@ -110,6 +110,37 @@ def _mount(src: str | None, target: str, fstype: str | None, flags: int, data: s
         raise OSError(e, f"mount {target}: {os.strerror(e)}")
 
 
+MS_RDONLY = 1
+MS_NOEXEC = 8
+MS_REMOUNT = 32
+MS_BIND = 4096
+
+
+def _confine(hide: str, keep: list[tuple[str, bool]]) -> None:
+    """Cover ``hide`` (the data folder: every project, the databases, the runs) with an empty
+    tmpfs, then put back only ``keep``: (path, read_only) — the project's source (read-only),
+    its build folder, rt_core's install (read-only). Same paths, so CMake sees nothing change."""
+    stage = "/tmp/.xrf-keep"
+    os.makedirs(stage, exist_ok=True)
+    staged = []
+    for i, (path, ro) in enumerate(keep):
+        spot = f"{stage}/{i}"
+        os.makedirs(spot, exist_ok=True)
+        _mount(path, spot, None, MS_BIND | MS_REC, None)
+        staged.append((path, spot, ro))
+    _mount("tmpfs", hide, "tmpfs", MS_NOSUID | MS_NODEV, "size=1m,mode=0755")
+    for path, spot, ro in staged:
+        os.makedirs(path, exist_ok=True)
+        _mount(spot, path, None, MS_BIND | MS_REC, None)
+        if ro:
+            st = os.statvfs(path)
+            flags = MS_REMOUNT | MS_BIND | MS_RDONLY
+            flags |= MS_NOSUID if st.f_flag & os.ST_NOSUID else 0
+            flags |= MS_NODEV if st.f_flag & os.ST_NODEV else 0
+            flags |= MS_NOEXEC if st.f_flag & os.ST_NOEXEC else 0
+            _mount(None, path, None, flags, None)
+
+
 def _sandbox_main(config: dict[str, Any], cmd: list[str]) -> int:
     import resource
 
@@ -119,30 +150,36 @@ def _sandbox_main(config: dict[str, Any], cmd: list[str]) -> int:
     os.setsid()
     root = os.geteuid() == 0
     uid, gid = config["uid"], config["gid"]
-    # network
+    # network and mounts: own namespaces (without root, inside a user namespace of our own uid)
+    mount_ns = False
     try:
         if root:
             _unshare(CLONE_NEWNET)
         else:
             ouid, ogid = os.getuid(), os.getgid()
-            _unshare(CLONE_NEWUSER | CLONE_NEWNET)
+            _unshare(CLONE_NEWUSER | CLONE_NEWNET | CLONE_NEWNS)
             Path("/proc/self/setgroups").write_text("deny")
             Path("/proc/self/uid_map").write_text(f"{ouid} {ouid} 1")
             Path("/proc/self/gid_map").write_text(f"{ogid} {ogid} 1")
+            mount_ns = True
         say("no network (own network namespace)")
     except OSError as exc:
         say(f"WARNING: could not take the network away ({exc}); building with the host's network")
-    # private /tmp and /dev/shm
-    if root:
-        try:
+    try:
+        if root:
             _unshare(CLONE_NEWNS)
-            _mount(None, "/", None, MS_REC | MS_PRIVATE, None)
-            for target in ("/tmp", "/dev/shm"):
-                if os.path.isdir(target):
-                    _mount("tmpfs", target, "tmpfs", MS_NOSUID | MS_NODEV,
-                           f"size={config['tmpfs_mb']}m,mode=1777")
-        except OSError as exc:
-            say(f"WARNING: no private /tmp and /dev/shm ({exc})")
+            mount_ns = True
+        if not mount_ns:
+            raise OSError("no mount namespace")
+        _mount(None, "/", None, MS_REC | MS_PRIVATE, None)
+        for target in ("/tmp", "/dev/shm"):
+            if os.path.isdir(target):
+                _mount("tmpfs", target, "tmpfs", MS_NOSUID | MS_NODEV, f"size={config['tmpfs_mb']}m,mode=1777")
+        if config.get("hide"):
+            _confine(config["hide"], config["keep"])
+            say(f"sees of {config['hide']} only its source (read-only), its build folder and rt_core (read-only)")
+    except OSError as exc:
+        say(f"WARNING: no private /tmp, /dev/shm and data folder ({exc})")
     # priority and CPUs
     try:
         os.setpriority(os.PRIO_PROCESS, 0, 19)
@@ -379,6 +416,8 @@ class Builder:
     projects_root: Path
     publish: Publish
     config: SandboxConfig = field(default_factory=SandboxConfig)
+    # Covered in the build's mount namespace except for what the build needs (the data folder).
+    hide_dir: Path | None = None
 
     def __post_init__(self) -> None:
         self._queue: "queue.Queue[_Job | None]" = queue.Queue()
@@ -617,7 +656,17 @@ class Builder:
         elif os.environ.get("XRF_CACHE_DIR"):
             env["XRF_CACHE_DIR"] = os.environ["XRF_CACHE_DIR"]
         inner = [self._python_for(uid), "-m", "xrflab.projects.builder", "--inner", str(src), str(build_dir)]
-        config = {**asdict(cfg), "uid": uid, "gid": gid, "env": env}
+        config: dict[str, Any] = {**asdict(cfg), "uid": uid, "gid": gid, "env": env}
+        hide = self.hide_dir.resolve() if self.hide_dir else None
+        if hide is not None:
+            from .. import build
+
+            keep = [(str(src.resolve()), True), (str(build_dir.resolve()), False)]
+            cache = Path(env.get("XRF_CACHE_DIR") or build._cache_root()).resolve()
+            if cache.is_relative_to(hide):
+                keep.append((str(cache), True))
+            if all(Path(k).is_relative_to(hide) for k, _ in keep[:2]):
+                config.update(hide=str(hide), keep=keep)
         cmd = [sys.executable, "-m", "xrflab.projects.builder", "--sandbox", json.dumps(config), "--", *inner]
         wenv = {"PATH": env["PATH"], "PYTHONPATH": str(APPLIANCE_DIR), "LANG": "C.UTF-8"}
         proc = subprocess.Popen(cmd, cwd=build_dir, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,

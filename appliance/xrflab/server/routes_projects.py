@@ -61,7 +61,8 @@ class ProjectsService:
             except RuntimeError:  # loop closed: the appliance is stopping
                 pass
 
-        self.builder = Builder(self.store, self.root, publish, SandboxConfig.from_settings(settings))
+        self.builder = Builder(self.store, self.root, publish, SandboxConfig.from_settings(settings),
+                               hide_dir=settings.data_dir)
 
     def folder(self, project: ProjectRow) -> Path:
         return self.root / project.folder
