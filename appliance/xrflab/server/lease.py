@@ -83,14 +83,14 @@ class Lease:
             self.touch(user)
             return self.payload()
         if self.holder is None:
-            self._grant(user, "take", by=user)
+            self._grant(user, "take", user)
             return self.payload()
         if not user.is_educator:
             raise LeaseError(f"the bench is held by {self.holder.user.username}; queue for it")
         previous = self.holder.user
         self._drop_from_queue(user)
         self.holder = Holder(user, time.time(), time.monotonic())
-        self._changed("takeover", user, previous=_who(previous), by=_who(user))
+        self._changed("takeover", user, previous=_who(previous))
         return self.payload()
 
     def release(self, user: User, reason: str = "release") -> dict[str, Any]:
@@ -98,7 +98,7 @@ class Lease:
             raise LeaseError("nobody holds the bench")
         if not self.holds(user) and not user.is_educator:
             raise LeaseError(f"the bench is held by {self.holder.user.username}, not you", 403)
-        self._free(reason, by=user)
+        self._free(reason, user)
         return self.payload()
 
     def enqueue(self, user: User) -> dict[str, Any]:
@@ -108,12 +108,12 @@ class Lease:
             return self.take(user)
         if all(u.id != user.id for u in self.queue):
             self.queue.append(user)
-            self._changed("queue", user, by=_who(user))
+            self._changed("queue", user)
         return self.payload()
 
     def leave_queue(self, user: User) -> dict[str, Any]:
         if self._drop_from_queue(user):
-            self._changed("unqueue", user, by=_who(user))
+            self._changed("unqueue", user)
         return self.payload()
 
     def forget(self, user_id: int, reason: str) -> None:
@@ -122,7 +122,7 @@ class Lease:
             self.queue = [u for u in self.queue if u.id != user_id]
             self._changed("unqueue", None, reason=reason)
         if self.holder is not None and self.holder.user.id == user_id:
-            self._free(reason, by=None)
+            self._free(reason, None)
 
     def started_run(self, user: User, run_id: int) -> None:
         if self.holds(user):
@@ -135,12 +135,12 @@ class Lease:
         if h is None or run_id is None:
             return
         if h.run_id == run_id or (owner and owner == h.user.username):
-            self._free("run ended", by=None)
+            self._free("run ended", None)
 
     def check_idle(self) -> None:
         h = self.holder
         if h is not None and time.monotonic() - h.last_active >= self.idle_s:
-            self._free("idle", by=None)
+            self._free("idle", None)
 
     async def watch_idle(self) -> None:
         while True:
@@ -161,22 +161,23 @@ class Lease:
         self.queue = [u for u in self.queue if u.id != user.id]
         return len(self.queue) != before
 
-    def _grant(self, user: User, event: str, by: User | None, **extra: Any) -> None:
+    def _grant(self, user: User, event: str, actor: User | None, **extra: Any) -> None:
         self._drop_from_queue(user)
         self.holder = Holder(user, time.time(), time.monotonic())
-        self._changed(event, by, holder_user=_who(user), **extra)
+        self._changed(event, actor, **extra)
 
-    def _free(self, reason: str, by: User | None) -> None:
+    def _free(self, reason: str, actor: User | None) -> None:
         previous = self.holder.user if self.holder else None
         self.holder = None
         if self.queue:
             nxt = self.queue.pop(0)
-            self._grant(nxt, "handover", by, previous=_who(previous), reason=reason)
+            self._grant(nxt, "handover", actor, previous=_who(previous), reason=reason)
         else:
-            self._changed("released", by, previous=_who(previous), reason=reason)
+            self._changed("released", actor, previous=_who(previous), reason=reason)
 
-    def _changed(self, event: str, by: User | None, **extra: Any) -> None:
+    def _changed(self, event: str, actor: User | None, **extra: Any) -> None:
+        """Publish and audit a change; `by` in the message is who did it (None: the appliance)."""
         extra.pop("holder_user", None)
-        payload = self.payload(event, **extra)
+        payload = self.payload(event, by=_who(actor), **extra)
         self._publish("lease", payload)
-        self._record(by, f"lease.{event}", {k: v for k, v in payload.items() if k not in ("idle_s", "idle_left_s")})
+        self._record(actor, f"lease.{event}", {k: v for k, v in payload.items() if k not in ("idle_s", "idle_left_s")})
