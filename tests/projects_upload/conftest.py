@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import shutil
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -31,14 +30,3 @@ def module_data_dir() -> Iterator[Path]:
     d = reachable_tmp("data")
     yield d
     shutil.rmtree(d, ignore_errors=True)
-
-
-def wait_build(store, bid: int, timeout: float = 300):  # noqa: ANN001
-    deadline = time.monotonic() + timeout
-    while True:
-        b = store.build(bid)
-        if b.status not in ("queued", "building"):
-            return b
-        if time.monotonic() > deadline:
-            raise AssertionError(f"build {bid} still {b.status} after {timeout} s")
-        time.sleep(0.1)

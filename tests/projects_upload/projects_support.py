@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import time
 import uuid
 from pathlib import Path
 
@@ -19,3 +20,14 @@ def reachable_tmp(prefix: str) -> Path:
     d.mkdir()
     os.chmod(d, 0o755)
     return d
+
+
+def wait_build(store, bid: int, timeout: float = 300):  # noqa: ANN001
+    deadline = time.monotonic() + timeout
+    while True:
+        b = store.build(bid)
+        if b.status not in ("queued", "building"):
+            return b
+        if time.monotonic() > deadline:
+            raise AssertionError(f"build {bid} still {b.status} after {timeout} s")
+        time.sleep(0.1)

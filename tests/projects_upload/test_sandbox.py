@@ -12,7 +12,7 @@ import uuid
 from pathlib import Path
 
 import pytest
-from conftest import wait_build
+from projects_support import wait_build
 
 from xrflab.projects.builder import Builder, SandboxConfig
 from xrflab.projects.store import ProjectStore
