@@ -154,6 +154,8 @@ class ProjectStore:
         return row
 
     def project(self, pid: int) -> ProjectRow | None:
+        if not -(2**63) <= pid < 2**63:  # beyond SQLite's INTEGER (a guessed or fuzzed id): none
+            return None
         r = self._q(f"SELECT {', '.join(_PCOLS)} FROM projects WHERE id=?", (pid,))
         return ProjectRow(*r[0]) if r else None
 
@@ -189,6 +191,8 @@ class ProjectStore:
         return row
 
     def build(self, bid: int) -> BuildRow | None:
+        if not -(2**63) <= bid < 2**63:  # beyond SQLite's INTEGER (a guessed or fuzzed id): none
+            return None
         r = self._q(f"SELECT {', '.join(_BCOLS)} FROM project_builds WHERE id=?", (bid,))
         return _build(r[0]) if r else None
 

@@ -166,6 +166,8 @@ class Accounts:
         return int(self._db.execute("SELECT COUNT(*) FROM users").fetchone()[0])
 
     def get(self, user_id: int) -> User | None:
+        if not -(2**63) <= user_id < 2**63:
+            return None
         r = self._db.execute(f"SELECT {_USER_COLUMNS} FROM users WHERE id=?", (user_id,)).fetchone()
         return _user(r) if r else None
 

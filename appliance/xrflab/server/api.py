@@ -11,7 +11,7 @@ import math
 import struct
 from typing import Any, Literal
 
-from fastapi import APIRouter, Depends, HTTPException, Request, WebSocket
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, WebSocket
 from pydantic import BaseModel, Field
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
@@ -182,12 +182,12 @@ async def command(body: CommandRequest, request: Request, user: User = Depends(c
 
 
 @router.get("/runs", response_model=list[RunRecord], dependencies=[requires(Perm.WATCH)])
-async def list_runs(request: Request, limit: int = 100, user: User = Depends(current_user)) -> list[dict[str, Any]]:
+async def list_runs(request: Request, limit: int = Query(100, ge=1, le=10_000),
+                    user: User = Depends(current_user)) -> list[dict[str, Any]]:
     """Runs the user may see: all for educators, their own for students and observers."""
     store = _supervisor(request).store
     if user.is_educator:
         return [r.as_dict() for r in store.list(limit)]
-    limit = max(0, min(limit, 10_000))
     mine: list[dict[str, Any]] = []
     for r in store.list(10_000):
         if len(mine) >= limit:

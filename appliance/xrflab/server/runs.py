@@ -129,6 +129,8 @@ class RunStore:
         return row
 
     def get(self, run_id: int) -> RunRow | None:
+        if not -(2**63) <= run_id < 2**63:  # beyond SQLite's INTEGER (a guessed or fuzzed id): no such run
+            return None
         cur = self._db.execute(f"SELECT {', '.join(_COLUMNS)} FROM runs WHERE id=?", (run_id,))
         r = cur.fetchone()
         return _row(r) if r else None
