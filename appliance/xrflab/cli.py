@@ -51,6 +51,7 @@ SUBCOMMANDS: dict[str, Subcommand] = {}
 # name -> module providing HELP, add_arguments(parser), run(args); imported when the parser is built.
 EXTERNAL_SUBCOMMANDS: dict[str, str] = {
     "serve": "xrflab.server.cli_serve",
+    "login": "xrflab.server.cli_login",
     "decode": "xrflab.logs.cli",
     "doctor": "xrflab.doctor",
     "selfcheck": "xrflab.selfcheck",

@@ -24,9 +24,11 @@ SKIP = {"build", "install", "log", ".git", "__pycache__", ".vscode", ".idea"}
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("dir", type=Path, help="the project folder (with CMakeLists.txt and msg/)")
-    p.add_argument("--url", default=os.environ.get("XRF_URL", "http://127.0.0.1:8000"),
-                   help="the appliance (default $XRF_URL or http://127.0.0.1:8000)")
-    p.add_argument("--token", default=os.environ.get("XRF_TOKEN", ""), help="API token (default $XRF_TOKEN)")
+    from . import credentials
+
+    p.add_argument("--url", default=credentials.url(),
+                   help="the appliance (default $XRF_URL, the one of `xrf login`, or http://127.0.0.1:8000)")
+    p.add_argument("--token", default=credentials.token(), help="API token (default $XRF_TOKEN or the one of `xrf login`)")
     p.add_argument("--name", default="", help="project name (default: the folder's name)")
     p.add_argument("--project", type=int, help="upload as a new version of this project id")
     p.add_argument("--build", action="store_true", help="build it after uploading and wait for the result")

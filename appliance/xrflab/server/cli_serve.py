@@ -27,6 +27,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", type=int, default=8000)
     parser.add_argument("--telemetry-hz", type=float, default=30.0, help="telemetry rate to browsers (default 30)")
     parser.add_argument("--hang-ms", type=int, default=200, help="no loop cycle for this long = hung (default 200)")
+    parser.add_argument("--allow-origin", action="append", default=[], metavar="URL",
+                        help="another origin allowed to use the API/WebSocket with a login cookie, e.g. "
+                             "https://lab.example.edu (repeatable; the page's own address always is)")
+    parser.add_argument("--lease-idle-min", type=float, default=10.0,
+                        help="release the bench lease after this many minutes without driving (default 10)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -40,6 +45,8 @@ def run(args: argparse.Namespace) -> int:
         port=args.port,
         telemetry_hz=args.telemetry_hz,
         hang_timeout_ms=args.hang_ms,
+        allow_origins=tuple(o.rstrip("/") for o in args.allow_origin),
+        lease_idle_s=args.lease_idle_min * 60,
     )
     shown = "localhost" if args.host in ("127.0.0.1", "0.0.0.0", "::") else args.host
     bench = "real ico board" if settings.bench_is_real() else f"simulated {settings.sim}"
