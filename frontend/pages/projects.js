@@ -203,6 +203,8 @@
       }
     }
     if (m.status && m.project_id === P.current) {
+      if (m.status === "ok" || m.status === "failed") status(`Build #${m.build_id}: ${m.status}` + (m.result ? ` — ${m.result}` : ""), m.status === "failed");
+      else if (m.status === "building") status(`Build #${m.build_id} building…`);
       refreshBuilds().then(() => { if (m.build_id === P.shownBuild && (m.status === "ok" || m.status === "failed")) showBuild(m.build_id); }).catch(() => {});
     }
   }
