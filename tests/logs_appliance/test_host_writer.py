@@ -160,6 +160,7 @@ def test_live_rerun_stream_takes_records_and_telemetry(loop, tmp_path: Path, cap
     lp.proc.wait(5)
     w.finish()
     stream.close()
+    stream._thread.join(10)
     assert stream._names == ["cycle_2", "flag", "letter", "count", "ratio", "value"]
     assert stream.dropped == 0
     assert not [r for r in caplog.records if r.levelno >= logging.ERROR], caplog.text

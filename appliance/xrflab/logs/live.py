@@ -415,14 +415,23 @@ class LiveRerun:
             self.dropped += len(keep)
 
     def close(self) -> None:
+        """Stop feeding; flushing to the proxy happens in the background: a slow viewer can hold
+        the proxy's broadcast (rerun blocks its senders then), and a run's end must not wait."""
         self._stop.set()
-        self._q.put(None)
-        self._thread.join(5.0)
         try:
-            self.rec.flush()
-            self.rec.disconnect()
-        except Exception:
+            self._q.put_nowait(None)
+        except queue.Full:
             pass
+
+        def done() -> None:
+            self._thread.join()
+            try:
+                self.rec.flush()
+                self.rec.disconnect()
+            except Exception:
+                pass
+
+        threading.Thread(target=done, name="xrf-rerun-close", daemon=True).start()
 
     def _indexes(self, cycle: np.ndarray, t_ns: np.ndarray) -> list[Any]:
         rr = self._rr
