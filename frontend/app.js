@@ -436,7 +436,8 @@ function appendMonitor(lines, source) {
 function showAlarm(m) {
   const box = $("alarm");
   box.classList.toggle("warn", m.kind === "deadline_miss");
-  $("alarm-text").textContent = (m.kind === "crash" ? "Loop crashed: " : m.kind === "hang" ? "Loop hung: " : "Timing: ") + m.message;
+  const prefix = { crash: "Loop crashed: ", hang: "Loop hung: ", log: "Logging stopped: ", deadline_miss: "Timing: " };
+  $("alarm-text").textContent = (prefix[m.kind] || "") + m.message;
   box.dataset.kind = m.kind;
   box.classList.remove("hidden");
   if (m.kind === "deadline_miss") {
