@@ -4,26 +4,16 @@ account per role, each logged in through the real login endpoint."""
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator
 from pathlib import Path
 
-import httpx
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "appliance"))
-from harness import (CHROMIUM_ARGS, Server, WsClient, shared_builds_root, start_server,  # noqa: E402,F401
-                     stop_server)
+from harness import Server, shared_builds_root, start_server, stop_server  # noqa: E402
 
-
-@dataclass
-class Account:
-    username: str
-    password: str
-    role: str
-    http: httpx.Client
-    ws: Callable[..., WsClient]
-    id: int
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from accounts_support import Account, make_account  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -31,12 +21,6 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     s = start_server(tmp_path_factory.mktemp("data"), shared_builds_root(), lease_idle_s=600.0)
     yield s
     stop_server(s)
-
-
-def make_account(server: Server, username: str, role: str) -> Account:
-    password = server.create_user(username, role)
-    http, ws = server.login(username, password)
-    return Account(username, password, role, http, ws, http.get("/api/me").json()["id"])
 
 
 @pytest.fixture(scope="module")

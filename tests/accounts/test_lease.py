@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import time
 
-from conftest import Account, make_account
+from accounts_support import Account, make_account
 from harness import Server, shared_builds_root, start_server, stop_server
 
 

@@ -13,7 +13,7 @@ import httpx
 import pytest
 from websockets.exceptions import InvalidStatus
 
-from conftest import Account, make_account
+from accounts_support import Account, make_account
 from harness import ADMIN_PASSWORD, Server, login_client, shared_builds_root, start_server, stop_server, ws_connect
 
 

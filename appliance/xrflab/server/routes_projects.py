@@ -105,6 +105,13 @@ async def _service(request: Request) -> ProjectsService:
     return svc
 
 
+def _audit(request: Request, action: str, detail: dict[str, Any]) -> None:
+    """The audit trail (issue 7): who uploaded, built and ran what."""
+    from . import audit
+
+    audit.record(_user(request), action, detail, authmod.client_address(request))
+
+
 # ---- who ------------------------------------------------------------------------------------------
 
 def _user(request: Request) -> Any:
@@ -395,6 +402,7 @@ async def upload_project(request: Request, name: str = "") -> dict[str, Any]:
     pname = _clean_name(name or fields.get("name", "") or manifest.prefix or base)
     project = svc.store.create_project(_owner_name(_user(request)), pname, token, "upload")
     project = svc.store.update_project(project.id, files=len(manifest.files), bytes=manifest.total)
+    _audit(request, "project.upload", {"project": project.id, "name": project.name, "files": len(manifest.files)})
     return {"project": project.as_dict(), "format": manifest.format, "files": len(manifest.files),
             "bytes": manifest.total, "stripped_folder": manifest.prefix, "skipped": manifest.skipped}
 
@@ -406,6 +414,7 @@ async def replace_source(pid: int, request: Request) -> dict[str, Any]:
     archive_path, _, _ = await _receive_archive(request, svc)
     manifest = await _unpack_into(svc, archive_path, svc.folder(project))
     project = svc.store.update_project(project.id, files=len(manifest.files), bytes=manifest.total)
+    _audit(request, "project.upload", {"project": project.id, "name": project.name, "files": len(manifest.files)})
     return {"project": project.as_dict(), "format": manifest.format, "files": len(manifest.files),
             "bytes": manifest.total, "stripped_folder": manifest.prefix, "skipped": manifest.skipped}
 
@@ -439,6 +448,7 @@ async def new_from_template(body: FromTemplate, request: Request) -> dict[str, A
                                        token, f"template:{body.template}")
     project = svc.store.update_project(project.id, files=len(files),
                                        bytes=sum((folder / "src" / f).stat().st_size for f in files))
+    _audit(request, "project.create", {"project": project.id, "name": project.name, "template": body.template})
     return project.as_dict()
 
 
@@ -456,6 +466,7 @@ async def delete_project(pid: int, request: Request) -> Response:
     svc, project = await _project(request, pid)
     if any(b.status in ("queued", "building") for b in svc.store.builds(pid, 5)):
         raise HTTPException(409, "a build of this project is queued or running; wait for it")
+    _audit(request, "project.delete", {"project": pid})
     svc.store.delete_project(pid)
     await asyncio.to_thread(shutil.rmtree, svc.folder(project), True)
     return Response(status_code=204)
@@ -507,6 +518,7 @@ async def start_build(pid: int, request: Request) -> dict[str, Any]:
     src = svc.src(project)
     row, reused = await asyncio.to_thread(svc.builder.submit, project, src)
     svc.store.update_project(project.id, source_hash=row.source_hash)
+    _audit(request, "build.start", {"project": pid, "build": row.id, "reused": reused})
     return _build_dict(svc, row, reused)
 
 
@@ -551,4 +563,5 @@ async def run_build(pid: int, bid: int, body: RunBuild, request: Request) -> dic
     except SupervisorError as exc:
         raise HTTPException(exc.status, str(exc)) from None
     svc.store.link_run(row.id, b)
+    _audit(request, "run.start", {"run": row.id, "project": pid, "build": b.id})
     return {"run": row.as_dict(), "build_id": b.id, "project_id": pid}

@@ -10,7 +10,7 @@ from typing import Any, Optional
 from fastapi import APIRouter, HTTPException, Request
 from pydantic import BaseModel, Field
 
-from .auth import Perm, requires
+from .auth import Perm, optional_user, owns, requires
 
 router = APIRouter(prefix="/api/viz", tags=["3d view"])
 
@@ -50,7 +50,9 @@ async def viz_state(request: Request) -> dict[str, Any]:
     return {**viz.info(), **viz.shown}
 
 
-@router.post("/reset-odometry", dependencies=[requires(Perm.WATCH)])
+# The scene is one, shared by everyone watching: changing what it shows is driving (the bench
+# holder, or an educator); a replay is only of a run the user may see (auth.owns).
+@router.post("/reset-odometry", dependencies=[requires(Perm.DRIVE)])
 async def reset_odometry(request: Request) -> dict[str, Any]:
     if not _viz(request).reset_odometry():
         raise HTTPException(409, "no RELbot is shown live: nothing to reset")
@@ -59,12 +61,21 @@ async def reset_odometry(request: Request) -> dict[str, Any]:
 
 @router.get("/recordings", dependencies=[requires(Perm.WATCH)])
 async def recordings(request: Request) -> list[dict[str, Any]]:
-    return _viz(request).recordings()
+    user = optional_user(request)
+    return [r for r in _viz(request).recordings() if user is not None and _may_see(request, user, r["run_id"])]
 
 
-@router.post("/replay", dependencies=[requires(Perm.WATCH)])
+def _may_see(request: Request, user: Any, run_id: int) -> bool:
+    row = request.app.state.supervisor.store.get(run_id)
+    return owns(user, row.owner if row is not None else None)
+
+
+@router.post("/replay", dependencies=[requires(Perm.DRIVE)])
 async def replay(body: ReplayRequest, request: Request) -> dict[str, Any]:
     viz = _viz(request)
+    user = optional_user(request)
+    if user is None or not _may_see(request, user, body.run_id):
+        raise HTTPException(404, f"run {body.run_id} has no 3D recording")  # as for a missing one
     try:
         r = await asyncio.to_thread(viz.load_replay, body.run_id)
     except LookupError as exc:
@@ -74,7 +85,7 @@ async def replay(body: ReplayRequest, request: Request) -> dict[str, Any]:
     return {"run_id": r.run_id, "duration": r.duration, "kind": r.kind, "samples": len(r.t), "message": r.message}
 
 
-@router.post("/replay/seek", dependencies=[requires(Perm.WATCH)])
+@router.post("/replay/seek", dependencies=[requires(Perm.DRIVE)])
 async def seek(body: SeekRequest, request: Request) -> dict[str, Any]:
     try:
         return {"t": _viz(request).seek(body.t)}
@@ -82,7 +93,7 @@ async def seek(body: SeekRequest, request: Request) -> dict[str, Any]:
         raise HTTPException(409, str(exc)) from None
 
 
-@router.post("/live", dependencies=[requires(Perm.WATCH)])
+@router.post("/live", dependencies=[requires(Perm.DRIVE)])
 async def live(request: Request) -> dict[str, Any]:
     _viz(request).go_live()
     return {"ok": True}
