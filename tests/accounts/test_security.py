@@ -68,6 +68,13 @@ def test_logged_out_browser_gets_the_login_page(server: Server) -> None:
             assert c.get(path).status_code == 401, path
 
 
+def test_security_headers(server: Server) -> None:
+    for path in ("/login", "/api/health", "/static/app.js"):
+        h = server.http.get(path).headers
+        assert h["x-content-type-options"] == "nosniff" and h["x-frame-options"] == "SAMEORIGIN", path
+        assert h["referrer-policy"] == "same-origin"
+
+
 def test_logout_ends_the_session(server: Server) -> None:
     http = login_client(server.url, "admin", ADMIN_PASSWORD)
     token = http.cookies.get("xrf_session")

@@ -10,7 +10,7 @@ from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
-from .auth import Perm, Security, optional_user, requires
+from .auth import Perm, Security, SecurityHeaders, optional_user, requires
 from .routes_accounts import router as accounts_router
 
 from .api import router, ws_router
@@ -38,12 +38,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         supervisor = Supervisor(settings, hub, store)
         hub.snapshot = supervisor.snapshot
         app.state.supervisor = supervisor
+        security.open(hub, supervisor)  # accounts, audit trail, bench lease (issue 7)
         # 3D view: viser on its own port (settings.port + 1), fed by the supervisor's reader
         viz = VizService(settings, supervisor)
         supervisor.telemetry_observers.append(viz.on_telemetry)
         await viz.start()
         app.state.viz = viz
-        security.open(hub, supervisor)  # accounts, audit trail, bench lease (issue 7)
         try:
             yield
         finally:
@@ -63,6 +63,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     security = Security(settings)
     app.state.security = security
+    app.add_middleware(SecurityHeaders)
     app.include_router(accounts_router)
 
     @app.get("/openapi.json", include_in_schema=False, dependencies=[requires(Perm.WATCH)])
@@ -74,8 +75,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return get_swagger_ui_html(openapi_url="/openapi.json", title="XRF Lab API")
     app.include_router(router)
     app.include_router(ws_router)
-    app.include_router(viz_router)
     app.include_router(projects_router)
+    app.include_router(viz_router)
     app.include_router(logs_router)
     app.include_router(selfcheck_router)
     app.include_router(system_router)

@@ -270,3 +270,27 @@ def bootstrap_admin(accounts: Accounts) -> None:
     print("XRF Lab: first start: created the educator account 'admin' with the one-time password", flush=True)
     print(f"XRF Lab:     {secret}", flush=True)
     print("XRF Lab: log in with it and choose a new password; it is not shown again.", flush=True)
+
+
+class SecurityHeaders:
+    """ASGI middleware: nosniff, no framing by other sites, no Referer to other sites. (Pure ASGI,
+    not BaseHTTPMiddleware: streamed responses and the WebSocket pass through untouched.)"""
+
+    HEADERS = [(b"x-content-type-options", b"nosniff"), (b"x-frame-options", b"SAMEORIGIN"),
+               (b"referrer-policy", b"same-origin")]
+
+    def __init__(self, app: Any) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        async def send_with_headers(message: Any) -> None:
+            if message["type"] == "http.response.start":
+                have = {k.lower() for k, _ in message.get("headers", [])}
+                message["headers"] = [*message.get("headers", []), *(h for h in self.HEADERS if h[0] not in have)]
+            await send(message)
+
+        await self.app(scope, receive, send_with_headers)
