@@ -11,7 +11,7 @@ import pytest
 from harness import (CHROMIUM_ARGS, Server, browser_login, session_cookies, shared_builds_root, start_server,
                      stop_server)
 
-IDLE_S = 6.0
+IDLE_S = 8.0
 ERRORS: list[str] = []  # uncaught JavaScript errors of every page
 
 

@@ -65,6 +65,7 @@ class Security:
         self.accounts: Accounts | None = None
         self.lease: Lease | None = None
         self.audit: AuditLog | None = None
+        self.hub: Any = None
         self.limiter = RateLimiter(settings.login_max_failures, settings.login_window_s,  # per account
                                    settings.login_lock_s)
         self.address_limiter = RateLimiter(settings.login_max_failures_address, settings.login_window_s,
@@ -88,7 +89,15 @@ class Security:
         snapshot = hub.snapshot
         hub.snapshot = lambda: [*snapshot(), ("lease", lease.payload())]
         hub.listeners.append(self._on_published)
+        self.hub = hub
         lease.start()
+
+    def disconnect(self, user_id: int) -> None:
+        """Close the WebSockets of a user whose sessions just ended (disabled, reset)."""
+        for client in tuple(getattr(self.hub, "_clients", ())):
+            if client.user is not None and client.user.id == user_id:
+                client.kick_reason = "your session ended"
+                client.kicked.set()
 
     def close(self) -> None:
         from . import audit as auditmod

@@ -333,8 +333,10 @@ async def change_user(user_id: int, body: UserChange, request: Request,
     except AccountError as exc:
         raise _account_error(exc) from None
     lease = _sec(request).lease
-    if lease is not None and (changed.disabled or changed.role != target.role):
-        lease.forget(user_id, "account disabled" if changed.disabled else "role changed")
+    if changed.disabled or changed.role != target.role:  # their sessions ended: so do their sockets
+        _sec(request).disconnect(user_id)
+        if lease is not None:
+            lease.forget(user_id, "account disabled" if changed.disabled else "role changed")
     audit.record(user, "user.update", {"user": changed.username, **body.model_dump(exclude_none=True)},
                  client_address(request))
     return changed.public()
@@ -349,6 +351,7 @@ async def reset_user(user_id: int, request: Request, user: User = Depends(curren
         raise _account_error(exc) from None
     target = accounts.get(user_id)
     assert target is not None
+    _sec(request).disconnect(user_id)
     audit.record(user, "user.reset", {"user": target.username}, client_address(request))
     return {"user": target.public(), "password": password}
 
