@@ -518,32 +518,15 @@ class VizService:
     # -- GUI ----------------------------------------------------------------------------------------
 
     def _build_gui(self) -> None:
+        # Display only: viser's own port has no login, so its panel must not change anything or
+        # load another user's run. The controls (reset, replay, seek, live) are on the dashboard's
+        # 3D page, through /api/viz with its permissions (issue 7, docs/developers/security.md).
         gui = self.server.gui
         self._gui["status"] = gui.add_markdown("Starting…")
-        btn = gui.add_button("Reset odometry", hint="RELbot: put the robot back at the origin, heading +x")
-        btn.on_click(lambda _e: self.reset_odometry())
-        self._gui["reset"] = btn
-        with gui.add_folder("Replay a finished run"):
-            num = gui.add_number("Run #", initial_value=0, min=0, step=1)
-            load = gui.add_button("Load")
-            slider = gui.add_slider("Time (s)", min=0.0, max=1.0, step=0.01, initial_value=0.0, disabled=True)
-            live = gui.add_button("Back to live")
-        self._gui.update(run=num, load=load, slider=slider, live=live)
-
-        def on_load(_e: Any) -> None:
-            try:
-                self.load_replay(int(num.value))
-            except (LookupError, ValueError, OSError) as exc:
-                with self._lock:
-                    self.message = str(exc)
-
-        load.on_click(on_load)
-        slider.on_update(lambda _e: self.seek(slider.value) if self.replay is not None else None)
-        live.on_click(lambda _e: self.go_live())
 
     def _sync_replay_gui(self) -> None:
         g = self._gui
-        if not g:
+        if "slider" not in g:
             return
         r = self.replay
         if r is not None:
@@ -579,7 +562,8 @@ class VizService:
         if md != self._last_md:  # markdown is re-sent only when the text changes (at most 30 Hz)
             self._gui["status"].content = md
             self._last_md = md
-        self._gui["reset"].disabled = f["kind"] != "differential_drive" or f["mode"] == "replay"
+        if "reset" in self._gui:
+            self._gui["reset"].disabled = f["kind"] != "differential_drive" or f["mode"] == "replay"
         if "no_profile" not in self._nodes and f.get("message") and not f["kind"]:
             self._nodes["no_profile"] = self.server.scene.add_label("/no_profile", f["message"], position=(0, 0, 0.1))
         elif "no_profile" in self._nodes and f["kind"]:
