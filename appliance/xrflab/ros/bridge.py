@@ -15,8 +15,9 @@ by the bridge; samples the loop overwrote before the bridge read them are counte
 and reported.
 
 The bench lease is not part of this module: ``command_gate(user, cmd) -> (allowed, reason)``
-is called for every XenoCmd; the appliance plugs its lease check in there. The default allows
-everything.
+is called for every XenoCmd. ``--gate-url unix:<socket>`` (set by the appliance when it starts the
+bridge) makes it ``gate_client``: the appliance's lease gate is asked (xrflab/server/
+ros_supervisor.py). Without it every command goes through.
 """
 
 from __future__ import annotations
@@ -53,6 +54,68 @@ def allow_all(user: str, cmd: int) -> tuple[bool, str]:
     return True, ""
 
 
+GATE_TOKEN_ENV = "XRF_ROS_GATE_TOKEN"
+GATE_TIMEOUT_S = 2.0
+# Stopping is always safe (the appliance's STOP rule): with the appliance unreachable these still go
+# through; every other command is refused.
+_SAFE_WITHOUT_GATE = {3: "stop", 5: "pause"}
+
+
+def gate_client(url: str, token: str) -> CommandGate:
+    """A command gate asking the appliance's lease gate at `url` (``unix:/path/to/socket``): one
+    JSON line ``{"token", "user", "cmd"}`` out, ``{"allowed", "reason"}`` back, on a connection kept
+    open between commands (reopened once when the appliance closed it)."""
+    import json
+    import socket
+
+    if not url.startswith("unix:"):
+        raise ValueError(f"--gate-url {url!r}: only unix:<socket path> is supported")
+    path = url[len("unix:"):]
+    state: dict[str, Any] = {"sock": None, "file": None}
+    lock = threading.Lock()
+
+    def close() -> None:
+        for k in ("file", "sock"):
+            if state[k] is not None:
+                try:
+                    state[k].close()
+                except OSError:
+                    pass
+                state[k] = None
+
+    def ask(user: str, cmd: int) -> tuple[bool, str]:
+        line = (json.dumps({"token": token, "user": user, "cmd": int(cmd)}) + "\n").encode()
+        for attempt in (0, 1):
+            if state["sock"] is None:
+                s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+                s.settimeout(GATE_TIMEOUT_S)
+                s.connect(path)
+                state["sock"], state["file"] = s, s.makefile("rb")
+            try:
+                state["sock"].sendall(line)
+                reply = state["file"].readline()
+                if not reply:
+                    raise ConnectionError("the appliance closed the gate connection")
+                answer = json.loads(reply)
+                return bool(answer.get("allowed")), str(answer.get("reason", ""))
+            except (OSError, ValueError):
+                close()
+                if attempt:
+                    raise
+        raise ConnectionError("unreachable")  # not reached
+
+    def gate(user: str, cmd: int) -> tuple[bool, str]:
+        with lock:
+            try:
+                return ask(user, cmd)
+            except (OSError, ValueError) as exc:
+                if int(cmd) in _SAFE_WITHOUT_GATE:
+                    return True, f"the appliance's gate is unreachable ({exc}); {_SAFE_WITHOUT_GATE[int(cmd)]} is always allowed"
+                return False, f"the appliance's gate is unreachable ({exc})"
+
+    return gate
+
+
 def _login_name() -> str:
     import getpass
 
@@ -78,6 +141,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "0 = leave the scheduling alone; needs CAP_SYS_NICE). Default $XRF_ROS_BRIDGE_PRIO or 0")
     parser.add_argument("--state-period", type=float, default=DEFAULT_STATE_PERIOD_S,
                         help="seconds between periodic XenoState messages (default 1)")
+    parser.add_argument("--gate-url", default=os.environ.get("XRF_ROS_GATE_URL", ""),
+                        help="ask the appliance before every XenoCmd: unix:<socket> of its lease gate "
+                             f"(token in ${GATE_TOKEN_ENV}; set by the appliance when it starts the bridge). "
+                             "Default $XRF_ROS_GATE_URL; empty = no gate (every command goes through)")
 
 
 # ---- message conversion -------------------------------------------------------------------------
@@ -371,6 +438,16 @@ def run(args: argparse.Namespace, command_gate: CommandGate = allow_all) -> int:
 
     def say(text: str) -> None:
         print(f"xrf ros-bridge: {text}", file=sys.stderr, flush=True)
+
+    gate_url = getattr(args, "gate_url", "")
+    if gate_url and command_gate is allow_all:
+        # Started by the appliance: every XenoCmd is asked at its lease gate (the bench lease).
+        try:
+            command_gate = gate_client(gate_url, os.environ.get(GATE_TOKEN_ENV, ""))
+        except ValueError as exc:
+            say(str(exc))
+            return 2
+        say(f"XenoCmd obey the appliance's lease gate ({gate_url}) for user '{args.user}'")
 
     prio = getattr(args, "priority", 0)
     if prio:

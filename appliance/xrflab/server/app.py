@@ -20,6 +20,8 @@ from .routes_logs import router as logs_router
 from .routes_selfcheck import router as selfcheck_router
 from .routes_system import router as system_router
 from .routes_viz import router as viz_router
+from .routes_ros import router as ros_router
+from .ros_supervisor import RosBridgeSupervisor
 from .runs import RunStore
 from .settings import Settings
 from .supervisor import Supervisor
@@ -44,9 +46,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         supervisor.telemetry_observers.append(viz.on_telemetry)
         await viz.start()
         app.state.viz = viz
+        # ROS 2 bridge per run when enabled (ros_supervisor.py); its lease gate asks `security`
+        ros = RosBridgeSupervisor(settings, supervisor, hub, security)
+        snapshot_with_lease = hub.snapshot
+        hub.snapshot = lambda: [*snapshot_with_lease(), *ros.snapshot()]
+        await ros.open()
+        app.state.ros = ros
         try:
             yield
         finally:
+            await ros.close()
             security.close()
             await supervisor.shutdown()
             await viz.stop()
@@ -80,6 +89,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(logs_router)
     app.include_router(selfcheck_router)
     app.include_router(system_router)
+    app.include_router(ros_router)
 
     frontend = settings.frontend_dir
     if frontend.is_dir():

@@ -32,6 +32,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "https://lab.example.edu (repeatable; the page's own address always is)")
     parser.add_argument("--lease-idle-min", type=float, default=10.0,
                         help="release the bench lease after this many minutes without driving (default 10)")
+    parser.add_argument("--ros-bridge", action="store_true", default=None,
+                        help="start the ROS 2 bridge with every loop run (also $XRF_ROS_BRIDGE=1; "
+                             "educators can switch it on the dashboard's ROS 2 page)")
+    parser.add_argument("--ros-bridge-user", default="", metavar="NAME",
+                        help="the user whose bench lease ROS 2 commands obey (default: who started the run)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -47,6 +52,8 @@ def run(args: argparse.Namespace) -> int:
         hang_timeout_ms=args.hang_ms,
         allow_origins=tuple(o.rstrip("/") for o in args.allow_origin),
         lease_idle_s=args.lease_idle_min * 60,
+        ros_bridge_user=args.ros_bridge_user,
+        **({"ros_bridge": True} if args.ros_bridge else {}),
     )
     shown = "localhost" if args.host in ("127.0.0.1", "0.0.0.0", "::") else args.host
     bench = "real ico board" if settings.bench_is_real() else f"simulated {settings.sim}"

@@ -23,7 +23,7 @@ from typing import Any
 from starlette.websockets import WebSocket
 
 # Topics a client may subscribe to. `error` and `ack` replies go to the asking client only.
-TOPICS = frozenset({"state", "monitor", "telemetry", "timing", "alarm", "run", "build", "lease", "selfcheck"})
+TOPICS = frozenset({"state", "monitor", "telemetry", "timing", "alarm", "run", "build", "lease", "selfcheck", "ros"})
 LOSSY = "telemetry"
 
 

@@ -81,6 +81,13 @@ class Settings:
     login_lock_s: float = 60.0  # then the account/address is locked this long; doubles with each further lock, up to 15 min
     lease_idle_s: float = 600.0  # the bench lease is released after this long without driving
 
+    # The ROS 2 bridge (docs/ros2/bridge.md, "Run by the appliance"): started with every loop run
+    # when on (also $XRF_ROS_BRIDGE=1; the dashboard toggle changes it until the next restart).
+    ros_bridge: bool = field(default_factory=lambda: os.environ.get("XRF_ROS_BRIDGE", "") in ("1", "true", "yes"))
+    ros_bridge_user: str = ""  # whose bench lease ROS 2 commands obey; "" = the user who started the run
+    ros_bridge_priority: int = 10  # SCHED_FIFO, below the loop's; only used when permitted
+    ros_bridge_stop_timeout_s: float = 8.0  # SIGTERM -> exit (the bridge's own watchdog is 5 s), then SIGKILL
+
     def bench_is_real(self) -> bool:
         return real_bench_present(self.spi_device) if self.real_bench is None else self.real_bench
 
