@@ -103,11 +103,13 @@ def test_bridge_run_by_the_appliance_obeys_the_lease(server: Server, peer) -> No
     toggles = [a["detail"]["enabled"] for a in http.get("/api/audit", params={"action": "ros"}).json()]
     assert toggles[:2] == [False, True]  # newest first
     student.close()
+    server.stop_run()
 
 
 def test_bridge_follows_the_run(server: Server) -> None:
     """Enabled before the run: started with it, stopped (process gone) when the run ends."""
     http = server.http
+    server.stop_run()  # nothing left from another test
     assert http.post("/api/ros", json={"enabled": True}).status_code == 200
     assert ros(server)["state"] == "stopped"  # no run, no bridge
     run = server.start_run("relbot")
