@@ -112,6 +112,7 @@ class RosBridgeSupervisor:
         self._current: BridgeProc | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._lock = asyncio.Lock()
+        self._pending: set[asyncio.Task[None]] = set()
         hub.listeners.append(self._on_published)
 
     def _priority(self) -> tuple[int, str]:
@@ -145,7 +146,12 @@ class RosBridgeSupervisor:
 
     def _on_published(self, kind: str, payload: dict[str, Any]) -> None:
         if kind == "run" and payload.get("event") in ("started", "ended") and self._loop is not None:
-            self._loop.call_soon_threadsafe(lambda: self._loop.create_task(self.reconcile()))  # type: ignore[union-attr]
+            self._loop.call_soon_threadsafe(self._schedule_reconcile)
+
+    def _schedule_reconcile(self) -> None:
+        task = asyncio.get_running_loop().create_task(self.reconcile())
+        self._pending.add(task)  # a strong reference until it is done
+        task.add_done_callback(self._pending.discard)
 
     async def set_enabled(self, enabled: bool) -> dict[str, Any]:
         self.enabled = bool(enabled)
