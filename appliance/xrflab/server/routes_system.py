@@ -21,7 +21,7 @@ from fastapi import APIRouter, Request
 from pydantic import BaseModel, Field
 
 from .. import doctor
-from .auth import Perm, requires
+from .auth import Perm, optional_user, requires
 
 router = APIRouter(prefix="/api/system", tags=["system"])
 
@@ -105,7 +105,9 @@ async def system_info(request: Request) -> dict[str, Any]:
 async def system_doctor(request: Request) -> dict[str, Any]:
     """Run every `xrf doctor` check now (the page's Refresh)."""
     settings = request.app.state.settings
-    live = _bench_free(request)
+    # Talking to the FPGA (INIT) is an educator's call; everyone else sees the passive checks.
+    user = optional_user(request)
+    live = _bench_free(request) and user is not None and user.role == "educator"
     async with _doctor_lock:  # one at a time; a second caller waits for a fresh result
         t0 = time.monotonic()
         results = await asyncio.to_thread(doctor.run_checks, Path("/"), data_dir=str(settings.data_dir),
