@@ -171,7 +171,7 @@ class SelfCheckService:
             except scmod.SelfCheckError as exc:
                 raise HTTPException(422, str(exc)) from None
 
-            start_lock = getattr(self.supervisor, "_start_lock", None)
+            start_lock = self.supervisor.bench_lock
             if start_lock is not None:
                 try:
                     await asyncio.wait_for(start_lock.acquire(), 1.0)

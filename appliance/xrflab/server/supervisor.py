@@ -197,7 +197,9 @@ class Supervisor:
         self.catalog = BuildCatalog(settings, hub.publish)
         self.current: Run | None = None
         self.last_row: RunRow | None = None
-        self._start_lock = asyncio.Lock()
+        # Held while a run starts, and by anything else that needs the bench to itself (the
+        # FPGA self-check holds it for its whole duration, so no run can start meanwhile).
+        self.bench_lock = asyncio.Lock()
         # Observers of the telemetry the reader takes (the 3D view and its per-run recording):
         # fn(run, samples) for every batch read, fn(run, None) once when the run has ended. Called
         # in the event loop; they must be quick. One that raises is logged and dropped.
@@ -286,7 +288,7 @@ class Supervisor:
     async def start_run(self, build: str, sim: str | None = None, max_cycles: int | None = None,
                         owner: str = "") -> RunRow:
         """`owner`: username of who starts it (auth.owns() decides who may see the run)."""
-        async with self._start_lock:
+        async with self.bench_lock:
             if self.current is not None and not self.current.ended.is_set():
                 raise SupervisorError(f"run {self.current.row.id} is still active; stop it first")
             entry = await self.catalog.ensure_built(build)
