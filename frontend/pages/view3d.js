@@ -1,7 +1,7 @@
 // 3D view page: the appliance's viser scene (xrflab.viz) in an iframe, plus live numbers,
-// reset odometry and replay of a finished run. The scene is served by viser on its own port;
-// the iframe points at the host the dashboard was opened with (so a Pi opened by its LAN
-// address works) and the port the appliance reports at GET /api/viz.
+// reset odometry and replay of a finished run. The scene is served by viser on an internal port
+// (127.0.0.1 only); the iframe opens it through the appliance's /viser/ proxy (same origin, behind
+// the login; GET /api/viz gives the path), whose WebSocket viser's client derives from the page URL.
 "use strict";
 (function () {
   const STATE_HZ = 4;  // numbers under the view; the scene itself updates at 30 Hz inside viser
@@ -33,12 +33,12 @@
   async function loadInfo(el) {
     const $ = (id) => el.querySelector("#" + id);
     info = await xrf.api("GET", "/api/viz");
-    if (!info.available || !info.port) {
+    if (!info.available || !info.url) {
       $("v3d-message").textContent = info.error || "The 3D view is not available on this appliance.";
       $("v3d-message").classList.remove("hidden");
       return;
     }
-    const src = `${location.protocol}//${location.hostname}:${info.port}/`;
+    const src = new URL(info.url, location.href).href;
     if ($("v3d-frame").getAttribute("src") !== src) $("v3d-frame").setAttribute("src", src);
   }
 

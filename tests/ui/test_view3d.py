@@ -1,5 +1,5 @@
-"""The 3D view page in a real browser: the viser scene loads in the dashboard's iframe from the
-appliance's host (nothing fetched from anywhere else), and the Jiwy's pan joint follows a
+"""The 3D view page in a real browser: the viser scene loads in the dashboard's iframe through the
+appliance's /viser/ proxy (same origin, behind the login; nothing fetched from anywhere else), and the Jiwy's pan joint follows a
 setpoint change on the simulated bench."""
 
 from __future__ import annotations
@@ -19,18 +19,20 @@ def test_view3d_loads_and_follows_a_jiwy_setpoint(server: Server, browser) -> No
     errors: list[str] = []
     requests: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))
+    sockets: list[str] = []
     page.on("request", lambda r: requests.append(r.url))
+    page.on("websocket", lambda w: sockets.append(w.url))
     page.goto(server.url + "/#view3d")
     page.wait_for_function("document.getElementById('conn').textContent === 'connected'")
     assert page.is_visible("#nav a[data-page=view3d]")
 
-    # The iframe points at the same host as the dashboard, on the port the API gives.
-    port = server.http.get("/api/viz").json()["port"]
+    # The iframe points at the dashboard's own origin, /viser/ (viser's own port is loopback only).
+    viser_port = server.http.get("/api/viz").json()["port"]
     page.wait_for_function("document.getElementById('v3d-frame') && document.getElementById('v3d-frame').src !== ''")
     src = page.get_attribute("#v3d-frame", "src")
-    assert urllib.parse.urlsplit(src).hostname == urllib.parse.urlsplit(server.url).hostname
-    assert urllib.parse.urlsplit(src).port == port
-    # viser's client starts inside it: its React root fills with the 3D canvas.
+    assert src == server.url + "/viser/", src
+    # viser's client starts inside it: its React root fills with the 3D canvas, and its WebSocket
+    # goes through the proxy too (never to viser's port).
     frame = page.frame_locator("#v3d-frame")
     frame.locator("canvas").first.wait_for(state="attached", timeout=30_000)
 
@@ -63,5 +65,10 @@ def test_view3d_loads_and_follows_a_jiwy_setpoint(server: Server, browser) -> No
     # Offline: every request of the page and its iframe went to the appliance's host.
     hosts = {urllib.parse.urlsplit(u).hostname for u in requests if u.startswith(("http:", "https:", "ws:", "wss:"))}
     assert hosts <= {"127.0.0.1"}, hosts
+    app_port = urllib.parse.urlsplit(server.url).port
+    net = [u for u in requests + sockets if u.startswith(("http:", "https:", "ws:", "wss:"))]
+    assert {urllib.parse.urlsplit(u).port for u in net} == {app_port}, net
+    assert server.url.replace("http://", "ws://") + "/viser" in sockets, sockets
+    assert viser_port != app_port
     assert not errors, errors
     page.close()

@@ -14,6 +14,7 @@ from harness import Server, shared_builds_root, start_server, stop_server  # noq
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
-    s = start_server(tmp_path_factory.mktemp("data"), shared_builds_root())
+    # On every interface, as on a Pi: viser must still listen on 127.0.0.1 only (test_viz_server)
+    s = start_server(tmp_path_factory.mktemp("data"), shared_builds_root(), host="0.0.0.0")
     yield s
     stop_server(s)

@@ -1,15 +1,22 @@
-"""The 3D view in a real appliance: viser starts with it on its own port and serves its client
-from the wheel (no CDN), the Jiwy joints follow the encoders after a setpoint change, the
+"""The 3D view in a real appliance: viser starts with it on an internal port (127.0.0.1 only) and
+serves its client from the wheel (no CDN) through the appliance's /viser/ proxy, behind the login, the Jiwy joints follow the encoders after a setpoint change, the
 setpoint shows as a ghost, RELbot odometry moves and resets, a finished run replays."""
 
 from __future__ import annotations
 
 import re
+import socket
 import time
 import urllib.parse
+from pathlib import Path
 from typing import Any, Callable
 
 import httpx
+import pytest
+import viser
+from websockets.exceptions import InvalidStatus
+from websockets.sync.client import connect
+from websockets.typing import Subprotocol
 
 from harness import Server
 
@@ -36,14 +43,64 @@ def to_run(server: Server, build: str) -> None:
         ws.wait_state("RUN")
 
 
-def test_viser_serves_its_client_offline(server: Server) -> None:
+def listening_addresses(port: int) -> set[str]:
+    """Local addresses with a socket listening on `port` (this machine's /proc/net/tcp{,6})."""
+    found: set[str] = set()
+    for name, size in (("tcp", 8), ("tcp6", 32)):
+        try:
+            lines = Path(f"/proc/net/{name}").read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            local, state = line.split()[1], line.split()[3]
+            addr, hexport = local.split(":")
+            if state != "0A" or int(hexport, 16) != port:  # 0A: LISTEN
+                continue
+            raw = bytes.fromhex(addr)
+            if size == 8:
+                found.add(socket.inet_ntop(socket.AF_INET, raw[::-1]))
+            else:  # four little-endian 32-bit words
+                words = b"".join(raw[i:i + 4][::-1] for i in range(0, 16, 4))
+                found.add(socket.inet_ntop(socket.AF_INET6, words))
+    return found
+
+
+def test_viser_listens_on_loopback_only(server: Server) -> None:
+    """The appliance listens on every interface here (--host 0.0.0.0, as on a Pi); viser, which has
+    no login of its own, only on 127.0.0.1."""
     info = server.http.get("/api/viz").json()
     assert info["available"], info
     app_port = urllib.parse.urlsplit(server.url).port
-    assert info["port"] and info["port"] != app_port
-    r = httpx.get(f"http://127.0.0.1:{info['port']}/", timeout=10)
+    assert info["port"] and info["port"] != app_port and info["url"] == "/viser/"
+    assert "0.0.0.0" in listening_addresses(app_port)
+    assert listening_addresses(info["port"]) == {"127.0.0.1"}
+
+
+def test_viser_is_behind_the_login(server: Server) -> None:
+    anon = httpx.Client(base_url=server.url, timeout=10)
+    for path in ("/viser/", "/viser", "/viser/index.html"):
+        r = anon.get(path)
+        assert r.status_code == 401, (path, r.status_code)
+        assert "Viser" not in r.text
+    # The WebSocket: no session -> refused before it opens; a session from a foreign page -> refused.
+    ws_url = server.url.replace("http://", "ws://") + "/viser"
+    with pytest.raises(InvalidStatus) as exc:
+        connect(ws_url, subprotocols=[Subprotocol(f"viser-v{viser.__version__}")], origin=server.url).__enter__()
+    assert exc.value.response.status_code == 403
+    cookie = {"Cookie": f"xrf_session={server.http.cookies.get('xrf_session')}"}
+    with pytest.raises(InvalidStatus) as exc:
+        connect(ws_url, subprotocols=[Subprotocol(f"viser-v{viser.__version__}")], origin="http://evil.example",
+                additional_headers=cookie).__enter__()
+    assert exc.value.response.status_code == 403
+    anon.close()
+
+
+def test_viser_serves_its_client_offline_through_the_proxy(server: Server) -> None:
+    r = server.http.get("/viser/")
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+    assert r.headers.get("x-frame-options") == "SAMEORIGIN"  # our headers: framed by the dashboard only
     html = r.text
+    assert "Viser" in html
     # The client is one self-contained page (the app is inlined, compressed): every tag that loads
     # something must point at this server or be inline data.
     refs = re.findall(r"<(?:script|link|img|iframe)\b[^>]*?\b(?:src|href)\s*=\s*[\"']([^\"']+)", html, re.I)
@@ -52,6 +109,21 @@ def test_viser_serves_its_client_offline(server: Server) -> None:
     head = re.sub(r'<script[^>]*>.*?</script>', "", head, flags=re.S)
     head = re.sub(r'"data:[^"]*"', '""', head)  # inline data (the icon's SVG names its xmlns)
     assert not re.search(r"https?://", head), re.findall(r"https?://[^\s\"'<>]+", head)
+    # gzip passes through as viser sent it
+    g = server.http.get("/viser/", headers={"Accept-Encoding": "gzip"})
+    assert g.status_code == 200 and g.text == html
+
+
+def test_viser_websocket_through_the_proxy(server: Server) -> None:
+    """Logged in, same origin: the proxied WebSocket speaks viser's protocol (subprotocol with the
+    version, then the scene's messages)."""
+    ws_url = server.url.replace("http://", "ws://") + "/viser"
+    cookie = {"Cookie": f"xrf_session={server.http.cookies.get('xrf_session')}"}
+    proto = Subprotocol(f"viser-v{viser.__version__}")
+    with connect(ws_url, subprotocols=[proto], origin=server.url, additional_headers=cookie, max_size=None) as ws:
+        assert ws.subprotocol == proto
+        first = ws.recv(timeout=10)
+        assert isinstance(first, bytes) and len(first) > 0  # msgpack scene messages
 
 
 def test_jiwy_joints_follow_the_setpoint_and_replay(server: Server) -> None:

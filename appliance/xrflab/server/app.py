@@ -20,6 +20,7 @@ from .routes_logs import router as logs_router
 from .routes_selfcheck import router as selfcheck_router
 from .routes_system import router as system_router
 from .routes_viz import router as viz_router
+from .routes_viser import router as viser_router
 from .routes_ros import router as ros_router
 from .ros_supervisor import RosBridgeSupervisor
 from .runs import RunStore
@@ -41,7 +42,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         hub.snapshot = supervisor.snapshot
         app.state.supervisor = supervisor
         security.open(hub, supervisor)  # accounts, audit trail, bench lease (issue 7)
-        # 3D view: viser on its own port (settings.port + 1), fed by the supervisor's reader
+        # 3D view: viser on 127.0.0.1 (settings.port + 1), reached only through /viser/ (login),
+        # fed by the supervisor's reader
         viz = VizService(settings, supervisor)
         supervisor.telemetry_observers.append(viz.on_telemetry)
         await viz.start()
@@ -86,6 +88,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(ws_router)
     app.include_router(projects_router)
     app.include_router(viz_router)
+    app.include_router(viser_router)
     app.include_router(logs_router)
     app.include_router(selfcheck_router)
     app.include_router(system_router)

@@ -1,6 +1,7 @@
 """HTTP routes of the 3D view (xrflab.viz): where its viser server listens, what the scene shows
-now, reset odometry, replay a finished run. The scene itself is served by viser on its own port;
-the dashboard embeds it in an iframe at ``<location.hostname>:<port>``."""
+now, reset odometry, replay a finished run. The scene itself is served by viser on an internal
+port (127.0.0.1 only); the dashboard embeds it in an iframe at ``/viser/``, the appliance's
+reverse proxy to it behind the login (routes_viser.py)."""
 
 from __future__ import annotations
 
@@ -17,7 +18,8 @@ router = APIRouter(prefix="/api/viz", tags=["3d view"])
 
 class VizInfo(BaseModel):
     available: bool = Field(description="false when viser could not start; `error` says why")
-    port: Optional[int] = Field(description="port of the viser server (same host as the appliance)")
+    url: str = Field(description="where browsers open the scene: the appliance's /viser/ proxy (login required)")
+    port: Optional[int] = Field(description="internal port of the viser server (127.0.0.1 only, not reachable from the LAN)")
     error: str
     update_hz: float
 

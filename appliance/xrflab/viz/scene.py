@@ -209,7 +209,7 @@ class VizService:
             return False
 
     async def start(self) -> None:
-        """Start viser (own thread, own port: settings.viz_port, else port + 1; viser moves up
+        """Start viser (own thread, 127.0.0.1 only, own port: settings.viz_port, else port + 1; viser moves up
         to the next free port if that one is taken) and the 30 Hz task."""
         try:
             await asyncio.to_thread(self._start_viser)
@@ -229,7 +229,9 @@ class VizService:
         import viser
 
         port = getattr(self.settings, "viz_port", None) or int(self.settings.port) + 1
-        self.server = viser.ViserServer(host=self.settings.host, port=port, label="XRF Lab 3D", verbose=False)
+        # Loopback only, whatever --host is: browsers reach it through the appliance's /viser/
+        # proxy (server/routes_viser.py), behind the login.
+        self.server = viser.ViserServer(host="127.0.0.1", port=port, label="XRF Lab 3D", verbose=False)
         self.port = int(self.server.get_port())
         from viser.extras import ViserUrdf  # noqa: F401  (import cost paid here, not on first draw)
         self.server.scene.set_up_direction("+z")
@@ -246,7 +248,7 @@ class VizService:
             await asyncio.to_thread(self.server.stop)
 
     def info(self) -> dict[str, Any]:
-        return {"available": self.server is not None, "port": self.port, "error": self.error,
+        return {"available": self.server is not None, "url": "/viser/", "port": self.port, "error": self.error,
                 "update_hz": UPDATE_HZ}
 
     # -- telemetry in (supervisor hook, event loop) ---------------------------------------------
@@ -518,7 +520,7 @@ class VizService:
     # -- GUI ----------------------------------------------------------------------------------------
 
     def _build_gui(self) -> None:
-        # Display only: viser's own port has no login, so its panel must not change anything or
+        # Display only: the scene is shared by everyone watching (observers too), so its panel must not change anything or
         # load another user's run. The controls (reset, replay, seek, live) are on the dashboard's
         # 3D page, through /api/viz with its permissions (issue 7, docs/developers/security.md).
         gui = self.server.gui
