@@ -15,6 +15,9 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 # Tests import the package from the source tree even when it is not installed (editable or not).
 if str(REPO_ROOT / "appliance") not in sys.path:
     sys.path.insert(0, str(REPO_ROOT / "appliance"))
+# Shared test helpers (tests/xrf_testing) import as `xrf_testing`.
+if str(REPO_ROOT / "tests") not in sys.path:
+    sys.path.insert(0, str(REPO_ROOT / "tests"))
 
 try:
     from hypothesis import settings

@@ -4,73 +4,33 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from xrflab.build import build_project
-from xrflab.channels import Channels
+from xrf_testing.loops import LoopProcess, build_probe
 from xrflab.logs import convert, open_log
 
-REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
 def probe(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("probe-build")
-    return build_project(REPO / "tests/fixtures/loop_probe", build_dir=out, log=lambda line: None).executable
-
-
-class Loop:
-    def __init__(self, exe: Path, shm: str, cwd: Path) -> None:
-        env = dict(os.environ, XRF_SHM=shm, XRF_LOG_DIR=str(cwd / "data"))
-        self.proc = subprocess.Popen([str(exe)], cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        deadline = time.monotonic() + 10
-        while True:
-            try:
-                self.ch = Channels.open(shm, wait_s=0.5)
-                if self.ch.info["pid"] == self.proc.pid:
-                    break
-                self.ch.close()
-            except Exception:
-                if self.proc.poll() is not None or time.monotonic() > deadline:
-                    raise
-            time.sleep(0.02)
-
-    def command(self, cmd: str, state: str) -> None:
-        assert self.ch.wait_command(self.ch.send_command(cmd), timeout=3).accepted
-        deadline = time.monotonic() + 3
-        while self.ch.status().state_name != state:
-            assert time.monotonic() < deadline, self.ch.status().state_name
-            time.sleep(0.005)
-
-    def wait_cycles(self, n: int) -> None:
-        target = self.ch.status().cycles + n
-        while self.ch.status().cycles < target:
-            time.sleep(0.005)
-
-    def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(5)
-        self.ch.close()
+    return build_probe(tmp_path_factory.mktemp("probe-build"))
 
 
 @pytest.fixture
 def loop(probe: Path, shm_name: str, tmp_path: Path):
-    started: list[Loop] = []
+    started: list[LoopProcess] = []
 
-    def start() -> Loop:
-        lp = Loop(probe, shm_name, tmp_path)
+    def start() -> LoopProcess:
+        lp = LoopProcess(probe, shm_name, tmp_path, capture=False, XRF_LOG_DIR=str(tmp_path / "data"))
         started.append(lp)
         return lp
 
     yield start
     for lp in started:
-        lp.close()
+        lp.stop()
 
 
 def _check_probe_values(rec: np.ndarray) -> None:

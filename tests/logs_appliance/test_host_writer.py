@@ -15,8 +15,7 @@ import pytest
 
 from logs_support import REPO
 
-from xrflab.build import build_project
-from xrflab.channels import Channels
+from xrf_testing.loops import LoopProcess, build_probe
 from xrflab.logs import open_log
 from xrflab.logs.live import HostLogWriter
 
@@ -24,45 +23,16 @@ from xrflab.logs.live import HostLogWriter
 @pytest.fixture(scope="module")
 def probe(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = REPO / ".cache" / "logs-appliance-builds" / "probe"
-    return build_project(REPO / "tests/fixtures/loop_probe", build_dir=out, log=lambda line: None).executable
-
-
-class Loop:
-    def __init__(self, exe: Path, shm: str, log_dir: Path, **env: str) -> None:
-        full = dict(os.environ, XRF_SHM=shm, XRF_LOG_DIR=str(log_dir), XRF_LOG_WRITER="host", XRF_TRANSPORT="sim",
-                    **env)
-        self.proc = subprocess.Popen([str(exe)], env=full, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        deadline = time.monotonic() + 10
-        while True:
-            try:
-                self.ch = Channels.open(shm, wait_s=0.5)
-                if self.ch.info["pid"] == self.proc.pid:
-                    break
-                self.ch.close()
-            except Exception:
-                if self.proc.poll() is not None or time.monotonic() > deadline:
-                    raise
-            time.sleep(0.02)
-
-    def command(self, cmd: str, state: str) -> None:
-        assert self.ch.wait_command(self.ch.send_command(cmd), timeout=3).accepted
-        deadline = time.monotonic() + 3
-        while self.ch.status().state_name != state:
-            assert time.monotonic() < deadline
-            time.sleep(0.005)
-
-    def wait_cycles(self, n: int) -> None:
-        target = self.ch.status().cycles + n
-        while self.ch.status().cycles < target:
-            time.sleep(0.005)
+    return build_probe(out)
 
 
 @pytest.fixture
 def loop(probe: Path, shm_name: str):
-    started: list[Loop] = []
+    started: list[LoopProcess] = []
 
-    def start(log_dir: Path, **env: str) -> Loop:
-        lp = Loop(probe, shm_name, log_dir, **env)
+    def start(log_dir: Path, **env: str) -> LoopProcess:
+        lp = LoopProcess(probe, shm_name, log_dir, capture=False, XRF_LOG_DIR=str(log_dir),
+                         XRF_LOG_WRITER="host", XRF_TRANSPORT="sim", **env)
         started.append(lp)
         return lp
 
