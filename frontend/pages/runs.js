@@ -149,9 +149,20 @@
     el.querySelector("#rr-what").textContent = what;
   }
 
+  // The live stream (rerun's gRPC server) listens on the appliance's 127.0.0.1 only: it has no
+  // login of its own (docs/logging/appliance.md). A browser on the LAN gets no live_url and opens
+  // a finished run's .rrd instead ('Open in rerun', behind the login like every download).
   async function openLive(el) {
     const info = await rerunInfo(el);
-    if (info.available) show(el, info.live_url, info.live_recording ? `live: ${info.live_recording}` : "live (no run active)");
+    if (!info.available) return;
+    if (info.live_url) {
+      show(el, info.live_url, info.live_recording ? `live: ${info.live_recording}` : "live (no run active)");
+      return;
+    }
+    const msg = el.querySelector("#rr-message");
+    msg.textContent = "Live plots are shown on the appliance itself only. From here: select a finished run "
+      + "and press 'Open in rerun' on its log (.rrd).";
+    msg.classList.remove("hidden");
   }
 
   async function openRrd(el, id, path) {

@@ -29,11 +29,16 @@ and Xeno2Ros. See docs/logging/appliance.md.
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import json
 import logging
 import os
 import queue
+import shutil
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -320,41 +325,88 @@ class HostLogWriter:
 # ---- live rerun -----------------------------------------------------------------------------
 
 
+def _listening(port: int) -> bool:
+    with socket.socket() as s:
+        s.settimeout(0.2)
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
 def _free_port(preferred: int) -> int:
     for port in (preferred, 0):
         with socket.socket() as s:
             try:
-                s.bind(("0.0.0.0", port))
+                s.bind(("127.0.0.1", port))
             except OSError:
                 continue
             return s.getsockname()[1]
     raise OSError("no free port")
 
 
+def _rerun_cli() -> list[str]:
+    exe = Path(sys.executable).with_name("rerun")
+    if exe.is_file():
+        return [str(exe)]
+    found = shutil.which("rerun")
+    if found:
+        return [found]
+    return [sys.executable, "-m", "rerun_cli"]
+
+
+def _die_with_parent() -> None:  # preexec_fn: the rerun server ends with the appliance, even on kill -9
+    import ctypes
+    import signal
+
+    with contextlib.suppress(Exception):
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
 class RerunServer:
     """One per appliance: a rerun gRPC message proxy (live recordings) and the rerun web viewer
     (its assets come from the installed rerun-sdk; nothing from the internet). Started on first
-    use. Ports from XRF_RERUN_GRPC_PORT / XRF_RERUN_WEB_PORT (default 9876 / 9090; a taken port
-    falls back to a free one). Browsers load the viewer through the appliance (/rerun/), and the
-    viewer connects to the gRPC port directly (gRPC-web), so that port accepts the appliance's
-    origins: any host on the appliance's own port."""
+    use, as a ``rerun --serve-web --bind 127.0.0.1`` child process: **both listen on 127.0.0.1
+    only** (the SDK's in-process ``serve_grpc`` has no bind address and listens on every
+    interface, which would give the LAN the live data without a login). Ports from
+    XRF_RERUN_GRPC_PORT / XRF_RERUN_WEB_PORT (default 9876 / 9090; a taken port falls back to a
+    free one). Browsers load the viewer through the appliance (/rerun/, behind the login). The
+    live stream can only be opened by a viewer on the Pi itself (rerun's viewer accepts no path
+    prefix in a ``rerun+http://host:port/proxy`` URL, so the gRPC-web endpoint cannot be put
+    behind the appliance's login under a path; docs/logging/appliance.md); LAN browsers open a
+    finished run's .rrd (behind the login) instead. The gRPC port accepts the appliance's origins
+    (CORS: any host on the appliance's own port)."""
 
     _instance: RerunServer | None = None
     _lock = threading.Lock()
 
     def __init__(self, appliance_port: int) -> None:
-        import rerun as rr
-
         self.grpc_port = _free_port(int(os.environ.get("XRF_RERUN_GRPC_PORT", "9876")))
         self.web_port = _free_port(int(os.environ.get("XRF_RERUN_WEB_PORT", "9090")))
         origins = [f"http://*:{appliance_port}", f"https://*:{appliance_port}"]
         extra = os.environ.get("XRF_RERUN_ORIGINS", "")
         origins += [o for o in extra.split(",") if o]
-        self._hub = rr.RecordingStream("xrflab-live", recording_id="xrflab-live-hub")
-        self.url = self._hub.serve_grpc(grpc_port=self.grpc_port, server_memory_limit=os.environ.get(
-            "XRF_RERUN_MEMORY", "256MiB"), cors_allow_origin=origins)
-        rr.serve_web_viewer(web_port=self.web_port, open_browser=False)
+        cmd = [*_rerun_cli(), "--serve-web", "--bind", "127.0.0.1", "--port", str(self.grpc_port),
+               "--web-viewer-port", str(self.web_port),
+               "--server-memory-limit", os.environ.get("XRF_RERUN_MEMORY", "256MiB")]
+        for o in origins:
+            cmd += ["--cors-allow-origin", o]
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.DEVNULL, preexec_fn=_die_with_parent)
+        atexit.register(self.stop)
+        deadline = time.monotonic() + 20
+        while not all(_listening(p) for p in (self.grpc_port, self.web_port)):
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                self.stop()
+                raise OSError(f"the rerun server did not start (exit {self.proc.poll()})")
+            time.sleep(0.05)
         self.local_url = f"rerun+http://127.0.0.1:{self.grpc_port}/proxy"
+        self.url = self.local_url
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
 
     @classmethod
     def get(cls, appliance_port: int) -> RerunServer:

@@ -10,9 +10,11 @@ so a file that grew is converted again) and then served as files. Every output i
 
 rerun: the viewer (from the installed rerun-sdk, no CDN) is served by rerun's own small HTTP
 server on an internal port and reached by browsers through `/rerun/` here (same origin as the
-dashboard, so it can fetch a finished run's `.rrd` from the API with the session cookie). Live
-data comes from the appliance's rerun gRPC proxy: its URL is built from the request's Host, so
-the viewer works when the Pi is opened by its LAN address.
+dashboard, so it can fetch a finished run's `.rrd` from the API with the session cookie): that is
+the path for LAN browsers. Live data comes from the appliance's rerun gRPC proxy, which listens on
+127.0.0.1 only (it has no login, and rerun's viewer accepts no path prefix in its URL, so it cannot
+be proxied here under the login): the live URL is given to a browser on the appliance itself only
+(docs/logging/appliance.md).
 """
 
 from __future__ import annotations
@@ -154,7 +156,9 @@ class RerunInfo(BaseModel):
     available: bool
     error: str = ""
     viewer: str = Field(description="viewer page on this appliance (append ?url=...)")
-    live_url: str = Field(description="rerun+http URL of the live gRPC proxy, for this request's host")
+    live_url: str = Field(description="rerun+http URL of the live gRPC proxy (127.0.0.1 only): set for a "
+                          "browser on the appliance itself, '' for LAN browsers (they open a finished run's .rrd)")
+    live_local_only: bool = Field(default=True, description="the live stream is reachable on the appliance itself only")
     grpc_port: int
     live_recording: str = Field(description="recording id of the active run, '' if none")
 
@@ -334,10 +338,24 @@ async def rerun_info(request: Request) -> dict[str, Any]:
     except Exception as exc:  # rerun-sdk missing or a port problem: the page says so
         return {"available": False, "error": str(exc), "viewer": "/rerun/", "live_url": "", "grpc_port": 0,
                 "live_recording": active}
-    scheme = "https" if request.url.scheme == "https" else "http"
+    # rerun's gRPC server listens on 127.0.0.1 only (no login of its own; logs/live.py RerunServer):
+    # only a browser on the Pi itself can open the live stream.
+    local = _is_loopback(request.client.host if request.client else "") and _is_loopback(_host_only(request))
     return {"available": True, "viewer": "/rerun/",
-            "live_url": f"rerun+{scheme}://{_host_only(request)}:{server.grpc_port}/proxy",
-            "grpc_port": server.grpc_port, "live_recording": active}
+            "live_url": f"rerun+http://127.0.0.1:{server.grpc_port}/proxy" if local else "",
+            "live_local_only": True, "grpc_port": server.grpc_port, "live_recording": active}
+
+
+def _is_loopback(host: str) -> bool:
+    import ipaddress
+
+    host = host.strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 _ASSET = re.compile(r"^[A-Za-z0-9._-]*$")
