@@ -343,21 +343,18 @@ def _free_port(preferred: int) -> int:
 
 
 def _rerun_cli() -> list[str]:
-    exe = Path(sys.executable).with_name("rerun")
-    if exe.is_file():
-        return [str(exe)]
+    # The binary itself, not the venv's `rerun` wrapper script: the wrapper runs it as a child, and
+    # that child would outlive the appliance (the parent-death signal goes to the wrapper).
+    with contextlib.suppress(ImportError):
+        import rerun_cli
+
+        exe = Path(rerun_cli.__file__).with_name("rerun")
+        if exe.is_file():
+            return [str(exe)]
     found = shutil.which("rerun")
     if found:
         return [found]
     return [sys.executable, "-m", "rerun_cli"]
-
-
-def _die_with_parent() -> None:  # preexec_fn: the rerun server ends with the appliance, even on kill -9
-    import ctypes
-    import signal
-
-    with contextlib.suppress(Exception):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
 
 
 class RerunServer:
@@ -389,8 +386,8 @@ class RerunServer:
         for o in origins:
             cmd += ["--cors-allow-origin", o]
         self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL, preexec_fn=_die_with_parent)
-        atexit.register(self.stop)
+                                     stderr=subprocess.DEVNULL)
+        atexit.register(self.stop)  # the appliance's normal exit (SIGTERM under systemd) ends it
         deadline = time.monotonic() + 20
         while not all(_listening(p) for p in (self.grpc_port, self.web_port)):
             if self.proc.poll() is not None or time.monotonic() > deadline:

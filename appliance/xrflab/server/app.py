@@ -61,6 +61,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             security.close()
             await supervisor.shutdown()
             await viz.stop()
+            from ..logs import live as live_rerun  # its rerun child process (127.0.0.1 servers)
+
+            if (rr_server := live_rerun.RerunServer.running()) is not None:
+                rr_server.stop()
             store.close()
 
     app = FastAPI(
