@@ -138,6 +138,7 @@ def test_jiwy_joints_follow_the_setpoint_and_replay(server: Server) -> None:
         t = ws.wait_for(lambda m: m.get("type") == "telemetry" and abs(m["xeno2ros"]["pan"] - 0.6) < 0.03, 5)
         assert abs(t["xeno2ros"]["tilt"] - s["joints"]["tilt"]) < 0.03
     run_id = s["run_id"]
+    time.sleep(1.0)  # hold the setpoint a while: the replay below scrubs a run of known length
     server.stop_run()
     recs = server.http.get("/api/viz/recordings").json()
     assert any(r["run_id"] == run_id and not r["active"] for r in recs), recs
@@ -155,6 +156,7 @@ def test_jiwy_joints_follow_the_setpoint_and_replay(server: Server) -> None:
 
 
 def test_relbot_odometry_moves_and_resets(server: Server) -> None:
+    assert server.http.post("/api/viz/live").status_code == 200  # whatever an earlier test left
     to_run(server, "relbot")
     wait_state(server, lambda s: s.get("kind") == "differential_drive" and s.get("mode") == "live")
     with server.ws() as ws:
