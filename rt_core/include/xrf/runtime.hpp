@@ -152,6 +152,7 @@ private:
     bool helper_started_ = false;
     uint64_t monitor_cursor_ = 0;
     int log_fd_ = -1;
+    int dma_latency_fd_ = -1;
     uint64_t log_generation_ = 0;
 };
 
