@@ -1,7 +1,8 @@
 // Runs page: every run with who/when/build/duration/cycles/misses and its logging figures (records
 // written, a "lost: N" badge that is normally 0, the note when logging stopped), each log file
 // downloadable as the raw file, CSV, MAT, Parquet and rerun .rrd, and the rerun web viewer
-// (served by the appliance under /rerun/) showing the live run or a finished run's .rrd.
+// (served by the appliance under /rerun/) showing the live run (through the appliance's login, from
+// any address) or a finished run's .rrd.
 "use strict";
 (function () {
   const REFRESH_MS = 2000;
@@ -142,32 +143,49 @@
     return rerun;
   }
 
-  function show(el, url, what) {
+  // live: the run whose live stream the frame shows (null: a finished run's .rrd or nothing).
+  let liveShown = null;
+
+  function show(el, url, what, reload) {
     const frame = el.querySelector("#rr-frame");
     const src = "/rerun/?url=" + encodeURIComponent(url);
     if (frame.getAttribute("src") !== src) frame.setAttribute("src", src);
+    else if (reload && frame.contentWindow) frame.contentWindow.location.reload();
     el.querySelector("#rr-what").textContent = what;
   }
 
-  // The live stream (rerun's gRPC server) listens on the appliance's 127.0.0.1 only: it has no
-  // login of its own (docs/logging/appliance.md). A browser on the LAN gets no live_url and opens
-  // a finished run's .rrd instead ('Open in rerun', behind the login like every download).
+  // The live stream comes through the appliance's own origin (its gRPC-web read proxy, behind the
+  // login), from the Pi itself and from the LAN alike; only the run's owner and educators see it.
   async function openLive(el) {
     const info = await rerunInfo(el);
     if (!info.available) return;
-    if (info.live_url) {
-      show(el, info.live_url, info.live_recording ? `live: ${info.live_recording}` : "live (no run active)");
+    const msg = el.querySelector("#rr-message");
+    if (!info.live_url) {
+      liveShown = null;
+      msg.textContent = "No live plots: " + (info.live_reason || "nothing is streaming")
+        + ". A finished run of yours opens with 'Open in rerun' on its log (.rrd).";
+      msg.classList.remove("hidden");
       return;
     }
-    const msg = el.querySelector("#rr-message");
-    msg.textContent = "Live plots are shown on the appliance itself only. From here: select a finished run "
-      + "and press 'Open in rerun' on its log (.rrd).";
-    msg.classList.remove("hidden");
+    const reload = liveShown !== null && liveShown !== info.live_run;
+    liveShown = info.live_run;
+    show(el, info.live_url, `live: run ${info.live_run}` + (info.live_running ? "" : " (ended)"), reload);
+  }
+
+  // A new run replaces the live stream: a frame showing the previous one follows it.
+  async function followLive(el) {
+    if (liveShown === null) return;
+    let info;
+    try { info = await xrf.api("GET", "/api/logs/rerun"); } catch (e) { return; }
+    if (info.live_run !== liveShown || !info.live_url) openLive(el);
+    else el.querySelector("#rr-what").textContent = `live: run ${info.live_run}` + (info.live_running ? "" : " (ended)");
   }
 
   async function openRrd(el, id, path) {
     const info = await rerunInfo(el);
-    if (info.available) show(el, location.origin + path, `run ${id} (.rrd)`);
+    if (!info.available) return;
+    liveShown = null;
+    show(el, location.origin + path, `run ${id} (.rrd)`);
   }
 
   xrf.addPage({
@@ -189,6 +207,7 @@
       timer = setInterval(() => {
         if (el.classList.contains("hidden")) { clearInterval(timer); timer = null; return; }
         loadList(el);
+        followLive(el);
       }, REFRESH_MS);
     },
   });

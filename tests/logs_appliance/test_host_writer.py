@@ -110,29 +110,45 @@ def test_disk_full_stops_logging_cleanly_and_the_loop_goes_on(loop, tmp_path: Pa
 
 
 def test_live_rerun_stream_takes_records_and_telemetry(loop, tmp_path: Path, caplog) -> None:
-    """The live stream (decimated records + telemetry) into the appliance's rerun proxy runs
-    without errors; its blueprint has one view per variable group and the telemetry views."""
+    """The live stream (decimated records + telemetry) reaches the run's own rerun proxy, which
+    listens on 127.0.0.1 only; the next run's proxy replaces it; the blueprint has one view per
+    variable group and the telemetry views."""
     import logging
 
-    from xrflab.logs.live import LiveRerun, RerunServer, live_blueprint
+    import httpx
+
+    from xrf_testing.grpcweb import READ_MESSAGES, read_messages
+    from xrflab.logs.live import LiveProxy, LiveRerun, live_blueprint
 
     caplog.set_level(logging.ERROR, logger="xrflab.logs.live")
     lp = loop(tmp_path)
-    server = RerunServer.get(appliance_port=8000)
-    assert server.url.startswith("rerun+http://") and server.grpc_port > 0
-    stream = LiveRerun(server, lp.ch, run_id=42)
-    w = HostLogWriter(lp.ch, {}, tmp_path, on_records=stream.feed, timing=False)
-    w.start()
-    lp.command("initialise", "INITIALISED")
-    lp.command("start", "RUN")
-    lp.wait_cycles(1000)
-    os.kill(lp.proc.pid, signal.SIGKILL)
-    lp.proc.wait(5)
-    w.finish()
-    stream.close()
-    stream._thread.join(10)
-    assert stream._names == ["cycle_2", "flag", "letter", "count", "ratio", "value"]
-    assert stream.dropped == 0
-    assert not [r for r in caplog.records if r.levelno >= logging.ERROR], caplog.text
-    bp = live_blueprint(stream._names, ["enc", "pwm", "xeno2ros"])
-    assert bp is not None
+    proxy = LiveProxy.open_for_run(42, "alice")
+    try:
+        assert proxy.local_url == f"rerun+http://127.0.0.1:{proxy.port}/proxy" and LiveProxy.current() is proxy
+        stream = LiveRerun(proxy, lp.ch, run_id=42)
+        w = HostLogWriter(lp.ch, {}, tmp_path, on_records=stream.feed, timing=False)
+        w.start()
+        lp.command("initialise", "INITIALISED")
+        lp.command("start", "RUN")
+        lp.wait_cycles(1000)
+        os.kill(lp.proc.pid, signal.SIGKILL)
+        lp.proc.wait(5)
+        w.finish()
+        stream.close()
+        stream._thread.join(10)
+        assert stream._names == ["cycle_2", "flag", "letter", "count", "ratio", "value"]
+        assert stream.dropped == 0
+        assert not [r for r in caplog.records if r.levelno >= logging.ERROR], caplog.text
+        with httpx.Client(base_url=proxy.read_url) as client:
+            got = read_messages(client, READ_MESSAGES,
+                                until=lambda d: all(k in d for k in (b"run-42", b"ratio", b"telemetry/enc")))
+        for key in (b"run-42", b"cycle_2", b"ratio", b"telemetry/enc"):
+            assert key in got.data, key
+        bp = live_blueprint(stream._names, ["enc", "pwm", "xeno2ros"])
+        assert bp is not None
+        # the next run gets a new proxy; the old one is stopped
+        nxt = LiveProxy.open_for_run(43, "bob")
+        assert proxy.proc.poll() is not None and LiveProxy.current() is nxt and nxt.port != 0
+    finally:
+        LiveProxy.stop_all()
+    assert LiveProxy.current() is None

@@ -169,42 +169,23 @@ def test_unknown_file_and_traversal_are_404(server: Server) -> None:
     assert server.http.get("/api/logs/runs/99999").status_code == 404
 
 
-def listening_addresses(port: int) -> set[str]:
-    """IPv4 addresses with a socket listening on `port` (/proc/net/tcp; rerun binds IPv4)."""
-    import socket
-
-    found = set()
-    for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
-        local, state = line.split()[1], line.split()[3]
-        addr, hexport = local.split(":")
-        if state == "0A" and int(hexport, 16) == port:
-            found.add(socket.inet_ntop(socket.AF_INET, bytes.fromhex(addr)[::-1]))
-    return found
-
-
-def test_rerun_viewer_is_served_and_urls_follow_the_host(server: Server) -> None:
+def test_rerun_viewer_is_served_behind_the_login(server: Server) -> None:
     import httpx
 
-    info = server.http.get("/api/logs/rerun", headers={"Host": "192.168.7.2:8000"}).json()
-    assert info["available"], info
-    # rerun's servers listen on 127.0.0.1 only (no login of their own): a LAN browser gets no live
-    # URL (it opens a finished run's .rrd through the login); a browser on the Pi itself does.
-    assert info["live_url"] == "" and info["live_local_only"]
-    local = server.http.get("/api/logs/rerun").json()
-    assert local["live_url"] == f"rerun+http://127.0.0.1:{info['grpc_port']}/proxy"
-    assert listening_addresses(info["grpc_port"]) == {"127.0.0.1"}
     assert httpx.get(server.url + "/api/logs/rerun").status_code == 401
+    assert httpx.get(server.url + "/rerun/").status_code == 401
     page = server.http.get("/rerun/")
     assert page.status_code == 200 and "re_viewer.js" in page.text
     js = server.http.get("/rerun/re_viewer.js")
     assert js.status_code == 200 and len(js.content) > 10000
-    # The live gRPC proxy answers browsers from the appliance's origins (any host, our port).
-    port = server.url.rsplit(":", 1)[1]
-    origin = f"http://192.168.7.2:{port}"
-    pre = httpx.options(f"http://127.0.0.1:{info['grpc_port']}/rerun.sdk_comms.v1alpha1.MessageProxyService/ReadMessages",
-                        headers={"Origin": origin, "Access-Control-Request-Method": "POST",
-                                 "Access-Control-Request-Headers": "content-type,x-grpc-web"})
-    assert pre.headers.get("access-control-allow-origin") in (origin, "*"), pre.headers
+    assert server.http.get("/rerun/..%2Fruns.sqlite3").status_code == 404
+    # the live URL names the host the browser used (the live stream: test_live_stream.py)
+    _run_probe(server, cycles=50)
+    info = server.http.get("/api/logs/rerun", headers={"Host": "192.168.7.2:8000"}).json()
+    assert info["available"] and info["live_url"] == "rerun+http://192.168.7.2:8000/proxy", info
+    info = server.http.get("/api/logs/rerun", headers={"Host": "xrf-bench-3.local"}).json()
+    assert info["live_url"] == "rerun+http://xrf-bench-3.local:80/proxy", info
+    server.stop_run()
 
 
 def test_lost_records_are_counted_and_shown(tmp_path: Path) -> None:

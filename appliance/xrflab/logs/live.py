@@ -357,45 +357,21 @@ def _rerun_cli() -> list[str]:
     return [sys.executable, "-m", "rerun_cli"]
 
 
-class RerunServer:
-    """One per appliance: a rerun gRPC message proxy (live recordings) and the rerun web viewer
-    (its assets come from the installed rerun-sdk; nothing from the internet). Started on first
-    use, as a ``rerun --serve-web --bind 127.0.0.1`` child process: **both listen on 127.0.0.1
-    only** (the SDK's in-process ``serve_grpc`` has no bind address and listens on every
-    interface, which would give the LAN the live data without a login). Ports from
-    XRF_RERUN_GRPC_PORT / XRF_RERUN_WEB_PORT (default 9876 / 9090; a taken port falls back to a
-    free one). Browsers load the viewer through the appliance (/rerun/, behind the login). The
-    live stream can only be opened by a viewer on the Pi itself (rerun's viewer accepts no path
-    prefix in a ``rerun+http://host:port/proxy`` URL, so the gRPC-web endpoint cannot be put
-    behind the appliance's login under a path; docs/logging/appliance.md); LAN browsers open a
-    finished run's .rrd (behind the login) instead. The gRPC port accepts the appliance's origins
-    (CORS: any host on the appliance's own port)."""
+class _RerunChild:
+    """A ``rerun`` child process whose servers listen on 127.0.0.1 only: they have no login of
+    their own, so browsers reach them only through the appliance (its /rerun/ files route and its
+    gRPC-web read proxy, server/routes_logs.py). Stopped with the appliance (atexit)."""
 
-    _instance: RerunServer | None = None
-    _lock = threading.Lock()
-
-    def __init__(self, appliance_port: int) -> None:
-        self.grpc_port = _free_port(int(os.environ.get("XRF_RERUN_GRPC_PORT", "9876")))
-        self.web_port = _free_port(int(os.environ.get("XRF_RERUN_WEB_PORT", "9090")))
-        origins = [f"http://*:{appliance_port}", f"https://*:{appliance_port}"]
-        extra = os.environ.get("XRF_RERUN_ORIGINS", "")
-        origins += [o for o in extra.split(",") if o]
-        cmd = [*_rerun_cli(), "--serve-web", "--bind", "127.0.0.1", "--port", str(self.grpc_port),
-               "--web-viewer-port", str(self.web_port),
-               "--server-memory-limit", os.environ.get("XRF_RERUN_MEMORY", "256MiB")]
-        for o in origins:
-            cmd += ["--cors-allow-origin", o]
-        self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL)
+    def __init__(self, args: list[str], ports: tuple[int, ...], what: str) -> None:
+        self.proc = subprocess.Popen([*_rerun_cli(), *args], stdin=subprocess.DEVNULL,
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         atexit.register(self.stop)  # the appliance's normal exit (SIGTERM under systemd) ends it
         deadline = time.monotonic() + 20
-        while not all(_listening(p) for p in (self.grpc_port, self.web_port)):
+        while not all(_listening(p) for p in ports):
             if self.proc.poll() is not None or time.monotonic() > deadline:
                 self.stop()
-                raise OSError(f"the rerun server did not start (exit {self.proc.poll()})")
+                raise OSError(f"the rerun {what} did not start (exit {self.proc.poll()})")
             time.sleep(0.05)
-        self.local_url = f"rerun+http://127.0.0.1:{self.grpc_port}/proxy"
-        self.url = self.local_url
 
     def stop(self) -> None:
         if self.proc.poll() is None:
@@ -404,17 +380,79 @@ class RerunServer:
                 self.proc.wait(5)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
+                self.proc.wait()
+
+
+class RerunViewer(_RerunChild):
+    """One per appliance, started on first use: ``rerun --serve-web``, only for the web viewer's
+    files (they come from the installed rerun-sdk; nothing from the internet). The appliance
+    copies each file once into its data folder and serves it under /rerun/ behind the login.
+    Port from XRF_RERUN_WEB_PORT (default 9090; a taken port falls back to a free one)."""
+
+    _instance: RerunViewer | None = None
+    _lock = threading.Lock()
+
+    def __init__(self) -> None:
+        self.web_port = _free_port(int(os.environ.get("XRF_RERUN_WEB_PORT", "9090")))
+        grpc_port = _free_port(0)  # --serve-web always opens a gRPC server too; nothing uses it
+        super().__init__(["--serve-web", "--bind", "127.0.0.1", "--port", str(grpc_port),
+                          "--web-viewer-port", str(self.web_port), "--server-memory-limit", "1MiB"],
+                         (self.web_port,), "viewer")
 
     @classmethod
-    def get(cls, appliance_port: int) -> RerunServer:
+    def get(cls) -> RerunViewer:
         with cls._lock:
-            if cls._instance is None:
-                cls._instance = cls(appliance_port)
+            if cls._instance is None or cls._instance.proc.poll() is not None:
+                cls._instance = cls()
             return cls._instance
 
     @classmethod
-    def running(cls) -> RerunServer | None:
+    def running(cls) -> RerunViewer | None:
         return cls._instance
+
+
+class LiveProxy(_RerunChild):
+    """The live stream of ONE run: a ``rerun --serve-grpc`` message proxy on 127.0.0.1 that the
+    run's recording (``LiveRerun``) writes to and viewers read from, through the appliance's
+    gRPC-web read proxy. One per run, not one per appliance, because a rerun proxy replays
+    everything it still buffers to each new viewer: with one shared proxy a student opening the
+    live view would receive earlier runs of other students. Opening the next run's proxy stops
+    the previous one; the last stays up after its run ends, so its viewers keep their plots.
+    Buffer limit XRF_RERUN_MEMORY (default 256MiB: about 8 minutes of 100 Hz × 64 variables)."""
+
+    _current: LiveProxy | None = None
+    _lock = threading.Lock()
+
+    def __init__(self, run_id: int, owner: str) -> None:
+        self.run_id = run_id
+        self.owner = owner
+        self.port = _free_port(0)
+        super().__init__(["--serve-grpc", "--bind", "127.0.0.1", "--port", str(self.port),
+                          "--server-memory-limit", os.environ.get("XRF_RERUN_MEMORY", "256MiB")],
+                         (self.port,), "live proxy")
+        self.local_url = f"rerun+http://127.0.0.1:{self.port}/proxy"
+        self.read_url = f"http://127.0.0.1:{self.port}"  # where the appliance forwards gRPC-web reads
+
+    @classmethod
+    def open_for_run(cls, run_id: int, owner: str) -> LiveProxy:
+        with cls._lock:
+            if cls._current is not None:
+                cls._current.stop()
+                cls._current = None
+            cls._current = cls(run_id, owner)
+            return cls._current
+
+    @classmethod
+    def current(cls) -> LiveProxy | None:
+        proxy = cls._current
+        return proxy if proxy is not None and proxy.proc.poll() is None else None
+
+    @classmethod
+    def stop_all(cls) -> None:
+        with cls._lock:
+            if cls._current is not None:
+                cls._current.stop()
+                cls._current = None
 
 
 def live_blueprint(names: list[str], telemetry: list[str]):
@@ -432,7 +470,7 @@ def live_blueprint(names: list[str], telemetry: list[str]):
 class LiveRerun:
     """One run's live recording: log records (decimated) and telemetry, off the writer's thread."""
 
-    def __init__(self, server: RerunServer, ch: Any, run_id: int) -> None:
+    def __init__(self, proxy: LiveProxy, ch: Any, run_id: int) -> None:
         import rerun as rr
 
         self._rr = rr
@@ -445,7 +483,7 @@ class LiveRerun:
         self._names: list[str] | None = None
         self._paths: dict[str, str] = {}
         self.rec = rr.RecordingStream("xrflab", recording_id=f"run-{run_id}")
-        self.rec.connect_grpc(server.local_url)
+        self.rec.connect_grpc(proxy.local_url)
         self._telemetry_reader = ch.telemetry_reader()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._main, name=f"xrf-rerun-{run_id}", daemon=True)
@@ -555,7 +593,7 @@ class RunLogging:
     starting: threading.Thread | None = None
 
 
-def start(ch: Any, run_id: int, run_dir: Path, identity: dict[str, str], appliance_port: int,
+def start(ch: Any, run_id: int, run_dir: Path, identity: dict[str, str], owner: str,
           on_alarm: Callable[[str], None], live: bool = True) -> RunLogging:
     """Start the host writer (and the live rerun stream unless disabled or unavailable)."""
     writer = HostLogWriter(ch, identity, run_dir, on_alarm=on_alarm)
@@ -566,7 +604,7 @@ def start(ch: Any, run_id: int, run_dir: Path, identity: dict[str, str], applian
         # and the writer does not wait for them (records before the stream is up are not sent live).
         def connect() -> None:
             try:
-                rl.live = LiveRerun(RerunServer.get(appliance_port), ch, run_id)
+                rl.live = LiveRerun(LiveProxy.open_for_run(run_id, owner), ch, run_id)
                 writer.set_on_records(rl.live.feed)
             except Exception:
                 log.exception("live rerun unavailable")
@@ -584,7 +622,7 @@ def finish(rl: RunLogging) -> WriterStats:
     return stats
 
 
-__all__ = ["HostLogWriter", "LiveRerun", "RerunServer", "RunLogging", "WriterStats", "finish", "segment_header",
+__all__ = ["HostLogWriter", "LiveProxy", "LiveRerun", "RerunViewer", "RunLogging", "WriterStats", "finish", "segment_header",
            "start"]
 
 
@@ -620,7 +658,7 @@ def start_for(sup: Any, run: Any) -> RunLogging | None:
 
     loop = asyncio.get_running_loop()
     identity = {"project": row.build, "build": row.build, "run": str(row.id)}
-    return start(ch, row.id, run.run_dir, identity, sup.settings.port, alarm,
+    return start(ch, row.id, run.run_dir, identity, row.owner, alarm,
                  live=os.environ.get("XRF_LIVE_RERUN", "1") != "0")
 
 

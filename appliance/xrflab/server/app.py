@@ -17,6 +17,7 @@ from .api import router, ws_router
 from .routes_projects import router as projects_router
 from .hub import Hub
 from .routes_logs import router as logs_router
+from .routes_rerun import router as rerun_router
 from .routes_selfcheck import router as selfcheck_router
 from .routes_system import router as system_router
 from .routes_viz import router as viz_router
@@ -61,10 +62,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             security.close()
             await supervisor.shutdown()
             await viz.stop()
-            from ..logs import live as live_rerun  # its rerun child process (127.0.0.1 servers)
+            from ..logs import live as live_rerun  # its rerun child processes (127.0.0.1 servers)
 
-            if (rr_server := live_rerun.RerunServer.running()) is not None:
-                rr_server.stop()
+            live_rerun.LiveProxy.stop_all()
+            if (viewer := live_rerun.RerunViewer.running()) is not None:
+                viewer.stop()
             store.close()
 
     app = FastAPI(
@@ -94,6 +96,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(viz_router)
     app.include_router(viser_router)
     app.include_router(logs_router)
+    app.include_router(rerun_router)
     app.include_router(selfcheck_router)
     app.include_router(system_router)
     app.include_router(ros_router)

@@ -174,9 +174,10 @@ def may(user: User, perm: Perm, lease: Lease | None = None) -> bool:
     return True
 
 
-def check(conn: HTTPConnection, perm: Perm) -> User | None:
+def check(conn: HTTPConnection, perm: Perm, *, grpc_web: bool = False) -> User | None:
     """Raise (HTTPException, or WebSocketException on a handshake) when the request may not do
-    `perm`; return the user (None for an anonymous PUBLIC request)."""
+    `perm`; return the user (None for an anonymous PUBLIC request). `grpc_web`: see
+    requires_grpc_web()."""
     security: Security = conn.app.state.security
     user, how, csrf = security.resolve(conn)
     method = conn.scope.get("method", "GET")
@@ -193,9 +194,13 @@ def check(conn: HTTPConnection, perm: Perm) -> User | None:
     if how == "cookie" and method in UNSAFE_METHODS:
         if not security.origin_ok(conn, require=True):
             raise _deny(conn, 403, "cross-site request refused (Origin/Referer)")
-        sent = conn.headers.get(CSRF_HEADER, "")
-        if not sent or not hmac.compare_digest(sent.encode(), csrf.encode()):
-            raise _deny(conn, 403, "missing or wrong CSRF token (X-CSRF-Token)")
+        if grpc_web:
+            if not is_grpc_web(conn):
+                raise _deny(conn, 403, "a gRPC-web request (Content-Type application/grpc-web) was expected")
+        else:
+            sent = conn.headers.get(CSRF_HEADER, "")
+            if not sent or not hmac.compare_digest(sent.encode(), csrf.encode()):
+                raise _deny(conn, 403, "missing or wrong CSRF token (X-CSRF-Token)")
     if user.must_change and perm is not Perm.SELF:
         raise _deny(conn, 403, "change your password first (POST /api/auth/password)")
     if perm is Perm.DRIVE and user.role == "student" and not may(user, perm, security.lease):
@@ -212,6 +217,24 @@ def check(conn: HTTPConnection, perm: Perm) -> User | None:
 def requires(perm: Perm) -> Any:
     async def dependency(conn: HTTPConnection) -> None:
         check(conn, perm)
+
+    dependency.xrf_permission = perm  # read by the route-table test
+    return Depends(dependency)
+
+
+def is_grpc_web(conn: HTTPConnection) -> bool:
+    ctype = conn.headers.get("content-type", "").split(";", 1)[0].strip().lower()
+    return ctype in ("application/grpc-web", "application/grpc-web+proto")
+
+
+def requires_grpc_web(perm: Perm) -> Any:
+    """requires() for the read-only gRPC-web calls of rerun's viewer, which cannot add our CSRF
+    header to its POSTs. What stands in for the token: a same-origin Origin (required, as for
+    every cookie POST), a gRPC-web content type (no HTML form can send it, and a cross-site
+    fetch with it needs a CORS preflight, which the appliance never grants) and the
+    SameSite=Strict session cookie. Use it only for calls that change nothing."""
+    async def dependency(conn: HTTPConnection) -> None:
+        check(conn, perm, grpc_web=True)
 
     dependency.xrf_permission = perm  # read by the route-table test
     return Depends(dependency)

@@ -1,5 +1,5 @@
-"""Runs and their logs: the run list with logging figures, downloads in every format, the rerun
-viewer (live and recorded), and `read_run_log()` for other parts of the appliance (the 3D view
+"""Runs and their logs: the run list with logging figures, downloads in every format (`.rrd`
+for the rerun viewer among them), and `read_run_log()` for other parts of the appliance (the 3D view
 replays a finished run from it).
 
 Downloads: `raw` is the file itself (FileResponse); `csv` streams (`iter_csv_chunks`, iterated
@@ -8,19 +8,12 @@ converted once, off the event loop, into `<run>/.cache/` (keyed by the source's 
 so a file that grew is converted again) and then served as files. Every output is what
 `xrf decode` writes for the same file: the same code (`xrflab.logs.convert`).
 
-rerun: the viewer (from the installed rerun-sdk, no CDN) is served by rerun's own small HTTP
-server on an internal port and reached by browsers through `/rerun/` here (same origin as the
-dashboard, so it can fetch a finished run's `.rrd` from the API with the session cookie): that is
-the path for LAN browsers. Live data comes from the appliance's rerun gRPC proxy, which listens on
-127.0.0.1 only (it has no login, and rerun's viewer accepts no path prefix in its URL, so it cannot
-be proxied here under the login): the live URL is given to a browser on the appliance itself only
-(docs/logging/appliance.md).
+The rerun viewer (live and recorded) and its live stream are in routes_rerun.py.
 """
 
 from __future__ import annotations
 
 import asyncio
-import os
 import re
 import time
 from pathlib import Path
@@ -150,17 +143,6 @@ class RunLogs(BaseModel):
     run: RunLogRecord
     files: list[LogFileInfo]
     timing: bool = Field(description="timing.jsonl (per-second stage timing) exists")
-
-
-class RerunInfo(BaseModel):
-    available: bool
-    error: str = ""
-    viewer: str = Field(description="viewer page on this appliance (append ?url=...)")
-    live_url: str = Field(description="rerun+http URL of the live gRPC proxy (127.0.0.1 only): set for a "
-                          "browser on the appliance itself, '' for LAN browsers (they open a finished run's .rrd)")
-    live_local_only: bool = Field(default=True, description="the live stream is reachable on the appliance itself only")
-    grpc_port: int
-    live_recording: str = Field(description="recording id of the active run, '' if none")
 
 
 # ---- helpers --------------------------------------------------------------------------------
@@ -308,83 +290,3 @@ async def timing(run_id: int, request: Request) -> Response:
         raise HTTPException(404, f"run {run_id} has no timing series")
     return FileResponse(path, media_type="application/x-ndjson",
                         headers={"Content-Disposition": f'attachment; filename="run{run_id}_timing.jsonl"'})
-
-
-# ---- rerun ----------------------------------------------------------------------------------
-
-
-def _host_only(request: Request) -> str:
-    host = request.headers.get("host") or request.url.hostname or "localhost"
-    if host.startswith("["):  # IPv6 literal
-        return host[: host.index("]") + 1]
-    return host.rsplit(":", 1)[0] if ":" in host else host
-
-
-async def _server(request: Request) -> Any:
-    from ..logs import live
-
-    port = request.app.state.settings.port
-    return await asyncio.to_thread(live.RerunServer.get, port)
-
-
-@router.get("/api/logs/rerun", response_model=RerunInfo, dependencies=[requires(Perm.WATCH)],
-            summary="where the rerun viewer and the live stream are, for this request's host")
-async def rerun_info(request: Request) -> dict[str, Any]:
-    sup = _sup(request)
-    run = sup.current
-    active = f"run-{run.row.id}" if run is not None and run.alive and not run.ended.is_set() else ""
-    try:
-        server = await _server(request)
-    except Exception as exc:  # rerun-sdk missing or a port problem: the page says so
-        return {"available": False, "error": str(exc), "viewer": "/rerun/", "live_url": "", "grpc_port": 0,
-                "live_recording": active}
-    # rerun's gRPC server listens on 127.0.0.1 only (no login of its own; logs/live.py RerunServer):
-    # only a browser on the Pi itself can open the live stream.
-    local = _is_loopback(request.client.host if request.client else "") and _is_loopback(_host_only(request))
-    return {"available": True, "viewer": "/rerun/",
-            "live_url": f"rerun+http://127.0.0.1:{server.grpc_port}/proxy" if local else "",
-            "live_local_only": True, "grpc_port": server.grpc_port, "live_recording": active}
-
-
-def _is_loopback(host: str) -> bool:
-    import ipaddress
-
-    host = host.strip("[]")
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
-_ASSET = re.compile(r"^[A-Za-z0-9._-]*$")
-
-
-@router.get("/rerun/{asset:path}", dependencies=[requires(Perm.WATCH)], include_in_schema=False)
-async def rerun_viewer(asset: str, request: Request) -> Response:
-    """The rerun web viewer's files, fetched once from rerun's internal server and kept on disk
-    (keyed by the rerun version): the 40 MB wasm is served by us, with our caching and auth."""
-    import httpx
-    import rerun
-
-    asset = asset or "index.html"
-    if not _ASSET.match(asset) or asset.startswith("."):
-        raise HTTPException(404, "no such viewer file")
-    settings = request.app.state.settings
-    cache = Path(settings.data_dir) / "rerun-viewer" / rerun.__version__
-    path = cache / asset
-    if not path.is_file():
-        server = await _server(request)
-        async with httpx.AsyncClient(timeout=60) as client:
-            r = await client.get(f"http://127.0.0.1:{server.web_port}/{asset}")
-        if r.status_code != 200:
-            raise HTTPException(404, f"the rerun viewer has no {asset}")
-        cache.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{asset}.{os.getpid()}.part")
-        tmp.write_bytes(r.content)
-        os.replace(tmp, path)
-    media = {".html": "text/html", ".js": "text/javascript", ".wasm": "application/wasm",
-             ".ico": "image/x-icon", ".png": "image/png", ".css": "text/css"}.get(path.suffix)
-    cache_control = "no-cache" if asset == "index.html" else "public, max-age=86400"
-    return FileResponse(path, media_type=media, headers={"Cache-Control": cache_control})

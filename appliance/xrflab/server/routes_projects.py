@@ -18,7 +18,6 @@ import re
 import secrets
 import shutil
 import tempfile
-import time
 import zipfile
 from pathlib import Path
 from typing import Any, Literal

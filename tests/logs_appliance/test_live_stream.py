@@ -1,0 +1,253 @@
+"""The live rerun stream through the appliance (issue 4 item 5): the viewer's gRPC-web reads are
+answered at the appliance's root, behind the login, from the Pi's LAN address; one rerun proxy
+per run, on 127.0.0.1 only; only the run's owner and educators receive its data; a new run
+ends the previous run's stream; closed viewers free their connection."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from logs_support import PROBE, start
+from harness import ADMIN_PASSWORD, ADMIN_USER, Server, login_client, stop_server
+from xrf_testing.grpcweb import GRPC_WEB, READ_MESSAGES, read_messages
+
+SERVICE = "/rerun.sdk_comms.v1alpha1.MessageProxyService"
+
+
+def lan_address() -> str:
+    """This machine's address on its default route (what a LAN browser would type); loopback
+    only when the machine has no other interface."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.connect(("192.0.2.123", 9))  # TEST-NET: no packet is sent for a UDP connect
+            return s.getsockname()[0]
+        except OSError:
+            return "127.0.0.1"
+
+
+def children(pid: int) -> dict[int, list[str]]:
+    """{pid: argv} of the processes whose parent is `pid`."""
+    out = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            argv = (entry / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+            out[int(entry.name)] = [a.decode() for a in argv if a]
+    return out
+
+
+def live_proxies(server: Server) -> dict[int, int]:
+    """{pid: port} of the appliance's rerun live proxies (rerun --serve-grpc children)."""
+    found = {}
+    for pid, argv in children(server.proc.pid).items():
+        if "--serve-grpc" in argv:
+            found[pid] = int(argv[argv.index("--port") + 1])
+    return found
+
+
+def listening_addresses(port: int) -> set[str]:
+    found = set()
+    for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
+        local, state = line.split()[1], line.split()[3]
+        addr, hexport = local.split(":")
+        if state == "0A" and int(hexport, 16) == port:
+            found.add(socket.inet_ntop(socket.AF_INET, bytes.fromhex(addr)[::-1]))
+    return found
+
+
+def wait_for(pred, timeout: float = 20.0, what: str = "condition"):
+    deadline = time.monotonic() + timeout
+    while True:
+        v = pred()
+        if v:
+            return v
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.1)
+
+
+@pytest.fixture(scope="module")
+def lan() -> Iterator[tuple[Server, str]]:
+    """An appliance listening on every interface, and its URL by the LAN address."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        s = start(Path(d) / "data", host="0.0.0.0")
+        port = s.url.rsplit(":", 1)[1]
+        try:
+            yield s, f"http://{lan_address()}:{port}"
+        finally:
+            stop_server(s)
+
+
+def run_probe(server: Server, http: httpx.Client | None = None) -> int:
+    http = http or server.http
+    server.stop_run()
+    r = http.post("/api/runs", json={"build": PROBE}, timeout=300)
+    assert r.status_code == 201, r.text
+    run_id = r.json()["id"]
+    for cmd in ("initialise", "start"):
+        r = http.post("/api/runs/current/command", json={"cmd": cmd})
+        assert r.status_code == 200 and r.json()["accepted"], r.text
+    # the run's live proxy starts beside the run (not on the event loop): wait until it is the current one
+    wait_for(lambda: http.get("/api/logs/rerun").json()["live_run"] == run_id, what="the run's live proxy")
+    return run_id
+
+
+def test_live_stream_from_the_lan_address_through_the_login(lan) -> None:
+    server, url = lan
+    http = login_client(url, ADMIN_USER, ADMIN_PASSWORD)
+    try:
+        run_id = run_probe(server, http)
+        info = http.get("/api/logs/rerun").json()
+        # the URL names the host and port the browser used: the appliance's own origin
+        assert info["live_url"] == f"rerun+{url}/proxy"
+        assert info["live_allowed"] and info["live_running"] and info["live_recording"] == f"run-{run_id}"
+        got = read_messages(http, READ_MESSAGES, until=lambda d: f"run-{run_id}".encode() in d and b"ratio" in d)
+        assert got.status == 200 and got.headers["content-type"] == "application/grpc-web+proto"
+        # the run's recording: its id and a logged variable of the probe (entity log/.../ratio)
+        assert f"run-{run_id}".encode() in got.data and b"ratio" in got.data, got.data[:200]
+        assert "access-control-allow-origin" not in got.headers  # same origin: no CORS granted
+        # rerun's own servers: one live proxy for this run, on 127.0.0.1 only
+        proxies = live_proxies(server)
+        assert len(proxies) == 1
+        (port,) = proxies.values()
+        assert listening_addresses(port) == {"127.0.0.1"}
+        if not url.startswith("http://127."):
+            with pytest.raises(httpx.ConnectError):
+                httpx.post(f"http://{lan_address()}:{port}{READ_MESSAGES}", headers=GRPC_WEB, content=b"\0" * 5)
+    finally:
+        http.close()
+
+
+def test_the_live_stream_refuses_what_it_must(lan) -> None:
+    server, url = lan
+    run_probe(server)
+    proxy_url = url + READ_MESSAGES
+    body = b"\0\0\0\0\0"
+    # no login
+    assert httpx.post(proxy_url, headers={**GRPC_WEB, "Origin": url}, content=body).status_code == 401
+    http = login_client(url, ADMIN_USER, ADMIN_PASSWORD)
+    cookies = {"xrf_session": http.cookies.get("xrf_session")}
+    try:
+        # a cookie but a foreign page (Origin), or no Origin at all: cross-site, refused
+        for origin in ({"Origin": "http://evil.example"}, {}):
+            r = httpx.post(proxy_url, headers={**GRPC_WEB, **origin}, cookies=cookies, content=body)
+            assert r.status_code == 403 and "cross-site" in r.json()["detail"], r.text
+        # same origin, but a content type a form can send: this is what the CSRF token would stop
+        r = httpx.post(proxy_url, headers={"Origin": url, "content-type": "text/plain"}, cookies=cookies, content=body)
+        assert r.status_code == 403 and "gRPC-web" in r.json()["detail"], r.text
+        # writing into a run's recording from a browser: refused with a gRPC status the viewer shows
+        r = http.post(url + SERVICE + "/WriteMessages", headers=GRPC_WEB, content=body)
+        assert r.status_code == 403 and r.headers["grpc-status"] == "7", r.headers
+        assert "read-only" in r.headers["grpc-message"]
+        # an oversized request: refused before it is forwarded
+        r = http.post(proxy_url, headers=GRPC_WEB, content=b"\0" * (65 * 1024))
+        assert r.status_code == 413 and r.headers["grpc-status"] == "8"
+        # an API token (`xrf login`) needs no Origin: it is not a browser
+        token = httpx.post(url + "/api/auth/token", json={"username": ADMIN_USER, "password": ADMIN_PASSWORD},
+                           headers={"Origin": url}).json()["token"]
+        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"}) as api:
+            got = read_messages(api, READ_MESSAGES, until=lambda d: b"run-" in d)
+            assert got.status == 200 and b"run-" in got.data
+    finally:
+        http.close()
+
+
+def test_only_the_owner_and_educators_see_a_run_live(lan) -> None:
+    server, url = lan
+    pw_a = server.create_user("live_alice", "student")
+    pw_b = server.create_user("live_bob", "student")
+    alice = login_client(url, "live_alice", pw_a)
+    bob = login_client(url, "live_bob", pw_b)
+    try:
+        server.stop_run()
+        assert alice.post("/api/lease/take").status_code == 200
+        run_id = run_probe(server, alice)
+        mine = read_messages(alice, READ_MESSAGES, until=lambda d: f"run-{run_id}".encode() in d)
+        assert mine.status == 200 and f"run-{run_id}".encode() in mine.data
+        info = bob.get("/api/logs/rerun").json()
+        assert info["live_run"] == run_id and not info["live_allowed"] and info["live_url"] == ""
+        assert "live_alice" in info["live_reason"]
+        theirs = read_messages(bob, READ_MESSAGES)
+        assert theirs.status == 403 and theirs.headers["grpc-status"] == "7" and not theirs.data
+        educator = read_messages(server.http, READ_MESSAGES, until=lambda d: f"run-{run_id}".encode() in d)
+        assert educator.status == 200 and f"run-{run_id}".encode() in educator.data
+        alice.post("/api/runs/current/stop", timeout=30)
+        alice.post("/api/lease/release")
+    finally:
+        alice.close()
+        bob.close()
+
+
+def test_a_new_run_has_its_own_stream_and_ends_the_old_one(lan) -> None:
+    server, url = lan
+    http = login_client(url, ADMIN_USER, ADMIN_PASSWORD)
+    try:
+        first = run_probe(server, http)
+        old_proxies = live_proxies(server)
+        # a viewer of the first run stays connected while the second starts
+        ended: dict[str, object] = {}
+
+        def watch() -> None:
+            ended["stream"] = read_messages(http, READ_MESSAGES, timeout=120)
+            ended["at"] = time.monotonic()
+
+        viewer = threading.Thread(target=watch)
+        viewer.start()
+        wait_for(lambda: http.get("/api/logs/rerun").json()["live_viewers"] >= 1, what="the viewer")
+        second = run_probe(server, http)
+        viewer.join(30)
+        assert not viewer.is_alive(), "the first run's stream did not end when the next run started"
+        assert f"run-{first}".encode() in ended["stream"].data  # type: ignore[union-attr]
+        # the first run's proxy is gone; the second has its own, which knows nothing of the first
+        assert not set(old_proxies) & set(live_proxies(server))
+        got = read_messages(http, READ_MESSAGES, until=lambda d: f"run-{second}".encode() in d and b"ratio" in d)
+        assert f"run-{second}".encode() in got.data and f"run-{first}".encode() not in got.data
+    finally:
+        http.close()
+
+
+def test_a_closed_viewer_frees_its_stream(lan) -> None:
+    server, url = lan
+    http = login_client(url, ADMIN_USER, ADMIN_PASSWORD)
+    try:
+        run_probe(server, http)
+        before = http.get("/api/logs/rerun").json()["live_viewers"]
+        for _ in range(3):
+            got = read_messages(http, READ_MESSAGES, until=lambda d: b"run-" in d)
+            assert got.status == 200
+        # each stream was closed by the client mid-way: the appliance closes its upstream too
+        wait_for(lambda: http.get("/api/logs/rerun").json()["live_viewers"] == before, timeout=10,
+                 what="closed viewers to be counted out")
+        (port,) = live_proxies(server).values()
+        established = [ln for ln in Path("/proc/net/tcp").read_text().splitlines()[1:]
+                       if ln.split()[3] == "01" and int(ln.split()[2].split(":")[1], 16) == port]
+        assert len(established) <= 1, established  # only the run's own recording stream
+    finally:
+        http.close()
+        server.stop_run()
+
+
+def test_no_live_stream_before_the_first_run(tmp_path: Path) -> None:
+    s = start(tmp_path / "data")
+    try:
+        info = s.http.get("/api/logs/rerun").json()
+        assert info["live_run"] is None and info["live_url"] == "" and "no run" in info["live_reason"]
+        r = s.http.post(READ_MESSAGES, headers=GRPC_WEB, content=b"\0" * 5)
+        assert r.status_code == 404 and r.headers["grpc-status"] == "5"
+        assert not live_proxies(s)
+    finally:
+        stop_server(s)
+

@@ -1,0 +1,76 @@
+"""A minimal gRPC-web reader for tests of the live rerun stream: the framing of the gRPC-web
+protocol (github.com/grpc/grpc/blob/master/doc/PROTOCOL-WEB.md): each message is one flag byte
+(0x00 data, 0x80 trailers), a 4-byte big-endian length and the payload. Payloads stay opaque
+protobuf bytes; tests look for what they must contain (a recording id, an entity path)."""
+
+from __future__ import annotations
+
+import struct
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import httpx
+
+READ_MESSAGES = "/rerun.sdk_comms.v1alpha1.MessageProxyService/ReadMessages"
+EMPTY_REQUEST = b"\x00\x00\x00\x00\x00"  # one data frame holding an empty ReadMessagesRequest
+GRPC_WEB = {"content-type": "application/grpc-web+proto", "x-grpc-web": "1"}
+
+
+@dataclass
+class Stream:
+    status: int
+    headers: dict[str, str]
+    messages: list[bytes] = field(default_factory=list)
+    trailers: bytes = b""
+
+    @property
+    def data(self) -> bytes:
+        return b"".join(self.messages)
+
+
+def split_frames(buf: bytes) -> tuple[list[tuple[int, bytes]], bytes]:
+    """Complete frames in `buf` and the incomplete rest."""
+    frames, pos = [], 0
+    while len(buf) - pos >= 5:
+        flag, length = buf[pos], struct.unpack(">I", buf[pos + 1:pos + 5])[0]
+        if flag not in (0x00, 0x80):
+            raise ValueError(f"not a gRPC-web frame: flag {flag:#x} at byte {pos}")
+        if len(buf) - pos - 5 < length:
+            break
+        frames.append((flag, buf[pos + 5:pos + 5 + length]))
+        pos += 5 + length
+    return frames, buf[pos:]
+
+
+def read_messages(client: httpx.Client, url: str, until: Callable[[bytes], bool] = lambda data: False,
+                  timeout: float = 20.0, headers: dict[str, str] | None = None,
+                  body: bytes = EMPTY_REQUEST) -> Stream:
+    """POST a ReadMessages call and read the stream until `until(all payload bytes so far)` is
+    true, the server ends it, `timeout` passes or the stream is quiet for 5 s (then whatever
+    arrived is returned)."""
+    deadline = time.monotonic() + timeout
+    with client.stream("POST", url, content=body, headers={**GRPC_WEB, **(headers or {})},
+                       timeout=httpx.Timeout(10.0, read=min(timeout, 5.0))) as r:
+        out = Stream(r.status_code, {k.lower(): v for k, v in r.headers.items()})
+        if r.status_code != 200:
+            r.read()
+            return out
+        rest = b""
+        chunks = r.iter_raw()
+        while time.monotonic() < deadline:
+            try:
+                chunk = next(chunks)
+            except StopIteration:
+                break
+            except httpx.ReadTimeout:
+                break  # quiet for 5 s: what arrived is all there is
+            frames, rest = split_frames(rest + chunk)
+            for flag, payload in frames:
+                if flag == 0x80:
+                    out.trailers = payload
+                else:
+                    out.messages.append(payload)
+            if until(out.data) or out.trailers:
+                break
+        return out
