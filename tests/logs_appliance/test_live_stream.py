@@ -5,7 +5,6 @@ ends the previous run's stream; closed viewers free their connection."""
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 from collections.abc import Iterator
@@ -17,19 +16,9 @@ import pytest
 from logs_support import PROBE, start
 from harness import ADMIN_PASSWORD, ADMIN_USER, Server, login_client, stop_server
 from xrf_testing.grpcweb import GRPC_WEB, READ_MESSAGES, read_messages
+from xrf_testing.net import established_to, lan_address, listening_addresses
 
 SERVICE = "/rerun.sdk_comms.v1alpha1.MessageProxyService"
-
-
-def lan_address() -> str:
-    """This machine's address on its default route (what a LAN browser would type); loopback
-    only when the machine has no other interface."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        try:
-            s.connect(("192.0.2.123", 9))  # TEST-NET: no packet is sent for a UDP connect
-            return s.getsockname()[0]
-        except OSError:
-            return "127.0.0.1"
 
 
 def children(pid: int) -> dict[int, list[str]]:
@@ -54,16 +43,6 @@ def live_proxies(server: Server) -> dict[int, int]:
     for pid, argv in children(server.proc.pid).items():
         if "--serve-grpc" in argv:
             found[pid] = int(argv[argv.index("--port") + 1])
-    return found
-
-
-def listening_addresses(port: int) -> set[str]:
-    found = set()
-    for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
-        local, state = line.split()[1], line.split()[3]
-        addr, hexport = local.split(":")
-        if state == "0A" and int(hexport, 16) == port:
-            found.add(socket.inet_ntop(socket.AF_INET, bytes.fromhex(addr)[::-1]))
     return found
 
 
@@ -232,9 +211,7 @@ def test_a_closed_viewer_frees_its_stream(lan) -> None:
         wait_for(lambda: http.get("/api/logs/rerun").json()["live_viewers"] == before, timeout=10,
                  what="closed viewers to be counted out")
         (port,) = live_proxies(server).values()
-        established = [ln for ln in Path("/proc/net/tcp").read_text().splitlines()[1:]
-                       if ln.split()[3] == "01" and int(ln.split()[2].split(":")[1], 16) == port]
-        assert len(established) <= 1, established  # only the run's own recording stream
+        assert established_to(port) <= 1  # only the run's own recording stream
     finally:
         http.close()
         server.stop_run()

@@ -7,14 +7,18 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import base64
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from urllib.parse import quote
 
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "appliance"))
-from harness import Server, shared_builds_root, start_server, stop_server  # noqa: E402
+from harness import (ADMIN_PASSWORD, ADMIN_USER, Server, browser_login, login_client,  # noqa: E402
+                     shared_builds_root, start_server, stop_server)
+from xrf_testing.net import lan_address  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 PROBE = "logs-probe"
@@ -31,7 +35,9 @@ def _projects() -> Path:
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
-    s = start_server(tmp_path_factory.mktemp("data"), shared_builds_root(), projects_dir=str(_projects()))
+    # every interface, so the live test can open the appliance by its LAN address
+    s = start_server(tmp_path_factory.mktemp("data"), shared_builds_root(), projects_dir=str(_projects()),
+                     host="0.0.0.0")
     yield s
     stop_server(s)
 
@@ -67,9 +73,74 @@ def test_runs_page_lists_runs_and_downloads_a_csv(server: Server, browser, tmp_p
                     "--to", "csv", "-o", str(want)], check=True, env=env, capture_output=True)
     assert got.read_bytes() == want.read_bytes()
     assert got.read_text().count("\n") == info["files"][0]["records"] + 1
-    # The rerun viewer is embedded from the appliance (not a CDN), pointed at this host.
+    # The rerun viewer is embedded from the appliance (not a CDN), its live stream on this origin.
+    page.wait_for_function("(document.querySelector('#rr-frame').getAttribute('src') || '').length > 0")
     src = page.locator("#rr-frame").get_attribute("src")
-    assert src.startswith("/rerun/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A")
+    port = server.url.rsplit(":", 1)[1]
+    assert src == "/rerun/?url=" + quote(f"rerun+http://127.0.0.1:{port}/proxy", safe=""), src
     page.locator(".open-rrd").first.click()
     page.wait_for_function("document.querySelector('#rr-frame').getAttribute('src').includes('fmt%3Drrd')")
     page.close()
+
+
+def test_live_plots_from_the_lan_address(server: Server, raw_browser) -> None:
+    """A browser that opened the appliance by its LAN address logs in, and the embedded rerun
+    viewer receives the running run's live recording through the appliance's origin (read from
+    the browser's own network stream via the DevTools protocol)."""
+    port = server.url.rsplit(":", 1)[1]
+    url = f"http://{lan_address()}:{port}"
+    http = login_client(url, ADMIN_USER, ADMIN_PASSWORD)
+    ctx = raw_browser.new_context(viewport={"width": 1400, "height": 1000})
+    try:
+        server.stop_run()
+        run = http.post("/api/runs", json={"build": PROBE}, timeout=300).json()
+        for cmd in ("initialise", "start"):
+            assert http.post("/api/runs/current/command", json={"cmd": cmd}).json()["accepted"]
+        deadline = time.monotonic() + 20
+        while http.get("/api/logs/rerun").json()["live_run"] != run["id"]:
+            assert time.monotonic() < deadline, "the run's live stream did not start"
+            time.sleep(0.1)
+
+        page = ctx.new_page()
+        browser_login(page, url, ADMIN_USER, ADMIN_PASSWORD)
+        cdp = ctx.new_cdp_session(page)
+        cdp.send("Network.enable")
+        stream: dict[str, object] = {"id": None, "status": None, "data": b""}
+
+        def on_response(ev: dict) -> None:
+            if ev["response"]["url"] == url + "/rerun.sdk_comms.v1alpha1.MessageProxyService/ReadMessages":
+                stream["id"], stream["status"] = ev["requestId"], ev["response"]["status"]
+
+        def on_data(ev: dict) -> None:
+            if ev["requestId"] == stream["id"] and ev.get("data"):
+                stream["data"] += base64.b64decode(ev["data"])  # type: ignore[operator]
+
+        cdp.on("Network.responseReceived", on_response)
+        cdp.on("Network.dataReceived", on_data)
+        page.goto(url + "/#runs")
+        page.wait_for_function("(document.querySelector('#rr-frame').getAttribute('src') || '').includes('proxy')")
+        src = page.locator("#rr-frame").get_attribute("src")
+        assert src == "/rerun/?url=" + quote(f"rerun+{url}/proxy", safe="")
+        assert f"live: run {run['id']}" in page.locator("#rr-what").inner_text()
+        # the viewer (a 40 MB wasm) starts and opens the live stream: seconds on a slow machine
+        deadline = time.monotonic() + 120
+        while stream["id"] is None:
+            assert time.monotonic() < deadline, "the viewer never opened the live stream"
+            page.wait_for_timeout(250)
+        assert stream["status"] == 200
+        buffered = cdp.send("Network.streamResourceContent", {"requestId": stream["id"]})
+        stream["data"] = base64.b64decode(buffered["bufferedData"]) + stream["data"]  # type: ignore[operator]
+        want = f"run-{run['id']}".encode()
+        deadline = time.monotonic() + 30
+        while not (want in stream["data"] and b"ratio" in stream["data"]):  # type: ignore[operator]
+            assert time.monotonic() < deadline, "the viewer received no data of the live run"
+            page.wait_for_timeout(250)
+        shots = os.environ.get("XRF_SCREENSHOTS")  # the picture in docs/logging/appliance.md
+        if shots:
+            page.wait_for_timeout(5000)
+            box = page.locator("#panel-rerun").bounding_box()
+            page.screenshot(path=str(Path(shots) / "runs-live-rerun.png"), clip=box)
+    finally:
+        ctx.close()
+        http.close()
+        server.stop_run()

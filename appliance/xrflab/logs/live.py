@@ -53,6 +53,7 @@ log = logging.getLogger("xrflab.logs.live")
 WAIT_MS = 20            # longest time between two drains when no doorbell rings
 LIVE_HZ = 100.0         # log records per second sent to the live rerun recording
 TELEMETRY_HZ = 50.0     # telemetry samples per second sent to it
+SEND_PERIOD_S = 0.2     # the live recording is sent in batches this far apart
 TIMING_PERIOD_S = 1.0
 MAGIC = b"XRFLOG1\n"
 TYPE_NAMES = {1: "bool", 2: "char", 3: "int32", 4: "float32", 5: "float64", 6: "int64"}
@@ -482,6 +483,7 @@ class LiveRerun:
         self._wall_offset = time.time_ns() - time.monotonic_ns()
         self._names: list[str] | None = None
         self._paths: dict[str, str] = {}
+        self._named: set[str] = set()
         self.rec = rr.RecordingStream("xrflab", recording_id=f"run-{run_id}")
         self.rec.connect_grpc(proxy.local_url)
         self._telemetry_reader = ch.telemetry_reader()
@@ -544,16 +546,21 @@ class LiveRerun:
         samples = self._telemetry_reader.read()
         if not samples:
             return
-        step = max(1, int(round(len(samples) / max(1.0, TELEMETRY_HZ * WAIT_MS * 5 / 1000))))
+        step = max(1, int(round(len(samples) / max(1.0, TELEMETRY_HZ * SEND_PERIOD_S))))
         samples = samples[::step]
         cycle = np.array([s.cycle for s in samples], dtype=np.int64)
         t_ns = np.array([s.t_ns for s in samples], dtype=np.int64)
         idx = self._indexes(cycle, t_ns)
-        for group, key in (("enc", "enc"), ("pwm", "pwm")):
+        for key in ("enc", "pwm"):
+            # one entity per group, a series per channel: one message instead of four
             values = np.array([getattr(s, key) for s in samples], dtype=np.float64)
-            for i in range(values.shape[1] if values.ndim == 2 else 0):
-                self.rec.send_columns(f"telemetry/{group}/{i + 1}", indexes=idx,
-                                      columns=rr.Scalars.columns(scalars=values[:, i]))
+            if values.ndim != 2 or values.shape[1] == 0:
+                continue
+            if key not in self._named:
+                self._named.add(key)
+                self.rec.log(f"telemetry/{key}", rr.SeriesLines(names=[str(i + 1) for i in range(values.shape[1])]),
+                             static=True)
+            self.rec.send_columns(f"telemetry/{key}", indexes=idx, columns=rr.Scalars.columns(scalars=values))
         fields = samples[0].xeno2ros.keys() if isinstance(samples[0].xeno2ros, dict) else []
         for name in fields:
             try:
@@ -564,23 +571,45 @@ class LiveRerun:
                                   columns=rr.Scalars.columns(scalars=values))
 
     def _main(self) -> None:
-        last_telemetry = 0.0
+        # Records arrive in small batches (one per writer drain, up to 50 a second); they are
+        # sent in one batch per SEND_PERIOD_S: the viewer's cost is per message, and a browser on
+        # a student laptop must keep up with the stream (and with the buffer replayed on connect).
+        last_telemetry = last_records = 0.0
+        pending: list[np.ndarray] = []
         while True:
             try:
-                item = self._q.get(timeout=0.1)
+                item = self._q.get(timeout=SEND_PERIOD_S)
             except queue.Empty:
                 item = ...
+            if isinstance(item, np.ndarray):
+                pending.append(item)
+            done = item is None or (self._stop.is_set() and self._q.empty())
             try:
-                if isinstance(item, np.ndarray):
-                    self._send_records(item)
                 now = time.monotonic()
-                if now - last_telemetry >= 0.1:
+                if pending and (done or now - last_records >= SEND_PERIOD_S):
+                    last_records = now
+                    for batch in _same_dtype_runs(pending):
+                        self._send_records(batch)
+                    pending.clear()
+                if done or now - last_telemetry >= SEND_PERIOD_S:
                     last_telemetry = now
                     self._send_telemetry()
             except Exception:
+                pending.clear()
                 log.exception("live rerun")
-            if item is None or (self._stop.is_set() and self._q.empty()):
+            if done:
                 return
+
+
+def _same_dtype_runs(arrays: list[np.ndarray]) -> list[np.ndarray]:
+    """Consecutive arrays of one record layout, concatenated (a new log segment may change it)."""
+    out: list[np.ndarray] = []
+    start = 0
+    for i in range(1, len(arrays) + 1):
+        if i == len(arrays) or arrays[i].dtype != arrays[start].dtype:
+            out.append(np.concatenate(arrays[start:i]))
+            start = i
+    return out
 
 
 # ---- per run --------------------------------------------------------------------------------
