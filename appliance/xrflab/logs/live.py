@@ -21,10 +21,10 @@ histograms are sampled into ``timing.jsonl`` in the run folder: per stage the in
 mean, and the cumulative p50/p99/max, wake-up jitter included.
 
 **Live rerun**: the records the writer hands over (decimated to ``LIVE_HZ``) and the loop's
-telemetry are sent to a rerun recording per run (``recording_id = run-<id>``), connected to one
-gRPC message proxy per appliance (``rerun+http://<host>:<grpc_port>/proxy``) that the rerun web
-viewer reads; a run's blueprint has one time-series view per variable group plus encoders, PWM
-and Xeno2Ros. See docs/logging/appliance.md.
+telemetry are sent, in batches every ``SEND_PERIOD_S``, to the run's recording
+(``recording_id = run-<id>``) on the run's own rerun message proxy (``LiveProxy``, 127.0.0.1
+only); browsers read it through the appliance (server/routes_rerun.py). A run's blueprint has one
+time-series view per variable group plus encoders, PWM and Xeno2Ros. See docs/logging/appliance.md.
 """
 
 from __future__ import annotations
