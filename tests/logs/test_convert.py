@@ -4,14 +4,12 @@ from __future__ import annotations
 
 import csv
 import io
-import math
-import struct
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import VARIABLES, columns_of, edge_rows, same_bits
+from log_cases import VARIABLES, columns_of, edge_rows, same_bits
 from writers import xrf2_bin, xrflog_segment
 from xrflab.cli import main as xrf_main
 from xrflab.logs import convert, iter_csv_chunks, open_log
