@@ -192,6 +192,7 @@ async function startRun() {
   try {
     const body = { build: $("build-select").value };
     if ($("sim-select").value) body.sim = $("sim-select").value;
+    if ($("log-timing").checked) body.log_timing = true;
     await api("POST", "/api/runs", body);
   } catch (e) {
     $("run-detail").textContent = "Could not start: " + e.message;

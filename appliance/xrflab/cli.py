@@ -280,6 +280,8 @@ def _run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", choices=["posix", "evl", "auto"], help="XRF_BACKEND")
     p.add_argument("--transport", choices=["sim", "spidev", "evl-spidev", "auto"], help="XRF_TRANSPORT")
     p.add_argument("--stop-timeout", type=float, default=STOP_GRACE_S, help="seconds between SIGINT and SIGTERM on Ctrl-C")
+    p.add_argument("--log-timing", action="store_true",
+                   help="log every cycle's wake-up jitter and stage durations to cycle_timing.xrf (XRF_LOG_TIMING)")
 
 
 def run_environment(args: argparse.Namespace) -> dict[str, str]:
@@ -296,6 +298,8 @@ def run_environment(args: argparse.Namespace) -> dict[str, str]:
         "XRF_BACKEND": args.backend,
         "XRF_TRANSPORT": args.transport,
     }
+    if args.log_timing:
+        mapping["XRF_LOG_TIMING"] = "1"
     if args.sim and not args.transport:
         mapping["XRF_TRANSPORT"] = "sim"  # asking for a simulated robot means the simulated board
     env.update({k: str(v) for k, v in mapping.items() if v is not None})

@@ -32,6 +32,8 @@ _Static_assert((XRF_CMD_SLOTS & (XRF_CMD_SLOTS - 1)) == 0, "command slots: power
 _Static_assert((XRF_TELEM_SLOTS & (XRF_TELEM_SLOTS - 1)) == 0, "telemetry slots: power of two");
 _Static_assert((XRF_MONITOR_SLOTS & (XRF_MONITOR_SLOTS - 1)) == 0, "monitor slots: power of two");
 _Static_assert(offsetof(struct xrf_shm, log_data) % 8 == 0, "log data must be 8-byte aligned");
+_Static_assert(sizeof(struct xrf_timing_record) % 8 == 0, "timing slot must keep 8-byte alignment");
+_Static_assert((XRF_TIMING_SLOTS & (XRF_TIMING_SLOTS - 1)) == 0, "timing slots: power of two");
 
 void xrf_shm_init(struct xrf_shm *shm)
 {
@@ -51,6 +53,38 @@ void xrf_shm_init(struct xrf_shm *shm)
 void xrf_shm_publish_ready(struct xrf_shm *shm)
 {
     STORE_REL(&shm->ready, 1u);
+}
+
+void xrf_timing_meta_init(struct xrf_log_meta *m, uint32_t writer, const char *path)
+{
+    /* Offsets in the payload, which starts after the slot header. */
+    static const struct {
+        const char *name;
+        int32_t type;
+        size_t offset;
+    } vars[] = {
+#define XRF_TIMING_VAR(field, type) {#field, type, offsetof(struct xrf_timing_record, field)}
+        XRF_TIMING_VAR(wakeup_ns, XRF_LOG_LONG_INT), XRF_TIMING_VAR(fpga_ns, XRF_LOG_LONG_INT),
+        XRF_TIMING_VAR(data_ns, XRF_LOG_LONG_INT),   XRF_TIMING_VAR(cmd_ns, XRF_LOG_LONG_INT),
+        XRF_TIMING_VAR(monitor_ns, XRF_LOG_LONG_INT), XRF_TIMING_VAR(hook_ns, XRF_LOG_LONG_INT),
+        XRF_TIMING_VAR(logger_ns, XRF_LOG_LONG_INT), XRF_TIMING_VAR(cycle_ns, XRF_LOG_LONG_INT),
+        XRF_TIMING_VAR(missed, XRF_LOG_BOOL),
+#undef XRF_TIMING_VAR
+    };
+    const size_t n = sizeof vars / sizeof vars[0];
+    const size_t payload = sizeof(struct xrf_slot_hdr);
+    for (size_t i = 0; i < n; i++) {
+        strncpy(m->vars[i].name, vars[i].name, XRF_NAME_MAX - 1);
+        m->vars[i].type = vars[i].type;
+        m->vars[i].offset = (int32_t)(vars[i].offset - payload);
+    }
+    m->nvars = (uint32_t)n;
+    m->record_size = (uint32_t)(offsetof(struct xrf_timing_record, missed) + 1 - payload);
+    m->writer = writer;
+    m->file_mode = 0640;
+    strncpy(m->path, path, XRF_PATH_MAX - 1);
+    STORE_REL(&m->generation, m->generation + 1);
+    STORE_REL(&m->ready, 1u);
 }
 
 /* ---- histograms ---------------------------------------------------------------------------- */

@@ -2,6 +2,7 @@
 // Runs on the loop process's in-band helper thread (or, with XRF_LOG_WRITER=host, the appliance
 // does the same from Python), so the loop never waits on a disk.
 #include "logfile.h"
+#include "xrf/runtime.hpp"
 
 #include <cerrno>
 #include <cstdio>
@@ -101,9 +102,8 @@ bool writeAll(int fd, const void *data, size_t n)
 }
 
 // One segment header: magic, JSON length, record stride, the JSON, zero padding to 8 bytes.
-bool writeHeader(int fd, const xrf_shm *shm, const char *program)
+bool writeHeader(int fd, const xrf_shm *shm, const xrf_log_meta &m, uint32_t stride, const char *program)
 {
-    const xrf_log_meta &m = shm->log_meta;
     struct timespec wall, mono;
     clock_gettime(CLOCK_REALTIME, &wall);
     clock_gettime(CLOCK_MONOTONIC, &mono);
@@ -135,7 +135,6 @@ bool writeHeader(int fd, const xrf_shm *shm, const char *program)
         j += buf;
     }
     j += "]}\n";
-    const uint32_t stride = shm->log_ring.slot_size;
     uint8_t head[16] = {'X', 'R', 'F', 'L', 'O', 'G', '1', '\n'};
     uint32_t jlen = (uint32_t)j.size();
     std::memcpy(head + 8, &jlen, 4);   // little-endian on every target we support
@@ -147,51 +146,56 @@ bool writeHeader(int fd, const xrf_shm *shm, const char *program)
 
 } // namespace
 
-void logfile_drain(xrf_shm *shm, int *fd, uint64_t *generation, const char *program, bool final)
+void logfile_drain(const xrf_shm *shm, xrf_log_meta *meta, xrf_ring *ring, const void *slots,
+                   LogSink *sink, const char *program, bool final)
 {
-    xrf_log_meta &m = shm->log_meta;
+    xrf_log_meta &m = *meta;
     if (__atomic_load_n(&m.ready, __ATOMIC_ACQUIRE) == 0)
         return;
-    static bool reported = false;
     uint64_t gen = __atomic_load_n(&m.generation, __ATOMIC_ACQUIRE);
-    if (gen != *generation) {
-        if (*fd >= 0) {
-            fsync(*fd);
-            close(*fd);
-            *fd = -1;
-        }
-        *generation = gen;
+    if (gen != sink->generation) {
+        logfile_close(sink);
+        sink->generation = gen;
         char path[XRF_PATH_MAX + 1];
         std::memcpy(path, m.path, XRF_PATH_MAX);
         path[XRF_PATH_MAX] = '\0';
         mkdirParents(path);
-        *fd = open(path, O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC, m.file_mode ? m.file_mode : 0644);
-        if (*fd < 0 || !writeHeader(*fd, shm, program)) {
+        sink->fd = open(path, O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC, m.file_mode ? m.file_mode : 0644);
+        if (sink->fd < 0 || !writeHeader(sink->fd, shm, m, ring->slot_size, program)) {
             std::fprintf(stderr, "xrf: cannot write the log file %s: %s; logging stops\n", path,
                          std::strerror(errno));
-            if (*fd >= 0)
-                close(*fd);
-            *fd = -1;
+            if (sink->fd >= 0)
+                close(sink->fd);
+            sink->fd = -1;
         } else {
-            reported = false;
+            sink->reported = false;
         }
     }
     uint32_t n = 0;
     const void *run;
-    while ((run = xrf_spsc_peek_run(&shm->log_ring, shm->log_data, &n)) != nullptr) {
-        if (*fd >= 0 && !writeAll(*fd, run, (size_t)n * shm->log_ring.slot_size)) {
-            if (!reported)
+    while ((run = xrf_spsc_peek_run(ring, slots, &n)) != nullptr) {
+        if (sink->fd >= 0 && !writeAll(sink->fd, run, (size_t)n * ring->slot_size)) {
+            if (!sink->reported)
                 std::fprintf(stderr, "xrf: writing the log file failed (%s); logging stops, the "
                                      "loop goes on\n", std::strerror(errno));
-            reported = true;
-            close(*fd);
-            *fd = -1;
+            sink->reported = true;
+            close(sink->fd);
+            sink->fd = -1;
         }
         // Consumed either way: a dead disk must not turn into a full ring that hides the cause.
-        xrf_spsc_release_n(&shm->log_ring, n);
+        xrf_spsc_release_n(ring, n);
     }
-    if (final && *fd >= 0)
-        fsync(*fd);
+    if (final && sink->fd >= 0)
+        fsync(sink->fd);
+}
+
+void logfile_close(LogSink *sink)
+{
+    if (sink->fd >= 0) {
+        fsync(sink->fd);
+        close(sink->fd);
+        sink->fd = -1;
+    }
 }
 
 } // namespace xrf

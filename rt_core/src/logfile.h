@@ -7,9 +7,14 @@
 
 namespace xrf {
 
-// Opens (or switches to) the file named by shm->log_meta when its generation changed, writes the
-// segment header, then appends every complete record in the log ring. `final` also fsyncs.
-void logfile_drain(xrf_shm *shm, int *fd, uint64_t *generation, const char *program, bool final);
+struct LogSink;
+
+// Opens (or switches to) the file named by `meta` when its generation changed, writes the
+// segment header, then appends every complete record in `ring` (slots at `slots`). `final` also
+// fsyncs. One call per channel: the logger's (log_meta/log_ring), the timing records.
+void logfile_drain(const xrf_shm *shm, xrf_log_meta *meta, xrf_ring *ring, const void *slots,
+                   LogSink *sink, const char *program, bool final);
+void logfile_close(LogSink *sink);
 
 // Size in bytes of a variable of an XRF_LOG_* type, 0 for an unknown code.
 int logfile_type_size(int32_t type);

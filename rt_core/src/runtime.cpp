@@ -128,6 +128,8 @@ int Options::fromEnvironment()
     }
     v = std::getenv("XRF_QUIET");
     quiet = v && *v && std::strcmp(v, "0") != 0;
+    v = std::getenv("XRF_LOG_TIMING");
+    log_timing = v && *v && std::strcmp(v, "0") != 0;
     if (std::strchr(shm_name, '/') != nullptr) {
         std::fprintf(stderr, "xrf: XRF_SHM=%s must be a plain name without '/'\n", shm_name);
         ok = false;
@@ -327,6 +329,19 @@ int Runtime::enter(unsigned cycle_freq)
     copyString(info.ros2xeno_schema, sizeof info.ros2xeno_schema, ros2xeno_schema_);
     copyString(info.xeno2ros_schema, sizeof info.xeno2ros_schema, xeno2ros_schema_);
     shm_->log_meta.writer = (uint32_t)o.log_writer;
+    if (o.log_timing) {
+        // Beside the logger's file: in XRF_LOG_DIR, else the working directory (the appliance
+        // writes it into the run's folder).
+        char path[XRF_PATH_MAX + 32];
+        int n = std::snprintf(path, sizeof path, "%s%scycle_timing.xrf", o.log_dir, o.log_dir[0] ? "/" : "");
+        if (n < 0 || n >= XRF_PATH_MAX) {
+            std::fprintf(stderr, "xrf: XRF_LOG_DIR is too long for cycle_timing.xrf; timing is not logged\n");
+        } else {
+            xrf_ring_init(&shm_->timing_ring, XRF_TIMING_SLOTS, sizeof(xrf_timing_record));
+            xrf_timing_meta_init(&shm_->timing_meta, (uint32_t)o.log_writer, path);
+            timing_on_ = true;
+        }
+    }
 
     struct sigaction sa;
     std::memset(&sa, 0, sizeof sa);
@@ -457,6 +472,8 @@ void Runtime::endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, boo
     s->host_lost = host_lost_count_;
     s->monitor_dropped = monitor_truncated_;
     int64_t jitter = wake_ns - deadline_ns;
+    if (timing_on_)
+        recordTiming(jitter, end_ns - wake_ns, missed);
     xrf_hist_add(&s->hist[XRF_STAGE_WAKEUP], (uint64_t)(jitter > 0 ? jitter : 0));
     xrf_hist_add(&s->hist[XRF_STAGE_CYCLE], (uint64_t)(end_ns - wake_ns));
     for (int i = XRF_STAGE_FPGA; i <= XRF_STAGE_LOGGER; i++) {
@@ -473,6 +490,30 @@ void Runtime::endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, boo
         if (xrf_doorbell_should_ring(shm_))
             backend_->ring_doorbell(shm_);
     }
+}
+
+// One timing record into its ring (stages not run this cycle: -1). A full ring drops the
+// record, counted in timing_ring.dropped and visible as a gap in seq; the loop never waits.
+void Runtime::recordTiming(int64_t jitter_ns, int64_t cycle_ns, bool missed)
+{
+    const uint64_t seq = timing_seq_++;
+    auto *t = static_cast<xrf_timing_record *>(xrf_spsc_begin(&shm_->timing_ring, shm_->timing));
+    if (t == nullptr)
+        return;
+    auto stage = [this](int i) { return report_.stage_set[i] ? report_.stage_ns[i] : (int64_t)-1; };
+    t->hdr.seq = seq;
+    t->hdr.cycle = cycles_ - 1; // the cycle index the logger stamped during this cycle
+    t->hdr.t_ns = cycle_start_ns_;
+    t->wakeup_ns = jitter_ns;
+    t->fpga_ns = stage(XRF_STAGE_FPGA);
+    t->data_ns = stage(XRF_STAGE_DATA);
+    t->cmd_ns = stage(XRF_STAGE_CMD);
+    t->monitor_ns = stage(XRF_STAGE_MONITOR);
+    t->hook_ns = stage(XRF_STAGE_HOOK);
+    t->logger_ns = stage(XRF_STAGE_LOGGER);
+    t->cycle_ns = cycle_ns;
+    t->missed = missed ? 1 : 0;
+    xrf_spsc_commit(&shm_->timing_ring, t);
 }
 
 void Runtime::monitorWrite(const char *fmt, va_list ap)
@@ -566,7 +607,10 @@ void Runtime::helperDrain(bool final)
                      (unsigned long long)lost);
     std::fflush(stdout);
     if (shm_->log_meta.writer == XRF_LOG_WRITER_PROCESS)
-        logfile_drain(shm_, &log_fd_, &log_generation_, program_, final);
+        logfile_drain(shm_, &shm_->log_meta, &shm_->log_ring, shm_->log_data, &log_sink_, program_, final);
+    if (timing_on_ && shm_->timing_meta.writer == XRF_LOG_WRITER_PROCESS)
+        logfile_drain(shm_, &shm_->timing_meta, &shm_->timing_ring, shm_->timing, &timing_sink_, program_,
+                      final);
 }
 
 void Runtime::leave()
@@ -585,11 +629,8 @@ void Runtime::leave()
     }
     if (xrf_doorbell_should_ring(shm_))
         xrf_doorbell_wake(shm_);
-    if (log_fd_ >= 0) {
-        fsync(log_fd_);
-        close(log_fd_);
-        log_fd_ = -1;
-    }
+    logfile_close(&log_sink_);
+    logfile_close(&timing_sink_);
     if (dma_latency_fd_ >= 0) {
         close(dma_latency_fd_);
         dma_latency_fd_ = -1;

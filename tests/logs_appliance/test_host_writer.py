@@ -13,17 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from logs_support import REPO
-
-from xrf_testing.loops import LoopProcess, build_probe
+from xrf_testing.loops import LoopProcess
 from xrflab.logs import open_log
 from xrflab.logs.live import HostLogWriter
-
-
-@pytest.fixture(scope="module")
-def probe(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = REPO / ".cache" / "logs-appliance-builds" / "probe"
-    return build_probe(out)
 
 
 @pytest.fixture

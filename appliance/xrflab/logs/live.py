@@ -98,16 +98,24 @@ class WriterStats:
     lost: int = 0               # the loop's ring drops (status.log_lost), filled in by finish()
 
 
+# Log channels of the shared memory: (meta, ring, slots) field names.
+SOURCES = {"log": ("log_meta", "log_ring", "log_data"),            # the student's XenoFrtLogger
+           "timing": ("timing_meta", "timing_ring", "timing")}     # per-cycle timing (XRF_LOG_TIMING=1)
+
+
 class HostLogWriter:
-    """Drains one run's log ring into its file; a thread of the appliance."""
+    """Drains one log channel of a run (`source`: the logger's ring, or the per-cycle timing
+    records) into its file; a thread of the appliance."""
 
     def __init__(self, ch: Any, identity: dict[str, str], run_dir: Path,
                  on_alarm: Callable[[str], None] | None = None,
                  on_records: Callable[[np.ndarray], None] | None = None,
-                 timing: bool = True) -> None:
+                 timing: bool = True, source: str = "log") -> None:
         from .. import channels as chmod
 
         self._ch = ch
+        self._source = source
+        self._meta_field, self._ring_field, self._slots_field = SOURCES[source]
         self._lib, self._ffi = chmod.lib, chmod.ffi
         self._identity = identity
         self._run_dir = run_dir
@@ -130,7 +138,7 @@ class HostLogWriter:
     # -- life cycle -------------------------------------------------------------------------
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._main, name="xrf-logwriter", daemon=True)
+        self._thread = threading.Thread(target=self._main, name=f"xrf-{self._source}writer", daemon=True)
         self._thread.start()
 
     def finish(self) -> WriterStats:
@@ -147,6 +155,9 @@ class HostLogWriter:
                     pass
                 os.close(self._fd)
                 self._fd = -1
+        if self._source != "log":
+            self.stats.lost = int(self._ring().dropped)
+            return self.stats
         try:
             status = self._ch.status()
             self.stats.lost = int(status.log_lost)
@@ -175,8 +186,14 @@ class HostLogWriter:
 
     # -- draining ----------------------------------------------------------------------------
 
+    def _meta(self) -> Any:
+        return getattr(self._ch.shm, self._meta_field)
+
+    def _ring(self) -> Any:
+        return getattr(self._ch.shm, self._ring_field)
+
     def _host_writes(self) -> bool:
-        m = self._ch.shm.log_meta
+        m = self._meta()
         if not self._lib.xrfpy_load_u32(self._ffi.addressof(m, "ready")):
             return False
         return int(m.writer) == self._lib.XRF_LOG_WRITER_HOST
@@ -187,13 +204,14 @@ class HostLogWriter:
             if not self._host_writes():
                 return 0
             shm = self._ch.shm
-            gen = self._lib.xrfpy_load_u64(self._ffi.addressof(shm.log_meta, "generation"))
+            gen = self._lib.xrfpy_load_u64(self._ffi.addressof(self._meta(), "generation"))
             if gen != self._generation:
                 self._open_segment(gen)
             taken = 0
-            ring = self._ffi.addressof(shm, "log_ring")
+            ring = self._ffi.addressof(shm, self._ring_field)
+            slots = getattr(shm, self._slots_field)
             while True:
-                p = self._lib.xrf_spsc_peek_run(ring, shm.log_data, self._count)
+                p = self._lib.xrf_spsc_peek_run(ring, slots, self._count)
                 if p == self._ffi.NULL:
                     break
                 n = int(self._count[0])
@@ -209,10 +227,9 @@ class HostLogWriter:
     def _open_segment(self, gen: int) -> None:
         from .reader import make_variables, record_dtype
 
-        shm = self._ch.shm
-        m = shm.log_meta
+        m = self._meta()
         self._generation = gen
-        self._stride = int(shm.log_ring.slot_size)
+        self._stride = int(self._ring().slot_size)
         variables = []
         for i in range(min(int(m.nvars), self._lib.XRF_LOG_VARS_MAX)):
             v = m.vars[i]
@@ -620,14 +637,19 @@ class RunLogging:
     writer: HostLogWriter
     live: LiveRerun | None
     starting: threading.Thread | None = None
+    timing: HostLogWriter | None = None   # per-cycle timing records (XRF_LOG_TIMING=1)
 
 
 def start(ch: Any, run_id: int, run_dir: Path, identity: dict[str, str], owner: str,
-          on_alarm: Callable[[str], None], live: bool = True) -> RunLogging:
-    """Start the host writer (and the live rerun stream unless disabled or unavailable)."""
+          on_alarm: Callable[[str], None], live: bool = True, log_timing: bool = False) -> RunLogging:
+    """Start the host writer (and the live rerun stream unless disabled or unavailable; and the
+    timing writer when the loop logs its per-cycle timing)."""
     writer = HostLogWriter(ch, identity, run_dir, on_alarm=on_alarm)
     writer.start()
     rl = RunLogging(writer, None)
+    if log_timing:
+        rl.timing = HostLogWriter(ch, identity, run_dir, on_alarm=on_alarm, timing=False, source="timing")
+        rl.timing.start()
     if live and os.environ.get("XRF_LIVE_RERUN", "1") != "0":
         # rerun's import and servers take a moment on the first run: not on the event loop,
         # and the writer does not wait for them (records before the stream is up are not sent live).
@@ -643,6 +665,8 @@ def start(ch: Any, run_id: int, run_dir: Path, identity: dict[str, str], owner: 
 
 
 def finish(rl: RunLogging) -> WriterStats:
+    if rl.timing is not None:
+        rl.timing.finish()
     stats = rl.writer.finish()
     if rl.starting is not None:
         rl.starting.join(30.0)
@@ -658,9 +682,12 @@ __all__ = ["HostLogWriter", "LiveProxy", "LiveRerun", "RerunViewer", "RunLogging
 # ---- supervisor hooks (appliance/xrflab/server/supervisor.py calls these) -------------------
 
 
-def loop_env(run_id: int, build: str) -> dict[str, str]:
-    """Environment for a run's loop process: the appliance writes the log file (host writer)."""
-    return {"XRF_LOG_WRITER": "host", "XRF_RUN_ID": str(run_id), "XRF_BUILD_ID": build, "XRF_PROJECT": build}
+def loop_env(run_id: int, build: str, log_timing: bool = False) -> dict[str, str]:
+    """Environment for a run's loop process: the appliance writes the log files (host writer)."""
+    env = {"XRF_LOG_WRITER": "host", "XRF_RUN_ID": str(run_id), "XRF_BUILD_ID": build, "XRF_PROJECT": build}
+    if log_timing:
+        env["XRF_LOG_TIMING"] = "1"
+    return env
 
 
 def start_for(sup: Any, run: Any) -> RunLogging | None:
@@ -688,7 +715,7 @@ def start_for(sup: Any, run: Any) -> RunLogging | None:
     loop = asyncio.get_running_loop()
     identity = {"project": row.build, "build": row.build, "run": str(row.id)}
     return start(ch, row.id, run.run_dir, identity, row.owner, alarm,
-                 live=os.environ.get("XRF_LIVE_RERUN", "1") != "0")
+                 live=os.environ.get("XRF_LIVE_RERUN", "1") != "0", log_timing=run.log_timing)
 
 
 async def finish_for(sup: Any, run: Any) -> None:

@@ -72,6 +72,8 @@ class StartRun(BaseModel):
     build: str = Field(description="a name from GET /api/builds")
     sim: Literal["relbot", "jiwy"] | None = Field(default=None, description="override the build's plant")
     max_cycles: int | None = Field(default=None, ge=1, description="leave the loop after N cycles")
+    log_timing: bool = Field(default=False, description="also log every cycle's framework timing (wake-up "
+                             "jitter, stage durations, misses) into cycle_timing.xrf, a log of the run")
 
 
 class ApplianceStatus(BaseModel):
@@ -129,7 +131,8 @@ async def get_builds(request: Request) -> list[dict[str, Any]]:
 async def start_run(body: StartRun, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
     sup = _supervisor(request)
     try:
-        row = await sup.start_run(body.build, body.sim, body.max_cycles, owner=user.username)
+        row = await sup.start_run(body.build, body.sim, body.max_cycles, owner=user.username,
+                                  log_timing=body.log_timing)
     except SupervisorError as exc:
         audit.record(user, "run.start_failed", {"build": body.build, "error": str(exc)}, client_address(request))
         raise _http(exc) from None

@@ -183,6 +183,7 @@ class Run:
     telemetry_sent: int = 0
     telemetry_lost: int = 0
     logging: Any = None  # xrflab.logs.live.RunLogging: host log writer, live rerun
+    log_timing: bool = False  # the loop logs per-cycle timing (XRF_LOG_TIMING=1)
 
     @property
     def alive(self) -> bool:
@@ -286,8 +287,9 @@ class Supervisor:
     # -- starting -----------------------------------------------------------------------------
 
     async def start_run(self, build: str, sim: str | None = None, max_cycles: int | None = None,
-                        owner: str = "") -> RunRow:
-        """`owner`: username of who starts it (auth.owns() decides who may see the run)."""
+                        owner: str = "", log_timing: bool = False) -> RunRow:
+        """`owner`: username of who starts it (auth.owns() decides who may see the run).
+        `log_timing`: the loop logs every cycle's stage timing (cycle_timing.xrf in the run)."""
         async with self.bench_lock:
             if self.current is not None and not self.current.ended.is_set():
                 raise SupervisorError(f"run {self.current.row.id} is still active; stop it first")
@@ -315,7 +317,7 @@ class Supervisor:
                 # would show every line twice in the console.
                 XRF_QUIET="1",
             )
-            env.update(loglive.loop_env(row.id, build))
+            env.update(loglive.loop_env(row.id, build, log_timing))
             if not self.settings.bench_is_real():
                 env["XRF_TRANSPORT"] = "sim"
             if max_cycles:
@@ -340,7 +342,7 @@ class Supervisor:
                 self.store.update(row.id, status="failed", ended=time.time(), message=str(exc))
                 raise SupervisorError(f"cannot start {entry.executable}: {exc}", 500) from exc
             row = self.store.update(row.id, pid=proc.pid, status="starting")
-            run = Run(row=row, proc=proc, shm=shm, run_dir=run_dir, build=entry)
+            run = Run(row=row, proc=proc, shm=shm, run_dir=run_dir, build=entry, log_timing=log_timing)
             self.current = run
             run.tasks.append(asyncio.create_task(self._watch_exit(run), name=f"run{row.id}-exit"))
             run.tasks.append(asyncio.create_task(self._pipe_output(run), name=f"run{row.id}-output"))

@@ -32,7 +32,7 @@ extern "C" {
 
 /* cffi-begin */
 #define XRF_SHM_MAGIC 827740760 /* "XRF1" read as a little-endian uint32 */
-#define XRF_SHM_VERSION 1
+#define XRF_SHM_VERSION 2
 
 #define XRF_NAME_MAX 64
 #define XRF_REASON_MAX 128
@@ -97,6 +97,7 @@ extern "C" {
 #define XRF_MONITOR_TEXT 240
 #define XRF_LOG_RING_BYTES 8388608
 #define XRF_LOG_VARS_MAX 100
+#define XRF_TIMING_SLOTS 16384 /* power of two: 16 s of cycles at 1 kHz, 1.6 s at 10 kHz */
 
 /* Log variable types (XRF2 codes). */
 #define XRF_LOG_BOOL 1
@@ -254,6 +255,24 @@ struct xrf_log_meta {
     struct xrf_log_var vars[XRF_LOG_VARS_MAX];
 };
 
+/* One cycle's framework timing (XRF_LOG_TIMING=1): a log record like the logger's, described
+ * by xrf_shm.timing_meta (xrf_timing_meta_init) and written to its own log file, so every
+ * decoder reads it. Durations in ns; -1 for a stage that did not run in that cycle (the
+ * monitor runs at its own rate; a plain XenoFrtLoop has no FPGA stage). */
+struct xrf_timing_record {
+    struct xrf_slot_hdr hdr;
+    int64_t wakeup_ns;   /* start of the cycle - its deadline: the wake-up jitter */
+    int64_t fpga_ns;
+    int64_t data_ns;
+    int64_t cmd_ns;
+    int64_t monitor_ns;
+    int64_t hook_ns;     /* the student's controller */
+    int64_t logger_ns;
+    int64_t cycle_ns;    /* wake-up to end of work */
+    uint8_t missed;      /* the cycle overran its deadline */
+    uint8_t pad[7];
+};
+
 /* The simulated board's outputs as the plant sees them. The host may force them to zero after
  * the loop died (the simulated counterpart of an FPGA RESET). */
 struct xrf_sim_outputs {
@@ -294,11 +313,19 @@ struct xrf_shm {
     struct xrf_log_meta log_meta;
     struct xrf_ring log_ring;
     uint8_t log_data[XRF_LOG_RING_BYTES];
+
+    /* per-cycle framework timing, when the loop runs with XRF_LOG_TIMING=1 */
+    struct xrf_log_meta timing_meta;
+    struct xrf_ring timing_ring;
+    struct xrf_timing_record timing[XRF_TIMING_SLOTS];
 };
 
 /* Layout and lifecycle (loop side). */
 void xrf_shm_init(struct xrf_shm *shm);
 void xrf_shm_publish_ready(struct xrf_shm *shm);
+/* Describe the timing records in `m` (names, types, offsets; file `path`, written by `writer`)
+ * and publish it (ready last). The caller initialises timing_ring first. */
+void xrf_timing_meta_init(struct xrf_log_meta *m, uint32_t writer, const char *path);
 
 /* Histograms: log-linear buckets over nanoseconds. */
 int xrf_hist_bucket(uint64_t ns);

@@ -17,6 +17,13 @@
 
 namespace xrf {
 
+// The in-band file writer's state for one log channel (the logger's, the timing records).
+struct LogSink {
+    int fd = -1;
+    uint64_t generation = 0;
+    bool reported = false; // a write failure was reported once
+};
+
 // Priority the loop thread gets when neither XRF_PRIO nor the student's main chose one.
 constexpr int kDefaultPriority = 80;
 
@@ -38,6 +45,7 @@ struct Options {
     uint32_t host_timeout_action = XRF_HOST_LOST_STOP;
     uint64_t max_cycles = 0;
     bool quiet = false;
+    bool log_timing = false; // XRF_LOG_TIMING=1: every cycle's stage timing into cycle_timing.xrf
 
     // Reads XRF_* (docs/developers/architecture.md). Returns 0 or -EINVAL after printing why.
     int fromEnvironment();
@@ -119,6 +127,7 @@ private:
     void startHelper();
     static void *helperMain(void *self);
     void helperDrain(bool final);
+    void recordTiming(int64_t jitter_ns, int64_t cycle_ns, bool missed);
 
     Options options_;
     bool options_loaded_ = false;
@@ -151,9 +160,11 @@ private:
     pthread_t helper_{};
     bool helper_started_ = false;
     uint64_t monitor_cursor_ = 0;
-    int log_fd_ = -1;
+    LogSink log_sink_;
+    LogSink timing_sink_;
     int dma_latency_fd_ = -1;
-    uint64_t log_generation_ = 0;
+    bool timing_on_ = false;
+    uint64_t timing_seq_ = 0; // counts dropped records too: gaps stay visible in the file
 };
 
 } // namespace xrf
