@@ -65,6 +65,7 @@ FUNCS = {
     "logger": "XenoFrtLogger::log()",
     "state_machine": "FullStateMachine::step()",
     "doorbell_wake": "xrf_doorbell_wake",
+    "recordTiming": "xrf::Runtime::recordTiming(long, long, bool)",
 }
 
 
@@ -113,9 +114,10 @@ def call_counts(path: Path) -> dict[str, int]:
 
 
 def measure_instructions(exe: Path, cycles: int, log_dir: str, out_dir: Path,
-                         extra_toggles: tuple[str, ...] = ()) -> dict:
+                         extra_toggles: tuple[str, ...] = (), extra_env: dict[str, str] | None = None) -> dict:
     shm = f"bench_overhead_cg_{os.getpid()}"
     env = C.loop_env(shm, 1000, 0, -1, log_dir)
+    env.update(extra_env or {})
     env.pop("XRF_PRIO")
     env.pop("XRF_CPU")
     prefix = ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out_dir}/callgrind.out",
@@ -186,6 +188,8 @@ def main() -> int:
     ap.add_argument("--cpu", type=int, default=1)
     ap.add_argument("--build-dir", default="/tmp/xrf_bench/overhead")
     ap.add_argument("--keep", action="store_true", help="keep the callgrind files")
+    ap.add_argument("--log-timing", action="store_true",
+                    help="with XRF_LOG_TIMING=1 (per-cycle timing records): its cost is in endCycle")
     a = ap.parse_args()
     for tool in ("valgrind", "callgrind_annotate", "callgrind_control"):
         if shutil.which(tool) is None:
@@ -201,7 +205,10 @@ def main() -> int:
     print("# controller bench/rt_core/overhead_project at 1 kHz: data (Xeno2Ros 100 Hz), cmd, "
           "monitor 30 Hz, logger 16 doubles/cycle; host follows via doorbell")
 
-    r = measure_instructions(exe, a.cycles, log_dir, out_dir)
+    extra_env = {"XRF_LOG_TIMING": "1"} if a.log_timing else {}
+    if a.log_timing:
+        print("# with XRF_LOG_TIMING=1: a timing record per cycle (Runtime::recordTiming, inside endCycle)")
+    r = measure_instructions(exe, a.cycles, log_dir, out_dir, extra_env=extra_env)
     i, n = r["incl"], r["n"]
     fw = i["step"] - i["hook"] - i["sim_xfer"] + i["endCycle"]
     print()
@@ -219,7 +226,7 @@ def main() -> int:
     print(f"    framework incl. the monitor print {fw + mp:>12,}  {(fw + mp) / n:8.1f}/cycle")
     print("    breakdown /cycle: " + ", ".join(
         f"{k} {i[k] / n:.1f}" for k in ("update_io", "publishTelemetry", "applyCommand", "logger",
-                                        "state_machine", "doorbell_wake")))
+                                        "state_machine", "doorbell_wake", "recordTiming")))
     both = i["step"] + i["endCycle"]
     print(f"    check: step + endCycle = {both:,} vs callgrind program total {r['total']:,} "
           f"({'equal: only those two were collected' if both == r['total'] else 'DIFFER'})")
@@ -228,7 +235,7 @@ def main() -> int:
     # the framework's count directly.
     out2 = Path(C.tmpdir("xrf_bench_callgrind2_"))
     r2 = measure_instructions(exe, max(2000, a.cycles // 4), log_dir, out2,
-                              extra_toggles=("OverheadBench::run()", "sim_xfer"))
+                              extra_toggles=("OverheadBench::run()", "sim_xfer"), extra_env=extra_env)
     print(f"    cross-check, nested --toggle-collect also on {HOOK} and sim_xfer: program total "
           f"{r2['total']:,} over {r2['n']} cycles = {r2['total'] / r2['n']:.1f}/cycle")
     shutil.rmtree(out2, ignore_errors=True)

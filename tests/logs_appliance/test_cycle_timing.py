@@ -22,8 +22,12 @@ from xrflab.logs import open_log
 TIMING_VARS = ["wakeup_ns", "fpga_ns", "data_ns", "cmd_ns", "monitor_ns", "hook_ns", "logger_ns", "cycle_ns", "missed"]
 
 
-def _hist(lp: LoopProcess, stage: str):
-    return lp.ch._status_struct().hist[STAGE_NAMES.index(stage)]
+def _hists(lp: LoopProcess) -> dict[str, tuple[int, int, int]]:
+    """(count, sum_ns, max_ns) per stage, exact (Channels.histograms() gives the mean only). Plain
+    ints: a field of the cffi status struct does not keep the struct alive."""
+    st = lp.ch._status_struct()
+    return {name: (int(st.hist[i].count), int(st.hist[i].sum_ns), int(st.hist[i].max_ns))
+            for i, name in enumerate(STAGE_NAMES)}
 
 
 def test_standalone_loop_logs_every_cycle_and_matches_its_histograms(probe: Path, shm_name: str, tmp_path: Path) -> None:
@@ -45,16 +49,17 @@ def test_standalone_loop_logs_every_cycle_and_matches_its_histograms(probe: Path
         assert np.array_equal(rec["cycle"], np.arange(n, dtype=np.uint64))
         assert np.all(np.diff(rec["t_ns"]) > 0)
         # the same cycles as the status histograms, to the nanosecond
+        hists = _hists(lp)
         for var, stage in (("cycle_ns", "cycle"), ("hook_ns", "hook"), ("data_ns", "data"), ("cmd_ns", "cmd"),
                            ("logger_ns", "logger"), ("monitor_ns", "monitor"), ("fpga_ns", "fpga")):
-            h = _hist(lp, stage)
+            count, sum_ns, max_ns = hists[stage]
             ran = rec[var][rec[var] >= 0]
-            assert len(ran) == h.count, var
-            assert int(ran.sum()) == h.sum_ns and (h.count == 0 or int(ran.max()) == h.max_ns), var
-        h = _hist(lp, "wakeup")
-        assert int(np.clip(rec["wakeup_ns"], 0, None).sum()) == h.sum_ns and h.count == n
+            assert len(ran) == count, var
+            assert int(ran.sum()) == sum_ns and (count == 0 or int(ran.max()) == max_ns), var
+        count, sum_ns, _ = hists["wakeup"]
+        assert int(np.clip(rec["wakeup_ns"], 0, None).sum()) == sum_ns and count == n
         assert int(rec["missed"].sum()) == status.missed
-        assert _hist(lp, "hook").count == n  # the controller ran in every cycle
+        assert hists["hook"][0] == n  # the controller ran in every cycle
     finally:
         lp.stop()
 

@@ -144,3 +144,28 @@ def test_live_plots_from_the_lan_address(server: Server, raw_browser) -> None:
         ctx.close()
         http.close()
         server.stop_run()
+
+
+def test_timing_per_cycle_from_the_bench_page(server: Server, browser) -> None:
+    """Ticking "timing per cycle" before "Start run" gives the run a cycle_timing.xrf log."""
+    server.stop_run()
+    page = browser.new_page()
+    try:
+        page.goto(server.url + "/")
+        page.wait_for_function(f"[...document.querySelectorAll('#build-select option')].some(o => o.value === '{PROBE}')")
+        page.select_option("#build-select", PROBE)
+        page.check("#log-timing")
+        page.click("#btn-start-run")
+        deadline = time.monotonic() + 60
+        while not (runs := server.http.get("/api/logs/runs?limit=1").json()) or runs[0]["status"] != "running":
+            assert time.monotonic() < deadline, "the run did not start"
+            time.sleep(0.1)
+        run_id = runs[0]["id"]
+        for cmd in ("initialise", "start"):
+            assert server.http.post("/api/runs/current/command", json={"cmd": cmd}).json()["accepted"]
+        time.sleep(0.5)
+        server.stop_run()
+        files = {f["name"]: f for f in server.http.get(f"/api/logs/runs/{run_id}").json()["files"]}
+        assert "cycle_timing.xrf" in files and files["cycle_timing.xrf"]["records"] > 100
+    finally:
+        page.close()
