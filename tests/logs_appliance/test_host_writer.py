@@ -41,15 +41,20 @@ def _probe_ok(rec: np.ndarray) -> None:
     assert np.array_equal(rec["value"], c * 0.25)
 
 
+def _run_then_kill(lp: LoopProcess, cycles: int) -> None:
+    """Drive the loop to RUN, let it log `cycles` more cycles, then kill -9 it mid-run."""
+    lp.command("initialise", "INITIALISED")
+    lp.command("start", "RUN")
+    lp.wait_cycles(cycles)
+    os.kill(lp.proc.pid, signal.SIGKILL)
+    lp.proc.wait(5)
+
+
 def test_kill_9_loses_nothing_that_reached_the_ring(loop, tmp_path: Path) -> None:
     lp = loop(tmp_path)
     w = HostLogWriter(lp.ch, {"run": "7"}, tmp_path)
     w.start()
-    lp.command("initialise", "INITIALISED")
-    lp.command("start", "RUN")
-    lp.wait_cycles(500)
-    os.kill(lp.proc.pid, signal.SIGKILL)
-    lp.proc.wait(5)
+    _run_then_kill(lp, 500)
     stats = w.finish()
     status = lp.ch.status()
     assert stats.failed == "" and stats.lost == 0 and stats.unwritten == 0
@@ -120,21 +125,17 @@ def test_live_rerun_stream_takes_records_and_telemetry(loop, tmp_path: Path, cap
         stream = LiveRerun(proxy, lp.ch, run_id=42)
         w = HostLogWriter(lp.ch, {}, tmp_path, on_records=stream.feed, timing=False)
         w.start()
-        lp.command("initialise", "INITIALISED")
-        lp.command("start", "RUN")
-        lp.wait_cycles(1000)
-        os.kill(lp.proc.pid, signal.SIGKILL)
-        lp.proc.wait(5)
+        _run_then_kill(lp, 1000)
         w.finish()
         stream.close()
         stream._thread.join(10)
         assert stream._names == ["cycle_2", "flag", "letter", "count", "ratio", "value"]
         assert stream.dropped == 0
         assert not [r for r in caplog.records if r.levelno >= logging.ERROR], caplog.text
+        keys = (b"run-42", b"cycle_2", b"ratio", b"telemetry/enc")
         with httpx.Client(base_url=proxy.read_url) as client:
-            got = read_messages(client, READ_MESSAGES,
-                                until=lambda d: all(k in d for k in (b"run-42", b"ratio", b"telemetry/enc")))
-        for key in (b"run-42", b"cycle_2", b"ratio", b"telemetry/enc"):
+            got = read_messages(client, READ_MESSAGES, until=lambda d: all(k in d for k in keys))
+        for key in keys:
             assert key in got.data, key
         bp = live_blueprint(stream._names, ["enc", "pwm", "xeno2ros"])
         assert bp is not None

@@ -13,7 +13,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from logs_support import PROBE, start
+from logs_support import PROBE, start, wait_for
 from harness import ADMIN_PASSWORD, ADMIN_USER, Server, login_client, stop_server
 from xrf_testing.grpcweb import GRPC_WEB, READ_MESSAGES, read_messages
 from xrf_testing.net import established_to, lan_address, listening_addresses
@@ -46,16 +46,6 @@ def live_proxies(server: Server) -> dict[int, int]:
     return found
 
 
-def wait_for(pred, timeout: float = 20.0, what: str = "condition"):
-    deadline = time.monotonic() + timeout
-    while True:
-        v = pred()
-        if v:
-            return v
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.1)
-
-
 @pytest.fixture(scope="module")
 def lan() -> Iterator[tuple[Server, str]]:
     """An appliance listening on every interface, and its URL by the LAN address."""
@@ -80,7 +70,7 @@ def run_probe(server: Server, http: httpx.Client | None = None) -> int:
         r = http.post("/api/runs/current/command", json={"cmd": cmd})
         assert r.status_code == 200 and r.json()["accepted"], r.text
     # the run's live proxy starts beside the run (not on the event loop): wait until it is the current one
-    wait_for(lambda: http.get("/api/logs/rerun").json()["live_run"] == run_id, what="the run's live proxy")
+    wait_for(lambda: http.get("/api/logs/rerun").json()["live_run"] == run_id, timeout=20, what="the run's live proxy")
     return run_id
 
 
@@ -180,15 +170,16 @@ def test_a_new_run_has_its_own_stream_and_ends_the_old_one(lan) -> None:
         ended: dict[str, object] = {}
 
         def watch() -> None:
-            ended["stream"] = read_messages(http, READ_MESSAGES, timeout=120)
+            ended["stream"] = read_messages(http, READ_MESSAGES, timeout=120, quiet=120)
             ended["at"] = time.monotonic()
 
         viewer = threading.Thread(target=watch)
         viewer.start()
-        wait_for(lambda: http.get("/api/logs/rerun").json()["live_viewers"] >= 1, what="the viewer")
+        wait_for(lambda: http.get("/api/logs/rerun").json()["live_viewers"] >= 1, timeout=20, what="the viewer")
         second = run_probe(server, http)
         viewer.join(30)
         assert not viewer.is_alive(), "the first run's stream did not end when the next run started"
+        assert ended["stream"].ended_by == "server"  # type: ignore[union-attr]
         assert f"run-{first}".encode() in ended["stream"].data  # type: ignore[union-attr]
         # the first run's proxy is gone; the second has its own, which knows nothing of the first
         assert not set(old_proxies) & set(live_proxies(server))

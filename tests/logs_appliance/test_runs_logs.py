@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from logs_support import COST, PROBE, REPO, start
+from logs_support import COST, PROBE, REPO, start, wait_for
 from harness import Server, stop_server
 
 from xrflab.logs import open_log
@@ -28,16 +28,6 @@ def _xrf_decode(path: Path, fmt: str, out: Path) -> bytes:
     return out.read_bytes()
 
 
-def _wait(pred, timeout: float = 10.0, what: str = "condition") -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        v = pred()
-        if v:
-            return v
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.05)
-
-
 def _run_probe(server: Server, cycles: int = 400, **body: Any) -> dict[str, Any]:
     """A probe run driven to RUN, `cycles` more cycles, then stopped; returns the run's log info."""
     server.stop_run()
@@ -45,9 +35,9 @@ def _run_probe(server: Server, cycles: int = 400, **body: Any) -> dict[str, Any]
     for cmd in ("initialise", "start"):
         r = server.http.post("/api/runs/current/command", json={"cmd": cmd})
         assert r.status_code == 200 and r.json()["accepted"], r.text
-    _wait(lambda: server.http.get("/api/logs/runs?limit=1").json()[0]["state"] in ("RUN", "") or True)
+    wait_for(lambda: server.http.get("/api/logs/runs?limit=1").json()[0]["state"] in ("RUN", "") or True)
     c0 = server.http.get(f"/api/logs/runs/{run['id']}").json()["run"]["cycles"]
-    _wait(lambda: server.http.get(f"/api/logs/runs/{run['id']}").json()["run"]["cycles"] > c0 + cycles,
+    wait_for(lambda: server.http.get(f"/api/logs/runs/{run['id']}").json()["run"]["cycles"] > c0 + cycles,
           what="cycles")
     return run
 
@@ -131,7 +121,7 @@ def test_kill_9_mid_run_decodes_and_the_run_shows_crashed(server: Server) -> Non
     run = _run_probe(server, cycles=300)
     pid = server.http.get(f"/api/runs/{run['id']}").json()["pid"]
     os.kill(pid, signal.SIGKILL)
-    r = _wait(lambda: (lambda x: x if x["status"] != "running" else None)(_logs(server, run["id"])["run"]),
+    r = wait_for(lambda: (lambda x: x if x["status"] != "running" else None)(_logs(server, run["id"])["run"]),
               what="the run to end")
     assert r["status"] == "crashed" and r["crashed"] and r["crash_reason"] == "signal"
     listed = next(x for x in server.http.get("/api/logs/runs").json() if x["id"] == run["id"])
@@ -230,7 +220,7 @@ def test_disk_full_alarm_note_and_the_run_goes_on(server: Server) -> None:
             alarm = ws.wait_for(lambda m: m.get("type") == "alarm" and m.get("kind") == "log", timeout=30)
         assert "No space left on device" in alarm["message"] and "logging stopped" in alarm["message"]
         c = _logs(server, run["id"])["run"]["cycles"]
-        _wait(lambda: _logs(server, run["id"])["run"]["cycles"] > c + 500, what="the loop to go on")
+        wait_for(lambda: _logs(server, run["id"])["run"]["cycles"] > c + 500, what="the loop to go on")
         server.stop_run()
         info = _logs(server, run["id"])
         r, f = info["run"], info["files"][0]

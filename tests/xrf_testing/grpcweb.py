@@ -23,6 +23,7 @@ class Stream:
     headers: dict[str, str]
     messages: list[bytes] = field(default_factory=list)
     trailers: bytes = b""
+    ended_by: str = ""  # "server" (it closed the stream), "until", "timeout" or "quiet"
 
     @property
     def data(self) -> bytes:
@@ -45,32 +46,39 @@ def split_frames(buf: bytes) -> tuple[list[tuple[int, bytes]], bytes]:
 
 def read_messages(client: httpx.Client, url: str, until: Callable[[bytes], bool] = lambda data: False,
                   timeout: float = 20.0, headers: dict[str, str] | None = None,
-                  body: bytes = EMPTY_REQUEST) -> Stream:
+                  body: bytes = EMPTY_REQUEST, quiet: float = 5.0) -> Stream:
     """POST a ReadMessages call and read the stream until `until(all payload bytes so far)` is
-    true, the server ends it, `timeout` passes or the stream is quiet for 5 s (then whatever
-    arrived is returned)."""
+    true, the server ends it, `timeout` passes or the stream is quiet for `quiet` s (then
+    whatever arrived is returned; `ended_by` says which)."""
     deadline = time.monotonic() + timeout
     with client.stream("POST", url, content=body, headers={**GRPC_WEB, **(headers or {})},
-                       timeout=httpx.Timeout(10.0, read=min(timeout, 5.0))) as r:
+                       timeout=httpx.Timeout(10.0, read=min(timeout, quiet))) as r:
         out = Stream(r.status_code, {k.lower(): v for k, v in r.headers.items()})
         if r.status_code != 200:
             r.read()
             return out
         rest = b""
         chunks = r.iter_raw()
+        out.ended_by = "timeout"
         while time.monotonic() < deadline:
             try:
                 chunk = next(chunks)
-            except StopIteration:
+            except (StopIteration, httpx.RemoteProtocolError):
+                out.ended_by = "server"
                 break
             except httpx.ReadTimeout:
-                break  # quiet for 5 s: what arrived is all there is
+                out.ended_by = "quiet"
+                break
             frames, rest = split_frames(rest + chunk)
             for flag, payload in frames:
                 if flag == 0x80:
                     out.trailers = payload
                 else:
                     out.messages.append(payload)
-            if until(out.data) or out.trailers:
+            if out.trailers:
+                out.ended_by = "server"
+                break
+            if until(out.data):
+                out.ended_by = "until"
                 break
         return out
