@@ -74,24 +74,10 @@ def instructions(exe: Path, nvars: int, cycles: int, out_dir: Path) -> dict:
 def nanoseconds(exe: Path, nvars: int, seconds: float, prio: int, cpu: int, freq: int) -> dict:
     shm = f"bench_logger_ns_{os.getpid()}_{nvars}"
     env = C.loop_env(shm, freq, prio, cpu, C.tmpdir("xrf_bench_logger_"), {"XRF_BENCH_NVARS": nvars})
-    loop = C.start_loop(exe, env, shm)
-    host = None
-    try:
-        C.go_to_run(loop)
-        host = C.HostReader(loop.ch)
-        time.sleep(0.5)
-        h0, s0 = loop.ch.histograms(), loop.ch.status()
-        time.sleep(seconds)
-        h1, s1 = loop.ch.histograms(), loop.ch.status()
-    finally:
-        if host:
-            host.stop()
-        loop.stop()
-    w = C.HistWindow(h0["logger"], h1["logger"])
-    ref = C.HistWindow(h0["cmd"], h1["cmd"])
+    r = C.measure_run_window(exe, env, shm, seconds)
+    w, ref = r.hist["logger"], r.hist["cmd"]
     return {"cmd_mean": ref.mean, "mean": w.mean, "p50": w.percentile_mid(50), "p99": w.percentile_mid(99), "max": w.max,
-            "count": w.count, "cycles": s1.cycles - s0.cycles, "missed": s1.missed - s0.missed,
-            "lost": s1.log_lost - s0.log_lost}
+            "count": w.count, "cycles": r.cycles, "missed": r.missed, "lost": r.log_lost}
 
 
 def main() -> int:
@@ -112,7 +98,7 @@ def main() -> int:
     vg = subprocess.run(["valgrind", "--version"], capture_output=True, text=True).stdout.strip()
     print(f"# logger cost per record in the loop   {datetime.datetime.now().isoformat(timespec='seconds')}")
     print(f"# host {platform.node()} kernel {platform.release()} cpus {os.cpu_count()}; {vg}")
-    print(f"# controller bench/logs/logger_cost_project: N doubles logged every cycle, nothing else")
+    print("# controller bench/logs/logger_cost_project: N doubles logged every cycle, nothing else")
     for nvars in [int(x) for x in a.vars.split(",")]:
         out_dir = Path(C.tmpdir("xrf_bench_logger_cg_"))
         r = instructions(exe, nvars, a.cycles, out_dir)

@@ -182,3 +182,33 @@ class HostReader:
     def stop(self):
         self._stop.set()
         self._t.join(2.0)
+
+
+@dataclass
+class RunWindow:
+    """What a loop in RUN gathered between two snapshots: stage histograms and counters."""
+    hist: dict[str, HistWindow]
+    cycles: int
+    missed: int
+    log_lost: int
+    host: HostReader
+
+
+def measure_run_window(exe: Path, env: dict, shm: str, seconds: float) -> RunWindow:
+    """Start the loop, drive it to RUN with a host following it (HostReader), settle 0.5 s, and
+    return the difference of two snapshots `seconds` apart: RUN cycles only."""
+    loop = start_loop(exe, env, shm)
+    host = None
+    try:
+        go_to_run(loop)
+        host = HostReader(loop.ch)
+        time.sleep(0.5)
+        h0, s0 = loop.ch.histograms(), loop.ch.status()
+        time.sleep(seconds)
+        h1, s1 = loop.ch.histograms(), loop.ch.status()
+    finally:
+        if host:
+            host.stop()
+        loop.stop()
+    return RunWindow({k: HistWindow(h0[k], h1[k]) for k in h1}, s1.cycles - s0.cycles, s1.missed - s0.missed,
+                     s1.log_lost - s0.log_lost, host)

@@ -155,20 +155,7 @@ def measure_instructions(exe: Path, cycles: int, log_dir: str, out_dir: Path,
 def measure_ns(exe: Path, endcycle_exe: Path, seconds: float, prio: int, cpu: int, log_dir: str):
     shm = f"bench_overhead_ns_{os.getpid()}"
     env = C.loop_env(shm, 1000, prio, cpu, log_dir)
-    loop = C.start_loop(exe, env, shm)
-    host = None
-    try:
-        C.go_to_run(loop)
-        host = C.HostReader(loop.ch)
-        time.sleep(0.5)
-        h0, s0 = loop.ch.histograms(), loop.ch.status()
-        time.sleep(seconds)
-        h1, s1 = loop.ch.histograms(), loop.ch.status()
-    finally:
-        if host:
-            host.stop()
-        loop.stop()
-    win = {k: C.HistWindow(h0[k], h1[k]) for k in h1}
+    r = C.measure_run_window(exe, env, shm, seconds)
     env2 = C.loop_env(f"bench_endcycle_{os.getpid()}", 1000, prio, cpu, log_dir)
     out = subprocess.run([str(endcycle_exe), "1000000"], env=env2, capture_output=True, text=True,
                          check=True).stdout
@@ -177,7 +164,7 @@ def measure_ns(exe: Path, endcycle_exe: Path, seconds: float, prio: int, cpu: in
         os.unlink(f"/dev/shm/bench_endcycle_{os.getpid()}")
     except OSError:
         pass
-    return win, ec, s1.cycles - s0.cycles, s1.missed - s0.missed, host
+    return r.hist, ec, r.cycles, r.missed, r.host
 
 
 def main() -> int:
