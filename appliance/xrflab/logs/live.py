@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import itertools
 import json
 import logging
 import os
@@ -99,8 +100,8 @@ class WriterStats:
 
 
 # Log channels of the shared memory: (meta, ring, slots) field names.
-SOURCES = {"log": ("log_meta", "log_ring", "log_data"),            # the student's XenoFrtLogger
-           "timing": ("timing_meta", "timing_ring", "timing")}     # per-cycle timing (XRF_LOG_TIMING=1)
+SOURCES = {"log": ("log_meta", "log_ring", "log_data"),                  # the student's XenoFrtLogger
+           "cycle_timing": ("timing_meta", "timing_ring", "timing")}     # XRF_LOG_TIMING=1
 
 
 class HostLogWriter:
@@ -138,7 +139,7 @@ class HostLogWriter:
     # -- life cycle -------------------------------------------------------------------------
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._main, name=f"xrf-{self._source}writer", daemon=True)
+        self._thread = threading.Thread(target=self._main, name=f"xrf-{self._source}-writer", daemon=True)
         self._thread.start()
 
     def finish(self) -> WriterStats:
@@ -378,12 +379,11 @@ def _rerun_cli() -> list[str]:
 class _RerunChild:
     """A ``rerun`` child process whose servers listen on 127.0.0.1 only: they have no login of
     their own, so browsers reach them only through the appliance (its /rerun/ files route and its
-    gRPC-web read proxy, server/routes_logs.py). Stopped with the appliance (atexit)."""
+    gRPC-web read proxy, server/routes_rerun.py). Stopped with the appliance (stop_rerun_children)."""
 
     def __init__(self, args: list[str], ports: tuple[int, ...], what: str) -> None:
         self.proc = subprocess.Popen([*_rerun_cli(), *args], stdin=subprocess.DEVNULL,
                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        atexit.register(self.stop)  # the appliance's normal exit (SIGTERM under systemd) ends it
         deadline = time.monotonic() + 20
         while not all(_listening(p) for p in ports):
             if self.proc.poll() is not None or time.monotonic() > deadline:
@@ -423,10 +423,6 @@ class RerunViewer(_RerunChild):
             if cls._instance is None or cls._instance.proc.poll() is not None:
                 cls._instance = cls()
             return cls._instance
-
-    @classmethod
-    def running(cls) -> RerunViewer | None:
-        return cls._instance
 
 
 class LiveProxy(_RerunChild):
@@ -471,6 +467,14 @@ class LiveProxy(_RerunChild):
             if cls._current is not None:
                 cls._current.stop()
                 cls._current = None
+
+
+@atexit.register  # the appliance's normal exit (SIGTERM under systemd) ends them
+def stop_rerun_children() -> None:
+    """Stop the live proxy and the viewer's file server (also called by the app's shutdown)."""
+    LiveProxy.stop_all()
+    if RerunViewer._instance is not None:
+        RerunViewer._instance.stop()
 
 
 def live_blueprint(names: list[str], telemetry: list[str]):
@@ -620,13 +624,7 @@ class LiveRerun:
 
 def _same_dtype_runs(arrays: list[np.ndarray]) -> list[np.ndarray]:
     """Consecutive arrays of one record layout, concatenated (a new log segment may change it)."""
-    out: list[np.ndarray] = []
-    start = 0
-    for i in range(1, len(arrays) + 1):
-        if i == len(arrays) or arrays[i].dtype != arrays[start].dtype:
-            out.append(np.concatenate(arrays[start:i]))
-            start = i
-    return out
+    return [np.concatenate(list(run)) for _, run in itertools.groupby(arrays, key=lambda a: a.dtype)]
 
 
 # ---- per run --------------------------------------------------------------------------------
@@ -648,7 +646,7 @@ def start(ch: Any, run_id: int, run_dir: Path, identity: dict[str, str], owner: 
     writer.start()
     rl = RunLogging(writer, None)
     if log_timing:
-        rl.timing = HostLogWriter(ch, identity, run_dir, on_alarm=on_alarm, timing=False, source="timing")
+        rl.timing = HostLogWriter(ch, identity, run_dir, on_alarm=on_alarm, timing=False, source="cycle_timing")
         rl.timing.start()
     if live and os.environ.get("XRF_LIVE_RERUN", "1") != "0":
         # rerun's import and servers take a moment on the first run: not on the event loop,

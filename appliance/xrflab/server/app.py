@@ -64,9 +64,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             await viz.stop()
             from ..logs import live as live_rerun  # its rerun child processes (127.0.0.1 servers)
 
-            live_rerun.LiveProxy.stop_all()
-            if (viewer := live_rerun.RerunViewer.running()) is not None:
-                viewer.stop()
+            live_rerun.stop_rerun_children()
             store.close()
 
     app = FastAPI(
