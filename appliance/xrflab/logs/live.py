@@ -55,6 +55,7 @@ WAIT_MS = 20            # longest time between two drains when no doorbell rings
 LIVE_HZ = 100.0         # log records per second sent to the live rerun recording
 TELEMETRY_HZ = 50.0     # telemetry samples per second sent to it
 SEND_PERIOD_S = 0.2     # the live recording is sent in batches this far apart
+RERUN_NICE = 10         # rerun's child processes run below the appliance
 TIMING_PERIOD_S = 1.0
 MAGIC = b"XRFLOG1\n"
 TYPE_NAMES = {1: "bool", 2: "char", 3: "int32", 4: "float32", 5: "float64", 6: "int64"}
@@ -382,7 +383,11 @@ class _RerunChild:
     gRPC-web read proxy, server/routes_rerun.py). Stopped with the appliance (stop_rerun_children)."""
 
     def __init__(self, args: list[str], ports: tuple[int, ...], what: str) -> None:
-        self.proc = subprocess.Popen([*_rerun_cli(), *args], stdin=subprocess.DEVNULL,
+        # Below the appliance (`nice` execs rerun, so every rerun thread inherits it): a live
+        # proxy starting with each run must not delay the supervisor's reaction to that run
+        # crashing (outputs off within 100 ms).
+        nice = ["nice", "-n", str(RERUN_NICE)] if shutil.which("nice") else []
+        self.proc = subprocess.Popen([*nice, *_rerun_cli(), *args], stdin=subprocess.DEVNULL,
                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         deadline = time.monotonic() + 20
         while not all(_listening(p) for p in ports):
