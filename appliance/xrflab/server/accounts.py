@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import hmac
 import io
 import re
 import secrets
@@ -25,6 +26,8 @@ from typing import Any
 
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatchError
+
+from .private_files import private_db
 
 ROLES = ("educator", "student", "observer")
 USERNAME_RE = re.compile(r"^[a-z0-9][a-z0-9._-]{1,31}$")
@@ -52,6 +55,10 @@ CREATE TABLE IF NOT EXISTS sessions (
     last_seen REAL NOT NULL,
     expires REAL NOT NULL,
     address TEXT NOT NULL DEFAULT ''
+);
+CREATE TABLE IF NOT EXISTS keys (              -- server-side secrets, e.g. the device-cookie key
+    name TEXT PRIMARY KEY,
+    value TEXT NOT NULL
 );
 CREATE TABLE IF NOT EXISTS api_tokens (
     token_hash TEXT PRIMARY KEY,
@@ -149,13 +156,13 @@ def check_role(role: str) -> str:
 class Accounts:
     def __init__(self, path: Path, session_max_s: float = 12 * 3600, session_idle_s: float = 2 * 3600) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
+        private_db(path)  # 0600 before SQLite opens it: its WAL/SHM take the same mode
         self._db = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False)
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.executescript(_SCHEMA)
         self._lock = threading.Lock()  # password checks run in threads; writes are serialised
         self.session_max_s = session_max_s
         self.session_idle_s = session_idle_s
-        path.chmod(0o600)
 
     def close(self) -> None:
         self._db.close()
@@ -376,6 +383,33 @@ class Accounts:
     def drop_api_token(self, user_id: int) -> None:
         self._db.execute("DELETE FROM api_tokens WHERE user_id=?", (user_id,))
 
+    # -- device cookies (LoginGuard) --------------------------------------------------------------
+
+    def _device_key(self) -> bytes:
+        with self._lock:
+            r = self._db.execute("SELECT value FROM keys WHERE name='device'").fetchone()
+            if r is None:
+                value = secrets.token_hex(32)
+                self._db.execute("INSERT INTO keys (name, value) VALUES ('device', ?)", (value,))
+                return bytes.fromhex(value)
+        return bytes.fromhex(r[0])
+
+    def _device_mac(self, username: str, nonce: str) -> str:
+        return hmac.new(self._device_key(), f"{username}|{nonce}".encode(), hashlib.sha256).hexdigest()[:40]
+
+    def new_device_cookie(self, user: User) -> str:
+        """A value for the device cookie: proof that this browser logged in to `user` before."""
+        nonce = secrets.token_urlsafe(12)
+        return f"{nonce}.{self._device_mac(user.username, nonce)}"
+
+    def device_id(self, username: str, cookie: str | None) -> str | None:
+        """The device's id when `cookie` is a device cookie of `username`, else None."""
+        if not cookie or len(cookie) > 100 or "." not in cookie:
+            return None
+        nonce, mac = cookie.split(".", 1)
+        name = (username or "").strip().lower()
+        return nonce if hmac.compare_digest(mac, self._device_mac(name, nonce)) else None
+
 
 def _text(value: Any, what: str, limit: int) -> str:
     value = "" if value is None else str(value).strip()
@@ -423,3 +457,66 @@ class RateLimiter:
         for key in [k for k, v in self._locked.items() if v < now - self.max_lock_s]:
             self._locked.pop(key, None)
             self._strikes.pop(key, None)
+
+
+class LoginGuard:
+    """Who may try a password now; failures are counted so that guessing stays bounded while an
+    anonymous client cannot keep an account (the educator's included) locked for others.
+
+    - per (account, client): ``per_client`` failures lock the account *for that client only*
+      (a client is its address, or a device cookie of the account: below). An attacker locks
+      themselves out, never the owner at another address.
+    - per address: ``per_address`` failures on any accounts lock the address (spraying).
+    - per account, all clients together: ``per_account`` failures (a guesser with many
+      addresses) lock the account for clients it does not know: addresses it logged in from
+      since the appliance started and browsers with its device cookie stay welcome.
+    - device cookie: set at each login (HttpOnly), proves the browser logged in to the account
+      before (it carries no session). With it only its own per-(account, device) count
+      applies, so an attacker behind the same NAT address as the educator cannot lock the
+      educator out either; guessing is still bounded (the cookie is only had by knowing the
+      password).
+
+    Each lock lasts ``lock_s``, doubling with each further lock of the same key up to
+    ``max_lock_s``; a success clears that client's count. In memory, like RateLimiter.
+    """
+
+    KNOWN_PER_ACCOUNT = 32  # addresses remembered per account (most recent successes)
+
+    def __init__(self, per_client: int = 5, per_address: int = 20, per_account: int = 50, window_s: float = 60.0,
+                 lock_s: float = 60.0, max_lock_s: float = 900.0) -> None:
+        self.client = RateLimiter(per_client, window_s, lock_s, max_lock_s)
+        self.address = RateLimiter(per_address, window_s, lock_s, max_lock_s)
+        self.account = RateLimiter(per_account, window_s, lock_s, max_lock_s)
+        self._known: dict[str, dict[str, None]] = {}  # account -> addresses (insertion-ordered)
+
+    @staticmethod
+    def _client(account: str, address: str, device: str | None) -> str:
+        return f"{account}\0" + (f"device:{device}" if device else f"addr:{address}")
+
+    def _known_address(self, account: str, address: str) -> bool:
+        return address in self._known.get(account, {})
+
+    def retry_after(self, account: str, address: str, device: str | None = None) -> float:
+        """Seconds until this client may try this account again; 0 when it may now."""
+        wait = self.client.retry_after(self._client(account, address, device))
+        if device is None:
+            wait = max(wait, self.address.retry_after(address))
+            if not self._known_address(account, address):
+                wait = max(wait, self.account.retry_after(account))
+        return wait
+
+    def failed(self, account: str, address: str, device: str | None = None) -> None:
+        self.client.failed(self._client(account, address, device))
+        if device is None:
+            self.address.failed(address)
+        self.account.failed(account)
+
+    def succeeded(self, account: str, address: str, device: str | None = None) -> None:
+        self.client.succeeded(self._client(account, address, device))
+        known = self._known.setdefault(account, {})
+        known.pop(address, None)
+        known[address] = None
+        while len(known) > self.KNOWN_PER_ACCOUNT:
+            known.pop(next(iter(known)))
+        if len(self._known) > 10_000:  # made-up account names never succeed: only real ones land here
+            self._known.pop(next(iter(self._known)))

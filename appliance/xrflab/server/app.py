@@ -10,7 +10,10 @@ from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
+from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
+
 from .auth import Perm, Security, SecurityHeaders, optional_user, requires
+from .body_limit import BodyLimit
 from .routes_accounts import router as accounts_router
 
 from .api import router, ws_router
@@ -79,6 +82,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     security = Security(settings)
     app.state.security = security
     app.add_middleware(SecurityHeaders)
+    # Added last = outermost: a body is bounded before any other code sees the request.
+    app.add_middleware(BodyLimit, limit=settings.max_body_bytes, upload_limit=settings.max_upload_body_bytes)
+    if settings.trusted_proxies:
+        # Only then is X-Forwarded-For believed, and only from these peers (serve() turns
+        # uvicorn's own handling off: it trusted 127.0.0.1, i.e. any local process).
+        app.add_middleware(ProxyHeadersMiddleware, trusted_hosts=list(settings.trusted_proxies))
     app.include_router(accounts_router)
 
     @app.get("/openapi.json", include_in_schema=False, dependencies=[requires(Perm.WATCH)])

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from .accounts import User
+from .private_files import private_db
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS audit (
@@ -40,6 +41,7 @@ COLUMNS = ("id", "t", "user_id", "username", "role", "action", "detail", "addres
 class AuditLog:
     def __init__(self, path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
+        private_db(path)  # 0600 before SQLite opens it: its WAL/SHM take the same mode
         self._db = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False)
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.executescript(_SCHEMA)

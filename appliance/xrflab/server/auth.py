@@ -22,7 +22,7 @@ from fastapi import Depends, HTTPException
 from starlette.requests import HTTPConnection
 from starlette.exceptions import WebSocketException
 
-from .accounts import Accounts, RateLimiter, User
+from .accounts import Accounts, LoginGuard, User
 
 if TYPE_CHECKING:
     from .audit import AuditLog
@@ -66,10 +66,9 @@ class Security:
         self.lease: Lease | None = None
         self.audit: AuditLog | None = None
         self.hub: Any = None
-        self.limiter = RateLimiter(settings.login_max_failures, settings.login_window_s,  # per account
-                                   settings.login_lock_s)
-        self.address_limiter = RateLimiter(settings.login_max_failures_address, settings.login_window_s,
-                                           settings.login_lock_s)
+        self.login_guard = LoginGuard(settings.login_max_failures, settings.login_max_failures_address,
+                                      settings.login_max_failures_account, settings.login_window_s,
+                                      settings.login_lock_s)
         # argon2 is memory-hard on purpose: at most this many checks at once (a login rush on a Pi).
         self.hash_slots = asyncio.Semaphore(4)
 

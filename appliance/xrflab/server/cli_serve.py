@@ -35,6 +35,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ros-bridge", action="store_true", default=None,
                         help="start the ROS 2 bridge with every loop run (also $XRF_ROS_BRIDGE=1; "
                              "educators can switch it on the dashboard's ROS 2 page)")
+    parser.add_argument("--trusted-proxy", action="append", default=[], metavar="ADDR",
+                        help="address (or network, e.g. 10.0.0.0/24) of a reverse proxy in front of the appliance "
+                             "whose X-Forwarded-For/-Proto are believed (repeatable; default none: the headers "
+                             "are ignored)")
     parser.add_argument("--ros-bridge-user", default="", metavar="NAME",
                         help="the user whose bench lease ROS 2 commands obey (default: who started the run)")
 
@@ -53,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
         allow_origins=tuple(o.rstrip("/") for o in args.allow_origin),
         lease_idle_s=args.lease_idle_min * 60,
         ros_bridge_user=args.ros_bridge_user,
+        trusted_proxies=tuple(args.trusted_proxy),
         **({"ros_bridge": True} if args.ros_bridge else {}),
     )
     shown = "localhost" if args.host in ("127.0.0.1", "0.0.0.0", "::") else args.host
@@ -75,8 +80,20 @@ def listening_socket(settings: Settings) -> socket.socket:
     return sock
 
 
+# Everything the appliance creates (databases and their WAL/SHM, runs, logs, projects, uploads,
+# builds it starts) is private to its user whatever umask it was started with; what another user
+# must read (the build user: a project's source) is granted explicitly (projects/builder.py).
+DATA_UMASK = 0o077
+
+
 def serve(app: Any, settings: Settings) -> None:
+    import os
+
     import uvicorn
 
-    config = uvicorn.Config(app, log_level="warning", ws_max_size=WS_PROTOCOL_MAX)
+    os.umask(DATA_UMASK)
+    # proxy_headers=False: uvicorn would believe X-Forwarded-For from 127.0.0.1, i.e. from any
+    # process on this host (a student's controller); create_app() honours it only from
+    # settings.trusted_proxies.
+    config = uvicorn.Config(app, log_level="warning", ws_max_size=WS_PROTOCOL_MAX, proxy_headers=False)
     uvicorn.Server(config).run(sockets=[listening_socket(settings)])

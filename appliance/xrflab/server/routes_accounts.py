@@ -18,6 +18,10 @@ from .lease import LeaseError
 
 router = APIRouter()
 
+# Proof that a browser logged in to an account before (accounts.LoginGuard); no session in it.
+DEVICE_COOKIE = "xrf_device"
+DEVICE_COOKIE_MAX_AGE = 180 * 24 * 3600
+
 Role = Literal["educator", "student", "observer"]
 
 
@@ -153,12 +157,13 @@ def _account_error(exc: AccountError) -> HTTPException:
 
 
 async def _authenticate(request: Request, username: str, password: str) -> User:
-    """Password check with the per-account and per-address rate limits; 401 / 429 otherwise."""
+    """Password check with the login guard's limits (accounts.LoginGuard); 401 / 429 otherwise."""
     sec = _sec(request)
     accounts = _accounts(request)
     address = client_address(request)
     name = username.strip().lower()
-    wait = max(sec.limiter.retry_after(name), sec.address_limiter.retry_after(address))
+    device = accounts.device_id(name, request.cookies.get(DEVICE_COOKIE))
+    wait = sec.login_guard.retry_after(name, address, device)
     if wait > 0:
         audit.record(None, "auth.locked", {"username": username[:64]}, address)
         raise HTTPException(429, f"too many failed logins; try again in {int(wait) + 1} s",
@@ -166,11 +171,10 @@ async def _authenticate(request: Request, username: str, password: str) -> User:
     async with sec.hash_slots:
         user = await run_in_threadpool(accounts.verify, username, password)
     if user is None:
-        sec.limiter.failed(name)
-        sec.address_limiter.failed(address)
+        sec.login_guard.failed(name, address, device)
         audit.record(None, "auth.failed", {"username": username[:64]}, address)
         raise HTTPException(401, "wrong username or password")
-    sec.limiter.succeeded(name)
+    sec.login_guard.succeeded(name, address, device)
     return user
 
 
@@ -210,6 +214,9 @@ async def login(body: Credentials, request: Request, response: Response) -> dict
     accounts = _accounts(request)
     token, csrf = accounts.new_session(user, client_address(request))
     _set_cookies(request, response, token, csrf, int(accounts.session_max_s))
+    # This browser now knows the password: its later logins are counted apart (LoginGuard).
+    response.set_cookie(DEVICE_COOKIE, accounts.new_device_cookie(user), max_age=DEVICE_COOKIE_MAX_AGE,
+                        path="/api/auth", httponly=True, samesite="strict", secure=request.url.scheme == "https")
     audit.record(user, "auth.login", {"via": "password"}, client_address(request))
     return _me(user, csrf)
 

@@ -75,11 +75,21 @@ class Settings:
     allow_origins: tuple[str, ...] = ()
     session_max_s: float = 12 * 3600  # a login lasts at most this long
     session_idle_s: float = 2 * 3600  # ...and ends after this long unused
-    login_max_failures: int = 5  # per account within login_window_s, then locked
-    login_max_failures_address: int = 20  # per client address (a lab's NAT is many students)
+    # Login failures (accounts.LoginGuard): per account and client (address or device cookie)
+    # within login_window_s, then that client is locked out of that account...
+    login_max_failures: int = 5
+    login_max_failures_address: int = 20  # ...per client address, any accounts (a lab's NAT is many students)
+    login_max_failures_account: int = 50  # ...per account from all clients: then locked for clients it does not know
     login_window_s: float = 60.0  # failures are counted over this long
     login_lock_s: float = 60.0  # then the account/address is locked this long; doubles with each further lock, up to 15 min
     lease_idle_s: float = 600.0  # the bench lease is released after this long without driving
+    # Addresses of reverse proxies whose X-Forwarded-For/-Proto are believed (`xrf serve
+    # --trusted-proxy`); empty = those headers are ignored and the client is the TCP peer.
+    trusted_proxies: tuple[str, ...] = ()
+    # Request bodies (body_limit.py): JSON routes take at most this much; archive uploads have
+    # their own limit (projects/archive.py Limits.max_upload) and this ceiling above it.
+    max_body_bytes: int = 256 * 1024
+    max_upload_body_bytes: int = (64 << 20) + (1 << 20)
 
     # The ROS 2 bridge (docs/ros2/bridge.md, "Run by the appliance"): started with every loop run
     # when on (also $XRF_ROS_BRIDGE=1; the dashboard toggle changes it until the next restart).
