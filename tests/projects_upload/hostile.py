@@ -224,3 +224,11 @@ def zip_bomb_lying(gb: int = 10) -> bytes:
     """Lying header: 1 KB declared, but the deflate stream inflates to 10 GB."""
     comp = _deflate_zeros(gb * 1024 * MB)
     return _zip_with_project(_zip_raw("data/zeros.bin", comp, 1024))
+
+
+def zip_many_small_bombs(entries: int = 60, entry_mb: int = 3) -> bytes:
+    """A complete project plus ``entries`` files of ``entry_mb`` MB of zeros each: every entry is
+    under the per-entry ratio floor (4 MB), the total (180 MB) under the size limit (256 MB), but
+    the whole archive (~0.2 MB) decompresses ~1000 times its size."""
+    zeros = b"\0" * (entry_mb * MB)
+    return zip_bytes({**project_files(), **{f"data/part{i:03d}.bin": zeros for i in range(entries)}})

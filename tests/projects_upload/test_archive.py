@@ -40,6 +40,8 @@ CASES = {
     "tar_gz_declared_10GB": (hostile.tar_gz_one_big_declared, "data/huge.bin", "10.0 GB"),
     "zip_bomb_declared_10GB": (hostile.zip_bomb_declared, "data/zeros.bin", ""),
     "zip_bomb_lying_header": (hostile.zip_bomb_lying, "data/zeros.bin", ""),
+    # each entry alone passes the per-entry ratio check; the archive as a whole is a bomb
+    "zip_many_small_entries_bomb": (hostile.zip_many_small_bombs, "data/part", "the archive decompresses more than 200 times"),
 }
 
 

@@ -10,7 +10,8 @@ counted again while writing.
 Accepted: zip, tar, tar.gz (gzip members may be concatenated). Refused, naming the entry:
 absolute paths, ``..``, links of any kind (symbolic or hard: a project needs none), device
 files, FIFOs, sockets, names that are not UTF-8, duplicate names, too many files, a file or a
-total over the size limits, and compression ratios that only a zip bomb has.
+total over the size limits, and compression ratios that only a zip bomb has: per entry, and for
+the whole archive (many small entries, each harmless alone, add up to a bomb too).
 """
 
 from __future__ import annotations
@@ -217,8 +218,17 @@ def _ratio_check(out: int, inp: int, limits: Limits, shown: str) -> None:
                               f"({_mb(out)} from {_mb(inp)}): a zip bomb is refused", shown)
 
 
+def _total_ratio_check(total: int, archive_size: int, limits: Limits, shown: str) -> None:
+    """The whole archive's ratio: many entries each small enough to pass on its own (under
+    ``ratio_floor``) still add up to a bomb."""
+    if total > limits.ratio_floor and total / max(archive_size, 1) > limits.max_ratio:
+        raise ArchiveRejected(f"the archive decompresses more than {limits.max_ratio:.0f} times its size "
+                              f"({_mb(total)} from {_mb(archive_size)}): a zip bomb is refused", shown)
+
+
 def _zip_entries(path: Path, limits: Limits) -> Iterator[tuple[Entry, Chunks | None]]:
-    if path.stat().st_size > limits.max_upload:
+    archive_size = path.stat().st_size
+    if archive_size > limits.max_upload:
         raise ArchiveRejected(f"the archive is larger than {_mb(limits.max_upload)}")
     try:
         zf = zipfile.ZipFile(path)
@@ -261,6 +271,7 @@ def _zip_entries(path: Path, limits: Limits) -> Iterator[tuple[Entry, Chunks | N
             declared += info.file_size
             if declared > limits.max_total:
                 raise ArchiveRejected(f"the files add up to more than {_mb(limits.max_total)}", shown)
+            _total_ratio_check(declared, archive_size, limits, shown)  # from the headers, before reading
             _ratio_check(info.file_size, max(info.compress_size, 1), limits, shown)
             if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
                 raise ArchiveRejected("only stored or deflated zip entries are accepted", shown)
@@ -295,6 +306,7 @@ def entries(path: Path, limits: Limits) -> tuple[str, Iterator[tuple[Entry, Chun
 # ---- the check ----------------------------------------------------------------------------------
 
 def _walk_checked(path: Path, limits: Limits, sink: Callable[[Entry, Chunks | None], None]) -> Manifest:
+    archive_size = path.stat().st_size
     fmt, it = entries(path, limits)
     seen: dict[str, str] = {}
     count = 0
@@ -331,6 +343,8 @@ def _walk_checked(path: Path, limits: Limits, sink: Callable[[Entry, Chunks | No
                     raise ArchiveRejected(f"the file is larger than {_mb(limits.max_file)}", entry.name)
                 if total > limits.max_total:
                     raise ArchiveRejected(f"the files add up to more than {_mb(limits.max_total)}", entry.name)
+                # Counted, not declared: holds for every format and for headers that lie.
+                _total_ratio_check(total, archive_size, limits, entry.name)
                 yield b
 
         sink(entry, counted())
