@@ -232,9 +232,13 @@ function applyRun(m) {
     xrf.schema = { ros2xeno: m.ros2xeno, xeno2ros: m.xeno2ros };
     buildSetpoints(m.ros2xeno, m.setpoint || {});
     buildPlots(m.xeno2ros);
+    if (m.redacted) $("setpoints").innerHTML = '<div class="muted">Setpoints and signals are the run owner\'s.</div>';
   }
   if (r) {
-    const what = m.active ? `run #${r.id}: ${r.build} on ${r.sim}` + (m.cycle_freq ? ` @ ${m.cycle_freq} Hz` : "")
+    // Someone else's run (m.redacted): its state and motion are everyone's, its build, output
+    // and signals its owner's (docs/developers/security.md, "what others may watch").
+    const build = m.redacted ? "another user's controller" : r.build;
+    const what = m.active ? `run #${r.id}: ${build} on ${r.sim}` + (m.cycle_freq ? ` @ ${m.cycle_freq} Hz` : "")
       : `run #${r.id} ${r.status}` + (r.crashed ? ` (${r.crash_reason})` : "");
     $("run-detail").textContent = m.active ? `${what} · ${m.program || ""} · ${m.backend || ""}/${m.transport || ""}` : `${what}: ${r.message}`;
   }
@@ -247,7 +251,8 @@ function applyRun(m) {
 
 function updateRunSummary() {
   const r = xrf.run && xrf.run.run;
-  $("run-summary").textContent = xrf.run && xrf.run.active && r ? `#${r.id} ${r.build} · ${xrf.state.name}` : "no active run";
+  const build = xrf.run && xrf.run.redacted ? "(not yours)" : r && r.build;
+  $("run-summary").textContent = xrf.run && xrf.run.active && r ? `#${r.id} ${build} · ${xrf.state.name}` : "no active run";
   $("btn-end-run").disabled = !(xrf.run && xrf.run.active);
 }
 

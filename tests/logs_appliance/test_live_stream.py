@@ -1,12 +1,14 @@
 """The live rerun stream through the appliance (issue 4 item 5): the viewer's gRPC-web reads are
 answered at the appliance's root, behind the login, from the Pi's LAN address; one rerun proxy
-per run, on 127.0.0.1 only; only the run's owner and educators receive its data; a new run
+per run, on 127.0.0.1 only; only the run's owner and educators receive its data (anyone else
+gets what no live run at all gives); a new run
 ends the previous run's stream; closed viewers free their connection."""
 
 from __future__ import annotations
 
 import threading
 import time
+import urllib.parse
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -17,6 +19,7 @@ from logs_support import PROBE, start, wait_for
 from harness import ADMIN_PASSWORD, ADMIN_USER, Server, login_client, stop_server
 from xrf_testing.grpcweb import GRPC_WEB, READ_MESSAGES, read_messages
 from xrf_testing.net import established_to, lan_address, listening_addresses
+from xrflab.server.routes_rerun import NO_LIVE_STREAM
 
 SERVICE = "/rerun.sdk_comms.v1alpha1.MessageProxyService"
 
@@ -146,11 +149,15 @@ def test_only_the_owner_and_educators_see_a_run_live(lan) -> None:
         run_id = run_probe(server, alice)
         mine = read_messages(alice, READ_MESSAGES, until=lambda d: f"run-{run_id}".encode() in d)
         assert mine.status == 200 and f"run-{run_id}".encode() in mine.data
+        # Someone else's live run answers as no live run at all (ownership.py): not its id, not
+        # its owner, and the stream a 404 NOT_FOUND word for word like the one before any run.
         info = bob.get("/api/logs/rerun").json()
-        assert info["live_run"] == run_id and not info["live_allowed"] and info["live_url"] == ""
-        assert "live_alice" in info["live_reason"]
+        assert info["live_run"] is None and not info["live_allowed"] and info["live_url"] == ""
+        assert info["live_recording"] == "" and "live_alice" not in info["live_reason"]
+        assert info["live_reason"] == NO_LIVE_STREAM
         theirs = read_messages(bob, READ_MESSAGES)
-        assert theirs.status == 403 and theirs.headers["grpc-status"] == "7" and not theirs.data
+        assert theirs.status == 404 and theirs.headers["grpc-status"] == "5" and not theirs.data
+        assert urllib.parse.unquote(theirs.headers["grpc-message"]) == NO_LIVE_STREAM
         educator = read_messages(server.http, READ_MESSAGES, until=lambda d: f"run-{run_id}".encode() in d)
         assert educator.status == 200 and f"run-{run_id}".encode() in educator.data
         alice.post("/api/runs/current/stop", timeout=30)
@@ -213,8 +220,10 @@ def test_no_live_stream_before_the_first_run(tmp_path: Path) -> None:
     try:
         info = s.http.get("/api/logs/rerun").json()
         assert info["live_run"] is None and info["live_url"] == "" and "no run" in info["live_reason"]
+        assert info["live_reason"] == NO_LIVE_STREAM  # the same words as for someone else's run
         r = s.http.post(READ_MESSAGES, headers=GRPC_WEB, content=b"\0" * 5)
         assert r.status_code == 404 and r.headers["grpc-status"] == "5"
+        assert urllib.parse.unquote(r.headers["grpc-message"]) == NO_LIVE_STREAM
         assert not live_proxies(s)
     finally:
         stop_server(s)

@@ -16,8 +16,8 @@ from pydantic import BaseModel, Field
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from .. import channels as chmod
-from . import audit
-from .auth import SAFE_COMMANDS, Perm, User, check, client_address, current_user, may, owns, requires
+from . import audit, ownership
+from .auth import SAFE_COMMANDS, Perm, User, check, client_address, current_user, may, requires
 from .hub import TOPICS, Client
 from .supervisor import Supervisor, SupervisorError
 
@@ -131,6 +131,12 @@ async def get_builds(request: Request) -> list[dict[str, Any]]:
 async def start_run(body: StartRun, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
     sup = _supervisor(request)
     try:
+        # Only a bundled example/template or a build of one's own project (else: a missing build).
+        await ownership.check_startable(request, body.build)
+    except HTTPException as exc:
+        audit.record(user, "run.start_failed", {"build": body.build, "error": str(exc.detail)}, client_address(request))
+        raise
+    try:
         row = await sup.start_run(body.build, body.sim, body.max_cycles, owner=user.username,
                                   log_timing=body.log_timing)
     except SupervisorError as exc:
@@ -185,27 +191,14 @@ async def command(body: CommandRequest, request: Request, user: User = Depends(c
 
 
 @router.get("/runs", response_model=list[RunRecord], dependencies=[requires(Perm.WATCH)])
-async def list_runs(request: Request, limit: int = Query(100, ge=1, le=10_000),
-                    user: User = Depends(current_user)) -> list[dict[str, Any]]:
+async def list_runs(request: Request, limit: int = Query(100, ge=1, le=10_000)) -> list[dict[str, Any]]:
     """Runs the user may see: all for educators, their own for students and observers."""
-    store = _supervisor(request).store
-    if user.is_educator:
-        return [r.as_dict() for r in store.list(limit)]
-    mine: list[dict[str, Any]] = []
-    for r in store.list(10_000):
-        if len(mine) >= limit:
-            break
-        if owns(user, r.owner):
-            mine.append(r.as_dict())
-    return mine
+    return [r.as_dict() for r in ownership.runs(request, limit)]
 
 
 @router.get("/runs/{run_id}", response_model=RunRecord, dependencies=[requires(Perm.WATCH)])
-async def get_run(run_id: int, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
-    row = _supervisor(request).store.get(run_id)
-    if row is None or not owns(user, row.owner):  # someone else's run: as if it did not exist
-        raise HTTPException(status_code=404, detail=f"no run {run_id}")
-    return row.as_dict()
+async def get_run(run_id: int, request: Request) -> dict[str, Any]:
+    return ownership.run_or_404(request, run_id).as_dict()  # someone else's: as if it did not exist
 
 
 # ---- WebSocket ----------------------------------------------------------------------------------
@@ -258,8 +251,8 @@ def _ws_authorize(ws: WebSocket, client: Client, perm: Perm) -> User:
 async def websocket(ws: WebSocket) -> None:
     sup: Supervisor = ws.app.state.supervisor
     await ws.accept()
-    client = sup.hub.new_client(ws)
-    client.user = ws.app.state.security.resolve(ws)[0]
+    # The user first: the snapshot (current run, state...) is filtered like every message.
+    client = sup.hub.new_client(ws, ws.app.state.security.resolve(ws)[0])
     pump = asyncio.create_task(client.pump())
     receive = asyncio.create_task(_receive(ws, client, sup))
     kicked = asyncio.create_task(client.kicked.wait())

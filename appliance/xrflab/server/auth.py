@@ -88,6 +88,9 @@ class Security:
         snapshot = hub.snapshot
         hub.snapshot = lambda: [*snapshot(), ("lease", lease.payload())]
         hub.listeners.append(self._on_published)
+        from . import ownership
+
+        ownership.attach(hub, supervisor)  # what each WebSocket client may see of the live run
         self.hub = hub
         lease.start()
 
@@ -257,7 +260,8 @@ def optional_user(conn: HTTPConnection) -> User | None:
 def owns(user: User | HTTPConnection, owner: int | str | None) -> bool:
     """May `user` see/change a resource owned by `owner` (a user id, or a username as in the runs
     table's `owner` column)? Educators: everything; everyone else: their own only (resources
-    without an owner belong to the educators). `user` may also be the request itself."""
+    without an owner belong to the educators). `user` may also be the request itself.
+    Routes and the WebSocket use it through ownership.py (the 404, lists, the live run)."""
     if isinstance(user, HTTPConnection):
         resolved = user.app.state.security.resolve(user)[0]
         if resolved is None:

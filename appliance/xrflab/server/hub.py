@@ -8,6 +8,10 @@ topic that is allowed to be lossy (a newer sample supersedes an older one), so a
 queue drops its oldest entry and counts it; everything else (state, alarms, run events, errors,
 monitor lines) is kept, and a client whose queue grows past a hard limit, or that has been
 losing telemetry continuously for `slow_client_s`, is disconnected.
+
+Not every message is everyone's: `Hub.scope` (ownership.scope, set by ownership.attach) names
+a message's owner and what other clients receive instead; the full text goes to clients whose
+user `Hub.may_see` the owner, the public one (encoded once too) to the rest.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import Any, NamedTuple
 
 from starlette.websockets import WebSocket
 
@@ -45,6 +49,18 @@ def _finite(value: Any) -> Any:
     if isinstance(value, (list, tuple)):
         return [_finite(v) for v in value]
     return value
+
+
+class Scoped(NamedTuple):
+    """A message that belongs to someone: `owner` (a username, None = unknown: educators only)
+    and what everyone else receives in its place (None: nothing)."""
+
+    owner: str | None
+    public: dict[str, Any] | None
+
+
+# A bug in the scope function must not hand a message to everyone: it goes to educators only.
+_FAIL_CLOSED = Scoped(None, None)
 
 
 class SlowClient(Exception):
@@ -142,15 +158,21 @@ class Hub:
         self.snapshot: Callable[[], Iterable[tuple[str, dict[str, Any]]]] = lambda: ()
         # Called with every published message before the fan-out (the bench lease watches runs end).
         self.listeners: list[Callable[[str, dict[str, Any]], None]] = []
+        # Per-client filtering (ownership.attach sets both): whose a message is, and whether a
+        # client's user may see what that owner owns. The defaults let everyone see everything.
+        self.scope: Callable[[str, dict[str, Any]], Scoped | None] = lambda message_type, payload: None
+        self.may_see: Callable[[Any, str | None], bool] = lambda user, owner: True
 
     @property
     def clients(self) -> int:
         return len(self._clients)
 
-    def new_client(self, ws: WebSocket) -> Client:
+    def new_client(self, ws: WebSocket, user: Any = None) -> Client:
+        """`user`: who is connecting (set before the snapshot, which is filtered as any message)."""
         client = Client(ws, ClientQueue(self._max_telemetry, self._max_total, self._slow_after_s))
+        client.user = user
         for message_type, payload in self.snapshot():
-            client.deliver(message_type, encode(message_type, payload))
+            self._fan_out(message_type, payload, (client,), topics=False)
         self._clients.add(client)
         return client
 
@@ -168,8 +190,32 @@ class Hub:
                 logging.getLogger(__name__).exception("hub listener failed")
         if not self._clients:
             return
-        text = encode(message_type, payload)
         self.published += 1
-        for client in tuple(self._clients):
-            if message_type in client.topics:
+        self._fan_out(message_type, payload, tuple(self._clients))
+
+    def _scope(self, message_type: str, payload: dict[str, Any]) -> Scoped | None:
+        try:
+            return self.scope(message_type, payload)
+        except Exception:
+            import logging
+
+            logging.getLogger(__name__).exception("hub scope failed for %s; educators only", message_type)
+            return _FAIL_CLOSED
+
+    def _fan_out(self, message_type: str, payload: dict[str, Any], clients: Iterable[Client],
+                 topics: bool = True) -> None:
+        """Each client gets the full message or the public one; each is encoded at most once."""
+        scoped = self._scope(message_type, payload)
+        text: str | None = None
+        public: str | None = None
+        for client in clients:
+            if topics and message_type not in client.topics:
+                continue
+            if scoped is None or self.may_see(client.user, scoped.owner):
+                if text is None:
+                    text = encode(message_type, payload)
                 client.deliver(message_type, text)
+            elif scoped.public is not None:
+                if public is None:
+                    public = encode(message_type, scoped.public)
+                client.deliver(message_type, public)

@@ -24,7 +24,7 @@ from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import FileResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
 
-from . import auth
+from . import ownership
 from .auth import Perm, requires
 
 router = APIRouter()
@@ -152,18 +152,6 @@ def _sup(request: Request) -> Any:
     return request.app.state.supervisor
 
 
-def may_read(request: Request, row: Any) -> bool:
-    """Whether this request may read the run's logs: its owner, or anyone with EDUCATOR.
-    The single place issue 7's accounts plug into (auth.owns); until then everyone may."""
-    owns = getattr(auth, "owns", None)
-    if owns is None:
-        return True
-    try:
-        return bool(owns(request, row.owner))
-    except TypeError:
-        return bool(owns(request, row))
-
-
 def _record(sup: Any, row: Any) -> dict[str, Any]:
     d = row.as_dict()
     run = sup.current
@@ -180,12 +168,8 @@ def _record(sup: Any, row: Any) -> dict[str, Any]:
 
 
 def _row(request: Request, run_id: int) -> Any:
-    row = _sup(request).store.get(run_id)
-    if row is None:
-        raise HTTPException(404, f"no run {run_id}")
-    if not may_read(request, row):
-        raise HTTPException(403, f"run {run_id} is not yours")
-    return row
+    """The run if the requester may read it; someone else's answers as a missing one (404)."""
+    return ownership.run_or_404(request, run_id)
 
 
 def _file(row: Any, name: str) -> Path:
@@ -240,7 +224,7 @@ async def _cached(path: Path, root: Path, fmt: str) -> Path:
             summary="runs with their logging figures (newest first)")
 async def list_runs(request: Request, limit: int = Query(100, ge=1, le=10000)) -> list[dict[str, Any]]:
     sup = _sup(request)
-    return [_record(sup, r) for r in sup.store.list(limit)]
+    return [_record(sup, r) for r in ownership.runs(request, limit)]  # the requester's (educators: all)
 
 
 @router.get("/api/logs/runs/{run_id}", response_model=RunLogs, dependencies=[requires(Perm.WATCH)],

@@ -2,9 +2,9 @@
 sandbox, see the build's output and errors, run a build on the bench.
 
 Every route declares PROJECTS (DRIVE to start a run) and every project route checks ownership:
-a project that is not the requester's answers 404, exactly like one that does not exist. Until
-accounts exist every request is the local user ``local``; with accounts, the owner is the
-username (as in the runs table) and ``auth.owns()`` decides (educators see everything).
+a project that is not the requester's answers 404, exactly like one that does not exist. The
+owner is the username (as in the runs table); the rule is ownership.py's (educators see
+everything), for the routes and for the build messages on the WebSocket alike.
 """
 
 from __future__ import annotations
@@ -25,12 +25,14 @@ from typing import Any, Literal
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import PlainTextResponse, Response
 from pydantic import BaseModel, Field
+from starlette.requests import HTTPConnection
 
-from . import auth as authmod
-from .auth import Perm, requires
 from ..projects import archive, twentysim
 from ..projects.builder import Builder, SandboxConfig
 from ..projects.store import BuildRow, ProjectRow, ProjectStore
+from . import auth as authmod
+from . import ownership
+from .auth import Perm, requires
 
 router = APIRouter(prefix="/api", tags=["projects"])
 TEMPLATES = ("base", "20sim")
@@ -54,9 +56,12 @@ class ProjectsService:
         hub = self.supervisor.hub
         self.limits = archive.Limits()
 
+        # Build messages carry their project's `owner`: the hub gives them to the owner's (and
+        # educators') WebSockets only (ownership.scope): one student's compiler output is nobody
+        # else's business.
         def publish(kind: str, payload: dict[str, Any]) -> None:
             try:
-                loop.call_soon_threadsafe(_publish_to_owner, hub, kind, payload)
+                loop.call_soon_threadsafe(hub.publish, kind, payload)
             except RuntimeError:  # loop closed: the appliance is stopping
                 pass
 
@@ -70,30 +75,10 @@ class ProjectsService:
         return self.folder(project) / "src"
 
 
-def _publish_to_owner(hub: Any, kind: str, payload: dict[str, Any]) -> None:
-    """A project's build messages go to the WebSockets of its owner (and educators) only: one
-    student's compiler output is nobody else's business. The hub has no per-user fan-out, so its
-    clients (each with the ``user`` the /ws handler set) are walked here; without that (an older
-    hub), plain publish."""
-    clients = getattr(hub, "_clients", None)
-    owns = getattr(authmod, "owns", None)
-    if clients is None or owns is None:
-        hub.publish(kind, payload)
-        return
-    from .hub import encode
-
-    text = encode(kind, payload)
-    owner = payload.get("owner", "")
-    for client in tuple(clients):
-        user = getattr(client, "user", None)
-        if kind in client.topics and (owns(user, owner) if user is not None else owner == "local"):
-            client.deliver(kind, text)
-
-
 _lock = asyncio.Lock()
 
 
-async def _service(request: Request) -> ProjectsService:
+async def _service(request: HTTPConnection) -> ProjectsService:
     svc = getattr(request.app.state, "projects", None)
     if svc is None:
         async with _lock:
@@ -102,6 +87,11 @@ async def _service(request: Request) -> ProjectsService:
                 svc = await asyncio.to_thread(ProjectsService, request.app, asyncio.get_running_loop())
                 request.app.state.projects = svc
     return svc
+
+
+async def project_store(conn: HTTPConnection) -> ProjectStore:
+    """The projects database, for other routes (ownership.check_startable)."""
+    return (await _service(conn)).store
 
 
 def _audit(request: Request, action: str, detail: dict[str, Any]) -> None:
@@ -114,29 +104,16 @@ def _audit(request: Request, action: str, detail: dict[str, Any]) -> None:
 # ---- who ------------------------------------------------------------------------------------------
 
 def _user(request: Request) -> Any:
-    cu = getattr(authmod, "current_user", None)
-    if cu is None or getattr(request.app.state, "security", None) is None:
-        return None
-    return cu(request)
+    return ownership.user_of(request)
 
 
 def _owner_name(user: Any) -> str:
-    return str(getattr(user, "username", None) or getattr(user, "id", None) or "local") if user is not None else "local"
-
-
-def _may_see(request: Request, user: Any, owner: str) -> bool:
-    owns = getattr(authmod, "owns", None)
-    if user is None or owns is None:
-        return owner == _owner_name(user)
-    return bool(owns(user, owner))
+    return str(user.username)
 
 
 async def _project(request: Request, pid: int) -> tuple[ProjectsService, ProjectRow]:
     svc = await _service(request)
-    project = svc.store.project(pid)
-    if project is None or not _may_see(request, _user(request), project.owner):
-        raise HTTPException(404, f"no project {pid}")
-    return svc, project
+    return svc, ownership.require(_user(request), svc.store.project(pid), lambda p: p.owner, "project", pid)
 
 
 async def _build(request: Request, pid: int, bid: int) -> tuple[ProjectsService, ProjectRow, BuildRow]:
@@ -354,6 +331,9 @@ def _new_folder(svc: ProjectsService) -> tuple[str, Path]:
     folder.mkdir(mode=0o755)
     os.chmod(folder, 0o755)
     (folder / "builds").mkdir(mode=0o755)
+    # Explicit: `xrf serve` runs with umask 077 (private data files), and the build user must
+    # pass through this folder to its own build folder (search only, as for the folders above).
+    os.chmod(folder / "builds", 0o711)
     return token, folder
 
 
@@ -377,11 +357,11 @@ def _download(data: bytes, name: str) -> Response:
 
 @router.get("/projects", response_model=list[Project], dependencies=[requires(Perm.PROJECTS)])
 async def list_projects(request: Request, all: bool = False) -> list[dict[str, Any]]:
+    """The requester's projects; an educator's own too, or with ``all=true`` everyone's."""
     svc = await _service(request)
     user = _user(request)
-    rows = svc.store.projects()
-    return [p.as_dict() for p in rows if _may_see(request, user, p.owner) and (all or p.owner == _owner_name(user)
-                                                                                or not getattr(user, "is_educator", False))]
+    rows = svc.store.projects() if all else svc.store.projects(owner=_owner_name(user))
+    return [p.as_dict() for p in ownership.visible(user, rows)]
 
 
 @router.post("/projects", response_model=UploadResult, status_code=201, dependencies=[requires(Perm.PROJECTS)])

@@ -10,7 +10,7 @@
   at the root of ``<host>:<port>`` (its URL parser accepts no path prefix), so they are answered
   here, at the appliance's root, by streaming the current run's rerun proxy (``logs.live.LiveProxy``,
   127.0.0.1 only) through: the login, the run's read permission (its owner or an educator, as for
-  its log files) and a same-origin check apply to the live data as to everything else, and the
+  its log files; someone else's run answers as no stream at all) and a same-origin check apply to the live data as to everything else, and the
   Pi opened by its LAN address works like the Pi itself. Only the two read methods pass: nobody
   writes into a run's recording from a browser.
 
@@ -32,7 +32,7 @@ from fastapi.responses import FileResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
 
-from . import auth
+from . import ownership
 from .auth import Perm, requires, requires_grpc_web
 
 router = APIRouter()
@@ -46,6 +46,9 @@ MAX_LIVE_STREAMS = 16          # open live viewers at once (each is a replay of 
 _PASS_HEADERS = ("content-type", "grpc-status", "grpc-message", "grpc-encoding", "grpc-accept-encoding")
 _ASSET = re.compile(r"^[A-Za-z0-9._-]*$")
 _open_streams = 0
+# The one answer for "nothing live" and for "live, but someone else's run" (ownership.py).
+NO_LIVE_STREAM = ("no run you may watch has streamed since the appliance started "
+                  "(a run's live data is its owner's and the educators')")
 
 # gRPC status codes (grpc/doc/statuscodes.md) for answers the viewer can show.
 NOT_FOUND, PERMISSION_DENIED, RESOURCE_EXHAUSTED, UNIMPLEMENTED, UNAVAILABLE = 5, 7, 8, 12, 14
@@ -88,15 +91,13 @@ async def rerun_info(request: Request) -> dict[str, Any]:
     info: dict[str, Any] = {"available": True, "viewer": "/rerun/", "live_url": "", "live_run": None,
                             "live_recording": "", "live_running": False, "live_allowed": False,
                             "live_viewers": _open_streams}
-    if proxy is None:
-        info["live_reason"] = "no run has streamed since the appliance started"
+    # Someone else's stream answers as no stream at all (ownership.py): not even its run id.
+    if proxy is None or not ownership.may_see(ownership.user_of(request), proxy.owner):
+        info["live_reason"] = NO_LIVE_STREAM
         return info
     info.update(live_run=proxy.run_id, live_recording=f"run-{proxy.run_id}",
                 live_running=bool(run is not None and run.row.id == proxy.run_id and run.alive
                                   and not run.ended.is_set()))
-    if not auth.owns(request, proxy.owner):
-        info["live_reason"] = f"run {proxy.run_id} is {proxy.owner or 'an educator'}'s: only its owner and educators see its data"
-        return info
     scheme, hostport = _origin(request).split("://", 1)
     info.update(live_allowed=True, live_url=f"rerun+{scheme}://{hostport}/proxy")
     return info
@@ -168,10 +169,8 @@ async def live_stream(method: str, request: Request) -> Response:
     if method not in READ_METHODS:
         return grpc_error(403, PERMISSION_DENIED, f"{method}: the live stream is read-only here")
     proxy = LiveProxy.current()
-    if proxy is None:
-        return grpc_error(404, NOT_FOUND, "no run has streamed since the appliance started")
-    if not auth.owns(request, proxy.owner):
-        return grpc_error(403, PERMISSION_DENIED, f"run {proxy.run_id} is not yours: only its owner and educators see it")
+    if proxy is None or not ownership.may_see(ownership.user_of(request), proxy.owner):
+        return grpc_error(404, NOT_FOUND, NO_LIVE_STREAM)  # someone else's: as if there were none
     body = await _read_request(request)
     if body is None:
         return grpc_error(413, RESOURCE_EXHAUSTED, f"a read request is at most {MAX_REQUEST_BYTES} bytes")

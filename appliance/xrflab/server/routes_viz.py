@@ -11,7 +11,8 @@ from typing import Any, Optional
 from fastapi import APIRouter, HTTPException, Request
 from pydantic import BaseModel, Field
 
-from .auth import Perm, optional_user, owns, requires
+from . import ownership
+from .auth import Perm, requires
 
 router = APIRouter(prefix="/api/viz", tags=["3d view"])
 
@@ -49,11 +50,16 @@ async def viz_state(request: Request) -> dict[str, Any]:
     """What the scene shows now: mode (idle/live/replay), robot kind, joint angles (rad) or
     pose (m, rad), the setpoint ghost, and a message when there is no usable profile."""
     viz = _viz(request)
-    return {**viz.info(), **viz.shown}
+    shown = dict(viz.shown)
+    # The pose and the ghost are the robot's motion (everyone's); the raw Ros2Xeno setpoint
+    # (the student's field names and values) only for the run's owner (ownership.py).
+    if "setpoint" in shown and not ownership.current_run_is_visible(request, shown.get("run_id")):
+        shown["setpoint"] = {}
+    return {**viz.info(), **shown}
 
 
 # The scene is one, shared by everyone watching: changing what it shows is driving (the bench
-# holder, or an educator); a replay is only of a run the user may see (auth.owns).
+# holder, or an educator); a replay is only of a run the user may see (ownership.py).
 @router.post("/reset-odometry", dependencies=[requires(Perm.DRIVE)])
 async def reset_odometry(request: Request) -> dict[str, Any]:
     if not _viz(request).reset_odometry():
@@ -63,21 +69,21 @@ async def reset_odometry(request: Request) -> dict[str, Any]:
 
 @router.get("/recordings", dependencies=[requires(Perm.WATCH)])
 async def recordings(request: Request) -> list[dict[str, Any]]:
-    user = optional_user(request)
-    return [r for r in _viz(request).recordings() if user is not None and _may_see(request, user, r["run_id"])]
+    user = ownership.user_of(request)
+    return [r for r in _viz(request).recordings() if ownership.may_see(user, _run_owner(request, r["run_id"]))]
 
 
-def _may_see(request: Request, user: Any, run_id: int) -> bool:
+def _run_owner(request: Request, run_id: int) -> str | None:
     row = request.app.state.supervisor.store.get(run_id)
-    return owns(user, row.owner if row is not None else None)
+    return row.owner if row is not None else None
 
 
 @router.post("/replay", dependencies=[requires(Perm.DRIVE)])
 async def replay(body: ReplayRequest, request: Request) -> dict[str, Any]:
     viz = _viz(request)
-    user = optional_user(request)
-    if user is None or not _may_see(request, user, body.run_id):
-        raise HTTPException(404, f"run {body.run_id} has no 3D recording")  # as for a missing one
+    # Someone else's run: word for word the answer of a run without a recording (viz.load_replay)
+    ownership.require(ownership.user_of(request), request.app.state.supervisor.store.get(body.run_id),
+                      lambda r: r.owner, "run", body.run_id, detail=f"run {body.run_id} has no 3D recording")
     try:
         r = await asyncio.to_thread(viz.load_replay, body.run_id)
     except LookupError as exc:

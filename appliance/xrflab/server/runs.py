@@ -138,8 +138,13 @@ class RunStore:
         r = cur.fetchone()
         return _row(r) if r else None
 
-    def list(self, limit: int = 100) -> list[RunRow]:
-        cur = self._db.execute(f"SELECT {', '.join(_COLUMNS)} FROM runs ORDER BY id DESC LIMIT ?", (limit,))
+    def list(self, limit: int = 100, owner: str | None = None) -> list[RunRow]:
+        """Newest first; `owner`: only that user's runs (compared as auth.owns does)."""
+        if owner is None:
+            cur = self._db.execute(f"SELECT {', '.join(_COLUMNS)} FROM runs ORDER BY id DESC LIMIT ?", (limit,))
+        else:
+            cur = self._db.execute(f"SELECT {', '.join(_COLUMNS)} FROM runs WHERE lower(trim(owner)) = ? "
+                                   "ORDER BY id DESC LIMIT ?", (owner.strip().lower(), limit))
         return [_row(r) for r in cur.fetchall()]
 
 
