@@ -6,20 +6,27 @@ in a fresh build folder, inside a sandbox started by this module itself
 (``python -m xrflab.projects.builder --sandbox CONFIG -- CMD``), which, before exec'ing the build:
 
 - leaves the appliance's session (``setsid``), so the whole build can be killed as a group;
+- gets a PID namespace of its own (``unshare(CLONE_NEWPID)``, then a fork: the build's first
+  process is the namespace's init, killed with the sandbox process by ``PR_SET_PDEATHSIG``).
+  When it dies the kernel kills every other process in the namespace, however it detached
+  (``setsid``, double fork): ending a build ends exactly that build, never another appliance's
+  build that runs as the same build user. An IPC namespace as well (SysV IPC, POSIX queues);
 - takes the network away: a new network namespace with only a downed loopback
   (``unshare(CLONE_NEWNET)``; without root, inside a new user namespace); if the kernel refuses,
   the build goes on and the log says so (``sandbox: WARNING``);
-- as root: a private mount namespace with empty tmpfs on /tmp and /dev/shm (the running loop's
-  shared memory is not reachable), then ``PR_SET_NO_NEW_PRIVS``, and drops to the dedicated
+- as root: a private mount namespace with empty tmpfs on /tmp, /var/tmp, /run/lock and /dev/shm
+  (the world-writable folders: a build leaves nothing there, and the running loop's shared memory
+  is not reachable) and a /proc of its own namespace, then ``PR_SET_NO_NEW_PRIVS``, and drops to the dedicated
   unprivileged user ``xrf-build`` (created with ``useradd --system`` on first use); without
   root the build runs as the appliance's own (unprivileged) user;
 - runs at nice 19 under ``SCHED_IDLE`` on every CPU except the loop's (``rt_cpu``);
 - sets rlimits: address space (memory), processes (fork bombs), file size, CPU seconds, open
   files, no core dumps.
 
-The appliance enforces the wall time: at the limit it kills the process group and, as root,
-every process of the build user (``kill(-1)`` from a child running as that user), so nothing a
-build started outlives it.
+The appliance enforces the wall time: at the limit (and at the end of every build) it kills the
+sandbox's process group, which takes the PID namespace with it; where the kernel refused a PID
+namespace, it kills every process that carries this build's token in its environment
+(``XRF_BUILD_TOKEN``, random per build), never all processes of the build user.
 """
 
 from __future__ import annotations
@@ -31,8 +38,11 @@ import os
 import pwd
 import queue
 import re
+import secrets
+import select
 import shutil
 import signal
+import stat
 import subprocess
 import sys
 import threading
@@ -50,8 +60,17 @@ STREAM_MAX_LINES = 4000
 RESULT_FILE = "xrf-result.json"
 
 CLONE_NEWNS = 0x00020000
+CLONE_NEWIPC = 0x08000000
 CLONE_NEWUSER = 0x10000000
+CLONE_NEWPID = 0x20000000
 CLONE_NEWNET = 0x40000000
+PR_SET_PDEATHSIG = 1
+# Folders every user may write to: each gets an empty tmpfs in the build's mount namespace.
+PRIVATE_TMP = ("/tmp", "/var/tmp", "/run/lock", "/dev/shm")
+TOKEN_ENV = "XRF_BUILD_TOKEN"
+# Files the build writes: readable by the build user's group (the loop's user may be given it),
+# never by others (the data folder's rule, docs/developers/security.md).
+BUILD_UMASK = 0o027
 MS_REC = 16384
 MS_PRIVATE = 1 << 18
 MS_NOSUID = 2
@@ -142,14 +161,11 @@ def _confine(hide: str, keep: list[tuple[str, bool]]) -> None:
 
 
 def _sandbox_main(config: dict[str, Any], cmd: list[str]) -> int:
-    import resource
-
     def say(text: str) -> None:
         print(f"sandbox: {text}", flush=True)
 
     os.setsid()
     root = os.geteuid() == 0
-    uid, gid = config["uid"], config["gid"]
     # network and mounts: own namespaces (without root, inside a user namespace of our own uid)
     mount_ns = False
     try:
@@ -165,21 +181,79 @@ def _sandbox_main(config: dict[str, Any], cmd: list[str]) -> int:
         say("no network (own network namespace)")
     except OSError as exc:
         say(f"WARNING: could not take the network away ({exc}); building with the host's network")
-    try:
-        if root:
+    if root:
+        try:
             _unshare(CLONE_NEWNS)
             mount_ns = True
+        except OSError as exc:
+            say(f"WARNING: no mount namespace ({exc})")
+    # Processes: a PID namespace whose init is the build (forked below). The IPC one with it.
+    pid_ns = False
+    try:
+        _unshare(CLONE_NEWPID | CLONE_NEWIPC)
+        pid_ns = True
+    except OSError as exc:
+        say(f"WARNING: no PID namespace ({exc}); at the end only processes with this build's token are killed")
+    # Open in the sandbox process until it dies: tells the child whether it already did (its
+    # getppid() is 0 across the namespace boundary, so it cannot ask that).
+    alive_r, alive_w = os.pipe()
+    child = os.fork()
+    if child:
+        os.close(alive_r)
+        return _relay(child)
+    # The build's first process (PID 1 of its namespace): dies with the sandbox process, so a
+    # SIGKILL of the sandbox's group ends the namespace and everything in it.
+    os.close(alive_w)
+    _libc().prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    if select.select([alive_r], [], [], 0)[0]:  # EOF: the sandbox died before prctl took hold
+        os._exit(137)
+    os.close(alive_r)
+    try:
+        _confined_exec(config, cmd, say, root, mount_ns, pid_ns)
+    except BaseException as exc:  # noqa: BLE001 -- never back into the sandbox's code as a second copy of it
+        say(f"error: {exc!r}")
+    os._exit(127)
+
+
+def _relay(child: int) -> int:
+    """The sandbox process: wait for the build's first process and exit as it did."""
+    while True:
+        try:
+            _, status = os.waitpid(child, 0)
+            break
+        except InterruptedError:
+            continue
+    code = os.waitstatus_to_exitcode(status)
+    return 128 - code if code < 0 else code
+
+
+def _confined_exec(config: dict[str, Any], cmd: list[str], say: Callable[[str], None], root: bool,
+                   mount_ns: bool, pid_ns: bool) -> None:
+    import resource
+
+    uid, gid = config["uid"], config["gid"]
+    try:
         if not mount_ns:
             raise OSError("no mount namespace")
         _mount(None, "/", None, MS_REC | MS_PRIVATE, None)
-        for target in ("/tmp", "/dev/shm"):
+        for target in PRIVATE_TMP:
             if os.path.isdir(target):
                 _mount("tmpfs", target, "tmpfs", MS_NOSUID | MS_NODEV, f"size={config['tmpfs_mb']}m,mode=1777")
         if config.get("hide"):
             _confine(config["hide"], config["keep"])
             say(f"sees of {config['hide']} only its source (read-only), its build folder and rt_core (read-only)")
+        say(f"private {', '.join(t for t in PRIVATE_TMP if os.path.isdir(t))}")
     except OSError as exc:
-        say(f"WARNING: no private /tmp, /dev/shm and data folder ({exc})")
+        say(f"WARNING: no private {', '.join(PRIVATE_TMP)} and data folder ({exc})")
+    if pid_ns:
+        proc_note = ""
+        try:  # a /proc of its own namespace: the build sees its own processes only
+            if not mount_ns:
+                raise OSError("no mount namespace")
+            _mount("proc", "/proc", "proc", MS_NOSUID | MS_NODEV | MS_NOEXEC, None)
+        except OSError as exc:
+            proc_note = f" (the host's /proc stays: {exc})"
+        say(f"own PID namespace: every process of the build ends with it{proc_note}")
     # priority and CPUs
     try:
         os.setpriority(os.PRIO_PROCESS, 0, 19)
@@ -219,11 +293,11 @@ def _sandbox_main(config: dict[str, Any], cmd: list[str]) -> int:
         os.setgroups([])
         os.setgid(gid)
         os.setuid(uid)
+    os.umask(BUILD_UMASK)
     say(f"user {pwd.getpwuid(os.getuid()).pw_name} (uid {os.getuid()}), memory {config['memory_mb']} MB/process, "
         f"{config['nproc']} processes, files up to {config['fsize_mb']} MB, wall time {config['timeout_s']:.0f} s")
     sys.stdout.flush()
     os.execvpe(cmd[0], cmd, config["env"])
-    return 127
 
 
 def _inner_main(src: str, build_dir: str) -> int:
@@ -263,14 +337,37 @@ def ensure_build_user(name: str) -> tuple[int, int, str]:
     return pw.pw_uid, pw.pw_gid, f"root: builds run as {name} (uid {pw.pw_uid})"
 
 
-def kill_user_processes(uid: int) -> None:
-    """Every process of ``uid`` (the build user, never root) gets SIGKILL."""
-    if uid == 0 or os.geteuid() != 0 or uid == os.getuid():
-        return
-    # kill(-1) from a process of that user reaches exactly that user's processes (not itself).
-    code = (f"import os, signal\nos.setgroups([])\nos.setuid({uid})\n"
-            "try:\n    os.kill(-1, signal.SIGKILL)\nexcept ProcessLookupError:\n    pass\n")
-    subprocess.run([sys.executable, "-c", code], timeout=10, check=False)
+def build_processes(token: str) -> list[int]:
+    """Pids of the processes that carry ``token`` (XRF_BUILD_TOKEN) in their environment: one
+    build's, whichever appliance or user started them. Reading another user's environ needs root
+    (as root builds run as the build user) or the same uid (without root builds run as ours)."""
+    needle = f"{TOKEN_ENV}={token}".encode()
+    found = []
+    for entry in os.scandir("/proc"):
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            with open(f"/proc/{entry.name}/environ", "rb") as f:
+                env = f.read(1 << 20)
+        except OSError:
+            continue
+        if needle in env.split(b"\0"):
+            found.append(int(entry.name))
+    return found
+
+
+def kill_build_processes(token: str, rounds: int = 5) -> None:
+    """SIGKILL every process of one build (by its token), again while some keep appearing (a
+    fork racing the scan). Only needed where the kernel gave no PID namespace: with one, the
+    sandbox's death has ended them all already and this finds nothing."""
+    for _ in range(rounds):
+        pids = build_processes(token)
+        if not pids:
+            return
+        for pid in pids:
+            with _suppress():
+                os.kill(pid, signal.SIGKILL)
+        time.sleep(0.02)
 
 
 def _first_line(cmd: list[str]) -> str:
@@ -426,7 +523,7 @@ class Builder:
         self._thread: threading.Thread | None = None
         self.current: int | None = None
         self._user: tuple[int, int, str] | None = None
-        self._procs: dict[int, subprocess.Popen[str]] = {}
+        self._procs: dict[int, tuple[subprocess.Popen[str], str]] = {}  # pid -> (sandbox, build token)
         self.on_done: list[Callable[[BuildRow], None]] = []
 
     # -- public ---------------------------------------------------------------------------------
@@ -462,11 +559,10 @@ class Builder:
         with self._lock:
             procs = list(self._procs.values())
         self._queue.put(None)
-        for p in procs:
+        for p, token in procs:  # this builder's builds only: another appliance's go on
             with _suppress():
                 os.killpg(p.pid, signal.SIGKILL)
-        if self._user:
-            kill_user_processes(self._user[0])
+            kill_build_processes(token)
 
     # -- worker ---------------------------------------------------------------------------------
 
@@ -544,7 +640,8 @@ class Builder:
                 cache_dir = self._rt_core_for_user(prefix, uid)
                 self._check_reachable(build_dir, uid, gid)
                 os.chown(build_dir, uid, gid)
-                os.chmod(build_dir, 0o755)
+                os.chmod(build_dir, 0o751)  # the build user's; others may only pass (no listing)
+                self._share_source(job.src, uid, gid)
                 timed_out, rc = self._run_sandboxed(job.src, build_dir, cache_dir, uid, gid, log)
                 result = self._read_result(build_dir)
                 ok = rc == 0 and not timed_out and bool(result.get("ok"))
@@ -623,13 +720,42 @@ class Builder:
         return mirror
 
     def _check_reachable(self, path: Path, uid: int, gid: int) -> None:
+        """The build user must pass every folder down to ``path``. Our own folders inside the data
+        folder get search permission for others (``o+x``: pass, never list or read; the 0o077
+        umask left them without); anything else that blocks it is an error to fix by hand."""
         if uid == os.getuid():
             return
+        base = (self.hide_dir or self.projects_root).resolve()
         for parent in [*reversed(path.parents)]:
             st = parent.stat()
-            if not (st.st_mode & 0o001 or (st.st_uid == uid and st.st_mode & 0o100) or (st.st_gid == gid and st.st_mode & 0o010)):
-                raise RuntimeError(f"the build user cannot reach {parent} (no search permission): put the appliance's "
-                                   "data folder where other users may pass (chmod o+x)")
+            if st.st_mode & 0o001 or (st.st_uid == uid and st.st_mode & 0o100) or (st.st_gid == gid and st.st_mode & 0o010):
+                continue
+            if parent.resolve().is_relative_to(base) and st.st_uid == os.getuid():
+                os.chmod(parent, stat.S_IMODE(st.st_mode) | 0o001)
+                continue
+            raise RuntimeError(f"the build user cannot reach {parent} (no search permission): put the appliance's "
+                               "data folder where other users may pass (chmod o+x)")
+
+    def _share_source(self, src: Path, uid: int, gid: int) -> None:
+        """The build user reads the project's source through its group (read-only; the source is
+        mounted read-only in the sandbox as well), never through 'other' bits: a data-folder file
+        is never world-readable. Links are left alone (an archive brings none)."""
+        if uid == os.getuid():
+            return
+        for dirpath, dirnames, filenames in os.walk(src):
+            for name in [".", *dirnames, *filenames]:
+                path = os.path.join(dirpath, name)
+                st = os.lstat(path)
+                if stat.S_ISLNK(st.st_mode):
+                    continue
+                mode = stat.S_IMODE(st.st_mode) & 0o700
+                if stat.S_ISDIR(st.st_mode):
+                    mode |= 0o050
+                else:
+                    mode |= 0o040 | (0o010 if mode & 0o100 else 0)
+                if st.st_gid != gid:
+                    os.chown(path, -1, gid, follow_symlinks=False)
+                os.chmod(path, mode)
 
     def _python_for(self, uid: int) -> str:
         if uid == os.getuid():
@@ -642,7 +768,9 @@ class Builder:
     def _run_sandboxed(self, src: Path, build_dir: Path, cache_dir: Path | None, uid: int, gid: int,
                        log: Callable[[str], None]) -> tuple[bool, int]:
         cfg = self.config
+        token = secrets.token_hex(16)
         env = {
+            TOKEN_ENV: token,  # marks this build's processes (kill_build_processes)
             "PATH": "/usr/local/bin:/usr/bin:/bin",
             "HOME": str(build_dir),
             "TMPDIR": "/tmp",
@@ -668,11 +796,11 @@ class Builder:
             if all(Path(k).is_relative_to(hide) for k, _ in keep[:2]):
                 config.update(hide=str(hide), keep=keep)
         cmd = [sys.executable, "-m", "xrflab.projects.builder", "--sandbox", json.dumps(config), "--", *inner]
-        wenv = {"PATH": env["PATH"], "PYTHONPATH": str(APPLIANCE_DIR), "LANG": "C.UTF-8"}
+        wenv = {TOKEN_ENV: token, "PATH": env["PATH"], "PYTHONPATH": str(APPLIANCE_DIR), "LANG": "C.UTF-8"}
         proc = subprocess.Popen(cmd, cwd=build_dir, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                 stderr=subprocess.STDOUT, text=True, errors="replace", bufsize=1, env=wenv)
         with self._lock:
-            self._procs[proc.pid] = proc
+            self._procs[proc.pid] = (proc, token)
 
         def pump() -> None:
             assert proc.stdout is not None
@@ -690,10 +818,12 @@ class Builder:
                 os.killpg(proc.pid, signal.SIGKILL)
             rc = proc.wait()
         finally:
-            # Whatever the build left behind (background children, a fork bomb's remains).
+            # Whatever the build left behind (background children, a fork bomb's remains): the
+            # group's SIGKILL ends the PID namespace; the token finds them without one. Only
+            # this build's: another appliance's build as the same user goes on.
             with _suppress():
                 os.killpg(proc.pid, signal.SIGKILL)
-            kill_user_processes(uid)
+            kill_build_processes(token)
             with self._lock:
                 self._procs.pop(proc.pid, None)
         reader.join(5)
