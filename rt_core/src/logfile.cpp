@@ -46,6 +46,16 @@ const char *logfile_type_name(int32_t type)
     }
 }
 
+const char *logfile_write_hint(int err)
+{
+    // Under the appliance the loop may write in its run folder only (a mount namespace covers
+    // the rest): say so, or the student hunts for a permission problem that is by design.
+    const char *dir = std::getenv("XRF_LOG_DIR");
+    if (dir && *dir && (err == EROFS || err == EACCES || err == EPERM))
+        return " (only the run folder is writable)";
+    return "";
+}
+
 namespace {
 
 void jsonString(std::string &out, const char *s)
@@ -162,8 +172,9 @@ void logfile_drain(const xrf_shm *shm, xrf_log_meta *meta, xrf_ring *ring, const
         mkdirParents(path);
         sink->fd = open(path, O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC, m.file_mode ? m.file_mode : 0644);
         if (sink->fd < 0 || !writeHeader(sink->fd, shm, m, ring->slot_size, program)) {
-            std::fprintf(stderr, "xrf: cannot write the log file %s: %s; logging stops\n", path,
-                         std::strerror(errno));
+            int err = errno;
+            std::fprintf(stderr, "xrf: cannot write the log file %s: %s%s; logging stops\n", path,
+                         std::strerror(err), logfile_write_hint(err));
             if (sink->fd >= 0)
                 close(sink->fd);
             sink->fd = -1;

@@ -20,4 +20,8 @@ void logfile_close(LogSink *sink);
 int logfile_type_size(int32_t type);
 const char *logfile_type_name(int32_t type);
 
+// What to add to a failed open's message: " (only the run folder is writable)" for a
+// permission or read-only error under the appliance (XRF_LOG_DIR set), else "".
+const char *logfile_write_hint(int err);
+
 } // namespace xrf

@@ -2,13 +2,57 @@
 #include "XenoFileHandler.hpp"
 #include "XenoFrtLogger.hpp"
 
+#include <cerrno>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
 #include <ctime>
+#include <fcntl.h>
+#include <sys/stat.h>
+#include <unistd.h>
+#include <vector>
 
 #include "logfile.h"
 #include "xrf/runtime.hpp"
+
+namespace {
+
+// A name with the run folder as its root: "." and empty parts dropped, ".." never climbing
+// above the root (as in a chroot, "/.." is "/"). "/home/x/logs/log" -> "home/x/logs/log".
+std::string underRunFolder(const std::string &name)
+{
+    std::vector<std::string> parts;
+    size_t i = 0;
+    while (i <= name.size()) {
+        size_t j = name.find('/', i);
+        if (j == std::string::npos)
+            j = name.size();
+        std::string part = name.substr(i, j - i);
+        if (part == "..") {
+            if (!parts.empty())
+                parts.pop_back();
+        } else if (!part.empty() && part != ".") {
+            parts.push_back(part);
+        }
+        i = j + 1;
+    }
+    std::string out;
+    for (const std::string &p : parts)
+        out += (out.empty() ? "" : "/") + p;
+    return out;
+}
+
+int makeParents(const char *path)
+{
+    std::string p(path);
+    for (size_t i = 1; i < p.size(); i++) {
+        if (p[i] == '/' && mkdir(p.substr(0, i).c_str(), 0775) != 0 && errno != EEXIST)
+            return -errno;
+    }
+    return 0;
+}
+
+} // namespace
 
 XenoFileHandler::XenoFileHandler(bool add_timestamp, const std::string &name,
                                  const std::string &type, mode_t mode)
@@ -18,9 +62,6 @@ XenoFileHandler::XenoFileHandler(bool add_timestamp, const std::string &name,
     if (!ext.empty() && ext[0] == '.')
         ext.erase(0, 1);
     std::string base = name;
-    const char *dir = std::getenv("XRF_LOG_DIR");
-    if (dir && *dir && !base.empty() && base[0] != '/')
-        base = std::string(dir) + "/" + base;
     if (add_timestamp) {
         std::time_t now = std::time(nullptr);
         std::tm tm{};
@@ -31,7 +72,36 @@ XenoFileHandler::XenoFileHandler(bool add_timestamp, const std::string &name,
     }
     if (!ext.empty())
         base += "." + ext;
-    std::snprintf(path_, sizeof path_, "%s", base.c_str());
+    // Under the appliance (XRF_LOG_DIR = the run folder) every name lands in the run folder with
+    // the same layout, absolute ones included: XRF2 students write to /home/<name>/logs/...,
+    // which is not theirs on a shared bench, and the run's downloads list the run folder only.
+    // Said once here, at set-up, so the student knows where to look.
+    const char *dir = std::getenv("XRF_LOG_DIR");
+    std::string path = base;
+    if (dir && *dir) {
+        std::string rel = underRunFolder(base);
+        path = std::string(dir) + "/" + rel;
+        std::printf("xrf: log %s -> %s in the run folder\n", base.c_str(), rel.c_str());
+    }
+    if (path.size() >= sizeof path_) {
+        std::fprintf(stderr, "xrf: the log file name %s is longer than %zu characters; not logged\n",
+                     path.c_str(), sizeof path_ - 1);
+        path.clear();
+    }
+    std::snprintf(path_, sizeof path_, "%s", path.c_str());
+    const char *writer = std::getenv("XRF_LOG_WRITER");
+    if (path_[0] != '\0' && !(writer && std::strcmp(writer, "host") == 0)) {
+        // This process writes the file: find out now, at set-up, whether it can (XRF2 opened it
+        // here too). The host writer reports its own failures in the monitor.
+        makeParents(path_);
+        int fd = open(path_, O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC, mode_);
+        if (fd < 0)
+            std::fprintf(stderr, "xrf: cannot write the log file %s: %s%s\n", path_, std::strerror(errno),
+                         xrf::logfile_write_hint(errno));
+        else
+            close(fd);
+    }
+    std::fflush(stdout);
 }
 
 XenoFrtLogger::XenoFrtLogger(XenoFileHandler &file, void *data) : file_(file), data_(data) {}

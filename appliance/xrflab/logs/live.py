@@ -49,6 +49,8 @@ from typing import Any
 
 import numpy as np
 
+from .runfolder import RunPathError, confine, open_in
+
 log = logging.getLogger("xrflab.logs.live")
 
 WAIT_MS = 20            # longest time between two drains when no doorbell rings
@@ -112,7 +114,8 @@ class HostLogWriter:
     def __init__(self, ch: Any, identity: dict[str, str], run_dir: Path,
                  on_alarm: Callable[[str], None] | None = None,
                  on_records: Callable[[np.ndarray], None] | None = None,
-                 timing: bool = True, source: str = "log") -> None:
+                 timing: bool = True, source: str = "log",
+                 on_note: Callable[[str], None] | None = None) -> None:
         from .. import channels as chmod
 
         self._ch = ch
@@ -122,6 +125,7 @@ class HostLogWriter:
         self._identity = identity
         self._run_dir = run_dir
         self._on_alarm = on_alarm
+        self._on_note = on_note
         self._on_records = on_records
         self._timing = timing
         self.stats = WriterStats()
@@ -248,25 +252,36 @@ class HostLogWriter:
             self._fd = -1
         if self.stats.failed:
             return
-        path = self._ffi.string(m.path, self._lib.XRF_PATH_MAX).decode("utf-8", "replace")
-        if not os.path.isabs(path):
-            path = str(self._run_dir / path)
+        published = self._ffi.string(m.path, self._lib.XRF_PATH_MAX).decode("utf-8", "replace")
         info = self._ch.info
         meta = {
             "program": info.get("program", ""), **self._identity, "pid": info.get("pid", 0),
             "cycle_freq": info.get("cycle_freq", 0), "start_unix_ns": time.time_ns(),
             "start_mono_ns": time.monotonic_ns(), "record_size": int(m.record_size), "variables": variables,
         }
+        # The loop names the file and is not trusted: the name is confined to the run folder
+        # and opened without following symlinks (runfolder.py), whatever the loop published.
         try:
-            Path(path).parent.mkdir(parents=True, exist_ok=True)
-            self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC,
-                               int(m.file_mode) or 0o644)
+            rel = confine(self._run_dir, published)
+        except RunPathError as exc:
+            self._fail(f"{exc}: refused, not logged", published)
+            return
+        path = str(self._run_dir / rel)
+        try:
+            self._fd = open_in(self._run_dir, rel, os.O_WRONLY | os.O_CREAT | os.O_APPEND,
+                               int(m.file_mode) or 0o644, create_dirs=True)
             self._size = os.fstat(self._fd).st_size
             self._write_all(segment_header(meta, self._stride))
         except OSError as exc:
-            self._fail(f"cannot write the log file {path}: {exc.strerror or exc}", path)
+            self._fail(f"cannot write the log file {rel} of the run: {exc.strerror or exc}", path)
             return
         self.stats.files.append(path)
+        if self._on_note is not None:
+            # Where the file went, in the console: an XRF2 name like /home/x/logs/log is not
+            # where the student will find it (the runtime says so too, at set-up).
+            outside = os.path.isabs(published) and not published.startswith(str(self._run_dir) + "/")
+            shown = published if outside else rel
+            self._on_note(f"log {shown} -> {self._run_dir.parent.name}/{self._run_dir.name}/{rel}")
 
     def _write_all(self, data: Any) -> None:
         view = memoryview(data)
@@ -336,7 +351,8 @@ class HostLogWriter:
         line = {"t_unix": time.time(), "cycles": s.cycles, "missed": s.missed, "log_written": s.log_written,
                 "log_lost": s.log_lost, "stages": stages}
         try:
-            with open(self._run_dir / "timing.jsonl", "a") as f:
+            fd = open_in(self._run_dir, "timing.jsonl", os.O_WRONLY | os.O_CREAT | os.O_APPEND)
+            with open(fd, "a", closefd=True) as f:
                 f.write(json.dumps(line, separators=(",", ":")) + "\n")
         except OSError:
             pass  # a full disk already raised the log alarm; timing is best effort
@@ -644,14 +660,17 @@ class RunLogging:
 
 
 def start(ch: Any, run_id: int, run_dir: Path, identity: dict[str, str], owner: str,
-          on_alarm: Callable[[str], None], live: bool = True, log_timing: bool = False) -> RunLogging:
+          on_alarm: Callable[[str], None], live: bool = True, log_timing: bool = False,
+          on_note: Callable[[str], None] | None = None) -> RunLogging:
     """Start the host writer (and the live rerun stream unless disabled or unavailable; and the
-    timing writer when the loop logs its per-cycle timing)."""
-    writer = HostLogWriter(ch, identity, run_dir, on_alarm=on_alarm)
+    timing writer when the loop logs its per-cycle timing). `on_note`: a line for the run's
+    console (where a log file went)."""
+    writer = HostLogWriter(ch, identity, run_dir, on_alarm=on_alarm, on_note=on_note)
     writer.start()
     rl = RunLogging(writer, None)
     if log_timing:
-        rl.timing = HostLogWriter(ch, identity, run_dir, on_alarm=on_alarm, timing=False, source="cycle_timing")
+        rl.timing = HostLogWriter(ch, identity, run_dir, on_alarm=on_alarm, timing=False, source="cycle_timing",
+                                  on_note=on_note)
         rl.timing.start()
     if live and os.environ.get("XRF_LIVE_RERUN", "1") != "0":
         # rerun's import and servers take a moment on the first run: not on the event loop,
@@ -701,9 +720,17 @@ def start_for(sup: Any, run: Any) -> RunLogging | None:
     row = run.row
     hub, store = sup.hub, sup.store
 
+    def console(text: str) -> None:  # called from the writer thread
+        try:
+            loop.call_soon_threadsafe(hub.publish, "monitor", {"run_id": row.id, "source": "appliance",
+                                                                "lines": [{"text": text}]})
+        except RuntimeError:
+            pass
+
     def alarm(message: str) -> None:  # called from the writer thread
         def publish() -> None:
             hub.publish("alarm", {"kind": "log", "run_id": row.id, "message": message})
+            hub.publish("monitor", {"run_id": row.id, "source": "appliance", "lines": [{"text": message}]})
             try:
                 store.update(row.id, log_note=message)
             except Exception:  # the database may sit on the same full disk
@@ -718,7 +745,7 @@ def start_for(sup: Any, run: Any) -> RunLogging | None:
     loop = asyncio.get_running_loop()
     identity = {"project": row.build, "build": row.build, "run": str(row.id)}
     return start(ch, row.id, run.run_dir, identity, row.owner, alarm,
-                 live=os.environ.get("XRF_LIVE_RERUN", "1") != "0", log_timing=run.log_timing)
+                 live=os.environ.get("XRF_LIVE_RERUN", "1") != "0", log_timing=run.log_timing, on_note=console)
 
 
 async def finish_for(sup: Any, run: Any) -> None:

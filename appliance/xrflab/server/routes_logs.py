@@ -2,11 +2,17 @@
 for the rerun viewer among them), and `read_run_log()` for other parts of the appliance (the 3D view
 replays a finished run from it).
 
-Downloads: `raw` is the file itself (FileResponse); `csv` streams (`iter_csv_chunks`, iterated
+Downloads: `raw` is the file itself (streamed); `csv` streams (`iter_csv_chunks`, iterated
 in Starlette's thread pool, memory bounded by one chunk); `mat`, `parquet` and `rrd` are
-converted once, off the event loop, into `<run>/.cache/` (keyed by the source's size and mtime,
-so a file that grew is converted again) and then served as files. Every output is what
-`xrf decode` writes for the same file: the same code (`xrflab.logs.convert`).
+converted once, off the event loop, into `<data>/log-cache/<run>/` (keyed by the source's name,
+size and mtime, so a file that grew is converted again) and then served as files. Every output
+is what `xrf decode` writes for the same file: the same code (`xrflab.logs.convert`).
+
+A run folder's contents are the loop's to make (its log files in nested folders, like
+``home/x/logs/log_…xrf``, but also symlinks or FIFOs if it wants): files are listed without
+following symlinks and opened with ``O_NOFOLLOW`` from the run folder down
+(``logs/runfolder.py``), so no name in a run folder reads anything outside it, and conversions
+are written outside the run folder, where the loop cannot plant a symlink for them to follow.
 
 The rerun viewer (live and recorded) and its live stream are in routes_rerun.py.
 """
@@ -14,8 +20,10 @@ The rerun viewer (live and recorded) and its live stream are in routes_rerun.py.
 from __future__ import annotations
 
 import asyncio
+import os
 import re
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Literal
 
@@ -24,13 +32,16 @@ from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import FileResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
 
+from ..logs.runfolder import RunPathError, fd_path, open_in, walk_files
 from . import ownership
 from .auth import Perm, requires
 
 router = APIRouter()
 
 LOG_SUFFIXES = (".xrf", ".bin")
-CACHE_DIR = ".cache"
+CACHE_DIR = ".cache"          # where conversions once lived in the run folder: never listed
+CACHE_ROOT = "log-cache"      # <data>/log-cache/<run id>/: conversions, out of the loop's reach
+NOT_LOGS = ("output.txt", "timing.jsonl", "ros-bridge.txt")
 MEDIA = {
     "raw": "application/octet-stream",
     "csv": "text/csv; charset=utf-8",
@@ -44,12 +55,13 @@ _convert_locks: dict[str, asyncio.Lock] = {}
 # ---- finding a run's logs (also for other modules) ------------------------------------------
 
 
-def _is_log(path: Path) -> bool:
+def _is_log(root: Path, rel: str) -> bool:
     """xrflog by its magic; an XRF2 .bin by its two header lines (names, type codes)."""
+    path = Path(rel)
     try:
-        with open(path, "rb") as f:
+        with open(open_in(root, rel), "rb") as f:
             head = f.read(64 * 1024)
-    except OSError:
+    except (OSError, RunPathError):
         return False
     if head[:8] == b"XRFLOG1\n":
         return True
@@ -67,13 +79,29 @@ def run_log_files(run_dir: str | Path) -> list[Path]:
     if not root.is_dir():
         return []
     found = []
-    for path in root.rglob("*"):
-        rel = path.relative_to(root)
-        if rel.parts[0] in (CACHE_DIR, "viz") or not path.is_file() or path.name in ("output.txt", "timing.jsonl"):
-            continue
-        if _is_log(path):
-            found.append(path)
-    return sorted(found, key=lambda p: (p.stat().st_mtime_ns, str(p)))
+    # Nested folders too (an XRF2 name like /home/x/logs/log lands in <run>/home/x/logs/);
+    # symlinks are not followed: the loop made this folder.
+    for rel, st in walk_files(root, skip_top=(CACHE_DIR, "viz", *NOT_LOGS)):
+        if _is_log(root, rel):
+            found.append((st.st_mtime_ns, rel))
+    return [root / rel for _, rel in sorted(found)]
+
+
+def open_run_log(root: Path, path: Path) -> Any:
+    """`open_log` of a run's file, opened without following symlinks (runfolder.open_in); the
+    LogFile keeps the file's own path (names in conversions, messages)."""
+    from ..logs import LogFormatError, open_log
+
+    rel = path.relative_to(root).as_posix()
+    fd = open_in(root, rel)
+    try:
+        log = open_log(fd_path(fd))  # mapped: stays valid after the fd is closed
+    except LogFormatError as exc:
+        raise LogFormatError(str(exc).replace(fd_path(fd), str(path))) from None
+    finally:
+        os.close(fd)
+    log.path = path
+    return log
 
 
 def read_run_log(run_dir: str | Path, name: str | None = None) -> dict[str, np.ndarray]:
@@ -82,7 +110,6 @@ def read_run_log(run_dir: str | Path, name: str | None = None) -> dict[str, np.n
     float64) when the file has a clock. `name`: a file name relative to the run folder (default:
     the newest log). Raises FileNotFoundError when the run has no log; damaged files give every
     complete record (see docs/logging/decoding.md). Blocking: call it off the event loop."""
-    from ..logs import open_log
     from ..logs.convert import _plain
 
     files = run_log_files(run_dir)
@@ -90,7 +117,7 @@ def read_run_log(run_dir: str | Path, name: str | None = None) -> dict[str, np.n
         files = [p for p in files if p.relative_to(run_dir).as_posix() == name]
     if not files:
         raise FileNotFoundError(f"{run_dir}: no log file" + (f" named {name!r}" if name else ""))
-    log = open_log(files[-1])
+    log = open_run_log(Path(run_dir), files[-1])
     rec = log.records
     out = {col: np.array(_plain(rec[col])) for col in log.columns if col in rec.dtype.names}
     if log.kind == "xrf2":
@@ -182,12 +209,12 @@ def _file(row: Any, name: str) -> Path:
 
 
 def _file_info(root: Path, path: Path) -> dict[str, Any]:
-    from ..logs import LogFormatError, open_log
+    from ..logs import LogFormatError
 
-    base = {"name": path.relative_to(root).as_posix(), "size": path.stat().st_size}
+    base = {"name": path.relative_to(root).as_posix(), "size": path.lstat().st_size}
     try:
-        log = open_log(path)
-    except (OSError, LogFormatError) as exc:
+        log = open_run_log(root, path)
+    except (OSError, LogFormatError, RunPathError) as exc:
         return base | {"kind": "unreadable", "records": 0, "lost": 0, "segments": 0, "variables": [],
                        "skipped": [], "skipped_bytes": 0, "error": str(exc)}
     return base | {"kind": log.kind, "records": len(log), "lost": log.lost, "segments": len(log.segments),
@@ -201,20 +228,46 @@ def _download_name(row: Any, path: Path, fmt: str) -> str:
     return f"run{row.id}_{stem}{suffix}"
 
 
-async def _cached(path: Path, root: Path, fmt: str) -> Path:
+def _cache_dir(request: Request, row: Any) -> Path:
+    settings = getattr(request.app.state, "settings", None)
+    data = settings.data_dir if settings is not None else Path(row.run_dir).parent.parent
+    return Path(data) / CACHE_ROOT / str(row.id)
+
+
+async def _cached(path: Path, root: Path, fmt: str, cache: Path) -> Path:
     from ..logs import convert
 
-    st = path.stat()
-    key = re.sub(r"[^A-Za-z0-9._-]", "_", path.relative_to(root).as_posix())
-    target = root / CACHE_DIR / f"{key}.{st.st_size}-{st.st_mtime_ns}.{fmt}"
+    rel = path.relative_to(root).as_posix()
+    st = await asyncio.to_thread(_stat_in, root, rel)
+    key = re.sub(r"[^A-Za-z0-9._-]", "_", rel)
+    target = cache / f"{key}.{st.st_size}-{st.st_mtime_ns}.{fmt}"
     lock = _convert_locks.setdefault(str(target), asyncio.Lock())
     async with lock:
         if not target.exists():
-            target.parent.mkdir(exist_ok=True)
-            for old in target.parent.glob(f"{key}.*.{fmt}"):  # superseded conversions of a grown file
+            cache.mkdir(parents=True, exist_ok=True, mode=0o700)
+            for old in cache.glob(f"{key}.*.{fmt}"):  # superseded conversions of a grown file
                 old.unlink(missing_ok=True)
-            await asyncio.to_thread(convert, path, fmt, target)
+            log = await asyncio.to_thread(open_run_log, root, path)
+            await asyncio.to_thread(convert, path, fmt, target, log=log)
     return target
+
+
+def _stat_in(root: Path, rel: str) -> os.stat_result:
+    fd = open_in(root, rel)
+    try:
+        return os.fstat(fd)
+    finally:
+        os.close(fd)
+
+
+def _raw_chunks(fd: int, size: int) -> Iterator[bytes]:
+    with open(fd, "rb") as f:  # closed when the response ends, or is dropped
+        while size > 0:
+            chunk = f.read(min(size, 1 << 20))
+            if not chunk:
+                return
+            size -= len(chunk)
+            yield chunk
 
 
 # ---- runs and files -------------------------------------------------------------------------
@@ -245,23 +298,31 @@ async def run_logs(run_id: int, request: Request) -> dict[str, Any]:
             response_class=Response)
 async def download(run_id: int, name: str, request: Request,
                    fmt: Literal["raw", "csv", "mat", "parquet", "rrd"] = "raw") -> Response:
-    from ..logs import LogFormatError, iter_csv_chunks, open_log
+    from ..logs import LogFormatError, iter_csv_chunks
 
     row = _row(request, run_id)
     path = _file(row, name)
+    root = Path(row.run_dir)
     headers = {"Content-Disposition": f'attachment; filename="{_download_name(row, path, fmt)}"'}
-    if fmt == "raw":
-        return FileResponse(path, media_type=MEDIA["raw"], headers=headers)
     try:
+        if fmt == "raw":
+            # Read through a descriptor opened without following symlinks, not by name: the
+            # loop may swap the file for a symlink after the listing.
+            fd = open_in(root, path.relative_to(root).as_posix())
+            size = os.fstat(fd).st_size
+            headers["Content-Length"] = str(size)
+            return StreamingResponse(_raw_chunks(fd, size), media_type=MEDIA["raw"], headers=headers)
         if fmt == "csv":
-            log = await asyncio.to_thread(open_log, path)
+            log = await asyncio.to_thread(open_run_log, root, path)
             log.check_uniform()
             headers["X-Log-Skipped"] = str(len(log.skipped))
             headers["X-Log-Lost"] = str(log.lost)
             return StreamingResponse(iter_csv_chunks(path, log=log), media_type=MEDIA["csv"], headers=headers)
-        target = await _cached(path, Path(row.run_dir), fmt)
+        target = await _cached(path, root, fmt, _cache_dir(request, row))
     except LogFormatError as exc:
         raise HTTPException(422, str(exc)) from None
+    except (OSError, RunPathError):
+        raise HTTPException(404, f"run {row.id} has no log file {name!r}") from None
     return FileResponse(target, media_type=MEDIA[fmt], headers=headers)
 
 

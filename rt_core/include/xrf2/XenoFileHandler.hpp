@@ -1,6 +1,9 @@
-// XenoFileHandler — names the log file: <name>_YYMMDD_HHMMSS.<type> when add_timestamp, relative
-// names under $XRF_LOG_DIR. Parent folders are created and the file is appended to; the loop
-// process's helper thread (or the appliance) opens and writes it, never the loop thread.
+// XenoFileHandler — names the log file: <name>_YYMMDD_HHMMSS.<type> when add_timestamp. Under the
+// appliance ($XRF_LOG_DIR = the run folder) every name, absolute ones included, is mapped into the
+// run folder with the same layout ("/home/x/logs/log" -> "<run>/home/x/logs/log", ".." never above
+// it) and the mapping is printed at construction. Parent folders are created and the file is
+// appended to; the loop process's helper thread (or the appliance) opens and writes it, never the
+// loop thread. When this process writes it, the constructor tries it at once and prints why not.
 #pragma once
 
 #include <string>
