@@ -82,8 +82,9 @@ def _run(cmd: list[str], log: Log, cwd: Optional[Path] = None, what: str = "") -
     env = dict(os.environ)
     env.setdefault("CLICOLOR_FORCE", "0")
     try:
-        proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                text=True, errors="replace", bufsize=1, env=env)
+        # close_fds (the default) and no stdin: cmake and the compilers get their output pipe only.
+        proc = subprocess.Popen(cmd, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True, errors="replace", bufsize=1, env=env)
     except OSError as exc:
         raise BuildError(f"{what or cmd[0]}: cannot run {cmd[0]}: {exc}") from exc
     assert proc.stdout is not None

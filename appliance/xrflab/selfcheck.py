@@ -398,8 +398,9 @@ class SelfCheck:
                 report.outputs_zeroed = True  # nothing was driven
                 self.report = report
                 return
-            self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                          encoding="utf-8", errors="replace")
+            # close_fds (the default) and no stdin: the helper gets its pipes only.
+            self._proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                          stderr=subprocess.PIPE, text=True, encoding="utf-8", errors="replace")
         proc = self._proc
         ended = False
         try:

@@ -69,15 +69,34 @@ def run(args: argparse.Namespace) -> int:
 
 
 def listening_socket(settings: Settings) -> socket.socket:
-    """The server socket, with a bounded send buffer every accepted connection inherits."""
+    """The server socket, with a bounded send buffer every accepted connection inherits.
+
+    Close-on-exec (Python's default, kept): no child may hold it. A controller that inherited it
+    could accept() other users' logins, and an orphaned child holding it after a kill -9 of the
+    appliance kept the port, so the restarted appliance failed with "Address already in use".
+    uvicorn serves a non-inheritable socket as well (sockets=[...], one process)."""
     family = socket.AF_INET6 if ":" in settings.host else socket.AF_INET
     sock = socket.socket(family, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, settings.send_buffer_bytes)
     sock.bind((settings.host, settings.port))
     sock.listen(128)
-    sock.set_inheritable(True)
     return sock
+
+
+def close_inherited_fds() -> None:
+    """Mark every descriptor above 2 that the appliance was started with close-on-exec: whatever
+    its parent leaked to it (a terminal's, a test harness's) must not reach the children it
+    starts. Descriptors it opens itself are close-on-exec already (PEP 446, O_CLOEXEC in rt_core)."""
+    import os
+
+    for name in os.listdir("/proc/self/fd"):
+        fd = int(name)
+        if fd > 2:
+            try:
+                os.set_inheritable(fd, False)
+            except OSError:
+                pass  # the listing's own descriptor, gone by now
 
 
 # Everything the appliance creates (databases and their WAL/SHM, runs, logs, projects, uploads,
@@ -96,4 +115,5 @@ def serve(app: Any, settings: Settings) -> None:
     # process on this host (a student's controller); create_app() honours it only from
     # settings.trusted_proxies.
     config = uvicorn.Config(app, log_level="warning", ws_max_size=WS_PROTOCOL_MAX, proxy_headers=False)
+    close_inherited_fds()
     uvicorn.Server(config).run(sockets=[listening_socket(settings)])

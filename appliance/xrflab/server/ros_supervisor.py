@@ -29,6 +29,7 @@ import os
 import resource
 import secrets
 import signal
+import subprocess
 import sys
 import tempfile
 import time
@@ -37,6 +38,7 @@ from typing import Any
 
 from .. import channels as chmod
 from . import audit
+from .children import Child, spawn
 
 log = logging.getLogger("xrflab.ros_supervisor")
 
@@ -86,7 +88,7 @@ class BridgeProc:
     def __init__(self, run: Any, user: str) -> None:
         self.run = run
         self.user = user
-        self.proc: asyncio.subprocess.Process | None = None
+        self.proc: Child | None = None
         self.token = ""
         self.stop = asyncio.Event()
         self.task: asyncio.Task[None] | None = None
@@ -199,7 +201,7 @@ class RosBridgeSupervisor:
         return [sys.executable, "-m", "xrflab.cli", "ros-bridge", "--shm", bp.run.shm, "--user", bp.user,
                 "--priority", str(self.priority), "--gate-url", f"unix:{self.socket_path}"]
 
-    async def _spawn(self, bp: BridgeProc) -> asyncio.subprocess.Process:
+    async def _spawn(self, bp: BridgeProc) -> Child:
         bp.token = secrets.token_urlsafe(32)
         package_root = str(Path(__file__).resolve().parents[2])  # appliance/, holding xrflab
         env = dict(os.environ)
@@ -212,9 +214,11 @@ class RosBridgeSupervisor:
             out.write(f"--- {time.strftime('%Y-%m-%d %H:%M:%S')} xrf ros-bridge for user '{bp.user}' "
                       f"({self.sched_note})\n".encode())
             out.flush()
-            return await asyncio.create_subprocess_exec(
-                *self._argv(bp), env=env, cwd=bp.run.run_dir, stdin=asyncio.subprocess.DEVNULL,
-                stdout=out, stderr=asyncio.subprocess.STDOUT, start_new_session=True)
+            # children.spawn, not asyncio's: under uvloop that would hand the bridge every
+            # descriptor of the appliance that is not close-on-exec.
+            return spawn(
+                self._argv(bp), env=env, cwd=bp.run.run_dir, stdin=subprocess.DEVNULL,
+                stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
 
     async def _keep(self, bp: BridgeProc) -> None:
         backoff = BACKOFF_FIRST_S
@@ -257,7 +261,7 @@ class RosBridgeSupervisor:
             backoff = min(backoff * 2, BACKOFF_MAX_S)
         self._set("stopped", None, self.last_error)
 
-    async def _terminate(self, proc: asyncio.subprocess.Process, waiter: asyncio.Future[int]) -> None:
+    async def _terminate(self, proc: Child, waiter: asyncio.Future[int]) -> None:
         for sig, wait_s in ((signal.SIGTERM, self.settings.ros_bridge_stop_timeout_s), (signal.SIGKILL, 5.0)):
             if proc.returncode is not None:
                 return

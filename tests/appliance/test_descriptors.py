@@ -1,0 +1,317 @@
+"""Issue 14 item 3: no child of the appliance inherits a descriptor it should not have.
+
+A real appliance is started with an inheritable "canary" file descriptor (as a careless parent
+would leak one). While it runs a controller (the loop, its live rerun proxy, the ROS 2 bridge),
+a self-check and a project build, every descendant's /proc/<pid>/fd is sampled every few ms. No
+descriptor above 2 of any descendant may be the listening socket, the canary, or any socket, pipe
+or file the appliance itself holds open. Then, with a run active, the appliance is killed with
+SIGKILL: a new appliance must bind the same port at once (no orphan keeps the socket).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tarfile
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+import pytest
+from harness import (
+    ADMIN_PASSWORD,
+    ADMIN_USER,
+    HERE,
+    REPO_ROOT,
+    Server,
+    free_port,
+    login_client,
+    shared_builds_root,
+)
+
+sys.path.insert(0, str(REPO_ROOT / "tests"))
+sys.path.insert(0, str(REPO_ROOT / "tests" / "projects_upload"))
+from projects_support import reachable_tmp
+from xrf_testing.ros import isolated_ros_env, require_rclpy
+
+# Shared with the appliance and its children legitimately (each opens its own): not inherited.
+OWN_OPENS = ("/dev/null", "/dev/urandom", "/dev/random", "/dev/shm/", "/proc/", "/sys/", "/dev/cpu_dma_latency",
+             "/dev/pts/", "/dev/tty")
+
+
+def _start(data_dir: Path, port: int, pass_fds: tuple[int, ...] = (), builds_root: Path | None = None,
+           **settings: object) -> Server:
+    """tests/appliance/harness.start_server, on a given port and with descriptors passed on."""
+    config = {"data_dir": str(data_dir), "builds_root": str(builds_root or shared_builds_root()), "port": port,
+              "host": "127.0.0.1", "real_bench": False, **settings}
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO_ROOT / "appliance"), str(HERE)]),
+               XRF_BOOTSTRAP_ADMIN_PASSWORD=ADMIN_PASSWORD)
+    proc = subprocess.Popen([sys.executable, str(HERE / "serve_for_test.py"), json.dumps(config)], env=env,
+                            pass_fds=pass_fds, stdin=subprocess.DEVNULL)
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            if httpx.get(url + "/api/health", timeout=2).status_code == 200:
+                break
+        except httpx.TransportError:
+            pass
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            proc.wait()
+            raise RuntimeError(f"appliance did not start on port {port} (exit {proc.poll()})")
+        time.sleep(0.05)
+    return Server(url, f"ws://127.0.0.1:{port}/ws", proc, data_dir, login_client(url, ADMIN_USER, ADMIN_PASSWORD))
+
+
+def _children_map() -> dict[int, list[int]]:
+    kids: dict[int, list[int]] = {}
+    for name in os.listdir("/proc"):
+        if not name.isdigit():
+            continue
+        try:
+            stat = Path(f"/proc/{name}/stat").read_text()
+        except OSError:
+            continue
+        ppid = int(stat[stat.rindex(")") + 2:].split()[1])
+        kids.setdefault(ppid, []).append(int(name))
+    return kids
+
+
+def descendants(root: int) -> list[int]:
+    kids = _children_map()
+    out, todo = [], [root]
+    while todo:
+        for k in kids.get(todo.pop(), []):
+            out.append(k)
+            todo.append(k)
+    return out
+
+
+def fd_targets(pid: int) -> dict[int, str]:
+    out = {}
+    try:
+        names = os.listdir(f"/proc/{pid}/fd")
+    except OSError:
+        return out
+    for n in names:
+        try:
+            out[int(n)] = os.readlink(f"/proc/{pid}/fd/{n}")
+        except OSError:
+            continue
+    return out
+
+
+def cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode("utf-8", "replace").strip()
+    except OSError:
+        return ""
+
+
+def listening_inode(port: int) -> str:
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            f = line.split()
+            if int(f[1].rsplit(":", 1)[1], 16) == port and f[3] == "0A":
+                return f"socket:[{f[9]}]"
+    raise AssertionError(f"nothing listens on port {port}")
+
+
+@dataclass
+class Sampler:
+    """Every few ms: each descendant of `root` and its descriptors above 2."""
+
+    root: int
+    forbidden: set[str]
+    seen: dict[int, str] = field(default_factory=dict)           # pid -> command line
+    fds: dict[int, dict[int, str]] = field(default_factory=dict)  # pid -> fd -> target (first seen)
+    bad: list[str] = field(default_factory=list)
+    _stop: threading.Event = field(default_factory=threading.Event)
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._main, daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(10)
+
+    def _main(self) -> None:
+        while not self._stop.is_set():
+            ours = {t for t in fd_targets(self.root).values() if t.startswith(("socket:", "pipe:", "/"))}
+            ours = {t for t in ours if not t.startswith(OWN_OPENS)}
+            for pid in descendants(self.root):
+                cmd = cmdline(pid)
+                if not cmd:
+                    continue
+                self.seen.setdefault(pid, cmd)
+                for fd, target in fd_targets(pid).items():
+                    if fd <= 2:
+                        continue
+                    self.fds.setdefault(pid, {}).setdefault(fd, target)
+                    if target in self.forbidden or target in ours:
+                        self.bad.append(f"pid {pid} ({cmd[:120]}): fd {fd} -> {target}")
+            time.sleep(0.005)
+
+    def matching(self, text: str) -> list[int]:
+        return [p for p, c in self.seen.items() if text in c]
+
+
+def _canary(tmp_path: Path) -> tuple[int, str]:
+    path = tmp_path / "canary-inherited-by-the-appliance"
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+    os.set_inheritable(fd, True)
+    return fd, os.readlink(f"/proc/self/fd/{fd}")
+
+
+def _targz(root: Path, top: str) -> bytes:
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w:gz") as t:
+        for p in sorted(root.rglob("*")):
+            if p.is_file() and "build" not in p.relative_to(root).parts:
+                t.add(p, f"{top}/{p.relative_to(root).as_posix()}")
+    return buf.getvalue()
+
+
+def _wait(pred, timeout: float, what: str):
+    deadline = time.monotonic() + timeout
+    while True:
+        v = pred()
+        if v:
+            return v
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.1)
+
+
+def _reap(pids: list[int]) -> None:
+    """End processes this test started (through the appliance) that outlived it."""
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
+@pytest.fixture
+def ros_env() -> Iterator[dict[str, str]]:
+    require_rclpy()
+    env = isolated_ros_env(201, 230)
+    saved = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    yield env
+    for k, v in saved.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
+def test_children_inherit_nothing(tmp_path: Path, ros_env: dict[str, str]) -> None:
+    data = reachable_tmp("fds")
+    canary_fd, canary = _canary(tmp_path)
+    port = free_port()
+    # Its own builds folder: the bundled example is configured and compiled from scratch by the
+    # appliance (cmake, make, the compilers as its children) when the run starts.
+    server = _start(data, port, pass_fds=(canary_fd,), builds_root=data / "example-builds")
+    os.close(canary_fd)
+    sampler = Sampler(server.proc.pid, {canary})
+    started: list[int] = []
+    try:
+        listen = listening_inode(port)
+        assert listen in fd_targets(server.proc.pid).values()
+        # The appliance got the canary as an open descriptor: the test is able to fail.
+        assert canary in fd_targets(server.proc.pid).values()
+        sampler.forbidden.add(listen)
+        sampler.start()
+        http = server.http
+
+        # A run: the loop, its live rerun proxy, the ROS 2 bridge.
+        assert http.post("/api/ros", json={"enabled": True}).status_code == 200
+        with server.ws() as ws:
+            server.stop_run()
+            run = server.start_run("relbot")
+            ws.wait_state("IDLE", timeout=30)
+            for cmd, state in (("initialise", "INITIALISED"), ("start", "RUN")):
+                assert ws.command(cmd)["accepted"], cmd
+                ws.wait_state(state, timeout=10)
+            _wait(lambda: sampler.matching("ros-bridge") and sampler.matching("serve-grpc"), 60,
+                  "the ROS 2 bridge and the run's rerun proxy")
+            time.sleep(1.0)
+            server.stop_run()
+            assert http.post("/api/ros", json={"enabled": False}).status_code == 200
+
+            # A self-check (its helper process).
+            r = http.post("/api/selfcheck", json={"profile": "relbot"})
+            assert r.status_code == 202, r.text
+            check = r.json()["id"]
+            ws.wait_for(lambda m: m.get("type") == "selfcheck" and m.get("check") == check
+                        and m.get("event") in ("report", "error"), timeout=120)
+
+        # A build of an uploaded project: the build sandbox (its success is the builder's business).
+        files = {"file": ("mine.tar.gz", _targz(REPO_ROOT / "student_projects/templates/base", "mine"),
+                          "application/gzip")}
+        pid = http.post("/api/projects", files=files).json()["project"]["id"]
+        b = http.post(f"/api/projects/{pid}/builds").json()
+        b = _wait(lambda: (x := http.get(f"/api/projects/{pid}/builds/{b['id']}").json())["status"]
+                  not in ("queued", "building") and x, 600, "the build")
+        assert b["status"] in ("ok", "failed"), b
+    finally:
+        sampler.stop()
+        started = [p for p in sampler.seen if p != server.proc.pid]
+        server.http.close()
+        server.proc.terminate()
+        try:
+            server.proc.wait(15)
+        except subprocess.TimeoutExpired:
+            server.proc.kill()
+            server.proc.wait()
+        _reap(started)
+        shutil.rmtree(data, ignore_errors=True)
+
+    assert sampler.matching(run["build"]) or sampler.matching("relbot"), sampler.seen
+    for what in ("ros-bridge", "serve-grpc", "cmake", "xrflab.projects.builder --sandbox", "selfcheck"):
+        assert sampler.matching(what), f"no {what} process seen: {sorted(set(sampler.seen.values()))[:40]}"
+    assert not sampler.bad, "\n".join(sorted(set(sampler.bad))[:40])
+
+
+def test_port_free_again_after_kill_9_with_a_run_active(tmp_path: Path) -> None:
+    data = reachable_tmp("fds-kill")
+    port = free_port()
+    first = _start(data, port)
+    left: list[int] = []
+    try:
+        with first.ws() as ws:
+            first.start_run("relbot")
+            ws.wait_state("IDLE", timeout=30)
+            assert ws.command("initialise")["accepted"]
+            ws.wait_state("INITIALISED", timeout=10)
+        left = descendants(first.proc.pid)
+        assert left, "the run's processes"
+        os.kill(first.proc.pid, signal.SIGKILL)
+        first.proc.wait(10)
+        first.http.close()
+        alive = [p for p in left if Path(f"/proc/{p}").exists()]
+        second = _start(data, port)   # binds the same port, although the orphans may still live
+        try:
+            assert second.http.get("/api/health").status_code == 200
+            for p in alive:
+                assert listening_inode(port) not in fd_targets(p).values(), f"orphan {p} holds the socket"
+        finally:
+            second.http.close()
+            second.proc.terminate()
+            second.proc.wait(15)
+    finally:
+        if first.proc.poll() is None:
+            first.proc.kill()
+            first.proc.wait()
+        _reap([p for p in left if Path(f"/proc/{p}").exists()])
+        shutil.rmtree(data, ignore_errors=True)
