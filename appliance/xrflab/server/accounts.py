@@ -216,8 +216,11 @@ class Accounts:
         rows: list[dict[str, str]] = []
         errors: list[str] = []
         seen: set[str] = set()
-        reader = csv.reader(io.StringIO(text.lstrip("\ufeff")))
-        for n, cells in enumerate(reader, 1):
+        try:  # a lone carriage return inside a field is a csv.Error: a bad list, not a crash
+            table = list(csv.reader(io.StringIO(text.lstrip("\ufeff"))))
+        except csv.Error as exc:
+            raise AccountError(f"the class list is not valid CSV ({exc})") from None
+        for n, cells in enumerate(table, 1):
             cells = [c.strip() for c in cells]
             if not any(cells) or cells[0].startswith("#"):
                 continue
