@@ -318,9 +318,12 @@ class MonitorReader(_BroadcastReader):
 
 
 def shm_path(name: str) -> Path:
-    if not name or "/" in name:
-        raise ValueError(f"bad shared-memory name {name!r} (a plain name, no '/')")
-    return SHM_DIR / name
+    """/dev/shm/<name>. A run started by the appliance has ``<run folder>/<name>``: its loop sees
+    that folder of the host's /dev/shm as its own /dev/shm (xrflab.guest)."""
+    parts = name.split("/") if name else []
+    if not 1 <= len(parts) <= 2 or any(p in ("", ".", "..") for p in parts):
+        raise ValueError(f"bad shared-memory name {name!r} (a plain name, or folder/name)")
+    return SHM_DIR.joinpath(*parts)
 
 
 class Channels:

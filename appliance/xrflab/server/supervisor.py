@@ -18,6 +18,7 @@ import asyncio
 import contextlib
 import logging
 import os
+import shutil
 import signal
 import threading
 import time
@@ -27,10 +28,12 @@ from pathlib import Path
 from typing import Any
 
 from .. import channels as chmod
+from .. import guest
 from ..logs import live as loglive
 from ..channels import Channels, ChannelsError
 from .hub import Hub
 from .runs import RunRow, RunStore
+from .guest_spawn import GuestReport, GuestSpawner
 from .safety import fpga_reset
 from .settings import SIM_PLANTS, Settings
 
@@ -54,6 +57,28 @@ class SupervisorError(Exception):
     def __init__(self, message: str, status: int = 409) -> None:
         super().__init__(message)
         self.status = status
+
+
+def _folder_bytes(path: Path) -> int:
+    total = 0
+    for dirpath, _dirs, files in os.walk(path):
+        for f in files:
+            with contextlib.suppress(OSError):
+                total += os.lstat(os.path.join(dirpath, f)).st_blocks * 512
+    return total
+
+
+def remove_shm(name: str) -> None:
+    """Unlink a run's shared memory and the run's folder of it in /dev/shm (xrflab.guest)."""
+    try:
+        path = chmod.shm_path(name)
+    except ValueError:
+        return
+    if path.parent != chmod.SHM_DIR:
+        shutil.rmtree(path.parent, ignore_errors=True)
+    else:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
 
 
 # ---- bundled builds -----------------------------------------------------------------------------
@@ -184,6 +209,7 @@ class Run:
     telemetry_lost: int = 0
     logging: Any = None  # xrflab.logs.live.RunLogging: host log writer, live rerun
     log_timing: bool = False  # the loop logs per-cycle timing (XRF_LOG_TIMING=1)
+    guest: GuestReport | None = None  # which protection layers of the run sandbox hold
 
     @property
     def alive(self) -> bool:
@@ -196,6 +222,7 @@ class Supervisor:
         self.hub = hub
         self.store = store
         self.catalog = BuildCatalog(settings, hub.publish)
+        self.guests = GuestSpawner(settings)
         self.current: Run | None = None
         self.last_row: RunRow | None = None
         # Held while a run starts, and by anything else that needs the bench to itself (the
@@ -211,19 +238,19 @@ class Supervisor:
     def _reap_orphan(self, row: RunRow) -> None:
         """A loop left running by an appliance that died: it has paused itself (no heartbeat);
         stop it (SIGINT = the runtime's safe stop) and remove its shared memory. The pid is only
-        signalled if that process really is this run's loop (its XRF_SHM names the run's shm)."""
+        signalled if that process really is this run's loop (its XRF_LOG_DIR names the run folder)."""
         if row.pid:
             try:
                 environ = Path(f"/proc/{row.pid}/environ").read_bytes().split(b"\0")
             except OSError:
                 environ = []
-            if f"XRF_SHM={row.shm}".encode() in environ:
+            # The loop's environment names its run folder (its XRF_SHM is the sandbox's own name).
+            if f"XRF_LOG_DIR={row.run_dir}".encode() in environ and row.run_dir:
                 log.warning("run %s: stopping loop pid %s left by a previous appliance", row.id, row.pid)
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(row.pid, signal.SIGINT)
         if row.shm:
-            with contextlib.suppress(FileNotFoundError, ValueError):
-                chmod.shm_path(row.shm).unlink()
+            remove_shm(row.shm)
 
     # -- queries ------------------------------------------------------------------------------
 
@@ -253,6 +280,8 @@ class Supervisor:
                 xeno2ros=schema_fields(info["xeno2ros_schema"]),
                 setpoint=run.setpoint,
             )
+        if run and run.guest is not None:
+            payload["confinement"] = run.guest.as_dict()
         return payload
 
     def state_payload(self, run: Run | None = None) -> dict[str, Any]:
@@ -301,49 +330,67 @@ class Supervisor:
             row = self.store.create(build, plant, "", "")
             if owner:
                 row = self.store.update(row.id, owner=owner)
-            shm = f"xrf-lab-{os.getpid()}-{row.id}"
+            shm_dir = self.guests.shm_dir_for(f"xrf-lab-{os.getpid()}-{row.id}")
+            shm = f"{shm_dir.name}/{guest.SHM_NAME}"  # the host's path below /dev/shm
             run_dir = self.settings.runs_dir / str(row.id)
             run_dir.mkdir(parents=True, exist_ok=True)
             row = self.store.update(row.id, shm=shm, run_dir=str(run_dir))
 
-            env = dict(os.environ)
-            env.update(
-                XRF_SHM=shm,
-                XRF_SIM=plant,
-                XRF_LOG_DIR=str(run_dir),
-                XRF_HOST_TIMEOUT_MS=str(self.settings.host_timeout_ms),
-                XRF_HOST_TIMEOUT_ACTION=self.settings.host_timeout_action,
+            # An allow-list, never a copy of our own environment (xrflab.guest.ENV_ALLOWED).
+            env = {
+                "PATH": "/usr/local/bin:/usr/bin:/bin",
+                "LANG": "C.UTF-8",
+                "HOME": str(run_dir),
+                "TMPDIR": "/tmp",
+                "XRF_SHM": guest.SHM_NAME,
+                "XRF_SIM": plant,
+                "XRF_LOG_DIR": str(run_dir),
+                "XRF_HOST_TIMEOUT_MS": str(self.settings.host_timeout_ms),
+                "XRF_HOST_TIMEOUT_ACTION": self.settings.host_timeout_action,
                 # We read monitor lines from the ring; the process echoing them to stdout as well
                 # would show every line twice in the console.
-                XRF_QUIET="1",
-            )
+                "XRF_QUIET": "1",
+            }
             env.update(loglive.loop_env(row.id, build, log_timing))
             if not self.settings.bench_is_real():
                 env["XRF_TRANSPORT"] = "sim"
             if max_cycles:
                 env["XRF_MAX_CYCLES"] = str(max_cycles)
-            env.update(self.settings.loop_env)
+            env.update({k: v for k, v in self.settings.loop_env.items() if k in guest.ENV_ALLOWED})
             try:
+                self.guests.prepare_dirs(run_dir, shm_dir)
                 # Output goes to a file, not a pipe to us: if the appliance dies, a pipe would
                 # turn the loop's next printf into SIGPIPE; a file keeps it running, and kept.
                 with open(run_dir / "output.txt", "ab") as output:
-                    proc = await asyncio.create_subprocess_exec(
-                        str(entry.executable),
-                        cwd=run_dir,
-                        env=env,
-                        stdin=asyncio.subprocess.DEVNULL,
-                        stdout=output,
-                        stderr=asyncio.subprocess.STDOUT,
-                        # Own session: a Ctrl-C on the appliance's terminal reaches the appliance
-                        # only, which then stops the run in order (quit, signals).
-                        start_new_session=True,
-                    )
-            except OSError as exc:
-                self.store.update(row.id, status="failed", ended=time.time(), message=str(exc))
-                raise SupervisorError(f"cannot start {entry.executable}: {exc}", 500) from exc
-            row = self.store.update(row.id, pid=proc.pid, status="starting")
-            run = Run(row=row, proc=proc, shm=shm, run_dir=run_dir, build=entry, log_timing=log_timing)
+                    proc, report = await self.guests.spawn(
+                        entry.executable, run_dir, shm_dir, env, [entry.executable.parent], output,
+                        tag=shm, timeout_s=self.settings.open_timeout_s)
+            except (OSError, ValueError, RuntimeError, asyncio.TimeoutError) as exc:
+                shutil.rmtree(shm_dir, ignore_errors=True)
+                self.store.update(row.id, status="failed", ended=time.time(), message=f"sandbox: {exc}")
+                raise SupervisorError(f"cannot start {entry.executable.name} in its sandbox: {exc}", 500) from exc
+            if report.error:
+                await proc.wait()
+                shutil.rmtree(shm_dir, ignore_errors=True)
+                self.last_row = self.store.update(row.id, status="failed", ended=time.time(),
+                                                  message=f"sandbox: {report.error}")
+                self.hub.publish("alarm", {"kind": "confinement", "run_id": row.id, "message": report.error,
+                                           "missing": report.missing})
+                raise SupervisorError(f"the controller was not started: {report.error}", 503)
+            if report.layers.get("mount"):
+                # No mount namespace (allowed by an educator): the loop's /dev/shm is the host's.
+                shm = f"{shm_dir.name}-unconfined"
+                row = self.store.update(row.id, shm=shm)
+            # The controller's own pid (what `kill` or a test would aim at); we wait on the launcher.
+            row = self.store.update(row.id, pid=report.pid or proc.pid, status="starting")
+            run = Run(row=row, proc=proc, shm=shm, run_dir=run_dir, build=entry, log_timing=log_timing,
+                      guest=report)
             self.current = run
+            if report.missing:
+                self.hub.publish("alarm", {
+                    "kind": "confinement", "run_id": row.id, "missing": report.missing,
+                    "message": "the controller runs WITHOUT: " + "; ".join(f"{k} ({v})" for k, v in report.missing.items()),
+                })
             run.tasks.append(asyncio.create_task(self._watch_exit(run), name=f"run{row.id}-exit"))
             run.tasks.append(asyncio.create_task(self._pipe_output(run), name=f"run{row.id}-output"))
 
@@ -360,6 +407,7 @@ class Supervisor:
             run.tasks.append(asyncio.create_task(self._supervise(run), name=f"run{row.id}-heartbeat"))
             run.tasks.append(asyncio.create_task(self._guarded(self._reader, run), name=f"run{row.id}-reader"))
             run.tasks.append(asyncio.create_task(self._guarded(self._timing, run), name=f"run{row.id}-timing"))
+            run.tasks.append(asyncio.create_task(self._disk_guard(run), name=f"run{row.id}-disk"))
             run.thread = threading.Thread(target=self._doorbell_thread, args=(run, asyncio.get_running_loop()),
                                           name=f"xrf-doorbell-{row.id}", daemon=True)
             run.thread.start()
@@ -475,8 +523,7 @@ class Supervisor:
             misses=status.missed if status else 0,
             message=f"{message}; {run.safe_state}" + (f" {safe_ms:.1f} ms after exit" if crashed and not run.hang else ""),
         )
-        with contextlib.suppress(FileNotFoundError, ValueError):
-            chmod.shm_path(run.shm).unlink()
+        remove_shm(run.shm)
         # No explicit unmap: a worker thread may still hold the Channels (a command wait); the
         # mapping goes with the last reference, and the name is already unlinked.
         self.last_row = run.row
@@ -543,6 +590,22 @@ class Supervisor:
                     run.proc.send_signal(signal.SIGKILL)
                 return
             await asyncio.sleep(min(self.settings.host_heartbeat_period_s, self.settings.hang_timeout_ms / 4000))
+
+    async def _disk_guard(self, run: Run) -> None:
+        """The run folder's disk use stays under the sandbox's limit: beyond it the run is stopped
+        (the controller's own files; the appliance's log writer has its own full-disk handling)."""
+        limit = self.guests.limits.run_dir_mb << 20
+        while run.alive and not run.ended.is_set():
+            await asyncio.sleep(2.0)
+            used = await asyncio.to_thread(_folder_bytes, run.run_dir)
+            if used > limit and run.alive:
+                message = (f"the run folder holds {used >> 20} MB, over the limit of {limit >> 20} MB: "
+                           "run stopped")
+                run.row = self.store.update(run.row.id, message=message)
+                self.hub.publish("alarm", {"kind": "disk", "run_id": run.row.id, "message": message})
+                run.stop_requested = True
+                await self._terminate(run)
+                return
 
     def _doorbell_thread(self, run: Run, loop: asyncio.AbstractEventLoop) -> None:
         """Blocks in the futex wait so the event loop never polls; wakes the reader task."""

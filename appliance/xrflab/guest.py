@@ -1,0 +1,563 @@
+"""The run sandbox: every loop process the appliance starts is a guest.
+
+A student's controller is untrusted code that needs firm real time and nothing else. The
+appliance never executes it directly: it starts this module (the *launcher*, trusted), which
+builds a confinement and only then execs the controller inside it::
+
+    appliance ──spawn──▶ launcher (host PID namespace; holds /dev/cpu_dma_latency; forwards signals)
+                            └─fork─▶ loop = PID 1 of a new PID namespace ──exec──▶ controller
+
+Layers (each reported by name; ``LAYERS``):
+
+- ``user``: a uid that is neither root nor the appliance's. As root: the system user ``xrf-run``
+  (created on first use). Not root: a user namespace whose uid 1 maps to the first subordinate
+  id of the appliance's user (``/etc/subuid``, written with the setuid ``newuidmap``); on a Pi
+  deploy/ makes that id ``xrf-loop``. Without subordinate ids the loop keeps the appliance's uid
+  (layer missing) but still has no capability anywhere.
+- ``no_new_privs`` and ``capabilities``: ``PR_SET_NO_NEW_PRIVS``, empty bounding set (root mode),
+  no capability after exec. Real time needs none: the launcher raises ``RLIMIT_RTPRIO`` and
+  ``RLIMIT_MEMLOCK`` (root mode; otherwise they come from the service's limits) so the loop may
+  use SCHED_FIFO and mlockall as an ordinary user; its CPU pinning is a plain syscall.
+- ``mount``: a new root built from an allow-list (a read-only tmpfs): /usr and the library
+  folders read-only, a few files of /etc, a /dev with null/zero/urandom plus the real bench's
+  /dev/evl and spidev, its own /proc, empty /tmp and /var/tmp, ``/dev/shm`` = the run's own
+  folder of shared memory, the run folder read-write and the build read-only, both at their host
+  paths. Nothing else of the host exists in it: not the data folder, the databases, other
+  projects, homes, /run or the appliance's code.
+- ``pid``: the loop is PID 1 of its own PID namespace; when it ends, the kernel kills every
+  process it left (a ``setsid`` sleeper included), and it sees no other process of the host.
+- ``network``: its own network namespace with a downed loopback: no route anywhere, the
+  appliance's port included. ``ipc`` and ``uts`` namespaces likewise.
+- ``environment``: built by the appliance from an allow-list (``ENV_ALLOWED``), never a copy.
+- ``descriptors``: only 0, 1, 2 reach the controller.
+- ``limits``: address space, processes, open files, file size, no core dumps.
+
+If a layer cannot be had, the launcher refuses to start the controller unless the appliance
+said ``allow_missing`` (the educator's ``--allow-unconfined``); either way it tells the
+appliance exactly which layers hold, through a pipe the controller never sees.
+
+This module runs as its own small process: keep its imports to the standard library.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import errno
+import json
+import os
+import platform
+import resource  # imported now: after the pivot the launcher cannot load extension modules
+import shutil
+import signal
+import stat
+import sys
+from typing import Any
+
+LAYERS = ("user", "no_new_privs", "capabilities", "mount", "pid", "network", "ipc", "environment",
+          "descriptors", "limits")
+# The only variables a controller gets (values chosen by the appliance, never copied from it).
+ENV_ALLOWED = frozenset({
+    "PATH", "LANG", "LC_ALL", "TZ", "HOME", "TMPDIR", "USER", "LOGNAME",
+    "XRF_BACKEND", "XRF_BUILD_ID", "XRF_CPU", "XRF_FREQ", "XRF_HOST_TIMEOUT_ACTION", "XRF_HOST_TIMEOUT_MS",
+    "XRF_LOG_DIR", "XRF_LOG_TIMING", "XRF_LOG_WRITER", "XRF_MAX_CYCLES", "XRF_PRIO", "XRF_PROJECT",
+    "XRF_PWM_LIMIT", "XRF_QUIET", "XRF_RUN_ID", "XRF_SHM", "XRF_SIM", "XRF_SIM_FAULTS", "XRF_SPI_DEVICE",
+    "XRF_SPI_SPEED", "XRF_TRANSPORT",
+})
+SHM_NAME = "xrf"  # the channel segment's name inside the sandbox (/dev/shm/xrf)
+REFUSED_EXIT = 126
+
+CLONE_NEWNS = 0x00020000
+CLONE_NEWUTS = 0x04000000
+CLONE_NEWIPC = 0x08000000
+CLONE_NEWUSER = 0x10000000
+CLONE_NEWPID = 0x20000000
+CLONE_NEWNET = 0x40000000
+MS_RDONLY, MS_NOSUID, MS_NODEV, MS_NOEXEC = 1, 2, 4, 8
+MS_REMOUNT, MS_BIND, MS_MOVE, MS_REC, MS_PRIVATE = 32, 4096, 8192, 16384, 1 << 18
+MNT_DETACH = 2
+CAP_SETGID, CAP_SETUID, CAP_SETPCAP, CAP_IPC_LOCK, CAP_SYS_NICE = 6, 7, 8, 14, 23
+CAP_NAMES = {CAP_IPC_LOCK: "CAP_IPC_LOCK", CAP_SYS_NICE: "CAP_SYS_NICE"}
+PR_SET_KEEPCAPS, PR_CAP_AMBIENT, PR_CAP_AMBIENT_RAISE = 8, 47, 2
+PR_SET_PDEATHSIG, PR_CAPBSET_DROP, PR_SET_NO_NEW_PRIVS, PR_GET_NO_NEW_PRIVS = 1, 24, 38, 39
+SYS_PIVOT_ROOT = {"x86_64": 155, "aarch64": 41, "riscv64": 41, "armv7l": 218, "armv6l": 218, "i686": 217}
+# Read-only from the host, when present: programs and libraries (a controller links libstdc++).
+SYSTEM_DIRS = ("/usr", "/bin", "/sbin", "/lib", "/lib32", "/lib64", "/libx32")
+ETC_FILES = ("/etc/ld.so.cache", "/etc/ld.so.conf", "/etc/ld.so.conf.d", "/etc/localtime", "/etc/nsswitch.conf")
+DEV_NODES = ("/dev/null", "/dev/zero", "/dev/full", "/dev/random", "/dev/urandom")
+# libevl and glibc read a few sysfs folders (CPU count, the EVL core's devices); read-only.
+SYS_DIRS = ("/sys/devices/system/cpu", "/sys/devices/virtual/evl", "/sys/class/evl")
+
+
+class GuestError(Exception):
+    pass
+
+
+_libc = ctypes.CDLL(None, use_errno=True)
+
+
+def _check(rc: int, what: str) -> None:
+    if rc != 0:
+        e = ctypes.get_errno()
+        raise OSError(e, f"{what}: {os.strerror(e)}")
+
+
+def _enc(s: str | None) -> bytes | None:
+    return s.encode() if s is not None else None
+
+
+def _mount(src: str | None, target: str, fstype: str | None, flags: int, data: str | None = None) -> None:
+    _check(_libc.mount(_enc(src), _enc(target), _enc(fstype), ctypes.c_ulong(flags), _enc(data)), f"mount {target}")
+
+
+def _unshare(flags: int) -> None:
+    _check(_libc.unshare(ctypes.c_int(flags)), "unshare")
+
+
+def _prctl(option: int, arg: int) -> int:
+    return int(_libc.prctl(ctypes.c_int(option), ctypes.c_ulong(arg), ctypes.c_ulong(0), ctypes.c_ulong(0),
+                           ctypes.c_ulong(0)))
+
+
+def _pivot_root(new_root: str) -> None:
+    """pivot_root(".", ".") then detach the old root: nothing of the host stays reachable."""
+    os.chdir(new_root)
+    number = SYS_PIVOT_ROOT.get(platform.machine())
+    if number is None:
+        raise OSError(errno.ENOSYS, f"pivot_root: unknown syscall number on {platform.machine()}")
+    _check(_libc.syscall(ctypes.c_long(number), b".", b"."), "pivot_root")
+    _check(_libc.umount2(b".", ctypes.c_int(MNT_DETACH)), "umount old root")
+    os.chdir("/")
+
+
+def _bind(src_fd: int, target: str, read_only: bool, recursive: bool = False) -> None:
+    """Bind what ``src_fd`` (an O_PATH fd opened before anything was covered) names."""
+    _mount(f"/proc/self/fd/{src_fd}", target, None, MS_BIND | (MS_REC if recursive else 0))
+    if read_only:
+        # A remount must keep the flags the source mount has (the kernel locks them in a user
+        # namespace): nosuid/nodev/noexec are carried over, read-only is added.
+        st = os.statvfs(target)
+        flags = MS_REMOUNT | MS_BIND | MS_RDONLY
+        flags |= MS_NOSUID if st.f_flag & os.ST_NOSUID else 0
+        flags |= MS_NODEV if st.f_flag & os.ST_NODEV else 0
+        flags |= MS_NOEXEC if st.f_flag & os.ST_NOEXEC else 0
+        _mount(None, target, None, flags)
+
+
+def _make_target(path: str, like_dir: bool) -> None:
+    os.makedirs(os.path.dirname(path) or "/", exist_ok=True)
+    if like_dir:
+        os.makedirs(path, exist_ok=True)
+    elif not os.path.exists(path):
+        with open(path, "w"):
+            pass
+
+
+# ---- the launcher (runs as its own process) ------------------------------------------------------
+
+
+class _Launch:
+    def __init__(self, cfg: dict[str, Any]) -> None:
+        self.cfg = cfg
+        self.layers: dict[str, str] = {}  # layer -> "" (holds) or why it does not
+        self.notes: list[str] = []
+        self.mode = cfg["mode"]  # root | userns
+        self.src: dict[str, int] = {}
+        self.dma_fd = -1
+
+    def missing(self, layer: str, why: str) -> None:
+        self.layers[layer] = why
+
+    def ok(self, layer: str) -> None:
+        self.layers.setdefault(layer, "")
+
+    # -- in the launcher, before the fork ---------------------------------------------------------
+
+    def open_sources(self) -> None:
+        """O_PATH fds to everything the new root shows, before any mount can hide it (a checkout or
+        data folder under /tmp, say, which the staging tmpfs covers)."""
+        cfg = self.cfg
+        wanted = [*SYSTEM_DIRS, *ETC_FILES, *DEV_NODES, *SYS_DIRS, cfg["exe"], cfg["run_dir"], cfg["shm_dir"],
+                  *cfg.get("read_only", []), *cfg.get("devices", [])]
+        for path in wanted:
+            if path in self.src:
+                continue
+            try:
+                self.src[path] = os.open(path, os.O_PATH | os.O_CLOEXEC | os.O_NOFOLLOW)
+            except OSError:
+                continue
+
+    def hold_dma_latency(self) -> None:
+        """The loop's CPUs stay out of deep idle while the run lasts (what cyclictest does): the
+        launcher holds the request, so the controller needs no access to the device."""
+        try:
+            fd = os.open("/dev/cpu_dma_latency", os.O_WRONLY | os.O_CLOEXEC)
+            os.write(fd, (0).to_bytes(4, "little"))
+            self.dma_fd = fd
+        except OSError as exc:
+            self.notes.append(f"/dev/cpu_dma_latency not held ({exc.strerror})")
+
+    def enter_namespaces(self) -> None:
+        flags = CLONE_NEWNS | CLONE_NEWPID | CLONE_NEWNET | CLONE_NEWIPC | CLONE_NEWUTS
+        if self.mode == "userns":
+            self._enter_userns(flags)
+        else:
+            try:
+                _unshare(flags)
+            except OSError as exc:
+                for layer in ("mount", "pid", "network", "ipc"):
+                    self.missing(layer, f"unshare refused ({exc.strerror})")
+                return
+        for layer in ("mount", "pid", "network", "ipc"):
+            self.ok(layer)
+
+    def _enter_userns(self, flags: int) -> None:
+        cfg = self.cfg
+        uid, gid = os.getuid(), os.getgid()
+        sub_uid, sub_gid = cfg.get("sub_uid"), cfg.get("sub_gid")
+        helper = None
+        if sub_uid and sub_gid:
+            # newuidmap must write our maps from outside the new namespace: a child started
+            # before the unshare does it once we are in (it waits on a pipe).
+            r, w = os.pipe()
+            pid = os.fork()
+            if pid == 0:
+                os.close(w)
+                os.read(r, 1)
+                parent = os.getppid()
+                a = os.spawnvp(os.P_WAIT, "newuidmap", ["newuidmap", str(parent), "0", str(uid), "1",
+                                                        "1", str(sub_uid), "1"])
+                b = os.spawnvp(os.P_WAIT, "newgidmap", ["newgidmap", str(parent), "0", str(gid), "1",
+                                                        "1", str(sub_gid), "1",
+                                                        *[x for i, g in enumerate(cfg.get("device_gids", []))
+                                                          for x in (str(2 + i), str(g), "1")]])
+                os._exit(0 if a == 0 and b == 0 else 1)
+            os.close(r)
+            helper = (pid, w)
+        try:
+            _unshare(CLONE_NEWUSER | flags)
+        except OSError as exc:
+            if helper:
+                os.close(helper[1])
+                os.waitpid(helper[0], 0)
+            raise GuestError(f"no user namespace ({exc.strerror}): the loop cannot be confined without root") from exc
+        if helper:
+            os.write(helper[1], b"x")
+            os.close(helper[1])
+            _, status = os.waitpid(helper[0], 0)
+            if os.waitstatus_to_exitcode(status) != 0:
+                raise GuestError("newuidmap/newgidmap refused the subordinate ids of /etc/subuid, /etc/subgid")
+            self.loop_ids = (1, 1, [0, *range(2, 2 + len(cfg.get("device_gids", [])))])
+        else:
+            with open("/proc/self/setgroups", "w") as f:
+                f.write("deny")
+            with open("/proc/self/uid_map", "w") as f:
+                f.write(f"0 {uid} 1")
+            with open("/proc/self/gid_map", "w") as f:
+                f.write(f"0 {gid} 1")
+            self.loop_ids = (0, 0, [])
+            self.missing("user", "no subordinate uid for this user (/etc/subuid) or no newuidmap: the loop keeps "
+                                 "the appliance's uid, without any capability")
+
+    def build_root(self) -> str:
+        """A read-only tmpfs root holding only the allow-list; returns its path (not yet pivoted)."""
+        cfg = self.cfg
+        _mount(None, "/", None, MS_REC | MS_PRIVATE)
+        # Staging: our own tmpfs on /tmp (this namespace only); the sources are held as fds.
+        _mount("tmpfs", "/tmp", "tmpfs", MS_NOSUID | MS_NODEV, "size=1m,mode=0700")
+        root = "/tmp/root"
+        os.mkdir(root)
+        _mount("tmpfs", root, "tmpfs", MS_NOSUID, f"size={cfg.get('root_tmpfs_mb', 64)}m,mode=0755")
+
+        def show(path: str, read_only: bool = True, recursive: bool = False) -> bool:
+            fd = self.src.get(path)
+            if fd is None:
+                return False
+            target = root + path
+            if stat.S_ISLNK(os.fstat(fd).st_mode):
+                os.makedirs(os.path.dirname(target), exist_ok=True)
+                os.symlink(os.readlink(path), target)  # usrmerge: /lib -> usr/lib
+                return True
+            _make_target(target, stat.S_ISDIR(os.fstat(fd).st_mode))
+            _bind(fd, target, read_only, recursive)
+            return True
+
+        for path in (*SYSTEM_DIRS, *ETC_FILES, *SYS_DIRS):
+            show(path, recursive=path.startswith("/sys"))
+        # /dev: a tmpfs with the harmless nodes, the real bench's devices, and the run's shm folder.
+        _make_target(root + "/dev", True)
+        _mount("tmpfs", root + "/dev", "tmpfs", MS_NOSUID, "size=64k,mode=0755")
+        for node in DEV_NODES:
+            show(node, read_only=False)
+        for link, to in (("fd", "/proc/self/fd"), ("stdin", "/proc/self/fd/0"), ("stdout", "/proc/self/fd/1"),
+                         ("stderr", "/proc/self/fd/2")):
+            os.symlink(to, f"{root}/dev/{link}")
+        for dev in cfg.get("devices", []):
+            if not show(dev, read_only=False, recursive=True):
+                self.notes.append(f"device {dev} not present")
+        os.mkdir(root + "/dev/shm")
+        _bind(self.src[cfg["shm_dir"]], root + "/dev/shm", read_only=False)
+        for tmp in ("/tmp", "/var/tmp"):
+            _make_target(root + tmp, True)
+            _mount("tmpfs", root + tmp, "tmpfs", MS_NOSUID | MS_NODEV, f"size={cfg.get('tmp_mb', 64)}m,mode=1777")
+        os.makedirs(root + "/proc", exist_ok=True)
+        # The build (read-only) and the run folder (read-write), at their host paths.
+        for path in cfg.get("read_only", []):
+            show(path)
+        show(cfg["run_dir"], read_only=False)
+        # The controller itself: a copy in the new root, so its mode in the build folder (which
+        # the loop user may not be allowed to execute) does not matter.
+        os.makedirs(root + "/xrf", exist_ok=True)
+        exe = f"{root}/xrf/{os.path.basename(cfg['exe'])}"
+        with open(f"/proc/self/fd/{self.src[cfg['exe']]}", "rb") as src_f, open(exe, "wb") as dst_f:
+            shutil.copyfileobj(src_f, dst_f, 1 << 20)
+        os.chmod(exe, 0o555)
+        loop_uid, loop_gid, _ = self.loop_identity()
+        with open(root + "/etc/passwd", "w") as f:
+            f.write(f"root:x:0:0::/:/usr/sbin/nologin\nxrf-run:x:{loop_uid}:{loop_gid}::{cfg['run_dir']}:/usr/sbin/nologin\n")
+        with open(root + "/etc/group", "w") as f:
+            f.write(f"root:x:0:\nxrf-run:x:{loop_gid}:\n")
+        with open(root + "/etc/hostname", "w") as f:
+            f.write("xrf-run\n")
+        return root
+
+    def loop_identity(self) -> tuple[int, int, list[int]]:
+        """(uid, gid, groups) of the controller, as seen inside its namespaces."""
+        if self.mode == "root":
+            return self.cfg["uid"], self.cfg["gid"], [self.cfg["gid"], *self.cfg.get("device_gids", [])]
+        return getattr(self, "loop_ids", (0, 0, []))
+
+    # -- in the child (PID 1 of the new namespace), then exec ---------------------------------
+
+    def child(self, root: str | None, err_w: int) -> None:
+        cfg = self.cfg
+        try:
+            if root is not None:
+                try:
+                    _mount("proc", root + "/proc", "proc", MS_NOSUID | MS_NODEV | MS_NOEXEC)
+                except OSError as exc:
+                    # A user namespace may refuse a new proc (a container masking parts of the host's):
+                    # the controller then has no /proc at all rather than the host's.
+                    self.notes.append(f"no /proc in the sandbox ({exc.strerror})")
+                _pivot_root(root)
+                _mount(None, "/", None, MS_REMOUNT | MS_RDONLY | MS_NOSUID)
+            try:
+                _libc.sethostname(b"xrf-run", ctypes.c_size_t(7))
+            except OSError:
+                pass
+            os.chdir(cfg["run_dir"])
+            self.set_limits()
+            os.umask(0o007)  # what the loop writes stays readable by the appliance's group only
+            # Descriptors: 0-2 and the error pipe (close-on-exec) only.
+            for fd in range(3, 1024):
+                if fd != err_w:
+                    try:
+                        os.close(fd)
+                    except OSError:
+                        pass
+            uid, gid, groups = self.loop_identity()
+            if self.mode == "root":
+                keep = set(self.ambient)
+                for cap in range(0, 64):
+                    if cap not in keep and _prctl(PR_CAPBSET_DROP, cap) != 0:
+                        break
+                os.setgroups(groups)
+                os.setgid(gid)
+                if keep:
+                    _prctl(PR_SET_KEEPCAPS, 1)
+                os.setuid(uid)
+                if keep:
+                    _set_ambient(sorted(keep))
+            elif uid != 0:
+                os.setgroups(groups)
+                os.setgid(gid)
+                os.setuid(uid)
+            else:
+                # No second id to switch to: a nested user namespace in which our uid is not
+                # mapped leaves the controller no capability after exec, over anything.
+                _unshare(CLONE_NEWUSER)
+            if _prctl(PR_SET_NO_NEW_PRIVS, 1) != 0:
+                raise OSError(ctypes.get_errno(), "PR_SET_NO_NEW_PRIVS refused")
+            _prctl(PR_SET_PDEATHSIG, signal.SIGKILL)  # the launcher gone (SIGKILL): the run ends
+            exe = f"/xrf/{os.path.basename(cfg['exe'])}" if root is not None else cfg["exe"]
+            os.execve(exe, [cfg.get("argv0") or os.path.basename(cfg["exe"])], cfg["env"])
+        except BaseException as exc:  # noqa: BLE001 - anything: report it, never run unconfined
+            try:
+                os.write(err_w, f"{type(exc).__name__}: {exc}".encode()[:4000])
+            finally:
+                os._exit(REFUSED_EXIT)
+
+    def set_limits(self) -> None:
+        cfg = self.cfg
+        mb = 1 << 20
+        limits = [
+            (resource.RLIMIT_AS, cfg["memory_mb"] * mb),
+            (resource.RLIMIT_NPROC, cfg["nproc"]),
+            (resource.RLIMIT_NOFILE, cfg["nofile"]),
+            (resource.RLIMIT_FSIZE, cfg["fsize_mb"] * mb),
+            (resource.RLIMIT_CORE, 0),
+        ]
+        for which, value in limits:
+            _soft, hard = resource.getrlimit(which)
+            if hard != resource.RLIM_INFINITY and value > hard:
+                value = hard  # never more than we were given
+            resource.setrlimit(which, (value, value))
+        if self.mode == "root":
+            for which, value, _cap in self.realtime_limits():
+                if _cap not in self.ambient:
+                    resource.setrlimit(which, (value, value))
+
+    def realtime_limits(self) -> list[tuple[int, int, int]]:
+        return [(resource.RLIMIT_RTPRIO, self.cfg["priority"], CAP_SYS_NICE),
+                (resource.RLIMIT_MEMLOCK, self.cfg["memlock_mb"] << 20, CAP_IPC_LOCK)]
+
+    def plan_realtime(self) -> None:
+        """Real time without a capability: raised limits let an ordinary user use SCHED_FIFO up to
+        the priority and mlockall. Where root itself may not raise limits (no CAP_SYS_RESOURCE,
+        e.g. in a container), the loop keeps just CAP_SYS_NICE / CAP_IPC_LOCK instead; in its own
+        PID namespace they reach no other process. Not root: the limits come from the service
+        (LimitRTPRIO=, LimitMEMLOCK=), as for any process of that user."""
+        self.ambient: list[int] = []
+        if self.mode != "root":
+            return
+        for which, value, cap in self.realtime_limits():
+            try:
+                resource.setrlimit(which, (value, value))  # the launcher's own: a test, harmless
+            except (ValueError, OSError):
+                self.ambient.append(cap)
+                self.notes.append(f"kept {CAP_NAMES[cap]}: limit {which} cannot be raised here")
+
+
+class _CapHeader(ctypes.Structure):
+    _fields_ = [("version", ctypes.c_uint32), ("pid", ctypes.c_int)]
+
+
+class _CapData(ctypes.Structure):
+    _fields_ = [("effective", ctypes.c_uint32), ("permitted", ctypes.c_uint32), ("inheritable", ctypes.c_uint32)]
+
+
+def _set_ambient(caps: list[int]) -> None:
+    """After setuid with KEEPCAPS: exactly ``caps`` permitted, inheritable and ambient (they
+    survive the exec of a file without capabilities; nothing else does)."""
+    mask = sum(1 << c for c in caps)  # all below 32
+    header = _CapHeader(0x20080522, 0)
+    data = (_CapData * 2)(_CapData(mask, mask, mask), _CapData(0, 0, 0))
+    _check(_libc.capset(ctypes.byref(header), data), "capset")
+    for cap in caps:
+        _check(_libc.prctl(ctypes.c_int(PR_CAP_AMBIENT), ctypes.c_ulong(PR_CAP_AMBIENT_RAISE), ctypes.c_ulong(cap),
+                                ctypes.c_ulong(0), ctypes.c_ulong(0)), "PR_CAP_AMBIENT_RAISE")
+
+
+def _status_report(launch: _Launch, error: str = "") -> dict[str, Any]:
+    layers = {name: launch.layers.get(name, "") for name in LAYERS}
+    return {"mode": launch.mode, "layers": layers, "missing": {k: v for k, v in layers.items() if v},
+            "notes": launch.notes, "error": error}
+
+
+def _mirror_exit(status: int) -> None:
+    """Leave the way the controller did: same exit code, or killed by the same signal."""
+    if os.WIFSIGNALED(status):
+        sig = os.WTERMSIG(status)
+        resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
+        if sig not in (signal.SIGKILL, signal.SIGSTOP):  # those have no handler to reset
+            signal.signal(sig, signal.SIG_DFL)
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, [sig])
+        os.kill(os.getpid(), sig)
+        os._exit(128 + sig)
+    os._exit(os.waitstatus_to_exitcode(status))
+
+
+def launch(cfg: dict[str, Any]) -> None:
+    report_fd = cfg["report_fd"]
+    L = _Launch(cfg)
+
+    def say(text: str) -> None:
+        os.write(1, f"sandbox: {text}\n".encode())
+
+    def refuse(message: str) -> None:
+        say(f"REFUSED: {message}")
+        os.write(report_fd, (json.dumps(_status_report(L, message)) + "\n").encode())
+        os._exit(REFUSED_EXIT)
+
+    root: str | None = None
+    os.umask(0o022)  # the sandbox's own folders (/xrf, /etc, ...) must be passable by the loop user
+    try:
+        L.hold_dma_latency()
+        L.enter_namespaces()
+        # After the unshare: a bind mount's source must be a mount of our own namespace.
+        L.open_sources()
+        if not L.layers.get("mount"):
+            root = L.build_root()
+    except (OSError, GuestError) as exc:
+        refuse(str(exc))
+    if L.layers.get("mount"):
+        # No own /dev/shm: the segment lives in the host's, under the run's own name.
+        cfg["env"]["XRF_SHM"] = os.path.basename(cfg["shm_dir"]) + "-unconfined"
+    L.ok("user")
+    for layer in ("no_new_privs", "capabilities", "environment", "descriptors", "limits"):
+        L.ok(layer)
+    L.ok("uts")
+    missing = {k: v for k, v in L.layers.items() if v and k in LAYERS}
+    if missing and not cfg.get("allow_missing"):
+        refuse("missing protection: " + "; ".join(f"{k}: {v}" for k, v in missing.items())
+               + " (an educator may allow this with xrf serve --allow-unconfined)")
+    L.plan_realtime()
+    err_r, err_w = os.pipe2(os.O_CLOEXEC)
+    # Signals that arrive before the child exists are forwarded once it does.
+    pending: list[int] = []
+    child_pid = 0
+
+    def forward(sig: int, _frame: Any) -> None:
+        if child_pid > 0:
+            try:
+                os.kill(child_pid, sig)
+            except ProcessLookupError:
+                pass
+        else:
+            pending.append(sig)
+
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2):
+        signal.signal(sig, forward)
+    pid = os.fork()
+    if pid == 0:
+        os.close(err_r)
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2):
+            signal.signal(sig, signal.SIG_DFL)
+        L.child(root, err_w)
+        os._exit(REFUSED_EXIT)
+    child_pid = pid
+    os.close(err_w)
+    failure = b""
+    while chunk := os.read(err_r, 4096):  # EOF at the controller's exec (close-on-exec)
+        failure += chunk
+    os.close(err_r)
+    if failure:
+        os.waitpid(pid, 0)
+        refuse(f"could not start the controller in its sandbox: {failure.decode(errors='replace')}")
+    missing_text = ", ".join(sorted(k for k, v in L.layers.items() if v and k in LAYERS))
+    say(f"controller started as uid {L.loop_identity()[0]} (in its namespaces); "
+        + (f"MISSING: {missing_text}" if missing_text else "all layers hold")
+        + "".join(f"; {n}" for n in L.notes))
+    os.write(report_fd, (json.dumps(_status_report(L) | {"pid": pid}) + "\n").encode())
+    os.close(report_fd)
+    for sig in pending:
+        forward(sig, None)
+    while True:
+        try:
+            _, status = os.waitpid(pid, 0)
+            break
+        except ChildProcessError:
+            status = 0
+            break
+    _mirror_exit(status)
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) != 1:
+        print("usage: python -m xrflab.guest CONFIG_JSON (started by the appliance)", file=sys.stderr)
+        return 2
+    launch(json.loads(argv[0]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

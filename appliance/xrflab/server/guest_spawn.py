@@ -1,0 +1,258 @@
+"""The appliance's side of the run sandbox (``xrflab.guest``): who the controller runs as, what
+its sandbox shows, and starting the launcher.
+
+The supervisor asks ``GuestSpawner.spawn()`` for a loop process; it gets back the launcher's
+process (its exit is the controller's exit, signals sent to it reach the controller) and the
+launcher's report of which protection layers hold. docs/developers/security.md, "The run
+sandbox", describes the model.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import pwd
+import shutil
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .. import guest
+from ..channels import SHM_DIR
+
+APPLIANCE_DIR = Path(__file__).resolve().parents[2]  # appliance/ (the xrflab package's parent)
+DEFAULT_PRIORITY = 80  # rt_core's kDefaultPriority: the loop's SCHED_FIFO priority unless XRF_PRIO
+RUN_USER = "xrf-run"
+
+
+@dataclass(frozen=True)
+class GuestLimits:
+    memory_mb: int = 1024     # RLIMIT_AS of the controller (the loop itself needs ~60 MB)
+    nproc: int = 64           # RLIMIT_NPROC: threads and processes of the loop user
+    nofile: int = 256         # RLIMIT_NOFILE
+    fsize_mb: int = 512       # RLIMIT_FSIZE: largest file the controller may write
+    run_dir_mb: int = 2048    # the whole run folder; the supervisor stops the run beyond this
+    tmp_mb: int = 64          # its private /tmp and /var/tmp (tmpfs, counted as its memory)
+    memlock_mb: int = 512     # RLIMIT_MEMLOCK granted for mlockall (root mode)
+
+
+@dataclass
+class GuestReport:
+    """What the launcher said: mode, layer -> "" (holds) or why not, notes, a refusal."""
+
+    mode: str = "none"
+    layers: dict[str, str] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    error: str = ""
+    pid: int = 0  # the controller's pid (host's view); the launcher's exit mirrors its exit
+
+    @property
+    def missing(self) -> dict[str, str]:
+        return {k: v for k, v in self.layers.items() if v}
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"mode": self.mode, "layers": self.layers, "missing": self.missing, "notes": self.notes,
+                "confined": not self.missing and self.mode != "none"}
+
+
+def _sub_ranges(path: str, user: pwd.struct_passwd) -> list[tuple[int, int]]:
+    """Ranges of /etc/subuid or /etc/subgid that name this user (by name or uid)."""
+    out = []
+    try:
+        lines = Path(path).read_text().splitlines()
+    except OSError:
+        return []
+    for line in lines:
+        parts = line.strip().split(":")
+        if len(parts) == 3 and parts[0] in (user.pw_name, str(user.pw_uid)):
+            try:
+                out.append((int(parts[1]), int(parts[2])))
+            except ValueError:
+                continue
+    return out
+
+
+def _sub_range(path: str, user: pwd.struct_passwd) -> tuple[int, int] | None:
+    """The first range of /etc/subuid or /etc/subgid that names this user."""
+    ranges = _sub_ranges(path, user)
+    return ranges[0] if ranges else None
+
+
+@dataclass(frozen=True)
+class Identity:
+    """Who the controller will be. ``mode``: root (setuid to ``user``) or userns."""
+
+    mode: str
+    uid: int  # host uid of the controller
+    gid: int
+    note: str
+    sub_uid: int | None = None
+    sub_gid: int | None = None
+
+
+def identity(run_user: str = RUN_USER) -> Identity:
+    if os.geteuid() == 0:
+        from ..projects.builder import ensure_build_user
+
+        uid, gid, _ = ensure_build_user(run_user)
+        return Identity("root", uid, gid, f"controllers run as {run_user} (uid {uid})")
+    me = pwd.getpwuid(os.getuid())
+    su, sg = _sub_range("/etc/subuid", me), _sub_range("/etc/subgid", me)
+    tools = shutil.which("newuidmap") and shutil.which("newgidmap")
+    if su and sg and tools:
+        return Identity("userns", su[0], sg[0], f"controllers run as subordinate uid {su[0]} of {me.pw_name} "
+                        "(user namespace)", su[0], sg[0])
+    why = "no newuidmap (Debian package uidmap)" if not tools else f"no /etc/subuid and /etc/subgid range for {me.pw_name}"
+    return Identity("userns", os.getuid(), os.getgid(), f"controllers keep uid {os.getuid()} ({why}), in a user "
+                    "namespace without capabilities")
+
+
+class GuestSpawner:
+    def __init__(self, settings: Any) -> None:
+        self.settings = settings
+        self.limits: GuestLimits = getattr(settings, "guest_limits", None) or GuestLimits()
+        self._identity: Identity | None = None
+
+    @property
+    def identity(self) -> Identity:
+        if self._identity is None:
+            self._identity = identity(getattr(self.settings, "run_user", RUN_USER))
+        return self._identity
+
+    def devices(self) -> list[str]:
+        """What a real bench's controller needs of /dev (EVL core, SPI to the ico board)."""
+        out = []
+        if self.settings.bench_is_real() or Path("/dev/evl").exists():
+            for dev in ("/dev/evl", self.settings.spi_device):
+                if Path(dev).exists():
+                    out.append(dev)
+        return out
+
+    def device_gids(self) -> list[int]:
+        gids: set[int] = set()
+        for dev in self.devices():
+            p = Path(dev)
+            with_children = [p, *p.rglob("*")] if p.is_dir() else [p]
+            for q in with_children:
+                try:
+                    g = q.stat().st_gid
+                except OSError:
+                    continue
+                if g != 0:
+                    gids.add(g)
+        ident = self.identity
+        if ident.mode == "userns":
+            # Only groups the appliance's user may map (deploy/ lists them in /etc/subgid).
+            me = pwd.getpwuid(os.getuid())
+            ranges = _sub_ranges("/etc/subgid", me)
+            gids = {g for g in gids if any(s <= g < s + n for s, n in ranges) and g != ident.sub_gid}
+        return sorted(gids)
+
+    def shm_dir_for(self, name: str) -> Path:
+        return SHM_DIR / name
+
+    def prepare_dirs(self, run_dir: Path, shm_dir: Path) -> None:
+        """The run folder and the run's shm folder: the appliance keeps ownership; the loop user
+        writes through the group (set-gid folders, the loop's umask 007)."""
+        ident = self.identity
+        shm_dir.mkdir(mode=0o700, exist_ok=False)
+        for d in (run_dir, shm_dir):
+            if ident.mode == "root":
+                os.chown(d, os.getuid(), ident.gid)
+                os.chmod(d, 0o2770)
+            elif ident.sub_uid is not None:
+                os.chmod(d, 0o2770)  # the loop is a member of our group (mapped as its gid 0)
+            else:
+                os.chmod(d, 0o700)  # the loop is our uid
+
+    def config(self, exe: Path, run_dir: Path, shm_dir: Path, env: dict[str, str], read_only: list[Path],
+               report_fd: int) -> dict[str, Any]:
+        ident = self.identity
+        prio = env.get("XRF_PRIO") or DEFAULT_PRIORITY
+        lim = self.limits
+        return {
+            "mode": ident.mode, "uid": ident.uid, "gid": ident.gid, "sub_uid": ident.sub_uid, "sub_gid": ident.sub_gid,
+            "device_gids": self.device_gids(), "devices": self.devices(),
+            "exe": str(exe), "run_dir": str(run_dir), "shm_dir": str(shm_dir),
+            "read_only": [str(p) for p in read_only], "env": env, "report_fd": report_fd,
+            "priority": max(1, int(prio)), "memory_mb": lim.memory_mb, "nproc": lim.nproc, "nofile": lim.nofile,
+            "fsize_mb": lim.fsize_mb, "tmp_mb": lim.tmp_mb, "memlock_mb": lim.memlock_mb,
+            "allow_missing": bool(getattr(self.settings, "allow_unconfined", False)),
+        }
+
+    async def spawn(self, exe: Path, run_dir: Path, shm_dir: Path, env: dict[str, str], read_only: list[Path],
+                    output: Any, tag: str = "", timeout_s: float = 10.0) -> tuple[asyncio.subprocess.Process, GuestReport]:
+        """Start the launcher; return it and its report once the controller exec'd (or was refused:
+        the process has then exited with guest.REFUSED_EXIT and ``report.error`` says why)."""
+        bad = sorted(set(env) - guest.ENV_ALLOWED)
+        if bad:
+            raise ValueError(f"environment not on the allow-list: {', '.join(bad)}")
+        r, w = os.pipe()
+        try:
+            cfg = self.config(exe, run_dir, shm_dir, env, read_only, w)
+            boot = f"import sys; sys.path.insert(0, {str(APPLIANCE_DIR)!r}); from xrflab.guest import main; sys.exit(main(sys.argv[1:]))"
+            # The launcher's own environment: XRF_SHM identifies the run (the orphan reaper checks
+            # /proc/<pid>/environ before signalling a pid left by an earlier appliance).
+            launcher_env = {"PATH": "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin",
+                            "LANG": "C.UTF-8", "XRF_SHM": tag,
+                            "XRF_RUN_DIR": str(run_dir)}
+            proc = await asyncio.create_subprocess_exec(
+                sys.executable, "-S", "-B", "-c", boot, json.dumps(cfg),
+                cwd="/", env=launcher_env, stdin=asyncio.subprocess.DEVNULL, stdout=output,
+                stderr=asyncio.subprocess.STDOUT, close_fds=True, pass_fds=(w,),
+                # Own session: a Ctrl-C on the appliance's terminal reaches the appliance only,
+                # which then stops the run in order (quit, signals).
+                start_new_session=True,
+            )
+        finally:
+            os.close(w)
+        try:
+            raw = await asyncio.wait_for(asyncio.to_thread(_read_all, r), timeout_s)
+        finally:
+            os.close(r)
+        report = GuestReport()
+        try:
+            data = json.loads(raw.decode().splitlines()[0]) if raw.strip() else {}
+        except (ValueError, IndexError):
+            data = {}
+        if data:
+            report = GuestReport(mode=data.get("mode", "none"), layers=data.get("layers", {}),
+                                 notes=data.get("notes", []), error=data.get("error", ""),
+                                 pid=int(data.get("pid", 0)))
+        else:
+            report.error = "the sandbox launcher ended without a report (see the run's output)"
+        return proc, report
+
+
+def _read_all(fd: int) -> bytes:
+    out = b""
+    while chunk := os.read(fd, 65536):
+        out += chunk
+    return out
+
+
+def probe(settings: Any) -> GuestReport:
+    """Start /bin/true in the sandbox as a run would (for ``xrf doctor`` and the System page)."""
+    import tempfile
+
+    async def go() -> GuestReport:
+        spawner = GuestSpawner(settings)
+        with tempfile.TemporaryDirectory(prefix="xrf-probe-") as tmp:
+            run_dir = Path(tmp) / "run"
+            run_dir.mkdir()
+            shm_dir = SHM_DIR / f"xrf-probe-{os.getpid()}"
+            try:
+                os.chmod(tmp, 0o755)
+                spawner.prepare_dirs(run_dir, shm_dir)
+                true = shutil.which("true") or "/bin/true"
+                with open(os.devnull, "wb") as out:
+                    proc, report = await spawner.spawn(Path(true), run_dir, shm_dir, {"PATH": "/usr/bin:/bin"}, [],
+                                                       out)
+                await proc.wait()
+                return report
+            finally:
+                shutil.rmtree(shm_dir, ignore_errors=True)
+
+    return asyncio.run(go())
