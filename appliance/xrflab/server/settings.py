@@ -59,6 +59,11 @@ class Settings:
     builds_root: Path | None = None
     # Environment passed to every loop process on top of ours (e.g. XRF_FREQ in benchmarks).
     loop_env: dict[str, str] = field(default_factory=dict)
+    # The run sandbox (xrflab.guest, docs/developers/security.md "The run sandbox"). A run starts
+    # only with every protection layer in place, unless an educator allowed otherwise
+    # (`xrf serve --allow-unconfined`, $XRF_ALLOW_UNCONFINED=1); the dashboard then says which is missing.
+    allow_unconfined: bool = field(default_factory=lambda: os.environ.get("XRF_ALLOW_UNCONFINED", "") in ("1", "true", "yes"))
+    run_user: str = "xrf-run"  # as root: the user controllers run as (created on first use)
 
     # WebSocket fan-out.
     max_frame_bytes: int = 64 * 1024
