@@ -139,6 +139,16 @@ def _confine(hide: str, keep: list[tuple[str, bool]]) -> None:
     """Cover ``hide`` (the data folder: every project, the databases, the runs) with an empty
     tmpfs, then put back only ``keep``: (path, read_only) — the project's source (read-only),
     its build folder, rt_core's install (read-only). Same paths, so CMake sees nothing change."""
+    # The folders made here on the empty tmpfs must be passable by the build user, whatever the
+    # appliance's umask (0o077 for its data files).
+    old_umask = os.umask(0o022)
+    try:
+        _confine_paths(hide, keep)
+    finally:
+        os.umask(old_umask)
+
+
+def _confine_paths(hide: str, keep: list[tuple[str, bool]]) -> None:
     stage = "/tmp/.xrf-keep"
     os.makedirs(stage, exist_ok=True)
     staged = []
