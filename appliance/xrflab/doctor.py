@@ -42,9 +42,10 @@ import subprocess
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Optional
+from typing import Any, Callable, Iterable, Optional
 
-HELP = "check this machine for real-time readiness (EVL, isolated CPU, governor, throttling, SPI, clock, disk, ROS 2)"
+HELP = ("check this machine for real-time readiness (EVL, isolated CPU, governor, throttling, SPI, clock, disk, "
+        "ROS 2) and which run sandbox confines students' controllers")
 
 OK, WARNING, FAILURE, SKIPPED = "ok", "warning", "failure", "not checked"
 STATUSES = (OK, WARNING, FAILURE, SKIPPED)
@@ -81,9 +82,25 @@ class CheckResult:
     status: str  # ok | warning | failure | not checked
     detail: str
     fix: str = ""
+    # Parts of a check, each {"name", "status" (ok | missing), "detail"}: the confinement
+    # check's protection layers (the System page lists them). Left out of to_dict() when empty.
+    items: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        if not d["items"]:
+            del d["items"]
+        return d
+
+
+@dataclass
+class ConfinementProbe:
+    """What the run sandbox did with a harmless controller (``/bin/true``): the launcher's
+    report (``xrflab.server.guest_spawn.GuestReport``) and who controllers run as."""
+
+    report: Any  # GuestReport: mode, layers (name -> "" or why missing), notes, error
+    identity: str  # guest_spawn.identity().note
+    user: str = ""  # who ran the probe (the appliance's user on the System page)
 
 
 @dataclass
@@ -106,6 +123,12 @@ class Context:
     disk_usage: Callable[[Path], "tuple[int, int, int]"] = shutil.disk_usage
     find_module: Callable[[str], bool] = lambda name: importlib.util.find_spec(name) is not None
     init_probe: Optional[Callable[["Context"], InitProbe]] = None  # default: probe_fpga_init
+    # The run sandbox: the appliance's Settings (None: built from data_dir/spi_device), whether
+    # runs may start with a layer missing (xrf serve --allow-unconfined), and the probe
+    # (default: probe_confinement, which starts /bin/true in the sandbox; only when root is /).
+    settings: Any = None
+    allow_unconfined: Optional[bool] = None  # None: settings' (or $XRF_ALLOW_UNCONFINED)
+    guest_probe: Optional[Callable[["Context"], ConfinementProbe]] = None
 
     def path(self, p: str) -> Path:
         return self.root / p.lstrip("/")
@@ -509,15 +532,107 @@ def check_ros2(ctx: Context) -> CheckResult:
                        "optional: sudo apt install ros-jazzy-ros-base (Ubuntu 24.04), then restart xrf-lab")
 
 
+# What to do about a missing layer of the run sandbox (xrflab.guest.LAYERS).
+LAYER_FIX = {
+    "user": "give the appliance's user subordinate ids and the setuid helpers: `sudo apt install uidmap`, then "
+            "`sudo deploy/install` (writes xrf:<uid of xrf-loop>:1 to /etc/subuid and the matching /etc/subgid lines); "
+            "or run the appliance as root (development)",
+    "mount": "enable unprivileged user namespaces: `sudo sysctl kernel.unprivileged_userns_clone=1` (Debian) or "
+             "`sudo sysctl kernel.apparmor_restrict_unprivileged_userns=0` (Ubuntu 24.04); in a container, allow "
+             "unshare (e.g. docker --security-opt seccomp=unconfined)",
+}
+for _layer in ("pid", "network", "ipc"):
+    LAYER_FIX[_layer] = LAYER_FIX["mount"]
+ALLOW_HINT = ("runs are refused until this is fixed (an educator may accept the risk with "
+              "`xrf serve --allow-unconfined`)")
+
+
+def probe_confinement(ctx: Context) -> ConfinementProbe:
+    """Start /bin/true in the run sandbox exactly as a run would (``guest_spawn.probe``)."""
+    import pwd
+
+    from .server import guest_spawn
+    from .server.settings import Settings
+
+    settings = ctx.settings
+    if settings is None:
+        kw: dict = {"data_dir": Path(ctx.data_dir), "spi_device": ctx.spi_device}
+        if ctx.allow_unconfined is not None:
+            kw["allow_unconfined"] = ctx.allow_unconfined
+        settings = Settings(**kw)
+    ident = guest_spawn.identity(getattr(settings, "run_user", guest_spawn.RUN_USER))
+    report = guest_spawn.probe(settings)
+    try:
+        user = pwd.getpwuid(os.getuid()).pw_name
+    except KeyError:
+        user = str(os.getuid())
+    return ConfinementProbe(report, ident.note, user)
+
+
+def _allow_unconfined(ctx: Context) -> bool:
+    if ctx.allow_unconfined is not None:
+        return ctx.allow_unconfined
+    if ctx.settings is not None:
+        return bool(getattr(ctx.settings, "allow_unconfined", False))
+    return os.environ.get("XRF_ALLOW_UNCONFINED", "") in ("1", "true", "yes")
+
+
+def check_confinement(ctx: Context) -> CheckResult:
+    """Which run sandbox confines students' controllers here: the mode (root: a dedicated user;
+    userns: a user namespace), who the controller runs as, and each layer holding or missing."""
+    cid, title = "confinement", "Run sandbox (students' controllers confined)"
+    probe_fn = ctx.guest_probe
+    if probe_fn is None:
+        if str(ctx.root) != "/":
+            return CheckResult(cid, title, SKIPPED, "not checked: --root names a prepared tree; the sandbox is "
+                               "probed only on the machine itself")
+        probe_fn = probe_confinement
+    try:
+        probe = probe_fn(ctx)
+    except ImportError as exc:
+        return CheckResult(cid, title, SKIPPED, f"not checked: the appliance is not fully installed here ({exc})",
+                           "install the xrflab package with its dependencies (deploy/install without --no-deps)")
+    report = probe.report
+    layers: dict = dict(report.layers or {})
+    missing = {k: v for k, v in layers.items() if v}
+    allowed = _allow_unconfined(ctx)
+    items = [{"name": k, "status": "missing" if v else "ok", "detail": v} for k, v in layers.items()]
+    who = f" (probed as {probe.user})" if probe.user else ""
+    head = f"mode {report.mode}: {probe.identity}{who}"
+    notes = "".join(f"; {n}" for n in (report.notes or []))
+    if report.error and not missing:
+        # Refused for another reason than a missing layer (no user namespace at all, the
+        # launcher failing): no run can start, whatever the settings say.
+        return CheckResult(cid, title, FAILURE, f"{head}; the sandbox could not start a controller: {report.error}",
+                           LAYER_FIX["mount"] + "; see docs/developers/security.md, 'The run sandbox'", items)
+    if missing:
+        text = "; ".join(f"{k} ({v})" for k, v in missing.items())
+        holding = ", ".join(k for k, v in layers.items() if not v) or "none"
+        fixes = []
+        for k in missing:
+            f = LAYER_FIX.get(k, "see docs/developers/security.md, 'The run sandbox'")
+            if f not in fixes:
+                fixes.append(f)
+        if allowed:
+            return CheckResult(cid, title, WARNING,
+                               f"{head}; controllers run WITHOUT: {text} (allowed by --allow-unconfined); "
+                               f"holding: {holding}{notes}", "; ".join(fixes), items)
+        return CheckResult(cid, title, FAILURE, f"{head}; missing: {text}; holding: {holding}{notes}; {ALLOW_HINT}",
+                           "; ".join(fixes), items)
+    return CheckResult(cid, title, OK, f"{head}; all {len(layers)} layers hold ({', '.join(layers)}){notes}",
+                       "", items)
+
+
 CHECKS: list[Callable[[Context], CheckResult]] = [
     check_evl, check_isolation, check_governor, check_throttling, check_spi, check_fpga,
-    check_clock, check_disk, check_ros2,
+    check_clock, check_disk, check_ros2, check_confinement,
 ]
 
 
 def run_checks(root: Path = Path("/"), runner: Runner = run_command, **context) -> list[CheckResult]:
     """Every check, in order. ``context``: the other :class:`Context` fields (data_dir,
-    loop_user, live, now, disk_usage, find_module, init_probe)."""
+    loop_user, live, now, disk_usage, find_module, init_probe, settings, allow_unconfined,
+    guest_probe)."""
     ctx = Context(root=Path(root), runner=runner, **context)
     results: list[CheckResult] = []
     spi = None
@@ -548,15 +663,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--root", type=Path, default=Path("/"), help="check the tree under this folder (tests)")
     parser.add_argument("--data", default=DEFAULT_DATA_DIR, help=f"data folder (default {DEFAULT_DATA_DIR})")
     parser.add_argument("--no-live", action="store_true", help="do not talk to the FPGA")
+    parser.add_argument("--allow-unconfined", action="store_true", default=None,
+                        help="judge the run sandbox as `xrf serve --allow-unconfined` would run: a missing "
+                             "protection layer is then a warning, not a failure")
 
 
 def run(args: argparse.Namespace) -> int:
-    results = run_checks(args.root, data_dir=args.data, live=not args.no_live)
+    results = run_checks(args.root, data_dir=args.data, live=not args.no_live,
+                         allow_unconfined=getattr(args, "allow_unconfined", None))
     if args.json:
         print(json.dumps([r.to_dict() for r in results], indent=2))
     else:
         for r in results:
             print(f"[{SYMBOL[r.status]:>4}] {r.title}: {r.detail}")
+            for item in r.items:
+                mark = "holds" if item["status"] == "ok" else f"MISSING: {item['detail']}"
+                print(f"       {item['name']:<13} {mark}")
             if r.fix and r.status != OK:
                 print(f"       fix: {r.fix}")
         counts = {s: sum(r.status == s for r in results) for s in STATUSES}

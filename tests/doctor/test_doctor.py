@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 
 from xrflab import doctor
-from xrflab.doctor import FAILURE, OK, SKIPPED, WARNING, Context, InitProbe
+from xrflab.doctor import FAILURE, OK, SKIPPED, WARNING, ConfinementProbe, Context, InitProbe
+from xrflab.server.guest_spawn import GuestReport
 
 NOW = 1_790_000_000.0  # 2026
 
@@ -342,11 +343,14 @@ def test_run_checks_on_a_ready_pi(tmp_path):
     run = fake_runner({"vcgencmd": (0, "throttled=0x0\n"), "timedatectl": (0, "yes\n")})
     results = doctor.run_checks(ready_pi(tmp_path), run, now=lambda: NOW,
                                 disk_usage=lambda p: (1, 0, 10**11), find_module=lambda n: True,
-                                init_probe=lambda c: InitProbe(OK, "init: answered"))
+                                init_probe=lambda c: InitProbe(OK, "init: answered"),
+                                guest_probe=lambda c: ConfinementProbe(
+                                    GuestReport(mode="userns", layers={"user": "", "mount": ""}), "as xrf-loop"))
     assert [r.id for r in results] == ["evl", "isolcpus", "governor", "throttling", "spi", "fpga",
-                                       "clock", "disk", "ros2"]
+                                       "clock", "disk", "ros2", "confinement"]
     assert all(r.status == OK for r in results), [(r.id, r.status, r.detail) for r in results]
-    assert all(set(r.to_dict()) == {"id", "title", "status", "detail", "fix"} for r in results)
+    assert all(set(r.to_dict()) == {"id", "title", "status", "detail", "fix"} for r in results[:-1])
+    assert set(results[-1].to_dict()) == {"id", "title", "status", "detail", "fix", "items"}
 
 
 def test_a_crashing_check_is_reported_not_raised(tmp_path, monkeypatch):
@@ -372,6 +376,7 @@ def test_cli_json_and_exit_code(tmp_path):
     assert results["evl"]["status"] == FAILURE
     assert results["governor"]["status"] == FAILURE and results["governor"]["fix"]
     assert results["fpga"]["status"] == SKIPPED
+    assert results["confinement"]["status"] == SKIPPED  # the sandbox is probed on the machine itself only
     text = subprocess.run([sys.executable, "-m", "xrflab.cli", "doctor", "--no-live", "--root", str(tmp_path)],
                           capture_output=True, text=True)
     assert "[FAIL] CPU frequency governor" in text.stdout and "fix: " in text.stdout

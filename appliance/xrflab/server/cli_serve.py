@@ -41,6 +41,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "are ignored)")
     parser.add_argument("--ros-bridge-user", default="", metavar="NAME",
                         help="the user whose bench lease ROS 2 commands obey (default: who started the run)")
+    parser.add_argument("--allow-unconfined", action="store_true", default=False,
+                        help="let runs start when a protection layer of the run sandbox cannot be had (no "
+                             "subordinate uid, no user namespaces, ...): the controller then runs WITHOUT that "
+                             "layer and the dashboard says so on every page (default: such runs are refused; "
+                             "also $XRF_ALLOW_UNCONFINED=1; `xrf doctor` lists the layers)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -59,10 +64,15 @@ def run(args: argparse.Namespace) -> int:
         ros_bridge_user=args.ros_bridge_user,
         trusted_proxies=tuple(args.trusted_proxy),
         **({"ros_bridge": True} if args.ros_bridge else {}),
+        # Only when given: without the option $XRF_ALLOW_UNCONFINED (Settings' default) decides.
+        **({"allow_unconfined": True} if getattr(args, "allow_unconfined", False) else {}),
     )
     shown = "localhost" if args.host in ("127.0.0.1", "0.0.0.0", "::") else args.host
     bench = "real ico board" if settings.bench_is_real() else f"simulated {settings.sim}"
     print(f"XRF Lab: {bench} bench, data in {settings.data_dir}", flush=True)
+    if settings.allow_unconfined:
+        print("XRF Lab: --allow-unconfined: runs start even when a protection layer of the run sandbox is "
+              "missing (the dashboard then says which)", flush=True)
     print(f"XRF Lab: open http://{shown}:{args.port}/ in a browser", flush=True)
     serve(create_app(settings), settings)
     return 0

@@ -25,6 +25,15 @@ from ..channels import SHM_DIR
 APPLIANCE_DIR = Path(__file__).resolve().parents[2]  # appliance/ (the xrflab package's parent)
 DEFAULT_PRIORITY = 80  # rt_core's kDefaultPriority: the loop's SCHED_FIFO priority unless XRF_PRIO
 RUN_USER = "xrf-run"
+# TEST ONLY: $XRF_GUEST_TEST_DROP=<layer>[,<layer>] makes the launcher report those layers missing
+# ("skipped for a test"), as on a machine that cannot have them. Not for "mount" (the channel
+# segment's place depends on it). Used by tests/ui; never set it on a bench.
+TEST_DROP_ENV = "XRF_GUEST_TEST_DROP"
+
+
+def dropped_for_a_test() -> str:
+    """TEST ONLY: the layers named in $XRF_GUEST_TEST_DROP (known ones, never "mount")."""
+    return ",".join(x for x in os.environ.get(TEST_DROP_ENV, "").split(",") if x in guest.LAYERS and x != "mount")
 
 
 @dataclass(frozen=True)
@@ -180,6 +189,9 @@ class GuestSpawner:
             "priority": max(1, int(prio)), "memory_mb": lim.memory_mb, "nproc": lim.nproc, "nofile": lim.nofile,
             "fsize_mb": lim.fsize_mb, "tmp_mb": lim.tmp_mb, "memlock_mb": lim.memlock_mb,
             "allow_missing": bool(getattr(self.settings, "allow_unconfined", False)),
+            # TEST ONLY: layers the launcher reports missing ("skipped for a test"), for the tests of
+            # the dashboard's "runs WITHOUT" banner. Never set on a bench.
+            **({"test_drop": dropped_for_a_test()} if dropped_for_a_test() else {}),
         }
 
     async def spawn(self, exe: Path, run_dir: Path, shm_dir: Path, env: dict[str, str], read_only: list[Path],

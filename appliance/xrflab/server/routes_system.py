@@ -29,12 +29,20 @@ STARTED = time.time()
 _doctor_lock = asyncio.Lock()
 
 
+class DoctorItem(BaseModel):
+    name: str
+    status: str = Field(description="ok | missing")
+    detail: str = Field(description="why it is missing")
+
+
 class DoctorCheck(BaseModel):
     id: str
     title: str
     status: str = Field(description="ok | warning | failure | not checked")
     detail: str
     fix: str = Field(description="what to do, when not ok")
+    items: list[DoctorItem] = Field(default_factory=list,
+                                    description="parts of the check: the run sandbox's protection layers")
 
 
 class DoctorResult(BaseModel):
@@ -110,8 +118,10 @@ async def system_doctor(request: Request) -> dict[str, Any]:
     live = _bench_free(request) and user is not None and user.role == "educator"
     async with _doctor_lock:  # one at a time; a second caller waits for a fresh result
         t0 = time.monotonic()
+        # The confinement check starts /bin/true in the run sandbox exactly as a run would, with
+        # this appliance's settings (its user, --allow-unconfined).
         results = await asyncio.to_thread(doctor.run_checks, Path("/"), data_dir=str(settings.data_dir),
-                                          spi_device=settings.spi_device, live=live)
+                                          spi_device=settings.spi_device, live=live, settings=settings)
         duration = time.monotonic() - t0
     checks = [r.to_dict() for r in results]
     counts = {s: sum(c["status"] == s for c in checks) for s in doctor.STATUSES}
