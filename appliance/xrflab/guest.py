@@ -173,6 +173,13 @@ class _Launch:
     # -- in the launcher, before the fork ---------------------------------------------------------
 
     def open_sources(self) -> None:
+        try:
+            os.close(os.open(self.cfg["exe"], os.O_RDONLY | os.O_CLOEXEC))
+        except OSError as exc:
+            raise GuestError(f"cannot read the controller {self.cfg['exe']}: {exc.strerror}") from exc
+        self._open_sources()
+
+    def _open_sources(self) -> None:
         """O_PATH fds to everything the new root shows, before any mount can hide it (a checkout or
         data folder under /tmp, say, which the staging tmpfs covers)."""
         cfg = self.cfg
@@ -489,6 +496,8 @@ def launch(cfg: dict[str, Any]) -> None:
             root = L.build_root()
     except (OSError, GuestError) as exc:
         refuse(str(exc))
+    except Exception as exc:  # noqa: BLE001 - a launcher bug must still end in a clear refusal
+        refuse(f"sandbox set-up failed: {type(exc).__name__}: {exc}")
     if L.layers.get("mount"):
         # No own /dev/shm: the segment lives in the host's, under the run's own name.
         cfg["env"]["XRF_SHM"] = os.path.basename(cfg["shm_dir"]) + "-unconfined"

@@ -20,7 +20,6 @@ from pathlib import Path
 from typing import Any
 
 from .. import guest
-from ..channels import SHM_DIR
 
 APPLIANCE_DIR = Path(__file__).resolve().parents[2]  # appliance/ (the xrflab package's parent)
 DEFAULT_PRIORITY = 80  # rt_core's kDefaultPriority: the loop's SCHED_FIFO priority unless XRF_PRIO
@@ -160,6 +159,8 @@ class GuestSpawner:
         return sorted(gids)
 
     def shm_dir_for(self, name: str) -> Path:
+        from ..channels import SHM_DIR  # (lazy: the cffi binding is not needed to start a guest)
+
         return SHM_DIR / name
 
     def prepare_dirs(self, run_dir: Path, shm_dir: Path) -> None:
@@ -254,7 +255,7 @@ def probe(settings: Any) -> GuestReport:
         with tempfile.TemporaryDirectory(prefix="xrf-probe-") as tmp:
             run_dir = Path(tmp) / "run"
             run_dir.mkdir()
-            shm_dir = SHM_DIR / f"xrf-probe-{os.getpid()}"
+            shm_dir = spawner.shm_dir_for(f"xrf-probe-{os.getpid()}")
             try:
                 os.chmod(tmp, 0o755)
                 spawner.prepare_dirs(run_dir, shm_dir)

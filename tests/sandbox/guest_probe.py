@@ -1,0 +1,41 @@
+"""Run a shell probe in the run sandbox as a run would (GuestSpawner), print one JSON line:
+the launcher's report, the exit code and what the probe saw. Started by test_launcher.py,
+possibly as another user: needs only the standard library and xrflab's pure-Python modules.
+
+usage: guest_probe.py APPLIANCE_DIR PROBE_SCRIPT ALLOW_MISSING(0|1)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, sys.argv[1])
+from xrflab.server.guest_spawn import GuestSpawner  # noqa: E402
+from xrflab.server.settings import Settings  # noqa: E402
+
+
+async def main() -> None:
+    tmp = Path(tempfile.mkdtemp(prefix="xrf-guest-test-"))
+    run = tmp / "run"
+    run.mkdir()
+    spawner = GuestSpawner(Settings(data_dir=tmp, allow_unconfined=sys.argv[3] == "1", real_bench=False))
+    shm = Path("/dev/shm") / f"xrf-guest-test-{os.getpid()}"
+    try:
+        spawner.prepare_dirs(run, shm)
+        with open(run / "out.txt", "wb") as out:
+            proc, report = await spawner.spawn(Path(sys.argv[2]), run, shm, {"PATH": "/usr/bin:/bin"}, [], out)
+        rc = await proc.wait()
+        print(json.dumps({"report": report.as_dict(), "error": report.error, "rc": rc, "pid": report.pid,
+                          "output": (run / "out.txt").read_text(), "host_uid": os.getuid()}))
+    finally:
+        shutil.rmtree(shm, ignore_errors=True)
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+asyncio.run(main())

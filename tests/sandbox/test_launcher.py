@@ -1,0 +1,146 @@
+"""The run sandbox's launcher (xrflab.guest) for each kind of appliance user: root (a dedicated
+user), an ordinary user with subordinate ids (user namespace + newuidmap), and an ordinary user
+without them (refused unless an educator allowed it). What the controller sees is read by a
+shell probe running in the sandbox."""
+
+from __future__ import annotations
+
+import json
+import os
+import pwd
+import re
+import shutil
+import stat
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+HERE = Path(__file__).resolve().parent
+TEST_USER = "xrf-test-guest"  # an ordinary user with subordinate ids (made here when root)
+PROBE = r"""#!/bin/sh
+echo "uid=$(id -u)"
+echo "caps=$(grep CapEff /proc/self/status | cut -f2)"
+echo "nnp=$(grep NoNewPrivs /proc/self/status | cut -f2)"
+echo "pid=$$"
+echo "root=$(ls / | tr '\n' ' ')"
+echo "fds=$(ls /proc/self/fd | tr '\n' ' ')"
+echo "env=$(env | cut -d= -f1 | sort | tr '\n' ' ')"
+echo "lo=$(cat /sys/class/net/lo/operstate 2>/dev/null || echo none)"
+touch /tmp/x && echo "tmp=writable"
+touch "$PWD/written" && echo "run=writable"
+touch /etc/x 2>/dev/null && echo "etc=WRITABLE" || echo "etc=read-only"
+"""
+
+
+def probe_as(user: str | None, tmp: Path, allow_missing: bool = False) -> dict[str, Any]:
+    # pytest's tmp_path is private to its user: the probe lives where another user may read it.
+    tmp = Path(tempfile.mkdtemp(prefix="xrf-probe-"))
+    os.chmod(tmp, 0o755)
+    try:
+        return _probe_as(user, tmp, allow_missing)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _probe_as(user: str | None, tmp: Path, allow_missing: bool) -> dict[str, Any]:
+    script = tmp / "probe.sh"
+    script.write_text(PROBE)
+    script.chmod(0o755)
+    os.chmod(tmp, 0o755)
+    python = sys.executable
+    cmd = [python, str(HERE / "guest_probe.py"), str(REPO / "appliance"), str(script), "1" if allow_missing else "0"]
+    if user is not None:
+        # Another user cannot reach a venv under /root: the system's Python runs the same code.
+        python = shutil.which("python3", path="/usr/bin:/bin") or "/usr/bin/python3"
+        cmd = ["setpriv", f"--reuid={user}", f"--regid={pwd.getpwnam(user).pw_gid}", "--init-groups",
+               python, *cmd[1:]]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=60, cwd="/")
+    assert r.returncode == 0 and r.stdout.strip(), r.stderr
+    data = json.loads(r.stdout.strip().splitlines()[-1])
+    data["seen"] = dict(re.findall(r"^(\w+)=(.*)$", data["output"], re.M))
+    return data
+
+
+def assert_confined(data: dict[str, Any], except_layers: set[str] = frozenset()) -> None:  # type: ignore[assignment]
+    report, seen = data["report"], data["seen"]
+    assert set(report["missing"]) == set(except_layers), report
+    assert data["rc"] == 0, data["output"]
+    # No capability, except where root itself may not raise RLIMIT_RTPRIO/MEMLOCK (no
+    # CAP_SYS_RESOURCE, as in some containers): then exactly CAP_SYS_NICE and CAP_IPC_LOCK, said in a note.
+    kept = (1 << 23) | (1 << 14) if any("kept CAP_" in n for n in report["notes"]) else 0
+    assert seen["uid"] != "0" and int(seen["caps"], 16) & ~kept == 0 and seen["nnp"] == "1", seen
+    assert seen["pid"] == "1", seen  # PID 1 of its own namespace
+    assert set(seen["root"].split()) <= {"bin", "dev", "etc", "lib", "lib32", "lib64", "libx32", "proc", "sbin",
+                                         "sys", "tmp", "usr", "var", "xrf"}, seen
+    assert seen["fds"].split() == ["0", "1", "2", "3"], seen  # 3: ls's own listing of the folder
+    assert set(seen["env"].split()) <= {"PATH", "PWD", "OLDPWD", "SHLVL", "_"}, seen
+    assert seen["lo"] in ("down", "none"), seen
+    assert seen["tmp"] == "writable" and seen["run"] == "writable" and seen["etc"] == "read-only", seen
+
+
+def ensure_test_user() -> str:
+    """As root: an ordinary user with a range in /etc/subuid and /etc/subgid (uidmap installed by ./lab)."""
+    try:
+        pwd.getpwnam(TEST_USER)
+    except KeyError:
+        subprocess.run(["useradd", "--system", "--user-group", "--no-create-home", "--home-dir", "/nonexistent",
+                        "--shell", "/usr/sbin/nologin", TEST_USER], check=True)
+    for f, flag in (("/etc/subuid", "--add-subuids"), ("/etc/subgid", "--add-subgids")):
+        text = Path(f).read_text() if Path(f).exists() else ""
+        if not re.search(rf"^{TEST_USER}:", text, re.M):
+            subprocess.run(["usermod", flag, "720000-785535", TEST_USER], check=True)
+    return TEST_USER
+
+
+def test_as_this_user(tmp_path: Path) -> None:
+    """Root: the dedicated user. Not root: the user namespace, with subordinate ids if we have them."""
+    data = probe_as(None, tmp_path)
+    if os.geteuid() == 0:
+        assert data["report"]["mode"] == "root"
+        assert_confined(data)
+        assert int(data["seen"]["uid"]) == pwd.getpwnam("xrf-run").pw_uid
+    elif data["report"]["missing"]:
+        assert data["rc"] == 126 and "subordinate" in data["error"] and "--allow-unconfined" in data["error"]
+    else:
+        assert_confined(data)
+
+
+def test_ordinary_user_with_subordinate_ids(tmp_path: Path) -> None:
+    if os.geteuid() != 0:
+        data = probe_as(None, tmp_path)
+        if data["report"]["missing"]:  # this user has no /etc/subuid range: refused, clearly
+            assert data["rc"] == 126 and "subordinate" in data["error"]
+            return
+    else:
+        data = probe_as(ensure_test_user(), tmp_path)
+    assert data["report"]["mode"] == "userns"
+    assert_confined(data)
+    # The files the controller wrote belong to its own host uid, neither root nor the appliance's.
+    assert data["seen"]["uid"] == "1"
+
+
+def test_no_subordinate_ids_refused_unless_allowed(tmp_path: Path) -> None:
+    user = "nobody" if os.geteuid() == 0 else None
+    me = pwd.getpwnam(user) if user else pwd.getpwuid(os.getuid())
+    if any(line.split(":")[0] in (me.pw_name, str(me.pw_uid))
+           for f in ("/etc/subuid",) if Path(f).exists() for line in Path(f).read_text().splitlines()):
+        pytest.fail(f"{me.pw_name} has subordinate ids: this case needs a user without")
+    refused = probe_as(user, tmp_path)
+    assert refused["rc"] == 126 and set(refused["report"]["missing"]) == {"user"}
+    assert "REFUSED" in refused["output"] and "--allow-unconfined" in refused["error"]
+    assert "written" not in refused["output"]
+    allowed = probe_as(user, tmp_path, allow_missing=True)
+    assert_confined(allowed, except_layers={"user"})
+    assert allowed["seen"]["uid"] == "65534"  # unmapped in its nested namespace: no identity, no capability
+
+
+def test_launcher_left_nothing(tmp_path: Path) -> None:
+    probe_as(None, tmp_path)
+    left = [p for p in Path("/dev/shm").iterdir() if p.name.startswith("xrf-guest-test-")]
+    assert not left, left
+    assert stat.S_ISDIR(os.stat(tmp_path).st_mode)
