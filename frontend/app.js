@@ -154,7 +154,11 @@ async function api(method, path, body) {
   const res = await fetch(path, { method, headers, body: body ? JSON.stringify(body) : undefined });
   if (res.status === 401) { xrf.toLogin(); throw new Error("logged out"); }
   const data = await res.json().catch(() => ({}));
-  if (!res.ok) throw new Error(data.detail ? (typeof data.detail === "string" ? data.detail : JSON.stringify(data.detail)) : res.statusText);
+  if (!res.ok) {
+    const err = new Error(data.detail ? (typeof data.detail === "string" ? data.detail : JSON.stringify(data.detail)) : res.statusText);
+    err.status = res.status;
+    throw err;
+  }
   return data;
 }
 
@@ -196,6 +200,11 @@ async function startRun() {
     await api("POST", "/api/runs", body);
   } catch (e) {
     $("run-detail").textContent = "Could not start: " + e.message;
+    // Refused by the run sandbox (a protection layer missing, runs not allowed without it):
+    // said in the alarm bar too, which every page shows.
+    if (e.status === 503 && e.message.startsWith("the controller was not started")) {
+      showAlarm({ kind: "confinement", message: e.message });
+    }
   } finally {
     btn.disabled = false;
     loadBuilds().catch(() => {});
@@ -242,11 +251,46 @@ function applyRun(m) {
       : `run #${r.id} ${r.status}` + (r.crashed ? ` (${r.crash_reason})` : "");
     $("run-detail").textContent = m.active ? `${what} · ${m.program || ""} · ${m.backend || ""}/${m.transport || ""}` : `${what}: ${r.message}`;
   }
+  applyConfinement(m);
   if (m.event === "ended" && !m.active) {
     $("setpoints").querySelectorAll("input").forEach((i) => { i.disabled = true; });
   }
   updateRunSummary();
   loadRuns().catch(() => {});
+}
+
+// ---- the run sandbox's missing protection (xrflab.guest; docs/educators/controllers.md) --------
+// A controller started with a protection layer missing (the educator's --allow-unconfined): a red
+// banner in the sticky top bar, on every page, for as long as that run is live.
+
+function missingText(missing) {
+  return Object.entries(missing || {}).map(([layer, why]) => why ? `${layer} (${why})` : layer).join("; ");
+}
+
+function showConfinement(runId, missing) {
+  const box = $("confinement-banner");
+  const text = missingText(missing);
+  xrf.confinement = text ? { run_id: runId, missing } : null;
+  if (!text) { box.classList.add("hidden"); box.textContent = ""; return; }
+  box.textContent = "";
+  const head = document.createElement("span");
+  head.textContent = "This controller runs WITHOUT: ";
+  const why = document.createElement("span");
+  why.className = "why";
+  why.textContent = text;
+  box.append(head, why);
+  box.dataset.runId = runId ?? "";
+  box.title = "The run sandbox could not give this protection; an educator allowed runs without it (xrf serve --allow-unconfined). xrf doctor and the System page say how to fix it.";
+  box.classList.remove("hidden");
+}
+
+function applyConfinement(m) {
+  const r = m.run;
+  if (!m.active) {  // the run is over: so is the warning about it
+    if (!xrf.confinement || !r || xrf.confinement.run_id === r.id) showConfinement(null, null);
+    return;
+  }
+  if (m.confinement) showConfinement(r && r.id, m.confinement.missing);
 }
 
 function updateRunSummary() {
@@ -442,7 +486,8 @@ function appendMonitor(lines, source) {
 function showAlarm(m) {
   const box = $("alarm");
   box.classList.toggle("warn", m.kind === "deadline_miss");
-  const prefix = { crash: "Loop crashed: ", hang: "Loop hung: ", log: "Logging stopped: ", deadline_miss: "Timing: " };
+  const prefix = { crash: "Loop crashed: ", hang: "Loop hung: ", log: "Logging stopped: ", deadline_miss: "Timing: ",
+    confinement: "Run sandbox: " };
   $("alarm-text").textContent = (prefix[m.kind] || "") + m.message;
   box.dataset.kind = m.kind;
   box.classList.remove("hidden");
@@ -530,7 +575,14 @@ function connect() {
       case "telemetry": applyTelemetry(m); break;
       case "timing": applyTiming(m); break;
       case "monitor": appendMonitor(m.lines, m.source); break;
-      case "alarm": showAlarm(m); break;
+      case "alarm":
+        // A started run missing a layer: the banner (the run message says the same). A refused
+        // run (its message says why it was not started): the alarm bar.
+        if (m.kind === "confinement" && m.message && m.message.startsWith("the controller runs WITHOUT")) showConfinement(m.run_id, m.missing);
+        else if (m.kind === "confinement" && !String(m.message).startsWith("the controller was not started")) {
+          showAlarm({ ...m, message: "the controller was not started: " + m.message });  // as POST /api/runs says
+        } else showAlarm(m);
+        break;
       case "build": if (m.line) appendMonitor([{ text: m.line }], "stdout"); else loadBuilds().catch(() => {}); break;
       case "ack": if (m.accepted === false) applyState({ ...xrf.state }); break;
       case "error": appendMonitor([{ text: "! " + m.error }], "error"); break;

@@ -22,7 +22,8 @@
       <h2>Doctor <span class="muted small" id="sys-doctor-when"></span><span class="spacer"></span>
         <button id="sys-refresh" type="button">Run the checks again</button></h2>
       <p class="muted small">The same checks as <code>xrf doctor</code> in a terminal: is this machine ready to be a
-        real-time bench? Anything not ok says exactly what to do (docs/install/doctor.md explains each message).</p>
+        real-time bench, and which run sandbox confines students' controllers (each protection layer holding or
+        missing)? Anything not ok says exactly what to do (docs/install/doctor.md explains each message).</p>
       <div id="sys-counts" class="small"></div>
       <table class="sc-table"><thead><tr><th>check</th><th>status</th><th>detail and fix</th></tr></thead>
         <tbody id="sys-checks"><tr><td colspan="3" class="muted">checking…</td></tr></tbody></table>
@@ -59,6 +60,14 @@
     $("sys-facts").innerHTML = rows.map(([k, v]) => `<dt>${esc(k)}</dt><dd data-fact="${esc(k)}">${esc(v)}</dd>`).join("");
   }
 
+  // The parts of a check (the run sandbox's protection layers): each holding or missing, and why.
+  function layers(items) {
+    if (!items || !items.length) return "";
+    return `<ul class="sys-layers">${items.map((i) => `<li data-layer="${esc(i.name)}" data-status="${esc(i.status)}">` +
+      `<code>${esc(i.name)}</code> ${i.status === "ok" ? '<span class="ok">holds</span>'
+        : `<b class="bad">MISSING</b>: ${esc(i.detail)}`}</li>`).join("")}</ul>`;
+  }
+
   async function loadDoctor() {
     const btn = $("sys-refresh");
     btn.disabled = true;
@@ -74,7 +83,7 @@
         tr.className = "st-" + (c.status === "failure" ? "fail" : c.status === "warning" ? "warn" : c.status === "ok" ? "pass" : "skipped");
         tr.innerHTML = `<td>${esc(c.title)}<div class="muted small"><code>${esc(c.id)}</code></div></td>
           <td><span class="verdict v-${CLS[c.status] || "skipped"}">${esc(LABEL[c.status] || c.status)}</span></td>
-          <td>${esc(c.detail)}${c.fix && c.status !== "ok" ? `<div class="fix"><b>fix:</b> <code>${esc(c.fix)}</code></div>` : ""}</td>`;
+          <td>${esc(c.detail)}${layers(c.items)}${c.fix && c.status !== "ok" ? `<div class="fix"><b>fix:</b> <code>${esc(c.fix)}</code></div>` : ""}</td>`;
         body.append(tr);
       }
       const n = d.counts;

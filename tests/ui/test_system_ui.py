@@ -5,13 +5,13 @@ from __future__ import annotations
 
 from harness import Server
 
-DOCTOR_IDS = ["evl", "isolcpus", "governor", "throttling", "spi", "fpga", "clock", "disk", "ros2"]
+DOCTOR_IDS = ["evl", "isolcpus", "governor", "throttling", "spi", "fpga", "clock", "disk", "ros2", "confinement"]
 
 
 def test_system_page_lists_the_doctor_checks(server: Server, browser) -> None:
     page = browser.new_page()
     page.goto(server.url + "/#system")
-    page.wait_for_selector("#sys-checks tr[data-id=ros2]", timeout=30000)
+    page.wait_for_selector("#sys-checks tr[data-id=confinement]", timeout=30000)
     rows = page.locator("#sys-checks tr[data-id]").evaluate_all("rs => rs.map(r => [r.dataset.id, r.dataset.status])")
     assert [i for i, _ in rows] == DOCTOR_IDS
     assert all(s in ("ok", "warning", "failure", "not checked") for _, s in rows)

@@ -133,7 +133,9 @@ PUBLIC_TELEMETRY = frozenset({"run_id", "cycle", "t_ns", "t", "state", "enc", "d
 PUBLIC_RUN = frozenset({"id", "sim", "started", "ended", "status", "crashed", "crash_reason", "exit_code",
                         "exit_signal", "state", "cycles", "misses", "cycle_freq", "log_records", "log_lost",
                         "log_note"})
-PUBLIC_RUN_MESSAGE = frozenset({"event", "active", "cycle_freq", "backend", "transport"})
+# confinement: which protection layers of the run sandbox hold is the bench's, for everyone in
+# the room (the dashboard's "runs WITHOUT" banner); it names layers, nothing of the student's.
+PUBLIC_RUN_MESSAGE = frozenset({"event", "active", "cycle_freq", "backend", "transport", "confinement"})
 
 
 def public_run_row(row: dict[str, Any]) -> dict[str, Any]:
