@@ -355,12 +355,8 @@ class _Launch:
             self.set_limits()
             os.umask(0o007)  # what the loop writes stays readable by the appliance's group only
             # Descriptors: 0-2 and the error pipe (close-on-exec) only.
-            for fd in range(3, 1024):
-                if fd != err_w:
-                    try:
-                        os.close(fd)
-                    except OSError:
-                        pass
+            os.closerange(3, err_w)
+            os.closerange(err_w + 1, 1 << 20)
             uid, gid, groups = self.loop_identity()
             if self.mode == "root":
                 keep = set(self.ambient)

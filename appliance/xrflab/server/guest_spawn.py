@@ -14,12 +14,14 @@ import json
 import os
 import pwd
 import shutil
+import subprocess
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from .. import guest
+from . import children
 
 APPLIANCE_DIR = Path(__file__).resolve().parents[2]  # appliance/ (the xrflab package's parent)
 DEFAULT_PRIORITY = 80  # rt_core's kDefaultPriority: the loop's SCHED_FIFO priority unless XRF_PRIO
@@ -196,7 +198,7 @@ class GuestSpawner:
         }
 
     async def spawn(self, exe: Path, run_dir: Path, shm_dir: Path, env: dict[str, str], read_only: list[Path],
-                    output: Any, tag: str = "", timeout_s: float = 10.0) -> tuple[asyncio.subprocess.Process, GuestReport]:
+                    output: Any, tag: str = "", timeout_s: float = 10.0) -> tuple[children.Child, GuestReport]:
         """Start the launcher; return it and its report once the controller exec'd (or was refused:
         the process has then exited with guest.REFUSED_EXIT and ``report.error`` says why)."""
         bad = sorted(set(env) - guest.ENV_ALLOWED)
@@ -211,10 +213,12 @@ class GuestSpawner:
             launcher_env = {"PATH": "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin",
                             "LANG": "C.UTF-8", "XRF_SHM": tag,
                             "XRF_RUN_DIR": str(run_dir)}
-            proc = await asyncio.create_subprocess_exec(
-                sys.executable, "-S", "-B", "-c", boot, json.dumps(cfg),
-                cwd="/", env=launcher_env, stdin=asyncio.subprocess.DEVNULL, stdout=output,
-                stderr=asyncio.subprocess.STDOUT, close_fds=True, pass_fds=(w,),
+            # children.spawn: fds 0-2 and the report pipe only (uvloop's subprocess would pass on
+            # every inheritable descriptor of ours to the launcher).
+            proc = children.spawn(
+                [sys.executable, "-S", "-B", "-c", boot, json.dumps(cfg)],
+                pass_fds=(w,), cwd="/", env=launcher_env, stdin=subprocess.DEVNULL, stdout=output,
+                stderr=subprocess.STDOUT,
                 # Own session: a Ctrl-C on the appliance's terminal reaches the appliance only,
                 # which then stops the run in order (quit, signals).
                 start_new_session=True,

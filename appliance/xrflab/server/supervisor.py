@@ -33,6 +33,7 @@ from ..logs import live as loglive
 from ..channels import Channels, ChannelsError
 from .hub import Hub
 from .runs import RunRow, RunStore
+from .children import Child
 from .guest_spawn import GuestReport, GuestSpawner
 from .safety import fpga_reset
 from .settings import SIM_PLANTS, Settings
@@ -184,7 +185,7 @@ def schema_fields(schema: str) -> list[dict[str, Any]]:
 @dataclass
 class Run:
     row: RunRow
-    proc: asyncio.subprocess.Process
+    proc: Child  # the run sandbox's launcher (its exit mirrors the controller's)
     shm: str
     run_dir: Path
     build: BuildEntry
