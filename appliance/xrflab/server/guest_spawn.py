@@ -207,7 +207,6 @@ class GuestSpawner:
         r, w = os.pipe()
         try:
             cfg = self.config(exe, run_dir, shm_dir, env, read_only, w)
-            boot = f"import sys; sys.path.insert(0, {str(APPLIANCE_DIR)!r}); from xrflab.guest import main; sys.exit(main(sys.argv[1:]))"
             # The launcher's own environment: XRF_SHM identifies the run (the orphan reaper checks
             # /proc/<pid>/environ before signalling a pid left by an earlier appliance).
             launcher_env = {"PATH": "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin",
@@ -216,7 +215,7 @@ class GuestSpawner:
             # children.spawn: fds 0-2 and the report pipe only (uvloop's subprocess would pass on
             # every inheritable descriptor of ours to the launcher).
             proc = children.spawn(
-                [sys.executable, "-S", "-B", "-c", boot, json.dumps(cfg)],
+                launcher_argv(cfg),
                 pass_fds=(w,), cwd="/", env=launcher_env, stdin=subprocess.DEVNULL, stdout=output,
                 stderr=subprocess.STDOUT,
                 # Own session: a Ctrl-C on the appliance's terminal reaches the appliance only,
@@ -241,6 +240,13 @@ class GuestSpawner:
         else:
             report.error = "the sandbox launcher ended without a report (see the run's output)"
         return proc, report
+
+
+def launcher_argv(cfg: dict[str, Any]) -> list[str]:
+    """The launcher's command line: our Python without site packages (it needs none)."""
+    boot = (f"import sys; sys.path.insert(0, {str(APPLIANCE_DIR)!r}); from xrflab.guest import main; "
+            "sys.exit(main(sys.argv[1:]))")
+    return [sys.executable, "-S", "-B", "-c", boot, json.dumps(cfg)]
 
 
 def _read_all(fd: int) -> bytes:
