@@ -603,8 +603,12 @@ def check_confinement(ctx: Context) -> CheckResult:
     if report.error and not missing:
         # Refused for another reason than a missing layer (no user namespace at all, the
         # launcher failing): no run can start, whatever the settings say.
+        fix = LAYER_FIX["mount"]
+        if "newuidmap" in report.error:
+            fix = ("the setuid newuidmap/newgidmap did nothing: the service must not have NoNewPrivileges=yes, and "
+                   "/etc/subuid, /etc/subgid must list the ids (re-run `sudo deploy/install`)")
         return CheckResult(cid, title, FAILURE, f"{head}; the sandbox could not start a controller: {report.error}",
-                           LAYER_FIX["mount"] + "; see docs/developers/security.md, 'The run sandbox'", items)
+                           fix + "; see docs/developers/security.md, 'The run sandbox'", items)
     if missing:
         text = "; ".join(f"{k} ({v})" for k, v in missing.items())
         holding = ", ".join(k for k, v in layers.items() if not v) or "none"

@@ -133,3 +133,9 @@ def test_cli_shows_the_layers_and_honours_allow_unconfined(tmp_path):
     conf = {r["id"]: r for r in json.loads(js.stdout)}["confinement"]
     assert conf["status"] == WARNING and "WITHOUT: user (skipped for a test)" in conf["detail"], conf
     assert {i["name"]: i["status"] for i in conf["items"]}["user"] == "missing"
+
+
+def test_helpers_refused_points_at_no_new_privileges():
+    r = check(fake({}, error="newuidmap/newgidmap refused the subordinate ids of /etc/subuid, /etc/subgid",
+                   mode="userns"))
+    assert r.status == FAILURE and "NoNewPrivileges" in r.fix and "deploy/install" in r.fix
