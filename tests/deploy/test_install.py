@@ -19,7 +19,9 @@ from deploy_support import REPO, run_install, tree_digest
 
 pytestmark = pytest.mark.timeout(1800)
 
-UNITS = ["xrf-lab.service", "xrf-cpufreq.service", "xrf-loop@.service"]
+UNITS = ["xrf-lab.service", "xrf-cpufreq.service"]
+# superseded by the run sandbox (xrflab.guest): never installed, removed when an older install left them
+STALE = ["etc/systemd/system/xrf-loop@.service", "etc/polkit-1/rules.d/50-xrf-lab.rules"]
 
 
 def _passwd(root: Path) -> dict[str, list[str]]:
@@ -54,7 +56,7 @@ def test_install_creates_users_folders_units(installed):
     data = root / "var/lib/xrf-lab"
     assert oct(data.stat().st_mode & 0o7777) == "0o750"
     assert data.stat().st_uid == int(users["xrf"][2])
-    assert oct((data / "loops").stat().st_mode & 0o7777) == "0o2770"
+    assert not (data / "loops").exists()  # the old xrf-loop@ unit's folder
     assert (root / "opt/xrf-lab/venv/bin/python").exists()
     assert (root / "opt/xrf-lab/venv/bin/xrf").exists()
     assert (root / "usr/local/bin/xrf").is_symlink()
@@ -71,8 +73,47 @@ def test_install_creates_users_folders_units(installed):
     assert (root / "etc/udev/rules.d/60-xrf-lab.rules").exists()
     limits = (root / "etc/security/limits.d/90-xrf-lab.conf").read_text()
     assert "rtprio" in limits and "memlock" in limits
+    for p in STALE:
+        assert not (root / p).exists(), p
     # boot files untouched without --boot, but the installer says what to add
     assert "isolcpus=3" in first.stdout and "evl.oobcpus=3" in first.stdout
+
+
+def _xrf_lines(root: Path, name: str) -> list[str]:
+    return [line for line in (root / "etc" / name).read_text().splitlines() if line.startswith("xrf:")]
+
+
+def test_run_sandbox_ids_devices_and_namespaces(installed):
+    """What the run sandbox needs on the Pi: /etc/subuid lets xrf map exactly xrf-loop's uid,
+    /etc/subgid exactly xrf-loop's gid (first: the controller's own group) and the device groups
+    evl, spi, gpio; /dev/cpu_dma_latency is the launcher's (group xrf); user namespaces on; the
+    service may run the setuid newuidmap (no NoNewPrivileges) and nothing gains more than it."""
+    root, first, *_ = installed
+    users, groups = _passwd(root), _group(root)
+    assert _xrf_lines(root, "subuid") == [f"xrf:{users['xrf-loop'][2]}:1"]
+    assert _xrf_lines(root, "subgid") == [f"xrf:{groups['xrf-loop'][2]}:1"] + [
+        f"xrf:{groups[g][2]}:1" for g in ("evl", "spi", "gpio")]
+    for name in ("subuid", "subgid"):
+        st = (root / "etc" / name).stat()
+        assert (st.st_uid, st.st_gid, oct(st.st_mode & 0o777)) == (0, 0, "0o644"), name
+    # the appliance's own reading of those files (xrflab.server.guest_spawn) finds xrf-loop's ids first
+    import pwd
+    from xrflab.server.guest_spawn import _sub_range
+    xrf = pwd.struct_passwd(("xrf", "x", int(users["xrf"][2]), int(users["xrf"][3]), "", "", ""))
+    assert _sub_range(str(root / "etc/subuid"), xrf) == (int(users["xrf-loop"][2]), 1)
+    assert _sub_range(str(root / "etc/subgid"), xrf) == (int(groups["xrf-loop"][2]), 1)
+    rules = (root / "etc/udev/rules.d/60-xrf-lab.rules").read_text().splitlines()
+    assert 'SUBSYSTEM=="misc", KERNEL=="cpu_dma_latency", GROUP="xrf", MODE="0660"' in rules
+    assert "-kernel.unprivileged_userns_clone = 1" in (root / "etc/sysctl.d/60-xrf-lab.conf").read_text().splitlines()
+    unit = (root / "etc/systemd/system/xrf-lab.service").read_text()
+    directives = [line.strip() for line in unit.splitlines() if line.strip() and not line.startswith("#")]
+    assert not any(d.startswith("NoNewPrivileges=") for d in directives)
+    assert "CapabilityBoundingSet=CAP_SETUID CAP_SETGID" in directives and "AmbientCapabilities=" in directives
+    assert "RestrictNamespaces=user net mnt pid ipc uts" in directives
+    assert "SupplementaryGroups=spi gpio evl video" in directives
+    # no uidmap in this tree (and --no-deps: no apt-get): said, not silently skipped
+    if not (root / "usr/bin/newuidmap").exists():
+        assert "apt-get install uidmap" in first.stdout, first.stdout
 
 
 def test_installed_package_imports_in_the_chroot(installed):
@@ -109,9 +150,7 @@ def test_units_pass_systemd_analyze_verify(installed):
     is needed for verify."""
     root, *_ = installed
     exe = _systemd_analyze()
-    units = ["/etc/systemd/system/xrf-lab.service", "/etc/systemd/system/xrf-cpufreq.service",
-             "/etc/systemd/system/xrf-loop@demo.service"]
-    # a template is verified through an instance; the instance name resolves to the template
+    units = ["/etc/systemd/system/xrf-lab.service", "/etc/systemd/system/xrf-cpufreq.service"]
     proc = subprocess.run([exe, "verify", f"--root={root}", "--man=no", *units],
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -133,8 +172,10 @@ def test_doctor_runs_in_the_installed_root(installed):
             assert proc.returncode in (0, 1), proc.stderr
             return {r["id"]: r for r in json.loads(proc.stdout)}
 
-        spi = doctor()["spi"]
+        results = doctor()
+        spi = results["spi"]
         assert spi["status"] == "ok" and "xrf-loop" in spi["detail"], spi
+        assert "confinement" in results  # the run sandbox's check ran too (whatever a chroot allows)
         os.chmod(dev, 0o600)
         spi = doctor()["spi"]
         assert spi["status"] == "failure" and "udevadm trigger" in spi["fix"], spi
@@ -164,6 +205,23 @@ def test_boot_settings_only_with_boot_flag(installed, source):
     assert "nothing to change" in again.stdout, again.stdout
 
 
+def test_install_removes_the_superseded_loop_unit(installed, source):
+    """An older install's xrf-loop@.service and polkit rule go; the ids stay as they should."""
+    root, *_ = installed
+    for p in STALE:
+        (root / p).parent.mkdir(parents=True, exist_ok=True)
+        (root / p).write_text("# from an older install\n")
+    (root / "etc/subgid").write_text((root / "etc/subgid").read_text() + "xrf:123456:1\n")  # a stray range
+    proc = run_install(root, "--no-deps", source=source)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    for p in STALE:
+        assert not (root / p).exists(), p
+        assert f"removed /{p}" in proc.stdout
+    assert "xrf:123456:1" not in _xrf_lines(root, "subgid") and len(_xrf_lines(root, "subgid")) == 4
+    again = run_install(root, "--no-deps", source=source)
+    assert "nothing to change" in again.stdout, again.stdout
+
+
 def test_uninstall_keeps_data_then_purge_removes_it(installed, source):
     root, *_ = installed
     marker = root / "var/lib/xrf-lab/runs-keep.txt"
@@ -174,8 +232,9 @@ def test_uninstall_keeps_data_then_purge_removes_it(installed, source):
     assert "xrf" in _passwd(root)
     for p in ("opt/xrf-lab", "var/cache/xrf-lab", "usr/local/bin/xrf", "etc/systemd/system/xrf-lab.service",
               "etc/udev/rules.d/60-xrf-lab.rules", "etc/security/limits.d/90-xrf-lab.conf",
-              "etc/systemd/system/multi-user.target.wants/xrf-lab.service"):
+              "etc/sysctl.d/60-xrf-lab.conf", "etc/systemd/system/multi-user.target.wants/xrf-lab.service"):
         assert not (root / p).exists() and not (root / p).is_symlink(), p
+    assert _xrf_lines(root, "subuid") == [] and _xrf_lines(root, "subgid") == []
     again = run_install(root, script="uninstall", source=source)
     assert "nothing to remove" in again.stdout, again.stdout
     purge = run_install(root, "--purge", script="uninstall", source=source)
@@ -197,7 +256,7 @@ def test_other_prefix_and_data_folder(installed, source):
     unit = (root / "etc/systemd/system/xrf-lab.service").read_text()
     assert "ExecStart=/srv/xrf/venv/bin/xrf serve --host 0.0.0.0 --data /srv/xrf-data" in unit
     assert "ReadWritePaths=/srv/xrf-data" in unit and "/opt/xrf-lab" not in unit.replace("file:///opt", "")
-    assert "/srv/xrf-data/loops/%i.env" in (root / "etc/systemd/system/xrf-loop@.service").read_text()
+    assert len(_xrf_lines(root, "subuid")) == 1 and len(_xrf_lines(root, "subgid")) == 4  # users made anew
     assert _passwd(root)["xrf"][5] == "/srv/xrf-data"
     assert str((root / "usr/local/bin/xrf").readlink()) == "/srv/xrf/venv/bin/xrf"
     proc = subprocess.run([_systemd_analyze(), "verify", f"--root={root}", "--man=no",
