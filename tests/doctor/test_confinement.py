@@ -139,3 +139,27 @@ def test_helpers_refused_points_at_no_new_privileges():
     r = check(fake({}, error="newuidmap/newgidmap refused the subordinate ids of /etc/subuid, /etc/subgid",
                    mode="userns"))
     assert r.status == FAILURE and "NoNewPrivileges" in r.fix and "deploy/install" in r.fix
+
+
+# ---- xrf serve --allow-unconfined ----------------------------------------------------------
+
+def test_serve_allow_unconfined_reaches_the_settings(tmp_path, monkeypatch):
+    """`xrf serve --allow-unconfined` (and --trusted-proxy beside it) end in the Settings the app
+    is made with; without it the environment's default holds (off)."""
+    from xrflab import cli
+    from xrflab.server import app as app_module, cli_serve
+
+    seen = []
+    monkeypatch.setattr(app_module, "create_app", lambda settings: settings)
+    monkeypatch.setattr(cli_serve, "serve", lambda app, settings: seen.append(settings))
+    monkeypatch.delenv("XRF_ALLOW_UNCONFINED", raising=False)
+    parser = cli.build_parser()
+    for argv, want in ((["--allow-unconfined"], True), ([], False)):
+        args = parser.parse_args(["serve", "--data", str(tmp_path), "--trusted-proxy", "10.0.0.1", *argv])
+        assert cli_serve.run(args) == 0
+        assert seen[-1].allow_unconfined is want and seen[-1].trusted_proxies == ("10.0.0.1",)
+    text = subprocess.run([sys.executable, "-m", "xrflab.cli", "serve", "--help"], capture_output=True,
+                          text=True).stdout
+    help_text = " ".join(text.split())
+    assert "--allow-unconfined" in help_text and "let runs start when a protection layer" in help_text
+    assert "--trusted-proxy" in help_text
