@@ -1,4 +1,5 @@
-"""A controller that tries everything a curious student would (tests/fixtures/evil_controller),
+"""A controller that tries everything a curious student would (tests/fixtures/evil_controller: its
+own main, evil.cpp and CMakeLists.txt over the base template's files),
 uploaded, built and run through the appliance like any project: every attempt must fail, and
 nothing it started may outlive the run."""
 
@@ -26,8 +27,13 @@ ATTEMPTS = {
 }
 
 
+def files_of(root: Path) -> dict[str, bytes]:
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*"))
+            if p.is_file() and "build" not in p.relative_to(root).parts}
+
+
 def targz(root: Path, top: str, replace: dict[str, bytes] | None = None) -> bytes:
-    files = {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+    files = files_of(root)
     files.update(replace or {})
     buf = io.BytesIO()
     with tarfile.open(fileobj=buf, mode="w:gz") as t:
@@ -98,7 +104,7 @@ def test_every_attempt_fails_and_nothing_survives(server: Server, data_dir: Path
         f"#define EVIL_APPLIANCE_PID {server.proc.pid}\n"
     ).encode()
     try:
-        pid, bid = upload_and_build(evil_http, targz(EVIL, "evil", {"src/targets.h": targets}), "evil.tar.gz")
+        pid, bid = upload_and_build(evil_http, targz(BASE, "evil", {**files_of(EVIL), "src/targets.h": targets}), "evil.tar.gz")
         assert evil_http.post("/api/lease/take").status_code == 200
         r = evil_http.post(f"/api/projects/{pid}/builds/{bid}/run", json={}, timeout=60)
         assert r.status_code == 201, r.text
