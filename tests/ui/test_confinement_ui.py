@@ -109,7 +109,10 @@ def test_banner_on_every_page_while_a_layer_is_missing(unconfined: Server, raw_b
     page, errors = _dashboard(raw_browser, unconfined)
     assert page.locator(BANNER).is_hidden()
     _start_from_the_page(page)
-    assert "Could not start" not in page.inner_text("#run-detail")
+    detail = page.inner_text("#run-detail")
+    if "Could not start" in detail and "no user namespace" in detail:
+        pytest.skip(f"no run sandbox at all on this machine as this user: {detail}")
+    assert "Could not start" not in detail, detail
     banner = page.locator(BANNER)
     banner.wait_for(state="visible", timeout=10_000)
     assert banner.inner_text().startswith("This controller runs WITHOUT: ")
