@@ -166,7 +166,7 @@ def test_system_page_api(server: Server) -> None:
     assert info["bench"]["backend"] in ("posix", "evl")
     doc = server.http.get("/api/system/doctor", timeout=60).json()
     ids = [c["id"] for c in doc["checks"]]
-    assert ids == ["evl", "isolcpus", "governor", "throttling", "spi", "fpga", "clock", "disk", "ros2"]
+    assert ids == ["evl", "isolcpus", "governor", "throttling", "spi", "fpga", "clock", "disk", "ros2", "confinement"]
     assert all(c["status"] in ("ok", "warning", "failure", "not checked") for c in doc["checks"])
     assert sum(doc["counts"].values()) == len(ids)
 
