@@ -86,6 +86,13 @@ def _children_map() -> dict[int, list[int]]:
     return kids
 
 
+def _zombie(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except (OSError, IndexError):
+        return True
+
+
 def descendants(root: int) -> list[int]:
     kids = _children_map()
     out, todo = [], [root]
@@ -297,11 +304,20 @@ def test_port_free_again_after_kill_9_with_a_run_active(tmp_path: Path) -> None:
             ws.wait_state("IDLE", timeout=30)
             assert ws.command("initialise")["accepted"]
             ws.wait_state("INITIALISED", timeout=10)
+        def proxies() -> list[int]:
+            return [p for p in descendants(first.proc.pid) if "--serve-grpc" in cmdline(p)]
+
+        # The run's live rerun proxy starts beside the run, in its own time.
+        rerun = _wait(proxies, 30, "the run's live rerun proxy")
         left = descendants(first.proc.pid)
         assert left, "the run's processes"
         os.kill(first.proc.pid, signal.SIGKILL)
         first.proc.wait(10)
         first.http.close()
+        # The run's live rerun proxy dies with the appliance (no server left with parent 1); the
+        # loop itself lives on until the next appliance stops it.
+        _wait(lambda: not [p for p in rerun if Path(f"/proc/{p}").exists() and not _zombie(p)], 5,
+              "the rerun proxy to end with the appliance")
         alive = [p for p in left if Path(f"/proc/{p}").exists()]
         second = _start(data, port)   # binds the same port, although the orphans may still live
         try:

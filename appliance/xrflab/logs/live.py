@@ -31,12 +31,14 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import ctypes
 import itertools
 import json
 import logging
 import os
 import queue
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -393,6 +395,50 @@ def _rerun_cli() -> list[str]:
     return [sys.executable, "-m", "rerun_cli"]
 
 
+def _die_with_parent(parent: int) -> Callable[[], None]:
+    """For preexec_fn: SIGTERM when the appliance dies, a kill -9 included (the atexit hook
+    below does not run then), so no rerun server is left with parent 1."""
+
+    def arm() -> None:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
+        if os.getppid() != parent:  # the appliance died before the prctl took effect
+            os._exit(1)
+
+    return arm
+
+
+_spawn_requests: queue.Queue[tuple[list[str], Any]] = queue.Queue()
+_spawner: threading.Thread | None = None
+_spawner_lock = threading.Lock()
+
+
+def _spawn_rerun(argv: list[str]) -> subprocess.Popen[bytes]:
+    """Popen from one long-lived thread: the kernel sends the parent-death signal when the
+    *thread* that forked the child ends, and rerun children are asked for from short-lived
+    threads (a run's live-stream start-up)."""
+    global _spawner
+    with _spawner_lock:
+        if _spawner is None:
+            def serve() -> None:
+                while True:
+                    args, done = _spawn_requests.get()
+                    try:
+                        done.set_result(subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                                         stderr=subprocess.DEVNULL,
+                                                         preexec_fn=_die_with_parent(os.getpid())))
+                    except BaseException as exc:  # handed to the caller
+                        done.set_exception(exc)
+
+            _spawner = threading.Thread(target=serve, name="xrf-rerun-spawner", daemon=True)
+            _spawner.start()
+    from concurrent.futures import Future
+
+    done: Future[subprocess.Popen[bytes]] = Future()
+    _spawn_requests.put((argv, done))
+    return done.result(30)
+
+
 class _RerunChild:
     """A ``rerun`` child process whose servers listen on 127.0.0.1 only: they have no login of
     their own, so browsers reach them only through the appliance (its /rerun/ files route and its
@@ -403,8 +449,7 @@ class _RerunChild:
         # proxy starting with each run must not delay the supervisor's reaction to that run
         # crashing (outputs off within 100 ms).
         nice = ["nice", "-n", str(RERUN_NICE)] if shutil.which("nice") else []
-        self.proc = subprocess.Popen([*nice, *_rerun_cli(), *args], stdin=subprocess.DEVNULL,
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self.proc = _spawn_rerun([*nice, *_rerun_cli(), *args])
         deadline = time.monotonic() + 20
         while not all(_listening(p) for p in ports):
             if self.proc.poll() is not None or time.monotonic() > deadline:
