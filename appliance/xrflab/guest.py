@@ -105,15 +105,18 @@ def _enc(s: str | None) -> bytes | None:
     return s.encode() if s is not None else None
 
 
-def _mount(src: str | None, target: str, fstype: str | None, flags: int, data: str | None = None) -> None:
+# The namespace primitives, shared with the build sandbox (projects/builder.py).
+
+
+def mount(src: str | None, target: str, fstype: str | None, flags: int, data: str | None = None) -> None:
     _check(_libc.mount(_enc(src), _enc(target), _enc(fstype), ctypes.c_ulong(flags), _enc(data)), f"mount {target}")
 
 
-def _unshare(flags: int) -> None:
+def unshare(flags: int) -> None:
     _check(_libc.unshare(ctypes.c_int(flags)), "unshare")
 
 
-def _prctl(option: int, arg: int) -> int:
+def prctl(option: int, arg: int) -> int:
     return int(_libc.prctl(ctypes.c_int(option), ctypes.c_ulong(arg), ctypes.c_ulong(0), ctypes.c_ulong(0),
                            ctypes.c_ulong(0)))
 
@@ -129,18 +132,22 @@ def _pivot_root(new_root: str) -> None:
     os.chdir("/")
 
 
+def remount_read_only(target: str) -> None:
+    """Make the bind mount at ``target`` read-only. A remount must keep the flags the source
+    mount has (the kernel locks them in a user namespace): nosuid/nodev/noexec are carried over."""
+    st = os.statvfs(target)
+    flags = MS_REMOUNT | MS_BIND | MS_RDONLY
+    flags |= MS_NOSUID if st.f_flag & os.ST_NOSUID else 0
+    flags |= MS_NODEV if st.f_flag & os.ST_NODEV else 0
+    flags |= MS_NOEXEC if st.f_flag & os.ST_NOEXEC else 0
+    mount(None, target, None, flags)
+
+
 def _bind(src_fd: int, target: str, read_only: bool, recursive: bool = False) -> None:
     """Bind what ``src_fd`` (an O_PATH fd opened before anything was covered) names."""
-    _mount(f"/proc/self/fd/{src_fd}", target, None, MS_BIND | (MS_REC if recursive else 0))
+    mount(f"/proc/self/fd/{src_fd}", target, None, MS_BIND | (MS_REC if recursive else 0))
     if read_only:
-        # A remount must keep the flags the source mount has (the kernel locks them in a user
-        # namespace): nosuid/nodev/noexec are carried over, read-only is added.
-        st = os.statvfs(target)
-        flags = MS_REMOUNT | MS_BIND | MS_RDONLY
-        flags |= MS_NOSUID if st.f_flag & os.ST_NOSUID else 0
-        flags |= MS_NODEV if st.f_flag & os.ST_NODEV else 0
-        flags |= MS_NOEXEC if st.f_flag & os.ST_NOEXEC else 0
-        _mount(None, target, None, flags)
+        remount_read_only(target)
 
 
 def _make_target(path: str, like_dir: bool) -> None:
@@ -209,7 +216,7 @@ class _Launch:
             self._enter_userns(flags)
         else:
             try:
-                _unshare(flags)
+                unshare(flags)
             except OSError as exc:
                 for layer in ("mount", "pid", "network", "ipc"):
                     self.missing(layer, f"unshare refused ({exc.strerror})")
@@ -241,7 +248,7 @@ class _Launch:
             os.close(r)
             helper = (pid, w)
         try:
-            _unshare(CLONE_NEWUSER | flags)
+            unshare(CLONE_NEWUSER | flags)
         except OSError as exc:
             if helper:
                 os.close(helper[1])
@@ -268,12 +275,12 @@ class _Launch:
     def build_root(self) -> str:
         """A read-only tmpfs root holding only the allow-list; returns its path (not yet pivoted)."""
         cfg = self.cfg
-        _mount(None, "/", None, MS_REC | MS_PRIVATE)
+        mount(None, "/", None, MS_REC | MS_PRIVATE)
         # Staging: our own tmpfs on /tmp (this namespace only); the sources are held as fds.
-        _mount("tmpfs", "/tmp", "tmpfs", MS_NOSUID | MS_NODEV, "size=1m,mode=0700")
+        mount("tmpfs", "/tmp", "tmpfs", MS_NOSUID | MS_NODEV, "size=1m,mode=0700")
         root = "/tmp/root"
         os.mkdir(root)
-        _mount("tmpfs", root, "tmpfs", MS_NOSUID, f"size={cfg.get('root_tmpfs_mb', 64)}m,mode=0755")
+        mount("tmpfs", root, "tmpfs", MS_NOSUID, f"size={cfg.get('root_tmpfs_mb', 64)}m,mode=0755")
 
         def show(path: str, read_only: bool = True, recursive: bool = False) -> bool:
             fd = self.src.get(path)
@@ -292,7 +299,7 @@ class _Launch:
             show(path, recursive=path.startswith("/sys"))
         # /dev: a tmpfs with the harmless nodes, the real bench's devices, and the run's shm folder.
         _make_target(root + "/dev", True)
-        _mount("tmpfs", root + "/dev", "tmpfs", MS_NOSUID, "size=64k,mode=0755")
+        mount("tmpfs", root + "/dev", "tmpfs", MS_NOSUID, "size=64k,mode=0755")
         for node in DEV_NODES:
             show(node, read_only=False)
         for link, to in (("fd", "/proc/self/fd"), ("stdin", "/proc/self/fd/0"), ("stdout", "/proc/self/fd/1"),
@@ -305,7 +312,7 @@ class _Launch:
         _bind(self.src[cfg["shm_dir"]], root + "/dev/shm", read_only=False)
         for tmp in ("/tmp", "/var/tmp"):
             _make_target(root + tmp, True)
-            _mount("tmpfs", root + tmp, "tmpfs", MS_NOSUID | MS_NODEV, f"size={cfg.get('tmp_mb', 64)}m,mode=1777")
+            mount("tmpfs", root + tmp, "tmpfs", MS_NOSUID | MS_NODEV, f"size={cfg.get('tmp_mb', 64)}m,mode=1777")
         os.makedirs(root + "/proc", exist_ok=True)
         # The build (read-only) and the run folder (read-write), at their host paths.
         for path in cfg.get("read_only", []):
@@ -340,13 +347,13 @@ class _Launch:
         try:
             if root is not None:
                 try:
-                    _mount("proc", root + "/proc", "proc", MS_NOSUID | MS_NODEV | MS_NOEXEC)
+                    mount("proc", root + "/proc", "proc", MS_NOSUID | MS_NODEV | MS_NOEXEC)
                 except OSError as exc:
                     # A user namespace may refuse a new proc (a container masking parts of the host's):
                     # the controller then has no /proc at all rather than the host's.
                     self.notes.append(f"no /proc in the sandbox ({exc.strerror})")
                 _pivot_root(root)
-                _mount(None, "/", None, MS_REMOUNT | MS_RDONLY | MS_NOSUID)
+                mount(None, "/", None, MS_REMOUNT | MS_RDONLY | MS_NOSUID)
             try:
                 _libc.sethostname(b"xrf-run", ctypes.c_size_t(7))
             except OSError:
@@ -361,12 +368,12 @@ class _Launch:
             if self.mode == "root":
                 keep = set(self.ambient)
                 for cap in range(0, 64):
-                    if cap not in keep and _prctl(PR_CAPBSET_DROP, cap) != 0:
+                    if cap not in keep and prctl(PR_CAPBSET_DROP, cap) != 0:
                         break
                 os.setgroups(groups)
                 os.setgid(gid)
                 if keep:
-                    _prctl(PR_SET_KEEPCAPS, 1)
+                    prctl(PR_SET_KEEPCAPS, 1)
                 os.setuid(uid)
                 if keep:
                     _set_ambient(sorted(keep))
@@ -377,10 +384,10 @@ class _Launch:
             else:
                 # No second id to switch to: a nested user namespace in which our uid is not
                 # mapped leaves the controller no capability after exec, over anything.
-                _unshare(CLONE_NEWUSER)
-            if _prctl(PR_SET_NO_NEW_PRIVS, 1) != 0:
+                unshare(CLONE_NEWUSER)
+            if prctl(PR_SET_NO_NEW_PRIVS, 1) != 0:
                 raise OSError(ctypes.get_errno(), "PR_SET_NO_NEW_PRIVS refused")
-            _prctl(PR_SET_PDEATHSIG, signal.SIGKILL)  # the launcher gone (SIGKILL): the run ends
+            prctl(PR_SET_PDEATHSIG, signal.SIGKILL)  # the launcher gone (SIGKILL): the run ends
             exe = f"/xrf/{os.path.basename(cfg['exe'])}" if root is not None else cfg["exe"]
             os.execve(exe, [cfg.get("argv0") or os.path.basename(cfg["exe"])], cfg["env"])
         except BaseException as exc:  # noqa: BLE001 - anything: report it, never run unconfined

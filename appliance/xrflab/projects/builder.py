@@ -31,7 +31,6 @@ namespace, it kills every process that carries this build's token in its environ
 
 from __future__ import annotations
 
-import ctypes
 import hashlib
 import json
 import os
@@ -51,6 +50,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from ..guest import (
+    CLONE_NEWIPC, CLONE_NEWNET, CLONE_NEWNS, CLONE_NEWPID, CLONE_NEWUSER, MS_BIND, MS_NODEV, MS_NOEXEC, MS_NOSUID,
+    MS_PRIVATE, MS_REC, PR_SET_NO_NEW_PRIVS, PR_SET_PDEATHSIG, mount, prctl, remount_read_only, unshare,
+)
 from .store import BuildRow, ProjectRow, ProjectStore
 
 Publish = Callable[[str, dict[str, Any]], None]
@@ -59,23 +62,12 @@ LOG_MAX_BYTES = 4 << 20
 STREAM_MAX_LINES = 4000
 RESULT_FILE = "xrf-result.json"
 
-CLONE_NEWNS = 0x00020000
-CLONE_NEWIPC = 0x08000000
-CLONE_NEWUSER = 0x10000000
-CLONE_NEWPID = 0x20000000
-CLONE_NEWNET = 0x40000000
-PR_SET_PDEATHSIG = 1
 # Folders every user may write to: each gets an empty tmpfs in the build's mount namespace.
 PRIVATE_TMP = ("/tmp", "/var/tmp", "/run/lock", "/dev/shm")
 TOKEN_ENV = "XRF_BUILD_TOKEN"
 # Files the build writes: readable by the build user's group (the loop's user may be given it),
 # never by others (the data folder's rule, docs/developers/security.md).
 BUILD_UMASK = 0o027
-MS_REC = 16384
-MS_PRIVATE = 1 << 18
-MS_NOSUID = 2
-MS_NODEV = 4
-PR_SET_NO_NEW_PRIVS = 38
 
 
 @dataclass(frozen=True)
@@ -112,29 +104,6 @@ class SandboxConfig:
 
 # ---- the sandbox (runs in the child, as root or as the appliance's user, then execs) -------------
 
-def _libc() -> ctypes.CDLL:
-    return ctypes.CDLL(None, use_errno=True)
-
-
-def _unshare(flags: int) -> None:
-    if _libc().unshare(flags) != 0:
-        e = ctypes.get_errno()
-        raise OSError(e, os.strerror(e))
-
-
-def _mount(src: str | None, target: str, fstype: str | None, flags: int, data: str | None) -> None:
-    enc = lambda s: s.encode() if s is not None else None  # noqa: E731
-    if _libc().mount(enc(src), enc(target), enc(fstype), ctypes.c_ulong(flags), enc(data)) != 0:
-        e = ctypes.get_errno()
-        raise OSError(e, f"mount {target}: {os.strerror(e)}")
-
-
-MS_RDONLY = 1
-MS_NOEXEC = 8
-MS_REMOUNT = 32
-MS_BIND = 4096
-
-
 def _confine(hide: str, keep: list[tuple[str, bool]]) -> None:
     """Cover ``hide`` (the data folder: every project, the databases, the runs) with an empty
     tmpfs, then put back only ``keep``: (path, read_only) — the project's source (read-only),
@@ -155,19 +124,14 @@ def _confine_paths(hide: str, keep: list[tuple[str, bool]]) -> None:
     for i, (path, ro) in enumerate(keep):
         spot = f"{stage}/{i}"
         os.makedirs(spot, exist_ok=True)
-        _mount(path, spot, None, MS_BIND | MS_REC, None)
+        mount(path, spot, None, MS_BIND | MS_REC, None)
         staged.append((path, spot, ro))
-    _mount("tmpfs", hide, "tmpfs", MS_NOSUID | MS_NODEV, "size=1m,mode=0755")
+    mount("tmpfs", hide, "tmpfs", MS_NOSUID | MS_NODEV, "size=1m,mode=0755")
     for path, spot, ro in staged:
         os.makedirs(path, exist_ok=True)
-        _mount(spot, path, None, MS_BIND | MS_REC, None)
+        mount(spot, path, None, MS_BIND | MS_REC, None)
         if ro:
-            st = os.statvfs(path)
-            flags = MS_REMOUNT | MS_BIND | MS_RDONLY
-            flags |= MS_NOSUID if st.f_flag & os.ST_NOSUID else 0
-            flags |= MS_NODEV if st.f_flag & os.ST_NODEV else 0
-            flags |= MS_NOEXEC if st.f_flag & os.ST_NOEXEC else 0
-            _mount(None, path, None, flags, None)
+            remount_read_only(path)
 
 
 def _sandbox_main(config: dict[str, Any], cmd: list[str]) -> int:
@@ -180,10 +144,10 @@ def _sandbox_main(config: dict[str, Any], cmd: list[str]) -> int:
     mount_ns = False
     try:
         if root:
-            _unshare(CLONE_NEWNET)
+            unshare(CLONE_NEWNET)
         else:
             ouid, ogid = os.getuid(), os.getgid()
-            _unshare(CLONE_NEWUSER | CLONE_NEWNET | CLONE_NEWNS)
+            unshare(CLONE_NEWUSER | CLONE_NEWNET | CLONE_NEWNS)
             Path("/proc/self/setgroups").write_text("deny")
             Path("/proc/self/uid_map").write_text(f"{ouid} {ouid} 1")
             Path("/proc/self/gid_map").write_text(f"{ogid} {ogid} 1")
@@ -193,14 +157,14 @@ def _sandbox_main(config: dict[str, Any], cmd: list[str]) -> int:
         say(f"WARNING: could not take the network away ({exc}); building with the host's network")
     if root:
         try:
-            _unshare(CLONE_NEWNS)
+            unshare(CLONE_NEWNS)
             mount_ns = True
         except OSError as exc:
             say(f"WARNING: no mount namespace ({exc})")
     # Processes: a PID namespace whose init is the build (forked below). The IPC one with it.
     pid_ns = False
     try:
-        _unshare(CLONE_NEWPID | CLONE_NEWIPC)
+        unshare(CLONE_NEWPID | CLONE_NEWIPC)
         pid_ns = True
     except OSError as exc:
         say(f"WARNING: no PID namespace ({exc}); at the end only processes with this build's token are killed")
@@ -214,7 +178,7 @@ def _sandbox_main(config: dict[str, Any], cmd: list[str]) -> int:
     # The build's first process (PID 1 of its namespace): dies with the sandbox process, so a
     # SIGKILL of the sandbox's group ends the namespace and everything in it.
     os.close(alive_w)
-    _libc().prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
     if select.select([alive_r], [], [], 0)[0]:  # EOF: the sandbox died before prctl took hold
         os._exit(137)
     os.close(alive_r)
@@ -245,10 +209,10 @@ def _confined_exec(config: dict[str, Any], cmd: list[str], say: Callable[[str], 
     try:
         if not mount_ns:
             raise OSError("no mount namespace")
-        _mount(None, "/", None, MS_REC | MS_PRIVATE, None)
+        mount(None, "/", None, MS_REC | MS_PRIVATE, None)
         for target in PRIVATE_TMP:
             if os.path.isdir(target):
-                _mount("tmpfs", target, "tmpfs", MS_NOSUID | MS_NODEV, f"size={config['tmpfs_mb']}m,mode=1777")
+                mount("tmpfs", target, "tmpfs", MS_NOSUID | MS_NODEV, f"size={config['tmpfs_mb']}m,mode=1777")
         if config.get("hide"):
             _confine(config["hide"], config["keep"])
             say(f"sees of {config['hide']} only its source (read-only), its build folder and rt_core (read-only)")
@@ -260,7 +224,7 @@ def _confined_exec(config: dict[str, Any], cmd: list[str], say: Callable[[str], 
         try:  # a /proc of its own namespace: the build sees its own processes only
             if not mount_ns:
                 raise OSError("no mount namespace")
-            _mount("proc", "/proc", "proc", MS_NOSUID | MS_NODEV | MS_NOEXEC, None)
+            mount("proc", "/proc", "proc", MS_NOSUID | MS_NODEV | MS_NOEXEC, None)
         except OSError as exc:
             proc_note = f" (the host's /proc stays: {exc})"
         say(f"own PID namespace: every process of the build ends with it{proc_note}")
@@ -299,7 +263,7 @@ def _confined_exec(config: dict[str, Any], cmd: list[str], say: Callable[[str], 
             say(f"WARNING: limit {which} not set ({exc})")
     # user
     if root:
-        _libc().prctl(PR_SET_NO_NEW_PRIVS, 1, 0, 0, 0)
+        prctl(PR_SET_NO_NEW_PRIVS, 1)
         os.setgroups([])
         os.setgid(gid)
         os.setuid(uid)
