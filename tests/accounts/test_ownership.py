@@ -13,12 +13,10 @@ table: student A's project, build, run, logs, 3D recording and live stream exist
 
 from __future__ import annotations
 
-import io
 import json
 import re
 import shutil
 import sys
-import tarfile
 import time
 import urllib.parse
 import uuid
@@ -40,7 +38,8 @@ from xrflab.server.settings import Settings
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests" / "projects_upload"))
-from projects_support import reachable_tmp
+from hostile import project_files
+from projects_support import reachable_tmp, targz
 
 BASE = REPO / "student_projects" / "templates" / "base"
 MISSING = 999_999  # an id nobody has
@@ -130,19 +129,6 @@ class World:
         return (self.project_name, self.build, self.alice.username)
 
 
-def _targz(files: dict[str, bytes], top: str) -> bytes:
-    buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w:gz") as t:
-        for name, data in files.items():
-            info = tarfile.TarInfo(f"{top}/{name}")
-            info.size = len(data)
-            t.addfile(info, io.BytesIO(data))
-    return buf.getvalue()
-
-
-def _project_files() -> dict[str, bytes]:
-    return {p.relative_to(BASE).as_posix(): p.read_bytes() for p in sorted(BASE.rglob("*"))
-            if p.is_file() and "build" not in p.relative_to(BASE).parts}
 
 
 def _wait_build(http: httpx.Client, pid: int, bid: int, timeout: float = 300) -> dict[str, Any]:
@@ -179,7 +165,7 @@ def world(server: Server) -> Iterator[World]:
     olga = make_account(server, f"own_olga_{tag}", "observer")
     name = f"secret-proj-{tag}"
     r = alice.http.post("/api/projects", params={"name": name},
-                        files={"file": ("p.tar.gz", _targz(_project_files(), "p"), "application/gzip")})
+                        files={"file": ("p.tar.gz", targz(project_files(BASE), "p"), "application/gzip")})
     assert r.status_code == 201, r.text
     pid = r.json()["project"]["id"]
     r = alice.http.post(f"/api/projects/{pid}/builds")

@@ -10,14 +10,12 @@ SIGKILL: a new appliance must bind the same port at once (no orphan keeps the so
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import shutil
 import signal
 import subprocess
 import sys
-import tarfile
 import threading
 import time
 from collections.abc import Iterator
@@ -27,6 +25,7 @@ from pathlib import Path
 import httpx
 import pytest
 from harness import (
+    wait_for,
     ADMIN_PASSWORD,
     ADMIN_USER,
     HERE,
@@ -39,7 +38,8 @@ from harness import (
 
 sys.path.insert(0, str(REPO_ROOT / "tests"))
 sys.path.insert(0, str(REPO_ROOT / "tests" / "projects_upload"))
-from projects_support import reachable_tmp
+from hostile import project_files
+from projects_support import reachable_tmp, targz
 from xrf_testing.ros import isolated_ros_env, require_rclpy
 
 # Shared with the appliance and its children legitimately (each opens its own): not inherited.
@@ -183,25 +183,6 @@ def _canary(tmp_path: Path) -> tuple[int, str]:
     return fd, os.readlink(f"/proc/self/fd/{fd}")
 
 
-def _targz(root: Path, top: str) -> bytes:
-    buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w:gz") as t:
-        for p in sorted(root.rglob("*")):
-            if p.is_file() and "build" not in p.relative_to(root).parts:
-                t.add(p, f"{top}/{p.relative_to(root).as_posix()}")
-    return buf.getvalue()
-
-
-def _wait(pred, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while True:
-        v = pred()
-        if v:
-            return v
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.1)
-
-
 def _reap(pids: list[int]) -> None:
     """End processes this test started (through the appliance) that outlived it."""
     for pid in pids:
@@ -253,7 +234,7 @@ def test_children_inherit_nothing(tmp_path: Path, ros_env: dict[str, str]) -> No
             for cmd, state in (("initialise", "INITIALISED"), ("start", "RUN")):
                 assert ws.command(cmd)["accepted"], cmd
                 ws.wait_state(state, timeout=10)
-            _wait(lambda: sampler.matching("ros-bridge") and sampler.matching("serve-grpc"), 60,
+            wait_for(lambda: sampler.matching("ros-bridge") and sampler.matching("serve-grpc"), 60,
                   "the ROS 2 bridge and the run's rerun proxy")
             time.sleep(1.0)
             server.stop_run()
@@ -267,11 +248,11 @@ def test_children_inherit_nothing(tmp_path: Path, ros_env: dict[str, str]) -> No
                         and m.get("event") in ("report", "error"), timeout=120)
 
         # A build of an uploaded project: the build sandbox (its success is the builder's business).
-        files = {"file": ("mine.tar.gz", _targz(REPO_ROOT / "student_projects/templates/base", "mine"),
+        files = {"file": ("mine.tar.gz", targz(project_files(REPO_ROOT / "student_projects/templates/base"), "mine"),
                           "application/gzip")}
         pid = http.post("/api/projects", files=files).json()["project"]["id"]
         b = http.post(f"/api/projects/{pid}/builds").json()
-        b = _wait(lambda: (x := http.get(f"/api/projects/{pid}/builds/{b['id']}").json())["status"]
+        b = wait_for(lambda: (x := http.get(f"/api/projects/{pid}/builds/{b['id']}").json())["status"]
                   not in ("queued", "building") and x, 600, "the build")
         assert b["status"] in ("ok", "failed"), b
     finally:
@@ -308,7 +289,7 @@ def test_port_free_again_after_kill_9_with_a_run_active(tmp_path: Path) -> None:
             return [p for p in descendants(first.proc.pid) if "--serve-grpc" in cmdline(p)]
 
         # The run's live rerun proxy starts beside the run, in its own time.
-        rerun = _wait(proxies, 30, "the run's live rerun proxy")
+        rerun = wait_for(proxies, 30, "the run's live rerun proxy")
         left = descendants(first.proc.pid)
         assert left, "the run's processes"
         os.kill(first.proc.pid, signal.SIGKILL)
@@ -316,7 +297,7 @@ def test_port_free_again_after_kill_9_with_a_run_active(tmp_path: Path) -> None:
         first.http.close()
         # The run's live rerun proxy dies with the appliance (no server left with parent 1); the
         # loop itself lives on until the next appliance stops it.
-        _wait(lambda: not [p for p in rerun if Path(f"/proc/{p}").exists() and not _zombie(p)], 5,
+        wait_for(lambda: not [p for p in rerun if Path(f"/proc/{p}").exists() and not _zombie(p)], 5,
               "the rerun proxy to end with the appliance")
         alive = [p for p in left if Path(f"/proc/{p}").exists()]
         second = _start(data, port)   # binds the same port, although the orphans may still live

@@ -6,15 +6,12 @@ controller (N doubles every cycle, bench/logs/logger_cost_project)."""
 from __future__ import annotations
 
 import sys
-import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 REPO = Path(__file__).resolve().parents[2]
 if str(REPO / "tests" / "appliance") not in sys.path:
     sys.path.insert(0, str(REPO / "tests" / "appliance"))
-from harness import Server, shared_builds_root, start_server  # noqa: E402
+from harness import Server, shared_builds_root, start_server, wait_for  # noqa: E402,F401 (wait_for: re-exported)
 
 PROBE = "logs-probe"
 COST = "logs-cost"
@@ -36,12 +33,4 @@ def start(data_dir: Path, **settings) -> Server:
     return start_server(data_dir, shared_builds_root(), projects_dir=str(projects_dir()), **settings)
 
 
-def wait_for(pred: Callable[[], Any], timeout: float = 10.0, what: str = "condition") -> Any:
-    """Poll `pred` until it returns something true (returned), failing after `timeout` s."""
-    deadline = time.monotonic() + timeout
-    while True:
-        v = pred()
-        if v:
-            return v
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.05)
+

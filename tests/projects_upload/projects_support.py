@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import io
 import os
+import tarfile
 import time
 import uuid
 from pathlib import Path
@@ -31,3 +33,27 @@ def wait_build(store, bid: int, timeout: float = 300):  # noqa: ANN001
         if time.monotonic() > deadline:
             raise AssertionError(f"build {bid} still {b.status} after {timeout} s")
         time.sleep(0.1)
+
+
+def targz(files: dict[str, bytes], top: str = "proj") -> bytes:
+    """A .tar.gz upload of `files` (relative path -> content) under one top folder."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w:gz") as t:
+        for name, data in files.items():
+            info = tarfile.TarInfo(f"{top}/{name}")
+            info.size = len(data)
+            t.addfile(info, io.BytesIO(data))
+    return buf.getvalue()
+
+
+def build_and_wait(http, pid: int, timeout: float = 300) -> dict:  # noqa: ANN001
+    """Start a build of project `pid` through the API and wait until it has ended."""
+    r = http.post(f"/api/projects/{pid}/builds")
+    assert r.status_code == 201, r.text
+    b = r.json()
+    deadline = time.monotonic() + timeout
+    while b["status"] in ("queued", "building"):
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+        b = http.get(f"/api/projects/{pid}/builds/{b['id']}").json()
+    return b

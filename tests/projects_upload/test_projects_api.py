@@ -8,7 +8,6 @@ import io
 import os
 import subprocess
 import sys
-import tarfile
 import time
 import zipfile
 from collections.abc import Iterator
@@ -17,6 +16,7 @@ from pathlib import Path
 import pytest
 
 import hostile
+from projects_support import build_and_wait, targz
 from harness import Server, shared_builds_root, start_server, stop_server
 
 REPO = Path(__file__).resolve().parents[2]
@@ -31,31 +31,9 @@ def server(module_data_dir: Path) -> Iterator[Server]:
     stop_server(s)
 
 
-def targz(files: dict[str, bytes], top: str = "proj") -> bytes:
-    buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w:gz") as t:
-        for name, data in files.items():
-            info = tarfile.TarInfo(f"{top}/{name}")
-            info.size = len(data)
-            t.addfile(info, io.BytesIO(data))
-    return buf.getvalue()
-
-
 def upload(http, data: bytes, name: str = "proj.tar.gz", pid: int | None = None):  # noqa: ANN001, ANN201
     files = {"file": (name, data, "application/gzip")}
     return http.put(f"/api/projects/{pid}/source", files=files) if pid else http.post("/api/projects", files=files)
-
-
-def build_and_wait(http, pid: int, timeout: float = 300) -> dict:  # noqa: ANN001
-    r = http.post(f"/api/projects/{pid}/builds")
-    assert r.status_code == 201, r.text
-    b = r.json()
-    deadline = time.monotonic() + timeout
-    while b["status"] in ("queued", "building"):
-        assert time.monotonic() < deadline
-        time.sleep(0.2)
-        b = http.get(f"/api/projects/{pid}/builds/{b['id']}").json()
-    return b
 
 
 def run_to_run(server: Server, http, ws, pid: int, bid: int) -> dict:  # noqa: ANN001

@@ -5,15 +5,14 @@ nothing it started may outlive the run."""
 
 from __future__ import annotations
 
-import io
 import os
 import re
 import socket
-import tarfile
-import time
 from pathlib import Path
 
-from harness import Server
+from harness import Server, wait_for
+from hostile import project_files
+from projects_support import build_and_wait, targz
 
 REPO = Path(__file__).resolve().parents[2]
 EVIL = REPO / "tests" / "fixtures" / "evil_controller"
@@ -27,33 +26,11 @@ ATTEMPTS = {
 }
 
 
-def files_of(root: Path) -> dict[str, bytes]:
-    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*"))
-            if p.is_file() and "build" not in p.relative_to(root).parts}
-
-
-def targz(root: Path, top: str, replace: dict[str, bytes] | None = None) -> bytes:
-    files = files_of(root)
-    files.update(replace or {})
-    buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w:gz") as t:
-        for name, data in files.items():
-            info = tarfile.TarInfo(f"{top}/{name}")
-            info.size = len(data)
-            t.addfile(info, io.BytesIO(data))
-    return buf.getvalue()
-
-
 def upload_and_build(http, data: bytes, name: str) -> tuple[int, int]:  # noqa: ANN001
     r = http.post("/api/projects", files={"file": (name, data, "application/gzip")})
     assert r.status_code == 201, r.text
     pid = r.json()["project"]["id"]
-    b = http.post(f"/api/projects/{pid}/builds").json()
-    deadline = time.monotonic() + 300
-    while b["status"] in ("queued", "building"):
-        assert time.monotonic() < deadline, "build too slow"
-        time.sleep(0.3)
-        b = http.get(f"/api/projects/{pid}/builds/{b['id']}").json()
+    b = build_and_wait(http, pid)
     if b["status"] != "ok":
         log = http.get(f"/api/projects/{pid}/builds/{b['id']}/log").text
         raise AssertionError(f"build failed: {b.get('result')}\n{log[-3000:]}")
@@ -72,22 +49,12 @@ def processes_named(comm: str) -> list[int]:
     return out
 
 
-def wait_for(predicate, timeout: float, what: str):  # noqa: ANN001, ANN201
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.1)
-
-
 def test_every_attempt_fails_and_nothing_survives(server: Server, data_dir: Path) -> None:
     server.stop_run()
     other_http, _ = server.login("alice", server.create_user("alice"))
     evil_http, _ = server.login("mallory", server.create_user("mallory"))
     other_pid = other_http.post(
-        "/api/projects", files={"file": ("base.tar.gz", targz(BASE, "alices"), "application/gzip")}).json()["project"]["id"]
+        "/api/projects", files={"file": ("base.tar.gz", targz(project_files(BASE), "alices"), "application/gzip")}).json()["project"]["id"]
     # The folder alice's upload created (the only project so far): its unpacked source.
     (other_src,) = (data_dir / "projects").glob("*/src")
     other_main = other_src / "src"
@@ -104,7 +71,7 @@ def test_every_attempt_fails_and_nothing_survives(server: Server, data_dir: Path
         f"#define EVIL_APPLIANCE_PID {server.proc.pid}\n"
     ).encode()
     try:
-        pid, bid = upload_and_build(evil_http, targz(BASE, "evil", {**files_of(EVIL), "src/targets.h": targets}), "evil.tar.gz")
+        pid, bid = upload_and_build(evil_http, targz({**project_files(BASE), **project_files(EVIL), "src/targets.h": targets}, "evil"), "evil.tar.gz")
         assert evil_http.post("/api/lease/take").status_code == 200
         r = evil_http.post(f"/api/projects/{pid}/builds/{bid}/run", json={}, timeout=60)
         assert r.status_code == 201, r.text
