@@ -77,9 +77,11 @@ def remove_shm(name: str) -> None:
         return
     if path.parent != chmod.SHM_DIR:
         shutil.rmtree(path.parent, ignore_errors=True)
-    else:
-        with contextlib.suppress(FileNotFoundError):
-            path.unlink()
+        return
+    with contextlib.suppress(FileNotFoundError):
+        path.unlink()
+    if name.endswith(guest.UNCONFINED_SUFFIX):  # its (unused) shm folder lies beside it
+        shutil.rmtree(chmod.SHM_DIR / name.removesuffix(guest.UNCONFINED_SUFFIX), ignore_errors=True)
 
 
 # ---- bundled builds -----------------------------------------------------------------------------
@@ -380,7 +382,7 @@ class Supervisor:
                 raise SupervisorError(f"the controller was not started: {report.error}", 503)
             if report.layers.get("mount"):
                 # No mount namespace (allowed by an educator): the loop's /dev/shm is the host's.
-                shm = f"{shm_dir.name}-unconfined"
+                shm = guest.unconfined_shm_name(str(shm_dir))
                 row = self.store.update(row.id, shm=shm)
             # The controller's own pid (what `kill` or a test would aim at); we wait on the launcher.
             row = self.store.update(row.id, pid=report.pid or proc.pid, status="starting")
