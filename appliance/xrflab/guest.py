@@ -153,8 +153,9 @@ def remount_read_only(target: str) -> None:
     mount(None, target, None, flags)
 
 
-def _bind(src_fd: int, target: str, read_only: bool, recursive: bool = False) -> None:
-    """Bind what ``src_fd`` (an O_PATH fd opened before anything was covered) names."""
+def bind_fd(src_fd: int, target: str, read_only: bool, recursive: bool = False) -> None:
+    """Bind what ``src_fd`` (an O_PATH fd opened before anything was covered, in this mount
+    namespace) names onto ``target``."""
     mount(f"/proc/self/fd/{src_fd}", target, None, MS_BIND | (MS_REC if recursive else 0))
     if read_only:
         remount_read_only(target)
@@ -305,7 +306,7 @@ class _Launch:
                 os.symlink(os.readlink(path), target)  # usrmerge: /lib -> usr/lib
                 return True
             _make_target(target, stat.S_ISDIR(os.fstat(fd).st_mode))
-            _bind(fd, target, read_only, recursive)
+            bind_fd(fd, target, read_only, recursive)
             return True
 
         for path in (*SYSTEM_DIRS, *ETC_FILES, *SYS_DIRS):
@@ -322,7 +323,7 @@ class _Launch:
             if not show(dev, read_only=False, recursive=True):
                 self.notes.append(f"device {dev} not present")
         os.mkdir(root + "/dev/shm")
-        _bind(self.src[cfg["shm_dir"]], root + "/dev/shm", read_only=False)
+        bind_fd(self.src[cfg["shm_dir"]], root + "/dev/shm", read_only=False)
         for tmp in ("/tmp", "/var/tmp"):
             _make_target(root + tmp, True)
             mount("tmpfs", root + tmp, "tmpfs", MS_NOSUID | MS_NODEV, f"size={cfg.get('tmp_mb', 64)}m,mode=1777")

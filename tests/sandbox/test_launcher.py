@@ -17,7 +17,6 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent
@@ -37,17 +36,17 @@ touch /etc/x 2>/dev/null && echo "etc=WRITABLE" || echo "etc=read-only"
 """
 
 
-def probe_as(user: str | None, tmp: Path, allow_missing: bool = False) -> dict[str, Any]:
+def probe_as(user: str | None, tmp: Path, allow_missing: bool = False, no_newuidmap: bool = False) -> dict[str, Any]:
     # pytest's tmp_path is private to its user: the probe lives where another user may read it.
     tmp = Path(tempfile.mkdtemp(prefix="xrf-probe-"))
     os.chmod(tmp, 0o755)
     try:
-        return _probe_as(user, tmp, allow_missing)
+        return _probe_as(user, tmp, allow_missing, no_newuidmap)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _probe_as(user: str | None, tmp: Path, allow_missing: bool) -> dict[str, Any]:
+def _probe_as(user: str | None, tmp: Path, allow_missing: bool, no_newuidmap: bool) -> dict[str, Any]:
     script = tmp / "probe.sh"
     script.write_text(PROBE)
     script.chmod(0o755)
@@ -57,9 +56,11 @@ def _probe_as(user: str | None, tmp: Path, allow_missing: bool) -> dict[str, Any
     if user is not None:
         # Another user cannot reach a venv under /root: the system's Python runs the same code.
         python = shutil.which("python3", path="/usr/bin:/bin") or "/usr/bin/python3"
-        cmd = ["setpriv", f"--reuid={user}", f"--regid={pwd.getpwnam(user).pw_gid}", "--init-groups",
+        cmd = [shutil.which("setpriv") or "/usr/bin/setpriv", f"--reuid={user}", f"--regid={pwd.getpwnam(user).pw_gid}", "--init-groups",
                python, *cmd[1:]]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=60, cwd="/")
+    # Without newuidmap on PATH the appliance has no way to a second uid, as without /etc/subuid.
+    env = dict(os.environ, PATH="/nonexistent") if no_newuidmap else None
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=60, cwd="/", env=env)
     assert r.returncode == 0 and r.stdout.strip(), r.stderr
     data = json.loads(r.stdout.strip().splitlines()[-1])
     data["seen"] = dict(re.findall(r"^(\w+)=(.*)$", data["output"], re.M))
@@ -125,16 +126,13 @@ def test_ordinary_user_with_subordinate_ids(tmp_path: Path) -> None:
 
 
 def test_no_subordinate_ids_refused_unless_allowed(tmp_path: Path) -> None:
+    """No second uid to be had (no newuidmap; as root: `nobody`, which has no /etc/subuid range)."""
     user = "nobody" if os.geteuid() == 0 else None
-    me = pwd.getpwnam(user) if user else pwd.getpwuid(os.getuid())
-    if any(line.split(":")[0] in (me.pw_name, str(me.pw_uid))
-           for f in ("/etc/subuid",) if Path(f).exists() for line in Path(f).read_text().splitlines()):
-        pytest.fail(f"{me.pw_name} has subordinate ids: this case needs a user without")
-    refused = probe_as(user, tmp_path)
+    refused = probe_as(user, tmp_path, no_newuidmap=True)
     assert refused["rc"] == 126 and set(refused["report"]["missing"]) == {"user"}
     assert "REFUSED" in refused["output"] and "--allow-unconfined" in refused["error"]
     assert "written" not in refused["output"]
-    allowed = probe_as(user, tmp_path, allow_missing=True)
+    allowed = probe_as(user, tmp_path, allow_missing=True, no_newuidmap=True)
     assert_confined(allowed, except_layers={"user"})
     assert allowed["seen"]["uid"] == "65534"  # unmapped in its nested namespace: no identity, no capability
 

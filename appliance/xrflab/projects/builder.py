@@ -51,8 +51,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ..guest import (
-    CLONE_NEWIPC, CLONE_NEWNET, CLONE_NEWNS, CLONE_NEWPID, CLONE_NEWUSER, MS_BIND, MS_NODEV, MS_NOEXEC, MS_NOSUID,
-    MS_PRIVATE, MS_REC, PR_SET_NO_NEW_PRIVS, PR_SET_PDEATHSIG, mount, prctl, remount_read_only, unshare,
+    CLONE_NEWIPC, CLONE_NEWNET, CLONE_NEWNS, CLONE_NEWPID, CLONE_NEWUSER, MS_NODEV, MS_NOEXEC, MS_NOSUID,
+    MS_PRIVATE, MS_REC, PR_SET_NO_NEW_PRIVS, PR_SET_PDEATHSIG, bind_fd, mount, prctl, unshare,
 )
 from .store import BuildRow, ProjectRow, ProjectStore
 
@@ -104,34 +104,33 @@ class SandboxConfig:
 
 # ---- the sandbox (runs in the child, as root or as the appliance's user, then execs) -------------
 
-def _confine(hide: str, keep: list[tuple[str, bool]]) -> None:
-    """Cover ``hide`` (the data folder: every project, the databases, the runs) with an empty
-    tmpfs, then put back only ``keep``: (path, read_only) — the project's source (read-only),
-    its build folder, rt_core's install (read-only). Same paths, so CMake sees nothing change."""
-    # The folders made here on the empty tmpfs must be passable by the build user, whatever the
-    # appliance's umask (0o077 for its data files).
+def _confine(config: dict[str, Any]) -> list[str]:
+    """Private /tmp, /var/tmp, /run/lock and /dev/shm (empty tmpfs), the data folder (``hide``)
+    covered too, then put back at the same paths only ``keep``: (path, read_only) — the project's
+    source (read-only), its build folder, rt_core's install and the appliance's own code and
+    Python (read-only), wherever they were covered (a checkout, venv or data folder under /tmp
+    included). Returns the folders made private."""
+    private = [t for t in PRIVATE_TMP if os.path.isdir(t)]
+    hide = config.get("hide")
+    covered = private + ([hide] if hide else [])
+    # O_PATH fds first: once a folder is covered, what was below it cannot be named any more.
+    held = [(path, os.open(path, os.O_PATH | os.O_CLOEXEC), ro) for path, ro in config.get("keep", [])
+            if os.path.exists(path) and any(Path(path).is_relative_to(c) for c in covered)]
+    for target in private:
+        mount("tmpfs", target, "tmpfs", MS_NOSUID | MS_NODEV, f"size={config['tmpfs_mb']}m,mode=1777")
+    if hide and os.path.isdir(hide):  # (under a private folder it is gone already)
+        mount("tmpfs", hide, "tmpfs", MS_NOSUID | MS_NODEV, "size=1m,mode=0755")
+    # The folders made on the way must be passable by the build user, whatever the appliance's
+    # umask (0o077 for its data files).
     old_umask = os.umask(0o022)
     try:
-        _confine_paths(hide, keep)
+        for path, fd, ro in held:
+            os.makedirs(path, exist_ok=True)
+            bind_fd(fd, path, ro, recursive=True)
+            os.close(fd)
     finally:
         os.umask(old_umask)
-
-
-def _confine_paths(hide: str, keep: list[tuple[str, bool]]) -> None:
-    stage = "/tmp/.xrf-keep"
-    os.makedirs(stage, exist_ok=True)
-    staged = []
-    for i, (path, ro) in enumerate(keep):
-        spot = f"{stage}/{i}"
-        os.makedirs(spot, exist_ok=True)
-        mount(path, spot, None, MS_BIND | MS_REC, None)
-        staged.append((path, spot, ro))
-    mount("tmpfs", hide, "tmpfs", MS_NOSUID | MS_NODEV, "size=1m,mode=0755")
-    for path, spot, ro in staged:
-        os.makedirs(path, exist_ok=True)
-        mount(spot, path, None, MS_BIND | MS_REC, None)
-        if ro:
-            remount_read_only(path)
+    return private
 
 
 def _sandbox_main(config: dict[str, Any], cmd: list[str]) -> int:
@@ -210,13 +209,10 @@ def _confined_exec(config: dict[str, Any], cmd: list[str], say: Callable[[str], 
         if not mount_ns:
             raise OSError("no mount namespace")
         mount(None, "/", None, MS_REC | MS_PRIVATE, None)
-        for target in PRIVATE_TMP:
-            if os.path.isdir(target):
-                mount("tmpfs", target, "tmpfs", MS_NOSUID | MS_NODEV, f"size={config['tmpfs_mb']}m,mode=1777")
+        private = _confine(config)
         if config.get("hide"):
-            _confine(config["hide"], config["keep"])
             say(f"sees of {config['hide']} only its source (read-only), its build folder and rt_core (read-only)")
-        say(f"private {', '.join(t for t in PRIVATE_TMP if os.path.isdir(t))}")
+        say(f"private {', '.join(private)}")
     except OSError as exc:
         say(f"WARNING: no private {', '.join(PRIVATE_TMP)} and data folder ({exc})")
     if pid_ns:
@@ -759,16 +755,16 @@ class Builder:
             env["XRF_CACHE_DIR"] = os.environ["XRF_CACHE_DIR"]
         inner = [self._python_for(uid), "-m", "xrflab.projects.builder", "--inner", str(src), str(build_dir)]
         config: dict[str, Any] = {**asdict(cfg), "uid": uid, "gid": gid, "env": env}
-        hide = self.hide_dir.resolve() if self.hide_dir else None
-        if hide is not None:
-            from .. import build
+        from .. import build
 
-            keep = [(str(src.resolve()), True), (str(build_dir.resolve()), False)]
-            cache = Path(env.get("XRF_CACHE_DIR") or build._cache_root()).resolve()
-            if cache.is_relative_to(hide):
-                keep.append((str(cache), True))
-            if all(Path(k).is_relative_to(hide) for k, _ in keep[:2]):
-                config.update(hide=str(hide), keep=keep)
+        cache = Path(env.get("XRF_CACHE_DIR") or build._cache_root()).resolve()
+        # What the build needs where the sandbox covers a folder (the data folder, /tmp, ...).
+        keep = [(str(src.resolve()), True), (str(build_dir.resolve()), False), (str(cache), True),
+                (str(APPLIANCE_DIR), True), (str(Path(sys.prefix).resolve()), True)]
+        config["keep"] = keep
+        hide = self.hide_dir.resolve() if self.hide_dir else None
+        if hide is not None and all(Path(k).is_relative_to(hide) for k, _ in keep[:2]):
+            config["hide"] = str(hide)
         cmd = [sys.executable, "-m", "xrflab.projects.builder", "--sandbox", json.dumps(config), "--", *inner]
         wenv = {TOKEN_ENV: token, "PATH": env["PATH"], "PYTHONPATH": str(APPLIANCE_DIR), "LANG": "C.UTF-8"}
         proc = subprocess.Popen(cmd, cwd=build_dir, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,

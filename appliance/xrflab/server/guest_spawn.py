@@ -207,8 +207,8 @@ class GuestSpawner:
         r, w = os.pipe()
         try:
             cfg = self.config(exe, run_dir, shm_dir, env, read_only, w)
-            # The launcher's own environment: XRF_SHM identifies the run (the orphan reaper checks
-            # /proc/<pid>/environ before signalling a pid left by an earlier appliance).
+            # The launcher's own environment: XRF_RUN_DIR identifies the run (the orphan reaper checks
+            # /proc/<launcher>/environ before signalling a launcher left by an earlier appliance).
             launcher_env = {"PATH": "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin",
                             "LANG": "C.UTF-8", "XRF_SHM": tag,
                             "XRF_RUN_DIR": str(run_dir)}

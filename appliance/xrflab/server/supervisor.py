@@ -69,6 +69,14 @@ def _folder_bytes(path: Path) -> int:
     return total
 
 
+def _parent_of(pid: int) -> int:
+    """The parent pid from /proc/<pid>/stat (world-readable, whoever owns the process); 0 if gone."""
+    try:
+        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, IndexError, ValueError):
+        return 0
+
+
 def remove_shm(name: str) -> None:
     """Unlink a run's shared memory and the run's folder of it in /dev/shm (xrflab.guest)."""
     try:
@@ -240,18 +248,19 @@ class Supervisor:
 
     def _reap_orphan(self, row: RunRow) -> None:
         """A loop left running by an appliance that died: it has paused itself (no heartbeat);
-        stop it (SIGINT = the runtime's safe stop) and remove its shared memory. The pid is only
-        signalled if that process really is this run's loop (its XRF_LOG_DIR names the run folder)."""
-        if row.pid:
+        stop it (SIGINT = the runtime's safe stop) and remove its shared memory. The signal goes to
+        its launcher (``row.pid``'s parent, our own uid in every sandbox mode), which forwards it,
+        and only if that process really is this run's launcher (its XRF_RUN_DIR names the run folder)."""
+        launcher = _parent_of(row.pid) if row.pid else 0
+        if launcher > 1:
             try:
-                environ = Path(f"/proc/{row.pid}/environ").read_bytes().split(b"\0")
+                environ = Path(f"/proc/{launcher}/environ").read_bytes().split(b"\0")
             except OSError:
                 environ = []
-            # The loop's environment names its run folder (its XRF_SHM is the sandbox's own name).
-            if f"XRF_LOG_DIR={row.run_dir}".encode() in environ and row.run_dir:
+            if row.run_dir and f"XRF_RUN_DIR={row.run_dir}".encode() in environ:
                 log.warning("run %s: stopping loop pid %s left by a previous appliance", row.id, row.pid)
                 with contextlib.suppress(ProcessLookupError):
-                    os.kill(row.pid, signal.SIGINT)
+                    os.kill(launcher, signal.SIGINT)
         if row.shm:
             remove_shm(row.shm)
 
