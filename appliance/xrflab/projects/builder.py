@@ -760,7 +760,8 @@ class Builder:
         cache = Path(env.get("XRF_CACHE_DIR") or build._cache_root()).resolve()
         # What the build needs where the sandbox covers a folder (the data folder, /tmp, ...).
         keep = [(str(src.resolve()), True), (str(build_dir.resolve()), False), (str(cache), True),
-                (str(APPLIANCE_DIR), True), (str(Path(sys.prefix).resolve()), True)]
+                (str(APPLIANCE_DIR), True), (str(build.REPO_ROOT / "rt_core"), True),
+                (str(Path(sys.prefix).resolve()), True)]
         config["keep"] = keep
         hide = self.hide_dir.resolve() if self.hide_dir else None
         if hide is not None and all(Path(k).is_relative_to(hide) for k, _ in keep[:2]):
