@@ -39,7 +39,13 @@ def test_interface_package_is_a_real_ros2_package(ros_env, tmp_path):
     share = prefix / "share" / "xrf2_msgs"
     xml = (share / "package.xml").read_text()
     assert '<package format="3">' in xml and "<member_of_group>rosidl_interface_packages</member_of_group>" in xml
-    assert (share / "msg" / "Ros2Xeno.msg").read_text().startswith("# Wheel position setpoints")
+    # The cache is keyed by the messages' fields, not their comments: whichever build came first
+    # (a project's files, or a running loop's schema) wrote the package, with the same fields.
+    from xrflab.msgdef import parse_msg_file, schema_text
+
+    for name in ("Ros2Xeno", "Xeno2Ros"):
+        built, ours = share / "msg" / f"{name}.msg", RELBOT / "msg" / f"{name}.msg"
+        assert schema_text(parse_msg_file(built)) == schema_text(parse_msg_file(ours)), name
     assert (prefix / "include" / "xrf2_msgs" / "xrf2_msgs" / "msg" / "ros2_xeno.hpp").is_file()  # for C++ nodes
     assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "xrf2_msgs").is_file()
     t0 = time.monotonic()
