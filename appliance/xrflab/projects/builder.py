@@ -52,7 +52,7 @@ from typing import Any, Callable
 
 from ..guest import (
     CLONE_NEWIPC, CLONE_NEWNET, CLONE_NEWNS, CLONE_NEWPID, CLONE_NEWUSER, MS_NODEV, MS_NOEXEC, MS_NOSUID,
-    MS_PRIVATE, MS_REC, PR_SET_NO_NEW_PRIVS, PR_SET_PDEATHSIG, bind_fd, mount, prctl, unshare,
+    MS_PRIVATE, MS_RDONLY, MS_REC, MS_REMOUNT, PR_SET_NO_NEW_PRIVS, PR_SET_PDEATHSIG, bind_fd, mount, prctl, unshare,
 )
 from .store import BuildRow, ProjectRow, ProjectStore
 
@@ -118,18 +118,23 @@ def _confine(config: dict[str, Any]) -> list[str]:
             if os.path.exists(path) and any(Path(path).is_relative_to(c) for c in covered)]
     for target in private:
         mount("tmpfs", target, "tmpfs", MS_NOSUID | MS_NODEV, f"size={config['tmpfs_mb']}m,mode=1777")
-    if hide and os.path.isdir(hide):  # (under a private folder it is gone already)
-        mount("tmpfs", hide, "tmpfs", MS_NOSUID | MS_NODEV, "size=1m,mode=0755")
     # The folders made on the way must be passable by the build user, whatever the appliance's
     # umask (0o077 for its data files).
     old_umask = os.umask(0o022)
     try:
+        if hide:  # its own tmpfs even under a private folder: made read-only below
+            os.makedirs(hide, exist_ok=True)
+            mount("tmpfs", hide, "tmpfs", MS_NOSUID | MS_NODEV, "size=1m,mode=0755")
         for path, fd, ro in held:
             os.makedirs(path, exist_ok=True)
             bind_fd(fd, path, ro, recursive=True)
             os.close(fd)
     finally:
         os.umask(old_umask)
+    if hide:
+        # Beside its source and build folder nothing in the data folder is writable, even where
+        # the build runs as the appliance's own uid (the owner of that tmpfs).
+        mount(None, hide, None, MS_REMOUNT | MS_RDONLY | MS_NOSUID | MS_NODEV)
     return private
 
 
