@@ -120,6 +120,7 @@ class Status:
     reject_reason: str
     rejected_count: int
     running: bool
+    end_reason: int  # XRF_END_*: why loop() returned (0 while it runs, or if it never did)
     cmd_done: int
     cmd_rejected: int
     cycles: int
@@ -207,6 +208,7 @@ def _status_from_struct(s: Any) -> Status:
         reject_reason=_c_str(s.reject_reason),
         rejected_count=s.rejected_count,
         running=bool(s.running),
+        end_reason=s.end_reason,
         cmd_done=s.cmd_done,
         cmd_rejected=s.cmd_rejected,
         cycles=s.cycles,

@@ -397,6 +397,7 @@ int Runtime::enter(unsigned cycle_freq)
 
     xrf_status_write_begin(&shm_->status);
     shm_->status.running = 1;
+    shm_->status.end_reason = XRF_END_NONE;
     shm_->status.state = report_.state;
     xrf_status_write_end(&shm_->status);
     xrf_shm_publish_ready(shm_);
@@ -617,8 +618,18 @@ void Runtime::leave()
 {
     if (shm_ == nullptr)
         return;
+    // Why loop() returned, for the host's record of the run: a process that exits without
+    // passing here (exit() in a hook, a crash) leaves XRF_END_NONE behind.
+    int32_t why = XRF_END_RETURNED;
+    if (g_signal_stop)
+        why = XRF_END_SIGNAL;
+    else if (report_.state == XRF_STATE_QUIT)
+        why = XRF_END_QUIT;
+    else if (options_.max_cycles && cycles_ >= options_.max_cycles)
+        why = XRF_END_CYCLE_LIMIT;
     xrf_status_write_begin(&shm_->status);
     shm_->status.running = 0;
+    shm_->status.end_reason = why;
     xrf_status_write_end(&shm_->status);
     if (backend_ != nullptr)
         backend_->thread_teardown();

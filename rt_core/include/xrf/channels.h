@@ -32,7 +32,7 @@ extern "C" {
 
 /* cffi-begin */
 #define XRF_SHM_MAGIC 827740760 /* "XRF1" read as a little-endian uint32 */
-#define XRF_SHM_VERSION 2
+#define XRF_SHM_VERSION 3
 
 #define XRF_NAME_MAX 64
 #define XRF_REASON_MAX 128
@@ -89,6 +89,15 @@ extern "C" {
 #define XRF_HOST_LOST_IGNORE 0
 #define XRF_HOST_LOST_PAUSE 1
 #define XRF_HOST_LOST_STOP 2
+
+/* Why loop() returned (xrf_status.end_reason), written by the runtime as it leaves. A process
+ * that ends while this is still XRF_END_NONE never left loop(): the controller called exit()
+ * or crashed, which the host tells apart by the exit status. */
+#define XRF_END_NONE 0
+#define XRF_END_QUIT 1        /* the state machine reached QUIT (a quit command) */
+#define XRF_END_CYCLE_LIMIT 2 /* XRF_MAX_CYCLES cycles done */
+#define XRF_END_SIGNAL 3      /* SIGINT/SIGTERM: the runtime's safe stop */
+#define XRF_END_RETURNED 4    /* step() returned non-zero or the program asked to stop */
 
 #define XRF_CMD_SLOTS 64 /* power of two */
 #define XRF_CMD_RESULTS 16 /* recent command outcomes kept in the status block */
@@ -149,6 +158,8 @@ struct xrf_status {
     int32_t reject_code;       /* XRF_REJECT_* of the last rejected command */
     uint32_t rejected_count;
     int32_t running;           /* 1 while loop() cycles, 0 after it returned */
+    int32_t end_reason;        /* XRF_END_*: why loop() returned; NONE while it runs */
+    uint32_t pad0;
     uint64_t cmd_done;         /* ticket of the last command handled (accepted or rejected) */
     uint64_t cmd_rejected;     /* ticket of the last rejected command */
     uint64_t cycles;
