@@ -2,7 +2,8 @@
 
 A project belongs to an ``owner`` (the account id once accounts exist; ``local`` before) and
 lives in its own folder under the data dir (``projects/<folder>/src``: the unpacked source;
-``projects/<folder>/builds/<id>``: one folder per build). Folder names are random, so they say
+``projects/<folder>/builds/<id>``: one folder per build; ``projects/<folder>/v<n>``: source
+version n, which is what a build compiles, see versions.py). Folder names are random, so they say
 nothing about the owner and cannot be guessed by another student's build.
 
 Every build is kept: source hash, toolchain, duration, result, log path, the executable and
@@ -55,6 +56,18 @@ CREATE TABLE IF NOT EXISTS project_builds (
     details TEXT NOT NULL DEFAULT '{}'    -- JSON: diagnostics, twenty_sim, messages, cycle_freq, sandbox
 );
 CREATE INDEX IF NOT EXISTS builds_project ON project_builds(project_id);
+-- Every state of a project's source (upload, template, each save in the editor): versions.py.
+CREATE TABLE IF NOT EXISTS project_versions (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    project_id INTEGER NOT NULL REFERENCES projects(id) ON DELETE CASCADE,
+    n INTEGER NOT NULL,                   -- 1, 2, ... within the project
+    source_hash TEXT NOT NULL,            -- builder.source_hash of the tree: the builds' key
+    created REAL NOT NULL,
+    author TEXT NOT NULL,
+    origin TEXT NOT NULL,                 -- upload | template:<name> | edit <path> | delete <path> | ...
+    files TEXT NOT NULL DEFAULT '{}',     -- JSON: path -> sha256 of the content
+    UNIQUE (project_id, n)
+);
 CREATE TABLE IF NOT EXISTS project_runs (
     run_id INTEGER PRIMARY KEY,
     build_id INTEGER NOT NULL,
@@ -106,6 +119,23 @@ class BuildRow:
         return d
 
 
+@dataclass
+class VersionRow:
+    id: int
+    project_id: int
+    n: int
+    source_hash: str
+    created: float
+    author: str
+    origin: str
+    files: dict[str, str]
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"n": self.n, "source_hash": self.source_hash, "created": self.created, "author": self.author,
+                "origin": self.origin, "files": len(self.files)}
+
+
+_VCOLS = [f.name for f in fields(VersionRow)]
 _PCOLS = [f.name for f in fields(ProjectRow)]
 _BCOLS = [f.name for f in fields(BuildRow)]
 
@@ -170,8 +200,39 @@ class ProjectStore:
         return [ProjectRow(*r) for r in rows]
 
     def delete_project(self, pid: int) -> None:
+        self._x("DELETE FROM project_versions WHERE project_id=?", (pid,))
         self._x("DELETE FROM project_builds WHERE project_id=?", (pid,))
         self._x("DELETE FROM projects WHERE id=?", (pid,))
+
+    # -- source versions (versions.py keeps their files) -----------------------------------------
+
+    def add_version(self, project_id: int, source_hash: str, author: str, origin: str,
+                    files: dict[str, str]) -> "VersionRow":
+        """The project's next version number, taken and written in one transaction."""
+        with self._lock:
+            cur = self._db.execute(
+                "INSERT INTO project_versions (project_id, n, source_hash, created, author, origin, files) "
+                "SELECT ?, COALESCE(MAX(n), 0) + 1, ?, ?, ?, ?, ? FROM project_versions WHERE project_id=?",
+                (project_id, source_hash, time.time(), author, origin, json.dumps(files), project_id))
+            vid = int(cur.lastrowid or 0)
+        rows = self._q(f"SELECT {', '.join(_VCOLS)} FROM project_versions WHERE id=?", (vid,))
+        return _version(rows[0])
+
+    def versions(self, project_id: int) -> list["VersionRow"]:
+        rows = self._q(f"SELECT {', '.join(_VCOLS)} FROM project_versions WHERE project_id=? ORDER BY n DESC",
+                       (project_id,))
+        return [_version(r) for r in rows]
+
+    def version(self, project_id: int, n: int) -> "VersionRow | None":
+        if not -(2**63) <= n < 2**63:
+            return None
+        rows = self._q(f"SELECT {', '.join(_VCOLS)} FROM project_versions WHERE project_id=? AND n=?", (project_id, n))
+        return _version(rows[0]) if rows else None
+
+    def latest_version(self, project_id: int) -> "VersionRow | None":
+        rows = self._q(f"SELECT {', '.join(_VCOLS)} FROM project_versions WHERE project_id=? ORDER BY n DESC LIMIT 1",
+                       (project_id,))
+        return _version(rows[0]) if rows else None
 
     # -- builds ---------------------------------------------------------------------------------
 
@@ -230,3 +291,9 @@ def _build(r: tuple[Any, ...]) -> BuildRow:
     d = dict(zip(_BCOLS, r))
     d["details"] = json.loads(d["details"] or "{}")
     return BuildRow(**d)
+
+
+def _version(r: tuple[Any, ...]) -> VersionRow:
+    d = dict(zip(_VCOLS, r))
+    d["files"] = json.loads(d["files"] or "{}")
+    return VersionRow(**d)

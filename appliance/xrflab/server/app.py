@@ -18,6 +18,7 @@ from .routes_accounts import router as accounts_router
 
 from .api import router, ws_router
 from .routes_projects import router as projects_router
+from .routes_editor import CODEMIRROR_DIR, router as editor_router
 from .hub import Hub
 from .routes_logs import router as logs_router
 from .routes_rerun import router as rerun_router
@@ -100,6 +101,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(router)
     app.include_router(ws_router)
     app.include_router(projects_router)
+    app.include_router(editor_router)
     app.include_router(viz_router)
     app.include_router(viser_router)
     app.include_router(logs_router)
@@ -110,6 +112,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     frontend = settings.frontend_dir
     if frontend.is_dir():
+        # The editor's CodeMirror from the system package (libjs-codemirror, installed by ./lab and
+        # deploy/install): served from here, so a student's browser fetches nothing from outside.
+        # Mounted before /static, which would answer for this prefix too.
+        app.mount("/static/vendor/codemirror", StaticFiles(directory=CODEMIRROR_DIR, check_dir=False),
+                  name="codemirror")
         app.mount("/static", StaticFiles(directory=frontend), name="static")
 
         # PUBLIC so that it can answer a logged-out browser with the login page (a 303): the

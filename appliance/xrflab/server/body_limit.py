@@ -25,10 +25,13 @@ Receive = Callable[[], Awaitable[Message]]
 Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
-# The routes that take an archive (routes_projects.py): they stream to a file themselves.
+# The routes that take an archive (routes_projects.py): they stream to a file themselves. And the
+# editor's save (routes_editor.py), whose file may be larger than a JSON body: it counts the body
+# itself against its own limit (1 MB).
 UPLOAD_ROUTES: tuple[tuple[str, re.Pattern[str]], ...] = (
     ("POST", re.compile(r"^/api/projects/?$")),
     ("PUT", re.compile(r"^/api/projects/[^/]+/source/?$")),
+    ("PUT", re.compile(r"^/api/projects/[^/]+/files/.+$")),
 )
 
 

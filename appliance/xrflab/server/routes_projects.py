@@ -29,7 +29,8 @@ from starlette.requests import HTTPConnection
 
 from ..projects import archive, twentysim
 from ..projects.builder import Builder, SandboxConfig
-from ..projects.store import BuildRow, ProjectRow, ProjectStore
+from ..projects.store import BuildRow, ProjectRow, ProjectStore, VersionRow
+from ..projects.versions import Versions
 from . import auth as authmod
 from . import ownership
 from .auth import Perm, requires
@@ -67,6 +68,8 @@ class ProjectsService:
 
         self.builder = Builder(self.store, self.root, publish, SandboxConfig.from_settings(settings),
                                hide_dir=settings.data_dir)
+        # Every change of a project's source is a version; a build compiles a version's tree.
+        self.versions = Versions(self.store, self.root)
 
     def folder(self, project: ProjectRow) -> Path:
         return self.root / project.folder
@@ -348,6 +351,25 @@ def _zip_dir(src: Path, top: str) -> bytes:
     return buf.getvalue()
 
 
+async def _record(svc: ProjectsService, project: ProjectRow, request: Request, origin: str) -> None:
+    async with _version_lock(svc, project):
+        await asyncio.to_thread(svc.versions.record, project, _owner_name(_user(request)), origin)
+
+
+class _version_lock:
+    """The project's version lock (a thread lock: the editor's saves take it in a worker thread),
+    taken without blocking the event loop."""
+
+    def __init__(self, svc: ProjectsService, project: ProjectRow) -> None:
+        self.lock = svc.versions.lock(project)
+
+    async def __aenter__(self) -> None:
+        await asyncio.to_thread(self.lock.acquire)
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.lock.release()
+
+
 def _download(data: bytes, name: str) -> Response:
     return Response(data, media_type="application/zip",
                     headers={"Content-Disposition": f'attachment; filename="{name}.zip"'})
@@ -381,6 +403,7 @@ async def upload_project(request: Request, name: str = "") -> dict[str, Any]:
     pname = _clean_name(name or fields.get("name", "") or manifest.prefix or base)
     project = svc.store.create_project(_owner_name(_user(request)), pname, token, "upload")
     project = svc.store.update_project(project.id, files=len(manifest.files), bytes=manifest.total)
+    await _record(svc, project, request, "upload " + (Path(filename).name if filename else "(archive)"))
     _audit(request, "project.upload", {"project": project.id, "name": project.name, "files": len(manifest.files)})
     return {"project": project.as_dict(), "format": manifest.format, "files": len(manifest.files),
             "bytes": manifest.total, "stripped_folder": manifest.prefix, "skipped": manifest.skipped}
@@ -390,9 +413,13 @@ async def upload_project(request: Request, name: str = "") -> dict[str, Any]:
 async def replace_source(pid: int, request: Request) -> dict[str, Any]:
     """A new version of the project's source (same rules as the first upload); builds are kept."""
     svc, project = await _project(request, pid)
-    archive_path, _, _ = await _receive_archive(request, svc)
-    manifest = await _unpack_into(svc, archive_path, svc.folder(project))
-    project = svc.store.update_project(project.id, files=len(manifest.files), bytes=manifest.total)
+    archive_path, filename, _ = await _receive_archive(request, svc)
+    # Under the project's version lock: an editor save never lands between the swap and its record.
+    async with _version_lock(svc, project):
+        manifest = await _unpack_into(svc, archive_path, svc.folder(project))
+        project = svc.store.update_project(project.id, files=len(manifest.files), bytes=manifest.total)
+        await asyncio.to_thread(svc.versions.record, project, _owner_name(_user(request)),
+                                "upload " + (Path(filename).name if filename else "(archive)"))
     _audit(request, "project.upload", {"project": project.id, "name": project.name, "files": len(manifest.files)})
     return {"project": project.as_dict(), "format": manifest.format, "files": len(manifest.files),
             "bytes": manifest.total, "stripped_folder": manifest.prefix, "skipped": manifest.skipped}
@@ -427,6 +454,7 @@ async def new_from_template(body: FromTemplate, request: Request) -> dict[str, A
                                        token, f"template:{body.template}")
     project = svc.store.update_project(project.id, files=len(files),
                                        bytes=sum((folder / "src" / f).stat().st_size for f in files))
+    await _record(svc, project, request, f"template:{body.template}")
     _audit(request, "project.create", {"project": project.id, "name": project.name, "template": body.template})
     return project.as_dict()
 
@@ -494,11 +522,19 @@ async def start_build(pid: int, request: Request) -> dict[str, Any]:
     """Queue a build (one runs at a time). An unchanged source that built before is not built
     again: that build comes back with ``reused: true``."""
     svc, project = await _project(request, pid)
-    src = svc.src(project)
-    row, reused = await asyncio.to_thread(svc.builder.submit, project, src)
-    svc.store.update_project(project.id, source_hash=row.source_hash)
-    _audit(request, "build.start", {"project": pid, "build": row.id, "reused": reused})
+    version = await asyncio.to_thread(svc.versions.current, project, _owner_name(_user(request)))
+    row, reused = await submit_version(request, svc, project, version)
     return _build_dict(svc, row, reused)
+
+
+async def submit_version(request: Request, svc: ProjectsService, project: ProjectRow,
+                         version: VersionRow) -> tuple[BuildRow, bool]:
+    """Queue the build of one source version (its immutable tree, so the build compiles exactly
+    that source however the project is edited meanwhile); an unchanged source reuses its build."""
+    row, reused = await asyncio.to_thread(svc.builder.submit, project, svc.versions.tree(project, version))
+    svc.store.update_project(project.id, source_hash=row.source_hash)
+    _audit(request, "build.start", {"project": project.id, "build": row.id, "reused": reused, "version": version.n})
+    return row, reused
 
 
 @router.get("/projects/{pid}/builds", response_model=list[Build], dependencies=[requires(Perm.PROJECTS)])
