@@ -44,7 +44,9 @@ XRF2_FRAMEWORK_STEMS = {
     "XenoFrtLoop", "XenoFrtRosIco", "XenoFrt20Sim", "FullStateMachine", "XenoFrtLogger",
     "XenoFileHandler", "XenoFrtMonitor", "IcoIo", "XenoSpiControllerHandler",
     "XenoRosCommunication", "XenoRosDataBridge", "XenoRosCommandBridge", "configuration",
+    "debug_settings", "ICommunication", "ICommunicationFullDuplex",
 }
+_CXX_SUFFIXES = (".cpp", ".cc", ".cxx", ".c")
 _MAIN_RE = re.compile(r"^\s*int\s+main\s*\(", re.MULTILINE)
 _SKIP_DIRS = {"build", "install", "log", ".git", "__pycache__", ".vscode", ".idea"}
 
@@ -235,8 +237,168 @@ def _xrf2_executable_name(cml_text: str, project: Path) -> str:
     return name
 
 
+_CMAKE_TOKEN = re.compile(r'"((?:[^"\\]|\\.)*)"|([^\s()"#]+)|(\()|(\))|(#[^\n]*)')
+_CMAKE_VAR = re.compile(r"\$\{([A-Za-z0-9_.+-]+)\}")
+
+
+def _cmake_commands(text: str) -> Iterable[tuple[str, list[tuple[str, bool]]]]:
+    """The commands of a CMakeLists.txt as (name, [(argument, quoted)]), comments dropped.
+    Enough of CMake's syntax for the flat files XRF2 projects have."""
+    pos, name, args, depth = 0, None, [], 0
+    pending: Optional[str] = None
+    for m in _CMAKE_TOKEN.finditer(text):
+        quoted, word, lpar, rpar, comment = m.groups()
+        if comment is not None:
+            continue
+        if name is None:
+            if word is not None:
+                pending = word
+            elif lpar is not None and pending is not None:
+                name, args, depth = pending.lower(), [], 1
+            else:
+                pending = None
+            continue
+        if lpar is not None:
+            depth += 1
+        elif rpar is not None:
+            depth -= 1
+            if depth == 0:
+                yield name, args
+                name, pending = None, None
+        elif quoted is not None:
+            args.append((quoted, True))
+        elif word is not None:
+            args.append((word, False))
+
+
+@dataclass
+class _CMakeRead:
+    """What a project's own CMakeLists.txt compiles: per executable its source files, plus the
+    include folders it names. ``complete`` is False when a source list used a variable that
+    could not be evaluated (set by a find_package, a function, ...)."""
+    executables: dict[str, list[Path]]
+    include_dirs: list[Path]
+    complete: bool
+
+
+def _read_xrf2_cmake(project: Path) -> _CMakeRead:
+    text = (project / "CMakeLists.txt").read_text(errors="replace")
+    root = str(project)
+    variables: dict[str, list[str]] = {v: [root] for v in (
+        "CMAKE_SOURCE_DIR", "CMAKE_CURRENT_SOURCE_DIR", "PROJECT_SOURCE_DIR", "CMAKE_CURRENT_LIST_DIR")}
+    unknown: set[str] = set()
+
+    def expand(arg: str, quoted: bool) -> list[str]:
+        def sub(m: re.Match) -> str:
+            if m.group(1) not in variables:
+                unknown.add(m.group(1))
+                return ""
+            return ";".join(variables[m.group(1)])
+        value = _CMAKE_VAR.sub(sub, arg)
+        return [value] if quoted else [v for v in value.split(";") if v]
+
+    def paths(values: list[str]) -> list[Path]:
+        out = []
+        for v in values:
+            p = Path(v)
+            out.append((p if p.is_absolute() else project / p).resolve())
+        return out
+
+    executables: dict[str, list[Path]] = {}
+    include_dirs: list[Path] = []
+    incomplete = False
+    keywords = {"PRIVATE", "PUBLIC", "INTERFACE", "BEFORE", "AFTER", "SYSTEM", "WIN32", "MACOSX_BUNDLE",
+                "EXCLUDE_FROM_ALL", "STATIC", "SHARED", "OBJECT", "MODULE"}
+    for name, raw in _cmake_commands(text):
+        values: list[str] = []
+        before = set(unknown)
+        for arg, quoted in raw:
+            values.extend(expand(arg, quoted))
+        new_unknown = unknown - before
+        if name == "project" and values:
+            variables["PROJECT_NAME"] = [values[0]]
+        elif name == "set" and values:
+            rest = values[1:]
+            if "CACHE" in rest:
+                rest = rest[:rest.index("CACHE")]
+            variables[values[0]] = [v for v in rest if v != "PARENT_SCOPE"]
+        elif name == "list" and len(values) >= 2:
+            op, var, items = values[0].upper(), values[1], values[2:]
+            cur = variables.setdefault(var, [])
+            if op == "APPEND":
+                cur.extend(items)
+            elif op == "REMOVE_ITEM":
+                variables[var] = [c for c in cur if c not in items]
+            elif op == "FILTER" and len(items) >= 3 and items[1].upper() == "REGEX":
+                try:
+                    rx = re.compile(items[2])
+                except re.error:
+                    continue
+                keep = items[0].upper() == "INCLUDE"
+                variables[var] = [c for c in cur if bool(rx.search(c)) == keep]
+        elif name == "file" and len(values) >= 2 and values[0].upper() in ("GLOB", "GLOB_RECURSE"):
+            recurse = values[0].upper() == "GLOB_RECURSE"
+            var, pats, found = values[1], values[2:], []
+            relative = None
+            while pats and pats[0].upper() in ("CONFIGURE_DEPENDS", "LIST_DIRECTORIES", "RELATIVE",
+                                               "FOLLOW_SYMLINKS"):
+                word = pats.pop(0).upper()
+                if word in ("LIST_DIRECTORIES", "RELATIVE") and pats:
+                    arg = pats.pop(0)
+                    relative = arg if word == "RELATIVE" else relative
+            for pat in pats:
+                base = Path(pat) if Path(pat).is_absolute() else project / pat
+                parent, pattern = base.parent, base.name
+                if parent.is_dir():
+                    it = parent.rglob(pattern) if recurse else parent.glob(pattern)
+                    found.extend(str(f) for f in sorted(it) if f.is_file())
+            variables[var] = found if relative is None else [os.path.relpath(f, relative) for f in found]
+        elif name == "aux_source_directory" and len(values) == 2:
+            d = paths([values[0]])[0]
+            variables[values[1]] = [str(f) for f in sorted(d.glob("*")) if f.suffix in _CXX_SUFFIXES] if d.is_dir() else []
+        elif name in ("add_executable", "add_library") and values:
+            if any(v in ("IMPORTED", "ALIAS", "INTERFACE") for v in values[1:2]):
+                continue
+            if new_unknown:
+                incomplete = True
+            if name == "add_executable":
+                executables.setdefault(values[0], []).extend(paths([v for v in values[1:] if v not in keywords]))
+            else:  # a library of the project's own files is part of what gets linked
+                executables.setdefault("", []).extend(paths([v for v in values[1:] if v not in keywords]))
+        elif name == "target_sources" and values:
+            if new_unknown:
+                incomplete = True
+            executables.setdefault(values[0], []).extend(paths([v for v in values[1:] if v not in keywords]))
+        elif name in ("target_include_directories", "include_directories"):
+            vals = values[1:] if name == "target_include_directories" else values
+            include_dirs.extend(d for d in paths([v for v in vals if v not in keywords]) if d.is_dir())
+    return _CMakeRead(executables, include_dirs, complete=not incomplete)
+
+
+def _xrf2_default_sources(project: Path) -> list[Path]:
+    """XRF2's own templates compile main.cpp, src/*.cpp (and the 20-sim controller/)."""
+    out = [p for p in (project / "main.cpp", project / "src" / "main.cpp") if p.is_file()]
+    src = project / "src"
+    if src.is_dir():
+        out.extend(p for p in sorted(src.iterdir()) if p.is_file() and p.suffix in _CXX_SUFFIXES and p not in out)
+    return [p.resolve() for p in out]
+
+
+def _inside(p: Path, folder: Path) -> bool:
+    try:
+        p.relative_to(folder)
+        return True
+    except ValueError:
+        return False
+
+
 def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
-    """Decide which files of an XRF2-layout project to compile, and why others are not."""
+    """Decide which files of an XRF2-layout project to compile, and why others are not.
+
+    XRF2 compiled what the project's CMakeLists.txt names (its templates: main.cpp, src/*.cpp
+    and the 20-sim controller/); so do we, read from that file. A .cpp it does not name (an old
+    copy, a test program, a folder of other experiments) is left out, as XRF2 left it out; when
+    the file cannot be read completely, XRF2's template selection is added to what was read."""
     project = project.resolve()
     cml_text = (project / "CMakeLists.txt").read_text(errors="replace")
     taken: list[str] = []
@@ -249,10 +411,33 @@ def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
     if controller.is_dir() and any(controller.glob("*_tokens.xml")):
         twenty_sim = controller
 
+    read = _read_xrf2_cmake(project)
+    files = _walk(project)
+    in_project = set(p.resolve() for p in files)
+
+    def own_sources(paths: Iterable[Path]) -> list[Path]:
+        return [p for p in paths if p in in_project and p.suffix.lower() in _CXX_SUFFIXES
+                and p.stem not in XRF2_FRAMEWORK_STEMS
+                and not (twenty_sim is not None and _inside(p, twenty_sim.resolve()))]
+
+    # The controller executable: the one that compiles XRF2's framework (or has the project's
+    # main); other executables of the package (a ROS 2 node, a test) are not the controller.
+    exe_name, chosen = "", []
+    candidates = {n: v for n, v in read.executables.items() if n}
+    for n, srcs in candidates.items():
+        if any(p.stem in XRF2_FRAMEWORK_STEMS for p in srcs) or any(_has_main(p) for p in own_sources(srcs)):
+            exe_name, chosen = n, srcs
+            break
+    selected = own_sources(chosen) + own_sources(read.executables.get("", []))
+    if not selected or not read.complete:
+        selected += [p for p in _xrf2_default_sources(project) if p not in selected]
+    selected = list(dict.fromkeys(selected))
+    other_exes = {p: n for n, srcs in candidates.items() if n != exe_name for p in own_sources(srcs)}
+
     sources: list[Path] = []
-    include_dirs: list[Path] = []
     mains: list[Path] = []
-    for path in _walk(project):
+    include_dirs: list[Path] = []
+    for path in files:
         rel = _rel(path, project)
         parts = Path(rel).parts
         suffix = path.suffix.lower()
@@ -278,18 +463,18 @@ def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
         elif suffix == ".py":
             left_out[rel] = ("script (XRF2's token extraction is done by xrf_add_controller)"
                              if "token" in path.name.lower() else "script; not part of the controller")
-        elif suffix in (".cpp", ".cc", ".cxx", ".c"):
-            if path.name.startswith("test_") and _has_main(path):
+        elif suffix in _CXX_SUFFIXES:
+            resolved = path.resolve()
+            if resolved not in selected:
+                left_out[rel] = (f"compiled into {other_exes[resolved]}, not the controller" if resolved in other_exes
+                                 else "not compiled by the project's CMakeLists.txt (XRF2 built main.cpp, "
+                                      "src/*.cpp, controller/ and the files it names)")
+            elif path.name.startswith("test_") and _has_main(path):
                 left_out[rel] = "test program with its own main()"
-            elif _has_main(path):
-                mains.append(path)
-                sources.append(path)
             else:
+                if _has_main(path):
+                    mains.append(path)
                 sources.append(path)
-        elif suffix in (".h", ".hpp", ".hh"):
-            if path.parent not in include_dirs:
-                include_dirs.append(path.parent)
-            taken.append(rel)
     if len(mains) > 1:
         # XRF2 projects have one main.cpp; keep it and leave any other program out.
         keep = next((m for m in mains if m.name == "main.cpp"), None)
@@ -302,18 +487,37 @@ def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
                 sources.remove(m)
                 left_out[_rel(m, project)] = f"has its own main(); {_rel(keep, project)} is the program"
     if not mains:
-        raise BuildError(f"{project}: no C++ file defines main() (XRF2 projects have src/main.cpp)")
+        raise BuildError(f"{project}: no C++ file defines main() (XRF2 projects have main.cpp or src/main.cpp)")
     for s in sources:
         taken.append(_rel(s, project))
+
+    # Header folders: the ones the CMakeLists names, include/, and the folders of the compiled
+    # files' headers; never a folder of XRF2 framework copies (rt_core's headers come first
+    # anyway, see _write_xrf2_wrapper).
+    def framework_folder(d: Path) -> bool:
+        return any(f.stem in XRF2_FRAMEWORK_STEMS for f in d.glob("*.h*"))
+    candidates_dirs = [d for d in read.include_dirs if _inside(d, project)]
     inc = project / "include"
-    if inc.is_dir() and inc not in include_dirs:
-        include_dirs.insert(0, inc)
+    if inc.is_dir():
+        candidates_dirs.insert(0, inc)
+    candidates_dirs += [s.parent for s in sources]
+    for d in candidates_dirs:
+        d = d.resolve()
+        if d not in include_dirs and not (twenty_sim is not None and _inside(d, twenty_sim.resolve())) \
+                and (d == inc.resolve() or not framework_folder(d)):
+            include_dirs.append(d)
+    for path in files:
+        rel = _rel(path, project)
+        if path.suffix.lower() in (".h", ".hpp", ".hh") and rel not in left_out and path.stem not in XRF2_FRAMEWORK_STEMS \
+                and not Path(rel).parts[0] == "controller" and any(_inside(path.resolve(), d) for d in include_dirs):
+            taken.append(rel)
 
     mdir = Path(msg_dir).resolve() if msg_dir else project / "msg"
     for f in ("Ros2Xeno.msg", "Xeno2Ros.msg"):
         if (mdir / f).exists():
             taken.append(_rel(mdir / f, project))
-    return _Xrf2Plan(_xrf2_executable_name(cml_text, project), sources, include_dirs, mdir,
+    name = re.sub(r"[^A-Za-z0-9_.+-]", "_", exe_name) if exe_name and "$" not in exe_name else ""
+    return _Xrf2Plan(name or _xrf2_executable_name(cml_text, project), sources, include_dirs, mdir,
                      twenty_sim, sorted(set(taken)), dict(sorted(left_out.items())))
 
 
@@ -341,6 +545,10 @@ def _write_xrf2_wrapper(plan: _Xrf2Plan, project: Path, dest: Path) -> None:
     if plan.twenty_sim:
         lines.append(f"  TWENTY_SIM {_cmake_quote(plan.twenty_sim)}")
     lines.append(")")
+    # rt_core's headers before the project's folders: a copy of an XRF2 framework header kept
+    # next to the student's own (include/IcoIo.hpp, configuration.h) must not replace rt_core's.
+    lines += ["get_target_property(_xrf_rt_includes XrfRt::xrf_rt INTERFACE_INCLUDE_DIRECTORIES)",
+              f"target_include_directories({plan.name} BEFORE PRIVATE ${{_xrf_rt_includes}})"]
     text = "\n".join(lines) + "\n"
     target = dest / "CMakeLists.txt"
     # Unchanged content keeps its timestamp, so an incremental build does not reconfigure.

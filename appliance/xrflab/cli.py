@@ -155,16 +155,31 @@ def run_state(args: argparse.Namespace) -> int:
 # ---- xrf pub ------------------------------------------------------------------------------------
 
 
+# XRF2's command topic under both releases' names (v1.1: XenoCmd; the first release: Command).
+COMMAND_TOPICS = ("XenoCmd", "Command")
+# XRF2's state topic under both releases' names (v1.1: XenoState; the first release: Xenomai_state).
+STATE_TOPICS = ("XenoState", "Xenomai_state")
+
+
 def _pub_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("message", choices=["Ros2Xeno"], help="the message to publish to the loop")
-    p.add_argument("fields", nargs="*", metavar="field=value", help="field values; fields not given are 0")
+    p.add_argument("message", choices=["Ros2Xeno", *COMMAND_TOPICS],
+                   help="Ros2Xeno, or a command as on XRF2's command topic (XenoCmd, or Command in the first release)")
+    p.add_argument("fields", nargs="*", metavar="field=value",
+                   help="Ros2Xeno field values (fields not given are 0); for XenoCmd/Command one command: "
+                        "data=N, N or a name (initialise, start, ...)")
     _add_shm(p)
 
 
-@subcommand("pub", "write a Ros2Xeno message into the loop's data channel", _pub_arguments)
+@subcommand("pub", "write a Ros2Xeno message (or an XRF2 command) into the loop's channels", _pub_arguments)
 def run_pub(args: argparse.Namespace) -> int:
     from .channels import ChannelsError
 
+    if args.message in COMMAND_TOPICS:
+        # As `ros2 topic pub XenoCmd std_msgs/Int32 "{data: 2}"` would: the command channel.
+        if len(args.fields) != 1:
+            raise CliError(f"{args.message} takes one value (data=N, N or a command name)")
+        args.command = args.fields[0].partition("=")[2] if args.fields[0].startswith("data=") else args.fields[0]
+        return run_cmd(args)
     with _open_channels(args) as ch:
         codec = ch.ros2xeno_codec
         values: dict[str, Any] = {}
@@ -183,7 +198,7 @@ def run_pub(args: argparse.Namespace) -> int:
 
 # ---- xrf echo -----------------------------------------------------------------------------------
 
-ECHO_TOPICS = ("Xeno2Ros", "sample", "status", "monitor")
+ECHO_TOPICS = ("Xeno2Ros", "sample", "status", "monitor", *STATE_TOPICS)
 
 
 def _echo_arguments(p: argparse.ArgumentParser) -> None:
@@ -210,6 +225,18 @@ def _echo_source(ch: Any, topic: str) -> Callable[[], list[dict[str, Any]]]:
             return [s.as_dict()]
 
         return new_status
+    if topic in STATE_TOPICS:
+        # As XRF2's state topic: {"data": state} (std_msgs/Int32), on every change.
+        last_state: list[int | None] = [None]
+
+        def new_state() -> list[dict[str, Any]]:
+            state = ch.status().state
+            if state == last_state[0]:
+                return []
+            last_state[0] = state
+            return [{"data": state}]
+
+        return new_state
     telemetry = ch.telemetry_reader()
     if topic == "Xeno2Ros":
         return lambda: [{"cycle": t.cycle, "t_ns": t.t_ns, **t.xeno2ros} for t in telemetry.read()]

@@ -58,14 +58,21 @@ int IcoIo::setOutput(int channel, int16_t value, bool pin)
     return xfer(tx, rx);
 }
 
-int IcoIo::getInput(int channel)
+IcoIo::ReadValue IcoIo::getInput(int channel)
 {
+    ReadValue v{0, 0, 0};
     if (channel < 1 || channel > 4)
-        return -EINVAL;
+        return v;
     uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
     xrf_ico_frame_op((uint8_t)(XRF_ICO_ENC_1 + channel - 1), tx);
-    int r = xfer(tx, rx);
-    return r != 0 ? r : xrf_ico_decode_enc(rx);
+    if (xfer(tx, rx) != 0)
+        return v;
+    // The reply word as in the ALL frame: bits 0-13 encoder, bit 14 pin 1, bit 15 pin 2.
+    const unsigned word = (unsigned)rx[1] | ((unsigned)rx[2] << 8);
+    v.enc = (unsigned)xrf_ico_decode_enc(rx);
+    v.pin1 = (word >> 14) & 1u;
+    v.pin2 = (word >> 15) & 1u;
+    return v;
 }
 
 int IcoIo::update_io(const IcoWrite &w, IcoRead *rd)

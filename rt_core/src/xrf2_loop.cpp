@@ -4,6 +4,7 @@
 #include <cstdio>
 
 #include "xrf/runtime.hpp"
+#include "xrf2_compat.hpp"
 
 namespace {
 
@@ -15,7 +16,10 @@ inline int64_t gridTime(int64_t t0, uint64_t k, unsigned freq)
 
 } // namespace
 
-XenoFrtLoop::XenoFrtLoop(unsigned cycle_time_freq) : xrf_cycle_freq_(cycle_time_freq) {}
+XenoFrtLoop::XenoFrtLoop(unsigned cycle_time_freq)
+    : cycle_time_freq(cycle_time_freq), xrf_cycle_freq_(cycle_time_freq)
+{
+}
 
 int XenoFrtLoop::loop()
 {
@@ -26,20 +30,27 @@ int XenoFrtLoop::loop()
         return -22;
     }
     xrf_cycle_freq_ = freq;
+    cycle_time_freq = freq;
     int r = rt.enter(freq);
     if (r != 0) {
         rt.leave();
         return r;
     }
+    // XRF2's loop() attached its thread to the real-time core; code in the hooks may ask
+    // evl_get_self() for it (the EVL backend attached it for real in enter()).
+    xrf2::markLoopThreadAttached();
 
     const int64_t t0 = rt.now();
+    start_time = xrf2::toTimespec(t0);
     uint64_t k = 0;
     for (;;) {
         const int64_t deadline = gridTime(t0, k, freq);
         const int64_t wake = rt.now();
+        wakeup_time = xrf2::toTimespec(deadline);
         rt.beginCycle(wake);
         const int ret = step();
         const int64_t end = rt.now();
+        idle_time = xrf2::toTimespec(end);
         const int64_t next = gridTime(t0, k + 1, freq);
         const bool missed = end > next;
         rt.endCycle(wake, deadline, end, missed, missed ? 0 : next - end);
@@ -51,7 +62,10 @@ int XenoFrtLoop::loop()
             rt.sleepUntil(next);
     }
     xrfAfterLastCycle();
-    const int64_t total = rt.now() - t0;
+    const int64_t stop = rt.now();
+    const int64_t total = stop - t0;
+    stop_time = xrf2::toTimespec(stop);
+    run_time = xrf2::toTimespec(total);
     rt.leave();
     std::printf("xrf: run time %lld s %lld ns, %llu cycles, %llu missed\n",
                 (long long)(total / 1000000000LL), (long long)(total % 1000000000LL),
@@ -60,17 +74,12 @@ int XenoFrtLoop::loop()
     return 0;
 }
 
-unsigned long XenoFrtLoop::getCyclesCount() const
+int XenoFrtLoop::getCyclesCount() const
 {
-    return (unsigned long)xrf::Runtime::instance().cycle();
+    return (int)xrf::Runtime::instance().cycle();
 }
 
-unsigned long XenoFrtLoop::getMissedCycles() const
+int XenoFrtLoop::getMissedCycles() const
 {
-    return (unsigned long)xrf::Runtime::instance().missed();
-}
-
-long long XenoFrtLoop::getIdleTime() const
-{
-    return (long long)xrf::Runtime::instance().idleNs();
+    return (int)xrf::Runtime::instance().missed();
 }

@@ -6,6 +6,7 @@
 #include <cstring>
 
 #include "xrf/runtime.hpp"
+#include "xrf2_compat.hpp"
 
 namespace {
 
@@ -28,6 +29,7 @@ XenoFrtRosIcoCore::XenoFrtRosIcoCore(unsigned cycle_freq, unsigned write_decimat
                     [this] { return paused(); }, [this] { return error(); })
 {
     monitor_freq_ = monitor_freq;
+    this->monitor_freq = (int)monitor_freq;
     const unsigned f = xrf::Runtime::instance().effectiveFrequency(cycle_freq);
     // 0 disables publishing (XRF2 divided by zero here).
     decimator_ = write_decimator_freq == 0 ? 0 : (f + write_decimator_freq / 2) / write_decimator_freq;
@@ -123,12 +125,15 @@ int XenoFrtRosIcoCore::step()
     xrf::CycleReport &rep = rt.report();
 
     // 1. FPGA exchange: last cycle's actuate_data out, this cycle's sample_data in.
-    int64_t t0 = rt.cycleStart();
+    // The stage boundaries s0..s6 also become XRF2's t1..t7 (converted, no extra clock read).
+    const int64_t s0 = rt.cycleStart();
+    t1 = xrf2::toTimespec(s0);
     ico_io.setOutputsEnabled(outputsAllowed(state_machine.getState()));
     if (ico_io.update_io(actuate_data, &sample_data) != 0 && state_machine.getState() != ERROR_STATE)
         state_machine.fail(-EIO);
-    int64_t t1 = rt.now();
-    rt.stage(XRF_STAGE_FPGA, t1 - t0);
+    const int64_t s1 = rt.now();
+    rt.stage(XRF_STAGE_FPGA, s1 - s0);
+    t2 = xrf2::toTimespec(s1);
 
     // 2. Data channel: the newest Ros2Xeno (a torn or absent one keeps the last), Xeno2Ros out.
     xrf_data_in_try_read(&shm->ros2xeno, &ros_seq_, ros_msg_, ros_size_, &ros_t_sent_);
@@ -136,31 +141,36 @@ int XenoFrtRosIcoCore::step()
         decimator_count_ = 0;
         publishTelemetry(state_machine.getState());
     }
-    int64_t t2 = rt.now();
-    rt.stage(XRF_STAGE_DATA, t2 - t1);
+    const int64_t s2 = rt.now();
+    rt.stage(XRF_STAGE_DATA, s2 - s1);
+    t3 = xrf2::toTimespec(s2);
 
     // 3. Command channel.
     applyCommand();
     rep.state = state_machine.getState();
-    int64_t t3 = rt.now();
-    rt.stage(XRF_STAGE_CMD, t3 - t2);
+    const int64_t s3 = rt.now();
+    rt.stage(XRF_STAGE_CMD, s3 - s2);
+    t4 = xrf2::toTimespec(s3);
 
     // 4. Monitor.
     monitor.update();
-    int64_t t4 = rt.now();
-    rt.stage(XRF_STAGE_MONITOR, t4 - t3);
+    const int64_t s4 = rt.now();
+    rt.stage(XRF_STAGE_MONITOR, s4 - s3);
+    t5 = xrf2::toTimespec(s4);
 
     // 5. The current state's hook.
     const int quit = state_machine.step();
     if (ico_io.boardMissing() && state_machine.getState() != ERROR_STATE)
         state_machine.fail(-ENODEV);
-    int64_t t5 = rt.now();
-    rt.stage(XRF_STAGE_HOOK, t5 - t4);
+    const int64_t s5 = rt.now();
+    rt.stage(XRF_STAGE_HOOK, s5 - s4);
+    t6 = xrf2::toTimespec(s5);
 
     // 6. Logger.
     logger.log();
-    int64_t t6 = rt.now();
-    rt.stage(XRF_STAGE_LOGGER, t6 - t5);
+    const int64_t s6 = rt.now();
+    rt.stage(XRF_STAGE_LOGGER, s6 - s5);
+    t7 = xrf2::toTimespec(s6);
 
     rep.state = state_machine.getState();
     rep.last_error = state_machine.getError();

@@ -6,6 +6,7 @@ object with what it saw on stdout.
 
     python ros_peer.py relbot --left 1.0 --right -0.5
     python ros_peer.py seq --seconds 60
+    python ros_peer.py relbot --release v1.0     # the first XRF2 release's topics: Command, Xenomai_state
 """
 
 from __future__ import annotations
@@ -25,14 +26,19 @@ from xrf2_msgs.msg import Ros2Xeno, Xeno2Ros
 QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 
+# Command and state topics per XRF2 release (data topics are the same in both).
+TOPICS = {"v1.1": ("XenoCmd", "XenoState"), "v1.0": ("Command", "Xenomai_state")}
+
+
 class Peer(Node):
-    def __init__(self) -> None:
+    def __init__(self, release: str = "v1.1") -> None:
         super().__init__("xrf_test_peer")
+        cmd_topic, state_topic = TOPICS[release]
         self.states: list[int] = []
         self.samples: list[tuple[float, Xeno2Ros]] = []
-        self.cmd_pub = self.create_publisher(Int32, "XenoCmd", QOS)
+        self.cmd_pub = self.create_publisher(Int32, cmd_topic, QOS)
         self.data_pub = self.create_publisher(Ros2Xeno, "Ros2Xeno", QOS)
-        self.create_subscription(Int32, "XenoState", lambda m: self.states.append(m.data), QOS)
+        self.create_subscription(Int32, state_topic, lambda m: self.states.append(m.data), QOS)
         self.create_subscription(Xeno2Ros, "Xeno2Ros", lambda m: self.samples.append((time.monotonic(), m)), QOS)
 
     def spin_until(self, cond, timeout: float, what: str) -> None:
@@ -104,10 +110,11 @@ def main() -> int:
     parser.add_argument("--tol", type=float, default=0.02)
     parser.add_argument("--track-timeout", type=float, default=15.0)
     parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--release", choices=sorted(TOPICS), default="v1.1", help="XRF2 release whose topic names to use")
     args = parser.parse_args()
     signal.signal(signal.SIGTERM, lambda *a: sys.exit(2))
     rclpy.init()
-    node = Peer()
+    node = Peer(args.release)
     try:
         result = (scenario_relbot if args.scenario == "relbot" else scenario_seq)(node, args)
         result["ok"] = True

@@ -100,6 +100,22 @@ def test_relbot_commands_state_and_tracking(procs, relbot_exe, shm_name):
     assert ", 0 lost in the ring" in log, log
 
 
+def test_first_release_topic_names_command_and_xenomai_state(procs, relbot_exe, shm_name):
+    """A node written for the first XRF2 release commands on `Command` and listens on
+    `Xenomai_state`: the same bridge answers it (and a v1.1 node at the same time)."""
+    loop = procs.loop(relbot_exe, shm_name)
+    bridge = procs.bridge(shm_name, "--msg-dir", str(RELBOT / "msg"))
+    rc, out = procs.peer(RELBOT / "msg", "relbot", "--release", "v1.0", "--left", "0.5", "--right", "0.5",
+                         "--tol", "0.05", timeout=90)
+    result = _result(rc, out)
+    states = result["states"]
+    assert states[0] == 1 and states.index(3) < states.index(4), states
+    assert loop.ch.status().state_name == "RUN"
+    assert result["settled"], result
+    assert bridge.terminate() == 0
+    assert "XenoCmd 2 (start) accepted: state RUN" in bridge.output, bridge.output
+
+
 # ---- no loss over 60 s --------------------------------------------------------------------------
 
 

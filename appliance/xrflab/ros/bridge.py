@@ -8,6 +8,10 @@ Topics (names and types as in XRF2, so existing nodes need no change):
 * ``XenoState`` (std_msgs/Int32, published) on every state change and every ``state_period``.
 * ``Xeno2Ros`` (xrf2_msgs/msg/Xeno2Ros, published) for every decimated telemetry sample.
 
+The first XRF2 release named the command and state topics ``Command`` and ``Xenomai_state``;
+nodes written for it keep working: ``Command`` is subscribed like ``XenoCmd`` and every state is
+published on ``Xenomai_state`` as well as on ``XenoState``.
+
 Event-driven: a reader thread blocks in ``Channels.wait_doorbell`` (a futex; the GIL is
 released) and publishes what the loop produced as soon as it rings; there is no polling timer.
 Every sample is read from the broadcast ring with the bridge's own cursor, so none is skipped
@@ -32,13 +36,16 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-HELP = "run the ROS 2 bridge node (XenoCmd, XenoState, Ros2Xeno, Xeno2Ros)"
+HELP = "run the ROS 2 bridge node (XenoCmd, XenoState, Ros2Xeno, Xeno2Ros; Command, Xenomai_state)"
 
 NODE_NAME = "ros_xeno_bridge"
 TOPIC_CMD = "XenoCmd"
 TOPIC_STATE = "XenoState"
 TOPIC_ROS2XENO = "Ros2Xeno"
 TOPIC_XENO2ROS = "Xeno2Ros"
+# The first XRF2 release's names of the command and state topics (same types, same meaning).
+TOPIC_CMD_V1_0 = "Command"
+TOPIC_STATE_V1_0 = "Xenomai_state"
 DEFAULT_DEPTH = 1000
 DEFAULT_STATE_PERIOD_S = 1.0
 SHUTDOWN_TIMEOUT_S = 5.0
@@ -255,8 +262,10 @@ class Bridge:
         self.node = Node(node_name, context=context)
         self.log = self.node.get_logger()
         self.pub_state = self.node.create_publisher(Int32, TOPIC_STATE, qos)
+        self.pub_state_v1_0 = self.node.create_publisher(Int32, TOPIC_STATE_V1_0, qos)
         self.pub_xeno2ros = self.node.create_publisher(xeno2ros_type, TOPIC_XENO2ROS, qos)
         self.node.create_subscription(Int32, TOPIC_CMD, self._on_cmd, qos)
+        self.node.create_subscription(Int32, TOPIC_CMD_V1_0, self._on_cmd, qos)
         self.node.create_subscription(ros2xeno_type, TOPIC_ROS2XENO, self._on_ros2xeno, qos)
 
         self._stop = threading.Event()
@@ -321,6 +330,7 @@ class Bridge:
         m = self._Int32()
         m.data = int(state)
         self.pub_state.publish(m)
+        self.pub_state_v1_0.publish(m)
         self.last_state = int(state)
 
     def _reader(self) -> None:

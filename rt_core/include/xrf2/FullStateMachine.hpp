@@ -4,6 +4,8 @@
 
 #include <functional>
 
+#include "debug_settings.h"
+
 enum STATE {
     IDLE_STATE = 1,
     INITIALISING_STATE,
@@ -22,6 +24,7 @@ enum COMMANDS { INITIALISE_CMD = 1, START_CMD, STOP_CMD, RESET_CMD, PAUSE_CMD, Q
 class FullStateMachine {
 public:
     using Hook = std::function<int()>;
+    using stateFcn = Hook; // XRF2's name for it
     FullStateMachine(Hook initialising, Hook initialised, Hook run, Hook stopping, Hook stopped,
                      Hook pausing, Hook paused, Hook error);
 
@@ -40,7 +43,7 @@ public:
     // Goes to ERROR with `error` as the last error (used by the framework, e.g. no FPGA).
     void fail(int error);
 
-    int getState() const { return state_; }
+    STATE getState() const { return static_cast<STATE>(state_); }
     int getError() const { return error_; }
 
 private:

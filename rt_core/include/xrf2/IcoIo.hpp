@@ -2,7 +2,36 @@
 // out-of-band spidev, or the simulated board); frames per xrf/ico.h.
 #pragma once
 
+// XRF2's IcoIo.hpp included these; student code relies on them (memset, open/O_RDWR, ioctl,
+// sysinfo, error, ...).
 #include <cstdint>
+#include <cstdio>
+#include <errno.h>
+#include <error.h>
+#include <fcntl.h>
+#include <stdint.h>
+#include <string.h>
+#include <sys/ioctl.h>
+#include <sys/mman.h>
+#include <sys/sysinfo.h>
+#include <sys/types.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "ICommunicationFullDuplex.h"
+#include "configuration.h"
+
+// XRF2's macros, same values. (XRF2 took ENABLE_OUTPUT_LIMIT from configuration.h only when
+// XenoFrtRosIco.hpp had included it first; here IcoIo.hpp includes it itself, so MAX_PWM_VALUE
+// is the same in every file.)
+#define FRAME_SIZE 12
+#define MILLION 1000000L
+#define BILLION 1000000000L
+#if ENABLE_OUTPUT_LIMIT
+#define MAX_PWM_VALUE (int)(2047 * MAX_PWM_OUTPUT)
+#else
+#define MAX_PWM_VALUE 2047
+#endif
 
 class IcoIo {
 public:
@@ -17,15 +46,28 @@ public:
         bool channel1_1, channel1_2, channel2_1, channel2_2;
         bool channel3_1, channel3_2, channel4_1, channel4_2;
     };
+    // One channel as getInput() returns it (XRF2's layout): 14-bit encoder, two input pins.
+    struct ReadValue {
+        unsigned int enc : 14;
+        unsigned int pin1 : 1;
+        unsigned int pin2 : 1;
+        // XRF Lab's earlier getInput() returned the encoder count as an int; keep that use working.
+        operator int() const { return (int)enc; }
+    };
 
     IcoIo() = default;
+    // XRF2 built IcoIo on its SPI handler; here the runtime's transport is always used.
+    explicit IcoIo(ICommunicationFullDuplex &) {}
     // INIT: 0 when the board answers (reply byte 4 == 11), else -ENODEV; a missing board puts
     // the state machine into ERROR at the end of the cycle.
     int init();
+    // XRF2 opened the SPI device here; the runtime has opened the transport already.
+    int spi_init() { return 0; }
     int reset();   // encoders to zero, outputs off
     int test();    // TEST echo: 0 intact, -EIO when bits came back wrong
     int setOutput(int channel, int16_t value, bool pin);
-    int getInput(int channel);
+    // The channel's encoder and pins (all zero when the channel is not 1..4 or the transfer failed).
+    ReadValue getInput(int channel);
     int update_io(const IcoWrite &write, IcoRead *read);
 
     bool boardMissing() const { return missing_; }

@@ -6,8 +6,20 @@
 // loop thread. When this process writes it, the constructor tries it at once and prints why not.
 #pragma once
 
+// XRF2's XenoFileHandler.hpp included these (std::filesystem, stat, ...); student code relies on them.
+#include <cstdio>
+#include <error.h>
+#include <filesystem>
+#include <stdint.h>
 #include <string>
+#include <sys/stat.h>
 #include <sys/types.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "ICommunication.h"
+#include "debug_settings.h"
+#include "xrf_evl_compat.h"
 
 class XenoFileHandler {
 public:

@@ -2,14 +2,37 @@
 // written in-band (see XenoFileHandler). initialise() is idempotent.
 #pragma once
 
+#include <cassert>
 #include <cstdint>
+#include <string.h>
 #include <string>
 
 #include "XenoFileHandler.hpp"
+#include "debug_settings.h"
+
+#ifndef MSEC
+#define MSEC 1000000L
+#endif
+#ifndef SEC
+#define SEC 1000000000L
+#endif
 
 // XRF2's spelling and the course guide's; both name the same codes.
 enum VariableTypes { boolean = 1, character, integer, float_, double_, long_int };
 enum VariableTypeIds { id_bool = 1, id_char, id_int, id_float, id_double, id_long_int };
+
+// XRF2's description of a logged variable and of the whole record (its logger kept one); part of
+// the header's surface, so student code naming them compiles.
+struct variableInfo {
+    const char *name;
+    VariableTypes type;
+};
+struct loggerInfo {
+    void *data_ptr;
+    int data_size;
+    int number_var;
+    variableInfo var_info[100];
+};
 
 class XenoFrtLogger {
 public:

@@ -2,6 +2,18 @@
 // cycle; monitor_freq 0 silences it. Text goes into the monitor ring; it never blocks the loop.
 #pragma once
 
+#include <stdarg.h>
+#include <stdio.h>
+
+#include "xrf_evl_compat.h"
+
+#ifndef MSEC
+#define MSEC 1000000L
+#endif
+#ifndef SEC
+#define SEC 1000000000L
+#endif
+
 class XenoFrtMonitor {
 public:
     XenoFrtMonitor(unsigned cycle_freq, unsigned monitor_freq);

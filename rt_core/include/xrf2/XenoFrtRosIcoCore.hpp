@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstdint>
+#include <time.h>
 
 #include "FullStateMachine.hpp"
 #include "IcoIo.hpp"
@@ -11,6 +12,11 @@
 #include "XenoFrtLogger.hpp"
 #include "XenoFrtLoop.hpp"
 #include "XenoFrtMonitor.hpp"
+#include "XenoRosCommandBridge.hpp"
+#include "XenoRosCommunication.hpp"
+#include "XenoRosDataBridge.hpp"
+#include "XenoSpiControllerHandler.hpp"
+#include "configuration.h"
 
 class XenoFrtRosIcoCore : public XenoFrtLoop {
 public:
@@ -39,6 +45,19 @@ protected:
     XenoFrtLogger logger;
     IcoIo ico_io;
     FullStateMachine state_machine;
+
+    // XRF2's other protected members, for the student code that reads them.
+    XenoSpiControllerHandler spi_controller;
+    XenoRosCommunication command_com{"XenoCmd"};
+    XenoRosCommandBridge command_bridge;
+    XenoRosCommunication data_com{"Ros-Xeno"};
+    XenoRosDataBridge data_bridge;
+    int monitor_freq = 0; // the monitor frequency given to the constructor
+    // This cycle's stage timestamps, as XRF2 took them with GET_TIMINGS (filled whatever
+    // GET_TIMINGS says, from the timestamps the cycle takes anyway): t1 start of the FPGA
+    // exchange, t2 data channel, t3 command channel, t4 monitor, t5 state hook, t6 logger,
+    // t7 end of the logger. During a hook t1..t5 are this cycle's, t6 and t7 the last cycle's.
+    struct timespec t1{}, t2{}, t3{}, t4{}, t5{}, t6{}, t7{};
 
 private:
     void publishTelemetry(int state);

@@ -1,6 +1,7 @@
-// What XRF2's headers made visible to student code, transitively: the EVL calls a student main
-// uses, error(), mlockall(), pthreads, <functional>, <string>. With libevl the real <evl/evl.h>;
-// without it the runtime provides evl_init() and evl_printf() with the same meaning.
+// What XRF2's headers made visible to student code, transitively: libevl (<evl/evl.h> and its
+// thread/clock/proxy parts), error(), mlockall(), pthreads, <functional>, <string>. With libevl
+// (XRF_HAVE_EVL) the real <evl/evl.h>; without it rt_core's POSIX equivalent of the same calls
+// (include/evl_posix/evl/evl.h, on the include path only in such builds).
 #pragma once
 
 #include <cerrno>
@@ -14,12 +15,7 @@
 #include <sys/types.h>
 #include <unistd.h>
 
-#ifdef XRF_HAVE_EVL
 #include <evl/evl.h>
-#else
-extern "C" {
-int evl_init(void);
-// Goes to the monitor stream (never blocks the loop); printed by the process's helper thread.
-int evl_printf(const char *fmt, ...) __attribute__((format(printf, 1, 2)));
-}
-#endif
+#include <evl/thread.h>
+#include <evl/clock.h>
+#include <evl/proxy.h>

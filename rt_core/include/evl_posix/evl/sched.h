@@ -1,0 +1,2 @@
+/* <evl/sched.h> for builds without libevl: everything is declared in <evl/evl.h> (see there). */
+#include "evl.h"
