@@ -1,11 +1,12 @@
 """Builds the cffi binding of rt_core's channels (API mode) on first use and caches it.
 
-The cdef is the text between the ``/* cffi-begin */`` and ``/* cffi-end */`` markers of
-``rt_core/include/xrf/channels.h`` and the extension compiles ``rt_core/src/channels.c`` itself,
-so Python uses the very layout and ring code the loop uses: nothing is written down twice.
+The cdef is the text between the ``/* cffi-begin */`` and ``/* cffi-end */`` markers of each of
+``HEADERS`` (``channels.h``: the layout and rings; ``watch.h``: the safety watcher) and the
+extension compiles rt_core's own C files (``SOURCES``), so Python uses the very layout, ring code
+and ico-board frames the loop uses: nothing is written down twice.
 
 The compiled module lives in ``$XRF_CACHE_DIR/<hash>/`` (default ``~/.cache/xrf-lab/cffi/<hash>/``)
-where the hash covers channels.h, channels.c, this script and the Python ABI. A file lock keeps
+where the hash covers those headers and sources, this script and the Python ABI. A file lock keeps
 concurrent first imports (tests in parallel, the appliance and a CLI) from building over each
 other.
 """
@@ -50,32 +51,38 @@ def rt_core_dir() -> Path:
     return Path(__file__).resolve().parents[2] / "rt_core"
 
 
-def _sources() -> tuple[Path, Path]:
+# channels.c: rings, seqlock, commands. watch.c: the safety watcher, which sends the FPGA RESET
+# through ico.c's frame builder and spidev.c's transport (the loop's own code for both).
+HEADERS = ("channels.h", "watch.h")
+SOURCES = ("channels.c", "watch.c", "ico.c", "spidev.c")
+
+
+def _sources() -> tuple[list[Path], list[Path]]:
     rt = rt_core_dir()
-    header = rt / "include" / "xrf" / "channels.h"
-    source = rt / "src" / "channels.c"
-    for path in (header, source):
+    headers = [rt / "include" / "xrf" / name for name in HEADERS]
+    sources = [rt / "src" / name for name in SOURCES]
+    for path in headers + sources:
         if not path.is_file():
             raise FileNotFoundError(
                 f"{path} not found: xrflab.channels needs rt_core beside the package "
                 "(or XRF_RT_CORE pointing at it)"
             )
-    return header, source
+    return headers, sources
 
 
 def extract_cdef(header_text: str) -> str:
-    """The part of channels.h meant for cffi."""
+    """The part of a header meant for cffi."""
     start = header_text.find(CDEF_BEGIN)
     end = header_text.find(CDEF_END)
     if start < 0 or end < start:
-        raise ValueError(f"channels.h lacks the {CDEF_BEGIN} ... {CDEF_END} markers")
+        raise ValueError(f"header lacks the {CDEF_BEGIN} ... {CDEF_END} markers")
     return header_text[start + len(CDEF_BEGIN) : end]
 
 
 def build_hash() -> str:
-    header, source = _sources()
+    headers, sources = _sources()
     digest = hashlib.sha256()
-    for path in (header, source, Path(__file__).resolve()):
+    for path in (*headers, *sources, Path(__file__).resolve()):
         digest.update(path.read_bytes())
     # The same home directory may serve several interpreters; an extension fits only one ABI.
     digest.update(sys.implementation.cache_tag.encode())
@@ -92,16 +99,18 @@ def cache_dir() -> Path:
 def _compile_into(target: Path) -> None:
     import cffi  # imported here: only a first build needs the compiler side of cffi
 
-    header, source = _sources()
+    headers, sources = _sources()
     ffi = cffi.FFI()
-    ffi.cdef(extract_cdef(header.read_text()))
+    for header in headers:
+        ffi.cdef(extract_cdef(header.read_text()))
     ffi.cdef(HELPERS_CDEF)
     ffi.set_source(
         MODULE_NAME,
-        '#include "xrf/channels.h"\n' + HELPERS_SOURCE,
-        sources=[str(source)],
-        include_dirs=[str(header.parent.parent)],
+        "".join(f'#include "xrf/{h.name}"\n' for h in headers) + HELPERS_SOURCE,
+        sources=[str(s) for s in sources],
+        include_dirs=[str(headers[0].parent.parent)],
         extra_compile_args=["-O2", "-std=gnu11"],
+        libraries=["pthread", "m"],
     )
     ffi.compile(tmpdir=str(target), verbose=False)
 

@@ -1,4 +1,4 @@
-"""`xrf serve` itself: prints the URL, serves, stops on Ctrl-C; and the FPGA RESET frame."""
+"""`xrf serve` itself: prints the URL, serves, stops on Ctrl-C; and the FPGA RESET path."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import httpx
 
 from harness import REPO_ROOT, free_port, login_client
 
-from xrflab.server.safety import reset_frame
+from xrflab.server.safety import fpga_reset
 
 
 def test_xrf_serve_prints_url_and_serves(tmp_path: Path) -> None:
@@ -72,8 +72,10 @@ def test_jiwy_example_runs_on_the_jiwy_plant(server) -> None:
     assert server.stop_run()["status"] == "ended"
 
 
-def test_reset_frame_is_bit_reversed_reset() -> None:
-    frame = reset_frame()
-    assert len(frame) == 12
-    assert frame[0] == 0b0100_0000  # opcode 2 (RESET) = 0b00000010, mirrored for LSB-first
-    assert frame[1:] == bytes(11)
+def test_fpga_reset_goes_through_the_c_transport() -> None:
+    """The appliance's RESET is rt_core's own (ico.c frame, spidev.c transport, through cffi):
+    the spidev ioctls are tried on what it is given, and a missing device is said plainly. The
+    frame's bytes are checked in rt_core/tests/test_ico_frames.c."""
+    assert fpga_reset("/nonexistent/spidev9.9") == "no spidev to reset"
+    # /dev/null opens but is no SPI device: the first spidev ioctl (SPI_IOC_WR_MODE) fails.
+    assert fpga_reset("/dev/null") == "FPGA RESET failed: Inappropriate ioctl for device"

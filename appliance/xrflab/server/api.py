@@ -19,6 +19,7 @@ from .. import channels as chmod
 from . import audit, ownership
 from .auth import SAFE_COMMANDS, Perm, User, check, client_address, current_user, may, requires
 from .hub import TOPICS, Client
+from .runs import END_REASONS
 from .supervisor import Supervisor, SupervisorError
 
 router = APIRouter(prefix="/api")
@@ -56,7 +57,9 @@ class RunRecord(BaseModel):
     ended: float | None
     status: Literal["starting", "running", "ended", "crashed", "failed"]
     crashed: bool
-    crash_reason: str = Field(description="signal | exit | hang | appliance, empty if not crashed")
+    crash_reason: str = Field(description="signal | exit | hang | self_exit | appliance, empty if not crashed")
+    end_reason: str = Field(default="", description="how the run ended: " + ", ".join(
+        f"{k} ({v})" for k, v in END_REASONS.items()) + "; empty while it runs")
     exit_code: int | None
     exit_signal: int | None
     state: str = Field(description="last loop state seen")
@@ -152,7 +155,7 @@ async def start_run(body: StartRun, request: Request, user: User = Depends(curre
 @router.post("/runs/current/stop", response_model=RunRecord, dependencies=[requires(Perm.DRIVE)])
 async def stop_run(request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
     try:
-        row = await _supervisor(request).stop_current()
+        row = await _supervisor(request).stop_current(by=user.username)
     except SupervisorError as exc:
         raise _http(exc) from None
     audit.record(user, "run.stop", {"run": row.id}, client_address(request))

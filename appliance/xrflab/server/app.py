@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -59,9 +61,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         hub.snapshot = lambda: [*snapshot_with_lease(), *ros.snapshot()]
         await ros.open()
         app.state.ros = ros
+        # After every observer (lease, ROS bridge) is wired: they hear of the orphaned runs' end.
+        recovering = asyncio.create_task(supervisor.recover_orphans(), name="recover-orphans")
         try:
             yield
         finally:
+            with contextlib.suppress(Exception):
+                await recovering
             await ros.close()
             security.close()
             await supervisor.shutdown()

@@ -142,6 +142,7 @@ class RunLogRecord(BaseModel):
     status: str
     crashed: bool
     crash_reason: str
+    end_reason: str = Field(default="", description="how the run ended (see RunRecord)")
     state: str
     cycles: int
     misses: int

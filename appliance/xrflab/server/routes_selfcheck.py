@@ -181,7 +181,7 @@ class SelfCheckService:
                 reason = self.run_active()
                 if reason and body.stop_run:
                     run_id = self.supervisor.current.row.id
-                    await self.supervisor.stop_current()
+                    await self.supervisor.stop_current(by=user.username)
                     audit.record(user, "run.stop", {"run": run_id, "why": "self-check"}, address)
                     reason = self.run_active()
                 if reason:

@@ -46,7 +46,25 @@ _ADDED_COLUMNS = (
     ("log_records", "INTEGER NOT NULL DEFAULT 0"),  # records in the run's log files
     ("log_lost", "INTEGER NOT NULL DEFAULT 0"),     # ring drops + records drained after a write failure
     ("log_note", "TEXT NOT NULL DEFAULT ''"),       # why logging stopped (disk full, ...), '' = it did not
+    ("end_reason", "TEXT NOT NULL DEFAULT ''"),     # END_REASONS: how the run ended, '' while it runs
 )
+
+# Every way a run can end: the `end_reason` of its record (and of its alarm), one name each.
+END_REASONS: dict[str, str] = {
+    "stopped": "stopped by its owner",
+    "stopped_by_other": "stopped by someone else (an educator, the self-check)",
+    "quit": "the loop handled a quit command",
+    "cycle_limit": "the cycle limit was reached",
+    "signal_stop": "the loop took its safe stop on SIGINT/SIGTERM",
+    "returned": "the program left its loop and ended",
+    "self_exit": "the controller ended by itself without stop or quit",
+    "crash": "the process crashed (a signal or a non-zero exit status)",
+    "hang": "the loop stopped cycling and was killed",
+    "appliance_restart": "the appliance died during the run; its restart ended it",
+    "shutdown": "the appliance shut down",
+    "disk": "the run folder went over its disk limit",
+    "start_failed": "the controller did not start",
+}
 
 
 @dataclass
@@ -74,6 +92,7 @@ class RunRow:
     log_records: int = 0
     log_lost: int = 0
     log_note: str = ""
+    end_reason: str = ""
 
     def as_dict(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self)}

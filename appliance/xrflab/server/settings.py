@@ -52,6 +52,9 @@ class Settings:
     host_timeout_ms: int = 1000
     host_timeout_action: str = "pause"
     hang_timeout_ms: int = 200
+    # SCHED_FIFO priority of the safety watcher thread (safety.py), kept below the loop's (80);
+    # where real time is refused it runs SCHED_OTHER and says so in the run's record.
+    watch_priority: int = 70
     open_timeout_s: float = 10.0
     stop_state_timeout_s: float = 2.0  # stop -> STOPPED, quit -> exit
     signal_timeout_s: float = 2.0  # SIGINT -> exit, SIGTERM -> exit, then SIGKILL

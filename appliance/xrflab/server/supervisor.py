@@ -5,11 +5,13 @@ supervisor owns that memory: it opens it with ``Channels``, writes the host hear
 checks (XRF_HOST_TIMEOUT_MS: the loop pauses itself if we die), reads state/telemetry/monitor
 when the loop rings the doorbell, and unlinks the object when the run is over.
 
-Safety: the process exit is noticed at once (asyncio's child watcher wakes on the exit, no
-polling) and the outputs go to a safe state before anything else happens: the simulated board's
-``forced_off`` flag, or an FPGA RESET over spidev on a real bench. A loop that stops cycling while
-its process lives (hang) is found from its heartbeat within ``hang_timeout_ms`` and killed; the
-same safe state follows.
+Safety: every run with open shared memory has a safety watcher (server/safety.py, rt_core's
+watch.c): a C thread outside the event loop, woken by the kernel when the loop process exits, that
+checks the loop's heartbeat every few milliseconds. On an exit, or a hang (no cycle for
+``hang_timeout_ms``: it kills the loop), it puts the outputs in a safe state first (the simulated
+board's ``forced_off``, or an FPGA RESET over spidev on a real bench) and only then tells us
+through an eventfd. This module then records the run's end, names how it ended (``end_reason``)
+and raises the alarm. A busy event loop delays the record, never the safe outputs.
 """
 
 from __future__ import annotations
@@ -32,10 +34,10 @@ from .. import guest
 from ..logs import live as loglive
 from ..channels import Channels, ChannelsError
 from .hub import Hub
-from .runs import RunRow, RunStore
+from .runs import END_REASONS, RunRow, RunStore
 from .children import Child
 from .guest_spawn import GuestReport, GuestSpawner
-from .safety import fpga_reset
+from .safety import SafetyWatcher, WatchResult, fpga_reset
 from .settings import SIM_PLANTS, Settings
 
 STATE_RUN = chmod.lib.XRF_STATE_RUN
@@ -75,6 +77,14 @@ def _parent_of(pid: int) -> int:
         return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
     except (OSError, IndexError, ValueError):
         return 0
+
+
+def _alive(pid: int) -> bool:
+    """The process exists and is not a zombie."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
 
 
 def remove_shm(name: str) -> None:
@@ -221,6 +231,9 @@ class Run:
     logging: Any = None  # xrflab.logs.live.RunLogging: host log writer, live rerun
     log_timing: bool = False  # the loop logs per-cycle timing (XRF_LOG_TIMING=1)
     guest: GuestReport | None = None  # which protection layers of the run sandbox hold
+    watcher: SafetyWatcher | None = None  # the C thread that makes the outputs safe (safety.py)
+    watch: WatchResult | None = None  # what it did, once it acted
+    end_reason: str = ""  # set by whoever ends the run on purpose (runs.END_REASONS)
 
     @property
     def alive(self) -> bool:
@@ -243,26 +256,102 @@ class Supervisor:
         # fn(run, samples) for every batch read, fn(run, None) once when the run has ended. Called
         # in the event loop; they must be quick. One that raises is logged and dropped.
         self.telemetry_observers: list[Callable[[Run, list[Any] | None], None]] = []
-        for row in store.orphans:
-            self._reap_orphan(row)
+        # Runs a previous appliance process left live (it was killed or died): recover_orphans()
+        # closes them once the event loop runs.
+        self._orphans = list(store.orphans)
 
-    def _reap_orphan(self, row: RunRow) -> None:
-        """A loop left running by an appliance that died: it has paused itself (no heartbeat);
-        stop it (SIGINT = the runtime's safe stop) and remove its shared memory. The signal goes to
-        its launcher (``row.pid``'s parent, our own uid in every sandbox mode), which forwards it,
-        and only if that process really is this run's launcher (its XRF_RUN_DIR names the run folder)."""
+    async def recover_orphans(self) -> None:
+        """Close the runs a dead appliance left behind: pick up the loop's log ring where it was
+        left, stop the loop (it paused or stopped itself: host_timeout_action), and record its
+        real counts and what happened. Each orphan keeps the bench lock until it is closed."""
+        orphans, self._orphans = self._orphans, []
+        for row in orphans:
+            async with self.bench_lock:
+                try:
+                    await self._recover(row)
+                except Exception:  # one bad record must not keep the appliance from serving
+                    log.exception("run %s: recovering the orphaned run failed", row.id)
+                    if row.shm:
+                        remove_shm(row.shm)
+
+    def _orphan_launcher(self, row: RunRow) -> int:
+        """The launcher of an orphaned run's loop (``row.pid``'s parent, our own uid in every
+        sandbox mode), only if it really is this run's launcher (its XRF_RUN_DIR names the run
+        folder); 0 if there is none."""
         launcher = _parent_of(row.pid) if row.pid else 0
-        if launcher > 1:
-            try:
-                environ = Path(f"/proc/{launcher}/environ").read_bytes().split(b"\0")
-            except OSError:
-                environ = []
-            if row.run_dir and f"XRF_RUN_DIR={row.run_dir}".encode() in environ:
-                log.warning("run %s: stopping loop pid %s left by a previous appliance", row.id, row.pid)
+        if launcher <= 1:
+            return 0
+        try:
+            environ = Path(f"/proc/{launcher}/environ").read_bytes().split(b"\0")
+        except OSError:
+            return 0
+        return launcher if row.run_dir and f"XRF_RUN_DIR={row.run_dir}".encode() in environ else 0
+
+    async def _recover(self, row: RunRow) -> None:
+        ch: Channels | None = None
+        if row.shm:
+            with contextlib.suppress(Exception):
+                ch = await asyncio.to_thread(Channels.open, row.shm, 0.2)
+        writer = None
+        if ch is not None and row.run_dir and Path(row.run_dir).is_dir():
+            # The ring's read position lives in the shared memory: a new writer goes on where the
+            # dead appliance stopped, appending a segment to the same file.
+            identity = {"project": row.build, "build": row.build, "run": str(row.id)}
+            writer = loglive.HostLogWriter(ch, identity, Path(row.run_dir))
+            writer.start()
+        before = ch.status() if ch is not None else None
+        launcher = self._orphan_launcher(row)
+        stopped_at = 0.0
+        if launcher:
+            log.warning("run %s: stopping loop pid %s left by a previous appliance", row.id, row.pid)
+            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
                 with contextlib.suppress(ProcessLookupError):
-                    os.kill(launcher, signal.SIGINT)
+                    os.kill(launcher, sig)
+                deadline = time.monotonic() + self.settings.signal_timeout_s
+                while _alive(launcher) and time.monotonic() < deadline:
+                    await asyncio.sleep(0.02)
+                if not _alive(launcher):
+                    break
+            stopped_at = time.time()
+        stats = await asyncio.to_thread(writer.finish) if writer is not None else None
+        last = before
+        if ch is not None:
+            with contextlib.suppress(ChannelsError):
+                last = ch.status()
+        records = 0
+        if stats is not None:
+            from ..logs.reader import open_log
+
+            for path in dict.fromkeys(stats.files):  # the old appliance's segments and ours
+                with contextlib.suppress(Exception):
+                    records += len(open_log(path))
+        parts = ["the appliance stopped while this run was live"]
+        if ch is not None and last is not None:
+            lost_at = ch.shm.host_heartbeat_ns
+            if lost_at:
+                ago = (time.monotonic_ns() - int(lost_at)) / 1e9
+                parts.append(f"its last heartbeat was at {time.strftime('%H:%M:%S', time.localtime(time.time() - ago))}")
+            if last.host_lost:
+                parts.append(f"the loop then did what host_timeout_action says "
+                             f"({self.settings.host_timeout_action} after {self.settings.host_timeout_ms} ms)")
+        if stopped_at:
+            parts.append(f"the restarted appliance stopped it at {time.strftime('%H:%M:%S', time.localtime(stopped_at))}")
+        elif row.pid and not _alive(row.pid):
+            parts.append("the loop had already ended")
+        values: dict[str, Any] = {
+            "status": "crashed", "crashed": 1, "crash_reason": "appliance", "end_reason": "appliance_restart",
+            "message": "; ".join(parts), "ended": stopped_at or row.ended or time.time(),
+        }
+        if last is not None:
+            values.update(state=last.state_name, cycles=last.cycles, misses=last.missed)
+        if stats is not None:
+            values.update(log_records=records, log_lost=stats.lost + stats.unwritten, log_note=stats.failed)
+        self.last_row = self.store.update(row.id, **values)
         if row.shm:
             remove_shm(row.shm)
+        self.hub.publish("alarm", {"kind": "crash", "end_reason": "appliance_restart", "run_id": row.id,
+                                   "message": self.last_row.message})
+        self.hub.publish("run", {"event": "ended", "run": self.last_row.as_dict(), "active": False})
 
     # -- queries ------------------------------------------------------------------------------
 
@@ -379,12 +468,13 @@ class Supervisor:
                         tag=shm, timeout_s=self.settings.open_timeout_s)
             except (OSError, ValueError, RuntimeError, asyncio.TimeoutError) as exc:
                 shutil.rmtree(shm_dir, ignore_errors=True)
-                self.store.update(row.id, status="failed", ended=time.time(), message=f"sandbox: {exc}")
+                self.store.update(row.id, status="failed", end_reason="start_failed", ended=time.time(),
+                                  message=f"sandbox: {exc}")
                 raise SupervisorError(f"cannot start {entry.executable.name} in its sandbox: {exc}", 500) from exc
             if report.error:
                 await proc.wait()
                 shutil.rmtree(shm_dir, ignore_errors=True)
-                self.last_row = self.store.update(row.id, status="failed", ended=time.time(),
+                self.last_row = self.store.update(row.id, status="failed", end_reason="start_failed", ended=time.time(),
                                                   message=f"sandbox: {report.error}")
                 self.hub.publish("alarm", {"kind": "confinement", "run_id": row.id, "message": report.error,
                                            "missing": report.missing})
@@ -412,6 +502,7 @@ class Supervisor:
                 assert self.last_row is not None
                 return self.last_row
             info = run.channels.info if run.channels else {}
+            self._start_watcher(run)
             run.row = self.store.update(
                 row.id, status="running", program=info.get("program", ""), cycle_freq=info.get("cycle_freq", 0)
             )
@@ -466,14 +557,70 @@ class Supervisor:
 
     # -- watching -----------------------------------------------------------------------------
 
+    def _start_watcher(self, run: Run) -> None:
+        """The safety watcher for a run whose shared memory is open (safety.py)."""
+        ch = run.channels
+        assert ch is not None
+        info = ch.info
+        # A slow loop (10 Hz) beats less often than the default timeout: a hang is three
+        # missed periods at the least, never one long cycle.
+        period_ms = 1000 // max(1, int(info.get("cycle_freq", 0)) or 1)
+        hang_ms = max(self.settings.hang_timeout_ms, 3 * period_ms)
+        # Below the loop's real-time priority, above everything else we run.
+        loop_prio = int(info.get("priority", 0))
+        prio = min(self.settings.watch_priority, loop_prio - 1) if loop_prio > 1 else self.settings.watch_priority
+        real = self.settings.bench_is_real()
+        try:
+            w = SafetyWatcher(run.row.pid or run.proc.pid, ch, hang_timeout_ms=hang_ms,
+                              check_ms=max(2, min(20, hang_ms // 10)),
+                              force_sim=info.get("transport", "sim") == "sim",
+                              spi_device=self.settings.spi_device if real else "", rt_priority=max(0, prio))
+        except (OSError, ValueError) as exc:  # ESRCH: the loop is already gone; _watch_exit handles it
+            log.warning("run %s: no safety watcher (%s); the event loop watches instead", run.row.id, exc)
+            return
+        run.watcher = w
+        asyncio.get_running_loop().add_reader(w.fileno(), self._on_watch, run)
+
+    def _on_watch(self, run: Run) -> None:
+        """The watcher acted (outputs already safe): take note. The record follows the exit."""
+        w = run.watcher
+        if w is None:
+            return
+        with contextlib.suppress(ValueError, OSError):
+            asyncio.get_running_loop().remove_reader(w.fileno())
+        result = w.result()
+        if result is not None:
+            self._take_watch(run, result)
+
+    def _take_watch(self, run: Run, result: WatchResult) -> None:
+        if not result.acted or run.watch is not None:
+            return
+        run.watch = result
+        run.safe_state = result.describe()
+        run.exited_at = result.event_ns / 1e9
+        run.safe_at = result.safe_ns / 1e9
+        if result.reason == "hang":
+            run.hang = True
+            if result.kill_status != 0:  # could not kill it through the pidfd: the launcher can
+                with contextlib.suppress(ProcessLookupError):
+                    run.proc.send_signal(signal.SIGKILL)
+
     async def _watch_exit(self, run: Run) -> None:
         returncode = await run.proc.wait()
-        run.exited_at = time.monotonic()
+        if run.watcher is not None:
+            w = run.watcher
+            with contextlib.suppress(ValueError, OSError):
+                asyncio.get_running_loop().remove_reader(w.fileno())
+            # The exit has happened: stop() lets the thread handle it first if it has not yet.
+            self._take_watch(run, await asyncio.to_thread(w.stop))
+        if not run.exited_at:
+            run.exited_at = time.monotonic()
         self._safe_state(run)
         await self._finish(run, returncode)
 
     def _safe_state(self, run: Run) -> None:
-        """Outputs off, first thing after the loop is gone (or found hung)."""
+        """Outputs off where no watcher did it (the loop died before its memory was open, or the
+        watcher could not start)."""
         if run.safe_state:
             return
         transport = run.channels.info.get("transport", "sim") if run.channels else ""
@@ -481,10 +628,7 @@ class Supervisor:
             run.channels.force_sim_outputs_off()
             run.safe_state = "sim outputs forced off"
         elif self.settings.bench_is_real():
-            try:
-                run.safe_state = "FPGA RESET sent" if fpga_reset(self.settings.spi_device) else "no spidev to reset"
-            except OSError as exc:
-                run.safe_state = f"FPGA RESET failed: {exc}"
+            run.safe_state = fpga_reset(self.settings.spi_device)
         else:
             # The simulated board lives inside the loop process: with no shm it died with it.
             run.safe_state = "simulated board ended with the process"
@@ -508,31 +652,31 @@ class Supervisor:
             run.last_status = status
         exit_signal = -returncode if returncode < 0 else None
         exit_code = returncode if returncode >= 0 else None
-        if run.hang:
-            crashed, reason = True, "hang"
-        elif run.stop_requested and (returncode == 0 or exit_signal in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL)):
-            crashed, reason = False, ""
-        elif returncode == 0:
-            crashed, reason = False, ""  # the loop left by itself (quit from elsewhere, XRF_MAX_CYCLES)
-        else:
-            crashed, reason = True, "signal" if exit_signal else "exit"
+        last = status or run.last_status
+        end_reason, crashed, crash_reason = self._end_reason(run, returncode, last)
         how = f"signal {signal.Signals(exit_signal).name}" if exit_signal else f"exit status {exit_code}"
-        message = run.row.message or (
-            f"loop hung (no cycle for > {self.settings.hang_timeout_ms} ms), killed" if run.hang
-            else f"loop process ended with {how}"
-        )
+        if run.row.message:
+            message = run.row.message
+        elif end_reason == "hang":
+            message = f"loop hung (no cycle for > {self.settings.hang_timeout_ms} ms), killed"
+        elif end_reason == "self_exit":
+            state = last.state_name if last else "?"
+            message = f"the controller ended by itself in {state} ({how}) without a stop or quit"
+        else:
+            message = f"loop process ended with {how} ({END_REASONS[end_reason]})"
         safe_ms = (run.safe_at - run.exited_at) * 1000 if run.exited_at and run.safe_at >= run.exited_at else 0.0
         run.row = self.store.update(
             run.row.id,
             ended=time.time(),
             status="crashed" if crashed else ("ended" if run.channels is not None else "failed"),
             crashed=int(crashed),
-            crash_reason=reason,
+            crash_reason=crash_reason,
+            end_reason=end_reason,
             exit_code=exit_code,
             exit_signal=exit_signal,
-            state=status.state_name if status else (run.last_status.state_name if run.last_status else ""),
-            cycles=status.cycles if status else 0,
-            misses=status.missed if status else 0,
+            state=last.state_name if last else "",
+            cycles=last.cycles if last else 0,
+            misses=last.missed if last else 0,
             message=f"{message}; {run.safe_state}" + (f" {safe_ms:.1f} ms after exit" if crashed and not run.hang else ""),
         )
         remove_shm(run.shm)
@@ -542,16 +686,51 @@ class Supervisor:
         if crashed:
             self.hub.publish("alarm", {
                 "kind": "hang" if run.hang else "crash",
+                "end_reason": end_reason,
                 "run_id": run.row.id,
                 "message": run.row.message,
                 "exit_code": exit_code,
                 "exit_signal": exit_signal,
                 "safe_state": run.safe_state,
+                # From the safety watcher (CLOCK_MONOTONIC ns): when it saw the exit or hang and
+                # when the outputs were safe; 0 where no watcher ran.
+                "event_ns": run.watch.event_ns if run.watch else 0,
+                "safe_ns": run.watch.safe_ns if run.watch else 0,
+                "watcher_rt": bool(run.watch and run.watch.rt_status == 0),
             })
         self._observe(run, None)
         run.ended.set()
         self.hub.publish("run", self.run_payload(run, "ended") | {"active": False})
         self.hub.publish("state", self.state_payload(run) | {"active": False, "allowed": []})
+
+    def _end_reason(self, run: Run, returncode: int, last: chmod.Status | None) -> tuple[str, bool, str]:
+        """(end_reason, crashed, crash_reason) of a run whose process ended with `returncode`;
+        the names are runs.END_REASONS."""
+        exit_signal = -returncode if returncode < 0 else 0
+        loop_end = last.end_reason if last else chmod.lib.XRF_END_NONE
+        if run.hang:
+            return "hang", True, "hang"
+        if run.end_reason:  # decided by whoever ended it (disk guard, shutdown, another user)
+            return run.end_reason, False, ""
+        if run.stop_requested and (returncode == 0 or exit_signal in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL)):
+            return "stopped", False, ""
+        if returncode != 0:
+            return "crash", True, "signal" if exit_signal else "exit"
+        if loop_end == chmod.lib.XRF_END_QUIT:
+            return "quit", False, ""
+        if loop_end == chmod.lib.XRF_END_CYCLE_LIMIT:
+            return "cycle_limit", False, ""
+        if loop_end == chmod.lib.XRF_END_SIGNAL:
+            return "signal_stop", False, ""
+        if loop_end == chmod.lib.XRF_END_RETURNED:
+            return "returned", False, ""
+        # exit(0) without leaving loop(): after STOP that is a program that simply ended; in any
+        # other state (RUN above all) the controller walked away from a live machine.
+        if last is not None and last.state in (STATE_STOPPED, chmod.lib.XRF_STATE_QUIT):
+            return "returned", False, ""
+        if run.channels is None:
+            return "start_failed", False, ""
+        return "self_exit", True, "self_exit"
 
     async def _pipe_output(self, run: Run) -> None:
         """Follow the loop's stdout/stderr file into the monitor console. Polled every 100 ms:
@@ -594,7 +773,7 @@ class Supervisor:
                 stale = s.running and s.heartbeat_ns > 0 and now - s.heartbeat_ns > hang_ns
                 if not stale:
                     last_good = now
-            if now - last_good > hang_ns and run.alive:
+            if run.watcher is None and now - last_good > hang_ns and run.alive:
                 run.hang = True
                 self._safe_state(run)
                 run.exited_at = time.monotonic()
@@ -616,6 +795,7 @@ class Supervisor:
                 run.row = self.store.update(run.row.id, message=message)
                 self.hub.publish("alarm", {"kind": "disk", "run_id": run.row.id, "message": message})
                 run.stop_requested = True
+                run.end_reason = "disk"
                 await self._terminate(run)
                 return
 
@@ -776,11 +956,16 @@ class Supervisor:
         run.setpoint = merged
         return merged
 
-    async def stop_current(self) -> RunRow:
+    async def stop_current(self, by: str = "") -> RunRow:
+        """Stop the active run in order. `by`: who asked (a username): someone other than the
+        run's owner (an educator, a self-check) is named in the run's end."""
         run = self.current
         if run is None or run.ended.is_set():
             raise SupervisorError("no run is active")
         run.stop_requested = True
+        if by and run.row.owner and by.strip().lower() != run.row.owner.strip().lower() and not run.end_reason:
+            run.end_reason = "stopped_by_other"
+            run.row = self.store.update(run.row.id, message=f"stopped by {by}")
         await self._graceful_stop(run)
         if not run.ended.is_set():
             await self._terminate(run)
@@ -831,5 +1016,6 @@ class Supervisor:
     async def shutdown(self) -> None:
         """Appliance stopping: end the run in order so the loop leaves its outputs off."""
         if self.current is not None and not self.current.ended.is_set():
+            self.current.end_reason = self.current.end_reason or "shutdown"
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(self.stop_current(), 15)
