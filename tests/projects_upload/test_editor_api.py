@@ -92,11 +92,17 @@ def test_save_is_a_version_built_and_run_exactly(server: Server) -> None:
 
     # Fixed, with a marker the run prints; then at once a second save with another marker. Each
     # build compiles its own version: running the first build prints the first marker only.
+    # The queue is kept busy first (another project's build that sleeps), so both saves happen
+    # before the first of their builds starts: a build of the working copy would see the second.
     m1, m2 = f"EDITOR-A-{secrets.token_hex(4)}", f"EDITOR-B-{secrets.token_hex(4)}"
+    blocker = new_project(http, "blocker")
+    cmake = http.get(f"/api/projects/{blocker}/files/CMakeLists.txt").json()["content"]
+    sb = save(http, blocker, "CMakeLists.txt", cmake + 'execute_process(COMMAND sleep 4)\n', base=1).json()
     s1 = save(http, pid, "src/Template.cpp", with_marker(original, m1), base=2).json()
     s2 = save(http, pid, "src/Template.cpp", with_marker(original, m2), base=s1["version"]["n"]).json()
     assert (s1["version"]["n"], s2["version"]["n"]) == (3, 4)
     assert s1["build"]["id"] != s2["build"]["id"]
+    assert s1["build"]["status"] == "queued" and s2["build"]["status"] == "queued"
     b1 = wait_build(http, pid, s1["build"]["id"])
     assert b1["status"] == "ok", b1["result"]
     assert b1["source_hash"] == s1["version"]["source_hash"]
@@ -120,6 +126,7 @@ def test_save_is_a_version_built_and_run_exactly(server: Server) -> None:
         assert not any(m2 in t for t in texts)
     server.stop_run()
     assert wait_build(http, pid, s2["build"]["id"])["status"] == "ok"
+    assert wait_build(http, blocker, sb["build"]["id"])["status"] == "ok"
 
     # Saving the same text again is no new version; the same source reuses its build.
     again = save(http, pid, "src/Template.cpp", with_marker(original, m2), base=4).json()
