@@ -135,7 +135,7 @@
     if (!E.buffers[path]) {
       const f = await xrf.api("GET", `/api/projects/${E.pid}/files/${enc(path)}`);
       if (!f.editable) { status(`${path}: ${f.reason}; it cannot be edited here`, "bad"); return; }
-      const b = { base: f.version, text: f.content };
+      const b = { base: f.version, text: f.content, saved: f.content };
       if (E.cm) { b.doc = window.CodeMirror.Doc(f.content, modeFor(path)); b.clean = b.doc.changeGeneration(); }
       E.buffers[path] = b;
     }
@@ -156,7 +156,7 @@
   function isDirty(path) {
     const b = E.buffers[path];
     if (!b) return false;
-    return b.doc ? !b.doc.isClean(b.clean) : b.text !== b.saved && b.saved !== undefined;
+    return b.doc ? !b.doc.isClean(b.clean) : b.text !== b.saved;
   }
 
   function updateDirty() {
