@@ -236,6 +236,10 @@
     applyMarkers();
     markFiles();
     q("ed-run").disabled = false;
+    // The first error of the open file in view, its message under it included.
+    const first = E.diags.find((d) => d.kind === "error" && d.in_project && d.file === E.path && d.line);
+    if (first && E.cm) E.cm.scrollIntoView({ line: Math.min(first.line, E.cm.lineCount()) - 1, ch: 0 }, 150);
+    if (E.pid != null) loadVersions().catch(() => {});  // the history shows how its builds ended
   }
 
   // ---- diagnostics: a list, markers in the gutter, the message under its line ----------------------

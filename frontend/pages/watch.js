@@ -53,6 +53,9 @@
     if (keys === JSON.stringify(W.signals.map((s) => s.key))) return;
     W.signals = signalList(schema);
     W.values = {}; W.stats = {}; W.samples = []; W.triggered = null;
+    // Until something is written, the controller's Ros2Xeno is all zeros.
+    for (const f of schema.ros2xeno || []) if (!f.count) W.values["r." + f.name] = f.type === "bool" ? false : 0;
+    for (const [k, x] of Object.entries(W.setpoint || {})) W.values["r." + k] = x;
     // The default choice follows the run's fields until the student picks their own.
     if (!W.picked || ![...W.plotted].some((k) => W.signals.some((s) => s.key === k))) {
       W.plotted = new Set(W.signals.filter((s) => s.group === "Xeno2Ros" && !s.array).slice(0, 4).map((s) => s.key));
@@ -152,7 +155,7 @@
     host.textContent = "";
     const keys = [...W.plotted].filter((k) => W.signals.some((s) => s.key === k && !s.array));
     W.plotKeys = keys;
-    const width = Math.max(280, host.clientWidth || (host.parentElement && host.parentElement.clientWidth) || 600);
+    const width = plotWidth();
     W.plot = new uPlot({
       width, height: 260, legend: { show: true }, cursor: { drag: { x: false, y: false } },
       scales: { x: { time: false } }, axes: [{ size: 30 }, { size: 62 }],
@@ -160,6 +163,11 @@
     }, [[], ...keys.map(() => [])], host);
     W.dirty = true;
     renderPlot(true);
+  }
+
+  function plotWidth() {
+    const panel = q("watch-scope-panel");
+    return Math.max(280, (panel && panel.clientWidth ? panel.clientWidth - 28 : 600));
   }
 
   // What the scope shows: the last window (running), or the window around the trigger.
@@ -280,13 +288,13 @@
     setSchema(xrf.schema || {});
     buildTable(); buildTriggerSelect(); buildPlot();
     if (xrf.run && xrf.run.setpoint) onSetpoint(xrf.run.setpoint);
-    window.addEventListener("resize", () => { if (W.plot && visible()) W.plot.setSize({ width: Math.max(280, q("watch-plot").clientWidth), height: 260 }); });
+    window.addEventListener("resize", () => { if (W.plot && visible()) W.plot.setSize({ width: plotWidth(), height: 260 }); });
     requestAnimationFrame(frame);
   }
 
   function show() {
     setSchema(xrf.schema || {});
-    if (W.plot) W.plot.setSize({ width: Math.max(280, q("watch-plot").clientWidth), height: 260 });
+    if (W.plot) W.plot.setSize({ width: plotWidth(), height: 260 });
     W.dirty = true;
   }
 

@@ -22,6 +22,7 @@ import pytest
 from harness import Server, shared_builds_root, start_server, stop_server, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
+SHOTS = REPO / "test-results"
 sys.path.insert(0, str(REPO / "tests" / "projects_upload"))
 from projects_support import reachable_tmp  # noqa: E402
 
@@ -81,6 +82,8 @@ def test_edit_error_marker_fix_build_and_run(server: Server, browser) -> None:  
     assert "not_declared_anywhere" in inline.first.text_content()
     assert page.evaluate(f"xrfEditor.cm.lineInfo({bad_line - 1}).widgets.length") >= 1
     assert "failed" in page.text_content("#ed-status")
+    SHOTS.mkdir(exist_ok=True)
+    page.screenshot(path=str(SHOTS / "editor-error.png"))
     assert page.text_content("#ed-dirty") == ""
 
     # Fix it (the broken line out, a printed marker in), then one click: build and run.
@@ -110,6 +113,7 @@ def test_edit_error_marker_fix_build_and_run(server: Server, browser) -> None:  
     adds = page.locator(".ed-diff .add").all_text_contents()
     assert any("UI-EDIT-MARK" in a for a in adds)
     assert not page.locator(".ed-diff .del").all_text_contents()
+    page.screenshot(path=str(SHOTS / "editor-diff.png"), full_page=True)
     server.stop_run()
 
     # Nothing the page loaded came from anywhere but the appliance (CodeMirror included).
@@ -170,6 +174,10 @@ def test_watch_values_freeze_and_trigger(server: Server, browser) -> None:  # no
         assert page.locator(f"#watch-row-{row}").count() == 1, row
     val = "document.querySelector('#watch-row-x-pos_left td.val').textContent"
     page.wait_for_function(f"{val} !== '–'", timeout=15_000)
+    # nothing written yet: the controller's Ros2Xeno is zeros
+    assert page.text_content("#watch-row-r-steer_left td.val") == "0"
+    # the page fits the laptop's width (the scope sized from its column)
+    assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
     first = page.evaluate(val)
     # plotted by default: the run's Xeno2Ros fields
     assert page.evaluate("xrfWatch.plotKeys") == ["x.pos_left", "x.pos_right"]
@@ -204,6 +212,8 @@ def test_watch_values_freeze_and_trigger(server: Server, browser) -> None:  # no
     trig = page.evaluate("xrfWatch.triggered")
     assert trig["key"] == "x.pos_left" and trig["before"] < 0.5 <= trig["after"], trig
     assert "triggered" in page.text_content("#watch-state")
+    SHOTS.mkdir(exist_ok=True)
+    page.screenshot(path=str(SHOTS / "watch-triggered.png"), full_page=True)
     shown = page.evaluate("xrfWatch.shown")
     assert shown["zero"] == trig["t"] and abs(shown["t0"] - (trig["t"] - 0.25)) < 1e-9 and shown["points"] > 10
     # the plotted samples cross 0.5 at x = 0: below just before, at or above just after
