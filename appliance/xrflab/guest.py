@@ -5,7 +5,12 @@ appliance never executes it directly: it starts this module (the *launcher*, tru
 builds a confinement and only then execs the controller inside it::
 
     appliance ──spawn──▶ launcher (host PID namespace; holds /dev/cpu_dma_latency; forwards signals)
-                            └─fork─▶ loop = PID 1 of a new PID namespace ──exec──▶ controller
+                            └─fork─▶ init = PID 1 of a new PID namespace (sets up the confinement)
+                                        └─fork─▶ PID 2 ──exec──▶ controller
+
+The init (``_init``) stays: a controller that were PID 1 could not raise a signal on itself
+(the kernel drops those for a namespace's init), it reaps what the controller forks, and it hands
+the controller's wait status back to the launcher, which mirrors it.
 
 Layers (each reported by name; ``LAYERS``):
 
@@ -41,6 +46,7 @@ This module runs as its own small process: keep its imports to the standard libr
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import errno
 import json
@@ -356,7 +362,7 @@ class _Launch:
 
     # -- in the child (PID 1 of the new namespace), then exec ---------------------------------
 
-    def child(self, root: str | None, err_w: int) -> None:
+    def child(self, root: str | None, err_w: int, status_w: int) -> None:
         cfg = self.cfg
         try:
             if root is not None:
@@ -375,9 +381,11 @@ class _Launch:
             os.chdir(cfg["run_dir"])
             self.set_limits()
             os.umask(0o007)  # what the loop writes stays readable by the appliance's group only
-            # Descriptors: 0-2 and the error pipe (close-on-exec) only.
-            os.closerange(3, err_w)
-            os.closerange(err_w + 1, 1 << 20)
+            # Descriptors: 0-2, the error and status pipes (close-on-exec) only.
+            low, high = sorted((err_w, status_w))
+            os.closerange(3, low)
+            os.closerange(low + 1, high)
+            os.closerange(high + 1, 1 << 20)
             uid, gid, groups = self.loop_identity()
             if self.mode == "root":
                 keep = set(self.ambient)
@@ -403,7 +411,10 @@ class _Launch:
                 raise OSError(ctypes.get_errno(), "PR_SET_NO_NEW_PRIVS refused")
             prctl(PR_SET_PDEATHSIG, signal.SIGKILL)  # the launcher gone (SIGKILL): the run ends
             exe = f"/xrf/{os.path.basename(cfg['exe'])}" if root is not None else cfg["exe"]
-            os.execve(exe, [cfg.get("argv0") or os.path.basename(cfg["exe"])], cfg["env"])
+            argv = [cfg.get("argv0") or os.path.basename(cfg["exe"])]
+            if os.getpid() == 1:
+                _init(exe, argv, cfg["env"], err_w, status_w)
+            os.execve(exe, argv, cfg["env"])
         except BaseException as exc:  # noqa: BLE001 - anything: report it, never run unconfined
             try:
                 os.write(err_w, f"{type(exc).__name__}: {exc}".encode()[:4000])
@@ -476,6 +487,72 @@ def _status_report(launch: _Launch, error: str = "") -> dict[str, Any]:
             "notes": launch.notes, "error": error}
 
 
+FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2)
+
+
+def _init(exe: str, argv: list[str], env: dict[str, str], err_w: int, status_w: int) -> None:
+    """PID 1 of the run's namespace: a small init, the controller its only child.
+
+    A controller that were PID 1 itself would not die of its own raise(SIGSEGV), and abort()
+    would end it by SIGSEGV instead of SIGABRT: the kernel drops a signal sent to a namespace's
+    PID 1 from inside unless it has a handler. As PID 2 it behaves as on XRF2. The init forwards
+    the launcher's signals, reaps whatever the controller forks (its exit kills them all), and
+    hands the controller's wait status to the launcher over `status_w` (its own exit code cannot
+    carry a signal: PID 1 cannot kill itself). Returns only in the child, which then execs."""
+    child = [0]
+
+    def forward(sig: int, _frame: Any) -> None:
+        if child[0] > 0:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(child[0], sig)
+
+    signal.pthread_sigmask(signal.SIG_BLOCK, FORWARDED)
+    for sig in FORWARDED:
+        signal.signal(sig, forward)
+    pid = os.fork()
+    if pid == 0:
+        for sig in FORWARDED:
+            signal.signal(sig, signal.SIG_DFL)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, FORWARDED)
+        prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+        return  # the caller execs (or reports the failure on err_w)
+    child[0] = pid
+    os.close(err_w)  # the launcher's EOF comes with the controller's exec
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, FORWARDED)
+    while True:
+        try:
+            reaped, status = os.waitpid(-1, 0)
+        except ChildProcessError:
+            os._exit(REFUSED_EXIT)
+        if reaped == pid:
+            os.write(status_w, status.to_bytes(4, "little", signed=True))
+            os._exit(0)
+
+
+def _read_proc(proc_fd: int, name: str) -> str:
+    fd = os.open(name, os.O_RDONLY | os.O_CLOEXEC, dir_fd=proc_fd)
+    try:
+        return os.read(fd, 65536).decode()
+    finally:
+        os.close(fd)
+
+
+def _controller_host_pid(proc_fd: int, init_pid: int) -> int:
+    """The host pid of the controller: the only child of the namespace's init (`init_pid`).
+    `proc_fd`: the host's /proc, opened before the child's pivot_root (which also moves the
+    launcher's root: they share the mount namespace, and the new root's /proc is the run's)."""
+    with contextlib.suppress(OSError, ValueError):
+        children = _read_proc(proc_fd, f"{init_pid}/task/{init_pid}/children").split()
+        if children:
+            return int(children[0])
+    for name in os.listdir(proc_fd):  # kernels without CONFIG_PROC_CHILDREN
+        if name.isdigit():
+            with contextlib.suppress(OSError, IndexError, ValueError):
+                if int(_read_proc(proc_fd, f"{name}/stat").rsplit(")", 1)[1].split()[1]) == init_pid:
+                    return int(name)
+    return 0
+
+
 def _mirror_exit(status: int) -> None:
     """Leave the way the controller did: same exit code, or killed by the same signal."""
     if os.WIFSIGNALED(status):
@@ -491,6 +568,7 @@ def _mirror_exit(status: int) -> None:
 
 def launch(cfg: dict[str, Any]) -> None:
     report_fd = cfg["report_fd"]
+    proc_fd = os.open("/proc", os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)  # the host's, see _controller_host_pid
     L = _Launch(cfg)
 
     def say(text: str) -> None:
@@ -527,6 +605,7 @@ def launch(cfg: dict[str, Any]) -> None:
         refuse("missing protection: " + "; ".join(f"{k}: {v}" for k, v in missing.items())
                + " (an educator may allow this with xrf serve --allow-unconfined)")
     L.plan_realtime()
+    status_r, status_w = os.pipe2(os.O_CLOEXEC)
     err_r, err_w = os.pipe2(os.O_CLOEXEC)
     # Signals that arrive before the child exists are forwarded once it does.
     pending: list[int] = []
@@ -548,10 +627,12 @@ def launch(cfg: dict[str, Any]) -> None:
         os.close(err_r)
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2):
             signal.signal(sig, signal.SIG_DFL)
-        L.child(root, err_w)
+        os.close(status_r)
+        L.child(root, err_w, status_w)
         os._exit(REFUSED_EXIT)
     child_pid = pid
     os.close(err_w)
+    os.close(status_w)
     failure = b""
     while chunk := os.read(err_r, 4096):  # EOF at the controller's exec (close-on-exec)
         failure += chunk
@@ -563,7 +644,10 @@ def launch(cfg: dict[str, Any]) -> None:
     say(f"controller started as uid {L.loop_identity()[0]} (in its namespaces); "
         + (f"MISSING: {missing_text}" if missing_text else "all layers hold")
         + "".join(f"; {n}" for n in L.notes))
-    os.write(report_fd, (json.dumps(_status_report(L) | {"pid": pid}) + "\n").encode())
+    # With its own PID namespace the controller is the init's child (_init); else our child.
+    controller = (_controller_host_pid(proc_fd, pid) or pid) if not L.layers.get("pid") else pid
+    os.close(proc_fd)
+    os.write(report_fd, (json.dumps(_status_report(L) | {"pid": controller}) + "\n").encode())
     os.close(report_fd)
     for sig in pending:
         forward(sig, None)
@@ -574,6 +658,12 @@ def launch(cfg: dict[str, Any]) -> None:
         except ChildProcessError:
             status = 0
             break
+    # The init hands over the controller's own wait status; without one (no init: no PID
+    # namespace, or the init was killed) the child's status is the controller's.
+    handed = os.read(status_r, 4)
+    os.close(status_r)
+    if len(handed) == 4:
+        status = int.from_bytes(handed, "little", signed=True)
     _mirror_exit(status)
 
 

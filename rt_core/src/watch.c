@@ -81,6 +81,8 @@ static void make_safe(struct xrf_watch *w)
 
 static void finish(struct xrf_watch *w, int reason, int64_t event_ns)
 {
+    if (w->shm != NULL) /* the last cycle's start: the loop ended (or hung) after it */
+        w->result.heartbeat_ns = __atomic_load_n(&w->shm->status.heartbeat_ns, __ATOMIC_RELAXED);
     w->result.reason = reason;
     w->result.event_ns = event_ns;
     if (reason == XRF_WATCH_HANG) {

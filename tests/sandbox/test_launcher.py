@@ -26,6 +26,7 @@ echo "uid=$(id -u)"
 echo "caps=$(grep CapEff /proc/self/status | cut -f2)"
 echo "nnp=$(grep NoNewPrivs /proc/self/status | cut -f2)"
 echo "pid=$$"
+echo "ppid=$(cut -d' ' -f4 /proc/$$/stat)"
 echo "root=$(ls / | tr '\n' ' ')"
 echo "fds=$(ls /proc/self/fd | tr '\n' ' ')"
 echo "env=$(env | cut -d= -f1 | sort | tr '\n' ' ')"
@@ -36,19 +37,20 @@ touch /etc/x 2>/dev/null && echo "etc=WRITABLE" || echo "etc=read-only"
 """
 
 
-def probe_as(user: str | None, tmp: Path, allow_missing: bool = False, no_newuidmap: bool = False) -> dict[str, Any]:
+def probe_as(user: str | None, tmp: Path, allow_missing: bool = False, no_newuidmap: bool = False,
+             script: str = PROBE) -> dict[str, Any]:
     # pytest's tmp_path is private to its user: the probe lives where another user may read it.
     tmp = Path(tempfile.mkdtemp(prefix="xrf-probe-"))
     os.chmod(tmp, 0o755)
     try:
-        return _probe_as(user, tmp, allow_missing, no_newuidmap)
+        return _probe_as(user, tmp, allow_missing, no_newuidmap, script)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _probe_as(user: str | None, tmp: Path, allow_missing: bool, no_newuidmap: bool) -> dict[str, Any]:
+def _probe_as(user: str | None, tmp: Path, allow_missing: bool, no_newuidmap: bool, text: str) -> dict[str, Any]:
     script = tmp / "probe.sh"
-    script.write_text(PROBE)
+    script.write_text(text)
     script.chmod(0o755)
     os.chmod(tmp, 0o755)
     python = sys.executable
@@ -75,7 +77,8 @@ def assert_confined(data: dict[str, Any], except_layers: set[str] = frozenset())
     # CAP_SYS_RESOURCE, as in some containers): then exactly CAP_SYS_NICE and CAP_IPC_LOCK, said in a note.
     kept = (1 << 23) | (1 << 14) if any("kept CAP_" in n for n in report["notes"]) else 0
     assert seen["uid"] != "0" and int(seen["caps"], 16) & ~kept == 0 and seen["nnp"] == "1", seen
-    assert seen["pid"] == "1", seen  # PID 1 of its own namespace
+    # In its own PID namespace, the only child of the sandbox's init (guest._init).
+    assert seen["pid"] == "2" and seen["ppid"] == "1", seen
     assert set(seen["root"].split()) <= {"bin", "dev", "etc", "lib", "lib32", "lib64", "libx32", "proc", "sbin",
                                          "sys", "tmp", "usr", "var", "xrf"}, seen
     assert seen["fds"].split() == ["0", "1", "2", "3"], seen  # 3: ls's own listing of the folder
@@ -96,6 +99,14 @@ def ensure_test_user() -> str:
         if not re.search(rf"^{TEST_USER}:", text, re.M):
             subprocess.run(["usermod", flag, "720000-785535", TEST_USER], check=True)
     return TEST_USER
+
+
+def test_a_controller_dies_of_a_signal_it_raises_itself(tmp_path: Path) -> None:
+    """As a namespace's PID 1 it would not (the kernel drops such signals for an init): a
+    student's raise(SIGSEGV) or abort() must end the run as it would on XRF2, and the launcher
+    mirrors that signal."""
+    data = probe_as(None, tmp_path, allow_missing=True, script='#!/bin/sh\nkill -ABRT $$\necho survived\n')
+    assert data["rc"] == -6 and "survived" not in data["output"], data
 
 
 def test_as_this_user(tmp_path: Path) -> None:

@@ -696,6 +696,7 @@ class Supervisor:
                 # when the outputs were safe; 0 where no watcher ran.
                 "event_ns": run.watch.event_ns if run.watch else 0,
                 "safe_ns": run.watch.safe_ns if run.watch else 0,
+                "heartbeat_ns": run.watch.heartbeat_ns if run.watch else 0,  # the loop's last cycle start
                 "watcher_rt": bool(run.watch and run.watch.rt_status == 0),
             })
         self._observe(run, None)

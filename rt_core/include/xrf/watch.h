@@ -54,7 +54,7 @@ struct xrf_watch_result {
     int32_t pad;
     int64_t event_ns;        /* CLOCK_MONOTONIC when the exit or hang was seen */
     int64_t safe_ns;         /* CLOCK_MONOTONIC when the outputs were safe */
-    int64_t heartbeat_ns;    /* the loop's last heartbeat, as last read */
+    int64_t heartbeat_ns;    /* the loop's last heartbeat (start of its last cycle) */
 };
 
 struct xrf_watch;
