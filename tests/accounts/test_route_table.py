@@ -16,7 +16,8 @@ from xrflab.server.auth import Perm
 from xrflab.server.settings import Settings
 
 # Mounts serve files and carry no dependencies: each one is listed here with why it may be public.
-PUBLIC_MOUNTS = {"/static": "the dashboard's code and styles; no data"}
+PUBLIC_MOUNTS = {"/static": "the dashboard's code and styles; no data",
+                 "/static/vendor/codemirror": "Debian's CodeMirror, the editor's code; no data"}
 
 
 def walk(routes: list[Any], inherited: tuple[Any, ...] = ()) -> Iterator[tuple[Any, tuple[Any, ...]]]:
