@@ -85,11 +85,14 @@
   // ---- projects and files ------------------------------------------------------------------------
 
   async function loadProjects() {
-    const list = await xrf.api("GET", "/api/projects");
+    // An educator reviews every student's project (and its history against the template).
+    const me = await xrf.meReady;
+    const edu = me && me.role === "educator";
+    const list = await xrf.api("GET", "/api/projects" + (edu ? "?all=true" : ""));
     const sel = q("ed-project");
     sel.textContent = "";
     if (!list.length) sel.append(el("option", { value: "", text: "no projects: make one on the Projects page" }));
-    for (const p of list) sel.append(el("option", { value: p.id, text: `${p.name} (#${p.id})` }));
+    for (const p of list) sel.append(el("option", { value: p.id, text: `${p.name} (#${p.id})` + (edu && p.owner !== me.username ? ` · ${p.owner}` : "") }));
     const want = E.pid != null && list.some((p) => p.id === E.pid) ? E.pid : list.length ? list[0].id : null;
     if (want != null) { sel.value = String(want); if (want !== E.pid) await openProject(want); else await refreshFiles(); }
   }

@@ -12,6 +12,7 @@ upwards fires and freezes the capture around it, and a level it never reaches ne
 
 from __future__ import annotations
 
+import shutil
 import sys
 import time
 from collections.abc import Iterator
@@ -29,13 +30,16 @@ from projects_support import reachable_tmp  # noqa: E402
 
 @pytest.fixture(scope="module")
 def server() -> Iterator[Server]:
-    s = start_server(reachable_tmp("ui-editor"), shared_builds_root())
+    data = reachable_tmp("ui-editor")
+    s = start_server(data, shared_builds_root())
     yield s
     stop_server(s)
+    shutil.rmtree(data, ignore_errors=True)
 
 
-def new_project(server: Server, name: str) -> int:
-    r = server.http.post("/api/projects/from-template", json={"template": "base", "name": name})
+def new_project(server, name: str) -> int:  # noqa: ANN001 (a Server or a logged-in client)
+    http = server.http if isinstance(server, Server) else server
+    r = http.post("/api/projects/from-template", json={"template": "base", "name": name})
     assert r.status_code == 201, r.text
     return r.json()["id"]
 
@@ -141,6 +145,25 @@ def test_unsaved_text_survives_a_refused_save(server: Server, browser) -> None: 
     page.wait_for_function("document.getElementById('ed-dirty').textContent === ''", timeout=180_000)
     got = server.http.get(f"/api/projects/{pid}/files/src/Template.cpp").json()
     assert got["version"] == 3 and got["content"].startswith("// mine\n")
+    page.close()
+
+
+def test_educator_reviews_a_students_project(server: Server, browser) -> None:  # noqa: ANN001
+    pw = server.create_user("ui_ed_student")
+    student, _ = server.login("ui_ed_student", pw)
+    pid = new_project(student, "students_work")
+    text = student.get(f"/api/projects/{pid}/files/src/main.cpp").json()["content"]
+    assert student.put(f"/api/projects/{pid}/files/src/main.cpp", params={"base": 1, "build": "false"},
+                       content=(text + "// by the student\n").encode()).status_code == 200
+    student.close()
+    page = browser.new_page(viewport={"width": 1280, "height": 800})  # the harness's educator
+    page.goto(server.url + "/#editor")
+    page.wait_for_selector(f"#ed-project option[value='{pid}']:has-text('ui_ed_student')", state="attached")
+    page.select_option("#ed-project", str(pid))
+    page.wait_for_selector("#ed-versions li[data-n='2']")
+    page.click("#ed-diff-template")
+    page.wait_for_selector(".ed-diff-file[data-path='src/main.cpp']")
+    assert any("by the student" in a for a in page.locator(".ed-diff .add").all_text_contents())
     page.close()
 
 
