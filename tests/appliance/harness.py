@@ -191,7 +191,7 @@ class WsClient:
 
 
 def start_server(data_dir: Path, builds_root: Path, **settings: Any) -> Server:
-    port = free_port()
+    port = settings.pop("port", None) or free_port()  # a port of its own, or the one given (a restart)
     config = {"data_dir": str(data_dir), "builds_root": str(builds_root), "port": port, "host": "127.0.0.1",
               "real_bench": False, **settings}
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO_ROOT / "appliance"), str(HERE)]),

@@ -95,39 +95,116 @@ def test_loop_exit_on_its_own_is_not_a_crash(server: Server) -> None:
     assert server.http.get(f"/api/runs/{run['id']}").json()["status"] == "ended"
 
 
-def test_appliance_death_pauses_the_loop_and_restart_cleans_up(tmp_path) -> None:
-    from harness import shared_builds_root, start_server, stop_server
+def _descendants(pid: int) -> set[int]:
+    """Every process below `pid` now (from /proc: parent links)."""
+    parents: dict[int, int] = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    parents[int(entry)] = int(f.read().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                pass
+    found, frontier = set(), {pid}
+    while frontier:
+        frontier = {p for p, parent in parents.items() if parent in frontier} - found
+        found |= frontier
+    return found
 
-    s = start_server(tmp_path, shared_builds_root())
+
+def test_appliance_death_pauses_the_loop_and_restart_closes_the_run(tmp_path) -> None:
+    """kill -9 of the appliance mid-run: the loop pauses itself (host_timeout_action) and keeps
+    cycling; nothing else the appliance started runs on; a restart on the same port and data
+    stops the loop, closes the run with the counts from the loop's memory and log (the records
+    the dead appliance had not written yet included), frees the bench, and says what happened."""
+    import sys
+
+    from harness import REPO_ROOT, stop_server
+
+    sys.path.insert(0, str(REPO_ROOT / "tests" / "logs_appliance"))
+    from logs_support import PROBE, start
+
+    s = start(tmp_path)
     restarted = None
+    run: dict[str, Any] = {}
     try:
-        run = s.start_run("relbot")
+        run = s.start_run(PROBE)
         ch = Channels.open(run["shm"], wait_s=5)
         with s.ws() as ws:
-            drive_motors(ws)
-        os.kill(s.proc.pid, signal.SIGKILL)  # the appliance dies; the loop must not care...
+            assert ws.command("initialise")["accepted"]
+            ws.wait_state("INITIALISED")
+            assert ws.command("start")["accepted"]
+            ws.wait_state("RUN")
+            assert s.http.post("/api/lease/take").status_code == 200  # a holder, to be freed
+            ws.wait_for(lambda m: m["type"] == "telemetry" and m["cycle"] > 300, timeout=10)
+        launcher = _parent_of(_parent_of(run["pid"]))  # controller <- the sandbox's init <- launcher
+        children = _descendants(s.proc.pid)
+        # The loop's own processes (launcher, the sandbox's init, the controller) must live on.
+        loop_side = {launcher} | _descendants(launcher)
+        assert run["pid"] in loop_side and children - loop_side, children  # rerun, viser, ... too
+        os.kill(s.proc.pid, signal.SIGKILL)
         s.proc.wait()
         t0 = time.monotonic()
-        while ch.status().state_name != "PAUSED":  # ...except that it pauses itself (1 s timeout)
-            assert time.monotonic() - t0 < 3, ch.status().state_name
+        while ch.status().state_name != "PAUSED":  # host_timeout_ms = 1 s, then PAUSE
+            assert time.monotonic() - t0 < 5, ch.status().state_name
             time.sleep(0.01)
         assert ch.status().running and ch.status().host_lost >= 1
-        # A new appliance on the same data folder stops the orphan and records what happened.
-        restarted = start_server(tmp_path, shared_builds_root())
-        deadline = time.monotonic() + 10
-        while _alive(run["pid"]) and time.monotonic() < deadline:
+        c0 = ch.status().cycles
+        time.sleep(0.3)
+        assert ch.status().cycles > c0 + 100, "the paused loop stopped cycling"
+        deadline = time.monotonic() + 5
+        while (left := {p for p in children - loop_side if _alive(p)}) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not left, f"children of the dead appliance still running: {_cmdlines(left)}"
+        cycles_before = ch.status().cycles
+
+        # A new appliance on the same data folder and port.
+        restarted = start(tmp_path, port=int(s.url.rsplit(":", 1)[1]))
+        deadline = time.monotonic() + 15
+        while any(_alive(p) for p in loop_side) and time.monotonic() < deadline:
             time.sleep(0.02)
-        assert not _alive(run["pid"]), "orphaned loop still running"
+        assert not [p for p in loop_side if _alive(p)], "orphaned loop still running"
         assert not os.path.exists(f"/dev/shm/{run['shm']}")
-        row = restarted.http.get(f"/api/runs/{run['id']}").json()
-        assert row["crashed"] and row["crash_reason"] == "appliance"
+        deadline = time.monotonic() + 10
+        while (row := restarted.http.get(f"/api/runs/{run['id']}").json())["end_reason"] != "appliance_restart":
+            assert time.monotonic() < deadline, row
+            time.sleep(0.05)
+        assert row["crashed"] and row["crash_reason"] == "appliance" and row["status"] == "crashed"
+        assert row["cycles"] >= cycles_before and row["state"] in ("PAUSED", "STOPPED", "QUIT"), row
+        assert "paused" in row["message"] or "pause" in row["message"], row["message"]
+        assert "stopped it" in row["message"], row["message"]
+        logs = restarted.http.get(f"/api/logs/runs/{run['id']}").json()
+        assert logs["run"]["log_records"] > 0
+        in_files = sum(f["records"] for f in logs["files"] if f["kind"] == "xrflog")
+        assert logs["run"]["log_records"] == in_files, logs
+        # Every record the loop logged is in the files or counted lost: nothing vanished.
+        assert logs["run"]["log_records"] + logs["run"]["log_lost"] == ch.status().log_written
+        assert restarted.http.get("/api/lease").json()["holder"] is None
         ch.close()
     finally:
-        if _alive(run["pid"]):
-            os.kill(run["pid"], signal.SIGKILL)
+        for p in ([run["pid"]] if run.get("pid") else []):
+            if _alive(p):
+                os.kill(p, signal.SIGKILL)
         for server in (restarted, s):
             if server is not None and server.proc.poll() is None:
                 stop_server(server)
+
+
+def _parent_of(pid: int) -> int:
+    with open(f"/proc/{pid}/stat") as f:
+        return int(f.read().rsplit(")", 1)[1].split()[1])
+
+
+def _cmdlines(pids: set[int]) -> list[str]:
+    out = []
+    for p in pids:
+        try:
+            with open(f"/proc/{p}/cmdline", "rb") as f:
+                text = f.read().replace(b"\0", b" ")[:120].decode(errors="replace")
+            out.append(f"{p}: {text}")
+        except OSError:
+            pass
+    return out
 
 
 def _alive(pid: int) -> bool:

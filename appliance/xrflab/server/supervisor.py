@@ -275,17 +275,23 @@ class Supervisor:
                         remove_shm(row.shm)
 
     def _orphan_launcher(self, row: RunRow) -> int:
-        """The launcher of an orphaned run's loop (``row.pid``'s parent, our own uid in every
-        sandbox mode), only if it really is this run's launcher (its XRF_RUN_DIR names the run
-        folder); 0 if there is none."""
-        launcher = _parent_of(row.pid) if row.pid else 0
-        if launcher <= 1:
-            return 0
-        try:
-            environ = Path(f"/proc/{launcher}/environ").read_bytes().split(b"\0")
-        except OSError:
-            return 0
-        return launcher if row.run_dir and f"XRF_RUN_DIR={row.run_dir}".encode() in environ else 0
+        """The launcher of an orphaned run's loop, only if it really is this run's launcher (its
+        XRF_RUN_DIR names the run folder); 0 if there is none. ``row.pid`` is the controller; its
+        parent is the sandbox's init (guest._init) or, without a PID namespace, the launcher
+        itself, which runs as our own uid in every sandbox mode (so its environ is ours to read)."""
+        want = f"XRF_RUN_DIR={row.run_dir}".encode()
+        found, pid = 0, row.pid or 0
+        for _ in range(2):  # the init, then the launcher above it: the topmost that matches
+            pid = _parent_of(pid) if pid else 0
+            if pid <= 1 or not row.run_dir:
+                break
+            try:
+                environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+            except OSError:
+                continue  # the init, as the loop's user, may not be ours to read; its parent is
+            if want in environ:
+                found = pid
+        return found
 
     async def _recover(self, row: RunRow) -> None:
         ch: Channels | None = None
