@@ -27,11 +27,14 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Literal, Optional
+
+from .tied import popen_tied
 
 Log = Callable[[str], None]
 
@@ -85,8 +88,10 @@ def _run(cmd: list[str], log: Log, cwd: Optional[Path] = None, what: str = "") -
     env.setdefault("CLICOLOR_FORCE", "0")
     try:
         # close_fds (the default) and no stdin: cmake and the compilers get their output pipe only.
-        proc = subprocess.Popen(cmd, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                stderr=subprocess.STDOUT, text=True, errors="replace", bufsize=1, env=env)
+        # Tied to the process that asked (the appliance, or `xrf build`): no orphaned compiler.
+        proc = popen_tied(cmd, death_signal=signal.SIGKILL, cwd=cwd, stdin=subprocess.DEVNULL,
+                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, errors="replace", bufsize=1,
+                          env=env)
     except OSError as exc:
         raise BuildError(f"{what or cmd[0]}: cannot run {cmd[0]}: {exc}") from exc
     assert proc.stdout is not None

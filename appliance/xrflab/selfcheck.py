@@ -399,8 +399,12 @@ class SelfCheck:
                 self.report = report
                 return
             # close_fds (the default) and no stdin: the helper gets its pipes only.
-            self._proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                          stderr=subprocess.PIPE, text=True, encoding="utf-8", errors="replace")
+            # Tied: a self-check tool must not drive the board on after the appliance died.
+            from .tied import popen_tied
+
+            self._proc = popen_tied(cmd, death_signal=signal.SIGKILL, stdin=subprocess.DEVNULL,
+                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, encoding="utf-8",
+                                    errors="replace")
         proc = self._proc
         ended = False
         try:

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import atexit
 import contextlib
-import ctypes
 import itertools
 import json
 import logging
@@ -395,48 +394,13 @@ def _rerun_cli() -> list[str]:
     return [sys.executable, "-m", "rerun_cli"]
 
 
-def _die_with_parent(parent: int) -> Callable[[], None]:
-    """For preexec_fn: SIGTERM when the appliance dies, a kill -9 included (the atexit hook
-    below does not run then), so no rerun server is left with parent 1."""
-
-    def arm() -> None:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
-        if os.getppid() != parent:  # the appliance died before the prctl took effect
-            os._exit(1)
-
-    return arm
-
-
-_spawn_requests: queue.Queue[tuple[list[str], Any]] = queue.Queue()
-_spawner: threading.Thread | None = None
-_spawner_lock = threading.Lock()
-
-
 def _spawn_rerun(argv: list[str]) -> subprocess.Popen[bytes]:
-    """Popen from one long-lived thread: the kernel sends the parent-death signal when the
-    *thread* that forked the child ends, and rerun children are asked for from short-lived
-    threads (a run's live-stream start-up)."""
-    global _spawner
-    with _spawner_lock:
-        if _spawner is None:
-            def serve() -> None:
-                while True:
-                    args, done = _spawn_requests.get()
-                    try:
-                        done.set_result(subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                                         stderr=subprocess.DEVNULL,
-                                                         preexec_fn=_die_with_parent(os.getpid())))
-                    except BaseException as exc:  # handed to the caller
-                        done.set_exception(exc)
+    """A rerun server that gets SIGTERM when the appliance dies, a kill -9 included (the atexit
+    hook below does not run then), so none is left with parent 1 (server/children.popen_tied)."""
+    from ..tied import popen_tied
 
-            _spawner = threading.Thread(target=serve, name="xrf-rerun-spawner", daemon=True)
-            _spawner.start()
-    from concurrent.futures import Future
-
-    done: Future[subprocess.Popen[bytes]] = Future()
-    _spawn_requests.put((argv, done))
-    return done.result(30)
+    return popen_tied(argv, death_signal=signal.SIGTERM, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                      stderr=subprocess.DEVNULL)
 
 
 class _RerunChild:

@@ -50,6 +50,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from ..tied import popen_tied
 from ..guest import (
     CLONE_NEWIPC, CLONE_NEWNET, CLONE_NEWNS, CLONE_NEWPID, CLONE_NEWUSER, MS_NODEV, MS_NOEXEC, MS_NOSUID,
     MS_PRIVATE, MS_RDONLY, MS_REC, MS_REMOUNT, PR_SET_NO_NEW_PRIVS, PR_SET_PDEATHSIG, bind_fd, mount, prctl, unshare,
@@ -773,8 +774,10 @@ class Builder:
             config["hide"] = str(hide)
         cmd = [sys.executable, "-m", "xrflab.projects.builder", "--sandbox", json.dumps(config), "--", *inner]
         wenv = {TOKEN_ENV: token, "PATH": env["PATH"], "PYTHONPATH": str(APPLIANCE_DIR), "LANG": "C.UTF-8"}
-        proc = subprocess.Popen(cmd, cwd=build_dir, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                stderr=subprocess.STDOUT, text=True, errors="replace", bufsize=1, env=wenv)
+        # Tied: a build does not run on after the appliance died (server/children.popen_tied).
+        proc = popen_tied(cmd, death_signal=signal.SIGKILL, cwd=build_dir, stdin=subprocess.DEVNULL,
+                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, errors="replace", bufsize=1,
+                          env=wenv)
         with self._lock:
             self._procs[proc.pid] = (proc, token)
 

@@ -8,6 +8,12 @@ on the event loop through a pidfd, so it works the same under either event loop.
 behaves like ``asyncio.subprocess.Process`` for what the appliance uses (pid, returncode,
 wait, send_signal, terminate, kill).
 
+Nothing outlives the appliance but the loop: every other child (the ROS bridge, rerun servers,
+builds, the self-check tool) is *tied* to it (xrflab/tied.py), so a kill -9 or an OOM kill of the
+appliance ends them too and no orphan keeps a port. The loop process is the exception: it must
+run on without us (its host_timeout_action decides); the restarted appliance reaps it
+(supervisor.recover_orphans).
+
 The loop process is started by the run sandbox (guest_spawn.py), which closes descriptors itself.
 docs/developers/security.md, "Descriptors", lists every child and what it gets.
 """
@@ -16,9 +22,12 @@ from __future__ import annotations
 
 import asyncio
 import os
+import signal
 import subprocess
 from collections.abc import Sequence
 from typing import Any
+
+from ..tied import popen_tied
 
 
 class Child:
@@ -68,11 +77,16 @@ class Child:
         self.popen.kill()
 
 
-def spawn(argv: Sequence[str], *, pass_fds: Sequence[int] = (), **popen: Any) -> Child:
+def spawn(argv: Sequence[str], *, pass_fds: Sequence[int] = (), tied: bool = True,
+          death_signal: int = signal.SIGTERM, **popen: Any) -> Child:
     """``subprocess.Popen(argv, close_fds=True, pass_fds=pass_fds, **popen)`` as a `Child`
-    (call it on the event loop's thread). Raises OSError like Popen (missing executable, ...)."""
+    (call it on the event loop's thread). `tied`: it dies with the appliance (`popen_tied`); only
+    the run sandbox's launcher is not. Raises OSError like Popen (missing executable, ...)."""
     popen.pop("close_fds", None)
-    proc = subprocess.Popen(list(argv), close_fds=True, pass_fds=tuple(pass_fds), **popen)
+    if tied:
+        proc = popen_tied(list(argv), death_signal=death_signal, close_fds=True, pass_fds=tuple(pass_fds), **popen)
+    else:
+        proc = subprocess.Popen(list(argv), close_fds=True, pass_fds=tuple(pass_fds), **popen)
     return Child(proc)
 
 

@@ -221,6 +221,8 @@ class GuestSpawner:
                 # Own session: a Ctrl-C on the appliance's terminal reaches the appliance only,
                 # which then stops the run in order (quit, signals).
                 start_new_session=True,
+                # Not tied to us: the loop runs on if the appliance dies (host_timeout_action).
+                tied=False,
             )
         finally:
             os.close(w)
