@@ -29,6 +29,9 @@ xrf.csrfHeaders = function () {
   const m = document.cookie.match(/(?:^|;\s*)xrf_csrf=([^;]+)/);
   return m ? { "X-CSRF-Token": decodeURIComponent(m[1]) } : {};
 };
+// How a run ended (runs.END_REASONS on the server: "self exit", "hang", "appliance restart", ...).
+xrf.endReason = (r) => r.end_reason ? ` (${r.end_reason.replace(/_/g, " ")})` : (r.crash_reason ? ` (${r.crash_reason})` : "");
+const endReason = xrf.endReason;
 xrf.toLogin = function () { location.href = "/login?next=" + encodeURIComponent(location.pathname + location.hash); };
 xrf.me = null;
 xrf.meReady = fetch("/api/me").then((r) => {
@@ -222,7 +225,7 @@ async function loadRuns() {
   for (const r of runs) {
     const tr = document.createElement("tr");
     tr.id = "run-row-" + r.id;
-    const cells = [r.id, r.build, r.status + (r.crash_reason ? ` (${r.crash_reason})` : ""), r.state, r.cycles, r.misses];
+    const cells = [r.id, r.build, r.status + endReason(r), r.state, r.cycles, r.misses];
     cells.forEach((c, i) => {
       const td = document.createElement("td");
       td.textContent = c;
@@ -248,7 +251,7 @@ function applyRun(m) {
     // and signals its owner's (docs/developers/security.md, "what others may watch").
     const build = m.redacted ? "another user's controller" : r.build;
     const what = m.active ? `run #${r.id}: ${build} on ${r.sim}` + (m.cycle_freq ? ` @ ${m.cycle_freq} Hz` : "")
-      : `run #${r.id} ${r.status}` + (r.crashed ? ` (${r.crash_reason})` : "");
+      : `run #${r.id} ${r.status}` + endReason(r);
     $("run-detail").textContent = m.active ? `${what} · ${m.program || ""} · ${m.backend || ""}/${m.transport || ""}` : `${what}: ${r.message}`;
   }
   applyConfinement(m);

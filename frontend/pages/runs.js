@@ -65,7 +65,7 @@
       const tr = document.createElement("tr");
       tr.id = "runs-row-" + r.id;
       tr.className = (r.id === selected ? "selected " : "") + (r.live ? "live" : "");
-      const status = r.status + (r.crash_reason ? ` (${r.crash_reason})` : "") + (r.live ? " · live" : "");
+      const status = r.status + xrf.endReason(r) + (r.live ? " · live" : "");
       const cells = [r.id, r.owner || "–", when(r.started), r.build, dur(r.duration_s), status,
         num(r.cycles), num(r.misses), num(r.log_records)];
       cells.forEach((c, i) => {
