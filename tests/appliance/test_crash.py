@@ -86,13 +86,48 @@ def test_hang_detected_from_heartbeat(server: Server, running: dict[str, Any]) -
     still_serving(server)
 
 
+def test_crashed_runs_leave_nothing_open_in_the_appliance(server: Server) -> None:
+    """A run's mapping (10 MB) and descriptors go when it ends, not when the garbage collector
+    gets round to it: a day of crashes must not pile them up in the appliance."""
+    def fds() -> list[str]:
+        out = []
+        for name in os.listdir(f"/proc/{server.proc.pid}/fd"):
+            try:
+                out.append(os.readlink(f"/proc/{server.proc.pid}/fd/{name}"))
+            except OSError:
+                pass
+        return out
+
+    server.stop_run()
+    run = server.start_run("relbot")
+    with server.ws() as ws:
+        drive_motors(ws)
+    time.sleep(1)
+    before = fds()
+    for _ in range(4):
+        with server.ws() as ws:
+            os.kill(run["pid"], signal.SIGKILL)
+            ws.wait_type("alarm", kind="crash", timeout=10)
+            ws.wait_type("run", event="ended", timeout=10)
+        run = server.start_run("relbot")
+        with server.ws() as ws:
+            drive_motors(ws)
+    time.sleep(1)
+    after = fds()
+    stale = [f for f in after if f.endswith("(deleted)") and "/dev/shm/" in f]
+    assert not stale, f"mappings of ended runs still open: {stale}"
+    assert len(after) <= len(before), sorted(set(after) - set(before))
+    server.stop_run()
+
+
 def test_loop_exit_on_its_own_is_not_a_crash(server: Server) -> None:
     server.stop_run()
     run = server.start_run("relbot", max_cycles=1500)
     with server.ws() as ws:
         ended = ws.wait_type("run", event="ended", timeout=10)
     assert not ended["run"]["crashed"] and ended["run"]["exit_code"] == 0
-    assert server.http.get(f"/api/runs/{run['id']}").json()["status"] == "ended"
+    row = server.http.get(f"/api/runs/{run['id']}").json()
+    assert row["status"] == "ended" and row["end_reason"] == "cycle_limit"
 
 
 def _descendants(pid: int) -> set[int]:
@@ -177,8 +212,15 @@ def test_appliance_death_pauses_the_loop_and_restart_closes_the_run(tmp_path) ->
         assert logs["run"]["log_records"] > 0
         in_files = sum(f["records"] for f in logs["files"] if f["kind"] == "xrflog")
         assert logs["run"]["log_records"] == in_files, logs
-        # Every record the loop logged is in the files or counted lost: nothing vanished.
+        # Every record the loop logged is in the files or counted lost: nothing vanished, and
+        # nothing twice (the dead appliance may have written records it had not yet released).
         assert logs["run"]["log_records"] + logs["run"]["log_lost"] == ch.status().log_written
+        from xrflab.logs.reader import open_log
+
+        for f in logs["files"]:
+            if f["kind"] == "xrflog":
+                seq = open_log(os.path.join(row["run_dir"], f["name"])).records["seq"]
+                assert (seq[1:] > seq[:-1]).all(), f"records repeated or out of order in {f['name']}"
         assert restarted.http.get("/api/lease").json()["holder"] is None
         ch.close()
     finally:

@@ -187,6 +187,31 @@ class HostLogWriter:
                 time.sleep(0.1)
             seen = self._ch.wait_doorbell(seen, WAIT_MS)
 
+    def skip_through(self, last_seq: int) -> int:
+        """Release the ring's records numbered <= `last_seq` without writing them: a dead
+        appliance wrote them to the file but was killed before it released them (the read
+        position lives in shared memory). Call before start(). Returns how many were skipped."""
+        import struct
+
+        ring = self._ffi.addressof(self._ch.shm, self._ring_field)
+        slots = getattr(self._ch.shm, self._slots_field)
+        stride = int(self._ring().slot_size)
+        skipped = 0
+        while True:
+            p = self._lib.xrf_spsc_peek_run(ring, slots, self._count)
+            if p == self._ffi.NULL:
+                return skipped
+            n = int(self._count[0])
+            buf = self._ffi.buffer(p, n * stride)
+            k = 0
+            while k < n and struct.unpack_from("<Q", buf, k * stride)[0] <= last_seq:  # seq: the header's first word
+                k += 1
+            if k:
+                self._lib.xrf_spsc_release_n(ring, k)
+                skipped += k
+            if k < n:
+                return skipped
+
     def set_on_records(self, fn: Callable[[np.ndarray], None] | None) -> None:
         with self._lock:
             self._on_records = fn

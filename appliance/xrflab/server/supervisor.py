@@ -87,6 +87,22 @@ def _alive(pid: int) -> bool:
         return False
 
 
+def _last_logged_seq(ch: Channels, run_dir: Path) -> int | None:
+    """The `seq` of the last record in the run's log file (the one the loop's log_meta names),
+    None if there is none yet."""
+    from ..logs.reader import open_log
+    from ..logs.runfolder import RunPathError, confine
+
+    meta = ch.shm.log_meta
+    published = chmod.ffi.string(meta.path, chmod.lib.XRF_PATH_MAX).decode("utf-8", "replace")
+    try:
+        path = run_dir / confine(run_dir, published)
+        records = open_log(path).records
+    except (RunPathError, OSError, ValueError, KeyError):  # no file yet, or nothing readable in it
+        return None
+    return int(records["seq"][-1]) if len(records) else None
+
+
 def remove_shm(name: str) -> None:
     """Unlink a run's shared memory and the run's folder of it in /dev/shm (xrflab.guest)."""
     try:
@@ -271,6 +287,10 @@ class Supervisor:
                     await self._recover(row)
                 except Exception:  # one bad record must not keep the appliance from serving
                     log.exception("run %s: recovering the orphaned run failed", row.id)
+                    launcher = self._orphan_launcher(row)
+                    if launcher:  # whatever failed, the loop does not run on unsupervised
+                        with contextlib.suppress(ProcessLookupError):
+                            os.kill(launcher, signal.SIGKILL)
                     if row.shm:
                         remove_shm(row.shm)
 
@@ -304,6 +324,9 @@ class Supervisor:
             # dead appliance stopped, appending a segment to the same file.
             identity = {"project": row.build, "build": row.build, "run": str(row.id)}
             writer = loglive.HostLogWriter(ch, identity, Path(row.run_dir))
+            last_seq = await asyncio.to_thread(_last_logged_seq, ch, Path(row.run_dir))
+            if last_seq is not None:
+                writer.skip_through(last_seq)  # written by the dead appliance, not yet released
             writer.start()
         before = ch.status() if ch is not None else None
         launcher = self._orphan_launcher(row)
@@ -648,7 +671,7 @@ class Supervisor:
         await loglive.finish_for(self, run)  # the rest of the log ring, even after a crash
         current = asyncio.current_task()
         for task in run.tasks:
-            if task is not current and task.get_name().endswith(("heartbeat", "reader", "timing")):
+            if task is not current and task.get_name().endswith(("heartbeat", "reader", "timing", "disk")):
                 task.cancel()
         status: chmod.Status | None = None
         if run.channels is not None:
@@ -709,6 +732,11 @@ class Supervisor:
         run.ended.set()
         self.hub.publish("run", self.run_payload(run, "ended") | {"active": False})
         self.hub.publish("state", self.state_payload(run) | {"active": False, "allowed": []})
+        # Let go of the run's tasks and log writer now: a cancelled task's traceback holds its
+        # frames, whose locals hold the run's 10 MB mapping; left to the cyclic GC, a lab day of
+        # crashes kept dozens of them (and their descriptors) alive.
+        run.tasks.clear()
+        run.logging = None
 
     def _end_reason(self, run: Run, returncode: int, last: chmod.Status | None) -> tuple[str, bool, str]:
         """(end_reason, crashed, crash_reason) of a run whose process ended with `returncode`;
