@@ -61,6 +61,12 @@ OWNED: dict[tuple[str, str], str] = {
     ("GET", "/api/projects/{pid}/builds/{bid}"): "pid",
     ("GET", "/api/projects/{pid}/builds/{bid}/log"): "pid",
     ("POST", "/api/projects/{pid}/builds/{bid}/run"): "pid",
+    ("GET", "/api/projects/{pid}/files"): "pid",
+    ("GET", "/api/projects/{pid}/files/{path:path}"): "pid",
+    ("PUT", "/api/projects/{pid}/files/{path:path}"): "pid",
+    ("DELETE", "/api/projects/{pid}/files/{path:path}"): "pid",
+    ("GET", "/api/projects/{pid}/versions"): "pid",
+    ("GET", "/api/projects/{pid}/diff"): "pid",
 }
 # By-id routes whose ids are not a user's resource, and why.
 SHARED: dict[tuple[str, str], str] = {
@@ -214,9 +220,11 @@ def test_every_route_with_an_id_is_classified() -> None:
 
 
 def _fill(path: str, w: World, key: str, ident: int) -> str:
-    values = {"run_id": w.run_id, "pid": w.pid, "bid": w.bid, "name:path": w.log_name, key: ident}
+    values = {"run_id": w.run_id, "pid": w.pid, "bid": w.bid, "name:path": w.log_name, "path:path": "CMakeLists.txt",
+              key: ident}
     filled = re.sub(r"\{([^}]+)\}", lambda m: urllib.parse.quote(str(values[m.group(1)]), safe="/"), path)
-    return filled + ("?path=CMakeLists.txt" if path.endswith("/source") else "")
+    query = {"/source": "?path=CMakeLists.txt", "/diff": "?a=1"}
+    return filled + next((q for end, q in query.items() if path.endswith(end)), "")
 
 
 def _request(http: httpx.Client, method: str, url: str) -> httpx.Response:
