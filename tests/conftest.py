@@ -6,6 +6,7 @@ import os
 import shutil
 import sys
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -28,6 +29,22 @@ try:
     settings.load_profile("xrf")
 except ImportError:  # hypothesis is a test extra; suites that need it import it themselves
     pass
+
+
+@pytest.fixture(scope="session", autouse=True)
+def nothing_left_behind(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """The session fails if it leaves a process, a /dev/shm object or a file in the checkout
+    behind (xrf_testing/leaks.py says how a process is known to be ours); what is found is
+    reported, then removed."""
+    from xrf_testing.leaks import MARKER, Snapshot
+
+    marker = os.environ.setdefault(MARKER, uuid.uuid4().hex)  # inherited by every child from now on
+    snapshot = Snapshot.take(marker, tmp_path_factory.getbasetemp().parent, REPO_ROOT)
+    yield
+    left = snapshot.leftovers()
+    if left:
+        snapshot.clean()
+        pytest.fail("the test session left behind:\n  " + "\n  ".join(left), pytrace=False)
 
 
 @pytest.fixture(scope="session")

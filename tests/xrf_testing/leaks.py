@@ -1,0 +1,135 @@
+"""What a test session leaves behind: processes it started, shared-memory objects, files in the
+checkout. tests/conftest.py takes a `Snapshot` when the session starts and fails the session if
+`Snapshot.leftovers()` finds anything at its end (then removes it, so the machine stays clean).
+
+How a process is known to be the suite's: it carries the session's marker in its environment
+(``XRF_TEST_SESSION``, set before any test starts, inherited by every child), or it is the run
+sandbox's launcher of a run whose folder is in the session's temporary folder (the launcher gets
+an allow-listed environment, so no marker; its XRF_RUN_DIR names the run), or it is a descendant of
+either. A rerun server orphaned by a killed appliance (parent 1) is found by its marker.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+MARKER = "XRF_TEST_SESSION"
+SHM = Path("/dev/shm")
+# Objects of ours in /dev/shm: run segments and their folders, test segments, Fast DDS's
+# shared-memory transport (the ROS tests), cyclictest's.
+SHM_PREFIXES = ("xrf", "fastdds", "sem.fastdds", "fast_datasharing", "cyclictest")
+# Ignored paths of the checkout that tests may fill (caches, the venv).
+IGNORED = (".venv/", ".cache/", ".pytest_cache/", ".hypothesis/", "__pycache__/", ".egg-info/")
+
+
+def _environ(pid: int) -> list[bytes]:
+    try:
+        return Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+    except OSError:
+        return []
+
+
+def _stat(pid: int) -> tuple[str, int]:
+    """(state, parent pid) or ("", 0) when gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return fields[0], int(fields[1])
+    except (OSError, IndexError, ValueError):
+        return "", 0
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")[:160]
+    except OSError:
+        return "?"
+
+
+def _pids() -> set[int]:
+    return {int(e) for e in os.listdir("/proc") if e.isdigit()}
+
+
+def _untracked(repo: Path) -> set[str]:
+    try:
+        out = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--ignored", "--untracked-files=all"],
+                             capture_output=True, text=True, timeout=60).stdout
+    except (OSError, subprocess.TimeoutExpired):
+        return set()
+    names = {line[3:] for line in out.splitlines() if line[:2] in ("??", "!!")}
+    return {n for n in names if not any(part in n for part in IGNORED)}
+
+
+@dataclass
+class Snapshot:
+    marker: str
+    temp_root: Path  # the session's temporary folders (pytest's basetemp parent)
+    repo: Path
+    pids: set[int] = field(default_factory=set)
+    shm: set[str] = field(default_factory=set)
+    files: set[str] = field(default_factory=set)
+    me: int = field(default_factory=os.getpid)
+
+    @classmethod
+    def take(cls, marker: str, temp_root: Path, repo: Path) -> Snapshot:
+        return cls(marker, temp_root, repo, _pids(), set(os.listdir(SHM)) if SHM.is_dir() else set(),
+                   _untracked(repo))
+
+    def _ours(self, pid: int) -> bool:
+        env = _environ(pid)
+        if f"{MARKER}={self.marker}".encode() in env:
+            return True
+        run_dir = next((e[len(b"XRF_RUN_DIR="):] for e in env if e.startswith(b"XRF_RUN_DIR=")), b"")
+        return bool(run_dir) and run_dir.decode(errors="replace").startswith(str(self.temp_root))
+
+    def processes(self) -> dict[int, str]:
+        """Processes of this session still alive (not this one, nor what existed before it)."""
+        new = _pids() - self.pids - {self.me}
+        parent = {p: _stat(p)[1] for p in new}
+        found = {p for p in new if _stat(p)[0] not in ("", "Z") and self._ours(p)}
+        grew = True
+        while grew:  # and everything below them (a controller runs as another user: no environ to read)
+            below = {p for p in new if parent.get(p) in found and _stat(p)[0] not in ("", "Z")} - found
+            found |= below
+            grew = bool(below)
+        # Our own children still running are ours too (a fixture that forgot one).
+        found |= {p for p in new if parent.get(p) == self.me and _stat(p)[0] not in ("", "Z")}
+        return {p: _cmdline(p) for p in sorted(found)}
+
+    def shm_objects(self) -> set[str]:
+        now = set(os.listdir(SHM)) if SHM.is_dir() else set()
+        return {n for n in now - self.shm if n.startswith(SHM_PREFIXES)}
+
+    def leftovers(self, grace_s: float = 10.0) -> list[str]:
+        """Everything left, after waiting up to `grace_s` for things that are on their way out."""
+        deadline = time.monotonic() + grace_s
+        while True:
+            procs, shm = self.processes(), self.shm_objects()
+            files = _untracked(self.repo) - self.files
+            if not (procs or shm or files) or time.monotonic() > deadline:
+                break
+            time.sleep(0.25)
+        report = [f"process {p}: {c}" for p, c in procs.items()]
+        report += [f"/dev/shm/{n}" for n in sorted(shm)]
+        report += [f"file in the checkout: {n}" for n in sorted(files)]
+        return report
+
+    def clean(self) -> None:
+        """Remove what leftovers() reported (after it was reported)."""
+        for pid in self.processes():
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
+        for name in self.shm_objects():
+            path = SHM / name
+            with contextlib.suppress(OSError):
+                if path.is_dir():
+                    import shutil
+
+                    shutil.rmtree(path, ignore_errors=True)
+                else:
+                    path.unlink()
