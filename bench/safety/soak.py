@@ -37,10 +37,12 @@ sys.path.insert(0, str(REPO_ROOT / "appliance"))
 sys.path.insert(0, str(REPO_ROOT / "tests" / "appliance"))
 sys.path.insert(0, str(REPO_ROOT / "tests" / "logs_appliance"))
 sys.path.insert(0, str(REPO_ROOT / "bench" / "appliance"))
+sys.path.insert(0, str(REPO_ROOT / "tests"))
 
 from _common import pct  # noqa: E402
 from harness import Server, WsClient, stop_server, ws_connect  # noqa: E402
 from logs_support import COST, start  # noqa: E402
+from xrf_testing.leaks import descendants  # noqa: E402
 
 
 def rss_kb(pid: int) -> int:
@@ -50,21 +52,6 @@ def rss_kb(pid: int) -> int:
 
 def fds(pid: int) -> int:
     return len(os.listdir(f"/proc/{pid}/fd"))
-
-
-def descendants(pid: int) -> set[int]:
-    parents: dict[int, int] = {}
-    for e in os.listdir("/proc"):
-        if e.isdigit():
-            try:
-                parents[int(e)] = int(Path(f"/proc/{e}/stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                pass
-    found, frontier = set(), {pid}
-    while frontier:
-        frontier = {p for p, q in parents.items() if q in frontier} - found
-        found |= frontier
-    return found
 
 
 def drive(server: Server, ws: WsClient) -> dict[str, Any]:

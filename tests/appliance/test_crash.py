@@ -9,6 +9,7 @@ import time
 from typing import Any
 
 from xrflab.channels import Channels
+from xrf_testing.leaks import descendants
 
 from harness import Server, WsClient
 
@@ -130,23 +131,6 @@ def test_loop_exit_on_its_own_is_not_a_crash(server: Server) -> None:
     assert row["status"] == "ended" and row["end_reason"] == "cycle_limit"
 
 
-def _descendants(pid: int) -> set[int]:
-    """Every process below `pid` now (from /proc: parent links)."""
-    parents: dict[int, int] = {}
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            try:
-                with open(f"/proc/{entry}/stat") as f:
-                    parents[int(entry)] = int(f.read().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                pass
-    found, frontier = set(), {pid}
-    while frontier:
-        frontier = {p for p, parent in parents.items() if parent in frontier} - found
-        found |= frontier
-    return found
-
-
 def test_appliance_death_pauses_the_loop_and_restart_closes_the_run(tmp_path) -> None:
     """kill -9 of the appliance mid-run: the loop pauses itself (host_timeout_action) and keeps
     cycling; nothing else the appliance started runs on; a restart on the same port and data
@@ -173,9 +157,9 @@ def test_appliance_death_pauses_the_loop_and_restart_closes_the_run(tmp_path) ->
             assert s.http.post("/api/lease/take").status_code == 200  # a holder, to be freed
             ws.wait_for(lambda m: m["type"] == "telemetry" and m["cycle"] > 300, timeout=10)
         launcher = _parent_of(_parent_of(run["pid"]))  # controller <- the sandbox's init <- launcher
-        children = _descendants(s.proc.pid)
+        children = descendants(s.proc.pid)
         # The loop's own processes (launcher, the sandbox's init, the controller) must live on.
-        loop_side = {launcher} | _descendants(launcher)
+        loop_side = {launcher} | descendants(launcher)
         assert run["pid"] in loop_side and children - loop_side, children  # rerun, viser, ... too
         os.kill(s.proc.pid, signal.SIGKILL)
         s.proc.wait()

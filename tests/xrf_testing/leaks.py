@@ -55,6 +55,16 @@ def _pids() -> set[int]:
     return {int(e) for e in os.listdir("/proc") if e.isdigit()}
 
 
+def descendants(pid: int) -> set[int]:
+    """Every process below `pid` now (parent links from /proc)."""
+    parent = {p: _stat(p)[1] for p in _pids()}
+    found, frontier = set(), {pid}
+    while frontier:
+        frontier = {p for p, q in parent.items() if q in frontier} - found
+        found |= frontier
+    return found
+
+
 def _untracked(repo: Path) -> set[str]:
     try:
         out = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--ignored", "--untracked-files=all"],
