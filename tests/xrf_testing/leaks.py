@@ -115,6 +115,25 @@ class Snapshot:
         now = set(os.listdir(SHM)) if SHM.is_dir() else set()
         return {n for n in now - self.shm if n.startswith(SHM_PREFIXES)}
 
+    def reclaim_dds(self) -> list[str]:
+        """Remove the Fast DDS shared-memory objects this session created that no process maps
+        any more. Fast DDS leaves them by design, for the next participant (or `fastdds shm
+        clean`) to reclaim; the ROS tests run it over UDP, but the appliance's bridge still makes
+        data-sharing segments. Only objects nobody maps are removed, as Fast DDS itself would."""
+        stale = {n for n in self.shm_objects() if n.startswith(("fastdds", "sem.fastdds"))}
+        if not stale:
+            return []
+        for pid in _pids():
+            try:
+                maps = Path(f"/proc/{pid}/maps").read_text()
+            except OSError:
+                continue
+            stale -= {n for n in stale if f"/dev/shm/{n}" in maps}
+        for name in stale:
+            with contextlib.suppress(OSError):
+                (SHM / name).unlink()
+        return sorted(stale)
+
     def leftovers(self, grace_s: float = 10.0) -> list[str]:
         """Everything left, after waiting up to `grace_s` for things that are on their way out."""
         deadline = time.monotonic() + grace_s
