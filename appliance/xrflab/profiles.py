@@ -55,9 +55,10 @@ class ProfileInfo:
 
 
 def default_data_dir() -> Path:
-    """The appliance's data folder (same rule as xrflab.server.settings.default_data_dir)."""
-    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
-    return Path(base) / "xrf-lab"
+    """The appliance's data folder: xrflab.server.settings.default_data_dir (stdlib only)."""
+    from .server.settings import default_data_dir as rule
+
+    return rule()
 
 
 def profiles_dir(data_dir: Optional[Path] = None) -> Path:

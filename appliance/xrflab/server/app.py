@@ -42,7 +42,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         # Built inside the running loop: the supervisor's locks and events belong to it.
-        settings.data_dir.mkdir(parents=True, exist_ok=True)
+        # Private when we create it (e.g. /var/lib/xrf-lab of a root appliance): the build user is
+        # given search permission on the folders down to a build, and only those (builder.py).
+        settings.data_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
         store = RunStore(settings.runs_db)
         hub = Hub(settings.client_queue_telemetry, settings.client_queue_max, settings.slow_client_s)
         supervisor = Supervisor(settings, hub, store)

@@ -50,7 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from .app import create_app
-    from .settings import Settings, default_data_dir
+    import os
+
+    from .settings import SYSTEM_DATA_DIR, Settings, default_data_dir
 
     settings = Settings(
         data_dir=(args.data or default_data_dir()).expanduser(),
@@ -70,6 +72,10 @@ def run(args: argparse.Namespace) -> int:
     shown = "localhost" if args.host in ("127.0.0.1", "0.0.0.0", "::") else args.host
     bench = "real ico board" if settings.bench_is_real() else f"simulated {settings.sim}"
     print(f"XRF Lab: {bench} bench, data in {settings.data_dir}", flush=True)
+    if args.data is None and os.geteuid() == 0:
+        print(f"XRF Lab: running as root: the data folder is {SYSTEM_DATA_DIR}, as on the Pi (builds run as "
+              "xrf-build and controllers as xrf-run; they may pass through it, never list it); --data chooses "
+              "another", flush=True)
     if settings.allow_unconfined:
         print("XRF Lab: --allow-unconfined: runs start even when a protection layer of the run sandbox is "
               "missing (the dashboard then says which)", flush=True)

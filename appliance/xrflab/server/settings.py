@@ -16,8 +16,16 @@ SIM_PLANTS = ("relbot", "jiwy")
 REPO_ROOT = Path(__file__).resolve().parents[3]
 
 
+# A root appliance's data folder, as on the Pi (deploy/install --data). Not /root/.local/share:
+# /root is 0700, and the build user (xrf-build) must pass down to a project's build folder.
+SYSTEM_DATA_DIR = Path("/var/lib/xrf-lab")
+
+
 def default_data_dir() -> Path:
-    """XDG data dir like platformdirs' user_data_dir, without the dependency."""
+    """Root: /var/lib/xrf-lab. Anyone else: the XDG data dir (like platformdirs' user_data_dir,
+    without the dependency), ~/.local/share/xrf-lab."""
+    if os.geteuid() == 0:
+        return SYSTEM_DATA_DIR
     base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
     return Path(base) / "xrf-lab"
 
