@@ -310,6 +310,44 @@ class Accounts:
                 self._db.execute("UPDATE users SET password_hash=? WHERE id=?", (_hasher.hash(password), user.id))
         return user
 
+    # -- the lab room's class list (room/accounts_sync.py) ----------------------------------------
+
+    def export_hashed(self) -> list[dict[str, Any]]:
+        """Every account with its password hash: what the room sends its enrolled benches (argon2id
+        hashes only; a bench checks a password exactly as the room would)."""
+        rows = self._db.execute("SELECT username, role, full_name, email, password_hash, disabled, must_change "
+                                "FROM users ORDER BY username").fetchall()
+        return [{"username": r[0], "role": r[1], "full_name": r[2], "email": r[3], "password_hash": r[4],
+                 "disabled": bool(r[5]), "must_change": bool(r[6])} for r in rows]
+
+    def put_hashed(self, username: str, role: str, password_hash: str, full_name: str = "", email: str = "",
+                   disabled: bool = False, must_change: bool = False) -> tuple[User, bool]:
+        """Create or update an account from a hash made elsewhere (the room). Returns the user and
+        whether its sessions and token were ended (new password, disabled, other role)."""
+        username, role = check_username(username), check_role(role)
+        if not password_hash.startswith("$argon2"):
+            raise AccountError(f"{username}: not an argon2 hash")
+        full_name, email = _text(full_name, "full name", 200), _text(email, "email", 200)
+        with self._lock:
+            r = self._db.execute("SELECT id, role, password_hash, disabled FROM users WHERE username=?",
+                                 (username,)).fetchone()
+            if r is None:
+                self._db.execute("INSERT INTO users (username, full_name, email, role, password_hash, disabled, "
+                                 "must_change, created) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                                 (username, full_name, email, role, password_hash, int(disabled), int(must_change),
+                                  time.time()))
+                revoked = False
+            else:
+                revoked = r[1] != role or r[2] != password_hash or (bool(disabled) and not r[3])
+                self._db.execute("UPDATE users SET full_name=?, email=?, role=?, password_hash=?, disabled=?, "
+                                 "must_change=? WHERE id=?", (full_name, email, role, password_hash, int(disabled),
+                                                             int(must_change), r[0]))
+                if revoked:
+                    self.revoke(r[0])
+        user = self.by_name(username)
+        assert user is not None
+        return user, revoked
+
     def educators_enabled(self) -> int:
         return int(self._db.execute("SELECT COUNT(*) FROM users WHERE role='educator' AND disabled=0").fetchone()[0])
 

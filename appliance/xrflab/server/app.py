@@ -34,6 +34,7 @@ from .runs import RunStore
 from .settings import Settings
 from .supervisor import Supervisor
 from ..viz.scene import VizService
+from ..room.bench import attach as attach_room, router as room_bench_router
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -63,6 +64,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         hub.snapshot = lambda: [*snapshot_with_lease(), *ros.snapshot()]
         await ros.open()
         app.state.ros = ros
+        # The lab room (issue 21): one more observer of the hub once this bench is enrolled
+        room = await attach_room(app)
         # After every observer (lease, ROS bridge) is wired: they hear of the orphaned runs' end.
         recovering = asyncio.create_task(supervisor.recover_orphans(), name="recover-orphans")
         try:
@@ -70,6 +73,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         finally:
             with contextlib.suppress(Exception):
                 await recovering
+            await room.close()
             await ros.close()
             security.close()
             await supervisor.shutdown()
@@ -117,6 +121,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(selfcheck_router)
     app.include_router(system_router)
     app.include_router(ros_router)
+    app.include_router(room_bench_router)
 
     frontend = settings.frontend_dir
     if frontend.is_dir():

@@ -1,0 +1,209 @@
+"""The room on a bench: wired into the appliance once it is enrolled (``xrf room join``).
+
+``RoomLink.open`` is called from the appliance's lifespan; it looks for
+``<data>/room/enrolment.json`` (written by ``xrf room join``, 0600) now and every few seconds, so
+joining needs no restart. Once enrolled, the publisher listens to the hub, commands are handled,
+the class list is applied and ``/room/sso`` signs users in from the room.
+
+Nothing here may stop the bench: the MQTT client reconnects on its own, and a broker or room that
+is gone only means the status is not seen (the bench runs on; its events wait in a bounded queue).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import HTMLResponse, RedirectResponse, Response
+
+from ..server.auth import Perm, client_address, requires
+from . import mqtt
+from .accounts_sync import BenchAccounts
+from .commands import CommandHandler
+from .publisher import BenchPublisher, next_boot
+from .sso import SsoError, Verifier
+
+log = logging.getLogger(__name__)
+
+ENROL_POLL_S = 2.0
+
+
+def room_folder(data_dir: Path) -> Path:
+    return data_dir / "room"
+
+
+def enrolment_path(data_dir: Path) -> Path:
+    return room_folder(data_dir) / "enrolment.json"
+
+
+def read_enrolment(data_dir: Path) -> dict[str, Any] | None:
+    try:
+        return json.loads(enrolment_path(data_dir).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def system_facts(data_dir: Path) -> dict[str, Any]:
+    """CPU temperature and throttling where the kernel tells them (a Pi: thermal zone 0 and the
+    firmware's get_throttled bits), free disk of the data folder."""
+    out: dict[str, Any] = {"cpu_temp_c": None, "throttled": None}
+    try:
+        out["cpu_temp_c"] = round(int(Path("/sys/class/thermal/thermal_zone0/temp").read_text()) / 1000, 1)
+    except (OSError, ValueError):
+        pass
+    for p in ("/sys/devices/platform/soc/soc:firmware/get_throttled",):
+        try:
+            out["throttled"] = int(Path(p).read_text().strip(), 16)
+        except (OSError, ValueError):
+            pass
+    try:
+        out["disk_free_mb"] = shutil.disk_usage(data_dir).free // (1 << 20)
+    except OSError:
+        out["disk_free_mb"] = None
+    return out
+
+
+class RoomLink:
+    def __init__(self, app: Any) -> None:
+        self.app = app
+        self.settings = app.state.settings
+        self.folder = room_folder(self.settings.data_dir)
+        self.publisher: BenchPublisher | None = None
+        self.verifier: Verifier | None = None
+        self.accounts: BenchAccounts | None = None
+        self._poll: asyncio.Task[None] | None = None
+        self._last_cycles: tuple[float, int] | None = None
+        self.dashboard_url = ""
+
+    async def open(self) -> None:
+        if not self._try_start():
+            self._poll = asyncio.get_running_loop().create_task(self._wait_for_enrolment(), name="room-enrolment")
+
+    async def _wait_for_enrolment(self) -> None:
+        while not self._try_start():
+            await asyncio.sleep(ENROL_POLL_S)
+
+    def _try_start(self) -> bool:
+        enrolment = read_enrolment(self.settings.data_dir)
+        if enrolment is None:
+            return False
+        try:
+            self._start(enrolment)
+        except Exception:
+            log.exception("room: cannot start with %s", enrolment_path(self.settings.data_dir))
+            return False
+        return True
+
+    def _start(self, e: dict[str, Any]) -> None:
+        app = self.app
+        b = e["broker"]
+        endpoint = mqtt.Endpoint(b["host"], int(b["port"]), b["username"], b["password"], b.get("ca_pem", ""))
+        security = app.state.security
+        self.accounts = BenchAccounts(security, self.folder)
+        self.verifier = Verifier(e["sso_key"], e["name"])
+        self.dashboard_url = e.get("dashboard_url", "")
+        handler = CommandHandler(app, asyncio.get_running_loop())
+        self.publisher = BenchPublisher(e["name"], endpoint, next_boot(self.folder), self.facts,
+                                        on_command=handler, on_accounts=self._on_accounts)
+        handler.publisher = self.publisher
+        app.state.supervisor.hub.listeners.append(self.publisher.on_hub)
+        self.publisher.start()
+        log.warning("room: bench %s reports to %s:%s", e["name"], b["host"], b["port"])
+
+    def _on_accounts(self, body: dict[str, Any]) -> None:
+        if self.accounts is not None:
+            self.accounts.apply(body)
+            if self.publisher is not None:
+                self.publisher.status["accounts_version"] = self.accounts.version
+                self.publisher.status_changed()
+
+    def facts(self) -> dict[str, Any]:
+        """Asked once a second by the publisher: the loop's counters, the lease, the machine."""
+        sup = self.app.state.supervisor
+        st = sup.state_payload()
+        run = sup.current
+        last = run.last_status if run is not None else None
+        cycles = int(getattr(last, "cycles", 0) or 0)
+        now = time.monotonic()
+        rate = None
+        if self._last_cycles is not None and run is not None and run.alive:
+            dt = now - self._last_cycles[0]
+            if dt > 0:
+                rate = round(max(0, cycles - self._last_cycles[1]) / dt, 1)
+        self._last_cycles = (now, cycles)
+        lease = self.app.state.security.lease
+        holder = lease.holder.user.username if lease is not None and lease.holder is not None else ""
+        row = run.row if run is not None else sup.last_row
+        return {
+            "state": st.get("name", "NO RUN"), "active": bool(st.get("active")),
+            "run_id": row.id if row else None, "run_owner": row.owner if row else "",
+            "cycles": cycles, "misses": int(getattr(last, "missed", 0) or 0) if last else (row.misses if row else 0),
+            "cycle_rate": rate, "cycle_freq": row.cycle_freq if row else None, "holder": holder,
+            "url": self.dashboard_url or self._guess_url(),
+            "accounts_version": self.accounts.version if self.accounts else 0,
+            **system_facts(self.settings.data_dir),
+        }
+
+    def _guess_url(self) -> str:
+        """The dashboard's address as the room can reach it: the address this bench talks to the
+        broker from (its LAN address), the appliance's port."""
+        host = self.settings.host
+        if host in ("0.0.0.0", "::", "") and self.publisher is not None:
+            try:
+                host = self.publisher._client.socket().getsockname()[0]  # type: ignore[union-attr]
+            except (AttributeError, OSError):
+                host = "127.0.0.1"
+        return f"http://{host}:{self.settings.port}"
+
+    async def close(self) -> None:
+        if self._poll:
+            self._poll.cancel()
+        if self.publisher is not None:
+            try:
+                self.app.state.supervisor.hub.listeners.remove(self.publisher.on_hub)
+            except ValueError:
+                pass
+            await self.publisher.stop()
+
+
+router = APIRouter()
+
+
+# PUBLIC because it is how a user without a session on this bench gets one: the signed token is
+# the credential (sso.py). Anything wrong answers 403 without saying more.
+@router.get("/room/sso", include_in_schema=False, dependencies=[requires(Perm.PUBLIC)])
+async def room_sso(request: Request, token: str = Query("", max_length=1000)) -> Response:
+    from ..server import audit
+    from ..server.routes_accounts import _set_cookies
+
+    link: RoomLink | None = getattr(request.app.state, "room", None)
+    security = request.app.state.security
+    if link is None or link.verifier is None or security.accounts is None:
+        return HTMLResponse("this bench is not enrolled in a room", status_code=404)
+    try:
+        username = link.verifier.verify(token)
+    except SsoError as exc:
+        return HTMLResponse(str(exc), status_code=403)
+    user = security.accounts.by_name(username)
+    if user is None or user.disabled:
+        audit.record(None, "auth.failed", {"username": username[:64], "via": "room"}, client_address(request))
+        return HTMLResponse("invalid sign-on link", status_code=403)
+    token_, csrf = security.accounts.new_session(user, client_address(request))
+    audit.record(user, "auth.login", {"via": "room"}, client_address(request))
+    response = RedirectResponse("/", status_code=303)
+    _set_cookies(request, response, token_, csrf, int(security.accounts.session_max_s))
+    return response
+
+
+async def attach(app: Any) -> RoomLink:
+    """From the appliance's lifespan: enrolled now or later, the bench joins its room."""
+    link = RoomLink(app)
+    app.state.room = link
+    await link.open()
+    return link

@@ -1,0 +1,104 @@
+"""What a bench does with the room's commands (``xrf/cmd/<name>`` and ``xrf/cmd/all``).
+
+Only the room may publish there (the broker's ACL), so a command needs no further login; who in
+the room asked is in ``by`` and goes to the bench's audit trail as ``room.<cmd>``. Every command
+is answered on ``xrf/bench/<name>/reply`` with its ``id``, the wall-clock time it arrived
+(``t_recv``) and the time it was done (``t_done``: for ``stop``, when the loop accepted it), which
+is what the room and the benchmark measure.
+
+- ``stop``: the loop's own ``stop`` command (the state machine's safe stop, as the STOP button),
+  handed to the appliance's event loop at once from paho's thread.
+- ``message``: ``text`` shown on the bench's dashboards (an ``alarm`` of kind ``room``: the alarm
+  bar every page has).
+- ``selfcheck``: the FPGA self-check with ``profile``, on an idle bench only (a run is never
+  stopped for it); the verdict comes back in the status and as a ``selfcheck`` event.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from typing import Any
+
+from .publisher import BenchPublisher, Recent
+
+log = logging.getLogger(__name__)
+
+
+class CommandHandler:
+    def __init__(self, app: Any, loop: asyncio.AbstractEventLoop) -> None:
+        self.app = app
+        self.loop = loop
+        self.publisher: BenchPublisher | None = None
+        self._seen = Recent()
+        self._tasks: set[asyncio.Task[Any]] = set()
+
+    def __call__(self, body: dict[str, Any], t_recv: float) -> None:
+        """paho's thread: hand over to the event loop without waiting for anything else."""
+        self.loop.call_soon_threadsafe(self._spawn, body, t_recv)
+
+    def _spawn(self, body: dict[str, Any], t_recv: float) -> None:
+        cid = str(body.get("id", ""))[:64]
+        if cid and self._seen.seen(cid):
+            return  # QoS 1 may deliver twice
+        task = self.loop.create_task(self._run(cid, body, t_recv))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _run(self, cid: str, body: dict[str, Any], t_recv: float) -> None:
+        cmd = str(body.get("cmd", ""))
+        by = str(body.get("by", ""))[:64]
+        reply: dict[str, Any] = {"id": cid, "cmd": cmd, "t_recv": t_recv, "t_sent": body.get("t")}
+        try:
+            reply.update(await getattr(self, f"_cmd_{cmd}")(body) if cmd in ("stop", "message", "selfcheck")
+                         else {"ok": False, "error": f"unknown command {cmd!r}"})
+        except Exception as exc:  # any failure is an answer, never a dead bench
+            log.exception("room command %s", cmd)
+            reply.update(ok=False, error=str(exc)[:300])
+        reply["t_done"] = time.time()
+        from ..server import audit
+
+        audit.record(None, f"room.{cmd}", {"by": by, "ok": reply.get("ok"), "id": cid})
+        if self.publisher is not None:
+            self.publisher.reply(reply)
+
+    async def _cmd_stop(self, body: dict[str, Any]) -> dict[str, Any]:
+        sup = self.app.state.supervisor
+        run = sup.current
+        if run is None or not run.alive:
+            return {"ok": True, "accepted": None, "state": "NO RUN", "note": "no loop running"}
+        result = await sup.command("stop")
+        return {"ok": True, "accepted": result.accepted, "state": result.state_name, "reason": result.reason,
+                "t_loop": time.time()}
+
+    async def _cmd_message(self, body: dict[str, Any]) -> dict[str, Any]:
+        text = str(body.get("text", "")).strip()[:500]
+        if not text:
+            return {"ok": False, "error": "empty message"}
+        by = str(body.get("by", "")) or "the room"
+        self.app.state.supervisor.hub.publish("alarm", {"kind": "room", "message": f"From {by} (the room): {text}",
+                                                        "from": by})
+        if self.publisher is not None:
+            self.publisher.status["message"] = text
+            self.publisher.status_changed()
+        return {"ok": True}
+
+    async def _cmd_selfcheck(self, body: dict[str, Any]) -> dict[str, Any]:
+        from fastapi import HTTPException
+
+        from ..server.accounts import User
+        from ..server.routes_selfcheck import SelfCheckService, StartCheck
+
+        sup = self.app.state.supervisor
+        if sup.current is not None and sup.current.alive:
+            return {"ok": False, "skipped": "busy", "error": "a run is active; the self-check runs on idle benches only"}
+        svc = getattr(self.app.state, "selfcheck", None)
+        if svc is None:
+            svc = self.app.state.selfcheck = SelfCheckService(self.app)
+        who = User(id=0, username=f"room:{str(body.get('by', ''))[:32]}", role="educator")
+        try:
+            active = await svc.start(StartCheck(profile=str(body.get("profile") or "relbot")), who, "room")
+        except HTTPException as exc:
+            return {"ok": False, "error": str(exc.detail)}
+        return {"ok": True, "check": active.id}

@@ -1,0 +1,278 @@
+"""A bench's voice in the room: retained status, a last will, and events that survive an outage.
+
+One more observer of the run life cycle: `on_hub` is a listener of the appliance's hub
+(``hub.listeners``), so it hears exactly what the dashboards hear (state, run started/ended,
+alarms, lease, self-check) without a wire of its own into the supervisor; `facts` (bench.py) is
+asked once a second for what no message carries (cycles, misses, CPU temperature, disk).
+
+- ``xrf/bench/<name>/online``: ``{"online": true, "conn": [boot, n]}`` on every connect; the same
+  topic with ``false`` is the MQTT last will the broker publishes when the bench goes silent
+  (power, network, crash). `conn` tells the room which connection a will belongs to: the will of
+  an older connection never marks a reconnected bench offline.
+- ``xrf/bench/<name>/status`` (retained): the whole status, on every change (at most
+  ``MAX_STATUS_HZ``) and every second. Statuses are never queued: only the newest is worth
+  sending, and it carries (boot, seq) so a late or old one never overwrites a newer one.
+- ``xrf/bench/<name>/event`` (QoS 1): alarms, run started/ended, self-check verdicts. Kept in a
+  bounded queue until the broker acknowledges each (an outage loses nothing up to ``queue_max``
+  events; beyond, the oldest go and ``events_dropped`` says how many), resent after reconnecting.
+  The room drops duplicates by (boot, seq).
+
+paho's network thread calls our callbacks; the appliance's state is touched only on its event
+loop (``call_soon_threadsafe``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import threading
+import time
+from collections import OrderedDict, deque
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from . import mqtt, topics
+
+log = logging.getLogger(__name__)
+
+MAX_STATUS_HZ = 20.0
+HEARTBEAT_S = 1.0
+MAX_ALARMS = 5
+
+
+def next_boot(folder: Path) -> int:
+    """A number that grows with every appliance start, even if the clock went back (a Pi has no
+    battery clock): max(last + 1, now in ms), kept in <folder>/boot."""
+    path = folder / "boot"
+    try:
+        last = int(path.read_text().strip())
+    except (OSError, ValueError):
+        last = 0
+    boot = max(last + 1, time.time_ns() // 1_000_000)
+    folder.mkdir(parents=True, exist_ok=True)
+    path.write_text(f"{boot}\n")
+    return boot
+
+
+class BenchPublisher:
+    def __init__(self, name: str, endpoint: mqtt.Endpoint, boot: int,
+                 facts: Callable[[], dict[str, Any]] = dict, queue_max: int = 1000,
+                 on_command: Callable[[dict[str, Any], float], None] | None = None,
+                 on_accounts: Callable[[dict[str, Any]], None] | None = None) -> None:
+        self.name = topics.check_bench_name(name)
+        self.endpoint = endpoint
+        self.boot = boot
+        self.facts = facts
+        self.on_command = on_command
+        self.on_accounts = on_accounts
+        self.seq = 0
+        self.conn = 0
+        self.connected = False
+        self.status: dict[str, Any] = {"state": "NO RUN", "run_id": None, "run_owner": "", "holder": "",
+                                       "alarms": [], "selfcheck": None, "message": ""}
+        self._events: deque[tuple[int, bytes]] = deque()
+        self._inflight: dict[int, int] = {}  # paho mid -> event seq
+        self.queue_max = queue_max
+        self.events_dropped = 0
+        self._lock = threading.Lock()  # events and seq: written from the loop and paho's thread
+        self._last_status_t = 0.0
+        self._status_pending: asyncio.TimerHandle | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._heartbeat: asyncio.Task[None] | None = None
+        self._client = mqtt.client(endpoint, f"bench-{self.name}", will=self._will())
+        self._client.on_connect = self._on_connect
+        self._client.on_disconnect = self._on_disconnect
+        self._client.on_publish = self._on_publish
+        self._client.on_message = self._on_message
+
+    # -- life -----------------------------------------------------------------------------------
+    def start(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        mqtt.connect_async(self._client, self.endpoint)
+        self._client.loop_start()
+        self._heartbeat = self._loop.create_task(self._beat(), name="room-heartbeat")
+
+    async def stop(self) -> None:
+        """A clean goodbye: offline now (a disconnect on purpose sends no will)."""
+        if self._heartbeat:
+            self._heartbeat.cancel()
+        if self.connected:
+            info = self._client.publish(topics.bench(self.name, "online"),
+                                        json.dumps({"online": False, "conn": [self.boot, self.conn]}), qos=1, retain=True)
+            await asyncio.get_running_loop().run_in_executor(None, lambda: info.wait_for_publish(1.0))
+        self._client.disconnect()
+        self._client.loop_stop()
+
+    async def _beat(self) -> None:
+        while True:
+            await asyncio.sleep(HEARTBEAT_S)
+            try:
+                self.publish_status()
+            except Exception:
+                log.exception("room status")
+
+    # -- what the bench says --------------------------------------------------------------------
+    def _will(self) -> tuple[str, bytes]:
+        return topics.bench(self.name, "online"), json.dumps({"online": False, "conn": [self.boot, self.conn + 1]}).encode()
+
+    def _next_seq(self) -> int:
+        with self._lock:
+            self.seq += 1
+            return self.seq
+
+    def snapshot(self) -> dict[str, Any]:
+        facts: dict[str, Any] = {}
+        try:
+            facts = self.facts()
+        except Exception:
+            log.exception("room facts")
+        with self._lock:
+            queued = len(self._events)
+        return {**self.status, **facts, "name": self.name, "boot": self.boot, "seq": self._next_seq(),
+                "t": time.time(), "events_queued": queued, "events_dropped": self.events_dropped}
+
+    def publish_status(self) -> None:
+        self._last_status_t = time.monotonic()
+        if self._status_pending is not None:
+            self._status_pending.cancel()
+            self._status_pending = None
+        if not self.connected:
+            return  # never queued: the next connect publishes the newest
+        self._client.publish(topics.bench(self.name, "status"), json.dumps(self.snapshot(), allow_nan=False,
+                                                                          default=str), qos=1, retain=True)
+
+    def status_changed(self) -> None:
+        """Publish soon: at once, or after the rate limit's gap (changes in between coalesce)."""
+        if self._loop is None or self._status_pending is not None:
+            return
+        wait = self._last_status_t + 1.0 / MAX_STATUS_HZ - time.monotonic()
+        if wait <= 0:
+            self.publish_status()
+        else:
+            self._status_pending = self._loop.call_later(wait, self.publish_status)
+
+    def event(self, kind: str, **fields: Any) -> None:
+        payload = {"kind": kind, **fields, "name": self.name, "boot": self.boot, "seq": self._next_seq(), "t": time.time()}
+        data = json.dumps(payload, default=str).encode()
+        with self._lock:
+            if len(self._events) >= self.queue_max:
+                self._events.popleft()
+                self.events_dropped += 1
+            self._events.append((payload["seq"], data))
+        self._flush()
+
+    def _flush(self) -> None:
+        """Send every queued event not in flight (paho's thread or the loop: both may call)."""
+        if not self.connected:
+            return
+        with self._lock:
+            flying = set(self._inflight.values())
+            todo = [(s, d) for s, d in self._events if s not in flying]
+        for seq, data in todo:
+            info = self._client.publish(topics.bench(self.name, "event"), data, qos=1)
+            if info.rc == 0:
+                with self._lock:
+                    self._inflight[info.mid] = seq
+
+    # -- hub listener (the appliance's event loop) ----------------------------------------------
+    def on_hub(self, kind: str, payload: dict[str, Any]) -> None:
+        s = self.status
+        if kind == "state":
+            changed = s.get("state") != payload.get("name")
+            s["state"] = payload.get("name", s.get("state"))
+            if changed:
+                self.status_changed()
+        elif kind == "run":
+            row = payload.get("run") or {}
+            if payload.get("event") == "started":
+                s.update(run_id=row.get("id"), run_owner=row.get("owner", ""), alarms=[])
+                self.event("run_started", run_id=row.get("id"), owner=row.get("owner", ""), build=row.get("build", ""))
+                self.status_changed()
+            elif payload.get("event") == "ended":
+                s.update(run_id=row.get("id"), run_owner=row.get("owner", ""))
+                self.event("run_ended", run_id=row.get("id"), owner=row.get("owner", ""),
+                           end_reason=row.get("end_reason", ""), cycles=row.get("cycles"), misses=row.get("misses"))
+                self.status_changed()
+        elif kind == "alarm":
+            if payload.get("kind") == "room":
+                return  # our own message to the dashboards, not the bench's
+            alarm = {"kind": payload.get("kind", ""), "message": str(payload.get("message", ""))[:300], "t": time.time()}
+            s["alarms"] = [*s.get("alarms", []), alarm][-MAX_ALARMS:]
+            self.event("alarm", **alarm)
+            self.status_changed()
+        elif kind == "lease":
+            holder = payload.get("holder")
+            s["holder"] = holder.get("username", "") if isinstance(holder, dict) else (holder or "")
+            self.status_changed()
+        elif kind == "selfcheck" and payload.get("event") == "report":
+            report = payload.get("report") or {}
+            verdict = report.get("verdict") or ("error" if payload.get("message") else "")
+            s["selfcheck"] = {"verdict": verdict, "t": time.time(), "check": payload.get("check"),
+                              "name": payload.get("name", ""), "message": str(payload.get("message", ""))[:300]}
+            self.event("selfcheck", **s["selfcheck"])
+            self.status_changed()
+
+    # -- paho's thread --------------------------------------------------------------------------
+    def _on_connect(self, client: Any, _userdata: Any, _flags: Any, reason: Any, _props: Any = None) -> None:
+        if not mqtt.reason_ok(reason):
+            log.warning("room broker refused bench %s: %s", self.name, reason)
+            return
+        self.conn += 1
+        self.connected = True
+        client.subscribe([(topics.cmd(self.name), 1), (topics.CMD_ALL, 1), (topics.ACCOUNTS, 1)])
+        client.publish(topics.bench(self.name, "online"), json.dumps({"online": True, "conn": [self.boot, self.conn]}),
+                       qos=1, retain=True)
+        # the will the broker keeps now is this connection's; the next connect's must name the next
+        client.will_set(*self._will(), qos=1, retain=True)
+        if self._loop is not None:
+            self._loop.call_soon_threadsafe(self.publish_status)
+        with self._lock:
+            self._inflight.clear()
+        self._flush()
+
+    def _on_disconnect(self, _client: Any, _userdata: Any, _flags: Any, _reason: Any, _props: Any = None) -> None:
+        self.connected = False
+        with self._lock:
+            self._inflight.clear()  # unacknowledged: sent again on the next connect
+
+    def _on_publish(self, _client: Any, _userdata: Any, mid: int, reason: Any, _props: Any = None) -> None:
+        with self._lock:
+            seq = self._inflight.pop(mid, None)
+            if seq is not None and mqtt.reason_ok(reason):
+                # acknowledged: out of the queue (it is ordered by seq; acks may come in any order)
+                self._events = deque((s, d) for s, d in self._events if s != seq)
+
+    def _on_message(self, _client: Any, _userdata: Any, msg: Any) -> None:
+        t_recv = time.time()
+        try:
+            body = json.loads(msg.payload)
+        except ValueError:
+            return
+        if not isinstance(body, dict):
+            return
+        if msg.topic == topics.ACCOUNTS:
+            if self.on_accounts is not None and self._loop is not None:
+                self._loop.call_soon_threadsafe(self.on_accounts, body)
+        elif self.on_command is not None:
+            self.on_command(body, t_recv)  # called here: stop must not wait for the loop's queue
+
+    def reply(self, body: dict[str, Any]) -> None:
+        if self.connected:
+            self._client.publish(topics.bench(self.name, "reply"), json.dumps(body, default=str), qos=1)
+
+
+# Kept for callers that want an ordered set of recent ids (commands.py).
+class Recent(OrderedDict[str, None]):
+    def __init__(self, size: int = 256) -> None:
+        super().__init__()
+        self.size = size
+
+    def seen(self, key: str) -> bool:
+        if key in self:
+            return True
+        self[key] = None
+        if len(self) > self.size:
+            self.popitem(last=False)
+        return False
