@@ -58,6 +58,7 @@ EXTERNAL_SUBCOMMANDS: dict[str, str] = {
     "ros-bridge": "xrflab.ros.bridge",
     "upload": "xrflab.projects_cli",
     "new": "xrflab.projects.cli_new",
+    "room": "xrflab.room.cli",
 }
 
 
