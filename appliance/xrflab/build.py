@@ -154,9 +154,11 @@ def ensure_rt_core(log: Log = print, source_root: Optional[Path] = None) -> Path
         if not p.exists():
             raise BuildError(f"{p}: not found (cannot build rt_core)")
     # The installed libevl is part of what gets built (the evl backend exists only with it):
-    # installing or upgrading libevl must not reuse a posix-only build.
-    evl = Path("/usr/evl/lib/libevl.so")
-    evl_tag = f"evl:{evl.stat().st_mtime_ns}" if evl.exists() else "evl:none"
+    # installing or upgrading libevl must not reuse a posix-only build. XRF_EVL_PREFIX names
+    # another libevl install than /usr/evl (CI's EVL look-alike, tests/evl/lookalike).
+    evl_prefix = Path(os.environ.get("XRF_EVL_PREFIX") or "/usr/evl")
+    evl = evl_prefix / "lib" / "libevl.so"
+    evl_tag = f"evl:{evl_prefix}:{evl.stat().st_mtime_ns}" if evl.exists() else "evl:none"
     digest = hashlib.sha256((_content_hash([rt_core, msgdef]) + evl_tag).encode()).hexdigest()[:16]
     cache = _cache_root() / "rt_core"
     prefix = cache / digest
@@ -174,6 +176,7 @@ def ensure_rt_core(log: Log = print, source_root: Optional[Path] = None) -> Path
         shutil.rmtree(work, ignore_errors=True)
         _run(["cmake", "-S", str(rt_core), "-B", str(work), *_generator_args(work),
               "-DCMAKE_BUILD_TYPE=RelWithDebInfo", f"-DCMAKE_INSTALL_PREFIX={prefix}",
+              f"-DXRF_EVL_PREFIX={evl_prefix}",
               # Keep the library in lib/ on every distro: the prefix is private anyway.
               "-DCMAKE_INSTALL_LIBDIR=lib"], log, what="rt_core configure")
         _run(["cmake", "--build", str(work), "--parallel", _jobs()], log, what="rt_core build")

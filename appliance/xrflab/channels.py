@@ -134,6 +134,7 @@ class Status:
     telem_published: int
     monitor_dropped: int
     host_lost: int
+    doorbell_dropped: int  # doorbell rings the backend refused (EVL: proxy ring full)
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -222,6 +223,7 @@ def _status_from_struct(s: Any) -> Status:
         telem_published=s.telem_published,
         monitor_dropped=s.monitor_dropped,
         host_lost=s.host_lost,
+        doorbell_dropped=s.doorbell_dropped,
     )
 
 

@@ -86,6 +86,11 @@ static uint64_t evl_demotions(void)
     return __atomic_load_n(&g_demotions, __ATOMIC_RELAXED);
 }
 
+static uint64_t evl_doorbell_dropped(void)
+{
+    return __atomic_load_n(&g_bell_dropped, __ATOMIC_RELAXED);
+}
+
 /* ---- clock and sleep ---------------------------------------------------------------------- */
 
 static int64_t evl_now_ns(void)
@@ -201,16 +206,25 @@ static int evl_doorbell_open(unsigned instance)
 
 /* ---- thread set-up and teardown ----------------------------------------------------------- */
 
+/* What to do about a failed evl_init/evl_attach_self: the loop's user reads this once, at start. */
 static const char *evl_init_hint(int err)
 {
     switch (err) {
+    case -EACCES:
+        return "this user may not open the EVL devices: /dev/evl/control, /dev/evl/clock/* and "
+               "/dev/evl/thread/clone must be readable and writable by it (deploy/udev gives them "
+               "to group 'evl', mode 0660: add the user to that group, e.g. `sudo usermod -aG evl "
+               "$USER`, and log in again), or run as root";
     case -EPERM:
-        return "memory cannot be locked or /dev/evl is not accessible: run as root, or give "
-               "the user CAP_SYS_NICE + CAP_IPC_LOCK (or an unlimited memlock limit) and access "
-               "to /dev/evl";
+        return "memory cannot be locked: run as root, or give the user CAP_IPC_LOCK (or an "
+               "unlimited memlock limit, LimitMEMLOCK=infinity) and CAP_SYS_NICE";
+    case -ENOSYS:
+        return "no EVL core in this kernel (it does not know the EVL system calls): boot the EVL "
+               "kernel (docs/install/evl-kernel.md), or use XRF_BACKEND=posix";
     case -ENOEXEC:
-        return "libevl and the running EVL kernel disagree on the ABI: rebuild libevl against "
-               "this kernel's uapi";
+        return "ABI mismatch between libevl and the kernel: this libevl was built for another EVL "
+               "ABI than the running kernel's (/sys/devices/virtual/evl/control/abi); rebuild "
+               "libevl against this kernel's uapi";
     case -ENOENT:
     case -ENODEV:
     case -ENXIO:
@@ -268,6 +282,7 @@ static int evl_thread_setup(const struct xrf_rt_config *cfg, int *rt_sched)
 
     /* 5. Demotion counter: handler first, mode bit after attaching. */
     __atomic_store_n(&g_demotions, 0, __ATOMIC_RELAXED);
+    __atomic_store_n(&g_bell_dropped, 0, __ATOMIC_RELAXED);
     struct sigaction sa;
     memset(&sa, 0, sizeof sa);
     sigemptyset(&sa.sa_mask);
@@ -348,6 +363,7 @@ static const struct xrf_backend evl_backend = {
     .sleep_until = evl_backend_sleep_until,
     .ring_doorbell = evl_ring_doorbell,
     .demotions = evl_demotions,
+    .doorbell_dropped = evl_doorbell_dropped,
     .thread_teardown = evl_thread_teardown,
 };
 

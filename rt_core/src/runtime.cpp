@@ -14,6 +14,7 @@
 #include <unistd.h>
 
 #include "logfile.h"
+#include "unprivileged.h"
 #include "xrf/sim.h"
 
 namespace xrf {
@@ -299,6 +300,9 @@ int Runtime::enter(unsigned cycle_freq)
     }
     if (program_[0] == '\0')
         copyString(program_, sizeof program_, program_invocation_short_name);
+    // Before anything is mapped: under a memlock limit that cannot hold the channels (a normal
+    // user's 8 MiB), locking is switched off with a warning instead of every mapping failing.
+    const bool may_lock = fitMemoryLocking(sizeof(xrf_shm) + (16u << 20), o.quiet);
     int r = createShm();
     if (r != 0)
         return r;
@@ -354,6 +358,16 @@ int Runtime::enter(unsigned cycle_freq)
 
     startHelper();
     loop_thread_ = pthread_self();
+    // SIGINT/SIGTERM are taken by an in-band thread (the helper unblocks them), never by the
+    // loop: a handler run on an EVL out-of-band thread demotes it. The handler only sets the
+    // flag the loop reads each cycle. Without a helper nothing else could take them.
+    if (helper_started_) {
+        sigset_t stop_signals;
+        sigemptyset(&stop_signals);
+        sigaddset(&stop_signals, SIGINT);
+        sigaddset(&stop_signals, SIGTERM);
+        signals_blocked_ = pthread_sigmask(SIG_BLOCK, &stop_signals, &saved_sigmask_) == 0;
+    }
     // Keep the CPUs out of deep idle states while the loop runs (what cyclictest does by
     // default): waking from them adds tens of microseconds at every 1 kHz wake-up. The request
     // lasts as long as the file stays open; without permission the loop runs anyway.
@@ -377,10 +391,18 @@ int Runtime::enter(unsigned cycle_freq)
     if (cfg.priority < 0) {
         // A short main asks for nothing: make the loop real-time as an XRF2 main would. A main
         // that already chose SCHED_FIFO/RR keeps its choice (XRF_PRIO=0 keeps any policy).
-        cfg.priority = main_chose_rt ? 0 : kDefaultPriority;
+        // A main whose SCHED_FIFO thread was refused (unprivileged.cpp) keeps asking for its priority.
+        cfg.priority = main_chose_rt ? 0 : (refusedThreadPriority() > 0 ? refusedThreadPriority() : kDefaultPriority);
     }
-    cfg.lock_memory = 1;
+    cfg.lock_memory = may_lock ? 1 : 0;
     cfg.stack_prefault = 256 * 1024;
+    // Printed before the backend's set-up: on EVL the set-up ends with stage-switch warnings on
+    // (EVL_T_WOSS) and the thread out-of-band, so any write after it counts as a demotion.
+    if (!o.quiet)
+        std::fprintf(stderr,
+                     "xrf: loop '%s' at %u Hz, backend %s, board %s%s%s, shared memory /dev/shm/%s\n",
+                     program_, cycle_freq, backend_->name, transport_name_[0] ? transport_name_ : "none",
+                     info.sim[0] ? " " : "", info.sim, o.shm_name);
     r = backend_->thread_setup(&cfg, &rt_sched_);
     if (r != 0) {
         std::fprintf(stderr, "xrf: the %s backend could not set up the loop thread: %s\n",
@@ -389,11 +411,6 @@ int Runtime::enter(unsigned cycle_freq)
     }
     info.rt_sched = rt_sched_;
     info.priority = !rt_sched_ ? 0 : (cfg.priority > 0 ? cfg.priority : sp.sched_priority);
-    if (!o.quiet)
-        std::fprintf(stderr,
-                     "xrf: loop '%s' at %u Hz, backend %s, board %s%s%s, shared memory /dev/shm/%s\n",
-                     program_, cycle_freq, backend_->name, transport_name_[0] ? transport_name_ : "none",
-                     info.sim[0] ? " " : "", info.sim, o.shm_name);
 
     xrf_status_write_begin(&shm_->status);
     shm_->status.running = 1;
@@ -467,6 +484,7 @@ void Runtime::endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, boo
     s->heartbeat_ns = wake_ns;
     s->idle_ns = idle_total_;
     s->demotions = backend_->demotions();
+    s->doorbell_dropped = backend_->doorbell_dropped ? backend_->doorbell_dropped() : 0;
     s->log_written = shm_->log_ring.head;
     s->log_lost = shm_->log_ring.dropped;
     s->telem_published = shm_->telem_ring.head;
@@ -581,6 +599,12 @@ void Runtime::startHelper()
 void *Runtime::helperMain(void *self)
 {
     auto *rt = static_cast<Runtime *>(self);
+    // The process's SIGINT/SIGTERM land here (the loop thread blocks them, see enter()).
+    sigset_t stop_signals;
+    sigemptyset(&stop_signals);
+    sigaddset(&stop_signals, SIGINT);
+    sigaddset(&stop_signals, SIGTERM);
+    pthread_sigmask(SIG_UNBLOCK, &stop_signals, nullptr);
     // The helper is in-band housekeeping; a 10 ms poll keeps it off the loop's doorbell, whose
     // wake-ups are for hosts.
     while (rt->helper_run_.load()) {
@@ -637,6 +661,11 @@ void Runtime::leave()
         helper_run_.store(false);
         pthread_join(helper_, nullptr);
         helper_started_ = false;
+    }
+    // The helper is gone: this thread takes the stop signals again (a pending one runs now).
+    if (signals_blocked_) {
+        pthread_sigmask(SIG_SETMASK, &saved_sigmask_, nullptr);
+        signals_blocked_ = false;
     }
     if (xrf_doorbell_should_ring(shm_))
         xrf_doorbell_wake(shm_);

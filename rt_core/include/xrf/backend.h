@@ -33,6 +33,9 @@ struct xrf_backend {
     void (*ring_doorbell)(struct xrf_shm *shm);
     /* Switches to in-band mode since thread_setup (EVL_T_WOSS); 0 on posix. */
     uint64_t (*demotions)(void);
+    /* Doorbell rings the backend could not pass on (EVL: the proxy refused the write, its ring
+     * full); the host still wakes on a later one. NULL: never happens (posix). */
+    uint64_t (*doorbell_dropped)(void);
     void (*thread_teardown)(void);
 };
 

@@ -32,7 +32,7 @@ extern "C" {
 
 /* cffi-begin */
 #define XRF_SHM_MAGIC 827740760 /* "XRF1" read as a little-endian uint32 */
-#define XRF_SHM_VERSION 3
+#define XRF_SHM_VERSION 4
 
 #define XRF_NAME_MAX 64
 #define XRF_REASON_MAX 128
@@ -173,6 +173,7 @@ struct xrf_status {
     uint64_t telem_published;
     uint64_t monitor_dropped;  /* monitor.printf calls that did not fit */
     uint64_t host_lost;        /* times the host heartbeat went stale */
+    uint64_t doorbell_dropped; /* doorbell rings the backend refused (EVL proxy ring full) */
     char reject_reason[XRF_REASON_MAX];
     /* Outcome of command ticket t in slot t % XRF_CMD_RESULTS: (t << 1) | rejected, with the
      * reason beside it, so a host learns its own command's fate even when others follow. */

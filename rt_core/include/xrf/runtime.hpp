@@ -10,6 +10,7 @@
 #include <cstdarg>
 #include <cstdint>
 #include <pthread.h>
+#include <signal.h>
 
 #include "xrf/backend.h"
 #include "xrf/channels.h"
@@ -159,6 +160,8 @@ private:
     std::atomic<bool> helper_run_{false};
     pthread_t helper_{};
     bool helper_started_ = false;
+    bool signals_blocked_ = false; // SIGINT/SIGTERM blocked on the loop thread (enter())
+    sigset_t saved_sigmask_{};
     uint64_t monitor_cursor_ = 0;
     LogSink log_sink_;
     LogSink timing_sink_;
