@@ -70,7 +70,7 @@ static int posix_thread_setup(const struct xrf_rt_config *cfg, int *rt_sched)
             fprintf(stderr,
                     "xrf: WARNING: real-time scheduling (SCHED_FIFO %d) refused: %s. The loop "
                     "runs anyway, without timing guarantees. Give the process CAP_SYS_NICE or "
-                    "an rtprio limit (see docs/rt_core/realtime.md).\n",
+                    "an rtprio limit (see docs/rt_core/runtime.md).\n",
                     cfg->priority, strerror(r));
     }
     if (pthread_getschedparam(pthread_self(), &policy, &sp) == 0 &&

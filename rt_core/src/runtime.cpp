@@ -14,6 +14,7 @@
 #include <unistd.h>
 
 #include "logfile.h"
+#include "unprivileged.h"
 #include "xrf/sim.h"
 
 namespace xrf {
@@ -299,6 +300,9 @@ int Runtime::enter(unsigned cycle_freq)
     }
     if (program_[0] == '\0')
         copyString(program_, sizeof program_, program_invocation_short_name);
+    // Before anything is mapped: under a memlock limit that cannot hold the channels (a normal
+    // user's 8 MiB), locking is switched off with a warning instead of every mapping failing.
+    const bool may_lock = fitMemoryLocking(sizeof(xrf_shm) + (16u << 20), o.quiet);
     int r = createShm();
     if (r != 0)
         return r;
@@ -387,9 +391,10 @@ int Runtime::enter(unsigned cycle_freq)
     if (cfg.priority < 0) {
         // A short main asks for nothing: make the loop real-time as an XRF2 main would. A main
         // that already chose SCHED_FIFO/RR keeps its choice (XRF_PRIO=0 keeps any policy).
-        cfg.priority = main_chose_rt ? 0 : kDefaultPriority;
+        // A main whose SCHED_FIFO thread was refused (unprivileged.cpp) keeps asking for its priority.
+        cfg.priority = main_chose_rt ? 0 : (refusedThreadPriority() > 0 ? refusedThreadPriority() : kDefaultPriority);
     }
-    cfg.lock_memory = 1;
+    cfg.lock_memory = may_lock ? 1 : 0;
     cfg.stack_prefault = 256 * 1024;
     // Printed before the backend's set-up: on EVL the set-up ends with stage-switch warnings on
     // (EVL_T_WOSS) and the thread out-of-band, so any write after it counts as a demotion.
