@@ -90,7 +90,6 @@
     if (m.event === "takeover" && prev) say(`${m.holder.username} (educator) took over the bench; you are watching now.`);
     else if (m.event === "handover" && m.holder && m.holder.id === meId) say("The bench is yours now: you can drive.", 8000);
     else if (m.event === "released" && prev && m.reason === "idle") say("The bench was released: nothing was driven for a while.", 10000);
-    else if ((m.event === "released" || m.event === "handover") && prev && m.reason === "run ended") say("Your run ended, so the bench was released.", 8000);
     else if ((m.event === "released" || m.event === "handover") && prev && m.by && m.by.id !== meId) say(`${m.by.username} released the bench.`, 8000);
   }
   xrf.on("lease", onLease);

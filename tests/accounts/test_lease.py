@@ -1,5 +1,5 @@
-"""The bench lease over the API and the WebSocket: take, drive, queue, hand-over, release when
-the holder's run ends, inactivity timeout, educator take-over (the previous holder is told)."""
+"""The bench lease over the API and the WebSocket: take, drive, queue, hand-over, the holder
+keeping the bench across runs, inactivity timeout, educator take-over (the previous holder is told)."""
 
 from __future__ import annotations
 
@@ -56,17 +56,33 @@ def test_queue_on_a_free_bench_takes_it(server: Server, accounts: dict[str, Acco
     assert accounts["student"].http.post("/api/lease/queue").json()["holder"]["username"] == "student"
 
 
-def test_holders_run_ending_releases_the_bench(server: Server, accounts: dict[str, Account], free_bench: None) -> None:
+def test_holder_keeps_the_bench_across_runs(server: Server, accounts: dict[str, Account], free_bench: None) -> None:
+    """A run's end (here: the loop leaving by itself after 200 cycles) and a crash leave the bench
+    with its holder (issue 19): the next run starts without taking it again; the queue waits."""
+    import os
+    import signal
+
     a, b = accounts["student"], accounts["student2"]
     a.http.post("/api/lease/take")
     b.http.post("/api/lease/queue")
-    assert a.http.post("/api/runs", json={"build": "relbot", "max_cycles": 200}, timeout=300).status_code == 201
+    run = a.http.post("/api/runs", json={"build": "relbot", "max_cycles": 200}, timeout=300)
+    assert run.status_code == 201
     deadline = time.monotonic() + 20
-    while holder(server) != "student2":  # the loop leaves by itself after 200 cycles
-        assert time.monotonic() < deadline, server.http.get("/api/lease").json()
+    while server.http.get(f"/api/runs/{run.json()['id']}").json()["status"] == "running":
+        assert time.monotonic() < deadline, "the run did not end by itself"
         time.sleep(0.1)
-    rows = server.http.get("/api/audit", params={"action": "lease.handover", "limit": 1}).json()
-    assert rows[0]["detail"]["reason"] == "run ended"
+    time.sleep(0.5)  # the lease hears of the end through the hub
+    assert holder(server) == "student"
+    run = a.http.post("/api/runs", json={"build": "relbot"}, timeout=300)  # no new take needed
+    assert run.status_code == 201, run.text
+    os.kill(run.json()["pid"], signal.SIGKILL)
+    while server.http.get(f"/api/runs/{run.json()['id']}").json()["status"] == "running":
+        assert time.monotonic() < deadline + 20, "the crash was not noticed"
+        time.sleep(0.1)
+    time.sleep(0.5)
+    assert holder(server) == "student"
+    assert server.http.get("/api/lease").json()["queue"][0]["username"] == "student2"
+    a.http.post("/api/lease/release")
 
 
 def test_educator_takes_over_and_the_holder_is_told(server: Server, accounts: dict[str, Account], free_bench: None) -> None:

@@ -112,7 +112,7 @@ class Security:
                 db.close()
 
     def _on_published(self, kind: str, payload: dict[str, Any]) -> None:
-        """Release the bench lease when the holder's run ends."""
+        """Tell the bench lease that a run ended (the holder keeps the bench: lease.run_ended)."""
         if kind == "run" and payload.get("event") == "ended" and self.lease is not None:
             row = payload.get("run") or {}
             self.lease.run_ended(row.get("id"), row.get("owner") or None)

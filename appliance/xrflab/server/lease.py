@@ -3,7 +3,10 @@ everyone else watches.
 
 - Free lease: any student or educator takes it. Held: others queue; when the holder releases it
   (or is released), the first in the queue becomes the holder at once.
-- Released after `idle_s` without a drive action by the holder, and when the holder's run ends.
+- Released when the holder releases it, after `idle_s` without a drive action by the holder, or
+  when an educator takes it over. NOT when a run ends or crashes: a student in a practical runs,
+  edits and runs again, and losing the bench at every run end (and having to take it again, or
+  finding someone else took it) was the most frequent interruption (issue 19).
 - An educator takes it over at any time; the previous holder is told (the `lease` message names
   them in `previous` with event `takeover`).
 - Educators drive without holding it (they can take it over anyway; see docs/developers/security.md).
@@ -34,7 +37,7 @@ class Holder:
     user: User
     since: float
     last_active: float  # monotonic
-    run_id: int | None = None  # the run the holder started, if any: its end releases the lease
+    run_id: int | None = None  # the run the holder started, if any (its end keeps the lease)
 
 
 def _who(user: User | None) -> dict[str, Any] | None:
@@ -130,12 +133,15 @@ class Lease:
             self.holder.run_id = run_id
 
     def run_ended(self, run_id: int | None, owner: str | None = None) -> None:
-        """A run ended: when the holder started it (or owns it), the bench goes to the next."""
+        """A run ended (stopped, quit, crashed): the holder keeps the bench for the next run (see
+        the module docstring). The end counts as activity, so the idle time starts again from
+        here: a holder watching a long run was not idle, and gets the full time to react."""
         h = self.holder
         if h is None or run_id is None:
             return
         if h.run_id == run_id or (owner and owner == h.user.username):
-            self._free("run ended", None)
+            h.run_id = None
+            h.last_active = time.monotonic()
 
     def check_idle(self) -> None:
         h = self.holder
