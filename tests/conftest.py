@@ -45,7 +45,7 @@ def nothing_left_behind(tmp_path_factory: pytest.TempPathFactory) -> Iterator[No
     from xrf_testing.leaks import MARKER, Snapshot
 
     marker = os.environ.setdefault(MARKER, uuid.uuid4().hex)  # inherited by every child from now on
-    snapshot = Snapshot.take(marker, tmp_path_factory.getbasetemp().parent, REPO_ROOT)
+    snapshot = Snapshot.take(marker, tmp_path_factory.getbasetemp(), REPO_ROOT)
     yield
     snapshot.reclaim_dds()
     left = snapshot.leftovers()

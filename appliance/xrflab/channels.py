@@ -333,9 +333,12 @@ def shm_path(name: str) -> Path:
 class Channels:
     """One loop's shared memory, mapped read-write (commands and Ros2Xeno go host -> loop)."""
 
-    def __init__(self, name: str, mapping: mmap.mmap) -> None:
+    def __init__(self, name: str, mapping: mmap.mmap, identity: tuple[int, int] | None = None) -> None:
         self.name = name
         self._mmap = mapping
+        # (st_dev, st_ino) of the object mapped: a loop that replaces it (same name, new object:
+        # runtime.cpp unlinks and re-creates) or its removal is seen by comparing (replaced()).
+        self.identity = identity
         self.shm = ffi.from_buffer("struct xrf_shm *", mapping)
         self._info: dict[str, Any] | None = None
         self._ros2xeno_codec: Codec | None = None
@@ -350,7 +353,7 @@ class Channels:
         deadline = time.monotonic() + wait_s
         waiting_for = "the shared memory object to appear"
         while True:
-            mapping = _try_map(path)
+            mapping, identity = _try_map(path)
             if mapping is not None:
                 shm = ffi.from_buffer("struct xrf_shm *", mapping)
                 magic = lib.xrfpy_load_u32(ffi.addressof(shm, "magic"))
@@ -359,7 +362,7 @@ class Channels:
                 else:
                     _check_layout(path, shm)
                     if lib.xrfpy_load_u32(ffi.addressof(shm, "ready")):
-                        return cls(name, mapping)
+                        return cls(name, mapping, identity)
                     waiting_for = "the loop to mark it ready"
                 del shm
                 mapping.close()
@@ -515,14 +518,45 @@ class Channels:
     def loop_side(self) -> LoopSide:
         return LoopSide(self)
 
+    # -- which loop -----------------------------------------------------------------------------
 
-def _try_map(path: Path) -> mmap.mmap | None:
+    def replaced(self) -> bool:
+        """True when /dev/shm/<name> is no longer the object mapped here: removed (its run ended
+        and its owner cleaned up), or re-created by a new loop of the same name. What this
+        object shows is then a past run's; Channels.open(name) reaches the current one."""
+        return self.identity is not None and _identity(shm_path(self.name)) != self.identity
+
+    def loop_alive(self) -> bool:
+        """The loop process behind this object still runs loop() (a loop that returned, crashed
+        or was killed is not)."""
+        if not self.status().running:
+            return False
+        pid = self.info["pid"]
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:  # another user's loop (the appliance's run user): it exists
+            pass
+        return True
+
+
+def _identity(path: Path) -> tuple[int, int] | None:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
+def _try_map(path: Path) -> tuple[mmap.mmap | None, tuple[int, int] | None]:
     try:
         fd = os.open(path, os.O_RDWR)
     except FileNotFoundError:
-        return None
+        return None, None
     try:
-        size = os.fstat(fd).st_size
+        st = os.fstat(fd)
+        size = st.st_size
         if 0 < size < SHM_SIZE:
             # Not a loop still sizing it (ftruncate is immediate): a loop built against another
             # layout. Say so instead of waiting for an object that will never fit.
@@ -530,10 +564,33 @@ def _try_map(path: Path) -> mmap.mmap | None:
                 f"{path}: {size} bytes, this host expects {SHM_SIZE}: the controller was built "
                 "against another rt_core; rebuild it")
         if size < SHM_SIZE:
-            return None
-        return mmap.mmap(fd, SHM_SIZE, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
+            return None, None
+        return mmap.mmap(fd, SHM_SIZE, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE), (st.st_dev, st.st_ino)
     finally:
         os.close(fd)
+
+
+def remove_if_owned(name: str, pid: int) -> bool:
+    """Unlink /dev/shm/<name> if it is the segment of loop process `pid` (`xrf run` after its
+    controller exited: nothing needs the final state any more, the summary is printed; readers
+    still attached keep their mapping). A segment a newer loop made under the name is left."""
+    path = shm_path(name)
+    mapping, identity = _try_map(path)
+    if mapping is None:
+        return False
+    try:
+        shm = ffi.from_buffer("struct xrf_shm *", mapping)
+        owned = shm.magic == lib.XRF_SHM_MAGIC and shm.info.pid == pid
+        del shm
+    finally:
+        mapping.close()
+    if owned and _identity(path) == identity:
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            return False
+        return True
+    return False
 
 
 def _check_layout(path: Path, shm: Any) -> None:
@@ -569,6 +626,7 @@ def create_for_test(
     try:
         os.ftruncate(fd, SHM_SIZE)
         mapping = mmap.mmap(fd, SHM_SIZE, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
+        st = os.fstat(fd)
     finally:
         os.close(fd)
     shm = ffi.from_buffer("struct xrf_shm *", mapping)
@@ -593,9 +651,14 @@ def create_for_test(
         if len(raw) >= len(getattr(info, attr)):
             raise ValueError(f"{attr} too long for the shared memory")
         setattr(info, attr, raw)
+    # As a loop in loop(): running before ready (set_state(..., running=False) plays its end).
+    status = ffi.addressof(shm, "status")
+    lib.xrf_status_write_begin(status)
+    status.running = 1
+    lib.xrf_status_write_end(status)
     lib.xrf_shm_publish_ready(shm)
-    del shm
-    return Channels(name, mapping)
+    del shm, status
+    return Channels(name, mapping, (st.st_dev, st.st_ino))
 
 
 class LoopSide:

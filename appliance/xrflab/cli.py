@@ -72,13 +72,48 @@ def subcommand(name: str, help: str, add_arguments: Callable[[argparse.ArgumentP
     return register
 
 
-def _open_channels(args: argparse.Namespace, wait_s: float | None = None):
+def _open_channels(args: argparse.Namespace, wait_s: float | None = None, live: bool = False):
+    """The loop's channels. With `live`, a segment whose loop has ended (a previous run's, left
+    behind) is not the answer: a new loop that replaces it within the wait is, else an error
+    that says the loop ended. Without it, an ended loop's segment is opened (its final state)."""
     from .channels import Channels, ChannelsError
 
+    wait = args.timeout if wait_s is None else wait_s
+    deadline = time.monotonic() + wait
     try:
-        return Channels.open(args.shm, wait_s=args.timeout if wait_s is None else wait_s)
+        ch = Channels.open(args.shm, wait_s=wait)
     except (ChannelsError, ValueError, PermissionError) as exc:
         raise CliError(f"cannot reach a loop on shared memory '{args.shm}': {exc}") from None
+    while live and not ch.loop_alive():
+        newer = _newer_channels(ch, max(0.0, deadline - time.monotonic()))
+        if newer is not None:
+            ch = newer
+            continue
+        if time.monotonic() >= deadline:
+            status, pid = ch.status(), ch.info["pid"]
+            ch.close()
+            raise CliError(f"the loop on shared memory '{args.shm}' has ended (pid {pid}, state "
+                           f"{status.state_name}); start one (xrf run) or name another with --shm")
+        time.sleep(0.05)
+    return ch
+
+
+def _newer_channels(ch: Any, wait_s: float = 0.0) -> Any:
+    """When the segment `ch` maps was replaced by a new loop's (or removed and made again), the
+    new one (and `ch` is closed); None while there is none. A loop re-creates its segment under
+    the same name (runtime.cpp), so a tool watching the name must follow the object."""
+    from .channels import Channels, ChannelsError
+
+    if not ch.replaced():
+        return None
+    try:
+        newer = Channels.open(ch.name, wait_s=min(wait_s, 0.2))
+    except (ChannelsError, ValueError, PermissionError):
+        return None
+    ch.close()
+    print(f"xrf: a new loop on shared memory '{newer.name}' (pid {newer.info['pid']}): following it",
+          file=sys.stderr, flush=True)
+    return newer
 
 
 def _add_shm(parser: argparse.ArgumentParser, timeout: float = 2.0) -> None:
@@ -106,7 +141,7 @@ def run_cmd(args: argparse.Namespace) -> int:
         number = command_number(args.command)
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    with _open_channels(args) as ch:
+    with _open_channels(args, live=True) as ch:
         try:
             result = ch.wait_command(ch.send_command(number), timeout=args.timeout)
         except ChannelsError as exc:
@@ -135,17 +170,24 @@ def run_state(args: argparse.Namespace) -> int:
     if wanted is not None and wanted not in STATE_NUMBERS:
         raise CliError(f"unknown state {args.wait!r}; states: {', '.join(STATE_NUMBERS)}")
     deadline = time.monotonic() + args.timeout
-    with _open_channels(args) as ch:
+    ch = _open_channels(args)
+    try:
         status = ch.status()
         while wanted is not None and status.state_name != wanted:
             remaining_ms = int((deadline - time.monotonic()) * 1000)
             if remaining_ms <= 0:
-                print(f"timed out after {args.timeout:g} s waiting for {wanted}: state is {status.state_name}", file=sys.stderr)
+                ended = "" if ch.loop_alive() else " (that loop has ended)"
+                print(f"timed out after {args.timeout:g} s waiting for {wanted}: state is {status.state_name}{ended}",
+                      file=sys.stderr)
                 return EXIT_ERROR
+            # A new run replaces the segment of an ended one under the same name: follow it.
+            ch = _newer_channels(ch, remaining_ms / 1000) or ch
             # The doorbell only rings on publications; a short slice also catches state changes
             # of a loop that publishes nothing.
             ch.wait_doorbell(ch.doorbell, min(remaining_ms, 20))
             status = ch.status()
+    finally:
+        ch.close()
     if args.json:
         _print_json(status.as_dict())
     else:
@@ -181,7 +223,7 @@ def run_pub(args: argparse.Namespace) -> int:
             raise CliError(f"{args.message} takes one value (data=N, N or a command name)")
         args.command = args.fields[0].partition("=")[2] if args.fields[0].startswith("data=") else args.fields[0]
         return run_cmd(args)
-    with _open_channels(args) as ch:
+    with _open_channels(args, live=True) as ch:
         codec = ch.ros2xeno_codec
         values: dict[str, Any] = {}
         try:
@@ -247,12 +289,20 @@ def _echo_source(ch: Any, topic: str) -> Callable[[], list[dict[str, Any]]]:
 
 @subcommand("echo", "print what the loop publishes, as JSON lines", _echo_arguments)
 def run_echo(args: argparse.Namespace) -> int:
-    with _open_channels(args, wait_s=args.wait) as ch:
+    ch = _open_channels(args, wait_s=args.wait, live=True)
+    try:
         fetch = _echo_source(ch, args.topic)
         deadline = time.monotonic() + args.timeout if args.timeout > 0 else None
         printed = 0
+        checked = time.monotonic()
         try:
             while True:
+                # Every 100 ms: has a new run replaced the segment (same name, new object)?
+                if time.monotonic() - checked > 0.1:
+                    checked = time.monotonic()
+                    newer = _newer_channels(ch)
+                    if newer is not None:
+                        ch, fetch = newer, _echo_source(newer, args.topic)
                 # Read the doorbell before the ring: a publication after the read changes it, so
                 # the wait below cannot sleep through it.
                 seen = ch.doorbell
@@ -270,6 +320,8 @@ def run_echo(args: argparse.Namespace) -> int:
         except BrokenPipeError:  # `xrf echo ... | head`
             sys.stderr.close()
             return EXIT_OK
+    finally:
+        ch.close()
 
 
 # ---- xrf build / run ----------------------------------------------------------------------------
@@ -334,6 +386,17 @@ def run_environment(args: argparse.Namespace) -> dict[str, str]:
     return env
 
 
+def _remove_segment(child: subprocess.Popen, name: str) -> None:
+    """The controller has exited: its segment goes with it (docs/developers/architecture.md,
+    "Whose segment"). Only if it is still the controller's: a newer loop may own the name."""
+    from .channels import ChannelsError, remove_if_owned
+
+    try:
+        remove_if_owned(name, child.pid)
+    except (ChannelsError, ValueError, OSError):
+        pass
+
+
 def _exit_code(returncode: int) -> int:
     return 128 - returncode if returncode < 0 else returncode
 
@@ -349,7 +412,8 @@ def run_run(args: argparse.Namespace) -> int:
         raise CliError(f"{target}: neither a project folder nor an executable file")
     # Own process group: a terminal's Ctrl-C reaches only us, and we forward exactly one SIGINT
     # (the runtime turns it into a safe stop) instead of the child getting it twice.
-    child = subprocess.Popen([str(executable.resolve())], env=run_environment(args), start_new_session=True)
+    env = run_environment(args)
+    child = subprocess.Popen([str(executable.resolve())], env=env, start_new_session=True)
     stop_requested_at: list[float] = []
 
     def on_signal(signum: int, _frame: Any) -> None:
@@ -364,9 +428,12 @@ def run_run(args: argparse.Namespace) -> int:
         escalated = False
         while True:
             try:
-                return _exit_code(child.wait(timeout=0.1))
+                code = _exit_code(child.wait(timeout=0.1))
             except subprocess.TimeoutExpired:
                 pass
+            else:
+                _remove_segment(child, env.get("XRF_SHM") or DEFAULT_SHM)
+                return code
             if not stop_requested_at:
                 continue
             waited = time.monotonic() - stop_requested_at[0]

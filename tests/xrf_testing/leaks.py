@@ -78,7 +78,9 @@ def _untracked(repo: Path) -> set[str]:
 @dataclass
 class Snapshot:
     marker: str
-    temp_root: Path  # the session's temporary folders (pytest's basetemp parent)
+    # The session's own temporary folder (pytest's basetemp, /tmp/pytest-of-<user>/pytest-<N>): not
+    # its parent, which every session of the user shares (others may be running beside this one).
+    temp_root: Path
     repo: Path
     pids: set[int] = field(default_factory=set)
     shm: set[str] = field(default_factory=set)
@@ -113,7 +115,23 @@ class Snapshot:
 
     def shm_objects(self) -> set[str]:
         now = set(os.listdir(SHM)) if SHM.is_dir() else set()
-        return {n for n in now - self.shm if n.startswith(SHM_PREFIXES)}
+        new = {n for n in now - self.shm if n.startswith(SHM_PREFIXES)}
+        return new - self._in_use_by_others(new)
+
+    def _in_use_by_others(self, names: set[str]) -> set[str]:
+        """Of `names`, those a live process that is not this session's maps: another test session
+        or appliance on the same machine (an object nobody maps any more is counted as ours)."""
+        if not names:
+            return set()
+        ours = set(self.processes()) | {self.me}
+        busy: set[str] = set()
+        for pid in _pids() - ours:
+            try:
+                maps = Path(f"/proc/{pid}/maps").read_text()
+            except OSError:
+                continue
+            busy |= {n for n in names if f"/dev/shm/{n}" in maps}
+        return busy
 
     def reclaim_dds(self) -> list[str]:
         """Remove the Fast DDS shared-memory objects this session created that no process maps
