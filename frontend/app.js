@@ -109,10 +109,16 @@ function drawStateMachine() {
 // ---- state ----------------------------------------------------------------------------------
 
 function applyState(s) {
+  const before = xrf.state;
   xrf.state = s;
   const name = $("state-name");
   name.textContent = s.name;
   name.classList.toggle("none", !s.active);
+  stripState(s.name, s.active ? (s.name === "RUN" ? "run" : "live") : (s.name === "CRASHED" ? "bad" : "none"));
+  // An accepted reset zeroes the setpoints on the appliance (api.py): show that here too.
+  if (s.active && s.name === "INITIALISING" && before.active && before.name !== "IDLE" && before.name !== "INITIALISING") {
+    showSetpoints(zeroed(xrf.appliedSetpoint));
+  }
   document.querySelectorAll("#state-machine .node").forEach((n) => n.classList.toggle("current", s.active && n.id === "node-" + s.name));
   const allowed = new Set(s.active ? s.allowed : []);
   document.querySelectorAll("#state-machine .edge").forEach((e) => {
@@ -128,6 +134,14 @@ function applyState(s) {
   }
   if (s.last_error) $("run-detail").dataset.error = s.last_error;
   updateRunSummary();
+}
+
+// The status strip's state badge (index.html, #strip-state): on every page, never scrolled away.
+function stripState(text, kind) {
+  const el = $("strip-state");
+  if (!el) return;
+  el.textContent = text;
+  el.className = "strip-state " + kind;
 }
 
 function sendCommand(cmd) {
@@ -169,10 +183,15 @@ async function loadBench() {
   try {
     const b = await api("GET", "/api/bench");
     xrf.benchSim = b.sim;
+    xrf.benchMode = b.mode;
     $("bench").textContent = b.mode === "sim" ? `simulated · ${b.sim}` : "real bench";
     $("bench").title = b.profile;
   } catch (e) { $("bench").textContent = "bench ?"; }
 }
+
+// The build of a run just started from anywhere (Projects, Editor, another tab): "Start run" here
+// then starts that build again, not the example picked before (issue 19).
+let wantBuild = null;
 
 async function loadBuilds() {
   const sel = $("build-select");
@@ -182,14 +201,23 @@ async function loadBuilds() {
   for (const b of builds) {
     const o = document.createElement("option");
     o.value = b.name;
-    o.textContent = `${b.name} (${b.kind}${b.status === "ready" ? "" : ", " + b.status})`;
+    if (b.kind === "project") {  // the newest successful build of each of the user's projects
+      o.textContent = `${b.label} (your project)`;
+      o.dataset.project = b.project_id;
+      o.dataset.build = b.build_id;
+    } else {
+      o.textContent = `${b.name} (${b.kind}${b.status === "ready" ? "" : ", " + b.status})`;
+    }
     sel.appendChild(o);
   }
-  // Keep the user's choice; else the build of the current run; else the example for this bench's plant.
+  // A run just started; else the user's choice; else the build of the current run; else the
+  // example for this bench's plant.
   const current = xrf.run && xrf.run.run && xrf.run.run.build;
   const plant = builds.find((b) => b.kind === "example" && b.name === xrf.benchSim);
-  const pick = keep || current || (plant && plant.name);
-  if (pick && builds.some((b) => b.name === pick)) sel.value = pick;
+  const has = (n) => n && builds.some((b) => b.name === n);
+  const pick = [wantBuild, keep, current, plant && plant.name].find(has);
+  if (has(wantBuild)) wantBuild = null;
+  if (pick) sel.value = pick;
 }
 
 async function startRun() {
@@ -197,10 +225,15 @@ async function startRun() {
   btn.disabled = true;
   $("run-detail").textContent = `Building and starting ${$("build-select").value}…`;
   try {
-    const body = { build: $("build-select").value };
+    const opt = $("build-select").selectedOptions[0];
+    const body = {};
     if ($("sim-select").value) body.sim = $("sim-select").value;
     if ($("log-timing").checked) body.log_timing = true;
-    await api("POST", "/api/runs", body);
+    if (opt && opt.dataset.project) {  // a project build runs as from the Projects page (linked to its build)
+      await api("POST", `/api/projects/${opt.dataset.project}/builds/${opt.dataset.build}/run`, body);
+    } else {
+      await api("POST", "/api/runs", { build: $("build-select").value, ...body });
+    }
   } catch (e) {
     $("run-detail").textContent = "Could not start: " + e.message;
     // Refused by the run sandbox (a protection layer missing, runs not allowed without it):
@@ -255,9 +288,21 @@ function applyRun(m) {
     $("run-detail").textContent = m.active ? `${what} · ${m.program || ""} · ${m.backend || ""}/${m.transport || ""}` : `${what}: ${r.message}`;
   }
   applyConfinement(m);
-  if (m.event === "ended" && !m.active) {
-    $("setpoints").querySelectorAll("input").forEach((i) => { i.disabled = true; });
+  if (r && !m.active && (m.event === "ended" || m.event === "current")) {
+    // The run is over (a crash included): no state message follows, so the state shown must not
+    // stay RUN (issue 19: the badge read RUN under a crash banner).
+    applyState({ state: 0, name: r.crashed ? "CRASHED" : "ENDED", allowed: [], active: false });
   }
+  if (r && !m.redacted && m.event === "started") {
+    wantBuild = r.build;
+    loadBuilds().catch(() => {});
+  }
+  if (m.event === "started") $("alarm").classList.add("hidden");  // the last run's alarm is history now
+  // The header's plant badge follows the run (a Jiwy run on a bench whose default is RELbot).
+  if (r && m.active && r.sim && xrf.benchMode === "sim") $("bench").textContent = `simulated · ${r.sim}`;
+  else if (xrf.benchMode === "sim") $("bench").textContent = `simulated · ${xrf.benchSim}`;
+  if (m.setpoint && !m.redacted) xrf.appliedSetpoint = { ...m.setpoint };
+  updateSetpointsEnabled();
   updateRunSummary();
   loadRuns().catch(() => {});
 }
@@ -318,6 +363,39 @@ function queueSetpoint(name, value) {
   }, 1000 / SETPOINT_HZ);
 }
 
+// What the appliance last applied (run message, acks): a refused change goes back to it.
+xrf.appliedSetpoint = {};
+
+function zeroed(sp) {
+  const out = {};
+  for (const [k, v] of Object.entries(sp || {})) out[k] = typeof v === "boolean" ? false : Array.isArray(v) ? v.map(() => 0) : 0;
+  return out;
+}
+
+// Put values into the controls (not sent: they are what the appliance has).
+function showSetpoints(values) {
+  for (const [k, v] of Object.entries(values || {})) {
+    if (Array.isArray(v)) continue;
+    const num = $("sp-" + k), range = $("sp-range-" + k);
+    if (num && num.type === "checkbox") num.checked = !!v;
+    else if (num) num.value = v;
+    if (range) range.value = v;
+  }
+  xrf.appliedSetpoint = { ...xrf.appliedSetpoint, ...values };
+}
+
+// Without the bench (a student who does not hold it, an observer) the controls are disabled: a
+// change would be refused, and a slider keeping a value never applied misleads (issue 19).
+function updateSetpointsEnabled() {
+  const live = !!(xrf.run && xrf.run.active && !xrf.run.redacted);
+  const may = xrf.mayDrive ? xrf.mayDrive() : true;
+  $("setpoints").querySelectorAll("input").forEach((i) => {
+    i.disabled = !live || !may;
+    i.title = live && !may ? "take the bench to move the setpoints" : "";
+  });
+}
+xrf.updateSetpointsEnabled = updateSetpointsEnabled;
+
 function buildSetpoints(fields, current) {
   const box = $("setpoints");
   box.innerHTML = "";
@@ -366,6 +444,8 @@ function buildSetpoints(fields, current) {
     row.appendChild(num);
     box.appendChild(row);
   }
+  xrf.appliedSetpoint = { ...current };
+  updateSetpointsEnabled();
 }
 
 // ---- plots ----------------------------------------------------------------------------------
@@ -439,6 +519,17 @@ function resizePlots() {
 
 function us(ns) { return ns === undefined ? "–" : (ns / 1000).toFixed(ns < 10000 ? 1 : 0) + " µs"; }
 
+// uPlot axis size (px) that fits the longest tick label, measured in the axis font, plus the
+// tick and the gap uPlot draws beside the labels.
+function axisWidth(u, values) {
+  if (!values || !values.length) return 40;
+  const ctx = axisWidth.ctx || (axisWidth.ctx = document.createElement("canvas").getContext("2d"));
+  ctx.font = (u.axes[1] && u.axes[1].font && u.axes[1].font[0]) || "12px system-ui, sans-serif";
+  const widest = Math.max(...values.map((v) => ctx.measureText(String(v)).width));
+  return Math.ceil(widest / devicePixelRatio) + 18;
+}
+xrf.axisWidth = axisWidth;
+
 function applyTiming(m) {
   const row = $("run-row-" + m.run_id);  // the live run's row: the stored record is written at its end
   if (row) {
@@ -461,7 +552,8 @@ function applyTiming(m) {
       plot: new uPlot({
         width: Math.max(200, el.clientWidth), height: 140, legend: { show: false },
         scales: { x: { time: false, distr: 3 }, y: { distr: 3 } },
-        axes: [{ size: 30 }, { size: 50 }],
+        // The y axis as wide as its widest label ("10,000" was clipped at a fixed 50 px: issue 19).
+        axes: [{ size: 30 }, { size: axisWidth }],
         series: [{}, { label: "cycles", stroke: "#1f6feb", fill: "rgba(31,111,235,.35)", paths: uPlot.paths.bars({ size: [0.9, 40] }), points: { show: false } }],
       }, [[], []], el),
       data: [[], []], dirty: false,
@@ -475,9 +567,20 @@ function applyTiming(m) {
 
 // ---- monitor, alarms ------------------------------------------------------------------------
 
+// Whether the monitor follows the newest line: set by the user's scrolling only. Measured at each
+// append instead, a hidden console (another page shown: every size 0) read as "at the bottom"
+// once and as "scrolled up" forever after (issue 19).
+let monitorFollow = true;
+
+function monitorScrolled() {
+  const pre = $("monitor");
+  if (pre.clientHeight === 0) return;  // hidden: not the user
+  monitorFollow = pre.scrollTop + pre.clientHeight >= pre.scrollHeight - 4;
+}
+
 function appendMonitor(lines, source) {
   const pre = $("monitor");
-  const atBottom = pre.scrollTop + pre.clientHeight >= pre.scrollHeight - 4;
+  const atBottom = monitorFollow;
   // monitor.printf text usually ends in its own newline; one line per entry here.
   const text = lines.map((l) => (source === "stdout" ? "│ " : "") + l.text.replace(/\n+$/, "")).join("\n") + "\n";
   pre.textContent += text;
@@ -486,18 +589,25 @@ function appendMonitor(lines, source) {
   if (atBottom) pre.scrollTop = pre.scrollHeight;
 }
 
+// The alarm slot of the status strip (fixed height: showing or hiding it never moves the page).
+// A crash or hang is not overwritten by a later deadline miss; a deadline miss stays up with its
+// count until dismissed or the next run starts, instead of coming and going every few seconds.
 function showAlarm(m) {
   const box = $("alarm");
+  const serious = ["crash", "hang", "confinement", "log"];
+  if (m.kind === "deadline_miss" && !box.classList.contains("hidden") && serious.includes(box.dataset.kind)) return;
   box.classList.toggle("warn", m.kind === "deadline_miss");
   const prefix = { crash: "Loop crashed: ", hang: "Loop hung: ", log: "Logging stopped: ", deadline_miss: "Timing: ",
     confinement: "Run sandbox: " };
-  $("alarm-text").textContent = (prefix[m.kind] || "") + m.message;
+  let text = (prefix[m.kind] || "") + m.message;
+  if (m.kind === "deadline_miss") {
+    showAlarm.misses = (box.dataset.kind === "deadline_miss" && !box.classList.contains("hidden") ? showAlarm.misses || 0 : 0) + 1;
+    if (showAlarm.misses > 1) text += ` (${showAlarm.misses} alarms, last at ${new Date().toLocaleTimeString()})`;
+  }
+  $("alarm-text").textContent = text;
+  box.title = text;
   box.dataset.kind = m.kind;
   box.classList.remove("hidden");
-  if (m.kind === "deadline_miss") {
-    clearTimeout(showAlarm.timer);
-    showAlarm.timer = setTimeout(() => { if (box.dataset.kind === "deadline_miss") box.classList.add("hidden"); }, 5000);
-  }
 }
 
 // ---- pages ----------------------------------------------------------------------------------
@@ -553,7 +663,10 @@ function route() {
     }
   }
   highlightNav();
-  if (target === "bench") resizePlots();
+  if (target === "bench") {
+    resizePlots();
+    if (monitorFollow) $("monitor").scrollTop = $("monitor").scrollHeight;
+  }
 }
 
 // ---- the WebSocket --------------------------------------------------------------------------
@@ -587,8 +700,17 @@ function connect() {
         } else showAlarm(m);
         break;
       case "build": if (m.line) appendMonitor([{ text: m.line }], "stdout"); else loadBuilds().catch(() => {}); break;
-      case "ack": if (m.accepted === false) applyState({ ...xrf.state }); break;
-      case "error": appendMonitor([{ text: "! " + m.error }], "error"); break;
+      case "ack":
+        if (m.accepted === false) applyState({ ...xrf.state });
+        if (m.setpoint) xrf.appliedSetpoint = { ...m.setpoint };
+        break;
+      case "error":
+        appendMonitor([{ text: "! " + m.error }], "error");
+        if (m.request === "setpoint") {  // refused (no bench, a bad value): back to what is applied
+          showSetpoints(xrf.appliedSetpoint);
+          if (xrf.notice) xrf.notice("Setpoint not applied: " + m.error, 6000);
+        }
+        break;
     }
   };
 }
@@ -607,6 +729,40 @@ function onKey(ev) {
   if (cmd && xrf.state.allowed.includes(cmd)) sendCommand(cmd);
 }
 
+// Esc inside an embedded frame (the 3D view, the rerun viewer: same origin, through the
+// appliance) never reached this page's listener: the frame's own window gets the key (issue 19).
+// Every iframe of the page, now or later, gets the same Esc handler on each document it loads.
+function frameKey(ev) {
+  if (ev.key !== "Escape") return;  // only Esc: letters typed into a viewer are the viewer's
+  ev.preventDefault();
+  emergencyStop();
+}
+
+function hookFrame(frame) {
+  const hook = () => {
+    try {
+      const w = frame.contentWindow;
+      if (w && !w.__xrfEsc) { w.__xrfEsc = true; w.addEventListener("keydown", frameKey, true); }
+    } catch (e) { /* another origin: not ours to listen to */ }
+  };
+  if (frame.__xrfHooked) return;
+  frame.__xrfHooked = true;
+  frame.addEventListener("load", hook);
+  hook();
+}
+xrf.hookFrame = hookFrame;
+
+function watchFrames() {
+  document.querySelectorAll("iframe").forEach(hookFrame);
+  new MutationObserver((changes) => {
+    for (const c of changes) for (const n of c.addedNodes) {
+      if (n.nodeType !== 1) continue;
+      if (n.tagName === "IFRAME") hookFrame(n);
+      else n.querySelectorAll && n.querySelectorAll("iframe").forEach(hookFrame);
+    }
+  }).observe(document.body, { childList: true, subtree: true });
+}
+
 // ---- start ----------------------------------------------------------------------------------
 
 function init() {
@@ -621,7 +777,10 @@ function init() {
   $("btn-estop").addEventListener("click", emergencyStop);
   $("btn-start-run").addEventListener("click", startRun);
   $("btn-end-run").addEventListener("click", endRun);
-  $("btn-clear").addEventListener("click", () => { $("monitor").textContent = ""; });
+  $("btn-clear").addEventListener("click", () => { $("monitor").textContent = ""; monitorFollow = true; });
+  $("monitor").addEventListener("scroll", monitorScrolled);
+  watchFrames();
+  xrf.on("lease", () => setTimeout(updateSetpointsEnabled));  // after lease.js has the new holder
   $("alarm-close").addEventListener("click", () => $("alarm").classList.add("hidden"));
   $("rejected").addEventListener("click", () => { xrf.dismissedReject = xrf.state.rejected && xrf.state.rejected.ticket; $("rejected").classList.add("hidden"); });
   document.addEventListener("keydown", onKey, true);

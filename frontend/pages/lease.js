@@ -29,7 +29,9 @@
     leave: el("button", { id: "btn-lease-leave", type: "button", class: "secondary" }, "Leave queue"),
   };
   Object.values(buttons).forEach((b) => { b.classList.add("hidden"); box.append(b); });
-  bar.insertBefore(box, spacer);
+  // In the status strip (index.html), beside the state and the alarm: one line that never moves.
+  const strip = $("status-strip");
+  if (strip) strip.append(box); else bar.insertBefore(box, spacer);
 
   const me = el("div", { id: "me", class: "me" });
   const meName = el("span", { id: "me-name" }, "");
@@ -43,7 +45,7 @@
   const noticeClose = el("button", { "aria-label": "dismiss", type: "button" }, "×");
   notice.append(noticeText, noticeClose);
   noticeClose.addEventListener("click", () => notice.classList.add("hidden"));
-  bar.after(notice);
+  bar.append(notice);  // floats under the sticky bar (style.css): shown or hidden, the page stays put
 
   function say(text, ms) {
     noticeText.textContent = text;

@@ -58,9 +58,21 @@
   }
 
   async function select(pid) {
+    if (P.current !== pid) {
+      // Another project: nothing of the previous one's build may stay on screen (issue 19: project
+      // A showed project B's compile error and source).
+      P.shownBuild = null;
+      q("proj-build-title").textContent = "Build output";
+      q("proj-build-title").className = "";
+      q("proj-diags").textContent = "";
+      q("proj-log").textContent = "";
+      q("proj-source").textContent = "";
+      q("proj-source").classList.add("hidden");
+    }
     P.current = pid;
     document.querySelectorAll("#proj-list li").forEach((li) => li.classList.toggle("current", Number(li.dataset.id) === pid));
     const d = await xrf.api("GET", `/api/projects/${pid}`);
+    if (P.current !== pid) return;  // another project was picked meanwhile
     P.detail = d;
     q("proj-detail").classList.remove("hidden");
     q("proj-name").textContent = `${d.name} (#${d.id})`;
@@ -120,13 +132,16 @@
 
   async function showBuild(bid) {
     P.shownBuild = bid;
+    const pid = P.current;
     document.querySelectorAll("#proj-builds tr").forEach((tr) => tr.classList.toggle("current", Number(tr.dataset.build) === bid));
-    const b = await xrf.api("GET", `/api/projects/${P.current}/builds/${bid}`);
+    const b = await xrf.api("GET", `/api/projects/${pid}/builds/${bid}`);
+    if (P.current !== pid || P.shownBuild !== bid) return;  // answers for a project no longer shown
     q("proj-build-title").textContent = `Build #${b.id}: ${b.status}` + (b.result ? ` — ${b.result}` : "");
     q("proj-build-title").className = "st-" + b.status;
     if (b.status === "ok" || b.status === "failed") {
-      const res = await fetch(`/api/projects/${P.current}/builds/${bid}/log`);
+      const res = await fetch(`/api/projects/${pid}/builds/${bid}/log`);
       P.logs[bid] = (await res.text()).split("\n");
+      if (P.current !== pid || P.shownBuild !== bid) return;
     }
     q("proj-log").textContent = (P.logs[bid] || []).join("\n");
     q("proj-log").scrollTop = 1e9;
@@ -148,8 +163,10 @@
 
   async function showSource(path, line) {
     const box = q("proj-source");
+    const pid = P.current;
     try {
-      const ex = await xrf.api("GET", `/api/projects/${P.current}/source?path=${encodeURIComponent(path)}` + (line ? `&line=${line}&context=6` : ""));
+      const ex = await xrf.api("GET", `/api/projects/${pid}/source?path=${encodeURIComponent(path)}` + (line ? `&line=${line}&context=6` : ""));
+      if (P.current !== pid) return;
       box.textContent = "";
       box.append(el("div", { class: "src-title", text: ex.path }));
       const pre = el("pre", { class: "src" });

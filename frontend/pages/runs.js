@@ -2,7 +2,8 @@
 // written, a "lost: N" badge that is normally 0, the note when logging stopped), each log file
 // downloadable as the raw file, CSV, MAT, Parquet and rerun .rrd, and the rerun web viewer
 // (served by the appliance under /rerun/) showing the live run (through the appliance's login, from
-// any address) or a finished run's .rrd.
+// any address) or a finished run's .rrd. The viewer (a 43 MB wasm, 14 MB compressed) is loaded only
+// when asked for ("Live plots", "Open in rerun"): not to download a CSV.
 "use strict";
 (function () {
   const REFRESH_MS = 2000;
@@ -39,10 +40,12 @@
         <div id="rl-files"></div>
       </section>
       <section class="panel wide" id="panel-rerun">
-        <h2>Plots (rerun) <span class="muted small" id="rr-what">–</span>
-          <button id="rr-live" class="secondary small">Live run</button></h2>
+        <h2>Plots (rerun) <span class="muted small" id="rr-what">not loaded</span>
+          <button id="rr-live" class="secondary small">Live plots</button></h2>
         <div class="rejected hidden" id="rr-message" role="status"></div>
-        <iframe id="rr-frame" title="rerun viewer" class="rerun-frame"></iframe>
+        <div class="muted small" id="rr-hint">The rerun viewer loads when you ask for it: <b>Live plots</b> for the
+          running run, <b>Open in rerun</b> on a log file.</div>
+        <iframe id="rr-frame" title="rerun viewer" class="rerun-frame hidden"></iframe>
       </section>`;
     el.querySelector("#rr-live").addEventListener("click", () => openLive(el));
   }
@@ -60,33 +63,43 @@
     try { runs = await xrf.api("GET", "/api/logs/runs?limit=200"); } catch (e) { return; }
     xrf.runsList = runs;  // test hook
     const body = el.querySelector("#runs-list");
-    body.textContent = "";
-    for (const r of runs) {
-      const tr = document.createElement("tr");
-      tr.id = "runs-row-" + r.id;
-      tr.className = (r.id === selected ? "selected " : "") + (r.live ? "live" : "");
+    // Rows are updated in place, never rebuilt: a table rebuilt every 2 s swallowed clicks (the
+    // row under the mouse was replaced between press and release: issue 19).
+    const old = new Map([...body.children].map((tr) => [tr.id, tr]));
+    runs.forEach((r, k) => {
+      const id = "runs-row-" + r.id;
+      const tr = old.get(id) || document.createElement("tr");
+      old.delete(id);
+      tr.id = id;
+      const className = (r.id === selected ? "selected " : "") + (r.live ? "live" : "");
+      if (tr.className !== className) tr.className = className;
       const status = r.status + xrf.endReason(r) + (r.live ? " · live" : "");
       const cells = [r.id, r.owner || "–", when(r.started), r.build, dur(r.duration_s), status,
         num(r.cycles), num(r.misses), num(r.log_records)];
+      while (tr.children.length < cells.length + 1) tr.appendChild(document.createElement("td"));
       cells.forEach((c, i) => {
-        const td = document.createElement("td");
-        td.textContent = c;
-        if (i === 5 && r.crashed) td.className = "crashed";
-        if (i === 7 && r.misses > 0) td.className = "warn-text";
-        tr.appendChild(td);
+        const td = tr.children[i];
+        if (td.textContent !== String(c)) td.textContent = c;
+        const cls = i === 5 && r.crashed ? "crashed" : i === 7 && r.misses > 0 ? "warn-text" : "";
+        if (td.className !== cls) td.className = cls;
       });
-      const td = document.createElement("td");
-      td.appendChild(lostBadge(r.log_lost));
-      if (r.log_note) {
-        const w = document.createElement("span");
-        w.className = "log-note"; w.textContent = "⚠"; w.title = r.log_note;
-        td.appendChild(w);
+      const key = `${r.log_lost}|${r.log_note || ""}`;
+      const td = tr.children[cells.length];
+      if (td.dataset.key !== key) {
+        td.dataset.key = key;
+        td.textContent = "";
+        td.appendChild(lostBadge(r.log_lost));
+        if (r.log_note) {
+          const w = document.createElement("span");
+          w.className = "log-note"; w.textContent = "⚠"; w.title = r.log_note;
+          td.appendChild(w);
+        }
       }
-      tr.appendChild(td);
       tr.title = r.log_note || r.message;
-      tr.addEventListener("click", () => select(el, r.id));
-      body.appendChild(tr);
-    }
+      if (!tr.dataset.wired) { tr.dataset.wired = "1"; tr.addEventListener("click", () => select(el, r.id)); }
+      if (body.children[k] !== tr) body.insertBefore(tr, body.children[k] || null);
+    });
+    for (const tr of old.values()) tr.remove();
   }
 
   async function select(el, id) {
@@ -145,10 +158,16 @@
 
   // live: the run whose live stream the frame shows (null: a finished run's .rrd or nothing).
   let liveShown = null;
+  // What the user asked for last, counted: an answer to an older request (the 2 s poll following
+  // the live stream, a slow "Live plots") never overrides a newer click such as "Open in rerun"
+  // (issue 19: a finished run's plots flipped back to the live stream).
+  let asked = 0;
 
   function show(el, url, what, reload) {
     const frame = el.querySelector("#rr-frame");
     const src = "/rerun/?url=" + encodeURIComponent(url);
+    frame.classList.remove("hidden");
+    el.querySelector("#rr-hint").classList.add("hidden");
     if (frame.getAttribute("src") !== src) frame.setAttribute("src", src);
     else if (reload && frame.contentWindow) frame.contentWindow.location.reload();
     el.querySelector("#rr-what").textContent = what;
@@ -156,9 +175,10 @@
 
   // The live stream comes through the appliance's own origin (its gRPC-web read proxy, behind the
   // login), from the Pi itself and from the LAN alike; only the run's owner and educators see it.
-  async function openLive(el) {
+  async function openLive(el, mine) {
+    const ask = mine === undefined ? ++asked : mine;
     const info = await rerunInfo(el);
-    if (!info.available) return;
+    if (ask !== asked || !info.available) return;
     const msg = el.querySelector("#rr-message");
     if (!info.live_url) {
       liveShown = null;
@@ -175,16 +195,19 @@
   // A new run replaces the live stream: a frame showing the previous one follows it.
   async function followLive(el) {
     if (liveShown === null) return;
+    const ask = asked;
     let info;
     try { info = await xrf.api("GET", "/api/logs/rerun"); } catch (e) { return; }
-    if (info.live_run !== liveShown || !info.live_url) openLive(el);
+    if (ask !== asked || liveShown === null) return;  // the user opened something else meanwhile
+    if (info.live_run !== liveShown || !info.live_url) openLive(el, ask);
     else el.querySelector("#rr-what").textContent = `live: run ${info.live_run}` + (info.live_running ? "" : " (ended)");
   }
 
   async function openRrd(el, id, path) {
-    const info = await rerunInfo(el);
-    if (!info.available) return;
+    const ask = ++asked;
     liveShown = null;
+    const info = await rerunInfo(el);
+    if (ask !== asked || !info.available) return;
     show(el, location.origin + path, `run ${id} (.rrd)`);
   }
 
@@ -202,7 +225,6 @@
     show(el) {
       loadList(el);
       if (selected) select(el, selected);
-      if (!el.querySelector("#rr-frame").getAttribute("src")) openLive(el);
       clearInterval(timer);
       timer = setInterval(() => {
         if (el.classList.contains("hidden")) { clearInterval(timer); timer = null; return; }

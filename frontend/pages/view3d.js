@@ -5,7 +5,7 @@
 "use strict";
 (function () {
   const STATE_HZ = 4;  // numbers under the view; the scene itself updates at 30 Hz inside viser
-  let timer = null, info = null, el0 = null, seeking = false;
+  let timer = null, info = null, el0 = null, seeking = false, holdMessage = 0;
 
   const deg = (r) => (r * 180 / Math.PI).toFixed(1) + "°";
 
@@ -59,8 +59,10 @@
     $("v3d-mode").textContent = s.mode === "replay" ? `replay of run ${s.run_id}`
       : s.mode === "live" ? `live: run ${s.run_id}${s.active ? "" : " (ended)"}` : "no run yet";
     const msg = $("v3d-message");
-    msg.textContent = s.message || "";
-    msg.classList.toggle("hidden", !s.message);
+    if (Date.now() > holdMessage) {  // a refusal stays readable for a while
+      msg.textContent = s.message || "";
+      msg.classList.toggle("hidden", !s.message);
+    }
     let v = "–";
     if (s.joints) {
       v = `pan ${deg(s.joints.pan)} · tilt ${deg(s.joints.tilt)}`;
@@ -84,11 +86,19 @@
   function wire(el) {
     const $ = (id) => el.querySelector("#" + id);
     $("v3d-reset").addEventListener("click", () => xrf.api("POST", "/api/viz/reset-odometry").catch(() => {}));
+    // A refusal is said on the page (not an alert, not nothing): replay and live switch the scene
+    // every viewer sees, so they need the bench, which its holder now keeps after a run (lease.py).
+    const refused = (e) => {
+      const msg = $("v3d-message");
+      msg.textContent = (e.status === 403 ? "Replay and live need the bench: " : "") + (e.message || e);
+      msg.classList.remove("hidden");
+      holdMessage = Date.now() + 8000;
+    };
     $("v3d-replay").addEventListener("click", async () => {
       const id = $("v3d-runs").value;
-      if (id) await xrf.api("POST", "/api/viz/replay", { run_id: +id }).catch((e) => alert(e.message || e));
+      if (id) await xrf.api("POST", "/api/viz/replay", { run_id: +id }).then(() => poll(el)).catch(refused);
     });
-    $("v3d-live").addEventListener("click", () => xrf.api("POST", "/api/viz/live").catch(() => {}));
+    $("v3d-live").addEventListener("click", () => xrf.api("POST", "/api/viz/live").then(() => poll(el)).catch(refused));
     let pending = null;
     $("v3d-slider").addEventListener("input", (ev) => {
       seeking = true;

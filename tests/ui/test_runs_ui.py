@@ -52,6 +52,8 @@ def test_runs_page_lists_runs_and_downloads_a_csv(server: Server, browser, tmp_p
     name = info["files"][0]["name"]
 
     page = browser.new_page(accept_downloads=True)
+    requested: list[str] = []
+    page.on("request", lambda r: requested.append(r.url))
     page.goto(server.url + "/#runs")
     row = page.locator(f"#runs-row-{run['id']}")
     row.wait_for(timeout=15000)
@@ -73,7 +75,11 @@ def test_runs_page_lists_runs_and_downloads_a_csv(server: Server, browser, tmp_p
                     "--to", "csv", "-o", str(want)], check=True, env=env, capture_output=True)
     assert got.read_bytes() == want.read_bytes()
     assert got.read_text().count("\n") == info["files"][0]["records"] + 1
-    # The rerun viewer is embedded from the appliance (not a CDN), its live stream on this origin.
+    # The rerun viewer is loaded only when asked for (not to download a CSV)...
+    assert not page.locator("#rr-frame").get_attribute("src")
+    assert not [u for u in requested if "/rerun/" in u], requested
+    # ...embedded from the appliance (not a CDN), its live stream on this origin.
+    page.click("#rr-live")
     page.wait_for_function("(document.querySelector('#rr-frame').getAttribute('src') || '').length > 0")
     src = page.locator("#rr-frame").get_attribute("src")
     port = server.url.rsplit(":", 1)[1]
@@ -118,6 +124,7 @@ def test_live_plots_from_the_lan_address(server: Server, raw_browser) -> None:
         cdp.on("Network.responseReceived", on_response)
         cdp.on("Network.dataReceived", on_data)
         page.goto(url + "/#runs")
+        page.click("#rr-live")
         page.wait_for_function("(document.querySelector('#rr-frame').getAttribute('src') || '').includes('proxy')")
         src = page.locator("#rr-frame").get_attribute("src")
         assert src == "/rerun/?url=" + quote(f"rerun+{url}/proxy", safe="")

@@ -39,11 +39,15 @@ class BenchInfo(BaseModel):
 
 class BuildInfo(BaseModel):
     name: str
-    kind: Literal["example", "template"]
+    kind: Literal["example", "template", "project"]
     path: str
     sim: str = Field(description="plant a run of this build simulates by default")
     status: Literal["not built", "building", "ready", "failed"]
     error: str = ""
+    label: str = Field(default="", description="project builds: '<project name> #<build id>'")
+    project_id: int | None = Field(default=None, description="project builds: start them with "
+                                   "POST /api/projects/{project_id}/builds/{build_id}/run")
+    build_id: int | None = None
 
 
 class RunRecord(BaseModel):
@@ -124,10 +128,38 @@ async def get_status(request: Request) -> dict[str, Any]:
 
 @router.get("/builds", response_model=list[BuildInfo], dependencies=[requires(Perm.WATCH)])
 async def get_builds(request: Request) -> list[dict[str, Any]]:
-    return [
+    """The bundled examples and templates, then the newest successful build of each of the
+    requester's own projects (the Bench page offered only the examples, so "Start run" there
+    started an example after a student had run their own project: issue 19)."""
+    out = [
         {"name": e.name, "kind": e.kind, "path": str(e.path), "sim": e.sim, "status": e.status, "error": e.error}
         for e in _supervisor(request).catalog.entries()
     ]
+    return out + await _own_project_builds(request)
+
+
+async def _own_project_builds(request: Request) -> list[dict[str, Any]]:
+    from pathlib import Path
+
+    from .routes_projects import _service
+
+    user = ownership.user_of(request)
+    if user is None or user.role == "observer":
+        return []
+    svc = await _service(request)
+
+    def newest() -> list[dict[str, Any]]:
+        found = []
+        for p in svc.store.projects(owner=user.username):
+            b = next((b for b in svc.store.builds(p.id, limit=20)
+                      if b.status == "ok" and b.executable and Path(b.executable).exists()), None)
+            if b is not None:
+                found.append({"name": f"project-{p.id}-build-{b.id}", "kind": "project", "path": "",
+                              "sim": svc.settings.sim, "status": "ready", "error": "",
+                              "label": f"{p.name} #{b.id}", "project_id": p.id, "build_id": b.id})
+        return found
+
+    return await asyncio.to_thread(newest)
 
 
 @router.post("/runs", response_model=RunRecord, status_code=201, dependencies=[requires(Perm.DRIVE)])
@@ -183,6 +215,7 @@ async def command(body: CommandRequest, request: Request, user: User = Depends(c
         result = await _supervisor(request).command(body.cmd)
         audit.record(user, "command", {"cmd": name, "accepted": result.accepted, "via": "http"},
                      client_address(request))
+        _zero_setpoints_after_reset(_supervisor(request), name, result.accepted)
     except SupervisorError as exc:
         raise _http(exc) from None
     except ValueError as exc:
@@ -191,6 +224,21 @@ async def command(body: CommandRequest, request: Request, user: User = Depends(c
         raise HTTPException(status_code=503, detail=str(exc)) from None
     return {"ticket": result.ticket, "accepted": result.accepted, "state": result.state,
             "state_name": result.state_name, "reason": result.reason}
+
+
+def _zero_setpoints_after_reset(sup: Supervisor, name: str, accepted: bool) -> None:
+    """An accepted reset starts the controller over, so its setpoints start over too (zero,
+    false): with the old ones kept, the robot jumped straight back to them at the next start
+    (issue 19). Every dashboard shows zeros after a reset (app.js)."""
+    if name != "reset" or not accepted:
+        return
+    run = sup.current
+    if run is None or not run.setpoint:
+        return
+    zeros = {k: (False if isinstance(v, bool) else [0 for _ in v] if isinstance(v, list) else 0)
+             for k, v in run.setpoint.items()}
+    with contextlib.suppress(SupervisorError, ValueError, chmod.ChannelsError):
+        sup.setpoint(zeros)
 
 
 @router.get("/runs", response_model=list[RunRecord], dependencies=[requires(Perm.WATCH)])
@@ -322,6 +370,7 @@ async def _handle(text: str, client: Client, sup: Supervisor) -> None:
             result = await sup.command(cmd)
             audit.record(user, "command", {"cmd": name, "accepted": result.accepted, "via": "ws"},
                          client_address(client.ws))
+            _zero_setpoints_after_reset(sup, name, result.accepted)
             client.reply("ack", {"id": ref, "cmd": cmd, "ticket": result.ticket, "accepted": result.accepted,
                                  "state": result.state, "name": result.state_name, "reason": result.reason})
         elif kind == "setpoint":

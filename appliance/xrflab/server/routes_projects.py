@@ -184,6 +184,7 @@ class FromTemplate(BaseModel):
 class RunBuild(BaseModel):
     sim: Literal["relbot", "jiwy"] | None = None
     max_cycles: int | None = Field(default=None, ge=1)
+    log_timing: bool = Field(default=False, description="as POST /api/runs (the Bench page starts project builds here)")
 
 
 class Excerpt(BaseModel):
@@ -573,6 +574,8 @@ async def run_build(pid: int, bid: int, body: RunBuild, request: Request) -> dic
     params = inspect.signature(sup.start_run).parameters
     if "owner" in params:
         kwargs["owner"] = project.owner
+    if body.log_timing and "log_timing" in params:
+        kwargs["log_timing"] = True
     try:
         row = await sup.start_run(name, body.sim, body.max_cycles, **kwargs)
     except SupervisorError as exc:
