@@ -118,3 +118,167 @@ def bench_endpoint(files: BrokerFiles, name: str, password: str, tls: bool = Fal
 
 
 __all__ = ["Recorder", "broker_files", "start_broker", "room_endpoint", "bench_endpoint", "free_port", "topics"]
+
+
+# ---- a room and its benches -----------------------------------------------------------------------
+
+import os  # noqa: E402
+import shutil  # noqa: E402
+import signal  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+
+import httpx  # noqa: E402
+
+from harness import ADMIN_PASSWORD, HERE as APPLIANCE_TESTS, REPO_ROOT, Server, login_client  # noqa: E402
+
+
+def netns_possible() -> bool:
+    """Benches as separate hosts (a network namespace each, a veth to this one) need root and `ip`."""
+    if os.geteuid() != 0 or not shutil.which("ip"):
+        return False
+    probe = f"xrf21probe{os.getpid()}"
+    ok = subprocess.run(["ip", "netns", "add", probe], capture_output=True).returncode == 0
+    subprocess.run(["ip", "netns", "del", probe], capture_output=True)
+    return ok
+
+
+class Topology:
+    """Where benches live. `netns`: bench i is a host of its own (namespace, veth, 10.211.i.2) that
+    reaches the broker at 10.211.0.1 (an address of this host); cut = its interface down. Else all on
+    loopback with their own ports; cut = the appliance stopped (SIGSTOP: silent as a pulled cable)."""
+
+    BROKER_ADDR = "10.211.0.1"
+
+    def __init__(self, n: int) -> None:
+        self.netns = netns_possible()
+        self.n = n
+        self.tag = f"{os.getpid() % 100000}"
+        self.created: list[str] = []
+        if self.netns:
+            run = lambda *a: subprocess.run(a, check=True, capture_output=True)  # noqa: E731
+            run("ip", "addr", "add", f"{self.BROKER_ADDR}/32", "dev", "lo")
+            for i in range(1, n + 1):
+                ns, host_if = self.ns(i), f"x{self.tag}h{i}"
+                run("ip", "netns", "add", ns)
+                self.created.append(ns)
+                run("ip", "link", "add", host_if, "type", "veth", "peer", "name", "eth0", "netns", ns)
+                run("ip", "addr", "add", f"10.211.{i}.1/30", "dev", host_if)
+                run("ip", "link", "set", host_if, "up")
+                run("ip", "-n", ns, "addr", "add", f"10.211.{i}.2/30", "dev", "eth0")
+                run("ip", "-n", ns, "link", "set", "lo", "up")
+                run("ip", "-n", ns, "link", "set", "eth0", "up")
+                run("ip", "-n", ns, "route", "add", "default", "via", f"10.211.{i}.1")
+
+    @property
+    def mode(self) -> str:
+        return "network namespaces" if self.netns else "ports on loopback"
+
+    def ns(self, i: int) -> str:
+        return f"xrf21-{self.tag}-{i}"
+
+    @property
+    def broker_host(self) -> str:
+        return self.BROKER_ADDR if self.netns else "127.0.0.1"
+
+    def bench_host(self, i: int) -> str:
+        return f"10.211.{i}.2" if self.netns else "127.0.0.1"
+
+    def prefix(self, i: int) -> list[str]:
+        return ["ip", "netns", "exec", self.ns(i)] if self.netns else []
+
+    def cut(self, i: int, server: Server) -> None:
+        if self.netns:
+            subprocess.run(["ip", "-n", self.ns(i), "link", "set", "eth0", "down"], check=True)
+        else:
+            os.kill(server.proc.pid, signal.SIGSTOP)
+
+    def heal(self, i: int, server: Server) -> None:
+        if self.netns:
+            subprocess.run(["ip", "-n", self.ns(i), "link", "set", "eth0", "up"], check=True)
+            subprocess.run(["ip", "-n", self.ns(i), "route", "replace", "default", "via", f"10.211.{i}.1"], check=True)
+        else:
+            os.kill(server.proc.pid, signal.SIGCONT)
+
+    def close(self) -> None:
+        for ns in self.created:
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True)  # its veth goes with it
+        if self.netns:
+            subprocess.run(["ip", "addr", "del", f"{self.BROKER_ADDR}/32", "dev", "lo"], capture_output=True)
+
+
+def start_bench(topo: Topology, i: int, data_dir: Path, builds_root: Path) -> Server:
+    """An appliance as harness.start_server starts one, inside bench i's namespace when there is one."""
+    host = topo.bench_host(i)
+    port = 8000 if topo.netns else free_port()
+    config = {"data_dir": str(data_dir), "builds_root": str(builds_root), "port": port, "host": host,
+              "real_bench": False}
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO_ROOT / "appliance"), str(APPLIANCE_TESTS)]),
+               XRF_BOOTSTRAP_ADMIN_PASSWORD=ADMIN_PASSWORD)
+    proc = subprocess.Popen([*topo.prefix(i), sys.executable, str(APPLIANCE_TESTS / "serve_for_test.py"),
+                             json.dumps(config)], env=env)
+    url = f"http://{host}:{port}"
+    _wait_http(url, proc)
+    return Server(url, f"ws://{host}:{port}/ws", proc, data_dir, login_client(url, "admin", ADMIN_PASSWORD))
+
+
+def _wait_http(url: str, proc: subprocess.Popen[bytes], timeout: float = 30) -> None:
+    deadline = time.monotonic() + timeout
+    with httpx.Client(base_url=url, timeout=5) as probe:
+        while True:
+            try:
+                if probe.get("/api/health").status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            if proc.poll() is not None or time.monotonic() > deadline:
+                proc.kill()
+                raise RuntimeError(f"{url} did not start (exit {proc.poll()})")
+            time.sleep(0.1)
+
+
+@dataclass
+class RoomServer:
+    url: str
+    proc: subprocess.Popen[bytes]
+    data_dir: Path
+    http: httpx.Client
+
+    def stop(self) -> None:
+        self.http.close()
+        self.proc.terminate()
+        try:
+            self.proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+
+ROOM_RUNNER = """
+import json, sys, uvicorn
+from pathlib import Path
+from xrflab.room.service import RoomConfig, create_room_app
+c = json.loads(sys.argv[1]); c["data_dir"] = Path(c["data_dir"])
+uvicorn.run(create_room_app(RoomConfig(**c)), host=c["host"], port=c["port"], log_level="warning")
+"""
+
+
+def start_room(data_dir: Path, files: BrokerFiles, **config: Any) -> RoomServer:
+    port = free_port()
+    cfg = {"data_dir": str(data_dir), "host": "127.0.0.1", "port": port, "broker_names": files.names,
+           "broker_port": files.port, "broker_tls_port": files.tls_port, "broker_bind": files.bind,
+           "spawn_broker": False, **config}
+    env = dict(os.environ, PYTHONPATH=str(REPO_ROOT / "appliance"), XRF_BOOTSTRAP_ADMIN_PASSWORD=ADMIN_PASSWORD)
+    proc = subprocess.Popen([sys.executable, "-c", ROOM_RUNNER, json.dumps(cfg)], env=env)
+    url = f"http://127.0.0.1:{port}"
+    _wait_http(url, proc)
+    return RoomServer(url, proc, data_dir, login_client(url, "admin", ADMIN_PASSWORD))
+
+
+def join(room: RoomServer, name: str, data_dir: Path, dashboard_url: str) -> subprocess.CompletedProcess[str]:
+    """`xrf room join` as an educator would run it on the bench, with a fresh code from the room."""
+    code = room.http.post("/api/room/join-codes").json()["code"]
+    return subprocess.run([sys.executable, "-m", "xrflab.cli", "room", "join", room.url, code, "--name", name,
+                           "--data", str(data_dir), "--url", dashboard_url], capture_output=True, text=True,
+                          timeout=60, env=dict(os.environ, PYTHONPATH=str(REPO_ROOT / "appliance")))

@@ -191,7 +191,9 @@ async def room_sso(request: Request, token: str = Query("", max_length=1000)) ->
     except SsoError as exc:
         return HTMLResponse(str(exc), status_code=403)
     user = security.accounts.by_name(username)
-    if user is None or user.disabled:
+    # only the room's own accounts: a bench account of the same name (its local admin) is not the room's
+    owned = link.accounts is not None and username in link.accounts.state.get("owned", [])
+    if user is None or user.disabled or not owned:
         audit.record(None, "auth.failed", {"username": username[:64], "via": "room"}, client_address(request))
         return HTMLResponse("invalid sign-on link", status_code=403)
     token_, csrf = security.accounts.new_session(user, client_address(request))

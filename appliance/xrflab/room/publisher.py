@@ -153,8 +153,8 @@ class BenchPublisher:
         else:
             self._status_pending = self._loop.call_later(wait, self.publish_status)
 
-    def event(self, kind: str, **fields: Any) -> None:
-        payload = {"kind": kind, **fields, "name": self.name, "boot": self.boot, "seq": self._next_seq(), "t": time.time()}
+    def event(self, kind: str, /, **fields: Any) -> None:
+        payload = {**fields, "kind": kind, "name": self.name, "boot": self.boot, "seq": self._next_seq(), "t": time.time()}
         data = json.dumps(payload, default=str).encode()
         with self._lock:
             if len(self._events) >= self.queue_max:
@@ -200,7 +200,7 @@ class BenchPublisher:
                 return  # our own message to the dashboards, not the bench's
             alarm = {"kind": payload.get("kind", ""), "message": str(payload.get("message", ""))[:300], "t": time.time()}
             s["alarms"] = [*s.get("alarms", []), alarm][-MAX_ALARMS:]
-            self.event("alarm", **alarm)
+            self.event("alarm", alarm=alarm["kind"], message=alarm["message"], run_id=payload.get("run_id"))
             self.status_changed()
         elif kind == "lease":
             holder = payload.get("holder")
@@ -210,8 +210,8 @@ class BenchPublisher:
             report = payload.get("report") or {}
             verdict = report.get("verdict") or ("error" if payload.get("message") else "")
             s["selfcheck"] = {"verdict": verdict, "t": time.time(), "check": payload.get("check"),
-                              "name": payload.get("name", ""), "message": str(payload.get("message", ""))[:300]}
-            self.event("selfcheck", **s["selfcheck"])
+                              "report": payload.get("name", ""), "message": str(payload.get("message", ""))[:300]}
+            self.event("selfcheck", verdict=verdict, check=payload.get("check"), report=payload.get("name", ""))
             self.status_changed()
 
     # -- paho's thread --------------------------------------------------------------------------

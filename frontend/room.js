@@ -1,0 +1,115 @@
+// The room page: one tile per bench, fed by /api/room/ws; alarms first, then offline benches.
+// Everything it loads comes from the room itself (nothing from the internet).
+"use strict";
+
+(function () {
+  const $ = (id) => document.getElementById(id);
+  const benches = new Map();
+  window.xrfRoom = { benches, connected: false };
+
+  function csrf() {
+    const m = document.cookie.match(/(?:^|;\s*)xrf_csrf=([^;]+)/);
+    return m ? decodeURIComponent(m[1]) : "";
+  }
+
+  async function post(path, body) {
+    const res = await fetch(path, { method: "POST", headers: { "Content-Type": "application/json", "X-CSRF-Token": csrf() },
+      body: JSON.stringify(body || {}) });
+    const data = await res.json().catch(() => ({}));
+    if (!res.ok) throw new Error(typeof data.detail === "string" ? data.detail : res.statusText);
+    return data;
+  }
+
+  function note(text) { $("room-note").textContent = text; }
+
+  function rank(b) { return (b.online && b.alarms && b.alarms.length) ? 0 : !b.online ? 1 : 2; }
+
+  function el(tag, cls, text) {
+    const e = document.createElement(tag);
+    if (cls) e.className = cls;
+    if (text !== undefined) e.textContent = text;
+    return e;
+  }
+
+  function tile(b) {
+    const t = el("div", "tile");
+    t.dataset.bench = b.name;
+    const state = b.online ? (b.state || "?") : "OFFLINE";
+    t.classList.add("state-" + String(b.state || "").toLowerCase().replace(/\s+/g, "-"));
+    if (!b.online) t.classList.add("offline");
+    if (b.online && b.alarms && b.alarms.length) t.classList.add("has-alarm");
+    const head = el("div", "head");
+    head.append(el("span", "name", b.name), el("span", "state", state));
+    t.append(head);
+    t.append(el("div", "line holder", b.holder ? "held by " + b.holder : (b.run_owner ? "run of " + b.run_owner : "free")));
+    const alarm = b.alarms && b.alarms.length ? b.alarms[b.alarms.length - 1] : null;
+    t.append(el("div", "line alarm", alarm ? alarm.kind + ": " + alarm.message : ""));
+    const facts = [];
+    if (b.cycle_rate != null) facts.push(Math.round(b.cycle_rate) + " Hz");
+    if (b.misses) facts.push(b.misses + " missed");
+    if (b.cpu_temp_c != null) facts.push(b.cpu_temp_c + " °C");
+    if (b.throttled) facts.push("throttled");
+    if (b.disk_free_mb != null) facts.push((b.disk_free_mb / 1024).toFixed(1) + " GB free");
+    t.append(el("div", "line facts", facts.join(" · ")));
+    const sc = b.selfcheck;
+    t.append(el("div", "line selfcheck", sc ? "self-check: " + (sc.verdict || "?") : ""));
+    const btns = el("div", "btns");
+    const stop = el("button", "stop", "Stop");
+    stop.addEventListener("click", () => post("/api/room/stop", { bench: b.name }).then(() => note("stop sent to " + b.name), (e) => note(e.message)));
+    const open = el("button", "open", "Open");
+    open.disabled = !b.online;
+    open.addEventListener("click", async () => {
+      try { const r = await post("/api/room/benches/" + encodeURIComponent(b.name) + "/sso"); window.open(r.url, "_blank", "noopener"); }
+      catch (e) { note(e.message); }
+    });
+    btns.append(stop, open);
+    t.append(btns);
+    return t;
+  }
+
+  function render() {
+    const list = [...benches.values()].sort((a, b) => rank(a) - rank(b) || a.name.localeCompare(b.name));
+    $("room-grid").replaceChildren(...list.map(tile));
+    const online = list.filter((b) => b.online).length;
+    $("room-counts").textContent = `${online} of ${list.length} benches online`;
+  }
+
+  let pending = false;
+  function schedule() { if (!pending) { pending = true; requestAnimationFrame(() => { pending = false; render(); }); } }
+
+  function connect() {
+    const ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/api/room/ws");
+    ws.onmessage = (ev) => {
+      const m = JSON.parse(ev.data);
+      if (m.type === "snapshot") {
+        benches.clear();
+        for (const b of m.benches) benches.set(b.name, b);
+        window.xrfRoom.connected = m.connected;
+        $("room-broker").textContent = m.connected ? "broker connected" : "broker unreachable";
+        $("room-broker").classList.toggle("bad", !m.connected);
+      } else if (m.type === "bench") {
+        benches.set(m.bench.name, m.bench);
+      }
+      schedule();
+    };
+    ws.onclose = () => { $("room-broker").textContent = "room unreachable"; $("room-broker").classList.add("bad"); setTimeout(connect, 1000); };
+  }
+
+  $("room-stop-all").addEventListener("click", () =>
+    post("/api/room/stop", {}).then((r) => note("stop sent to " + r.benches.length + " benches"), (e) => note(e.message)));
+  $("room-msg-form").addEventListener("submit", (ev) => {
+    ev.preventDefault();
+    const text = $("room-msg").value.trim();
+    if (text) post("/api/room/message", { text }).then(() => { note("message sent"); $("room-msg").value = ""; }, (e) => note(e.message));
+  });
+  $("room-selfcheck").addEventListener("click", () =>
+    post("/api/room/selfcheck", {}).then((r) => note("self-check started on " + (r.benches.join(", ") || "no idle bench")), (e) => note(e.message)));
+  $("room-join").addEventListener("click", () =>
+    post("/api/room/join-codes", {}).then((r) => { $("room-join-code").textContent = r.code; note("on the bench: xrf room join " + location.origin + " " + r.code + " --name NAME"); }, (e) => note(e.message)));
+
+  fetch("/api/me").then((r) => (r.ok ? r.json() : null)).then((me) => {
+    if (!me) { location.replace("/login"); return; }
+    if (me.role !== "educator") { note("the room is for educators"); return; }
+    connect();
+  });
+})();
