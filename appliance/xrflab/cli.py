@@ -340,11 +340,39 @@ def _build(project: Path) -> Path:
 
 def _build_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("project", type=Path, help="project folder (with CMakeLists.txt and msg/)")
+    p.add_argument("--no-ros-messages", action="store_true",
+                   help="do not build the project's xrf2_msgs ROS 2 package (built by default when the "
+                        "ROS 2 build tools are installed, once per set of messages, for xrf ros-bridge)")
+
+
+def _build_ros_messages(project: Path) -> None:
+    """The project's xrf2_msgs interface package, as `xrf ros-bridge` will need it: built now,
+    with the controller (about a minute the first time, then cached by the messages' contents),
+    so the bridge starts at once. Where ROS 2's build tools are missing, one line says so."""
+    from .ros import interfaces
+
+    msg_dir = project / "msg"
+    if not msg_dir.is_dir():
+        return
+    say = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
+    try:
+        interfaces.detect_toolchain()
+    except interfaces.InterfaceBuildError:
+        say("xrf2_msgs: not built (no ROS 2 build tools here); xrf ros-bridge would need them")
+        return
+    try:
+        interfaces.build_interface_package(msg_dir, log=say)
+    except (interfaces.InterfaceBuildError, OSError, ValueError) as exc:
+        # The controller is built; the bridge's messages are a separate matter.
+        say(f"xrf2_msgs: could not be built ({str(exc).splitlines()[0]}); xrf ros-bridge will say why again")
 
 
 @subcommand("build", "build a controller project and print the executable's path", _build_arguments)
 def run_build(args: argparse.Namespace) -> int:
-    print(_build(args.project))
+    executable = _build(args.project)
+    if not args.no_ros_messages:
+        _build_ros_messages(args.project)
+    print(executable)
     return EXIT_OK
 
 

@@ -21,9 +21,11 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import shutil
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -257,18 +259,62 @@ def build_interface_package(
             ["cmake", "--build", str(build), "-j", str(jobs or os.cpu_count() or 2)],
             ["cmake", "--install", str(build)],
         ]
-        log(f"{PACKAGE}: building from {msg_dir} with {tools.kind} ROS 2 tools into {prefix}")
+        estimate = _last_build_seconds(prefix.parent)
+        log(f"{PACKAGE}: first build for these messages, about {estimate:.0f} s "
+            f"({'the last one here took that long' if _timing_file(prefix.parent).exists() else 'a guess'}; "
+            f"once only: cached by message contents in {prefix}); {tools.kind} ROS 2 tools")
+        t0 = time.monotonic()
         for cmd in steps:
-            proc = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-            if proc.returncode != 0:
-                tail = "\n".join(proc.stdout.splitlines()[-60:])
-                raise InterfaceBuildError(f"{PACKAGE}: `{' '.join(cmd)}` failed ({proc.returncode}):\n{tail}")
+            _run_with_progress(cmd, env, t0, estimate, log)
         stamp.parent.mkdir(parents=True, exist_ok=True)
         stamp.write_text(key + "\n")
+        elapsed = time.monotonic() - t0
+        _timing_file(prefix.parent).write_text(f"{elapsed:.1f}\n")
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    log(f"{PACKAGE}: installed in {prefix}")
+    log(f"{PACKAGE}: installed in {prefix} after {time.monotonic() - t0:.0f} s")
     return prefix
+
+
+# A first build with the PyPI wheels on 2 CPUs; replaced by the last build's own time.
+_DEFAULT_ESTIMATE_S = 60.0
+PROGRESS_EVERY_S = 5.0
+
+
+def _timing_file(cache_root: Path) -> Path:
+    return cache_root / "xrf2_msgs.last-build-seconds"
+
+
+def _last_build_seconds(cache_root: Path) -> float:
+    try:
+        return max(1.0, float(_timing_file(cache_root).read_text().strip()))
+    except (OSError, ValueError):
+        return _DEFAULT_ESTIMATE_S
+
+
+def _run_with_progress(cmd: list[str], env: dict[str, str], t0: float, estimate: float,
+                       log: Callable[[str], None]) -> None:
+    """Run one build step, saying at most every PROGRESS_EVERY_S how far it is (CMake's own
+    "[ 42%]" when it prints one) and how long is left by the estimate: the first `xrf
+    ros-bridge` used to sit silent for a minute."""
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    assert proc.stdout is not None
+    tail: list[str] = []
+    said = time.monotonic()
+    percent = ""
+    for line in proc.stdout:
+        tail = (tail + [line.rstrip()])[-60:]
+        m = re.match(r"\[\s*(\d+)%\]", line)
+        if m:
+            percent = m.group(1) + " %"
+        if time.monotonic() - said >= PROGRESS_EVERY_S:
+            said = time.monotonic()
+            elapsed = said - t0
+            left = max(0.0, estimate - elapsed)
+            log(f"{PACKAGE}: {percent or cmd[1]} after {elapsed:.0f} s"
+                + (f", about {left:.0f} s left" if left >= 1 else ", a little longer than estimated"))
+    if proc.wait() != 0:
+        raise InterfaceBuildError(f"{PACKAGE}: `{' '.join(cmd)}` failed ({proc.returncode}):\n" + "\n".join(tail))
 
 
 def main(argv: list[str] | None = None) -> int:
