@@ -20,12 +20,6 @@ if str(REPO_ROOT / "appliance") not in sys.path:
 if str(REPO_ROOT / "tests") not in sys.path:
     sys.path.insert(0, str(REPO_ROOT / "tests"))
 
-# Fast DDS (the ROS 2 tests, the appliance's bridge) over UDP only, for every process the suite
-# starts: its shared-memory transport leaves /dev/shm/fastdds_* behind for a later participant to
-# reclaim, and the suite leaves nothing behind (nothing_left_behind below; what Fast DDS still
-# leaves, data-sharing segments, is reclaimed there as `fastdds shm clean` would).
-os.environ.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
-
 try:
     from hypothesis import settings
     from hypothesis.database import DirectoryBasedExampleDatabase

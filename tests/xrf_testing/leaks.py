@@ -24,8 +24,9 @@ SHM = Path("/dev/shm")
 # Objects of ours in /dev/shm: run segments and their folders, test segments, Fast DDS's
 # shared-memory transport (the ROS tests), cyclictest's.
 SHM_PREFIXES = ("xrf", "fastdds", "sem.fastdds", "fast_datasharing", "cyclictest")
-# Ignored paths of the checkout that tests may fill (caches, the venv).
-IGNORED = (".venv/", ".cache/", ".pytest_cache/", ".hypothesis/", "__pycache__/", ".egg-info/")
+# Ignored paths of the checkout that tests may fill (caches, the venv, and test-results/: the UI
+# tests' screenshots, the suite's one declared output folder, git-ignored).
+IGNORED = (".venv/", ".cache/", ".pytest_cache/", ".hypothesis/", "__pycache__/", ".egg-info/", "test-results/")
 
 
 def _environ(pid: int) -> list[bytes]:

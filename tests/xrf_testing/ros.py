@@ -27,7 +27,6 @@ def isolated_ros_env(lowest: int, highest: int) -> dict[str, str]:
     """Loopback discovery and a random DDS domain in [lowest, highest]: parallel runs (other
     checkouts, CI jobs) and other machines' ROS 2 traffic cannot reach the tests."""
     domain = random.Random(os.getpid() ^ time.time_ns()).randint(lowest, highest)
-    # UDP only: Fast DDS's shared-memory transport leaves /dev/shm/fastdds_* objects behind for the
-    # next participant to reclaim, and the suite leaves nothing behind (conftest.nothing_left_behind).
-    return {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(domain),
-            "FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
+    # Fast DDS's shared-memory objects it leaves for a later participant to reclaim are removed at
+    # the session's end (conftest.nothing_left_behind, leaks.Snapshot.reclaim_dds).
+    return {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(domain)}
