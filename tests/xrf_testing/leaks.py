@@ -117,7 +117,29 @@ class Snapshot:
     def shm_objects(self) -> set[str]:
         now = set(os.listdir(SHM)) if SHM.is_dir() else set()
         new = {n for n in now - self.shm if n.startswith(SHM_PREFIXES)}
-        return new - self._in_use_by_others(new)
+        return new - self._in_use_by_others(new) - self._others_by_name_or_owner(new)
+
+    def _others_by_name_or_owner(self, names: set[str]) -> set[str]:
+        """Objects this session cannot have made: a normal user's session makes only objects of
+        its own uid (root's belong to root's sessions beside it); and xrf-test-<pid>-* /
+        xrf-lab-<pid>-* name their creator (a test process, an appliance), which, while it
+        lives, is another session's if it is not this one's."""
+        me = os.getuid()
+        ours = set(self.processes()) | {self.me}
+        others: set[str] = set()
+        for n in names:
+            try:
+                if me != 0 and os.lstat(SHM / n).st_uid != me:
+                    others.add(n)
+                    continue
+            except OSError:
+                continue
+            parts = n.split("-")
+            if n.startswith(("xrf-test-", "xrf-lab-")) and len(parts) > 2 and parts[2].isdigit():
+                pid = int(parts[2])
+                if pid not in ours and _stat(pid)[0] not in ("", "Z"):
+                    others.add(n)
+        return others
 
     def _in_use_by_others(self, names: set[str]) -> set[str]:
         """Of `names`, those a live process that is not this session's maps: another test session
