@@ -110,13 +110,22 @@ function drawStateMachine() {
 
 function applyState(s) {
   const before = xrf.state;
+  const ended = xrf.run && !xrf.run.active && xrf.run.run;
+  if (!s.active && ended && (s.run_id == null || s.run_id === ended.id)) {
+    // The appliance's last word on an ended run is the loop's last state, inactive: RUN for a
+    // crash. Shown as RUN it read as running under the crash banner (issue 19).
+    s = { ...s, name: ended.crashed ? "CRASHED" : "ENDED", allowed: [] };
+  }
   xrf.state = s;
   const name = $("state-name");
   name.textContent = s.name;
   name.classList.toggle("none", !s.active);
   stripState(s.name, s.active ? (s.name === "RUN" ? "run" : "live") : (s.name === "CRASHED" ? "bad" : "none"));
   // An accepted reset zeroes the setpoints on the appliance (api.py): show that here too.
-  if (s.active && s.name === "INITIALISING" && before.active && before.name !== "IDLE" && before.name !== "INITIALISING") {
+  // (From these states only a reset leads to INITIALISING/INITIALISED; the state published may
+  // skip INITIALISING when the controller's init is quick.)
+  const resettable = ["RUN", "PAUSING", "PAUSED", "STOPPING", "STOPPED", "ERROR"];
+  if (s.active && ["INITIALISING", "INITIALISED"].includes(s.name) && before.active && resettable.includes(before.name)) {
     showSetpoints(zeroed(xrf.appliedSetpoint));
   }
   document.querySelectorAll("#state-machine .node").forEach((n) => n.classList.toggle("current", s.active && n.id === "node-" + s.name));
