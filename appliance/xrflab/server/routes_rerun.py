@@ -3,7 +3,15 @@
 - ``GET /rerun/<file>``: the rerun web viewer (from the installed rerun-sdk, no CDN), copied once
   from rerun's internal file server (``logs.live.RerunViewer``, 127.0.0.1) into the data folder.
   Same origin as the dashboard, so the viewer fetches a finished run's ``.rrd`` from the API with
-  the session cookie.
+  the session cookie. **Offline** (issue 19): as shipped, the viewer fetches Google Fonts, sends
+  analytics to tel.rerun.io, asks GitHub for the latest release and app.rerun.io for its examples,
+  from every student's browser. Its web build has no switch for any of these, so the copy is
+  neutralised (``prepare_viewer``): the font links leave index.html, and the absolute URLs in the
+  wasm are overwritten, byte for byte the same length, by paths under ``/rerun/offline/`` on the
+  appliance, which answers 404 at once. A Content-Security-Policy (``connect-src 'self'`` and
+  friends) on every viewer file stops whatever a later rerun version adds before it leaves the
+  browser. **Compressed**: each file is kept gzipped beside the original (the 43 MB wasm is 14 MB)
+  and served with ``Content-Encoding: gzip`` to browsers that accept it.
 - ``GET /api/logs/rerun``: where the viewer and the live stream are for this request's host.
 - ``POST /rerun.sdk_comms.v1alpha1.MessageProxyService/{ReadMessages,ReadTables}``: the live
   stream. rerun's viewer, given ``rerun+http://<host>:<port>/proxy``, calls these gRPC-web methods
@@ -44,7 +52,6 @@ MAX_LIVE_STREAMS = 16          # open live viewers at once (each is a replay of 
 # Response headers of rerun's gRPC-web server worth passing on (the rest are hop-by-hop or CORS,
 # which the same-origin viewer does not need).
 _PASS_HEADERS = ("content-type", "grpc-status", "grpc-message", "grpc-encoding", "grpc-accept-encoding")
-_ASSET = re.compile(r"^[A-Za-z0-9._-]*$")
 _open_streams = 0
 # The one answer for "nothing live" and for "live, but someone else's run" (ownership.py).
 NO_LIVE_STREAM = ("no run you may watch has streamed since the appliance started "
@@ -103,38 +110,132 @@ async def rerun_info(request: Request) -> dict[str, Any]:
     return info
 
 
-@router.get("/rerun/{asset:path}", dependencies=[requires(Perm.WATCH)], include_in_schema=False)
-async def rerun_viewer(asset: str, request: Request) -> Response:
-    """The rerun web viewer's files, fetched once from rerun's internal server and kept on disk
-    (keyed by the rerun version): the 40 MB wasm is served by us, with our caching and auth."""
+# The viewer's files, prepared once per rerun version (prepare_viewer).
+VIEWER_FILES = ("index.html", "re_viewer.js", "re_viewer_bg.wasm", "favicon.ico", "apple-touch-icon.png")
+OFFLINE_PREFIX = "/rerun/offline/"
+# Absolute URLs the viewer fetches by itself (found by recording a browser's requests, rerun 0.41):
+# analytics, the "new version" check, the examples manifest, map tiles; then the bare web-app
+# origin (links into app.rerun.io). Longer ones first: they contain the shorter.
+WASM_URLS = (b"https://tel.rerun.io/api/pog", b"https://api.github.com/repos/rerun-io/rerun/releases/latest",
+             b"https://app.rerun.io/version/", b"https://tile.openstreetmap.org/", b"https://app.rerun.io")
+# index.html: Google Fonts (the loading text's font; the viewer draws with its own fonts) and the
+# script app.rerun.io loads for its own site.
+_FONT_LINKS = re.compile(r'<link[^>]*(fonts\.googleapis\.com|fonts\.gstatic\.com)[^>]*>', re.S)
+_SITE_SCRIPT = re.compile(r'if \(window\.location\.hostname == "app\.rerun\.io"\) \{.*?\n      \}\n', re.S)
+# Every viewer file carries it: nothing but this origin (the wasm compiled in the page, workers
+# from blobs, inline scripts and styles of rerun's index.html).
+VIEWER_CSP = ("default-src 'self'; script-src 'self' 'unsafe-inline' 'wasm-unsafe-eval'; "
+              "style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; font-src 'self' data:; "
+              "connect-src 'self'; worker-src 'self' blob:; media-src 'self' blob:; frame-ancestors 'self'; "
+              "form-action 'none'; base-uri 'self'")
+_MEDIA = {".html": "text/html; charset=utf-8", ".js": "text/javascript", ".wasm": "application/wasm",
+          ".ico": "image/x-icon", ".png": "image/png", ".css": "text/css"}
+_prepare_lock = asyncio.Lock()
+
+
+def offline_url(url: bytes) -> bytes:
+    """A same-origin path exactly as long as `url` (the wasm's strings keep their lengths)."""
+    path = OFFLINE_PREFIX.encode() + url.split(b"://", 1)[1].replace(b"/", b"_")
+    return (path + b"_" * len(url))[:len(url)]
+
+
+def neutralise_wasm(data: bytes) -> tuple[bytes, list[str]]:
+    """The wasm with WASM_URLS pointed at the appliance; also the URLs not found (a new rerun)."""
+    missing = []
+    for url in WASM_URLS:
+        if url not in data:
+            missing.append(url.decode())
+        data = data.replace(url, offline_url(url))
+    return data, missing
+
+
+def neutralise_index(text: str) -> str:
+    text = _FONT_LINKS.sub("", text)
+    text = _SITE_SCRIPT.sub("", text)
+    # No bug-report links to GitHub in the viewer's error page: a student reports to the educator.
+    return text.replace("https://github.com/rerun-io/rerun/issues/new/", "#")
+
+
+def prepare_viewer(cache: Path, fetch: Any) -> None:
+    """Fetch the viewer's files (``fetch(name) -> bytes``), neutralise them, write each file and
+    its gzip beside it into `cache` (a folder per rerun version; written to a temporary folder
+    and renamed, so a half-prepared viewer is never served). In a worker thread: the wasm's gzip
+    takes seconds."""
+    import gzip
+    import logging
+    import shutil
+
+    if (cache / "ready").is_file():
+        return
+    tmp = cache.with_name(f".{cache.name}.{os.getpid()}.part")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    for name in VIEWER_FILES:
+        data = fetch(name)
+        if name == "index.html":
+            data = neutralise_index(data.decode()).encode()
+        elif name.endswith(".wasm"):
+            data, missing = neutralise_wasm(data)
+            if missing:  # a newer rerun: the CSP still stops them in the browser
+                logging.getLogger("xrflab.rerun").warning("rerun viewer: URLs not found to neutralise: %s", missing)
+        (tmp / name).write_bytes(data)
+        (tmp / (name + ".gz")).write_bytes(gzip.compress(data, compresslevel=6, mtime=0))
+    (tmp / "ready").write_text("")
+    shutil.rmtree(cache, ignore_errors=True)
+    os.replace(tmp, cache)
+
+
+async def _viewer_cache(request: Request) -> Path:
     import httpx
     import rerun
 
     from ..logs.live import RerunViewer
 
-    asset = asset or "index.html"
-    if not _ASSET.match(asset) or asset.startswith("."):
-        raise HTTPException(404, "no such viewer file")
     settings = request.app.state.settings
-    cache = Path(settings.data_dir) / "rerun-viewer" / rerun.__version__
-    path = cache / asset
-    if not path.is_file():
+    cache = Path(settings.data_dir) / "rerun-viewer" / f"{rerun.__version__}-offline"
+    if (cache / "ready").is_file():
+        return cache
+    async with _prepare_lock:
+        if (cache / "ready").is_file():
+            return cache
         try:
             viewer = await asyncio.to_thread(RerunViewer.get)
         except OSError as exc:
             raise HTTPException(503, f"the rerun viewer is not available: {exc}") from None
-        async with httpx.AsyncClient(timeout=60) as client:
-            r = await client.get(f"http://127.0.0.1:{viewer.web_port}/{asset}")
-        if r.status_code != 200:
-            raise HTTPException(404, f"the rerun viewer has no {asset}")
-        cache.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{asset}.{os.getpid()}.part")
-        tmp.write_bytes(r.content)
-        os.replace(tmp, path)
-    media = {".html": "text/html", ".js": "text/javascript", ".wasm": "application/wasm",
-             ".ico": "image/x-icon", ".png": "image/png", ".css": "text/css"}.get(path.suffix)
-    cache_control = "no-cache" if asset == "index.html" else "public, max-age=86400"
-    return FileResponse(path, media_type=media, headers={"Cache-Control": cache_control})
+
+        def fetch(name: str) -> bytes:
+            r = httpx.get(f"http://127.0.0.1:{viewer.web_port}/{name}", timeout=120)
+            r.raise_for_status()
+            return r.content
+
+        try:
+            await asyncio.to_thread(prepare_viewer, cache, fetch)
+        except (OSError, httpx.HTTPError) as exc:
+            raise HTTPException(503, f"the rerun viewer could not be prepared: {exc}") from None
+    return cache
+
+
+@router.get("/rerun/{asset:path}", dependencies=[requires(Perm.WATCH)], include_in_schema=False)
+async def rerun_viewer(asset: str, request: Request) -> Response:
+    """The rerun web viewer's files, prepared once from rerun's internal server and kept on disk
+    (keyed by the rerun version): neutralised (nothing fetched from the internet), gzipped, served
+    by us with our caching, auth and Content-Security-Policy. Anything else under /rerun/ (the
+    neutralised URLs under /rerun/offline/ among them) is a 404, at once."""
+    asset = asset or "index.html"
+    if asset not in VIEWER_FILES:
+        raise HTTPException(404, "no such viewer file", headers={"Content-Security-Policy": VIEWER_CSP})
+    cache = await _viewer_cache(request)
+    path = cache / asset
+    headers = {"Cache-Control": "no-cache" if asset == "index.html" else "public, max-age=86400",
+               "Content-Security-Policy": VIEWER_CSP, "Vary": "Accept-Encoding",
+               "X-Content-Type-Options": "nosniff",
+               # the uncompressed size: rerun's loader shows its progress from it
+               "rerun-final-length": str(path.stat().st_size)}
+    gz = path.with_name(path.name + ".gz")
+    if "gzip" in request.headers.get("accept-encoding", "").lower() and gz.is_file():
+        headers["Content-Encoding"] = "gzip"
+        return FileResponse(gz, media_type=_MEDIA.get(path.suffix), headers=headers)
+    return FileResponse(path, media_type=_MEDIA.get(path.suffix), headers=headers)
 
 
 # ---- the live stream ------------------------------------------------------------------------
