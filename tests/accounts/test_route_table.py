@@ -62,7 +62,9 @@ def test_every_route_declares_a_permission(tmp_path) -> None:
 def test_api_routes_are_not_public_except_the_login_ones(tmp_path) -> None:
     public = {route.path for route, inh in all_routes(tmp_path)
               if isinstance(route, (APIRoute, APIWebSocketRoute)) and Perm.PUBLIC in permissions_of(route, inh)}
-    assert public == {"/", "/login", "/api/health", "/api/auth/login", "/api/auth/token"}, public
+    # /room/sso is a sign-in route too: a bench enrolled in a lab room takes the room's signed,
+    # short-lived token as the credential (room/sso.py); without a valid one it answers 403/404.
+    assert public == {"/", "/login", "/api/health", "/api/auth/login", "/api/auth/token", "/room/sso"}, public
 
 
 def test_websocket_message_table() -> None:

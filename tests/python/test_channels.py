@@ -353,7 +353,10 @@ def test_open_checks_and_info(shm_name: str) -> None:
             assert info["ros2xeno_schema"] == "float64 steer_left\nfloat64 steer_right"
             assert info["pid"] == os.getpid() and info["ros2xeno_size"] == 16
             assert ch.status().state_name == "IDLE"
-        assert created.status().running is False
+            # create_for_test plays a loop inside loop(): running, so host tools take it as alive
+            assert ch.status().running is True and ch.loop_alive()
+            created.loop_side().set_state(channels.lib.XRF_STATE_STOPPED, running=False)
+            assert ch.status().running is False and not ch.loop_alive()
 
 
 def test_open_missing_times_out_with_a_clear_error(shm_name: str) -> None:
