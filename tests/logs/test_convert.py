@@ -36,9 +36,9 @@ def test_csv_round_trip(edge_file: Path) -> None:
     assert out == edge_file.with_suffix(".csv")
     rows = list(csv.reader(io.StringIO(out.read_text())))
     head, body = rows[0], rows[1:]
-    assert head == ["seq", "cycle", "t_ns"] + list(CSV_TYPES)
+    assert head == ["seq", "cycle", "t_ns", "t_s"] + list(CSV_TYPES)
     want = _expected(edge_rows())
-    for j, name in enumerate(head[3:], start=3):
+    for j, name in enumerate(head[4:], start=4):
         text = [r[j] for r in body]
         t = CSV_TYPES[name]
         got = np.array([t(float(x)) if np.issubdtype(t, np.floating) else int(x) for x in text], dtype=t) \
@@ -49,7 +49,7 @@ def test_csv_round_trip(edge_file: Path) -> None:
 
 def test_csv_float32_is_written_shortest_not_widened(edge_file: Path) -> None:
     text = convert(edge_file, "csv").read_text().splitlines()
-    ratio = [line.split(",")[6] for line in text[1:]]
+    ratio = [line.split(",")[7] for line in text[1:]]
     assert "0.1" in ratio and "1e-45" in ratio  # float32 0.1 would be 0.10000000149011612 as double
 
 
@@ -65,7 +65,7 @@ def test_mat_round_trip(edge_file: Path) -> None:
     out = convert(edge_file, "mat", edge_file.parent / "x.mat")
     mat = loadmat(out)
     want = _expected(edge_rows())
-    names = dict(zip(CSV_TYPES, matlab_names(list(CSV_TYPES), reserved=("seq", "cycle", "t_ns", "log_header"))))
+    names = dict(zip(CSV_TYPES, matlab_names(list(CSV_TYPES), reserved=("seq", "cycle", "t_ns", "t_s", "log_header"))))
     assert names["2 bad-name"] == "x2_bad_name" and names["cycle_2"] == "cycle_2"
     for name, mname in names.items():
         got = mat[mname].ravel()
@@ -76,6 +76,32 @@ def test_mat_round_trip(edge_file: Path) -> None:
     assert mat["seq"].dtype == np.uint64 and mat["seq"].ravel().tolist() == list(range(64))
     assert mat["t_ns"].dtype == np.int64
     assert '"cycle_freq": 1000' in str(mat["log_header"][0])
+
+
+def test_seconds_from_the_start_in_every_table(tmp_path: Path) -> None:
+    """CSV, MAT and Parquet carry t_s = (t_ns - the segment header's start_mono_ns) / 1e9 after
+    t_ns, per segment; a variable called t_s keeps its values under t_s_2."""
+    import pyarrow.parquet as pq
+    from scipy.io import loadmat
+
+    variables = [("t_s", 5), ("v", 3)]
+    path = tmp_path / "secs.xrf"
+    # two segments (an appending writer): the second run started 5 s later on the same clock
+    path.write_bytes(xrflog_segment(variables, [(-1.0, i) for i in range(5)], t0=2_000_000_000)
+                     + xrflog_segment(variables, [(-2.0, i) for i in range(3)], t0=7_000_000_000,
+                                      period_ns=250_000))
+    want = [(i + 10) * 1e-3 for i in range(5)] + [(i + 10) * 0.25e-3 for i in range(3)]
+
+    rows = list(csv.reader(io.StringIO(convert(path, "csv").read_text())))
+    assert rows[0] == ["seq", "cycle", "t_ns", "t_s", "t_s_2", "v"]
+    assert [float(r[3]) for r in rows[1:]] == pytest.approx(want, abs=1e-12)
+    assert [float(r[4]) for r in rows[1:]] == [-1.0] * 5 + [-2.0] * 3
+    mat = loadmat(convert(path, "mat"))
+    assert mat["t_s"].ravel().tolist() == pytest.approx(want, abs=1e-12) and mat["t_s"].dtype == np.float64
+    table = pq.read_table(convert(path, "parquet"))
+    assert table.column_names[:5] == ["seq", "cycle", "t_ns", "t_s", "t_s_2"]
+    assert table.column("t_s").to_pylist() == pytest.approx(want, abs=1e-12)
+    assert table.column("t_ns").to_pylist()[0] == 2_000_000_000 + 10 * 1_000_000  # the exact value stays
 
 
 def test_parquet_round_trip_keeps_dtypes(edge_file: Path) -> None:
@@ -184,7 +210,7 @@ def test_xrf2_bin_converts(tmp_path: Path) -> None:
 def test_empty_log_converts(tmp_path: Path) -> None:
     path = tmp_path / "empty.xrf"
     path.write_bytes(xrflog_segment(VARIABLES, []))
-    assert convert(path, "csv").read_text().startswith("seq,cycle,t_ns,flag")
+    assert convert(path, "csv").read_text().startswith("seq,cycle,t_ns,t_s,flag")
     import pyarrow.parquet as pq
 
     assert pq.read_table(convert(path, "parquet")).num_rows == 0

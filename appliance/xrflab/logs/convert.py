@@ -8,6 +8,11 @@ into place at the end: a download never sees a half-written file.
 Column types, the same in every format: seq and cycle uint64, t_ns int64, bool as bool (CSV:
 0/1), char as its unsigned byte value uint8 (reader.py says why), int int32, float float32,
 double float64, long int int64. rerun stores every scalar as float64 (see _to_rrd).
+
+The tabular formats (CSV, MAT, Parquet) of an xrflog file add one derived column after t_ns:
+``t_s`` (float64), seconds from the run's start (``t_ns - start_mono_ns`` of the record's segment
+header), so a plot or a spreadsheet needs no arithmetic on 19-digit nanoseconds. t_ns stays the
+exact value; rerun has its own time axes.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ from typing import Any, Callable, Iterator, Mapping
 
 import numpy as np
 
-from .reader import LogFile, open_log
+from .reader import SECONDS_COLUMN, LogFile, Segment, open_log
 
 FORMATS = ("csv", "mat", "parquet", "rrd")
 SUFFIX = {"csv": ".csv", "mat": ".mat", "parquet": ".parquet", "rrd": ".rrd"}
@@ -34,6 +39,35 @@ def _plain(col: np.ndarray) -> np.ndarray:
     if col.dtype.kind == "S":
         return np.ascontiguousarray(col).view(np.uint8)
     return col
+
+
+def table_columns(log: LogFile) -> list[str]:
+    """The column names of the tabular formats: the log's columns with t_s after t_ns."""
+    cols = list(log.columns)
+    if "t_ns" in cols:
+        cols.insert(cols.index("t_ns") + 1, SECONDS_COLUMN)
+    return cols
+
+
+def _seconds(seg: Segment, t_ns: np.ndarray) -> np.ndarray:
+    # start_mono_ns is the loop's start on the same clock as t_ns; a header without it (a foreign
+    # writer) counts from the segment's first record.
+    start = seg.header.get("start_mono_ns")
+    if not isinstance(start, int):
+        start = int(seg.records["t_ns"][0]) if len(seg.records) else 0
+    return (t_ns.astype(np.int64) - np.int64(start)).astype(np.float64) / 1e9
+
+
+def with_seconds(seg: Segment, cols: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """`cols` (one chunk of `LogFile.iter_chunks`) with the t_s column after t_ns."""
+    if "t_ns" not in cols:
+        return cols
+    out: dict[str, np.ndarray] = {}
+    for name, col in cols.items():
+        out[name] = col
+        if name == "t_ns":
+            out[SECONDS_COLUMN] = _seconds(seg, col)
+    return out
 
 
 # ---- CSV ------------------------------------------------------------------------------------
@@ -63,12 +97,12 @@ def iter_csv_chunks(path: str | Path, chunk_rows: int = CHUNK_ROWS, log: LogFile
     sink = io.BytesIO()
     # The header row is ours (Arrow quotes every name); names are quoted only when they must be.
     head = io.StringIO()
-    csv.writer(head, lineterminator="\n").writerow(log.columns)
+    csv.writer(head, lineterminator="\n").writerow(table_columns(log))
     yield head.getvalue().encode()
     options = pcsv.WriteOptions(include_header=False, quoting_style="needed")
     writer = None
-    for _seg, cols in log.iter_chunks(chunk_rows):
-        table = _csv_table(cols)
+    for seg, cols in log.iter_chunks(chunk_rows):
+        table = _csv_table(with_seconds(seg, cols))
         if writer is None:
             writer = pcsv.CSVWriter(sink, table.schema, write_options=options)
         writer.write_table(table)
@@ -138,7 +172,10 @@ class _LazyColumns(Mapping[str, Any]):
 
 
 def _column(log: LogFile, name: str) -> np.ndarray:
-    parts = [_plain(seg.column(name)) for seg in log.segments]
+    if name == SECONDS_COLUMN:
+        parts = [_seconds(seg, seg.column("t_ns")) for seg in log.segments]
+    else:
+        parts = [_plain(seg.column(name)) for seg in log.segments]
     if not parts:
         return np.empty(0)
     return np.ascontiguousarray(parts[0]) if len(parts) == 1 else np.concatenate(parts)
@@ -148,7 +185,7 @@ def _to_mat(log: LogFile, out: Path, chunk_rows: int) -> None:
     from scipy.io import savemat
 
     log.check_uniform()
-    columns = log.columns
+    columns = table_columns(log)
     header_names = columns[: len(columns) - len(log.variables)]
     var_names = matlab_names([v.field for v in log.variables], reserved=tuple(header_names) + ("log_header",))
     items: list[tuple[str, Callable[[], Any]]] = [(n, (lambda n=n: _column(log, n))) for n in header_names]
@@ -169,7 +206,8 @@ def _to_parquet(log: LogFile, out: Path, chunk_rows: int) -> None:
     writer = None
     kinds = {v.field: v.type_name for v in log.variables}
     try:
-        for _seg, cols in log.iter_chunks(chunk_rows):
+        for seg, cols in log.iter_chunks(chunk_rows):
+            cols = with_seconds(seg, cols)
             arrays = [pa.array(np.ascontiguousarray(_plain(c))) for c in cols.values()]
             if writer is None:
                 fields = [pa.field(n, a.type, nullable=False,
@@ -182,7 +220,7 @@ def _to_parquet(log: LogFile, out: Path, chunk_rows: int) -> None:
             writer.write_table(pa.Table.from_arrays(arrays, schema=schema))
         if writer is None:  # no records: still a valid, typed, empty file
             empty = {c: np.empty(0, dtype=np.uint64 if c in ("seq", "cycle") else np.int64 if c == "t_ns" else np.float64)
-                     for c in log.columns}
+                     for c in table_columns(log)}
             empty.update({v.field: _plain(np.empty(0, dtype=v.dtype)) for v in log.variables})
             pq.write_table(pa.table(empty), out)
     finally:

@@ -24,6 +24,9 @@ FORMAT_VERSION = 1
 # seq, cycle, t_ns: the 24-byte record header every xrflog record starts with.
 RECORD_HEADER = (("seq", "<u8"), ("cycle", "<u8"), ("t_ns", "<i8"))
 RECORD_HEADER_SIZE = 24
+# The derived column the tabular formats add after t_ns (logs/convert.py: seconds from the run's
+# start); reserved like the header's names so a variable called t_s becomes t_s_2, not a clash.
+SECONDS_COLUMN = "t_s"
 # A JSON header longer than this is taken as damage, not as a header (100 variables need ~8 KB).
 MAX_HEADER_BYTES = 1 << 20
 # Two consecutive good records differ in seq by 1 plus the records lost between them. A
@@ -295,7 +298,8 @@ def _parse_segment_header(path: Path, m: _Mapped, pos: int) -> tuple[dict[str, A
         record_size = int(header["record_size"])
     except (KeyError, TypeError, ValueError) as exc:
         raise LogFormatError(f"{path}: segment at offset {pos}: header lacks variables/record_size ({exc})") from None
-    variables = make_variables(path, names, codes, offsets, tuple(n for n, _ in RECORD_HEADER))
+    variables = make_variables(path, names, codes, offsets,
+                               tuple(n for n, _ in RECORD_HEADER) + (SECONDS_COLUMN,))
     end = max((v.offset + v.dtype.itemsize for v in variables), default=0)
     if end > record_size or RECORD_HEADER_SIZE + record_size > stride:
         raise LogFormatError(f"{path}: segment at offset {pos}: variables need {end} bytes, record_size is "
