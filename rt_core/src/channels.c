@@ -428,6 +428,18 @@ int32_t xrf_cmd_transition(int32_t state, int32_t cmd)
     return -XRF_REJECT_NOT_ALLOWED;
 }
 
+int32_t xrf_state_complete(int32_t state)
+{
+    switch (state) {
+    case XRF_STATE_INITIALISING: return XRF_STATE_INITIALISED;
+    case XRF_STATE_INITIALISED: return XRF_STATE_RUN;
+    case XRF_STATE_RUN: return XRF_STATE_STOPPING;
+    case XRF_STATE_STOPPING: return XRF_STATE_STOPPED;
+    case XRF_STATE_PAUSING: return XRF_STATE_PAUSED;
+    default: return 0; /* STOPPED, PAUSED, ERROR: "complete" leads nowhere; IDLE, QUIT: no hook */
+    }
+}
+
 void xrf_cmd_reject_reason(int32_t state, int32_t cmd, char *buf, size_t len)
 {
     if (len == 0)

@@ -388,6 +388,10 @@ uint32_t xrf_doorbell_wait(struct xrf_shm *shm, uint32_t seen, int timeout_ms);
 /* The command table of FullStateMachine: the state `cmd` leads to from `state`, or
  * -XRF_REJECT_UNKNOWN / -XRF_REJECT_NOT_ALLOWED. The loop and the host both use it. */
 int32_t xrf_cmd_transition(int32_t state, int32_t cmd);
+/* The state a state's hook completing (returning 1) leads to, or 0 where completing leads
+ * nowhere (IDLE, STOPPED, PAUSED, ERROR, QUIT). FullStateMachine::step follows it; the dashboard
+ * draws it (GET /api/state-machine), so the whole state machine is this table and the one above. */
+int32_t xrf_state_complete(int32_t state);
 /* Human-readable reason for a rejection, into buf (always NUL-terminated). */
 void xrf_cmd_reject_reason(int32_t state, int32_t cmd, char *buf, size_t len);
 
