@@ -72,6 +72,7 @@
     $("room-grid").replaceChildren(...list.map(tile));
     const online = list.filter((b) => b.online).length;
     $("room-counts").textContent = `${online} of ${list.length} benches online`;
+    enrolledCount = list.length;
   }
 
   let pending = false;
@@ -103,13 +104,87 @@
     if (text) post("/api/room/message", { text }).then(() => { note("message sent"); $("room-msg").value = ""; }, (e) => note(e.message));
   });
   $("room-selfcheck").addEventListener("click", () =>
-    post("/api/room/selfcheck", {}).then((r) => note("self-check started on " + (r.benches.join(", ") || "no idle bench")), (e) => note(e.message)));
+    post("/api/room/selfcheck", {}).then((r) => note("self-check asked of " + (r.benches.join(", ") || "no bench") + (r.busy && r.busy.length ? " (running, skipped: " + r.busy.join(", ") + ")" : "")), (e) => note(e.message)));
   $("room-join").addEventListener("click", () =>
     post("/api/room/join-codes", {}).then((r) => { $("room-join-code").textContent = r.code; note("on the bench: xrf room join " + location.origin + " " + r.code + " --name NAME"); }, (e) => note(e.message)));
+
+  // ---- assignments: publish to every bench, collect every run as one archive ----
+  let enrolledCount = 0;
+  const collecting = new Map(); // assignment id -> the collection being followed
+
+  async function loadAssignments() {
+    const res = await fetch("/api/room/assignments");
+    if (!res.ok) return;
+    const list = await res.json();
+    const items = list.slice().reverse().map((a) => {
+      const li = el("li");
+      li.dataset.assignment = a.id;
+      li.append(el("span", "aname", a.name), el("span", "muted holders", a.benches.length + " of " + enrolledCount + " benches"));
+      const collect = el("button", "collect", "Collect runs");
+      collect.addEventListener("click", () => startCollect(a));
+      li.append(collect);
+      const c = collecting.get(a.id);
+      if (c && c.done) {
+        const link = el("a", "download", "Download (" + Object.values(c.benches).filter((s) => s === "collected").length + " collected, "
+          + Object.values(c.benches).filter((s) => s !== "collected").length + " missing)");
+        link.href = c.archive;
+        link.setAttribute("download", "");
+        li.append(link);
+      } else if (c) {
+        li.append(el("span", "muted", "collecting…"));
+      }
+      return li;
+    });
+    $("room-assign-list").replaceChildren(...items);
+  }
+
+  async function startCollect(a) {
+    try {
+      let c = await post("/api/room/assignments/" + encodeURIComponent(a.id) + "/collect", { formats: ["csv"] });
+      collecting.set(a.id, c);
+      loadAssignments();
+      while (!c.done) {
+        await new Promise((r) => setTimeout(r, 1000));
+        const res = await fetch("/api/room/collections/" + c.id);
+        if (!res.ok) throw new Error("the collection is gone");
+        c = await res.json();
+        collecting.set(a.id, c);
+      }
+      note("runs of " + a.name + " collected");
+      loadAssignments();
+    } catch (e) { note(e.message); }
+  }
+
+  $("room-assign-template").addEventListener("change", () => {
+    $("room-assign-file").hidden = $("room-assign-template").value !== "upload";
+  });
+  $("room-assign-form").addEventListener("submit", async (ev) => {
+    ev.preventDefault();
+    const name = $("room-assign-name").value.trim();
+    const template = $("room-assign-template").value;
+    try {
+      let a;
+      if (template === "upload") {
+        const file = $("room-assign-file").files[0];
+        if (!file) throw new Error("choose an archive first");
+        const res = await fetch("/api/room/assignments/upload?name=" + encodeURIComponent(name),
+          { method: "POST", headers: { "X-CSRF-Token": csrf() }, body: file });
+        a = await res.json().catch(() => ({}));
+        if (!res.ok) throw new Error(typeof a.detail === "string" ? a.detail : res.statusText);
+      } else {
+        a = await post("/api/room/assignments", { name, template });
+      }
+      note("assignment " + a.name + " published to every bench");
+      $("room-assign-name").value = "";
+      loadAssignments();
+    } catch (e) { note(e.message); }
+  });
 
   fetch("/api/me").then((r) => (r.ok ? r.json() : null)).then((me) => {
     if (!me) { location.replace("/login"); return; }
     if (me.role !== "educator") { note("the room is for educators"); return; }
     connect();
+    loadAssignments();
+    setInterval(loadAssignments, 3000); // which benches have each assignment
   });
 })();

@@ -276,9 +276,84 @@ def start_room(data_dir: Path, files: BrokerFiles, **config: Any) -> RoomServer:
     return RoomServer(url, proc, data_dir, login_client(url, "admin", ADMIN_PASSWORD))
 
 
-def join(room: RoomServer, name: str, data_dir: Path, dashboard_url: str) -> subprocess.CompletedProcess[str]:
-    """`xrf room join` as an educator would run it on the bench, with a fresh code from the room."""
+def join(room: RoomServer, name: str, data_dir: Path, dashboard_url: str,
+         room_url: str = "") -> subprocess.CompletedProcess[str]:
+    """`xrf room join` as an educator would run it on the bench, with a fresh code from the room
+    (`room_url`: the room's address as the bench reaches it, default the test's)."""
     code = room.http.post("/api/room/join-codes").json()["code"]
-    return subprocess.run([sys.executable, "-m", "xrflab.cli", "room", "join", room.url, code, "--name", name,
+    return subprocess.run([sys.executable, "-m", "xrflab.cli", "room", "join", room_url or room.url, code, "--name", name,
                            "--data", str(data_dir), "--url", dashboard_url], capture_output=True, text=True,
                           timeout=60, env=dict(os.environ, PYTHONPATH=str(REPO_ROOT / "appliance")))
+
+
+# ---- a whole lab: broker, room, N enrolled appliances ---------------------------------------------
+
+from collections.abc import Iterator  # noqa: E402
+from contextlib import contextmanager  # noqa: E402
+
+from harness import shared_builds_root  # noqa: E402
+
+TEACHER, TEACHER_PW = "teacher", "teacher-room-pw-1"
+
+
+@dataclass
+class Lab:
+    topo: Topology
+    broker: BrokerProcess
+    room: RoomServer
+    benches: list[Server]
+    teacher: httpx.Client
+    room_url: str  # as the benches reach it
+
+    def views(self) -> dict[str, dict[str, Any]]:
+        return {b["name"]: b for b in self.room.http.get("/api/room/benches").json()["benches"]}
+
+    def online(self) -> set[str]:
+        return {n for n, b in self.views().items() if b["online"]}
+
+
+@contextmanager
+def room_lab(base: Path, n: int, bench_root: Path | None = None) -> Iterator[Lab]:
+    """A broker (TLS, the room's CA), a room with the educator TEACHER, and `n` appliances b1..bn
+    enrolled with `xrf room join`. `bench_root`: where the benches' data folders go (a folder the
+    build user can reach, for tests that build projects); default `base`. The room listens on every
+    address so benches in their own namespaces reach it (assignment fetches, collections)."""
+    topo = Topology(n)
+    print(f"\nroom test topology: {topo.mode}")
+    benches: list[Server] = []
+    broker = room = None
+    try:
+        files = broker_files(base / "room" / "broker", bind="0.0.0.0", names=[topo.broker_host, "127.0.0.1"])
+        broker = start_broker(files)
+        room = start_room(base / "room", files, tls=True, host="0.0.0.0")
+        room_url = f"http://{topo.broker_host}:{room.url.rsplit(':', 1)[1]}"
+        r = room.http.post("/api/users", json={"username": TEACHER, "role": "educator", "password": TEACHER_PW,
+                                              "must_change": False})
+        assert r.status_code == 201, r.text
+        for i in range(1, n + 1):
+            data = (bench_root or base) / f"bench{i}"
+            data.mkdir()
+            benches.append(start_bench(topo, i, data, shared_builds_root()))
+        for i, s in enumerate(benches, 1):
+            res = join(room, f"b{i}", s.data_dir, s.url, room_url)
+            assert res.returncode == 0, res.stdout + res.stderr
+            assert "TLS" in res.stdout
+        yield Lab(topo, broker, room, benches, login_client(room.url, TEACHER, TEACHER_PW), room_url)
+    finally:
+        for s in benches:
+            try:
+                s.stop_run()
+            except Exception:
+                pass
+            s.http.close()
+            s.proc.terminate()
+            try:
+                s.proc.wait(15)
+            except Exception:
+                s.proc.kill()
+                s.proc.wait()
+        if room is not None:
+            room.stop()
+        if broker is not None:
+            broker.stop()
+        topo.close()

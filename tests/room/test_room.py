@@ -6,80 +6,23 @@ the test runs as root; otherwise all share loopback on separate ports (printed: 
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 
 import httpx
 import pytest
 
-from harness import ADMIN_PASSWORD, CHROMIUM_ARGS, Server, login_client, shared_builds_root, wait_for
-from room_support import (Recorder, RoomServer, Topology, broker_files, join, room_endpoint, start_bench, start_broker,
-                          start_room)
+from harness import CHROMIUM_ARGS, login_client, wait_for
+from room_support import TEACHER, TEACHER_PW, Lab, Recorder, room_endpoint, room_lab
 from xrflab.room import topics
-from xrflab.room.broker import BrokerProcess
 
 N = 5
-TEACHER, TEACHER_PW = "teacher", "teacher-room-pw-1"
-
-
-@dataclass
-class Lab:
-    topo: Topology
-    broker: BrokerProcess
-    room: RoomServer
-    benches: list[Server]
-    teacher: httpx.Client
-
-    def views(self) -> dict[str, dict]:
-        return {b["name"]: b for b in self.room.http.get("/api/room/benches").json()["benches"]}
-
-    def online(self) -> set[str]:
-        return {n for n, b in self.views().items() if b["online"]}
 
 
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
-    base = tmp_path_factory.mktemp("room")
-    topo = Topology(N)
-    print(f"\nroom test topology: {topo.mode}")
-    benches: list[Server] = []
-    broker = room = None
-    try:
-        files = broker_files(base / "room" / "broker", bind="0.0.0.0", names=[topo.broker_host, "127.0.0.1"])
-        broker = start_broker(files)
-        room = start_room(base / "room", files, tls=True)
-        r = room.http.post("/api/users", json={"username": TEACHER, "role": "educator", "password": TEACHER_PW,
-                                              "must_change": False})
-        assert r.status_code == 201, r.text
-        for i in range(1, N + 1):
-            data = base / f"bench{i}"
-            data.mkdir()
-            benches.append(start_bench(topo, i, data, shared_builds_root()))
-        for i, s in enumerate(benches, 1):
-            res = join(room, f"b{i}", s.data_dir, s.url)
-            assert res.returncode == 0, res.stdout + res.stderr
-            assert "TLS" in res.stdout
-        yield Lab(topo, broker, room, benches, login_client(room.url, TEACHER, TEACHER_PW))
-    finally:
-        for s in benches:
-            try:
-                s.stop_run()
-            except Exception:
-                pass
-            s.http.close()
-            s.proc.terminate()
-            try:
-                s.proc.wait(15)
-            except Exception:
-                s.proc.kill()
-                s.proc.wait()
-        if room is not None:
-            room.stop()
-        if broker is not None:
-            broker.stop()
-        topo.close()
+    with room_lab(tmp_path_factory.mktemp("room"), N) as lab:
+        yield lab
 
 
 def test_enrolment_brings_every_bench_online(lab: Lab) -> None:

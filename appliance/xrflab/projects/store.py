@@ -74,6 +74,15 @@ CREATE TABLE IF NOT EXISTS project_runs (
     project_id INTEGER NOT NULL,
     owner TEXT NOT NULL
 );
+-- The copy of a room's assignment made for a student (assignments.py): made once, so a copy the
+-- student deleted is not made again.
+CREATE TABLE IF NOT EXISTS assignment_copies (
+    assignment TEXT NOT NULL,
+    owner TEXT NOT NULL,
+    project_id INTEGER NOT NULL,
+    created REAL NOT NULL,
+    PRIMARY KEY (assignment, owner)
+);
 """
 
 
@@ -281,6 +290,18 @@ class ProjectStore:
     def runs_of(self, project_id: int) -> list[dict[str, int]]:
         return [{"run_id": r[0], "build_id": r[1]} for r in
                 self._q("SELECT run_id, build_id FROM project_runs WHERE project_id=? ORDER BY run_id DESC", (project_id,))]
+
+    def projects_with_origin(self, origin: str) -> list[ProjectRow]:
+        rows = self._q(f"SELECT {', '.join(_PCOLS)} FROM projects WHERE origin=? ORDER BY id", (origin,))
+        return [ProjectRow(*r) for r in rows]
+
+    def copies_made(self, owner: str) -> set[str]:
+        """The assignments a copy was made of for `owner` (deleted since or not)."""
+        return {r[0] for r in self._q("SELECT assignment FROM assignment_copies WHERE owner=?", (owner,))}
+
+    def record_copy(self, assignment: str, owner: str, project_id: int) -> None:
+        self._x("INSERT OR IGNORE INTO assignment_copies (assignment, owner, project_id, created) VALUES (?, ?, ?, ?)",
+                (assignment, owner, project_id, time.time()))
 
     def run_link(self, run_id: int) -> dict[str, Any] | None:
         r = self._q("SELECT run_id, build_id, project_id, owner FROM project_runs WHERE run_id=?", (run_id,))

@@ -3,7 +3,9 @@
 ``RoomLink.open`` is called from the appliance's lifespan; it looks for
 ``<data>/room/enrolment.json`` (written by ``xrf room join``, 0600) now and every few seconds, so
 joining needs no restart. Once enrolled, the publisher listens to the hub, commands are handled,
-the class list is applied and ``/room/sso`` signs users in from the room.
+the class list is applied, published assignments are received (inline, or fetched from the room
+with a token signed by this bench's key; retried every ``FETCH_RETRY_S`` until they arrive) and
+``/room/sso`` signs users in from the room.
 
 Nothing here may stop the bench: the MQTT client reconnects on its own, and a broker or room that
 is gone only means the status is not seen (the bench runs on; its events wait in a bounded queue).
@@ -12,18 +14,26 @@ is gone only means the status is not seen (the bench runs on; its events wait in
 from __future__ import annotations
 
 import asyncio
+import base64
 import json
 import logging
+import secrets
 import shutil
+import ssl
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 
+from ..projects.assignments import ID_RE as ASSIGNMENT_ID_RE
+from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
+from ..projects.assignments import Assignments
+from ..projects.archive import ArchiveRejected
 from ..server.auth import Perm, client_address, requires
-from . import mqtt
+from . import mqtt, sso
 from .accounts_sync import BenchAccounts
 from .commands import CommandHandler
 from .publisher import BenchPublisher, next_boot
@@ -32,6 +42,7 @@ from .sso import SsoError, Verifier
 log = logging.getLogger(__name__)
 
 ENROL_POLL_S = 2.0
+FETCH_RETRY_S = 5.0
 
 
 def room_folder(data_dir: Path) -> Path:
@@ -80,6 +91,14 @@ class RoomLink:
         self._poll: asyncio.Task[None] | None = None
         self._last_cycles: tuple[float, int] | None = None
         self.dashboard_url = ""
+        self.name = ""
+        self.key = ""
+        self.room_url = ""
+        self.ca_pem = ""
+        self.assignments = Assignments(self.settings.data_dir / "assignments")
+        self._wanted: dict[str, dict[str, Any]] = {}  # published here, not received yet
+        self._receiving: set[str] = set()
+        self._tasks: set[asyncio.Task[Any]] = set()
 
     async def open(self) -> None:
         if not self._try_start():
@@ -108,10 +127,15 @@ class RoomLink:
         self.accounts = BenchAccounts(security, self.folder)
         self.verifier = Verifier(e["sso_key"], e["name"])
         self.dashboard_url = e.get("dashboard_url", "")
+        self.name, self.key, self.room_url = e["name"], e["sso_key"], e.get("room_url", "")
+        self.ca_pem = b.get("ca_pem", "")
         handler = CommandHandler(app, asyncio.get_running_loop())
         self.publisher = BenchPublisher(e["name"], endpoint, next_boot(self.folder), self.facts,
-                                        on_command=handler, on_accounts=self._on_accounts)
+                                        on_command=handler, on_accounts=self._on_accounts,
+                                        on_assignment=self._on_assignment)
+        self.publisher.status["assignments"] = [a["id"] for a in self.assignments.list()]
         handler.publisher = self.publisher
+        self._spawn(self._retry_assignments())
         app.state.supervisor.hub.listeners.append(self.publisher.on_hub)
         self.publisher.start()
         log.warning("room: bench %s reports to %s:%s", e["name"], b["host"], b["port"])
@@ -122,6 +146,103 @@ class RoomLink:
             if self.publisher is not None:
                 self.publisher.status["accounts_version"] = self.accounts.version
                 self.publisher.status_changed()
+
+    # -- assignments (the event loop) ------------------------------------------------------------
+    def _spawn(self, coro: Any) -> None:
+        task = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def _on_assignment(self, body: dict[str, Any]) -> None:
+        aid, sha = str(body.get("id", "")), str(body.get("sha256", ""))
+        if not ASSIGNMENT_ID_RE.match(aid) or not sha:
+            return
+        self._wanted[aid] = body
+        if aid not in self._receiving:
+            self._spawn(self._receive(aid))
+
+    async def _retry_assignments(self) -> None:
+        """What could not be fetched (the room down, a network hiccup) is fetched again."""
+        while True:
+            await asyncio.sleep(FETCH_RETRY_S)
+            for aid in list(self._wanted):
+                if aid not in self._receiving:
+                    self._spawn(self._receive(aid))
+
+    async def _receive(self, aid: str) -> None:
+        body = self._wanted.get(aid)
+        if body is None:
+            return
+        self._receiving.add(aid)
+        tmp = self.assignments.root / f".dl-{aid}-{secrets.token_hex(4)}"
+        try:
+            if await asyncio.to_thread(self.assignments.has, aid, body["sha256"]):
+                self._wanted.pop(aid, None)
+                return
+            self.assignments.root.mkdir(parents=True, exist_ok=True)
+            if "inline" in body:
+                tmp.write_bytes(base64.b64decode(str(body["inline"])))
+            else:
+                await asyncio.to_thread(self._fetch, aid, str(body.get("path", "")), tmp)
+            info = await asyncio.to_thread(self.assignments.install, body, tmp)
+        except (ValueError, ArchiveRejected) as exc:  # refused for good: not fetched again
+            self._wanted.pop(aid, None)
+            log.error("room: assignment %s refused: %s", aid, exc)
+            return
+        except Exception as exc:  # the room or the network: fetched again later
+            log.warning("room: assignment %s not received yet (%s); trying again", aid, exc)
+            return
+        finally:
+            self._receiving.discard(aid)
+            tmp.unlink(missing_ok=True)
+        self._wanted.pop(aid, None)
+        log.warning("room: assignment %s (%s) received", aid, info["name"])
+        if self.publisher is not None:
+            self.publisher.status["assignments"] = [a["id"] for a in self.assignments.list()]
+            self.publisher.event("assignment", id=aid, name=info["name"])
+            self.publisher.status_changed()
+
+    def _http(self, timeout: float) -> Any:
+        """An HTTP client towards the room: its TLS checked with the system's CAs and the room's own."""
+        import httpx
+
+        ctx = ssl.create_default_context()
+        if self.ca_pem:
+            ctx.load_verify_locations(cadata=self.ca_pem)
+        return httpx.Client(base_url=self.room_url, timeout=timeout, verify=ctx)
+
+    def _token(self, subject: str, use: str) -> dict[str, str]:
+        return {"bench": self.name, "token": sso.mint(self.key, self.name, subject, ttl_s=sso.TTL_S, use=use)}
+
+    def _fetch(self, aid: str, path: str, out: Path) -> None:
+        """An assignment too large for MQTT, from the room (blocking; bounded as an upload is)."""
+        if not self.room_url or not path.startswith("/api/room/assignments/"):
+            raise RuntimeError("no room address to fetch the assignment from (enrolled by an old xrf room join?)")
+        total = 0
+        with self._http(120) as c, c.stream("GET", path, params=self._token(aid, "assignment")) as r:
+            if r.status_code != 200:
+                raise RuntimeError(f"the room answered {r.status_code}")
+            with open(out, "wb") as f:
+                for chunk in r.iter_bytes():
+                    total += len(chunk)
+                    if total > ASSIGNMENT_LIMITS.max_upload:
+                        raise ValueError("the assignment is larger than a bench accepts")
+                    f.write(chunk)
+
+    def upload_collection(self, cid: str, path: Path) -> None:
+        """A packed collection to the room (blocking)."""
+        if not self.room_url:
+            raise RuntimeError("no room address to upload to (enrolled by an old xrf room join?)")
+
+        def chunks() -> Iterator[bytes]:
+            with open(path, "rb") as f:
+                yield from iter(lambda: f.read(1 << 20), b"")
+
+        with self._http(600) as c:
+            r = c.post(f"/api/room/collections/{cid}/benches/{self.name}", params=self._token(cid, "collect"),
+                       content=chunks(), headers={"Content-Type": "application/gzip"})
+        if r.status_code != 200:
+            raise RuntimeError(f"the room refused the upload: {r.status_code} {r.text[:200]}")
 
     def facts(self) -> dict[str, Any]:
         """Asked once a second by the publisher: the loop's counters, the lease, the machine."""
@@ -164,6 +285,8 @@ class RoomLink:
     async def close(self) -> None:
         if self._poll:
             self._poll.cancel()
+        for t in list(self._tasks):
+            t.cancel()
         if self.publisher is not None:
             try:
                 self.app.state.supervisor.hub.listeners.remove(self.publisher.on_hub)

@@ -11,19 +11,28 @@ is what the room and the benchmark measure.
 - ``message``: ``text`` shown on the bench's dashboards (an ``alarm`` of kind ``room``: the alarm
   bar every page has).
 - ``selfcheck``: the FPGA self-check with ``profile``, on an idle bench only (a run is never
-  stopped for it); the verdict comes back in the status and as a ``selfcheck`` event.
+  stopped for it); the verdict comes back in the status and as a ``selfcheck`` event. A bench
+  with a run going answers ``skipped: busy`` and shows the verdict ``skipped`` in its status.
+- ``collect``: the runs of the projects made from ``assignment`` packed and uploaded to the room
+  (collect.py); the reply says how many runs and bytes.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import re
+import tempfile
 import time
+from pathlib import Path
 from typing import Any
 
 from .publisher import BenchPublisher, Recent
 
 log = logging.getLogger(__name__)
+
+COMMANDS = ("stop", "message", "selfcheck", "collect")
+COLLECTION_ID_RE = re.compile(r"^[a-f0-9]{8,32}$")
 
 
 class CommandHandler:
@@ -51,7 +60,7 @@ class CommandHandler:
         by = str(body.get("by", ""))[:64]
         reply: dict[str, Any] = {"id": cid, "cmd": cmd, "t_recv": t_recv, "t_sent": body.get("t")}
         try:
-            reply.update(await getattr(self, f"_cmd_{cmd}")(body) if cmd in ("stop", "message", "selfcheck")
+            reply.update(await getattr(self, f"_cmd_{cmd}")(body) if cmd in COMMANDS
                          else {"ok": False, "error": f"unknown command {cmd!r}"})
         except Exception as exc:  # any failure is an answer, never a dead bench
             log.exception("room command %s", cmd)
@@ -92,7 +101,11 @@ class CommandHandler:
 
         sup = self.app.state.supervisor
         if sup.current is not None and sup.current.alive:
-            return {"ok": False, "skipped": "busy", "error": "a run is active; the self-check runs on idle benches only"}
+            why = "a run is active; the self-check runs on idle benches only"
+            if self.publisher is not None:  # the tile says so, beside the others' verdicts
+                self.publisher.status["selfcheck"] = {"verdict": "skipped", "t": time.time(), "message": why}
+                self.publisher.status_changed()
+            return {"ok": False, "skipped": "busy", "error": why}
         svc = getattr(self.app.state, "selfcheck", None)
         if svc is None:
             svc = self.app.state.selfcheck = SelfCheckService(self.app)
@@ -102,3 +115,32 @@ class CommandHandler:
         except HTTPException as exc:
             return {"ok": False, "error": str(exc.detail)}
         return {"ok": True, "check": active.id}
+
+    async def _cmd_collect(self, body: dict[str, Any]) -> dict[str, Any]:
+        from ..projects.assignments import check_id, origin
+        from ..server.routes_projects import service_of
+        from .collect import FORMATS, RunToPack, pack_bench
+
+        link = getattr(self.app.state, "room", None)
+        aid = check_id(str(body.get("assignment", "")))
+        cid = str(body.get("collection", ""))
+        if link is None or not COLLECTION_ID_RE.match(cid):
+            return {"ok": False, "error": "not a collection of this room"}
+        formats = [f for f in body.get("formats") or [] if f in FORMATS]
+        svc = await service_of(self.app)
+        runs_store = self.app.state.supervisor.store
+        runs: list[RunToPack] = []
+        for p in svc.store.projects_with_origin(origin(aid)):  # every student's copy, on this bench
+            for ln in svc.store.runs_of(p.id):
+                row = runs_store.get(ln["run_id"])
+                if row is not None:
+                    runs.append(RunToPack(p.owner, {"id": p.id, "name": p.name}, ln["build_id"], row.as_dict(),
+                                          row.run_dir))
+        folder = link.folder
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=folder, prefix="collect-") as tmp:
+            out = Path(tmp) / "runs.tar.gz"
+            manifest = await asyncio.to_thread(pack_bench, link.name, aid, runs, formats, out)
+            size = out.stat().st_size
+            await asyncio.to_thread(link.upload_collection, cid, out)
+        return {"ok": True, "runs": len(manifest["runs"]), "bytes": size, "left_out": len(manifest["left_out"])}

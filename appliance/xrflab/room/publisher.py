@@ -60,18 +60,20 @@ class BenchPublisher:
     def __init__(self, name: str, endpoint: mqtt.Endpoint, boot: int,
                  facts: Callable[[], dict[str, Any]] = dict, queue_max: int = 1000,
                  on_command: Callable[[dict[str, Any], float], None] | None = None,
-                 on_accounts: Callable[[dict[str, Any]], None] | None = None) -> None:
+                 on_accounts: Callable[[dict[str, Any]], None] | None = None,
+                 on_assignment: Callable[[dict[str, Any]], None] | None = None) -> None:
         self.name = topics.check_bench_name(name)
         self.endpoint = endpoint
         self.boot = boot
         self.facts = facts
         self.on_command = on_command
         self.on_accounts = on_accounts
+        self.on_assignment = on_assignment
         self.seq = 0
         self.conn = 0
         self.connected = False
         self.status: dict[str, Any] = {"state": "NO RUN", "run_id": None, "run_owner": "", "holder": "",
-                                       "alarms": [], "selfcheck": None, "message": ""}
+                                       "alarms": [], "selfcheck": None, "message": "", "assignments": []}
         self._events: deque[tuple[int, bytes]] = deque()
         self._inflight: dict[int, int] = {}  # paho mid -> event seq
         self.queue_max = queue_max
@@ -221,7 +223,8 @@ class BenchPublisher:
             return
         self.conn += 1
         self.connected = True
-        client.subscribe([(topics.cmd(self.name), 1), (topics.CMD_ALL, 1), (topics.ACCOUNTS, 1)])
+        client.subscribe([(topics.cmd(self.name), 1), (topics.CMD_ALL, 1), (topics.ACCOUNTS, 1),
+                          (topics.ASSIGNMENTS, 1)])
         client.publish(topics.bench(self.name, "online"), json.dumps({"online": True, "conn": [self.boot, self.conn]}),
                        qos=1, retain=True)
         # the will the broker keeps now is this connection's; the next connect's must name the next
@@ -255,6 +258,9 @@ class BenchPublisher:
         if msg.topic == topics.ACCOUNTS:
             if self.on_accounts is not None and self._loop is not None:
                 self._loop.call_soon_threadsafe(self.on_accounts, body)
+        elif msg.topic.startswith(topics.assignment("")):
+            if self.on_assignment is not None and self._loop is not None:
+                self._loop.call_soon_threadsafe(self.on_assignment, body)
         elif self.on_command is not None:
             self.on_command(body, t_recv)  # called here: stop must not wait for the loop's queue
 

@@ -6,6 +6,10 @@ sessions, CSRF, rate limits and permission declarations (``server/auth.py``,
 routes are for educators only, but ``POST /api/room/enrol`` (a bench's `xrf room join`, which
 has no account: the one-time code is its credential).
 
+Assignments (assignments.py) are published from here and their runs collected back as one
+archive (collect.py); benches fetch and upload over HTTP with tokens signed by their own
+enrolment key (``_bench_token``), never with an account.
+
 ``RoomState`` is the grid's model, fed by one MQTT subscription to ``xrf/bench/+/+`` (paho's
 thread hands every message to the event loop). A bench is offline when its last will says so or
 when nothing was heard from it for ``SILENT_S`` (it publishes every second): whichever comes first.
@@ -18,7 +22,11 @@ import asyncio
 import contextlib
 import json
 import logging
+import os
+import re
 import secrets
+import shutil
+import tempfile
 import time
 from collections import deque
 from collections.abc import AsyncIterator
@@ -27,7 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from fastapi import APIRouter, Depends, FastAPI, HTTPException, Request, WebSocket
+from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request, WebSocket
 from fastapi.responses import FileResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
@@ -35,11 +43,15 @@ from starlette.websockets import WebSocketDisconnect
 
 from ..server.accounts import RateLimiter
 from ..server.auth import Perm, Security, SecurityHeaders, User, client_address, current_user, optional_user, requires
+from ..projects import archive as archive_mod
+from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
 from ..server.body_limit import BodyLimit
 from ..server.settings import Settings
 from . import mqtt, sso, topics
 from .accounts_sync import RoomAccounts
+from .assignments import RoomAssignments
 from .broker import ROOM_USER, BrokerFiles, BrokerProcess
+from .collect import BENCH_MAX, FORMATS, Collection, assemble
 from .enrol import JoinCodes
 
 log = logging.getLogger(__name__)
@@ -90,7 +102,8 @@ class Bench:
                 "selfcheck": s.get("selfcheck"), "cpu_temp_c": s.get("cpu_temp_c"), "throttled": s.get("throttled"),
                 "disk_free_mb": s.get("disk_free_mb"), "url": s.get("url", ""), "seq": s.get("seq"),
                 "t": s.get("t"), "events_dropped": s.get("events_dropped", 0),
-                "accounts_version": s.get("accounts_version", 0), "events": list(self.events)[-5:]}
+                "accounts_version": s.get("accounts_version", 0), "assignments": s.get("assignments", []),
+                "events": list(self.events)[-5:]}
 
 
 class RoomState:
@@ -102,6 +115,7 @@ class RoomState:
         self.listeners: set[asyncio.Queue[str]] = set()
         self.connected = False
         self._was_online: dict[str, bool] = {}
+        self.on_reply: Any = None  # the Room's: a bench's answer to a collection
 
     def bench(self, name: str) -> Bench:
         b = self.benches.get(name)
@@ -142,6 +156,8 @@ class RoomState:
             b.events.append(body)
         elif leaf == "reply":
             self.replies.setdefault(str(body.get("id", "")), []).append({**body, "bench": name, "t_room": time.time()})
+            if self.on_reply is not None:
+                self.on_reply(name, body)
             return
         self.push(name)
 
@@ -180,6 +196,10 @@ class Room:
         self.client: Any = None
         self.loop: asyncio.AbstractEventLoop | None = None
         self.accounts: RoomAccounts | None = None
+        self.assignments = RoomAssignments(config.data_dir / "assignments")
+        self.collections: dict[str, Collection] = {}
+        self.state.on_reply = self._on_reply
+        self._verifiers: dict[tuple[str, str], sso.Verifier] = {}
         self._tasks: list[asyncio.Task[Any]] = []
 
     def _load_benches(self) -> dict[str, dict[str, Any]]:
@@ -239,8 +259,9 @@ class Room:
         client.subscribe(topics.BENCH_ALL, qos=1)
         self.state.connected = True
         if self.accounts is not None and self.loop is not None:
-            # a restarted broker lost the retained class list: publish it again
+            # a restarted broker lost the retained class list and assignments: publish them again
             self.loop.call_soon_threadsafe(self._republish_accounts)
+            self.loop.call_soon_threadsafe(self._republish_assignments)
 
     def _on_disconnect(self, *_a: Any) -> None:
         self.state.connected = False
@@ -274,6 +295,60 @@ class Room:
                 body = self.accounts.changed()
                 if body is not None:
                     self._send_accounts(body)
+
+    # -- assignments and collections ------------------------------------------------------------
+    def _republish_assignments(self) -> None:
+        for a in self.assignments.list():
+            self.publish_assignment(a["id"])
+
+    def publish_assignment(self, aid: str) -> None:
+        if self.client is not None:
+            self.client.publish(topics.assignment(aid), json.dumps(self.assignments.message(aid)), qos=1, retain=True)
+
+    def bench_token(self, bench: str, token: str, use: str, subject: str) -> None:
+        """A bench's own signed token (sso.mint with its enrolment key) for `use` and `subject`; 403
+        for anything else, without saying what."""
+        enrolled = self.enrolled.get(bench)
+        if enrolled is None:
+            raise HTTPException(403, "invalid token")
+        v = self._verifiers.get((bench, use))
+        if v is None or v.key != enrolled["sso_key"]:
+            v = self._verifiers[(bench, use)] = sso.Verifier(enrolled["sso_key"], bench, use)
+        try:
+            if v.verify(token) != subject:
+                raise HTTPException(403, "invalid token")
+        except sso.SsoError:
+            raise HTTPException(403, "invalid token") from None
+
+    def collect(self, aid: str, formats: list[str], wait_s: float, by: str) -> Collection:
+        meta = self.assignments.index.get(aid)
+        if meta is None:
+            raise HTTPException(404, f"no assignment {aid}")
+        if self.client is None or not self.state.connected:
+            raise HTTPException(503, "the room is not connected to its broker")
+        cid = secrets.token_hex(8)
+        folder = self.config.data_dir / "collections" / cid
+        folder.mkdir(parents=True, mode=0o700)
+        c = Collection(cid, meta, formats, by, folder, time.time() + wait_s)
+        for name in sorted(self.enrolled):  # every enrolled bench is in the manifest, answering or not
+            b = self.state.benches.get(name)
+            c.benches[name] = "waiting" if b is not None and b.online else "missing"
+        self.collections[cid] = c
+        while len(self.collections) > 20:  # the oldest collections' files go
+            old = self.collections.pop(next(iter(self.collections)))
+            shutil.rmtree(old.folder, ignore_errors=True)
+        body = {"id": cid, "cmd": "collect", "by": by, "t": time.time(), "collection": cid, "assignment": aid,
+                "formats": formats}
+        for name, status in c.benches.items():
+            if status == "waiting":
+                self.client.publish(topics.cmd(name), json.dumps(body), qos=1)
+        return c
+
+    def _on_reply(self, bench: str, body: dict[str, Any]) -> None:
+        c = self.collections.get(str(body.get("id", "")))
+        if c is not None and body.get("cmd") == "collect" and not body.get("ok") and c.benches.get(bench) == "waiting":
+            c.benches[bench] = "failed"
+            c.errors[bench] = str(body.get("error", ""))[:300]
 
     # -- actions --------------------------------------------------------------------------------
     def command(self, bench: str | None, cmd: str, by: str, **fields: Any) -> dict[str, Any]:
@@ -333,6 +408,21 @@ class SelfCheck(BaseModel):
     profile: str = Field(default="relbot", max_length=64)
 
 
+class NewAssignment(BaseModel):
+    name: str = Field(min_length=1, max_length=64)
+    template: str = Field(pattern=r"^(base|20sim)$", description="one of the appliance's templates")
+
+
+class Collect(BaseModel):
+    formats: list[str] = Field(default_factory=lambda: ["csv"], max_length=3,
+                               description="conversions beside each raw log: csv, mat, parquet")
+    wait_s: float = Field(default=60.0, ge=1.0, le=600.0, description="how long benches have to answer")
+
+
+def _clean_name(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.+ -]", "_", name).strip(" ._")[:64] or "assignment"
+
+
 @router.get("/benches", dependencies=[requires(Perm.EDUCATOR)])
 async def benches(request: Request) -> dict[str, Any]:
     room = _room(request)
@@ -376,11 +466,139 @@ async def message(body: Message, request: Request, user: User = Depends(current_
 
 @router.post("/selfcheck", dependencies=[requires(Perm.EDUCATOR)])
 async def selfcheck(body: SelfCheck, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
-    """Every idle online bench (no loop running) runs its self-check; verdicts arrive in the grid."""
+    """Every online bench is asked; an idle one (no loop running) runs its self-check, one with a run
+    going answers ``skipped: busy`` (the bench decides: the grid may be a second behind). Verdicts
+    arrive in the grid (``selfcheck`` of each bench), side by side."""
     room = _room(request)
-    idle = [b.name for b in room.state.benches.values() if b.online and not b.status.get("active")]
-    sent = [room.command(name, "selfcheck", user.username, profile=body.profile) for name in idle]
-    return {"benches": idle, "ids": [s["id"] for s in sent]}
+    online = sorted(b.name for b in room.state.benches.values() if b.online)
+    busy = [n for n in online if room.state.benches[n].status.get("active")]
+    sent = [room.command(name, "selfcheck", user.username, profile=body.profile) for name in online]
+    return {"benches": online, "busy": busy, "ids": [s["id"] for s in sent]}
+
+
+@router.get("/assignments", dependencies=[requires(Perm.EDUCATOR)])
+async def list_assignments(request: Request) -> list[dict[str, Any]]:
+    """Every published assignment and the benches that have it (their status says so)."""
+    room = _room(request)
+    return [{**a, "benches": sorted(b.name for b in room.state.benches.values()
+                                    if a["id"] in (b.status.get("assignments") or []))}
+            for a in room.assignments.list()]
+
+
+def _publish(request: Request, user: User, meta: dict[str, Any]) -> dict[str, Any]:
+    from ..server import audit
+
+    _room(request).publish_assignment(meta["id"])
+    audit.record(user, "room.assignment", {"id": meta["id"], "name": meta["name"]}, client_address(request))
+    return meta
+
+
+@router.post("/assignments", status_code=201, dependencies=[requires(Perm.EDUCATOR)])
+async def publish_template(body: NewAssignment, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
+    """Publish one of the appliance's templates as an assignment called `name`."""
+    room = _room(request)
+    src = request.app.state.settings.projects_dir / "templates" / body.template
+    meta = await asyncio.to_thread(room.assignments.add_template, _clean_name(body.name), src, user.username)
+    return _publish(request, user, meta)
+
+
+@router.post("/assignments/upload", status_code=201, dependencies=[requires(Perm.EDUCATOR)])
+async def publish_archive(request: Request, name: str = Query(min_length=1, max_length=64),
+                          user: User = Depends(current_user)) -> dict[str, Any]:
+    """Publish an uploaded archive (zip, tar, tar.gz as the raw body), checked as a student's upload."""
+    room = _room(request)
+    room.assignments.folder.mkdir(parents=True, exist_ok=True)
+    path = await _spool(request, room.assignments.folder, ASSIGNMENT_LIMITS.max_upload)
+    try:
+        meta = await asyncio.to_thread(room.assignments.add, _clean_name(name), path, user.username)
+    except archive_mod.ArchiveRejected as exc:
+        raise HTTPException(422, f"archive refused: {exc}") from None
+    finally:
+        path.unlink(missing_ok=True)
+    return _publish(request, user, meta)
+
+
+# PUBLIC: a bench has no account here; its token, signed with its own enrolment key, is the credential.
+@router.get("/assignments/{aid}/archive", dependencies=[requires(Perm.PUBLIC)])
+async def assignment_archive(aid: str, request: Request, bench: str = Query(max_length=64),
+                             token: str = Query(max_length=1000)) -> Response:
+    room = _room(request)
+    room.bench_token(bench, token, "assignment", aid)
+    if aid not in room.assignments.index:
+        raise HTTPException(404, f"no assignment {aid}")
+    return FileResponse(room.assignments.archive_path(aid), media_type="application/gzip")
+
+
+@router.post("/assignments/{aid}/collect", status_code=201, dependencies=[requires(Perm.EDUCATOR)])
+async def collect(aid: str, body: Collect, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
+    """Ask every enrolled bench for the runs of projects made from `aid`; offline ones are missing.
+    Follow ``GET /api/room/collections/<id>`` until ``done``, then download its ``archive``."""
+    from ..server import audit
+
+    bad = [f for f in body.formats if f not in FORMATS]
+    if bad:
+        raise HTTPException(422, f"formats: {', '.join(FORMATS)} (not {', '.join(bad)})")
+    c = _room(request).collect(aid, sorted(set(body.formats)), body.wait_s, user.username)
+    audit.record(user, "room.collect", {"assignment": aid, "collection": c.id}, client_address(request))
+    return c.view()
+
+
+def _collection(request: Request, cid: str) -> Collection:
+    c = _room(request).collections.get(cid)
+    if c is None:
+        raise HTTPException(404, f"no collection {cid}")
+    return c
+
+
+@router.get("/collections/{cid}", dependencies=[requires(Perm.EDUCATOR)])
+async def collection(cid: str, request: Request) -> dict[str, Any]:
+    return _collection(request, cid).view()
+
+
+# PUBLIC: as the archive above, the bench's signed token is the credential.
+@router.post("/collections/{cid}/benches/{bench}", dependencies=[requires(Perm.PUBLIC)])
+async def collection_upload(cid: str, bench: str, request: Request, token: str = Query(max_length=1000)) -> dict[str, Any]:
+    room = _room(request)
+    room.bench_token(bench, token, "collect", cid)
+    c = room.collections.get(cid)
+    if c is None or c.benches.get(bench) != "waiting":
+        raise HTTPException(409, "this collection does not wait for this bench (too late, or sent already)")
+    path = await _spool(request, c.folder, BENCH_MAX)
+    os.replace(path, c.upload_path(bench))
+    c.benches[bench] = "collected"
+    return {"ok": True}
+
+
+@router.get("/collections/{cid}/archive", dependencies=[requires(Perm.EDUCATOR)])
+async def collection_archive(cid: str, request: Request) -> Response:
+    """One zip: ``<student>/<bench>/<run id>/...`` and ``manifest.json`` (benches that did not
+    answer are listed as missing). 409 while benches are still expected."""
+    c = _collection(request, cid)
+    if not c.done:
+        raise HTTPException(409, "benches are still sending; see GET /api/room/collections/" + cid)
+    if c.archive is None:
+        out = c.folder / "collection.zip"
+        await asyncio.to_thread(assemble, c, out)
+        c.archive = out
+    name = re.sub(r"[^A-Za-z0-9_.-]", "_", c.assignment["name"]) or "assignment"
+    return FileResponse(c.archive, media_type="application/zip", filename=f"{name}-runs-{cid[:6]}.zip")
+
+
+async def _spool(request: Request, folder: Path, limit: int) -> Path:
+    """The request body into a private file in `folder`, refused (413) past `limit` bytes."""
+    fd, name = tempfile.mkstemp(dir=folder, prefix=".upload-")
+    total = 0
+    try:
+        with os.fdopen(fd, "wb") as f:
+            async for chunk in request.stream():
+                total += len(chunk)
+                if total > limit:
+                    raise HTTPException(413, f"over {limit >> 20} MB")
+                f.write(chunk)
+    except BaseException:
+        os.unlink(name)
+        raise
+    return Path(name)
 
 
 @router.get("/commands/{cid}", dependencies=[requires(Perm.EDUCATOR)])
@@ -432,6 +650,16 @@ async def room_ws(ws: WebSocket) -> None:
         room.state.listeners.discard(q)
 
 
+class RoomBodyLimit(BodyLimit):
+    """The room's uploads (an assignment's archive, a bench's collection) stream to a file in their
+    route, bounded there; every other body is small."""
+
+    UPLOADS = re.compile(r"^/api/room/(assignments/upload|collections/[^/]+/benches/[^/]+)/?$")
+
+    def _is_upload(self, scope: Any) -> bool:
+        return scope.get("method") == "POST" and bool(self.UPLOADS.match(scope.get("path", "")))
+
+
 def create_room_app(config: RoomConfig) -> FastAPI:
     settings = Settings(data_dir=config.data_dir, host=config.host, port=config.port)
     security = Security(settings)
@@ -461,7 +689,7 @@ def create_room_app(config: RoomConfig) -> FastAPI:
     app.state.security = security
     app.state.room = room
     app.add_middleware(SecurityHeaders)
-    app.add_middleware(BodyLimit, limit=settings.max_body_bytes, upload_limit=settings.max_upload_body_bytes)
+    app.add_middleware(RoomBodyLimit, limit=settings.max_body_bytes, upload_limit=BENCH_MAX + (1 << 20))
     from ..server.routes_accounts import router as accounts_router
 
     app.include_router(accounts_router)

@@ -7,6 +7,11 @@ that the nonce was not used before, then opens an ordinary session for that user
 and be enabled in the bench's own accounts (the class list put them there). Being an ordinary
 session, every rule of the bench holds as for a password login: someone else's project or run
 still answers as a missing one.
+
+The same tokens, with another ``use``, let a bench prove who it is to the room over HTTP (a bench
+signs with its own key; the room checks it with the key it keeps for that bench): ``assignment``
+to fetch an assignment's archive too large for MQTT, ``collect`` to upload its runs of an
+assignment. A token of one use is refused for any other.
 """
 
 from __future__ import annotations
@@ -31,8 +36,10 @@ def _unb64(text: str) -> bytes:
     return base64.urlsafe_b64decode(text + "=" * (-len(text) % 4))
 
 
-def mint(key: str, bench: str, username: str, ttl_s: float = TTL_S) -> str:
-    body = _b64(json.dumps({"bench": bench, "user": username, "exp": time.time() + ttl_s,
+def mint(key: str, bench: str, username: str, ttl_s: float = TTL_S, use: str = "sso") -> str:
+    """`username`: who signs on (use ``sso``), or what the bench asks for (an assignment's or a
+    collection's id)."""
+    body = _b64(json.dumps({"bench": bench, "user": username, "exp": time.time() + ttl_s, "use": use,
                             "nonce": secrets.token_urlsafe(12)}, separators=(",", ":")).encode())
     mac = _b64(hmac.new(key.encode(), body.encode(), hashlib.sha256).digest())
     return f"{body}.{mac}"
@@ -43,9 +50,10 @@ class SsoError(Exception):
 
 
 class Verifier:
-    def __init__(self, key: str, bench: str) -> None:
+    def __init__(self, key: str, bench: str, use: str = "sso") -> None:
         self.key = key
         self.bench = bench
+        self.use = use
         self._used: OrderedDict[str, float] = OrderedDict()
 
     def verify(self, token: str) -> str:
@@ -62,7 +70,7 @@ class Verifier:
         except ValueError:
             raise SsoError("invalid sign-on link") from None
         now = time.time()
-        if claims.get("bench") != self.bench:
+        if claims.get("bench") != self.bench or claims.get("use", "sso") != self.use:
             raise SsoError("invalid sign-on link")
         if not isinstance(claims.get("exp"), (int, float)) or claims["exp"] < now:
             raise SsoError("this sign-on link has expired; click the bench in the room again")

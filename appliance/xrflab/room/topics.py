@@ -7,8 +7,9 @@
     xrf/cmd/<name>            QoS 1     {"id", "cmd", "t", ...}          -- the room's commands
     xrf/cmd/all               QoS 1     the same, for every bench
     xrf/accounts              retained  {"version", "users": [...]}    -- the class list (accounts_sync.py)
+    xrf/assignment/<id>       retained  {"id", "name", "sha256", ...}  -- a published assignment (assignments.py)
 
-Only the room writes under xrf/cmd and xrf/accounts, and a bench writes only under its own
+Only the room writes under xrf/cmd, xrf/accounts and xrf/assignment, and a bench writes only under its own
 xrf/bench/<name> (broker.acl_text). Every bench message carries (boot, seq): `boot` is the
 appliance's start time in ns (a restarted bench counts higher), `seq` counts up within it, so the
 room keeps the newest whatever order messages arrive in (``newer``).
@@ -22,6 +23,7 @@ ROOT = "xrf"
 CMD_ALL = f"{ROOT}/cmd/all"
 ACCOUNTS = f"{ROOT}/accounts"
 BENCH_ALL = f"{ROOT}/bench/+/+"
+ASSIGNMENTS = f"{ROOT}/assignment/+"
 
 # A bench's name is its broker username and part of its topics: no MQTT wildcards or separators.
 NAME_RE = re.compile(r"^[a-z0-9][a-z0-9-]{0,31}$")
@@ -41,6 +43,10 @@ def bench(name: str, leaf: str) -> str:
 
 def cmd(name: str) -> str:
     return f"{ROOT}/cmd/{name}"
+
+
+def assignment(aid: str) -> str:
+    return f"{ROOT}/assignment/{aid}"
 
 
 def parse_bench_topic(topic: str) -> tuple[str, str] | None:

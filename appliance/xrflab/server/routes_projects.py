@@ -28,6 +28,7 @@ from pydantic import BaseModel, Field
 from starlette.requests import HTTPConnection
 
 from ..projects import archive, twentysim
+from ..projects.assignments import ORIGIN_PREFIX, Assignments
 from ..projects.builder import Builder, SandboxConfig
 from ..projects.store import BuildRow, ProjectRow, ProjectStore, VersionRow
 from ..projects.versions import Versions
@@ -70,6 +71,9 @@ class ProjectsService:
                                hide_dir=settings.data_dir)
         # Every change of a project's source is a version; a build compiles a version's tree.
         self.versions = Versions(self.store, self.root)
+        # What the room published (issue 21): templates of this bench's, copied to every student.
+        self.assignments = Assignments(settings.data_dir / "assignments")
+        self.assignment_lock = asyncio.Lock()
 
     def folder(self, project: ProjectRow) -> Path:
         return self.root / project.folder
@@ -82,13 +86,18 @@ _lock = asyncio.Lock()
 
 
 async def _service(request: HTTPConnection) -> ProjectsService:
-    svc = getattr(request.app.state, "projects", None)
+    return await service_of(request.app)
+
+
+async def service_of(app: Any) -> ProjectsService:
+    """The app's projects service (also for the room's commands, which have no request)."""
+    svc = getattr(app.state, "projects", None)
     if svc is None:
         async with _lock:
-            svc = getattr(request.app.state, "projects", None)
+            svc = getattr(app.state, "projects", None)
             if svc is None:
-                svc = await asyncio.to_thread(ProjectsService, request.app, asyncio.get_running_loop())
-                request.app.state.projects = svc
+                svc = await asyncio.to_thread(ProjectsService, app, asyncio.get_running_loop())
+                app.state.projects = svc
     return svc
 
 
@@ -177,7 +186,8 @@ class UploadResult(BaseModel):
 
 
 class FromTemplate(BaseModel):
-    template: Literal["base", "20sim"]
+    template: str = Field(pattern=r"^(base|20sim|assignment:[a-z0-9][a-z0-9-]{0,39})$",
+                          description="base, 20sim or assignment:<id> (one the room published)")
     name: str = Field(default="", max_length=64)
 
 
@@ -380,9 +390,12 @@ def _download(data: bytes, name: str) -> Response:
 
 @router.get("/projects", response_model=list[Project], dependencies=[requires(Perm.PROJECTS)])
 async def list_projects(request: Request, all: bool = False) -> list[dict[str, Any]]:
-    """The requester's projects; an educator's own too, or with ``all=true`` everyone's."""
+    """The requester's projects; an educator's own too, or with ``all=true`` everyone's. A student
+    finds a copy of every assignment the room published here (made on the first listing)."""
     svc = await _service(request)
     user = _user(request)
+    if user is not None and not user.is_educator:
+        await _provide_assignments(svc, _owner_name(user))
     rows = svc.store.projects() if all else svc.store.projects(owner=_owner_name(user))
     return [p.as_dict() for p in ownership.visible(user, rows)]
 
@@ -427,13 +440,18 @@ async def replace_source(pid: int, request: Request) -> dict[str, Any]:
 
 
 @router.get("/project-templates", dependencies=[requires(Perm.PROJECTS)])
-async def list_templates(request: Request) -> list[dict[str, str]]:
+async def list_templates(request: Request) -> list[dict[str, Any]]:
+    """The appliance's templates, then the assignments the room published (``assignment:<id>``)."""
     root = request.app.state.settings.projects_dir / "templates"
-    out = []
+    out: list[dict[str, Any]] = []
     for t in TEMPLATES:
         readme = root / t / "README.md"
         first = readme.read_text(errors="replace").strip().splitlines()[0].lstrip("# ") if readme.exists() else t
         out.append({"name": t, "title": first})
+    svc = await _service(request)
+    for a in await asyncio.to_thread(svc.assignments.list):
+        out.append({"name": ORIGIN_PREFIX + a["id"], "title": a["name"], "assignment": True, "by": a.get("by", ""),
+                    "published": a.get("t")})
     return out
 
 
@@ -443,19 +461,49 @@ async def download_template(template: Literal["base", "20sim"], request: Request
     return _download(await asyncio.to_thread(_zip_dir, src, f"my_{template}"), f"my_{template}")
 
 
-@router.post("/projects/from-template", response_model=Project, status_code=201, dependencies=[requires(Perm.PROJECTS)])
-async def new_from_template(body: FromTemplate, request: Request) -> dict[str, Any]:
-    svc = await _service(request)
-    src_t = request.app.state.settings.projects_dir / "templates" / body.template
+async def _from_tree(svc: ProjectsService, src_t: Path, owner: str, name: str, origin: str) -> ProjectRow:
+    """A new project of `owner` whose source is a copy of the folder `src_t`, recorded as version 1."""
     token, folder = _new_folder(svc)
     await asyncio.to_thread(shutil.copytree, src_t, folder / "src", symlinks=False,
                             ignore=shutil.ignore_patterns(*_SKIP))
     files = _file_list(folder / "src")
-    project = svc.store.create_project(_owner_name(_user(request)), _clean_name(body.name, f"my_{body.template}"),
-                                       token, f"template:{body.template}")
+    project = svc.store.create_project(owner, name, token, origin)
     project = svc.store.update_project(project.id, files=len(files),
                                        bytes=sum((folder / "src" / f).stat().st_size for f in files))
-    await _record(svc, project, request, f"template:{body.template}")
+    async with _version_lock(svc, project):
+        await asyncio.to_thread(svc.versions.record, project, owner, origin)
+    return project
+
+
+async def _provide_assignments(svc: ProjectsService, owner: str) -> None:
+    """A copy of every received assignment this student has not had one of yet (one at a time:
+    two pages listing at once make one copy)."""
+    from . import audit
+
+    async with svc.assignment_lock:
+        have = svc.store.copies_made(owner)
+        for a in await asyncio.to_thread(svc.assignments.list):
+            if a["id"] in have:
+                continue
+            project = await _from_tree(svc, svc.assignments.src(a["id"]), owner, _clean_name(a["name"], a["id"]),
+                                       ORIGIN_PREFIX + a["id"])
+            svc.store.record_copy(a["id"], owner, project.id)
+            audit.record(None, "project.create", {"project": project.id, "owner": owner, "assignment": a["id"]})
+
+
+@router.post("/projects/from-template", response_model=Project, status_code=201, dependencies=[requires(Perm.PROJECTS)])
+async def new_from_template(body: FromTemplate, request: Request) -> dict[str, Any]:
+    svc = await _service(request)
+    if body.template.startswith(ORIGIN_PREFIX):
+        aid = body.template[len(ORIGIN_PREFIX):]
+        meta = svc.assignments.get(aid)
+        if meta is None:
+            raise HTTPException(404, f"no assignment {aid}")
+        src_t, default, origin = svc.assignments.src(aid), _clean_name(meta["name"], aid), body.template
+    else:
+        src_t = request.app.state.settings.projects_dir / "templates" / body.template
+        default, origin = f"my_{body.template}", f"template:{body.template}"
+    project = await _from_tree(svc, src_t, _owner_name(_user(request)), _clean_name(body.name, default), origin)
     _audit(request, "project.create", {"project": project.id, "name": project.name, "template": body.template})
     return project.as_dict()
 
