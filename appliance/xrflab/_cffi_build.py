@@ -1,9 +1,10 @@
 """Builds the cffi binding of rt_core's channels (API mode) on first use and caches it.
 
 The cdef is the text between the ``/* cffi-begin */`` and ``/* cffi-end */`` markers of each of
-``HEADERS`` (``channels.h``: the layout and rings; ``watch.h``: the safety watcher) and the
-extension compiles rt_core's own C files (``SOURCES``), so Python uses the very layout, ring code
-and ico-board frames the loop uses: nothing is written down twice.
+``HEADERS`` (``channels.h``: the layout and rings; ``watch.h``: the safety watcher; ``plants.h``:
+the simulated plants) and the extension compiles rt_core's own C files (``SOURCES`` and every
+``plant_*.c``), so Python uses the very layout, ring code, ico-board frames and plant table the
+loop uses: nothing is written down twice.
 
 The compiled module lives in ``$XRF_CACHE_DIR/<hash>/`` (default ``~/.cache/xrf-lab/cffi/<hash>/``)
 where the hash covers those headers and sources, this script and the Python ABI. A file lock keeps
@@ -35,6 +36,11 @@ uint64_t xrfpy_load_u64(const uint64_t *p);
 void xrfpy_store_u32(uint32_t *p, uint32_t v);
 void xrfpy_store_i64(int64_t *p, int64_t v);
 """
+# ico.h's protocol constants Python needs, by name only: "..." makes cffi take each value from the
+# compiled header (ico.h has no cffi markers; if it gains them, drop the line from here).
+CONSTANTS_CDEF = """
+#define XRF_ICO_ENC_MODULO ...
+"""
 HELPERS_SOURCE = """
 uint32_t xrfpy_load_u32(const uint32_t *p) { return __atomic_load_n(p, __ATOMIC_ACQUIRE); }
 uint64_t xrfpy_load_u64(const uint64_t *p) { return __atomic_load_n(p, __ATOMIC_ACQUIRE); }
@@ -51,16 +57,23 @@ def rt_core_dir() -> Path:
     return Path(__file__).resolve().parents[2] / "rt_core"
 
 
+# logformat.c: the log file's segment header, which the host log writer writes and the reader
+# reads with the loop's own definition (logformat.h comes after channels.h: it names
+# struct xrf_log_meta).
 # channels.c: rings, seqlock, commands. watch.c: the safety watcher, which sends the FPGA RESET
 # through ico.c's frame builder and spidev.c's transport (the loop's own code for both).
-HEADERS = ("channels.h", "watch.h")
-SOURCES = ("channels.c", "watch.c", "ico.c", "spidev.c")
+# plants.c: the plant table, whose rows are in the plant files (PLANT_SOURCES, found by name so a
+# new plant needs no edit here). The plant code is pure arithmetic: nothing of it runs in Python
+# but the table's names and sizes.
+HEADERS = ("channels.h", "logformat.h", "watch.h", "plants.h")
+SOURCES = ("channels.c", "logformat.c", "watch.c", "ico.c", "spidev.c", "plants.c")
+PLANT_SOURCES = "plant_*.c"
 
 
 def _sources() -> tuple[list[Path], list[Path]]:
     rt = rt_core_dir()
     headers = [rt / "include" / "xrf" / name for name in HEADERS]
-    sources = [rt / "src" / name for name in SOURCES]
+    sources = [rt / "src" / name for name in SOURCES] + sorted((rt / "src").glob(PLANT_SOURCES))
     for path in headers + sources:
         if not path.is_file():
             raise FileNotFoundError(
@@ -104,9 +117,10 @@ def _compile_into(target: Path) -> None:
     for header in headers:
         ffi.cdef(extract_cdef(header.read_text()))
     ffi.cdef(HELPERS_CDEF)
+    ffi.cdef(CONSTANTS_CDEF)
     ffi.set_source(
         MODULE_NAME,
-        "".join(f'#include "xrf/{h.name}"\n' for h in headers) + HELPERS_SOURCE,
+        "".join(f'#include "xrf/{h.name}"\n' for h in headers) + '#include "xrf/ico.h"\n' + HELPERS_SOURCE,
         sources=[str(s) for s in sources],
         include_dirs=[str(headers[0].parent.parent)],
         extra_compile_args=["-O2", "-std=gnu11"],

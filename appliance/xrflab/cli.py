@@ -22,6 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+from . import plants
+
 EXIT_OK = 0
 EXIT_ERROR = 1
 EXIT_REJECTED = 3
@@ -378,7 +380,8 @@ def run_build(args: argparse.Namespace) -> int:
 
 def _run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("target", type=Path, help="project folder (built first) or controller executable")
-    p.add_argument("--sim", choices=["relbot", "jiwy"], help="simulated robot (sets XRF_SIM)")
+    p.add_argument("--sim", type=plants.arg_type, metavar="PLANT",
+                   help="simulated robot (sets XRF_SIM): a plant of rt_core's plant table (relbot, jiwy, ...)")
     p.add_argument("--freq", type=int, help="cycle frequency override in Hz (XRF_FREQ)")
     p.add_argument("--cpu", type=int, help="CPU to pin the loop thread to (XRF_CPU)")
     p.add_argument("--prio", type=int, help="SCHED_FIFO priority (XRF_PRIO)")

@@ -1,13 +1,15 @@
 /*
- * plant.h — private to the simulated board: the DC motor model shared by both robots and the
- * Jiwy and RELbot plants. Parameter values and their sources: docs/rt_core/simulator.md.
+ * plant.h — private to the simulated board: the DC motor model every plant uses and the plant
+ * operations a plant file (plant_<name>.c) fills in for its row of the plant table (plants.c).
+ * Parameter values and their sources: docs/rt_core/simulator.md.
  *
- * All plants are plain structs the board embeds, so a step never allocates.
+ * A plant's state is a plain struct the board allocates once at open, so a step never allocates.
  */
 #ifndef XRF_PLANT_H
 #define XRF_PLANT_H
 
 #include <math.h>
+#include <stddef.h>
 
 #define XRF_PLANT_SUPPLY_V 12.0 /* default supply the PWM duty scales */
 
@@ -46,38 +48,28 @@ static inline void xrf_dc_motor_step(const struct xrf_dc_motor_params *p, struct
     m->angle += w * dt;
 }
 
-/* Jiwy: channel 1 = pan, channel 2 = tilt. */
-struct xrf_jiwy {
-    struct xrf_dc_motor_params p[2];
-    double ratio[2];   /* camera angle / motor angle (gearbox × belt) */
-    double limit[2];   /* end stop, rad at the camera, symmetric */
-    double supply_v;
-    struct xrf_dc_motor m[2];
+/* One simulated plant: one row of the plant table (plants.c), defined in its own plant_<name>.c.
+ * The board allocates `size` zeroed bytes for the plant's own struct at open and hands them to
+ * every function here; step, motor_angle and state run in the loop's transfer, so they must not
+ * allocate, lock, print or make a system call. */
+struct xrf_plant_ops {
+    const char *name;  /* XRF_SIM=<name>, the bench profile and example of the same name */
+    const char *title; /* for people */
+    int axes;          /* motor channels wired, 1..axes: PWM n drives the motor behind encoder n */
+    int state_len;     /* values state() gives (<= 8, the shared-memory mirror's size) */
+    const char *state_names; /* "name unit, ..." in state() order */
+    size_t size;       /* of the plant's struct */
+    void (*init)(void *plant);
+    /* duty[ch] in [-1, 1] for channels 1..4 (index 0..3); channels beyond `axes` are ignored. */
+    void (*step)(void *plant, const double duty[4], double dt);
+    /* Motor shaft angle (rad) behind encoder channel ch (0-based), or NAN when nothing is
+     * connected: the encoder wiring. */
+    double (*motor_angle)(const void *plant, int ch);
+    /* Up to n state values into state; returns how many. */
+    int (*state)(const void *plant, double *state, int n);
 };
 
-void xrf_jiwy_init(struct xrf_jiwy *j);
-/* duty[ch] in [-1, 1] for channels 1..4 (index 0..3); channels 3, 4 are not connected. */
-void xrf_jiwy_step(struct xrf_jiwy *j, const double duty[4], double dt);
-/* Motor shaft angle behind encoder channel ch (0-based), or NAN when nothing is connected. */
-double xrf_jiwy_motor_angle(const struct xrf_jiwy *j, int ch);
-int xrf_jiwy_state(const struct xrf_jiwy *j, double *state, int n);
-void xrf_jiwy_mirror(const struct xrf_jiwy *j, double plant[8]);
-
-/* RELbot: channel 1 = left wheel, channel 2 = right wheel (motor mounted mirrored). */
-struct xrf_relbot {
-    struct xrf_dc_motor_params p; /* same motor type on both sides */
-    double gear;         /* motor revolutions per wheel revolution */
-    double wheel_radius; /* m */
-    double track;        /* distance between the wheel contact points, m */
-    double supply_v;
-    struct xrf_dc_motor m[2];
-    double x, y, theta;  /* pose in the start frame: m, m, rad */
-};
-
-void xrf_relbot_init(struct xrf_relbot *r);
-void xrf_relbot_step(struct xrf_relbot *r, const double duty[4], double dt);
-double xrf_relbot_motor_angle(const struct xrf_relbot *r, int ch);
-int xrf_relbot_state(const struct xrf_relbot *r, double *state, int n);
-void xrf_relbot_mirror(const struct xrf_relbot *r, double plant[8]);
+/* The plant table (plants.c): row `id` (from 1), or NULL. */
+const struct xrf_plant_ops *xrf_plant_ops(int id);
 
 #endif /* XRF_PLANT_H */

@@ -13,6 +13,15 @@
 
 #define DEG (M_PI / 180.0)
 
+/* Channel 1 = pan, channel 2 = tilt. */
+struct xrf_jiwy {
+    struct xrf_dc_motor_params p[2];
+    double ratio[2]; /* camera angle / motor angle (gearbox × belt) */
+    double limit[2]; /* end stop, rad at the camera, symmetric */
+    double supply_v;
+    struct xrf_dc_motor m[2];
+};
+
 /* Per axis: motor figures, camera-side figures, transmission, assumed electrical side. */
 struct axis_figures {
     double k, j_motor, b_motor, gearbox, belt, j_camera, b_camera, r, tc, stop_deg;
@@ -27,8 +36,9 @@ static const struct axis_figures figures[2] = {
      .j_camera = 4.5e-5, .b_camera = 1.0e-4, .r = 4.0, .tc = 2.0e-4, .stop_deg = 45.0},
 };
 
-void xrf_jiwy_init(struct xrf_jiwy *j)
+static void jiwy_init(void *plant)
 {
+    struct xrf_jiwy *j = plant;
     for (int a = 0; a < 2; a++) {
         const struct axis_figures *f = &figures[a];
         double n = f->gearbox * f->belt;
@@ -46,8 +56,9 @@ void xrf_jiwy_init(struct xrf_jiwy *j)
     j->supply_v = XRF_PLANT_SUPPLY_V;
 }
 
-void xrf_jiwy_step(struct xrf_jiwy *j, const double duty[4], double dt)
+static void jiwy_step(void *plant, const double duty[4], double dt)
 {
+    struct xrf_jiwy *j = plant;
     for (int a = 0; a < 2; a++) {
         struct xrf_dc_motor *m = &j->m[a];
         xrf_dc_motor_step(&j->p[a], m, duty[a] * j->supply_v, dt);
@@ -66,13 +77,15 @@ void xrf_jiwy_step(struct xrf_jiwy *j, const double duty[4], double dt)
     }
 }
 
-double xrf_jiwy_motor_angle(const struct xrf_jiwy *j, int ch)
+static double jiwy_motor_angle(const void *plant, int ch)
 {
+    const struct xrf_jiwy *j = plant;
     return (ch == 0 || ch == 1) ? j->m[ch].angle : NAN;
 }
 
-int xrf_jiwy_state(const struct xrf_jiwy *j, double *state, int n)
+static int jiwy_state(const void *plant, double *state, int n)
 {
+    const struct xrf_jiwy *j = plant;
     const double v[4] = {
         j->m[0].angle * j->ratio[0],
         j->m[1].angle * j->ratio[1],
@@ -85,12 +98,15 @@ int xrf_jiwy_state(const struct xrf_jiwy *j, double *state, int n)
     return k;
 }
 
-void xrf_jiwy_mirror(const struct xrf_jiwy *j, double plant[8])
-{
-    double s[4];
-    xrf_jiwy_state(j, s, 4);
-    plant[0] = s[0];
-    plant[1] = s[1];
-    plant[2] = s[2];
-    plant[3] = s[3];
-}
+const struct xrf_plant_ops xrf_plant_jiwy = {
+    .name = "jiwy",
+    .title = "Jiwy (pan-tilt camera)",
+    .axes = 2,
+    .state_len = 4,
+    .state_names = "pan rad, tilt rad, pan_rate rad/s, tilt_rate rad/s",
+    .size = sizeof(struct xrf_jiwy),
+    .init = jiwy_init,
+    .step = jiwy_step,
+    .motor_angle = jiwy_motor_angle,
+    .state = jiwy_state,
+};

@@ -14,8 +14,20 @@
 #define RELBOT_WHEEL_J 1.0e-4    /* assumed: one wheel with hub, kg·m² */
 #define RELBOT_MOTOR_J 1.0e-6    /* assumed rotor inertia, kg·m² */
 
-void xrf_relbot_init(struct xrf_relbot *r)
+/* Channel 1 = left wheel, channel 2 = right wheel (motor mounted mirrored). */
+struct xrf_relbot {
+    struct xrf_dc_motor_params p; /* same motor type on both sides */
+    double gear;         /* motor revolutions per wheel revolution */
+    double wheel_radius; /* m */
+    double track;        /* distance between the wheel contact points, m */
+    double supply_v;
+    struct xrf_dc_motor m[2];
+    double x, y, theta; /* pose in the start frame: m, m, rad */
+};
+
+static void relbot_init(void *plant)
 {
+    struct xrf_relbot *r = plant;
     r->gear = 15.58;
     r->wheel_radius = 0.101 / 2.0;
     r->track = 0.20;
@@ -49,8 +61,9 @@ static double wheel_right(const struct xrf_relbot *r)
     return -r->m[1].speed / r->gear;
 }
 
-void xrf_relbot_step(struct xrf_relbot *r, const double duty[4], double dt)
+static void relbot_step(void *plant, const double duty[4], double dt)
 {
+    struct xrf_relbot *r = plant;
     for (int i = 0; i < 2; i++)
         xrf_dc_motor_step(&r->p, &r->m[i], duty[i] * r->supply_v, dt);
 
@@ -65,13 +78,15 @@ void xrf_relbot_step(struct xrf_relbot *r, const double duty[4], double dt)
     r->theta += omega * dt;
 }
 
-double xrf_relbot_motor_angle(const struct xrf_relbot *r, int ch)
+static double relbot_motor_angle(const void *plant, int ch)
 {
+    const struct xrf_relbot *r = plant;
     return (ch == 0 || ch == 1) ? r->m[ch].angle : NAN;
 }
 
-int xrf_relbot_state(const struct xrf_relbot *r, double *state, int n)
+static int relbot_state(const void *plant, double *state, int n)
 {
+    const struct xrf_relbot *r = plant;
     const double v[5] = {r->x, r->y, r->theta, wheel_left(r), wheel_right(r)};
     int k = n < 5 ? n : 5;
     for (int i = 0; i < k; i++)
@@ -79,11 +94,15 @@ int xrf_relbot_state(const struct xrf_relbot *r, double *state, int n)
     return k;
 }
 
-void xrf_relbot_mirror(const struct xrf_relbot *r, double plant[8])
-{
-    plant[0] = r->x;
-    plant[1] = r->y;
-    plant[2] = r->theta;
-    plant[3] = wheel_left(r);
-    plant[4] = wheel_right(r);
-}
+const struct xrf_plant_ops xrf_plant_relbot = {
+    .name = "relbot",
+    .title = "RELbot (differential drive)",
+    .axes = 2,
+    .state_len = 5,
+    .state_names = "x m, y m, theta rad, wheel_left rad/s, wheel_right rad/s",
+    .size = sizeof(struct xrf_relbot),
+    .init = relbot_init,
+    .step = relbot_step,
+    .motor_angle = relbot_motor_angle,
+    .state = relbot_state,
+};

@@ -15,6 +15,7 @@
 
 #include "logfile.h"
 #include "unprivileged.h"
+#include "xrf/plants.h"
 #include "xrf/sim.h"
 
 namespace xrf {
@@ -194,7 +195,9 @@ xrf_ico_transport *Runtime::transport()
     if (std::strcmp(want, "sim") == 0) {
         int robot = xrf_sim_robot_from_name(o.sim);
         if (robot < 0) {
-            std::fprintf(stderr, "xrf: XRF_SIM=%s: use relbot or jiwy\n", o.sim);
+            char names[256];
+            xrf_plant_names(names, sizeof names);
+            std::fprintf(stderr, "xrf: XRF_SIM=%s: use one of %s\n", o.sim, names);
         } else {
             xrf_sim_faults faults;
             std::memset(&faults, 0, sizeof faults);

@@ -1,18 +1,21 @@
 /*
  * sim_board.c — a simulated ico board: answers the 12-byte protocol as the FPGA does and drives
  * a plant model advanced at each transfer. Faults are injected here, at the board's pins, so
- * the framework sees exactly what broken hardware would show it. See docs/rt_core/simulator.md.
+ * the framework sees exactly what broken hardware would show it. The plant is whichever row of
+ * the plant table (plants.c) was asked for: nothing here knows one plant from another.
+ * See docs/rt_core/simulator.md.
  */
 #define _POSIX_C_SOURCE 200809L
 
 #include <errno.h>
 #include <math.h>
+#include <stddef.h>
 #include <stdlib.h>
 #include <string.h>
-#include <strings.h>
 #include <time.h>
 
 #include "plant.h"
+#include "xrf/plants.h"
 #include "xrf/sim.h"
 
 #ifndef M_PI
@@ -25,11 +28,7 @@
 
 struct sim_board {
     struct xrf_ico_transport t; /* first, so the transport pointer is the object pointer */
-    int robot;
-    union {
-        struct xrf_jiwy jiwy;
-        struct xrf_relbot relbot;
-    } plant;
+    const struct xrf_plant_ops *ops; /* the plant's row of the plant table (plants.c) */
     struct xrf_sim_faults faults;
     double fixed_dt;
     struct xrf_sim_outputs *outputs;
@@ -41,6 +40,8 @@ struct sim_board {
 
     struct timespec last;
     int have_last;
+
+    max_align_t plant[]; /* the plant's own struct, ops->size bytes, allocated with the board */
 };
 
 static double ts_diff(const struct timespec *a, const struct timespec *b)
@@ -50,8 +51,7 @@ static double ts_diff(const struct timespec *a, const struct timespec *b)
 
 static double motor_angle(const struct sim_board *s, int ch)
 {
-    return s->robot == XRF_SIM_JIWY ? xrf_jiwy_motor_angle(&s->plant.jiwy, ch)
-                                    : xrf_relbot_motor_angle(&s->plant.relbot, ch);
+    return s->ops->motor_angle(s->plant, ch);
 }
 
 static int forced_off(const struct sim_board *s)
@@ -79,12 +79,8 @@ static void advance(struct sim_board *s, double dt)
     }
     int n = (int)ceil(dt / SIM_MAX_SUBSTEP_S);
     double h = dt / n;
-    for (int i = 0; i < n; i++) {
-        if (s->robot == XRF_SIM_JIWY)
-            xrf_jiwy_step(&s->plant.jiwy, duty, h);
-        else
-            xrf_relbot_step(&s->plant.relbot, duty, h);
-    }
+    for (int i = 0; i < n; i++)
+        s->ops->step(s->plant, duty, h);
 }
 
 static uint16_t encoder(const struct sim_board *s, int ch)
@@ -156,10 +152,7 @@ static void mirror(struct sim_board *s)
         o->pwm[ch] = off ? 0 : s->pwm[ch];
         o->dout[ch] = off ? 0 : s->dout[ch];
     }
-    if (s->robot == XRF_SIM_JIWY)
-        xrf_jiwy_mirror(&s->plant.jiwy, o->plant);
-    else
-        xrf_relbot_mirror(&s->plant.relbot, o->plant);
+    s->ops->state(s->plant, o->plant, (int)(sizeof o->plant / sizeof o->plant[0]));
     __atomic_store_n(&o->active, 1u, __ATOMIC_RELEASE);
 }
 
@@ -273,16 +266,14 @@ int xrf_sim_open(int robot, const struct xrf_sim_faults *faults, double fixed_dt
     if (!out)
         return -EINVAL;
     *out = NULL;
-    if (robot != XRF_SIM_RELBOT && robot != XRF_SIM_JIWY)
+    const struct xrf_plant_ops *ops = xrf_plant_ops(robot);
+    if (!ops)
         return -EINVAL;
-    struct sim_board *s = calloc(1, sizeof *s);
+    struct sim_board *s = calloc(1, sizeof *s + ops->size);
     if (!s)
         return -ENOMEM;
-    s->robot = robot;
-    if (robot == XRF_SIM_JIWY)
-        xrf_jiwy_init(&s->plant.jiwy);
-    else
-        xrf_relbot_init(&s->plant.relbot);
+    s->ops = ops;
+    ops->init(s->plant);
     if (faults)
         s->faults = *faults;
     s->fixed_dt = fixed_dt_s > 0.0 ? fixed_dt_s : 0.0;
@@ -298,11 +289,7 @@ int xrf_sim_open(int robot, const struct xrf_sim_faults *faults, double fixed_dt
 
 int xrf_sim_robot_from_name(const char *name)
 {
-    if (name && strcasecmp(name, "relbot") == 0)
-        return XRF_SIM_RELBOT;
-    if (name && strcasecmp(name, "jiwy") == 0)
-        return XRF_SIM_JIWY;
-    return -EINVAL;
+    return xrf_plant_id(name);
 }
 
 int xrf_sim_plant_state(struct xrf_ico_transport *t, double *state, int n)
@@ -310,8 +297,7 @@ int xrf_sim_plant_state(struct xrf_ico_transport *t, double *state, int n)
     if (!t || t->xfer != sim_xfer || (!state && n > 0) || n < 0)
         return -EINVAL;
     const struct sim_board *s = (const struct sim_board *)t;
-    return s->robot == XRF_SIM_JIWY ? xrf_jiwy_state(&s->plant.jiwy, state, n)
-                                    : xrf_relbot_state(&s->plant.relbot, state, n);
+    return s->ops->state(s->plant, state, n);
 }
 
 /* --- fault spec ------------------------------------------------------------------------- */

@@ -9,6 +9,7 @@
 #include <string.h>
 #include <time.h>
 
+#include "xrf/plants.h"
 #include "xrf/sim.h"
 
 #ifndef M_PI
@@ -408,8 +409,39 @@ static void test_real_clock(void)
     t->close(t);
 }
 
+/* The plant table: ids from 1, names unique and found again by name, every row opens a board
+ * whose state has the length its row says. */
+static void test_plant_table(void)
+{
+    int n = xrf_plant_count();
+    CHECK(n >= 2);
+    struct xrf_plant_info info;
+    CHECK(xrf_plant_describe(0, &info) == -EINVAL);
+    CHECK(xrf_plant_describe(n + 1, &info) == -EINVAL);
+    CHECK(xrf_plant_describe(1, NULL) == -EINVAL);
+    CHECK(xrf_plant_describe(XRF_SIM_RELBOT, &info) == 0 && strcmp(info.name, "relbot") == 0);
+    CHECK(xrf_plant_describe(XRF_SIM_JIWY, &info) == 0 && strcmp(info.name, "jiwy") == 0);
+    for (int id = 1; id <= n; id++) {
+        CHECK(xrf_plant_describe(id, &info) == 0 && info.id == id);
+        CHECK(info.axes >= 1 && info.axes <= 4 && info.state_len >= 1 && info.state_len <= 8);
+        CHECK(xrf_plant_id(info.name) == id && xrf_sim_robot_from_name(info.name) == id);
+        struct xrf_ico_transport *t = open_sim(id, NULL, NULL);
+        double s[8];
+        CHECK(xrf_sim_plant_state(t, s, 8) == info.state_len);
+        t->close(t);
+    }
+    CHECK(xrf_plant_id("RELBOT") == XRF_SIM_RELBOT);
+    CHECK(xrf_plant_id(NULL) == -EINVAL);
+    char names[256];
+    int len = xrf_plant_names(names, sizeof names);
+    CHECK(len == (int)strlen(names) && strncmp(names, "relbot, jiwy", 12) == 0);
+    char tiny[4];
+    CHECK(xrf_plant_names(tiny, sizeof tiny) == len && strcmp(tiny, "rel") == 0);
+}
+
 int main(void)
 {
+    test_plant_table();
     test_protocol();
     test_faults();
     test_parse();

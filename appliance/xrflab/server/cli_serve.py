@@ -19,9 +19,11 @@ WS_PROTOCOL_MAX = 4 * 1024 * 1024
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from .settings import SIM_PLANTS, default_data_dir
+    from .. import plants
+    from .settings import default_data_dir
 
-    parser.add_argument("--sim", choices=SIM_PLANTS, default="relbot", help="simulated plant (default relbot)")
+    parser.add_argument("--sim", type=plants.arg_type, default="relbot", metavar="PLANT",
+                        help="simulated plant of rt_core's plant table: relbot (default), jiwy, ...")
     parser.add_argument("--data", type=Path, default=None, help=f"data folder (default {default_data_dir()})")
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0 for the lab network)")
     parser.add_argument("--port", type=int, default=8000)

@@ -35,6 +35,7 @@ from ..projects.versions import Versions
 from . import auth as authmod
 from . import ownership
 from .auth import Perm, requires
+from .plant_field import PlantName
 
 router = APIRouter(prefix="/api", tags=["projects"])
 TEMPLATES = ("base", "20sim")
@@ -192,7 +193,7 @@ class FromTemplate(BaseModel):
 
 
 class RunBuild(BaseModel):
-    sim: Literal["relbot", "jiwy"] | None = None
+    sim: PlantName | None = None
     max_cycles: int | None = Field(default=None, ge=1)
     log_timing: bool = Field(default=False, description="as POST /api/runs (the Bench page starts project builds here)")
 

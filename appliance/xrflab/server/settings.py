@@ -10,8 +10,6 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-SIM_PLANTS = ("relbot", "jiwy")
-
 # The repository root, found from this file: appliance/xrflab/server/settings.py.
 REPO_ROOT = Path(__file__).resolve().parents[3]
 
@@ -38,7 +36,8 @@ def real_bench_present(spi_device: str = "/dev/spidev0.0") -> bool:
 @dataclass(frozen=True)
 class Settings:
     data_dir: Path = field(default_factory=default_data_dir)
-    # Plant of the simulated board when a build does not name one (examples do: relbot, jiwy).
+    # Plant of the simulated board when a build does not name one (an example named after a plant
+    # runs on it). The plants are rt_core's plant table's (xrflab.plants).
     sim: str = "relbot"
     host: str = "127.0.0.1"
     port: int = 8000

@@ -38,7 +38,8 @@ from .runs import END_REASONS, RunRow, RunStore
 from .children import Child
 from .guest_spawn import GuestReport, GuestSpawner
 from .safety import SafetyWatcher, WatchResult, fpga_reset
-from .settings import SIM_PLANTS, Settings
+from .. import plants
+from .settings import Settings
 
 STATE_RUN = chmod.lib.XRF_STATE_RUN
 STATE_PAUSED = chmod.lib.XRF_STATE_PAUSED
@@ -153,7 +154,7 @@ class BuildCatalog:
             for project in sorted(p for p in root.iterdir() if (p / "CMakeLists.txt").is_file()):
                 name = project.name if kind == "example" else f"template-{project.name}"
                 if name not in self._entries:
-                    sim = project.name if project.name in SIM_PLANTS else self._settings.sim
+                    sim = project.name if project.name in plants.names() else self._settings.sim
                     self._entries[name] = BuildEntry(name, kind, project, sim)
 
     def entries(self) -> list[BuildEntry]:
@@ -455,8 +456,8 @@ class Supervisor:
             entry = await self.catalog.ensure_built(build)
             assert entry.executable is not None
             plant = sim or entry.sim
-            if plant not in SIM_PLANTS:
-                raise SupervisorError(f"unknown simulated plant {plant!r}; have: {', '.join(SIM_PLANTS)}", 422)
+            if plant not in plants.names():
+                raise SupervisorError(f"unknown simulated plant {plant!r}; have: {', '.join(plants.names())}", 422)
             row = self.store.create(build, plant, "", "")
             if owner:
                 row = self.store.update(row.id, owner=owner)

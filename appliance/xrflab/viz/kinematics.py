@@ -1,6 +1,7 @@
 """Encoder counts -> joint angles (Jiwy) and a floor pose (RELbot), from a bench profile.
 
-Pure Python, no numpy: the same code runs live (fed by the appliance's telemetry) and in replay
+Pure Python, no numpy (the counter range comes from rt_core's ico.h through the cffi binding):
+the same code runs live (fed by the appliance's telemetry) and in replay
 (fed by a run's recording), and the tests check it against hand-computed cases.
 
 Counters. The ico board's counters are 14-bit and wrap at 16384. A counter is unwrapped by taking
@@ -26,7 +27,10 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Optional, Sequence
 
-COUNTER_RANGE = 16384  # 14-bit counters
+from .. import plants
+
+# The board's counter range, from ico.h through the cffi binding (XRF_ICO_ENC_MODULO, 16384).
+COUNTER_RANGE = plants.enc_modulo()
 HALF_RANGE = COUNTER_RANGE // 2
 
 

@@ -1,6 +1,6 @@
 /*
  * xrf/sim.h — the simulated ico board: answers the 12-byte protocol byte for byte and drives a
- * plant model (Jiwy pan/tilt or RELbot differential drive) advanced in time at each transfer.
+ * plant model (one of the plant table's, xrf/plants.h) advanced in time at each transfer.
  * Faults can be injected so the self-check and the error paths are testable without hardware.
  */
 #ifndef XRF_SIM_H
@@ -15,6 +15,8 @@
 extern "C" {
 #endif
 
+/* Ids of the first two rows of the plant table (rt_core/src/plants.c); other plants are reached
+ * by name (xrf_sim_robot_from_name) or id (xrf/plants.h). */
 #define XRF_SIM_RELBOT 1
 #define XRF_SIM_JIWY 2
 
@@ -33,17 +35,19 @@ struct xrf_sim_faults {
  * loopback=1" (channels 1-based, stuck_input=<pin 1..8>:<value>). Returns 0 or -EINVAL. */
 int xrf_sim_parse_faults(const char *spec, struct xrf_sim_faults *faults);
 
-/* Opens a simulated board with the given plant (XRF_SIM_RELBOT / XRF_SIM_JIWY). The plant advances
+/* Opens a simulated board with the given plant (an id of the plant table). The plant advances
  * by the CLOCK_MONOTONIC time since the previous transfer (vDSO read, no system call), in
  * sub-steps of at most 100 us; with fixed_dt_s > 0 it advances by exactly that per transfer
  * instead (deterministic tests). `outputs` (may be NULL) mirrors the outputs and plant state into
  * shared memory and lets the host force the outputs off. */
 int xrf_sim_open(int robot, const struct xrf_sim_faults *faults, double fixed_dt_s,
                  struct xrf_sim_outputs *outputs, struct xrf_ico_transport **out);
-int xrf_sim_robot_from_name(const char *name); /* "relbot"/"jiwy" -> XRF_SIM_*, else -EINVAL */
+/* A plant's id by name ("relbot", "jiwy", ...: xrf_plant_id), else -EINVAL. */
+int xrf_sim_robot_from_name(const char *name);
 
-/* Plant state for tests and viewers: jiwy {pan, tilt, pan_rate, tilt_rate} (rad, rad/s at the
- * camera), relbot {x, y, theta, wheel_left, wheel_right} (m, rad, wheel rad/s). */
+/* Plant state for tests and viewers, as the plant's table row names it (xrf_plant_info.state):
+ * e.g. jiwy {pan, tilt, pan_rate, tilt_rate} (rad, rad/s at the camera), relbot {x, y, theta,
+ * wheel_left, wheel_right} (m, rad, wheel rad/s). */
 int xrf_sim_plant_state(struct xrf_ico_transport *t, double *state, int n);
 
 #ifdef __cplusplus
