@@ -4,10 +4,14 @@ view and odometry.
 Defaults ship in ``deploy/profiles/<name>.json``. Educators edit copies: ``save_profile()``
 writes ``<data>/profiles/<name>.json``, which then overrides the default of the same name
 (``delete_profile()`` goes back to the default). Everything loaded or saved is validated first;
-a bad value raises ``ProfileError`` whose ``errors`` list says which field and why, in words an
-educator can act on. The native checker (rt_core/src/selfcheck.c) applies the same hard limits.
+a bad value raises ``ProfileError`` whose ``problems`` are ``FieldError``s: the field's path
+(``channel 1.duty``, ``limits.pwm_limit``, ``""`` for the profile as a whole) and a sentence an
+educator can act on.
 
-Stdlib only.
+This is the bench-profile schema's one home and its only validator. The native checker gets a
+validated profile in a flat form (``xrflab.profile_flat``) and checks no ranges; the hard limits
+both sides respect are defined once in C (``rt_core/include/xrf/selfcheck_limits.h``, read here
+through ``xrflab.selfcheck_limits``).
 """
 
 from __future__ import annotations
@@ -18,27 +22,45 @@ import re
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Optional, Sequence, Union
+
+from .selfcheck_limits import hard_limits
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULTS_DIR = REPO_ROOT / "deploy" / "profiles"
 
-# Hard limits of the self-check (XRF_SC_MAX_DUTY, XRF_SC_MAX_PULSE_MS in xrf/selfcheck.h).
-MAX_DUTY = 0.2
-MAX_PULSE_MS = 200
-MAX_SETTLE_MS = 2000
-MAX_FRAMES = 100000
 NAME_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,47}$")
 
 
-class ProfileError(ValueError):
-    """A profile that cannot be used; ``errors`` lists every problem found."""
+@dataclass(frozen=True)
+class FieldError:
+    """One problem with a profile: the field it is about (its path, e.g. ``channel 1.duty``;
+    ``""`` for the profile as a whole) and what is wrong, in words an educator can act on."""
 
-    def __init__(self, errors: list[str], source: str = "") -> None:
-        self.errors = list(errors)
+    field: str
+    message: str
+
+    def as_dict(self) -> dict[str, str]:
+        return {"field": self.field, "message": self.message}
+
+
+class ProfileError(ValueError):
+    """A profile that cannot be used; ``problems`` lists every problem found (``errors``: their
+    sentences)."""
+
+    def __init__(self, problems: Sequence[Union[FieldError, str]], source: str = "") -> None:
+        self.problems = [p if isinstance(p, FieldError) else FieldError("", p) for p in problems]
         self.source = source
         head = f"{source}: " if source else ""
         super().__init__(head + "; ".join(self.errors))
+
+    @property
+    def errors(self) -> list[str]:
+        return [p.message for p in self.problems]
+
+
+class ProfileNotFound(ProfileError):
+    """No profile of that name (neither an edited copy nor a default)."""
 
 
 @dataclass(frozen=True)
@@ -77,42 +99,49 @@ def _is_int(v: Any) -> bool:
     return _is_num(v) and float(v).is_integer()
 
 
+def _path(where: str, key: str) -> str:
+    """The field path of `key` inside `where` ("profile" is the top level)."""
+    return key if where == "profile" else f"{where}.{key}"
+
+
 class _Checker:
     def __init__(self) -> None:
-        self.errors: list[str] = []
+        self.problems: list[FieldError] = []
 
-    def err(self, msg: str) -> None:
-        self.errors.append(msg)
+    def err(self, field: str, msg: str) -> None:
+        self.problems.append(FieldError(field, msg))
 
     def num(self, obj: dict, where: str, key: str, lo: float, hi: float, *, required: bool = False,
             integer: bool = False, lo_open: bool = False) -> Any:
+        field = _path(where, key)
         if key not in obj or obj[key] is None:
             if required:
-                self.err(f"{where}.{key} is missing")
+                self.err(field, f"{where}.{key} is missing")
             return None
         v = obj[key]
         if not (_is_int(v) if integer else _is_num(v)):
-            self.err(f"{where}.{key} must be a {'whole number' if integer else 'number'} (got {v!r})")
+            self.err(field, f"{where}.{key} must be a {'whole number' if integer else 'number'} (got {v!r})")
             return None
         if v < lo or v > hi or (lo_open and v == lo):
             lo_txt = f"above {lo:g}" if lo_open else f"at least {lo:g}"
-            self.err(f"{where}.{key} = {v:g} is out of range: it must be {lo_txt} and at most {hi:g}")
+            self.err(field, f"{where}.{key} = {v:g} is out of range: it must be {lo_txt} and at most {hi:g}")
             return None
         return v
 
     def boolean(self, obj: dict, where: str, key: str) -> Any:
         if key in obj and obj[key] is not None and not isinstance(obj[key], bool):
-            self.err(f"{where}.{key} must be true or false (got {obj[key]!r})")
+            self.err(_path(where, key), f"{where}.{key} must be true or false (got {obj[key]!r})")
             return None
         return obj.get(key)
 
     def string(self, obj: dict, where: str, key: str, *, required: bool = False) -> Any:
+        field = _path(where, key)
         if key not in obj or obj[key] is None:
             if required:
-                self.err(f"{where}.{key} is missing")
+                self.err(field, f"{where}.{key} is missing")
             return None
         if not isinstance(obj[key], str):
-            self.err(f"{where}.{key} must be text (got {obj[key]!r})")
+            self.err(field, f"{where}.{key} must be text (got {obj[key]!r})")
             return None
         return obj[key]
 
@@ -121,139 +150,155 @@ class _Checker:
         if v is None:
             return {}
         if not isinstance(v, dict):
-            self.err(f"{key} must be an object")
+            self.err(key, f"{key} must be an object")
             return {}
         return v
 
 
 def validate_profile(profile: Any, source: str = "") -> dict[str, Any]:
     """Check a profile (the parsed JSON); returns it unchanged or raises ProfileError with all
-    problems found."""
+    problems found, each with its field."""
+    lim = hard_limits()
     c = _Checker()
     if not isinstance(profile, dict):
-        raise ProfileError(["a bench profile is a JSON object"], source)
+        raise ProfileError([FieldError("", "a bench profile is a JSON object")], source)
     fmt = profile.get("format", 1)
     if fmt != 1:
-        c.err(f"format {fmt!r} is not known (this version reads format 1)")
+        c.err("format", f"format {fmt!r} is not known (this version reads format 1)")
     name = c.string(profile, "profile", "name", required=True)
     if name is not None and not NAME_RE.match(name):
-        c.err(f"name {name!r} must be lower-case letters, digits, '-' or '_' (at most 48)")
+        c.err("name", f"name {name!r} must be lower-case letters, digits, '-' or '_' (at most 48)")
     c.string(profile, "profile", "title")
     c.string(profile, "profile", "robot")
     c.string(profile, "profile", "description")
 
     limits = c.section(profile, "limits")
-    pwm_limit = c.num(limits, "limits", "pwm_limit", 0, MAX_DUTY, lo_open=True)
+    pwm_limit = c.num(limits, "limits", "pwm_limit", 0, lim.max_duty, lo_open=True)
     if pwm_limit is None:
-        pwm_limit = MAX_DUTY
+        pwm_limit = lim.max_duty
     pulse = c.section(profile, "pulse")
-    c.num(pulse, "pulse", "period_us", 200, 20000, integer=True)
-    c.num(pulse, "pulse", "settle_ms", 0, MAX_SETTLE_MS, integer=True)
+    c.num(pulse, "pulse", "period_us", lim.min_period_us, lim.max_period_us, integer=True)
+    c.num(pulse, "pulse", "settle_ms", 0, lim.max_settle_ms, integer=True)
     c.num(pulse, "pulse", "reset_tolerance_counts", 0, 1000, integer=True)
     link = c.section(profile, "link")
     c.num(link, "link", "spi_speed_hz", 1000, 200_000_000, integer=True)
-    c.num(link, "link", "echo_frames", 1, MAX_FRAMES, integer=True)
-    c.num(link, "link", "timing_frames", 1, MAX_FRAMES, integer=True)
+    c.num(link, "link", "echo_frames", 1, lim.max_frames, integer=True)
+    c.num(link, "link", "timing_frames", 1, lim.max_frames, integer=True)
     c.num(link, "link", "warn_median_us", 0, 1e6)
     c.num(link, "link", "fail_median_us", 0, 1e6)
     c.num(link, "link", "warn_max_us", 0, 1e7)
     if _is_num(link.get("warn_median_us")) and _is_num(link.get("fail_median_us")) and \
             link["fail_median_us"] < link["warn_median_us"]:
-        c.err("link.fail_median_us must not be below link.warn_median_us")
+        c.err("link.fail_median_us", "link.fail_median_us must not be below link.warn_median_us")
 
     chans = profile.get("channels", [])
     if not isinstance(chans, list):
-        c.err("channels must be a list")
+        c.err("channels", "channels must be a list")
         chans = []
     seen: set[int] = set()
     for i, ch in enumerate(chans):
         if not isinstance(ch, dict):
-            c.err(f"channels[{i}] must be an object")
+            c.err(f"channels[{i}]", f"channels[{i}] must be an object")
             continue
-        n = c.num(ch, f"channels[{i}]", "channel", 1, 4, required=True, integer=True)
-        where = f"channel {int(n)}" if n is not None else f"channels[{i}]"
-        if n is not None:
-            if n in seen:
-                c.err(f"channel {int(n)} is listed twice")
-            seen.add(int(n))
-        c.string(ch, where, "name")
-        c.string(ch, where, "connector")
-        motor = c.boolean(ch, where, "motor")
-        c.boolean(ch, where, "loopback")
-        if "direction" in ch and ch["direction"] not in (1, -1) or isinstance(ch.get("direction"), bool):
-            c.err(f"{where}.direction must be 1 (positive PWM counts up) or -1 (counts down)")
-        if motor:
-            for key in ("duty", "duration_ms", "min_counts"):
-                if key not in ch:
-                    c.err(f"{where}.{key} is missing (needed for a motor channel)")
-        duty = c.num(ch, where, "duty", 0, MAX_DUTY, lo_open=bool(motor))
-        if duty is not None and duty > pwm_limit + 1e-12:
-            c.err(f"{where}.duty = {duty:g} is above limits.pwm_limit = {pwm_limit:g}")
-        c.num(ch, where, "duration_ms", 1, MAX_PULSE_MS, integer=True)
-        lo = c.num(ch, where, "min_counts", 1, 1e7, integer=True)
-        hi = c.num(ch, where, "max_counts", 0, 1e9, integer=True)
-        if lo is not None and hi and hi < lo:
-            c.err(f"{where}.max_counts ({hi}) is below min_counts ({lo})")
-        enc = ch.get("encoder")
-        if enc is not None:
-            if not isinstance(enc, dict):
-                c.err(f"{where}.encoder must be an object")
-            else:
-                c.num(enc, f"{where}.encoder", "counts_per_rev", 1, 1e7, integer=True, lo_open=False)
-                c.boolean(enc, f"{where}.encoder", "inverted")
-        ins = ch.get("inputs")
-        if ins is not None:
-            if not isinstance(ins, list):
-                c.err(f"{where}.inputs must be a list")
-            else:
-                pins: set[int] = set()
-                for pin in ins:
-                    if not isinstance(pin, dict):
-                        c.err(f"{where}.inputs: each entry must be an object")
-                        continue
-                    p = c.num(pin, f"{where}.inputs", "pin", 1, 2, required=True, integer=True)
-                    if p in pins:
-                        c.err(f"{where}: input pin {int(p)} is listed twice")
-                    if p is not None:
-                        pins.add(int(p))
-                    c.string(pin, f"{where}.inputs", "name")
-                    if pin.get("idle") not in (None, 0, 1) or isinstance(pin.get("idle"), bool):
-                        c.err(f"{where}.inputs pin {pin.get('pin')}: idle must be 0, 1 or null (not checked)")
+        _check_channel(c, i, ch, seen, pwm_limit)
 
     mech = c.section(profile, "mechanics")
     if mech:
-        c.num(mech, "mechanics", "counts_per_rev", 1, 1e7, required=True, integer=True)
-        c.num(mech, "mechanics", "gear_ratio", 0, 1e4, required=True, lo_open=True)
-        kind = mech.get("kind")
-        if kind == "differential_drive":
-            c.num(mech, "mechanics", "wheel_diameter", 0, 2.0, required=True, lo_open=True)
-            c.num(mech, "mechanics", "track_width", 0, 5.0, required=True, lo_open=True)
-            for key in ("left_channel", "right_channel"):
-                c.num(mech, "mechanics", key, 1, 4, required=True, integer=True)
-            for key in ("left_encoder_inverted", "right_encoder_inverted"):
-                c.boolean(mech, "mechanics", key)
-        elif kind == "pan_tilt":
-            axes = mech.get("axes")
-            if not isinstance(axes, dict) or not axes:
-                c.err("mechanics.axes must name each axis (pan, tilt)")
-            else:
-                for axis, a in axes.items():
-                    w = f"mechanics.axes.{axis}"
-                    if not isinstance(a, dict):
-                        c.err(f"{w} must be an object")
-                        continue
-                    c.num(a, w, "channel", 1, 4, required=True, integer=True)
-                    c.num(a, w, "belt_ratio", 0, 100, required=True, lo_open=True)
-                    c.num(a, w, "zero_offset_counts", -1e9, 1e9, integer=True)
-                    lim = a.get("limits_deg")
-                    if lim is not None and not (isinstance(lim, list) and len(lim) == 2 and all(_is_num(x) for x in lim)
-                                                and lim[0] < lim[1]):
-                        c.err(f"{w}.limits_deg must be [low, high] in degrees")
-        elif kind is not None:
-            c.err(f"mechanics.kind {kind!r} is not known (differential_drive or pan_tilt)")
-    if c.errors:
-        raise ProfileError(c.errors, source)
+        _check_mechanics(c, mech)
+    if c.problems:
+        raise ProfileError(c.problems, source)
     return profile
+
+
+def _check_channel(c: _Checker, i: int, ch: dict, seen: set[int], pwm_limit: float) -> None:
+    lim = hard_limits()
+    n = c.num(ch, f"channels[{i}]", "channel", 1, 4, required=True, integer=True)
+    where = f"channel {int(n)}" if n is not None else f"channels[{i}]"
+    if n is not None:
+        if n in seen:
+            c.err(where, f"channel {int(n)} is listed twice")
+        seen.add(int(n))
+    c.string(ch, where, "name")
+    c.string(ch, where, "connector")
+    motor = c.boolean(ch, where, "motor")
+    c.boolean(ch, where, "loopback")
+    if "direction" in ch and ch["direction"] not in (1, -1) or isinstance(ch.get("direction"), bool):
+        c.err(f"{where}.direction", f"{where}.direction must be 1 (positive PWM counts up) or -1 (counts down)")
+    if motor:
+        for key in ("duty", "duration_ms", "min_counts"):
+            if key not in ch:
+                c.err(f"{where}.{key}", f"{where}.{key} is missing (needed for a motor channel)")
+    duty = c.num(ch, where, "duty", 0, lim.max_duty, lo_open=bool(motor))
+    if duty is not None and duty > pwm_limit + 1e-12:
+        c.err(f"{where}.duty", f"{where}.duty = {duty:g} is above limits.pwm_limit = {pwm_limit:g}")
+    c.num(ch, where, "duration_ms", 1, lim.max_pulse_ms, integer=True)
+    lo = c.num(ch, where, "min_counts", 1, 1e7, integer=True)
+    hi = c.num(ch, where, "max_counts", 0, 1e9, integer=True)
+    if lo is not None and hi and hi < lo:
+        c.err(f"{where}.max_counts", f"{where}.max_counts ({hi}) is below min_counts ({lo})")
+    elif hi and ch.get("min_counts") is None:
+        # The bound is checked against min_counts, so it cannot stand alone (the checker's
+        # default min_counts is not part of the schema).
+        c.err(f"{where}.min_counts", f"{where}.min_counts is missing (needed with max_counts)")
+    enc = ch.get("encoder")
+    if enc is not None:
+        if not isinstance(enc, dict):
+            c.err(f"{where}.encoder", f"{where}.encoder must be an object")
+        else:
+            c.num(enc, f"{where}.encoder", "counts_per_rev", 1, 1e7, integer=True, lo_open=False)
+            c.boolean(enc, f"{where}.encoder", "inverted")
+    ins = ch.get("inputs")
+    if ins is None:
+        return
+    if not isinstance(ins, list):
+        c.err(f"{where}.inputs", f"{where}.inputs must be a list")
+        return
+    pins: set[int] = set()
+    for j, pin in enumerate(ins):
+        w = f"{where}.inputs[{j}]"
+        if not isinstance(pin, dict):
+            c.err(w, f"{where}.inputs: each entry must be an object")
+            continue
+        p = c.num(pin, w, "pin", 1, 2, required=True, integer=True)
+        if p in pins:
+            c.err(f"{w}.pin", f"{where}: input pin {int(p)} is listed twice")
+        if p is not None:
+            pins.add(int(p))
+        c.string(pin, w, "name")
+        if pin.get("idle") not in (None, 0, 1) or isinstance(pin.get("idle"), bool):
+            c.err(f"{w}.idle", f"{where}.inputs pin {pin.get('pin')}: idle must be 0, 1 or null (not checked)")
+
+
+def _check_mechanics(c: _Checker, mech: dict) -> None:
+    c.num(mech, "mechanics", "counts_per_rev", 1, 1e7, required=True, integer=True)
+    c.num(mech, "mechanics", "gear_ratio", 0, 1e4, required=True, lo_open=True)
+    kind = mech.get("kind")
+    if kind == "differential_drive":
+        c.num(mech, "mechanics", "wheel_diameter", 0, 2.0, required=True, lo_open=True)
+        c.num(mech, "mechanics", "track_width", 0, 5.0, required=True, lo_open=True)
+        for key in ("left_channel", "right_channel"):
+            c.num(mech, "mechanics", key, 1, 4, required=True, integer=True)
+        for key in ("left_encoder_inverted", "right_encoder_inverted"):
+            c.boolean(mech, "mechanics", key)
+    elif kind == "pan_tilt":
+        axes = mech.get("axes")
+        if not isinstance(axes, dict) or not axes:
+            c.err("mechanics.axes", "mechanics.axes must name each axis (pan, tilt)")
+            return
+        for axis, a in axes.items():
+            w = f"mechanics.axes.{axis}"
+            if not isinstance(a, dict):
+                c.err(w, f"{w} must be an object")
+                continue
+            c.num(a, w, "channel", 1, 4, required=True, integer=True)
+            c.num(a, w, "belt_ratio", 0, 100, required=True, lo_open=True)
+            c.num(a, w, "zero_offset_counts", -1e9, 1e9, integer=True)
+            lim = a.get("limits_deg")
+            if lim is not None and not (isinstance(lim, list) and len(lim) == 2 and all(_is_num(x) for x in lim)
+                                        and lim[0] < lim[1]):
+                c.err(f"{w}.limits_deg", f"{w}.limits_deg must be [low, high] in degrees")
+    elif kind is not None:
+        c.err("mechanics.kind", f"mechanics.kind {kind!r} is not known (differential_drive or pan_tilt)")
 
 
 # ---- finding, loading, saving -------------------------------------------------------------------
@@ -285,7 +330,7 @@ def find_profile(name_or_path: str | Path, data_dir: Optional[Path] = None) -> P
         if p.exists():
             return p
     known = ", ".join(i.name for i in list_profiles(data_dir)) or "none"
-    raise ProfileError([f"no bench profile named {s!r} (known: {known})"])
+    raise ProfileNotFound([f"no bench profile named {s!r} (known: {known})"])
 
 
 def load_profile(name_or_path: str | Path, data_dir: Optional[Path] = None) -> dict[str, Any]:

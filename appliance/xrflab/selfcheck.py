@@ -1,6 +1,8 @@
-"""The bench self-check from Python: runs the native checker ``xrf-selfcheck`` (rt_core, the same
-IcoIo code as the loop) as a subprocess, streams its events, builds a ``Report``, keeps reports
-and exports them. Also ``xrf selfcheck`` (registered in xrflab.cli's EXTERNAL_SUBCOMMANDS).
+"""The bench self-check from Python: runs the native checker ``xrf-selfcheck`` (rt_core's tool of
+its own, the same IcoIo code as the loop, not part of the runtime library) as a subprocess, hands
+it the profile validated here (``xrflab.profiles``) in its flat form on stdin
+(``xrflab.profile_flat``), streams its events, builds a ``Report``, keeps reports and exports
+them. Also ``xrf selfcheck`` (registered in xrflab.cli's EXTERNAL_SUBCOMMANDS).
 
     check = SelfCheck("relbot", sim="relbot", faults="dead_encoder=2")
     for event in check.events():      # dicts as the checker prints them, see EVENT KINDS below
@@ -31,7 +33,6 @@ import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -39,6 +40,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, Optional, Union
 
 from . import plants
+from .profile_flat import flat_form
 from .profiles import ProfileError, default_data_dir, find_profile, load_profile, validate_profile
 
 EXIT_PASS = 0
@@ -275,7 +277,7 @@ class SelfCheck:
     """One run of the self-check. Not reusable: make a new one per run.
 
     profile: a name (edited copy in <data>/profiles first, then deploy/profiles), a path, or a
-    profile dict (validated, written to a temporary file for the checker).
+    profile dict; validated here, handed to the checker in its flat form on stdin.
     transport: sim | spidev | evl-spidev | auto (spidev when `device` exists, else sim).
     bench_busy: callable returning a reason (str or True) when the bench is in use; default:
     ``loop_active(shm)``. Pass ``shm=None`` and no callable to skip the test.
@@ -291,13 +293,10 @@ class SelfCheck:
                  abort_timeout_s: float = 3.0) -> None:
         if transport not in TRANSPORTS:
             raise SelfCheckError(f"unknown transport {transport!r} (use {', '.join(TRANSPORTS)})")
-        self._tmpdir: Optional[tempfile.TemporaryDirectory] = None
         try:
             if isinstance(profile, dict):
                 self.profile = validate_profile(profile)
-                self._tmpdir = tempfile.TemporaryDirectory(prefix="xrf-selfcheck-")
-                self.profile_path = Path(self._tmpdir.name) / f"{self.profile['name']}.json"
-                self.profile_path.write_text(json.dumps(self.profile), encoding="utf-8")
+                self.profile_path: Optional[Path] = None  # no file: the dict is the profile
             else:
                 self.profile_path = find_profile(profile, data_dir)
                 self.profile = load_profile(self.profile_path)
@@ -328,7 +327,9 @@ class SelfCheck:
 
     def command(self) -> list[str]:
         exe = self.exe or checker_path()
-        cmd = [str(exe), "--transport", self.transport, "--profile", str(self.profile_path)]
+        cmd = [str(exe), "--transport", self.transport, "--profile", "-"]
+        if self.profile_path is not None:
+            cmd += ["--profile-file", str(self.profile_path)]
         if self.transport == "sim":
             cmd += ["--sim", self.sim]
             if self.faults:
@@ -390,7 +391,7 @@ class SelfCheck:
         started = _now_iso()
         t0 = time.monotonic()
         report = Report(verdict="error", bench=self.profile.get("name", ""), profile=self.profile,
-                        profile_file=str(self.profile_path), transport=self.transport, sim=self.sim,
+                        profile_file=str(self.profile_path or ""), transport=self.transport, sim=self.sim,
                         faults=self.faults, device=self.device, host=socket.gethostname(), started=started)
         with self._lock:
             if self._abort_requested:
@@ -399,14 +400,25 @@ class SelfCheck:
                 report.outputs_zeroed = True  # nothing was driven
                 self.report = report
                 return
-            # close_fds (the default) and no stdin: the helper gets its pipes only.
+            # close_fds (the default): the helper gets its pipes only; stdin carries the profile.
             # Tied: a self-check tool must not drive the board on after the appliance died.
             from .tied import popen_tied
 
-            self._proc = popen_tied(cmd, death_signal=signal.SIGKILL, stdin=subprocess.DEVNULL,
+            self._proc = popen_tied(cmd, death_signal=signal.SIGKILL, stdin=subprocess.PIPE,
                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, encoding="utf-8",
                                     errors="replace")
         proc = self._proc
+        assert proc.stdin is not None
+        try:
+            # A few kB, well inside a pipe's buffer: written whole before the checker reads it.
+            proc.stdin.write(flat_form(self.profile))
+        except BrokenPipeError:
+            pass  # the checker is gone already; its exit code and stderr say why below
+        finally:
+            try:
+                proc.stdin.close()
+            except BrokenPipeError:
+                pass
         ended = False
         try:
             assert proc.stdout is not None
@@ -452,9 +464,6 @@ class SelfCheck:
             report.finished = _now_iso()
             report.duration_s = round(time.monotonic() - t0, 3)
             self.report = report
-            if self._tmpdir is not None:
-                self._tmpdir.cleanup()
-                self._tmpdir = None
 
     def run(self, on_event: Optional[Callable[[dict[str, Any]], None]] = None) -> Report:
         """Run to the end (or abort), calling on_event for each event; returns the Report."""

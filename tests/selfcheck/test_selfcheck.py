@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from xrflab import profiles as prof
+from xrflab.profile_flat import flat_form
 from xrflab.selfcheck import (BenchBusy, Report, SelfCheck, export_report, list_reports, load_report,
                               run_selfcheck, save_report)
 
@@ -159,8 +160,11 @@ def test_checker_sigint_directly(checker_exe, shm_name):
 
     ch = create_for_test(shm_name)
     try:
-        proc = subprocess.Popen([str(checker_exe), "--sim", "jiwy", "--profile", str(prof.find_profile("jiwy")),
-                                 "--sim-outputs-shm", shm_name], stdout=subprocess.PIPE, text=True)
+        proc = subprocess.Popen([str(checker_exe), "--sim", "jiwy", "--profile", "-",
+                                 "--sim-outputs-shm", shm_name], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                text=True)
+        proc.stdin.write(flat_form(prof.load_profile("jiwy")))
+        proc.stdin.close()
         events = []
         for line in proc.stdout:
             ev = json.loads(line)
@@ -278,22 +282,81 @@ def test_bad_profile_values_are_explained(path, value, words, tmp_path):
         SelfCheck(p, shm=None)
 
 
-def test_native_checker_rejects_bad_profile_too(checker_exe, tmp_path):
-    p = copy.deepcopy(prof.load_profile("relbot"))
-    p["channels"][0]["duty"] = 0.9
-    f = tmp_path / "bad.json"
-    f.write_text(json.dumps(p))
-    res = subprocess.run([str(checker_exe), "--profile", str(f)], capture_output=True, text=True, timeout=30)
-    assert res.returncode == 2
-    ev = json.loads(res.stdout.strip().splitlines()[-1])
-    assert ev["event"] == "error" and "duty" in ev["message"] and "0.9" in ev["message"]
+def test_native_checker_reads_only_the_validated_flat_form(checker_exe, tmp_path):
+    """The checker parses no JSON and validates nothing: a JSON file, an unknown key or a
+    malformed value is refused (exit 2, the line and key named); the validation is Python's."""
+    f = tmp_path / "bench.json"
+    f.write_text(json.dumps(prof.load_profile("relbot")))
+    for text, words in ((None, "not key=value"), ("name=relbot\nchannel.1.dutty=0.1\n", "unknown key 'channel.1.dutty'"),
+                        ("channel.5.duty=0.1\n", "unknown key 'channel.5.duty'"),
+                        ("name=relbot\nchannel.1.duty=lots\n", "line 2: malformed value for 'channel.1.duty'"),
+                        ("pulse.period_us=1000.5\n", "malformed value for 'pulse.period_us'")):
+        args = ["--profile", str(f)] if text is None else ["--profile", "-"]
+        res = subprocess.run([str(checker_exe), *args], input=text, capture_output=True, text=True, timeout=30)
+        assert res.returncode == 2, res.stdout
+        ev = json.loads(res.stdout.strip().splitlines()[-1])
+        assert ev["event"] == "error" and words in ev["message"], ev
+    # A bad JSON profile is explained by the validator, through the CLI.
     f.write_text("{ not json")
-    res = subprocess.run([str(checker_exe), "--profile", str(f)], capture_output=True, text=True, timeout=30)
-    assert res.returncode == 2 and "not valid JSON" in res.stdout
-    # The CLI reports the validator's sentence.
     res = subprocess.run([sys.executable, "-m", "xrflab.cli", "selfcheck", "--profile", str(f), "--sim", "relbot"],
                          capture_output=True, text=True, env=_env(), timeout=60)
     assert res.returncode == 2 and "not valid JSON" in res.stderr
+
+
+def _dump(checker_exe, text: str) -> dict:
+    res = subprocess.run([str(checker_exe), "--profile", "-", "--dump-profile"], input=text, capture_output=True,
+                         text=True, timeout=30)
+    assert res.returncode == 0, res.stdout + res.stderr
+    return json.loads(res.stdout)
+
+
+def test_flat_form_reaches_every_field_of_the_checker(checker_exe):
+    """Every value the checker uses arrives as the validated profile says (none left at the
+    checker's default), text with a newline and a backslash included."""
+    p = copy.deepcopy(prof.load_profile("relbot"))
+    p.update(name="every-field", limits={"pwm_limit": 0.17},
+             pulse={"period_us": 1250, "settle_ms": 120, "reset_tolerance_counts": 7},
+             link={"echo_frames": 321, "timing_frames": 432, "warn_median_us": 61.5, "fail_median_us": 151.25,
+                   "warn_max_us": 499.75})
+    p["channels"] = [{"channel": n, "name": f"wheel {n}\nback\\slash", "connector": f"J{n}", "motor": n % 2 == 1,
+                      "direction": -1 if n == 3 else 1, "duty": 0.01 * n + 0.05, "duration_ms": 10 * n,
+                      "min_counts": 100 + n, "max_counts": 9000 + n, "loopback": n == 2,
+                      "inputs": [{"pin": 1, "name": f"limit {n}", "idle": n % 2}, {"pin": 2, "name": "free", "idle": None}]}
+                     for n in (1, 2, 3, 4)]
+    prof.validate_profile(p)
+    got = _dump(checker_exe, flat_form(p))
+    assert got["name"] == "every-field" and got["pwm_limit"] == 0.17 and got["period_us"] == 1250
+    assert (got["settle_ms"], got["reset_tolerance"], got["echo_frames"], got["timing_frames"]) == (120, 7, 321, 432)
+    assert (got["warn_median_us"], got["fail_median_us"], got["warn_max_us"]) == (61.5, 151.25, 499.75)
+    for n, c in enumerate(got["channels"], start=1):
+        src = p["channels"][n - 1]
+        assert c["name"] == src["name"] and c["connector"] == src["connector"]
+        assert c["motor"] == int(src["motor"]) and c["loopback"] == int(src["loopback"])
+        assert (c["direction"], c["duty"], c["duration_ms"]) == (src["direction"], src["duty"], src["duration_ms"])
+        assert (c["min_counts"], c["max_counts"]) == (src["min_counts"], src["max_counts"])
+        assert c["din_idle"] == [n % 2, -1] and c["pin_name"] == [f"limit {n}", "free"]
+    # What the profile leaves out keeps the checker's default (a sparse profile).
+    sparse = _dump(checker_exe, flat_form({"name": "sparse", "channels": [{"channel": 2, "motor": True, "duty": 0.05,
+                                                                          "duration_ms": 20, "min_counts": 10}]}))
+    assert sparse["period_us"] == 1000 and sparse["channels"][0]["motor"] == 0
+    assert sparse["channels"][1]["duty"] == 0.05 and sparse["channels"][1]["connector"] == "PMOD 2"
+
+
+def test_native_checker_clamps_to_the_hard_limits(checker_exe):
+    """Whatever the flat form says, a pulse stays within xrf/selfcheck_limits.h (the one
+    definition, which the validator reads through cffi)."""
+    from xrflab.selfcheck_limits import hard_limits
+
+    lim = hard_limits()
+    text = ("name=relbot\nlimits.pwm_limit=0.9\nchannel.1.motor=1\nchannel.1.duty=0.9\n"
+            "channel.1.duration_ms=5000\nchannel.1.min_counts=10\nlink.echo_frames=10\nlink.timing_frames=10\n")
+    res = subprocess.run([str(checker_exe), "--sim", "relbot", "--profile", "-"], input=text, capture_output=True,
+                         text=True, timeout=60)
+    events = [json.loads(line) for line in res.stdout.splitlines()]
+    m1 = next(e for e in events if e.get("event") == "step" and e["id"] == "motor.1")
+    assert m1["data"]["duty"] == lim.max_duty and m1["data"]["duration_ms"] == lim.max_pulse_ms
+    assert abs(m1["data"]["pwm"]) <= 409
+    assert events[-1]["event"] == "end" and events[-1]["outputs_zeroed"] is True
 
 
 def test_edited_profile_overrides_default(checker_exe, tmp_path):

@@ -140,6 +140,12 @@ def test_profile_editor_validates_saves_and_resets(server: Server) -> None:
     assert any(e["field"] == "channel 1.duty" and "out of range" in e["message"] and "at most 0.2" in e["message"]
                for e in detail["errors"]), detail
     assert not (server.data_dir / "profiles" / "relbot.json").exists()
+    # The field comes from the validator, also where the sentence does not start with it.
+    bad = json.loads(json.dumps(profile))
+    bad["channels"][0]["inputs"][1]["idle"] = 2
+    r = server.http.put("/api/profiles/relbot", json=bad)
+    assert r.status_code == 422
+    assert [e["field"] for e in r.json()["detail"]["errors"]] == ["channel 1.inputs[1].idle"], r.json()
     assert server.http.put("/api/profiles/relbot", content=b"{not json",
                            headers={"Content-Type": "application/json"}).status_code == 422
     r = server.http.put("/api/profiles/relbot", json={**profile, "name": "other"})

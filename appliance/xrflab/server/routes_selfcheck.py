@@ -167,7 +167,7 @@ class SelfCheckService:
                     device=bench["device"] or None, data_dir=self.settings.data_dir, bench_busy=self._busy,
                     shm=None)
             except profmod.ProfileError as exc:
-                raise HTTPException(422, {"message": str(exc), "errors": field_errors(exc.errors)}) from None
+                raise HTTPException(422, {"message": str(exc), "errors": field_errors(exc.problems)}) from None
             except scmod.SelfCheckError as exc:
                 raise HTTPException(422, str(exc)) from None
 
@@ -265,25 +265,13 @@ def _now_iso() -> str:
     return _dt.datetime.now().astimezone().isoformat(timespec="seconds")
 
 
-# ---- profile validation messages per field ------------------------------------------------------
-
-_FIELD_RE = re.compile(r"^(.+?)(?: = | must | is | \(|: )")
+# ---- profile problems for the browser ----------------------------------------------------------
 
 
-def field_errors(errors: list[str]) -> list[dict[str, str]]:
-    """The validator's messages with the field each one is about ('' when it names none), e.g.
-    'channel 1.duty = 0.5 is out of range: ...' -> field 'channel 1.duty'."""
-    out = []
-    for msg in errors:
-        m = _FIELD_RE.match(msg)
-        name = m.group(1) if m else ""
-        name = re.sub(r" '.*'$", "", name)  # "name 'X' must be ..." is about the field name
-        if name.startswith("profile."):
-            name = name[len("profile."):]
-        if " " in name and not re.match(r"^(channel \d|channels\[\d+\])", name):
-            name = ""  # a sentence, not a field
-        out.append({"field": name, "message": msg})
-    return out
+def field_errors(problems: list[profmod.FieldError]) -> list[dict[str, str]]:
+    """The validator's problems as JSON: [{"field": "channel 1.duty", "message": ...}, ...];
+    the field comes from the validator itself (xrflab.profiles), '' for the profile as a whole."""
+    return [p.as_dict() for p in problems]
 
 
 # ---- routes: the check --------------------------------------------------------------------------
@@ -405,10 +393,10 @@ async def profile_get(name: str, request: Request) -> dict[str, Any]:
     try:
         path = profmod.find_profile(name, data_dir)
         profile = profmod.load_profile(path)
+    except profmod.ProfileNotFound as exc:
+        raise HTTPException(404, str(exc)) from None
     except profmod.ProfileError as exc:
-        if "no bench profile named" in str(exc):
-            raise HTTPException(404, str(exc)) from None
-        raise HTTPException(422, {"message": str(exc), "errors": field_errors(exc.errors)}) from None
+        raise HTTPException(422, {"message": str(exc), "errors": field_errors(exc.problems)}) from None
     edited = path.parent == profmod.profiles_dir(data_dir)
     return {"name": name, "source": "edited" if edited else "default", "has_default": _has_default(name),
             "path": str(path), "profile": profile}
@@ -426,16 +414,17 @@ async def profile_save(name: str, request: Request, user: User = Depends(current
                                   "errors": [{"field": "", "message": f"not valid JSON: {exc}"}]}) from None
     if isinstance(body, dict) and "profile" in body and isinstance(body["profile"], dict) and "channels" not in body:
         body = body["profile"]  # {"profile": {...}} as well as the bare profile
-    errors: list[str] = []
+    problems: list[profmod.FieldError] = []
     if isinstance(body, dict) and body.get("name") != name:
-        errors.append(f"name {body.get('name')!r} must be {name!r} (the profile being edited); "
-                      "to keep both, save it under a new name")
+        problems.append(profmod.FieldError("name", f"name {body.get('name')!r} must be {name!r} (the profile being "
+                                                   "edited); to keep both, save it under a new name"))
     try:
         profmod.validate_profile(body)
     except profmod.ProfileError as exc:
-        errors = exc.errors + errors
-    if errors:
-        raise HTTPException(422, {"message": "; ".join(errors), "errors": field_errors(errors)})
+        problems = exc.problems + problems
+    if problems:
+        raise HTTPException(422, {"message": "; ".join(p.message for p in problems),
+                                  "errors": field_errors(problems)})
     path = await asyncio.to_thread(profmod.save_profile, body, _data_dir(request))
     audit.record(user, "profile.save", {"profile": name}, client_address(request))
     return {"name": name, "source": "edited", "has_default": _has_default(name), "path": str(path), "profile": body}

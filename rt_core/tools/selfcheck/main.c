@@ -1,14 +1,19 @@
 /*
- * xrf-selfcheck — runs the bench self-check (xrf/selfcheck.h) and prints one JSON object per
- * line as it goes: {"event":"start",...}, {"event":"progress",...}, {"event":"step",...} per
- * step, {"event":"end",...}. Exit code: 0 every step passed (warnings allowed), 1 some step
- * failed, 2 the check could not run (bad arguments or profile) or was aborted.
+ * xrf-selfcheck — runs the bench self-check (selfcheck.h) and prints one JSON object per line as
+ * it goes: {"event":"start",...}, {"event":"progress",...}, {"event":"step",...} per step,
+ * {"event":"end",...}. Exit code: 0 every step passed (warnings allowed), 1 some step failed,
+ * 2 the check could not run (bad arguments or profile) or was aborted.
  *
  *   xrf-selfcheck [--transport sim|spidev|evl-spidev] [--sim relbot|jiwy] [--faults SPEC]
- *                 [--device /dev/spidev0.0] [--speed HZ] [--profile FILE.json]
- *                 [--sim-outputs-shm NAME]
+ *                 [--device /dev/spidev0.0] [--speed HZ] [--profile FLAT|-]
+ *                 [--profile-file PATH] [--sim-outputs-shm NAME] [--dump-profile]
  *
- * SIGINT/SIGTERM abort between two frames; the outputs are zeroed in every case.
+ * A tool of its own, not part of the runtime library a controller links. The profile comes
+ * validated by appliance/xrflab/profiles.py, as flat key=value lines (profile_flat.c) in a file
+ * or on stdin ("-"); --profile-file names the JSON file it came from, for the start event.
+ * Without --profile the checker's defaults apply. --dump-profile prints the profile as the
+ * checker would use it and exits. SIGINT/SIGTERM abort between two frames; the outputs are
+ * zeroed in every case.
  */
 #define _POSIX_C_SOURCE 200809L
 
@@ -24,7 +29,7 @@
 #include <unistd.h>
 
 #include "xrf/channels.h"
-#include "xrf/selfcheck.h"
+#include "selfcheck.h"
 
 static volatile sig_atomic_t stop_flag;
 
@@ -38,7 +43,10 @@ static void usage(FILE *f)
 {
     fprintf(f, "usage: xrf-selfcheck [--transport sim|spidev|evl-spidev] [--sim relbot|jiwy]\n"
                "                     [--faults SPEC] [--device PATH] [--speed HZ]\n"
-               "                     [--profile FILE.json] [--sim-outputs-shm NAME]\n");
+               "                     [--profile FLAT|-] [--profile-file PATH]\n"
+               "                     [--sim-outputs-shm NAME] [--dump-profile]\n"
+               "The profile is the flat key=value form xrflab.profiles writes (`xrf selfcheck`\n"
+               "validates a JSON bench profile and hands it over).\n");
 }
 
 static void print_error(const char *msg)
@@ -70,45 +78,22 @@ static void on_result(void *user, const struct xrf_selfcheck_result *r)
     fflush(stdout);
 }
 
-static char *read_file(const char *path, char *err, size_t errlen)
+/* The flat profile from a file or stdin ("-") on top of the defaults. */
+static int read_profile(const char *path, struct xrf_selfcheck_profile *prof, char *err,
+                        size_t errlen)
 {
-    FILE *f = fopen(path, "rb");
+    FILE *f = strcmp(path, "-") == 0 ? stdin : fopen(path, "r");
     if (!f) {
         snprintf(err, errlen, "%s: %s", path, strerror(errno));
-        return NULL;
+        return -errno;
     }
-    size_t cap = 4096, n = 0;
-    char *b = malloc(cap);
-    for (;;) {
-        if (!b)
-            break;
-        if (n + 2048 > cap) {
-            char *nb = realloc(b, cap *= 2);
-            if (!nb) {
-                free(b);
-                b = NULL;
-                break;
-            }
-            b = nb;
-        }
-        size_t got = fread(b + n, 1, cap - n - 1, f);
-        n += got;
-        if (got == 0)
-            break;
-        if (n > (1u << 20)) {
-            snprintf(err, errlen, "%s: larger than 1 MiB, not a bench profile", path);
-            free(b);
-            fclose(f);
-            return NULL;
-        }
-    }
-    fclose(f);
-    if (!b) {
-        snprintf(err, errlen, "out of memory");
-        return NULL;
-    }
-    b[n] = 0;
-    return b;
+    char why[400];
+    int r = xrf_selfcheck_profile_read(f, prof, why, sizeof why);
+    if (r)
+        snprintf(err, errlen, "%s: %s", strcmp(path, "-") == 0 ? "stdin" : path, why);
+    if (f != stdin)
+        fclose(f);
+    return r;
 }
 
 static struct xrf_shm *map_shm(const char *name, char *err, size_t errlen)
@@ -142,8 +127,9 @@ static struct xrf_shm *map_shm(const char *name, char *err, size_t errlen)
 int main(int argc, char **argv)
 {
     const char *transport = "sim", *sim = NULL, *faults = NULL, *device = NULL, *profile = NULL;
-    const char *shm_name = NULL;
+    const char *shm_name = NULL, *profile_file = NULL;
     unsigned long speed = 0;
+    int dump = 0;
     for (int i = 1; i < argc; i++) {
         const char *a = argv[i];
         const char **dst = NULL;
@@ -151,11 +137,16 @@ int main(int argc, char **argv)
             usage(stdout);
             return 0;
         }
+        if (strcmp(a, "--dump-profile") == 0) {
+            dump = 1;
+            continue;
+        }
         if (strcmp(a, "--transport") == 0) dst = &transport;
         else if (strcmp(a, "--sim") == 0) dst = &sim;
         else if (strcmp(a, "--faults") == 0) dst = &faults;
         else if (strcmp(a, "--device") == 0) dst = &device;
         else if (strcmp(a, "--profile") == 0) dst = &profile;
+        else if (strcmp(a, "--profile-file") == 0) dst = &profile_file;
         else if (strcmp(a, "--sim-outputs-shm") == 0) dst = &shm_name;
         else if (strcmp(a, "--speed") == 0 && i + 1 < argc) {
             char *end;
@@ -179,20 +170,15 @@ int main(int argc, char **argv)
     char err[512] = "";
     struct xrf_selfcheck_profile prof;
     xrf_selfcheck_profile_defaults(&prof);
-    if (profile) {
-        char *text = read_file(profile, err, sizeof err);
-        if (!text) {
-            print_error(err);
-            return 2;
-        }
-        int r = xrf_selfcheck_profile_parse(text, &prof, err, sizeof err);
-        free(text);
-        if (r) {
-            char msg[700];
-            snprintf(msg, sizeof msg, "%s: %s", profile, err);
-            print_error(msg);
-            return 2;
-        }
+    if (profile && read_profile(profile, &prof, err, sizeof err)) {
+        print_error(err);
+        return 2;
+    }
+    if (!profile_file)
+        profile_file = profile && strcmp(profile, "-") != 0 ? profile : "";
+    if (dump) {
+        xrf_selfcheck_profile_dump(stdout, &prof);
+        return 0;
     }
     if (!sim)
         sim = strcmp(prof.name, "jiwy") == 0 ? "jiwy" : "relbot";
@@ -219,7 +205,7 @@ int main(int argc, char **argv)
     printf("{\"event\":\"start\",\"profile\":%s,\"profile_file\":%s,\"transport\":%s,\"sim\":%s,"
            "\"faults\":%s,\"device\":%s,\"pid\":%d,\"time\":%lld}\n",
            xrf_selfcheck_json_string(prof.name, js[0], sizeof js[0]),
-           xrf_selfcheck_json_string(profile ? profile : "", js[1], sizeof js[1]),
+           xrf_selfcheck_json_string(profile_file, js[1], sizeof js[1]),
            xrf_selfcheck_json_string(transport, js[2], sizeof js[2]),
            xrf_selfcheck_json_string(strcmp(transport, "sim") == 0 ? sim : "", js[3], sizeof js[3]),
            xrf_selfcheck_json_string(faults ? faults : "", js[4], sizeof js[4]),

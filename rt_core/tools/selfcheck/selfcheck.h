@@ -1,5 +1,6 @@
 /*
- * xrf/selfcheck.h — the bench self-check: is the ico board there, is the SPI link intact, do the
+ * selfcheck.h — private to the xrf-selfcheck tool (not part of the runtime library a controller
+ * links): the bench self-check: is the ico board there, is the SPI link intact, do the
  * motors, encoders and digital I/O of this bench work as its bench profile says?
  *
  * The steps talk to the board through the same xrf_ico_transport and frame builders (ico.c) as
@@ -7,26 +8,25 @@
  * what to do. Whatever happens (end, failure, abort), the outputs are zeroed at the end:
  * RESET, then ALL with zero PWM and all digital outputs off. See docs/educators/selfcheck.md.
  *
- * Hard limits, whatever a profile says: |duty| <= XRF_SC_MAX_DUTY, pulse <= XRF_SC_MAX_PULSE_MS.
+ * Hard limits, whatever the profile says (xrf/selfcheck_limits.h): |duty| <= XRF_SC_MAX_DUTY,
+ * pulse <= XRF_SC_MAX_PULSE_MS, ... The profile reaches the tool already validated, as flat
+ * key=value lines (profile_flat.c); the schema and its checks live in appliance/xrflab/profiles.py.
  */
-#ifndef XRF_SELFCHECK_H
-#define XRF_SELFCHECK_H
+#ifndef XRF_SELFCHECK_TOOL_H
+#define XRF_SELFCHECK_TOOL_H
 
 #include <signal.h>
 #include <stddef.h>
 #include <stdint.h>
+#include <stdio.h>
 
 #include "xrf/channels.h"
 #include "xrf/ico.h"
+#include "xrf/selfcheck_limits.h"
 
 #ifdef __cplusplus
 extern "C" {
 #endif
-
-#define XRF_SC_MAX_DUTY 0.2
-#define XRF_SC_MAX_PULSE_MS 200
-#define XRF_SC_MAX_SETTLE_MS 2000
-#define XRF_SC_MAX_FRAMES 100000
 
 #define XRF_SC_PASS 0
 #define XRF_SC_WARN 1
@@ -105,10 +105,15 @@ struct xrf_selfcheck_target {
 
 /* Defaults: no motors, no loopbacks, pins unchecked, 1 ms period, limits as documented. */
 void xrf_selfcheck_profile_defaults(struct xrf_selfcheck_profile *p);
-/* Reads a bench profile (JSON text, as in deploy/profiles/) on top of the defaults. Values
- * beyond the hard limits are errors. Returns 0 or -EINVAL with a sentence in err. */
-int xrf_selfcheck_profile_parse(const char *json, struct xrf_selfcheck_profile *p, char *err,
-                                size_t errlen);
+/* Reads a validated bench profile in its flat form (one key=value per line, as
+ * xrflab.profile_flat writes it: "channel.1.duty=0.15") on top of what *p holds. Only the
+ * form is checked here, no ranges (xrf_selfcheck_run clamps to the hard limits). Returns 0, or
+ * -EINVAL for an unknown key or a malformed line/value, with the line number and key in err. */
+int xrf_selfcheck_profile_read(FILE *in, struct xrf_selfcheck_profile *p, char *err,
+                               size_t errlen);
+/* Writes *p as one JSON object line {"event":"profile",...} (xrf-selfcheck --dump-profile):
+ * what the checker will use, for tests that the flat form reaches every field. */
+void xrf_selfcheck_profile_dump(FILE *out, const struct xrf_selfcheck_profile *p);
 
 /* The "spi" step: opens the transport and says what went wrong in plain language. Returns 0
  * (r->status PASS, *out set) or -errno (r->status FAIL, *out NULL). -EINVAL: bad target. */
@@ -133,4 +138,4 @@ char *xrf_selfcheck_json_string(const char *s, char *buf, size_t len);
 }
 #endif
 
-#endif /* XRF_SELFCHECK_H */
+#endif /* XRF_SELFCHECK_TOOL_H */

@@ -1,5 +1,6 @@
 /*
- * selfcheck.c — the bench self-check (xrf/selfcheck.h, docs/educators/selfcheck.md).
+ * selfcheck.c — the bench self-check's steps (selfcheck.h, docs/educators/selfcheck.md), part of
+ * the xrf-selfcheck tool only: the runtime library a controller links has none of it.
  *
  * Every frame goes through the loop's own transport and frame builders (ico.c). Pulses are
  * driven with ALL frames in a timed loop (clock_nanosleep on an absolute grid) and the encoders
@@ -18,7 +19,7 @@
 #include <time.h>
 #include <unistd.h>
 
-#include "xrf/selfcheck.h"
+#include "selfcheck.h"
 #include "xrf/sim.h"
 
 /* ---- small helpers ------------------------------------------------------------------------- */
@@ -124,402 +125,6 @@ void xrf_selfcheck_profile_defaults(struct xrf_selfcheck_profile *p)
         SETF(c->pin_name[0], "pin 1");
         SETF(c->pin_name[1], "pin 2");
     }
-}
-
-/* A minimal JSON reader: enough for bench profiles (objects, arrays, strings, numbers, true,
- * false, null), with the position of the first error. */
-enum { J_NULL, J_BOOL, J_NUM, J_STR, J_ARR, J_OBJ };
-
-struct jnode {
-    int type;
-    double num;
-    char *str;
-    char *key;
-    struct jnode *child, *next;
-};
-
-struct jparser {
-    const char *s, *p;
-    char *err;
-    size_t errlen;
-    int depth;
-};
-
-static void jfree(struct jnode *n)
-{
-    while (n) {
-        struct jnode *next = n->next;
-        jfree(n->child);
-        free(n->str);
-        free(n->key);
-        free(n);
-        n = next;
-    }
-}
-
-static int jerr(struct jparser *j, const char *what)
-{
-    int line = 1;
-    for (const char *q = j->s; q < j->p; q++)
-        line += *q == '\n';
-    if (j->err && !j->err[0])
-        snprintf(j->err, j->errlen, "profile is not valid JSON: %s (line %d)", what, line);
-    return -EINVAL;
-}
-
-static void jws(struct jparser *j)
-{
-    while (*j->p == ' ' || *j->p == '\t' || *j->p == '\n' || *j->p == '\r')
-        j->p++;
-}
-
-static int jstring(struct jparser *j, char **out)
-{
-    if (*j->p != '"')
-        return jerr(j, "expected a string");
-    j->p++;
-    size_t cap = 32, n = 0;
-    char *b = malloc(cap);
-    if (!b)
-        return -ENOMEM;
-    while (*j->p != '"') {
-        char c = *j->p;
-        if (!c || c == '\n') {
-            free(b);
-            return jerr(j, "unterminated string");
-        }
-        if (c == '\\') {
-            j->p++;
-            switch (*j->p) {
-            case 'n': c = '\n'; break;
-            case 't': c = '\t'; break;
-            case 'r': c = '\r'; break;
-            case 'b': c = '\b'; break;
-            case 'f': c = '\f'; break;
-            case 'u': {
-                unsigned v = 0;
-                for (int i = 1; i <= 4; i++) {
-                    char h = j->p[i];
-                    v <<= 4;
-                    if (h >= '0' && h <= '9') v |= (unsigned)(h - '0');
-                    else if (h >= 'a' && h <= 'f') v |= (unsigned)(h - 'a' + 10);
-                    else if (h >= 'A' && h <= 'F') v |= (unsigned)(h - 'A' + 10);
-                    else {
-                        free(b);
-                        return jerr(j, "bad \\u escape");
-                    }
-                }
-                j->p += 4;
-                c = v < 0x80 ? (char)v : '?'; /* names in profiles are ASCII; keep it simple */
-                break;
-            }
-            case '"': case '\\': case '/': c = *j->p; break;
-            default:
-                free(b);
-                return jerr(j, "bad escape");
-            }
-        }
-        if (n + 2 > cap) {
-            cap *= 2;
-            char *nb = realloc(b, cap);
-            if (!nb) {
-                free(b);
-                return -ENOMEM;
-            }
-            b = nb;
-        }
-        b[n++] = c;
-        j->p++;
-    }
-    j->p++;
-    b[n] = 0;
-    *out = b;
-    return 0;
-}
-
-static int jvalue(struct jparser *j, struct jnode **out);
-
-static int jcontainer(struct jparser *j, struct jnode *n, char close)
-{
-    struct jnode **tail = &n->child;
-    j->p++;
-    jws(j);
-    if (*j->p == close) {
-        j->p++;
-        return 0;
-    }
-    for (;;) {
-        char *key = NULL;
-        jws(j);
-        if (close == '}') {
-            int r = jstring(j, &key);
-            if (r)
-                return r;
-            jws(j);
-            if (*j->p != ':') {
-                free(key);
-                return jerr(j, "expected ':'");
-            }
-            j->p++;
-        }
-        struct jnode *kid = NULL;
-        int r = jvalue(j, &kid);
-        if (r) {
-            free(key);
-            return r;
-        }
-        kid->key = key;
-        *tail = kid;
-        tail = &kid->next;
-        jws(j);
-        if (*j->p == ',') {
-            j->p++;
-            continue;
-        }
-        if (*j->p == close) {
-            j->p++;
-            return 0;
-        }
-        return jerr(j, close == '}' ? "expected ',' or '}'" : "expected ',' or ']'");
-    }
-}
-
-static int jvalue(struct jparser *j, struct jnode **out)
-{
-    jws(j);
-    if (++j->depth > 32)
-        return jerr(j, "nested too deeply");
-    struct jnode *n = calloc(1, sizeof *n);
-    if (!n)
-        return -ENOMEM;
-    *out = n;
-    int r = 0;
-    char c = *j->p;
-    if (c == '{') {
-        n->type = J_OBJ;
-        r = jcontainer(j, n, '}');
-    } else if (c == '[') {
-        n->type = J_ARR;
-        r = jcontainer(j, n, ']');
-    } else if (c == '"') {
-        n->type = J_STR;
-        r = jstring(j, &n->str);
-    } else if (strncmp(j->p, "true", 4) == 0) {
-        n->type = J_BOOL;
-        n->num = 1;
-        j->p += 4;
-    } else if (strncmp(j->p, "false", 5) == 0) {
-        n->type = J_BOOL;
-        j->p += 5;
-    } else if (strncmp(j->p, "null", 4) == 0) {
-        n->type = J_NULL;
-        j->p += 4;
-    } else if (c == '-' || (c >= '0' && c <= '9')) {
-        char *end;
-        n->type = J_NUM;
-        n->num = strtod(j->p, &end);
-        if (end == j->p)
-            r = jerr(j, "bad number");
-        j->p = end;
-    } else {
-        r = jerr(j, "unexpected character");
-    }
-    j->depth--;
-    return r;
-}
-
-static const struct jnode *jget(const struct jnode *obj, const char *key)
-{
-    if (!obj || obj->type != J_OBJ)
-        return NULL;
-    for (const struct jnode *k = obj->child; k; k = k->next)
-        if (k->key && strcmp(k->key, key) == 0)
-            return k;
-    return NULL;
-}
-
-struct pctx {
-    char *err;
-    size_t errlen;
-};
-
-static int perr(struct pctx *c, const char *fmt, ...)
-{
-    if (c->err && c->errlen && !c->err[0]) {
-        va_list ap;
-        va_start(ap, fmt);
-        vsnprintf(c->err, c->errlen, fmt, ap);
-        va_end(ap);
-    }
-    return -EINVAL;
-}
-
-/* Number field `key` of `obj` into *v if present, checked against [lo, hi]. */
-static int pnum(struct pctx *c, const struct jnode *obj, const char *where, const char *key,
-                double lo, double hi, double *v)
-{
-    const struct jnode *n = jget(obj, key);
-    if (!n || n->type == J_NULL)
-        return 0;
-    if (n->type != J_NUM)
-        return perr(c, "%s.%s must be a number", where, key);
-    if (!(n->num >= lo && n->num <= hi))
-        return perr(c, "%s.%s = %g is outside %g..%g", where, key, n->num, lo, hi);
-    *v = n->num;
-    return 0;
-}
-
-static int pint(struct pctx *c, const struct jnode *obj, const char *where, const char *key,
-                double lo, double hi, int *v)
-{
-    double d = *v;
-    int r = pnum(c, obj, where, key, lo, hi, &d);
-    if (r)
-        return r;
-    if (d != floor(d))
-        return perr(c, "%s.%s must be a whole number", where, key);
-    *v = (int)d;
-    return 0;
-}
-
-static int pbool(struct pctx *c, const struct jnode *obj, const char *where, const char *key,
-                 int *v)
-{
-    const struct jnode *n = jget(obj, key);
-    if (!n || n->type == J_NULL)
-        return 0;
-    if (n->type != J_BOOL)
-        return perr(c, "%s.%s must be true or false", where, key);
-    *v = (int)n->num;
-    return 0;
-}
-
-static int pstr(struct pctx *c, const struct jnode *obj, const char *where, const char *key,
-                char *dst, size_t len)
-{
-    const struct jnode *n = jget(obj, key);
-    if (!n || n->type == J_NULL)
-        return 0;
-    if (n->type != J_STR)
-        return perr(c, "%s.%s must be a string", where, key);
-    snprintf(dst, len, "%s", n->str);
-    return 0;
-}
-
-static int parse_channel(struct pctx *c, const struct jnode *o, struct xrf_selfcheck_profile *p)
-{
-    int chn = 0;
-    if (!o || o->type != J_OBJ)
-        return perr(c, "each entry of channels must be an object");
-    if (!jget(o, "channel"))
-        return perr(c, "a channels entry has no \"channel\" number (1..4)");
-    int r = pint(c, o, "channels[]", "channel", 1, 4, &chn);
-    if (r)
-        return r;
-    char where[32];
-    snprintf(where, sizeof where, "channels[%d]", chn);
-    struct xrf_sc_channel *ch = &p->ch[chn - 1];
-    int dir = ch->direction;
-    if ((r = pstr(c, o, where, "name", ch->name, sizeof ch->name)) ||
-        (r = pstr(c, o, where, "connector", ch->connector, sizeof ch->connector)) ||
-        (r = pbool(c, o, where, "motor", &ch->motor)) ||
-        (r = pint(c, o, where, "direction", -1, 1, &dir)) ||
-        (r = pnum(c, o, where, "duty", 0.0, XRF_SC_MAX_DUTY, &ch->duty)) ||
-        (r = pint(c, o, where, "duration_ms", 1, XRF_SC_MAX_PULSE_MS, &ch->duration_ms)) ||
-        (r = pint(c, o, where, "min_counts", 1, 1e7, &ch->min_counts)) ||
-        (r = pint(c, o, where, "max_counts", 0, 1e9, &ch->max_counts)) ||
-        (r = pbool(c, o, where, "loopback", &ch->loopback)))
-        return r;
-    if (dir == 0)
-        return perr(c, "%s.direction must be 1 or -1", where);
-    ch->direction = dir;
-    if (ch->motor && !(ch->duty > 0.0))
-        return perr(c, "%s.duty must be above 0 for a motor channel", where);
-    if (ch->max_counts && ch->max_counts < ch->min_counts)
-        return perr(c, "%s.max_counts is below min_counts", where);
-    const struct jnode *ins = jget(o, "inputs");
-    if (ins && ins->type != J_NULL) {
-        if (ins->type != J_ARR)
-            return perr(c, "%s.inputs must be a list", where);
-        for (const struct jnode *in = ins->child; in; in = in->next) {
-            int pin = 0;
-            if (in->type != J_OBJ || !jget(in, "pin"))
-                return perr(c, "%s.inputs: each entry needs a \"pin\" (1 or 2)", where);
-            if ((r = pint(c, in, where, "pin", 1, 2, &pin)))
-                return r;
-            if ((r = pstr(c, in, where, "name", ch->pin_name[pin - 1], sizeof ch->pin_name[0])))
-                return r;
-            const struct jnode *idle = jget(in, "idle");
-            if (!idle || idle->type == J_NULL) {
-                ch->din_idle[pin - 1] = -1;
-            } else {
-                int v = 0;
-                if ((r = pint(c, in, where, "idle", 0, 1, &v)))
-                    return r;
-                ch->din_idle[pin - 1] = v;
-            }
-        }
-    }
-    return 0;
-}
-
-int xrf_selfcheck_profile_parse(const char *json, struct xrf_selfcheck_profile *p, char *err,
-                                size_t errlen)
-{
-    if (err && errlen)
-        err[0] = 0;
-    if (!json || !p)
-        return -EINVAL;
-    xrf_selfcheck_profile_defaults(p);
-    struct jparser j = {json, json, err, errlen, 0};
-    struct jnode *root = NULL;
-    int r = jvalue(&j, &root);
-    if (!r) {
-        jws(&j);
-        if (*j.p)
-            r = jerr(&j, "text after the end");
-    }
-    struct pctx c = {err, errlen};
-    if (!r && root->type != J_OBJ)
-        r = perr(&c, "a bench profile is a JSON object");
-    if (!r)
-        r = pstr(&c, root, "profile", "name", p->name, sizeof p->name);
-    const struct jnode *limits = jget(root, "limits");
-    const struct jnode *pulse = jget(root, "pulse");
-    const struct jnode *link = jget(root, "link");
-    if (!r)
-        r = pnum(&c, limits, "limits", "pwm_limit", 0.0, XRF_SC_MAX_DUTY, &p->pwm_limit);
-    if (!r)
-        r = pint(&c, pulse, "pulse", "period_us", 200, 20000, &p->period_us);
-    if (!r)
-        r = pint(&c, pulse, "pulse", "settle_ms", 0, XRF_SC_MAX_SETTLE_MS, &p->settle_ms);
-    if (!r)
-        r = pint(&c, pulse, "pulse", "reset_tolerance_counts", 0, 1000, &p->reset_tolerance);
-    if (!r)
-        r = pint(&c, link, "link", "echo_frames", 1, XRF_SC_MAX_FRAMES, &p->echo_frames);
-    if (!r)
-        r = pint(&c, link, "link", "timing_frames", 1, XRF_SC_MAX_FRAMES, &p->timing_frames);
-    if (!r)
-        r = pnum(&c, link, "link", "warn_median_us", 0, 1e6, &p->warn_median_us);
-    if (!r)
-        r = pnum(&c, link, "link", "fail_median_us", 0, 1e6, &p->fail_median_us);
-    if (!r)
-        r = pnum(&c, link, "link", "warn_max_us", 0, 1e7, &p->warn_max_us);
-    const struct jnode *chans = jget(root, "channels");
-    if (!r && chans && chans->type != J_ARR)
-        r = perr(&c, "channels must be a list");
-    if (!r && chans)
-        for (const struct jnode *o = chans->child; o && !r; o = o->next)
-            r = parse_channel(&c, o, p);
-    if (!r)
-        for (int i = 0; i < 4 && !r; i++)
-            if (p->ch[i].motor && p->ch[i].duty > p->pwm_limit + 1e-12)
-                r = perr(&c, "channels[%d].duty %g is above limits.pwm_limit %g", i + 1,
-                         p->ch[i].duty, p->pwm_limit);
-    jfree(root);
-    if (r == -ENOMEM && err && errlen && !err[0])
-        snprintf(err, errlen, "out of memory reading the profile");
-    return r ? -EINVAL : 0;
 }
 
 /* ---- opening (the "spi" step) -------------------------------------------------------------- */
@@ -1021,6 +626,8 @@ static int step_motor(struct sc *s, int ch)
         duty = s->p->pwm_limit;
     if (duty > XRF_SC_MAX_DUTY)
         duty = XRF_SC_MAX_DUTY;
+    if (duty < 0.0)
+        duty = 0.0;
     int16_t pwm = (int16_t)lround(duty * XRF_ICO_PWM_FULL);
     if (pwm > s->pwm_max)
         pwm = s->pwm_max;
@@ -1339,14 +946,28 @@ int xrf_selfcheck_run(struct xrf_ico_transport *t, const struct xrf_selfcheck_pr
     if (!t || !p || !sum)
         return -EINVAL;
     memset(sum, 0, sizeof *sum);
+    /* The profile was validated in Python; the hard limits hold here whatever the input says
+     * (one definition: xrf/selfcheck_limits.h). */
     struct xrf_selfcheck_profile prof = *p;
-    if (prof.period_us < 200)
-        prof.period_us = 200;
+    if (prof.period_us < XRF_SC_MIN_PERIOD_US)
+        prof.period_us = XRF_SC_MIN_PERIOD_US;
+    if (prof.period_us > XRF_SC_MAX_PERIOD_US)
+        prof.period_us = XRF_SC_MAX_PERIOD_US;
+    if (prof.settle_ms < 0)
+        prof.settle_ms = 0;
+    if (prof.settle_ms > XRF_SC_MAX_SETTLE_MS)
+        prof.settle_ms = XRF_SC_MAX_SETTLE_MS;
     if (prof.echo_frames < 1)
         prof.echo_frames = 1;
+    if (prof.echo_frames > XRF_SC_MAX_FRAMES)
+        prof.echo_frames = XRF_SC_MAX_FRAMES;
     if (prof.timing_frames < 1)
         prof.timing_frames = 1;
+    if (prof.timing_frames > XRF_SC_MAX_FRAMES)
+        prof.timing_frames = XRF_SC_MAX_FRAMES;
     double limit = prof.pwm_limit > XRF_SC_MAX_DUTY ? XRF_SC_MAX_DUTY : prof.pwm_limit;
+    if (limit < 0.0)
+        limit = 0.0;
     struct sc s = {.t = t, .p = &prof, .h = hooks, .sum = sum};
     /* The frame builder clamps to this whatever a step asks for: never beyond 20 %. */
     s.pwm_max = xrf_ico_pwm_max(limit);

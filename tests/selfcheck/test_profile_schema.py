@@ -1,0 +1,206 @@
+"""The bench-profile schema has one validator, xrflab.profiles, with per-field errors.
+
+REJECTED_BY_THE_OLD_C_PARSER lists every profile the checker's own JSON parser refused before
+the validation moved to Python (rt_core/src/selfcheck.c up to issue 20: its pnum/pint/pbool/pstr
+calls and explicit checks, one entry each), with the field the validator must name. Nothing it
+refused may now reach the checker. No checker and no browser here: these run in milliseconds.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+import pytest
+
+from xrflab import profiles as prof
+from xrflab.selfcheck_limits import hard_limits
+
+REPO = Path(__file__).resolve().parents[2]
+Mutation = Callable[[dict[str, Any]], Any]
+
+
+def setting(*path: Any, value: Any) -> Mutation:
+    def mutate(p: dict[str, Any]) -> None:
+        obj = p
+        for k in path[:-1]:
+            obj = obj[k]
+        obj[path[-1]] = value
+    return mutate
+
+
+def dropping(*path: Any) -> Mutation:
+    def mutate(p: dict[str, Any]) -> None:
+        obj = p
+        for k in path[:-1]:
+            obj = obj[k]
+        del obj[path[-1]]
+    return mutate
+
+
+def spare(**fields: Any) -> Mutation:
+    """Channel 3 of the RELbot profile (no motor) with these fields."""
+    return lambda p: p["channels"][2].update(fields)
+
+
+MAX = hard_limits()
+
+# (what the old parser refused, mutation of the relbot profile, field the validator names)
+REJECTED_BY_THE_OLD_C_PARSER: list[tuple[str, Mutation, str]] = [
+    ("name not a string", setting("name", value=7), "name"),
+    ("pwm_limit not a number", setting("limits", "pwm_limit", value="max"), "limits.pwm_limit"),
+    ("pwm_limit above the hard limit", setting("limits", "pwm_limit", value=MAX.max_duty + 0.01), "limits.pwm_limit"),
+    ("pwm_limit below 0", setting("limits", "pwm_limit", value=-0.1), "limits.pwm_limit"),
+    ("period_us not a number", setting("pulse", "period_us", value=True), "pulse.period_us"),
+    ("period_us below the minimum", setting("pulse", "period_us", value=MAX.min_period_us - 1), "pulse.period_us"),
+    ("period_us above the maximum", setting("pulse", "period_us", value=MAX.max_period_us + 1), "pulse.period_us"),
+    ("period_us not whole", setting("pulse", "period_us", value=1000.5), "pulse.period_us"),
+    ("settle_ms above the hard limit", setting("pulse", "settle_ms", value=MAX.max_settle_ms + 1), "pulse.settle_ms"),
+    ("settle_ms below 0", setting("pulse", "settle_ms", value=-1), "pulse.settle_ms"),
+    ("settle_ms not whole", setting("pulse", "settle_ms", value=1.5), "pulse.settle_ms"),
+    ("reset tolerance above 1000", setting("pulse", "reset_tolerance_counts", value=1001),
+     "pulse.reset_tolerance_counts"),
+    ("reset tolerance below 0", setting("pulse", "reset_tolerance_counts", value=-1), "pulse.reset_tolerance_counts"),
+    ("echo_frames 0", setting("link", "echo_frames", value=0), "link.echo_frames"),
+    ("echo_frames above the hard limit", setting("link", "echo_frames", value=MAX.max_frames + 1), "link.echo_frames"),
+    ("timing_frames 0", setting("link", "timing_frames", value=0), "link.timing_frames"),
+    ("timing_frames above the hard limit", setting("link", "timing_frames", value=MAX.max_frames + 1),
+     "link.timing_frames"),
+    ("timing_frames not a number", setting("link", "timing_frames", value="all"), "link.timing_frames"),
+    ("warn_median_us negative", setting("link", "warn_median_us", value=-1), "link.warn_median_us"),
+    ("warn_median_us above 1e6", setting("link", "warn_median_us", value=2e6), "link.warn_median_us"),
+    ("fail_median_us above 1e6", setting("link", "fail_median_us", value=2e6), "link.fail_median_us"),
+    ("fail_median_us not a number", setting("link", "fail_median_us", value=[1]), "link.fail_median_us"),
+    ("warn_max_us above 1e7", setting("link", "warn_max_us", value=2e7), "link.warn_max_us"),
+    ("channels not a list", setting("channels", value={"1": {}}), "channels"),
+    ("a channels entry not an object", setting("channels", 1, value=[2]), "channels[1]"),
+    ("a channels entry without channel", dropping("channels", 1, "channel"), "channels[1].channel"),
+    ("channel 0", setting("channels", 1, "channel", value=0), "channels[1].channel"),
+    ("channel 5", setting("channels", 1, "channel", value=5), "channels[1].channel"),
+    ("channel not whole", setting("channels", 1, "channel", value=1.5), "channels[1].channel"),
+    ("channel not a number", setting("channels", 1, "channel", value="2"), "channels[1].channel"),
+    ("channel name not a string", setting("channels", 0, "name", value=1), "channel 1.name"),
+    ("connector not a string", setting("channels", 0, "connector", value=3), "channel 1.connector"),
+    ("motor not true/false", setting("channels", 0, "motor", value=1), "channel 1.motor"),
+    ("loopback not true/false", setting("channels", 0, "loopback", value="no"), "channel 1.loopback"),
+    ("direction 0", setting("channels", 0, "direction", value=0), "channel 1.direction"),
+    ("direction 2", setting("channels", 0, "direction", value=2), "channel 1.direction"),
+    ("direction -2", setting("channels", 0, "direction", value=-2), "channel 1.direction"),
+    ("direction not whole", setting("channels", 0, "direction", value=0.5), "channel 1.direction"),
+    ("direction not a number", setting("channels", 0, "direction", value="up"), "channel 1.direction"),
+    ("duty above the hard limit", setting("channels", 0, "duty", value=MAX.max_duty + 0.05), "channel 1.duty"),
+    ("duty negative", spare(duty=-0.1), "channel 3.duty"),
+    ("duty not a number", setting("channels", 0, "duty", value="slow"), "channel 1.duty"),
+    ("duty 0 on a motor channel", setting("channels", 0, "duty", value=0), "channel 1.duty"),
+    ("duty above limits.pwm_limit on a motor channel",
+     lambda p: (p["limits"].update(pwm_limit=0.1), p["channels"][0].update(duty=0.15)), "channel 1.duty"),
+    ("duration_ms 0", setting("channels", 0, "duration_ms", value=0), "channel 1.duration_ms"),
+    ("duration_ms above the hard limit", setting("channels", 0, "duration_ms", value=MAX.max_pulse_ms + 1),
+     "channel 1.duration_ms"),
+    ("duration_ms not whole", setting("channels", 0, "duration_ms", value=10.5), "channel 1.duration_ms"),
+    ("min_counts 0", setting("channels", 0, "min_counts", value=0), "channel 1.min_counts"),
+    ("min_counts above 1e7", setting("channels", 0, "min_counts", value=10**7 + 1), "channel 1.min_counts"),
+    ("min_counts not whole", setting("channels", 0, "min_counts", value="lots"), "channel 1.min_counts"),
+    ("max_counts negative", setting("channels", 0, "max_counts", value=-1), "channel 1.max_counts"),
+    ("max_counts above 1e9", setting("channels", 0, "max_counts", value=10**9 + 1), "channel 1.max_counts"),
+    ("max_counts below min_counts", setting("channels", 0, "max_counts", value=499), "channel 1.max_counts"),
+    # The old parser compared against its default min_counts (50) when the profile gave none.
+    ("max_counts below the default min_counts", spare(max_counts=10), "channel 3.min_counts"),
+    ("inputs not a list", setting("channels", 0, "inputs", value={"pin": 1}), "channel 1.inputs"),
+    ("an inputs entry not an object", setting("channels", 0, "inputs", value=[1]), "channel 1.inputs[0]"),
+    ("an inputs entry without pin", dropping("channels", 0, "inputs", 1, "pin"), "channel 1.inputs[1].pin"),
+    ("pin 0", setting("channels", 0, "inputs", 0, "pin", value=0), "channel 1.inputs[0].pin"),
+    ("pin 3", setting("channels", 0, "inputs", 0, "pin", value=3), "channel 1.inputs[0].pin"),
+    ("pin not a number", setting("channels", 0, "inputs", 0, "pin", value="one"), "channel 1.inputs[0].pin"),
+    ("pin name not a string", setting("channels", 0, "inputs", 0, "name", value=False), "channel 1.inputs[0].name"),
+    ("idle 2", setting("channels", 0, "inputs", 0, "idle", value=2), "channel 1.inputs[0].idle"),
+    ("idle -1", setting("channels", 0, "inputs", 0, "idle", value=-1), "channel 1.inputs[0].idle"),
+    ("idle not a number", setting("channels", 0, "inputs", 0, "idle", value="low"), "channel 1.inputs[0].idle"),
+    ("idle not whole", setting("channels", 0, "inputs", 0, "idle", value=0.5), "channel 1.inputs[0].idle"),
+    ("a profile that is not an object", lambda p: [p], ""),
+]
+
+
+def relbot() -> dict[str, Any]:
+    return copy.deepcopy(prof.load_profile("relbot"))
+
+
+@pytest.mark.parametrize("mutate,field", [(m, f) for _, m, f in REJECTED_BY_THE_OLD_C_PARSER],
+                         ids=[what for what, _, _ in REJECTED_BY_THE_OLD_C_PARSER])
+def test_every_profile_the_old_checker_refused_is_refused_with_its_field(mutate: Mutation, field: str) -> None:
+    p = relbot()
+    replaced = mutate(p)
+    if isinstance(replaced, list):  # the mutation built a new document
+        p = replaced
+    with pytest.raises(prof.ProfileError) as info:
+        prof.validate_profile(p)
+    named = [e for e in info.value.problems if e.field == field]
+    assert named, info.value.problems
+    # The message is about that field (its last part, without an index, is in the sentence).
+    last = field.rsplit(".", 1)[-1].split("[")[0] if field else ""
+    assert all(last in e.message for e in named), named
+
+
+def test_not_valid_json_is_a_problem_of_the_whole_file(tmp_path: Path) -> None:
+    f = tmp_path / "broken.json"
+    f.write_text('{"name": "broken",')
+    with pytest.raises(prof.ProfileError) as info:
+        prof.load_profile(f)
+    assert [e.field for e in info.value.problems] == [""] and "not valid JSON" in info.value.problems[0].message
+
+
+def test_the_fields_of_problems_found_together() -> None:
+    p = relbot()
+    p["channels"][0]["duty"] = 0.5
+    p["channels"][1]["direction"] = 0
+    p["link"]["echo_frames"] = 0
+    p["mechanics"]["gear_ratio"] = -3
+    with pytest.raises(prof.ProfileError) as info:
+        prof.validate_profile(p)
+    assert {e.field for e in info.value.problems} == {"channel 1.duty", "channel 2.direction", "link.echo_frames",
+                                                      "mechanics.gear_ratio"}
+    assert str(info.value) == "; ".join(info.value.errors)
+
+
+def test_hard_limits_come_from_the_c_header(tmp_path: Path) -> None:
+    """The validator's limits are the header's, read through cffi, not a copy: with a header that
+    says 150 ms, a 160 ms pulse is refused and a 140 ms one is not."""
+    assert (MAX.max_duty, MAX.max_pulse_ms) == (0.2, 200)
+    header = (REPO / "rt_core/include/xrf/selfcheck_limits.h").read_text()
+    assert "#define XRF_SC_MAX_PULSE_MS 200" in header
+    other = tmp_path / "rt_core" / "include" / "xrf"
+    other.mkdir(parents=True)
+    (other / "selfcheck_limits.h").write_text(header.replace("MAX_PULSE_MS 200", "MAX_PULSE_MS 150"))
+    script = """
+import copy, json, sys
+from xrflab import profiles as prof
+p = copy.deepcopy(prof.load_profile("relbot"))
+out = []
+for ms in (140, 160):
+    p["channels"][0]["duration_ms"] = ms
+    try:
+        prof.validate_profile(p)
+        out.append([])
+    except prof.ProfileError as exc:
+        out.append([e.field for e in exc.problems])
+print(json.dumps(out))
+"""
+    env = dict(os.environ, XRF_RT_CORE=str(tmp_path / "rt_core"),
+               PYTHONPATH=str(REPO / "appliance") + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout) == [[], ["channel 1.duration_ms"]]
+
+
+def test_every_shipped_profile_validates() -> None:
+    files = sorted((REPO / "deploy/profiles").glob("*.json"))
+    assert len(files) >= 2
+    for f in files:
+        p = prof.validate_profile(json.loads(f.read_text()), str(f))
+        assert p["name"] == f.stem, f
+    assert {i.name for i in prof.list_profiles(data_dir=Path("/nonexistent"))} == {f.stem for f in files}
