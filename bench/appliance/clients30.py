@@ -34,13 +34,27 @@ from xrflab.channels import Channels
 # ---- the clients (own process) ------------------------------------------------------------------
 
 
-async def _clients(url: str, n: int, seconds: float) -> None:
+async def _clients(url: str, ws_url: str, n: int, seconds: float) -> None:
+    from harness import ADMIN_PASSWORD, ADMIN_USER, login_client
     from websockets.asyncio.client import connect
 
+    # In a session, as a browser is: /ws refuses a connection without a session cookie (before,
+    # every client was refused at once and the "with clients" slices had no clients at all).
+    http = login_client(url, ADMIN_USER, ADMIN_PASSWORD)
+    cookie = {"Cookie": f"xrf_session={http.cookies.get('xrf_session')}"}
+    http.close()
     counts = [0] * n
+    connected = 0
+    all_in = asyncio.Event()
 
     async def one(i: int) -> None:
-        async with connect(url, max_size=None) as ws:
+        nonlocal connected
+        async with connect(ws_url, max_size=None, origin=url, additional_headers=cookie) as ws:
+            connected += 1
+            if connected == n:
+                print(json.dumps({"connected": n}), flush=True)
+                all_in.set()
+            await all_in.wait()
             end = time.monotonic() + seconds
             while time.monotonic() < end:
                 try:
@@ -88,13 +102,15 @@ def loop_slice(server, seconds: float, clients: int) -> dict:
     worker = None
     if clients:
         worker = subprocess.Popen(
-            [sys.executable, __file__, "--clients-worker", server.ws_url, str(clients), str(seconds)],
+            [sys.executable, __file__, "--clients-worker", server.url, server.ws_url, str(clients), str(seconds)],
             stdout=subprocess.PIPE, text=True,
         )
-        time.sleep(0.5)  # all connected
+        assert worker.stdout is not None
+        if "connected" not in worker.stdout.readline():  # all logged in and connected
+            raise SystemExit("the clients did not connect")
     before, missed0 = wakeup(ch), ch.status().missed
     cpu0, t0 = cpu_seconds(server.proc.pid), time.monotonic()
-    time.sleep(seconds - (0.5 if clients else 0))
+    time.sleep(seconds)
     after, missed1 = wakeup(ch), ch.status().missed
     cpu1, t1 = cpu_seconds(server.proc.pid), time.monotonic()
     delivered = None
@@ -128,7 +144,7 @@ def cyclictest_slice(seconds: float, prio: int, cpu: int) -> dict | None:
 
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--clients-worker":
-        asyncio.run(_clients(sys.argv[2], int(sys.argv[3]), float(sys.argv[4])))
+        asyncio.run(_clients(sys.argv[2], sys.argv[3], int(sys.argv[4]), float(sys.argv[5])))
         return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--clients", type=int, default=30)

@@ -1,0 +1,98 @@
+"""Enough of rerun's live stream to know how old it is: each gRPC-web data frame of ReadMessages
+(grpcweb.py) is a ``ReadMessagesResponse{LogMsg log_msg = 1}``; a ``LogMsg`` holds one of
+SetStoreInfo (1), ArrowMsg (2) or BlueprintActivationCommand (3); an ``ArrowMsg`` names its
+store (``StoreId{kind = 1, recording_id = 2}``, kind 1 = a recording, 2 = a blueprint), its
+compression (2 = LZ4 block, the whole payload; 1 or 0 = none), the uncompressed size and an Arrow
+IPC stream (schema + one record batch: one chunk of one entity). Field numbers from rerun's
+``log_msg.proto``/``sdk_comms.proto`` (rerun 0.41); the protobuf wire format is read by hand
+(varints and length-delimited fields are all these messages use), the Arrow payload by pyarrow.
+
+The appliance's live recording (logs/live.py, ``LiveRerun._indexes``) carries a ``time`` index of
+wall-clock nanoseconds (the loop's sample time + the run's wall offset): the newest value in a
+message is the newest sample it brings, so arrival time - that = how far the viewer is behind."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+STORE_RECORDING = 1
+COMPRESSION_LZ4 = 2
+TIME_COLUMN = "time"
+
+
+def _varint(buf: bytes, pos: int) -> tuple[int, int]:
+    value = shift = 0
+    while True:
+        b = buf[pos]
+        pos += 1
+        value |= (b & 0x7F) << shift
+        if not b & 0x80:
+            return value, pos
+        shift += 7
+
+
+def fields(buf: bytes) -> Iterator[tuple[int, int | bytes]]:
+    """(field number, value) of a protobuf message: ints for varints, bytes for the rest."""
+    pos = 0
+    while pos < len(buf):
+        key, pos = _varint(buf, pos)
+        number, wire = key >> 3, key & 7
+        if wire == 0:
+            value, pos = _varint(buf, pos)
+            yield number, value
+        elif wire == 2:
+            length, pos = _varint(buf, pos)
+            yield number, buf[pos:pos + length]
+            pos += length
+        elif wire in (1, 5):
+            size = 8 if wire == 1 else 4
+            yield number, buf[pos:pos + size]
+            pos += size
+        else:
+            raise ValueError(f"protobuf wire type {wire} (groups are not used by rerun)")
+
+
+def _field(buf: bytes, number: int, default: int | bytes | None = None) -> int | bytes | None:
+    for n, value in fields(buf):
+        if n == number:
+            return value
+    return default
+
+
+@dataclass
+class Chunk:
+    store_kind: int          # STORE_RECORDING or the blueprint's
+    recording_id: str
+    entity: str              # rerun:entity_path of the chunk
+    columns: list[str]
+    newest_time_ns: int | None  # max of the `time` index in it, None without one
+
+
+def chunk_of(frame: bytes) -> Chunk | None:
+    """The chunk a ReadMessages data frame carries, or None (store info, blueprint activation)."""
+    import pyarrow as pa
+    import pyarrow.ipc as ipc
+
+    log_msg = _field(frame, 1)
+    if not isinstance(log_msg, bytes):
+        return None
+    arrow = _field(log_msg, 2)
+    if not isinstance(arrow, bytes):
+        return None
+    msg = dict(fields(arrow))
+    store = msg.get(1, b"")
+    store_fields = dict(fields(store)) if isinstance(store, bytes) else {}
+    payload = msg.get(5, b"")
+    assert isinstance(payload, bytes)
+    if msg.get(2) == COMPRESSION_LZ4:
+        payload = pa.decompress(payload, decompressed_size=int(msg.get(3, 0)), codec="lz4_raw")  # type: ignore[arg-type]
+    table = ipc.open_stream(pa.py_buffer(payload)).read_all()
+    newest = None
+    if TIME_COLUMN in table.column_names and table.num_rows:
+        values = table.column(TIME_COLUMN).cast(pa.int64())
+        newest = int(pa.compute.max(values).as_py())
+    meta = table.schema.metadata or {}
+    recording_id = store_fields.get(2, b"")
+    return Chunk(int(store_fields.get(1, 0)), recording_id.decode() if isinstance(recording_id, bytes) else "",
+                 meta.get(b"rerun:entity_path", b"").decode(), table.column_names, newest)
