@@ -198,6 +198,19 @@ async function loadBench() {
   } catch (e) { $("bench").textContent = "bench ?"; }
 }
 
+// The plant menu lists rt_core's plant table (GET /api/plants): this page has no list of plants.
+async function loadPlants() {
+  const menu = $("sim-select");
+  for (const p of await api("GET", "/api/plants")) {
+    if ([...menu.options].some((o) => o.value === p.name)) continue;
+    const o = document.createElement("option");
+    o.value = p.name;
+    o.textContent = p.name;
+    o.title = p.title;
+    menu.appendChild(o);
+  }
+}
+
 // The build of a run just started from anywhere (Projects, Editor, another tab): "Start run" here
 // then starts that build again, not the example picked before (issue 19).
 let wantBuild = null;
@@ -795,6 +808,7 @@ function init() {
   document.addEventListener("keydown", onKey, true);
   window.addEventListener("resize", () => { clearTimeout(init.t); init.t = setTimeout(resizePlots, 150); });
   loadBench().then(() => loadBuilds()).catch(() => {});
+  loadPlants().catch(() => {});
   loadRuns().catch(() => {});
   buildPlots([]);
   connect();
