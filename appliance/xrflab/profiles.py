@@ -297,8 +297,17 @@ def _check_mechanics(c: _Checker, mech: dict) -> None:
             if lim is not None and not (isinstance(lim, list) and len(lim) == 2 and all(_is_num(x) for x in lim)
                                         and lim[0] < lim[1]):
                 c.err(f"{w}.limits_deg", f"{w}.limits_deg must be [low, high] in degrees")
+    elif kind == "linear_stage":
+        c.num(mech, "mechanics", "channel", 1, 4, required=True, integer=True)
+        c.num(mech, "mechanics", "lead_m", 0, 1.0, required=True, lo_open=True)
+        c.boolean(mech, "mechanics", "encoder_inverted")
+        lim = mech.get("limits_m")
+        if lim is not None and not (isinstance(lim, list) and len(lim) == 2 and all(_is_num(x) for x in lim)
+                                    and lim[0] < lim[1]):
+            c.err("mechanics.limits_m", "mechanics.limits_m must be [low, high] in m")
     elif kind is not None:
-        c.err("mechanics.kind", f"mechanics.kind {kind!r} is not known (differential_drive or pan_tilt)")
+        c.err("mechanics.kind", f"mechanics.kind {kind!r} is not known "
+              "(differential_drive, pan_tilt or linear_stage)")
 
 
 # ---- finding, loading, saving -------------------------------------------------------------------

@@ -16,7 +16,8 @@
 
 #define XRF_PLANT_TABLE(ROW) \
     ROW(relbot)              \
-    ROW(jiwy)
+    ROW(jiwy)                \
+    ROW(stage)
 
 #define XRF_PLANT_DECLARE(n) extern const struct xrf_plant_ops xrf_plant_##n;
 XRF_PLANT_TABLE(XRF_PLANT_DECLARE)

@@ -31,6 +31,7 @@ PROJECTS = {
     "20sim": REPO / "student_projects/templates/20sim",
     "relbot": REPO / "student_projects/examples/relbot",
     "jiwy": REPO / "student_projects/examples/jiwy",
+    "stage": REPO / "student_projects/examples/stage",
 }
 XRF2_FIXTURE_PARTS = REPO / "tests/fixtures/xrf2_project"
 TWENTY_SIM_TEMPLATE = REPO / "student_projects/templates/20sim/controller"
@@ -395,4 +396,20 @@ def test_jiwy_reaches_camera_angles(run_example) -> None:
     targets = {"pan": 0.5, "tilt": -0.3}
     run.ch.write_ros2xeno({"pan_setpoint": 0.5, "tilt_setpoint": -0.3})
     _converge(run, targets, tol=0.01, within_s=6.0)
+    run.command("stop")
+
+
+def test_stage_reaches_its_position(run_example) -> None:
+    """The third plant (issue 20): the stage example on the simulated linear stage moves the
+    carriage 50 mm out and 30 mm back past its start, each time staying within 0.5 mm."""
+    run = run_example("stage", "stage")
+    run.command("initialise")
+    run.wait_state("INITIALISED")
+    run.command("start")
+    run.ch.write_ros2xeno({"position_setpoint": 0.05})
+    _converge(run, {"position": 0.05}, tol=0.0005, within_s=6.0)
+    run.ch.write_ros2xeno({"position_setpoint": -0.03})
+    _converge(run, {"position": -0.03}, tol=0.0005, within_s=6.0)
+    # The plant itself (the board's mirror, not the controller's counting) is there too.
+    assert abs(run.ch.shm.sim.plant[0] - (-0.03)) < 0.0005
     run.command("stop")

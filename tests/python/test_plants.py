@@ -78,3 +78,15 @@ def test_run_requests_take_the_table(model) -> None:
 def test_counter_range_is_the_boards() -> None:
     assert kinematics.COUNTER_RANGE == plants.enc_modulo() == lib.XRF_ICO_ENC_MODULO == 16384
     assert kinematics.signed14(16383) == -1 and kinematics.wrap_delta(2, 16380) == 6
+
+
+def test_every_plant_has_its_profile_and_example() -> None:
+    """Adding a plant is its plant file, its row, its kinematics, its profile and an example
+    (docs/developers/adding-a-robot.md); the supervisor runs the example named after a plant on
+    that plant."""
+    repo = RT_SRC.parents[1]
+    for name in plants.names():
+        assert (repo / "deploy" / "profiles" / f"{name}.json").is_file(), name
+        example = repo / "student_projects" / "examples" / name
+        for part in ("CMakeLists.txt", "msg/Ros2Xeno.msg", "msg/Xeno2Ros.msg", "src/main.cpp", "README.md"):
+            assert (example / part).is_file(), (name, part)

@@ -52,6 +52,22 @@ def test_healthy_bench_passes(checker_exe, bench):
     assert abs(m1["pwm"]) <= 409  # never beyond 20 %
 
 
+def test_stage_profile_passes_on_the_simulated_stage(checker_exe):
+    """The third plant (issue 20): its own profile on the simulated linear stage. One motor, so
+    motor.2..4 are skipped; a dead encoder on its channel is found."""
+    r = check("stage", exe=checker_exe)
+    assert [s.id for s in r.steps] == EXPECTED_IDS
+    st = statuses(r)
+    assert r.verdict == "pass" and r.exit_code == 0, r.to_text()
+    assert st["motor.1"] == "pass" and st["motor.2"] == st["motor.3"] == st["motor.4"] == "skipped"
+    assert r.bench == r.sim == "stage" and r.outputs_zeroed
+    m1 = r.step("motor.1").data
+    assert m1["max_counts"] >= m1["counts_plus"] >= m1["min_counts"] and m1["counts_minus"] <= -m1["min_counts"]
+    bad = check("stage", faults="dead_encoder=1", exe=checker_exe)
+    assert bad.verdict == "fail" and statuses(bad)["motor.1"] == "fail", bad.to_text()
+    assert "encoder 1 does not count" in bad.step("motor.1").message
+
+
 FAULTS = [
     # fault spec, failing step, channel, words the diagnosis must contain
     ("dead_encoder=2", "motor.2", 2, ["encoder 2 does not count", "PMOD 2"]),

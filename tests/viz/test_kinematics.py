@@ -18,6 +18,7 @@ from xrflab.viz.scene import build_replay, resolve_profile, setpoint_angles  # n
 
 JIWY = load_profile("jiwy")
 RELBOT = load_profile("relbot")
+STAGE = load_profile("stage")
 # RELbot: counts per wheel turn = 4096 * 15.58 = 63815.68; wheel radius 0.0505 m; track 0.20 m.
 COUNTS_PER_WHEEL_REV = 63815.68
 
@@ -167,6 +168,30 @@ def test_relbot_reset_odometry_keeps_counting() -> None:
     for k in range(1, 11):  # 32000 more counts, in steps well under half the counter range
         p = m.update([raw(32000 + 3200 * k), raw(-32000 - 3200 * k), 0, 0])
     assert p.x == pytest.approx(0.159109, abs=1e-6)
+
+
+def test_stage_position_across_wraps_and_its_sign() -> None:
+    """Linear stage: 8 mm per 4096 counts, direct drive; 50000 counts (3 wraps) = 97.65625 mm."""
+    m = kin.from_profile(STAGE)
+    assert isinstance(m, kin.LinearStage) and m.limits == (-0.1, 0.1)
+    assert feed(m, [50000]) == pytest.approx(50000 * 0.008 / 4096, abs=1e-12)
+    assert m.state() == {"kind": "linear_stage", "position": m.position, "counts": 50000}
+    back = copy.deepcopy(STAGE)
+    back["mechanics"]["encoder_inverted"] = True
+    assert feed(kin.LinearStage(back), [-4096]) == pytest.approx(0.008)
+    m.reset()
+    assert m.position == 0.0 and m.update([raw(-10), 0, 0, 0]) == pytest.approx(-10 * 0.008 / 4096)
+
+
+def test_every_plant_has_a_profile_the_3d_view_draws() -> None:
+    """A plant of rt_core's table has a default profile of its name, for its robot, with
+    kinematics the 3D view knows (what resolve_profile picks on the simulated bench)."""
+    from xrflab import plants
+
+    for name in plants.names():
+        profile, found, message = resolve_profile(name, real_bench=False, data_dir=Path("/nonexistent"))
+        assert profile is not None and found == name and message == "", (name, message)
+        assert profile["robot"] == name and kin.from_profile(profile).kind in kin.KINDS
 
 
 def test_profile_without_mechanics_is_refused() -> None:

@@ -175,3 +175,26 @@ def test_relbot_odometry_moves_and_resets(server: Server) -> None:
     s = wait_state(server, lambda s: abs(s["pose"]["x"]) < 1e-9)
     assert s["pose"] == {"x": 0.0, "y": 0.0, "theta": 0.0}
     server.stop_run()
+
+
+def test_stage_carriage_follows_the_setpoint(server: Server) -> None:
+    """The third plant (issue 20): the 3D view gives the linear stage's carriage its position from
+    the encoder, the setpoint as a ghost, and agrees with the example's own measurement."""
+    assert server.http.post("/api/viz/live").status_code == 200  # whatever an earlier test left
+    to_run(server, "stage")
+    s = wait_state(server, lambda s: s.get("kind") == "linear_stage" and s.get("mode") == "live")
+    assert abs(s["position"]) < 0.001 and s["message"] == "" and s["profile"] == "stage"
+    with server.ws() as ws:
+        deadline = time.monotonic() + 20
+        while True:  # sent again while waiting: one sent in the loop's first cycles of RUN can be missed
+            ws.send({"type": "setpoint", "fields": {"position_setpoint": 0.04}})
+            s = server.http.get("/api/viz/state").json()
+            if abs(s["position"] - 0.04) < 0.001 or time.monotonic() > deadline:
+                break
+            time.sleep(0.5)
+        assert abs(s["position"] - 0.04) < 0.001, s
+        assert s["ghost"] == 0.04
+        t = ws.wait_for(lambda m: m.get("type") == "telemetry" and abs(m["xeno2ros"]["position"] - 0.04) < 0.001, 5)
+        assert abs(t["xeno2ros"]["position"] - s["position"]) < 0.001
+    server.stop_run()
+

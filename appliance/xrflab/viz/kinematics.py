@@ -1,4 +1,5 @@
-"""Encoder counts -> joint angles (Jiwy) and a floor pose (RELbot), from a bench profile.
+"""Encoder counts -> joint angles (Jiwy), a floor pose (RELbot) or a carriage position (linear
+stage), from a bench profile.
 
 Pure Python, no numpy (the counter range comes from rt_core's ico.h through the cffi binding):
 the same code runs live (fed by the appliance's telemetry) and in replay
@@ -18,7 +19,9 @@ Profile fields used (``mechanics`` of deploy/profiles/*.json):
   ``zero_offset_counts`` (count at which the axis is at 0), ``inverted``, ``limits_deg``;
 - differential_drive: ``wheel_diameter``, ``track_width`` (m), ``left_channel``, ``right_channel``,
   ``left_encoder_inverted``, ``right_encoder_inverted`` (true: the counter counts down when the
-  wheel rolls forward, the RELbot's mirrored right motor).
+  wheel rolls forward, the RELbot's mirrored right motor);
+- linear_stage: ``channel``, ``lead_m`` (carriage travel per screw turn), ``encoder_inverted``,
+  ``limits_m`` ([low, high], m).
 """
 
 from __future__ import annotations
@@ -231,12 +234,51 @@ class DiffDrive:
                 "wheels": dict(self.wheel), "trail_points": len(self.trail)}
 
 
-def from_profile(profile: dict[str, Any]) -> PanTilt | DiffDrive:
+# ---- linear stage: one prismatic axis ----------------------------------------------------------
+
+
+class LinearStage:
+    """A carriage on a lead screw: position = (count - zero) * lead / cpr / gear (m), + = away
+    from the motor (``encoder_inverted``: the counter counts down that way)."""
+
+    kind = "linear_stage"
+
+    def __init__(self, profile: dict[str, Any]) -> None:
+        mech = _mechanics(profile)
+        if mech.get("kind") != "linear_stage":
+            raise KinematicsError(f"mechanics.kind is {mech.get('kind')!r}, not linear_stage")
+        sign = -1.0 if mech.get("encoder_inverted") else 1.0
+        self.channel = int(mech["channel"])
+        self.m_per_count = sign * float(mech["lead_m"]) / float(mech["counts_per_rev"]) / float(mech["gear_ratio"])
+        lim = mech.get("limits_m")
+        self.limits = (float(lim[0]), float(lim[1])) if lim else (-0.1, 0.1)
+        self.unwrap = Unwrapper()
+        self.position = 0.0
+
+    def update(self, enc: Sequence[int]) -> float:
+        """One sample of raw counts (enc[0] = channel 1); returns the position in m."""
+        self.position = self.unwrap.update(enc[self.channel - 1]) * self.m_per_count
+        return self.position
+
+    def reset(self) -> None:
+        self.unwrap.reset()
+        self.position = 0.0
+
+    def state(self) -> dict[str, Any]:
+        return {"kind": self.kind, "position": self.position, "counts": self.unwrap.count}
+
+
+Kinematics = PanTilt | DiffDrive | LinearStage
+# mechanics.kind -> its model: the 3D view draws a profile whose kind is here.
+KINDS: dict[str, type[PanTilt] | type[DiffDrive] | type[LinearStage]] = {
+    PanTilt.kind: PanTilt, DiffDrive.kind: DiffDrive, LinearStage.kind: LinearStage}
+
+
+def from_profile(profile: dict[str, Any]) -> Kinematics:
     """The kinematics a profile describes; KinematicsError if it does not describe one."""
     kind = _mechanics(profile).get("kind")
-    if kind == "pan_tilt":
-        return PanTilt(profile)
-    if kind == "differential_drive":
-        return DiffDrive(profile)
-    raise KinematicsError(f"mechanics.kind {kind!r} is not one the 3D view can draw "
-                          "(pan_tilt or differential_drive)")
+    model = KINDS.get(kind) if isinstance(kind, str) else None
+    if model is None:
+        raise KinematicsError(f"mechanics.kind {kind!r} is not one the 3D view can draw "
+                              f"({', '.join(KINDS)})")
+    return model(profile)

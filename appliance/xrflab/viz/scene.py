@@ -5,6 +5,8 @@
   setpoint (Ros2Xeno ``pan_setpoint``/``tilt_setpoint``, the jiwy example's fields).
 - RELbot: a body with two wheels whose pose on the floor is the wheel odometry, with a trail
   that fades with age; "Reset odometry" puts it back at the origin.
+- Linear stage: a rail between its end stops and a carriage at the encoder's position, with a
+  translucent green carriage (the ghost) at the setpoint (Ros2Xeno ``position_setpoint``).
 
 Data path (nothing touches the loop): the supervisor's telemetry reader hands every batch it
 reads to ``VizService.on_telemetry`` (``Supervisor.telemetry_observers``). Samples are thinned to
@@ -13,7 +15,8 @@ kinematics, so a replay shows exactly what the live view showed. The scene itsel
 the browsers at 30 Hz by ``run()``, in a thread of its own (scene building never holds up the
 event loop, where the supervisor's heartbeat runs).
 
-Which profile: on the simulated bench the run's plant names it (``relbot`` / ``jiwy``); on a real
+Which profile: on the simulated bench the run's plant names it (``relbot``, ``jiwy``, ``stage``:
+the plant and its default profile share the name); on a real
 bench ``XRF_BENCH_PROFILE`` (environment) names it. No profile, or one without ``mechanics``:
 the robot is hidden and the view says so (a wrong picture is worse than none).
 
@@ -64,6 +67,17 @@ def setpoint_angles(fields: dict[str, Any]) -> dict[str, float]:
     return out
 
 
+def stage_setpoint(fields: dict[str, Any]) -> Optional[float]:
+    """The linear stage's setpoint (m) from Ros2Xeno fields: position_setpoint, else the first
+    position*set* field; None when there is none."""
+    key = "position_setpoint" if "position_setpoint" in fields else next(
+        (k for k in fields if k.startswith("position") and "set" in k), None)
+    v = fields.get(key) if key else None
+    if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+        return float(v)
+    return None
+
+
 def resolve_profile(plant: str, real_bench: bool, data_dir: Optional[Path]) -> tuple[Optional[dict], str, str]:
     """(profile, name, message): profile None with a message when there is none to use."""
     name = os.environ.get("XRF_BENCH_PROFILE", "") if real_bench else plant
@@ -87,7 +101,7 @@ def resolve_profile(plant: str, real_bench: bool, data_dir: Optional[Path]) -> t
 @dataclass
 class Replay:
     run_id: int
-    kind: str  # pan_tilt | differential_drive | "" (no profile)
+    kind: str  # pan_tilt | differential_drive | linear_stage | "" (no profile)
     profile_name: str
     message: str
     t: list[float]  # s since the first sample
@@ -96,6 +110,7 @@ class Replay:
     trail_lo: list[int] = field(default_factory=list)  # trail of sample i: trail[trail_lo[i]:trail_n[i]]
     trail_n: list[int] = field(default_factory=list)
     trail: list[tuple[float, float]] = field(default_factory=list)
+    positions: list[float] = field(default_factory=list)  # linear_stage, m
     setpoint_t: list[float] = field(default_factory=list)
     setpoints: list[dict[str, Any]] = field(default_factory=list)
 
@@ -152,6 +167,8 @@ def build_replay(run_id: int, run_dir: Path, data_dir: Optional[Path] = None) ->
                 r.trail.append((p.x, p.y))
             r.trail_lo.append(lo)
             r.trail_n.append(len(r.trail))
+    elif isinstance(model, kin.LinearStage):
+        r.positions = [model.update(enc) for enc in rec.enc]
     return r
 
 
@@ -407,6 +424,8 @@ class VizService:
                 f["pose"] = dict(zip(("x", "y", "theta"), r.poses[i]))
                 n = r.trail_n[i]
                 f["trail"] = r.trail[max(r.trail_lo[i], n - TRAIL_MAX):n]
+            elif r.kind == "linear_stage" and r.positions:
+                f["position"] = r.positions[i]
             return f
         m = self.model
         f = {"mode": self.mode, "kind": m.kind if m else "", "message": self.message, "run_id": self.run_id,
@@ -418,6 +437,8 @@ class VizService:
             p = m.pose
             f["pose"] = {"x": p.x, "y": p.y, "theta": p.theta}
             f["trail"] = m.trail[-TRAIL_MAX:]
+        elif isinstance(m, kin.LinearStage):
+            f["position"] = m.position
         return f
 
     def tick(self) -> None:
@@ -449,6 +470,14 @@ class VizService:
                 self._last_trail_send = now
                 with self._lock:
                     self._trail_dirty = False
+        elif f["kind"] == "linear_stage":
+            x = f.get("position") or 0.0
+            n["carriage"].position = (x, 0.0, 0.0)
+            sp = stage_setpoint(f.get("setpoint") or {})
+            if sp is not None:
+                n["ghost"].position = (sp, 0.0, 0.0)
+            n["ghost"].visible = sp is not None
+            f["ghost"] = sp
         self.frames += 1
         f.pop("trail", None)
         f["frame"] = self.frames
@@ -496,6 +525,28 @@ class VizService:
             self.server.initial_camera.position = (-0.9, -1.1, 1.0)
             self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
             self._send_trail([])
+        elif kind == "linear_stage":
+            lo, hi = getattr(self.model, "limits", (-0.1, 0.1))
+            length = hi - lo + 0.06  # the rail reaches past the end stops to the end blocks
+            self._nodes["grid"] = scene.add_grid("/floor", width=0.6, height=0.3, cell_size=0.01, section_size=0.05)
+            self._nodes["rail"] = scene.add_box("/stage_rail", color=(150, 150, 160), dimensions=(length, 0.04, 0.02),
+                                                position=((lo + hi) / 2, 0.0, 0.01))
+            for side, x in (("low", lo - 0.02), ("high", hi + 0.02)):
+                self._nodes[f"stop_{side}"] = scene.add_box(f"/stage_stop_{side}", color=(60, 60, 60),
+                                                            dimensions=(0.01, 0.06, 0.05), position=(x, 0.0, 0.025))
+            self._nodes["motor"] = scene.add_cylinder("/stage_motor", radius=0.02, height=0.05, color=(40, 40, 40),
+                                                      wxyz=(math.cos(math.pi / 4), 0.0, math.sin(math.pi / 4), 0.0),
+                                                      position=(lo - 0.05, 0.0, 0.025))
+            carriage = scene.add_frame("/stage_carriage", show_axes=False)
+            self._nodes["carriage"] = carriage
+            scene.add_box("/stage_carriage/body", color=(60, 110, 190), dimensions=(0.04, 0.06, 0.03),
+                          position=(0.0, 0.0, 0.035))
+            ghost = scene.add_frame("/stage_setpoint", show_axes=False, visible=False)
+            self._nodes["ghost"] = ghost
+            scene.add_box("/stage_setpoint/body", color=(25, 200, 75), opacity=0.3, dimensions=(0.04, 0.06, 0.03),
+                          position=(0.0, 0.0, 0.035))
+            self.server.initial_camera.position = (0.05, -0.35, 0.25)
+            self.server.initial_camera.look_at = (0.0, 0.0, 0.02)
         else:
             self._nodes["grid"] = scene.add_grid("/floor", width=1.0, height=1.0, cell_size=0.1, section_size=0.5)
 
@@ -557,6 +608,10 @@ class VizService:
             if f.get("ghost"):
                 g = f["ghost"]
                 lines.append("setpoint (green): " + ", ".join(f"{k} {math.degrees(v):.1f}°" for k, v in g.items()))
+        if "position" in f:
+            lines.append(f"carriage at {1000 * f['position']:.1f} mm")
+            if f.get("ghost") is not None:
+                lines.append(f"setpoint (green): {1000 * f['ghost']:.1f} mm")
         if "pose" in f:
             p = f["pose"]
             lines.append(f"x {p['x']:.3f} m, y {p['y']:.3f} m, θ {math.degrees(p['theta']):.1f}°")
