@@ -19,6 +19,7 @@ from logs_support import PROBE, start, wait_for
 from harness import ADMIN_PASSWORD, ADMIN_USER, Server, login_client, stop_server
 from xrf_testing.grpcweb import GRPC_WEB, READ_MESSAGES, read_messages
 from xrf_testing.net import established_to, lan_address, listening_addresses
+from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of
 from xrflab.server.routes_rerun import NO_LIVE_STREAM
 
 SERVICE = "/rerun.sdk_comms.v1alpha1.MessageProxyService"
@@ -213,6 +214,41 @@ def test_a_closed_viewer_frees_its_stream(lan) -> None:
     finally:
         http.close()
         server.stop_run()
+
+
+def test_a_connected_viewer_gets_one_message_per_view_and_new_samples(lan) -> None:
+    """Issue 19 (a viewer 5-9 minutes behind): rerun's viewer ingests messages for at most 10 ms
+    per frame, so the stream's message count, not its bytes, decides whether a slow browser keeps
+    up. Each batch brings one message per view (a variable group's variables are the series of
+    one entity), not one per variable; and a viewer already connected receives samples the loop
+    logged after it connected, without more data having to push them out."""
+    server, url = lan
+    http = login_client(url, ADMIN_USER, ADMIN_PASSWORD)
+    try:
+        run_id = run_probe(server, http)
+        connected_ns = time.time_ns()
+        entities: dict[str, int] = {}
+        newest = [0]
+
+        def on_message(payload: bytes) -> None:
+            chunk = chunk_of(payload)
+            if chunk is None or chunk.store_kind != STORE_RECORDING or chunk.newest_time_ns is None:
+                return
+            assert chunk.recording_id == f"run-{run_id}"
+            entities[chunk.entity] = entities.get(chunk.entity, 0) + 1
+            newest[0] = max(newest[0], chunk.newest_time_ns)
+
+        got = read_messages(http, READ_MESSAGES, on_message=on_message, timeout=60,
+                            until=lambda _: newest[0] > connected_ns + 1_000_000_000 and entities.get("/log/signals", 0) >= 5)
+        assert got.ended_by == "until", (got.ended_by, entities)
+        # the probe's six variables (one group, `signals`) are one entity: one message per batch
+        assert "/log/signals" in entities, entities
+        assert not [e for e in entities if e.startswith("/log/signals/")], entities
+        assert set(entities) <= {"/log/signals", "/telemetry/enc", "/telemetry/pwm", "/telemetry/xeno2ros"}, entities
+        # samples logged a second after the viewer connected reached it while it stayed connected
+        assert newest[0] > connected_ns + 1_000_000_000
+    finally:
+        http.close()
 
 
 def test_no_live_stream_before_the_first_run(tmp_path: Path) -> None:

@@ -46,10 +46,12 @@ def split_frames(buf: bytes) -> tuple[list[tuple[int, bytes]], bytes]:
 
 def read_messages(client: httpx.Client, url: str, until: Callable[[bytes], bool] = lambda data: False,
                   timeout: float = 20.0, headers: dict[str, str] | None = None,
-                  body: bytes = EMPTY_REQUEST, quiet: float = 5.0) -> Stream:
+                  body: bytes = EMPTY_REQUEST, quiet: float = 5.0,
+                  on_message: Callable[[bytes], None] | None = None) -> Stream:
     """POST a ReadMessages call and read the stream until `until(all payload bytes so far)` is
     true, the server ends it, `timeout` passes or the stream is quiet for `quiet` s (then
-    whatever arrived is returned; `ended_by` says which)."""
+    whatever arrived is returned; `ended_by` says which). `on_message(payload)`: each data
+    message as it arrives."""
     deadline = time.monotonic() + timeout
     with client.stream("POST", url, content=body, headers={**GRPC_WEB, **(headers or {})},
                        timeout=httpx.Timeout(10.0, read=min(timeout, quiet))) as r:
@@ -75,6 +77,8 @@ def read_messages(client: httpx.Client, url: str, until: Callable[[bytes], bool]
                     out.trailers = payload
                 else:
                     out.messages.append(payload)
+                    if on_message is not None:
+                        on_message(payload)
             if out.trailers:
                 out.ended_by = "server"
                 break

@@ -24,7 +24,9 @@ mean, and the cumulative p50/p99/max, wake-up jitter included.
 telemetry are sent, in batches every ``SEND_PERIOD_S``, to the run's recording
 (``recording_id = run-<id>``) on the run's own rerun message proxy (``LiveProxy``, 127.0.0.1
 only); browsers read it through the appliance (server/routes_rerun.py). A run's blueprint has one
-time-series view per variable group plus encoders, PWM and Xeno2Ros. See docs/logging/appliance.md.
+time-series view per variable group plus encoders, PWM and Xeno2Ros, each view one entity (a series
+per variable): a batch is one message per view, whatever the number of variables (rerun's viewer
+pays per message). See docs/logging/appliance.md.
 """
 
 from __future__ import annotations
@@ -558,8 +560,8 @@ class LiveRerun:
         self.dropped = 0
         self._wall_offset = time.time_ns() - time.monotonic_ns()
         self._names: list[str] | None = None
-        self._paths: dict[str, str] = {}
-        self._named: set[str] = set()
+        self._groups: dict[str, list[str]] = {}     # log entity -> its variables (record fields)
+        self._series: dict[str, list[str]] = {}     # entity -> the series names logged for it
         self.rec = rr.RecordingStream("xrflab", recording_id=f"run-{run_id}")
         self.rec.connect_grpc(proxy.local_url)
         self._telemetry_reader = ch.telemetry_reader()
@@ -603,19 +605,36 @@ class LiveRerun:
         return [rr.TimeColumn("cycle", sequence=cycle.astype(np.int64)),
                 rr.TimeColumn("time", timestamp=(t_ns.astype(np.int64) + self._wall_offset).view("datetime64[ns]"))]
 
+    def _name_series(self, entity: str, names: list[str]) -> None:
+        """The series' names of a multi-series entity, once per set of names (static)."""
+        if self._series.get(entity) != names:
+            self._series[entity] = names
+            self.rec.log(entity, self._rr.SeriesLines(names=names), static=True)
+
+    # One message per entity per batch, and rerun's viewer ingests messages for at most 10 ms per
+    # frame (re_viewer's receive_messages): a browser drawing a few frames per second (software
+    # rendering, a busy laptop) fell behind a stream of one entity per variable and never caught
+    # up (issue 19: 5-9 minutes behind). So one entity per view: a variable group's variables
+    # are the series of one entity (log/<group>), as encoders and PWM are; telemetry's Xeno2Ros
+    # fields are one entity too. Messages per batch = views, whatever the variable count.
     def _send_records(self, rec: np.ndarray) -> None:
-        from .convert import _plain, entity_paths
+        from .convert import _plain, variable_groups
 
         rr = self._rr
         names = [n for n in rec.dtype.names if n not in ("seq", "cycle", "t_ns")]
         if names != self._names:
             self._names = names
-            self._paths = entity_paths(names)
+            self._groups = {}
+            for n, g in variable_groups(names).items():
+                self._groups.setdefault(f"log/{rr.escape_entity_path_part(g)}", []).append(n)
             self.rec.send_blueprint(live_blueprint(names, ["enc", "pwm", "xeno2ros"]))
         idx = self._indexes(rec["cycle"], rec["t_ns"])
-        for n in names:
-            self.rec.send_columns(self._paths[n], indexes=idx,
-                                  columns=rr.Scalars.columns(scalars=_plain(rec[n]).astype(np.float64)))
+        for entity, members in self._groups.items():
+            # an array variable (or a char string) is a series per element
+            cols = [_plain(rec[n]).astype(np.float64).reshape(len(rec), -1) for n in members]
+            self._name_series(entity, [n if c.shape[1] == 1 else f"{n}[{i}]"
+                                       for n, c in zip(members, cols) for i in range(c.shape[1])])
+            self.rec.send_columns(entity, indexes=idx, columns=rr.Scalars.columns(scalars=np.hstack(cols)))
 
     def _send_telemetry(self) -> None:
         rr = self._rr
@@ -628,23 +647,24 @@ class LiveRerun:
         t_ns = np.array([s.t_ns for s in samples], dtype=np.int64)
         idx = self._indexes(cycle, t_ns)
         for key in ("enc", "pwm"):
-            # one entity per group, a series per channel: one message instead of four
+            # one entity per group, a series per channel
             values = np.array([getattr(s, key) for s in samples], dtype=np.float64)
             if values.ndim != 2 or values.shape[1] == 0:
                 continue
-            if key not in self._named:
-                self._named.add(key)
-                self.rec.log(f"telemetry/{key}", rr.SeriesLines(names=[str(i + 1) for i in range(values.shape[1])]),
-                             static=True)
+            self._name_series(f"telemetry/{key}", [str(i + 1) for i in range(values.shape[1])])
             self.rec.send_columns(f"telemetry/{key}", indexes=idx, columns=rr.Scalars.columns(scalars=values))
         fields = samples[0].xeno2ros.keys() if isinstance(samples[0].xeno2ros, dict) else []
+        plotted, columns = [], []
         for name in fields:
             try:
-                values = np.array([float(s.xeno2ros[name]) for s in samples], dtype=np.float64)
+                columns.append(np.array([float(s.xeno2ros[name]) for s in samples], dtype=np.float64))
             except (TypeError, ValueError):
                 continue  # arrays and strings are not plotted
-            self.rec.send_columns(f"telemetry/xeno2ros/{rr.escape_entity_path_part(name)}", indexes=idx,
-                                  columns=rr.Scalars.columns(scalars=values))
+            plotted.append(name)
+        if plotted:
+            self._name_series("telemetry/xeno2ros", plotted)
+            self.rec.send_columns("telemetry/xeno2ros", indexes=idx,
+                                  columns=rr.Scalars.columns(scalars=np.column_stack(columns)))
 
     def _main(self) -> None:
         # Records arrive in small batches (one per writer drain, up to 50 a second); they are
