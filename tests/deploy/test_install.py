@@ -157,6 +157,41 @@ def test_units_pass_systemd_analyze_verify(installed):
     assert "xrf-lab.service" not in proc.stderr, proc.stderr  # no warnings about our units
 
 
+def test_room_service_only_when_asked(installed, source):
+    """`--room` adds the lab room: xrf-room.service (`xrf room`, which starts its own mosquitto),
+    its user and private data folder, /etc/default/xrf-room for its arguments; a plain install has
+    none of it. The unit passes systemd-analyze verify in the tree; a later run without --room
+    keeps it and changes nothing."""
+    root, *_ = installed
+    unit = root / "etc/systemd/system/xrf-room.service"
+    wants = root / "etc/systemd/system/multi-user.target.wants/xrf-room.service"
+    assert not unit.exists() and "xrf-room" not in _passwd(root)
+    first = run_install(root, "--no-deps", "--room", source=source)
+    assert first.returncode == 0, first.stdout + first.stderr
+    assert unit.exists() and wants.is_symlink() and str(wants.readlink()) == "/etc/systemd/system/xrf-room.service"
+    text = unit.read_text()
+    assert "ExecStart=/opt/xrf-lab/venv/bin/xrf room --host 0.0.0.0 --data /var/lib/xrf-lab-room $XRF_ROOM_ARGS" in text
+    assert "User=xrf-room" in text and "EnvironmentFile=-/etc/default/xrf-room" in text
+    user = _passwd(root)["xrf-room"]
+    assert user[5] == "/var/lib/xrf-lab-room" and int(user[2]) < 1000 and user[6] == "/usr/sbin/nologin"
+    data = root / "var/lib/xrf-lab-room"
+    assert oct(data.stat().st_mode & 0o7777) == "0o700" and data.stat().st_uid == int(user[2])
+    assert 'XRF_ROOM_ARGS=""' in (root / "etc/default/xrf-room").read_text()
+    assert "set --broker-name" in first.stdout  # the reminder: benches need the broker's address
+    if not (root / "usr/sbin/mosquitto").exists():  # --no-deps: nothing installed, but said
+        assert "mosquitto not installed" in first.stdout
+    proc = subprocess.run([_systemd_analyze(), "verify", f"--root={root}", "--man=no",
+                           "/etc/systemd/system/xrf-room.service"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "xrf-room.service" not in proc.stderr, proc.stderr
+    # the educator's arguments are theirs; a later plain run keeps the room and changes nothing
+    (root / "etc/default/xrf-room").write_text('XRF_ROOM_ARGS="--broker-name 10.0.0.5"\n')
+    again = run_install(root, "--no-deps", source=source)
+    assert again.returncode == 0 and "nothing to change" in again.stdout, again.stdout
+    assert unit.exists() and "set --broker-name" not in again.stdout
+    assert (root / "etc/default/xrf-room").read_text() == 'XRF_ROOM_ARGS="--broker-name 10.0.0.5"\n'
+
+
 def test_doctor_runs_in_the_installed_root(installed):
     """The installed `xrf doctor` inside the chroot sees the installer's users and groups: a
     /dev/spidev0.0 of group spi, mode 0660 is usable by xrf-loop; mode 0600 is not."""
@@ -232,15 +267,17 @@ def test_uninstall_keeps_data_then_purge_removes_it(installed, source):
     assert "xrf" in _passwd(root)
     for p in ("opt/xrf-lab", "var/cache/xrf-lab", "usr/local/bin/xrf", "etc/systemd/system/xrf-lab.service",
               "etc/udev/rules.d/60-xrf-lab.rules", "etc/security/limits.d/90-xrf-lab.conf",
-              "etc/sysctl.d/60-xrf-lab.conf", "etc/systemd/system/multi-user.target.wants/xrf-lab.service"):
+              "etc/sysctl.d/60-xrf-lab.conf", "etc/systemd/system/multi-user.target.wants/xrf-lab.service",
+              "etc/systemd/system/xrf-room.service", "etc/systemd/system/multi-user.target.wants/xrf-room.service",
+              "etc/default/xrf-room"):
         assert not (root / p).exists() and not (root / p).is_symlink(), p
     assert _xrf_lines(root, "subuid") == [] and _xrf_lines(root, "subgid") == []
     again = run_install(root, script="uninstall", source=source)
     assert "nothing to remove" in again.stdout, again.stdout
     purge = run_install(root, "--purge", script="uninstall", source=source)
     assert purge.returncode == 0, purge.stdout + purge.stderr
-    assert not (root / "var/lib/xrf-lab").exists()
-    assert "xrf" not in _passwd(root) and "xrf-loop" not in _passwd(root)
+    assert not (root / "var/lib/xrf-lab").exists() and not (root / "var/lib/xrf-lab-room").exists()
+    assert "xrf" not in _passwd(root) and "xrf-loop" not in _passwd(root) and "xrf-room" not in _passwd(root)
     groups = _group(root)
     assert "xrf" not in groups and "xrf-loop" not in groups
     assert "spi" in groups  # shared groups stay
