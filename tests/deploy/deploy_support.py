@@ -24,7 +24,6 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[2]
 SUITE = "bookworm"
 PACKAGES = ["python3", "python3-venv", "cmake", "g++", "make", "ca-certificates", "systemd"]
-CACHE_KEY = hashlib.sha256(" ".join([SUITE, *PACKAGES]).encode()).hexdigest()[:8]
 
 
 def apt_mirror() -> str:
@@ -42,15 +41,17 @@ def apt_mirror() -> str:
     return "http://deb.debian.org/debian"
 
 
-def _cache_dir() -> Path:
+def _cache_dir(packages: list[str]) -> Path:
+    key = hashlib.sha256(" ".join([SUITE, *packages]).encode()).hexdigest()[:8]
     env = os.environ.get("XRF_DEBOOTSTRAP_CACHE")
-    if env:
-        return Path(env)
-    return Path.home() / ".cache" / "xrf-lab" / f"debootstrap-{SUITE}-{CACHE_KEY}"
+    if env:  # the installer's tree there as before; any other list of packages beside it
+        return Path(env) if packages == PACKAGES else Path(f"{env}-{key}")
+    return Path.home() / ".cache" / "xrf-lab" / f"debootstrap-{SUITE}-{key}"
 
 
-def ensure_debian_tree() -> Path:
-    cache = _cache_dir()
+def ensure_debian_tree(packages: list[str] = PACKAGES) -> Path:
+    """The cached tree of minbase plus ``packages`` (one cache folder per list)."""
+    cache = _cache_dir(packages)
     if (cache / ".xrf-complete").exists():
         return cache
     if shutil.which("debootstrap") is None:
@@ -61,7 +62,7 @@ def ensure_debian_tree() -> Path:
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.parent.mkdir(parents=True, exist_ok=True)
     proc = subprocess.run(
-        ["debootstrap", "--variant=minbase", f"--include={','.join(PACKAGES)}", SUITE, str(tmp),
+        ["debootstrap", "--variant=minbase", f"--include={','.join(packages)}", SUITE, str(tmp),
          apt_mirror()], capture_output=True, text=True, timeout=900)
     if proc.returncode != 0:
         raise RuntimeError(f"debootstrap failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
