@@ -21,6 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "appliance"))
 
 from xrflab.logs import convert, open_log  # noqa: E402
+from xrflab.logs.logformat import MAGIC  # noqa: E402
 
 NVARS = 16
 
@@ -33,7 +34,7 @@ def write_file(path: Path, n: int) -> None:
               "record_size": 8 * NVARS, "variables": variables}
     js = (json.dumps(header) + "\n").encode()
     stride = 24 + 8 * NVARS
-    head = b"XRFLOG1\n" + struct.pack("<II", len(js), stride) + js
+    head = MAGIC + struct.pack("<II", len(js), stride) + js
     head += b"\0" * (-len(head) % 8)
     rec = np.zeros(n, dtype=[("seq", "<u8"), ("cycle", "<u8"), ("t_ns", "<i8"), ("x", "<f8", NVARS)])
     rec["seq"] = rec["cycle"] = np.arange(n)

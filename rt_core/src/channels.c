@@ -8,6 +8,7 @@
  */
 #define _GNU_SOURCE
 #include "xrf/channels.h"
+#include "xrf/logformat.h" /* the type codes of the timing records */
 
 #include <errno.h>
 #include <limits.h>

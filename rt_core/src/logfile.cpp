@@ -2,6 +2,7 @@
 // Runs on the loop process's in-band helper thread (or, with XRF_LOG_WRITER=host, the appliance
 // does the same from Python), so the loop never waits on a disk.
 #include "logfile.h"
+#include "xrf/logformat.h"
 #include "xrf/runtime.hpp"
 
 #include <cerrno>
@@ -16,36 +17,6 @@
 
 namespace xrf {
 
-int logfile_type_size(int32_t type)
-{
-    switch (type) {
-    case XRF_LOG_BOOL:
-    case XRF_LOG_CHAR:
-        return 1;
-    case XRF_LOG_INT:
-    case XRF_LOG_FLOAT:
-        return 4;
-    case XRF_LOG_DOUBLE:
-    case XRF_LOG_LONG_INT:
-        return 8;
-    default:
-        return 0;
-    }
-}
-
-const char *logfile_type_name(int32_t type)
-{
-    switch (type) {
-    case XRF_LOG_BOOL: return "bool";
-    case XRF_LOG_CHAR: return "char";
-    case XRF_LOG_INT: return "int32";
-    case XRF_LOG_FLOAT: return "float32";
-    case XRF_LOG_DOUBLE: return "float64";
-    case XRF_LOG_LONG_INT: return "int64";
-    default: return "?";
-    }
-}
-
 const char *logfile_write_hint(int err)
 {
     // Under the appliance the loop may write in its run folder only (a mount namespace covers
@@ -57,25 +28,6 @@ const char *logfile_write_hint(int err)
 }
 
 namespace {
-
-void jsonString(std::string &out, const char *s)
-{
-    out += '"';
-    for (; *s; s++) {
-        unsigned char c = (unsigned char)*s;
-        if (c == '"' || c == '\\') {
-            out += '\\';
-            out += (char)c;
-        } else if (c < 0x20) {
-            char buf[8];
-            std::snprintf(buf, sizeof buf, "\\u%04x", c);
-            out += buf;
-        } else {
-            out += (char)c;
-        }
-    }
-    out += '"';
-}
 
 const char *envOr(const char *name, const char *fallback)
 {
@@ -111,47 +63,29 @@ bool writeAll(int fd, const void *data, size_t n)
     return true;
 }
 
-// One segment header: magic, JSON length, record stride, the JSON, zero padding to 8 bytes.
-bool writeHeader(int fd, const xrf_shm *shm, const xrf_log_meta &m, uint32_t stride, const char *program)
+// One segment header (xrf/logformat.h composes it; the appliance's host writer calls the same
+// function), formatted into the sink's own buffer: the helper allocates nothing per file.
+bool writeHeader(int fd, LogSink *sink, const xrf_shm *shm, const xrf_log_meta &m, uint32_t stride,
+                 const char *program)
 {
     struct timespec wall, mono;
     clock_gettime(CLOCK_REALTIME, &wall);
     clock_gettime(CLOCK_MONOTONIC, &mono);
-    std::string j = "{\"format\":\"xrflog\",\"version\":1,\"program\":";
-    jsonString(j, program);
-    j += ",\"project\":";
-    jsonString(j, envOr("XRF_PROJECT", ""));
-    j += ",\"build\":";
-    jsonString(j, envOr("XRF_BUILD_ID", ""));
-    j += ",\"run\":";
-    jsonString(j, envOr("XRF_RUN_ID", ""));
-    char buf[256];
-    std::snprintf(buf, sizeof buf,
-                  ",\"pid\":%d,\"cycle_freq\":%u,\"start_unix_ns\":%lld,\"start_mono_ns\":%lld,"
-                  "\"record_header\":[[\"seq\",\"uint64\"],[\"cycle\",\"uint64\"],[\"t_ns\",\"int64\"]],"
-                  "\"record_size\":%u,\"variables\":[",
-                  (int)shm->info.pid, shm->info.cycle_freq,
-                  (long long)wall.tv_sec * 1000000000LL + wall.tv_nsec,
-                  (long long)mono.tv_sec * 1000000000LL + mono.tv_nsec, m.record_size);
-    j += buf;
-    for (uint32_t i = 0; i < m.nvars && i < XRF_LOG_VARS_MAX; i++) {
-        char name[XRF_NAME_MAX + 1];
-        std::memcpy(name, m.vars[i].name, XRF_NAME_MAX);
-        name[XRF_NAME_MAX] = '\0';
-        j += i ? ",{\"name\":" : "{\"name\":";
-        jsonString(j, name);
-        std::snprintf(buf, sizeof buf, ",\"type\":%d,\"dtype\":\"%s\",\"offset\":%d}",
-                      m.vars[i].type, logfile_type_name(m.vars[i].type), m.vars[i].offset);
-        j += buf;
+    xrf_logfile_ident id{};
+    id.program = program;
+    id.project = envOr("XRF_PROJECT", "");
+    id.build = envOr("XRF_BUILD_ID", "");
+    id.run = envOr("XRF_RUN_ID", "");
+    id.pid = shm->info.pid;
+    id.cycle_freq = shm->info.cycle_freq;
+    id.start_unix_ns = (int64_t)wall.tv_sec * 1000000000LL + wall.tv_nsec;
+    id.start_mono_ns = (int64_t)mono.tv_sec * 1000000000LL + mono.tv_nsec;
+    int n = xrf_logfile_header(sink->header, sizeof sink->header, &id, &m, stride);
+    if (n < 0) {
+        errno = -n; // the caller reports errno (an XRF_PROJECT/XRF_BUILD_ID/XRF_RUN_ID too long)
+        return false;
     }
-    j += "]}\n";
-    uint8_t head[16] = {'X', 'R', 'F', 'L', 'O', 'G', '1', '\n'};
-    uint32_t jlen = (uint32_t)j.size();
-    std::memcpy(head + 8, &jlen, 4);   // little-endian on every target we support
-    std::memcpy(head + 12, &stride, 4);
-    size_t pad = (8 - (16 + j.size()) % 8) % 8;
-    j.append(pad, '\0');
-    return writeAll(fd, head, sizeof head) && writeAll(fd, j.data(), j.size());
+    return writeAll(fd, sink->header, (size_t)n);
 }
 
 } // namespace
@@ -171,7 +105,7 @@ void logfile_drain(const xrf_shm *shm, xrf_log_meta *meta, xrf_ring *ring, const
         path[XRF_PATH_MAX] = '\0';
         mkdirParents(path);
         sink->fd = open(path, O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC, m.file_mode ? m.file_mode : 0644);
-        if (sink->fd < 0 || !writeHeader(sink->fd, shm, m, ring->slot_size, program)) {
+        if (sink->fd < 0 || !writeHeader(sink->fd, sink, shm, m, ring->slot_size, program)) {
             int err = errno;
             std::fprintf(stderr, "xrf: cannot write the log file %s: %s%s; logging stops\n", path,
                          std::strerror(err), logfile_write_hint(err));

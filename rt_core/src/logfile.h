@@ -16,10 +16,6 @@ void logfile_drain(const xrf_shm *shm, xrf_log_meta *meta, xrf_ring *ring, const
                    LogSink *sink, const char *program, bool final);
 void logfile_close(LogSink *sink);
 
-// Size in bytes of a variable of an XRF_LOG_* type, 0 for an unknown code.
-int logfile_type_size(int32_t type);
-const char *logfile_type_name(int32_t type);
-
 // What to add to a failed open's message: " (only the run folder is writable)" for a
 // permission or read-only error under the appliance (XRF_LOG_DIR set), else "".
 const char *logfile_write_hint(int err);

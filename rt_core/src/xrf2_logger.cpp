@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "logfile.h"
+#include "xrf/logformat.h"
 #include "xrf/runtime.hpp"
 
 namespace {
@@ -108,7 +109,8 @@ XenoFrtLogger::XenoFrtLogger(XenoFileHandler &file, void *data) : file_(file), d
 
 int XenoFrtLogger::addVariable(const char *name, int type)
 {
-    const int size = xrf::logfile_type_size(type);
+    const xrf_logfile_type *t = xrf_logfile_type_of(type);
+    const int size = t ? (int)t->size : 0;
     if (size == 0 || nvars_ >= max_variables || initialised_ || name == nullptr)
         return -1;
     Var &v = vars_[nvars_];

@@ -1,7 +1,9 @@
 """Writers of the two log formats, written from the specs (not from the reader) to make fixtures.
 
 `xrflog_segment` follows docs/logging/file-format.md byte for byte; `xrf2_bin` follows
-XRF2_API.md ("XRF2's file format"). Both pack records with `struct`, independently of NumPy.
+XRF2_API.md ("XRF2's file format"). Both pack records with `struct`, independently of NumPy. The
+magic and the header's dtype names are rt_core's (logformat.h): the reader's tests pin the magic's
+bytes against the spec, and no second copy of either may exist (tests/logs/test_logformat.py).
 """
 
 from __future__ import annotations
@@ -10,10 +12,11 @@ import json
 import struct
 from typing import Any, Sequence
 
-MAGIC = b"XRFLOG1\n"
-# code -> struct format character, size (XRF2_API.md's table)
+from xrflab.logs.logformat import MAGIC, VAR_TYPES
+
+# code -> struct format character, size (XRF2_API.md's table): how this writer packs a value, an
+# independent check of the reader's NumPy types (test_logformat.py compares the sizes with C's).
 TYPES = {1: ("?", 1), 2: ("c", 1), 3: ("i", 4), 4: ("f", 4), 5: ("d", 8), 6: ("q", 8)}
-DTYPE_NAMES = {1: "bool", 2: "char", 3: "int32", 4: "float32", 5: "float64", 6: "int64"}
 
 
 def payload_format(codes: Sequence[int]) -> str:
@@ -37,7 +40,7 @@ def xrflog_segment(variables: Sequence[tuple[str, int]], rows: Sequence[Sequence
               "pid": 1, "cycle_freq": 1000, "start_unix_ns": 1_795_000_000_000_000_000, "start_mono_ns": t0,
               "record_header": [["seq", "uint64"], ["cycle", "uint64"], ["t_ns", "int64"]],
               "record_size": record_size,
-              "variables": [{"name": n, "type": c, "dtype": DTYPE_NAMES.get(c, "?"), "offset": o}
+              "variables": [{"name": n, "type": c, "dtype": VAR_TYPES[c].header_dtype, "offset": o}
                             for (n, c), o in zip(variables, offsets)]}
     header.update(extra_header or {})
     js = (json.dumps(header) + "\n").encode()

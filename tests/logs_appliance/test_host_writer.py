@@ -145,3 +145,49 @@ def test_live_rerun_stream_takes_records_and_telemetry(loop, tmp_path: Path, cap
     finally:
         LiveProxy.stop_all()
     assert LiveProxy.current() is None
+
+
+def _whole_header(path: Path) -> bytes | None:
+    """The first segment header of `path` once all of it is in the file."""
+    import struct
+
+    from xrflab.logs.logformat import ALIGN, JSON_LEN_OFFSET, PREFIX_SIZE
+
+    raw = path.read_bytes() if path.exists() else b""
+    if len(raw) < PREFIX_SIZE:
+        return None
+    end = (PREFIX_SIZE + struct.unpack_from("<I", raw, JSON_LEN_OFFSET)[0] + ALIGN - 1) // ALIGN * ALIGN
+    return raw[:end] if len(raw) >= end else None
+
+
+def test_host_and_loop_write_the_same_header_bytes(probe: Path, shm_name: str, tmp_path: Path) -> None:
+    """A segment header has one composer (logformat.h): the loop's own writer and the host writer,
+    given the same log layout, identity and start time, produce the same bytes; for the logger's
+    file and the per-cycle timing file, with identity texts that need escaping."""
+    import json
+
+    from xrflab.logs.logformat import PREFIX_SIZE
+
+    identity = {"project": 'pro"ject \u00fc', "build": "b\\1\ttab", "run": "77"}
+    lp = LoopProcess(probe, shm_name, tmp_path, capture=False, XRF_LOG_DIR=str(tmp_path), XRF_LOG_WRITER="process",
+                     XRF_TRANSPORT="sim", XRF_LOG_TIMING="1", XRF_PROJECT=identity["project"],
+                     XRF_BUILD_ID=identity["build"], XRF_RUN_ID=identity["run"])
+    try:
+        lp.command("initialise", "INITIALISED")
+        written: dict[str, bytes | None] = {}
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            logs = sorted((tmp_path / "logs").glob("probe_*.xrf"))
+            written = {"log": _whole_header(logs[0]) if logs else None,
+                       "cycle_timing": _whole_header(tmp_path / "cycle_timing.xrf")}
+            if all(written.values()):
+                break
+            time.sleep(0.05)
+        for source, raw in written.items():
+            assert raw is not None, f"the loop wrote no {source} file"
+            header = json.loads(raw[PREFIX_SIZE:].rstrip(b"\0"))
+            assert {k: header[k] for k in identity} == identity and header["pid"] == lp.proc.pid
+            w = HostLogWriter(lp.ch, identity, tmp_path, timing=False, source=source)
+            assert w.segment_header(header["start_unix_ns"], header["start_mono_ns"]) == raw, source
+    finally:
+        lp.stop()

@@ -28,6 +28,7 @@ from logs_support import REPO, shared_builds_root, start_server, wait_for
 from xrf_testing.loops import LoopProcess
 from xrflab.logs import open_log
 from xrflab.logs.live import HostLogWriter
+from xrflab.logs.logformat import MAGIC
 from xrflab.logs.runfolder import RunPathError, confine, open_in
 
 XRF2_NAME = "xrf2-home-log"
@@ -241,7 +242,7 @@ def test_xrf2_log_in_home_lands_in_the_runs_downloads(xrf2_server) -> None:
     assert detail["run"]["log_records"] == info["records"]
 
     raw = server.http.get(f"/api/logs/runs/{run_id}/files/{STUDENT_FILE}", params={"fmt": "raw"})
-    assert raw.status_code == 200 and raw.content[:8] == b"XRFLOG1\n"
+    assert raw.status_code == 200 and raw.content[:8] == MAGIC
     csv = server.http.get(f"/api/logs/runs/{run_id}/files/{STUDENT_FILE}", params={"fmt": "csv"})
     assert csv.status_code == 200
     table = np.genfromtxt(io.StringIO(csv.text), delimiter=",", names=True)

@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 from xrflab.channels import Channels
+from xrflab.logs.logformat import MAGIC
 
 
 def test_state_visible_from_first_cycle_and_no_motion_before_initialise(run_loop, probe_exe):
@@ -201,10 +202,10 @@ def test_log_file_is_self_describing_with_continuous_sequence(run_loop, probe_ex
     files = list((tmp_path / "data" / "logs").glob("probe_*.xrf"))
     assert len(files) == 1
     raw = files[0].read_bytes()
-    assert raw[:8] == b"XRFLOG1\n"
+    assert raw[:8] == MAGIC
     jlen, stride = struct.unpack_from("<II", raw, 8)
     header = json.loads(raw[16:16 + jlen])
-    assert raw.count(b"XRFLOG1\n") == 1
+    assert raw.count(MAGIC) == 1
     assert [v["name"] for v in header["variables"]] == ["cycle", "flag", "letter", "count", "ratio", "value"]
     assert header["record_size"] == 8 + 1 + 1 + 4 + 4 + 8 and header["cycle_freq"] == 1000
     off = (16 + jlen + 7) // 8 * 8

@@ -4,10 +4,12 @@ the live rerun stream.
 **Host log writer** (the loop runs with ``XRF_LOG_WRITER=host``): a thread of the appliance
 drains the loop's lossless log ring (``xrf_spsc_peek_run``: the longest run of ready slots that
 is contiguous, one ``write()`` each) into the file named in ``log_meta.path``, in the format of
-docs/logging/file-format.md (the same bytes rt_core/src/logfile.cpp writes). It wakes on the
-loop's doorbell (futex, no polling; at most ``WAIT_MS`` between drains). Because the appliance
-keeps the run's shared memory mapped after the loop process is gone, a crashed or killed loop
-loses nothing that reached the ring: ``finish()`` drains the rest.
+docs/logging/file-format.md; each segment header comes from rt_core's ``xrf_logfile_header``
+(logformat.h, through cffi: the function the loop's own writer calls, so the bytes are the same
+whichever side writes). It wakes on the loop's doorbell (futex, no polling; at most ``WAIT_MS``
+between drains). Because the appliance keeps the run's shared memory mapped after the loop
+process is gone, a crashed or killed loop loses nothing that reached the ring: ``finish()``
+drains the rest.
 
 Faults: the loop never waits on us: if we stall, the ring fills and the loop counts
 ``log_lost`` (sequence numbers make the gap visible). A write that fails (disk full, I/O error,
@@ -52,6 +54,7 @@ from typing import Any
 
 import numpy as np
 
+from . import logformat
 from .runfolder import RunPathError, confine, open_in
 
 log = logging.getLogger("xrflab.logs.live")
@@ -62,37 +65,6 @@ TELEMETRY_HZ = 50.0     # telemetry samples per second sent to it
 SEND_PERIOD_S = 0.2     # the live recording is sent in batches this far apart
 RERUN_NICE = 10         # rerun's child processes run below the appliance
 TIMING_PERIOD_S = 1.0
-MAGIC = b"XRFLOG1\n"
-TYPE_NAMES = {1: "bool", 2: "char", 3: "int32", 4: "float32", 5: "float64", 6: "int64"}
-
-
-def _json_str(s: str) -> str:
-    # logfile.cpp escapes '"', '\\' and control characters only; json.dumps with
-    # ensure_ascii=False gives the same for every name a C identifier-ish logger uses.
-    return json.dumps(s, ensure_ascii=False)
-
-
-def segment_header(meta: dict[str, Any], stride: int) -> bytes:
-    """A segment header (magic, JSON length, stride, JSON, zero padding), byte-compatible with
-    rt_core's writer. `meta`: program, project, build, run, pid, cycle_freq, start_unix_ns,
-    start_mono_ns, record_size, variables [(name, type, offset)]."""
-    parts = [
-        '{"format":"xrflog","version":1,"program":', _json_str(meta["program"]),
-        ',"project":', _json_str(meta.get("project", "")),
-        ',"build":', _json_str(meta.get("build", "")),
-        ',"run":', _json_str(meta.get("run", "")),
-        f',"pid":{int(meta["pid"])},"cycle_freq":{int(meta["cycle_freq"])},'
-        f'"start_unix_ns":{int(meta["start_unix_ns"])},"start_mono_ns":{int(meta["start_mono_ns"])},'
-        '"record_header":[["seq","uint64"],["cycle","uint64"],["t_ns","int64"]],'
-        f'"record_size":{int(meta["record_size"])},"variables":[',
-    ]
-    for i, (name, code, offset) in enumerate(meta["variables"]):
-        parts.append(("," if i else "") + '{"name":' + _json_str(name)
-                     + f',"type":{int(code)},"dtype":"{TYPE_NAMES.get(int(code), "?")}","offset":{int(offset)}}}')
-    parts.append("]}\n")
-    j = "".join(parts).encode()
-    pad = (8 - (16 + len(j)) % 8) % 8
-    return MAGIC + len(j).to_bytes(4, "little") + stride.to_bytes(4, "little") + j + b"\0" * pad
 
 
 @dataclass
@@ -281,12 +253,6 @@ class HostLogWriter:
         if self.stats.failed:
             return
         published = self._ffi.string(m.path, self._lib.XRF_PATH_MAX).decode("utf-8", "replace")
-        info = self._ch.info
-        meta = {
-            "program": info.get("program", ""), **self._identity, "pid": info.get("pid", 0),
-            "cycle_freq": info.get("cycle_freq", 0), "start_unix_ns": time.time_ns(),
-            "start_mono_ns": time.monotonic_ns(), "record_size": int(m.record_size), "variables": variables,
-        }
         # The loop names the file and is not trusted: the name is confined to the run folder
         # and opened without following symlinks (runfolder.py), whatever the loop published.
         try:
@@ -299,7 +265,7 @@ class HostLogWriter:
             self._fd = open_in(self._run_dir, rel, os.O_WRONLY | os.O_CREAT | os.O_APPEND,
                                int(m.file_mode) or 0o644, create_dirs=True)
             self._size = os.fstat(self._fd).st_size
-            self._write_all(segment_header(meta, self._stride))
+            self._write_all(self.segment_header())
         except OSError as exc:
             self._fail(f"cannot write the log file {rel} of the run: {exc.strerror or exc}", path)
             return
@@ -310,6 +276,21 @@ class HostLogWriter:
             outside = os.path.isabs(published) and not published.startswith(str(self._run_dir) + "/")
             shown = published if outside else rel
             self._on_note(f"log {shown} -> {self._run_dir.parent.name}/{self._run_dir.name}/{rel}")
+
+    def segment_header(self, start_unix_ns: int | None = None, start_mono_ns: int | None = None) -> bytes:
+        """The header of a segment of the channel's current layout, starting now (or at the given
+        clocks): rt_core's composer with what the loop's writer gives it, the program name, pid and
+        cycle frequency from the loop's info block (the program's bytes as they are there) and
+        the run's identity (what the loop's environment says: loop_env)."""
+        info = self._ch.shm.info
+        return logformat.segment_header(
+            self._ffi.addressof(self._ch.shm, self._meta_field), int(self._ring().slot_size),
+            program=self._ffi.string(info.program, self._lib.XRF_NAME_MAX), pid=int(info.pid),
+            cycle_freq=int(info.cycle_freq),
+            start_unix_ns=time.time_ns() if start_unix_ns is None else start_unix_ns,
+            start_mono_ns=time.monotonic_ns() if start_mono_ns is None else start_mono_ns,
+            project=self._identity.get("project", ""), build=self._identity.get("build", ""),
+            run=self._identity.get("run", ""))
 
     def _write_all(self, data: Any) -> None:
         view = memoryview(data)

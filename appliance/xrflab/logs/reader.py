@@ -19,8 +19,9 @@ from typing import Any, Iterator
 
 import numpy as np
 
-MAGIC = b"XRFLOG1\n"
-FORMAT_VERSION = 1
+# The format's magic, prefix layout and type table: rt_core's logformat.h, through cffi.
+from .logformat import ALIGN, FORMAT_VERSION, JSON_LEN_OFFSET, MAGIC, PREFIX_SIZE, STRIDE_OFFSET, VAR_TYPES
+
 # seq, cycle, t_ns: the 24-byte record header every xrflog record starts with.
 RECORD_HEADER = (("seq", "<u8"), ("cycle", "<u8"), ("t_ns", "<i8"))
 RECORD_HEADER_SIZE = 24
@@ -36,25 +37,6 @@ MAX_SEQ_JUMP = 1 << 40
 # Resynchronising after damage scans byte offsets in windows of this many bytes, so its cost
 # is proportional to the damage, not to the rest of the file.
 RESYNC_WINDOW = 1 << 20
-
-
-@dataclass(frozen=True)
-class VarType:
-    code: int
-    name: str
-    dtype: np.dtype
-
-
-# XRF2's codes. char is one raw byte (`S1`): C's char is signed on x86 and unsigned on the Pi's
-# ARM, so the byte is kept as it is; the converters write it as its unsigned value 0..255.
-VAR_TYPES: dict[int, VarType] = {
-    1: VarType(1, "bool", np.dtype("?")),
-    2: VarType(2, "char", np.dtype("S1")),
-    3: VarType(3, "int", np.dtype("<i4")),
-    4: VarType(4, "float", np.dtype("<f4")),
-    5: VarType(5, "double", np.dtype("<f8")),
-    6: VarType(6, "long int", np.dtype("<i8")),
-}
 
 
 class LogFormatError(ValueError):
@@ -275,13 +257,14 @@ class _Mapped:
 
 def _parse_segment_header(path: Path, m: _Mapped, pos: int) -> tuple[dict[str, Any], tuple[Variable, ...], int, int]:
     """(header, variables, stride, data offset) of the segment whose magic is at `pos`."""
-    if pos + 16 > m.size:
+    if pos + PREFIX_SIZE > m.size:
         raise _Damaged(f"segment header cut short ({m.size - pos} bytes)")
-    jlen, stride = np.frombuffer(m.buf, dtype="<u4", count=2, offset=pos + 8).tolist()
-    if jlen == 0 or jlen > MAX_HEADER_BYTES or pos + 16 + jlen > m.size:
+    jlen = int(np.frombuffer(m.buf, dtype="<u4", count=1, offset=pos + JSON_LEN_OFFSET)[0])
+    stride = int(np.frombuffer(m.buf, dtype="<u4", count=1, offset=pos + STRIDE_OFFSET)[0])
+    if jlen == 0 or jlen > MAX_HEADER_BYTES or pos + PREFIX_SIZE + jlen > m.size:
         raise _Damaged(f"implausible JSON header length {jlen}")
     try:
-        header = json.loads(bytes(m.buf[pos + 16:pos + 16 + jlen]).decode("utf-8"))
+        header = json.loads(bytes(m.buf[pos + PREFIX_SIZE:pos + PREFIX_SIZE + jlen]).decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise _Damaged(f"JSON header does not parse ({exc})") from None
     if not isinstance(header, dict) or header.get("format") != "xrflog":
@@ -304,7 +287,7 @@ def _parse_segment_header(path: Path, m: _Mapped, pos: int) -> tuple[dict[str, A
     if end > record_size or RECORD_HEADER_SIZE + record_size > stride:
         raise LogFormatError(f"{path}: segment at offset {pos}: variables need {end} bytes, record_size is "
                              f"{record_size}, stride {stride}: inconsistent header")
-    data = pos + (16 + jlen + 7) // 8 * 8  # align8 counts from the segment's start
+    data = pos + (PREFIX_SIZE + jlen + ALIGN - 1) // ALIGN * ALIGN  # counted from the segment's start
     return header, variables, stride, data
 
 

@@ -32,6 +32,7 @@ from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import FileResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
 
+from ..logs.logformat import MAGIC
 from ..logs.runfolder import RunPathError, fd_path, open_in, walk_files
 from . import ownership
 from .auth import Perm, requires
@@ -63,7 +64,7 @@ def _is_log(root: Path, rel: str) -> bool:
             head = f.read(64 * 1024)
     except (OSError, RunPathError):
         return False
-    if head[:8] == b"XRFLOG1\n":
+    if head.startswith(MAGIC):
         return True
     if path.suffix != ".bin":
         return False

@@ -108,14 +108,6 @@ extern "C" {
 #define XRF_LOG_VARS_MAX 100
 #define XRF_TIMING_SLOTS 16384 /* power of two: 16 s of cycles at 1 kHz, 1.6 s at 10 kHz */
 
-/* Log variable types (XRF2 codes). */
-#define XRF_LOG_BOOL 1
-#define XRF_LOG_CHAR 2
-#define XRF_LOG_INT 3
-#define XRF_LOG_FLOAT 4
-#define XRF_LOG_DOUBLE 5
-#define XRF_LOG_LONG_INT 6
-
 /* Log writer (xrf_log_meta.writer): who drains the log ring into the file. */
 #define XRF_LOG_WRITER_PROCESS 0 /* an in-band thread of the loop process */
 #define XRF_LOG_WRITER_HOST 1    /* the appliance (set XRF_LOG_WRITER=host) */
@@ -250,7 +242,7 @@ struct xrf_monitor_line {
 
 struct xrf_log_var {
     char name[XRF_NAME_MAX];
-    int32_t type;   /* XRF_LOG_* */
+    int32_t type;   /* XRF_LOG_* (xrf/logformat.h: the codes and the file format) */
     int32_t offset; /* byte offset in the packed record */
 };
 

@@ -15,6 +15,7 @@
 #include "xrf/backend.h"
 #include "xrf/channels.h"
 #include "xrf/ico.h"
+#include "xrf/logformat.h"
 
 namespace xrf {
 
@@ -23,6 +24,7 @@ struct LogSink {
     int fd = -1;
     uint64_t generation = 0;
     bool reported = false; // a write failure was reported once
+    char header[XRF_LOGFILE_HEADER_MAX]; // a segment header is formatted here (no allocation)
 };
 
 // Priority the loop thread gets when neither XRF_PRIO nor the student's main chose one.

@@ -9,6 +9,7 @@
 
 #include "XenoFileHandler.hpp"
 #include "debug_settings.h"
+#include "xrf/logformat.h"
 
 #ifndef MSEC
 #define MSEC 1000000L
@@ -17,9 +18,23 @@
 #define SEC 1000000000L
 #endif
 
-// XRF2's spelling and the course guide's; both name the same codes.
-enum VariableTypes { boolean = 1, character, integer, float_, double_, long_int };
-enum VariableTypeIds { id_bool = 1, id_char, id_int, id_float, id_double, id_long_int };
+// XRF2's spelling and the course guide's; both name the codes of the log file format.
+enum VariableTypes {
+    boolean = XRF_LOG_BOOL,
+    character = XRF_LOG_CHAR,
+    integer = XRF_LOG_INT,
+    float_ = XRF_LOG_FLOAT,
+    double_ = XRF_LOG_DOUBLE,
+    long_int = XRF_LOG_LONG_INT
+};
+enum VariableTypeIds {
+    id_bool = XRF_LOG_BOOL,
+    id_char = XRF_LOG_CHAR,
+    id_int = XRF_LOG_INT,
+    id_float = XRF_LOG_FLOAT,
+    id_double = XRF_LOG_DOUBLE,
+    id_long_int = XRF_LOG_LONG_INT
+};
 
 // XRF2's description of a logged variable and of the whole record (its logger kept one); part of
 // the header's surface, so student code naming them compiles.
