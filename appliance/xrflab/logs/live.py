@@ -732,8 +732,7 @@ def finish(rl: RunLogging) -> WriterStats:
     return stats
 
 
-__all__ = ["HostLogWriter", "LiveProxy", "LiveRerun", "RerunViewer", "RunLogging", "WriterStats", "finish", "segment_header",
-           "start"]
+__all__ = ["HostLogWriter", "LiveProxy", "LiveRerun", "RerunViewer", "RunLogging", "WriterStats", "finish", "start"]
 
 
 # ---- supervisor hooks (appliance/xrflab/server/supervisor.py calls these) -------------------
