@@ -106,6 +106,23 @@ def _run(cmd: list[str], log: Log, cwd: Optional[Path] = None, what: str = "") -
     return lines
 
 
+def _drop_foreign_cache(build_dir: Path, log: Log) -> None:
+    """A CMakeCache.txt made in another folder (a build/ committed with the project, a project
+    copied or moved after a build) stops CMake ("CMakeCache.txt directory ... is different");
+    its configuration is forgotten and the folder configured afresh."""
+    cache = build_dir / "CMakeCache.txt"
+    try:
+        text = cache.read_text(errors="replace")
+    except OSError:
+        return
+    m = re.search(r"^CMAKE_CACHEFILE_DIR:INTERNAL=(.*)$", text, re.MULTILINE)
+    if m is None or Path(m.group(1).strip()).resolve() == build_dir.resolve():
+        return
+    log(f"{build_dir}: CMakeCache.txt was made in {m.group(1).strip()}; configuring afresh")
+    cache.unlink()
+    shutil.rmtree(build_dir / "CMakeFiles", ignore_errors=True)
+
+
 def _generator_args(build_dir: Path) -> list[str]:
     # A build folder keeps the generator it was configured with; only choose for a new one.
     if (build_dir / "CMakeCache.txt").exists():
@@ -287,100 +304,193 @@ class _CMakeRead:
     executables: dict[str, list[Path]]
     include_dirs: list[Path]
     complete: bool
+    framework_dirs: list[Path] = field(default_factory=list)
 
 
 def _read_xrf2_cmake(project: Path) -> _CMakeRead:
-    text = (project / "CMakeLists.txt").read_text(errors="replace")
     root = str(project)
-    variables: dict[str, list[str]] = {v: [root] for v in (
-        "CMAKE_SOURCE_DIR", "CMAKE_CURRENT_SOURCE_DIR", "PROJECT_SOURCE_DIR", "CMAKE_CURRENT_LIST_DIR")}
     unknown: set[str] = set()
-
-    def expand(arg: str, quoted: bool) -> list[str]:
-        def sub(m: re.Match) -> str:
-            if m.group(1) not in variables:
-                unknown.add(m.group(1))
-                return ""
-            return ";".join(variables[m.group(1)])
-        value = _CMAKE_VAR.sub(sub, arg)
-        return [value] if quoted else [v for v in value.split(";") if v]
-
-    def paths(values: list[str]) -> list[Path]:
-        out = []
-        for v in values:
-            p = Path(v)
-            out.append((p if p.is_absolute() else project / p).resolve())
-        return out
-
     executables: dict[str, list[Path]] = {}
     include_dirs: list[Path] = []
+    framework_dirs: list[Path] = []
     incomplete = False
     keywords = {"PRIVATE", "PUBLIC", "INTERFACE", "BEFORE", "AFTER", "SYSTEM", "WIN32", "MACOSX_BUNDLE",
                 "EXCLUDE_FROM_ALL", "STATIC", "SHARED", "OBJECT", "MODULE"}
-    for name, raw in _cmake_commands(text):
-        values: list[str] = []
-        before = set(unknown)
-        for arg, quoted in raw:
-            values.extend(expand(arg, quoted))
-        new_unknown = unknown - before
-        if name == "project" and values:
-            variables["PROJECT_NAME"] = [values[0]]
-        elif name == "set" and values:
-            rest = values[1:]
-            if "CACHE" in rest:
-                rest = rest[:rest.index("CACHE")]
-            variables[values[0]] = [v for v in rest if v != "PARENT_SCOPE"]
-        elif name == "list" and len(values) >= 2:
-            op, var, items = values[0].upper(), values[1], values[2:]
-            cur = variables.setdefault(var, [])
-            if op == "APPEND":
-                cur.extend(items)
-            elif op == "REMOVE_ITEM":
-                variables[var] = [c for c in cur if c not in items]
-            elif op == "FILTER" and len(items) >= 3 and items[1].upper() == "REGEX":
-                try:
-                    rx = re.compile(items[2])
-                except re.error:
+    seen: set[Path] = set()
+
+    def read(here: Path, variables: dict[str, list[str]], depth: int) -> None:
+        """One CMakeLists.txt; ``here`` is its folder, which relative paths in it are relative to.
+        add_subdirectory() reads the sub-folder's file with a copy of the variables (CMake gives
+        a sub-directory its own scope)."""
+        nonlocal incomplete
+        cml = here / "CMakeLists.txt"
+        if depth > 8 or cml.resolve() in seen or not cml.is_file():
+            return
+        seen.add(cml.resolve())
+        text = cml.read_text(errors="replace")
+        variables = dict(variables)
+        variables["CMAKE_CURRENT_SOURCE_DIR"] = variables["CMAKE_CURRENT_LIST_DIR"] = [str(here)]
+
+        def expand(arg: str, quoted: bool) -> list[str]:
+            def sub(m: re.Match) -> str:
+                if m.group(1) not in variables:
+                    unknown.add(m.group(1))
+                    return ""
+                return ";".join(variables[m.group(1)])
+            value = _CMAKE_VAR.sub(sub, arg)
+            return [value] if quoted else [v for v in value.split(";") if v]
+
+        def paths(values: list[str]) -> list[Path]:
+            out = []
+            for v in values:
+                p = Path(v)
+                out.append((p if p.is_absolute() else here / p).resolve())
+            return out
+
+        for name, raw in _cmake_commands(text):
+            values: list[str] = []
+            before = set(unknown)
+            for arg, quoted in raw:
+                values.extend(expand(arg, quoted))
+            new_unknown = unknown - before
+            # Where the project says XRF2's framework is (set(locationFramework "../XRF2/XenoRosFramework/")):
+            # XRF2 kept the project's messages there, in Common/XRF2_msgs/msg.
+            for v in values:
+                m = re.match(r"(.*?XenoRosFramework)(?:/|$)", v.replace("\\", "/"))
+                if m:
+                    d = Path(m.group(1))
+                    d = (d if d.is_absolute() else here / d).resolve()
+                    if d not in framework_dirs:
+                        framework_dirs.append(d)
+            if name == "project" and values:
+                variables["PROJECT_NAME"] = [values[0]]
+            elif name == "set" and values:
+                rest = values[1:]
+                if "CACHE" in rest:
+                    rest = rest[:rest.index("CACHE")]
+                variables[values[0]] = [v for v in rest if v != "PARENT_SCOPE"]
+            elif name == "list" and len(values) >= 2:
+                op, var, items = values[0].upper(), values[1], values[2:]
+                cur = variables.setdefault(var, [])
+                if op == "APPEND":
+                    cur.extend(items)
+                elif op == "REMOVE_ITEM":
+                    variables[var] = [c for c in cur if c not in items]
+                elif op == "FILTER" and len(items) >= 3 and items[1].upper() == "REGEX":
+                    try:
+                        rx = re.compile(items[2])
+                    except re.error:
+                        continue
+                    keep = items[0].upper() == "INCLUDE"
+                    variables[var] = [c for c in cur if bool(rx.search(c)) == keep]
+            elif name == "file" and len(values) >= 2 and values[0].upper() in ("GLOB", "GLOB_RECURSE"):
+                recurse = values[0].upper() == "GLOB_RECURSE"
+                var, pats, found = values[1], values[2:], []
+                relative = None
+                while pats and pats[0].upper() in ("CONFIGURE_DEPENDS", "LIST_DIRECTORIES", "RELATIVE",
+                                                   "FOLLOW_SYMLINKS"):
+                    word = pats.pop(0).upper()
+                    if word in ("LIST_DIRECTORIES", "RELATIVE") and pats:
+                        arg = pats.pop(0)
+                        relative = arg if word == "RELATIVE" else relative
+                for pat in pats:
+                    base = Path(pat) if Path(pat).is_absolute() else here / pat
+                    parent, pattern = base.parent, base.name
+                    if parent.is_dir():
+                        it = parent.rglob(pattern) if recurse else parent.glob(pattern)
+                        found.extend(str(f) for f in sorted(it) if f.is_file())
+                variables[var] = found if relative is None else [os.path.relpath(f, relative) for f in found]
+            elif name == "aux_source_directory" and len(values) == 2:
+                d = paths([values[0]])[0]
+                variables[values[1]] = [str(f) for f in sorted(d.glob("*")) if f.suffix in _CXX_SUFFIXES] if d.is_dir() else []
+            elif name in ("add_executable", "add_library") and values:
+                if any(v in ("IMPORTED", "ALIAS", "INTERFACE") for v in values[1:2]):
                     continue
-                keep = items[0].upper() == "INCLUDE"
-                variables[var] = [c for c in cur if bool(rx.search(c)) == keep]
-        elif name == "file" and len(values) >= 2 and values[0].upper() in ("GLOB", "GLOB_RECURSE"):
-            recurse = values[0].upper() == "GLOB_RECURSE"
-            var, pats, found = values[1], values[2:], []
-            relative = None
-            while pats and pats[0].upper() in ("CONFIGURE_DEPENDS", "LIST_DIRECTORIES", "RELATIVE",
-                                               "FOLLOW_SYMLINKS"):
-                word = pats.pop(0).upper()
-                if word in ("LIST_DIRECTORIES", "RELATIVE") and pats:
-                    arg = pats.pop(0)
-                    relative = arg if word == "RELATIVE" else relative
-            for pat in pats:
-                base = Path(pat) if Path(pat).is_absolute() else project / pat
-                parent, pattern = base.parent, base.name
-                if parent.is_dir():
-                    it = parent.rglob(pattern) if recurse else parent.glob(pattern)
-                    found.extend(str(f) for f in sorted(it) if f.is_file())
-            variables[var] = found if relative is None else [os.path.relpath(f, relative) for f in found]
-        elif name == "aux_source_directory" and len(values) == 2:
-            d = paths([values[0]])[0]
-            variables[values[1]] = [str(f) for f in sorted(d.glob("*")) if f.suffix in _CXX_SUFFIXES] if d.is_dir() else []
-        elif name in ("add_executable", "add_library") and values:
-            if any(v in ("IMPORTED", "ALIAS", "INTERFACE") for v in values[1:2]):
-                continue
-            if new_unknown:
-                incomplete = True
-            if name == "add_executable":
+                if new_unknown:
+                    incomplete = True
+                if name == "add_executable":
+                    executables.setdefault(values[0], []).extend(paths([v for v in values[1:] if v not in keywords]))
+                else:  # a library of the project's own files is part of what gets linked
+                    executables.setdefault("", []).extend(paths([v for v in values[1:] if v not in keywords]))
+            elif name == "target_sources" and values:
+                if new_unknown:
+                    incomplete = True
                 executables.setdefault(values[0], []).extend(paths([v for v in values[1:] if v not in keywords]))
-            else:  # a library of the project's own files is part of what gets linked
-                executables.setdefault("", []).extend(paths([v for v in values[1:] if v not in keywords]))
-        elif name == "target_sources" and values:
-            if new_unknown:
-                incomplete = True
-            executables.setdefault(values[0], []).extend(paths([v for v in values[1:] if v not in keywords]))
-        elif name in ("target_include_directories", "include_directories"):
-            vals = values[1:] if name == "target_include_directories" else values
-            include_dirs.extend(d for d in paths([v for v in vals if v not in keywords]) if d.is_dir())
-    return _CMakeRead(executables, include_dirs, complete=not incomplete)
+            elif name in ("target_include_directories", "include_directories"):
+                vals = values[1:] if name == "target_include_directories" else values
+                include_dirs.extend(d for d in paths([v for v in vals if v not in keywords]) if d.is_dir())
+            elif name == "add_subdirectory" and values:
+                sub = Path(values[0])
+                sub = (sub if sub.is_absolute() else here / sub).resolve()
+                if _inside(sub, project.resolve()):
+                    read(sub, variables, depth + 1)
+
+    read(project, {v: [root] for v in ("CMAKE_SOURCE_DIR", "PROJECT_SOURCE_DIR")}, 0)
+    return _CMakeRead(executables, include_dirs, complete=not incomplete, framework_dirs=framework_dirs)
+
+
+_MSG_FILES = ("Ros2Xeno.msg", "Xeno2Ros.msg")
+
+
+def _has_messages(d: Path) -> bool:
+    return all((d / f).is_file() for f in _MSG_FILES)
+
+
+def _xrf2_msgs_package(d: Path) -> bool:
+    """``d`` is a ROS 2 package named xrf2_msgs (XRF2's Common/XRF2_msgs, or a student's copy)."""
+    try:
+        text = (d / "package.xml").read_text(errors="replace")
+    except OSError:
+        return False
+    return re.search(r"<name>\s*xrf2_msgs\s*</name>", text) is not None
+
+
+def find_xrf2_messages(project: Path, framework_dirs: Iterable[Path] = ()) -> tuple[Optional[Path], list[Path]]:
+    """Where an XRF2 project's Ros2Xeno.msg and Xeno2Ros.msg are, and the places looked at.
+
+    An XRF2 controller package usually has no msg/ of its own: the messages are part of the
+    xrf2_msgs package that XRF2 keeps in ``XenoRosFramework/Common/XRF2_msgs`` (the framework
+    folder the project's CMakeLists.txt names, ``../XRF2`` or ``../ros2-xenomai4-framework``),
+    built into the same ROS 2 workspace. So, in this order: the project's own msg/; the
+    framework folders its CMakeLists.txt names; an xrf2_msgs package or an XRF2 framework copy
+    next to the project or one or two levels up (the workspace's src/)."""
+    project = project.resolve()
+    looked: list[Path] = []
+
+    def consider(d: Path) -> Optional[Path]:
+        d = d.resolve()
+        if d in looked:
+            return None
+        looked.append(d)
+        return d if _has_messages(d) else None
+
+    candidates: list[Path] = [project / "msg"]
+    candidates += [fw / "Common" / "XRF2_msgs" / "msg" for fw in framework_dirs]
+    ancestors = [project.parent, project.parent.parent, project.parent.parent.parent]
+    for anc in ancestors:
+        if not anc.is_dir():
+            continue
+        try:
+            children = sorted(c for c in anc.iterdir() if c.is_dir() and c.name not in _SKIP_DIRS
+                              and not c.name.startswith("."))
+        except OSError:
+            continue
+        for c in children:
+            if c == project:
+                continue
+            if _xrf2_msgs_package(c):
+                candidates.append(c / "msg")
+            fw = c / "XenoRosFramework"
+            if fw.is_dir():
+                candidates.append(fw / "Common" / "XRF2_msgs" / "msg")
+            for sub in (c / "Common" / "XRF2_msgs",):  # c is XenoRosFramework itself
+                if sub.is_dir():
+                    candidates.append(sub / "msg")
+    for d in candidates:
+        found = consider(d)
+        if found is not None:
+            return found, looked
+    return None, looked
 
 
 def _xrf2_default_sources(project: Path) -> list[Path]:
@@ -520,13 +630,75 @@ def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
                 and not Path(rel).parts[0] == "controller" and any(_inside(path.resolve(), d) for d in include_dirs):
             taken.append(rel)
 
-    mdir = Path(msg_dir).resolve() if msg_dir else project / "msg"
-    for f in ("Ros2Xeno.msg", "Xeno2Ros.msg"):
+    if msg_dir:
+        mdir = Path(msg_dir).resolve()
+    else:
+        found, looked = find_xrf2_messages(project, read.framework_dirs)
+        if found is None:
+            raise BuildError(
+                "Ros2Xeno.msg and Xeno2Ros.msg not found. XRF2 kept them in its xrf2_msgs package "
+                "(XenoRosFramework/Common/XRF2_msgs/msg); upload the project together with the XRF2 "
+                "folder it names, or copy the two files into the project's msg/ folder. Looked in: "
+                + ", ".join(_rel(d, project) for d in looked))
+        mdir = found
+    for f in _MSG_FILES:
         if (mdir / f).exists():
             taken.append(_rel(mdir / f, project))
     name = re.sub(r"[^A-Za-z0-9_.+-]", "_", exe_name) if exe_name and "$" not in exe_name else ""
     return _Xrf2Plan(name or _xrf2_executable_name(cml_text, project), sources, include_dirs, mdir,
                      twenty_sim, sorted(set(taken)), dict(sorted(left_out.items())))
+
+
+_XRF2_CLASS_RE = re.compile(r"\b(XenoFrtRosIco|XenoFrt20Sim|XenoFrtLoop)\b")
+
+
+def _is_framework_copy(d: Path) -> bool:
+    """XRF2's own folder (XRF2/, ros2-xenomai4-framework/: it holds XenoRosFramework/ and the
+    Template/ projects that come with it), or XenoRosFramework itself."""
+    return d.name == "XenoRosFramework" or (d / "XenoRosFramework").is_dir()
+
+
+def _uses_xrf2(package: Path) -> bool:
+    try:
+        cml = (package / "CMakeLists.txt").read_text(errors="replace")
+    except OSError:
+        return False
+    if "XenoRosFramework" in _strip_cmake_comments(cml):
+        return True
+    for f in _walk(package):
+        if f.suffix.lower() in _CXX_SUFFIXES + (".h", ".hpp") and f.stem not in XRF2_FRAMEWORK_STEMS:
+            try:
+                if _XRF2_CLASS_RE.search(f.read_text(errors="replace")):
+                    return True
+            except OSError:
+                continue
+    return False
+
+
+def find_xrf2_controllers(folder: Path, depth: int = 4) -> list[Path]:
+    """The XRF2 controller packages in a ROS 2 workspace (or its src/): the folders with a
+    CMakeLists.txt that compile XRF2's framework or whose code derives from its loop classes.
+    Other packages (a vision node, a message package, the simulator) and the XRF2 framework copy
+    with its Template/ folders are not controllers."""
+    found: list[Path] = []
+
+    def visit(d: Path, level: int) -> None:
+        if level > depth or _is_framework_copy(d):
+            return
+        if level > 0 and (d / "CMakeLists.txt").is_file():
+            if _uses_xrf2(d):
+                found.append(d)
+            return  # a package's sub-folders are its own business
+        try:
+            subs = sorted(c for c in d.iterdir() if c.is_dir() and c.name not in _SKIP_DIRS
+                          and not c.name.startswith("."))
+        except OSError:
+            return
+        for c in subs:
+            visit(c, level + 1)
+
+    visit(folder, 0)
+    return found
 
 
 def _cmake_quote(p: Path | str) -> str:
@@ -647,6 +819,17 @@ def build_project(project_dir: Path | str, build_dir: Path | str | None = None, 
     if not project.is_dir():
         raise BuildError(f"{project}: project folder not found")
     build = Path(build_dir).resolve() if build_dir else project / "build"
+    if not (project / "CMakeLists.txt").exists():
+        # A whole ROS 2 workspace as XRF2 students keep it (src/XRF2, src/<controller>, other
+        # nodes): the controller is the one package that uses XRF2's loop.
+        controllers = find_xrf2_controllers(project)
+        if len(controllers) > 1:
+            raise BuildError(f"{project}: no CMakeLists.txt here, and several XRF2 controller packages below it ("
+                             + ", ".join(_rel(c, project) for c in controllers)
+                             + "); build the folder of the one you mean")
+        if controllers:
+            log(f"{project}: a ROS 2 workspace; building its XRF2 controller package {_rel(controllers[0], project)}")
+            project = controllers[0]
     layout = detect_layout(project)
     prefix = ensure_rt_core(log)
 
@@ -665,6 +848,7 @@ def build_project(project_dir: Path | str, build_dir: Path | str | None = None, 
         source = project
         binary = build
     binary.mkdir(parents=True, exist_ok=True)
+    _drop_foreign_cache(binary, log)
     _write_file_api_query(binary)
 
     cmd = ["cmake", "-S", str(source), "-B", str(binary), *_generator_args(binary),
