@@ -277,7 +277,15 @@
     q("proj-file").addEventListener("change", (e) => { if (e.target.files[0]) uploadFile(e.target.files[0], null).catch(() => {}); e.target.value = ""; });
     q("proj-update-file").addEventListener("change", (e) => { if (e.target.files[0]) uploadFile(e.target.files[0], P.current).catch(() => {}); e.target.value = ""; });
     q("proj-new").addEventListener("click", fromTemplate);
-    q("proj-template").addEventListener("change", () => { q("proj-tpl-download").href = `/api/project-templates/${q("proj-template").value}/download`; });
+    q("proj-template").addEventListener("change", () => {
+      const v = q("proj-template").value;
+      q("proj-tpl-download").href = `/api/project-templates/${v}/download`;
+      q("proj-tpl-download").parentElement.classList.toggle("hidden", v.startsWith("assignment:")); // no zip of those
+    });
+    // assignments the lab room published (docs/educators/room.md): a fresh copy from here
+    xrf.api("GET", "/api/project-templates").then((ts) => {
+      for (const t of ts) if (t.assignment) q("proj-template").append(el("option", { value: t.name, text: "assignment: " + t.title }));
+    }).catch(() => {});
     q("proj-build").addEventListener("click", build);
     q("proj-delete").addEventListener("click", async () => {
       if (!confirm("Delete this project and its builds?")) return;
