@@ -1,6 +1,7 @@
 // XRF Lab dashboard: one WebSocket to the appliance, plain DOM, uPlot for the plots.
 // Everything the page shows comes from WebSocket messages (state, run, telemetry, timing,
-// monitor, alarm); REST is used only for the build list, starting/ending runs and the run list.
+// monitor, alarm); REST is used only for the build list, starting/ending runs, the run list and
+// the state machine to draw (GET /api/state-machine).
 "use strict";
 
 const WINDOW_S = 10;         // seconds of history in the live plots
@@ -46,24 +47,22 @@ const NODES = {
   QUIT: [70, 200], ERROR: [250, 200], STOPPED: [430, 200], STOPPING: [610, 200], PAUSED: [790, 200],
 };
 const NODE_W = 124, NODE_H = 36;
+// The transitions are not written here: the appliance serves them (GET /api/state-machine),
+// read out of rt_core's C command table, so the drawing cannot disagree with the loop. Only
+// the layout is the page's: where each state sits and the curve of an edge that would cross a
+// node if drawn straight ("from>to": control point).
+const CURVES = { "RUN>INITIALISING": [430, -15], "PAUSED>INITIALISING": [610, 125], "STOPPED>QUIT": [250, 275] };
+
 // [from, to, command or "" for a hook completing, optional curve control point]
-const EDGES = [
-  ["IDLE", "INITIALISING", "initialise"],
-  ["INITIALISING", "INITIALISED", ""],
-  ["INITIALISED", "RUN", "start"],
-  ["RUN", "PAUSING", "pause"],
-  ["PAUSING", "PAUSED", ""],
-  ["PAUSED", "RUN", "start"],
-  ["PAUSED", "STOPPING", "stop"],
-  ["RUN", "STOPPING", "stop"],
-  ["STOPPING", "STOPPED", ""],
-  ["STOPPED", "INITIALISING", "reset"],
-  ["ERROR", "INITIALISING", "reset"],
-  ["RUN", "INITIALISING", "reset", [430, -15]],
-  ["PAUSED", "INITIALISING", "reset", [610, 125]],
-  ["ERROR", "QUIT", "quit"],
-  ["STOPPED", "QUIT", "quit", [250, 275]],
-];
+function edgesOf(machine) {
+  const edges = machine.transitions.map((t) => [t.from, t.to, t.cmd]);
+  // A hook completing along a command's edge (INITIALISED -> RUN, RUN -> STOPPING) is drawn
+  // once, as that command's edge.
+  for (const c of machine.completions) {
+    if (!edges.some(([from, to]) => from === c.from && to === c.to)) edges.push([c.from, c.to, ""]);
+  }
+  return edges.map(([from, to, cmd]) => [from, to, cmd, CURVES[from + ">" + to]]);
+}
 const SVGNS = "http://www.w3.org/2000/svg";
 
 function svgEl(tag, attrs, parent) {
@@ -82,14 +81,18 @@ function border([cx, cy], [tx, ty]) {
   return [cx + dx * s, cy + dy * s];
 }
 
-function drawStateMachine() {
+function drawStateMachine(machine) {
   const svg = $("state-machine");
+  svg.textContent = "";
+  // A state this page has no place for still shows (below the others) rather than vanishing.
+  const spare = machine.states.filter((s) => !NODES[s.name]);
+  spare.forEach((s, i) => { NODES[s.name] = [70 + 180 * (i % 5), 250 + 60 * Math.floor(i / 5)]; });
   const defs = svgEl("defs", {}, svg);
   for (const [id, color] of [["arrow", "#9ca3af"], ["arrow-on", "#1f6feb"]]) {
     const m = svgEl("marker", { id, viewBox: "0 0 10 10", refX: 9, refY: 5, markerWidth: 7, markerHeight: 7, orient: "auto-start-reverse" }, defs);
     svgEl("path", { d: "M0,0 L10,5 L0,10 z", fill: color }, m);
   }
-  for (const [from, to, cmd, ctrl] of EDGES) {
+  for (const [from, to, cmd, ctrl] of edgesOf(machine)) {
     const g = svgEl("g", { class: "edge" + (cmd ? "" : " auto"), "data-from": from, "data-cmd": cmd }, svg);
     const a = NODES[from], b = NODES[to];
     const [x1, y1] = border(a, ctrl || b), [x2, y2] = border(b, ctrl || a);
@@ -99,7 +102,8 @@ function drawStateMachine() {
     const t = svgEl("text", { x: mid[0] + (y1 === y2 ? 0 : 8), y: mid[1] - 5 }, g);
     t.textContent = cmd || "done";
   }
-  for (const [name, [x, y]] of Object.entries(NODES)) {
+  for (const { name } of machine.states) {
+    const [x, y] = NODES[name];
     const g = svgEl("g", { class: "node", id: "node-" + name }, svg);
     svgEl("rect", { x: x - NODE_W / 2, y: y - NODE_H / 2, width: NODE_W, height: NODE_H, rx: 8 }, g);
     svgEl("text", { x, y }, g).textContent = name;
@@ -692,6 +696,44 @@ function route() {
 }
 
 // ---- the WebSocket --------------------------------------------------------------------------
+// What the Bench page does with each kind of message /ws sends. The kinds and their fields are
+// defined once, on the appliance (xrflab/server/messages.py, published at GET /api/ws-schema);
+// this table has an entry for every server kind there (tests/ui/test_state_machine_ui.py checks
+// it against the schema). Pages add their own listeners with xrf.on(kind, fn).
+const HANDLERS = {
+  state: (m) => applyState(m),
+  run: (m) => applyRun(m),
+  telemetry: (m) => applyTelemetry(m),
+  timing: (m) => applyTiming(m),
+  monitor: (m) => appendMonitor(m.lines, m.source),
+  alarm: (m) => {
+    // A started run missing a layer: the banner (the run message says the same). A refused
+    // run (its message says why it was not started): the alarm bar.
+    if (m.kind === "confinement" && m.message && m.message.startsWith("the controller runs WITHOUT")) showConfinement(m.run_id, m.missing);
+    else if (m.kind === "confinement" && !String(m.message).startsWith("the controller was not started")) {
+      showAlarm({ ...m, message: "the controller was not started: " + m.message });  // as POST /api/runs says
+    } else showAlarm(m);
+  },
+  build: (m) => { if (m.line) appendMonitor([{ text: m.line }], "stdout"); else loadBuilds().catch(() => {}); },
+  ack: (m) => {
+    if (m.accepted === false) applyState({ ...xrf.state });
+    if (m.setpoint) xrf.appliedSetpoint = { ...m.setpoint };
+  },
+  error: (m) => {
+    appendMonitor([{ text: "! " + m.error }], "error");
+    if (m.request === "setpoint") {  // refused (no bench, a bad value): back to what is applied
+      showSetpoints(xrf.appliedSetpoint);
+      if (xrf.notice) xrf.notice("Setpoint not applied: " + m.error, 6000);
+    }
+  },
+  // The bench lease (pages/lease.js, setpoint controls), the ROS 2 bridge (pages/ros.js) and the
+  // self-check (pages/selfcheck.js) are their pages' listeners; the Bench page needs nothing more.
+  lease: () => {},
+  ros: () => {},
+  selfcheck: () => {},
+  pong: () => {},
+};
+xrf.handlers = HANDLERS;
 
 function connect() {
   const ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws");
@@ -707,33 +749,9 @@ function connect() {
     for (const fn of (xrf.listeners[m.type] || []).concat(xrf.listeners["*"] || [])) {
       try { fn(m); } catch (e) { console.error(e); }
     }
-    switch (m.type) {
-      case "state": applyState(m); break;
-      case "run": applyRun(m); break;
-      case "telemetry": applyTelemetry(m); break;
-      case "timing": applyTiming(m); break;
-      case "monitor": appendMonitor(m.lines, m.source); break;
-      case "alarm":
-        // A started run missing a layer: the banner (the run message says the same). A refused
-        // run (its message says why it was not started): the alarm bar.
-        if (m.kind === "confinement" && m.message && m.message.startsWith("the controller runs WITHOUT")) showConfinement(m.run_id, m.missing);
-        else if (m.kind === "confinement" && !String(m.message).startsWith("the controller was not started")) {
-          showAlarm({ ...m, message: "the controller was not started: " + m.message });  // as POST /api/runs says
-        } else showAlarm(m);
-        break;
-      case "build": if (m.line) appendMonitor([{ text: m.line }], "stdout"); else loadBuilds().catch(() => {}); break;
-      case "ack":
-        if (m.accepted === false) applyState({ ...xrf.state });
-        if (m.setpoint) xrf.appliedSetpoint = { ...m.setpoint };
-        break;
-      case "error":
-        appendMonitor([{ text: "! " + m.error }], "error");
-        if (m.request === "setpoint") {  // refused (no bench, a bad value): back to what is applied
-          showSetpoints(xrf.appliedSetpoint);
-          if (xrf.notice) xrf.notice("Setpoint not applied: " + m.error, 6000);
-        }
-        break;
-    }
+    const handle = HANDLERS[m.type];
+    if (handle) handle(m);
+    else console.warn("message of a kind the dashboard does not know:", m.type);
   };
 }
 
@@ -793,8 +811,12 @@ function init() {
   renderNav();
   window.addEventListener("hashchange", route);
   route();
-  drawStateMachine();
   applyState(xrf.state);
+  xrf.machineReady = fetch("/api/state-machine").then((r) => r.json()).then((machine) => {
+    xrf.machine = machine;
+    drawStateMachine(machine);
+    applyState(xrf.state);  // the state may have come first: mark its node and edges now
+  });
   document.querySelectorAll("#commands button").forEach((b) => b.addEventListener("click", () => sendCommand(b.dataset.cmd)));
   $("btn-estop").addEventListener("click", emergencyStop);
   $("btn-start-run").addEventListener("click", startRun);

@@ -7,7 +7,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import math
 import struct
 from typing import Any, Literal
 
@@ -17,9 +16,10 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from .. import channels as chmod
 from .. import plants
-from . import audit, ownership
+from ..statemachine import StateMachine, state_machine
+from . import audit, messages, ownership
 from .auth import SAFE_COMMANDS, Perm, User, check, client_address, current_user, may, requires
-from .hub import TOPICS, Client
+from .hub import Client
 from .plant_field import PlantInfo, PlantName
 from .runs import END_REASONS
 from .supervisor import Supervisor, SupervisorError
@@ -133,6 +133,20 @@ async def get_status(request: Request) -> dict[str, Any]:
     run = sup.current
     return {"clients": sup.hub.clients, "published": sup.hub.published,
             "run_active": bool(run and run.alive), "run_id": run.row.id if run else None}
+
+
+@router.get("/state-machine", response_model=StateMachine, dependencies=[requires(Perm.WATCH)])
+async def get_state_machine() -> StateMachine:
+    """FullStateMachine as the loop runs it: read out of rt_core's C command table
+    (statemachine.py). The dashboard draws this; it has no copy of the transitions."""
+    return state_machine()
+
+
+@router.get("/ws-schema", dependencies=[requires(Perm.WATCH)])
+async def get_ws_schema() -> dict[str, Any]:
+    """JSON Schema of every WebSocket message of /ws, both directions (messages.py): what
+    /openapi.json is for the HTTP routes."""
+    return messages.ws_schema()
 
 
 @router.get("/builds", response_model=list[BuildInfo], dependencies=[requires(Perm.WATCH)])
@@ -275,6 +289,9 @@ WS_PERMS: dict[str, Perm] = {
     "subscribe": Perm.WATCH,
     "ping": Perm.WATCH,
 }
+# Each of them has its model in messages.py (the published schema), and nothing else does.
+if set(WS_PERMS) != set(messages.CLIENT_KINDS):
+    raise RuntimeError(f"api.WS_PERMS {sorted(WS_PERMS)} and messages.CLIENT {sorted(messages.CLIENT_KINDS)} differ")
 
 
 class WsDenied(Exception):
@@ -369,10 +386,11 @@ async def _handle(text: str, client: Client, sup: Supervisor) -> None:
         return
     try:
         user = _ws_authorize(client.ws, client, perm)
-        if kind == "command":
-            cmd = msg.get("cmd")
-            if isinstance(cmd, bool) or not isinstance(cmd, (str, int)):
-                raise ValueError("command needs 'cmd': a command name or number")
+        # The kind's model (messages.py) checks the shape; what depends on the run (a command's
+        # name, a setpoint's fields) is checked below, by what uses it.
+        incoming = messages.parse_incoming(kind, msg)
+        if isinstance(incoming, messages.CommandRequest):
+            cmd = incoming.cmd
             name = command_name(cmd)
             if name not in SAFE_COMMANDS:
                 user = _ws_authorize(client.ws, client, Perm.DRIVE)
@@ -382,31 +400,14 @@ async def _handle(text: str, client: Client, sup: Supervisor) -> None:
             _zero_setpoints_after_reset(sup, name, result.accepted)
             client.reply("ack", {"id": ref, "cmd": cmd, "ticket": result.ticket, "accepted": result.accepted,
                                  "state": result.state, "name": result.state_name, "reason": result.reason})
-        elif kind == "setpoint":
-            fields = msg.get("fields")
-            if not isinstance(fields, dict) or not fields:
-                raise ValueError("setpoint needs 'fields': an object of field name -> value")
-            for name, value in fields.items():
-                for v in value if isinstance(value, list) else [value]:
-                    if isinstance(v, bool):
-                        continue
-                    if not isinstance(v, (int, float)):
-                        raise ValueError(f"field {name}: {value!r} is not a number")
-                    if not math.isfinite(v):
-                        raise ValueError(f"field {name}: {v!r} is not a finite number")
-            merged = sup.setpoint(fields)
+        elif isinstance(incoming, messages.SetpointRequest):
+            merged = sup.setpoint(dict(incoming.fields))
             client.reply("ack", {"id": ref, "setpoint": merged})
-        elif kind == "subscribe":
-            topics = msg.get("topics")
-            if not isinstance(topics, list) or not all(isinstance(t, str) for t in topics):
-                raise ValueError("subscribe needs 'topics': a list of topic names")
-            unknown = sorted(set(topics) - TOPICS)
-            if unknown:
-                raise ValueError(f"unknown topic(s) {', '.join(unknown)}; topics: {', '.join(sorted(TOPICS))}")
-            client.topics = set(topics)
+        elif isinstance(incoming, messages.SubscribeRequest):
+            client.topics = set(incoming.topics)
             client.reply("ack", {"id": ref, "topics": sorted(client.topics)})
-        elif kind == "ping":
-            client.reply("pong", {"id": ref, "t": msg.get("t")})
+        elif isinstance(incoming, messages.PingRequest):
+            client.reply("pong", {"id": ref, "t": incoming.t})
         else:
             raise ValueError(f"unknown message type {kind!r}; types: {', '.join(WS_PERMS)}")
     except WsDenied as exc:
