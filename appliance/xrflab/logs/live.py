@@ -735,7 +735,8 @@ def finish(rl: RunLogging) -> WriterStats:
 __all__ = ["HostLogWriter", "LiveProxy", "LiveRerun", "RerunViewer", "RunLogging", "WriterStats", "finish", "start"]
 
 
-# ---- supervisor hooks (appliance/xrflab/server/supervisor.py calls these) -------------------
+# ---- the loop's environment (appliance/xrflab/server/supervisor.py) --------------------------
+# Starting and finishing a run's logging: server/run_logging.py, a run observer (lifecycle.py).
 
 
 def loop_env(run_id: int, build: str, log_timing: bool = False) -> dict[str, str]:
@@ -744,55 +745,3 @@ def loop_env(run_id: int, build: str, log_timing: bool = False) -> dict[str, str
     if log_timing:
         env["XRF_LOG_TIMING"] = "1"
     return env
-
-
-def start_for(sup: Any, run: Any) -> RunLogging | None:
-    """After the run's shared memory is open: host writer + live rerun for this run."""
-    ch = run.channels
-    if ch is None:
-        return None
-    row = run.row
-    hub, store = sup.hub, sup.store
-
-    def console(text: str) -> None:  # called from the writer thread
-        try:
-            loop.call_soon_threadsafe(hub.publish, "monitor", {"run_id": row.id, "source": "appliance",
-                                                                "lines": [{"text": text}]})
-        except RuntimeError:
-            pass
-
-    def alarm(message: str) -> None:  # called from the writer thread
-        def publish() -> None:
-            hub.publish("alarm", {"kind": "log", "run_id": row.id, "message": message})
-            hub.publish("monitor", {"run_id": row.id, "source": "appliance", "lines": [{"text": message}]})
-            try:
-                store.update(row.id, log_note=message)
-            except Exception:  # the database may sit on the same full disk
-                log.exception("run %s: cannot record the log note", row.id)
-        try:
-            loop.call_soon_threadsafe(publish)
-        except RuntimeError:
-            pass
-
-    import asyncio
-
-    loop = asyncio.get_running_loop()
-    identity = {"project": row.build, "build": row.build, "run": str(row.id)}
-    return start(ch, row.id, run.run_dir, identity, row.owner, alarm,
-                 live=os.environ.get("XRF_LIVE_RERUN", "1") != "0", log_timing=run.log_timing, on_note=console)
-
-
-async def finish_for(sup: Any, run: Any) -> None:
-    """Once the loop process is gone: drain the rest of the ring, close, record the counts."""
-    import asyncio
-
-    rl = getattr(run, "logging", None)
-    if rl is None:
-        return
-    stats = await asyncio.to_thread(finish, rl)
-    note = stats.failed
-    try:
-        run.row = sup.store.update(run.row.id, log_records=stats.records, log_lost=stats.lost + stats.unwritten,
-                                   log_note=note)
-    except Exception:
-        log.exception("run %s: cannot record the log counts", run.row.id)

@@ -30,6 +30,7 @@ from .routes_viz import router as viz_router
 from .routes_viser import router as viser_router
 from .routes_ros import router as ros_router
 from .ros_supervisor import RosBridgeSupervisor
+from .run_logging import HostLogging
 from .runs import RunStore
 from .settings import Settings
 from .supervisor import Supervisor
@@ -52,19 +53,26 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         hub.snapshot = supervisor.snapshot
         app.state.supervisor = supervisor
         security.open(hub, supervisor)  # accounts, audit trail, bench lease (issue 7)
+        # The run observers, in the order they are told of a run's start, samples and end
+        # (lifecycle.py). Host logging first: it adds the log counts to the ended run's record.
+        supervisor.lifecycle.register(HostLogging(hub.publish, store))
         # 3D view: viser on 127.0.0.1 (settings.port + 1), reached only through /viser/ (login),
         # fed by the supervisor's reader
         viz = VizService(settings, supervisor)
-        supervisor.telemetry_observers.append(viz.on_telemetry)
+        supervisor.lifecycle.register(viz)
         await viz.start()
         app.state.viz = viz
-        # ROS 2 bridge per run when enabled (ros_supervisor.py); its lease gate asks `security`
+        assert security.lease is not None  # made by security.open
+        supervisor.lifecycle.register(security.lease)  # a run's end is the holder's activity
+        # ROS 2 bridge per run when enabled (ros_supervisor.py); its lease gate asks `security`.
+        # Registers itself last: one bridge per run, started and stopped with it.
         ros = RosBridgeSupervisor(settings, supervisor, hub, security)
         snapshot_with_lease = hub.snapshot
         hub.snapshot = lambda: [*snapshot_with_lease(), *ros.snapshot()]
         await ros.open()
         app.state.ros = ros
-        # The lab room (issue 21): one more observer of the hub once this bench is enrolled
+        # The lab room (issue 21): one more listener of the hub once this bench is enrolled (it
+        # mirrors what the dashboards hear, alarms, lease and state included, to the room)
         room = await attach_room(app)
         # After every observer (lease, ROS bridge) is wired: they hear of the orphaned runs' end.
         recovering = asyncio.create_task(supervisor.recover_orphans(), name="recover-orphans")

@@ -87,7 +87,6 @@ class Security:
         bootstrap_admin(self.accounts)
         snapshot = hub.snapshot
         hub.snapshot = lambda: [*snapshot(), ("lease", lease.payload())]
-        hub.listeners.append(self._on_published)
         from . import ownership
 
         ownership.attach(hub, supervisor)  # what each WebSocket client may see of the live run
@@ -110,12 +109,6 @@ class Security:
         for db in (self.audit, self.accounts):
             if db is not None:
                 db.close()
-
-    def _on_published(self, kind: str, payload: dict[str, Any]) -> None:
-        """Tell the bench lease that a run ended (the holder keeps the bench: lease.run_ended)."""
-        if kind == "run" and payload.get("event") == "ended" and self.lease is not None:
-            row = payload.get("run") or {}
-            self.lease.run_ended(row.get("id"), row.get("owner") or None)
 
     # -- origins ----------------------------------------------------------------------------------
 

@@ -21,9 +21,14 @@ import asyncio
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .accounts import User
+from .lifecycle import RunObserver
+
+if TYPE_CHECKING:
+    from .runs import RunRow
+    from .supervisor import Run
 
 
 class LeaseError(Exception):
@@ -44,7 +49,11 @@ def _who(user: User | None) -> dict[str, Any] | None:
     return None if user is None else {"id": user.id, "username": user.username, "role": user.role}
 
 
-class Lease:
+class Lease(RunObserver):
+    """Also a run observer (lifecycle.py), after host logging: a run's end is the holder's activity."""
+
+    name = "bench lease"
+
     def __init__(self, idle_s: float, publish: Callable[[str, dict[str, Any]], None],
                  record: Callable[[User | None, str, dict[str, Any]], None]) -> None:
         self.idle_s = idle_s
@@ -142,6 +151,9 @@ class Lease:
         if h.run_id == run_id or (owner and owner == h.user.username):
             h.run_id = None
             h.last_active = time.monotonic()
+
+    async def on_ended(self, row: RunRow, run: Run | None) -> None:
+        self.run_ended(row.id, row.owner or None)
 
     def check_idle(self) -> None:
         h = self.holder

@@ -39,6 +39,7 @@ from typing import Any
 from .. import channels as chmod
 from . import audit
 from .children import Child, spawn
+from .lifecycle import RunObserver
 
 log = logging.getLogger("xrflab.ros_supervisor")
 
@@ -94,7 +95,9 @@ class BridgeProc:
         self.task: asyncio.Task[None] | None = None
 
 
-class RosBridgeSupervisor:
+class RosBridgeSupervisor(RunObserver):
+    name = "ROS 2 bridge"
+
     def __init__(self, settings: Any, supervisor: Any, hub: Any, security: Any) -> None:
         self.settings = settings
         self.supervisor = supervisor
@@ -115,7 +118,7 @@ class RosBridgeSupervisor:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._lock = asyncio.Lock()
         self._pending: set[asyncio.Task[None]] = set()
-        hub.listeners.append(self._on_published)
+        supervisor.lifecycle.register(self)  # one bridge per run: started and stopped with it
 
     def _priority(self) -> tuple[int, str]:
         wanted = int(self.settings.ros_bridge_priority)
@@ -146,8 +149,14 @@ class RosBridgeSupervisor:
         with contextlib.suppress(FileNotFoundError):
             self.socket_path.unlink()
 
-    def _on_published(self, kind: str, payload: dict[str, Any]) -> None:
-        if kind == "run" and payload.get("event") in ("started", "ended") and self._loop is not None:
+    # -- run observer (lifecycle.py): last in the list, after host logging and the lease --------
+
+    def on_started(self, run: Any) -> None:
+        if self._loop is not None:
+            self._loop.call_soon_threadsafe(self._schedule_reconcile)
+
+    async def on_ended(self, row: Any, run: Any) -> None:
+        if self._loop is not None:
             self._loop.call_soon_threadsafe(self._schedule_reconcile)
 
     def _schedule_reconcile(self) -> None:

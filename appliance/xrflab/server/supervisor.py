@@ -34,6 +34,7 @@ from .. import guest
 from ..logs import live as loglive
 from ..channels import Channels, ChannelsError
 from .hub import Hub
+from .lifecycle import RunLifecycle
 from .runs import END_REASONS, RunRow, RunStore
 from .children import Child
 from .guest_spawn import GuestReport, GuestSpawner
@@ -245,7 +246,7 @@ class Run:
     last_missed: int = 0
     telemetry_sent: int = 0
     telemetry_lost: int = 0
-    logging: Any = None  # xrflab.logs.live.RunLogging: host log writer, live rerun
+    logging: loglive.RunLogging | None = None  # host log writer, live rerun (run_logging.py sets it)
     log_timing: bool = False  # the loop logs per-cycle timing (XRF_LOG_TIMING=1)
     guest: GuestReport | None = None  # which protection layers of the run sandbox hold
     watcher: SafetyWatcher | None = None  # the C thread that makes the outputs safe (safety.py)
@@ -269,10 +270,9 @@ class Supervisor:
         # Held while a run starts, and by anything else that needs the bench to itself (the
         # FPGA self-check holds it for its whole duration, so no run can start meanwhile).
         self.bench_lock = asyncio.Lock()
-        # Observers of the telemetry the reader takes (the 3D view and its per-run recording):
-        # fn(run, samples) for every batch read, fn(run, None) once when the run has ended. Called
-        # in the event loop; they must be quick. One that raises is logged and dropped.
-        self.telemetry_observers: list[Callable[[Run, list[Any] | None], None]] = []
+        # What reacts to a run starting, its telemetry and its end (host logging, the 3D view,
+        # the lease, the ROS bridge): registered by the app at start-up, told in order.
+        self.lifecycle = RunLifecycle()
         # Runs a previous appliance process left live (it was killed or died): recover_orphans()
         # closes them once the event loop runs.
         self._orphans = list(store.orphans)
@@ -379,6 +379,7 @@ class Supervisor:
         self.last_row = self.store.update(row.id, **values)
         if row.shm:
             remove_shm(row.shm)
+        await self.lifecycle.ended(self.last_row, None)
         self.hub.publish("alarm", {"kind": "crash", "end_reason": "appliance_restart", "run_id": row.id,
                                    "message": self.last_row.message})
         self.hub.publish("run", {"event": "ended", "run": self.last_row.as_dict(), "active": False})
@@ -536,7 +537,7 @@ class Supervisor:
             run.row = self.store.update(
                 row.id, status="running", program=info.get("program", ""), cycle_freq=info.get("cycle_freq", 0)
             )
-            run.logging = loglive.start_for(self, run)
+            self.lifecycle.started(run)  # host logging first: the log writer starts draining now
             run.tasks.append(asyncio.create_task(self._supervise(run), name=f"run{row.id}-heartbeat"))
             run.tasks.append(asyncio.create_task(self._guarded(self._reader, run), name=f"run{row.id}-reader"))
             run.tasks.append(asyncio.create_task(self._guarded(self._timing, run), name=f"run{row.id}-timing"))
@@ -669,7 +670,6 @@ class Supervisor:
         run.thread_stop.set()
         if run.thread is not None:
             await asyncio.to_thread(run.thread.join, 1.0)
-        await loglive.finish_for(self, run)  # the rest of the log ring, even after a crash
         current = asyncio.current_task()
         for task in run.tasks:
             if task is not current and task.get_name().endswith(("heartbeat", "reader", "timing", "disk")):
@@ -709,6 +709,9 @@ class Supervisor:
             misses=last.missed if last else 0,
             message=f"{message}; {run.safe_state}" + (f" {safe_ms:.1f} ms after exit" if crashed and not run.hang else ""),
         )
+        # The observers in order (lifecycle.py): host logging drains the rest of the log ring (even
+        # after a crash; the mapping is still ours) and adds its counts to the record first.
+        await self.lifecycle.ended(run.row, run)
         remove_shm(run.shm)
         # No explicit unmap: a worker thread may still hold the Channels (a command wait); the
         # mapping goes with the last reference, and the name is already unlinked.
@@ -729,7 +732,6 @@ class Supervisor:
                 "heartbeat_ns": run.watch.heartbeat_ns if run.watch else 0,  # the loop's last cycle start
                 "watcher_rt": bool(run.watch and run.watch.rt_status == 0),
             })
-        self._observe(run, None)
         run.ended.set()
         self.hub.publish("run", self.run_payload(run, "ended") | {"active": False})
         self.hub.publish("state", self.state_payload(run) | {"active": False, "allowed": []})
@@ -862,8 +864,8 @@ class Supervisor:
             run.wake.clear()
             run.wake_pending = False
             samples = telemetry.read()
-            if samples and self.telemetry_observers:
-                self._observe(run, samples)
+            if samples:
+                self.lifecycle.samples(run, samples)
             t0 = ch.status().t_start_ns if samples else 0
             for sample in samples:
                 # Credit-based decimation: the average rate is telemetry_hz exactly even when the
@@ -896,14 +898,6 @@ class Supervisor:
                     "lost": monitor.lost,
                 })
             self._refresh_state(run)
-
-    def _observe(self, run: Run, samples: list[Any] | None) -> None:
-        for fn in tuple(self.telemetry_observers):
-            try:
-                fn(run, samples)
-            except Exception:
-                log.exception("telemetry observer %r failed; removed", fn)
-                self.telemetry_observers.remove(fn)
 
     def _refresh_state(self, run: Run) -> None:
         """Publish `state` when the state, a rejection, or liveness changed."""

@@ -9,7 +9,7 @@
   translucent green carriage (the ghost) at the setpoint (Ros2Xeno ``position_setpoint``).
 
 Data path (nothing touches the loop): the supervisor's telemetry reader hands every batch it
-reads to ``VizService.on_telemetry`` (``Supervisor.telemetry_observers``). Samples are thinned to
+reads to ``VizService.on_telemetry`` (a run observer: server/lifecycle.py). Samples are thinned to
 200 Hz by the run's ``Recorder`` (the replay file), and the same kept samples drive the live
 kinematics, so a replay shows exactly what the live view showed. The scene itself is pushed to
 the browsers at 30 Hz by ``run()``, in a thread of its own (scene building never holds up the
@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 from .. import profiles as profmod
+from ..server.lifecycle import RunObserver
 from . import kinematics as kin
 from .recorder import Recorder, has_recording, load_recording
 
@@ -175,7 +176,7 @@ def build_replay(run_id: int, run_dir: Path, data_dir: Optional[Path] = None) ->
 # ---- the service ----------------------------------------------------------------------------
 
 
-class VizService:
+class VizService(RunObserver):
     def __init__(self, settings: Any, supervisor: Any = None) -> None:
         self.settings = settings
         self.supervisor = supervisor
@@ -270,8 +271,19 @@ class VizService:
 
     # -- telemetry in (supervisor hook, event loop) ---------------------------------------------
 
+    # A run observer (server/lifecycle.py), after host logging: samples per reader batch, and
+    # the end, which closes the run's recording.
+    name = "3D view"
+
+    def on_samples(self, run: Any, samples: Any) -> None:
+        self.on_telemetry(run, list(samples))
+
+    async def on_ended(self, row: Any, run: Any) -> None:
+        if run is not None:  # a run recovered at start-up was never shown here
+            self.on_telemetry(run, None)
+
     def on_telemetry(self, run: Any, samples: Optional[list[Any]]) -> None:
-        """Supervisor.telemetry_observers: (run, samples) per reader batch, (run, None) at the end."""
+        """(run, samples) per reader batch, (run, None) at the end."""
         with self._lock:
             if samples is None:
                 if run.row.id == self.run_id:
