@@ -216,6 +216,49 @@ def test_students_do_not_see_each_other(server: Server) -> None:
     bob.close()
 
 
+def test_projects_route_starts_a_run_like_the_bench_route(server: Server) -> None:
+    """One start-a-run service (server/run_start.py): a project build started from the Projects
+    page gets the timing option and the lease's bookkeeping as POST /api/runs does. Here an
+    educator holds the bench and runs a student's build (the run is the student's): the run's
+    end must count as the holder's activity (lease.started_run noted the run), so the idle time
+    starts again at the end, not at the start. The Projects route skipped that before."""
+    server.stop_run()
+    pw = server.create_user("proj_carol")
+    carol, _ = server.login("proj_carol", pw)
+    pid = upload(carol, targz(hostile.project_files(BASE))).json()["project"]["id"]
+    b = build_and_wait(carol, pid)
+    assert b["status"] == "ok", b["result"]
+    carol.close()
+    assert server.http.post("/api/lease/take").status_code == 200
+    try:
+        before = time.monotonic()
+        # 1000 Hz: the loop leaves by itself after 3 s, nobody driving meanwhile
+        r = server.http.post(f"/api/projects/{pid}/builds/{b['id']}/run",
+                             json={"max_cycles": 3000, "log_timing": True}, timeout=60)
+        assert r.status_code == 201, r.text
+        run = r.json()["run"]
+        assert run["owner"] == "proj_carol"
+        deadline = time.monotonic() + 30
+        while server.http.get(f"/api/runs/{run['id']}").json()["status"] == "running":
+            assert time.monotonic() < deadline, "the run did not end by itself"
+            time.sleep(0.1)
+        idle_left = server.http.get("/api/lease").json()["idle_left_s"]
+        since_start = time.monotonic() - before
+        ended = server.http.get(f"/api/runs/{run['id']}").json()
+        assert ended["end_reason"] == "cycle_limit", ended
+        # the idle time restarted at the run's end (>= 2.5 s after the start request)
+        assert idle_left > 600 - since_start + 2.0, (idle_left, since_start)
+        # the timing option reached the loop: the run has its cycle_timing log, every cycle of it
+        info = server.http.get(f"/api/logs/runs/{run['id']}").json()
+        files = {f["name"]: f for f in info["files"]}
+        assert "cycle_timing.xrf" in files, files.keys()
+        assert files["cycle_timing.xrf"]["records"] == info["run"]["cycles"] == 3000
+        audit = server.http.get("/api/audit", params={"username": "admin", "action": "run.start"}).json()
+        assert any(e["detail"].get("run") == run["id"] and e["detail"].get("project") == pid for e in audit)
+    finally:
+        server.http.post("/api/lease/release")
+
+
 def test_xrf_upload_cli(server: Server, tmp_path: Path) -> None:
     project = tmp_path / "cli_proj"
     env = dict(os.environ, PYTHONPATH=str(REPO / "appliance"))

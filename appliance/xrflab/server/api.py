@@ -17,7 +17,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 from .. import channels as chmod
 from .. import plants
 from ..statemachine import StateMachine, state_machine
-from . import audit, messages, ownership
+from . import audit, messages, ownership, run_start
 from .auth import SAFE_COMMANDS, Perm, User, check, client_address, current_user, may, requires
 from .hub import Client
 from .plant_field import PlantInfo, PlantName
@@ -187,7 +187,6 @@ async def _own_project_builds(request: Request) -> list[dict[str, Any]]:
 
 @router.post("/runs", response_model=RunRecord, status_code=201, dependencies=[requires(Perm.DRIVE)])
 async def start_run(body: StartRun, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
-    sup = _supervisor(request)
     try:
         # Only a bundled example/template or a build of one's own project (else: a missing build).
         await ownership.check_startable(request, body.build)
@@ -195,15 +194,11 @@ async def start_run(body: StartRun, request: Request, user: User = Depends(curre
         audit.record(user, "run.start_failed", {"build": body.build, "error": str(exc.detail)}, client_address(request))
         raise
     try:
-        row = await sup.start_run(body.build, body.sim, body.max_cycles, owner=user.username,
-                                  log_timing=body.log_timing)
+        # The one start-a-run service (run_start.py): lease bookkeeping and audit as every route
+        row = await run_start.start_run(request, user, run_start.RunRequest(
+            body.build, body.sim, body.max_cycles, body.log_timing))
     except SupervisorError as exc:
-        audit.record(user, "run.start_failed", {"build": body.build, "error": str(exc)}, client_address(request))
         raise _http(exc) from None
-    lease = request.app.state.security.lease
-    if lease is not None:
-        lease.started_run(user, row.id)
-    audit.record(user, "run.start", {"run": row.id, "build": body.build, "sim": row.sim}, client_address(request))
     return row.as_dict()
 
 

@@ -10,7 +10,6 @@ everything), for the routes and for the build messages on the WebSocket alike.
 from __future__ import annotations
 
 import asyncio
-import inspect
 import io
 import mmap
 import os
@@ -614,21 +613,18 @@ async def run_build(pid: int, bid: int, body: RunBuild, request: Request) -> dic
     svc, project, b = await _build(request, pid, bid)
     if b.status != "ok" or not b.executable or not Path(b.executable).exists():
         raise HTTPException(409, f"build {bid} is {b.status}; only a successful build can run")
+    from . import run_start
     from .supervisor import SupervisorError
 
-    sup = svc.supervisor
     name = f"project-{pid}-build-{bid}"
-    sup.catalog.add_external(name, svc.src(project), Path(b.executable), body.sim or svc.settings.sim)
-    kwargs: dict[str, Any] = {}
-    params = inspect.signature(sup.start_run).parameters
-    if "owner" in params:
-        kwargs["owner"] = project.owner
-    if body.log_timing and "log_timing" in params:
-        kwargs["log_timing"] = True
+    svc.supervisor.catalog.add_external(name, svc.src(project), Path(b.executable), body.sim or svc.settings.sim)
     try:
-        row = await sup.start_run(name, body.sim, body.max_cycles, **kwargs)
+        # The one start-a-run service (run_start.py), as POST /api/runs: the same lease
+        # bookkeeping and timing option. The run is the project owner's, whoever starts it.
+        row = await run_start.start_run(request, _user(request), run_start.RunRequest(
+            name, body.sim, body.max_cycles, body.log_timing), owner=project.owner,
+            audit_detail={"project": pid, "build": b.id})
     except SupervisorError as exc:
         raise HTTPException(exc.status, str(exc)) from None
     svc.store.link_run(row.id, b)
-    _audit(request, "run.start", {"run": row.id, "project": pid, "build": b.id})
     return {"run": row.as_dict(), "build_id": b.id, "project_id": pid}
