@@ -16,65 +16,48 @@ A step that cannot run is never passed: when the tree cannot reach apt's mirror,
 packages come from this machine's apt cache and lists (offline) and the apt step is skipped
 saying so; when pip's index cannot be reached, the venv step and everything after it are
 skipped with pip's error. Needs root (debootstrap, mounts, pivot_root), as tests/deploy does.
+
+The steps are run by fresh_run.py, a program that records what they did; the tests here assert on
+that record. In a session with other tests the program starts with the session's first test, in
+the background at low priority, and these tests run last (conftest.py, fresh_background.py).
 """
 
 from __future__ import annotations
 
-import configparser
 import json
 import os
 import re
 import shutil
-import socket
-import time
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
 
-from deploy_support import REPO
-from fresh_machine import Machine, _user_pip_conf, make_machine
+from fresh_background import BACKGROUND, Run
+from fresh_machine import Machine
+from fresh_run import CMAKE_TEST, JUNIT, UI_TEST, apt_packages
+from fresh_run import tail as _tail
 
 pytestmark = pytest.mark.timeout(2400)
 
-UI_TEST = "tests/ui/test_system_ui.py"       # the quickest browser test: needs chromium and serve
-CMAKE_TEST = "tests/rt_core/test_ctest.py"  # CMake + g++ build rt_core's unit tests, then runs them
-JUNIT = "/tmp/fresh-machine-junit.xml"      # in the tree, outside the checkout
 
-
-def _apt_packages() -> list[str]:
-    """APT_PACKAGES as ./lab lists them (chromium is installed apart)."""
-    text = (REPO / "lab").read_text()
-    words: list[str] = []
-    for m in re.finditer(r"^APT_PACKAGES\+?=\(([^)]*)\)", text, re.MULTILINE):
-        words += m.group(1).split()
-    return words
-
-
-def _pip_index() -> str:
-    """The index pip uses here (PyPI unless the configuration says otherwise)."""
-    url = os.environ.get("PIP_INDEX_URL", "")
-    for conf in (Path("/etc/pip.conf"), Path("/etc/xdg/pip/pip.conf"), _user_pip_conf()):
-        if not url and conf and conf.exists():
-            cp = configparser.ConfigParser()
-            cp.read(conf)
-            url = cp.get("global", "index-url", fallback="")
-    return (url or "https://pypi.org/simple").rstrip("/")
-
-
-def _tail(text: str, n: int = 3000) -> str:
-    return text[-n:].strip()
+@dataclass
+class Proc:
+    returncode: int
+    stdout: str
+    stderr: str
 
 
 @dataclass
 class Fresh:
+    """fresh_run.py's record (its Record), with the machine it made."""
     machine: Machine
     seconds: dict[str, float] = field(default_factory=dict)
     apt_missing: str = ""     # why setup_system's apt-get could not be exercised ("" = it was)
     no_python: str = ""       # why nothing after the system packages can run
     pip_missing: str = ""     # why setup_venv could not be exercised
-    lab_test: object = None   # CompletedProcess of `./lab test ...`
+    lab_test: Proc | None = None  # `./lab test ...`
     journey: dict | None = None
     journey_stderr: str = ""
 
@@ -84,77 +67,34 @@ class Fresh:
                 pytest.skip(why)
 
 
-def _timed(fresh: Fresh, name: str, command: list[str], timeout: float):
-    t = time.monotonic()
-    proc = fresh.machine.enter(command, timeout)
-    fresh.seconds[name] = round(time.monotonic() - t, 1)
-    return proc
-
-
-def _offline_packages(fresh: Fresh) -> str:
-    """No mirror: the system packages from this machine's apt lists and archive cache, so that the
-    steps after apt can still run. Returns why even that failed ("" if it worked)."""
-    lists = fresh.machine.tree / "var/lib/apt/lists"
-    for p in Path("/var/lib/apt/lists").glob("*_Packages*"):
-        shutil.copy2(p, lists / p.name)
-    proc = _timed(fresh, "apt offline", ["apt-get", "install", "-y", "-q", "--no-download", "--no-install-recommends",
-                                         *_apt_packages(), "chromium"], 1200)
-    if proc.returncode != 0:
-        return f"apt-get install --no-download from this machine's cache failed:\n{_tail(proc.stdout + proc.stderr)}"
-    return ""
-
-
 @pytest.fixture(scope="module")
-def fresh(tmp_path_factory: pytest.TempPathFactory):
+def fresh(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory):
     if os.geteuid() != 0:
         pytest.skip("the fresh-machine check needs root (debootstrap, mounts, pivot_root into the tree)")
     for tool in ("unshare", "pivot_root"):  # debootstrap is installed on demand (deploy_support)
         if shutil.which(tool) is None:
             pytest.skip(f"the fresh-machine check needs {tool} (util-linux)")
-    dest = tmp_path_factory.mktemp("fresh-machine")
-    t = time.monotonic()
+    background = request.config.stash.get(BACKGROUND, None)
+    run = background.claim() if background else None
+    how = f"in the background since {run.seconds()} s" if run else "alone"
+    if run is None:  # the check alone (or nothing else of the session got to run): as it always was
+        run = Run(tmp_path_factory.mktemp("fresh-machine"), low_priority=False)
+    seconds: dict[str, float] = {}
     try:
-        machine = make_machine(dest)
-    except RuntimeError as exc:  # debootstrap could not reach its mirror: there is no machine at all
-        shutil.rmtree(dest, ignore_errors=True)
-        pytest.skip(f"no step exercised: the fresh Debian tree could not be made: {exc}")
-    f = Fresh(machine)
-    f.seconds["tree"] = round(time.monotonic() - t, 1)
-    try:
-        probe = _timed(f, "apt probe", ["apt-get", "update", "-q"], 600)
-        if probe.returncode != 0:
-            f.apt_missing = ("./lab's setup_system (apt-get update/install) NOT exercised: the tree cannot reach "
-                             f"apt's mirror:\n{_tail(probe.stdout + probe.stderr)}")
-            f.no_python = _offline_packages(f)
-        if not f.no_python:
-            f.lab_test = _timed(f, "lab test", ["./lab", "test", UI_TEST, CMAKE_TEST, f"--junitxml={JUNIT}"], 2000)
-            if not (machine.tree / machine.checkout.lstrip("/") / ".venv/.lab-stamp").exists():
-                # Only now is there a python3 in the tree to ask pip's index with; reachable, the
-                # failure is ./lab's and the tests below fail on it.
-                index = _pip_index()
-                pip = _timed(f, "pip probe", ["python3", "-c", "import sys, urllib.request; "
-                                              "urllib.request.urlopen(sys.argv[1] + '/pip/', timeout=30)", index], 120)
-                if pip.returncode != 0:
-                    f.pip_missing = (f"./lab's setup_venv (pip install) and every step after it NOT exercised: the "
-                                     f"tree cannot reach pip's index {index}:\n{_tail(pip.stderr, 800)}")
-        if not f.no_python and not f.pip_missing:
-            port = _free_port()
-            j = _timed(f, "journey", [".venv/bin/python", "tests/xrf_testing/journey.py", "--port", str(port),
-                                      "--mode", "/var/lib/xrf-lab", "--", "./lab", "serve", "--port", str(port)], 900)
-            lines = j.stdout.strip().splitlines()
-            f.journey = json.loads(lines[-1]) if lines and lines[-1].startswith("{") else None
-            f.journey_stderr = j.stdout + j.stderr
-        yield f
+        run.hurry()  # the rest of the session is done: full priority from here
+        rec = run.wait()
+        seconds = rec.get("seconds", {})
+        if rec.get("error"):
+            pytest.fail(f"the fresh-machine run failed:\n{rec['error']}", pytrace=False)
+        if rec["no_tree"]:
+            pytest.skip(rec["no_tree"])
+        lab = rec["lab_test"]
+        yield Fresh(Machine(Path(rec["tree"]), rec["checkout"], Path(rec["work"])), seconds, rec["apt_missing"],
+                    rec["no_python"], rec["pip_missing"], Proc(**lab) if lab else None, rec["journey"],
+                    rec["journey_stderr"])
     finally:
-        print(f"fresh-machine check, seconds per step: {f.seconds}")
-        shutil.rmtree(dest, ignore_errors=True)  # about 2 GB after the set-up
-
-
-def _free_port() -> int:
-    # The tree shares this machine's network namespace (the registries), so its port must be free here.
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+        print(f"fresh-machine check ({how}; {run.seconds()} s in all), seconds per step: {seconds}")
+        run.close()
 
 
 def _installed(tree: Path) -> set[str]:
@@ -180,7 +120,7 @@ def test_setup_installs_the_system_packages(fresh: Fresh) -> None:
     assert "lab: installing system packages" in out, _tail(out)
     assert "no chromium could be installed" not in out, _tail(out)
     installed = _installed(fresh.machine.tree)
-    missing = [p for p in [*_apt_packages(), "chromium"] if p not in installed]
+    missing = [p for p in [*apt_packages(), "chromium"] if p not in installed]
     assert not missing, missing
     for exe in ("usr/bin/cmake", "usr/bin/g++", "usr/bin/chromium", "usr/bin/python3"):
         assert (fresh.machine.tree / exe).exists(), exe
