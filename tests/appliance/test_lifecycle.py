@@ -39,16 +39,16 @@ class Recording(RunObserver):
 
 
 class CountingLogs(RunObserver):
-    """Adds to the record at the end, as host logging does."""
+    """Adds to the record once the loop process is gone, as host logging does."""
 
     name = "logs"
 
     def __init__(self, store: RunStore) -> None:
         self._store = store
 
-    async def on_ended(self, row: RunRow, run: Any) -> None:
+    async def on_exited(self, run: Any) -> None:
         await asyncio.sleep(0)  # an observer may await (host logging drains in a thread)
-        run.row = self._store.update(row.id, log_records=42)
+        run.row = self._store.update(run.row.id, log_records=42)
 
 
 class FakeRunHolder:
@@ -76,6 +76,7 @@ def test_observers_are_told_in_order_and_a_broken_one_does_not_stop_the_next(tmp
         lc.started(run)  # type: ignore[arg-type]
         lc.samples(run, [1, 2, 3])  # type: ignore[arg-type]
         lc.samples(run, [4])  # type: ignore[arg-type]
+        asyncio.run(lc.exited(run))  # type: ignore[arg-type]
         asyncio.run(lc.ended(row, run))  # type: ignore[arg-type]
 
         assert [h for h in heard if h[1] == "started"] == [("a", "started", row.id), ("b", "started", row.id),
@@ -84,7 +85,7 @@ def test_observers_are_told_in_order_and_a_broken_one_does_not_stop_the_next(tmp
         assert [h for h in heard if h[1] == "samples"] == [
             ("a", "samples", 3), ("b", "samples", 3), ("c", "samples", 3), ("d", "samples", 3),
             ("a", "samples", 1), ("c", "samples", 1), ("d", "samples", 1)]
-        # every observer after the one that added to the record sees it; c's failure stops nobody
+        # every observer sees what host logging added when the process exited; c's failure stops nobody
         assert [h for h in heard if h[1] == "ended"] == [("a", "ended", 42), ("b", "ended", 42),
                                                         ("c", "ended", 42), ("d", "ended", 42)]
     finally:

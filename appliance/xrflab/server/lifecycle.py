@@ -1,5 +1,5 @@
 """The run life cycle: one ordered list of observers the supervisor tells that a run started,
-that the reader took telemetry, and that a run ended.
+that the reader took telemetry, that its loop process is gone, and that the run ended.
 
 Before this module, what reacted to a run's start or end was wired five ways (direct calls into
 logs/live, a telemetry observer list, the lease and the ROS bridge matching the JSON sent to
@@ -8,8 +8,9 @@ every reaction is a `RunObserver` registered once, in the app's lifespan (app.py
 order, which is the order they are told:
 
 1. host logging (server/run_logging.py): starts the log writer when the run's shared memory is
-   open; at the end drains the rest of the log ring and records the counts in the run record,
-   so everyone after it (and the "run ended" message) sees the final counts;
+   open; once the loop process is gone (``on_exited``) drains the rest of the log ring and adds
+   the counts to the run record, before the record says the run ended: whoever sees it ended
+   (a browser polling the run, every later observer, the "run ended" message) sees the counts;
 2. the 3D view (viz/scene.py): follows the telemetry, closes its recording at the end;
 3. the bench lease (server/lease.py): the end counts as the holder's activity;
 4. the ROS 2 bridge (server/ros_supervisor.py): one bridge per run, started and stopped with it.
@@ -36,8 +37,8 @@ log = logging.getLogger("xrflab.lifecycle")
 class RunObserver:
     """Something that reacts to runs. Override what you need; the defaults do nothing.
 
-    All three are called in the event loop and must not block it (start threads or tasks for
-    slow work; ``on_ended`` may await it)."""
+    All are called in the event loop and must not block it (start threads or tasks for slow
+    work; ``on_exited`` and ``on_ended`` may await it)."""
 
     name = "observer"
 
@@ -48,6 +49,12 @@ class RunObserver:
     def on_samples(self, run: Run, samples: Sequence[Any]) -> None:
         """A batch of telemetry samples (channels.TelemetrySample) the reader just took, every
         one of them (before the dashboards' decimation). Must be quick: it runs per batch."""
+
+    async def on_exited(self, run: Run) -> None:
+        """The loop process is gone (the outputs are safe) and the run's shared memory is still
+        mapped, but the record does not say how the run ended yet: for what the final record
+        must include (host logging's counts). Until every observer returns, the run's record
+        still says ``running``."""
 
     async def on_ended(self, row: RunRow, run: Run | None) -> None:
         """The run is over and its record is final: ``row.end_reason`` says how it ended
@@ -96,6 +103,13 @@ class RunLifecycle:
                 log.exception("run %s: observer %s failed on samples; it gets none any more",
                               run.row.id, obs.name)
                 self._no_samples.add(id(obs))
+
+    async def exited(self, run: Run) -> None:
+        for obs in tuple(self._observers):
+            try:
+                await obs.on_exited(run)
+            except Exception:
+                log.exception("run %s: observer %s failed on exit", run.row.id, obs.name)
 
     async def ended(self, row: RunRow, run: Run | None) -> None:
         for obs in tuple(self._observers):

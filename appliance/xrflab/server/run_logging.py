@@ -2,9 +2,9 @@
 
 When the run's shared memory is open, the host writer (logs/live.py) starts draining the loop's
 log ring into the run folder (and the live rerun stream, and the timing writer when the run logs
-its per-cycle timing). When the run has ended, the rest of the ring is drained (even after a
-crash) and the counts go into the run record. First in the observer list: the record every later
-observer and the "run ended" message see has the final counts.
+its per-cycle timing). When the loop process is gone (on_exited), the rest of the ring is drained
+(even after a crash) and the counts go into the run record, before the supervisor writes how the
+run ended: whoever sees the run ended sees its final counts.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..logs import live
 from .lifecycle import RunObserver
-from .runs import RunRow, RunStore
+from .runs import RunStore
 
 if TYPE_CHECKING:
     from .supervisor import Run
@@ -65,14 +65,14 @@ class HostLogging(RunObserver):
                                  live=os.environ.get("XRF_LIVE_RERUN", "1") != "0", log_timing=run.log_timing,
                                  on_note=console)
 
-    async def on_ended(self, row: RunRow, run: Run | None) -> None:
+    async def on_exited(self, run: Run) -> None:
         """The rest of the log ring (the mapping is still ours), then the counts."""
-        rl = run.logging if run is not None else None
-        if run is None or rl is None:
-            return  # a recovered run's ring was drained by the recovery itself (supervisor._recover)
+        rl = run.logging
+        if rl is None:
+            return
         stats = await asyncio.to_thread(live.finish, rl)
         try:
-            run.row = self._store.update(row.id, log_records=stats.records, log_lost=stats.lost + stats.unwritten,
+            run.row = self._store.update(run.row.id, log_records=stats.records, log_lost=stats.lost + stats.unwritten,
                                          log_note=stats.failed)
         except Exception:
-            log.exception("run %s: cannot record the log counts", row.id)
+            log.exception("run %s: cannot record the log counts", run.row.id)

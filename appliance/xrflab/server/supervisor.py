@@ -670,6 +670,9 @@ class Supervisor:
         run.thread_stop.set()
         if run.thread is not None:
             await asyncio.to_thread(run.thread.join, 1.0)
+        # Host logging drains the rest of the log ring (even after a crash) and records its counts
+        # before the record says how the run ended (lifecycle.py: on_exited).
+        await self.lifecycle.exited(run)
         current = asyncio.current_task()
         for task in run.tasks:
             if task is not current and task.get_name().endswith(("heartbeat", "reader", "timing", "disk")):
@@ -709,8 +712,7 @@ class Supervisor:
             misses=last.missed if last else 0,
             message=f"{message}; {run.safe_state}" + (f" {safe_ms:.1f} ms after exit" if crashed and not run.hang else ""),
         )
-        # The observers in order (lifecycle.py): host logging drains the rest of the log ring (even
-        # after a crash; the mapping is still ours) and adds its counts to the record first.
+        # The record is final: the observers in order (lifecycle.py), then the browsers.
         await self.lifecycle.ended(run.row, run)
         remove_shm(run.shm)
         # No explicit unmap: a worker thread may still hold the Channels (a command wait); the
