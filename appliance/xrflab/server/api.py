@@ -21,7 +21,7 @@ from . import audit, messages, ownership, run_start
 from .auth import SAFE_COMMANDS, Perm, User, check, client_address, current_user, may, requires
 from .hub import Client
 from .plant_field import PlantInfo, PlantName
-from .runs import END_REASONS
+from .runs import RunRecord  # the run record's API model, made from runs.RunRow
 from .supervisor import Supervisor, SupervisorError
 
 router = APIRouter(prefix="/api")
@@ -50,31 +50,6 @@ class BuildInfo(BaseModel):
     project_id: int | None = Field(default=None, description="project builds: start them with "
                                    "POST /api/projects/{project_id}/builds/{build_id}/run")
     build_id: int | None = None
-
-
-class RunRecord(BaseModel):
-    id: int
-    build: str
-    program: str
-    sim: str
-    shm: str
-    pid: int | None
-    started: float = Field(description="Unix time")
-    ended: float | None
-    status: Literal["starting", "running", "ended", "crashed", "failed"]
-    crashed: bool
-    crash_reason: str = Field(description="signal | exit | hang | self_exit | appliance, empty if not crashed")
-    end_reason: str = Field(default="", description="how the run ended: " + ", ".join(
-        f"{k} ({v})" for k, v in END_REASONS.items()) + "; empty while it runs")
-    exit_code: int | None
-    exit_signal: int | None
-    state: str = Field(description="last loop state seen")
-    cycles: int
-    misses: int
-    cycle_freq: int
-    run_dir: str
-    message: str
-    owner: str = Field(default="", description="username of who started the run ('' = an educator before accounts)")
 
 
 class StartRun(BaseModel):

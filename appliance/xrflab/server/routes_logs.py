@@ -36,6 +36,7 @@ from ..logs.logformat import MAGIC
 from ..logs.runfolder import RunPathError, fd_path, open_in, walk_files
 from . import ownership
 from .auth import Perm, requires
+from .runs import record_model
 
 router = APIRouter()
 
@@ -131,28 +132,13 @@ def read_run_log(run_dir: str | Path, name: str | None = None) -> dict[str, np.n
 # ---- models ---------------------------------------------------------------------------------
 
 
-class RunLogRecord(BaseModel):
-    id: int
-    owner: str = Field(description="user who started the run ('' before accounts)")
-    build: str
-    program: str
-    sim: str
-    started: float = Field(description="Unix time")
-    ended: float | None
-    duration_s: float | None = Field(description="ended (or now, while live) - started")
-    status: str
-    crashed: bool
-    crash_reason: str
-    end_reason: str = Field(default="", description="how the run ended (see RunRecord)")
-    state: str
-    cycles: int
-    misses: int
-    cycle_freq: int
-    log_records: int = Field(description="records written to the run's log files")
-    log_lost: int = Field(description="records lost: ring full (writer stalled) or not written after a disk error")
-    log_note: str = Field(description="why logging stopped (disk full, ...); '' normally")
-    live: bool = Field(description="the run is active; counts are the loop's, live")
-    message: str
+# The run record as the log listing shows it: runs.RunRow's fields (one definition), without
+# where the run lived (shm, pid, run folder) and its exit status, plus its duration and liveness.
+RunLogRecord = record_model(
+    "RunLogRecord", exclude=frozenset({"shm", "pid", "exit_code", "exit_signal", "run_dir"}),
+    duration_s=(float | None, Field(description="ended (or now, while live) - started")),
+    live=(bool, Field(description="the run is active; counts are the loop's, live")),
+)
 
 
 class LogFileInfo(BaseModel):
@@ -169,7 +155,7 @@ class LogFileInfo(BaseModel):
 
 
 class RunLogs(BaseModel):
-    run: RunLogRecord
+    run: RunLogRecord  # type: ignore[valid-type]  # a model made by runs.record_model
     files: list[LogFileInfo]
     timing: bool = Field(description="timing.jsonl (per-second stage timing) exists")
 

@@ -9,45 +9,13 @@ from __future__ import annotations
 
 import sqlite3
 import time
-from dataclasses import dataclass, fields
+from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_type_hints
+
+from pydantic import BaseModel, Field, create_model
 
 from .private_files import private_db
-
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS runs (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    build TEXT NOT NULL,
-    program TEXT NOT NULL DEFAULT '',
-    sim TEXT NOT NULL DEFAULT '',
-    shm TEXT NOT NULL DEFAULT '',
-    pid INTEGER,
-    started REAL NOT NULL,
-    ended REAL,
-    status TEXT NOT NULL,          -- starting | running | ended | crashed | failed
-    crashed INTEGER NOT NULL DEFAULT 0,
-    crash_reason TEXT NOT NULL DEFAULT '',   -- signal | exit | hang | ''
-    exit_code INTEGER,
-    exit_signal INTEGER,
-    state TEXT NOT NULL DEFAULT '',  -- last loop state seen
-    cycles INTEGER NOT NULL DEFAULT 0,
-    misses INTEGER NOT NULL DEFAULT 0,
-    cycle_freq INTEGER NOT NULL DEFAULT 0,
-    run_dir TEXT NOT NULL DEFAULT '',
-    message TEXT NOT NULL DEFAULT ''
-);
-"""
-
-# Columns added after the first release: (name, declaration). Added with ALTER TABLE when an
-# older database lacks them, so existing run records survive an upgrade.
-_ADDED_COLUMNS = (
-    ("owner", "TEXT NOT NULL DEFAULT ''"),        # user who started the run (issue 7 fills it)
-    ("log_records", "INTEGER NOT NULL DEFAULT 0"),  # records in the run's log files
-    ("log_lost", "INTEGER NOT NULL DEFAULT 0"),     # ring drops + records drained after a write failure
-    ("log_note", "TEXT NOT NULL DEFAULT ''"),       # why logging stopped (disk full, ...), '' = it did not
-    ("end_reason", "TEXT NOT NULL DEFAULT ''"),     # END_REASONS: how the run ended, '' while it runs
-)
 
 # Every way a run can end: the `end_reason` of its record (and of its alarm), one name each.
 END_REASONS: dict[str, str] = {
@@ -67,32 +35,52 @@ END_REASONS: dict[str, str] = {
 }
 
 
+RunStatus = Literal["starting", "running", "ended", "crashed", "failed"]
+
+
+def _col(sql: str, doc: str = "", added: bool = False, **default: Any) -> Any:
+    """A run record field: its SQLite declaration, its description in the API, and whether it
+    came after the first release (then an older database gets it with ALTER TABLE, so existing
+    run records survive an upgrade)."""
+    return field(metadata={"sql": sql, "doc": doc, "added": added}, **default)
+
+
 @dataclass
 class RunRow:
-    id: int
-    build: str
-    program: str
-    sim: str
-    shm: str
-    pid: int | None
-    started: float
-    ended: float | None
-    status: str
-    crashed: bool
-    crash_reason: str
-    exit_code: int | None
-    exit_signal: int | None
-    state: str
-    cycles: int
-    misses: int
-    cycle_freq: int
-    run_dir: str
-    message: str
-    owner: str = ""
-    log_records: int = 0
-    log_lost: int = 0
-    log_note: str = ""
-    end_reason: str = ""
+    """The run record: THE definition. The SQL table (`schema()`), the API's RunRecord
+    (`record_model()`) and the log listing's record (routes_logs.RunLogRecord) derive from it; a
+    field added here is in all three (tests/appliance/test_run_record.py)."""
+
+    id: int = _col("INTEGER PRIMARY KEY AUTOINCREMENT")
+    build: str = _col("TEXT NOT NULL", "the build that ran (GET /api/builds)")
+    program: str = _col("TEXT NOT NULL DEFAULT ''", "the controller's program name")
+    sim: str = _col("TEXT NOT NULL DEFAULT ''", "the simulated plant")
+    shm: str = _col("TEXT NOT NULL DEFAULT ''", "the run's shared memory below /dev/shm")
+    pid: int | None = _col("INTEGER", "the controller's process id")
+    started: float = _col("REAL NOT NULL", "Unix time")
+    ended: float | None = _col("REAL", "Unix time; null while it runs")
+    status: RunStatus = _col("TEXT NOT NULL")
+    crashed: bool = _col("INTEGER NOT NULL DEFAULT 0")
+    crash_reason: str = _col("TEXT NOT NULL DEFAULT ''",
+                             "signal | exit | hang | self_exit | appliance, empty if not crashed")
+    exit_code: int | None = _col("INTEGER")
+    exit_signal: int | None = _col("INTEGER")
+    state: str = _col("TEXT NOT NULL DEFAULT ''", "last loop state seen")
+    cycles: int = _col("INTEGER NOT NULL DEFAULT 0")
+    misses: int = _col("INTEGER NOT NULL DEFAULT 0")
+    cycle_freq: int = _col("INTEGER NOT NULL DEFAULT 0")
+    run_dir: str = _col("TEXT NOT NULL DEFAULT ''")
+    message: str = _col("TEXT NOT NULL DEFAULT ''")
+    owner: str = _col("TEXT NOT NULL DEFAULT ''", "username of who started the run ('' = an educator before "
+                      "accounts)", added=True, default="")
+    log_records: int = _col("INTEGER NOT NULL DEFAULT 0", "records written to the run's log files",
+                            added=True, default=0)
+    log_lost: int = _col("INTEGER NOT NULL DEFAULT 0", "records lost: ring full (writer stalled) or not "
+                         "written after a disk error", added=True, default=0)
+    log_note: str = _col("TEXT NOT NULL DEFAULT ''", "why logging stopped (disk full, ...); '' normally",
+                         added=True, default="")
+    end_reason: str = _col("TEXT NOT NULL DEFAULT ''", "how the run ended: " + ", ".join(
+        f"{k} ({v})" for k, v in END_REASONS.items()) + "; empty while it runs", added=True, default="")
 
     def as_dict(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -101,17 +89,45 @@ class RunRow:
 _COLUMNS = [f.name for f in fields(RunRow)]
 
 
+def schema() -> str:
+    """CREATE TABLE for the run records, from RunRow."""
+    columns = ",\n".join(f"    {f.name} {f.metadata['sql']}" for f in fields(RunRow))
+    return f"CREATE TABLE IF NOT EXISTS runs (\n{columns}\n);\n"
+
+
+def record_model(name: str = "RunRecord", exclude: frozenset[str] = frozenset(),
+                 **extra: tuple[Any, Any]) -> type[BaseModel]:
+    """The API model of a run record, from RunRow: every field (but `exclude`), typed and
+    described as RunRow says, then `extra` (name=(type, pydantic Field)) that the route adds."""
+    hints = get_type_hints(RunRow)
+    spec: dict[str, Any] = {}
+    for f in fields(RunRow):
+        if f.name in exclude:
+            continue
+        doc = f.metadata.get("doc") or None
+        if f.default is not MISSING:
+            spec[f.name] = (hints[f.name], Field(default=f.default, description=doc))
+        else:
+            spec[f.name] = (hints[f.name], Field(description=doc))
+    spec.update(extra)
+    return create_model(name, **spec)
+
+
+# What the API answers for a run (GET /api/runs, POST /api/runs, ...).
+RunRecord = record_model()
+
+
 class RunStore:
     def __init__(self, path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         private_db(path)  # 0600 before SQLite opens it: its WAL/SHM take the same mode
         self._db = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False)
         self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.executescript(_SCHEMA)
+        self._db.executescript(schema())
         have = {r[1] for r in self._db.execute("PRAGMA table_info(runs)")}
-        for name, decl in _ADDED_COLUMNS:
-            if name not in have:
-                self._db.execute(f"ALTER TABLE runs ADD COLUMN {name} {decl}")
+        for f in fields(RunRow):
+            if f.name not in have and f.metadata["added"]:
+                self._db.execute(f"ALTER TABLE runs ADD COLUMN {f.name} {f.metadata['sql']}")
         # A previous appliance process that died mid-run left rows 'running': they did not end
         # cleanly and nobody watched them end, so say so rather than show them as live.
         self.orphans: list[RunRow] = [
