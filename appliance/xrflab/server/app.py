@@ -50,7 +50,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         store = RunStore(settings.runs_db)
         hub = Hub(settings.client_queue_telemetry, settings.client_queue_max, settings.slow_client_s)
         supervisor = Supervisor(settings, hub, store)
-        hub.snapshot = supervisor.snapshot
+        hub.add_snapshot(supervisor.snapshot)  # the run and its state first, then the lease (security)
         app.state.supervisor = supervisor
         security.open(hub, supervisor)  # accounts, audit trail, bench lease (issue 7)
         # The run observers, in the order they are told of a run's start, samples and end
@@ -67,8 +67,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # ROS 2 bridge per run when enabled (ros_supervisor.py); its lease gate asks `security`.
         # Registers itself last: one bridge per run, started and stopped with it.
         ros = RosBridgeSupervisor(settings, supervisor, hub, security)
-        snapshot_with_lease = hub.snapshot
-        hub.snapshot = lambda: [*snapshot_with_lease(), *ros.snapshot()]
+        hub.add_snapshot(ros.snapshot)
         await ros.open()
         app.state.ros = ros
         # The lab room (issue 21): one more listener of the hub once this bench is enrolled (it

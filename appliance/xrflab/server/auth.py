@@ -85,8 +85,7 @@ class Security:
         lease = Lease(settings.lease_idle_s, hub.publish, auditmod.record)
         self.lease = lease
         bootstrap_admin(self.accounts)
-        snapshot = hub.snapshot
-        hub.snapshot = lambda: [*snapshot(), ("lease", lease.payload())]
+        hub.add_snapshot(lambda: [("lease", lease.payload())])
         from . import ownership
 
         ownership.attach(hub, supervisor)  # what each WebSocket client may see of the live run
@@ -95,10 +94,8 @@ class Security:
 
     def disconnect(self, user_id: int) -> None:
         """Close the WebSockets of a user whose sessions just ended (disabled, reset)."""
-        for client in tuple(getattr(self.hub, "_clients", ())):
-            if client.user is not None and client.user.id == user_id:
-                client.kick_reason = "your session ended"
-                client.kicked.set()
+        if self.hub is not None:
+            self.hub.disconnect_user(user_id, "your session ended")
 
     def close(self) -> None:
         from . import audit as auditmod

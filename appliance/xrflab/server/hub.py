@@ -154,8 +154,9 @@ class Hub:
         self._max_total = max_total
         self._slow_after_s = slow_after_s
         self.published = 0
-        # Filled in by the app: messages a new client needs first (current run, state, ...).
-        self.snapshot: Callable[[], Iterable[tuple[str, dict[str, Any]]]] = lambda: ()
+        # What a new client needs first (current run, state, lease, ROS bridge...): each part's
+        # source adds itself with add_snapshot(), in the order the client receives them.
+        self._snapshots: list[Callable[[], Iterable[tuple[str, dict[str, Any]]]]] = []
         # Called with every published message before the fan-out (the bench lease watches runs end).
         self.listeners: list[Callable[[str, dict[str, Any]], None]] = []
         # Per-client filtering (ownership.attach sets both): whose a message is, and whether a
@@ -167,6 +168,14 @@ class Hub:
     def clients(self) -> int:
         return len(self._clients)
 
+    def add_snapshot(self, source: Callable[[], Iterable[tuple[str, dict[str, Any]]]]) -> None:
+        """`source()`: (type, payload) messages a client connecting now receives first; sources
+        are asked in the order they were added."""
+        self._snapshots.append(source)
+
+    def snapshot(self) -> list[tuple[str, dict[str, Any]]]:
+        return [message for source in self._snapshots for message in source()]
+
     def new_client(self, ws: WebSocket, user: Any = None) -> Client:
         """`user`: who is connecting (set before the snapshot, which is filtered as any message)."""
         client = Client(ws, ClientQueue(self._max_telemetry, self._max_total, self._slow_after_s))
@@ -176,11 +185,35 @@ class Hub:
         self._clients.add(client)
         return client
 
+    def disconnect_user(self, user_id: int, reason: str) -> int:
+        """Close every WebSocket of the user with this id (their sessions ended: disabled, reset);
+        how many were open."""
+        n = 0
+        for client in tuple(self._clients):
+            if client.user is not None and client.user.id == user_id:
+                client.kick_reason = reason
+                client.kicked.set()
+                n += 1
+        return n
+
     def remove(self, client: Client) -> None:
         self._clients.discard(client)
 
+    def publish_to_owner(self, message_type: str, payload: dict[str, Any], owner: str | None) -> None:
+        """A message only for `owner` (a username) and whoever may see what they own (educators);
+        owner None: educators only. Nobody else receives anything in its place."""
+        self._publish(message_type, payload, Scoped(owner, None))
+
+    def publish_to_educators(self, message_type: str, payload: dict[str, Any]) -> None:
+        self._publish(message_type, payload, Scoped(None, None))
+
     def publish(self, message_type: str, payload: dict[str, Any]) -> None:
-        """Fan a message out to every subscribed client. Never blocks, never raises per client."""
+        """Fan a message out to every subscribed client, each getting what `scope` lets them see
+        (ownership.scope: the owner's part of a run to its owner and educators, the public part to
+        the rest). Never blocks, never raises per client."""
+        self._publish(message_type, payload, None)
+
+    def _publish(self, message_type: str, payload: dict[str, Any], audience: Scoped | None) -> None:
         for listener in self.listeners:
             try:
                 listener(message_type, payload)
@@ -191,7 +224,7 @@ class Hub:
         if not self._clients:
             return
         self.published += 1
-        self._fan_out(message_type, payload, tuple(self._clients))
+        self._fan_out(message_type, payload, tuple(self._clients), audience=audience)
 
     def _scope(self, message_type: str, payload: dict[str, Any]) -> Scoped | None:
         try:
@@ -203,9 +236,10 @@ class Hub:
             return _FAIL_CLOSED
 
     def _fan_out(self, message_type: str, payload: dict[str, Any], clients: Iterable[Client],
-                 topics: bool = True) -> None:
-        """Each client gets the full message or the public one; each is encoded at most once."""
-        scoped = self._scope(message_type, payload)
+                 topics: bool = True, audience: Scoped | None = None) -> None:
+        """Each client gets the full message or the public one; each is encoded at most once.
+        `audience`: given by the publisher (publish_to_owner), else the scope rule decides."""
+        scoped = audience if audience is not None else self._scope(message_type, payload)
         text: str | None = None
         public: str | None = None
         for client in clients:
