@@ -307,7 +307,10 @@ class _CMakeRead:
     framework_dirs: list[Path] = field(default_factory=list)
 
 
-def _read_xrf2_cmake(project: Path) -> _CMakeRead:
+def _read_xrf2_cmake(project: Path, globs: bool = True) -> _CMakeRead:
+    """``globs=False``: file(GLOB) and aux_source_directory() are not evaluated (their variables
+    stay empty) -- enough to learn where the framework folder is, and a student's file(GLOB_RECURSE /*)
+    never walks the appliance's disk outside the build's sandbox."""
     root = str(project)
     unknown: set[str] = set()
     executables: dict[str, list[Path]] = {}
@@ -383,6 +386,8 @@ def _read_xrf2_cmake(project: Path) -> _CMakeRead:
                         continue
                     keep = items[0].upper() == "INCLUDE"
                     variables[var] = [c for c in cur if bool(rx.search(c)) == keep]
+            elif name == "file" and len(values) >= 2 and values[0].upper() in ("GLOB", "GLOB_RECURSE") and not globs:
+                variables[values[1]] = []
             elif name == "file" and len(values) >= 2 and values[0].upper() in ("GLOB", "GLOB_RECURSE"):
                 recurse = values[0].upper() == "GLOB_RECURSE"
                 var, pats, found = values[1], values[2:], []
@@ -400,6 +405,8 @@ def _read_xrf2_cmake(project: Path) -> _CMakeRead:
                         it = parent.rglob(pattern) if recurse else parent.glob(pattern)
                         found.extend(str(f) for f in sorted(it) if f.is_file())
                 variables[var] = found if relative is None else [os.path.relpath(f, relative) for f in found]
+            elif name == "aux_source_directory" and len(values) == 2 and not globs:
+                variables[values[1]] = []
             elif name == "aux_source_directory" and len(values) == 2:
                 d = paths([values[0]])[0]
                 variables[values[1]] = [str(f) for f in sorted(d.glob("*")) if f.suffix in _CXX_SUFFIXES] if d.is_dir() else []
@@ -445,7 +452,8 @@ def _xrf2_msgs_package(d: Path) -> bool:
     return re.search(r"<name>\s*xrf2_msgs\s*</name>", text) is not None
 
 
-def find_xrf2_messages(project: Path, framework_dirs: Iterable[Path] = ()) -> tuple[Optional[Path], list[Path]]:
+def find_xrf2_messages(project: Path, framework_dirs: Iterable[Path] = (),
+                       within: Optional[Path] = None) -> tuple[Optional[Path], list[Path]]:
     """Where an XRF2 project's Ros2Xeno.msg and Xeno2Ros.msg are, and the places looked at.
 
     An XRF2 controller package usually has no msg/ of its own: the messages are part of the
@@ -453,13 +461,16 @@ def find_xrf2_messages(project: Path, framework_dirs: Iterable[Path] = ()) -> tu
     folder the project's CMakeLists.txt names, ``../XRF2`` or ``../ros2-xenomai4-framework``),
     built into the same ROS 2 workspace. So, in this order: the project's own msg/; the
     framework folders its CMakeLists.txt names; an xrf2_msgs package or an XRF2 framework copy
-    next to the project or one or two levels up (the workspace's src/)."""
+    next to the project or one or two levels up (the workspace's src/). With ``within`` (an
+    uploaded source folder) nothing outside that folder is looked at: not the project folder's
+    other versions, not another student's project."""
     project = project.resolve()
+    bound = within.resolve() if within is not None else None
     looked: list[Path] = []
 
     def consider(d: Path) -> Optional[Path]:
         d = d.resolve()
-        if d in looked:
+        if d in looked or (bound is not None and not _inside(d, bound)):
             return None
         looked.append(d)
         return d if _has_messages(d) else None
@@ -468,7 +479,7 @@ def find_xrf2_messages(project: Path, framework_dirs: Iterable[Path] = ()) -> tu
     candidates += [fw / "Common" / "XRF2_msgs" / "msg" for fw in framework_dirs]
     ancestors = [project.parent, project.parent.parent, project.parent.parent.parent]
     for anc in ancestors:
-        if not anc.is_dir():
+        if not anc.is_dir() or (bound is not None and not _inside(anc, bound)):
             continue
         try:
             children = sorted(c for c in anc.iterdir() if c.is_dir() and c.name not in _SKIP_DIRS
@@ -635,11 +646,7 @@ def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
     else:
         found, looked = find_xrf2_messages(project, read.framework_dirs)
         if found is None:
-            raise BuildError(
-                "Ros2Xeno.msg and Xeno2Ros.msg not found. XRF2 kept them in its xrf2_msgs package "
-                "(XenoRosFramework/Common/XRF2_msgs/msg); upload the project together with the XRF2 "
-                "folder it names, or copy the two files into the project's msg/ folder. Looked in: "
-                + ", ".join(_rel(d, project) for d in looked))
+            raise BuildError(_no_xrf2_messages(looked, project, read.framework_dirs))
         mdir = found
     for f in _MSG_FILES:
         if (mdir / f).exists():
@@ -699,6 +706,89 @@ def find_xrf2_controllers(folder: Path, depth: int = 4) -> list[Path]:
 
     visit(folder, 0)
     return found
+
+# ---------------------------------------------------------------------------------------
+# where the project and its messages are: the one definition `xrf build`, the upload check,
+# the project pages, `xrf upload` and the ROS 2 interface package all use
+
+@dataclass(frozen=True)
+class ProjectSource:
+    """What a folder (a project, or a whole ROS 2 workspace) builds: the controller package
+    ``project``, its ``layout``, and the folder ``msg_dir`` holding Ros2Xeno.msg / Xeno2Ros.msg."""
+    folder: Path
+    project: Path
+    layout: Literal["xrf", "xrf2"]
+    msg_dir: Path
+    looked: tuple[Path, ...] = ()
+
+
+def _shown(p: Path, base: Path) -> str:
+    """``p`` as the student knows it: relative to the folder they gave (``../XRF2/...`` too)."""
+    rel = os.path.relpath(p, base)
+    return "." if rel == "." else rel
+
+
+def controller_folder(folder: Path | str, log: Optional[Log] = None) -> Path:
+    """The controller package of ``folder``: the folder itself when it has a CMakeLists.txt, else
+    (a ROS 2 workspace as XRF2 students keep it: src/XRF2, src/<controller>, other nodes) the one
+    package below it that uses XRF2's loop."""
+    folder = Path(folder).resolve()
+    if (folder / "CMakeLists.txt").is_file():
+        return folder
+    controllers = find_xrf2_controllers(folder)
+    if len(controllers) > 1:
+        raise BuildError(f"{folder.name}: no CMakeLists.txt here, and several XRF2 controller packages below it ("
+                         + ", ".join(_shown(c, folder) for c in controllers)
+                         + "); build (or upload) the folder of the one you mean")
+    if not controllers:
+        raise BuildError("missing CMakeLists.txt: none at the top of the folder and no XRF2 controller "
+                         "package (a folder with a CMakeLists.txt whose code uses XenoFrtLoop / "
+                         "XenoFrtRosIco) below it. Start from a template (xrf new, or New project in "
+                         "the dashboard), or give the ROS 2 workspace with the controller in it.")
+    if log is not None:
+        log(f"{folder}: a ROS 2 workspace; building its XRF2 controller package {_shown(controllers[0], folder)}")
+    return controllers[0]
+
+
+def _no_xrf2_messages(looked: Iterable[Path], base: Path, framework_dirs: Iterable[Path] = (),
+                      within: Optional[Path] = None) -> str:
+    text = ("Ros2Xeno.msg and Xeno2Ros.msg not found. XRF2 kept them in its xrf2_msgs package "
+            "(XenoRosFramework/Common/XRF2_msgs/msg); upload the project together with the XRF2 "
+            "folder it names (the whole workspace), or copy the two files into the project's msg/ "
+            "folder. Looked in: " + ", ".join(_shown(d, base) for d in looked))
+    if within is not None:
+        outside = [d for d in framework_dirs if not _inside(d.resolve(), within.resolve())]
+        if outside:
+            text += ("; the CMakeLists.txt names " + ", ".join(_shown(d, base) for d in outside)
+                     + ", which is not in the upload")
+    return text
+
+
+def locate_project(folder: Path | str, within: Path | str | None = None,
+                   log: Optional[Log] = None) -> ProjectSource:
+    """Where the controller of ``folder`` and its messages are, or BuildError saying what is
+    missing and where it looked (paths relative to ``folder``).
+
+    An XRF Lab project keeps its messages in msg/. An XRF2 project: see find_xrf2_messages (its
+    own msg/, the framework folder its CMakeLists.txt names, an xrf2_msgs package or XRF2 copy
+    next to it or up to the workspace). ``within`` bounds the search (an uploaded source folder:
+    nothing outside it is read)."""
+    folder = Path(folder).resolve()
+    bound = Path(within).resolve() if within is not None else None
+    project = controller_folder(folder, log)
+    layout = detect_layout(project)
+    if layout == "xrf":
+        msg_dir = project / "msg"
+        missing = [_shown(msg_dir / f, folder) for f in _MSG_FILES if not (msg_dir / f).is_file()]
+        if missing:
+            raise BuildError("missing " + ", ".join(missing) + " (an XRF Lab project keeps its messages in "
+                             f"msg/). Looked in: {_shown(msg_dir, folder)}")
+        return ProjectSource(folder, project, layout, msg_dir, (msg_dir,))
+    framework_dirs = _read_xrf2_cmake(project, globs=False).framework_dirs
+    found, looked = find_xrf2_messages(project, framework_dirs, bound)
+    if found is None:
+        raise BuildError(_no_xrf2_messages(looked, folder, framework_dirs, bound))
+    return ProjectSource(folder, project, layout, found, tuple(looked))
 
 
 def _cmake_quote(p: Path | str) -> str:
@@ -809,28 +899,22 @@ def _xrfrt_config_dir(prefix: Path) -> Path:
 
 
 def build_project(project_dir: Path | str, build_dir: Path | str | None = None, log: Log = print,
-                  msg_dir: Path | str | None = None) -> BuildResult:
+                  msg_dir: Path | str | None = None, within: Path | str | None = None) -> BuildResult:
     """Configure and build a student project against rt_core; return what was built.
 
     ``build_dir`` defaults to ``<project>/build``. ``msg_dir`` overrides where Ros2Xeno.msg and
-    Xeno2Ros.msg come from (the project's ``msg/`` otherwise).
+    Xeno2Ros.msg come from (the project's ``msg/`` otherwise; for an XRF2 project, where
+    locate_project finds them). ``within``: see locate_project (the appliance's uploaded source).
     """
-    project = Path(project_dir).resolve()
-    if not project.is_dir():
-        raise BuildError(f"{project}: project folder not found")
-    build = Path(build_dir).resolve() if build_dir else project / "build"
-    if not (project / "CMakeLists.txt").exists():
-        # A whole ROS 2 workspace as XRF2 students keep it (src/XRF2, src/<controller>, other
-        # nodes): the controller is the one package that uses XRF2's loop.
-        controllers = find_xrf2_controllers(project)
-        if len(controllers) > 1:
-            raise BuildError(f"{project}: no CMakeLists.txt here, and several XRF2 controller packages below it ("
-                             + ", ".join(_rel(c, project) for c in controllers)
-                             + "); build the folder of the one you mean")
-        if controllers:
-            log(f"{project}: a ROS 2 workspace; building its XRF2 controller package {_rel(controllers[0], project)}")
-            project = controllers[0]
+    given = Path(project_dir).resolve()
+    if not given.is_dir():
+        raise BuildError(f"{given}: project folder not found")
+    build = Path(build_dir).resolve() if build_dir else given / "build"
+    # A whole ROS 2 workspace as XRF2 students keep it builds its controller package.
+    project = controller_folder(given, log)
     layout = detect_layout(project)
+    if layout == "xrf2" and not msg_dir:
+        msg_dir = locate_project(given, within).msg_dir
     prefix = ensure_rt_core(log)
 
     plan: Optional[_Xrf2Plan] = None

@@ -341,7 +341,8 @@ def _build(project: Path) -> Path:
 
 
 def _build_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("project", type=Path, help="project folder (with CMakeLists.txt and msg/)")
+    p.add_argument("project", type=Path, help="project folder (with CMakeLists.txt and msg/), an XRF2 "
+                   "controller package, or a ROS 2 workspace holding one")
     p.add_argument("--no-ros-messages", action="store_true",
                    help="do not build the project's xrf2_msgs ROS 2 package (built by default when the "
                         "ROS 2 build tools are installed, once per set of messages, for xrf ros-bridge)")
@@ -351,10 +352,14 @@ def _build_ros_messages(project: Path) -> None:
     """The project's xrf2_msgs interface package, as `xrf ros-bridge` will need it: built now,
     with the controller (about a minute the first time, then cached by the messages' contents),
     so the bridge starts at once. Where ROS 2's build tools are missing, one line says so."""
+    from . import build
     from .ros import interfaces
 
-    msg_dir = project / "msg"
-    if not msg_dir.is_dir():
+    try:
+        # The messages the controller was built with: msg/, or for an XRF2 project its XRF2
+        # folder's xrf2_msgs package (the same rules as the build).
+        msg_dir = build.locate_project(project).msg_dir
+    except build.BuildError:
         return
     say = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     try:

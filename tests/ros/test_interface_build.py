@@ -60,3 +60,28 @@ def test_xrf_build_builds_the_messages_for_the_bridge(tmp_path: Path) -> None:
     said: list[str] = []
     interfaces.build_interface_package(project / "msg", log=said.append)
     assert said and said[0].startswith("xrf2_msgs: up to date in"), said
+
+
+def test_an_xrf2_project_gets_the_messages_of_its_xrf2_folder(tmp_path: Path) -> None:
+    """An XRF2 controller package has no msg/: its messages are XRF2's xrf2_msgs package in the
+    framework folder its CMakeLists.txt names (../XRF2/XenoRosFramework/Common/XRF2_msgs/msg).
+    `xrf build` builds the bridge's interface package from those (issue 17). A field only the
+    framework folder's copy has proves which files were taken."""
+    fixture = REPO / "tests/fixtures/xrf2_v1_1_project"
+    project = tmp_path / "ws" / "src" / "controller"
+    shutil.copytree(fixture, project)
+    msgs = tmp_path / "ws" / "src" / "XRF2" / "XenoRosFramework" / "Common" / "XRF2_msgs" / "msg"
+    msgs.parent.mkdir(parents=True)
+    shutil.move(str(project / "msg"), str(msgs))
+    marker = f"float64 from_the_xrf2_folder_{os.getpid()}"
+    (msgs / "Ros2Xeno.msg").write_text((msgs / "Ros2Xeno.msg").read_text().rstrip("\n") + "\n" + marker + "\n")
+    env = dict(os.environ, PYTHONPATH=str(REPO / "appliance"))
+    proc = subprocess.run([sys.executable, "-m", "xrflab.cli", "build", str(project)], capture_output=True,
+                          text=True, timeout=900, env=env, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert re.search(r"^xrf2_msgs: (up to date in|installed in) ", proc.stderr, re.MULTILINE), proc.stderr[-3000:]
+    said: list[str] = []
+    prefix = interfaces.build_interface_package(msgs, log=said.append)
+    assert said and said[0].startswith("xrf2_msgs: up to date in"), said
+    installed = list(prefix.rglob("xrf2_msgs/msg/Ros2Xeno.msg"))
+    assert installed and marker in installed[0].read_text(), installed

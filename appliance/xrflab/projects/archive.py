@@ -12,6 +12,12 @@ absolute paths, ``..``, links of any kind (symbolic or hard: a project needs non
 files, FIFOs, sockets, names that are not UTF-8, duplicate names, too many files, a file or a
 total over the size limits, and compression ratios that only a zip bomb has: per entry, and for
 the whole archive (many small entries, each harmless alone, add up to a bomb too).
+
+What makes it a project is decided after unpacking, by build.locate_project bounded to the
+unpacked folder (the same rules as `xrf build`): a project with CMakeLists.txt and msg/, an XRF2
+controller package with its XRF2 framework folder or xrf2_msgs package, a whole ROS 2 workspace.
+An archive that is not one is refused naming what is missing and where it looked, and the
+unpacked folder is removed again.
 """
 
 from __future__ import annotations
@@ -30,7 +36,6 @@ from typing import BinaryIO, Callable, Iterator
 CHUNK = 1 << 16
 # Folders a project never needs from the student's machine; skipped when unpacking (still counted).
 SKIPPED_DIRS = {"build", "install", "log", ".git", "__pycache__", ".vscode", ".idea"}
-REQUIRED_MSGS = ("msg/Ros2Xeno.msg", "msg/Xeno2Ros.msg")
 
 
 @dataclass(frozen=True)
@@ -367,8 +372,9 @@ def _relative(name: str, prefix: str) -> str:
     return name[len(prefix) + 1:] if prefix and name.startswith(prefix + "/") else ("" if name == prefix else name)
 
 
-def check(path: Path | str, limits: Limits = Limits()) -> Manifest:
-    """Read the whole archive without writing anything; raise ArchiveRejected or return what it holds."""
+def check_stream(path: Path | str, limits: Limits = Limits()) -> Manifest:
+    """Read the whole archive without writing anything; raise ArchiveRejected or return what it
+    holds. Whether it is a complete project is not known yet (see check)."""
     path = Path(path)
 
     def drain(_entry: Entry, chunks: Chunks | None) -> None:
@@ -378,23 +384,35 @@ def check(path: Path | str, limits: Limits = Limits()) -> Manifest:
 
     manifest = _walk_checked(path, limits, drain)
     manifest.prefix = _strip_prefix(manifest.files + manifest.dirs)
-    files = {_relative(n, manifest.prefix) for n in manifest.files}
-    dirs = {_relative(n, manifest.prefix) for n in manifest.dirs}
-    missing = []
-    if "CMakeLists.txt" not in files:
-        missing.append("CMakeLists.txt (at the top of the project folder)")
-    for m in REQUIRED_MSGS:
-        if m not in files:
-            missing.append(m)
-    if missing:
-        has = sorted(n for n in files if "/" not in n)[:12]
-        raise ArchiveRejected(
-            "this is not a complete project: missing " + ", ".join(missing)
-            + (". Top level has: " + ", ".join(has) if has else ". The archive holds no files")
-            + ". Start from a template (xrf new, or New project in the dashboard).",
-            missing[0].split(" ")[0])
-    del dirs
     return manifest
+
+
+def check(path: Path | str, limits: Limits = Limits()) -> Manifest:
+    """What unpack() would accept, for an archive that is kept rather than unpacked (a room's
+    assignment): the streaming check, then an unpack into a private temporary folder for the
+    project check, removed again."""
+    import tempfile
+
+    path = Path(path)
+    with tempfile.TemporaryDirectory(prefix=".check-", dir=path.parent) as tmp:
+        return unpack(path, Path(tmp) / "src", limits)
+
+
+def _check_project(dest: Path, manifest: Manifest) -> None:
+    """The unpacked folder builds a controller and has its messages (build.locate_project, within
+    the folder), or ArchiveRejected with its reason and the top level's names."""
+    from .. import build
+
+    try:
+        build.locate_project(dest, within=dest)
+    except build.BuildError as exc:
+        files = {_relative(n, manifest.prefix) for n in manifest.files}
+        has = sorted({n.split("/", 1)[0] + ("/" if "/" in n else "") for n in files if n})[:12]
+        missing = next((w for w in ("CMakeLists.txt", "msg/Ros2Xeno.msg", "Ros2Xeno.msg") if w in exc.message), "")
+        raise ArchiveRejected(
+            "this is not a complete project: " + exc.message
+            + (". Top level has: " + ", ".join(has) if has else ". The archive holds no files"),
+            missing) from None
 
 
 # ---- unpacking ----------------------------------------------------------------------------------
@@ -425,7 +443,7 @@ def unpack(path: Path | str, dest: Path | str, limits: Limits = Limits()) -> Man
     """Check, then unpack into ``dest`` (which must not exist yet; its parent must). On any
     failure ``dest`` is removed again, so nothing is left behind."""
     path, dest = Path(path), Path(dest)
-    manifest = check(path, limits)
+    manifest = check_stream(path, limits)
     os.mkdir(dest, 0o755)
     root_fd = os.open(dest, _DIR_FLAGS)
     prefix = manifest.prefix
@@ -461,6 +479,8 @@ def unpack(path: Path | str, dest: Path | str, limits: Limits = Limits()) -> Man
 
     try:
         result = _walk_checked(path, limits, write)
+        result.prefix = prefix
+        _check_project(dest, result)
     except BaseException:
         os.close(root_fd)
         import shutil

@@ -282,7 +282,9 @@ def _inner_main(src: str, build_dir: str) -> int:
 
     out = Path(build_dir) / RESULT_FILE
     try:
-        r = build.build_project(src, Path(build_dir) / "cmake", log=lambda line: print(line, flush=True))
+        # within=src: the messages are looked for in the uploaded source only (not in the
+        # project folder's older versions next to it).
+        r = build.build_project(src, Path(build_dir) / "cmake", log=lambda line: print(line, flush=True), within=src)
     except build.BuildError as exc:
         out.write_text(json.dumps({"ok": False, "error": exc.message}))
         print(f"error: {exc.message}", flush=True)
@@ -652,18 +654,11 @@ class Builder:
         return row
 
     def _project_facts(self, src: Path) -> dict[str, Any]:
-        from ..msgdef import Codec, MsgError, parse_msg_file  # type: ignore[attr-defined]
-        from . import twentysim
+        from . import source, twentysim
 
-        facts: dict[str, Any] = {"twenty_sim_tokens": twentysim.describe(src), "messages": {}}
-        for name in ("Ros2Xeno", "Xeno2Ros"):
-            p = src / "msg" / f"{name}.msg"
-            try:
-                fields_ = Codec(parse_msg_file(p)).fields if p.is_file() else []
-                facts["messages"][name] = [{"name": f.name, "type": f.type, "count": f.count} for f in fields_]
-            except (MsgError, OSError, ValueError) as exc:
-                facts["messages"][name] = {"error": str(exc)}
-        return facts
+        located = source.locate(src)
+        return {"twenty_sim_tokens": twentysim.describe(located.project if located else src),
+                "messages": source.message_fields(src, located)}
 
     def _ensure_user(self) -> tuple[int, int, str]:
         if self._user is None:

@@ -26,7 +26,7 @@ from fastapi.responses import PlainTextResponse, Response
 from pydantic import BaseModel, Field
 from starlette.requests import HTTPConnection
 
-from ..projects import archive, twentysim
+from ..projects import archive, source, twentysim
 from ..projects.assignments import ORIGIN_PREFIX, Assignments
 from ..projects.builder import Builder, SandboxConfig
 from ..projects.store import BuildRow, ProjectRow, ProjectStore, VersionRow
@@ -233,17 +233,12 @@ def _file_list(src: Path) -> list[str]:
     return out
 
 
-def _messages(src: Path) -> dict[str, Any]:
-    from ..msgdef import MsgError, parse_msg_file
-
-    out: dict[str, Any] = {}
-    for name in ("Ros2Xeno", "Xeno2Ros"):
-        p = src / "msg" / f"{name}.msg"
-        try:
-            out[name] = [{"name": f.name, "type": f.type, "count": f.count} for f in parse_msg_file(p)]
-        except (MsgError, OSError) as exc:
-            out[name] = {"error": str(exc)}
-    return out
+def _described(src: Path) -> dict[str, Any]:
+    """The 20-sim model and the message fields of the controller the source builds (for an XRF2
+    workspace: its controller package, the messages from its XRF2 folder or xrf2_msgs package)."""
+    located = source.locate(src)
+    return {"twenty_sim": twentysim.describe(located.project if located else src),
+            "messages": source.message_fields(src, located)}
 
 
 async def _spool(request: Request, dest_dir: Path, limit: int) -> Path:
@@ -512,7 +507,7 @@ async def new_from_template(body: FromTemplate, request: Request) -> dict[str, A
 async def get_project(pid: int, request: Request) -> dict[str, Any]:
     svc, project = await _project(request, pid)
     src = svc.src(project)
-    return {**project.as_dict(), "twenty_sim": twentysim.describe(src), "messages": _messages(src),
+    return {**project.as_dict(), **(await asyncio.to_thread(_described, src)),
             "file_list": _file_list(src)[:2000], "builds": [_build_dict(svc, b) for b in svc.store.builds(pid, 20)],
             "runs": svc.store.runs_of(pid)}
 

@@ -1,0 +1,46 @@
+"""An uploaded project's source folder as the pages show it: which controller package it builds
+and the fields of its messages.
+
+Where they are is build.locate_project's answer (one definition, shared with `xrf build`, the
+upload check and `xrf upload`), bounded to the source folder: an XRF2 project's messages may be
+in its framework folder or an xrf2_msgs package elsewhere in the uploaded workspace, never
+outside the upload."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Optional
+
+from .. import build
+
+MESSAGES = ("Ros2Xeno", "Xeno2Ros")
+
+
+def locate(src: Path) -> Optional[build.ProjectSource]:
+    """The controller and its messages in ``src``, or None when the source is incomplete (an
+    editor save removed a file, say): the page still shows it, the build says what is missing."""
+    try:
+        return build.locate_project(src, within=src)
+    except (build.BuildError, OSError):
+        return None
+
+
+def message_fields(src: Path, located: Optional[build.ProjectSource] = None) -> dict[str, Any]:
+    """{message: [{name, type, count}] or {"error": why}} for Ros2Xeno and Xeno2Ros, parsed
+    from the files the build takes (the Projects page's schema, the build's recorded facts)."""
+    from ..msgdef import Codec, MsgError, parse_msg_file  # type: ignore[attr-defined]
+
+    if located is None:
+        try:
+            located = build.locate_project(src, within=src)
+        except (build.BuildError, OSError) as exc:
+            reason = exc.message if isinstance(exc, build.BuildError) else str(exc)
+            return {name: {"error": reason} for name in MESSAGES}
+    out: dict[str, Any] = {}
+    for name in MESSAGES:
+        p = located.msg_dir / f"{name}.msg"
+        try:
+            out[name] = [{"name": f.name, "type": f.type, "count": f.count} for f in Codec(parse_msg_file(p)).fields]
+        except (MsgError, OSError, ValueError) as exc:
+            out[name] = {"error": str(exc)}
+    return out
