@@ -126,3 +126,39 @@ def test_unpack_never_follows_a_planted_link(tmp_path: Path) -> None:
             archive._open_dir(fd, ["msg"])
     finally:
         os.close(fd)
+
+
+def test_xrf_upload_of_an_xrf2_controller_packs_its_xrf2_messages(tmp_path: Path) -> None:
+    """`xrf upload ws/src/ctrl` when the messages are in ../XRF2 (the folder its CMakeLists.txt
+    names): the message folder is packed beside the controller, and the appliance's check finds
+    the same files (issue 17). Without them the controller alone is refused, saying the XRF2
+    folder is not in the upload."""
+    import shutil
+
+    from xrflab import build, projects_cli
+
+    ws = tmp_path / "ws"
+    ctrl = ws / "src" / "ctrl"
+    shutil.copytree(REPO / "tests/fixtures/xrf2_v1_1_project", ctrl)
+    msgs = ws / "src/XRF2/XenoRosFramework/Common/XRF2_msgs/msg"
+    msgs.parent.mkdir(parents=True)
+    shutil.move(str(ctrl / "msg"), str(msgs))
+    (ws / "src/XRF2/XenoRosFramework/Common/XRF2_msgs/package.xml").write_text("<package><name>xrf2_msgs</name></package>")
+
+    data, warnings = projects_cli.pack(ctrl)
+    assert any("packed ../XRF2/XenoRosFramework/Common/XRF2_msgs/msg too" in w for w in warnings), warnings
+    up = tmp_path / "p.tgz"
+    up.write_bytes(data)
+    archive.unpack(up, tmp_path / "src")
+    found = build.locate_project(tmp_path / "src", within=tmp_path / "src")
+    assert found.project == (tmp_path / "src/ctrl").resolve()
+    assert found.msg_dir == (tmp_path / "src/XRF2/XenoRosFramework/Common/XRF2_msgs/msg").resolve()
+    assert (found.msg_dir / "Ros2Xeno.msg").read_bytes() == (msgs / "Ros2Xeno.msg").read_bytes()
+
+    alone = tmp_path / "alone.tgz"
+    alone.write_bytes(hostile.tar_gz({str(p.relative_to(ctrl)): p.read_bytes() for p in ctrl.rglob("*") if p.is_file()}))
+    with pytest.raises(ArchiveRejected) as info:
+        archive.unpack(alone, tmp_path / "src2")
+    assert "Looked in: msg;" in info.value.message and "../XRF2/XenoRosFramework, which is not in the upload" \
+        in info.value.message, info.value.message
+    assert not (tmp_path / "src2").exists()
