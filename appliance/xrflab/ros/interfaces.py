@@ -25,6 +25,7 @@ import re
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -294,27 +295,37 @@ def _last_build_seconds(cache_root: Path) -> float:
 
 def _run_with_progress(cmd: list[str], env: dict[str, str], t0: float, estimate: float,
                        log: Callable[[str], None]) -> None:
-    """Run one build step, saying at most every PROGRESS_EVERY_S how far it is (CMake's own
-    "[ 42%]" when it prints one) and how long is left by the estimate: the first `xrf
-    ros-bridge` used to sit silent for a minute."""
+    """Run one build step, saying every PROGRESS_EVERY_S how far it is (CMake's own "[ 42%]"
+    when it printed one) and how long is left by the estimate: the first `xrf ros-bridge` used
+    to sit silent for a minute. The line comes from a ticker thread, not from the build's
+    output: one long compile prints nothing for as long as it takes."""
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     assert proc.stdout is not None
     tail: list[str] = []
-    said = time.monotonic()
-    percent = ""
-    for line in proc.stdout:
-        tail = (tail + [line.rstrip()])[-60:]
-        m = re.match(r"\[\s*(\d+)%\]", line)
-        if m:
-            percent = m.group(1) + " %"
-        if time.monotonic() - said >= PROGRESS_EVERY_S:
-            said = time.monotonic()
-            elapsed = said - t0
+    percent = [""]
+    done = threading.Event()
+
+    def tick() -> None:
+        while not done.wait(PROGRESS_EVERY_S):
+            elapsed = time.monotonic() - t0
             left = max(0.0, estimate - elapsed)
-            log(f"{PACKAGE}: {percent or cmd[1]} after {elapsed:.0f} s"
+            log(f"{PACKAGE}: {percent[0] or cmd[1]} after {elapsed:.0f} s"
                 + (f", about {left:.0f} s left" if left >= 1 else ", a little longer than estimated"))
-    if proc.wait() != 0:
-        raise InterfaceBuildError(f"{PACKAGE}: `{' '.join(cmd)}` failed ({proc.returncode}):\n" + "\n".join(tail))
+
+    ticker = threading.Thread(target=tick, name="xrf2_msgs-progress", daemon=True)
+    ticker.start()
+    try:
+        for line in proc.stdout:
+            tail = (tail + [line.rstrip()])[-60:]
+            m = re.match(r"\[\s*(\d+)%\]", line)
+            if m:
+                percent[0] = m.group(1) + " %"
+        returncode = proc.wait()
+    finally:
+        done.set()
+        ticker.join()
+    if returncode != 0:
+        raise InterfaceBuildError(f"{PACKAGE}: `{' '.join(cmd)}` failed ({returncode}):\n" + "\n".join(tail))
 
 
 def main(argv: list[str] | None = None) -> int:
