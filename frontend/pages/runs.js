@@ -3,7 +3,10 @@
 // downloadable as the raw file, CSV, MAT, Parquet and rerun .rrd, and the rerun web viewer
 // (served by the appliance under /rerun/) showing the live run (through the appliance's login, from
 // any address) or a finished run's .rrd. The viewer (a 43 MB wasm, 14 MB compressed) is loaded only
-// when asked for ("Live plots", "Open in rerun"): not to download a CSV.
+// when asked for ("Live plots", "Open in rerun"): not to download a CSV. It opens in a tab of its
+// own (noopener: its own renderer process), never in this page: embedded, its drawing froze the
+// dashboard's main thread for minutes on a software GPU, and with it the WebSocket and Esc
+// (issue 19 item 9). Esc in the viewer's tab still stops the run (frontend/rerun-tab.js).
 "use strict";
 (function () {
   const REFRESH_MS = 2000;
@@ -43,9 +46,11 @@
         <h2>Plots (rerun) <span class="muted small" id="rr-what">not loaded</span>
           <button id="rr-live" class="secondary small">Live plots</button></h2>
         <div class="rejected hidden" id="rr-message" role="status"></div>
-        <div class="muted small" id="rr-hint">The rerun viewer loads when you ask for it: <b>Live plots</b> for the
-          running run, <b>Open in rerun</b> on a log file.</div>
-        <iframe id="rr-frame" title="rerun viewer" class="rerun-frame hidden"></iframe>
+        <div class="muted small" id="rr-hint">The rerun viewer opens in a tab of its own when you ask for it:
+          <b>Live plots</b> for the running run, <b>Open in rerun</b> on a log file. <b>Esc</b> in that tab
+          stops the run, as here.</div>
+        <div class="small hidden" id="rr-opened">Opened in a new tab: <a id="rr-link" target="_blank"
+          rel="noopener">open it again</a> (if the browser blocked the new tab, this link opens it).</div>
       </section>`;
     el.querySelector("#rr-live").addEventListener("click", () => openLive(el));
   }
@@ -156,27 +161,28 @@
     return rerun;
   }
 
-  // live: the run whose live stream the frame shows (null: a finished run's .rrd or nothing).
+  // live: the run whose live stream the last opened viewer showed (null: a finished run's .rrd or
+  // nothing). The viewer's tab follows the next run by itself (rerun-tab.js); this page's text too.
   let liveShown = null;
   // What the user asked for last, counted: an answer to an older request (the 2 s poll following
   // the live stream, a slow "Live plots") never overrides a newer click such as "Open in rerun"
   // (issue 19: a finished run's plots flipped back to the live stream).
   let asked = 0;
 
-  function show(el, url, what, reload) {
-    const frame = el.querySelector("#rr-frame");
+  // A tab of its own, without an opener: the browser gives it a renderer process of its own, so
+  // however long the viewer's wasm blocks its thread, this page keeps reading its WebSocket.
+  function show(el, url, what) {
     const src = "/rerun/?url=" + encodeURIComponent(url);
-    frame.classList.remove("hidden");
-    el.querySelector("#rr-hint").classList.add("hidden");
-    if (frame.getAttribute("src") !== src) frame.setAttribute("src", src);
-    else if (reload && frame.contentWindow) frame.contentWindow.location.reload();
+    window.open(src, "_blank", "noopener");
+    el.querySelector("#rr-link").setAttribute("href", src);
+    el.querySelector("#rr-opened").classList.remove("hidden");
     el.querySelector("#rr-what").textContent = what;
   }
 
   // The live stream comes through the appliance's own origin (its gRPC-web read proxy, behind the
   // login), from the Pi itself and from the LAN alike; only the run's owner and educators see it.
-  async function openLive(el, mine) {
-    const ask = mine === undefined ? ++asked : mine;
+  async function openLive(el) {
+    const ask = ++asked;
     const info = await rerunInfo(el);
     if (ask !== asked || !info.available) return;
     const msg = el.querySelector("#rr-message");
@@ -187,20 +193,20 @@
       msg.classList.remove("hidden");
       return;
     }
-    const reload = liveShown !== null && liveShown !== info.live_run;
     liveShown = info.live_run;
-    show(el, info.live_url, `live: run ${info.live_run}` + (info.live_running ? "" : " (ended)"), reload);
+    show(el, info.live_url, `live: run ${info.live_run}` + (info.live_running ? "" : " (ended)"));
   }
 
-  // A new run replaces the live stream: a frame showing the previous one follows it.
+  // A new run replaces the live stream: the viewer's tab follows it (rerun-tab.js), and so does
+  // what this page says it shows. Never a new tab: only a click opens one.
   async function followLive(el) {
     if (liveShown === null) return;
     const ask = asked;
     let info;
     try { info = await xrf.api("GET", "/api/logs/rerun"); } catch (e) { return; }
-    if (ask !== asked || liveShown === null) return;  // the user opened something else meanwhile
-    if (info.live_run !== liveShown || !info.live_url) openLive(el, ask);
-    else el.querySelector("#rr-what").textContent = `live: run ${info.live_run}` + (info.live_running ? "" : " (ended)");
+    if (ask !== asked || liveShown === null || !info.live_url) return;  // the user opened something else meanwhile
+    liveShown = info.live_run;
+    el.querySelector("#rr-what").textContent = `live: run ${info.live_run}` + (info.live_running ? "" : " (ended)");
   }
 
   async function openRrd(el, id, path) {

@@ -1,6 +1,7 @@
-"""The embedded rerun viewer works offline (issue 19): opened on the Runs page with a live run, it
-starts, reads the live stream, and nothing a student's browser loads goes anywhere but the
-appliance (every request of every frame and worker is recorded). Its files come compressed."""
+"""The rerun viewer works offline (issue 19): opened from the Runs page with a live run (in a tab
+of its own), it starts, reads the live stream, and nothing a student's browser loads goes anywhere
+but the appliance (every request of every page, frame and worker of the browser context is
+recorded: the viewer's tab is a page of that context). Its files come compressed."""
 
 from __future__ import annotations
 
@@ -18,15 +19,17 @@ def test_viewer_fetches_nothing_from_the_internet(server: Server, browser) -> No
     page = browser.new_page(viewport={"width": 1280, "height": 900})
     ctx = page.context
     requests: list[str] = []
-    ctx.on("request", lambda r: requests.append(r.url))  # pages, frames and their workers
+    ctx.on("request", lambda r: requests.append(r.url))  # pages (the viewer's tab too), frames, workers
     ctx.on("serviceworker", lambda w: requests.append("serviceworker:" + w.url))
     ctx.on("weberror", lambda e: requests.append("error:" + str(e.error)))
     try:
         page.goto(server.url + "/#runs")
-        page.evaluate("window.viewerReady = false; addEventListener('message', (e) => { if (e.data === 'READY') viewerReady = true; })")
-        page.click("#rr-live")
-        # rerun's index.html tells its parent once the app runs (a 43 MB wasm on a software renderer)
-        page.wait_for_function("window.viewerReady === true", timeout=180_000)
+        with ctx.expect_page() as opened:
+            page.click("#rr-live")
+        viewer = opened.value
+        # rerun's index.html sets window._handle once the app runs (a 43 MB wasm on a software
+        # renderer); a function, not a string: the viewer's CSP forbids eval
+        viewer.wait_for_function("() => window._handle !== undefined", timeout=180_000, polling=500)
         stream = "/rerun.sdk_comms.v1alpha1.MessageProxyService/ReadMessages"
         deadline = time.monotonic() + 30
         while not any(u.endswith(stream) for u in requests):
@@ -35,9 +38,10 @@ def test_viewer_fetches_nothing_from_the_internet(server: Server, browser) -> No
         # what rerun fetched by itself came within seconds of starting (analytics, version check,
         # examples): give it time
         page.wait_for_timeout(10_000)
-        assert not page.evaluate("document.getElementById('rr-frame').contentWindow.document.querySelector('#the_canvas_id') === null")
+        assert viewer.evaluate("document.querySelector('#the_canvas_id') !== null")
+        assert viewer.evaluate("typeof window.xrfRerunTab") == "object"  # ours, allowed by the CSP
     finally:
-        page.close()
+        ctx.close()
         server.stop_run()
     appliance = urlsplit(server.url).netloc
     elsewhere = [u for u in requests if urlsplit(u).scheme not in ("data", "blob") and urlsplit(u).netloc != appliance]
@@ -60,6 +64,10 @@ def test_viewer_files_are_served_gzipped_and_confined(server: Server) -> None:
         assert url not in r.content, url
     index = server.http.get("/rerun/", headers={"Accept-Encoding": "gzip"})
     assert index.headers["cache-control"] == "no-cache" and "googleapis" not in index.text
+    # our script (Esc stops the run from the viewer's tab), from this origin, as the CSP allows
+    assert '<script src="/static/rerun-tab.js"></script>' in index.text
+    assert "script-src 'self'" in index.headers["content-security-policy"]
+    assert "Escape" in server.http.get("/static/rerun-tab.js").text
     plain = server.http.get("/rerun/re_viewer.js", headers={"Accept-Encoding": "identity"})
     assert "content-encoding" not in plain.headers
     assert len(plain.content) == int(plain.headers["content-length"]) == int(plain.headers["rerun-final-length"])

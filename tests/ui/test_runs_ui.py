@@ -1,6 +1,6 @@
 """The Runs page in a real browser: the run list with its logging figures and lost badge, a CSV
 download through the browser (Playwright's download API) equal to `xrf decode`'s CSV, and the
-rerun viewer embedded from the appliance."""
+rerun viewer from the appliance, opened in a tab of its own."""
 
 from __future__ import annotations
 
@@ -76,23 +76,32 @@ def test_runs_page_lists_runs_and_downloads_a_csv(server: Server, browser, tmp_p
     assert got.read_bytes() == want.read_bytes()
     assert got.read_text().count("\n") == info["files"][0]["records"] + 1
     # The rerun viewer is loaded only when asked for (not to download a CSV)...
-    assert not page.locator("#rr-frame").get_attribute("src")
+    assert page.context.pages == [page]
     assert not [u for u in requested if "/rerun/" in u], requested
-    # ...embedded from the appliance (not a CDN), its live stream on this origin.
-    page.click("#rr-live")
-    page.wait_for_function("(document.querySelector('#rr-frame').getAttribute('src') || '').length > 0")
-    src = page.locator("#rr-frame").get_attribute("src")
+    assert page.locator("iframe").count() == 0
+    # ...in a tab of its own (no opener: its own renderer process), from the appliance (not a
+    # CDN), its live stream on this origin.
+    with page.context.expect_page() as opened:
+        page.click("#rr-live")
+    viewer = opened.value
+    viewer.wait_for_url("**/rerun/**", wait_until="commit", timeout=300_000)
     port = server.url.rsplit(":", 1)[1]
-    assert src == "/rerun/?url=" + quote(f"rerun+http://127.0.0.1:{port}/proxy", safe=""), src
-    page.locator(".open-rrd").first.click()
-    page.wait_for_function("document.querySelector('#rr-frame').getAttribute('src').includes('fmt%3Drrd')")
-    page.close()
+    assert viewer.url == server.url + "/rerun/?url=" + quote(f"rerun+http://127.0.0.1:{port}/proxy", safe=""), viewer.url
+    assert viewer.evaluate("window.opener") is None
+    viewer.close()
+    with page.context.expect_page() as opened:
+        page.locator(".open-rrd").first.click()
+    viewer = opened.value
+    viewer.wait_for_url("**/rerun/**", wait_until="commit", timeout=300_000)
+    assert "fmt%3Drrd" in viewer.url and f"%2Fruns%2F{run['id']}%2F" in viewer.url, viewer.url
+    assert "fmt%3Drrd" in page.get_attribute("#rr-link", "href")  # the link to open it again
+    page.context.close()
 
 
 def test_live_plots_from_the_lan_address(server: Server, raw_browser) -> None:
-    """A browser that opened the appliance by its LAN address logs in, and the embedded rerun
-    viewer receives the running run's live recording through the appliance's origin (read from
-    the browser's own network stream via the DevTools protocol)."""
+    """A browser that opened the appliance by its LAN address logs in, and the rerun viewer (in
+    its own tab) receives the running run's live recording through the appliance's origin (read
+    from the viewer tab's own network stream via the DevTools protocol)."""
     port = server.url.rsplit(":", 1)[1]
     url = f"http://{lan_address()}:{port}"
     http = login_client(url, ADMIN_USER, ADMIN_PASSWORD)
@@ -109,8 +118,6 @@ def test_live_plots_from_the_lan_address(server: Server, raw_browser) -> None:
 
         page = ctx.new_page()
         browser_login(page, url, ADMIN_USER, ADMIN_PASSWORD)
-        cdp = ctx.new_cdp_session(page)
-        cdp.send("Network.enable")
         stream: dict[str, object] = {"id": None, "status": None, "data": b""}
 
         def on_response(ev: dict) -> None:
@@ -121,19 +128,30 @@ def test_live_plots_from_the_lan_address(server: Server, raw_browser) -> None:
             if ev["requestId"] == stream["id"] and ev.get("data"):
                 stream["data"] += base64.b64decode(ev["data"])  # type: ignore[operator]
 
-        cdp.on("Network.responseReceived", on_response)
-        cdp.on("Network.dataReceived", on_data)
+        cdps: list = []
+
+        def watch(viewer) -> None:  # noqa: ANN001
+            # Attached as the tab appears, long before its 43 MB viewer opens the stream.
+            cdp = ctx.new_cdp_session(viewer)
+            cdp.on("Network.responseReceived", on_response)
+            cdp.on("Network.dataReceived", on_data)
+            cdp.send("Network.enable")
+            cdps.append(cdp)
+
         page.goto(url + "/#runs")
-        page.click("#rr-live")
-        page.wait_for_function("(document.querySelector('#rr-frame').getAttribute('src') || '').includes('proxy')")
-        src = page.locator("#rr-frame").get_attribute("src")
-        assert src == "/rerun/?url=" + quote(f"rerun+{url}/proxy", safe="")
+        ctx.on("page", watch)
+        with ctx.expect_page() as opened:
+            page.click("#rr-live")
+        viewer = opened.value
+        viewer.wait_for_url("**/rerun/**", wait_until="commit", timeout=300_000)
+        assert viewer.url == url + "/rerun/?url=" + quote(f"rerun+{url}/proxy", safe="")
         assert f"live: run {run['id']}" in page.locator("#rr-what").inner_text()
+        cdp = cdps[0]
         # the viewer (a 40 MB wasm) starts and opens the live stream: seconds on a slow machine
         deadline = time.monotonic() + 120
         while stream["id"] is None:
             assert time.monotonic() < deadline, "the viewer never opened the live stream"
-            page.wait_for_timeout(250)
+            viewer.wait_for_timeout(250)
         assert stream["status"] == 200
         buffered = cdp.send("Network.streamResourceContent", {"requestId": stream["id"]})
         stream["data"] = base64.b64decode(buffered["bufferedData"]) + stream["data"]  # type: ignore[operator]
@@ -141,12 +159,11 @@ def test_live_plots_from_the_lan_address(server: Server, raw_browser) -> None:
         deadline = time.monotonic() + 30
         while not (want in stream["data"] and b"ratio" in stream["data"]):  # type: ignore[operator]
             assert time.monotonic() < deadline, "the viewer received no data of the live run"
-            page.wait_for_timeout(250)
+            viewer.wait_for_timeout(250)
         shots = os.environ.get("XRF_SCREENSHOTS")  # the picture in docs/logging/appliance.md
         if shots:
-            page.wait_for_timeout(5000)
-            box = page.locator("#panel-rerun").bounding_box()
-            page.screenshot(path=str(Path(shots) / "runs-live-rerun.png"), clip=box)
+            viewer.wait_for_timeout(5000)
+            viewer.screenshot(path=str(Path(shots) / "runs-live-rerun.png"))
     finally:
         ctx.close()
         http.close()

@@ -11,7 +11,9 @@
   appliance, which answers 404 at once. A Content-Security-Policy (``connect-src 'self'`` and
   friends) on every viewer file stops whatever a later rerun version adds before it leaves the
   browser. **Compressed**: each file is kept gzipped beside the original (the 43 MB wasm is 14 MB)
-  and served with ``Content-Encoding: gzip`` to browsers that accept it.
+  and served with ``Content-Encoding: gzip`` to browsers that accept it. **Ours**: index.html
+  also loads ``/static/rerun-tab.js`` (``TAB_SCRIPT``): the Runs page opens the viewer in a tab of
+  its own, where that script makes Esc stop the run (issue 19).
 - ``GET /api/logs/rerun``: where the viewer and the live stream are for this request's host.
 - ``POST /rerun.sdk_comms.v1alpha1.MessageProxyService/{ReadMessages,ReadTables}``: the live
   stream. rerun's viewer, given ``rerun+http://<host>:<port>/proxy``, calls these gRPC-web methods
@@ -128,6 +130,11 @@ VIEWER_CSP = ("default-src 'self'; script-src 'self' 'unsafe-inline' 'wasm-unsaf
               "style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; font-src 'self' data:; "
               "connect-src 'self'; worker-src 'self' blob:; media-src 'self' blob:; frame-ancestors 'self'; "
               "form-action 'none'; base-uri 'self'")
+# Ours, served from the dashboard's static files (same origin: the CSP's script-src 'self' allows it).
+TAB_SCRIPT = "/static/rerun-tab.js"
+# Part of the prepared copy's folder name: a change to what prepare_viewer does to rerun's files
+# (here: TAB_SCRIPT added to index.html) makes appliances prepare their copy again.
+PREPARED_AS = "offline-tab"
 _MEDIA = {".html": "text/html; charset=utf-8", ".js": "text/javascript", ".wasm": "application/wasm",
           ".ico": "image/x-icon", ".png": "image/png", ".css": "text/css"}
 _prepare_lock = asyncio.Lock()
@@ -153,7 +160,11 @@ def neutralise_index(text: str) -> str:
     text = _FONT_LINKS.sub("", text)
     text = _SITE_SCRIPT.sub("", text)
     # No bug-report links to GitHub in the viewer's error page: a student reports to the educator.
-    return text.replace("https://github.com/rerun-io/rerun/issues/new/", "#")
+    text = text.replace("https://github.com/rerun-io/rerun/issues/new/", "#")
+    # Our script, at the end of the head: Esc stops the run from the viewer's
+    # tab (the dashboard's key handler is in another tab) and a live viewer follows the next run.
+    tag = f'<script src="{TAB_SCRIPT}"></script>\n'
+    return text.replace("</head>", tag + "</head>", 1) if "</head>" in text else tag + text
 
 
 def prepare_viewer(cache: Path, fetch: Any) -> None:
@@ -192,7 +203,7 @@ async def _viewer_cache(request: Request) -> Path:
     from ..logs.live import RerunViewer
 
     settings = request.app.state.settings
-    cache = Path(settings.data_dir) / "rerun-viewer" / f"{rerun.__version__}-offline"
+    cache = Path(settings.data_dir) / "rerun-viewer" / f"{rerun.__version__}-{PREPARED_AS}"
     if (cache / "ready").is_file():
         return cache
     async with _prepare_lock:

@@ -1,0 +1,99 @@
+// Ours, added to the rerun viewer's page (/rerun/, routes_rerun.neutralise_index). The Runs page
+// opens the viewer in a tab of its own (noopener: a renderer process of its own), because a viewer
+// embedded in the dashboard froze the dashboard's main thread for minutes on a software GPU and
+// its WebSocket closed (issue 19 item 9, docs/logging/appliance.md). In its own tab the
+// dashboard's key handler is not there, so this page keeps the promise "Esc stops from anywhere"
+// itself (issue 19 item 1), with the dashboard's rule, over HTTP with the session cookie and the
+// CSRF header: RUN or PAUSED -> the `stop` command; any other state of a live run -> end the run.
+// It also follows the live stream to the next run, as the embedded viewer did.
+"use strict";
+(function () {
+  const FOLLOW_MS = 3000;
+  let busy = false, noteTimer = null;
+
+  function csrf() {
+    const m = document.cookie.match(/(?:^|;\s*)xrf_csrf=([^;]+)/);
+    return m ? { "X-CSRF-Token": decodeURIComponent(m[1]) } : {};
+  }
+
+  async function post(path, body) {
+    const headers = Object.assign({ "Content-Type": "application/json" }, csrf());
+    const res = await fetch(path, { method: "POST", headers, body: JSON.stringify(body || {}), credentials: "same-origin" });
+    const data = await res.json().catch(() => ({}));
+    const detail = typeof data.detail === "string" ? data.detail : data.detail ? JSON.stringify(data.detail) : res.statusText;
+    return { ok: res.ok, status: res.status, data, detail };
+  }
+
+  // A short note over the viewer: the canvas covers the whole page, so it floats above it.
+  function note(text, bad) {
+    let n = document.getElementById("xrf-stop-note");
+    if (!n) {
+      n = document.createElement("div");
+      n.id = "xrf-stop-note";
+      n.setAttribute("role", "status");
+      Object.assign(n.style, { position: "fixed", top: "12px", left: "50%", transform: "translateX(-50%)",
+        zIndex: "2147483647", padding: "8px 16px", borderRadius: "6px", font: "600 15px system-ui, sans-serif",
+        color: "#fff", boxShadow: "0 2px 8px rgba(0,0,0,.4)", pointerEvents: "none" });
+      document.body.appendChild(n);
+    }
+    n.textContent = text;
+    n.dataset.kind = bad ? "refused" : "sent";
+    n.style.background = bad ? "#b91c1c" : "#15803d";
+    n.style.display = "block";
+    clearTimeout(noteTimer);
+    noteTimer = setTimeout(() => { n.style.display = "none"; }, bad ? 10000 : 6000);
+  }
+
+  async function stop() {
+    if (busy) return;  // a held key repeats: one stop at a time
+    busy = true;
+    note("Esc: sending stop…");  // at once: the viewer may keep this thread busy until the answer is handled
+    try {
+      const r = await post("/api/runs/current/command", { cmd: "stop" });
+      if (r.status === 401) { note("Not logged in: log in to the dashboard again, then stop from there.", true); return; }
+      if (!r.ok) { note("Stop refused: " + r.detail, true); return; }
+      if (r.data.accepted) { note("Stop sent (Esc): the controller is stopping."); return; }
+      // Not in RUN or PAUSED: the loop refuses `stop`, and the rule ends the run instead.
+      note("Ending the run (Esc): it is in " + (r.data.state_name || "another state") + "…");
+      const end = await post("/api/runs/current/stop");
+      if (end.ok) note("Run ended (Esc): it was in " + (r.data.state_name || "another state") + ".");
+      else note("Could not end the run: " + end.detail, true);
+    } catch (e) {
+      note("Stop not sent: the appliance does not answer (" + e.message + "). Use the STOP button of the bench.", true);
+    } finally {
+      busy = false;
+    }
+  }
+
+  // Capture phase on the window: before the viewer's canvas (a wasm app) can take the key.
+  window.addEventListener("keydown", (ev) => {
+    if (ev.key !== "Escape") return;  // only Esc: other keys are the viewer's
+    ev.preventDefault();
+    if (!ev.repeat) stop();
+  }, true);
+
+  // The live stream (?url=rerun+http(s)://<host>/proxy) is the latest run's: when a new run starts,
+  // the previous run's stream ends, and this tab reloads onto the new one.
+  const url = new URLSearchParams(location.search).get("url") || "";
+  const live = /^rerun\+https?:\/\/[^/]+\/proxy$/.test(url);
+  if (live) {
+    let shown;
+    const follow = async () => {
+      try {
+        const r = await fetch("/api/logs/rerun", { credentials: "same-origin" });
+        if (r.ok) {
+          const info = await r.json();
+          if (shown === undefined) shown = info.live_run;
+          else if (info.live_run != null && info.live_run !== shown) { location.reload(); return; }
+          if (info.live_run != null) document.title = `rerun · live run ${info.live_run}` + (info.live_running ? "" : " (ended)");
+        }
+      } catch (e) { /* the appliance restarts: try again */ }
+      setTimeout(follow, FOLLOW_MS);
+    };
+    follow();
+  } else {
+    const m = url.match(/\/api\/logs\/runs\/(\d+)\//);
+    if (m) document.title = `rerun · run ${m[1]}`;
+  }
+  window.xrfRerunTab = { stop, live };  // test hook
+})();
