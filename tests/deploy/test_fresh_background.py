@@ -26,7 +26,8 @@ REPO = Path(__file__).resolve().parents[2]
 FIRST = "tests/doctor/test_doctor.py::test_evl_ok"  # a quick test to be the session's first
 FRESH = "tests/deploy/test_fresh_machine.py"
 
-pytestmark = pytest.mark.skipif(os.geteuid() != 0, reason="the fresh-machine check runs as root only")
+# The ordering holds for everyone; the rest needs root, as the check itself does.
+root_only = pytest.mark.skipif(os.geteuid() != 0, reason="the fresh-machine check runs as root only")
 
 # The stand-in for fresh_run.py in the Run tests: a tree like the check's (a child in a process
 # group of its own, a grandchild in a PID namespace of its own); a file says when it is up.
@@ -68,6 +69,7 @@ def _stand_in(tmp_path: Path, low: bool) -> tuple[Run, set[int]]:
     return run, tree
 
 
+@root_only
 def test_close_kills_the_whole_tree_and_removes_its_folder(tmp_path: Path) -> None:
     run, tree = _stand_in(tmp_path, low=False)
     run.close()
@@ -76,6 +78,7 @@ def test_close_kills_the_whole_tree_and_removes_its_folder(tmp_path: Path) -> No
     run.close()  # idempotent: the fixture and the session's end may both close it
 
 
+@root_only
 def test_low_priority_until_hurried(tmp_path: Path) -> None:
     run, tree = _stand_in(tmp_path, low=True)
     try:
@@ -129,6 +132,7 @@ PLUGIN = textwrap.dedent("""
 """)
 
 
+@root_only
 @pytest.mark.timeout(600)
 @pytest.mark.parametrize("how", ["fail", "interrupt", "kill"])
 def test_nothing_is_left_when_the_session_stops_early(tmp_path: Path, how: str) -> None:
