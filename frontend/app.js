@@ -197,9 +197,19 @@ async function loadBench() {
     const b = await api("GET", "/api/bench");
     xrf.benchSim = b.sim;
     xrf.benchMode = b.mode;
-    $("bench").textContent = b.mode === "sim" ? `simulated · ${b.sim}` : "real bench";
     $("bench").title = b.profile;
+    showPlant();
   } catch (e) { $("bench").textContent = "bench ?"; }
+}
+
+// The header's plant badge: the live run's plant (a Jiwy run on a bench whose default is RELbot),
+// else the bench's. Called by both the bench's answer and every run message, whichever comes
+// first: the WebSocket's snapshot can arrive before GET /api/bench answers.
+function showPlant() {
+  if (!xrf.benchMode) return;  // GET /api/bench has not answered yet; it calls this when it does
+  const m = xrf.run, r = m && m.run;
+  if (xrf.benchMode !== "sim") { $("bench").textContent = "real bench"; return; }
+  $("bench").textContent = `simulated · ${r && m.active && r.sim ? r.sim : xrf.benchSim}`;
 }
 
 // The plant menu lists rt_core's plant table (GET /api/plants): this page has no list of plants.
@@ -325,8 +335,7 @@ function applyRun(m) {
   }
   if (m.event === "started") $("alarm").classList.add("hidden");  // the last run's alarm is history now
   // The header's plant badge follows the run (a Jiwy run on a bench whose default is RELbot).
-  if (r && m.active && r.sim && xrf.benchMode === "sim") $("bench").textContent = `simulated · ${r.sim}`;
-  else if (xrf.benchMode === "sim") $("bench").textContent = `simulated · ${xrf.benchSim}`;
+  showPlant();
   if (m.setpoint && !m.redacted) xrf.appliedSetpoint = { ...m.setpoint };
   updateSetpointsEnabled();
   updateRunSummary();
