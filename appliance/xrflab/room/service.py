@@ -26,7 +26,6 @@ import os
 import re
 import secrets
 import shutil
-import tempfile
 import time
 from collections import deque
 from collections.abc import AsyncIterator
@@ -42,6 +41,7 @@ from pydantic import BaseModel, Field
 from starlette.websockets import WebSocketDisconnect
 
 from ..server.accounts import RateLimiter
+from ..server.body_limit import spool_to_file
 from ..server.auth import Perm, Security, SecurityHeaders, User, client_address, current_user, optional_user, requires
 from ..projects import archive as archive_mod
 from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
@@ -508,7 +508,7 @@ async def publish_archive(request: Request, name: str = Query(min_length=1, max_
     """Publish an uploaded archive (zip, tar, tar.gz as the raw body), checked as a student's upload."""
     room = _room(request)
     room.assignments.folder.mkdir(parents=True, exist_ok=True)
-    path = await _spool(request, room.assignments.folder, ASSIGNMENT_LIMITS.max_upload)
+    path = await spool_to_file(request, room.assignments.folder, ASSIGNMENT_LIMITS.max_upload, prefix=".upload-")
     try:
         meta = await asyncio.to_thread(room.assignments.add, _clean_name(name), path, user.username)
     except archive_mod.ArchiveRejected as exc:
@@ -563,7 +563,7 @@ async def collection_upload(cid: str, bench: str, request: Request, token: str =
     c = room.collections.get(cid)
     if c is None or c.benches.get(bench) != "waiting":
         raise HTTPException(409, "this collection does not wait for this bench (too late, or sent already)")
-    path = await _spool(request, c.folder, BENCH_MAX)
+    path = await spool_to_file(request, c.folder, BENCH_MAX, prefix=".upload-")
     os.replace(path, c.upload_path(bench))
     c.benches[bench] = "collected"
     return {"ok": True}
@@ -582,23 +582,6 @@ async def collection_archive(cid: str, request: Request) -> Response:
         c.archive = out
     name = re.sub(r"[^A-Za-z0-9_.-]", "_", c.assignment["name"]) or "assignment"
     return FileResponse(c.archive, media_type="application/zip", filename=f"{name}-runs-{cid[:6]}.zip")
-
-
-async def _spool(request: Request, folder: Path, limit: int) -> Path:
-    """The request body into a private file in `folder`, refused (413) past `limit` bytes."""
-    fd, name = tempfile.mkstemp(dir=folder, prefix=".upload-")
-    total = 0
-    try:
-        with os.fdopen(fd, "wb") as f:
-            async for chunk in request.stream():
-                total += len(chunk)
-                if total > limit:
-                    raise HTTPException(413, f"over {limit >> 20} MB")
-                f.write(chunk)
-    except BaseException:
-        os.unlink(name)
-        raise
-    return Path(name)
 
 
 @router.get("/commands/{cid}", dependencies=[requires(Perm.EDUCATOR)])

@@ -15,9 +15,14 @@ through (never buffered).
 from __future__ import annotations
 
 import json
+import os
 import re
+import tempfile
 from collections.abc import Awaitable, Callable, MutableMapping
+from pathlib import Path
 from typing import Any
+
+from fastapi import HTTPException, Request
 
 Scope = MutableMapping[str, Any]
 Message = MutableMapping[str, Any]
@@ -150,3 +155,23 @@ async def _refuse(send: Send, status: int, detail: str) -> None:
                 "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
                             (b"connection", b"close")]})
     await send({"type": "http.response.body", "body": body})
+
+
+async def spool_to_file(request: Request, folder: Path, limit: int, *, prefix: str = "upload-",
+                        too_large: Any = None) -> Path:
+    """A route's streamed body (an archive upload) into a private temp file in `folder`, refused
+    with 413 (`too_large` as its detail, else "over N MB") the moment it passes `limit` bytes;
+    the partial file is removed on any failure. The caller owns the returned file."""
+    fd, name = tempfile.mkstemp(dir=folder, prefix=prefix)
+    total = 0
+    try:
+        with os.fdopen(fd, "wb") as f:
+            async for chunk in request.stream():
+                total += len(chunk)
+                if total > limit:
+                    raise HTTPException(413, too_large if too_large is not None else f"over {limit >> 20} MB")
+                f.write(chunk)
+    except BaseException:
+        os.unlink(name)
+        raise
+    return Path(name)

@@ -16,7 +16,6 @@ import os
 import re
 import secrets
 import shutil
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import Any, Literal
@@ -34,6 +33,7 @@ from ..projects.versions import Versions
 from . import auth as authmod
 from . import ownership
 from .auth import Perm, requires
+from .body_limit import spool_to_file
 from .plant_field import PlantName
 
 router = APIRouter(prefix="/api", tags=["projects"])
@@ -241,23 +241,6 @@ def _described(src: Path) -> dict[str, Any]:
             "messages": source.message_fields(src, located)}
 
 
-async def _spool(request: Request, dest_dir: Path, limit: int) -> Path:
-    """The request body into a private temp file, refusing more than ``limit`` bytes as it comes."""
-    fd, name = tempfile.mkstemp(dir=dest_dir, prefix="upload-")
-    total = 0
-    try:
-        with os.fdopen(fd, "wb") as f:
-            async for chunk in request.stream():
-                total += len(chunk)
-                if total > limit:
-                    raise HTTPException(413, {"error": f"the upload is over {limit >> 20} MB", "entry": "", "message": ""})
-                f.write(chunk)
-    except BaseException:
-        os.unlink(name)
-        raise
-    return Path(name)
-
-
 def _multipart(body: Path, boundary: bytes, out: Path) -> tuple[str, dict[str, str]]:
     """The first file part of a multipart/form-data body copied to ``out``; (filename, other fields)."""
     fields: dict[str, str] = {}
@@ -297,7 +280,9 @@ def _multipart(body: Path, boundary: bytes, out: Path) -> tuple[str, dict[str, s
 
 async def _receive_archive(request: Request, svc: ProjectsService) -> tuple[Path, str, dict[str, str]]:
     incoming = svc.root / ".incoming"
-    body = await _spool(request, incoming, svc.limits.max_upload + (1 << 16))
+    limit = svc.limits.max_upload + (1 << 16)
+    body = await spool_to_file(request, incoming, limit, too_large={
+        "error": f"the upload is over {limit >> 20} MB", "entry": "", "message": ""})
     ctype = request.headers.get("content-type", "")
     if ctype.startswith("multipart/form-data"):
         m = re.search(r"boundary=\"?([^\";]+)\"?", ctype)
