@@ -16,7 +16,6 @@ remembered (``ProjectStore.assignment_copies``): a copy the student deleted is n
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import re
@@ -27,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from . import archive
+from .versions import sha256_file
 
 ID_RE = re.compile(r"^[a-z0-9][a-z0-9-]{0,39}$")
 ORIGIN_PREFIX = "assignment:"
@@ -42,14 +42,6 @@ def check_id(aid: str) -> str:
 
 def origin(aid: str) -> str:
     return ORIGIN_PREFIX + aid
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 class Assignments:

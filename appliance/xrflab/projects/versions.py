@@ -50,11 +50,12 @@ def file_hashes(tree: Path) -> dict[str, str]:
             p = Path(dirpath) / f
             if p.is_symlink() or not p.is_file():
                 continue
-            out[p.relative_to(tree).as_posix()] = _sha256(p)
+            out[p.relative_to(tree).as_posix()] = sha256_file(p)
     return out
 
 
-def _sha256(p: Path) -> str:
+def sha256_file(p: Path) -> str:
+    """The SHA-256 of a file's contents, read in chunks (versions, assignment archives)."""
     h = hashlib.sha256()
     with open(p, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 16), b""):
@@ -127,7 +128,7 @@ class Versions:
                 if not stat.S_ISREG(st.st_mode):
                     continue  # an archive brings no links; anything else is not source
                 rel = (rel_dir / f).as_posix()
-                digest = _sha256(p)
+                digest = sha256_file(p)
                 hashes[rel] = digest
                 out = dest / rel
                 if prev_tree is not None and prev.get(rel) == digest:

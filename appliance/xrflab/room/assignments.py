@@ -28,7 +28,8 @@ from pathlib import Path
 from typing import Any
 
 from ..projects import archive
-from ..projects.assignments import LIMITS, sha256_file
+from ..projects.assignments import LIMITS
+from ..projects.versions import sha256_file
 
 INLINE_MAX = 128 << 10  # MQTT could carry more; a retained message is held for every bench
 SKIP = set(archive.SKIPPED_DIRS)
