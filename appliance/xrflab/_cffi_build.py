@@ -77,8 +77,7 @@ def _sources() -> tuple[list[Path], list[Path]]:
     for path in headers + sources:
         if not path.is_file():
             raise FileNotFoundError(
-                f"{path} not found: xrflab.channels needs rt_core beside the package "
-                "(or XRF_RT_CORE pointing at it)"
+                f"{path} not found: xrflab.channels needs rt_core beside the package (or XRF_RT_CORE pointing at it)"
             )
     return headers, sources
 

@@ -30,9 +30,10 @@ import shutil
 import signal
 import subprocess
 import sys
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Literal, Optional
+from typing import Literal
 
 from .tied import popen_tied
 
@@ -44,10 +45,22 @@ LOG_TAIL_LINES = 200
 # Files XRF2 shipped as framework sources. A project folder that carries a copy (some students
 # copied the framework next to their code) must not compile it: rt_core provides these.
 XRF2_FRAMEWORK_STEMS = {
-    "XenoFrtLoop", "XenoFrtRosIco", "XenoFrt20Sim", "FullStateMachine", "XenoFrtLogger",
-    "XenoFileHandler", "XenoFrtMonitor", "IcoIo", "XenoSpiControllerHandler",
-    "XenoRosCommunication", "XenoRosDataBridge", "XenoRosCommandBridge", "configuration",
-    "debug_settings", "ICommunication", "ICommunicationFullDuplex",
+    "XenoFrtLoop",
+    "XenoFrtRosIco",
+    "XenoFrt20Sim",
+    "FullStateMachine",
+    "XenoFrtLogger",
+    "XenoFileHandler",
+    "XenoFrtMonitor",
+    "IcoIo",
+    "XenoSpiControllerHandler",
+    "XenoRosCommunication",
+    "XenoRosDataBridge",
+    "XenoRosCommandBridge",
+    "configuration",
+    "debug_settings",
+    "ICommunication",
+    "ICommunicationFullDuplex",
 }
 _CXX_SUFFIXES = (".cpp", ".cc", ".cxx", ".c")
 _MAIN_RE = re.compile(r"^\s*int\s+main\s*\(", re.MULTILINE)
@@ -70,13 +83,14 @@ class BuildResult:
     layout: Literal["xrf", "xrf2"]
     taken: list[str] = field(default_factory=list)
     left_out: dict[str, str] = field(default_factory=dict)
-    twenty_sim: Optional[dict] = None
+    twenty_sim: dict | None = None
 
 
 # ---------------------------------------------------------------------------------------
 # running commands
 
-def _run(cmd: list[str], log: Log, cwd: Optional[Path] = None, what: str = "") -> list[str]:
+
+def _run(cmd: list[str], log: Log, cwd: Path | None = None, what: str = "") -> list[str]:
     """Run ``cmd``, passing each output line to ``log`` as it arrives; return all lines.
 
     stderr is merged into stdout so errors appear in order with the lines around them.
@@ -89,9 +103,18 @@ def _run(cmd: list[str], log: Log, cwd: Optional[Path] = None, what: str = "") -
     try:
         # close_fds (the default) and no stdin: cmake and the compilers get their output pipe only.
         # Tied to the process that asked (the appliance, or `xrf build`): no orphaned compiler.
-        proc = popen_tied(cmd, death_signal=signal.SIGKILL, cwd=cwd, stdin=subprocess.DEVNULL,
-                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, errors="replace", bufsize=1,
-                          env=env)
+        proc = popen_tied(
+            cmd,
+            death_signal=signal.SIGKILL,
+            cwd=cwd,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            errors="replace",
+            bufsize=1,
+            env=env,
+        )
     except OSError as exc:
         raise BuildError(f"{what or cmd[0]}: cannot run {cmd[0]}: {exc}") from exc
     assert proc.stdout is not None
@@ -137,14 +160,21 @@ def _jobs() -> str:
 # ---------------------------------------------------------------------------------------
 # rt_core
 
+
 def _content_hash(paths: Iterable[Path]) -> str:
     """Hash of file names and contents under ``paths`` (build folders and caches skipped)."""
     h = hashlib.sha256()
     for root in paths:
-        files = [root] if root.is_file() else sorted(
-            p for p in root.rglob("*")
-            if p.is_file() and not any(part in _SKIP_DIRS or part.startswith("build")
-                                       for part in p.relative_to(root).parts))
+        files = (
+            [root]
+            if root.is_file()
+            else sorted(
+                p
+                for p in root.rglob("*")
+                if p.is_file()
+                and not any(part in _SKIP_DIRS or part.startswith("build") for part in p.relative_to(root).parts)
+            )
+        )
         for p in files:
             h.update(str(p.relative_to(root.parent)).encode())
             h.update(b"\0")
@@ -158,7 +188,7 @@ def _cache_root() -> Path:
     return Path(base) if base else Path.home() / ".cache" / "xrf-lab"
 
 
-def ensure_rt_core(log: Log = print, source_root: Optional[Path] = None) -> Path:
+def ensure_rt_core(log: Log = print, source_root: Path | None = None) -> Path:
     """Build and install rt_core unless an install with the same content hash exists.
 
     Returns the install prefix. Concurrent callers (two builds started at once) serialise on
@@ -191,11 +221,23 @@ def ensure_rt_core(log: Log = print, source_root: Optional[Path] = None) -> Path
         shutil.rmtree(prefix, ignore_errors=True)
         work = cache / f"{digest}.build"
         shutil.rmtree(work, ignore_errors=True)
-        _run(["cmake", "-S", str(rt_core), "-B", str(work), *_generator_args(work),
-              "-DCMAKE_BUILD_TYPE=RelWithDebInfo", f"-DCMAKE_INSTALL_PREFIX={prefix}",
-              f"-DXRF_EVL_PREFIX={evl_prefix}",
-              # Keep the library in lib/ on every distro: the prefix is private anyway.
-              "-DCMAKE_INSTALL_LIBDIR=lib"], log, what="rt_core configure")
+        _run(
+            [
+                "cmake",
+                "-S",
+                str(rt_core),
+                "-B",
+                str(work),
+                *_generator_args(work),
+                "-DCMAKE_BUILD_TYPE=RelWithDebInfo",
+                f"-DCMAKE_INSTALL_PREFIX={prefix}",
+                f"-DXRF_EVL_PREFIX={evl_prefix}",
+                # Keep the library in lib/ on every distro: the prefix is private anyway.
+                "-DCMAKE_INSTALL_LIBDIR=lib",
+            ],
+            log,
+            what="rt_core configure",
+        )
         _run(["cmake", "--build", str(work), "--parallel", _jobs()], log, what="rt_core build")
         _run(["cmake", "--install", str(work)], log, what="rt_core install")
         done.write_text(digest + "\n")
@@ -206,6 +248,7 @@ def ensure_rt_core(log: Log = print, source_root: Optional[Path] = None) -> Path
 
 # ---------------------------------------------------------------------------------------
 # project layouts
+
 
 def detect_layout(project_dir: Path) -> Literal["xrf", "xrf2"]:
     cml = project_dir / "CMakeLists.txt"
@@ -250,7 +293,7 @@ class _Xrf2Plan:
     sources: list[Path]
     include_dirs: list[Path]
     msg_dir: Path
-    twenty_sim: Optional[Path]
+    twenty_sim: Path | None
     taken: list[str]
     left_out: dict[str, str]
 
@@ -269,8 +312,8 @@ _CMAKE_VAR = re.compile(r"\$\{([A-Za-z0-9_.+-]+)\}")
 def _cmake_commands(text: str) -> Iterable[tuple[str, list[tuple[str, bool]]]]:
     """The commands of a CMakeLists.txt as (name, [(argument, quoted)]), comments dropped.
     Enough of CMake's syntax for the flat files XRF2 projects have."""
-    pos, name, args, depth = 0, None, [], 0
-    pending: Optional[str] = None
+    name, args, depth = None, [], 0
+    pending: str | None = None
     for m in _CMAKE_TOKEN.finditer(text):
         quoted, word, lpar, rpar, comment = m.groups()
         if comment is not None:
@@ -301,6 +344,7 @@ class _CMakeRead:
     """What a project's own CMakeLists.txt compiles: per executable its source files, plus the
     include folders it names. ``complete`` is False when a source list used a variable that
     could not be evaluated (set by a find_package, a function, ...)."""
+
     executables: dict[str, list[Path]]
     include_dirs: list[Path]
     complete: bool
@@ -317,8 +361,21 @@ def _read_xrf2_cmake(project: Path, globs: bool = True) -> _CMakeRead:
     include_dirs: list[Path] = []
     framework_dirs: list[Path] = []
     incomplete = False
-    keywords = {"PRIVATE", "PUBLIC", "INTERFACE", "BEFORE", "AFTER", "SYSTEM", "WIN32", "MACOSX_BUNDLE",
-                "EXCLUDE_FROM_ALL", "STATIC", "SHARED", "OBJECT", "MODULE"}
+    keywords = {
+        "PRIVATE",
+        "PUBLIC",
+        "INTERFACE",
+        "BEFORE",
+        "AFTER",
+        "SYSTEM",
+        "WIN32",
+        "MACOSX_BUNDLE",
+        "EXCLUDE_FROM_ALL",
+        "STATIC",
+        "SHARED",
+        "OBJECT",
+        "MODULE",
+    }
     seen: set[Path] = set()
 
     def read(here: Path, variables: dict[str, list[str]], depth: int) -> None:
@@ -340,6 +397,7 @@ def _read_xrf2_cmake(project: Path, globs: bool = True) -> _CMakeRead:
                     unknown.add(m.group(1))
                     return ""
                 return ";".join(variables[m.group(1)])
+
             value = _CMAKE_VAR.sub(sub, arg)
             return [value] if quoted else [v for v in value.split(";") if v]
 
@@ -370,7 +428,7 @@ def _read_xrf2_cmake(project: Path, globs: bool = True) -> _CMakeRead:
             elif name == "set" and values:
                 rest = values[1:]
                 if "CACHE" in rest:
-                    rest = rest[:rest.index("CACHE")]
+                    rest = rest[: rest.index("CACHE")]
                 variables[values[0]] = [v for v in rest if v != "PARENT_SCOPE"]
             elif name == "list" and len(values) >= 2:
                 op, var, items = values[0].upper(), values[1], values[2:]
@@ -392,8 +450,12 @@ def _read_xrf2_cmake(project: Path, globs: bool = True) -> _CMakeRead:
                 recurse = values[0].upper() == "GLOB_RECURSE"
                 var, pats, found = values[1], values[2:], []
                 relative = None
-                while pats and pats[0].upper() in ("CONFIGURE_DEPENDS", "LIST_DIRECTORIES", "RELATIVE",
-                                                   "FOLLOW_SYMLINKS"):
+                while pats and pats[0].upper() in (
+                    "CONFIGURE_DEPENDS",
+                    "LIST_DIRECTORIES",
+                    "RELATIVE",
+                    "FOLLOW_SYMLINKS",
+                ):
                     word = pats.pop(0).upper()
                     if word in ("LIST_DIRECTORIES", "RELATIVE") and pats:
                         arg = pats.pop(0)
@@ -409,7 +471,9 @@ def _read_xrf2_cmake(project: Path, globs: bool = True) -> _CMakeRead:
                 variables[values[1]] = []
             elif name == "aux_source_directory" and len(values) == 2:
                 d = paths([values[0]])[0]
-                variables[values[1]] = [str(f) for f in sorted(d.glob("*")) if f.suffix in _CXX_SUFFIXES] if d.is_dir() else []
+                variables[values[1]] = (
+                    [str(f) for f in sorted(d.glob("*")) if f.suffix in _CXX_SUFFIXES] if d.is_dir() else []
+                )
             elif name in ("add_executable", "add_library") and values:
                 if any(v in ("IMPORTED", "ALIAS", "INTERFACE") for v in values[1:2]):
                     continue
@@ -452,8 +516,9 @@ def _xrf2_msgs_package(d: Path) -> bool:
     return re.search(r"<name>\s*xrf2_msgs\s*</name>", text) is not None
 
 
-def find_xrf2_messages(project: Path, framework_dirs: Iterable[Path] = (),
-                       within: Optional[Path] = None) -> tuple[Optional[Path], list[Path]]:
+def find_xrf2_messages(
+    project: Path, framework_dirs: Iterable[Path] = (), within: Path | None = None
+) -> tuple[Path | None, list[Path]]:
     """Where an XRF2 project's Ros2Xeno.msg and Xeno2Ros.msg are, and the places looked at.
 
     An XRF2 controller package usually has no msg/ of its own: the messages are part of the
@@ -468,7 +533,7 @@ def find_xrf2_messages(project: Path, framework_dirs: Iterable[Path] = (),
     bound = within.resolve() if within is not None else None
     looked: list[Path] = []
 
-    def consider(d: Path) -> Optional[Path]:
+    def consider(d: Path) -> Path | None:
         d = d.resolve()
         if d in looked or (bound is not None and not _inside(d, bound)):
             return None
@@ -482,8 +547,9 @@ def find_xrf2_messages(project: Path, framework_dirs: Iterable[Path] = (),
         if not anc.is_dir() or (bound is not None and not _inside(anc, bound)):
             continue
         try:
-            children = sorted(c for c in anc.iterdir() if c.is_dir() and c.name not in _SKIP_DIRS
-                              and not c.name.startswith("."))
+            children = sorted(
+                c for c in anc.iterdir() if c.is_dir() and c.name not in _SKIP_DIRS and not c.name.startswith(".")
+            )
         except OSError:
             continue
         for c in children:
@@ -521,7 +587,7 @@ def _inside(p: Path, folder: Path) -> bool:
         return False
 
 
-def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
+def plan_xrf2(project: Path, msg_dir: Path | None = None) -> _Xrf2Plan:
     """Decide which files of an XRF2-layout project to compile, and why others are not.
 
     XRF2 compiled what the project's CMakeLists.txt names (its templates: main.cpp, src/*.cpp
@@ -533,10 +599,10 @@ def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
     taken: list[str] = []
     left_out: dict[str, str] = {
         "CMakeLists.txt": "XRF2 build file (compiles ../XRF2/XenoRosFramework, links evl/rclcpp); "
-                          "replaced by a generated one that uses rt_core",
+        "replaced by a generated one that uses rt_core",
     }
     controller = project / "controller"
-    twenty_sim: Optional[Path] = None
+    twenty_sim: Path | None = None
     if controller.is_dir() and any(controller.glob("*_tokens.xml")):
         twenty_sim = controller
 
@@ -545,9 +611,14 @@ def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
     in_project = set(p.resolve() for p in files)
 
     def own_sources(paths: Iterable[Path]) -> list[Path]:
-        return [p for p in paths if p in in_project and p.suffix.lower() in _CXX_SUFFIXES
-                and p.stem not in XRF2_FRAMEWORK_STEMS
-                and not (twenty_sim is not None and _inside(p, twenty_sim.resolve()))]
+        return [
+            p
+            for p in paths
+            if p in in_project
+            and p.suffix.lower() in _CXX_SUFFIXES
+            and p.stem not in XRF2_FRAMEWORK_STEMS
+            and not (twenty_sim is not None and _inside(p, twenty_sim.resolve()))
+        ]
 
     # The controller executable: the one that compiles XRF2's framework (or has the project's
     # main); other executables of the package (a ROS 2 node, a test) are not the controller.
@@ -590,14 +661,20 @@ def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
         if path.name == "package.xml":
             left_out[rel] = "ROS 2 package manifest; not used with rt_core"
         elif suffix == ".py":
-            left_out[rel] = ("script (XRF2's token extraction is done by xrf_add_controller)"
-                             if "token" in path.name.lower() else "script; not part of the controller")
+            left_out[rel] = (
+                "script (XRF2's token extraction is done by xrf_add_controller)"
+                if "token" in path.name.lower()
+                else "script; not part of the controller"
+            )
         elif suffix in _CXX_SUFFIXES:
             resolved = path.resolve()
             if resolved not in selected:
-                left_out[rel] = (f"compiled into {other_exes[resolved]}, not the controller" if resolved in other_exes
-                                 else "not compiled by the project's CMakeLists.txt (XRF2 built main.cpp, "
-                                      "src/*.cpp, controller/ and the files it names)")
+                left_out[rel] = (
+                    f"compiled into {other_exes[resolved]}, not the controller"
+                    if resolved in other_exes
+                    else "not compiled by the project's CMakeLists.txt (XRF2 built main.cpp, "
+                    "src/*.cpp, controller/ and the files it names)"
+                )
             elif path.name.startswith("test_") and _has_main(path):
                 left_out[rel] = "test program with its own main()"
             else:
@@ -608,9 +685,11 @@ def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
         # XRF2 projects have one main.cpp; keep it and leave any other program out.
         keep = next((m for m in mains if m.name == "main.cpp"), None)
         if keep is None:
-            raise BuildError("several files define main(): "
-                             + ", ".join(_rel(m, project) for m in mains)
-                             + "; cannot tell which one is the controller")
+            raise BuildError(
+                "several files define main(): "
+                + ", ".join(_rel(m, project) for m in mains)
+                + "; cannot tell which one is the controller"
+            )
         for m in mains:
             if m != keep:
                 sources.remove(m)
@@ -625,6 +704,7 @@ def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
     # anyway, see _write_xrf2_wrapper).
     def framework_folder(d: Path) -> bool:
         return any(f.stem in XRF2_FRAMEWORK_STEMS for f in d.glob("*.h*"))
+
     candidates_dirs = [d for d in read.include_dirs if _inside(d, project)]
     inc = project / "include"
     if inc.is_dir():
@@ -632,13 +712,21 @@ def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
     candidates_dirs += [s.parent for s in sources]
     for d in candidates_dirs:
         d = d.resolve()
-        if d not in include_dirs and not (twenty_sim is not None and _inside(d, twenty_sim.resolve())) \
-                and (d == inc.resolve() or not framework_folder(d)):
+        if (
+            d not in include_dirs
+            and not (twenty_sim is not None and _inside(d, twenty_sim.resolve()))
+            and (d == inc.resolve() or not framework_folder(d))
+        ):
             include_dirs.append(d)
     for path in files:
         rel = _rel(path, project)
-        if path.suffix.lower() in (".h", ".hpp", ".hh") and rel not in left_out and path.stem not in XRF2_FRAMEWORK_STEMS \
-                and not Path(rel).parts[0] == "controller" and any(_inside(path.resolve(), d) for d in include_dirs):
+        if (
+            path.suffix.lower() in (".h", ".hpp", ".hh")
+            and rel not in left_out
+            and path.stem not in XRF2_FRAMEWORK_STEMS
+            and not Path(rel).parts[0] == "controller"
+            and any(_inside(path.resolve(), d) for d in include_dirs)
+        ):
             taken.append(rel)
 
     if msg_dir:
@@ -652,8 +740,15 @@ def plan_xrf2(project: Path, msg_dir: Optional[Path] = None) -> _Xrf2Plan:
         if (mdir / f).exists():
             taken.append(_rel(mdir / f, project))
     name = re.sub(r"[^A-Za-z0-9_.+-]", "_", exe_name) if exe_name and "$" not in exe_name else ""
-    return _Xrf2Plan(name or _xrf2_executable_name(cml_text, project), sources, include_dirs, mdir,
-                     twenty_sim, sorted(set(taken)), dict(sorted(left_out.items())))
+    return _Xrf2Plan(
+        name or _xrf2_executable_name(cml_text, project),
+        sources,
+        include_dirs,
+        mdir,
+        twenty_sim,
+        sorted(set(taken)),
+        dict(sorted(left_out.items())),
+    )
 
 
 _XRF2_CLASS_RE = re.compile(r"\b(XenoFrtRosIco|XenoFrt20Sim|XenoFrtLoop)\b")
@@ -697,8 +792,9 @@ def find_xrf2_controllers(folder: Path, depth: int = 4) -> list[Path]:
                 found.append(d)
             return  # a package's sub-folders are its own business
         try:
-            subs = sorted(c for c in d.iterdir() if c.is_dir() and c.name not in _SKIP_DIRS
-                          and not c.name.startswith("."))
+            subs = sorted(
+                c for c in d.iterdir() if c.is_dir() and c.name not in _SKIP_DIRS and not c.name.startswith(".")
+            )
         except OSError:
             return
         for c in subs:
@@ -707,14 +803,17 @@ def find_xrf2_controllers(folder: Path, depth: int = 4) -> list[Path]:
     visit(folder, 0)
     return found
 
+
 # ---------------------------------------------------------------------------------------
 # where the project and its messages are: the one definition `xrf build`, the upload check,
 # the project pages, `xrf upload` and the ROS 2 interface package all use
+
 
 @dataclass(frozen=True)
 class ProjectSource:
     """What a folder (a project, or a whole ROS 2 workspace) builds: the controller package
     ``project``, its ``layout``, and the folder ``msg_dir`` holding Ros2Xeno.msg / Xeno2Ros.msg."""
+
     folder: Path
     project: Path
     layout: Literal["xrf", "xrf2"]
@@ -728,7 +827,7 @@ def _shown(p: Path, base: Path) -> str:
     return "." if rel == "." else rel
 
 
-def controller_folder(folder: Path | str, log: Optional[Log] = None) -> Path:
+def controller_folder(folder: Path | str, log: Log | None = None) -> Path:
     """The controller package of ``folder``: the folder itself when it has a CMakeLists.txt, else
     (a ROS 2 workspace as XRF2 students keep it: src/XRF2, src/<controller>, other nodes) the one
     package below it that uses XRF2's loop."""
@@ -737,35 +836,44 @@ def controller_folder(folder: Path | str, log: Optional[Log] = None) -> Path:
         return folder
     controllers = find_xrf2_controllers(folder)
     if len(controllers) > 1:
-        raise BuildError(f"{folder.name}: no CMakeLists.txt here, and several XRF2 controller packages below it ("
-                         + ", ".join(_shown(c, folder) for c in controllers)
-                         + "); build (or upload) the folder of the one you mean")
+        raise BuildError(
+            f"{folder.name}: no CMakeLists.txt here, and several XRF2 controller packages below it ("
+            + ", ".join(_shown(c, folder) for c in controllers)
+            + "); build (or upload) the folder of the one you mean"
+        )
     if not controllers:
-        raise BuildError("missing CMakeLists.txt: none at the top of the folder and no XRF2 controller "
-                         "package (a folder with a CMakeLists.txt whose code uses XenoFrtLoop / "
-                         "XenoFrtRosIco) below it. Start from a template (xrf new, or New project in "
-                         "the dashboard), or give the ROS 2 workspace with the controller in it.")
+        raise BuildError(
+            "missing CMakeLists.txt: none at the top of the folder and no XRF2 controller "
+            "package (a folder with a CMakeLists.txt whose code uses XenoFrtLoop / "
+            "XenoFrtRosIco) below it. Start from a template (xrf new, or New project in "
+            "the dashboard), or give the ROS 2 workspace with the controller in it."
+        )
     if log is not None:
         log(f"{folder}: a ROS 2 workspace; building its XRF2 controller package {_shown(controllers[0], folder)}")
     return controllers[0]
 
 
-def _no_xrf2_messages(looked: Iterable[Path], base: Path, framework_dirs: Iterable[Path] = (),
-                      within: Optional[Path] = None) -> str:
-    text = ("Ros2Xeno.msg and Xeno2Ros.msg not found. XRF2 kept them in its xrf2_msgs package "
-            "(XenoRosFramework/Common/XRF2_msgs/msg); upload the project together with the XRF2 "
-            "folder it names (the whole workspace), or copy the two files into the project's msg/ "
-            "folder. Looked in: " + ", ".join(_shown(d, base) for d in looked))
+def _no_xrf2_messages(
+    looked: Iterable[Path], base: Path, framework_dirs: Iterable[Path] = (), within: Path | None = None
+) -> str:
+    text = (
+        "Ros2Xeno.msg and Xeno2Ros.msg not found. XRF2 kept them in its xrf2_msgs package "
+        "(XenoRosFramework/Common/XRF2_msgs/msg); upload the project together with the XRF2 "
+        "folder it names (the whole workspace), or copy the two files into the project's msg/ "
+        "folder. Looked in: " + ", ".join(_shown(d, base) for d in looked)
+    )
     if within is not None:
         outside = [d for d in framework_dirs if not _inside(d.resolve(), within.resolve())]
         if outside:
-            text += ("; the CMakeLists.txt names " + ", ".join(_shown(d, base) for d in outside)
-                     + ", which is not in the upload")
+            text += (
+                "; the CMakeLists.txt names "
+                + ", ".join(_shown(d, base) for d in outside)
+                + ", which is not in the upload"
+            )
     return text
 
 
-def locate_project(folder: Path | str, within: Path | str | None = None,
-                   log: Optional[Log] = None) -> ProjectSource:
+def locate_project(folder: Path | str, within: Path | str | None = None, log: Log | None = None) -> ProjectSource:
     """Where the controller of ``folder`` and its messages are, or BuildError saying what is
     missing and where it looked (paths relative to ``folder``).
 
@@ -781,8 +889,10 @@ def locate_project(folder: Path | str, within: Path | str | None = None,
         msg_dir = project / "msg"
         missing = [_shown(msg_dir / f, folder) for f in _MSG_FILES if not (msg_dir / f).is_file()]
         if missing:
-            raise BuildError("missing " + ", ".join(missing) + " (an XRF Lab project keeps its messages in "
-                             f"msg/). Looked in: {_shown(msg_dir, folder)}")
+            raise BuildError(
+                "missing " + ", ".join(missing) + " (an XRF Lab project keeps its messages in "
+                f"msg/). Looked in: {_shown(msg_dir, folder)}"
+            )
         return ProjectSource(folder, project, layout, msg_dir, (msg_dir,))
     framework_dirs = _read_xrf2_cmake(project, globs=False).framework_dirs
     found, looked = find_xrf2_messages(project, framework_dirs, bound)
@@ -817,8 +927,10 @@ def _write_xrf2_wrapper(plan: _Xrf2Plan, project: Path, dest: Path) -> None:
     lines.append(")")
     # rt_core's headers before the project's folders: a copy of an XRF2 framework header kept
     # next to the student's own (include/IcoIo.hpp, configuration.h) must not replace rt_core's.
-    lines += ["get_target_property(_xrf_rt_includes XrfRt::xrf_rt INTERFACE_INCLUDE_DIRECTORIES)",
-              f"target_include_directories({plan.name} BEFORE PRIVATE ${{_xrf_rt_includes}})"]
+    lines += [
+        "get_target_property(_xrf_rt_includes XrfRt::xrf_rt INTERFACE_INCLUDE_DIRECTORIES)",
+        f"target_include_directories({plan.name} BEFORE PRIVATE ${{_xrf_rt_includes}})",
+    ]
     text = "\n".join(lines) + "\n"
     target = dest / "CMakeLists.txt"
     # Unchanged content keeps its timestamp, so an incremental build does not reconfigure.
@@ -829,14 +941,16 @@ def _write_xrf2_wrapper(plan: _Xrf2Plan, project: Path, dest: Path) -> None:
 # ---------------------------------------------------------------------------------------
 # finding the executable
 
+
 def _controller_records(build_dir: Path) -> list[dict]:
     out = []
     for f in sorted((build_dir / "xrf_controllers").glob("*.json")):
         try:
             out.append(json.loads(f.read_text()))
         except json.JSONDecodeError as exc:
-            raise BuildError(f"{f}: unreadable controller record ({exc}); "
-                             "is a path with a quote or backslash involved?") from exc
+            raise BuildError(
+                f"{f}: unreadable controller record ({exc}); is a path with a quote or backslash involved?"
+            ) from exc
     return out
 
 
@@ -871,24 +985,31 @@ def _executables_from_file_api(build_dir: Path) -> list[Path]:
     return exes
 
 
-def _find_executable(build_dir: Path) -> tuple[Path, Optional[dict]]:
+def _find_executable(build_dir: Path) -> tuple[Path, dict | None]:
     records = _controller_records(build_dir)
     if len(records) == 1:
         return Path(records[0]["executable"]), records[0]
     if len(records) > 1:
-        raise BuildError("the project defines several controllers ("
-                         + ", ".join(r["target"] for r in records) + "); one project, one controller")
+        raise BuildError(
+            "the project defines several controllers ("
+            + ", ".join(r["target"] for r in records)
+            + "); one project, one controller"
+        )
     exes = _executables_from_file_api(build_dir)
     if len(exes) == 1:
         return exes[0], None
     if not exes:
         raise BuildError("the project builds no executable (call xrf_add_controller())")
-    raise BuildError("the project builds several executables (" + ", ".join(str(e) for e in exes)
-                     + "); use xrf_add_controller() for the controller")
+    raise BuildError(
+        "the project builds several executables ("
+        + ", ".join(str(e) for e in exes)
+        + "); use xrf_add_controller() for the controller"
+    )
 
 
 # ---------------------------------------------------------------------------------------
 # the build
+
 
 def _xrfrt_config_dir(prefix: Path) -> Path:
     """Where rt_core's install put XrfRtConfig.cmake (lib/ or lib64/, by platform)."""
@@ -898,8 +1019,13 @@ def _xrfrt_config_dir(prefix: Path) -> Path:
     return found[0].parent
 
 
-def build_project(project_dir: Path | str, build_dir: Path | str | None = None, log: Log = print,
-                  msg_dir: Path | str | None = None, within: Path | str | None = None) -> BuildResult:
+def build_project(
+    project_dir: Path | str,
+    build_dir: Path | str | None = None,
+    log: Log = print,
+    msg_dir: Path | str | None = None,
+    within: Path | str | None = None,
+) -> BuildResult:
     """Configure and build a student project against rt_core; return what was built.
 
     ``build_dir`` defaults to ``<project>/build``. ``msg_dir`` overrides where Ros2Xeno.msg and
@@ -917,7 +1043,7 @@ def build_project(project_dir: Path | str, build_dir: Path | str | None = None, 
         msg_dir = locate_project(given, within).msg_dir
     prefix = ensure_rt_core(log)
 
-    plan: Optional[_Xrf2Plan] = None
+    plan: _Xrf2Plan | None = None
     if layout == "xrf2":
         plan = plan_xrf2(project, Path(msg_dir) if msg_dir else None)
         log("XRF2-layout project: building its files unchanged against rt_core")
@@ -935,12 +1061,20 @@ def build_project(project_dir: Path | str, build_dir: Path | str | None = None, 
     _drop_foreign_cache(binary, log)
     _write_file_api_query(binary)
 
-    cmd = ["cmake", "-S", str(source), "-B", str(binary), *_generator_args(binary),
-           "-DCMAKE_BUILD_TYPE=Release", f"-DCMAKE_PREFIX_PATH={prefix}",
-           # Named explicitly: a reused build folder's cache would otherwise keep the XrfRt of an
-           # older rt_core, whose shared-memory layout no longer matches the host's.
-           f"-DXrfRt_DIR={_xrfrt_config_dir(prefix)}",
-           f"-DPython3_EXECUTABLE={sys.executable}"]
+    cmd = [
+        "cmake",
+        "-S",
+        str(source),
+        "-B",
+        str(binary),
+        *_generator_args(binary),
+        "-DCMAKE_BUILD_TYPE=Release",
+        f"-DCMAKE_PREFIX_PATH={prefix}",
+        # Named explicitly: a reused build folder's cache would otherwise keep the XrfRt of an
+        # older rt_core, whose shared-memory layout no longer matches the host's.
+        f"-DXrfRt_DIR={_xrfrt_config_dir(prefix)}",
+        f"-DPython3_EXECUTABLE={sys.executable}",
+    ]
     if layout == "xrf":
         # Always passed: XRF_MSG_DIR lands in the cache, and an override from an earlier build
         # must not outlive the call that asked for it.
@@ -954,7 +1088,7 @@ def build_project(project_dir: Path | str, build_dir: Path | str | None = None, 
 
     taken: list[str]
     left_out: dict[str, str]
-    twenty: Optional[dict] = None
+    twenty: dict | None = None
     if record and record.get("twenty_sim"):
         twenty = dict(record["twenty_sim"])
         for k in ("folder", "tokens_file"):
@@ -963,13 +1097,16 @@ def build_project(project_dir: Path | str, build_dir: Path | str | None = None, 
         taken, left_out = plan.taken, plan.left_out
     elif record:
         taken = sorted(_rel(Path(s), project) for s in record["sources"])
-        left_out = {_rel(Path(s), project): "20-sim test program with its own main()"
-                    for s in record.get("left_out_test_programs", [])}
+        left_out = {
+            _rel(Path(s), project): "20-sim test program with its own main()"
+            for s in record.get("left_out_test_programs", [])
+        }
     else:
         taken, left_out = [], {}
     log(f"built {exe}")
-    return BuildResult(executable=exe, build_dir=build, layout=layout, taken=taken,
-                       left_out=left_out, twenty_sim=twenty)
+    return BuildResult(
+        executable=exe, build_dir=build, layout=layout, taken=taken, left_out=left_out, twenty_sim=twenty
+    )
 
 
 def _main(argv: list[str]) -> int:
@@ -985,8 +1122,18 @@ def _main(argv: list[str]) -> int:
     except BuildError as exc:
         print(f"error: {exc.message}", file=sys.stderr)
         return 1
-    print(json.dumps({"executable": str(r.executable), "layout": r.layout, "taken": r.taken,
-                      "left_out": r.left_out, "twenty_sim": r.twenty_sim}, indent=2))
+    print(
+        json.dumps(
+            {
+                "executable": str(r.executable),
+                "layout": r.layout,
+                "taken": r.taken,
+                "left_out": r.left_out,
+                "twenty_sim": r.twenty_sim,
+            },
+            indent=2,
+        )
+    )
     return 0
 
 

@@ -73,12 +73,8 @@ def command_name(cmd: int) -> str:
     return _c_str(lib.xrf_cmd_name(cmd))
 
 
-COMMAND_NUMBERS: dict[str, int] = {
-    command_name(c): c for c in range(lib.XRF_CMD_INITIALISE, lib.XRF_CMD_QUIT + 1)
-}
-STATE_NUMBERS: dict[str, int] = {
-    state_name(s): s for s in range(lib.XRF_STATE_IDLE, lib.XRF_STATE_QUIT + 1)
-}
+COMMAND_NUMBERS: dict[str, int] = {command_name(c): c for c in range(lib.XRF_CMD_INITIALISE, lib.XRF_CMD_QUIT + 1)}
+STATE_NUMBERS: dict[str, int] = {state_name(s): s for s in range(lib.XRF_STATE_IDLE, lib.XRF_STATE_QUIT + 1)}
 
 
 def command_number(cmd: str | int) -> int:
@@ -99,11 +95,7 @@ def allowed_commands(state: int) -> list[str]:
 
 
 def _char_array_fields(ctype: Any) -> set[str]:
-    return {
-        name
-        for name, f in ctype.fields
-        if f.type.kind == "array" and f.type.item.cname == "char"
-    }
+    return {name for name, f in ctype.fields if f.type.kind == "array" and f.type.item.cname == "char"}
 
 
 # ---- snapshots ----------------------------------------------------------------------------------
@@ -476,9 +468,7 @@ class Channels:
     def write_ros2xeno(self, values: dict[str, Any]) -> bytes:
         """Encode `values` (missing fields are 0) and publish them; returns the bytes written."""
         payload = self.ros2xeno_codec.encode(values)
-        rc = lib.xrf_data_in_write(
-            ffi.addressof(self.shm, "ros2xeno"), payload, len(payload), time.monotonic_ns()
-        )
+        rc = lib.xrf_data_in_write(ffi.addressof(self.shm, "ros2xeno"), payload, len(payload), time.monotonic_ns())
         if rc != 0:
             raise ChannelsError(f"{self.name}: writing Ros2Xeno failed: {os.strerror(-rc)}")
         return payload
@@ -562,7 +552,8 @@ def _try_map(path: Path) -> tuple[mmap.mmap | None, tuple[int, int] | None]:
             # layout. Say so instead of waiting for an object that will never fit.
             raise ChannelsError(
                 f"{path}: {size} bytes, this host expects {SHM_SIZE}: the controller was built "
-                "against another rt_core; rebuild it")
+                "against another rt_core; rebuild it"
+            )
         if size < SHM_SIZE:
             return None, None
         return mmap.mmap(fd, SHM_SIZE, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE), (st.st_dev, st.st_ino)
@@ -764,7 +755,9 @@ class LoopSide:
         ring: bool = True,
     ) -> None:
         payload = xeno2ros if isinstance(xeno2ros, bytes) else self._ch.xeno2ros_codec.encode(xeno2ros or {})
-        slot = ffi.cast("struct xrf_telemetry *", lib.xrf_bcast_begin(ffi.addressof(self._shm, "telem_ring"), self._shm.telem))
+        slot = ffi.cast(
+            "struct xrf_telemetry *", lib.xrf_bcast_begin(ffi.addressof(self._shm, "telem_ring"), self._shm.telem)
+        )
         slot.hdr.cycle = cycle
         slot.hdr.t_ns = time.monotonic_ns() if t_ns is None else t_ns
         slot.state = self._shm.status.state if state is None else state
@@ -782,7 +775,8 @@ class LoopSide:
     def publish_monitor(self, cycle: int, text: str, *, t_ns: int | None = None, ring: bool = True) -> None:
         raw = text.encode()[: lib.XRF_MONITOR_TEXT]
         slot = ffi.cast(
-            "struct xrf_monitor_line *", lib.xrf_bcast_begin(ffi.addressof(self._shm, "monitor_ring"), self._shm.monitor)
+            "struct xrf_monitor_line *",
+            lib.xrf_bcast_begin(ffi.addressof(self._shm, "monitor_ring"), self._shm.monitor),
         )
         slot.hdr.cycle = cycle
         slot.hdr.t_ns = time.monotonic_ns() if t_ns is None else t_ns

@@ -18,9 +18,10 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from . import plants
 
@@ -94,8 +95,10 @@ def _open_channels(args: argparse.Namespace, wait_s: float | None = None, live: 
         if time.monotonic() >= deadline:
             status, pid = ch.status(), ch.info["pid"]
             ch.close()
-            raise CliError(f"the loop on shared memory '{args.shm}' has ended (pid {pid}, state "
-                           f"{status.state_name}); start one (xrf run) or name another with --shm")
+            raise CliError(
+                f"the loop on shared memory '{args.shm}' has ended (pid {pid}, state "
+                f"{status.state_name}); start one (xrf run) or name another with --shm"
+            )
         time.sleep(0.05)
     return ch
 
@@ -113,13 +116,18 @@ def _newer_channels(ch: Any, wait_s: float = 0.0) -> Any:
     except (ChannelsError, ValueError, PermissionError):
         return None
     ch.close()
-    print(f"xrf: a new loop on shared memory '{newer.name}' (pid {newer.info['pid']}): following it",
-          file=sys.stderr, flush=True)
+    print(
+        f"xrf: a new loop on shared memory '{newer.name}' (pid {newer.info['pid']}): following it",
+        file=sys.stderr,
+        flush=True,
+    )
     return newer
 
 
 def _add_shm(parser: argparse.ArgumentParser, timeout: float = 2.0) -> None:
-    parser.add_argument("--shm", default=os.environ.get("XRF_SHM", DEFAULT_SHM), help="shared-memory name (default: $XRF_SHM or xrf)")
+    parser.add_argument(
+        "--shm", default=os.environ.get("XRF_SHM", DEFAULT_SHM), help="shared-memory name (default: $XRF_SHM or xrf)"
+    )
     parser.add_argument("--timeout", type=float, default=timeout, help=f"seconds to wait (default {timeout:g})")
 
 
@@ -179,8 +187,10 @@ def run_state(args: argparse.Namespace) -> int:
             remaining_ms = int((deadline - time.monotonic()) * 1000)
             if remaining_ms <= 0:
                 ended = "" if ch.loop_alive() else " (that loop has ended)"
-                print(f"timed out after {args.timeout:g} s waiting for {wanted}: state is {status.state_name}{ended}",
-                      file=sys.stderr)
+                print(
+                    f"timed out after {args.timeout:g} s waiting for {wanted}: state is {status.state_name}{ended}",
+                    file=sys.stderr,
+                )
                 return EXIT_ERROR
             # A new run replaces the segment of an ended one under the same name: follow it.
             ch = _newer_channels(ch, remaining_ms / 1000) or ch
@@ -207,11 +217,18 @@ STATE_TOPICS = ("XenoState", "Xenomai_state")
 
 
 def _pub_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("message", choices=["Ros2Xeno", *COMMAND_TOPICS],
-                   help="Ros2Xeno, or a command as on XRF2's command topic (XenoCmd, or Command in the first release)")
-    p.add_argument("fields", nargs="*", metavar="field=value",
-                   help="Ros2Xeno field values (fields not given are 0); for XenoCmd/Command one command: "
-                        "data=N, N or a name (initialise, start, ...)")
+    p.add_argument(
+        "message",
+        choices=["Ros2Xeno", *COMMAND_TOPICS],
+        help="Ros2Xeno, or a command as on XRF2's command topic (XenoCmd, or Command in the first release)",
+    )
+    p.add_argument(
+        "fields",
+        nargs="*",
+        metavar="field=value",
+        help="Ros2Xeno field values (fields not given are 0); for XenoCmd/Command one command: "
+        "data=N, N or a name (initialise, start, ...)",
+    )
     _add_shm(p)
 
 
@@ -341,11 +358,18 @@ def _build(project: Path) -> Path:
 
 
 def _build_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("project", type=Path, help="project folder (with CMakeLists.txt and msg/), an XRF2 "
-                   "controller package, or a ROS 2 workspace holding one")
-    p.add_argument("--no-ros-messages", action="store_true",
-                   help="do not build the project's xrf2_msgs ROS 2 package (built by default when the "
-                        "ROS 2 build tools are installed, once per set of messages, for xrf ros-bridge)")
+    p.add_argument(
+        "project",
+        type=Path,
+        help="project folder (with CMakeLists.txt and msg/), an XRF2 "
+        "controller package, or a ROS 2 workspace holding one",
+    )
+    p.add_argument(
+        "--no-ros-messages",
+        action="store_true",
+        help="do not build the project's xrf2_msgs ROS 2 package (built by default when the "
+        "ROS 2 build tools are installed, once per set of messages, for xrf ros-bridge)",
+    )
 
 
 def _build_ros_messages(project: Path) -> None:
@@ -385,8 +409,12 @@ def run_build(args: argparse.Namespace) -> int:
 
 def _run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("target", type=Path, help="project folder (built first) or controller executable")
-    p.add_argument("--sim", type=plants.arg_type, metavar="PLANT",
-                   help="simulated robot (sets XRF_SIM): a plant of rt_core's plant table (relbot, jiwy, ...)")
+    p.add_argument(
+        "--sim",
+        type=plants.arg_type,
+        metavar="PLANT",
+        help="simulated robot (sets XRF_SIM): a plant of rt_core's plant table (relbot, jiwy, ...)",
+    )
     p.add_argument("--freq", type=int, help="cycle frequency override in Hz (XRF_FREQ)")
     p.add_argument("--cpu", type=int, help="CPU to pin the loop thread to (XRF_CPU)")
     p.add_argument("--prio", type=int, help="SCHED_FIFO priority (XRF_PRIO)")
@@ -395,9 +423,14 @@ def _run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-cycles", type=int, help="leave the loop after N cycles (XRF_MAX_CYCLES)")
     p.add_argument("--backend", choices=["posix", "evl", "auto"], help="XRF_BACKEND")
     p.add_argument("--transport", choices=["sim", "spidev", "evl-spidev", "auto"], help="XRF_TRANSPORT")
-    p.add_argument("--stop-timeout", type=float, default=STOP_GRACE_S, help="seconds between SIGINT and SIGTERM on Ctrl-C")
-    p.add_argument("--log-timing", action="store_true",
-                   help="log every cycle's wake-up jitter and stage durations to cycle_timing.xrf (XRF_LOG_TIMING)")
+    p.add_argument(
+        "--stop-timeout", type=float, default=STOP_GRACE_S, help="seconds between SIGINT and SIGTERM on Ctrl-C"
+    )
+    p.add_argument(
+        "--log-timing",
+        action="store_true",
+        help="log every cycle's wake-up jitter and stage durations to cycle_timing.xrf (XRF_LOG_TIMING)",
+    )
 
 
 def run_environment(args: argparse.Namespace) -> dict[str, str]:
@@ -474,7 +507,10 @@ def run_run(args: argparse.Namespace) -> int:
                 continue
             waited = time.monotonic() - stop_requested_at[0]
             if not escalated and waited > args.stop_timeout:
-                print(f"xrf run: controller still running {args.stop_timeout:g} s after SIGINT; sending SIGTERM", file=sys.stderr)
+                print(
+                    f"xrf run: controller still running {args.stop_timeout:g} s after SIGINT; sending SIGTERM",
+                    file=sys.stderr,
+                )
                 child.terminate()
                 escalated = True
             elif escalated and waited > args.stop_timeout + KILL_GRACE_S:
@@ -510,7 +546,9 @@ def _fail(message: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="xrf", description="XRF Lab: build, run, command and watch real-time controllers.")
+    parser = argparse.ArgumentParser(
+        prog="xrf", description="XRF Lab: build, run, command and watch real-time controllers."
+    )
     subparsers = parser.add_subparsers(dest="subcommand", metavar="SUBCOMMAND", required=True)
     for name, sub in SUBCOMMANDS.items():
         p = subparsers.add_parser(name, help=sub.help, description=sub.help)

@@ -40,12 +40,15 @@ import shutil
 import signal
 import subprocess
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Optional
+from typing import Any
 
-HELP = ("check this machine for real-time readiness (EVL, isolated CPU, governor, throttling, SPI, clock, disk, "
-        "ROS 2) and which run sandbox confines students' controllers")
+HELP = (
+    "check this machine for real-time readiness (EVL, isolated CPU, governor, throttling, SPI, clock, disk, "
+    "ROS 2) and which run sandbox confines students' controllers"
+)
 
 OK, WARNING, FAILURE, SKIPPED = "ok", "warning", "failure", "not checked"
 STATUSES = (OK, WARNING, FAILURE, SKIPPED)
@@ -55,8 +58,8 @@ DEFAULT_LOOP_USER = "xrf-loop"
 SPI_DEVICE = "/dev/spidev0.0"
 EVL_SYSFS = ("sys/devices/virtual/evl/control", "sys/class/evl/control")
 THROTTLED_SYSFS = "sys/devices/platform/soc/soc:firmware/get_throttled"
-DISK_FAIL_BYTES = 200 * 1000 ** 2
-DISK_WARN_BYTES = 2 * 1000 ** 3
+DISK_FAIL_BYTES = 200 * 1000**2
+DISK_WARN_BYTES = 2 * 1000**3
 # A clock before this is certainly wrong (the Pi has no RTC: it boots at the last saved time
 # or 1970 until NTP answers).
 SANE_EPOCH = 1704067200  # 2024-01-01
@@ -120,20 +123,20 @@ class Context:
     spi_device: str = SPI_DEVICE
     live: bool = True  # talk to the FPGA (only when SPI is there)
     now: Callable[[], float] = time.time
-    disk_usage: Callable[[Path], "tuple[int, int, int]"] = shutil.disk_usage
+    disk_usage: Callable[[Path], tuple[int, int, int]] = shutil.disk_usage
     find_module: Callable[[str], bool] = lambda name: importlib.util.find_spec(name) is not None
-    init_probe: Optional[Callable[["Context"], InitProbe]] = None  # default: probe_fpga_init
+    init_probe: Callable[[Context], InitProbe] | None = None  # default: probe_fpga_init
     # The run sandbox: the appliance's Settings (None: built from data_dir/spi_device), whether
     # runs may start with a layer missing (xrf serve --allow-unconfined), and the probe
     # (default: probe_confinement, which starts /bin/true in the sandbox; only when root is /).
     settings: Any = None
-    allow_unconfined: Optional[bool] = None  # None: settings' (or $XRF_ALLOW_UNCONFINED)
-    guest_probe: Optional[Callable[["Context"], ConfinementProbe]] = None
+    allow_unconfined: bool | None = None  # None: settings' (or $XRF_ALLOW_UNCONFINED)
+    guest_probe: Callable[[Context], ConfinementProbe] | None = None
 
     def path(self, p: str) -> Path:
         return self.root / p.lstrip("/")
 
-    def read(self, p: str) -> Optional[str]:
+    def read(self, p: str) -> str | None:
         try:
             return self.path(p).read_text(errors="replace")
         except OSError:
@@ -149,6 +152,7 @@ class Context:
 
 # ---------------------------------------------------------------------------------------
 # helpers
+
 
 def parse_cpulist(text: str) -> set[int]:
     """'1,3-5' -> {1,3,4,5}; flags such as isolcpus' 'domain,managed_irq,' are ignored."""
@@ -180,7 +184,7 @@ def _etc_entries(ctx: Context, name: str) -> list[list[str]]:
     return [line.split(":") for line in text.splitlines() if line and not line.startswith("#")]
 
 
-def user_gids(ctx: Context, user: str) -> Optional[tuple[int, set[int]]]:
+def user_gids(ctx: Context, user: str) -> tuple[int, set[int]] | None:
     """(uid, gids) of ``user`` from the root's /etc/passwd and /etc/group; None if unknown."""
     for f in _etc_entries(ctx, "passwd"):
         if len(f) >= 4 and f[0] == user:
@@ -220,16 +224,20 @@ def can_rw(ctx: Context, path: Path, user: str) -> tuple[bool, str]:
 # ---------------------------------------------------------------------------------------
 # checks
 
+
 def check_evl(ctx: Context) -> CheckResult:
     cid, title = "evl", "EVL kernel and libevl ABI"
     if not ctx.has_evl():
         release = (ctx.read("/proc/sys/kernel/osrelease") or "").strip() or "this kernel"
         return CheckResult(
-            cid, title, FAILURE if ctx.is_pi() else WARNING,
+            cid,
+            title,
+            FAILURE if ctx.is_pi() else WARNING,
             f"{release} has no EVL core (/dev/evl and /sys/devices/virtual/evl missing): loops "
             "run on the posix backend (SCHED_FIFO), without out-of-band guarantees",
             "build and boot an EVL kernel (docs/install/evl-kernel.md); on a laptop or CI "
-            "this is expected and the simulated bench works")
+            "this is expected and the simulated bench works",
+        )
     kernel_abi = None
     for p in EVL_SYSFS:
         text = ctx.read(f"/{p}/abi")
@@ -238,40 +246,63 @@ def check_evl(ctx: Context) -> CheckResult:
             break
     lib = libevl_abi(ctx)
     if not ctx.path("/dev/evl/control").exists():
-        return CheckResult(cid, title, FAILURE, "EVL core in sysfs but /dev/evl/control is missing",
-                           "check that devtmpfs is mounted and udev runs; reboot")
+        return CheckResult(
+            cid,
+            title,
+            FAILURE,
+            "EVL core in sysfs but /dev/evl/control is missing",
+            "check that devtmpfs is mounted and udev runs; reboot",
+        )
     if lib is None:
         return CheckResult(
-            cid, title, WARNING,
+            cid,
+            title,
+            WARNING,
             f"EVL core present (kernel ABI {kernel_abi if kernel_abi is not None else 'unknown'}), "
             "but libevl is not installed in /usr/evl: rt_core is built with the posix backend only",
             "build libevl for this kernel and install it to /usr/evl (docs/install/pi.md, "
-            "'libevl'), then re-run deploy/install")
+            "'libevl'), then re-run deploy/install",
+        )
     prereq, built_level = lib
     if kernel_abi is None:
-        return CheckResult(cid, title, WARNING,
-                           "EVL core present but its ABI is not readable (/sys/devices/virtual/evl/control/abi)",
-                           "run `/usr/evl/bin/evl check` (or any EVL test) to confirm libevl and the kernel agree")
+        return CheckResult(
+            cid,
+            title,
+            WARNING,
+            "EVL core present but its ABI is not readable (/sys/devices/virtual/evl/control/abi)",
+            "run `/usr/evl/bin/evl check` (or any EVL test) to confirm libevl and the kernel agree",
+        )
     need = prereq if prereq is not None else built_level
     if need is not None and kernel_abi < need:
         return CheckResult(
-            cid, title, FAILURE,
+            cid,
+            title,
+            FAILURE,
             f"kernel EVL ABI {kernel_abi} is older than libevl needs ({need}): evl_init() fails with ENOEXEC",
             "rebuild libevl from a release matching this kernel (or update the kernel), "
-            "install to /usr/evl, re-run deploy/install")
+            "install to /usr/evl, re-run deploy/install",
+        )
     if built_level is not None and kernel_abi != built_level:
         return CheckResult(
-            cid, title, WARNING,
+            cid,
+            title,
+            WARNING,
             f"kernel EVL ABI {kernel_abi}, libevl was built against ABI {built_level}"
             + (f" (needs {prereq})" if prereq is not None else "")
             + ": works only if the kernel still honours that ABI",
             "rebuild libevl against this kernel's headers (meson -Duapi=<linux-evl tree>), "
-            "install to /usr/evl, re-run deploy/install")
-    return CheckResult(cid, title, OK, f"EVL core present, kernel ABI {kernel_abi} matches libevl "
-                       f"({'needs ' + str(prereq) if prereq is not None else 'built against ' + str(built_level)})")
+            "install to /usr/evl, re-run deploy/install",
+        )
+    return CheckResult(
+        cid,
+        title,
+        OK,
+        f"EVL core present, kernel ABI {kernel_abi} matches libevl "
+        f"({'needs ' + str(prereq) if prereq is not None else 'built against ' + str(built_level)})",
+    )
 
 
-def libevl_abi(ctx: Context) -> Optional[tuple[Optional[int], Optional[int]]]:
+def libevl_abi(ctx: Context) -> tuple[int | None, int | None] | None:
     """(EVL_ABI_PREREQ, EVL_ABI_LEVEL built against) from /usr/evl/include; None: no libevl."""
     inc = ctx.path("/usr/evl/include")
     if not (inc / "evl" / "evl.h").exists():
@@ -305,30 +336,48 @@ def check_isolation(ctx: Context) -> CheckResult:
     params = cmdline_params(cmdline)
     iso = parse_cpulist(params.get("isolcpus", ""))
     oob = parse_cpulist(params.get("evl.oobcpus", ""))
-    fix = ("append `isolcpus=3 evl.oobcpus=3` (see deploy/boot/cmdline.txt.snippet) to the one "
-           "line of /boot/firmware/cmdline.txt, or run `sudo deploy/install --boot`; reboot")
+    fix = (
+        "append `isolcpus=3 evl.oobcpus=3` (see deploy/boot/cmdline.txt.snippet) to the one "
+        "line of /boot/firmware/cmdline.txt, or run `sudo deploy/install --boot`; reboot"
+    )
     if "evl.oob_cpus" in params and not oob:
-        return CheckResult(cid, title, FAILURE,
-                           "cmdline has the stale spelling evl.oob_cpus=, which the EVL core ignores",
-                           "rename it to evl.oobcpus= in /boot/firmware/cmdline.txt; reboot")
+        return CheckResult(
+            cid,
+            title,
+            FAILURE,
+            "cmdline has the stale spelling evl.oob_cpus=, which the EVL core ignores",
+            "rename it to evl.oobcpus= in /boot/firmware/cmdline.txt; reboot",
+        )
     evl = ctx.has_evl()
     if not iso:
-        return CheckResult(cid, title, FAILURE if evl else WARNING,
-                           "no CPU is isolated (no isolcpus= on the kernel command line)", fix)
+        return CheckResult(
+            cid, title, FAILURE if evl else WARNING, "no CPU is isolated (no isolcpus= on the kernel command line)", fix
+        )
     if evl and not oob:
-        return CheckResult(cid, title, FAILURE,
-                           f"isolcpus={fmt_cpus(iso)} but no evl.oobcpus=: the EVL core may run "
-                           "out-of-band work on every CPU", fix)
+        return CheckResult(
+            cid,
+            title,
+            FAILURE,
+            f"isolcpus={fmt_cpus(iso)} but no evl.oobcpus=: the EVL core may run out-of-band work on every CPU",
+            fix,
+        )
     if evl and iso != oob:
-        return CheckResult(cid, title, WARNING,
-                           f"isolcpus={fmt_cpus(iso)} and evl.oobcpus={fmt_cpus(oob)} name different CPUs",
-                           "give both the same CPU (e.g. 3) in /boot/firmware/cmdline.txt; reboot")
+        return CheckResult(
+            cid,
+            title,
+            WARNING,
+            f"isolcpus={fmt_cpus(iso)} and evl.oobcpus={fmt_cpus(oob)} name different CPUs",
+            "give both the same CPU (e.g. 3) in /boot/firmware/cmdline.txt; reboot",
+        )
     isolated = ctx.read("/sys/devices/system/cpu/isolated")
     if isolated is not None and parse_cpulist(isolated) != iso:
-        return CheckResult(cid, title, WARNING,
-                           f"cmdline isolates {fmt_cpus(iso)} but the kernel reports isolated="
-                           f"{fmt_cpus(parse_cpulist(isolated))}",
-                           "check the isolcpus= syntax (e.g. isolcpus=3) and that the CPU exists; reboot")
+        return CheckResult(
+            cid,
+            title,
+            WARNING,
+            f"cmdline isolates {fmt_cpus(iso)} but the kernel reports isolated={fmt_cpus(parse_cpulist(isolated))}",
+            "check the isolcpus= syntax (e.g. isolcpus=3) and that the CPU exists; reboot",
+        )
     tail = f", evl.oobcpus={fmt_cpus(oob)}" if oob else " (no EVL core: evl.oobcpus not needed)"
     return CheckResult(cid, title, OK, f"isolcpus={fmt_cpus(iso)}{tail}; run loops with XRF_CPU={min(iso)}")
 
@@ -337,8 +386,13 @@ def check_governor(ctx: Context) -> CheckResult:
     cid, title = "governor", "CPU frequency governor"
     files = sorted(glob.glob(str(ctx.path("/sys/devices/system/cpu")) + "/cpu[0-9]*/cpufreq/scaling_governor"))
     if not files:
-        return CheckResult(cid, title, WARNING, "no cpufreq information (virtual machine, or cpufreq not built in)",
-                           "nothing to do on a VM; on the Pi enable CONFIG_CPU_FREQ and the raspberrypi cpufreq driver")
+        return CheckResult(
+            cid,
+            title,
+            WARNING,
+            "no cpufreq information (virtual machine, or cpufreq not built in)",
+            "nothing to do on a VM; on the Pi enable CONFIG_CPU_FREQ and the raspberrypi cpufreq driver",
+        )
     wrong = {}
     for f in files:
         gov = _read(Path(f)).strip()
@@ -346,15 +400,20 @@ def check_governor(ctx: Context) -> CheckResult:
             wrong[Path(f).parents[1].name] = gov or "?"
     if wrong:
         shown = ", ".join(f"{cpu}={gov}" for cpu, gov in sorted(wrong.items()))
-        return CheckResult(cid, title, FAILURE, f"not 'performance': {shown} (frequency scaling adds jitter)",
-                           "sudo systemctl enable --now xrf-cpufreq.service (installed by deploy/install)")
+        return CheckResult(
+            cid,
+            title,
+            FAILURE,
+            f"not 'performance': {shown} (frequency scaling adds jitter)",
+            "sudo systemctl enable --now xrf-cpufreq.service (installed by deploy/install)",
+        )
     return CheckResult(cid, title, OK, f"performance on all {len(files)} CPUs")
 
 
 THROTTLE_BITS = {0: "under-voltage", 1: "ARM frequency capped", 2: "throttled", 3: "soft temperature limit"}
 
 
-def read_throttled(ctx: Context) -> Optional[tuple[int, str]]:
+def read_throttled(ctx: Context) -> tuple[int, str] | None:
     rc, out = ctx.runner(["vcgencmd", "get_throttled"])
     if rc == 0:
         m = re.search(r"throttled=(0x[0-9a-fA-F]+|\d+)", out)
@@ -373,19 +432,30 @@ def check_throttling(ctx: Context) -> CheckResult:
     cid, title = "throttling", "Under-voltage and thermal throttling"
     got = read_throttled(ctx)
     if got is None:
-        return CheckResult(cid, title, SKIPPED if not ctx.is_pi() else WARNING,
-                           "no firmware throttling flags (vcgencmd missing and no get_throttled in sysfs)",
-                           "" if not ctx.is_pi() else "sudo apt install libraspberrypi-bin (vcgencmd)")
+        return CheckResult(
+            cid,
+            title,
+            SKIPPED if not ctx.is_pi() else WARNING,
+            "no firmware throttling flags (vcgencmd missing and no get_throttled in sysfs)",
+            "" if not ctx.is_pi() else "sudo apt install libraspberrypi-bin (vcgencmd)",
+        )
     value, source = got
     now = [name for bit, name in THROTTLE_BITS.items() if value & (1 << bit)]
     since = [name for bit, name in THROTTLE_BITS.items() if value & (1 << (bit + 16))]
-    power_fix = ("use the official 5.1 V / 3 A USB-C supply and a short cable; "
-                 "add a heatsink/fan if the temperature limit was hit (vcgencmd measure_temp)")
+    power_fix = (
+        "use the official 5.1 V / 3 A USB-C supply and a short cable; "
+        "add a heatsink/fan if the temperature limit was hit (vcgencmd measure_temp)"
+    )
     if now:
         return CheckResult(cid, title, FAILURE, f"now: {', '.join(now)} (0x{value:x}, {source})", power_fix)
     if since:
-        return CheckResult(cid, title, WARNING, f"since boot: {', '.join(since)} (0x{value:x}, {source})",
-                           power_fix + "; then reboot and check again")
+        return CheckResult(
+            cid,
+            title,
+            WARNING,
+            f"since boot: {', '.join(since)} (0x{value:x}, {source})",
+            power_fix + "; then reboot and check again",
+        )
     return CheckResult(cid, title, OK, f"no under-voltage or throttling now or since boot (0x{value:x})")
 
 
@@ -393,27 +463,37 @@ def check_spi(ctx: Context) -> CheckResult:
     cid, title = "spi", f"SPI device {ctx.spi_device}"
     dev = ctx.path(ctx.spi_device)
     if not dev.exists():
-        return CheckResult(cid, title, FAILURE if ctx.is_pi() else WARNING,
-                           f"{ctx.spi_device} does not exist"
-                           + ("" if ctx.is_pi() else " (not a Raspberry Pi: the bench is simulated)"),
-                           "add dtparam=spi=on to /boot/firmware/config.txt (deploy/boot/config.txt.snippet); reboot")
+        return CheckResult(
+            cid,
+            title,
+            FAILURE if ctx.is_pi() else WARNING,
+            f"{ctx.spi_device} does not exist"
+            + ("" if ctx.is_pi() else " (not a Raspberry Pi: the bench is simulated)"),
+            "add dtparam=spi=on to /boot/firmware/config.txt (deploy/boot/config.txt.snippet); reboot",
+        )
     ok, how = can_rw(ctx, dev, ctx.loop_user)
     if not ok:
-        return CheckResult(cid, title, FAILURE, f"{ctx.spi_device} ({how}) is not read/writable by {ctx.loop_user}",
-                           "install deploy/udev/60-xrf-lab.rules (deploy/install does), then "
-                           "`sudo udevadm control --reload-rules && sudo udevadm trigger`; "
-                           f"check `id {ctx.loop_user}` lists group spi")
+        return CheckResult(
+            cid,
+            title,
+            FAILURE,
+            f"{ctx.spi_device} ({how}) is not read/writable by {ctx.loop_user}",
+            "install deploy/udev/60-xrf-lab.rules (deploy/install does), then "
+            "`sudo udevadm control --reload-rules && sudo udevadm trigger`; "
+            f"check `id {ctx.loop_user}` lists group spi",
+        )
     return CheckResult(cid, title, OK, f"{ctx.spi_device} present, read/writable by {ctx.loop_user} ({how})")
 
 
-def find_selfcheck(ctx: Context) -> Optional[str]:
+def find_selfcheck(ctx: Context) -> str | None:
     found = shutil.which("xrf-selfcheck") if str(ctx.root) == "/" else None
     if found:
         return found
     cache = os.environ.get("XRF_CACHE_DIR") if str(ctx.root) == "/" else None
     for base in filter(None, [cache, "/var/cache/xrf-lab", "/usr/local"]):
-        hits = sorted(glob.glob(str(ctx.path(base)) + "/rt_core/*/bin/xrf-selfcheck")) + \
-            sorted(glob.glob(str(ctx.path(base)) + "/bin/xrf-selfcheck"))
+        hits = sorted(glob.glob(str(ctx.path(base)) + "/rt_core/*/bin/xrf-selfcheck")) + sorted(
+            glob.glob(str(ctx.path(base)) + "/bin/xrf-selfcheck")
+        )
         if hits:
             return hits[-1]
     return None
@@ -427,8 +507,12 @@ def probe_fpga_init(ctx: Context, timeout: float = 10.0) -> InitProbe:
         return InitProbe(SKIPPED, "xrf-selfcheck not found (deploy/install builds it with rt_core)")
     transport = "evl-spidev" if ctx.has_evl() else "spidev"
     try:
-        proc = subprocess.Popen([exe, "--transport", transport, "--device", ctx.spi_device],
-                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        proc = subprocess.Popen(
+            [exe, "--transport", transport, "--device", ctx.spi_device],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
     except OSError as exc:
         return InitProbe(SKIPPED, f"cannot run {exe}: {exc}")
     result = InitProbe(FAILURE, "no INIT result from xrf-selfcheck")
@@ -462,7 +546,7 @@ def probe_fpga_init(ctx: Context, timeout: float = 10.0) -> InitProbe:
     return result
 
 
-def check_fpga(ctx: Context, spi: Optional[CheckResult] = None) -> CheckResult:
+def check_fpga(ctx: Context, spi: CheckResult | None = None) -> CheckResult:
     cid, title = "fpga", "FPGA answers INIT"
     spi = spi or check_spi(ctx)
     if spi.status != OK:
@@ -472,7 +556,7 @@ def check_fpga(ctx: Context, spi: Optional[CheckResult] = None) -> CheckResult:
     probe = (ctx.init_probe or probe_fpga_init)(ctx)
     fixes = {
         FAILURE: "check the ico board's power, that it is programmed (CDONE LED), and the SPI ribbon "
-                 "cable; then run the full self-check (educator page or `xrf selfcheck`)",
+        "cable; then run the full self-check (educator page or `xrf selfcheck`)",
         WARNING: "run the full self-check (educator page or `xrf selfcheck`) and read its INIT step",
     }
     return CheckResult(cid, title, probe.status, probe.detail, fixes.get(probe.status, ""))
@@ -489,11 +573,18 @@ def check_clock(ctx: Context) -> CheckResult:
     stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(ctx.now()))
     if synced:
         return CheckResult(cid, title, OK, f"synchronised ({stamp})")
-    fix = ("sudo timedatectl set-ntp true; make sure the Pi reaches an NTP server "
-           "(campus networks: set NTP= in /etc/systemd/timesyncd.conf)")
+    fix = (
+        "sudo timedatectl set-ntp true; make sure the Pi reaches an NTP server "
+        "(campus networks: set NTP= in /etc/systemd/timesyncd.conf)"
+    )
     if ctx.now() < SANE_EPOCH:
-        return CheckResult(cid, title, FAILURE, f"not synchronised and the clock is wrong ({stamp}): "
-                           "run and log timestamps are meaningless", fix)
+        return CheckResult(
+            cid,
+            title,
+            FAILURE,
+            f"not synchronised and the clock is wrong ({stamp}): run and log timestamps are meaningless",
+            fix,
+        )
     how = "timedatectl says no" if synced is False else "timedatectl not available"
     return CheckResult(cid, title, WARNING, f"not known to be synchronised ({how}; now {stamp})", fix)
 
@@ -507,11 +598,13 @@ def check_disk(ctx: Context) -> CheckResult:
         free = ctx.disk_usage(p)[2]
     except OSError as exc:
         return CheckResult(cid, title, SKIPPED, f"cannot stat {p}: {exc}")
-    gb = free / 1000 ** 3
-    fix = (f"free space: delete old runs in the dashboard, or move {ctx.data_dir} to a larger "
-           "disk (xrf serve --data, and the unit's ReadWritePaths=)")
+    gb = free / 1000**3
+    fix = (
+        f"free space: delete old runs in the dashboard, or move {ctx.data_dir} to a larger "
+        "disk (xrf serve --data, and the unit's ReadWritePaths=)"
+    )
     if free < DISK_FAIL_BYTES:
-        return CheckResult(cid, title, FAILURE, f"only {free / 1000 ** 2:.0f} MB free: logging will stop", fix)
+        return CheckResult(cid, title, FAILURE, f"only {free / 1000**2:.0f} MB free: logging will stop", fix)
     if free < DISK_WARN_BYTES:
         return CheckResult(cid, title, WARNING, f"{gb:.2f} GB free (a long lossless log needs more)", fix)
     return CheckResult(cid, title, OK, f"{gb:.1f} GB free")
@@ -524,27 +617,37 @@ def check_ros2(ctx: Context) -> CheckResult:
     if importable:
         return CheckResult(cid, title, OK, "rclpy importable" + (f" (ROS 2 {', '.join(distros)})" if distros else ""))
     if distros:
-        return CheckResult(cid, title, WARNING,
-                           f"ROS 2 {', '.join(distros)} installed but rclpy is not importable by the appliance",
-                           f"start the appliance with /opt/ros/{distros[-1]}/setup.bash sourced, or recreate "
-                           "its venv with --system-site-packages")
-    return CheckResult(cid, title, WARNING, "no ROS 2 (no rclpy, nothing in /opt/ros): the ROS 2 bridge is off",
-                       "optional: sudo apt install ros-jazzy-ros-base (Ubuntu 24.04), then restart xrf-lab")
+        return CheckResult(
+            cid,
+            title,
+            WARNING,
+            f"ROS 2 {', '.join(distros)} installed but rclpy is not importable by the appliance",
+            f"start the appliance with /opt/ros/{distros[-1]}/setup.bash sourced, or recreate "
+            "its venv with --system-site-packages",
+        )
+    return CheckResult(
+        cid,
+        title,
+        WARNING,
+        "no ROS 2 (no rclpy, nothing in /opt/ros): the ROS 2 bridge is off",
+        "optional: sudo apt install ros-jazzy-ros-base (Ubuntu 24.04), then restart xrf-lab",
+    )
 
 
 # What to do about a missing layer of the run sandbox (xrflab.guest.LAYERS).
 LAYER_FIX = {
     "user": "give the appliance's user subordinate ids and the setuid helpers: `sudo apt install uidmap`, then "
-            "`sudo deploy/install` (writes xrf:<uid of xrf-loop>:1 to /etc/subuid and the matching /etc/subgid lines); "
-            "or run the appliance as root (development)",
+    "`sudo deploy/install` (writes xrf:<uid of xrf-loop>:1 to /etc/subuid and the matching /etc/subgid lines); "
+    "or run the appliance as root (development)",
     "mount": "enable unprivileged user namespaces: `sudo sysctl kernel.unprivileged_userns_clone=1` (Debian) or "
-             "`sudo sysctl kernel.apparmor_restrict_unprivileged_userns=0` (Ubuntu 24.04); in a container, allow "
-             "unshare (e.g. docker --security-opt seccomp=unconfined)",
+    "`sudo sysctl kernel.apparmor_restrict_unprivileged_userns=0` (Ubuntu 24.04); in a container, allow "
+    "unshare (e.g. docker --security-opt seccomp=unconfined)",
 }
 for _layer in ("pid", "network", "ipc"):
     LAYER_FIX[_layer] = LAYER_FIX["mount"]
-ALLOW_HINT = ("runs are refused until this is fixed (an educator may accept the risk with "
-              "`xrf serve --allow-unconfined`)")
+ALLOW_HINT = (
+    "runs are refused until this is fixed (an educator may accept the risk with `xrf serve --allow-unconfined`)"
+)
 
 
 def probe_confinement(ctx: Context) -> ConfinementProbe:
@@ -584,14 +687,23 @@ def check_confinement(ctx: Context) -> CheckResult:
     probe_fn = ctx.guest_probe
     if probe_fn is None:
         if str(ctx.root) != "/":
-            return CheckResult(cid, title, SKIPPED, "not checked: --root names a prepared tree; the sandbox is "
-                               "probed only on the machine itself")
+            return CheckResult(
+                cid,
+                title,
+                SKIPPED,
+                "not checked: --root names a prepared tree; the sandbox is probed only on the machine itself",
+            )
         probe_fn = probe_confinement
     try:
         probe = probe_fn(ctx)
     except ImportError as exc:
-        return CheckResult(cid, title, SKIPPED, f"not checked: the appliance is not fully installed here ({exc})",
-                           "install the xrflab package with its dependencies (deploy/install without --no-deps)")
+        return CheckResult(
+            cid,
+            title,
+            SKIPPED,
+            f"not checked: the appliance is not fully installed here ({exc})",
+            "install the xrflab package with its dependencies (deploy/install without --no-deps)",
+        )
     report = probe.report
     layers: dict = dict(report.layers or {})
     missing = {k: v for k, v in layers.items() if v}
@@ -605,10 +717,18 @@ def check_confinement(ctx: Context) -> CheckResult:
         # launcher failing): no run can start, whatever the settings say.
         fix = LAYER_FIX["mount"]
         if "newuidmap" in report.error:
-            fix = ("the setuid newuidmap/newgidmap did nothing: the service must not have NoNewPrivileges=yes, and "
-                   "/etc/subuid, /etc/subgid must list the ids (re-run `sudo deploy/install`)")
-        return CheckResult(cid, title, FAILURE, f"{head}; the sandbox could not start a controller: {report.error}",
-                           fix + "; see docs/developers/security.md, 'The run sandbox'", items)
+            fix = (
+                "the setuid newuidmap/newgidmap did nothing: the service must not have NoNewPrivileges=yes, and "
+                "/etc/subuid, /etc/subgid must list the ids (re-run `sudo deploy/install`)"
+            )
+        return CheckResult(
+            cid,
+            title,
+            FAILURE,
+            f"{head}; the sandbox could not start a controller: {report.error}",
+            fix + "; see docs/developers/security.md, 'The run sandbox'",
+            items,
+        )
     if missing:
         text = "; ".join(f"{k} ({v})" for k, v in missing.items())
         holding = ", ".join(k for k, v in layers.items() if not v) or "none"
@@ -618,18 +738,36 @@ def check_confinement(ctx: Context) -> CheckResult:
             if f not in fixes:
                 fixes.append(f)
         if allowed:
-            return CheckResult(cid, title, WARNING,
-                               f"{head}; controllers run WITHOUT: {text} (allowed by --allow-unconfined); "
-                               f"holding: {holding}{notes}", "; ".join(fixes), items)
-        return CheckResult(cid, title, FAILURE, f"{head}; missing: {text}; holding: {holding}{notes}; {ALLOW_HINT}",
-                           "; ".join(fixes), items)
-    return CheckResult(cid, title, OK, f"{head}; all {len(layers)} layers hold ({', '.join(layers)}){notes}",
-                       "", items)
+            return CheckResult(
+                cid,
+                title,
+                WARNING,
+                f"{head}; controllers run WITHOUT: {text} (allowed by --allow-unconfined); holding: {holding}{notes}",
+                "; ".join(fixes),
+                items,
+            )
+        return CheckResult(
+            cid,
+            title,
+            FAILURE,
+            f"{head}; missing: {text}; holding: {holding}{notes}; {ALLOW_HINT}",
+            "; ".join(fixes),
+            items,
+        )
+    return CheckResult(cid, title, OK, f"{head}; all {len(layers)} layers hold ({', '.join(layers)}){notes}", "", items)
 
 
 CHECKS: list[Callable[[Context], CheckResult]] = [
-    check_evl, check_isolation, check_governor, check_throttling, check_spi, check_fpga,
-    check_clock, check_disk, check_ros2, check_confinement,
+    check_evl,
+    check_isolation,
+    check_governor,
+    check_throttling,
+    check_spi,
+    check_fpga,
+    check_clock,
+    check_disk,
+    check_ros2,
+    check_confinement,
 ]
 
 
@@ -648,8 +786,9 @@ def run_checks(root: Path = Path("/"), runner: Runner = run_command, **context) 
                 r = check(ctx)
         except Exception as exc:  # a broken check must not hide the others
             name = check.__name__.removeprefix("check_")
-            r = CheckResult(name, name, FAILURE, f"the check itself failed: {exc!r}",
-                            "report this as a bug in xrflab.doctor")
+            r = CheckResult(
+                name, name, FAILURE, f"the check itself failed: {exc!r}", "report this as a bug in xrflab.doctor"
+            )
         if check is check_spi:
             spi = r
         results.append(r)
@@ -667,14 +806,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--root", type=Path, default=Path("/"), help="check the tree under this folder (tests)")
     parser.add_argument("--data", default=DEFAULT_DATA_DIR, help=f"data folder (default {DEFAULT_DATA_DIR})")
     parser.add_argument("--no-live", action="store_true", help="do not talk to the FPGA")
-    parser.add_argument("--allow-unconfined", action="store_true", default=None,
-                        help="judge the run sandbox as `xrf serve --allow-unconfined` would run: a missing "
-                             "protection layer is then a warning, not a failure")
+    parser.add_argument(
+        "--allow-unconfined",
+        action="store_true",
+        default=None,
+        help="judge the run sandbox as `xrf serve --allow-unconfined` would run: a missing "
+        "protection layer is then a warning, not a failure",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
-    results = run_checks(args.root, data_dir=args.data, live=not args.no_live,
-                         allow_unconfined=getattr(args, "allow_unconfined", None))
+    results = run_checks(
+        args.root, data_dir=args.data, live=not args.no_live, allow_unconfined=getattr(args, "allow_unconfined", None)
+    )
     if args.json:
         print(json.dumps([r.to_dict() for r in results], indent=2))
     else:
@@ -686,6 +830,8 @@ def run(args: argparse.Namespace) -> int:
             if r.fix and r.status != OK:
                 print(f"       fix: {r.fix}")
         counts = {s: sum(r.status == s for r in results) for s in STATUSES}
-        print(f"\n{counts[OK]} ok, {counts[WARNING]} warning(s), {counts[FAILURE]} failure(s), "
-              f"{counts[SKIPPED]} not checked")
+        print(
+            f"\n{counts[OK]} ok, {counts[WARNING]} warning(s), {counts[FAILURE]} failure(s), "
+            f"{counts[SKIPPED]} not checked"
+        )
     return 1 if any(r.status == FAILURE for r in results) else 0

@@ -59,16 +59,52 @@ import stat
 import sys
 from typing import Any
 
-LAYERS = ("user", "no_new_privs", "capabilities", "mount", "pid", "network", "ipc", "environment",
-          "descriptors", "limits")
+LAYERS = (
+    "user",
+    "no_new_privs",
+    "capabilities",
+    "mount",
+    "pid",
+    "network",
+    "ipc",
+    "environment",
+    "descriptors",
+    "limits",
+)
 # The only variables a controller gets (values chosen by the appliance, never copied from it).
-ENV_ALLOWED = frozenset({
-    "PATH", "LANG", "LC_ALL", "TZ", "HOME", "TMPDIR", "USER", "LOGNAME",
-    "XRF_BACKEND", "XRF_BUILD_ID", "XRF_CPU", "XRF_FREQ", "XRF_HOST_TIMEOUT_ACTION", "XRF_HOST_TIMEOUT_MS",
-    "XRF_LOG_DIR", "XRF_LOG_TIMING", "XRF_LOG_WRITER", "XRF_MAX_CYCLES", "XRF_PRIO", "XRF_PROJECT",
-    "XRF_PWM_LIMIT", "XRF_QUIET", "XRF_RUN_ID", "XRF_SHM", "XRF_SIM", "XRF_SIM_FAULTS", "XRF_SPI_DEVICE",
-    "XRF_SPI_SPEED", "XRF_TRANSPORT",
-})
+ENV_ALLOWED = frozenset(
+    {
+        "PATH",
+        "LANG",
+        "LC_ALL",
+        "TZ",
+        "HOME",
+        "TMPDIR",
+        "USER",
+        "LOGNAME",
+        "XRF_BACKEND",
+        "XRF_BUILD_ID",
+        "XRF_CPU",
+        "XRF_FREQ",
+        "XRF_HOST_TIMEOUT_ACTION",
+        "XRF_HOST_TIMEOUT_MS",
+        "XRF_LOG_DIR",
+        "XRF_LOG_TIMING",
+        "XRF_LOG_WRITER",
+        "XRF_MAX_CYCLES",
+        "XRF_PRIO",
+        "XRF_PROJECT",
+        "XRF_PWM_LIMIT",
+        "XRF_QUIET",
+        "XRF_RUN_ID",
+        "XRF_SHM",
+        "XRF_SIM",
+        "XRF_SIM_FAULTS",
+        "XRF_SPI_DEVICE",
+        "XRF_SPI_SPEED",
+        "XRF_TRANSPORT",
+    }
+)
 SHM_NAME = "xrf"  # the channel segment's name inside the sandbox (/dev/shm/xrf)
 
 
@@ -79,6 +115,7 @@ def unconfined_shm_name(shm_dir: str) -> str:
     """The segment's name in the host's /dev/shm when no mount namespace could be had (allowed by
     an educator): beside the run's (then unused) shm folder, named after it."""
     return os.path.basename(shm_dir.rstrip("/")) + UNCONFINED_SUFFIX
+
 
 REFUSED_EXIT = 126
 
@@ -133,8 +170,9 @@ def unshare(flags: int) -> None:
 
 
 def prctl(option: int, arg: int) -> int:
-    return int(_libc.prctl(ctypes.c_int(option), ctypes.c_ulong(arg), ctypes.c_ulong(0), ctypes.c_ulong(0),
-                           ctypes.c_ulong(0)))
+    return int(
+        _libc.prctl(ctypes.c_int(option), ctypes.c_ulong(arg), ctypes.c_ulong(0), ctypes.c_ulong(0), ctypes.c_ulong(0))
+    )
 
 
 def _pivot_root(new_root: str) -> None:
@@ -209,8 +247,17 @@ class _Launch:
         """O_PATH fds to everything the new root shows, before any mount can hide it (a checkout or
         data folder under /tmp, say, which the staging tmpfs covers)."""
         cfg = self.cfg
-        wanted = [*SYSTEM_DIRS, *ETC_FILES, *DEV_NODES, *SYS_DIRS, cfg["exe"], cfg["run_dir"], cfg["shm_dir"],
-                  *cfg.get("read_only", []), *cfg.get("devices", [])]
+        wanted = [
+            *SYSTEM_DIRS,
+            *ETC_FILES,
+            *DEV_NODES,
+            *SYS_DIRS,
+            cfg["exe"],
+            cfg["run_dir"],
+            cfg["shm_dir"],
+            *cfg.get("read_only", []),
+            *cfg.get("devices", []),
+        ]
         for path in wanted:
             if path in self.src:
                 continue
@@ -258,12 +305,24 @@ class _Launch:
                 if not os.read(r, 1):  # the launcher gave up before its unshare
                     os._exit(1)
                 parent = os.getppid()
-                a = os.spawnvp(os.P_WAIT, "newuidmap", ["newuidmap", str(parent), "0", str(uid), "1",
-                                                        "1", str(sub_uid), "1"])
-                b = os.spawnvp(os.P_WAIT, "newgidmap", ["newgidmap", str(parent), "0", str(gid), "1",
-                                                        "1", str(sub_gid), "1",
-                                                        *[x for i, g in enumerate(cfg.get("device_gids", []))
-                                                          for x in (str(2 + i), str(g), "1")]])
+                a = os.spawnvp(
+                    os.P_WAIT, "newuidmap", ["newuidmap", str(parent), "0", str(uid), "1", "1", str(sub_uid), "1"]
+                )
+                b = os.spawnvp(
+                    os.P_WAIT,
+                    "newgidmap",
+                    [
+                        "newgidmap",
+                        str(parent),
+                        "0",
+                        str(gid),
+                        "1",
+                        "1",
+                        str(sub_gid),
+                        "1",
+                        *[x for i, g in enumerate(cfg.get("device_gids", [])) for x in (str(2 + i), str(g), "1")],
+                    ],
+                )
                 os._exit(0 if a == 0 and b == 0 else 1)
             os.close(r)
             helper = (pid, w)
@@ -289,8 +348,11 @@ class _Launch:
             with open("/proc/self/gid_map", "w") as f:
                 f.write(f"0 {gid} 1")
             self.loop_ids = (0, 0, [])
-            self.missing("user", "no subordinate uid for this user (/etc/subuid) or no newuidmap: the loop keeps "
-                                 "the appliance's uid, without any capability")
+            self.missing(
+                "user",
+                "no subordinate uid for this user (/etc/subuid) or no newuidmap: the loop keeps "
+                "the appliance's uid, without any capability",
+            )
 
     def build_root(self) -> str:
         """A read-only tmpfs root holding only the allow-list; returns its path (not yet pivoted)."""
@@ -322,8 +384,12 @@ class _Launch:
         mount("tmpfs", root + "/dev", "tmpfs", MS_NOSUID, "size=64k,mode=0755")
         for node in DEV_NODES:
             show(node, read_only=False)
-        for link, to in (("fd", "/proc/self/fd"), ("stdin", "/proc/self/fd/0"), ("stdout", "/proc/self/fd/1"),
-                         ("stderr", "/proc/self/fd/2")):
+        for link, to in (
+            ("fd", "/proc/self/fd"),
+            ("stdin", "/proc/self/fd/0"),
+            ("stdout", "/proc/self/fd/1"),
+            ("stderr", "/proc/self/fd/2"),
+        ):
             os.symlink(to, f"{root}/dev/{link}")
         for dev in cfg.get("devices", []):
             if not show(dev, read_only=False, recursive=True):
@@ -347,7 +413,9 @@ class _Launch:
         os.chmod(exe, 0o555)
         loop_uid, loop_gid, _ = self.loop_identity()
         with open(root + "/etc/passwd", "w") as f:
-            f.write(f"root:x:0:0::/:/usr/sbin/nologin\nxrf-run:x:{loop_uid}:{loop_gid}::{cfg['run_dir']}:/usr/sbin/nologin\n")
+            f.write(
+                f"root:x:0:0::/:/usr/sbin/nologin\nxrf-run:x:{loop_uid}:{loop_gid}::{cfg['run_dir']}:/usr/sbin/nologin\n"
+            )
         with open(root + "/etc/group", "w") as f:
             f.write(f"root:x:0:\nxrf-run:x:{loop_gid}:\n")
         with open(root + "/etc/hostname", "w") as f:
@@ -442,8 +510,10 @@ class _Launch:
                     resource.setrlimit(which, (value, value))
 
     def realtime_limits(self) -> list[tuple[int, int, int]]:
-        return [(resource.RLIMIT_RTPRIO, self.cfg["priority"], CAP_SYS_NICE),
-                (resource.RLIMIT_MEMLOCK, self.cfg["memlock_mb"] << 20, CAP_IPC_LOCK)]
+        return [
+            (resource.RLIMIT_RTPRIO, self.cfg["priority"], CAP_SYS_NICE),
+            (resource.RLIMIT_MEMLOCK, self.cfg["memlock_mb"] << 20, CAP_IPC_LOCK),
+        ]
 
     def plan_realtime(self) -> None:
         """Real time without a capability: raised limits let an ordinary user use SCHED_FIFO up to
@@ -477,14 +547,27 @@ def _set_ambient(caps: list[int]) -> None:
     data = (_CapData * 2)(_CapData(mask, mask, mask), _CapData(0, 0, 0))
     _check(_libc.capset(ctypes.byref(header), data), "capset")
     for cap in caps:
-        _check(_libc.prctl(ctypes.c_int(PR_CAP_AMBIENT), ctypes.c_ulong(PR_CAP_AMBIENT_RAISE), ctypes.c_ulong(cap),
-                                ctypes.c_ulong(0), ctypes.c_ulong(0)), "PR_CAP_AMBIENT_RAISE")
+        _check(
+            _libc.prctl(
+                ctypes.c_int(PR_CAP_AMBIENT),
+                ctypes.c_ulong(PR_CAP_AMBIENT_RAISE),
+                ctypes.c_ulong(cap),
+                ctypes.c_ulong(0),
+                ctypes.c_ulong(0),
+            ),
+            "PR_CAP_AMBIENT_RAISE",
+        )
 
 
 def _status_report(launch: _Launch, error: str = "") -> dict[str, Any]:
     layers = {name: launch.layers.get(name, "") for name in LAYERS}
-    return {"mode": launch.mode, "layers": layers, "missing": {k: v for k, v in layers.items() if v},
-            "notes": launch.notes, "error": error}
+    return {
+        "mode": launch.mode,
+        "layers": layers,
+        "missing": {k: v for k, v in layers.items() if v},
+        "notes": launch.notes,
+        "error": error,
+    }
 
 
 FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2)
@@ -602,8 +685,11 @@ def launch(cfg: dict[str, Any]) -> None:
         L.ok(layer)
     missing = {k: v for k, v in L.layers.items() if v and k in LAYERS}
     if missing and not cfg.get("allow_missing"):
-        refuse("missing protection: " + "; ".join(f"{k}: {v}" for k, v in missing.items())
-               + " (an educator may allow this with xrf serve --allow-unconfined)")
+        refuse(
+            "missing protection: "
+            + "; ".join(f"{k}: {v}" for k, v in missing.items())
+            + " (an educator may allow this with xrf serve --allow-unconfined)"
+        )
     L.plan_realtime()
     status_r, status_w = os.pipe2(os.O_CLOEXEC)
     err_r, err_w = os.pipe2(os.O_CLOEXEC)
@@ -641,9 +727,11 @@ def launch(cfg: dict[str, Any]) -> None:
         os.waitpid(pid, 0)
         refuse(f"could not start the controller in its sandbox: {failure.decode(errors='replace')}")
     missing_text = ", ".join(sorted(k for k, v in L.layers.items() if v and k in LAYERS))
-    say(f"controller started as uid {L.loop_identity()[0]} (in its namespaces); "
+    say(
+        f"controller started as uid {L.loop_identity()[0]} (in its namespaces); "
         + (f"MISSING: {missing_text}" if missing_text else "all layers hold")
-        + "".join(f"; {n}" for n in L.notes))
+        + "".join(f"; {n}" for n in L.notes)
+    )
     # With its own PID namespace the controller is the init's child (_init); else our child.
     controller = (_controller_host_pid(proc_fd, pid) or pid) if not L.layers.get("pid") else pid
     os.close(proc_fd)

@@ -18,9 +18,10 @@ import argparse
 import re
 import struct
 import sys
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 # Must equal XRF_MSG_MAX in rt_core/include/xrf/channels.h (a test checks it): this module is
 # stdlib-only and runs before the binding exists, so it cannot read the value from cffi.
@@ -129,7 +130,9 @@ def _parse_field(text: str, path: str, lineno: int) -> Field:
             raise MsgError(path, lineno, f"'{type_text}': array length must be at least 1")
     if not _NAME_RE.match(name):
         raise MsgError(
-            path, lineno, f"bad field name '{name}' (lower case letters, digits and single underscores, starting with a letter)"
+            path,
+            lineno,
+            f"bad field name '{name}' (lower case letters, digits and single underscores, starting with a letter)",
         )
     if name in _CPP_KEYWORDS:
         raise MsgError(path, lineno, f"field name '{name}' is a C++ keyword")
@@ -185,9 +188,7 @@ class Codec:
     def __init__(self, schema: str | Iterable[Field]) -> None:
         self.fields: list[Field] = parse_schema(schema) if isinstance(schema, str) else list(schema)
         self._by_name = {f.name: f for f in self.fields}
-        self._struct = struct.Struct(
-            "<" + "".join(f"{f.count or ''}{f.primitive.struct_code}" for f in self.fields)
-        )
+        self._struct = struct.Struct("<" + "".join(f"{f.count or ''}{f.primitive.struct_code}" for f in self.fields))
         self.size: int = self._struct.size
         self.schema: str = schema_text(self.fields)
 

@@ -42,8 +42,7 @@ class Plant:
     state: tuple[str, ...]  # the plant state's values as "name unit", in mirror order
 
     def as_dict(self) -> dict[str, object]:
-        return {"id": self.id, "name": self.name, "title": self.title, "axes": self.axes,
-                "state": list(self.state)}
+        return {"id": self.id, "name": self.name, "title": self.title, "axes": self.axes, "state": list(self.state)}
 
 
 @lru_cache(maxsize=1)
@@ -57,9 +56,15 @@ def plants() -> tuple[Plant, ...]:
         if _lib.xrf_plant_describe(plant_id, info) != 0:
             raise RuntimeError(f"rt_core's plant table has no row {plant_id}")
         state = _ffi.string(info.state).decode()
-        out.append(Plant(id=int(info.id), name=_ffi.string(info.name).decode(),
-                         title=_ffi.string(info.title).decode(), axes=int(info.axes),
-                         state=tuple(s.strip() for s in state.split(",") if s.strip())))
+        out.append(
+            Plant(
+                id=int(info.id),
+                name=_ffi.string(info.name).decode(),
+                title=_ffi.string(info.title).decode(),
+                axes=int(info.axes),
+                state=tuple(s.strip() for s in state.split(",") if s.strip()),
+            )
+        )
     return tuple(out)
 
 

@@ -13,11 +13,28 @@ from __future__ import annotations
 from typing import Any
 
 # The JSON fields the checker reads; the C side lists the same keys (profile_flat.c).
-SECTION_KEYS = ("limits.pwm_limit", "pulse.period_us", "pulse.settle_ms", "pulse.reset_tolerance_counts",
-                "link.echo_frames", "link.timing_frames", "link.warn_median_us", "link.fail_median_us",
-                "link.warn_max_us")
-CHANNEL_KEYS = ("name", "connector", "motor", "direction", "duty", "duration_ms", "min_counts", "max_counts",
-                "loopback")
+SECTION_KEYS = (
+    "limits.pwm_limit",
+    "pulse.period_us",
+    "pulse.settle_ms",
+    "pulse.reset_tolerance_counts",
+    "link.echo_frames",
+    "link.timing_frames",
+    "link.warn_median_us",
+    "link.fail_median_us",
+    "link.warn_max_us",
+)
+CHANNEL_KEYS = (
+    "name",
+    "connector",
+    "motor",
+    "direction",
+    "duty",
+    "duration_ms",
+    "min_counts",
+    "max_counts",
+    "loopback",
+)
 NOT_CHECKED = -1  # an input pin's idle level when the profile gives none (null)
 
 

@@ -20,9 +20,10 @@ import json
 import os
 import re
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional, Sequence, Union
+from typing import Any
 
 from .selfcheck_limits import hard_limits
 
@@ -48,7 +49,7 @@ class ProfileError(ValueError):
     """A profile that cannot be used; ``problems`` lists every problem found (``errors``: their
     sentences)."""
 
-    def __init__(self, problems: Sequence[Union[FieldError, str]], source: str = "") -> None:
+    def __init__(self, problems: Sequence[FieldError | str], source: str = "") -> None:
         self.problems = [p if isinstance(p, FieldError) else FieldError("", p) for p in problems]
         self.source = source
         head = f"{source}: " if source else ""
@@ -72,8 +73,13 @@ class ProfileInfo:
     source: str  # "default" (deploy/profiles) or "edited" (data folder)
 
     def as_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "title": self.title, "robot": self.robot, "path": str(self.path),
-                "source": self.source}
+        return {
+            "name": self.name,
+            "title": self.title,
+            "robot": self.robot,
+            "path": str(self.path),
+            "source": self.source,
+        }
 
 
 def default_data_dir() -> Path:
@@ -83,7 +89,7 @@ def default_data_dir() -> Path:
     return rule()
 
 
-def profiles_dir(data_dir: Optional[Path] = None) -> Path:
+def profiles_dir(data_dir: Path | None = None) -> Path:
     """Where edited profiles live: <data>/profiles."""
     return Path(data_dir or default_data_dir()) / "profiles"
 
@@ -111,8 +117,18 @@ class _Checker:
     def err(self, field: str, msg: str) -> None:
         self.problems.append(FieldError(field, msg))
 
-    def num(self, obj: dict, where: str, key: str, lo: float, hi: float, *, required: bool = False,
-            integer: bool = False, lo_open: bool = False) -> Any:
+    def num(
+        self,
+        obj: dict,
+        where: str,
+        key: str,
+        lo: float,
+        hi: float,
+        *,
+        required: bool = False,
+        integer: bool = False,
+        lo_open: bool = False,
+    ) -> Any:
         field = _path(where, key)
         if key not in obj or obj[key] is None:
             if required:
@@ -187,8 +203,11 @@ def validate_profile(profile: Any, source: str = "") -> dict[str, Any]:
     c.num(link, "link", "warn_median_us", 0, 1e6)
     c.num(link, "link", "fail_median_us", 0, 1e6)
     c.num(link, "link", "warn_max_us", 0, 1e7)
-    if _is_num(link.get("warn_median_us")) and _is_num(link.get("fail_median_us")) and \
-            link["fail_median_us"] < link["warn_median_us"]:
+    if (
+        _is_num(link.get("warn_median_us"))
+        and _is_num(link.get("fail_median_us"))
+        and link["fail_median_us"] < link["warn_median_us"]
+    ):
         c.err("link.fail_median_us", "link.fail_median_us must not be below link.warn_median_us")
 
     chans = profile.get("channels", [])
@@ -294,20 +313,21 @@ def _check_mechanics(c: _Checker, mech: dict) -> None:
             c.num(a, w, "belt_ratio", 0, 100, required=True, lo_open=True)
             c.num(a, w, "zero_offset_counts", -1e9, 1e9, integer=True)
             lim = a.get("limits_deg")
-            if lim is not None and not (isinstance(lim, list) and len(lim) == 2 and all(_is_num(x) for x in lim)
-                                        and lim[0] < lim[1]):
+            if lim is not None and not (
+                isinstance(lim, list) and len(lim) == 2 and all(_is_num(x) for x in lim) and lim[0] < lim[1]
+            ):
                 c.err(f"{w}.limits_deg", f"{w}.limits_deg must be [low, high] in degrees")
     elif kind == "linear_stage":
         c.num(mech, "mechanics", "channel", 1, 4, required=True, integer=True)
         c.num(mech, "mechanics", "lead_m", 0, 1.0, required=True, lo_open=True)
         c.boolean(mech, "mechanics", "encoder_inverted")
         lim = mech.get("limits_m")
-        if lim is not None and not (isinstance(lim, list) and len(lim) == 2 and all(_is_num(x) for x in lim)
-                                    and lim[0] < lim[1]):
+        if lim is not None and not (
+            isinstance(lim, list) and len(lim) == 2 and all(_is_num(x) for x in lim) and lim[0] < lim[1]
+        ):
             c.err("mechanics.limits_m", "mechanics.limits_m must be [low, high] in m")
     elif kind is not None:
-        c.err("mechanics.kind", f"mechanics.kind {kind!r} is not known "
-              "(differential_drive, pan_tilt or linear_stage)")
+        c.err("mechanics.kind", f"mechanics.kind {kind!r} is not known (differential_drive, pan_tilt or linear_stage)")
 
 
 # ---- finding, loading, saving -------------------------------------------------------------------
@@ -321,18 +341,17 @@ def _read(path: Path) -> dict[str, Any]:
     try:
         obj = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise ProfileError([f"not valid JSON: {exc.msg} (line {exc.lineno}, column {exc.colno})"],
-                           str(path)) from None
+        raise ProfileError([f"not valid JSON: {exc.msg} (line {exc.lineno}, column {exc.colno})"], str(path)) from None
     return validate_profile(obj, str(path))
 
 
-def find_profile(name_or_path: str | Path, data_dir: Optional[Path] = None) -> Path:
+def find_profile(name_or_path: str | Path, data_dir: Path | None = None) -> Path:
     """The file for a profile name (edited copy first, then the default) or a path as given."""
     s = str(name_or_path)
     if s.endswith(".json") or "/" in s or os.sep in s:
         p = Path(s).expanduser()
         if not p.exists():
-            raise ProfileError([f"no such file"], s)
+            raise ProfileError(["no such file"], s)
         return p
     for folder in (profiles_dir(data_dir), DEFAULTS_DIR):
         p = folder / f"{s}.json"
@@ -342,12 +361,12 @@ def find_profile(name_or_path: str | Path, data_dir: Optional[Path] = None) -> P
     raise ProfileNotFound([f"no bench profile named {s!r} (known: {known})"])
 
 
-def load_profile(name_or_path: str | Path, data_dir: Optional[Path] = None) -> dict[str, Any]:
+def load_profile(name_or_path: str | Path, data_dir: Path | None = None) -> dict[str, Any]:
     """Load and validate a profile by name or path."""
     return _read(find_profile(name_or_path, data_dir))
 
 
-def list_profiles(data_dir: Optional[Path] = None) -> list[ProfileInfo]:
+def list_profiles(data_dir: Path | None = None) -> list[ProfileInfo]:
     """Every profile by name; an edited copy hides the default of the same name. Files that do
     not validate are left out (load them by path to see why)."""
     found: dict[str, ProfileInfo] = {}
@@ -363,7 +382,7 @@ def list_profiles(data_dir: Optional[Path] = None) -> list[ProfileInfo]:
     return [found[k] for k in sorted(found)]
 
 
-def save_profile(profile: dict[str, Any], data_dir: Optional[Path] = None) -> Path:
+def save_profile(profile: dict[str, Any], data_dir: Path | None = None) -> Path:
     """Validate and write an edited profile to <data>/profiles/<name>.json (atomic replace)."""
     validate_profile(profile)
     folder = profiles_dir(data_dir)
@@ -384,7 +403,7 @@ def save_profile(profile: dict[str, Any], data_dir: Optional[Path] = None) -> Pa
     return dest
 
 
-def delete_profile(name: str, data_dir: Optional[Path] = None) -> bool:
+def delete_profile(name: str, data_dir: Path | None = None) -> bool:
     """Remove an edited copy (the default comes back). True if there was one."""
     if not NAME_RE.match(name):
         raise ProfileError([f"bad profile name {name!r}"])

@@ -26,13 +26,22 @@ SKIP = {"build", "install", "log", ".git", "__pycache__", ".vscode", ".idea"}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("dir", type=Path, help="the project folder (with CMakeLists.txt and msg/), an XRF2 "
-                   "controller package, or a ROS 2 workspace holding one")
+    p.add_argument(
+        "dir",
+        type=Path,
+        help="the project folder (with CMakeLists.txt and msg/), an XRF2 "
+        "controller package, or a ROS 2 workspace holding one",
+    )
     from . import credentials
 
-    p.add_argument("--url", default=credentials.url(),
-                   help="the appliance (default $XRF_URL, the one of `xrf login`, or http://127.0.0.1:8000)")
-    p.add_argument("--token", default=credentials.token(), help="API token (default $XRF_TOKEN or the one of `xrf login`)")
+    p.add_argument(
+        "--url",
+        default=credentials.url(),
+        help="the appliance (default $XRF_URL, the one of `xrf login`, or http://127.0.0.1:8000)",
+    )
+    p.add_argument(
+        "--token", default=credentials.token(), help="API token (default $XRF_TOKEN or the one of `xrf login`)"
+    )
     p.add_argument("--name", default="", help="project name (default: the folder's name)")
     p.add_argument("--project", type=int, help="upload as a new version of this project id")
     p.add_argument("--build", action="store_true", help="build it after uploading and wait for the result")
@@ -63,9 +72,11 @@ def messages_outside(folder: Path) -> Path | None:
         return None
     up = Path(os.path.relpath(folder, os.path.commonpath([folder, msg_dir]))).parts
     if len(up) > MAX_UP:
-        raise PackError(f"{folder}: its messages are in {msg_dir}, too far from the project to pack with it; "
-                        "upload the ROS 2 workspace that holds both, or copy Ros2Xeno.msg and Xeno2Ros.msg "
-                        "into the project's msg/ folder")
+        raise PackError(
+            f"{folder}: its messages are in {msg_dir}, too far from the project to pack with it; "
+            "upload the ROS 2 workspace that holds both, or copy Ros2Xeno.msg and Xeno2Ros.msg "
+            "into the project's msg/ folder"
+        )
     return msg_dir
 
 
@@ -88,8 +99,11 @@ def pack(folder: Path) -> tuple[bytes, list[str]]:
 
     with tarfile.open(fileobj=buf, mode="w:gz", format=tarfile.PAX_FORMAT) as tar:
         for dirpath, dirnames, filenames in os.walk(folder):
-            dirnames[:] = sorted(d for d in dirnames if d not in SKIP and not d.startswith(".")
-                                 and not _link(Path(dirpath) / d, folder, warnings))
+            dirnames[:] = sorted(
+                d
+                for d in dirnames
+                if d not in SKIP and not d.startswith(".") and not _link(Path(dirpath) / d, folder, warnings)
+            )
             for f in sorted(filenames):
                 p = Path(dirpath) / f
                 if _link(p, folder, warnings) or not p.is_file():
@@ -102,8 +116,10 @@ def pack(folder: Path) -> tuple[bytes, list[str]]:
                 extra.append(manifest)
             for p in extra:
                 add(tar, p)
-            warnings.append(f"packed {os.path.relpath(msg_dir, folder)} too: the project's messages "
-                            f"(as {msg_dir.relative_to(root).as_posix()}, next to {folder.relative_to(root).as_posix()}/)")
+            warnings.append(
+                f"packed {os.path.relpath(msg_dir, folder)} too: the project's messages "
+                f"(as {msg_dir.relative_to(root).as_posix()}, next to {folder.relative_to(root).as_posix()}/)"
+            )
     return buf.getvalue(), warnings
 
 
@@ -134,7 +150,9 @@ def run(args: argparse.Namespace) -> int:
         else:
             r = http.post("/api/projects", files=files, data={"name": name})
         if r.status_code >= 400:
-            detail = r.json().get("detail") if r.headers.get("content-type", "").startswith("application/json") else r.text
+            detail = (
+                r.json().get("detail") if r.headers.get("content-type", "").startswith("application/json") else r.text
+            )
             if isinstance(detail, dict):
                 detail = detail.get("error") or detail
             print(f"error: upload refused ({r.status_code}): {detail}", file=sys.stderr)

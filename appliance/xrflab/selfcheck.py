@@ -35,9 +35,10 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, Optional, Union
+from typing import Any
 
 from . import plants
 from .profile_flat import flat_form
@@ -51,7 +52,7 @@ MARKS = {"pass": "✓", "warn": "!", "fail": "✗", "skipped": "–"}
 TRANSPORTS = ("auto", "sim", "spidev", "evl-spidev")
 DEFAULT_SPI_DEVICE = "/dev/spidev0.0"
 
-BenchBusyCheck = Callable[[], Union[bool, str, None]]
+BenchBusyCheck = Callable[[], bool | str | None]
 
 
 class SelfCheckError(RuntimeError):
@@ -79,8 +80,8 @@ class Step:
 
 @dataclass
 class Report:
-    verdict: str                     # pass | fail | aborted | error
-    bench: str                       # profile name
+    verdict: str  # pass | fail | aborted | error
+    bench: str  # profile name
     steps: list[Step] = field(default_factory=list)
     profile: dict[str, Any] = field(default_factory=dict)  # the profile as used
     profile_file: str = ""
@@ -89,11 +90,11 @@ class Report:
     faults: str = ""
     device: str = ""
     host: str = ""
-    started: str = ""                # ISO 8601, local time with offset
+    started: str = ""  # ISO 8601, local time with offset
     finished: str = ""
     duration_s: float = 0.0
     outputs_zeroed: bool = False
-    error: str = ""                  # why it could not run (verdict error)
+    error: str = ""  # why it could not run (verdict error)
 
     @property
     def exit_code(self) -> int:
@@ -103,7 +104,7 @@ class Report:
             return EXIT_FAIL
         return EXIT_COULD_NOT_RUN
 
-    def step(self, step_id: str) -> Optional[Step]:
+    def step(self, step_id: str) -> Step | None:
         return next((s for s in self.steps if s.id == step_id), None)
 
     def failed(self) -> list[Step]:
@@ -135,9 +136,11 @@ class Report:
 
     def to_text(self) -> str:
         """Plain text for a terminal: one line per step with ✓/✗/–/!, the diagnosis and what to do."""
-        lines = [f"Self-check of the {self.bench} bench: {self.verdict.upper()}",
-                 f"  {self.started}  host {self.host}  transport {self.transport}"
-                 + (f" ({self.sim}{', faults ' + self.faults if self.faults else ''})" if self.sim else "")]
+        lines = [
+            f"Self-check of the {self.bench} bench: {self.verdict.upper()}",
+            f"  {self.started}  host {self.host}  transport {self.transport}"
+            + (f" ({self.sim}{', faults ' + self.faults if self.faults else ''})" if self.sim else ""),
+        ]
         if self.error:
             lines.append(f"  could not run: {self.error}")
         for s in self.steps:
@@ -147,18 +150,24 @@ class Report:
             if s.action and s.status in ("fail", "warn"):
                 lines.append(f"    → {s.action}")
         c = self.counts()
-        lines.append(f"{c['pass']} passed, {c['warn']} warnings, {c['fail']} failed, {c['skipped']} skipped; "
-                     f"outputs {'zeroed' if self.outputs_zeroed else 'NOT confirmed zero'}")
+        lines.append(
+            f"{c['pass']} passed, {c['warn']} warnings, {c['fail']} failed, {c['skipped']} skipped; "
+            f"outputs {'zeroed' if self.outputs_zeroed else 'NOT confirmed zero'}"
+        )
         return "\n".join(lines)
 
     def to_markdown(self) -> str:
         def cell(t: str) -> str:
             return t.replace("|", "\\|").replace("\n", " ")
 
-        out = [f"# Self-check: {self.bench} bench — {self.verdict.upper()}", "",
-               f"- date: {self.started}", f"- host: {self.host}",
-               f"- transport: {self.transport}" + (f" (simulated {self.sim})" if self.sim else ""),
-               f"- outputs zeroed at the end: {'yes' if self.outputs_zeroed else 'NOT CONFIRMED'}"]
+        out = [
+            f"# Self-check: {self.bench} bench — {self.verdict.upper()}",
+            "",
+            f"- date: {self.started}",
+            f"- host: {self.host}",
+            f"- transport: {self.transport}" + (f" (simulated {self.sim})" if self.sim else ""),
+            f"- outputs zeroed at the end: {'yes' if self.outputs_zeroed else 'NOT CONFIRMED'}",
+        ]
         if self.faults:
             out.append(f"- injected faults: `{self.faults}`")
         if self.error:
@@ -183,11 +192,11 @@ def export_report(report: Report, fmt: str = "json") -> str:
 # ---- reports folder -----------------------------------------------------------------------------
 
 
-def reports_dir(data_dir: Optional[Path] = None) -> Path:
+def reports_dir(data_dir: Path | None = None) -> Path:
     return Path(data_dir or default_data_dir()) / "selfcheck"
 
 
-def save_report(report: Report, folder: Optional[Path] = None, data_dir: Optional[Path] = None) -> Path:
+def save_report(report: Report, folder: Path | None = None, data_dir: Path | None = None) -> Path:
     """Write the report as <folder>/<timestamp>-<bench>.json (folder default <data>/selfcheck)."""
     folder = Path(folder) if folder else reports_dir(data_dir)
     folder.mkdir(parents=True, exist_ok=True)
@@ -207,7 +216,7 @@ def save_report(report: Report, folder: Optional[Path] = None, data_dir: Optiona
     return path
 
 
-def list_reports(folder: Optional[Path] = None, data_dir: Optional[Path] = None) -> list[Path]:
+def list_reports(folder: Path | None = None, data_dir: Path | None = None) -> list[Path]:
     """Saved reports, newest first."""
     folder = Path(folder) if folder else reports_dir(data_dir)
     if not folder.is_dir():
@@ -222,7 +231,7 @@ def load_report(path: Path | str) -> Report:
 # ---- is the bench busy? -------------------------------------------------------------------------
 
 
-def loop_active(shm: str = "xrf") -> Optional[str]:
+def loop_active(shm: str = "xrf") -> str | None:
     """A sentence naming the loop that runs on shared memory `shm`, or None when none does (no
     object, not ready, running == 0, or its pid is gone)."""
     from .channels import Channels, ChannelsError, shm_path
@@ -285,18 +294,28 @@ class SelfCheck:
     the simulated board mirrors its outputs (tests).
     """
 
-    def __init__(self, profile: Union[str, Path, dict[str, Any]] = "relbot", *, transport: str = "sim",
-                 sim: Optional[str] = None, faults: Optional[str] = None, device: Optional[str] = None,
-                 speed_hz: Optional[int] = None, data_dir: Optional[Path] = None,
-                 bench_busy: Optional[BenchBusyCheck] = None, shm: Optional[str] = "xrf",
-                 sim_outputs_shm: Optional[str] = None, exe: Optional[Path] = None,
-                 abort_timeout_s: float = 3.0) -> None:
+    def __init__(
+        self,
+        profile: str | Path | dict[str, Any] = "relbot",
+        *,
+        transport: str = "sim",
+        sim: str | None = None,
+        faults: str | None = None,
+        device: str | None = None,
+        speed_hz: int | None = None,
+        data_dir: Path | None = None,
+        bench_busy: BenchBusyCheck | None = None,
+        shm: str | None = "xrf",
+        sim_outputs_shm: str | None = None,
+        exe: Path | None = None,
+        abort_timeout_s: float = 3.0,
+    ) -> None:
         if transport not in TRANSPORTS:
             raise SelfCheckError(f"unknown transport {transport!r} (use {', '.join(TRANSPORTS)})")
         try:
             if isinstance(profile, dict):
                 self.profile = validate_profile(profile)
-                self.profile_path: Optional[Path] = None  # no file: the dict is the profile
+                self.profile_path: Path | None = None  # no file: the dict is the profile
             else:
                 self.profile_path = find_profile(profile, data_dir)
                 self.profile = load_profile(self.profile_path)
@@ -318,8 +337,8 @@ class SelfCheck:
         self.sim_outputs_shm = sim_outputs_shm
         self.exe = Path(exe) if exe else None
         self.abort_timeout_s = abort_timeout_s
-        self.report: Optional[Report] = None
-        self._proc: Optional[subprocess.Popen] = None
+        self.report: Report | None = None
+        self._proc: subprocess.Popen | None = None
         self._abort_requested = False
         self._lock = threading.Lock()
 
@@ -343,7 +362,7 @@ class SelfCheck:
         return cmd
 
     def _check_busy(self) -> None:
-        reason: Union[bool, str, None]
+        reason: bool | str | None
         if self.bench_busy is not None:
             reason = self.bench_busy()
         elif self.shm:
@@ -390,9 +409,18 @@ class SelfCheck:
         cmd = self.command()
         started = _now_iso()
         t0 = time.monotonic()
-        report = Report(verdict="error", bench=self.profile.get("name", ""), profile=self.profile,
-                        profile_file=str(self.profile_path or ""), transport=self.transport, sim=self.sim,
-                        faults=self.faults, device=self.device, host=socket.gethostname(), started=started)
+        report = Report(
+            verdict="error",
+            bench=self.profile.get("name", ""),
+            profile=self.profile,
+            profile_file=str(self.profile_path or ""),
+            transport=self.transport,
+            sim=self.sim,
+            faults=self.faults,
+            device=self.device,
+            host=socket.gethostname(),
+            started=started,
+        )
         with self._lock:
             if self._abort_requested:
                 report.error = "aborted before it started"
@@ -404,9 +432,16 @@ class SelfCheck:
             # Tied: a self-check tool must not drive the board on after the appliance died.
             from .tied import popen_tied
 
-            self._proc = popen_tied(cmd, death_signal=signal.SIGKILL, stdin=subprocess.PIPE,
-                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, encoding="utf-8",
-                                    errors="replace")
+            self._proc = popen_tied(
+                cmd,
+                death_signal=signal.SIGKILL,
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                encoding="utf-8",
+                errors="replace",
+            )
         proc = self._proc
         assert proc.stdin is not None
         try:
@@ -432,9 +467,17 @@ class SelfCheck:
                     continue
                 kind = ev.get("event")
                 if kind == "step":
-                    report.steps.append(Step(id=ev["id"], channel=int(ev.get("channel", 0)), status=ev["status"],
-                                             title=ev.get("title", ""), message=ev.get("message", ""),
-                                             action=ev.get("action", ""), data=ev.get("data") or {}))
+                    report.steps.append(
+                        Step(
+                            id=ev["id"],
+                            channel=int(ev.get("channel", 0)),
+                            status=ev["status"],
+                            title=ev.get("title", ""),
+                            message=ev.get("message", ""),
+                            action=ev.get("action", ""),
+                            data=ev.get("data") or {},
+                        )
+                    )
                 elif kind == "end":
                     ended = True
                     report.verdict = ev.get("verdict", "error")
@@ -459,13 +502,14 @@ class SelfCheck:
             if not ended:
                 report.verdict = "aborted" if self._abort_requested else "error"
                 if not report.error:
-                    report.error = (f"the checker ended without a result (exit {proc.returncode})"
-                                    + (f": {stderr.strip()[-500:]}" if stderr.strip() else ""))
+                    report.error = f"the checker ended without a result (exit {proc.returncode})" + (
+                        f": {stderr.strip()[-500:]}" if stderr.strip() else ""
+                    )
             report.finished = _now_iso()
             report.duration_s = round(time.monotonic() - t0, 3)
             self.report = report
 
-    def run(self, on_event: Optional[Callable[[dict[str, Any]], None]] = None) -> Report:
+    def run(self, on_event: Callable[[dict[str, Any]], None] | None = None) -> Report:
         """Run to the end (or abort), calling on_event for each event; returns the Report."""
         for ev in self.events():
             if on_event:
@@ -474,8 +518,12 @@ class SelfCheck:
         return self.report
 
 
-def run_selfcheck(profile: Union[str, Path, dict[str, Any]] = "relbot", *,
-                  on_event: Optional[Callable[[dict[str, Any]], None]] = None, **kwargs: Any) -> Report:
+def run_selfcheck(
+    profile: str | Path | dict[str, Any] = "relbot",
+    *,
+    on_event: Callable[[dict[str, Any]], None] | None = None,
+    **kwargs: Any,
+) -> Report:
     """SelfCheck(profile, **kwargs).run(on_event)."""
     return SelfCheck(profile, **kwargs).run(on_event)
 
@@ -486,23 +534,38 @@ HELP = "check the bench (ico board, SPI link, motors, encoders, I/O) against its
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--profile", help="bench profile: relbot, jiwy, an edited profile's name or a FILE.json "
-                                     "(default: the --sim robot, else relbot)")
-    p.add_argument("--sim", type=plants.arg_type, metavar="PLANT",
-                   help="simulated board to check (implies --transport sim): relbot, jiwy, ... (rt_core's plant table)")
+    p.add_argument(
+        "--profile",
+        help="bench profile: relbot, jiwy, an edited profile's name or a FILE.json "
+        "(default: the --sim robot, else relbot)",
+    )
+    p.add_argument(
+        "--sim",
+        type=plants.arg_type,
+        metavar="PLANT",
+        help="simulated board to check (implies --transport sim): relbot, jiwy, ... (rt_core's plant table)",
+    )
     p.add_argument("--faults", help="faults to inject into the simulated board, e.g. dead_encoder=2")
-    p.add_argument("--transport", choices=list(TRANSPORTS), default=None,
-                   help="how to reach the board (default: sim with --sim, else auto)")
+    p.add_argument(
+        "--transport",
+        choices=list(TRANSPORTS),
+        default=None,
+        help="how to reach the board (default: sim with --sim, else auto)",
+    )
     p.add_argument("--device", default=None, help=f"spidev device (default {DEFAULT_SPI_DEVICE})")
     p.add_argument("--speed", type=int, default=None, help="SPI clock in Hz (default: the profile's)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.add_argument("--markdown", action="store_true", help="print the report as Markdown")
-    p.add_argument("--save", metavar="DIR", type=Path, default=None,
-                   help="folder for the report (default <data>/selfcheck)")
+    p.add_argument(
+        "--save", metavar="DIR", type=Path, default=None, help="folder for the report (default <data>/selfcheck)"
+    )
     p.add_argument("--no-save", action="store_true", help="do not keep the report")
     p.add_argument("--data", type=Path, default=None, help=f"data folder (default {default_data_dir()})")
-    p.add_argument("--shm", default=os.environ.get("XRF_SHM", "xrf"),
-                   help="shared memory of the bench's loop, checked before starting (default $XRF_SHM or xrf)")
+    p.add_argument(
+        "--shm",
+        default=os.environ.get("XRF_SHM", "xrf"),
+        help="shared memory of the bench's loop, checked before starting (default $XRF_SHM or xrf)",
+    )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
 
 
@@ -510,8 +573,16 @@ def run(args: argparse.Namespace) -> int:
     transport = args.transport or ("sim" if args.sim or args.faults else "auto")
     profile = args.profile or args.sim or "relbot"
     try:
-        check = SelfCheck(profile, transport=transport, sim=args.sim, faults=args.faults, device=args.device,
-                          speed_hz=args.speed, data_dir=args.data, shm=args.shm)
+        check = SelfCheck(
+            profile,
+            transport=transport,
+            sim=args.sim,
+            faults=args.faults,
+            device=args.device,
+            speed_hz=args.speed,
+            data_dir=args.data,
+            shm=args.shm,
+        )
     except (ProfileError, SelfCheckError) as exc:
         print(f"xrf selfcheck: {exc}", file=sys.stderr)
         return EXIT_COULD_NOT_RUN

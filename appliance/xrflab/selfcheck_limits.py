@@ -18,11 +18,11 @@ HEADER = "selfcheck_limits.h"
 
 @dataclass(frozen=True)
 class HardLimits:
-    max_duty: float      # |duty| of a pulse, fraction of full scale
+    max_duty: float  # |duty| of a pulse, fraction of full scale
     max_pulse_ms: int
     max_settle_ms: int
-    max_frames: int      # echo and timing frames
-    min_period_us: int   # frame period of the timed steps
+    max_frames: int  # echo and timing frames
+    min_period_us: int  # frame period of the timed steps
     max_period_us: int
 
 
@@ -33,6 +33,11 @@ def hard_limits() -> HardLimits:
     ffi = cffi.FFI()
     ffi.cdef(extract_cdef((rt_core_dir() / "include" / "xrf" / HEADER).read_text()))
     lib = ffi.dlopen(None)  # only constants are read: no symbol is looked up
-    return HardLimits(max_duty=lib.XRF_SC_MAX_DUTY_PERMILLE / 1000.0, max_pulse_ms=lib.XRF_SC_MAX_PULSE_MS,
-                      max_settle_ms=lib.XRF_SC_MAX_SETTLE_MS, max_frames=lib.XRF_SC_MAX_FRAMES,
-                      min_period_us=lib.XRF_SC_MIN_PERIOD_US, max_period_us=lib.XRF_SC_MAX_PERIOD_US)
+    return HardLimits(
+        max_duty=lib.XRF_SC_MAX_DUTY_PERMILLE / 1000.0,
+        max_pulse_ms=lib.XRF_SC_MAX_PULSE_MS,
+        max_settle_ms=lib.XRF_SC_MAX_SETTLE_MS,
+        max_frames=lib.XRF_SC_MAX_FRAMES,
+        min_period_us=lib.XRF_SC_MIN_PERIOD_US,
+        max_period_us=lib.XRF_SC_MAX_PERIOD_US,
+    )

@@ -64,5 +64,4 @@ def popen_tied(argv: Sequence[str], *, death_signal: int = signal.SIGTERM, **pop
     return done.result(60)
 
 
-
 __all__ = ["popen_tied"]

@@ -39,8 +39,10 @@ def pct(values: list[float], p: float) -> float:
 
 def summary_ms(values_ns: list[int]) -> str:
     ms = [v / 1e6 for v in values_ns]
-    return (f"n={len(ms)}  p50={pct(ms, 50):.3f} ms  p99={pct(ms, 99):.3f} ms  "
-            f"max={max(ms):.3f} ms  mean={sum(ms) / len(ms):.3f} ms")
+    return (
+        f"n={len(ms)}  p50={pct(ms, 50):.3f} ms  p99={pct(ms, 99):.3f} ms  "
+        f"max={max(ms):.3f} ms  mean={sum(ms) / len(ms):.3f} ms"
+    )
 
 
 def cpu_seconds(pid: int) -> float:

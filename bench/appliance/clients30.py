@@ -24,12 +24,10 @@ import shutil
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 from _common import appliance, cpu_seconds, pct
 
 from xrflab.channels import Channels
-
 
 # ---- the clients (own process) ------------------------------------------------------------------
 
@@ -103,7 +101,8 @@ def loop_slice(server, seconds: float, clients: int) -> dict:
     if clients:
         worker = subprocess.Popen(
             [sys.executable, __file__, "--clients-worker", server.url, server.ws_url, str(clients), str(seconds)],
-            stdout=subprocess.PIPE, text=True,
+            stdout=subprocess.PIPE,
+            text=True,
         )
         assert worker.stdout is not None
         if "connected" not in worker.stdout.readline():  # all logged in and connected
@@ -120,9 +119,16 @@ def loop_slice(server, seconds: float, clients: int) -> dict:
     server.stop_run()
     ch.close()
     d = hist_delta(before, after)
-    return {"p50": hist_pct(d, 50), "p99": hist_pct(d, 99), "max": d[-1][0] if d else float("nan"),
-            "cycles": sum(n for _, n in d), "missed": missed1 - missed0,
-            "cpu_per_s": (cpu1 - cpu0) / (t1 - t0), "delivered": delivered, "seconds": seconds}
+    return {
+        "p50": hist_pct(d, 50),
+        "p99": hist_pct(d, 99),
+        "max": d[-1][0] if d else float("nan"),
+        "cycles": sum(n for _, n in d),
+        "missed": missed1 - missed0,
+        "cpu_per_s": (cpu1 - cpu0) / (t1 - t0),
+        "delivered": delivered,
+        "seconds": seconds,
+    }
 
 
 def cyclictest_slice(seconds: float, prio: int, cpu: int) -> dict | None:
@@ -130,16 +136,36 @@ def cyclictest_slice(seconds: float, prio: int, cpu: int) -> dict | None:
     if not exe:
         return None
     out = subprocess.run(
-        [exe, "-m", "-p", str(prio), "-a", str(cpu), "-t", "1", "-i", "1000", "-D", f"{int(seconds)}s",
-         "-h", "2000", "-q"], capture_output=True, text=True,
+        [
+            exe,
+            "-m",
+            "-p",
+            str(prio),
+            "-a",
+            str(cpu),
+            "-t",
+            "1",
+            "-i",
+            "1000",
+            "-D",
+            f"{int(seconds)}s",
+            "-h",
+            "2000",
+            "-q",
+        ],
+        capture_output=True,
+        text=True,
     )
     buckets = [(int(a) * 1000, int(b)) for a, b in re.findall(r"^(\d{6})\s+(\d+)", out.stdout, re.M) if int(b)]
     mx = re.search(r"# Max Latencies:\s+(\d+)", out.stdout)
     if not buckets:
         print("cyclictest gave no histogram:", out.stderr.strip()[:200])
         return None
-    return {"p50": hist_pct(buckets, 50), "p99": hist_pct(buckets, 99),
-            "max": int(mx.group(1)) * 1000 if mx else buckets[-1][0]}
+    return {
+        "p50": hist_pct(buckets, 50),
+        "p99": hist_pct(buckets, 99),
+        "max": int(mx.group(1)) * 1000 if mx else buckets[-1][0],
+    }
 
 
 def main() -> None:
@@ -172,26 +198,38 @@ def main() -> None:
         vals = [row[key] for row in rows]
         return how(vals, 50) if vals else float("nan")
 
-    print(f"{args.clients} WebSocket clients, {args.rounds} x {args.seconds:g} s slices per case, "
-          f"loop 1 kHz SCHED_FIFO {args.prio} on CPU {args.cpu}; median over slices")
+    print(
+        f"{args.clients} WebSocket clients, {args.rounds} x {args.seconds:g} s slices per case, "
+        f"loop 1 kHz SCHED_FIFO {args.prio} on CPU {args.cpu}; median over slices"
+    )
     print(f"{'case':22s} {'jitter p50':>11s} {'p99':>9s} {'max':>9s} {'missed':>7s} {'appliance CPU':>14s}")
-    for kind, label in (("alone", "loop, no clients"), ("clients", f"loop + {args.clients} clients"), ("cyclictest", "cyclictest")):
+    for kind, label in (
+        ("alone", "loop, no clients"),
+        ("clients", f"loop + {args.clients} clients"),
+        ("cyclictest", "cyclictest"),
+    ):
         rows = results[kind]
         if not rows:
             print(f"{label:22s} (not available)")
             continue
         cpu = f"{agg(rows, 'cpu_per_s') * 100:.1f} % of a CPU" if "cpu_per_s" in rows[0] else ""
         missed = f"{sum(r['missed'] for r in rows)}" if "missed" in rows[0] else ""
-        print(f"{label:22s} {agg(rows, 'p50') / 1000:9.1f}us {agg(rows, 'p99') / 1000:7.1f}us "
-              f"{max(r['max'] for r in rows) / 1000:7.1f}us {missed:>7s} {cpu:>14s}")
+        print(
+            f"{label:22s} {agg(rows, 'p50') / 1000:9.1f}us {agg(rows, 'p99') / 1000:7.1f}us "
+            f"{max(r['max'] for r in rows) / 1000:7.1f}us {missed:>7s} {cpu:>14s}"
+        )
     for row in results["clients"]:
         per = row["delivered"] or []
         if per:
-            print(f"telemetry per client per s: min {min(per) / row['seconds']:.1f}, max {max(per) / row['seconds']:.1f}")
+            print(
+                f"telemetry per client per s: min {min(per) / row['seconds']:.1f}, max {max(per) / row['seconds']:.1f}"
+            )
     if results["cyclictest"] and results["alone"] and results["clients"]:
         ct = agg(results["cyclictest"], "p99")
-        print(f"p99 ratio vs cyclictest: alone {agg(results['alone'], 'p99') / ct:.2f}, "
-              f"with clients {agg(results['clients'], 'p99') / ct:.2f}")
+        print(
+            f"p99 ratio vs cyclictest: alone {agg(results['alone'], 'p99') / ct:.2f}, "
+            f"with clients {agg(results['clients'], 'p99') / ct:.2f}"
+        )
 
 
 if __name__ == "__main__":

@@ -24,7 +24,6 @@ import shutil
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 from _common import REPO_ROOT, appliance, pct
 
@@ -37,12 +36,11 @@ sys.path.insert(0, str(REPO_ROOT / "tests"))
 def viewer(url: str, seconds: float, edge_s: float) -> None:
     """Read the live stream for `seconds` (or until caught up when seconds < 0: a late viewer);
     print one JSON line: [arrival_ns, newest_ns] per frame with a time, the connect time, counts."""
+    import httpx
     from harness import ADMIN_PASSWORD, ADMIN_USER, login_client
 
     from xrf_testing.grpcweb import EMPTY_REQUEST, GRPC_WEB, READ_MESSAGES, split_frames
     from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of
-
-    import httpx
 
     http = login_client(url, ADMIN_USER, ADMIN_PASSWORD)
     samples: list[tuple[int, int]] = []
@@ -50,8 +48,9 @@ def viewer(url: str, seconds: float, edge_s: float) -> None:
     connect_ns = time.time_ns()
     caught_up_ns = None
     end = time.monotonic() + abs(seconds)
-    with http.stream("POST", READ_MESSAGES, content=EMPTY_REQUEST, headers=GRPC_WEB,
-                     timeout=httpx.Timeout(10.0, read=30.0)) as r:
+    with http.stream(
+        "POST", READ_MESSAGES, content=EMPTY_REQUEST, headers=GRPC_WEB, timeout=httpx.Timeout(10.0, read=30.0)
+    ) as r:
         if r.status_code != 200:
             raise SystemExit(f"the live stream answered {r.status_code} {r.headers.get('grpc-message', '')}")
         rest = b""
@@ -72,13 +71,24 @@ def viewer(url: str, seconds: float, edge_s: float) -> None:
             if time.monotonic() > end or (seconds < 0 and caught_up_ns is not None):
                 break
     http.close()
-    print(json.dumps({"connect_ns": connect_ns, "caught_up_ns": caught_up_ns, "frames": frames, "bytes": nbytes,
-                      "samples": samples}), flush=True)
+    print(
+        json.dumps(
+            {
+                "connect_ns": connect_ns,
+                "caught_up_ns": caught_up_ns,
+                "frames": frames,
+                "bytes": nbytes,
+                "samples": samples,
+            }
+        ),
+        flush=True,
+    )
 
 
 def spawn_viewer(url: str, seconds: float, edge_s: float) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, __file__, "--viewer-worker", url, str(seconds), str(edge_s)],
-                            stdout=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, __file__, "--viewer-worker", url, str(seconds), str(edge_s)], stdout=subprocess.PIPE, text=True
+    )
 
 
 def collect(proc: subprocess.Popen[str], timeout: float) -> dict:
@@ -109,8 +119,10 @@ def start_loop(server, build: str) -> dict:
 def run_case(server, build: str, viewers: int, seconds: float, edge_s: float, stress_cpu: int | None) -> dict:
     stress = None
     if stress_cpu is not None:
-        stress = subprocess.Popen(["stress-ng", "--cpu", "1", "--taskset", str(stress_cpu), "--timeout",
-                                   f"{int(seconds + 120)}s", "--quiet"], stdout=subprocess.DEVNULL)
+        stress = subprocess.Popen(
+            ["stress-ng", "--cpu", "1", "--taskset", str(stress_cpu), "--timeout", f"{int(seconds + 120)}s", "--quiet"],
+            stdout=subprocess.DEVNULL,
+        )
     try:
         run = start_loop(server, build)
         started = time.monotonic()
@@ -128,8 +140,15 @@ def run_case(server, build: str, viewers: int, seconds: float, edge_s: float, st
         caught = v["caught_up_ns"] or 0
         lags += [(a - t) / 1e6 for a, t in v["samples"] if a >= caught]  # the replay on connect is not lag
     catch_up = (late["caught_up_ns"] - late["connect_ns"]) / 1e9 if late["caught_up_ns"] else float("nan")
-    return {"run": run["id"], "lags_ms": lags, "frames": sum(v["frames"] for v in live), "run_age_s": age,
-            "catch_up_s": catch_up, "late_frames": late["frames"], "late_bytes": late["bytes"]}
+    return {
+        "run": run["id"],
+        "lags_ms": lags,
+        "frames": sum(v["frames"] for v in live),
+        "run_age_s": age,
+        "catch_up_s": catch_up,
+        "late_frames": late["frames"],
+        "late_bytes": late["bytes"],
+    }
 
 
 def main() -> None:
@@ -166,17 +185,23 @@ def main() -> None:
             results.append((label, res))
             print(f"{label}: done", file=sys.stderr)
 
-    print(f"live rerun lag (frame arrival - newest sample in it), {args.build} at 1 kHz, "
-          f"{args.seconds:g} s per case, through the appliance's gRPC-web route")
-    print(f"{'case':24s} {'frames':>7s} {'p50':>8s} {'p99':>8s} {'max':>8s}   late viewer: catch-up (run age, replayed)")
+    print(
+        f"live rerun lag (frame arrival - newest sample in it), {args.build} at 1 kHz, "
+        f"{args.seconds:g} s per case, through the appliance's gRPC-web route"
+    )
+    print(
+        f"{'case':24s} {'frames':>7s} {'p50':>8s} {'p99':>8s} {'max':>8s}   late viewer: catch-up (run age, replayed)"
+    )
     for label, r in results:
         lags = r["lags_ms"]
         if not lags:
             print(f"{label:24s} no frame with a time reached the viewers")
             continue
-        print(f"{label:24s} {r['frames']:7d} {pct(lags, 50):6.0f}ms {pct(lags, 99):6.0f}ms {max(lags):6.0f}ms   "
-              f"{r['catch_up_s']:.2f} s ({r['run_age_s']:.0f} s, {r['late_frames']} frames, "
-              f"{r['late_bytes'] / 1e6:.1f} MB)")
+        print(
+            f"{label:24s} {r['frames']:7d} {pct(lags, 50):6.0f}ms {pct(lags, 99):6.0f}ms {max(lags):6.0f}ms   "
+            f"{r['catch_up_s']:.2f} s ({r['run_age_s']:.0f} s, {r['late_frames']} frames, "
+            f"{r['late_bytes'] / 1e6:.1f} MB)"
+        )
 
 
 if __name__ == "__main__":

@@ -28,10 +28,21 @@ NVARS = 16
 
 def write_file(path: Path, n: int) -> None:
     variables = [{"name": f"x{i:02d}", "type": 5, "dtype": "float64", "offset": 8 * i} for i in range(NVARS)]
-    header = {"format": "xrflog", "version": 1, "program": "bench", "project": "", "build": "", "run": "",
-              "pid": 0, "cycle_freq": 1000, "start_unix_ns": 0, "start_mono_ns": 0,
-              "record_header": [["seq", "uint64"], ["cycle", "uint64"], ["t_ns", "int64"]],
-              "record_size": 8 * NVARS, "variables": variables}
+    header = {
+        "format": "xrflog",
+        "version": 1,
+        "program": "bench",
+        "project": "",
+        "build": "",
+        "run": "",
+        "pid": 0,
+        "cycle_freq": 1000,
+        "start_unix_ns": 0,
+        "start_mono_ns": 0,
+        "record_header": [["seq", "uint64"], ["cycle", "uint64"], ["t_ns", "int64"]],
+        "record_size": 8 * NVARS,
+        "variables": variables,
+    }
     js = (json.dumps(header) + "\n").encode()
     stride = 24 + 8 * NVARS
     head = MAGIC + struct.pack("<II", len(js), stride) + js
@@ -50,7 +61,7 @@ def python_reader(path: Path) -> list[tuple]:
     with open(path, "rb") as f:
         raw = f.read()
     jlen, stride = struct.unpack_from("<II", raw, 8)
-    header = json.loads(raw[16:16 + jlen])
+    header = json.loads(raw[16 : 16 + jlen])
     fmt = struct.Struct("<QQq" + "d" * len(header["variables"]))
     pos = (16 + jlen + 7) // 8 * 8
     rows = []
@@ -88,6 +99,7 @@ def main() -> None:
     print(f"{args.records} records x {NVARS} doubles, {path.stat().st_size / 1e6:.0f} MB")
     base = timed(lambda: python_reader(path))
     print(f"{'per-record Python reader (struct)':36s} {base:8.3f} s")
+
     # NumPy decode: open + touch every value (a column sum), so nothing stays lazily unread.
     def numpy_read() -> None:
         rec = open_log(path).records
@@ -95,14 +107,19 @@ def main() -> None:
             float(rec[f"x{i:02d}"].sum())
 
     numpy_s = timed(numpy_read)
-    print(f"{'NumPy reader (open + read all)':36s} {numpy_s:8.3f} s   {base / numpy_s:7.1f}x faster than the Python reader")
+    print(
+        f"{'NumPy reader (open + read all)':36s} {numpy_s:8.3f} s   {base / numpy_s:7.1f}x faster than the Python reader"
+    )
     base_csv = timed(lambda: python_csv(path, args.dir / "baseline.csv"))
     print(f"{'Python reader + csv.writer (repr)':36s} {base_csv:8.3f} s")
     for fmt in ("csv", "mat", "parquet", "rrd"):
-        s = timed(lambda: convert(path, fmt, args.dir / f"bench.{fmt}"))
+        s = timed(lambda fmt=fmt: convert(path, fmt, args.dir / f"bench.{fmt}"))
         size = (args.dir / f"bench.{fmt}").stat().st_size / 1e6
-        vs = f"{base_csv / s:5.1f}x faster than Python reader + csv.writer" if fmt == "csv" else \
-            f"{s / base:5.2f}x the Python reader's decode alone"
+        vs = (
+            f"{base_csv / s:5.1f}x faster than Python reader + csv.writer"
+            if fmt == "csv"
+            else f"{s / base:5.2f}x the Python reader's decode alone"
+        )
         print(f"{'to ' + fmt:36s} {s:8.3f} s   {size:5.0f} MB   {vs}")
 
 

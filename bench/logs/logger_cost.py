@@ -20,6 +20,7 @@ reservation (xrf_spsc_begin: one acquire load of the consumer's tail), the slot 
 Not part of the test suite. Run as root for (b). XRF2 on a Pi 4 spent 3.9 us per cycle on its
 logger, writing through an EVL proxy (thesis).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -46,8 +47,13 @@ def instructions(exe: Path, nvars: int, cycles: int, out_dir: Path) -> dict:
     env = C.loop_env(shm, 1000, 0, -1, C.tmpdir("xrf_bench_logger_"), {"XRF_BENCH_NVARS": nvars})
     env.pop("XRF_PRIO")
     env.pop("XRF_CPU")
-    prefix = ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out_dir}/callgrind.out",
-              "--collect-atstart=no", f"--toggle-collect={LOG_FN}"]
+    prefix = [
+        "valgrind",
+        "--tool=callgrind",
+        f"--callgrind-out-file={out_dir}/callgrind.out",
+        "--collect-atstart=no",
+        f"--toggle-collect={LOG_FN}",
+    ]
     with open(out_dir / "valgrind.log", "w") as vlog:
         loop = C.start_loop(exe, env, shm, cmd_prefix=prefix, stdout=vlog, wait_s=120)
     try:
@@ -67,8 +73,14 @@ def instructions(exe: Path, nvars: int, cycles: int, out_dir: Path) -> dict:
     incl, total = annotate_inclusive(dump)
     calls = call_counts(dump)
     n = calls.get("xrf_spsc_begin", 0)
-    return {"total": total, "n": n, "per": total / n if n else float("nan"), "log_incl": incl.get(LOG_FN, 0),
-            "memcpy": sum(v for k, v in incl.items() if "memcpy" in k or "memmove" in k), "lost": lost}
+    return {
+        "total": total,
+        "n": n,
+        "per": total / n if n else float("nan"),
+        "log_incl": incl.get(LOG_FN, 0),
+        "memcpy": sum(v for k, v in incl.items() if "memcpy" in k or "memmove" in k),
+        "lost": lost,
+    }
 
 
 def nanoseconds(exe: Path, nvars: int, seconds: float, prio: int, cpu: int, freq: int) -> dict:
@@ -76,8 +88,17 @@ def nanoseconds(exe: Path, nvars: int, seconds: float, prio: int, cpu: int, freq
     env = C.loop_env(shm, freq, prio, cpu, C.tmpdir("xrf_bench_logger_"), {"XRF_BENCH_NVARS": nvars})
     r = C.measure_run_window(exe, env, shm, seconds)
     w, ref = r.hist["logger"], r.hist["cmd"]
-    return {"cmd_mean": ref.mean, "mean": w.mean, "p50": w.percentile_mid(50), "p99": w.percentile_mid(99), "max": w.max,
-            "count": w.count, "cycles": r.cycles, "missed": r.missed, "lost": r.log_lost}
+    return {
+        "cmd_mean": ref.mean,
+        "mean": w.mean,
+        "p50": w.percentile_mid(50),
+        "p99": w.percentile_mid(99),
+        "max": w.max,
+        "count": w.count,
+        "cycles": r.cycles,
+        "missed": r.missed,
+        "lost": r.log_lost,
+    }
 
 
 def main() -> int:
@@ -106,13 +127,19 @@ def main() -> int:
         shutil.rmtree(out_dir, ignore_errors=True)
         print()
         print(f"{nvars} doubles ({nvars * 8} B payload + 24 B header per record)")
-        print(f"  (a) instructions per record  {r['per']:8.1f}   ({r['total']:,} Ir over {r['n']} records under "
-              f"callgrind; memcpy share {r['memcpy'] / max(r['n'], 1):.1f}/record)")
-        print(f"  (b) ns per record (logger stage, native, SCHED_FIFO {a.prio}, CPU {a.cpu}, {a.freq} Hz): "
-              f"mean {ns['mean']:.1f}  p50 {ns['p50']:.0f}  p99 {ns['p99']:.0f}  max {ns['max']:.0f}  "
-              f"over {ns['count']} cycles, {ns['missed']} missed, {ns['lost']} records lost")
-        print(f"      reference: the cmd stage with no command pending (one clock read + an empty ring poll) "
-              f"mean {ns['cmd_mean']:.1f} ns; every stage includes one clock read")
+        print(
+            f"  (a) instructions per record  {r['per']:8.1f}   ({r['total']:,} Ir over {r['n']} records under "
+            f"callgrind; memcpy share {r['memcpy'] / max(r['n'], 1):.1f}/record)"
+        )
+        print(
+            f"  (b) ns per record (logger stage, native, SCHED_FIFO {a.prio}, CPU {a.cpu}, {a.freq} Hz): "
+            f"mean {ns['mean']:.1f}  p50 {ns['p50']:.0f}  p99 {ns['p99']:.0f}  max {ns['max']:.0f}  "
+            f"over {ns['count']} cycles, {ns['missed']} missed, {ns['lost']} records lost"
+        )
+        print(
+            f"      reference: the cmd stage with no command pending (one clock read + an empty ring poll) "
+            f"mean {ns['cmd_mean']:.1f} ns; every stage includes one clock read"
+        )
     print()
     print("XRF2 on a Pi 4: 3.9 us per cycle for its logger (thesis); different CPU, see README.")
     return 0

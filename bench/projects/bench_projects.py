@@ -78,8 +78,11 @@ def checker_50mb() -> dict[str, float]:
             t0 = time.perf_counter()
             archive.unpack(path, Path(d) / f"out{k}")
             runs_unpack.append(time.perf_counter() - t0)
-        return {"archive_mb": size / (1 << 20), "check_s": statistics.median(runs_check),
-                "unpack_s": statistics.median(runs_unpack)}
+        return {
+            "archive_mb": size / (1 << 20),
+            "check_s": statistics.median(runs_check),
+            "unpack_s": statistics.median(runs_unpack),
+        }
 
 
 def main() -> int:
@@ -88,13 +91,17 @@ def main() -> int:
     a = ap.parse_args()
     print(f"machine: {os.cpu_count()} CPUs, {os.uname().sysname} {os.uname().release}")
     c = checker_50mb()
-    print(f"checker on a {c['archive_mb']:.1f} MB tar.gz: check {c['check_s'] * 1000:.0f} ms "
-          f"({c['archive_mb'] / c['check_s']:.0f} MB/s), check+unpack {c['unpack_s'] * 1000:.0f} ms (median of 3)")
+    print(
+        f"checker on a {c['archive_mb']:.1f} MB tar.gz: check {c['check_s'] * 1000:.0f} ms "
+        f"({c['archive_mb'] / c['check_s']:.0f} MB/s), check+unpack {c['unpack_s'] * 1000:.0f} ms (median of 3)"
+    )
     server = start_server(reachable_tmp("bench"), shared_builds_root())
     try:
         # warm the rt_core install and the build user once (not part of any figure)
         upload_to_runnable(server.http, targz(TEMPLATES["base"]))
-        print(f"{'template':8} {'upload+check (ms)':>18} {'cold: upload->runnable (s)':>28} {'unchanged rebuild (ms)':>24}")
+        print(
+            f"{'template':8} {'upload+check (ms)':>18} {'cold: upload->runnable (s)':>28} {'unchanged rebuild (ms)':>24}"
+        )
         for name, folder in TEMPLATES.items():
             data = targz(folder)
             rows = [upload_to_runnable(server.http, data) for _ in range(a.repeat)]

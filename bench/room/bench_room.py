@@ -67,20 +67,37 @@ class SimBench:
         self.state = "RUN"
         self.t0 = time.monotonic()
         endpoint = mqtt.Endpoint(b["host"], b["port"], b["username"], b["password"], b.get("ca_pem", ""))
-        self.pub = BenchPublisher(enrolment["name"], endpoint, int(time.time() * 1000), self.facts,
-                                  on_command=self.on_command)
+        self.pub = BenchPublisher(
+            enrolment["name"], endpoint, int(time.time() * 1000), self.facts, on_command=self.on_command
+        )
 
     def facts(self) -> dict:
-        return {"state": self.state, "active": True, "cycles": int((time.monotonic() - self.t0) * 1000),
-                "cycle_rate": 1000.0, "misses": 0, "url": "http://127.0.0.1:9"}
+        return {
+            "state": self.state,
+            "active": True,
+            "cycles": int((time.monotonic() - self.t0) * 1000),
+            "cycle_rate": 1000.0,
+            "misses": 0,
+            "url": "http://127.0.0.1:9",
+        }
 
     def on_command(self, body: dict, t_recv: float) -> None:
         # the simulated loop takes the stop as the appliance hands it over: on its event loop
         def done() -> None:
             self.state = "STOPPED"
-            self.pub.reply({"id": body.get("id"), "cmd": body.get("cmd"), "ok": True, "accepted": True,
-                            "t_recv": t_recv, "t_loop": time.time(), "t_sent": body.get("t")})
+            self.pub.reply(
+                {
+                    "id": body.get("id"),
+                    "cmd": body.get("cmd"),
+                    "ok": True,
+                    "accepted": True,
+                    "t_recv": t_recv,
+                    "t_loop": time.time(),
+                    "t_sent": body.get("t"),
+                }
+            )
             self.state = "RUN"
+
         self.pub._loop.call_soon_threadsafe(done)
 
 
@@ -88,9 +105,25 @@ def run(n: int, seconds: float, stops: int) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="xrf-room-bench-"))
     port, mport = free_port(), free_port()
     env = dict(os.environ, PYTHONPATH=str(REPO / "appliance"), XRF_BOOTSTRAP_ADMIN_PASSWORD=PASSWORD)
-    room = subprocess.Popen([sys.executable, "-m", "xrflab.cli", "room", "--data", str(tmp), "--port", str(port),
-                             "--broker-port", str(mport), "--broker-tls-port", "0", "--no-tls"], env=env,
-                            stdout=subprocess.DEVNULL)
+    room = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "xrflab.cli",
+            "room",
+            "--data",
+            str(tmp),
+            "--port",
+            str(port),
+            "--broker-port",
+            str(mport),
+            "--broker-tls-port",
+            "0",
+            "--no-tls",
+        ],
+        env=env,
+        stdout=subprocess.DEVNULL,
+    )
     url = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 30
@@ -122,12 +155,17 @@ def run(n: int, seconds: float, stops: int) -> dict:
                     b = SimBench(e, loop)
                     b.pub.start()
                     benches.append(b)
+
             loop.run_until_complete(start())
             loop.run_forever()
+
         threading.Thread(target=loop_main, daemon=True).start()
 
-        ws = connect(url.replace("http", "ws") + "/api/room/ws", origin=url,
-                     additional_headers={"Cookie": f"xrf_session={http.cookies.get('xrf_session')}"})
+        ws = connect(
+            url.replace("http", "ws") + "/api/room/ws",
+            origin=url,
+            additional_headers={"Cookie": f"xrf_session={http.cookies.get('xrf_session')}"},
+        )
         lat: list[float] = []
         online = set()
         deadline = time.monotonic() + 30
@@ -166,13 +204,23 @@ def run(n: int, seconds: float, stops: int) -> dict:
         async def stop_all() -> None:
             for b in benches:
                 await b.pub.stop()
+
         asyncio.run_coroutine_threadsafe(stop_all(), loop).result(30)
         loop.call_soon_threadsafe(loop.stop)
-        return {"benches": n, "status_n": len(lat), "status_p50_ms": 1000 * statistics.median(lat),
-                "status_p99_ms": 1000 * pct(lat, 0.99), "stop_n": len(stop_lat),
-                "stop_p50_ms": 1000 * statistics.median(stop_lat), "stop_p99_ms": 1000 * pct(stop_lat, 0.99),
-                "stop_max_ms": 1000 * max(stop_lat), "broker_cpu_pct": cpu["broker"], "room_cpu_pct": cpu["room"],
-                "broker_rss_mb": mem["broker"], "room_rss_mb": mem["room"]}
+        return {
+            "benches": n,
+            "status_n": len(lat),
+            "status_p50_ms": 1000 * statistics.median(lat),
+            "status_p99_ms": 1000 * pct(lat, 0.99),
+            "stop_n": len(stop_lat),
+            "stop_p50_ms": 1000 * statistics.median(stop_lat),
+            "stop_p99_ms": 1000 * pct(stop_lat, 0.99),
+            "stop_max_ms": 1000 * max(stop_lat),
+            "broker_cpu_pct": cpu["broker"],
+            "room_cpu_pct": cpu["room"],
+            "broker_rss_mb": mem["broker"],
+            "room_rss_mb": mem["room"],
+        }
     finally:
         room.terminate()
         room.wait(15)
@@ -185,13 +233,18 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--stops", type=int, default=30)
     args = ap.parse_args()
-    print("| benches | status p50 / p99 (ms) | stop-all p50 / p99 / max (ms), n | broker CPU % / RSS MB | room CPU % / RSS MB |")
+    print(
+        "| benches | status p50 / p99 (ms) | stop-all p50 / p99 / max (ms), n | broker CPU % / RSS MB | room CPU % / RSS MB |"
+    )
     print("|---|---|---|---|---|")
     for n in args.benches:
         r = run(n, args.seconds, args.stops)
-        print(f"| {n} | {r['status_p50_ms']:.1f} / {r['status_p99_ms']:.1f} | {r['stop_p50_ms']:.1f} / "
-              f"{r['stop_p99_ms']:.1f} / {r['stop_max_ms']:.1f}, {r['stop_n']} | {r['broker_cpu_pct']:.1f} / "
-              f"{r['broker_rss_mb']:.1f} | {r['room_cpu_pct']:.1f} / {r['room_rss_mb']:.1f} |", flush=True)
+        print(
+            f"| {n} | {r['status_p50_ms']:.1f} / {r['status_p99_ms']:.1f} | {r['stop_p50_ms']:.1f} / "
+            f"{r['stop_p99_ms']:.1f} / {r['stop_max_ms']:.1f}, {r['stop_n']} | {r['broker_cpu_pct']:.1f} / "
+            f"{r['broker_rss_mb']:.1f} | {r['room_cpu_pct']:.1f} / {r['room_rss_mb']:.1f} |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -50,8 +50,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "appliance"))
 PROJECT = REPO / "bench/ros/probe_project"
-XRF2 = {"ros_to_loop_mean_ms": 0.83, "loop_to_ros_mean_ms": 5.7, "loop_to_ros_max_ms": 19.0,
-        "lost": "47 of 100 000"}
+XRF2 = {"ros_to_loop_mean_ms": 0.83, "loop_to_ros_mean_ms": 5.7, "loop_to_ros_max_ms": 19.0, "lost": "47 of 100 000"}
 
 
 def pct(values: list[int], p: float) -> float:
@@ -76,12 +75,24 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--rate", type=float, default=100.0, help="Ros2Xeno publish rate (Hz)")
-    ap.add_argument("--bridge-executor", choices=("single", "events"), default="single",
-                    help="the bridge's rclpy executor (xrf ros-bridge --executor)")
-    ap.add_argument("--bridge-priority", type=int, default=0,
-                    help="SCHED_FIFO priority for the bridge (xrf ros-bridge --priority; 0 = normal)")
-    ap.add_argument("--node-priority", type=int, default=0,
-                    help="SCHED_FIFO priority for this benchmark node (0 = normal, as a course node)")
+    ap.add_argument(
+        "--bridge-executor",
+        choices=("single", "events"),
+        default="single",
+        help="the bridge's rclpy executor (xrf ros-bridge --executor)",
+    )
+    ap.add_argument(
+        "--bridge-priority",
+        type=int,
+        default=0,
+        help="SCHED_FIFO priority for the bridge (xrf ros-bridge --priority; 0 = normal)",
+    )
+    ap.add_argument(
+        "--node-priority",
+        type=int,
+        default=0,
+        help="SCHED_FIFO priority for this benchmark node (0 = normal, as a course node)",
+    )
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = ap.parse_args()
 
@@ -112,10 +123,22 @@ def main() -> int:
             res = ch.wait_command(ch.send_command(cmd), timeout=2)
             assert res.accepted, res
         bridge_log = open(work / "bridge.log", "w")
-        bridge = subprocess.Popen([sys.executable, "-m", "xrflab.ros.bridge", "--shm", shm,
-                                   "--executor", args.bridge_executor, "--priority", str(args.bridge_priority)],
-                                  env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")),
-                                  stdout=bridge_log, stderr=subprocess.STDOUT)
+        bridge = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "xrflab.ros.bridge",
+                "--shm",
+                shm,
+                "--executor",
+                args.bridge_executor,
+                "--priority",
+                str(args.bridge_priority),
+            ],
+            env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")),
+            stdout=bridge_log,
+            stderr=subprocess.STDOUT,
+        )
 
         rclpy.init()
         node = rclpy.create_node("xrf_latency_bench")
@@ -126,8 +149,17 @@ def main() -> int:
         def on_sample(m: Xeno2Ros) -> None:
             t = time.monotonic_ns()
             if measuring.is_set():
-                recv.append((t, m.cycle, m.t_publish_ns, list(m.echo_t_sent_ns), list(m.t_seen_ns),
-                             list(m.t_written_ns), m.msgs_seen))
+                recv.append(
+                    (
+                        t,
+                        m.cycle,
+                        m.t_publish_ns,
+                        list(m.echo_t_sent_ns),
+                        list(m.t_seen_ns),
+                        list(m.t_written_ns),
+                        m.msgs_seen,
+                    )
+                )
 
         node.create_subscription(Xeno2Ros, "Xeno2Ros", on_sample, qos)
         pub = node.create_publisher(Ros2Xeno, "Ros2Xeno", qos)
@@ -155,7 +187,9 @@ def main() -> int:
         ex = SingleThreadedExecutor()
         ex.add_node(node)
         deadline = time.monotonic() + 30
-        while (pub.get_subscription_count() == 0 or node.count_publishers("Xeno2Ros") == 0) and time.monotonic() < deadline:
+        while (
+            pub.get_subscription_count() == 0 or node.count_publishers("Xeno2Ros") == 0
+        ) and time.monotonic() < deadline:
             ex.spin_once(timeout_sec=0.05)
         if pub.get_subscription_count() == 0:
             raise SystemExit(f"the bridge did not come up; its log:\n{(work / 'bridge.log').read_text()}")
@@ -164,7 +198,10 @@ def main() -> int:
         t_warm = time.monotonic() + 2.0
         while time.monotonic() < t_warm:
             ex.spin_once(timeout_sec=0.05)
-        print(f"measuring {args.seconds:g} s (1 kHz loop, Xeno2Ros 100 Hz, Ros2Xeno {args.rate:g} Hz) ...", file=sys.stderr)
+        print(
+            f"measuring {args.seconds:g} s (1 kHz loop, Xeno2Ros 100 Hz, Ros2Xeno {args.rate:g} Hz) ...",
+            file=sys.stderr,
+        )
         measuring.set()
         t_end = time.monotonic() + args.seconds
         while time.monotonic() < t_end:
@@ -232,26 +269,43 @@ def main() -> int:
         "bridge_executor": args.bridge_executor,
         "bridge_priority": args.bridge_priority,
         "node_priority": args.node_priority,
-        "loop_to_ros": {**summary(l2r), "lost": l2r_lost, "ring_lost": ring_lost,
-                         "steps": {str(k): v for k, v in sorted(steps.items())}},
-        "ros_to_loop": {**summary(r2l), "sent": len(considered), "lost": r2l_lost,
-                        "lost_send_gap_ms": sorted(round(g, 3) for g in gaps),
-                        "node_to_shm_write": summary(to_write), "shm_write_to_loop": summary(write_to_loop)},
+        "loop_to_ros": {
+            **summary(l2r),
+            "lost": l2r_lost,
+            "ring_lost": ring_lost,
+            "steps": {str(k): v for k, v in sorted(steps.items())},
+        },
+        "ros_to_loop": {
+            **summary(r2l),
+            "sent": len(considered),
+            "lost": r2l_lost,
+            "lost_send_gap_ms": sorted(round(g, 3) for g in gaps),
+            "node_to_shm_write": summary(to_write),
+            "shm_write_to_loop": summary(write_to_loop),
+        },
         "loop_missed_cycles": status.missed,
         "xrf2_thesis": XRF2,
     }
     a, b = result["ros_to_loop"], result["loop_to_ros"]
     print(f"\n{'direction':<14}{'n':>8}{'mean':>9}{'p50':>9}{'p99':>9}{'max':>9}{'lost':>7}   (ms)")
-    print(f"{'ROS -> loop':<14}{a['n']:>8}{a['mean_ms']:>9.3f}{a['p50_ms']:>9.3f}{a['p99_ms']:>9.3f}{a['max_ms']:>9.3f}{a['lost']:>7}")  # lost: superseded (latest wins)
+    print(
+        f"{'ROS -> loop':<14}{a['n']:>8}{a['mean_ms']:>9.3f}{a['p50_ms']:>9.3f}{a['p99_ms']:>9.3f}{a['max_ms']:>9.3f}{a['lost']:>7}"
+    )  # lost: superseded (latest wins)
     for label, key in (("  node->shm", "node_to_shm_write"), ("  shm->loop", "shm_write_to_loop")):
         c = a[key]
         print(f"{label:<14}{c['n']:>8}{c['mean_ms']:>9.3f}{c['p50_ms']:>9.3f}{c['p99_ms']:>9.3f}{c['max_ms']:>9.3f}")
-    print(f"{'loop -> ROS':<14}{b['n']:>8}{b['mean_ms']:>9.3f}{b['p50_ms']:>9.3f}{b['p99_ms']:>9.3f}{b['max_ms']:>9.3f}{b['lost']:>7}")
+    print(
+        f"{'loop -> ROS':<14}{b['n']:>8}{b['mean_ms']:>9.3f}{b['p50_ms']:>9.3f}{b['p99_ms']:>9.3f}{b['max_ms']:>9.3f}{b['lost']:>7}"
+    )
     if gaps:
-        print(f"ROS -> loop: {r2l_lost} superseded (latest wins) before a cycle read them; send gap to the next "
-              f"message: min {min(gaps):.3f} ms, median {sorted(gaps)[len(gaps) // 2]:.3f} ms")
-    print(f"bridge: executor {args.bridge_executor}, SCHED_FIFO {args.bridge_priority or 'off'}; "
-          f"node SCHED_FIFO {args.node_priority or 'off'}; machine load average {os.getloadavg()[0]:.1f}")
+        print(
+            f"ROS -> loop: {r2l_lost} superseded (latest wins) before a cycle read them; send gap to the next "
+            f"message: min {min(gaps):.3f} ms, median {sorted(gaps)[len(gaps) // 2]:.3f} ms"
+        )
+    print(
+        f"bridge: executor {args.bridge_executor}, SCHED_FIFO {args.bridge_priority or 'off'}; "
+        f"node SCHED_FIFO {args.node_priority or 'off'}; machine load average {os.getloadavg()[0]:.1f}"
+    )
     print(f"bridge ring overwrites: {ring_lost}; cycle steps {b['steps']}; loop missed cycles: {status.missed}")
     print("XRF2 (thesis): ROS -> loop mean 0.83 ms; loop -> ROS mean 5.7 ms, max 19 ms; lost 47 of 100 000")
     # The target is about the bridge losing nothing: Xeno2Ros samples (every one must arrive).

@@ -4,6 +4,7 @@ Everything here is host-side: it builds a controller with xrflab.build, starts i
 environment, drives it to RUN through the command channel and reads the shared-memory
 histograms. Nothing is added to rt_core.
 """
+
 from __future__ import annotations
 
 import os
@@ -75,8 +76,9 @@ class Loop:
         return rc
 
 
-def start_loop(exe: Path, env: dict, shm: str, cmd_prefix: list[str] | None = None,
-               stdout=subprocess.DEVNULL, wait_s: float = 20.0) -> Loop:
+def start_loop(
+    exe: Path, env: dict, shm: str, cmd_prefix: list[str] | None = None, stdout=subprocess.DEVNULL, wait_s: float = 20.0
+) -> Loop:
     argv = (cmd_prefix or []) + [str(exe)]
     proc = subprocess.Popen(argv, env=env, stdout=stdout, stderr=subprocess.STDOUT)
     try:
@@ -187,6 +189,7 @@ class HostReader:
 @dataclass
 class RunWindow:
     """What a loop in RUN gathered between two snapshots: stage histograms and counters."""
+
     hist: dict[str, HistWindow]
     cycles: int
     missed: int
@@ -210,5 +213,10 @@ def measure_run_window(exe: Path, env: dict, shm: str, seconds: float) -> RunWin
         if host:
             host.stop()
         loop.stop()
-    return RunWindow({k: HistWindow(h0[k], h1[k]) for k in h1}, s1.cycles - s0.cycles, s1.missed - s0.missed,
-                     s1.log_lost - s0.log_lost, host)
+    return RunWindow(
+        {k: HistWindow(h0[k], h1[k]) for k in h1},
+        s1.cycles - s0.cycles,
+        s1.missed - s0.missed,
+        s1.log_lost - s0.log_lost,
+        host,
+    )

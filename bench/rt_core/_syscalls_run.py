@@ -5,6 +5,7 @@ Usage: python3 _syscalls_run.py EXE TRACE_FILE SECONDS FREQ PRIO CPU
 Prints shell-style lines: LOOP_TID, T_STEADY, T_END (epoch seconds, same clock as strace -ttt),
 CYCLES (cycles in the window), TELEMETRY/MONITOR/WAKEUPS (read by the host), STATE.
 """
+
 from __future__ import annotations
 
 import os
@@ -20,7 +21,7 @@ def fifo_threads(pid: int) -> list[int]:
     out = []
     for tid in os.listdir(f"/proc/{pid}/task"):
         stat = Path(f"/proc/{pid}/task/{tid}/stat").read_text()
-        fields = stat[stat.rindex(")") + 2:].split()
+        fields = stat[stat.rindex(")") + 2 :].split()
         policy = int(fields[38])  # field 41 of stat; fields start at field 3
         if policy in (1, 2):  # SCHED_FIFO, SCHED_RR
             out.append(int(tid))

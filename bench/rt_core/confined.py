@@ -10,6 +10,7 @@ histogram; cycle = the CYCLE stage histogram (the framework's work per cycle). R
 confined / plain at each percentile (target <= 1.10 at p99). Run as root (SCHED_FIFO).
 Not part of the test suite.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,6 +23,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
+
 from xrflab.channels import Channels  # noqa: E402
 from xrflab.server import guest_spawn  # noqa: E402
 from xrflab.server.settings import Settings  # noqa: E402
@@ -39,13 +41,17 @@ def run_slice(exe: Path, confined: bool, freq: int, prio: int, cpu: int, seconds
         spawner = guest_spawn.GuestSpawner(Settings(data_dir=tmp, real_bench=False))
         shm_dir = Path("/dev/shm") / f"xrf-bench-confined-{os.getpid()}-{idx}"
         spawner.prepare_dirs(run_dir, shm_dir)
-        genv = {k: v for k, v in env.items() if k in {"XRF_FREQ", "XRF_PRIO", "XRF_CPU", "XRF_QUIET", "XRF_LOG_DIR",
-                                                      "XRF_TRANSPORT", "XRF_MAX_CYCLES"}}
+        genv = {
+            k: v
+            for k, v in env.items()
+            if k in {"XRF_FREQ", "XRF_PRIO", "XRF_CPU", "XRF_QUIET", "XRF_LOG_DIR", "XRF_TRANSPORT", "XRF_MAX_CYCLES"}
+        }
         genv.update(PATH="/usr/bin:/bin", XRF_SHM="xrf")
         r, w = os.pipe()
         cfg = spawner.config(exe, run_dir, shm_dir, genv, [exe.parent], w)
-        proc = subprocess.Popen(guest_spawn.launcher_argv(cfg), pass_fds=(w,), stdout=subprocess.DEVNULL,
-                                stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(
+            guest_spawn.launcher_argv(cfg), pass_fds=(w,), stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT
+        )
         os.close(w)
         report = os.read(r, 65536).decode()
         os.close(r)
@@ -92,8 +98,10 @@ def main() -> int:
     for k in ("wakeup", "cycle"):
         for p in PCTS:
             vals = {c: max(w.percentile_mid(p) for w in results[c][k]) for c in (True, False)}
-            print(f"{k:7s} p{p:<5g} confined {vals[True] / 1000:8.2f} us  plain {vals[False] / 1000:8.2f} us  "
-                  f"ratio {vals[True] / max(vals[False], 1):.2f}")
+            print(
+                f"{k:7s} p{p:<5g} confined {vals[True] / 1000:8.2f} us  plain {vals[False] / 1000:8.2f} us  "
+                f"ratio {vals[True] / max(vals[False], 1):.2f}"
+            )
         mx = {c: max(w.max for w in results[c][k]) for c in (True, False)}
         print(f"{k:7s} max    confined {mx[True] / 1000:8.2f} us  plain {mx[False] / 1000:8.2f} us")
     print(f"misses  confined {misses[True]}  plain {misses[False]}")

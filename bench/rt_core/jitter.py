@@ -23,6 +23,7 @@ for both (ours: see HistWindow). Ratio = ours / cyclictest at p99 (target <= 1.1
 
 Run as root (SCHED_FIFO, mlockall). Not part of the test suite.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -70,11 +71,11 @@ class Merged:
         return self.max  # in cyclictest's overflow
 
 
-def run_ours(exe: Path, freq: int, prio: int, cpu: int, seconds: float, log_dir: str, idx: int,
-             helper_cpu: int | None = None):
+def run_ours(
+    exe: Path, freq: int, prio: int, cpu: int, seconds: float, log_dir: str, idx: int, helper_cpu: int | None = None
+):
     shm = f"bench_jitter_{os.getpid()}_{idx}"
-    env = C.loop_env(shm, freq, prio, cpu, log_dir,
-                     {"XRF_MAX_CYCLES": int(freq * (seconds + 30))})
+    env = C.loop_env(shm, freq, prio, cpu, log_dir, {"XRF_MAX_CYCLES": int(freq * (seconds + 30))})
     # The runtime starts its in-band helper thread before it pins the loop thread, so the helper
     # inherits the process's affinity; --helper-cpu starts the process on that CPU (the loop
     # thread then moves itself to XRF_CPU), keeping the helper off the loop's CPU.
@@ -97,8 +98,23 @@ def run_ours(exe: Path, freq: int, prio: int, cpu: int, seconds: float, log_dir:
 
 def run_cyclictest(freq: int, prio: int, cpu: int, seconds: float):
     period_us = int(round(1e6 / freq))
-    argv = ["cyclictest", "-m", "-p", str(prio), "-a", str(cpu), "-t", "1", "-i", str(period_us),
-            "-D", f"{int(seconds)}", "-h", "20000", "-q"]
+    argv = [
+        "cyclictest",
+        "-m",
+        "-p",
+        str(prio),
+        "-a",
+        str(cpu),
+        "-t",
+        "1",
+        "-i",
+        str(period_us),
+        "-D",
+        f"{int(seconds)}",
+        "-h",
+        "20000",
+        "-q",
+    ]
     out = subprocess.run(argv, capture_output=True, text=True, check=True).stdout
     edges, counts = [], []
     mx = 0
@@ -132,8 +148,12 @@ def main() -> int:
     ap.add_argument("--prio", type=int, default=80)
     ap.add_argument("--cpu", type=int, default=1)
     ap.add_argument("--build-dir", default="/tmp/xrf_bench/loop_probe")
-    ap.add_argument("--helper-cpu", type=int, default=None,
-                    help="start the loop process on this CPU so its in-band helper thread stays off --cpu")
+    ap.add_argument(
+        "--helper-cpu",
+        type=int,
+        default=None,
+        help="start the loop process on this CPU so its in-band helper thread stays off --cpu",
+    )
     a = ap.parse_args()
     if shutil.which("cyclictest") is None:
         print("cyclictest not found: apt-get install rt-tests", file=sys.stderr)
@@ -149,8 +169,10 @@ def main() -> int:
     if a.helper_cpu is not None:
         print(f"# loop process started with taskset -c {a.helper_cpu}: its helper thread runs on CPU {a.helper_cpu}")
     print(f"# SCHED_FIFO {a.prio}, CPU {a.cpu}, {a.slices} alternating slices x {a.seconds:g} s per program")
-    print(f"# ours: {exe.relative_to(C.REPO) if exe.is_relative_to(C.REPO) else exe} in RUN, WAKEUP histogram"
-          " (6 % buckets); cyclictest: 1 us buckets; percentiles = bucket middles")
+    print(
+        f"# ours: {exe.relative_to(C.REPO) if exe.is_relative_to(C.REPO) else exe} in RUN, WAKEUP histogram"
+        " (6 % buckets); cyclictest: 1 us buckets; percentiles = bucket middles"
+    )
     results = {}
     for freq in [int(x) for x in a.rates.split(",")]:
         ours = Merged(lambda e: C.bucket_high(e) - e)
@@ -182,14 +204,17 @@ def main() -> int:
     print(f"{'rate':>8} {'who':<11} {'samples':>9} {'p50 us':>9} {'p99 us':>9} {'p99.9 us':>9} {'max us':>9}")
     for freq, (ours, ct, missed, ct_cmd) in results.items():
         for name, h in (("rt_core", ours), ("cyclictest", ct)):
-            print(f"{freq:>6}Hz {name:<11} {h.count:>9} " + " ".join(fmt_us(h.pct(p)) for p in PCTS)
-                  + " " + fmt_us(h.max))
+            print(
+                f"{freq:>6}Hz {name:<11} {h.count:>9} " + " ".join(fmt_us(h.pct(p)) for p in PCTS) + " " + fmt_us(h.max)
+            )
         r = {p: ours.pct(p) / ct.pct(p) if ct.pct(p) else float("inf") for p in PCTS}
         rmax = ours.max / ct.max if ct.max else float("inf")
         print(f"{freq:>6}Hz {'ratio':<11} {'':>9} " + " ".join(f"{r[p]:9.2f}" for p in PCTS) + f" {rmax:9.2f}")
         verdict = "PASS" if r[99.0] <= 1.10 else "FAIL"
-        print(f"{freq:>6}Hz ratio ours/cyclictest at p99 = {r[99.0]:.2f} (target <= 1.10): {verdict};"
-              f" rt_core missed cycles {missed}; cyclictest overflows (>20 ms) {ct.overflow}")
+        print(
+            f"{freq:>6}Hz ratio ours/cyclictest at p99 = {r[99.0]:.2f} (target <= 1.10): {verdict};"
+            f" rt_core missed cycles {missed}; cyclictest overflows (>20 ms) {ct.overflow}"
+        )
         print(f"         cyclictest command: {ct_cmd}")
     shutil.rmtree(log_dir, ignore_errors=True)
     return 0

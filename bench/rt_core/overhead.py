@@ -33,6 +33,7 @@ logger active; Xeno2Ros at 100 Hz, monitor.printf at 30 Hz; run() prints and doe
 
 Not part of the test suite. Run as root for (b).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -77,8 +78,12 @@ def annotate_inclusive(path: Path) -> tuple[dict[str, int], int]:
     and a relative path). Those rows are parts of the function's inclusive cost, and one of them
     covers all of it, so the largest row is taken (checked: step + endCycle = program total).
     Only the function table is read (the annotated-source sections that follow are not)."""
-    out = subprocess.run(["callgrind_annotate", "--inclusive=yes", "--threshold=100", str(path)],
-                         capture_output=True, text=True, check=True).stdout
+    out = subprocess.run(
+        ["callgrind_annotate", "--inclusive=yes", "--threshold=100", str(path)],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
     incl: dict[str, int] = {}
     total = 0
     for line in out.splitlines():
@@ -113,16 +118,27 @@ def call_counts(path: Path) -> dict[str, int]:
     return calls
 
 
-def measure_instructions(exe: Path, cycles: int, log_dir: str, out_dir: Path,
-                         extra_toggles: tuple[str, ...] = (), extra_env: dict[str, str] | None = None) -> dict:
+def measure_instructions(
+    exe: Path,
+    cycles: int,
+    log_dir: str,
+    out_dir: Path,
+    extra_toggles: tuple[str, ...] = (),
+    extra_env: dict[str, str] | None = None,
+) -> dict:
     shm = f"bench_overhead_cg_{os.getpid()}"
     env = C.loop_env(shm, 1000, 0, -1, log_dir)
     env.update(extra_env or {})
     env.pop("XRF_PRIO")
     env.pop("XRF_CPU")
-    prefix = ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out_dir}/callgrind.out",
-              "--collect-atstart=no", "--toggle-collect=XenoFrtRosIcoCore::step()",
-              "--toggle-collect=xrf::Runtime::endCycle(*)"] + [f"--toggle-collect={t}" for t in extra_toggles]
+    prefix = [
+        "valgrind",
+        "--tool=callgrind",
+        f"--callgrind-out-file={out_dir}/callgrind.out",
+        "--collect-atstart=no",
+        "--toggle-collect=XenoFrtRosIcoCore::step()",
+        "--toggle-collect=xrf::Runtime::endCycle(*)",
+    ] + [f"--toggle-collect={t}" for t in extra_toggles]
     with open(out_dir / "valgrind.log", "w") as vlog:
         loop = C.start_loop(exe, env, shm, cmd_prefix=prefix, stdout=vlog, wait_s=120)
     host = None
@@ -148,8 +164,16 @@ def measure_instructions(exe: Path, cycles: int, log_dir: str, out_dir: Path,
     incl, total = annotate_inclusive(dump)
     calls = call_counts(dump)
     got = {k: incl.get(v, 0) for k, v in FUNCS.items()}
-    return dict(incl=got, total=total, n=calls.get("xrf_data_in_try_read", 0), status_cycles=c1 - c0,
-                state=st.state_name, dump=dump, host=host, calls=calls)
+    return dict(
+        incl=got,
+        total=total,
+        n=calls.get("xrf_data_in_try_read", 0),
+        status_cycles=c1 - c0,
+        state=st.state_name,
+        dump=dump,
+        host=host,
+        calls=calls,
+    )
 
 
 def measure_ns(exe: Path, endcycle_exe: Path, seconds: float, prio: int, cpu: int, log_dir: str):
@@ -157,8 +181,7 @@ def measure_ns(exe: Path, endcycle_exe: Path, seconds: float, prio: int, cpu: in
     env = C.loop_env(shm, 1000, prio, cpu, log_dir)
     r = C.measure_run_window(exe, env, shm, seconds)
     env2 = C.loop_env(f"bench_endcycle_{os.getpid()}", 1000, prio, cpu, log_dir)
-    out = subprocess.run([str(endcycle_exe), "1000000"], env=env2, capture_output=True, text=True,
-                         check=True).stdout
+    out = subprocess.run([str(endcycle_exe), "1000000"], env=env2, capture_output=True, text=True, check=True).stdout
     ec = float(re.search(r"endcycle_ns_mean ([\d.]+)", out).group(1))
     try:
         os.unlink(f"/dev/shm/bench_endcycle_{os.getpid()}")
@@ -175,8 +198,11 @@ def main() -> int:
     ap.add_argument("--cpu", type=int, default=1)
     ap.add_argument("--build-dir", default="/tmp/xrf_bench/overhead")
     ap.add_argument("--keep", action="store_true", help="keep the callgrind files")
-    ap.add_argument("--log-timing", action="store_true",
-                    help="with XRF_LOG_TIMING=1 (per-cycle timing records): its cost is in endCycle")
+    ap.add_argument(
+        "--log-timing",
+        action="store_true",
+        help="with XRF_LOG_TIMING=1 (per-cycle timing records): its cost is in endCycle",
+    )
     a = ap.parse_args()
     for tool in ("valgrind", "callgrind_annotate", "callgrind_control"):
         if shutil.which(tool) is None:
@@ -189,8 +215,10 @@ def main() -> int:
     vg = subprocess.run(["valgrind", "--version"], capture_output=True, text=True).stdout.strip()
     print(f"# rt_core framework overhead per cycle   {datetime.datetime.now().isoformat(timespec='seconds')}")
     print(f"# host {platform.node()} kernel {platform.release()} cpus {os.cpu_count()}; {vg}")
-    print("# controller bench/rt_core/overhead_project at 1 kHz: data (Xeno2Ros 100 Hz), cmd, "
-          "monitor 30 Hz, logger 16 doubles/cycle; host follows via doorbell")
+    print(
+        "# controller bench/rt_core/overhead_project at 1 kHz: data (Xeno2Ros 100 Hz), cmd, "
+        "monitor 30 Hz, logger 16 doubles/cycle; host follows via doorbell"
+    )
 
     extra_env = {"XRF_LOG_TIMING": "1"} if a.log_timing else {}
     if a.log_timing:
@@ -199,44 +227,77 @@ def main() -> int:
     i, n = r["incl"], r["n"]
     fw = i["step"] - i["hook"] - i["sim_xfer"] + i["endCycle"]
     print()
-    print(f"(a) instructions (callgrind Ir, inclusive, {n} cycles in {r['state']}; "
-          f"status counted {r['status_cycles']}; host read {r['host'].telemetry} telemetry, "
-          f"{r['host'].monitor} monitor lines)")
+    print(
+        f"(a) instructions (callgrind Ir, inclusive, {n} cycles in {r['state']}; "
+        f"status counted {r['status_cycles']}; host read {r['host'].telemetry} telemetry, "
+        f"{r['host'].monitor} monitor lines)"
+    )
     print(f"    incl XenoFrtRosIcoCore::step      {i['step']:>12,}  {i['step'] / n:8.1f}/cycle")
     print(f"  - incl {HOOK:<26} {i['hook']:>12,}  {i['hook'] / n:8.1f}/cycle  (hook; holds the monitor print)")
     print(f"  - incl sim_xfer (the wire)          {i['sim_xfer']:>12,}  {i['sim_xfer'] / n:8.1f}/cycle")
     print(f"  + incl xrf::Runtime::endCycle       {i['endCycle']:>12,}  {i['endCycle'] / n:8.1f}/cycle")
     print(f"  = framework                         {fw:>12,}  {fw / n:8.1f}/cycle")
     mp = i["monitor_print"]
-    print(f"    monitor print asked by the hook   {mp:>12,}  {mp / n:8.1f}/cycle amortised "
-          f"(XenoFrtMonitor::printf incl, {r['calls'].get('xrf::Runtime::monitorWrite(char const*, __va_list_tag*)', 0)} lines)")
+    print(
+        f"    monitor print asked by the hook   {mp:>12,}  {mp / n:8.1f}/cycle amortised "
+        f"(XenoFrtMonitor::printf incl, {r['calls'].get('xrf::Runtime::monitorWrite(char const*, __va_list_tag*)', 0)} lines)"
+    )
     print(f"    framework incl. the monitor print {fw + mp:>12,}  {(fw + mp) / n:8.1f}/cycle")
-    print("    breakdown /cycle: " + ", ".join(
-        f"{k} {i[k] / n:.1f}" for k in ("update_io", "publishTelemetry", "applyCommand", "logger",
-                                        "state_machine", "doorbell_wake", "recordTiming")))
+    print(
+        "    breakdown /cycle: "
+        + ", ".join(
+            f"{k} {i[k] / n:.1f}"
+            for k in (
+                "update_io",
+                "publishTelemetry",
+                "applyCommand",
+                "logger",
+                "state_machine",
+                "doorbell_wake",
+                "recordTiming",
+            )
+        )
+    )
     both = i["step"] + i["endCycle"]
-    print(f"    check: step + endCycle = {both:,} vs callgrind program total {r['total']:,} "
-          f"({'equal: only those two were collected' if both == r['total'] else 'DIFFER'})")
+    print(
+        f"    check: step + endCycle = {both:,} vs callgrind program total {r['total']:,} "
+        f"({'equal: only those two were collected' if both == r['total'] else 'DIFFER'})"
+    )
     # Cross-check without callgrind_annotate's per-file split: toggles nest, so toggling also on
     # the hook and on sim_xfer switches collection off inside them; the program total is then
     # the framework's count directly.
     out2 = Path(C.tmpdir("xrf_bench_callgrind2_"))
-    r2 = measure_instructions(exe, max(2000, a.cycles // 4), log_dir, out2,
-                              extra_toggles=("OverheadBench::run()", "sim_xfer"), extra_env=extra_env)
-    print(f"    cross-check, nested --toggle-collect also on {HOOK} and sim_xfer: program total "
-          f"{r2['total']:,} over {r2['n']} cycles = {r2['total'] / r2['n']:.1f}/cycle")
+    r2 = measure_instructions(
+        exe,
+        max(2000, a.cycles // 4),
+        log_dir,
+        out2,
+        extra_toggles=("OverheadBench::run()", "sim_xfer"),
+        extra_env=extra_env,
+    )
+    print(
+        f"    cross-check, nested --toggle-collect also on {HOOK} and sim_xfer: program total "
+        f"{r2['total']:,} over {r2['n']} cycles = {r2['total'] / r2['n']:.1f}/cycle"
+    )
     shutil.rmtree(out2, ignore_errors=True)
-    alloc = {k: v for k, v in r["calls"].items()
-             if re.match(r"^(malloc|calloc|realloc|free|posix_memalign|aligned_alloc|operator new|operator delete)\b", k)}
-    print(f"    heap calls in the collected region (step + endCycle, hook and wire included): "
-          f"{sum(alloc.values())} {alloc if alloc else ''}")
+    alloc = {
+        k: v
+        for k, v in r["calls"].items()
+        if re.match(r"^(malloc|calloc|realloc|free|posix_memalign|aligned_alloc|operator new|operator delete)\b", k)
+    }
+    print(
+        f"    heap calls in the collected region (step + endCycle, hook and wire included): "
+        f"{sum(alloc.values())} {alloc if alloc else ''}"
+    )
     verdict = "PASS" if fw / n <= 2000 else "FAIL"
     print(f"    framework instructions per cycle = {fw / n:.0f} (target <= 2000): {verdict}")
 
     win, ec, cyc, missed, host = measure_ns(exe, endcycle_exe, a.seconds, a.prio, a.cpu, log_dir)
     print()
-    print(f"(b) nanoseconds (stage histograms, native, SCHED_FIFO {a.prio}, CPU {a.cpu}, {cyc} cycles in RUN,"
-          f" {missed} missed)")
+    print(
+        f"(b) nanoseconds (stage histograms, native, SCHED_FIFO {a.prio}, CPU {a.cpu}, {cyc} cycles in RUN,"
+        f" {missed} missed)"
+    )
     total = 0.0
     for st in ("data", "cmd", "monitor", "logger"):
         w = win[st]
@@ -244,12 +305,16 @@ def main() -> int:
         print(f"    {st:<8} mean {w.mean:8.1f} ns  p99 {w.percentile_mid(99):8.0f} ns  max {w.max:8.0f} ns")
     print(f"    status publish (endCycle, endcycle_bench, hot cache) {ec:8.1f} ns")
     total += ec
-    print(f"    = framework {total:.0f} ns per cycle = {total / 1000:.2f} us "
-          f"(XRF2 on a Pi 4: ~11 us for channels + logger; different CPU)")
+    print(
+        f"    = framework {total:.0f} ns per cycle = {total / 1000:.2f} us "
+        f"(XRF2 on a Pi 4: ~11 us for channels + logger; different CPU)"
+    )
     for st in ("fpga", "hook", "cycle", "wakeup"):
         w = win[st]
-        print(f"    [{st}: mean {w.mean:.0f} ns, p99 {w.percentile_mid(99):.0f} ns]"
-              + ("  fpga = sim board + IcoIo framing: not separable, not added" if st == "fpga" else ""))
+        print(
+            f"    [{st}: mean {w.mean:.0f} ns, p99 {w.percentile_mid(99):.0f} ns]"
+            + ("  fpga = sim board + IcoIo framing: not separable, not added" if st == "fpga" else "")
+        )
     if a.keep:
         print(f"# callgrind files in {out_dir}")
     else:

@@ -42,6 +42,7 @@ sys.path.insert(0, str(REPO_ROOT / "tests"))
 from _common import pct  # noqa: E402
 from harness import Server, WsClient, stop_server, ws_connect  # noqa: E402
 from logs_support import COST, start  # noqa: E402
+
 from xrf_testing.leaks import descendants  # noqa: E402
 
 
@@ -72,8 +73,13 @@ class Drainers:
         try:
             import viser  # the 3D view's own client names its version in the subprotocol
 
-            self.clients.append(ws_connect(server.url.replace("http", "ws", 1) + "/viser", server.http,
-                                           subprotocols=[f"viser-v{viser.__version__}"]))
+            self.clients.append(
+                ws_connect(
+                    server.url.replace("http", "ws", 1) + "/viser",
+                    server.http,
+                    subprotocols=[f"viser-v{viser.__version__}"],
+                )
+            )
             self.viser = True
         except Exception as exc:  # reported, not fatal: the rest of the soak still means something
             print(f"3D view client not connected: {exc}", file=sys.stderr)
@@ -106,9 +112,12 @@ def cyclictest(seconds: int, prio: int, cpu: int) -> subprocess.Popen[str] | Non
     exe = shutil.which("cyclictest")
     if not exe:
         return None
-    return subprocess.Popen([exe, "-m", "-p", str(prio), "-a", str(cpu), "-t", "1", "-i", "1000",
-                             "-D", f"{seconds}s", "-h", "10000", "-q"], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [exe, "-m", "-p", str(prio), "-a", str(cpu), "-t", "1", "-i", "1000", "-D", f"{seconds}s", "-h", "10000", "-q"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def cyclictest_result(proc: subprocess.Popen[str]) -> dict[str, float]:
@@ -133,10 +142,15 @@ def main() -> None:
     loop_cpu, other_cpu = (1, 0) if cpus > 1 else (0, 0)
 
     with tempfile.TemporaryDirectory(prefix="xrf-soak-") as tmp:
-        server = start(Path(tmp) / "data", loop_env={"XRF_CPU": str(loop_cpu), "XRF_PRIO": str(args.prio),
-                                                     "XRF_BENCH_NVARS": "32"})
-        stress = subprocess.Popen(["stress-ng", "--cpu", str(cpus), "--timeout", f"{int(seconds) + 120}s", "--quiet"],
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+        server = start(
+            Path(tmp) / "data", loop_env={"XRF_CPU": str(loop_cpu), "XRF_PRIO": str(args.prio), "XRF_BENCH_NVARS": "32"}
+        )
+        stress = subprocess.Popen(
+            ["stress-ng", "--cpu", str(cpus), "--timeout", f"{int(seconds) + 120}s", "--quiet"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
+        )
         project = Path(tmp) / "jiwy"
         shutil.copytree(REPO_ROOT / "student_projects/examples/jiwy", project, ignore=shutil.ignore_patterns("build"))
         builds: list[float] = []
@@ -161,9 +175,12 @@ def main() -> None:
                     if now >= next_build:
                         shutil.rmtree(project / "build", ignore_errors=True)
                         b0 = time.monotonic()
-                        subprocess.run(["nice", "-n", "19", sys.executable, "-m", "xrflab.cli", "build", str(project)],
-                                       env=dict(os.environ, PYTHONPATH=str(REPO_ROOT / "appliance")),
-                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                        subprocess.run(
+                            ["nice", "-n", "19", sys.executable, "-m", "xrflab.cli", "build", str(project)],
+                            env=dict(os.environ, PYTHONPATH=str(REPO_ROOT / "appliance")),
+                            stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL,
+                        )
                         builds.append(time.monotonic() - b0)
                         next_build += args.build_every
                     if crash_at and now >= crash_at[0]:
@@ -172,8 +189,12 @@ def main() -> None:
                         with server.ws() as ws:
                             t_kill = time.monotonic_ns()
                             os.kill(run["pid"], signal.SIGKILL)
-                            alarm = ws.wait_for(lambda m: m.get("type") == "alarm" and m.get("run_id") == run["id"]
-                                                and m.get("kind") == "crash", timeout=30)
+                            alarm = ws.wait_for(
+                                lambda m, run_id=run["id"]: (
+                                    m.get("type") == "alarm" and m.get("run_id") == run_id and m.get("kind") == "crash"
+                                ),
+                                timeout=30,
+                            )
                             reactions.append(alarm["safe_ns"] - t_kill)
                             run = drive(server, ws)
                         runs.append(run["id"])
@@ -197,21 +218,35 @@ def main() -> None:
             stress.wait()
             stop_server(server)
 
-    print(f"soak: {args.minutes:g} min, loop 1 kHz SCHED_FIFO {args.prio} on CPU {loop_cpu}, 32 doubles logged per "
-          f"cycle, live rerun, {args.clients} WebSocket clients + 3D view ({'connected' if drainers and drainers.viser else 'NOT connected'}), "
-          f"stress-ng on {cpus} CPUs, a build every {args.build_every:g} s ({len(builds)} builds, "
-          f"{pct(builds, 50):.1f} s each)")
+    print(
+        f"soak: {args.minutes:g} min, loop 1 kHz SCHED_FIFO {args.prio} on CPU {loop_cpu}, 32 doubles logged per "
+        f"cycle, live rerun, {args.clients} WebSocket clients + 3D view ({'connected' if drainers and drainers.viser else 'NOT connected'}), "
+        f"stress-ng on {cpus} CPUs, a build every {args.build_every:g} s ({len(builds)} builds, "
+        f"{pct(builds, 50):.1f} s each)"
+    )
     print(f"log records: {records} written, {lost} lost over {len(runs)} runs")
-    print(f"deadline misses: loop {misses}; cyclictest (same window, CPU {other_cpu}): "
-          + (f"{ctr['late_1ms']} wake-ups >= 1 ms late of {ctr['samples']}, max {ctr['max_us']} us" if ctr else "not installed"))
-    print(f"appliance RSS: {start_rss / 1024:.1f} MB at start, {end_rss / 1024:.1f} MB at end "
-          f"({(end_rss - start_rss) / start_rss * 100:+.1f} %)")
+    print(
+        f"deadline misses: loop {misses}; cyclictest (same window, CPU {other_cpu}): "
+        + (
+            f"{ctr['late_1ms']} wake-ups >= 1 ms late of {ctr['samples']}, max {ctr['max_us']} us"
+            if ctr
+            else "not installed"
+        )
+    )
+    print(
+        f"appliance RSS: {start_rss / 1024:.1f} MB at start, {end_rss / 1024:.1f} MB at end "
+        f"({(end_rss - start_rss) / start_rss * 100:+.1f} %)"
+    )
     ms = [r / 1e6 for r in reactions]
     if ms:
-        print(f"safety reaction, kill -9 -> outputs safe ({len(ms)} crashes): p50 {pct(ms, 50):.2f} ms, "
-              f"p99 {pct(ms, 99):.2f} ms, max {max(ms):.2f} ms")
-    print(f"appliance descriptors: {start_fds} at start, {end_fds} at end; processes below it: "
-          f"{start_procs} at start, {end_procs} at end (both with a run live)")
+        print(
+            f"safety reaction, kill -9 -> outputs safe ({len(ms)} crashes): p50 {pct(ms, 50):.2f} ms, "
+            f"p99 {pct(ms, 99):.2f} ms, max {max(ms):.2f} ms"
+        )
+    print(
+        f"appliance descriptors: {start_fds} at start, {end_fds} at end; processes below it: "
+        f"{start_procs} at start, {end_procs} at end (both with a run live)"
+    )
 
 
 if __name__ == "__main__":

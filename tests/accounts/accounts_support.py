@@ -7,7 +7,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import httpx
-
 from harness import Server, WsClient
 
 

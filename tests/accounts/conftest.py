@@ -26,8 +26,15 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
 @pytest.fixture(scope="module")
 def accounts(server: Server) -> Iterator[dict[str, Account]]:
     """student, student2, observer, educator2: logged-in clients of each."""
-    made = {name: make_account(server, name, role) for name, role in
-            (("student", "student"), ("student2", "student"), ("observer", "observer"), ("educator2", "educator"))}
+    made = {
+        name: make_account(server, name, role)
+        for name, role in (
+            ("student", "student"),
+            ("student2", "student"),
+            ("observer", "observer"),
+            ("educator2", "educator"),
+        )
+    }
     yield made
     for a in made.values():
         a.http.close()

@@ -116,8 +116,11 @@ def test_normal_bodies_and_uploads_still_pass(server: Server) -> None:
     r = server.http.post("/api/users/import", json={"csv": big_csv})
     assert r.status_code == 413, r.text
     # An archive upload far over the JSON limit is the upload route's to judge (its own 64 MB).
-    files = {p.relative_to(BASE).as_posix(): p.read_bytes() for p in BASE.rglob("*") if p.is_file()
-             and "build" not in p.relative_to(BASE).parts}
+    files = {
+        p.relative_to(BASE).as_posix(): p.read_bytes()
+        for p in BASE.rglob("*")
+        if p.is_file() and "build" not in p.relative_to(BASE).parts
+    }
     files["data/noise.bin"] = os.urandom(MB)
     buf = io.BytesIO()
     with tarfile.open(fileobj=buf, mode="w:gz") as t:
@@ -160,8 +163,13 @@ def test_forwarded_for_is_honoured_from_the_trusted_proxy(tmp_path: Path) -> Non
 
 def _from(server: Server, address: str, cookies: httpx.Cookies | None = None) -> httpx.Client:
     """A client whose connections come from `address` (any 127.x.y.z reaches the loopback)."""
-    return httpx.Client(base_url=server.url, headers={"Origin": server.url}, timeout=30, cookies=cookies,
-                        transport=httpx.HTTPTransport(local_address=address))
+    return httpx.Client(
+        base_url=server.url,
+        headers={"Origin": server.url},
+        timeout=30,
+        cookies=cookies,
+        transport=httpx.HTTPTransport(local_address=address),
+    )
 
 
 def test_a_guesser_cannot_lock_the_educator_out(tmp_path: Path) -> None:

@@ -8,7 +8,6 @@ import subprocess
 import sys
 
 import httpx
-
 from harness import REPO_ROOT, Server
 
 
@@ -16,8 +15,9 @@ def xrf(args: list[str], home, stdin: str = "") -> subprocess.CompletedProcess[s
     env = dict(os.environ, PYTHONPATH=str(REPO_ROOT / "appliance"), XDG_CONFIG_HOME=str(home))
     env.pop("XRF_TOKEN", None)
     env.pop("XRF_URL", None)
-    return subprocess.run([sys.executable, "-m", "xrflab.cli", *args], input=stdin, env=env, text=True,
-                          capture_output=True, timeout=60)
+    return subprocess.run(
+        [sys.executable, "-m", "xrflab.cli", *args], input=stdin, env=env, text=True, capture_output=True, timeout=60
+    )
 
 
 def test_xrf_login_stores_a_private_token(server: Server, tmp_path) -> None:

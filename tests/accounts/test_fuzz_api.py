@@ -11,11 +11,10 @@ from collections.abc import Iterator
 import pytest
 import requests
 import schemathesis
+from harness import Server, shared_builds_root, start_server, stop_server
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis.errors import Unsatisfiable
 from schemathesis import GenerationMode
-
-from harness import Server, shared_builds_root, start_server, stop_server
 
 EXAMPLES = 4
 # Operations that would log the fuzzing session out or lock it (they are tested on their own).
@@ -57,8 +56,13 @@ def test_no_server_errors(fuzz_server: Server, logged_in: bool) -> None:
         modes = (GenerationMode.POSITIVE, GenerationMode.NEGATIVE) if logged_in else (GenerationMode.POSITIVE,)
         for mode in modes:
 
-            @settings(max_examples=EXAMPLES, deadline=None, database=None, phases=[Phase.generate],
-                      suppress_health_check=list(HealthCheck))
+            @settings(
+                max_examples=EXAMPLES,
+                deadline=None,
+                database=None,
+                phases=[Phase.generate],
+                suppress_health_check=list(HealthCheck),
+            )
             @given(case=op.as_strategy(generation_mode=mode))
             def check(case) -> None:  # type: ignore[no-untyped-def]
                 nonlocal calls
@@ -69,8 +73,10 @@ def test_no_server_errors(fuzz_server: Server, logged_in: bool) -> None:
                     failures.append(f"{case.method} {case.formatted_path}: {exc}")
                     return
                 if response.status_code >= 500:
-                    failures.append(f"{case.method} {case.formatted_path} -> {response.status_code}: "
-                                    f"{response.text[:200]} ({case.as_curl_command()[:300]})")
+                    failures.append(
+                        f"{case.method} {case.formatted_path} -> {response.status_code}: "
+                        f"{response.text[:200]} ({case.as_curl_command()[:300]})"
+                    )
 
             try:
                 check()

@@ -31,7 +31,9 @@ def test_take_drive_queue_and_hand_over(server: Server, accounts: dict[str, Acco
         # The other student cannot take it; queues instead (twice is once).
         r = b.http.post("/api/lease/take")
         assert r.status_code == 409 and "held by student" in r.json()["detail"]
-        assert b.http.post("/api/lease/queue").json()["queue"] == [{"id": b.id, "username": "student2", "role": "student"}]
+        assert b.http.post("/api/lease/queue").json()["queue"] == [
+            {"id": b.id, "username": "student2", "role": "student"}
+        ]
         assert len(b.http.post("/api/lease/queue").json()["queue"]) == 1
         assert b.http.post("/api/runs/current/command", json={"cmd": "start"}).status_code == 403
         # Only the holder (or an educator) releases; releasing hands the bench to the queue.
@@ -85,7 +87,9 @@ def test_holder_keeps_the_bench_across_runs(server: Server, accounts: dict[str, 
     a.http.post("/api/lease/release")
 
 
-def test_educator_takes_over_and_the_holder_is_told(server: Server, accounts: dict[str, Account], free_bench: None) -> None:
+def test_educator_takes_over_and_the_holder_is_told(
+    server: Server, accounts: dict[str, Account], free_bench: None
+) -> None:
     a = accounts["student"]
     a.http.post("/api/lease/take")
     with a.ws() as a_ws:
@@ -121,7 +125,9 @@ def test_inactivity_releases_the_bench(tmp_path) -> None:
                 assert a.http.post("/api/runs/current/stop").status_code == 409  # drive-level, no run: still activity
             assert holder(s) == "idler"
             m = ws.wait_type("lease", timeout=5, event="handover")
-            assert m["holder"]["username"] == "waiter" and m["reason"] == "idle" and m["previous"]["username"] == "idler"
+            assert (
+                m["holder"]["username"] == "waiter" and m["reason"] == "idle" and m["previous"]["username"] == "idler"
+            )
         assert a.http.post("/api/runs", json={"build": "relbot"}).status_code == 403
     finally:
         stop_server(s)

@@ -7,9 +7,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pytest
-
-from harness import (CHROMIUM_ARGS, Server, browser_login, session_cookies, shared_builds_root, start_server,
-                     stop_server)
+from harness import CHROMIUM_ARGS, Server, browser_login, session_cookies, shared_builds_root, start_server, stop_server
 
 IDLE_S = 8.0
 ERRORS: list[str] = []  # uncaught JavaScript errors of every page
@@ -48,7 +46,9 @@ def holder_is(page, text: str, timeout: float = 10_000) -> None:  # type: ignore
 def notice_says(page, fragment: str, timeout: float = 10_000) -> None:  # type: ignore[no-untyped-def]
     page.wait_for_function(
         f"!document.getElementById('notice').classList.contains('hidden')"
-        f" && document.getElementById('notice-text').textContent.includes({fragment!r})", timeout=timeout)
+        f" && document.getElementById('notice-text').textContent.includes({fragment!r})",
+        timeout=timeout,
+    )
 
 
 def test_two_students_hand_over_queue_timeout_and_take_over(server: Server, browser) -> None:
@@ -133,7 +133,9 @@ def test_first_login_forces_a_password_change(server: Server, browser) -> None:
     page.fill("#change-new", "carols own password")
     page.fill("#change-again", "carols own password")
     page.click("#change-submit")
-    page.wait_for_function("document.getElementById('me-name') && document.getElementById('me-name').textContent === 'carol · observer'")
+    page.wait_for_function(
+        "document.getElementById('me-name') && document.getElementById('me-name').textContent === 'carol · observer'"
+    )
     # Observers watch: no lease buttons, and STOP explains.
     assert not page.is_visible("#btn-lease-take")
     page.click("#btn-estop")

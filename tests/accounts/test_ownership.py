@@ -31,6 +31,7 @@ from accounts_support import Account, make_account
 from fastapi.routing import APIRoute, APIWebSocketRoute
 from harness import Server, shared_builds_root, start_server, stop_server
 from test_route_table import permissions_of, walk
+
 from xrflab.server.app import create_app
 from xrflab.server.auth import Perm
 from xrflab.server.routes_rerun import NO_LIVE_STREAM, SERVICE
@@ -38,8 +39,8 @@ from xrflab.server.settings import Settings
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests" / "projects_upload"))
-from hostile import project_files
-from projects_support import reachable_tmp, targz
+from hostile import project_files  # noqa: E402
+from projects_support import reachable_tmp, targz  # noqa: E402
 
 BASE = REPO / "student_projects" / "templates" / "base"
 MISSING = 999_999  # an id nobody has
@@ -75,7 +76,7 @@ SHARED: dict[tuple[str, str], str] = {
     ("GET", "/viser/{path:path}"): "the 3D view's client files (one scene for the room)",
     ("WS", "/viser/{path:path}"): "the 3D view's scene (one for the room: the robot's motion)",
     ("POST", f"/{SERVICE}/{{method}}"): "{method} is a gRPC method; the run is the live one: "
-                                        "test_someone_elses_live_stream_is_no_stream",
+    "test_someone_elses_live_stream_is_no_stream",
 }
 # Routes naming a user's resource in their JSON body: (method, path) -> the body field.
 BODY_IDS: dict[tuple[str, str], str] = {
@@ -135,8 +136,6 @@ class World:
         return (self.project_name, self.build, self.alice.username)
 
 
-
-
 def _wait_build(http: httpx.Client, pid: int, bid: int, timeout: float = 300) -> dict[str, Any]:
     deadline = time.monotonic() + timeout
     while True:
@@ -170,8 +169,11 @@ def world(server: Server) -> Iterator[World]:
     bob = make_account(server, f"own_bob_{tag}", "student")
     olga = make_account(server, f"own_olga_{tag}", "observer")
     name = f"secret-proj-{tag}"
-    r = alice.http.post("/api/projects", params={"name": name},
-                        files={"file": ("p.tar.gz", targz(project_files(BASE), "p"), "application/gzip")})
+    r = alice.http.post(
+        "/api/projects",
+        params={"name": name},
+        files={"file": ("p.tar.gz", targz(project_files(BASE), "p"), "application/gzip")},
+    )
     assert r.status_code == 201, r.text
     pid = r.json()["project"]["id"]
     r = alice.http.post(f"/api/projects/{pid}/builds")
@@ -220,8 +222,14 @@ def test_every_route_with_an_id_is_classified() -> None:
 
 
 def _fill(path: str, w: World, key: str, ident: int) -> str:
-    values = {"run_id": w.run_id, "pid": w.pid, "bid": w.bid, "name:path": w.log_name, "path:path": "CMakeLists.txt",
-              key: ident}
+    values = {
+        "run_id": w.run_id,
+        "pid": w.pid,
+        "bid": w.bid,
+        "name:path": w.log_name,
+        "path:path": "CMakeLists.txt",
+        key: ident,
+    }
     filled = re.sub(r"\{([^}]+)\}", lambda m: urllib.parse.quote(str(values[m.group(1)]), safe="/"), path)
     query = {"/source": "?path=CMakeLists.txt", "/diff": "?a=1"}
     return filled + next((q for end, q in query.items() if path.endswith(end)), "")
@@ -236,6 +244,7 @@ def _request(http: httpx.Client, method: str, url: str) -> httpx.Response:
 
 def _same_answer(theirs: httpx.Response, their_id: Any, missing: httpx.Response, missing_id: Any) -> None:
     """Status and body identical once the id itself is blanked out."""
+
     def norm(r: httpx.Response, ident: Any) -> str:
         return re.sub(rf"(?<![0-9A-Za-z_-]){re.escape(str(ident))}(?![0-9A-Za-z_])", "<id>", r.text)
 
@@ -285,13 +294,21 @@ def test_someone_elses_id_answers_as_a_missing_one(server: Server, world: World)
 
 def test_lists_are_filtered(server: Server, world: World) -> None:
     w = world
-    want = {"/api/runs": ("id", w.run_id), "/api/logs/runs": ("id", w.run_id),
-            "/api/projects": ("id", w.pid), "/api/viz/recordings": ("run_id", w.run_id)}
+    want = {
+        "/api/runs": ("id", w.run_id),
+        "/api/logs/runs": ("id", w.run_id),
+        "/api/projects": ("id", w.pid),
+        "/api/viz/recordings": ("run_id", w.run_id),
+    }
     assert set(want) == set(LISTS)
     for path, (field, ident) in want.items():
         query = "?all=true" if path == "/api/projects" else ""  # an educator's default is their own
-        for who, http, sees in (("owner", w.alice.http, True), ("educator", server.http, True),
-                                ("student", w.bob.http, False), ("observer", w.olga.http, False)):
+        for who, http, sees in (
+            ("owner", w.alice.http, True),
+            ("educator", server.http, True),
+            ("student", w.bob.http, False),
+            ("observer", w.olga.http, False),
+        ):
             r = http.get(path + query)
             if path == "/api/projects" and who == "observer":
                 assert r.status_code == 403  # no projects at all
@@ -317,8 +334,9 @@ def test_no_get_route_shows_b_anything_of_a(server: Server, world: World) -> Non
             assert not leaked, f"GET {path} shows {leaked}: {r.text[:300]}"
     assert called > 20
     # the check can fail: an educator's lists do hold A's things
-    assert all(m in server.http.get("/api/runs").text + server.http.get("/api/projects?all=true").text
-               for m in w.markers())
+    assert all(
+        m in server.http.get("/api/runs").text + server.http.get("/api/projects?all=true").text for m in w.markers()
+    )
 
 
 def test_someone_elses_live_stream_is_no_stream(server: Server, world: World) -> None:
@@ -329,8 +347,9 @@ def test_someone_elses_live_stream_is_no_stream(server: Server, world: World) ->
     assert mine["live_run"] == w.run_id and mine["live_allowed"]
     theirs = w.bob.http.get("/api/logs/rerun").json()
     assert theirs["live_run"] is None and theirs["live_url"] == "" and theirs["live_reason"] == NO_LIVE_STREAM
-    r = w.bob.http.post(f"/{SERVICE}/ReadMessages", content=b"\0" * 5,
-                        headers={"content-type": "application/grpc-web+proto"})
+    r = w.bob.http.post(
+        f"/{SERVICE}/ReadMessages", content=b"\0" * 5, headers={"content-type": "application/grpc-web+proto"}
+    )
     assert r.status_code == 404 and r.headers["grpc-status"] == "5", (r.status_code, r.headers)
     assert urllib.parse.unquote(r.headers["grpc-message"]) == NO_LIVE_STREAM
 
@@ -385,8 +404,11 @@ def test_watchers_see_state_and_motion_but_not_the_owners_output(server: Server,
             assert wa.wait_type("ack")["setpoint"]["steer_left"] == 0.05
 
             def monitor(m: dict[str, Any]) -> bool:
-                return m.get("type") == "monitor" and m.get("run_id") == run_id and \
-                    any("run: enc" in line["text"] for line in m["lines"])
+                return (
+                    m.get("type") == "monitor"
+                    and m.get("run_id") == run_id
+                    and any("run: enc" in line["text"] for line in m["lines"])
+                )
 
             def named_signals(m: dict[str, Any]) -> bool:
                 return m.get("type") == "telemetry" and m.get("run_id") == run_id and "pos_left" in m["xeno2ros"]
@@ -398,8 +420,13 @@ def test_watchers_see_state_and_motion_but_not_the_owners_output(server: Server,
                 assert started["run"]["build"] == w.build and "steer_left" in json.dumps(started["ros2xeno"])
             for ws in (wb, wo):  # another student, an observer: state and motion
                 ws.wait_state("RUN", timeout=10)
-                ws.wait_for(lambda m: m.get("type") == "telemetry" and m.get("run_id") == run_id
-                            and len(m["enc"]) > 0 and "pwm" in m, timeout=10, seen=True)
+                ws.wait_for(
+                    lambda m: (
+                        m.get("type") == "telemetry" and m.get("run_id") == run_id and len(m["enc"]) > 0 and "pwm" in m
+                    ),
+                    timeout=10,
+                    seen=True,
+                )
             with w.bob.ws() as late:  # a watcher who connects mid-run gets the public snapshot
                 snap = late.wait_type("run", seen=True)
                 assert snap["run"]["id"] == run_id and snap["redacted"] and snap["run"]["build"] == ""

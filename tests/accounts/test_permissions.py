@@ -14,8 +14,8 @@ from typing import Any
 import httpx
 import pytest
 from fastapi.routing import APIRoute
-
 from test_route_table import permissions_of, walk
+
 from xrflab.server.app import create_app
 from xrflab.server.auth import ROLE_PERMS, Perm
 from xrflab.server.settings import Settings
@@ -23,8 +23,12 @@ from xrflab.server.settings import Settings
 ROLES = ("anonymous", "observer", "student", "educator")
 # Not called blindly: they end the caller's session, or answer 401 for a wrong password by design
 # (tested on their own in test_security.py).
-SKIP = {("POST", "/api/auth/logout"), ("POST", "/api/auth/password"), ("POST", "/api/auth/login"),
-        ("POST", "/api/auth/token")}
+SKIP = {
+    ("POST", "/api/auth/logout"),
+    ("POST", "/api/auth/password"),
+    ("POST", "/api/auth/login"),
+    ("POST", "/api/auth/token"),
+}
 
 
 def _routes() -> list[tuple[str, str, Perm]]:
@@ -61,14 +65,20 @@ def concrete(path: str) -> str:
 @pytest.fixture(scope="module")
 def clients(server, accounts) -> dict[str, httpx.Client]:
     anon = httpx.Client(base_url=server.url, headers={"Origin": server.url}, timeout=30)
-    yield {"anonymous": anon, "observer": accounts["observer"].http, "student": accounts["student"].http,
-           "educator": server.http}
+    yield {
+        "anonymous": anon,
+        "observer": accounts["observer"].http,
+        "student": accounts["student"].http,
+        "educator": server.http,
+    }
     anon.close()
 
 
 @pytest.mark.parametrize("role", ROLES)
 @pytest.mark.parametrize(("method", "path", "perm"), ROUTES, ids=[f"{m} {p}" for m, p, _ in ROUTES])
-def test_matrix(method: str, path: str, perm: Perm, role: str, clients: dict[str, httpx.Client], free_bench: None) -> None:
+def test_matrix(
+    method: str, path: str, perm: Perm, role: str, clients: dict[str, httpx.Client], free_bench: None
+) -> None:
     kw: dict[str, Any] = {"json": {}} if method in ("POST", "PUT", "PATCH") else {}
     grpc_web = path.startswith("/rerun.sdk_comms.")  # the live rerun stream (routes_rerun.py)
     if grpc_web:
@@ -85,4 +95,12 @@ def test_matrix(method: str, path: str, perm: Perm, role: str, clients: dict[str
 
 
 def test_matrix_covers_every_permission() -> None:
-    assert {p for _, _, p in ROUTES} >= {Perm.PUBLIC, Perm.SELF, Perm.WATCH, Perm.STOP, Perm.LEASE, Perm.DRIVE, Perm.EDUCATOR}
+    assert {p for _, _, p in ROUTES} >= {
+        Perm.PUBLIC,
+        Perm.SELF,
+        Perm.WATCH,
+        Perm.STOP,
+        Perm.LEASE,
+        Perm.DRIVE,
+        Perm.EDUCATOR,
+    }

@@ -16,8 +16,10 @@ from xrflab.server.auth import Perm
 from xrflab.server.settings import Settings
 
 # Mounts serve files and carry no dependencies: each one is listed here with why it may be public.
-PUBLIC_MOUNTS = {"/static": "the dashboard's code and styles; no data",
-                 "/static/vendor/codemirror": "Debian's CodeMirror, the editor's code; no data"}
+PUBLIC_MOUNTS = {
+    "/static": "the dashboard's code and styles; no data",
+    "/static/vendor/codemirror": "Debian's CodeMirror, the editor's code; no data",
+}
 
 
 def walk(routes: list[Any], inherited: tuple[Any, ...] = ()) -> Iterator[tuple[Any, tuple[Any, ...]]]:
@@ -34,7 +36,7 @@ def walk(routes: list[Any], inherited: tuple[Any, ...] = ()) -> Iterator[tuple[A
 
 def permissions_of(route: Any, inherited: tuple[Any, ...]) -> list[Perm]:
     calls = [d.call for d in route.dependant.dependencies] + [d.dependency for d in inherited]
-    return [getattr(c, "xrf_permission") for c in calls if hasattr(c, "xrf_permission")]
+    return [c.xrf_permission for c in calls if hasattr(c, "xrf_permission")]
 
 
 def all_routes(tmp_path) -> list[tuple[Any, tuple[Any, ...]]]:
@@ -60,8 +62,11 @@ def test_every_route_declares_a_permission(tmp_path) -> None:
 
 
 def test_api_routes_are_not_public_except_the_login_ones(tmp_path) -> None:
-    public = {route.path for route, inh in all_routes(tmp_path)
-              if isinstance(route, (APIRoute, APIWebSocketRoute)) and Perm.PUBLIC in permissions_of(route, inh)}
+    public = {
+        route.path
+        for route, inh in all_routes(tmp_path)
+        if isinstance(route, (APIRoute, APIWebSocketRoute)) and Perm.PUBLIC in permissions_of(route, inh)
+    }
     # /room/sso is a sign-in route too: a bench enrolled in a lab room takes the room's signed,
     # short-lived token as the credential (room/sso.py); without a valid one it answers 403/404.
     assert public == {"/", "/login", "/api/health", "/api/auth/login", "/api/auth/token", "/room/sso"}, public

@@ -11,10 +11,9 @@ import zipfile
 
 import httpx
 import pytest
-from websockets.exceptions import ConnectionClosed, InvalidStatus
-
 from accounts_support import Account, make_account
 from harness import ADMIN_PASSWORD, Server, login_client, shared_builds_root, start_server, stop_server, ws_connect
+from websockets.exceptions import ConnectionClosed, InvalidStatus
 
 
 def anon(server: Server, **headers: str) -> httpx.Client:
@@ -26,8 +25,10 @@ def anon(server: Server, **headers: str) -> httpx.Client:
 
 def test_wrong_password_and_unknown_user(server: Server, accounts: dict[str, Account]) -> None:
     with anon(server) as c:
-        for body in ({"username": "student", "password": "not the password"},
-                     {"username": "nobody-here", "password": "whatever-123"}):
+        for body in (
+            {"username": "student", "password": "not the password"},
+            {"username": "nobody-here", "password": "whatever-123"},
+        ):
             r = c.post("/api/auth/login", json=body)
             assert r.status_code == 401 and r.json()["detail"] == "wrong username or password"  # same for both
             assert "xrf_session" not in r.cookies
@@ -133,8 +134,12 @@ def test_csrf_token_and_origin_are_required(server: Server) -> None:
             assert r.status_code == 403, (why, r.status_code, r.text)
     assert "csrf-victim" not in _users(server)  # nothing changed
     # Same-origin Referer (some browsers omit Origin) with the token is fine.
-    with httpx.Client(base_url=server.url, cookies=cookies, timeout=30,
-                      headers={"Referer": server.url + "/#users", "X-CSRF-Token": token}) as c:
+    with httpx.Client(
+        base_url=server.url,
+        cookies=cookies,
+        timeout=30,
+        headers={"Referer": server.url + "/#users", "X-CSRF-Token": token},
+    ) as c:
         assert c.post("/api/users", json={**body, "username": "csrf-ok", "role": "observer"}).status_code == 201
 
 
@@ -153,6 +158,7 @@ def test_cross_site_websocket_is_refused(server: Server, accounts: dict[str, Acc
         server.ws(origin=None)
     with pytest.raises(InvalidStatus):  # no session at all
         from websockets.sync.client import connect
+
         connect(server.ws_url, origin=server.url)
     with server.ws() as ws:  # the right origin and a session
         ws.wait_type("state")
@@ -243,7 +249,8 @@ def test_runs_of_others_are_invisible(server: Server, accounts: dict[str, Accoun
     listed = {r["id"] for r in student2.http.get("/api/runs").json()}
     assert mine["id"] not in listed and edu_run["id"] not in listed
     assert {r["id"] for r in student.http.get("/api/runs").json()} == {mine["id"]} | (
-        {r["id"] for r in student.http.get("/api/runs").json()} - {edu_run["id"]})
+        {r["id"] for r in student.http.get("/api/runs").json()} - {edu_run["id"]}
+    )
     assert mine["id"] in {r["id"] for r in server.http.get("/api/runs").json()}
 
 
@@ -273,7 +280,9 @@ def test_one_time_password_must_be_changed(server: Server) -> None:
     assert http.get("/api/me").json()["must_change"]
     assert http.get("/api/bench").status_code == 403
     assert http.post("/api/auth/password", json={"current": secret, "new": "short"}).status_code == 422
-    assert http.post("/api/auth/password", json={"current": "wrong-one", "new": "a good new password"}).status_code == 401
+    assert (
+        http.post("/api/auth/password", json={"current": "wrong-one", "new": "a good new password"}).status_code == 401
+    )
     assert http.post("/api/auth/password", json={"current": secret, "new": "a good new password"}).status_code == 204
     http.headers["X-CSRF-Token"] = http.cookies.get("xrf_csrf")
     assert http.get("/api/bench").status_code == 200
@@ -338,7 +347,9 @@ def test_class_list_import(server: Server) -> None:
 
 def test_audit_trail(server: Server, accounts: dict[str, Account]) -> None:
     rows = server.http.get("/api/audit", params={"action": "user"}).json()
-    assert any(r["action"] == "user.create" and r["detail"]["user"] == "student" and r["username"] == "admin" for r in rows)
+    assert any(
+        r["action"] == "user.create" and r["detail"]["user"] == "student" and r["username"] == "admin" for r in rows
+    )
     logins = server.http.get("/api/audit", params={"action": "auth.login", "username": "student"}).json()
     assert logins and all(r["username"] == "student" for r in logins)
     assert server.http.get("/api/audit", params={"action": "auth.failed"}).json()
@@ -373,21 +384,27 @@ def test_login_rate_limit_per_account_and_per_address(tmp_path) -> None:
         pw = s.create_user("target", "student")
         with anon(s) as c:
             for _ in range(5):
-                assert c.post("/api/auth/login", json={"username": "target", "password": "guess-guess"}).status_code == 401
+                assert (
+                    c.post("/api/auth/login", json={"username": "target", "password": "guess-guess"}).status_code == 401
+                )
             r = c.post("/api/auth/login", json={"username": "target", "password": pw})
             assert r.status_code == 429 and int(r.headers["Retry-After"]) >= 1  # even the right password
             assert c.post("/api/auth/token", json={"username": "target", "password": pw}).status_code == 429
             time.sleep(2.2)
             # Backoff: the next lock of the same account (no success in between) is twice as long.
             for _ in range(5):
-                assert c.post("/api/auth/login", json={"username": "target", "password": "guess-again"}).status_code == 401
+                assert (
+                    c.post("/api/auth/login", json={"username": "target", "password": "guess-again"}).status_code == 401
+                )
             time.sleep(2.2)
             assert c.post("/api/auth/login", json={"username": "target", "password": pw}).status_code == 429
             time.sleep(2.2)
             assert c.post("/api/auth/login", json={"username": "target", "password": pw}).status_code == 200
             # Per address: many different made-up accounts from one address lock the address.
-            codes = [c.post("/api/auth/login", json={"username": f"guess{i}", "password": "guess-guess"}).status_code
-                     for i in range(4)]
+            codes = [
+                c.post("/api/auth/login", json={"username": f"guess{i}", "password": "guess-guess"}).status_code
+                for i in range(4)
+            ]
             assert codes == [401, 401, 429, 429]  # 10 failures above + 2 = the address's 12
             r = c.post("/api/auth/login", json={"username": "admin", "password": ADMIN_PASSWORD})
             assert r.status_code == 429

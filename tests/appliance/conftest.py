@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from harness import Server, start_server, stop_server, shared_builds_root  # noqa: E402
+from harness import Server, shared_builds_root, start_server, stop_server  # noqa: E402
 
 
 @pytest.fixture(scope="session")

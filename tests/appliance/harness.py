@@ -10,7 +10,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,8 +24,14 @@ HERE = Path(__file__).resolve().parent
 
 # Debian's chromium for the browser tests and the docs screenshot (never a downloaded browser).
 CHROMIUM_ARGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
 ]
 
 
@@ -80,8 +86,9 @@ class Server:
     def create_user(self, username: str, role: str = "student", password: str | None = None) -> str:
         """Create an account (as the educator) and return its password, ready to log in with."""
         password = password or f"{username}-pw-{os.urandom(4).hex()}"
-        r = self.http.post("/api/users", json={"username": username, "role": role, "password": password,
-                                               "must_change": False})
+        r = self.http.post(
+            "/api/users", json={"username": username, "role": role, "password": password, "must_change": False}
+        )
         assert r.status_code == 201, r.text
         return password
 
@@ -120,7 +127,13 @@ def ws_connect(ws_url: str, http: httpx.Client, **kw: Any) -> WsClient:
 def session_cookies(http: httpx.Client, url: str) -> list[dict[str, Any]]:
     """The session of `http` as Playwright cookies (browser_context.add_cookies)."""
     return [
-        {"name": "xrf_session", "value": http.cookies.get("xrf_session"), "url": url, "httpOnly": True, "sameSite": "Strict"},
+        {
+            "name": "xrf_session",
+            "value": http.cookies.get("xrf_session"),
+            "url": url,
+            "httpOnly": True,
+            "sameSite": "Strict",
+        },
         {"name": "xrf_csrf", "value": http.cookies.get("xrf_csrf"), "url": url, "sameSite": "Strict"},
     ]
 
@@ -146,8 +159,9 @@ class WsClient:
     def send(self, obj: Any) -> None:
         self.conn.send(obj if isinstance(obj, (str, bytes)) else json.dumps(obj))
 
-    def wait_for(self, pred: Callable[[dict[str, Any]], bool], timeout: float = 5.0,
-                 seen: bool = False) -> dict[str, Any]:
+    def wait_for(
+        self, pred: Callable[[dict[str, Any]], bool], timeout: float = 5.0, seen: bool = False
+    ) -> dict[str, Any]:
         """The next message matching pred; with seen=True a message already received counts too."""
         if seen:
             for m in self.messages:
@@ -167,10 +181,12 @@ class WsClient:
             if pred(m):
                 return m
 
-    def wait_type(self, message_type: str, /, timeout: float = 5.0, seen: bool = False,
-                  **fields: Any) -> dict[str, Any]:
-        return self.wait_for(lambda m: m.get("type") == message_type and all(m.get(k) == v for k, v in fields.items()),
-                             timeout, seen)
+    def wait_type(
+        self, message_type: str, /, timeout: float = 5.0, seen: bool = False, **fields: Any
+    ) -> dict[str, Any]:
+        return self.wait_for(
+            lambda m: m.get("type") == message_type and all(m.get(k) == v for k, v in fields.items()), timeout, seen
+        )
 
     def wait_state(self, name: str, timeout: float = 5.0) -> dict[str, Any]:
         """State `name` reached: a state message may come before the ack of the command causing it."""
@@ -192,10 +208,19 @@ class WsClient:
 
 def start_server(data_dir: Path, builds_root: Path, **settings: Any) -> Server:
     port = settings.pop("port", None) or free_port()  # a port of its own, or the one given (a restart)
-    config = {"data_dir": str(data_dir), "builds_root": str(builds_root), "port": port, "host": "127.0.0.1",
-              "real_bench": False, **settings}
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO_ROOT / "appliance"), str(HERE)]),
-               XRF_BOOTSTRAP_ADMIN_PASSWORD=ADMIN_PASSWORD)
+    config = {
+        "data_dir": str(data_dir),
+        "builds_root": str(builds_root),
+        "port": port,
+        "host": "127.0.0.1",
+        "real_bench": False,
+        **settings,
+    }
+    env = dict(
+        os.environ,
+        PYTHONPATH=os.pathsep.join([str(REPO_ROOT / "appliance"), str(HERE)]),
+        XRF_BOOTSTRAP_ADMIN_PASSWORD=ADMIN_PASSWORD,
+    )
     proc = subprocess.Popen([sys.executable, str(HERE / "serve_for_test.py"), json.dumps(config)], env=env)
     url = f"http://127.0.0.1:{port}"
     probe = httpx.Client(base_url=url, timeout=30)

@@ -42,7 +42,7 @@ def test_run_lifecycle(server: Server) -> None:
     again = server.http.post("/api/runs", json={"build": "relbot"})
     assert again.status_code == 409
 
-    for cmd, state in (("initialise", "INITIALISED"), ("start", "RUN")):
+    for cmd, _state in (("initialise", "INITIALISED"), ("start", "RUN")):
         r = server.http.post("/api/runs/current/command", json={"cmd": cmd})
         assert r.status_code == 200 and r.json()["accepted"], r.text
     # Wait for INITIALISING -> INITIALISED happened before start was accepted: start is only

@@ -8,10 +8,10 @@ import signal
 import time
 from typing import Any
 
-from xrflab.channels import Channels
-from xrf_testing.leaks import descendants
-
 from harness import Server, WsClient
+
+from xrf_testing.leaks import descendants
+from xrflab.channels import Channels
 
 
 def drive_motors(ws: WsClient) -> None:
@@ -90,6 +90,7 @@ def test_hang_detected_from_heartbeat(server: Server, running: dict[str, Any]) -
 def test_crashed_runs_leave_nothing_open_in_the_appliance(server: Server) -> None:
     """A run's mapping (10 MB) and descriptors go when it ends, not when the garbage collector
     gets round to it: a day of crashes must not pile them up in the appliance."""
+
     def fds() -> list[str]:
         out = []
         for name in os.listdir(f"/proc/{server.proc.pid}/fd"):
@@ -208,7 +209,7 @@ def test_appliance_death_pauses_the_loop_and_restart_closes_the_run(tmp_path) ->
         assert restarted.http.get("/api/lease").json()["holder"] is None
         ch.close()
     finally:
-        for p in ([run["pid"]] if run.get("pid") else []):
+        for p in [run["pid"]] if run.get("pid") else []:
             if _alive(p):
                 os.kill(p, signal.SIGKILL)
         for server in (restarted, s):

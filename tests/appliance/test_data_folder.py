@@ -13,7 +13,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from harness import REPO_ROOT, free_port
 
 JOURNEY = REPO_ROOT / "tests" / "xrf_testing" / "journey.py"
@@ -48,21 +47,45 @@ def _journey(tmp_path: Path, wrap: list[str], modes: list[str] = ()) -> dict:
     port = free_port()
     home = tmp_path / "home"
     home.mkdir(mode=0o700, exist_ok=True)
-    cmd = [*wrap, sys.executable, str(JOURNEY), "--port", str(port), *[f"--mode={m}" for m in modes], "--",
-           sys.executable, "-m", "xrflab.cli", "serve", "--port", str(port)]
+    cmd = [
+        *wrap,
+        sys.executable,
+        str(JOURNEY),
+        "--port",
+        str(port),
+        *[f"--mode={m}" for m in modes],
+        "--",
+        sys.executable,
+        "-m",
+        "xrflab.cli",
+        "serve",
+        "--port",
+        str(port),
+    ]
     proc = subprocess.run(cmd, env=_env(home), capture_output=True, text=True, timeout=900)
     assert proc.stdout.strip(), proc.stderr
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-@pytest.mark.skipif(os.geteuid() != 0, reason="the root appliance's default needs root (the non-root one is tested below)")
+@pytest.mark.skipif(
+    os.geteuid() != 0, reason="the root appliance's default needs root (the non-root one is tested below)"
+)
 def test_a_root_appliance_keeps_its_data_in_var_lib_and_an_upload_builds(tmp_path: Path) -> None:
     """The real /var/lib/xrf-lab path, in a mount namespace of its own with an empty tmpfs on
     /var/lib (so nothing is left on this machine): the build user passes through the data
     folder (o+x), never lists it."""
     assert shutil.which("unshare"), "util-linux's unshare is needed"
-    wrap = ["unshare", "--mount", "--propagation", "private", "--", "sh", "-c",
-            'mount -t tmpfs -o mode=0755,size=512m xrf-var-lib /var/lib && exec "$@"', "sh"]
+    wrap = [
+        "unshare",
+        "--mount",
+        "--propagation",
+        "private",
+        "--",
+        "sh",
+        "-c",
+        'mount -t tmpfs -o mode=0755,size=512m xrf-var-lib /var/lib && exec "$@"',
+        "sh",
+    ]
     result = _journey(tmp_path, wrap, ["/var/lib/xrf-lab"])
     text = "\n".join(result["lines"])
     assert "data in /var/lib/xrf-lab" in text, text
@@ -71,8 +94,11 @@ def test_a_root_appliance_keeps_its_data_in_var_lib_and_an_upload_builds(tmp_pat
     assert result["modes"]["/var/lib/xrf-lab"] == "0o701"  # pass, never read or list
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="as root the default is /var/lib/xrf-lab (above); the rule for "
-                    "other users is checked as nobody in test_the_default_is_var_lib_for_root_and_the_home_for_others")
+@pytest.mark.skipif(
+    os.geteuid() == 0,
+    reason="as root the default is /var/lib/xrf-lab (above); the rule for "
+    "other users is checked as nobody in test_the_default_is_var_lib_for_root_and_the_home_for_others",
+)
 def test_a_user_appliance_keeps_its_data_in_the_home_and_an_upload_builds(tmp_path: Path) -> None:
     result = _journey(tmp_path, [])
     text = "\n".join(result["lines"])

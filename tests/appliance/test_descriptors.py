@@ -25,7 +25,6 @@ from pathlib import Path
 import httpx
 import pytest
 from harness import (
-    wait_for,
     ADMIN_PASSWORD,
     ADMIN_USER,
     HERE,
@@ -34,28 +33,53 @@ from harness import (
     free_port,
     login_client,
     shared_builds_root,
+    wait_for,
 )
 
 sys.path.insert(0, str(REPO_ROOT / "tests"))
 sys.path.insert(0, str(REPO_ROOT / "tests" / "projects_upload"))
 from hostile import project_files
 from projects_support import reachable_tmp, targz
+
 from xrf_testing.ros import isolated_ros_env, require_rclpy
 
 # Shared with the appliance and its children legitimately (each opens its own): not inherited.
-OWN_OPENS = ("/dev/null", "/dev/urandom", "/dev/random", "/dev/shm/", "/proc/", "/sys/", "/dev/cpu_dma_latency",
-             "/dev/pts/", "/dev/tty")
+OWN_OPENS = (
+    "/dev/null",
+    "/dev/urandom",
+    "/dev/random",
+    "/dev/shm/",
+    "/proc/",
+    "/sys/",
+    "/dev/cpu_dma_latency",
+    "/dev/pts/",
+    "/dev/tty",
+)
 
 
-def _start(data_dir: Path, port: int, pass_fds: tuple[int, ...] = (), builds_root: Path | None = None,
-           **settings: object) -> Server:
+def _start(
+    data_dir: Path, port: int, pass_fds: tuple[int, ...] = (), builds_root: Path | None = None, **settings: object
+) -> Server:
     """tests/appliance/harness.start_server, on a given port and with descriptors passed on."""
-    config = {"data_dir": str(data_dir), "builds_root": str(builds_root or shared_builds_root()), "port": port,
-              "host": "127.0.0.1", "real_bench": False, **settings}
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO_ROOT / "appliance"), str(HERE)]),
-               XRF_BOOTSTRAP_ADMIN_PASSWORD=ADMIN_PASSWORD)
-    proc = subprocess.Popen([sys.executable, str(HERE / "serve_for_test.py"), json.dumps(config)], env=env,
-                            pass_fds=pass_fds, stdin=subprocess.DEVNULL)
+    config = {
+        "data_dir": str(data_dir),
+        "builds_root": str(builds_root or shared_builds_root()),
+        "port": port,
+        "host": "127.0.0.1",
+        "real_bench": False,
+        **settings,
+    }
+    env = dict(
+        os.environ,
+        PYTHONPATH=os.pathsep.join([str(REPO_ROOT / "appliance"), str(HERE)]),
+        XRF_BOOTSTRAP_ADMIN_PASSWORD=ADMIN_PASSWORD,
+    )
+    proc = subprocess.Popen(
+        [sys.executable, str(HERE / "serve_for_test.py"), json.dumps(config)],
+        env=env,
+        pass_fds=pass_fds,
+        stdin=subprocess.DEVNULL,
+    )
     url = f"http://127.0.0.1:{port}"
     deadline = time.monotonic() + 30
     while True:
@@ -81,7 +105,7 @@ def _children_map() -> dict[int, list[int]]:
             stat = Path(f"/proc/{name}/stat").read_text()
         except OSError:
             continue
-        ppid = int(stat[stat.rindex(")") + 2:].split()[1])
+        ppid = int(stat[stat.rindex(")") + 2 :].split()[1])
         kids.setdefault(ppid, []).append(int(name))
     return kids
 
@@ -139,7 +163,7 @@ class Sampler:
 
     root: int
     forbidden: set[str]
-    seen: dict[int, str] = field(default_factory=dict)           # pid -> command line
+    seen: dict[int, str] = field(default_factory=dict)  # pid -> command line
     fds: dict[int, dict[int, str]] = field(default_factory=dict)  # pid -> fd -> target (first seen)
     bad: list[str] = field(default_factory=list)
     _stop: threading.Event = field(default_factory=threading.Event)
@@ -234,8 +258,11 @@ def test_children_inherit_nothing(tmp_path: Path, ros_env: dict[str, str]) -> No
             for cmd, state in (("initialise", "INITIALISED"), ("start", "RUN")):
                 assert ws.command(cmd)["accepted"], cmd
                 ws.wait_state(state, timeout=10)
-            wait_for(lambda: sampler.matching("ros-bridge") and sampler.matching("serve-grpc"), 60,
-                  "the ROS 2 bridge and the run's rerun proxy")
+            wait_for(
+                lambda: sampler.matching("ros-bridge") and sampler.matching("serve-grpc"),
+                60,
+                "the ROS 2 bridge and the run's rerun proxy",
+            )
             time.sleep(1.0)
             server.stop_run()
             assert http.post("/api/ros", json={"enabled": False}).status_code == 200
@@ -244,16 +271,31 @@ def test_children_inherit_nothing(tmp_path: Path, ros_env: dict[str, str]) -> No
             r = http.post("/api/selfcheck", json={"profile": "relbot"})
             assert r.status_code == 202, r.text
             check = r.json()["id"]
-            ws.wait_for(lambda m: m.get("type") == "selfcheck" and m.get("check") == check
-                        and m.get("event") in ("report", "error"), timeout=120)
+            ws.wait_for(
+                lambda m: (
+                    m.get("type") == "selfcheck" and m.get("check") == check and m.get("event") in ("report", "error")
+                ),
+                timeout=120,
+            )
 
         # A build of an uploaded project: the build sandbox (its success is the builder's business).
-        files = {"file": ("mine.tar.gz", targz(project_files(REPO_ROOT / "student_projects/templates/base"), "mine"),
-                          "application/gzip")}
+        files = {
+            "file": (
+                "mine.tar.gz",
+                targz(project_files(REPO_ROOT / "student_projects/templates/base"), "mine"),
+                "application/gzip",
+            )
+        }
         pid = http.post("/api/projects", files=files).json()["project"]["id"]
         b = http.post(f"/api/projects/{pid}/builds").json()
-        b = wait_for(lambda: (x := http.get(f"/api/projects/{pid}/builds/{b['id']}").json())["status"]
-                  not in ("queued", "building") and x, 600, "the build")
+        b = wait_for(
+            lambda: (
+                (x := http.get(f"/api/projects/{pid}/builds/{b['id']}").json())["status"] not in ("queued", "building")
+                and x
+            ),
+            600,
+            "the build",
+        )
         assert b["status"] in ("ok", "failed"), b
     finally:
         sampler.stop()
@@ -285,6 +327,7 @@ def test_port_free_again_after_kill_9_with_a_run_active(tmp_path: Path) -> None:
             ws.wait_state("IDLE", timeout=30)
             assert ws.command("initialise")["accepted"]
             ws.wait_state("INITIALISED", timeout=10)
+
         def proxies() -> list[int]:
             return [p for p in descendants(first.proc.pid) if "--serve-grpc" in cmdline(p)]
 
@@ -297,10 +340,13 @@ def test_port_free_again_after_kill_9_with_a_run_active(tmp_path: Path) -> None:
         first.http.close()
         # The run's live rerun proxy dies with the appliance (no server left with parent 1); the
         # loop itself lives on until the next appliance stops it.
-        wait_for(lambda: not [p for p in rerun if Path(f"/proc/{p}").exists() and not _zombie(p)], 5,
-              "the rerun proxy to end with the appliance")
+        wait_for(
+            lambda: not [p for p in rerun if Path(f"/proc/{p}").exists() and not _zombie(p)],
+            5,
+            "the rerun proxy to end with the appliance",
+        )
         alive = [p for p in left if Path(f"/proc/{p}").exists()]
-        second = _start(data, port)   # binds the same port, although the orphans may still live
+        second = _start(data, port)  # binds the same port, although the orphans may still live
         try:
             assert second.http.get("/api/health").status_code == 200
             for p in alive:

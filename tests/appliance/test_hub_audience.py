@@ -48,9 +48,11 @@ def test_publish_to_owner_and_to_educators() -> None:
     hub.publish_to_educators("alarm", {"kind": "disk", "message": "for educators"})
     hub.publish("alarm", {"kind": "room", "message": "for everyone"})
     got = {name: [m.get("line") or m.get("message") for m in _queued(c)] for name, c in clients.items()}
-    assert got == {"alice": ["alice's compiler output", "for everyone"],
-                   "bob": ["for everyone"],
-                   "teach": ["alice's compiler output", "for educators", "for everyone"]}
+    assert got == {
+        "alice": ["alice's compiler output", "for everyone"],
+        "bob": ["for everyone"],
+        "teach": ["alice's compiler output", "for educators", "for everyone"],
+    }
 
 
 def test_disconnect_user_closes_only_that_users_sockets() -> None:

@@ -53,4 +53,7 @@ def test_too_many_pending_control_messages_cut_off() -> None:
 
 
 def test_non_finite_numbers_go_out_as_null() -> None:
-    assert encode("telemetry", {"x": float("nan"), "y": [1.0, float("inf")]}) == '{"type":"telemetry","x":null,"y":[1.0,null]}'
+    assert (
+        encode("telemetry", {"x": float("nan"), "y": [1.0, float("inf")]})
+        == '{"type":"telemetry","x":null,"y":[1.0,null]}'
+    )

@@ -10,8 +10,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-
 from harness import free_port
+
 from xrflab.server.lifecycle import RunLifecycle, RunObserver
 from xrflab.server.runs import RunRow, RunStore
 
@@ -79,15 +79,29 @@ def test_observers_are_told_in_order_and_a_broken_one_does_not_stop_the_next(tmp
         asyncio.run(lc.exited(run))  # type: ignore[arg-type]
         asyncio.run(lc.ended(row, run))  # type: ignore[arg-type]
 
-        assert [h for h in heard if h[1] == "started"] == [("a", "started", row.id), ("b", "started", row.id),
-                                                          ("c", "started", row.id), ("d", "started", row.id)]
+        assert [h for h in heard if h[1] == "started"] == [
+            ("a", "started", row.id),
+            ("b", "started", row.id),
+            ("c", "started", row.id),
+            ("d", "started", row.id),
+        ]
         # b broke on its first batch: it gets no more samples, the others get every batch
         assert [h for h in heard if h[1] == "samples"] == [
-            ("a", "samples", 3), ("b", "samples", 3), ("c", "samples", 3), ("d", "samples", 3),
-            ("a", "samples", 1), ("c", "samples", 1), ("d", "samples", 1)]
+            ("a", "samples", 3),
+            ("b", "samples", 3),
+            ("c", "samples", 3),
+            ("d", "samples", 3),
+            ("a", "samples", 1),
+            ("c", "samples", 1),
+            ("d", "samples", 1),
+        ]
         # every observer sees what host logging added when the process exited; c's failure stops nobody
-        assert [h for h in heard if h[1] == "ended"] == [("a", "ended", 42), ("b", "ended", 42),
-                                                        ("c", "ended", 42), ("d", "ended", 42)]
+        assert [h for h in heard if h[1] == "ended"] == [
+            ("a", "ended", 42),
+            ("b", "ended", 42),
+            ("c", "ended", 42),
+            ("d", "ended", 42),
+        ]
     finally:
         store.close()
 

@@ -62,5 +62,4 @@ def test_api_models_are_the_definition(tmp_path: Path) -> None:
     assert list(schemas["RunRecord"]["properties"]) == DEFINITION
     assert set(schemas["RunLogRecord"]["properties"]) == set(RunLogRecord.model_fields)
     assert "cycle_limit" in schemas["RunRecord"]["properties"]["end_reason"]["description"]
-    assert schemas["RunRecord"]["properties"]["status"]["enum"] == ["starting", "running", "ended", "crashed",
-                                                                     "failed"]
+    assert schemas["RunRecord"]["properties"]["status"]["enum"] == ["starting", "running", "ended", "crashed", "failed"]

@@ -17,11 +17,9 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
-
 from harness import REPO_ROOT, Server, WsClient, stop_server
 
 sys.path.insert(0, str(REPO_ROOT / "tests" / "logs_appliance"))
@@ -43,15 +41,25 @@ def load(server: Server, tmp_path_factory: pytest.TempPathFactory) -> Iterator[N
     """stress-ng on every core, a build compiling in a loop, 30 dashboards."""
     stress_ng = shutil.which("stress-ng")
     assert stress_ng, "stress-ng is installed by ./lab"
-    procs = [subprocess.Popen([stress_ng, "--cpu", str(os.cpu_count() or 2), "--timeout", "900s", "--quiet"],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)]
+    procs = [
+        subprocess.Popen(
+            [stress_ng, "--cpu", str(os.cpu_count() or 2), "--timeout", "900s", "--quiet"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+    ]
     # A student build: the jiwy example compiled again and again (into its own build folder).
     project = tmp_path_factory.mktemp("build-load") / "jiwy"
     shutil.copytree(REPO_ROOT / "student_projects/examples/jiwy", project, ignore=shutil.ignore_patterns("build"))
     script = 'while :; do rm -rf "$2/build"; "$1" -m xrflab.cli build "$2" >/dev/null 2>&1 || sleep 1; done'
-    procs.append(subprocess.Popen(["nice", "-n", "19", "sh", "-c", script, "sh", sys.executable, str(project)],
-                                  env=dict(os.environ, PYTHONPATH=str(REPO_ROOT / "appliance")),
-                                  start_new_session=True))
+    procs.append(
+        subprocess.Popen(
+            ["nice", "-n", "19", "sh", "-c", script, "sh", sys.executable, str(project)],
+            env=dict(os.environ, PYTHONPATH=str(REPO_ROOT / "appliance")),
+            start_new_session=True,
+        )
+    )
     stop = threading.Event()
     clients: list[WsClient] = []
 
@@ -98,8 +106,10 @@ def _drive(server: Server, ws: WsClient) -> dict[str, Any]:
 
 
 def _alarm(ws: WsClient, run: dict[str, Any]) -> dict[str, Any]:
-    return ws.wait_for(lambda m: m.get("type") == "alarm" and m.get("run_id") == run["id"]
-                       and m.get("kind") in ("crash", "hang"), timeout=15)
+    return ws.wait_for(
+        lambda m: m.get("type") == "alarm" and m.get("run_id") == run["id"] and m.get("kind") in ("crash", "hang"),
+        timeout=15,
+    )
 
 
 @pytest.mark.parametrize("how", ["kill9", "segfault", "hang", "exit0"])
@@ -128,8 +138,12 @@ def test_outputs_safe_under_load(server: Server, load: None, how: str) -> None:
     assert reaction <= BOUND_NS, f"{how}: outputs safe {reaction / 1e6:.1f} ms after the loop ended"
 
     row = server.http.get(f"/api/runs/{run['id']}").json()
-    expected = {"kill9": ("crash", "signal", signal.SIGKILL), "segfault": ("crash", "signal", signal.SIGSEGV),
-                "hang": ("hang", "hang", signal.SIGKILL), "exit0": ("self_exit", "self_exit", None)}[how]
+    expected = {
+        "kill9": ("crash", "signal", signal.SIGKILL),
+        "segfault": ("crash", "signal", signal.SIGSEGV),
+        "hang": ("hang", "hang", signal.SIGKILL),
+        "exit0": ("self_exit", "self_exit", None),
+    }[how]
     assert (row["end_reason"], row["crash_reason"], row["exit_signal"]) == expected
     assert alarm["end_reason"] == row["end_reason"] and row["status"] == "crashed"
     if how == "exit0":

@@ -10,7 +10,6 @@ import time
 from pathlib import Path
 
 import httpx
-
 from harness import REPO_ROOT, free_port, login_client
 
 from xrflab.server.safety import fpga_reset
@@ -21,9 +20,22 @@ def test_xrf_serve_prints_url_and_serves(tmp_path: Path) -> None:
     env = dict(os.environ, PYTHONPATH=str(REPO_ROOT / "appliance"))
     env.pop("XRF_BOOTSTRAP_ADMIN_PASSWORD", None)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "xrflab.cli", "serve", "--data", str(tmp_path / "data"), "--port", str(port),
-         "--sim", "jiwy"],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        [
+            sys.executable,
+            "-m",
+            "xrflab.cli",
+            "serve",
+            "--data",
+            str(tmp_path / "data"),
+            "--port",
+            str(port),
+            "--sim",
+            "jiwy",
+        ],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
     )
     try:
         lines = []

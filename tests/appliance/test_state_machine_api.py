@@ -14,8 +14,18 @@ def test_served_machine_is_what_the_c_table_does(server: Server, shm_name: str) 
     machine = r.json()
     states = {s["name"]: s["number"] for s in machine["states"]}
     commands = {c["name"]: c["number"] for c in machine["commands"]}
-    assert list(states) == ["IDLE", "INITIALISING", "INITIALISED", "RUN", "STOPPING", "STOPPED",
-                            "PAUSING", "PAUSED", "ERROR", "QUIT"]
+    assert list(states) == [
+        "IDLE",
+        "INITIALISING",
+        "INITIALISED",
+        "RUN",
+        "STOPPING",
+        "STOPPED",
+        "PAUSING",
+        "PAUSED",
+        "ERROR",
+        "QUIT",
+    ]
     assert list(commands) == ["initialise", "start", "stop", "reset", "pause", "quit"]
     served = {(t["from"], t["cmd"]): t["to"] for t in machine["transitions"]}
     assert len(served) == len(machine["transitions"])  # one target per pair
@@ -37,8 +47,13 @@ def test_served_machine_is_what_the_c_table_does(server: Server, shm_name: str) 
     # A hook completing: every state with a hook that leads somewhere, as FullStateMachine::step
     # follows it (rt_core/tests/test_state_machine.cpp runs that).
     completions = {c["from"]: c["to"] for c in machine["completions"]}
-    assert completions == {"INITIALISING": "INITIALISED", "INITIALISED": "RUN", "RUN": "STOPPING",
-                           "STOPPING": "STOPPED", "PAUSING": "PAUSED"}
+    assert completions == {
+        "INITIALISING": "INITIALISED",
+        "INITIALISED": "RUN",
+        "RUN": "STOPPING",
+        "STOPPING": "STOPPED",
+        "PAUSING": "PAUSED",
+    }
     assert set(completions) | set(completions.values()) <= set(states)
 
 

@@ -9,7 +9,7 @@ import time
 from typing import Any
 
 import pytest
-from harness import Server, WsClient, start_server, stop_server, shared_builds_root
+from harness import Server, WsClient, shared_builds_root, start_server, stop_server
 
 
 def to_run(ws: WsClient) -> None:
@@ -57,9 +57,11 @@ def test_telemetry_rate_and_setpoint_following(server: Server, running: dict[str
         ws.send({"type": "setpoint", "fields": {"steer_left": 1.5, "steer_right": -0.5}})
         assert ws.wait_type("ack")["setpoint"] == {"steer_left": 1.5, "steer_right": -0.5}
         sample = ws.wait_for(
-            lambda m: m["type"] == "telemetry"
-            and abs(m["xeno2ros"]["pos_left"] - 1.5) < 0.1
-            and abs(m["xeno2ros"]["pos_right"] + 0.5) < 0.1,
+            lambda m: (
+                m["type"] == "telemetry"
+                and abs(m["xeno2ros"]["pos_left"] - 1.5) < 0.1
+                and abs(m["xeno2ros"]["pos_right"] + 0.5) < 0.1
+            ),
             timeout=10,
         )
         assert any(sample["pwm"]) or sample["enc"] != [0, 0, 0, 0]
@@ -145,8 +147,14 @@ def test_command_without_run_is_an_error(server: Server) -> None:
 def test_slow_client_is_dropped_others_unaffected(tmp_path) -> None:
     # Every loop publication to browsers (no decimation) and tight limits, so a client that
     # stops reading fills its socket, then its queue, within a few seconds.
-    s = start_server(tmp_path, shared_builds_root(), telemetry_hz=0, client_queue_telemetry=8, slow_client_s=1.0,
-                     send_buffer_bytes=4096)
+    s = start_server(
+        tmp_path,
+        shared_builds_root(),
+        telemetry_hz=0,
+        client_queue_telemetry=8,
+        slow_client_s=1.0,
+        send_buffer_bytes=4096,
+    )
     try:
         s.start_run("relbot")
         slow = _never_reading_client(int(s.url.rsplit(":", 1)[1]), s.http.cookies.get("xrf_session"))

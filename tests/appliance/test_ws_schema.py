@@ -9,9 +9,8 @@ import signal
 from typing import Any
 
 import httpx
-from jsonschema import Draft202012Validator
-
 from harness import Server, WsClient
+from jsonschema import Draft202012Validator
 
 from xrflab.server import api, hub, messages
 
@@ -95,9 +94,13 @@ def test_every_message_of_a_session_matches_the_published_schema(server: Server)
         assert obs.wait_type("error")["denied"] is True
 
         # What the browsers send validates too (the dashboard's messages).
-        for frame in ({"type": "command", "cmd": "start"}, {"type": "command", "cmd": 3},
-                      {"type": "setpoint", "fields": {"a": 1.0, "b": True, "c": [1, 2]}},
-                      {"type": "subscribe", "topics": ["state"]}, {"type": "ping", "t": 1}):
+        for frame in (
+            {"type": "command", "cmd": "start"},
+            {"type": "command", "cmd": 3},
+            {"type": "setpoint", "fields": {"a": 1.0, "b": True, "c": [1, 2]}},
+            {"type": "subscribe", "topics": ["state"]},
+            {"type": "ping", "t": 1},
+        ):
             client_v.validate(frame)
 
         # A crash: kill -9 the controller mid-run (alarm, run ended, state inactive).

@@ -55,15 +55,21 @@ def ensure_debian_tree(packages: list[str] = PACKAGES) -> Path:
     if (cache / ".xrf-complete").exists():
         return cache
     if shutil.which("debootstrap") is None:
-        subprocess.run(["apt-get", "install", "-y", "-q", "debootstrap"], check=True,
-                       env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"},
-                       stdout=subprocess.DEVNULL)
+        subprocess.run(
+            ["apt-get", "install", "-y", "-q", "debootstrap"],
+            check=True,
+            env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"},
+            stdout=subprocess.DEVNULL,
+        )
     tmp = cache.with_name(cache.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.parent.mkdir(parents=True, exist_ok=True)
     proc = subprocess.run(
-        ["debootstrap", "--variant=minbase", f"--include={','.join(packages)}", SUITE, str(tmp),
-         apt_mirror()], capture_output=True, text=True, timeout=900)
+        ["debootstrap", "--variant=minbase", f"--include={','.join(packages)}", SUITE, str(tmp), apt_mirror()],
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     if proc.returncode != 0:
         raise RuntimeError(f"debootstrap failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
     (tmp / ".xrf-complete").write_text(SUITE + "\n")
@@ -91,8 +97,9 @@ def source_snapshot(dest: Path) -> Path:
     edit the checkout while the tests run, and the idempotency test needs a source that
     does not change between the two runs. The copy has no .git, so the installer's
     non-git file listing is what runs."""
-    files = subprocess.run(["git", "-C", str(REPO), "ls-files", "-co", "--exclude-standard"],
-                           capture_output=True, text=True, check=True).stdout.splitlines()
+    files = subprocess.run(
+        ["git", "-C", str(REPO), "ls-files", "-co", "--exclude-standard"], capture_output=True, text=True, check=True
+    ).stdout.splitlines()
     dest.mkdir(parents=True)
     for f in files:
         src = REPO / f
@@ -106,8 +113,13 @@ def run_install(root: Path, *args: str, script: str = "install", source: Path = 
     # The host's PIP_* settings point at paths that do not exist inside the chroot.
     env = {k: v for k, v in os.environ.items() if not k.startswith("PIP_")}
     env["PIP_DISABLE_PIP_VERSION_CHECK"] = "1"
-    proc = subprocess.run([str(source / "deploy" / script), "--root", str(root), *args],
-                          capture_output=True, text=True, env=env, timeout=900)
+    proc = subprocess.run(
+        [str(source / "deploy" / script), "--root", str(root), *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=900,
+    )
     return proc
 
 

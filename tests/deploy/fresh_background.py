@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 
 import pytest
+
 from xrf_testing.leaks import descendants
 from xrflab.tied import popen_tied
 
@@ -58,8 +59,14 @@ class Run:
         dest.mkdir(parents=True, exist_ok=True)
         command = command or [sys.executable, str(RUNNER), str(dest), str(self.result)]
         with open(self.log_path, "wb") as log:
-            self.proc = popen_tied([*(LOW if low_priority else []), *CONTAINED, *command], death_signal=signal.SIGKILL,
-                                   stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, process_group=0)
+            self.proc = popen_tied(
+                [*(LOW if low_priority else []), *CONTAINED, *command],
+                death_signal=signal.SIGKILL,
+                stdin=subprocess.DEVNULL,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                process_group=0,
+            )
         self.closed = False
 
     def tree_pids(self) -> set[int]:
@@ -80,8 +87,11 @@ class Run:
                 with contextlib.suppress(OSError):
                     os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, 0))  # pytest's
             if tids:
-                subprocess.run(["ionice", "-c", "2", "-n", "4", "-p", *map(str, tids)],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                subprocess.run(
+                    ["ionice", "-c", "2", "-n", "4", "-p", *map(str, tids)],
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                )
 
     def wait(self) -> dict:
         """The record fresh_run.py wrote, once it has ended (its log's tail as the error if none)."""

@@ -85,7 +85,11 @@ def host_pip_env() -> list[str]:
 
 def _user_pip_conf() -> Path | None:
     """The pip configuration of the user running the tests (their HOME is not the tree's)."""
-    for p in (os.environ.get("PIP_CONFIG_FILE", ""), Path.home() / ".config/pip/pip.conf", Path.home() / ".pip/pip.conf"):
+    for p in (
+        os.environ.get("PIP_CONFIG_FILE", ""),
+        Path.home() / ".config/pip/pip.conf",
+        Path.home() / ".pip/pip.conf",
+    ):
         if p and Path(p).is_file():
             return Path(p)
     return None
@@ -111,20 +115,43 @@ def _pip_paths() -> list[str]:
 class Machine:
     tree: Path
     checkout: str  # the checkout's path inside the tree (under /tmp)
-    work: Path     # the overlay's upper/work folders, beside the tree
+    work: Path  # the overlay's upper/work folders, beside the tree
 
     def enter(self, command: list[str], timeout: float, cwd: str | None = None) -> subprocess.CompletedProcess:
         passed = host_pip_env()
         env = {
-            "PATH": os.environ.get("PATH", PATH), "XRF_TREE": str(self.tree), "XRF_HOME": HOME, "XRF_PATH": PATH,
-            "XRF_CWD": cwd or self.checkout, "XRF_RO_BINDS": ":".join(_pip_paths()),
-            "XRF_APT_ARCHIVES": APT_ARCHIVES, "XRF_APT_UPPER": str(self.work / "apt-upper"),
+            "PATH": os.environ.get("PATH", PATH),
+            "XRF_TREE": str(self.tree),
+            "XRF_HOME": HOME,
+            "XRF_PATH": PATH,
+            "XRF_CWD": cwd or self.checkout,
+            "XRF_RO_BINDS": ":".join(_pip_paths()),
+            "XRF_APT_ARCHIVES": APT_ARCHIVES,
+            "XRF_APT_UPPER": str(self.work / "apt-upper"),
             "XRF_APT_WORK": str(self.work / "apt-work"),
         }
         return subprocess.run(
-            ["unshare", "--mount", "--pid", "--fork", "--kill-child=SIGKILL", "--propagation", "private",
-             "bash", "-c", ENTER, "enter", str(len(passed)), *passed, *command],
-            env=env, capture_output=True, text=True, timeout=timeout)
+            [
+                "unshare",
+                "--mount",
+                "--pid",
+                "--fork",
+                "--kill-child=SIGKILL",
+                "--propagation",
+                "private",
+                "bash",
+                "-c",
+                ENTER,
+                "enter",
+                str(len(passed)),
+                *passed,
+                *command,
+            ],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+        )
 
 
 def _copy_registry_config(tree: Path) -> None:
@@ -169,8 +196,10 @@ def clone_or_snapshot(dest: Path) -> None:
     the files made a one-commit repository (the suite's leak check reads `git status`)."""
     dest.parent.mkdir(parents=True)
     if (REPO / ".git").exists():
-        subprocess.run(["git", "-c", f"safe.directory={REPO / '.git'}", "clone", "-q", "--no-hardlinks",
-                        str(REPO), str(dest)], check=True)
+        subprocess.run(
+            ["git", "-c", f"safe.directory={REPO / '.git'}", "clone", "-q", "--no-hardlinks", str(REPO), str(dest)],
+            check=True,
+        )
         return
     source_snapshot(dest)
     git = ["git", "-C", str(dest), "-c", "user.name=fresh-machine", "-c", "user.email=fresh@localhost"]

@@ -34,9 +34,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from deploy_support import REPO  # noqa: E402
 from fresh_machine import Machine, _user_pip_conf, make_machine  # noqa: E402
 
-UI_TEST = "tests/ui/test_system_ui.py"       # the quickest browser test: needs chromium and serve
+UI_TEST = "tests/ui/test_system_ui.py"  # the quickest browser test: needs chromium and serve
 CMAKE_TEST = "tests/rt_core/test_ctest.py"  # CMake + g++ build rt_core's unit tests, then runs them
-JUNIT = "/tmp/fresh-machine-junit.xml"      # in the tree, outside the checkout
+JUNIT = "/tmp/fresh-machine-junit.xml"  # in the tree, outside the checkout
 
 
 def apt_packages() -> list[str]:
@@ -66,18 +66,19 @@ def tail(text: str, n: int = 3000) -> str:
 @dataclass
 class Record:
     """What the steps did; every field JSON."""
-    no_tree: str = ""         # why there is no machine at all ("" = there is)
+
+    no_tree: str = ""  # why there is no machine at all ("" = there is)
     tree: str = ""
     checkout: str = ""
     work: str = ""
     seconds: dict[str, float] = field(default_factory=dict)
-    apt_missing: str = ""     # why setup_system's apt-get could not be exercised ("" = it was)
-    no_python: str = ""       # why nothing after the system packages can run
-    pip_missing: str = ""     # why setup_venv could not be exercised
+    apt_missing: str = ""  # why setup_system's apt-get could not be exercised ("" = it was)
+    no_python: str = ""  # why nothing after the system packages can run
+    pip_missing: str = ""  # why setup_venv could not be exercised
     lab_test: dict | None = None  # returncode, stdout, stderr of `./lab test ...`
     journey: dict | None = None
     journey_stderr: str = ""
-    error: str = ""           # the program's own traceback, if it failed (the tests fail with it)
+    error: str = ""  # the program's own traceback, if it failed (the tests fail with it)
 
 
 def _timed(rec: Record, machine: Machine, name: str, command: list[str], timeout: float):
@@ -93,8 +94,13 @@ def _offline_packages(rec: Record, machine: Machine) -> str:
     lists = machine.tree / "var/lib/apt/lists"
     for p in Path("/var/lib/apt/lists").glob("*_Packages*"):
         shutil.copy2(p, lists / p.name)
-    proc = _timed(rec, machine, "apt offline", ["apt-get", "install", "-y", "-q", "--no-download",
-                                                "--no-install-recommends", *apt_packages(), "chromium"], 1200)
+    proc = _timed(
+        rec,
+        machine,
+        "apt offline",
+        ["apt-get", "install", "-y", "-q", "--no-download", "--no-install-recommends", *apt_packages(), "chromium"],
+        1200,
+    )
     if proc.returncode != 0:
         return f"apt-get install --no-download from this machine's cache failed:\n{tail(proc.stdout + proc.stderr)}"
     return ""
@@ -118,8 +124,10 @@ def run(dest: Path, rec: Record) -> None:
     rec.seconds["tree"] = round(time.monotonic() - t, 1)
     probe = _timed(rec, machine, "apt probe", ["apt-get", "update", "-q"], 600)
     if probe.returncode != 0:
-        rec.apt_missing = ("./lab's setup_system (apt-get update/install) NOT exercised: the tree cannot reach "
-                           f"apt's mirror:\n{tail(probe.stdout + probe.stderr)}")
+        rec.apt_missing = (
+            "./lab's setup_system (apt-get update/install) NOT exercised: the tree cannot reach "
+            f"apt's mirror:\n{tail(probe.stdout + probe.stderr)}"
+        )
         rec.no_python = _offline_packages(rec, machine)
     if not rec.no_python:
         lab = _timed(rec, machine, "lab test", ["./lab", "test", UI_TEST, CMAKE_TEST, f"--junitxml={JUNIT}"], 2000)
@@ -128,17 +136,44 @@ def run(dest: Path, rec: Record) -> None:
             # Only now is there a python3 in the tree to ask pip's index with; reachable, the
             # failure is ./lab's and the tests fail on it.
             index = pip_index()
-            pip = _timed(rec, machine, "pip probe", ["python3", "-c", "import sys, urllib.request; "
-                                                     "urllib.request.urlopen(sys.argv[1] + '/pip/', timeout=30)",
-                                                     index], 120)
+            pip = _timed(
+                rec,
+                machine,
+                "pip probe",
+                [
+                    "python3",
+                    "-c",
+                    "import sys, urllib.request; urllib.request.urlopen(sys.argv[1] + '/pip/', timeout=30)",
+                    index,
+                ],
+                120,
+            )
             if pip.returncode != 0:
-                rec.pip_missing = (f"./lab's setup_venv (pip install) and every step after it NOT exercised: the "
-                                   f"tree cannot reach pip's index {index}:\n{tail(pip.stderr, 800)}")
+                rec.pip_missing = (
+                    f"./lab's setup_venv (pip install) and every step after it NOT exercised: the "
+                    f"tree cannot reach pip's index {index}:\n{tail(pip.stderr, 800)}"
+                )
     if not rec.no_python and not rec.pip_missing:
         port = _free_port()
-        j = _timed(rec, machine, "journey", [".venv/bin/python", "tests/xrf_testing/journey.py", "--port", str(port),
-                                             "--mode", "/var/lib/xrf-lab", "--", "./lab", "serve", "--port", str(port)],
-                   900)
+        j = _timed(
+            rec,
+            machine,
+            "journey",
+            [
+                ".venv/bin/python",
+                "tests/xrf_testing/journey.py",
+                "--port",
+                str(port),
+                "--mode",
+                "/var/lib/xrf-lab",
+                "--",
+                "./lab",
+                "serve",
+                "--port",
+                str(port),
+            ],
+            900,
+        )
         lines = j.stdout.strip().splitlines()
         rec.journey = json.loads(lines[-1]) if lines and lines[-1].startswith("{") else None
         rec.journey_stderr = j.stdout + j.stderr

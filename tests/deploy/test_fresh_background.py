@@ -19,7 +19,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from fresh_background import Run
 
 REPO = Path(__file__).resolve().parents[2]
@@ -92,13 +91,27 @@ def test_low_priority_until_hurried(tmp_path: Path) -> None:
 
 
 def test_the_check_is_ordered_last() -> None:
-    out = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider",
-                          FRESH, "tests/doctor/test_doctor.py"], cwd=REPO, capture_output=True, text=True,
-                         timeout=300).stdout
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "--collect-only",
+            "-q",
+            "-p",
+            "no:cacheprovider",
+            FRESH,
+            "tests/doctor/test_doctor.py",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    ).stdout
     ids = [line for line in out.splitlines() if "::" in line]
     fresh = [i for i in ids if i.startswith(FRESH)]
     assert len(fresh) >= 5 and len(ids) > len(fresh), out
-    assert ids[-len(fresh):] == fresh, ids
+    assert ids[-len(fresh) :] == fresh, ids
 
 
 # The inner session's plugin: once the first test has run, wait until the check's run is copying
@@ -143,9 +156,27 @@ def test_nothing_is_left_when_the_session_stops_early(tmp_path: Path, how: str) 
     # would otherwise count as its own), its own temporary folder.
     env = {k: v for k, v in os.environ.items() if k != "XRF_TEST_SESSION"}
     env.update(PYTHONPATH=str(tmp_path / "plugin"), XRF_TEST_HOW=how, XRF_TEST_PIDS=str(pids))
-    proc = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-p", "xrf_stop_early", "-p",
-                           "no:cacheprovider", f"--basetemp={basetemp}", FIRST, FRESH], cwd=REPO, env=env,
-                          capture_output=True, text=True, timeout=500)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "-x",
+            "-q",
+            "-p",
+            "xrf_stop_early",
+            "-p",
+            "no:cacheprovider",
+            f"--basetemp={basetemp}",
+            FIRST,
+            FRESH,
+        ],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=500,
+    )
     out = proc.stdout + proc.stderr
     assert pids.exists(), out
     seen = dict(line.split(" ", 1) for line in pids.read_text().splitlines())

@@ -33,7 +33,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
-
 from fresh_background import BACKGROUND, Run
 from fresh_machine import Machine
 from fresh_run import CMAKE_TEST, JUNIT, UI_TEST, apt_packages
@@ -52,11 +51,12 @@ class Proc:
 @dataclass
 class Fresh:
     """fresh_run.py's record (its Record), with the machine it made."""
+
     machine: Machine
     seconds: dict[str, float] = field(default_factory=dict)
-    apt_missing: str = ""     # why setup_system's apt-get could not be exercised ("" = it was)
-    no_python: str = ""       # why nothing after the system packages can run
-    pip_missing: str = ""     # why setup_venv could not be exercised
+    apt_missing: str = ""  # why setup_system's apt-get could not be exercised ("" = it was)
+    no_python: str = ""  # why nothing after the system packages can run
+    pip_missing: str = ""  # why setup_venv could not be exercised
     lab_test: Proc | None = None  # `./lab test ...`
     journey: dict | None = None
     journey_stderr: str = ""
@@ -89,9 +89,16 @@ def fresh(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFacto
         if rec["no_tree"]:
             pytest.skip(rec["no_tree"])
         lab = rec["lab_test"]
-        yield Fresh(Machine(Path(rec["tree"]), rec["checkout"], Path(rec["work"])), seconds, rec["apt_missing"],
-                    rec["no_python"], rec["pip_missing"], Proc(**lab) if lab else None, rec["journey"],
-                    rec["journey_stderr"])
+        yield Fresh(
+            Machine(Path(rec["tree"]), rec["checkout"], Path(rec["work"])),
+            seconds,
+            rec["apt_missing"],
+            rec["no_python"],
+            rec["pip_missing"],
+            Proc(**lab) if lab else None,
+            rec["journey"],
+            rec["journey_stderr"],
+        )
     finally:
         print(f"fresh-machine check ({how}; {run.seconds()} s in all), seconds per step: {seconds}")
         run.close()
@@ -107,6 +114,7 @@ def test_the_tree_starts_without_the_project(fresh: Fresh) -> None:
     (read from the cached tree, which ./lab never touches)."""
     from deploy_support import ensure_debian_tree
     from fresh_machine import PACKAGES
+
     pristine = _installed(ensure_debian_tree(PACKAGES))
     assert not {"python3", "cmake", "g++", "chromium", "build-essential"} & pristine
     assert "git" in pristine

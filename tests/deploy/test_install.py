@@ -14,7 +14,6 @@ import subprocess
 from pathlib import Path
 
 import pytest
-
 from deploy_support import REPO, run_install, tree_digest
 
 pytestmark = pytest.mark.timeout(1800)
@@ -92,13 +91,16 @@ def test_run_sandbox_ids_devices_and_namespaces(installed):
     users, groups = _passwd(root), _group(root)
     assert _xrf_lines(root, "subuid") == [f"xrf:{users['xrf-loop'][2]}:1"]
     assert _xrf_lines(root, "subgid") == [f"xrf:{groups['xrf-loop'][2]}:1"] + [
-        f"xrf:{groups[g][2]}:1" for g in ("evl", "spi", "gpio")]
+        f"xrf:{groups[g][2]}:1" for g in ("evl", "spi", "gpio")
+    ]
     for name in ("subuid", "subgid"):
         st = (root / "etc" / name).stat()
         assert (st.st_uid, st.st_gid, oct(st.st_mode & 0o777)) == (0, 0, "0o644"), name
     # the appliance's own reading of those files (xrflab.server.guest_spawn) finds xrf-loop's ids first
     import pwd
+
     from xrflab.server.guest_spawn import _sub_range
+
     xrf = pwd.struct_passwd(("xrf", "x", int(users["xrf"][2]), int(users["xrf"][3]), "", "", ""))
     assert _sub_range(str(root / "etc/subuid"), xrf) == (int(users["xrf-loop"][2]), 1)
     assert _sub_range(str(root / "etc/subgid"), xrf) == (int(groups["xrf-loop"][2]), 1)
@@ -119,9 +121,16 @@ def test_run_sandbox_ids_devices_and_namespaces(installed):
 def test_installed_package_imports_in_the_chroot(installed):
     root, *_ = installed
     proc = subprocess.run(
-        ["chroot", str(root), "/opt/xrf-lab/venv/bin/python", "-c",
-         "import xrflab.build as b, xrflab.doctor as d; print(b.REPO_ROOT); print(d.HELP[:5])"],
-        capture_output=True, text=True)
+        [
+            "chroot",
+            str(root),
+            "/opt/xrf-lab/venv/bin/python",
+            "-c",
+            "import xrflab.build as b, xrflab.doctor as d; print(b.REPO_ROOT); print(d.HELP[:5])",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 0, proc.stderr
     # editable install: xrflab.build finds rt_core next to the package, as in a checkout
     assert proc.stdout.splitlines()[0] == "/opt/xrf-lab/src"
@@ -137,8 +146,7 @@ def test_second_run_changes_nothing(installed):
 def _systemd_analyze() -> str:
     exe = shutil.which("systemd-analyze")
     if exe is None:
-        subprocess.run(["apt-get", "install", "-y", "-q", "systemd"], check=True,
-                       stdout=subprocess.DEVNULL)
+        subprocess.run(["apt-get", "install", "-y", "-q", "systemd"], check=True, stdout=subprocess.DEVNULL)
         exe = shutil.which("systemd-analyze")
     assert exe, "systemd-analyze not available"
     return exe
@@ -151,8 +159,7 @@ def test_units_pass_systemd_analyze_verify(installed):
     root, *_ = installed
     exe = _systemd_analyze()
     units = ["/etc/systemd/system/xrf-lab.service", "/etc/systemd/system/xrf-cpufreq.service"]
-    proc = subprocess.run([exe, "verify", f"--root={root}", "--man=no", *units],
-                          capture_output=True, text=True)
+    proc = subprocess.run([exe, "verify", f"--root={root}", "--man=no", *units], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "xrf-lab.service" not in proc.stderr, proc.stderr  # no warnings about our units
 
@@ -180,8 +187,11 @@ def test_room_service_only_when_asked(installed, source):
     assert "set --broker-name" in first.stdout  # the reminder: benches need the broker's address
     if not (root / "usr/sbin/mosquitto").exists():  # --no-deps: nothing installed, but said
         assert "mosquitto not installed" in first.stdout
-    proc = subprocess.run([_systemd_analyze(), "verify", f"--root={root}", "--man=no",
-                           "/etc/systemd/system/xrf-room.service"], capture_output=True, text=True)
+    proc = subprocess.run(
+        [_systemd_analyze(), "verify", f"--root={root}", "--man=no", "/etc/systemd/system/xrf-room.service"],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "xrf-room.service" not in proc.stderr, proc.stderr
     # the educator's arguments are theirs; a later plain run keeps the room and changes nothing
@@ -201,9 +211,13 @@ def test_doctor_runs_in_the_installed_root(installed):
     os.chown(dev, 0, int(_group(root)["spi"][2]))
     os.chmod(dev, 0o660)
     try:
+
         def doctor() -> dict:
-            proc = subprocess.run(["chroot", str(root), "/usr/local/bin/xrf", "doctor", "--json", "--no-live"],
-                                  capture_output=True, text=True)
+            proc = subprocess.run(
+                ["chroot", str(root), "/usr/local/bin/xrf", "doctor", "--json", "--no-live"],
+                capture_output=True,
+                text=True,
+            )
             assert proc.returncode in (0, 1), proc.stderr
             return {r["id"]: r for r in json.loads(proc.stdout)}
 
@@ -265,11 +279,19 @@ def test_uninstall_keeps_data_then_purge_removes_it(installed, source):
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert marker.exists()
     assert "xrf" in _passwd(root)
-    for p in ("opt/xrf-lab", "var/cache/xrf-lab", "usr/local/bin/xrf", "etc/systemd/system/xrf-lab.service",
-              "etc/udev/rules.d/60-xrf-lab.rules", "etc/security/limits.d/90-xrf-lab.conf",
-              "etc/sysctl.d/60-xrf-lab.conf", "etc/systemd/system/multi-user.target.wants/xrf-lab.service",
-              "etc/systemd/system/xrf-room.service", "etc/systemd/system/multi-user.target.wants/xrf-room.service",
-              "etc/default/xrf-room"):
+    for p in (
+        "opt/xrf-lab",
+        "var/cache/xrf-lab",
+        "usr/local/bin/xrf",
+        "etc/systemd/system/xrf-lab.service",
+        "etc/udev/rules.d/60-xrf-lab.rules",
+        "etc/security/limits.d/90-xrf-lab.conf",
+        "etc/sysctl.d/60-xrf-lab.conf",
+        "etc/systemd/system/multi-user.target.wants/xrf-lab.service",
+        "etc/systemd/system/xrf-room.service",
+        "etc/systemd/system/multi-user.target.wants/xrf-room.service",
+        "etc/default/xrf-room",
+    ):
         assert not (root / p).exists() and not (root / p).is_symlink(), p
     assert _xrf_lines(root, "subuid") == [] and _xrf_lines(root, "subgid") == []
     again = run_install(root, script="uninstall", source=source)
@@ -296,8 +318,11 @@ def test_other_prefix_and_data_folder(installed, source):
     assert len(_xrf_lines(root, "subuid")) == 1 and len(_xrf_lines(root, "subgid")) == 4  # users made anew
     assert _passwd(root)["xrf"][5] == "/srv/xrf-data"
     assert str((root / "usr/local/bin/xrf").readlink()) == "/srv/xrf/venv/bin/xrf"
-    proc = subprocess.run([_systemd_analyze(), "verify", f"--root={root}", "--man=no",
-                           "/etc/systemd/system/xrf-lab.service"], capture_output=True, text=True)
+    proc = subprocess.run(
+        [_systemd_analyze(), "verify", f"--root={root}", "--man=no", "/etc/systemd/system/xrf-lab.service"],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     again = run_install(root, *args, source=source)
     assert "nothing to change" in again.stdout, again.stdout
@@ -307,6 +332,7 @@ def test_install_refuses_a_root_without_a_system(tmp_path):
     if not shutil.which("chroot"):
         pytest.skip("no chroot")
     import os
+
     if os.geteuid() != 0:
         pytest.skip("needs root")
     proc = subprocess.run([str(REPO / "deploy/install"), "--root", str(tmp_path)], capture_output=True, text=True)

@@ -22,8 +22,7 @@ ALL_HOLD = {name: "" for name in guest.LAYERS}
 
 
 def fake(layers=None, error="", mode="root", notes=None, ident="controllers run as xrf-run (uid 999)"):
-    report = GuestReport(mode=mode, layers=dict(ALL_HOLD if layers is None else layers), notes=notes or [],
-                         error=error)
+    report = GuestReport(mode=mode, layers=dict(ALL_HOLD if layers is None else layers), notes=notes or [], error=error)
     return lambda ctx: ConfinementProbe(report, ident, "xrf")
 
 
@@ -34,7 +33,9 @@ def check(probe, **kw):
 def test_all_layers_hold_is_ok_and_lists_every_layer():
     r = check(fake())
     assert r.status == OK, r
-    assert "mode root" in r.detail and "controllers run as xrf-run (uid 999)" in r.detail and "probed as xrf" in r.detail
+    assert (
+        "mode root" in r.detail and "controllers run as xrf-run (uid 999)" in r.detail and "probed as xrf" in r.detail
+    )
     assert f"all {len(guest.LAYERS)} layers hold" in r.detail
     assert [i["name"] for i in r.items] == list(guest.LAYERS)
     assert all(i["status"] == "ok" and i["detail"] == "" for i in r.items)
@@ -43,8 +44,9 @@ def test_all_layers_hold_is_ok_and_lists_every_layer():
 
 def test_missing_layer_fails_when_runs_are_refused():
     why = "no subordinate uid for this user (/etc/subuid) or no newuidmap"
-    r = check(fake({**ALL_HOLD, "user": why}, error="missing protection: user: ...", mode="userns"),
-              allow_unconfined=False)
+    r = check(
+        fake({**ALL_HOLD, "user": why}, error="missing protection: user: ...", mode="userns"), allow_unconfined=False
+    )
     assert r.status == FAILURE, r
     assert "mode userns" in r.detail and f"missing: user ({why})" in r.detail
     assert "runs are refused" in r.detail and "--allow-unconfined" in r.detail
@@ -55,8 +57,16 @@ def test_missing_layer_fails_when_runs_are_refused():
 
 
 def test_missing_layer_is_a_warning_when_the_educator_allowed_it():
-    r = check(fake({**ALL_HOLD, "network": "unshare refused (Operation not permitted)",
-                    "pid": "unshare refused (Operation not permitted)"}), allow_unconfined=True)
+    r = check(
+        fake(
+            {
+                **ALL_HOLD,
+                "network": "unshare refused (Operation not permitted)",
+                "pid": "unshare refused (Operation not permitted)",
+            }
+        ),
+        allow_unconfined=True,
+    )
     assert r.status == WARNING, r
     assert "controllers run WITHOUT: " in r.detail and "network (unshare refused" in r.detail
     assert "pid (" in r.detail and "allowed by --allow-unconfined" in r.detail
@@ -70,8 +80,14 @@ def test_missing_layer_is_a_warning_when_the_educator_allowed_it():
 
 
 def test_sandbox_that_cannot_start_fails_even_when_allowed():
-    r = check(fake({}, error="no user namespace (Operation not permitted): the loop cannot be confined without root",
-                   mode="userns"), allow_unconfined=True)
+    r = check(
+        fake(
+            {},
+            error="no user namespace (Operation not permitted): the loop cannot be confined without root",
+            mode="userns",
+        ),
+        allow_unconfined=True,
+    )
     assert r.status == FAILURE and "could not start a controller" in r.detail and "no user namespace" in r.detail
     assert "user namespaces" in r.fix
 
@@ -154,18 +170,21 @@ def test_cli_shows_the_layers_and_honours_allow_unconfined(tmp_path):
 
 
 def test_helpers_refused_points_at_no_new_privileges():
-    r = check(fake({}, error="newuidmap/newgidmap refused the subordinate ids of /etc/subuid, /etc/subgid",
-                   mode="userns"))
+    r = check(
+        fake({}, error="newuidmap/newgidmap refused the subordinate ids of /etc/subuid, /etc/subgid", mode="userns")
+    )
     assert r.status == FAILURE and "NoNewPrivileges" in r.fix and "deploy/install" in r.fix
 
 
 # ---- xrf serve --allow-unconfined ----------------------------------------------------------
 
+
 def test_serve_allow_unconfined_reaches_the_settings(tmp_path, monkeypatch):
     """`xrf serve --allow-unconfined` (and --trusted-proxy beside it) end in the Settings the app
     is made with; without it the environment's default holds (off)."""
     from xrflab import cli
-    from xrflab.server import app as app_module, cli_serve
+    from xrflab.server import app as app_module
+    from xrflab.server import cli_serve
 
     seen = []
     monkeypatch.setattr(app_module, "create_app", lambda settings: settings)
@@ -176,8 +195,9 @@ def test_serve_allow_unconfined_reaches_the_settings(tmp_path, monkeypatch):
         args = parser.parse_args(["serve", "--data", str(tmp_path), "--trusted-proxy", "10.0.0.1", *argv])
         assert cli_serve.run(args) == 0
         assert seen[-1].allow_unconfined is want and seen[-1].trusted_proxies == ("10.0.0.1",)
-    text = subprocess.run([sys.executable, "-m", "xrflab.cli", "serve", "--help"], capture_output=True,
-                          text=True).stdout
+    text = subprocess.run(
+        [sys.executable, "-m", "xrflab.cli", "serve", "--help"], capture_output=True, text=True
+    ).stdout
     help_text = " ".join(text.split())
     assert "--allow-unconfined" in help_text and "let runs start when a protection layer" in help_text
     assert "--trusted-proxy" in help_text

@@ -66,6 +66,7 @@ def libevl(root: Path, prereq: int | None = 36, level: int | None = 36) -> Path:
 
 # ---------------------------------------------------------------------------------------- evl
 
+
 def test_evl_ok(tmp_path):
     r = doctor.check_evl(ctx(libevl(evl_core(pi(tmp_path)))))
     assert r.status == OK and "ABI 36" in r.detail
@@ -151,6 +152,7 @@ def test_isolation_without_evl_is_a_warning(tmp_path):
 
 # ---------------------------------------------------------------------------------- governor
 
+
 def governors(root: Path, *govs: str) -> None:
     for i, g in enumerate(govs):
         write(root, f"/sys/devices/system/cpu/cpu{i}/cpufreq/scaling_governor", g + "\n")
@@ -169,13 +171,17 @@ def test_governor_ok_warning_failure(tmp_path):
 
 # -------------------------------------------------------------------------------- throttling
 
-@pytest.mark.parametrize("value,status,words", [
-    ("0x0", OK, "no under-voltage"),
-    ("0x50000", WARNING, "since boot: under-voltage, throttled"),
-    ("0x80000", WARNING, "since boot: soft temperature limit"),
-    ("0x50005", FAILURE, "now: under-voltage, throttled"),
-    ("0x2", FAILURE, "now: ARM frequency capped"),
-])
+
+@pytest.mark.parametrize(
+    "value,status,words",
+    [
+        ("0x0", OK, "no under-voltage"),
+        ("0x50000", WARNING, "since boot: under-voltage, throttled"),
+        ("0x80000", WARNING, "since boot: soft temperature limit"),
+        ("0x50005", FAILURE, "now: under-voltage, throttled"),
+        ("0x2", FAILURE, "now: ARM frequency capped"),
+    ],
+)
 def test_throttling_from_vcgencmd(tmp_path, value, status, words):
     run = fake_runner({"vcgencmd": (0, f"throttled={value}\n")})
     r = doctor.check_throttling(ctx(pi(tmp_path), run))
@@ -199,10 +205,15 @@ def test_throttling_unknown(tmp_path):
 
 # --------------------------------------------------------------------------------------- spi
 
+
 def users(root: Path, spi_members: str = "xrf-loop,xrf") -> None:
-    write(root, "/etc/passwd", "root:x:0:0:root:/root:/bin/bash\n"
-                               "xrf:x:998:998::/var/lib/xrf-lab:/usr/sbin/nologin\n"
-                               "xrf-loop:x:997:997::/nonexistent:/usr/sbin/nologin\n")
+    write(
+        root,
+        "/etc/passwd",
+        "root:x:0:0:root:/root:/bin/bash\n"
+        "xrf:x:998:998::/var/lib/xrf-lab:/usr/sbin/nologin\n"
+        "xrf-loop:x:997:997::/nonexistent:/usr/sbin/nologin\n",
+    )
     gid = os.stat(root).st_gid  # the gid the prepared files get
     # spi first: the prepared device file's gid (0 when the tests run as root) is spi's
     write(root, "/etc/group", f"spi:x:{gid}:{spi_members}\nroot:x:0:\nxrf:x:998:\nxrf-loop:x:997:xrf\n")
@@ -236,17 +247,21 @@ def test_spi_missing(tmp_path):
 
 # -------------------------------------------------------------------------------------- fpga
 
+
 def spi_ready(root: Path) -> Path:
     users(pi(root))
     write(root, "/dev/spidev0.0", "", 0o660)
     return root
 
 
-@pytest.mark.parametrize("probe,status", [
-    (InitProbe(OK, "init: the board answered INIT"), OK),
-    (InitProbe(WARNING, "init: answered after a retry"), WARNING),
-    (InitProbe(FAILURE, "init: no answer to INIT"), FAILURE),
-])
+@pytest.mark.parametrize(
+    "probe,status",
+    [
+        (InitProbe(OK, "init: the board answered INIT"), OK),
+        (InitProbe(WARNING, "init: answered after a retry"), WARNING),
+        (InitProbe(FAILURE, "init: no answer to INIT"), FAILURE),
+    ],
+)
 def test_fpga_init(tmp_path, probe, status):
     r = doctor.check_fpga(ctx(spi_ready(tmp_path), init_probe=lambda c: probe))
     assert r.status == status and r.detail == probe.detail
@@ -270,15 +285,20 @@ def test_fpga_probe_without_selfcheck_tool_is_not_checked(tmp_path, monkeypatch)
 def test_fpga_probe_stops_after_init(tmp_path):
     """The real probe against a stand-in xrf-selfcheck that would go on to the motor steps."""
     root = spi_ready(tmp_path)
-    tool = write(root, "/var/cache/xrf-lab/rt_core/abc/bin/xrf-selfcheck", f"""#!{sys.executable}
+    tool = write(
+        root,
+        "/var/cache/xrf-lab/rt_core/abc/bin/xrf-selfcheck",
+        f"""#!{sys.executable}
 import json, sys, time, signal, pathlib
-signal.signal(signal.SIGTERM, lambda *a: (pathlib.Path({str(tmp_path / 'terminated')!r}).write_text('y'), sys.exit(2)))
+signal.signal(signal.SIGTERM, lambda *a: (pathlib.Path({str(tmp_path / "terminated")!r}).write_text('y'), sys.exit(2)))
 print(json.dumps({{"event": "start"}}), flush=True)
 print(json.dumps({{"event": "step", "id": "spi", "status": "pass", "title": "SPI", "text": "opened"}}), flush=True)
 print(json.dumps({{"event": "step", "id": "init", "status": "pass", "title": "INIT", "text": "board answered INIT"}}), flush=True)
 time.sleep(30)
 print(json.dumps({{"event": "step", "id": "motor.1", "status": "pass"}}), flush=True)
-""", 0o755)
+""",
+        0o755,
+    )
     assert tool.exists()
     p = doctor.probe_fpga_init(ctx(root))
     assert p.status == OK and "board answered INIT" in p.detail
@@ -286,6 +306,7 @@ print(json.dumps({{"event": "step", "id": "motor.1", "status": "pass"}}), flush=
 
 
 # ------------------------------------------------------------------------------------- clock
+
 
 def test_clock_ok_warning_failure(tmp_path):
     r = doctor.check_clock(ctx(tmp_path, fake_runner({"timedatectl": (0, "yes\n")})))
@@ -299,6 +320,7 @@ def test_clock_ok_warning_failure(tmp_path):
 
 
 # -------------------------------------------------------------------------------------- disk
+
 
 @pytest.mark.parametrize("free,status", [(50 * 10**9, OK), (1 * 10**9, WARNING), (100 * 10**6, FAILURE)])
 def test_disk(tmp_path, free, status):
@@ -316,6 +338,7 @@ def test_disk(tmp_path, free, status):
 
 # -------------------------------------------------------------------------------------- ros2
 
+
 def test_ros2(tmp_path):
     r = doctor.check_ros2(ctx(tmp_path, find_module=lambda n: True))
     assert r.status == OK
@@ -330,6 +353,7 @@ def test_ros2(tmp_path):
 
 # ------------------------------------------------------------------------------ all together
 
+
 def ready_pi(root: Path) -> Path:
     libevl(evl_core(spi_ready(root)))
     write(root, "/proc/cmdline", f"{CMD} isolcpus=3 evl.oobcpus=3\n")
@@ -341,13 +365,29 @@ def ready_pi(root: Path) -> Path:
 
 def test_run_checks_on_a_ready_pi(tmp_path):
     run = fake_runner({"vcgencmd": (0, "throttled=0x0\n"), "timedatectl": (0, "yes\n")})
-    results = doctor.run_checks(ready_pi(tmp_path), run, now=lambda: NOW,
-                                disk_usage=lambda p: (1, 0, 10**11), find_module=lambda n: True,
-                                init_probe=lambda c: InitProbe(OK, "init: answered"),
-                                guest_probe=lambda c: ConfinementProbe(
-                                    GuestReport(mode="userns", layers={"user": "", "mount": ""}), "as xrf-loop"))
-    assert [r.id for r in results] == ["evl", "isolcpus", "governor", "throttling", "spi", "fpga",
-                                       "clock", "disk", "ros2", "confinement"]
+    results = doctor.run_checks(
+        ready_pi(tmp_path),
+        run,
+        now=lambda: NOW,
+        disk_usage=lambda p: (1, 0, 10**11),
+        find_module=lambda n: True,
+        init_probe=lambda c: InitProbe(OK, "init: answered"),
+        guest_probe=lambda c: ConfinementProbe(
+            GuestReport(mode="userns", layers={"user": "", "mount": ""}), "as xrf-loop"
+        ),
+    )
+    assert [r.id for r in results] == [
+        "evl",
+        "isolcpus",
+        "governor",
+        "throttling",
+        "spi",
+        "fpga",
+        "clock",
+        "disk",
+        "ros2",
+        "confinement",
+    ]
     assert all(r.status == OK for r in results), [(r.id, r.status, r.detail) for r in results]
     assert all(set(r.to_dict()) == {"id", "title", "status", "detail", "fix"} for r in results[:-1])
     assert set(results[-1].to_dict()) == {"id", "title", "status", "detail", "fix", "items"}
@@ -368,15 +408,31 @@ def test_cli_json_and_exit_code(tmp_path):
     pi(tmp_path)
     write(tmp_path, "/proc/cmdline", CMD + "\n")
     governors(tmp_path, "ondemand")
-    proc = subprocess.run([sys.executable, "-m", "xrflab.cli", "doctor", "--json", "--no-live",
-                           "--root", str(tmp_path), "--data", "/var/lib/xrf-lab"],
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "xrflab.cli",
+            "doctor",
+            "--json",
+            "--no-live",
+            "--root",
+            str(tmp_path),
+            "--data",
+            "/var/lib/xrf-lab",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 1, proc.stderr
     results = {r["id"]: r for r in json.loads(proc.stdout)}
     assert results["evl"]["status"] == FAILURE
     assert results["governor"]["status"] == FAILURE and results["governor"]["fix"]
     assert results["fpga"]["status"] == SKIPPED
     assert results["confinement"]["status"] == SKIPPED  # the sandbox is probed on the machine itself only
-    text = subprocess.run([sys.executable, "-m", "xrflab.cli", "doctor", "--no-live", "--root", str(tmp_path)],
-                          capture_output=True, text=True)
+    text = subprocess.run(
+        [sys.executable, "-m", "xrflab.cli", "doctor", "--no-live", "--root", str(tmp_path)],
+        capture_output=True,
+        text=True,
+    )
     assert "[FAIL] CPU frequency governor" in text.stdout and "fix: " in text.stdout

@@ -4,6 +4,7 @@ CI machines have no libevl, so this test runs only when XRF_EVL_INCLUDE points a
 (a libevl install's include dir, or several dirs separated by ':'); otherwise it is skipped, and
 the skip says why. docs/rt_core/evl.md explains how to get the headers and run it.
 """
+
 import os
 import pathlib
 import subprocess

@@ -26,7 +26,6 @@ from pathlib import Path
 import pytest
 
 from xrf_testing.loops import LoopProcess
-
 from xrflab.build import BuildError, build_project
 from xrflab.channels import lib
 
@@ -48,8 +47,9 @@ SWITCH = "), SIGDEBUG"
 def evl_prefix(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The look-alike installed like libevl under /usr/evl: include/evl/*.h, lib/libevl.so."""
     prefix = tmp_path_factory.mktemp("evl-lookalike")
-    subprocess.run(["sh", str(LOOKALIKE / "build.sh"), str(prefix)], check=True,
-                   capture_output=True, text=True, timeout=120)
+    subprocess.run(
+        ["sh", str(LOOKALIKE / "build.sh"), str(prefix)], check=True, capture_output=True, text=True, timeout=120
+    )
     return prefix
 
 
@@ -78,8 +78,7 @@ def _exe(evl_builds: dict, name: str) -> Path:
 
 
 def _start(exe: Path, shm: str, cwd: Path, **env: str) -> LoopProcess:
-    return LoopProcess(exe, shm, cwd, XRF_BACKEND="evl", XRF_QUIET="0", XRF_EVL_LOOKALIKE_TRACE="1",
-                       **env)
+    return LoopProcess(exe, shm, cwd, XRF_BACKEND="evl", XRF_QUIET="0", XRF_EVL_LOOKALIKE_TRACE="1", **env)
 
 
 def _to_run(lp: LoopProcess, cycles: int = 200) -> None:
@@ -157,16 +156,20 @@ def test_stop_signal_is_taken_in_band_and_stops_cleanly(evl_builds, sig, shm_nam
     assert st.demotions == 0 and SWITCH not in out, out
 
 
-@pytest.mark.parametrize("err, hint", [
-    ("EACCES", "/dev/evl/control"),
-    ("EACCES", "group 'evl'"),
-    ("ENOSYS", "no EVL core in this kernel"),
-    ("ENOEXEC", "ABI mismatch between libevl and the kernel"),
-])
+@pytest.mark.parametrize(
+    "err, hint",
+    [
+        ("EACCES", "/dev/evl/control"),
+        ("EACCES", "group 'evl'"),
+        ("ENOSYS", "no EVL core in this kernel"),
+        ("ENOEXEC", "ABI mismatch between libevl and the kernel"),
+    ],
+)
 def test_evl_init_failure_says_what_to_do(evl_builds, err, hint, shm_name, tmp_path):
     env = dict(os.environ, XRF_SHM=shm_name, XRF_BACKEND="evl", XRF_EVL_LOOKALIKE_INIT_ERRNO=err)
-    proc = subprocess.run([str(_exe(evl_builds, "relbot"))], cwd=tmp_path, env=env, capture_output=True,
-                          text=True, timeout=30)
+    proc = subprocess.run(
+        [str(_exe(evl_builds, "relbot"))], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=30
+    )
     assert proc.returncode != 0
     assert f"evl_init failed: {os.strerror(getattr(errno, err))}" in proc.stderr, proc.stderr
     assert hint in proc.stderr, proc.stderr
@@ -191,8 +194,12 @@ def test_doorbell_through_the_proxy_and_refused_writes_published(evl_builds, shm
         _to_run(lp, cycles=50)
         waits, woken = _wait_doorbells(lp, 1.0)
         st = lp.ch.status()
-        state = subprocess.run([sys.executable, "-m", "xrflab.cli", "state", "--json", "--shm", shm_name],
-                               capture_output=True, text=True, timeout=30)
+        state = subprocess.run(
+            [sys.executable, "-m", "xrflab.cli", "state", "--json", "--shm", shm_name],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
         code, out = _stop(lp)
         end = lp.ch.status()
     finally:

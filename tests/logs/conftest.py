@@ -9,9 +9,8 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))  # writers.py
 
-from writers import xrflog_segment  # noqa: E402
-
 from log_cases import VARIABLES, edge_rows  # noqa: E402
+from writers import xrflog_segment  # noqa: E402
 
 
 @pytest.fixture

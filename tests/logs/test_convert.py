@@ -8,15 +8,25 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from log_cases import VARIABLES, columns_of, edge_rows, same_bits
 from writers import xrf2_bin, xrflog_segment
+
 from xrflab.cli import main as xrf_main
 from xrflab.logs import convert, iter_csv_chunks, open_log
 from xrflab.logs.convert import matlab_names, variable_groups
 
-CSV_TYPES = {"flag": np.uint8, "letter": np.uint8, "count": np.int32, "ratio": np.float32, "value": np.float64,
-             "big": np.int64, "pos_left": np.float64, "pos_right": np.float64, "cycle_2": np.int64, "2 bad-name": np.int32}
+CSV_TYPES = {
+    "flag": np.uint8,
+    "letter": np.uint8,
+    "count": np.int32,
+    "ratio": np.float32,
+    "value": np.float64,
+    "big": np.int64,
+    "pos_left": np.float64,
+    "pos_right": np.float64,
+    "cycle_2": np.int64,
+    "2 bad-name": np.int32,
+}
 
 
 def _expected(rows):
@@ -41,8 +51,11 @@ def test_csv_round_trip(edge_file: Path) -> None:
     for j, name in enumerate(head[4:], start=4):
         text = [r[j] for r in body]
         t = CSV_TYPES[name]
-        got = np.array([t(float(x)) if np.issubdtype(t, np.floating) else int(x) for x in text], dtype=t) \
-            if np.issubdtype(t, np.floating) else np.array([int(x) for x in text], dtype=t)
+        got = (
+            np.array([t(float(x)) if np.issubdtype(t, np.floating) else int(x) for x in text], dtype=t)
+            if np.issubdtype(t, np.floating)
+            else np.array([int(x) for x in text], dtype=t)
+        )
         assert _same_or_both_nan(got, want[name].astype(t, copy=False)), name
     assert [int(r[0]) for r in body] == list(range(len(body)))
 
@@ -87,9 +100,10 @@ def test_seconds_from_the_start_in_every_table(tmp_path: Path) -> None:
     variables = [("t_s", 5), ("v", 3)]
     path = tmp_path / "secs.xrf"
     # two segments (an appending writer): the second run started 5 s later on the same clock
-    path.write_bytes(xrflog_segment(variables, [(-1.0, i) for i in range(5)], t0=2_000_000_000)
-                     + xrflog_segment(variables, [(-2.0, i) for i in range(3)], t0=7_000_000_000,
-                                      period_ns=250_000))
+    path.write_bytes(
+        xrflog_segment(variables, [(-1.0, i) for i in range(5)], t0=2_000_000_000)
+        + xrflog_segment(variables, [(-2.0, i) for i in range(3)], t0=7_000_000_000, period_ns=250_000)
+    )
     want = [(i + 10) * 1e-3 for i in range(5)] + [(i + 10) * 0.25e-3 for i in range(3)]
 
     rows = list(csv.reader(io.StringIO(convert(path, "csv").read_text())))
@@ -165,7 +179,11 @@ def test_rrd_round_trip(edge_file: Path) -> None:
 
 def test_variable_groups() -> None:
     assert variable_groups(["pos_left", "pos_right", "x", "steer_left"]) == {
-        "pos_left": "pos", "pos_right": "pos", "x": "signals", "steer_left": "signals"}
+        "pos_left": "pos",
+        "pos_right": "pos",
+        "x": "signals",
+        "steer_left": "signals",
+    }
 
 
 def test_matlab_names() -> None:

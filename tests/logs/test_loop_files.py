@@ -13,7 +13,6 @@ from xrf_testing.loops import LoopProcess, build_probe
 from xrflab.logs import convert, open_log
 
 
-
 @pytest.fixture(scope="module")
 def probe(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return build_probe(tmp_path_factory.mktemp("probe-build"))

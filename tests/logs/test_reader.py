@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from log_cases import VARIABLES, columns_of, edge_rows, same_bits
 from writers import xrf2_bin, xrflog_segment
+
 from xrflab.logs import LogFormatError, open_log
 from xrflab.logs.reader import MAGIC
 
@@ -43,7 +43,7 @@ def test_truncated_last_record_is_dropped_and_reported(tmp_path: Path) -> None:
     full = xrflog_segment(VARIABLES, edge_rows(10))
     stride = struct.unpack_from("<I", full, 12)[0]
     path = tmp_path / "cut.xrf"
-    path.write_bytes(full[:-stride + 30])  # 30 bytes of the last record made it to disk
+    path.write_bytes(full[: -stride + 30])  # 30 bytes of the last record made it to disk
     log = open_log(path)
     assert len(log.records) == 9
     assert log.skipped_bytes == 30
@@ -80,7 +80,7 @@ def test_truncated_segment_followed_by_a_new_one(tmp_path: Path) -> None:
     first = xrflog_segment(VARIABLES, rows[:10])
     second = xrflog_segment(VARIABLES, rows[10:])
     stride = struct.unpack_from("<I", first, 12)[0]
-    (tmp_path / "f.xrf").write_bytes(first[:-stride + 11] + second)
+    (tmp_path / "f.xrf").write_bytes(first[: -stride + 11] + second)
     log = open_log(tmp_path / "f.xrf")
     assert [len(s.records) for s in log.segments] == [9, 10]
     assert any("11 bytes" in n for n in log.skipped)
@@ -117,7 +117,7 @@ def test_garbage_overwriting_records_reports_loss(tmp_path: Path) -> None:
     data = bytearray(xrflog_segment(VARIABLES, rows))
     stride = struct.unpack_from("<I", data, 12)[0]
     start = len(data) - 20 * stride + 5
-    data[start:start + 2 * stride] = b"\xff" * (2 * stride)  # destroys records 20, 21 and 22
+    data[start : start + 2 * stride] = b"\xff" * (2 * stride)  # destroys records 20, 21 and 22
     (tmp_path / "o.xrf").write_bytes(bytes(data))
     log = open_log(tmp_path / "o.xrf")
     assert len(log.records) == 37 and log.lost == 3
@@ -136,14 +136,16 @@ def test_garbage_between_segments_and_before_the_first(tmp_path: Path) -> None:
 
 def test_damaged_magic_and_unparsable_json(tmp_path: Path) -> None:
     rows = edge_rows(30)
-    a, b, c = (xrflog_segment(VARIABLES, rows[i:i + 10]) for i in (0, 10, 20))
+    a, b, c = (xrflog_segment(VARIABLES, rows[i : i + 10]) for i in (0, 10, 20))
     bad_json = bytearray(b)
     bad_json[16:18] = b"{{"  # the JSON starts at byte 16
     bad_magic = b"XRFL0G1\n" + a[8:]
     (tmp_path / "m.xrf").write_bytes(a + bytes(bad_json) + c)
     log = open_log(tmp_path / "m.xrf")
     assert [len(s.records) for s in log.segments] == [10, 10]
-    assert same_bits(log.records["count"], np.concatenate([columns_of(rows)["count"][:10], columns_of(rows)["count"][20:]]))
+    assert same_bits(
+        log.records["count"], np.concatenate([columns_of(rows)["count"][:10], columns_of(rows)["count"][20:]])
+    )
     assert any("JSON header does not parse" in n and f"{len(b)} bytes" in n for n in log.skipped), log.skipped
     (tmp_path / "n.xrf").write_bytes(bad_magic + c)
     log = open_log(tmp_path / "n.xrf")

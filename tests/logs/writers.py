@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import json
 import struct
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 from xrflab.logs.logformat import MAGIC, VAR_TYPES
 
@@ -23,10 +24,17 @@ def payload_format(codes: Sequence[int]) -> str:
     return "<" + "".join(TYPES[c][0] for c in codes)
 
 
-def xrflog_segment(variables: Sequence[tuple[str, int]], rows: Sequence[Sequence[Any]], *,
-                   seqs: Sequence[int] | None = None, cycles: Sequence[int] | None = None,
-                   t0: int = 1_000_000_000, period_ns: int = 1_000_000, extra_header: dict | None = None,
-                   stride_pad: int = 0) -> bytes:
+def xrflog_segment(
+    variables: Sequence[tuple[str, int]],
+    rows: Sequence[Sequence[Any]],
+    *,
+    seqs: Sequence[int] | None = None,
+    cycles: Sequence[int] | None = None,
+    t0: int = 1_000_000_000,
+    period_ns: int = 1_000_000,
+    extra_header: dict | None = None,
+    stride_pad: int = 0,
+) -> bytes:
     """One segment: magic, J, S, JSON + padding, then one record per row."""
     codes = [c for _, c in variables]
     fmt = payload_format(codes)
@@ -36,12 +44,24 @@ def xrflog_segment(variables: Sequence[tuple[str, int]], rows: Sequence[Sequence
     for c in codes:
         offsets.append(pos)
         pos += TYPES[c][1]
-    header = {"format": "xrflog", "version": 1, "program": "writer", "project": "", "build": "", "run": "",
-              "pid": 1, "cycle_freq": 1000, "start_unix_ns": 1_795_000_000_000_000_000, "start_mono_ns": t0,
-              "record_header": [["seq", "uint64"], ["cycle", "uint64"], ["t_ns", "int64"]],
-              "record_size": record_size,
-              "variables": [{"name": n, "type": c, "dtype": VAR_TYPES[c].header_dtype, "offset": o}
-                            for (n, c), o in zip(variables, offsets)]}
+    header = {
+        "format": "xrflog",
+        "version": 1,
+        "program": "writer",
+        "project": "",
+        "build": "",
+        "run": "",
+        "pid": 1,
+        "cycle_freq": 1000,
+        "start_unix_ns": 1_795_000_000_000_000_000,
+        "start_mono_ns": t0,
+        "record_header": [["seq", "uint64"], ["cycle", "uint64"], ["t_ns", "int64"]],
+        "record_size": record_size,
+        "variables": [
+            {"name": n, "type": c, "dtype": VAR_TYPES[c].header_dtype, "offset": o}
+            for (n, c), o in zip(variables, offsets)
+        ],
+    }
     header.update(extra_header or {})
     js = (json.dumps(header) + "\n").encode()
     out = bytearray(MAGIC + struct.pack("<II", len(js), stride) + js)

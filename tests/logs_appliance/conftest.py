@@ -9,8 +9,9 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from logs_support import REPO, Server, start  # noqa: E402
 from harness import stop_server  # noqa: E402
+from logs_support import REPO, Server, start  # noqa: E402
+
 from xrf_testing.loops import build_probe  # noqa: E402
 
 

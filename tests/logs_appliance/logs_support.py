@@ -31,6 +31,3 @@ def projects_dir() -> Path:
 
 def start(data_dir: Path, **settings) -> Server:
     return start_server(data_dir, shared_builds_root(), projects_dir=str(projects_dir()), **settings)
-
-
-

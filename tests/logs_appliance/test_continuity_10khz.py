@@ -10,9 +10,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from logs_support import COST, start
 from harness import stop_server
+from logs_support import COST, start
 
 from xrflab.logs import open_log
 
@@ -28,9 +27,24 @@ def test_60s_at_10khz_32_doubles_under_load_loses_nothing(tmp_path: Path) -> Non
         run = s.start_run(COST)
         for cmd in ("initialise", "start"):
             assert s.http.post("/api/runs/current/command", json={"cmd": cmd}).json()["accepted"]
-        stress = subprocess.Popen(["stress-ng", "--cpu", str(os.cpu_count() or 1), "--io", "1", "--vm", "1",
-                                   "--vm-bytes", "128M", "--timeout", f"{int(SECONDS) + 5}s", "--quiet"],
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        stress = subprocess.Popen(
+            [
+                "stress-ng",
+                "--cpu",
+                str(os.cpu_count() or 1),
+                "--io",
+                "1",
+                "--vm",
+                "1",
+                "--vm-bytes",
+                "128M",
+                "--timeout",
+                f"{int(SECONDS) + 5}s",
+                "--quiet",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         time.sleep(SECONDS)
         live = next(x for x in s.http.get("/api/logs/runs").json() if x["id"] == run["id"])
         assert live["live"] and live["log_lost"] == 0
@@ -50,8 +64,10 @@ def test_60s_at_10khz_32_doubles_under_load_loses_nothing(tmp_path: Path) -> Non
         stale = np.flatnonzero(rec["d0"] != c)
         assert len(stale) <= 10, stale
         assert np.all(rec["d0"][stale] < c[stale])
-        print(f"\n{len(rec)} records, {r['misses']} deadline misses, lost {r['log_lost']}, "
-              f"{len(stale)} records repeating an earlier cycle's values, last state {r['state']}")
+        print(
+            f"\n{len(rec)} records, {r['misses']} deadline misses, lost {r['log_lost']}, "
+            f"{len(stale)} records repeating an earlier cycle's values, last state {r['state']}"
+        )
     finally:
         if stress is not None:
             stress.terminate()

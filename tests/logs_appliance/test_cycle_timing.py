@@ -12,9 +12,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from harness import Server
 from logs_support import PROBE, REPO
+
 from xrf_testing.loops import LoopProcess
 from xrflab.channels import STAGE_NAMES
 from xrflab.logs import open_log
@@ -26,13 +26,25 @@ def _hists(lp: LoopProcess) -> dict[str, tuple[int, int, int]]:
     """(count, sum_ns, max_ns) per stage, exact (Channels.histograms() gives the mean only). Plain
     ints: a field of the cffi status struct does not keep the struct alive."""
     st = lp.ch._status_struct()
-    return {name: (int(st.hist[i].count), int(st.hist[i].sum_ns), int(st.hist[i].max_ns))
-            for i, name in enumerate(STAGE_NAMES)}
+    return {
+        name: (int(st.hist[i].count), int(st.hist[i].sum_ns), int(st.hist[i].max_ns))
+        for i, name in enumerate(STAGE_NAMES)
+    }
 
 
-def test_standalone_loop_logs_every_cycle_and_matches_its_histograms(probe: Path, shm_name: str, tmp_path: Path) -> None:
-    lp = LoopProcess(probe, shm_name, tmp_path, capture=False, XRF_LOG_DIR=str(tmp_path), XRF_LOG_TIMING="1",
-                     XRF_TRANSPORT="sim", XRF_MAX_CYCLES="3000")
+def test_standalone_loop_logs_every_cycle_and_matches_its_histograms(
+    probe: Path, shm_name: str, tmp_path: Path
+) -> None:
+    lp = LoopProcess(
+        probe,
+        shm_name,
+        tmp_path,
+        capture=False,
+        XRF_LOG_DIR=str(tmp_path),
+        XRF_LOG_TIMING="1",
+        XRF_TRANSPORT="sim",
+        XRF_MAX_CYCLES="3000",
+    )
     try:
         lp.command("initialise", "INITIALISED")
         lp.command("start", "RUN")
@@ -50,8 +62,15 @@ def test_standalone_loop_logs_every_cycle_and_matches_its_histograms(probe: Path
         assert np.all(np.diff(rec["t_ns"]) > 0)
         # the same cycles as the status histograms, to the nanosecond
         hists = _hists(lp)
-        for var, stage in (("cycle_ns", "cycle"), ("hook_ns", "hook"), ("data_ns", "data"), ("cmd_ns", "cmd"),
-                           ("logger_ns", "logger"), ("monitor_ns", "monitor"), ("fpga_ns", "fpga")):
+        for var, stage in (
+            ("cycle_ns", "cycle"),
+            ("hook_ns", "hook"),
+            ("data_ns", "data"),
+            ("cmd_ns", "cmd"),
+            ("logger_ns", "logger"),
+            ("monitor_ns", "monitor"),
+            ("fpga_ns", "fpga"),
+        ):
             count, sum_ns, max_ns = hists[stage]
             ran = rec[var][rec[var] >= 0]
             assert len(ran) == count, var
@@ -65,8 +84,9 @@ def test_standalone_loop_logs_every_cycle_and_matches_its_histograms(probe: Path
 
 
 def test_without_the_option_nothing_is_logged(probe: Path, shm_name: str, tmp_path: Path) -> None:
-    lp = LoopProcess(probe, shm_name, tmp_path, capture=False, XRF_LOG_DIR=str(tmp_path), XRF_TRANSPORT="sim",
-                     XRF_MAX_CYCLES="200")
+    lp = LoopProcess(
+        probe, shm_name, tmp_path, capture=False, XRF_LOG_DIR=str(tmp_path), XRF_TRANSPORT="sim", XRF_MAX_CYCLES="200"
+    )
     try:
         assert lp.proc.wait(30) == 0
         assert int(lp.ch.shm.timing_meta.ready) == 0
@@ -99,8 +119,22 @@ def test_a_run_with_timing_lists_it_as_a_log_and_downloads_it(server: Server, tm
     assert got.status_code == 200
     env = dict(os.environ, PYTHONPATH=str(REPO / "appliance"))
     want = tmp_path / "cli.csv"
-    subprocess.run([sys.executable, "-m", "xrflab.cli", "decode", str(server.data_dir / "runs" / str(run_id) / "cycle_timing.xrf"),
-                    "--to", "csv", "-o", str(want)], check=True, env=env, capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "xrflab.cli",
+            "decode",
+            str(server.data_dir / "runs" / str(run_id) / "cycle_timing.xrf"),
+            "--to",
+            "csv",
+            "-o",
+            str(want),
+        ],
+        check=True,
+        env=env,
+        capture_output=True,
+    )
     assert got.content == want.read_bytes()
     # a run without the option has no timing log
     server.stop_run()

@@ -23,8 +23,16 @@ def loop(probe: Path, shm_name: str):
     started: list[LoopProcess] = []
 
     def start(log_dir: Path, **env: str) -> LoopProcess:
-        lp = LoopProcess(probe, shm_name, log_dir, capture=False, XRF_LOG_DIR=str(log_dir),
-                         XRF_LOG_WRITER="host", XRF_TRANSPORT="sim", **env)
+        lp = LoopProcess(
+            probe,
+            shm_name,
+            log_dir,
+            capture=False,
+            XRF_LOG_DIR=str(log_dir),
+            XRF_LOG_WRITER="host",
+            XRF_TRANSPORT="sim",
+            **env,
+        )
         started.append(lp)
         return lp
 
@@ -169,17 +177,29 @@ def test_host_and_loop_write_the_same_header_bytes(probe: Path, shm_name: str, t
     from xrflab.logs.logformat import PREFIX_SIZE
 
     identity = {"project": 'pro"ject \u00fc', "build": "b\\1\ttab", "run": "77"}
-    lp = LoopProcess(probe, shm_name, tmp_path, capture=False, XRF_LOG_DIR=str(tmp_path), XRF_LOG_WRITER="process",
-                     XRF_TRANSPORT="sim", XRF_LOG_TIMING="1", XRF_PROJECT=identity["project"],
-                     XRF_BUILD_ID=identity["build"], XRF_RUN_ID=identity["run"])
+    lp = LoopProcess(
+        probe,
+        shm_name,
+        tmp_path,
+        capture=False,
+        XRF_LOG_DIR=str(tmp_path),
+        XRF_LOG_WRITER="process",
+        XRF_TRANSPORT="sim",
+        XRF_LOG_TIMING="1",
+        XRF_PROJECT=identity["project"],
+        XRF_BUILD_ID=identity["build"],
+        XRF_RUN_ID=identity["run"],
+    )
     try:
         lp.command("initialise", "INITIALISED")
         written: dict[str, bytes | None] = {}
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline:
             logs = sorted((tmp_path / "logs").glob("probe_*.xrf"))
-            written = {"log": _whole_header(logs[0]) if logs else None,
-                       "cycle_timing": _whole_header(tmp_path / "cycle_timing.xrf")}
+            written = {
+                "log": _whole_header(logs[0]) if logs else None,
+                "cycle_timing": _whole_header(tmp_path / "cycle_timing.xrf"),
+            }
             if all(written.values()):
                 break
             time.sleep(0.05)

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import httpx
 import pytest
-
-from logs_support import PROBE, start, wait_for
 from harness import ADMIN_PASSWORD, ADMIN_USER, Server, login_client, stop_server
+from logs_support import PROBE, start, wait_for
+
 from xrf_testing.grpcweb import GRPC_WEB, READ_MESSAGES, read_messages
 from xrf_testing.net import established_to, lan_address, listening_addresses
 from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of
@@ -129,8 +129,9 @@ def test_the_live_stream_refuses_what_it_must(lan) -> None:
         r = http.post(proxy_url, headers=GRPC_WEB, content=b"\0" * (65 * 1024))
         assert r.status_code == 413 and r.headers["grpc-status"] == "8"
         # an API token (`xrf login`) needs no Origin: it is not a browser
-        token = httpx.post(url + "/api/auth/token", json={"username": ADMIN_USER, "password": ADMIN_PASSWORD},
-                           headers={"Origin": url}).json()["token"]
+        token = httpx.post(
+            url + "/api/auth/token", json={"username": ADMIN_USER, "password": ADMIN_PASSWORD}, headers={"Origin": url}
+        ).json()["token"]
         with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"}) as api:
             got = read_messages(api, READ_MESSAGES, until=lambda d: b"run-" in d)
             assert got.status == 200 and b"run-" in got.data
@@ -207,8 +208,11 @@ def test_a_closed_viewer_frees_its_stream(lan) -> None:
             got = read_messages(http, READ_MESSAGES, until=lambda d: b"run-" in d)
             assert got.status == 200
         # each stream was closed by the client mid-way: the appliance closes its upstream too
-        wait_for(lambda: http.get("/api/logs/rerun").json()["live_viewers"] == before, timeout=10,
-                 what="closed viewers to be counted out")
+        wait_for(
+            lambda: http.get("/api/logs/rerun").json()["live_viewers"] == before,
+            timeout=10,
+            what="closed viewers to be counted out",
+        )
         (port,) = live_proxies(server).values()
         assert established_to(port) <= 1  # only the run's own recording stream
     finally:
@@ -238,8 +242,13 @@ def test_a_connected_viewer_gets_one_message_per_view_and_new_samples(lan) -> No
             entities[chunk.entity] = entities.get(chunk.entity, 0) + 1
             newest[0] = max(newest[0], chunk.newest_time_ns)
 
-        got = read_messages(http, READ_MESSAGES, on_message=on_message, timeout=60,
-                            until=lambda _: newest[0] > connected_ns + 1_000_000_000 and entities.get("/log/signals", 0) >= 5)
+        got = read_messages(
+            http,
+            READ_MESSAGES,
+            on_message=on_message,
+            timeout=60,
+            until=lambda _: newest[0] > connected_ns + 1_000_000_000 and entities.get("/log/signals", 0) >= 5,
+        )
         assert got.ended_by == "until", (got.ended_by, entities)
         # the probe's six variables (one group, `signals`) are one entity: one message per batch
         assert "/log/signals" in entities, entities
@@ -263,4 +272,3 @@ def test_no_live_stream_before_the_first_run(tmp_path: Path) -> None:
         assert not live_proxies(s)
     finally:
         stop_server(s)
-

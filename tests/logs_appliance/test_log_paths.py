@@ -25,6 +25,7 @@ import numpy as np
 import pytest
 from harness import stop_server
 from logs_support import REPO, shared_builds_root, start_server, wait_for
+
 from xrf_testing.loops import LoopProcess
 from xrflab.logs import open_log
 from xrflab.logs.live import HostLogWriter
@@ -32,8 +33,8 @@ from xrflab.logs.logformat import MAGIC
 from xrflab.logs.runfolder import RunPathError, confine, open_in
 
 XRF2_NAME = "xrf2-home-log"
-STUDENT_LOG = "/home/student/logs/log"          # what the student's XenoFileHandler names
-STUDENT_FILE = "home/student/logs/log.bin"       # where it must land, relative to the run
+STUDENT_LOG = "/home/student/logs/log"  # what the student's XenoFileHandler names
+STUDENT_FILE = "home/student/logs/log.bin"  # where it must land, relative to the run
 
 
 # ---- the name rule and the safe open, on a real file system -----------------------------------
@@ -43,7 +44,7 @@ def test_confine_maps_absolute_names_and_refuses_dot_dot(tmp_path: Path) -> None
     run = tmp_path / "runs" / "12"
     assert confine(run, "/home/x/logs/log.xrf") == "home/x/logs/log.xrf"
     assert confine(run, "/temp//a/./b.bin") == "temp/a/b.bin"
-    assert confine(run, f"{run}/home/x/log.xrf") == "home/x/log.xrf"   # the runtime's mapped name
+    assert confine(run, f"{run}/home/x/log.xrf") == "home/x/log.xrf"  # the runtime's mapped name
     assert confine(run, "logs/probe.xrf") == "logs/probe.xrf"
     for bad in ("../x.xrf", "/home/../../etc/passwd", "a/../../b", "", "/", "a\0b"):
         with pytest.raises(RunPathError):
@@ -79,8 +80,15 @@ def test_open_in_follows_no_symlink_and_takes_plain_files_only(tmp_path: Path) -
 @pytest.fixture
 def published_loop(probe: Path, shm_name: str, tmp_path: Path) -> Iterator[LoopProcess]:
     """The probe in INITIALISED with its log published (host writer mode), logging every cycle."""
-    lp = LoopProcess(probe, shm_name, tmp_path, capture=False, XRF_LOG_WRITER="host", XRF_TRANSPORT="sim",
-                     XRF_LOG_DIR=str(tmp_path / "loopdir"))
+    lp = LoopProcess(
+        probe,
+        shm_name,
+        tmp_path,
+        capture=False,
+        XRF_LOG_WRITER="host",
+        XRF_TRANSPORT="sim",
+        XRF_LOG_DIR=str(tmp_path / "loopdir"),
+    )
     lp.command("initialise", "INITIALISED")
     yield lp
     if lp.proc.poll() is None:
@@ -131,7 +139,7 @@ def test_host_writer_never_writes_outside_the_run(published_loop: LoopProcess, t
     (outside / "accounts.sqlite3").write_bytes(b"SQLite format 3\0")
     if case == "dot-dot":
         _publish(published_loop, "../precious/accounts.sqlite3")
-    elif case == "symlinked-folder":   # the loop made <run>/home a link to a folder of the appliance
+    elif case == "symlinked-folder":  # the loop made <run>/home a link to a folder of the appliance
         (run / "home").symlink_to(outside)
         _publish(published_loop, "/home/accounts.sqlite3")
     elif case == "symlinked-file":
@@ -147,8 +155,12 @@ def test_host_writer_never_writes_outside_the_run(published_loop: LoopProcess, t
     assert w.stats.records == 0 and w.stats.unwritten > 0
     assert sorted(p.name for p in outside.iterdir()) == ["accounts.sqlite3"]
     assert (outside / "accounts.sqlite3").read_bytes() == b"SQLite format 3\0"
-    expect = {"dot-dot": "leaves the run folder", "symlinked-folder": "cannot write the log file",
-              "symlinked-file": "cannot write the log file", "fifo": "cannot write the log file"}[case]
+    expect = {
+        "dot-dot": "leaves the run folder",
+        "symlinked-folder": "cannot write the log file",
+        "symlinked-file": "cannot write the log file",
+        "fifo": "cannot write the log file",
+    }[case]
     assert expect in w.stats.failed, w.stats.failed
 
 
@@ -156,8 +168,9 @@ def test_runtime_maps_xrf2_names_and_says_so(probe: Path, shm_name: str, tmp_pat
     """The runtime's own mapping (XRF_LOG_DIR set): the probe's relative name stays, and the
     set-up line says where the file goes; the in-band writer writes it there."""
     run = tmp_path / "run"
-    lp = LoopProcess(probe, shm_name, tmp_path, capture=True, XRF_LOG_DIR=str(run), XRF_TRANSPORT="sim",
-                     XRF_MAX_CYCLES="300")
+    lp = LoopProcess(
+        probe, shm_name, tmp_path, capture=True, XRF_LOG_DIR=str(run), XRF_TRANSPORT="sim", XRF_MAX_CYCLES="300"
+    )
     lp.command("initialise", "INITIALISED")
     rc, out = lp.finish()
     assert rc == 0, out
@@ -220,25 +233,43 @@ def test_xrf2_log_in_home_lands_in_the_runs_downloads(xrf2_server) -> None:
             assert ws.command(cmd)["accepted"], cmd
             ws.wait_state(state, timeout=10)
         # The console: the runtime's set-up line (stdout) and the appliance's (where it wrote).
-        ws.wait_for(lambda m: m.get("type") == "monitor" and any(
-            f"xrf: log {STUDENT_LOG}.bin -> {STUDENT_FILE} in the run folder" in ln["text"] for ln in m["lines"]),
-            timeout=10, seen=True)
-        note = ws.wait_for(lambda m: m.get("type") == "monitor" and m.get("source") == "appliance", timeout=10,
-                           seen=True)
+        ws.wait_for(
+            lambda m: (
+                m.get("type") == "monitor"
+                and any(
+                    f"xrf: log {STUDENT_LOG}.bin -> {STUDENT_FILE} in the run folder" in ln["text"] for ln in m["lines"]
+                )
+            ),
+            timeout=10,
+            seen=True,
+        )
+        note = ws.wait_for(
+            lambda m: m.get("type") == "monitor" and m.get("source") == "appliance", timeout=10, seen=True
+        )
         assert note["lines"][0]["text"] == f"log {STUDENT_FILE} -> runs/{run_id}/{STUDENT_FILE}", note
-        time.sleep(0.5)   # ~250 records at 500 Hz
+        time.sleep(0.5)  # ~250 records at 500 Hz
         assert ws.command("stop")["accepted"]
         ws.wait_state("STOPPED", timeout=10)
     server.stop_run()
 
-    detail = wait_for(lambda: (d := server.http.get(f"/api/logs/runs/{run_id}").json())["run"]["status"] != "running"
-                      and d, timeout=20, what="the run's end")
+    detail = wait_for(
+        lambda: (d := server.http.get(f"/api/logs/runs/{run_id}").json())["run"]["status"] != "running" and d,
+        timeout=20,
+        what="the run's end",
+    )
     names = [f["name"] for f in detail["files"]]
     assert names == [STUDENT_FILE], detail["files"]
     info = detail["files"][0]
     assert info["kind"] == "xrflog" and info["records"] > 100 and info["lost"] == 0
-    assert [v["name"] for v in info["variables"]] == ["set_pan", "pan", "set_tilt", "tilt", "encoder_pan",
-                                                      "encoder_tilt", "enabled"]
+    assert [v["name"] for v in info["variables"]] == [
+        "set_pan",
+        "pan",
+        "set_tilt",
+        "tilt",
+        "encoder_pan",
+        "encoder_tilt",
+        "enabled",
+    ]
     assert detail["run"]["log_records"] == info["records"]
 
     raw = server.http.get(f"/api/logs/runs/{run_id}/files/{STUDENT_FILE}", params={"fmt": "raw"})
@@ -263,8 +294,11 @@ def test_downloads_list_no_symlink(xrf2_server) -> None:
     r = server.http.post("/api/runs", json={"build": XRF2_NAME, "max_cycles": 10}, timeout=120)
     assert r.status_code == 201, r.text
     thief = r.json()["id"]
-    wait_for(lambda: server.http.get(f"/api/logs/runs/{thief}").json()["run"]["status"] != "running", timeout=20,
-             what="the short run's end")
+    wait_for(
+        lambda: server.http.get(f"/api/logs/runs/{thief}").json()["run"]["status"] != "running",
+        timeout=20,
+        what="the short run's end",
+    )
     run_dir = server.data_dir / "runs"
     (run_dir / str(thief) / "stolen.xrf").symlink_to(run_dir / str(victim) / STUDENT_FILE)
     (run_dir / str(thief) / "stolen-dir").symlink_to(run_dir / str(victim))

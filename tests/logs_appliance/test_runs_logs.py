@@ -14,17 +14,20 @@ from typing import Any
 
 import numpy as np
 import pytest
-
-from logs_support import COST, PROBE, REPO, start, wait_for
 from harness import Server, stop_server
+from logs_support import COST, PROBE, REPO, start, wait_for
 
 from xrflab.logs import open_log
 
 
 def _xrf_decode(path: Path, fmt: str, out: Path) -> bytes:
     env = dict(os.environ, PYTHONPATH=str(REPO / "appliance"))
-    subprocess.run([sys.executable, "-m", "xrflab.cli", "decode", str(path), "--to", fmt, "-o", str(out)],
-                   check=True, env=env, capture_output=True)
+    subprocess.run(
+        [sys.executable, "-m", "xrflab.cli", "decode", str(path), "--to", fmt, "-o", str(out)],
+        check=True,
+        env=env,
+        capture_output=True,
+    )
     return out.read_bytes()
 
 
@@ -37,8 +40,9 @@ def _run_probe(server: Server, cycles: int = 400, **body: Any) -> dict[str, Any]
         assert r.status_code == 200 and r.json()["accepted"], r.text
     wait_for(lambda: server.http.get("/api/logs/runs?limit=1").json()[0]["state"] in ("RUN", "") or True)
     c0 = server.http.get(f"/api/logs/runs/{run['id']}").json()["run"]["cycles"]
-    wait_for(lambda: server.http.get(f"/api/logs/runs/{run['id']}").json()["run"]["cycles"] > c0 + cycles,
-          what="cycles")
+    wait_for(
+        lambda: server.http.get(f"/api/logs/runs/{run['id']}").json()["run"]["cycles"] > c0 + cycles, what="cycles"
+    )
     return run
 
 
@@ -86,6 +90,7 @@ def test_round_trip_every_format_matches_xrf_decode(server: Server, tmp_path: Pa
             # Byte for byte except the creation time in MAT's 116-byte text header.
             assert got.content[116:] == want[116:] and len(got.content) == len(want)
             import scipy.io
+
             m = scipy.io.loadmat(io.BytesIO(got.content))
             assert np.array_equal(m["value"].ravel(), log.records["value"])
         else:
@@ -93,6 +98,7 @@ def test_round_trip_every_format_matches_xrf_decode(server: Server, tmp_path: Pa
             assert _rrd_values(got.content, tmp_path / "api.rrd") == _rrd_values(want, tmp_path / "cli.rrd")
     if True:  # the CSV is the streamed one: its numbers read back exactly
         import pyarrow.csv as pcsv
+
         table = pcsv.read_csv(io.BytesIO(server.http.get(url, params={"fmt": "csv"}).content))
         assert np.array_equal(table.column("value").to_numpy(), log.records["value"])
     # The per-second framework timing series is kept beside the log.
@@ -111,8 +117,9 @@ def _rrd_values(data: bytes, path: Path) -> dict[str, list[tuple[list[int], list
         if "Scalars:scalars" not in batch.schema.names:
             continue
         entity = batch.schema.metadata[b"rerun:entity_path"].decode()
-        out.setdefault(entity, []).append((batch.column("cycle").to_pylist(),
-                                           [v[0] for v in batch.column("Scalars:scalars").to_pylist()]))
+        out.setdefault(entity, []).append(
+            (batch.column("cycle").to_pylist(), [v[0] for v in batch.column("Scalars:scalars").to_pylist()])
+        )
     assert out
     return out
 
@@ -121,8 +128,10 @@ def test_kill_9_mid_run_decodes_and_the_run_shows_crashed(server: Server) -> Non
     run = _run_probe(server, cycles=300)
     pid = server.http.get(f"/api/runs/{run['id']}").json()["pid"]
     os.kill(pid, signal.SIGKILL)
-    r = wait_for(lambda: (lambda x: x if x["status"] != "running" else None)(_logs(server, run["id"])["run"]),
-              what="the run to end")
+    r = wait_for(
+        lambda: (lambda x: x if x["status"] != "running" else None)(_logs(server, run["id"])["run"]),
+        what="the run to end",
+    )
     assert r["status"] == "crashed" and r["crashed"] and r["crash_reason"] == "signal"
     listed = next(x for x in server.http.get("/api/logs/runs").json() if x["id"] == run["id"])
     assert listed["status"] == "crashed" and listed["log_lost"] == 0
@@ -181,8 +190,12 @@ def test_rerun_viewer_is_served_behind_the_login(server: Server) -> None:
 def test_lost_records_are_counted_and_shown(tmp_path: Path) -> None:
     """The host writer stalls (the appliance is stopped with SIGSTOP) while the loop logs at
     10 kHz: the ring fills, the loop drops and counts, never waits; the gap shows in seq."""
-    s = start(tmp_path / "data", loop_env={"XRF_FREQ": "10000", "XRF_BENCH_NVARS": "32"}, host_timeout_ms=30000,
-              hang_timeout_ms=30000)
+    s = start(
+        tmp_path / "data",
+        loop_env={"XRF_FREQ": "10000", "XRF_BENCH_NVARS": "32"},
+        host_timeout_ms=30000,
+        hang_timeout_ms=30000,
+    )
     try:
         run = s.start_run(COST)
         for cmd in ("initialise", "start"):

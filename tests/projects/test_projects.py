@@ -8,15 +8,15 @@ from __future__ import annotations
 
 import hashlib
 import os
-import resource
 import re
+import resource
 import shutil
 import subprocess
 import sys
 import time
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import pytest
 
@@ -50,9 +50,11 @@ def _xrf2_fixture(root: Path) -> Path:
             continue
         text = path.read_text().replace("LoopController", "PanTiltController")
         if path.name in ("LoopController.cpp", "LoopController.info", "LoopController_tokens.xml"):
-            text = (text.replace("m_step_size = 0.001;", "m_step_size = 0.002;")
-                        .replace("Step size:   0.001", "Step size:   0.002")
-                        .replace("<![CDATA[0.001]]>", "<![CDATA[0.002]]>"))
+            text = (
+                text.replace("m_step_size = 0.001;", "m_step_size = 0.002;")
+                .replace("Step size:   0.001", "Step size:   0.002")
+                .replace("<![CDATA[0.001]]>", "<![CDATA[0.002]]>")
+            )
         path.write_text(text)
         if "LoopController" in path.name:
             path.rename(path.with_name(path.name.replace("LoopController", "PanTiltController")))
@@ -118,9 +120,14 @@ def test_project_runs_cycles_in_simulation(name: str, build_root: Path, tmp_path
     exe = _build(name, build_root).executable
     for sim in ("relbot", "jiwy"):
         shm = _shm()
-        proc = subprocess.Popen([str(exe)], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                text=True, env={**os.environ, "XRF_SHM": shm, "XRF_SIM": sim,
-                                                "XRF_TRANSPORT": "sim", "XRF_PRIO": "0"})
+        proc = subprocess.Popen(
+            [str(exe)],
+            cwd=tmp_path,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env={**os.environ, "XRF_SHM": shm, "XRF_SIM": sim, "XRF_TRANSPORT": "sim", "XRF_PRIO": "0"},
+        )
         try:
             ch = Channels.open(shm, wait_s=10)
             assert ch.wait_command(ch.send_command("initialise")).accepted
@@ -161,9 +168,14 @@ def test_20sim_template_runs_at_model_frequency(build_root: Path) -> None:
     r = _build("20sim", build_root)
     name = _shm()
     try:
-        out = subprocess.run([str(r.executable)], capture_output=True, text=True, timeout=30,
-                             cwd=r.build_dir,
-                             env={**os.environ, "XRF_MAX_CYCLES": "200", "XRF_SHM": name})
+        out = subprocess.run(
+            [str(r.executable)],
+            capture_output=True,
+            text=True,
+            timeout=30,
+            cwd=r.build_dir,
+            env={**os.environ, "XRF_MAX_CYCLES": "200", "XRF_SHM": name},
+        )
     finally:
         _unlink_shm(name)
     text = out.stdout + out.stderr
@@ -197,9 +209,14 @@ def test_xrf2_project_builds_unchanged(tmp_path: Path) -> None:
     assert _tree_digest(fixture) == before, "the project folder must not be written"
     assert r.layout == "xrf2"
     assert r.executable.is_file()
-    for f in ("src/main.cpp", "src/ControlLoop.cpp", "include/ControlLoop.hpp",
-              "controller/PanTiltController.cpp", "controller/common/xxmodel.h",
-              "msg/Ros2Xeno.msg"):
+    for f in (
+        "src/main.cpp",
+        "src/ControlLoop.cpp",
+        "include/ControlLoop.hpp",
+        "controller/PanTiltController.cpp",
+        "controller/common/xxmodel.h",
+        "msg/Ros2Xeno.msg",
+    ):
         assert f in r.taken, f
     assert "own main()" in r.left_out["controller/test_PanTiltController.cpp"]
     assert "XenoRosFramework" in r.left_out["CMakeLists.txt"]
@@ -217,9 +234,14 @@ def test_xrf2_project_main_runs(tmp_path: Path) -> None:
     r = build_project(_xrf2_fixture(tmp_path), tmp_path / "build", log=_quiet)
     name = _shm()
     try:
-        out = subprocess.run([str(r.executable)], capture_output=True, text=True, timeout=30,
-                             cwd=tmp_path,
-                             env={**os.environ, "XRF_MAX_CYCLES": "100", "XRF_SHM": name})
+        out = subprocess.run(
+            [str(r.executable)],
+            capture_output=True,
+            text=True,
+            timeout=30,
+            cwd=tmp_path,
+            env={**os.environ, "XRF_MAX_CYCLES": "100", "XRF_SHM": name},
+        )
     finally:
         _unlink_shm(name)
     text = out.stdout + out.stderr
@@ -304,10 +326,10 @@ class _Running:
         from xrflab.channels import Channels
 
         self.name = _shm()
-        env = {**os.environ, "XRF_SIM": sim, "XRF_SHM": self.name, "XRF_TRANSPORT": "sim",
-               "XRF_MAX_CYCLES": "30000"}
-        self.proc = subprocess.Popen([str(exe)], cwd=cwd, env=env, stdout=subprocess.PIPE,
-                                     stderr=subprocess.STDOUT, text=True)
+        env = {**os.environ, "XRF_SIM": sim, "XRF_SHM": self.name, "XRF_TRANSPORT": "sim", "XRF_MAX_CYCLES": "30000"}
+        self.proc = subprocess.Popen(
+            [str(exe)], cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        )
         try:
             self.ch = Channels.open(self.name, wait_s=10.0)
         except Exception:

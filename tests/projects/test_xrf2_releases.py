@@ -26,8 +26,13 @@ TOPICS = {"v1.0": ("Command", "Xenomai_state"), "v1.1": ("XenoCmd", "XenoState")
 
 
 def xrf(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "xrflab.cli", *args], capture_output=True, text=True,
-                          timeout=timeout, env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")))
+    return subprocess.run(
+        [sys.executable, "-m", "xrflab.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")),
+    )
 
 
 def _state(shm: str, topic: str) -> int:
@@ -37,8 +42,9 @@ def _state(shm: str, topic: str) -> int:
 
 
 @pytest.mark.parametrize("release", list(FIXTURES))
-def test_release_project_builds_unchanged_and_reaches_its_setpoints(release: str, tmp_path: Path,
-                                                                      shm_name: str) -> None:
+def test_release_project_builds_unchanged_and_reaches_its_setpoints(
+    release: str, tmp_path: Path, shm_name: str
+) -> None:
     project = tmp_path / FIXTURES[release].name
     shutil.copytree(FIXTURES[release], project)
     r = xrf("build", str(project), timeout=600)
@@ -53,9 +59,16 @@ def test_release_project_builds_unchanged_and_reaches_its_setpoints(release: str
     assert "left out: package.xml" in log
 
     cmd_topic, state_topic = TOPICS[release]
-    proc = subprocess.Popen([str(exe)], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env=dict(os.environ, XRF_SHM=shm_name, XRF_SIM="relbot", XRF_TRANSPORT="sim",
-                                     XRF_PRIO="0", XRF_LOG_DIR=str(tmp_path)))
+    proc = subprocess.Popen(
+        [str(exe)],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(
+            os.environ, XRF_SHM=shm_name, XRF_SIM="relbot", XRF_TRANSPORT="sim", XRF_PRIO="0", XRF_LOG_DIR=str(tmp_path)
+        ),
+    )
     try:
         ch = open_when_ready(shm_name, proc)
         assert _state(shm_name, state_topic) == 1

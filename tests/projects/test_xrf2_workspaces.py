@@ -45,8 +45,13 @@ XRF2_MSGS_PACKAGE = """<?xml version="1.0"?>
 
 
 def xrf(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "xrflab.cli", *args], capture_output=True, text=True,
-                          timeout=timeout, env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")))
+    return subprocess.run(
+        [sys.executable, "-m", "xrflab.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")),
+    )
 
 
 def workspace(tmp: Path, fixture: Path, framework: str) -> tuple[Path, Path]:
@@ -97,8 +102,10 @@ def test_the_controller_package_is_found_in_a_workspace(tmp_path: Path) -> None:
     shutil.copytree(V10, template)
     node = ws / "src/vision_node"  # a ROS 2 node of the same workspace
     (node / "src").mkdir(parents=True)
-    (node / "CMakeLists.txt").write_text("cmake_minimum_required(VERSION 3.8)\nproject(vision_node)\n"
-                                         "find_package(rclcpp REQUIRED)\nadd_executable(vision src/vision.cpp)\n")
+    (node / "CMakeLists.txt").write_text(
+        "cmake_minimum_required(VERSION 3.8)\nproject(vision_node)\n"
+        "find_package(rclcpp REQUIRED)\nadd_executable(vision src/vision.cpp)\n"
+    )
     (node / "src/vision.cpp").write_text("int main() { return 0; }\n")
     assert find_xrf2_controllers(ws) == [project]
     assert find_xrf2_controllers(ws / "src") == [project]
@@ -119,8 +126,9 @@ def test_a_library_from_add_subdirectory_is_compiled(tmp_path: Path) -> None:
 def _move_unwrap_into_a_library(project: Path) -> None:
     cml = project / "CMakeLists.txt"
     text = cml.read_text().replace("list(APPEND OWN_SOURCES src/util/Unwrap.cpp)\n", "add_subdirectory(src/util)\n")
-    text = text.replace("target_link_libraries(relbot_v11 evl pthread)",
-                        "target_link_libraries(relbot_v11 unwrap evl pthread)")
+    text = text.replace(
+        "target_link_libraries(relbot_v11 evl pthread)", "target_link_libraries(relbot_v11 unwrap evl pthread)"
+    )
     assert "add_subdirectory(src/util)" in text and " unwrap " in text
     cml.write_text(text)
     # Relative to the sub-folder, as CMake reads it.
@@ -148,13 +156,17 @@ def test_a_workspace_with_everything_at_once_builds_and_runs(tmp_path: Path, shm
     node = ws / "src/vision_node"
     node.mkdir()
     (node / "CMakeLists.txt").write_text("cmake_minimum_required(VERSION 3.8)\nproject(vision_node)\n")
-    (project / "CMakeLists.txt").write_text((project / "CMakeLists.txt").read_text().replace("../XRF2/", "../ros2-xenomai4-framework/"))
+    (project / "CMakeLists.txt").write_text(
+        (project / "CMakeLists.txt").read_text().replace("../XRF2/", "../ros2-xenomai4-framework/")
+    )
     _move_unwrap_into_a_library(project)
     _to_crlf(ws)
     stale = ws / "build" / "cmake"
     stale.mkdir(parents=True)
-    (stale / "CMakeCache.txt").write_text("# from the student's Pi\nCMAKE_CACHEFILE_DIR:INTERNAL=/home/pi/ws/build/cmake\n"
-                                          "CMAKE_HOME_DIRECTORY:INTERNAL=/home/pi/ws/build/xrf2-wrapper\n")
+    (stale / "CMakeCache.txt").write_text(
+        "# from the student's Pi\nCMAKE_CACHEFILE_DIR:INTERNAL=/home/pi/ws/build/cmake\n"
+        "CMAKE_HOME_DIRECTORY:INTERNAL=/home/pi/ws/build/xrf2-wrapper\n"
+    )
 
     r = xrf("build", "--no-ros-messages", str(ws), timeout=600)
     assert r.returncode == 0, r.stderr[-4000:]
@@ -163,9 +175,16 @@ def test_a_workspace_with_everything_at_once_builds_and_runs(tmp_path: Path, shm
     assert "XRF2_msgs/msg/Ros2Xeno.msg" in log and "configuring afresh" in log, log[-3000:]
     exe = Path(r.stdout.strip().splitlines()[-1])
 
-    proc = subprocess.Popen([str(exe)], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env=dict(os.environ, XRF_SHM=shm_name, XRF_SIM="relbot", XRF_TRANSPORT="sim",
-                                     XRF_PRIO="0", XRF_LOG_DIR=str(tmp_path)))
+    proc = subprocess.Popen(
+        [str(exe)],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(
+            os.environ, XRF_SHM=shm_name, XRF_SIM="relbot", XRF_TRANSPORT="sim", XRF_PRIO="0", XRF_LOG_DIR=str(tmp_path)
+        ),
+    )
     try:
         ch = open_when_ready(shm_name, proc)
         for cmd, want in (("initialise", 3), ("start", 4)):

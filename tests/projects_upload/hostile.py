@@ -26,8 +26,11 @@ MB = 1 << 20
 
 
 def project_files(root: Path = BASE) -> dict[str, bytes]:
-    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*"))
-            if p.is_file() and "build" not in p.relative_to(root).parts}
+    return {
+        p.relative_to(root).as_posix(): p.read_bytes()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and "build" not in p.relative_to(root).parts
+    }
 
 
 def tar_gz(files: dict[str, bytes], extra: list[tarfile.TarInfo] | None = None, fmt: int = tarfile.GNU_FORMAT) -> bytes:
@@ -89,7 +92,7 @@ def hardlink_tar() -> bytes:
 
 def symlink_zip() -> bytes:
     info = zipfile.ZipInfo("src/root")
-    info.external_attr = (0o120777 << 16)
+    info.external_attr = 0o120777 << 16
     return zip_bytes(project_files(), [(info, b"/")])
 
 
@@ -166,8 +169,11 @@ def tar_gz_bomb(total_gb: int = 10, file_mb: int = 32) -> bytes:
     members, the zeros' member computed once. About 10 MB for 10 GB."""
     zeros = gzip.compress(b"\0" * (file_mb * MB), compresslevel=9)
     out = io.BytesIO()
-    out.write(gzip.compress(b"".join(_tar_header(n, len(d)) + d + b"\0" * (-len(d) % 512)
-                                     for n, d in project_files().items())))
+    out.write(
+        gzip.compress(
+            b"".join(_tar_header(n, len(d)) + d + b"\0" * (-len(d) % 512) for n, d in project_files().items())
+        )
+    )
     for i in range(total_gb * 1024 // file_mb):
         out.write(gzip.compress(_tar_header(f"data/zeros{i:04d}.bin", file_mb * MB)))
         out.write(zeros)
@@ -199,8 +205,29 @@ def _zip_raw(name: str, comp: bytes, declared_size: int, crc: int = 0) -> bytes:
     """A one-entry deflated zip with a header of our choosing (declared size, CRC)."""
     n = name.encode()
     local = struct.pack("<4sHHHHHIIIHH", b"PK\x03\x04", 20, 0, 8, 0, 0, crc, len(comp), declared_size, len(n), 0) + n
-    central = struct.pack("<4sHHHHHHIIIHHHHHII", b"PK\x01\x02", 20, 20, 0, 8, 0, 0, crc, len(comp), declared_size,
-                          len(n), 0, 0, 0, 0, 0, 0) + n
+    central = (
+        struct.pack(
+            "<4sHHHHHHIIIHHHHHII",
+            b"PK\x01\x02",
+            20,
+            20,
+            0,
+            8,
+            0,
+            0,
+            crc,
+            len(comp),
+            declared_size,
+            len(n),
+            0,
+            0,
+            0,
+            0,
+            0,
+            0,
+        )
+        + n
+    )
     end = struct.pack("<4sHHHHIIH", b"PK\x05\x06", 0, 0, 1, 1, len(central), len(local) + len(comp), 0)
     return local + comp + central + end
 

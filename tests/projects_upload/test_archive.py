@@ -16,6 +16,7 @@ sys.path.insert(0, str(REPO / "appliance"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import hostile  # noqa: E402
+
 from xrflab.projects import archive  # noqa: E402
 from xrflab.projects.archive import ArchiveRejected  # noqa: E402
 
@@ -41,7 +42,11 @@ CASES = {
     "zip_bomb_declared_10GB": (hostile.zip_bomb_declared, "data/zeros.bin", ""),
     "zip_bomb_lying_header": (hostile.zip_bomb_lying, "data/zeros.bin", ""),
     # each entry alone passes the per-entry ratio check; the archive as a whole is a bomb
-    "zip_many_small_entries_bomb": (hostile.zip_many_small_bombs, "data/part", "the archive decompresses more than 200 times"),
+    "zip_many_small_entries_bomb": (
+        hostile.zip_many_small_bombs,
+        "data/part",
+        "the archive decompresses more than 200 times",
+    ),
 }
 
 
@@ -73,7 +78,8 @@ def test_hostile_archive_refused(case: str, tmp_path: Path) -> None:
 
 
 def test_template_accepted_folder_stripped(tmp_path: Path) -> None:
-    import tarfile, io  # noqa: E401
+    import io
+    import tarfile  # noqa: E401
 
     buf = io.BytesIO()
     with tarfile.open(fileobj=buf, mode="w:gz") as t:
@@ -96,7 +102,8 @@ def test_zip_20sim_accepted(tmp_path: Path) -> None:
 
 
 def test_duplicate_name_refused(tmp_path: Path) -> None:
-    import io, tarfile  # noqa: E401
+    import io  # noqa: E401
+    import tarfile
 
     files = hostile.project_files()
     buf = io.BytesIO()
@@ -143,7 +150,9 @@ def test_xrf_upload_of_an_xrf2_controller_packs_its_xrf2_messages(tmp_path: Path
     msgs = ws / "src/XRF2/XenoRosFramework/Common/XRF2_msgs/msg"
     msgs.parent.mkdir(parents=True)
     shutil.move(str(ctrl / "msg"), str(msgs))
-    (ws / "src/XRF2/XenoRosFramework/Common/XRF2_msgs/package.xml").write_text("<package><name>xrf2_msgs</name></package>")
+    (ws / "src/XRF2/XenoRosFramework/Common/XRF2_msgs/package.xml").write_text(
+        "<package><name>xrf2_msgs</name></package>"
+    )
 
     data, warnings = projects_cli.pack(ctrl)
     assert any("packed ../XRF2/XenoRosFramework/Common/XRF2_msgs/msg too" in w for w in warnings), warnings
@@ -156,9 +165,13 @@ def test_xrf_upload_of_an_xrf2_controller_packs_its_xrf2_messages(tmp_path: Path
     assert (found.msg_dir / "Ros2Xeno.msg").read_bytes() == (msgs / "Ros2Xeno.msg").read_bytes()
 
     alone = tmp_path / "alone.tgz"
-    alone.write_bytes(hostile.tar_gz({str(p.relative_to(ctrl)): p.read_bytes() for p in ctrl.rglob("*") if p.is_file()}))
+    alone.write_bytes(
+        hostile.tar_gz({str(p.relative_to(ctrl)): p.read_bytes() for p in ctrl.rglob("*") if p.is_file()})
+    )
     with pytest.raises(ArchiveRejected) as info:
         archive.unpack(alone, tmp_path / "src2")
-    assert "Looked in: msg;" in info.value.message and "../XRF2/XenoRosFramework, which is not in the upload" \
-        in info.value.message, info.value.message
+    assert (
+        "Looked in: msg;" in info.value.message
+        and "../XRF2/XenoRosFramework, which is not in the upload" in info.value.message
+    ), info.value.message
     assert not (tmp_path / "src2").exists()

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from projects_support import reachable_tmp, wait_build
 from test_sandbox import PRELUDE, TAIL, _builder, _project
+
 from xrflab.projects.builder import build_processes
 
 
@@ -21,8 +22,9 @@ def _processes_with(needle: str) -> list[str]:
             continue
         try:
             cmd = Path(f"/proc/{entry.name}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-            state = next(l for l in Path(f"/proc/{entry.name}/status").read_text().splitlines()
-                         if l.startswith("State:"))
+            state = next(
+                ln for ln in Path(f"/proc/{entry.name}/status").read_text().splitlines() if ln.startswith("State:")
+            )
         except (OSError, StopIteration):
             continue
         if needle in cmd and "Z" not in state.split()[1]:
@@ -46,17 +48,25 @@ def test_one_builders_cleanup_spares_the_others_build(data_dir: Path) -> None:
         builder_a, store_a, _ = _builder(data_dir)
         builder_b, store_b, _ = _builder(other_dir)
         # B: a build that takes a while (a sleep in CMake's configure step) and must succeed.
-        slow = PRELUDE + ('message(STATUS "b-is-sleeping")\n'
-                          'execute_process(COMMAND sleep 8 RESULT_VARIABLE rv)\n'
-                          'if(NOT rv EQUAL 0)\n  message(FATAL_ERROR "the sleep was killed: ${rv}")\nendif()\n') + TAIL
+        slow = (
+            PRELUDE
+            + (
+                'message(STATUS "b-is-sleeping")\n'
+                "execute_process(COMMAND sleep 8 RESULT_VARIABLE rv)\n"
+                'if(NOT rv EQUAL 0)\n  message(FATAL_ERROR "the sleep was killed: ${rv}")\nendif()\n'
+            )
+            + TAIL
+        )
         project_b, src_b = _project(store_b, builder_b, slow)
         row_b, _ = builder_b.submit(project_b, src_b)
         _wait_log(store_b, row_b.id, "b-is-sleeping")
         # A: leaves a detached process behind (setsid + background) and fails at once; its
         # cleanup runs while B sleeps.
         marker = str(3000 + int(uuid.uuid4().int % 900))
-        leaver = PRELUDE + (f'execute_process(COMMAND sh -c "setsid sleep {marker} >/dev/null 2>&1 < /dev/null &")\n'
-                            'message(FATAL_ERROR "a-is-done")\n')
+        leaver = PRELUDE + (
+            f'execute_process(COMMAND sh -c "setsid sleep {marker} >/dev/null 2>&1 < /dev/null &")\n'
+            'message(FATAL_ERROR "a-is-done")\n'
+        )
         project_a, src_a = _project(store_a, builder_a, leaver)
         row_a, _ = builder_a.submit(project_a, src_a)
         a = wait_build(store_a, row_a.id, timeout=60)

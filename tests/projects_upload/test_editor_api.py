@@ -13,7 +13,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-
 from harness import Server, shared_builds_root, start_server, stop_server
 
 RUN_LINE = "int Template::run()\n{\n"
@@ -37,15 +36,19 @@ def save(http, pid: int, path: str, text: str | bytes, base: int | None, build: 
     if base is not None:
         params["base"] = str(base)
     body = text.encode() if isinstance(text, str) else text
-    return http.put(f"/api/projects/{pid}/files/{path}", params=params, content=body,
-                    headers={"Content-Type": "text/plain; charset=utf-8"})
+    return http.put(
+        f"/api/projects/{pid}/files/{path}",
+        params=params,
+        content=body,
+        headers={"Content-Type": "text/plain; charset=utf-8"},
+    )
 
 
 def project_folder(server: Server, pid: int) -> Path:
     """Where the appliance keeps the project (folder names are random)."""
     db = sqlite3.connect(f"file:{server.data_dir / 'projects.sqlite3'}?mode=ro", uri=True)
     try:
-        (folder,), = db.execute("SELECT folder FROM projects WHERE id=?", (pid,)).fetchall()
+        ((folder,),) = db.execute("SELECT folder FROM projects WHERE id=?", (pid,)).fetchall()
     finally:
         db.close()
     return server.data_dir / "projects" / folder
@@ -80,7 +83,7 @@ def test_save_is_a_version_built_and_run_exactly(server: Server) -> None:
     # A broken edit: the build fails with the error at the line the edit put it on.
     lines = original.splitlines(keepends=True)
     broken_line = lines.index("int Template::run()\n") + 3  # 1-based: the line after "{"
-    broken = "".join(lines[:broken_line - 1] + ["    int oops = not_declared_anywhere;\n"] + lines[broken_line - 1:])
+    broken = "".join(lines[: broken_line - 1] + ["    int oops = not_declared_anywhere;\n"] + lines[broken_line - 1 :])
     r = save(http, pid, "src/Template.cpp", broken, base=1)
     assert r.status_code == 200, r.text
     s = r.json()
@@ -97,7 +100,7 @@ def test_save_is_a_version_built_and_run_exactly(server: Server) -> None:
     m1, m2 = f"EDITOR-A-{secrets.token_hex(4)}", f"EDITOR-B-{secrets.token_hex(4)}"
     blocker = new_project(http, "blocker")
     cmake = http.get(f"/api/projects/{blocker}/files/CMakeLists.txt").json()["content"]
-    sb = save(http, blocker, "CMakeLists.txt", cmake + 'execute_process(COMMAND sleep 4)\n', base=1).json()
+    sb = save(http, blocker, "CMakeLists.txt", cmake + "execute_process(COMMAND sleep 4)\n", base=1).json()
     s1 = save(http, pid, "src/Template.cpp", with_marker(original, m1), base=2).json()
     s2 = save(http, pid, "src/Template.cpp", with_marker(original, m2), base=s1["version"]["n"]).json()
     assert (s1["version"]["n"], s2["version"]["n"]) == (3, 4)
@@ -120,8 +123,9 @@ def test_save_is_a_version_built_and_run_exactly(server: Server) -> None:
         for cmd, state in (("initialise", "INITIALISED"), ("start", "RUN")):
             assert ws.command(cmd)["accepted"], cmd
             ws.wait_state(state)
-        ws.wait_for(lambda m: m.get("type") == "monitor" and any(m1 in ln["text"] for ln in m["lines"]),
-                    timeout=15, seen=True)
+        ws.wait_for(
+            lambda m: m.get("type") == "monitor" and any(m1 in ln["text"] for ln in m["lines"]), timeout=15, seen=True
+        )
         texts = [ln["text"] for m in ws.messages if m.get("type") == "monitor" for ln in m["lines"]]
         assert not any(m2 in t for t in texts)
     server.stop_run()
@@ -143,10 +147,16 @@ def test_history_and_diffs(server: Server) -> None:
     assert r.status_code == 200 and r.json()["version"]["n"] == 4, r.text
     versions = http.get(f"/api/projects/{pid}/versions").json()
     assert [(v["n"], v["origin"]) for v in versions] == [
-        (4, "delete README.md"), (3, "edit src/extra.hpp"), (2, "edit src/main.cpp"), (1, "template:base")]
+        (4, "delete README.md"),
+        (3, "edit src/extra.hpp"),
+        (2, "edit src/main.cpp"),
+        (1, "template:base"),
+    ]
 
     d = http.get(f"/api/projects/{pid}/diff", params={"a": 1, "b": 2}).json()
-    assert [(f["path"], f["status"], f["added"], f["removed"]) for f in d["files"]] == [("src/main.cpp", "modified", 1, 0)]
+    assert [(f["path"], f["status"], f["added"], f["removed"]) for f in d["files"]] == [
+        ("src/main.cpp", "modified", 1, 0)
+    ]
     assert "+// student line one\n" in d["files"][0]["diff"]
     # A template project's first version is the template: nothing between them.
     assert http.get(f"/api/projects/{pid}/diff", params={"a": "template:base", "b": 1}).json()["files"] == []
@@ -154,7 +164,10 @@ def test_history_and_diffs(server: Server) -> None:
     d = http.get(f"/api/projects/{pid}/diff", params={"a": "template:base"}).json()
     assert d["b"] == "v4"
     assert {f["path"]: f["status"] for f in d["files"]} == {
-        "README.md": "removed", "src/extra.hpp": "added", "src/main.cpp": "modified"}
+        "README.md": "removed",
+        "src/extra.hpp": "added",
+        "src/main.cpp": "modified",
+    }
     # An older version reads as it was.
     old = http.get(f"/api/projects/{pid}/files/src/main.cpp", params={"version": 1}).json()
     assert old["content"] == text
@@ -169,9 +182,15 @@ def test_someone_elses_project_is_missing(server: Server) -> None:
     alice, _ = server.login("ed_alice", pw_a)
     bob, _ = server.login("ed_bob", pw_b)
     pid = new_project(alice, "alices")
-    missing = 10 ** 9
-    calls = (("GET", "files"), ("GET", "files/src/main.cpp"), ("PUT", "files/src/main.cpp"),
-             ("DELETE", "files/src/main.cpp"), ("GET", "versions"), ("GET", "diff?a=1"))
+    missing = 10**9
+    calls = (
+        ("GET", "files"),
+        ("GET", "files/src/main.cpp"),
+        ("PUT", "files/src/main.cpp"),
+        ("DELETE", "files/src/main.cpp"),
+        ("GET", "versions"),
+        ("GET", "diff?a=1"),
+    )
     for method, tail in calls:
         theirs = bob.request(method, f"/api/projects/{pid}/{tail}", content=b"int x;\n")
         none = bob.request(method, f"/api/projects/{missing}/{tail}", content=b"int x;\n")
@@ -195,8 +214,15 @@ def test_refusals_change_nothing(server: Server) -> None:
         assert http.get(f"/api/projects/{pid}/files/src/main.cpp").json()["content"] == main
 
     # traversal, absolute names, control characters, left-out folders
-    for path in ("%2e%2e/%2e%2e/outside.txt", "src/%2e%2e/%2e%2e/%2e%2e/outside.txt", "/etc/passwd",
-                 "..%2f..%2foutside.txt", "src/a%01b.cpp", "build/x.cpp", ".git/config"):
+    for path in (
+        "%2e%2e/%2e%2e/outside.txt",
+        "src/%2e%2e/%2e%2e/%2e%2e/outside.txt",
+        "/etc/passwd",
+        "..%2f..%2foutside.txt",
+        "src/a%01b.cpp",
+        "build/x.cpp",
+        ".git/config",
+    ):
         for method in ("GET", "PUT", "DELETE"):
             r = http.request(method, f"/api/projects/{pid}/files/{path}", content=b"x\n")
             assert r.status_code in (400, 404), (method, path, r.status_code, r.text)
@@ -227,8 +253,14 @@ def test_refusals_change_nothing(server: Server) -> None:
     assert r.status_code == 409 and r.json()["detail"]["current_version"] == 2, r.text
     assert http.get(f"/api/projects/{pid}/files/src/main.cpp").json()["content"] == main + "// v2\n"
     # a stale base for another file that did not change: saved
-    r = save(http, pid, "CMakeLists.txt", http.get(f"/api/projects/{pid}/files/CMakeLists.txt").json()["content"]
-             + "# note\n", base=1, build=False)
+    r = save(
+        http,
+        pid,
+        "CMakeLists.txt",
+        http.get(f"/api/projects/{pid}/files/CMakeLists.txt").json()["content"] + "# note\n",
+        base=1,
+        build=False,
+    )
     assert r.status_code == 200 and r.json()["version"]["n"] == 3, r.text
     # a binary file of the project is listed and readable as "not editable"
     (src / "data.bin").write_bytes(b"\x00\x01\x02")

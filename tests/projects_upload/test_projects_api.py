@@ -13,11 +13,10 @@ import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 
-import pytest
-
 import hostile
-from projects_support import build_and_wait, targz
+import pytest
 from harness import Server, shared_builds_root, start_server, stop_server
+from projects_support import build_and_wait, targz
 
 REPO = Path(__file__).resolve().parents[2]
 BASE = REPO / "student_projects/templates/base"
@@ -60,9 +59,14 @@ def test_template_uploaded_built_and_run(server: Server) -> None:
     assert b["status"] == "ok", b["result"]
     assert b["runnable"] and b["toolchain"].startswith("cmake version")
     # the output came over the WebSocket, line by line, then the final status
-    ws.wait_for(lambda m: m.get("type") == "build" and m.get("build_id") == b["id"] and m.get("status") == "ok",
-                timeout=10, seen=True)
-    lines = [m["line"] for m in ws.messages if m.get("type") == "build" and m.get("build_id") == b["id"] and "line" in m]
+    ws.wait_for(
+        lambda m: m.get("type") == "build" and m.get("build_id") == b["id"] and m.get("status") == "ok",
+        timeout=10,
+        seen=True,
+    )
+    lines = [
+        m["line"] for m in ws.messages if m.get("type") == "build" and m.get("build_id") == b["id"] and "line" in m
+    ]
     assert any("Linking CXX executable" in ln for ln in lines)
     log = server.http.get(f"/api/projects/{pid}/builds/{b['id']}/log").text
     assert "sandbox: no network" in log
@@ -85,9 +89,14 @@ def test_hostile_uploads_refused_and_nothing_left(server: Server) -> None:
     root = server.data_dir / "projects"
     server.http.get("/api/projects")  # the service exists
     before = sorted(p.name for p in root.iterdir())
-    for maker, entry in ((hostile.traversal_tar, "../../etc/x"), (hostile.symlink_tar, "src/root"),
-                         (hostile.device_tar, "src/null"), (hostile.no_cmakelists, "CMakeLists.txt"),
-                         (hostile.zip_bomb_declared, "data/zeros.bin"), (hostile.two_gb_file, "data/recording.bin")):
+    for maker, entry in (
+        (hostile.traversal_tar, "../../etc/x"),
+        (hostile.symlink_tar, "src/root"),
+        (hostile.device_tar, "src/null"),
+        (hostile.no_cmakelists, "CMakeLists.txt"),
+        (hostile.zip_bomb_declared, "data/zeros.bin"),
+        (hostile.two_gb_file, "data/recording.bin"),
+    ):
         r = upload(server.http, maker(), "x.tar.gz")
         assert r.status_code == 422, (maker.__name__, r.status_code, r.text)
         d = r.json()["detail"]
@@ -121,7 +130,9 @@ def test_20sim_project_builds_with_its_step_size(server: Server) -> None:
         if "LoopController" in k:
             v = files.pop(k).decode()
             v = v.replace("LoopController", "PanTilt").replace("<![CDATA[0.001]]>", "<![CDATA[0.0025]]>")
-            v = v.replace("m_step_size = 0.001;", "m_step_size = 0.0025;").replace("Step size:   0.001", "Step size:   0.0025")
+            v = v.replace("m_step_size = 0.001;", "m_step_size = 0.0025;").replace(
+                "Step size:   0.001", "Step size:   0.0025"
+            )
             files[k.replace("LoopController", "PanTilt")] = v.encode()
         elif k.endswith((".cpp", ".hpp", ".h", ".txt")):
             files[k] = files[k].decode().replace("LoopController", "PanTilt").encode()
@@ -150,7 +161,9 @@ def test_message_change_reaches_codec_and_setpoints(server: Server) -> None:
     old = files["msg/Ros2Xeno.msg"].decode()
     assert "steer_left" in old
     files["msg/Ros2Xeno.msg"] = old.replace("steer_left", "wheel_speed_left").encode()
-    files["src/Template.cpp"] = files["src/Template.cpp"].decode().replace("ros_msg.steer_left", "ros_msg.wheel_speed_left").encode()
+    files["src/Template.cpp"] = (
+        files["src/Template.cpp"].decode().replace("ros_msg.steer_left", "ros_msg.wheel_speed_left").encode()
+    )
     r = upload(server.http, targz(files), pid=pid)
     assert r.status_code == 200, r.text
     msgs = server.http.get(f"/api/projects/{pid}").json()["messages"]
@@ -161,8 +174,10 @@ def test_message_change_reaches_codec_and_setpoints(server: Server) -> None:
     with server.ws() as ws:
         ws.send({"type": "subscribe", "topics": ["state", "run"]})
         run = run_to_run(server, server.http, ws, pid, b["id"])
-        started = ws.wait_for(lambda m: m.get("type") == "run" and m.get("ros2xeno")
-                              and (m.get("run") or {}).get("id") == run["id"], seen=True)
+        started = ws.wait_for(
+            lambda m: m.get("type") == "run" and m.get("ros2xeno") and (m.get("run") or {}).get("id") == run["id"],
+            seen=True,
+        )
         names = [f["name"] for f in started["ros2xeno"]]
         assert "wheel_speed_left" in names and "steer_left" not in names
         codec = Codec("\n".join(f"{f['type']} {f['name']}" for f in started["ros2xeno"]))
@@ -207,9 +222,13 @@ def test_students_do_not_see_each_other(server: Server) -> None:
             wb.wait_for(lambda m: m.get("build_id") == b["id"], timeout=1, seen=True)
     assert [p["id"] for p in alice.get("/api/projects").json()] == [pid]
     assert pid not in [p["id"] for p in bob.get("/api/projects").json()]
-    for method, path in (("GET", f"/api/projects/{pid}"), ("POST", f"/api/projects/{pid}/builds"),
-                         ("GET", f"/api/projects/{pid}/download"), ("DELETE", f"/api/projects/{pid}"),
-                         ("GET", f"/api/projects/{pid}/source?path=CMakeLists.txt")):
+    for method, path in (
+        ("GET", f"/api/projects/{pid}"),
+        ("POST", f"/api/projects/{pid}/builds"),
+        ("GET", f"/api/projects/{pid}/download"),
+        ("DELETE", f"/api/projects/{pid}"),
+        ("GET", f"/api/projects/{pid}/source?path=CMakeLists.txt"),
+    ):
         assert bob.request(method, path).status_code == 404, (method, path)
     assert server.http.get(f"/api/projects/{pid}").status_code == 200  # the educator sees it
     alice.close()
@@ -233,8 +252,9 @@ def test_projects_route_starts_a_run_like_the_bench_route(server: Server) -> Non
     try:
         before = time.monotonic()
         # 1000 Hz: the loop leaves by itself after 3 s, nobody driving meanwhile
-        r = server.http.post(f"/api/projects/{pid}/builds/{b['id']}/run",
-                             json={"max_cycles": 3000, "log_timing": True}, timeout=60)
+        r = server.http.post(
+            f"/api/projects/{pid}/builds/{b['id']}/run", json={"max_cycles": 3000, "log_timing": True}, timeout=60
+        )
         assert r.status_code == 201, r.text
         run = r.json()["run"]
         assert run["owner"] == "proj_carol"
@@ -262,8 +282,12 @@ def test_projects_route_starts_a_run_like_the_bench_route(server: Server) -> Non
 def test_xrf_upload_cli(server: Server, tmp_path: Path) -> None:
     project = tmp_path / "cli_proj"
     env = dict(os.environ, PYTHONPATH=str(REPO / "appliance"))
-    r = subprocess.run([sys.executable, "-m", "xrflab.cli", "new", "--template", "base", str(project)],
-                       capture_output=True, text=True, env=env)
+    r = subprocess.run(
+        [sys.executable, "-m", "xrflab.cli", "new", "--template", "base", str(project)],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
     assert r.returncode == 0, r.stderr
     (project / "build").mkdir()
     (project / "build" / "junk.o").write_bytes(b"\0" * 1000)
@@ -274,8 +298,13 @@ def test_xrf_upload_cli(server: Server, tmp_path: Path) -> None:
     tok = httpx.post(server.url + "/api/auth/token", json={"username": "proj_cli", "password": pw})
     assert tok.status_code < 300, tok.text
     headers_env = dict(env, XRF_TOKEN=tok.json()["token"])
-    r = subprocess.run([sys.executable, "-m", "xrflab.cli", "upload", str(project), "--url", server.url, "--build"],
-                       capture_output=True, text=True, env=headers_env, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-m", "xrflab.cli", "upload", str(project), "--url", server.url, "--build"],
+        capture_output=True,
+        text=True,
+        env=headers_env,
+        timeout=300,
+    )
     assert r.returncode == 0, (r.stdout, r.stderr)
     assert "left out src/link" in r.stderr
     assert "build" in r.stdout and ": ok:" in r.stdout

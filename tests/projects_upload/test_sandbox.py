@@ -28,12 +28,14 @@ def _builder(data_dir: Path, **cfg) -> tuple[Builder, ProjectStore, list]:  # no
     root.mkdir(exist_ok=True)
     os.chmod(root, 0o711)
     messages: list = []
-    return (Builder(store, root, lambda t, p: messages.append(p), SandboxConfig(**cfg), hide_dir=data_dir),
-            store, messages)
+    return (
+        Builder(store, root, lambda t, p: messages.append(p), SandboxConfig(**cfg), hide_dir=data_dir),
+        store,
+        messages,
+    )
 
 
-def _project(store: ProjectStore, builder: Builder, cmakelists: str | None = None,
-             edit: dict[str, str] | None = None):  # noqa: ANN202
+def _project(store: ProjectStore, builder: Builder, cmakelists: str | None = None, edit: dict[str, str] | None = None):  # noqa: ANN202
     token = uuid.uuid4().hex[:12]
     folder = builder.projects_root / token
     folder.mkdir()
@@ -63,7 +65,7 @@ def _user_processes() -> list[str]:
         return []
     # Killed processes whose parent was killed too wait for PID 1 to reap them: dead (Z) is gone.
     r = subprocess.run(["ps", "-u", str(uid), "-o", "stat=,pid=,cmd="], capture_output=True, text=True)
-    return [l for l in r.stdout.splitlines() if l.strip() and not l.strip().startswith("Z")]
+    return [ln for ln in r.stdout.splitlines() if ln.strip() and not ln.strip().startswith("Z")]
 
 
 PRELUDE = "cmake_minimum_required(VERSION 3.16)\n"
@@ -88,8 +90,14 @@ def test_ok_build_streams_and_is_sandboxed(data_dir: Path) -> None:
 
 
 def test_download_fails_without_network(data_dir: Path) -> None:
-    cml = PRELUDE + ('file(DOWNLOAD "http://1.1.1.1/x" "${CMAKE_BINARY_DIR}/x" STATUS st TIMEOUT 5)\n'
-                     'list(GET st 0 code)\nif(NOT code EQUAL 0)\n  message(FATAL_ERROR "file DOWNLOAD failed: ${st}")\nendif()\n') + TAIL
+    cml = (
+        PRELUDE
+        + (
+            'file(DOWNLOAD "http://1.1.1.1/x" "${CMAKE_BINARY_DIR}/x" STATUS st TIMEOUT 5)\n'
+            'list(GET st 0 code)\nif(NOT code EQUAL 0)\n  message(FATAL_ERROR "file DOWNLOAD failed: ${st}")\nendif()\n'
+        )
+        + TAIL
+    )
     b, log, _, _ = _build(data_dir, cml)
     assert b.status == "failed"
     assert "no network" in b.result, b.result
@@ -98,8 +106,14 @@ def test_download_fails_without_network(data_dir: Path) -> None:
 
 def test_write_outside_build_folder_fails(data_dir: Path) -> None:
     marker = f"escape-{uuid.uuid4().hex[:8]}"
-    cml = PRELUDE + (f'file(WRITE "/tmp/{marker}" "x")\n'  # private tmpfs: vanishes with the build
-                     f'file(WRITE "${{CMAKE_SOURCE_DIR}}/../{marker}" "x")\n') + TAIL
+    cml = (
+        PRELUDE
+        + (
+            f'file(WRITE "/tmp/{marker}" "x")\n'  # private tmpfs: vanishes with the build
+            f'file(WRITE "${{CMAKE_SOURCE_DIR}}/../{marker}" "x")\n'
+        )
+        + TAIL
+    )
     b, log, _, src = _build(data_dir, cml)
     assert b.status == "failed"
     assert "only write inside its own build folder" in b.result or "Permission denied" in log, b.result
@@ -141,8 +155,14 @@ def test_build_that_runs_forever_is_stopped(data_dir: Path) -> None:
 @pytest.mark.skipif(not ROOT, reason="RLIMIT_NPROC counts the build user's processes: needs the dedicated user")
 def test_fork_bomb_is_limited(data_dir: Path) -> None:
     # Forks until fork() fails; every child sleeps. The parent dies of the failed fork.
-    cml = PRELUDE + ('execute_process(COMMAND python3 -c "import os, time\\nwhile True:\\n    if os.fork() == 0: time.sleep(100)"'
-                     ' COMMAND_ERROR_IS_FATAL ANY)\n') + TAIL
+    cml = (
+        PRELUDE
+        + (
+            'execute_process(COMMAND python3 -c "import os, time\\nwhile True:\\n    if os.fork() == 0: time.sleep(100)"'
+            " COMMAND_ERROR_IS_FATAL ANY)\n"
+        )
+        + TAIL
+    )
     b, log, _, _ = _build(data_dir, cml, nproc=64, timeout_s=30)
     assert b.status == "failed"
     assert "too many processes" in b.result, (b.result, log[-1500:])
@@ -180,17 +200,23 @@ def test_other_projects_and_the_data_folder_are_invisible(data_dir: Path) -> Non
     builder, store, _ = _builder(data_dir)
     _, other_src = _project(store, builder)
     (data_dir / "secret.sqlite3").write_text("grades")
-    cml = PRELUDE + (f'file(GLOB seen "{builder.projects_root}/*")\n'
-                     'message(STATUS "seen: ${seen}")\n'
-                     f'if(EXISTS "{other_src}/CMakeLists.txt" OR EXISTS "{data_dir}/secret.sqlite3")\n'
-                     '  message(FATAL_ERROR "LEAK")\nendif()\n'
-                     'file(WRITE "${CMAKE_SOURCE_DIR}/written.txt" "x")\n') + TAIL
+    cml = (
+        PRELUDE
+        + (
+            f'file(GLOB seen "{builder.projects_root}/*")\n'
+            'message(STATUS "seen: ${seen}")\n'
+            f'if(EXISTS "{other_src}/CMakeLists.txt" OR EXISTS "{data_dir}/secret.sqlite3")\n'
+            '  message(FATAL_ERROR "LEAK")\nendif()\n'
+            'file(WRITE "${CMAKE_SOURCE_DIR}/written.txt" "x")\n'
+        )
+        + TAIL
+    )
     project, src = _project(store, builder, cml)
     row, _ = builder.submit(project, src)
     b = wait_build(store, row.id)
     log = Path(b.log_path).read_text()
     assert "LEAK" not in log, log[-2000:]
-    seen = next(l for l in log.splitlines() if "seen: " in l)
+    seen = next(ln for ln in log.splitlines() if "seen: " in ln)
     assert other_src.parent.name not in seen and src.parent.name in seen, seen
     assert b.status == "failed" and "only write inside its own build folder" in b.result, b.result
     assert not (src / "written.txt").exists()

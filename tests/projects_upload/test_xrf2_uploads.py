@@ -19,7 +19,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-
 from harness import Server, shared_builds_root, start_server, stop_server
 from projects_support import build_and_wait
 from test_projects_api import run_to_run, upload
@@ -27,9 +26,11 @@ from test_projects_api import run_to_run, upload
 REPO = Path(__file__).resolve().parents[2]
 V10 = REPO / "tests/fixtures/xrf2_v1_0_project"
 V11 = REPO / "tests/fixtures/xrf2_v1_1_project"
-XRF2_MSGS_PACKAGE = ('<?xml version="1.0"?>\n<package format="3">\n  <name>xrf2_msgs</name>\n'
-                     '  <version>0.0.0</version>\n  <description>messages</description>\n'
-                     '  <maintainer email="s@example.org">s</maintainer>\n  <license>MIT</license>\n</package>\n')
+XRF2_MSGS_PACKAGE = (
+    '<?xml version="1.0"?>\n<package format="3">\n  <name>xrf2_msgs</name>\n'
+    "  <version>0.0.0</version>\n  <description>messages</description>\n"
+    '  <maintainer email="s@example.org">s</maintainer>\n  <license>MIT</license>\n</package>\n'
+)
 
 
 @pytest.fixture(scope="module")
@@ -71,8 +72,10 @@ def v11_in_ros_workspace(tmp: Path) -> tuple[Path, Path]:
     (package / "package.xml").write_text(XRF2_MSGS_PACKAGE)
     node = ws / "src" / "vision_node"
     (node / "src").mkdir(parents=True)
-    (node / "CMakeLists.txt").write_text("cmake_minimum_required(VERSION 3.8)\nproject(vision_node)\n"
-                                         "find_package(rclcpp REQUIRED)\nadd_executable(vision src/vision.cpp)\n")
+    (node / "CMakeLists.txt").write_text(
+        "cmake_minimum_required(VERSION 3.8)\nproject(vision_node)\n"
+        "find_package(rclcpp REQUIRED)\nadd_executable(vision src/vision.cpp)\n"
+    )
     (node / "src/vision.cpp").write_text("int main() { return 0; }\n")
     (node / "package.xml").write_text(XRF2_MSGS_PACKAGE.replace("xrf2_msgs", "vision_node"))
     return ws, package / "msg"
@@ -101,11 +104,14 @@ def test_xrf2_workspace_uploaded_built_and_run(server: Server, tmp_path: Path, l
     with server.ws() as ws_client:
         ws_client.send({"type": "subscribe", "topics": ["state", "run"]})
         run = run_to_run(server, server.http, ws_client, pid, b["id"])
-        started = ws_client.wait_for(lambda m: m.get("type") == "run" and m.get("ros2xeno")
-                                     and (m.get("run") or {}).get("id") == run["id"], seen=True)
+        started = ws_client.wait_for(
+            lambda m: m.get("type") == "run" and m.get("ros2xeno") and (m.get("run") or {}).get("id") == run["id"],
+            seen=True,
+        )
         # What the Bench page builds its setpoint controls from.
-        assert [{"name": f["name"], "type": f["type"], "count": f.get("count") or 0} for f in started["ros2xeno"]] \
-            == [{**f, "count": f["count"] or 0} for f in expected], started["ros2xeno"]
+        assert [{"name": f["name"], "type": f["type"], "count": f.get("count") or 0} for f in started["ros2xeno"]] == [
+            {**f, "count": f["count"] or 0} for f in expected
+        ], started["ros2xeno"]
     server.stop_run()
 
 
@@ -119,7 +125,9 @@ def test_no_messages_anywhere_refused_saying_where_it_looked(server: Server, tmp
     assert r.status_code == 422, r.text
     error = r.json()["detail"]["error"]
     assert "Ros2Xeno.msg and Xeno2Ros.msg not found" in error, error
-    assert "Looked in: src/relbot_v1/msg, src/ros2-xenomai4-framework/XenoRosFramework/Common/XRF2_msgs/msg" in error, error
+    assert "Looked in: src/relbot_v1/msg, src/ros2-xenomai4-framework/XenoRosFramework/Common/XRF2_msgs/msg" in error, (
+        error
+    )
     assert str(server.data_dir) not in error  # the appliance's folders are not the student's business
     assert sorted(p.name for p in root.iterdir()) == before
     assert not any((root / ".incoming").iterdir())

@@ -411,11 +411,25 @@ def test_telemetry_and_monitor_readers(shm_name: str) -> None:
         reader = ch.telemetry_reader()
         early = ch.telemetry_reader(from_start=True)
         loop.publish_telemetry(
-            1, t_ns=123, state=4, enc=[1, 2, 3, 4], din=[1, 0] * 4, pwm=[-5, 5, 0, 409], dout=[1, 0, 0, 1],
-            xeno2ros={"pos_left": 0.5}, ros2xeno_t_sent_ns=99,
+            1,
+            t_ns=123,
+            state=4,
+            enc=[1, 2, 3, 4],
+            din=[1, 0] * 4,
+            pwm=[-5, 5, 0, 409],
+            dout=[1, 0, 0, 1],
+            xeno2ros={"pos_left": 0.5},
+            ros2xeno_t_sent_ns=99,
         )
         [t] = reader.read()
-        assert (t.cycle, t.t_ns, t.state, t.enc, t.pwm, t.dout) == (1, 123, 4, [1, 2, 3, 4], [-5, 5, 0, 409], [1, 0, 0, 1])
+        assert (t.cycle, t.t_ns, t.state, t.enc, t.pwm, t.dout) == (
+            1,
+            123,
+            4,
+            [1, 2, 3, 4],
+            [-5, 5, 0, 409],
+            [1, 0, 0, 1],
+        )
         assert t.din == [1, 0] * 4 and t.ros2xeno_t_sent_ns == 99
         assert t.xeno2ros == {"pos_left": 0.5, "pos_right": 0.0}
         assert [x.cycle for x in early.read()] == [0, 1]
@@ -490,11 +504,18 @@ def test_rings_stress_in_c(repo_root: Path, tmp_path: Path) -> None:
     exe = tmp_path / "test_rings_stress"
     subprocess.run(
         [
-            compiler, "-O2", "-std=gnu11", "-Wall", "-Werror", "-pthread",
-            "-I", str(repo_root / "rt_core" / "include"),
+            compiler,
+            "-O2",
+            "-std=gnu11",
+            "-Wall",
+            "-Werror",
+            "-pthread",
+            "-I",
+            str(repo_root / "rt_core" / "include"),
             str(repo_root / "rt_core" / "src" / "channels.c"),
             str(repo_root / "rt_core" / "tests" / "test_rings_stress.c"),
-            "-o", str(exe),
+            "-o",
+            str(exe),
         ],
         check=True,
     )

@@ -154,8 +154,20 @@ def test_run_sets_the_environment_and_passes_the_exit_code(tmp_path: Path) -> No
         )
     )
     program.chmod(program.stat().st_mode | stat.S_IXUSR)
-    done = xrf("run", str(program), "--sim", "jiwy", "--freq", "500", "--shm", "bench1", "--max-cycles", "10",
-               "--faults", "dead_encoder:2")
+    done = xrf(
+        "run",
+        str(program),
+        "--sim",
+        "jiwy",
+        "--freq",
+        "500",
+        "--shm",
+        "bench1",
+        "--max-cycles",
+        "10",
+        "--faults",
+        "dead_encoder:2",
+    )
     assert done.returncode == 7
     env = dict(line.split("=", 1) for line in done.stdout.splitlines())
     assert env["XRF_SIM"] == "jiwy" and env["XRF_FREQ"] == "500" and env["XRF_SHM"] == "bench1"
@@ -209,7 +221,10 @@ def test_run_escalates_when_the_controller_ignores_sigint(tmp_path: Path) -> Non
     env["PYTHONPATH"] = str(Path(cli.__file__).resolve().parents[1])
     proc = subprocess.Popen(
         [sys.executable, "-m", "xrflab.cli", "run", str(program), "--stop-timeout", "0.3"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
     )
     assert proc.stdout.readline().strip() == "ready"
     proc.send_signal(signal.SIGTERM)

@@ -16,11 +16,17 @@ def test_it_finds_the_sessions_processes_and_shm_and_only_those(tmp_path: Path) 
     snap = Snapshot.take(marker, tmp_path, repo)
     env = {k: v for k, v in os.environ.items() if k != MARKER}
     marked = subprocess.Popen(["sh", "-c", "sleep 60 & wait"], env={**env, MARKER: marker}, start_new_session=True)
-    launcher = subprocess.Popen(["sleep", "60"], env={**env, "XRF_RUN_DIR": str(tmp_path / "runs" / "1")},
-                                start_new_session=True)
+    launcher = subprocess.Popen(
+        ["sleep", "60"], env={**env, "XRF_RUN_DIR": str(tmp_path / "runs" / "1")}, start_new_session=True
+    )
     # Another session's process, not our child (its shell has exited: reparented away from us).
-    out = subprocess.run(["sh", "-c", "sleep 60 >/dev/null 2>&1 & echo $!"], env={**env, MARKER: "another-session"},
-                         capture_output=True, text=True, check=True)
+    out = subprocess.run(
+        ["sh", "-c", "sleep 60 >/dev/null 2>&1 & echo $!"],
+        env={**env, MARKER: "another-session"},
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     stranger = int(out.stdout)
     shm = SHM / f"xrf-leak-check-{marker[:8]}"
     shm.write_bytes(b"x")

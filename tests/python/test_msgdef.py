@@ -116,9 +116,23 @@ def test_codec_round_trip_partial_and_unknown() -> None:
     codec = Codec(msgdef.schema_text(msgdef.parse_msg_text(ALL_TYPES)))
     assert codec.size == 1 + 8 + 1 + 1 + 1 + 1 + 2 + 2 + 4 + 4 + 8 + 8 + 4 + 8 + 6 + 2 + 32
     values = {
-        "flag": True, "x": -1.25, "b": 255, "c": 65, "i8": -128, "u8": 200, "i16": -32768, "u16": 65535,
-        "i32": -(2**31), "u32": 2**32 - 1, "i64": -(2**63), "u64": 2**64 - 1, "f32": 0.5, "f64": math.pi,
-        "triple": [1, -2, 3], "pair": [False, True], "quad": [0.0, 1.0, 2.0, 3.0],
+        "flag": True,
+        "x": -1.25,
+        "b": 255,
+        "c": 65,
+        "i8": -128,
+        "u8": 200,
+        "i16": -32768,
+        "u16": 65535,
+        "i32": -(2**31),
+        "u32": 2**32 - 1,
+        "i64": -(2**63),
+        "u64": 2**64 - 1,
+        "f32": 0.5,
+        "f64": math.pi,
+        "triple": [1, -2, 3],
+        "pair": [False, True],
+        "quad": [0.0, 1.0, 2.0, 3.0],
     }
     assert codec.decode(codec.encode(values)) == values
     partial = codec.decode(codec.encode({"x": 2.0}))
@@ -237,9 +251,21 @@ def test_generated_header_layout_matches_codec(tmp_path: Path) -> None:
     )
     exe = tmp_path / "layout"
     build = subprocess.run(
-        [compiler, "-std=c++17", "-Wall", "-Wextra", "-Werror", "-Wno-invalid-offsetof",
-         "-I", str(tmp_path / "gen"), str(source), "-o", str(exe)],
-        capture_output=True, text=True,
+        [
+            compiler,
+            "-std=c++17",
+            "-Wall",
+            "-Wextra",
+            "-Werror",
+            "-Wno-invalid-offsetof",
+            "-I",
+            str(tmp_path / "gen"),
+            str(source),
+            "-o",
+            str(exe),
+        ],
+        capture_output=True,
+        text=True,
     )
     assert build.returncode == 0, build.stderr
     run = subprocess.run([str(exe)], capture_output=True, text=True, check=True)
@@ -260,6 +286,7 @@ def test_oversized_struct_fails_to_compile(tmp_path: Path) -> None:
     (tmp_path / "main.cpp").write_text('#include "big.hpp"\nint main() { return 0; }\n')
     build = subprocess.run(
         [compiler, "-std=c++17", "-fsyntax-only", "-I", str(tmp_path), str(tmp_path / "main.cpp")],
-        capture_output=True, text=True,
+        capture_output=True,
+        text=True,
     )
     assert build.returncode != 0 and "larger than the 512 bytes" in build.stderr

@@ -35,8 +35,13 @@ def test_shellcheck_finds_nothing() -> None:
     shellcheck = shutil.which("shellcheck")
     if shellcheck is None:  # ./lab installs it; a missing linter must not read as a clean lint
         pytest.fail("shellcheck is not installed (Debian package 'shellcheck'; ./lab installs it)")
-    proc = subprocess.run([shellcheck, "--external-sources", "--format=gcc", *map(str, shell_scripts())],
-                          cwd=REPO, capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [shellcheck, "--external-sources", "--format=gcc", *map(str, shell_scripts())],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0, f"shellcheck findings:\n{proc.stdout}{proc.stderr}"
 
 
@@ -45,8 +50,11 @@ PIPE_INTO_QUIET_GREP = re.compile(r"\|\s*grep\s+(-\w*q|--quiet|--silent)")
 
 @pytest.mark.parametrize("script", shell_scripts(), ids=lambda p: p.relative_to(REPO).as_posix())
 def test_no_pipeline_ends_in_grep_q(script: Path) -> None:
-    hits = [f"{script.name}:{n}: {line.strip()}" for n, line in enumerate(script.read_text().splitlines(), 1)
-            if PIPE_INTO_QUIET_GREP.search(line) and not line.lstrip().startswith("#")]
+    hits = [
+        f"{script.name}:{n}: {line.strip()}"
+        for n, line in enumerate(script.read_text().splitlines(), 1)
+        if PIPE_INTO_QUIET_GREP.search(line) and not line.lstrip().startswith("#")
+    ]
     assert not hits, "a pipeline into grep -q fails with SIGPIPE under pipefail:\n" + "\n".join(hits)
 
 
@@ -62,13 +70,17 @@ def test_chromium_package_finds_the_candidate_every_time() -> None:
     each of 20 tries (the pipe into grep -q answered "none" about 4 times in 5)."""
     if shutil.which("apt-cache") is None:
         pytest.skip("no apt-cache: not a Debian/Ubuntu system, ./lab does not install chromium here")
-    policy = subprocess.run(["apt-cache", "policy", "chromium", "chromium-browser"], capture_output=True,
-                            text=True, timeout=60).stdout
+    policy = subprocess.run(
+        ["apt-cache", "policy", "chromium", "chromium-browser"], capture_output=True, text=True, timeout=60
+    ).stdout
     candidates = re.findall(r"^(\S+):\n(?:.*\n)*?\s+Candidate: (?!\(none\))", policy, re.MULTILINE)
     if not candidates:
         pytest.skip("apt has no candidate for chromium or chromium-browser here (apt-get update not run?)")
-    script = "set -euo pipefail\n" + _lab_function("chromium_package") + (
-        'for i in $(seq 20); do chromium_package || echo none; done\n')
+    script = (
+        "set -euo pipefail\n"
+        + _lab_function("chromium_package")
+        + ("for i in $(seq 20); do chromium_package || echo none; done\n")
+    )
     out = subprocess.run(["bash", "-c", script], capture_output=True, text=True, timeout=300).stdout.split()
     assert out == [candidates[0]] * 20
 
@@ -76,8 +88,11 @@ def test_chromium_package_finds_the_candidate_every_time() -> None:
 def test_missing_apt_packages_names_only_the_missing() -> None:
     if shutil.which("dpkg-query") is None:
         pytest.skip("no dpkg-query: not a Debian/Ubuntu system")
-    script = "set -euo pipefail\n" + _lab_function("missing_apt_packages") + (
-        "missing_apt_packages bash xrf-no-such-package-1 coreutils xrf-no-such-package-2\n")
+    script = (
+        "set -euo pipefail\n"
+        + _lab_function("missing_apt_packages")
+        + ("missing_apt_packages bash xrf-no-such-package-1 coreutils xrf-no-such-package-2\n")
+    )
     out = subprocess.run(["bash", "-c", script], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["xrf-no-such-package-1", "xrf-no-such-package-2"]

@@ -34,8 +34,12 @@ def _alive(pid: int) -> bool:
 
 
 def test_a_tied_child_outlives_the_asking_thread_but_not_the_process() -> None:
-    parent = subprocess.Popen([sys.executable, "-c", PARENT], stdout=subprocess.PIPE, text=True,
-                              env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")))
+    parent = subprocess.Popen(
+        [sys.executable, "-c", PARENT],
+        stdout=subprocess.PIPE,
+        text=True,
+        env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")),
+    )
     child = 0
     try:
         assert parent.stdout is not None

@@ -22,8 +22,9 @@ def free_port() -> int:
 
 
 def broker_files(folder: Path, bind: str = "127.0.0.1", names: list[str] | None = None) -> BrokerFiles:
-    files = BrokerFiles(folder, port=free_port(), tls_port=free_port(), bind=bind,
-                        names=names or ["127.0.0.1", "localhost"])
+    files = BrokerFiles(
+        folder, port=free_port(), tls_port=free_port(), bind=bind, names=names or ["127.0.0.1", "localhost"]
+    )
     files.write()
     return files
 
@@ -35,15 +36,25 @@ def start_broker(files: BrokerFiles) -> BrokerProcess:
 
 
 def room_endpoint(files: BrokerFiles, tls: bool = False) -> mqtt.Endpoint:
-    return mqtt.Endpoint("127.0.0.1", files.tls_port if tls else files.port, ROOM_USER, files.room_password(),
-                         files.ca_cert.read_text() if tls else "")
+    return mqtt.Endpoint(
+        "127.0.0.1",
+        files.tls_port if tls else files.port,
+        ROOM_USER,
+        files.room_password(),
+        files.ca_cert.read_text() if tls else "",
+    )
 
 
 class Recorder:
     """A connected MQTT client that records every message it receives and every PUBACK."""
 
-    def __init__(self, endpoint: mqtt.Endpoint, client_id: str, subscribe: list[str] | None = None,
-                 will: tuple[str, bytes] | None = None) -> None:
+    def __init__(
+        self,
+        endpoint: mqtt.Endpoint,
+        client_id: str,
+        subscribe: list[str] | None = None,
+        will: tuple[str, bytes] | None = None,
+    ) -> None:
         self.messages: list[tuple[str, bytes, bool]] = []
         self.acks: dict[int, Any] = {}
         self.connected = threading.Event()
@@ -113,8 +124,9 @@ class Recorder:
 
 
 def bench_endpoint(files: BrokerFiles, name: str, password: str, tls: bool = False) -> mqtt.Endpoint:
-    return mqtt.Endpoint("127.0.0.1", files.tls_port if tls else files.port, name, password,
-                         files.ca_cert.read_text() if tls else "")
+    return mqtt.Endpoint(
+        "127.0.0.1", files.tls_port if tls else files.port, name, password, files.ca_cert.read_text() if tls else ""
+    )
 
 
 __all__ = ["Recorder", "broker_files", "start_broker", "room_endpoint", "bench_endpoint", "free_port", "topics"]
@@ -130,8 +142,8 @@ import sys  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 
 import httpx  # noqa: E402
-
-from harness import ADMIN_PASSWORD, HERE as APPLIANCE_TESTS, REPO_ROOT, Server, login_client  # noqa: E402
+from harness import ADMIN_PASSWORD, REPO_ROOT, Server, login_client  # noqa: E402
+from harness import HERE as APPLIANCE_TESTS  # noqa: E402
 
 
 def netns_possible() -> bool:
@@ -212,12 +224,21 @@ def start_bench(topo: Topology, i: int, data_dir: Path, builds_root: Path) -> Se
     """An appliance as harness.start_server starts one, inside bench i's namespace when there is one."""
     host = topo.bench_host(i)
     port = 8000 if topo.netns else free_port()
-    config = {"data_dir": str(data_dir), "builds_root": str(builds_root), "port": port, "host": host,
-              "real_bench": False}
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO_ROOT / "appliance"), str(APPLIANCE_TESTS)]),
-               XRF_BOOTSTRAP_ADMIN_PASSWORD=ADMIN_PASSWORD)
-    proc = subprocess.Popen([*topo.prefix(i), sys.executable, str(APPLIANCE_TESTS / "serve_for_test.py"),
-                             json.dumps(config)], env=env)
+    config = {
+        "data_dir": str(data_dir),
+        "builds_root": str(builds_root),
+        "port": port,
+        "host": host,
+        "real_bench": False,
+    }
+    env = dict(
+        os.environ,
+        PYTHONPATH=os.pathsep.join([str(REPO_ROOT / "appliance"), str(APPLIANCE_TESTS)]),
+        XRF_BOOTSTRAP_ADMIN_PASSWORD=ADMIN_PASSWORD,
+    )
+    proc = subprocess.Popen(
+        [*topo.prefix(i), sys.executable, str(APPLIANCE_TESTS / "serve_for_test.py"), json.dumps(config)], env=env
+    )
     url = f"http://{host}:{port}"
     _wait_http(url, proc)
     return Server(url, f"ws://{host}:{port}/ws", proc, data_dir, login_client(url, "admin", ADMIN_PASSWORD))
@@ -266,9 +287,17 @@ uvicorn.run(create_room_app(RoomConfig(**c)), host=c["host"], port=c["port"], lo
 
 def start_room(data_dir: Path, files: BrokerFiles, **config: Any) -> RoomServer:
     port = free_port()
-    cfg = {"data_dir": str(data_dir), "host": "127.0.0.1", "port": port, "broker_names": files.names,
-           "broker_port": files.port, "broker_tls_port": files.tls_port, "broker_bind": files.bind,
-           "spawn_broker": False, **config}
+    cfg = {
+        "data_dir": str(data_dir),
+        "host": "127.0.0.1",
+        "port": port,
+        "broker_names": files.names,
+        "broker_port": files.port,
+        "broker_tls_port": files.tls_port,
+        "broker_bind": files.bind,
+        "spawn_broker": False,
+        **config,
+    }
     env = dict(os.environ, PYTHONPATH=str(REPO_ROOT / "appliance"), XRF_BOOTSTRAP_ADMIN_PASSWORD=ADMIN_PASSWORD)
     proc = subprocess.Popen([sys.executable, "-c", ROOM_RUNNER, json.dumps(cfg)], env=env)
     url = f"http://127.0.0.1:{port}"
@@ -276,14 +305,33 @@ def start_room(data_dir: Path, files: BrokerFiles, **config: Any) -> RoomServer:
     return RoomServer(url, proc, data_dir, login_client(url, "admin", ADMIN_PASSWORD))
 
 
-def join(room: RoomServer, name: str, data_dir: Path, dashboard_url: str,
-         room_url: str = "") -> subprocess.CompletedProcess[str]:
+def join(
+    room: RoomServer, name: str, data_dir: Path, dashboard_url: str, room_url: str = ""
+) -> subprocess.CompletedProcess[str]:
     """`xrf room join` as an educator would run it on the bench, with a fresh code from the room
     (`room_url`: the room's address as the bench reaches it, default the test's)."""
     code = room.http.post("/api/room/join-codes").json()["code"]
-    return subprocess.run([sys.executable, "-m", "xrflab.cli", "room", "join", room_url or room.url, code, "--name", name,
-                           "--data", str(data_dir), "--url", dashboard_url], capture_output=True, text=True,
-                          timeout=60, env=dict(os.environ, PYTHONPATH=str(REPO_ROOT / "appliance")))
+    return subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "xrflab.cli",
+            "room",
+            "join",
+            room_url or room.url,
+            code,
+            "--name",
+            name,
+            "--data",
+            str(data_dir),
+            "--url",
+            dashboard_url,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=dict(os.environ, PYTHONPATH=str(REPO_ROOT / "appliance")),
+    )
 
 
 # ---- a whole lab: broker, room, N enrolled appliances ---------------------------------------------
@@ -327,8 +375,9 @@ def room_lab(base: Path, n: int, bench_root: Path | None = None) -> Iterator[Lab
         broker = start_broker(files)
         room = start_room(base / "room", files, tls=True, host="0.0.0.0")
         room_url = f"http://{topo.broker_host}:{room.url.rsplit(':', 1)[1]}"
-        r = room.http.post("/api/users", json={"username": TEACHER, "role": "educator", "password": TEACHER_PW,
-                                              "must_change": False})
+        r = room.http.post(
+            "/api/users", json={"username": TEACHER, "role": "educator", "password": TEACHER_PW, "must_change": False}
+        )
         assert r.status_code == 201, r.text
         for i in range(1, n + 1):
             data = (bench_root or base) / f"bench{i}"

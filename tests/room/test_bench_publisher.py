@@ -9,12 +9,10 @@ import os
 import signal
 import time
 
-import pytest
-
 from harness import shared_builds_root, start_server, stop_server, wait_for
-from room_support import Recorder, free_port, room_endpoint
+from room_support import Recorder, room_endpoint
+
 from xrflab.room import topics
-from xrflab.room.broker import BrokerProcess
 from xrflab.room.enrol import write_enrolment
 
 
@@ -30,8 +28,14 @@ def _enrol(files, data_dir, name: str) -> None:
     pw = f"pw-{name}-{os.urandom(6).hex()}"
     files.set_password(name, pw)
     files.reload()
-    write_enrolment(data_dir, {"name": name, "sso_key": os.urandom(16).hex(),
-                               "broker": {"host": "127.0.0.1", "port": files.port, "username": name, "password": pw}})
+    write_enrolment(
+        data_dir,
+        {
+            "name": name,
+            "sso_key": os.urandom(16).hex(),
+            "broker": {"host": "127.0.0.1", "port": files.port, "username": name, "password": pw},
+        },
+    )
 
 
 def test_status_events_will_and_broker_restart(broker, tmp_path) -> None:
@@ -56,8 +60,11 @@ def test_status_events_will_and_broker_restart(broker, tmp_path) -> None:
             ws.wait_state("INITIALISED", 10)
             assert ws.command("start")["accepted"]
             ws.wait_state("RUN", 10)
-        wait_for(lambda: any(s["state"] == "RUN" and (s.get("cycle_rate") or 0) > 100 for s in _status(room, "b1")),
-                 10, "RUN with a cycle rate")
+        wait_for(
+            lambda: any(s["state"] == "RUN" and (s.get("cycle_rate") or 0) > 100 for s in _status(room, "b1")),
+            10,
+            "RUN with a cycle rate",
+        )
         seqs = [(s["boot"], s["seq"]) for s in _status(room, "b1")]
         assert seqs == sorted(seqs)  # (boot, seq) only grows
 

@@ -8,8 +8,8 @@ import ssl
 import subprocess
 
 import pytest
-
 from room_support import Recorder, bench_endpoint, room_endpoint
+
 from xrflab.room import mqtt, topics
 from xrflab.room.broker import acl_text
 
@@ -52,6 +52,7 @@ def test_bench_publishes_only_under_its_own_name(broker) -> None:
         b1.wait_message(lambda t, p: t == topics.CMD_ALL)
         b1.wait_message(lambda t, p: t == topics.cmd("b1"))
         import time
+
         time.sleep(0.3)
         assert not b1.received(lambda t, p: t == topics.cmd("b2"))
         assert not room.received(lambda t, p: b"forged" in p)
@@ -74,8 +75,26 @@ def test_wrong_password_and_anonymous_refused(broker) -> None:
         wrong.close()
         anon.close()
     # the CLI client too (mosquitto-clients), against the same broker
-    r = subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(files.port), "-t", "xrf/cmd/all", "-m", "x",
-                        "-u", "b1", "-P", "nope"], capture_output=True, text=True, timeout=10)
+    r = subprocess.run(
+        [
+            "mosquitto_pub",
+            "-h",
+            "127.0.0.1",
+            "-p",
+            str(files.port),
+            "-t",
+            "xrf/cmd/all",
+            "-m",
+            "x",
+            "-u",
+            "b1",
+            "-P",
+            "nope",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=10,
+    )
     assert r.returncode != 0
 
 
@@ -89,6 +108,7 @@ def test_deleted_bench_is_refused_after_reload(broker) -> None:
     files.delete_user("b3")
     assert files.reload()
     import time
+
     time.sleep(0.3)
     again = Recorder(bench_endpoint(files, "b3", pws["b3"]), "b3b")
     try:
@@ -115,6 +135,7 @@ def test_tls_with_the_rooms_own_ca(broker) -> None:
     # the system's CAs do not know the room's: the handshake fails
     ctx = ssl.create_default_context()
     import socket
+
     with socket.create_connection(("127.0.0.1", files.tls_port), timeout=5) as raw:
         with pytest.raises(ssl.SSLCertVerificationError):
             ctx.wrap_socket(raw, server_hostname="127.0.0.1")
@@ -124,9 +145,30 @@ def test_tls_with_the_rooms_own_ca(broker) -> None:
         with pytest.raises(ssl.SSLCertVerificationError):
             ctx2.wrap_socket(raw, server_hostname="broker.elsewhere.example")
     # and mosquitto's own client with the CA file gets through (openssl-made CA, mosquitto's TLS)
-    r = subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(files.tls_port), "--cafile", str(files.ca_cert),
-                        "-t", topics.bench("b1", "event"), "-m", "{}", "-u", "b1", "-P", pws["b1"], "-q", "1"],
-                       capture_output=True, text=True, timeout=10)
+    r = subprocess.run(
+        [
+            "mosquitto_pub",
+            "-h",
+            "127.0.0.1",
+            "-p",
+            str(files.tls_port),
+            "--cafile",
+            str(files.ca_cert),
+            "-t",
+            topics.bench("b1", "event"),
+            "-m",
+            "{}",
+            "-u",
+            "b1",
+            "-P",
+            pws["b1"],
+            "-q",
+            "1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=10,
+    )
     assert r.returncode == 0, r.stderr
 
 

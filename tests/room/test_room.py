@@ -11,9 +11,9 @@ from collections.abc import Iterator
 
 import httpx
 import pytest
-
 from harness import CHROMIUM_ARGS, login_client, wait_for
 from room_support import TEACHER, TEACHER_PW, Lab, Recorder, room_endpoint, room_lab
+
 from xrflab.room import topics
 
 N = 5
@@ -51,8 +51,11 @@ def test_stop_all_reaches_every_loop(lab: Lab) -> None:
             ws.wait_state("RUN", 15)
     wait_for(lambda: all(b["state"] == "RUN" for n, b in lab.views().items() if n != "b9"), 10, "all RUN in the room")
     sent = lab.teacher.post("/api/room/stop", json={}).json()
-    replies = wait_for(lambda: (r := lab.room.http.get(f"/api/room/commands/{sent['id']}").json()["replies"])
-                       and len(r) >= N and r, 10, "5 replies")
+    replies = wait_for(
+        lambda: (r := lab.room.http.get(f"/api/room/commands/{sent['id']}").json()["replies"]) and len(r) >= N and r,
+        10,
+        "5 replies",
+    )
     assert {r["bench"] for r in replies} == {f"b{i}" for i in range(1, N + 1)}
     assert all("t_loop" in r for r in replies), replies
     lat = sorted(r["t_loop"] - r["t_sent"] for r in replies)
@@ -83,6 +86,7 @@ def test_class_list_disable_takes_effect_on_a_bench(lab: Lab) -> None:
             return login_client(bench.url, "s1", pw)
         except AssertionError:
             return None
+
     student = wait_for(login_ok, 5, "the room's student accepted on the bench")
     assert student.get("/api/me").json()["username"] == "s1"
     t0 = time.monotonic()
@@ -143,8 +147,11 @@ def test_broker_killed_and_restarted(lab: Lab) -> None:
     wait_for(lambda: lab.room.http.get("/api/room/benches").json()["connected"], 15, "room reconnected")
     wait_for(lambda: len(lab.online() & {f"b{i}" for i in range(1, N + 1)}) == N, 20, "all back online")
     # the events b1 queued during the outage reached the room
-    wait_for(lambda: any(e["kind"] == "run_ended" and e["t"] > 0 for e in lab.views()["b1"]["events"]), 10,
-             "b1's queued run_ended")
+    wait_for(
+        lambda: any(e["kind"] == "run_ended" and e["t"] > 0 for e in lab.views()["b1"]["events"]),
+        10,
+        "b1's queued run_ended",
+    )
 
 
 def test_grid_in_chromium(lab: Lab, chromium_path: str) -> None:
@@ -161,9 +168,18 @@ def test_grid_in_chromium(lab: Lab, chromium_path: str) -> None:
         for k in range(25):
             name = f"z{k:02d}"
             fake.publish(topics.bench(name, "online"), {"online": True, "conn": [boot, 1]}, retain=True)
-            fake.publish(topics.bench(name, "status"), {"boot": boot, "seq": seq, "state": "RUN", "holder": f"st{k}",
-                                                         "alarms": [{"kind": "crash", "message": "segfault"}]
-                                                         if name == alarm_on else []}, retain=True)
+            fake.publish(
+                topics.bench(name, "status"),
+                {
+                    "boot": boot,
+                    "seq": seq,
+                    "state": "RUN",
+                    "holder": f"st{k}",
+                    "alarms": [{"kind": "crash", "message": "segfault"}] if name == alarm_on else [],
+                },
+                retain=True,
+            )
+
     import threading
 
     beating = threading.Event()
@@ -175,6 +191,7 @@ def test_grid_in_chromium(lab: Lab, chromium_path: str) -> None:
             publish_fakes(seq, alarm_on="z17")
             seq += 1
             time.sleep(1.0)
+
     beater = threading.Thread(target=heartbeat, daemon=True)
     beater.start()
     try:
@@ -186,19 +203,25 @@ def test_grid_in_chromium(lab: Lab, chromium_path: str) -> None:
             page.fill("#login-pass", TEACHER_PW)
             page.click("#login-submit")
             page.wait_for_function("document.querySelectorAll('.tile').length >= 30", timeout=15000)
-            boxes = page.eval_on_selector_all(".tile", "els => els.map(e => { const r = e.getBoundingClientRect(); "
-                                                       "return [r.left, r.top, r.right, r.bottom]; })")
+            boxes = page.eval_on_selector_all(
+                ".tile",
+                "els => els.map(e => { const r = e.getBoundingClientRect(); "
+                "return [r.left, r.top, r.right, r.bottom]; })",
+            )
             assert all(r <= 1366 and b <= 768 for _, _, r, b in boxes), boxes
             # alarms first: every tile with an alarm comes before every tile without one
-            flags = page.eval_on_selector_all(".tile", "els => els.map(e => [e.dataset.bench, "
-                                                       "e.classList.contains('has-alarm')])")
+            flags = page.eval_on_selector_all(
+                ".tile", "els => els.map(e => [e.dataset.bench, e.classList.contains('has-alarm')])"
+            )
             alarmed = [f for _, f in flags]
             assert alarmed == sorted(alarmed, reverse=True) and dict(flags)["z17"], flags
             # a stale status (older seq) never overwrites the newer one the grid shows
             fake.publish(topics.bench("z03", "status"), {"boot": boot, "seq": 0, "state": "PAUSED"}, retain=True)
             time.sleep(0.5)
             assert page.eval_on_selector("[data-bench=z03] .state", "e => e.textContent") == "RUN"
-            fake.publish(topics.bench("z03", "status"), {"boot": boot - 1, "seq": 10**6, "state": "PAUSED"}, retain=True)
+            fake.publish(
+                topics.bench("z03", "status"), {"boot": boot - 1, "seq": 10**6, "state": "PAUSED"}, retain=True
+            )
             time.sleep(0.5)
             assert page.eval_on_selector("[data-bench=z03] .state", "e => e.textContent") == "RUN"
             # the fakes fall silent: offline within 5 s; the real benches stay online

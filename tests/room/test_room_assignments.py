@@ -15,12 +15,10 @@ import sys
 import time
 import zipfile
 from collections.abc import Iterator
-from pathlib import Path
 
 import httpx
 import pytest
-
-from harness import REPO_ROOT, login_client, ws_connect, wait_for
+from harness import REPO_ROOT, login_client, wait_for, ws_connect
 from room_support import Lab, room_lab
 
 sys.path.insert(0, str(REPO_ROOT / "tests" / "projects_upload"))
@@ -37,8 +35,9 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
     try:
         with room_lab(tmp_path_factory.mktemp("room"), N, benches) as lab:
             for name, pw in STUDENTS.items():
-                r = lab.teacher.post("/api/users", json={"username": name, "role": "student", "password": pw,
-                                                        "must_change": False})
+                r = lab.teacher.post(
+                    "/api/users", json={"username": name, "role": "student", "password": pw, "must_change": False}
+                )
                 assert r.status_code == 201, r.text
             wait_for(lambda: lab.online() == {"b1", "b2", "b3"}, 20, "3 benches online")
             yield lab
@@ -49,12 +48,14 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
 def student(lab: Lab, i: int, name: str = "s1") -> httpx.Client:
     """A student logged in on bench i (once the room's class list has reached it). Few attempts,
     spaced: 5 failed logins would lock the account on that bench."""
+
     def attempt() -> httpx.Client | None:
         try:
             return login_client(lab.benches[i - 1].url, name, STUDENTS[name])
         except AssertionError:
             time.sleep(1.5)
             return None
+
     return wait_for(attempt, 5, f"{name} accepted on b{i}")
 
 
@@ -81,8 +82,11 @@ def test_publish_reaches_every_student_list_and_a_bench_that_comes_back(lab: Lab
         assert r.status_code == 201, r.text
         big = r.json()
         assert big["size"] > 128 << 10 > small["size"]
-        wait_for(lambda: holders(lab, small["id"]) == {"b1", "b2"} and holders(lab, big["id"]) == {"b1", "b2"},
-                 15, "both assignments on b1 and b2")
+        wait_for(
+            lambda: holders(lab, small["id"]) == {"b1", "b2"} and holders(lab, big["id"]) == {"b1", "b2"},
+            15,
+            "both assignments on b1 and b2",
+        )
         assert "b3" not in holders(lab, small["id"])
     finally:
         lab.topo.heal(3, b3)
@@ -93,7 +97,10 @@ def test_publish_reaches_every_student_list_and_a_bench_that_comes_back(lab: Lab
         s1 = student(lab, i)
         mine = s1.get("/api/projects").json()
         got = {p["origin"]: p for p in mine}
-        assert got[f"assignment:{small['id']}"]["name"] == "Lab 1 PID" and got[f"assignment:{small['id']}"]["owner"] == "s1"
+        assert (
+            got[f"assignment:{small['id']}"]["name"] == "Lab 1 PID"
+            and got[f"assignment:{small['id']}"]["owner"] == "s1"
+        )
         assert f"assignment:{big['id']}" in got
         assert len(s1.get("/api/projects").json()) == len(mine)  # made once, not on every listing
         names = {t["name"] for t in s1.get("/api/project-templates").json()}
@@ -118,11 +125,13 @@ def test_publish_reaches_every_student_list_and_a_bench_that_comes_back(lab: Lab
 
 def test_only_educators_publish_and_collect(lab: Lab) -> None:
     room_student = login_client(lab.room.url, "s1", STUDENTS["s1"])
-    for method, path, body in (("POST", "/api/room/assignments", {"name": "x", "template": "base"}),
-                               ("GET", "/api/room/assignments", None),
-                               ("POST", "/api/room/assignments/a1/collect", {}),
-                               ("GET", "/api/room/collections/0123456789abcdef", None),
-                               ("POST", "/api/room/selfcheck", {})):
+    for method, path, body in (
+        ("POST", "/api/room/assignments", {"name": "x", "template": "base"}),
+        ("GET", "/api/room/assignments", None),
+        ("POST", "/api/room/assignments/a1/collect", {}),
+        ("GET", "/api/room/collections/0123456789abcdef", None),
+        ("POST", "/api/room/selfcheck", {}),
+    ):
         assert room_student.request(method, path, json=body).status_code == 403, path
     assert room_student.post("/api/room/assignments/upload", params={"name": "x"}, content=b"x").status_code == 403
     room_student.close()
@@ -131,8 +140,12 @@ def test_only_educators_publish_and_collect(lab: Lab) -> None:
     # the benches' own routes want a token signed with a bench's key
     aid = lab.teacher.get("/api/room/assignments").json()[0]["id"]
     assert anon.get(f"/api/room/assignments/{aid}/archive", params={"bench": "b1", "token": "x.y"}).status_code == 403
-    assert anon.post("/api/room/collections/0123456789abcdef/benches/b1", params={"token": "x.y"},
-                     content=b"x").status_code == 403
+    assert (
+        anon.post(
+            "/api/room/collections/0123456789abcdef/benches/b1", params={"token": "x.y"}, content=b"x"
+        ).status_code
+        == 403
+    )
     anon.close()
 
 
@@ -165,8 +178,11 @@ def test_collect_a_students_run_from_every_bench(lab: Lab) -> None:
         assert r.status_code == 201, r.text
         c = r.json()
         assert c["benches"] == {"b1": "waiting", "b2": "waiting", "b3": "missing"}
-        done = wait_for(lambda: (v := lab.teacher.get(f"/api/room/collections/{c['id']}").json())["done"] and v,
-                        60, "b1 and b2 answered")
+        done = wait_for(
+            lambda: (v := lab.teacher.get(f"/api/room/collections/{c['id']}").json())["done"] and v,
+            60,
+            "b1 and b2 answered",
+        )
         assert done["benches"] == {"b1": "collected", "b2": "collected", "b3": "missing"}, done
         z = zipfile.ZipFile(io.BytesIO(lab.teacher.get(done["archive"]).content))
     finally:
@@ -205,6 +221,7 @@ def test_selfcheck_on_every_idle_bench_side_by_side(lab: Lab) -> None:
             if all(x.get("verdict") and x.get("t", 0) >= t0 for x in v.values()):
                 return {n: x["verdict"] for n, x in v.items()}
             return None
+
         got = wait_for(verdicts, 120, "three verdicts")
     finally:
         busy.stop_run()
@@ -230,9 +247,11 @@ def test_password_reset_in_the_room_takes_effect_on_a_bench(lab: Lab) -> None:
             return True
         except AssertionError:
             return False
+
     v0 = version()
-    r = lab.teacher.post("/api/users", json={"username": "s9", "role": "student", "password": "old-password-s9-1",
-                                            "must_change": False})
+    r = lab.teacher.post(
+        "/api/users", json={"username": "s9", "role": "student", "password": "old-password-s9-1", "must_change": False}
+    )
     assert r.status_code == 201, r.text
     uid = r.json()["user"]["id"]
     wait_for(lambda: version() > v0, 5, "s9 on b2")
@@ -251,9 +270,8 @@ def test_password_reset_in_the_room_takes_effect_on_a_bench(lab: Lab) -> None:
 def test_publish_and_collect_from_the_page(lab: Lab, chromium_path: str) -> None:
     """The room page's buttons: publish a template by name, see it reach the benches, collect its
     runs and get the download link (the archive itself is checked above)."""
-    from playwright.sync_api import sync_playwright
-
     from harness import CHROMIUM_ARGS
+    from playwright.sync_api import sync_playwright
     from room_support import TEACHER, TEACHER_PW
 
     wait_for(lambda: lab.online() >= {"b1", "b2", "b3"}, 20, "all online")
@@ -272,8 +290,9 @@ def test_publish_and_collect_from_the_page(lab: Lab, chromium_path: str) -> None
         aid = next(a["id"] for a in lab.teacher.get("/api/room/assignments").json() if a["name"] == "Page lab")
         assert lab.teacher.get("/api/room/assignments").json()[-1]["template"] == "20sim"
         item = f"[data-assignment='{aid}']"
-        page.wait_for_function(f"document.querySelector(\"{item} .holders\").textContent.startsWith('3 of')",
-                               timeout=15000)
+        page.wait_for_function(
+            f"document.querySelector(\"{item} .holders\").textContent.startsWith('3 of')", timeout=15000
+        )
         page.click(f"{item} .collect")
         page.wait_for_selector(f"{item} a.download", timeout=30000)
         href = page.get_attribute(f"{item} a.download", "href")

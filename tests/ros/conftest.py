@@ -10,8 +10,8 @@ import os
 import signal
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import pytest
 
@@ -79,7 +79,9 @@ class Proc:
                 self.proc.kill()
                 self.proc.wait(5)
                 self._log.close()
-                raise AssertionError(f"{self.proc.args[:3]} ignored SIGTERM for {timeout:g} s:\n{self.output}")
+                raise AssertionError(
+                    f"{self.proc.args[:3]} ignored SIGTERM for {timeout:g} s:\n{self.output}"
+                ) from None
         self._log.close()
         return self.proc.returncode
 
@@ -121,8 +123,9 @@ def procs(tmp_path: Path, ros_env: dict[str, str]) -> Iterator:
 
         def peer(self, msg_dir: Path, *args: str, timeout: float) -> tuple[int, str]:
             env = dict(os.environ, **ros_env, **msgs_env(msg_dir))
-            r = subprocess.run([sys.executable, str(PEER), *args], env=env, capture_output=True, text=True,
-                               timeout=timeout)
+            r = subprocess.run(
+                [sys.executable, str(PEER), *args], env=env, capture_output=True, text=True, timeout=timeout
+            )
             return r.returncode, r.stdout + r.stderr
 
     yield Starter()

@@ -56,8 +56,13 @@ class Peer(Node):
 
 def scenario_relbot(node: Peer, args: argparse.Namespace) -> dict:
     out: dict = {}
-    node.spin_until(lambda: node.cmd_pub.get_subscription_count() > 0 and node.data_pub.get_subscription_count() > 0
-                    and node.states, 30, "the bridge (XenoCmd/Ros2Xeno subscribers, a XenoState)")
+    node.spin_until(
+        lambda: (
+            node.cmd_pub.get_subscription_count() > 0 and node.data_pub.get_subscription_count() > 0 and node.states
+        ),
+        30,
+        "the bridge (XenoCmd/Ros2Xeno subscribers, a XenoState)",
+    )
     out["initial_state"] = node.states[-1]
     node.send_cmd(1)
     node.spin_until(lambda: node.states and node.states[-1] == 3, 10, "XenoState 3 after XenoCmd 1")
@@ -99,7 +104,12 @@ def scenario_seq(node: Peer, args: argparse.Namespace) -> dict:
     steps: dict[int, int] = {}
     for a, b in zip(cycles, cycles[1:]):
         steps[b - a] = steps.get(b - a, 0) + 1
-    return {"count": len(cycles), "first": cycles[:1], "last": cycles[-1:], "steps": {str(k): v for k, v in steps.items()}}
+    return {
+        "count": len(cycles),
+        "first": cycles[:1],
+        "last": cycles[-1:],
+        "steps": {str(k): v for k, v in steps.items()},
+    }
 
 
 def main() -> int:
@@ -110,7 +120,9 @@ def main() -> int:
     parser.add_argument("--tol", type=float, default=0.02)
     parser.add_argument("--track-timeout", type=float, default=15.0)
     parser.add_argument("--seconds", type=float, default=60.0)
-    parser.add_argument("--release", choices=sorted(TOPICS), default="v1.1", help="XRF2 release whose topic names to use")
+    parser.add_argument(
+        "--release", choices=sorted(TOPICS), default="v1.1", help="XRF2 release whose topic names to use"
+    )
     args = parser.parse_args()
     signal.signal(signal.SIGTERM, lambda *a: sys.exit(2))
     rclpy.init()

@@ -59,8 +59,13 @@ def test_interface_package_is_a_real_ros2_package(ros_env, tmp_path):
     )
     import os
 
-    r = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, **ros_env, **runtime_env(prefix)),
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, "-c", code],
+        env=dict(os.environ, **ros_env, **runtime_env(prefix)),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 0, r.stderr
     assert "{'steer_left': 'double', 'steer_right': 'double'} {'pos_left': 'double', 'pos_right': 'double'}" in r.stdout
 
@@ -105,8 +110,9 @@ def test_first_release_topic_names_command_and_xenomai_state(procs, relbot_exe, 
     `Xenomai_state`: the same bridge answers it (and a v1.1 node at the same time)."""
     loop = procs.loop(relbot_exe, shm_name)
     bridge = procs.bridge(shm_name, "--msg-dir", str(RELBOT / "msg"))
-    rc, out = procs.peer(RELBOT / "msg", "relbot", "--release", "v1.0", "--left", "0.5", "--right", "0.5",
-                         "--tol", "0.05", timeout=90)
+    rc, out = procs.peer(
+        RELBOT / "msg", "relbot", "--release", "v1.0", "--left", "0.5", "--right", "0.5", "--tol", "0.05", timeout=90
+    )
     result = _result(rc, out)
     states = result["states"]
     assert states[0] == 1 and states.index(3) < states.index(4), states
@@ -150,11 +156,17 @@ def test_cpp_node_code_compiles_against_the_package(tmp_path):
         '  std::printf("%g %g\\n", r.pos_left, r.pos_right); return m == xrf2_msgs::msg::Ros2Xeno() ? 1 : 0; }\n'
     )
     venv_include = Path(sys.prefix) / "include"
-    includes = [f"-I{prefix / 'include' / 'xrf2_msgs'}"] + [f"-I{d}" for d in sorted(venv_include.iterdir()) if d.is_dir()]
+    includes = [f"-I{prefix / 'include' / 'xrf2_msgs'}"] + [
+        f"-I{d}" for d in sorted(venv_include.iterdir()) if d.is_dir()
+    ]
     cxx = shutil.which("g++") or shutil.which("c++")
     assert cxx, "no C++ compiler"
-    r = subprocess.run([cxx, "-std=c++17", *includes, str(src), "-o", str(tmp_path / "node")],
-                       capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [cxx, "-std=c++17", *includes, str(src), "-o", str(tmp_path / "node")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     out = subprocess.run([str(tmp_path / "node")], capture_output=True, text=True, timeout=10)
     assert out.returncode == 0 and out.stdout.split() == ["1.5", "-0.5"], out

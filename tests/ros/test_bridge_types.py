@@ -72,13 +72,22 @@ def test_types_both_ways_and_a_burst_of_900_samples_arrives_complete(loop_side, 
         pub.publish(ros2xeno(speed=1.25, mode=-7, enable=True, gains=[0.5, 1.5, 2.5], flags=200, t_sent_ns=123))
         seen: list = []
         _spin_until(ex, lambda: seen.append(side.read_ros2xeno()) or seen[-1] is not None, 5, "Ros2Xeno in shm")
-        assert seen[-1] == {"speed": 1.25, "mode": -7, "enable": True, "gains": [0.5, 1.5, 2.5], "flags": 200,
-                            "t_sent_ns": 123}
+        assert seen[-1] == {
+            "speed": 1.25,
+            "mode": -7,
+            "enable": True,
+            "gains": [0.5, 1.5, 2.5],
+            "flags": 200,
+            "t_sent_ns": 123,
+        }
 
         # loop -> ROS: a burst of 900 samples in one go (the ring holds 1024), one doorbell.
         for i in range(900):
-            side.publish_telemetry(1000 + i, xeno2ros={"seq": i, "pos": [i * 0.5, -i * 0.25], "ok": i % 2 == 0,
-                                                       "pwm": -i, "count": 7 * i}, ring=False)
+            side.publish_telemetry(
+                1000 + i,
+                xeno2ros={"seq": i, "pos": [i * 0.5, -i * 0.25], "ok": i % 2 == 0, "pwm": -i, "count": 7 * i},
+                ring=False,
+            )
         side.ring_doorbell()
         _spin_until(ex, lambda: len(got) >= 900, 20, "900 Xeno2Ros")
         assert [m.seq for m in got] == list(range(900))

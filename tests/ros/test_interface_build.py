@@ -51,8 +51,14 @@ def test_xrf_build_builds_the_messages_for_the_bridge(tmp_path: Path) -> None:
     project = tmp_path / "relbot"
     shutil.copytree(RELBOT, project, ignore=shutil.ignore_patterns("build"))
     env = dict(os.environ, PYTHONPATH=str(REPO / "appliance"))
-    proc = subprocess.run([sys.executable, "-m", "xrflab.cli", "build", str(project)], capture_output=True,
-                          text=True, timeout=900, env=env, cwd=tmp_path)
+    proc = subprocess.run(
+        [sys.executable, "-m", "xrflab.cli", "build", str(project)],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        env=env,
+        cwd=tmp_path,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert Path(proc.stdout.strip().splitlines()[-1]).is_file()
     assert re.search(r"^xrf2_msgs: (up to date in|installed in) ", proc.stderr, re.MULTILINE), proc.stderr[-3000:]
@@ -76,8 +82,14 @@ def test_an_xrf2_project_gets_the_messages_of_its_xrf2_folder(tmp_path: Path) ->
     marker = f"float64 from_the_xrf2_folder_{os.getpid()}"
     (msgs / "Ros2Xeno.msg").write_text((msgs / "Ros2Xeno.msg").read_text().rstrip("\n") + "\n" + marker + "\n")
     env = dict(os.environ, PYTHONPATH=str(REPO / "appliance"))
-    proc = subprocess.run([sys.executable, "-m", "xrflab.cli", "build", str(project)], capture_output=True,
-                          text=True, timeout=900, env=env, cwd=tmp_path)
+    proc = subprocess.run(
+        [sys.executable, "-m", "xrflab.cli", "build", str(project)],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        env=env,
+        cwd=tmp_path,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert re.search(r"^xrf2_msgs: (up to date in|installed in) ", proc.stderr, re.MULTILINE), proc.stderr[-3000:]
     said: list[str] = []

@@ -19,6 +19,7 @@ import pytest
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "appliance"))
 from harness import Server, shared_builds_root, start_server, stop_server  # noqa: E402
+
 from xrf_testing.ros import isolated_ros_env, require_rclpy  # noqa: E402
 
 PEER = HERE / "ros_cmd_peer.py"
@@ -56,8 +57,14 @@ class Peer:
     def __init__(self, log: Path) -> None:
         self.log_path = log
         self._err = open(log, "w")
-        self.proc = subprocess.Popen([sys.executable, str(PEER)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                     stderr=self._err, text=True, bufsize=1)
+        self.proc = subprocess.Popen(
+            [sys.executable, str(PEER)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=self._err,
+            text=True,
+            bufsize=1,
+        )
         assert self.ask("", 30).get("hello"), "peer did not start"
 
     def ask(self, line: str, timeout: float) -> dict[str, Any]:

@@ -50,7 +50,7 @@ def main() -> int:
             reply = {"ok": True}
         elif op == "wait":
             want = int(args[0])
-            ok = spin_until(lambda: bool(states) and states[-1] == want, float(args[1]))
+            ok = spin_until(lambda want=want: bool(states) and states[-1] == want, float(args[1]))
             reply = {"ok": ok, "state": states[-1] if states else None, "recent": states[-10:]}
         elif op == "hold":
             start = len(states)

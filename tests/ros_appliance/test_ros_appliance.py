@@ -11,11 +11,11 @@ from __future__ import annotations
 import os
 import signal
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import pytest
-
 from harness import Server
 
 pytestmark = pytest.mark.ros

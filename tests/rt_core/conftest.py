@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import pytest
 
 from xrf_testing.loops import LoopProcess, build_probe
+
 
 @pytest.fixture(scope="session")
 def probe_exe(tmp_path_factory: pytest.TempPathFactory) -> Path:

@@ -16,18 +16,26 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def xrf(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "xrflab.cli", *args], capture_output=True,
-                          text=True, timeout=timeout, env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")))
+    return subprocess.run(
+        [sys.executable, "-m", "xrflab.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")),
+    )
 
 
 def test_cli_walk_against_a_running_example(tmp_path: Path, shm_name: str) -> None:
     project = tmp_path / "relbot"
-    shutil.copytree(REPO / "student_projects/examples/relbot", project,
-                    ignore=shutil.ignore_patterns("build"))
+    shutil.copytree(REPO / "student_projects/examples/relbot", project, ignore=shutil.ignore_patterns("build"))
     runner = subprocess.Popen(
         [sys.executable, "-m", "xrflab.cli", "run", str(project), "--sim", "relbot", "--shm", shm_name],
-        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")))
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")),
+    )
     try:
         r = xrf("state", "--shm", shm_name, "--wait", "IDLE", "--timeout", "120", timeout=150)
         assert r.returncode == 0, r.stdout + r.stderr
@@ -35,8 +43,7 @@ def test_cli_walk_against_a_running_example(tmp_path: Path, shm_name: str) -> No
         r = xrf("cmd", "start", "--shm", shm_name)
         assert r.returncode == 3 and "rejected" in r.stdout and "not allowed in state IDLE" in r.stdout
 
-        for cmd, state in [("initialise", "INITIALISED"), ("start", "RUN"), ("pause", "PAUSED"),
-                           ("start", "RUN")]:
+        for cmd, state in [("initialise", "INITIALISED"), ("start", "RUN"), ("pause", "PAUSED"), ("start", "RUN")]:
             r = xrf("cmd", cmd, "--shm", shm_name)
             assert r.returncode == 0 and "accepted" in r.stdout, r.stdout + r.stderr
             r = xrf("state", "--shm", shm_name, "--wait", state, "--timeout", "5")
@@ -57,7 +64,7 @@ def test_cli_walk_against_a_running_example(tmp_path: Path, shm_name: str) -> No
         r = xrf("echo", "status", "--count", "1", "--shm", shm_name)
         assert json.loads(r.stdout.splitlines()[0])["state_name"] == "RUN"
 
-        for cmd, state in [("stop", "STOPPED"), ("quit", "QUIT")]:
+        for cmd, _state in [("stop", "STOPPED"), ("quit", "QUIT")]:
             r = xrf("cmd", cmd, "--shm", shm_name)
             assert r.returncode == 0 and "accepted" in r.stdout, r.stdout + r.stderr
         out, _ = runner.communicate(timeout=20)

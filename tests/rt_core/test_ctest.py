@@ -15,8 +15,19 @@ UNIT_TESTS = sorted(p.stem for p in (REPO / "rt_core/tests").glob("test_*.c*"))
 @pytest.fixture(scope="session")
 def unit_build(tmp_path_factory: pytest.TempPathFactory) -> Path:
     build = tmp_path_factory.mktemp("rt_core-tests")
-    subprocess.run(["cmake", "-S", str(REPO / "rt_core"), "-B", str(build), "-DXRF_BUILD_TESTS=ON",
-                    "-DCMAKE_BUILD_TYPE=RelWithDebInfo"], check=True, capture_output=True)
+    subprocess.run(
+        [
+            "cmake",
+            "-S",
+            str(REPO / "rt_core"),
+            "-B",
+            str(build),
+            "-DXRF_BUILD_TESTS=ON",
+            "-DCMAKE_BUILD_TYPE=RelWithDebInfo",
+        ],
+        check=True,
+        capture_output=True,
+    )
     r = subprocess.run(["cmake", "--build", str(build), "-j2"], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
     return build

@@ -7,9 +7,7 @@ import signal
 import statistics
 import struct
 import time
-from pathlib import Path
 
-from xrflab.channels import Channels
 from xrflab.logs.logformat import MAGIC
 
 
@@ -62,8 +60,16 @@ def test_pwm_limit_default_and_configured(run_loop, probe_exe):
 
 def test_walk_through_the_states_and_quit(run_loop, probe_exe):
     lp = run_loop(probe_exe)
-    walk = [("initialise", "INITIALISED"), ("start", "RUN"), ("pause", "PAUSED"), ("start", "RUN"),
-            ("pause", "PAUSED"), ("reset", "INITIALISED"), ("start", "RUN"), ("stop", "STOPPED")]
+    walk = [
+        ("initialise", "INITIALISED"),
+        ("start", "RUN"),
+        ("pause", "PAUSED"),
+        ("start", "RUN"),
+        ("pause", "PAUSED"),
+        ("reset", "INITIALISED"),
+        ("start", "RUN"),
+        ("stop", "STOPPED"),
+    ]
     for cmd, state in walk:
         res = lp.command(cmd)
         assert res.accepted, f"{cmd}: {res.reason}"
@@ -204,7 +210,7 @@ def test_log_file_is_self_describing_with_continuous_sequence(run_loop, probe_ex
     raw = files[0].read_bytes()
     assert raw[:8] == MAGIC
     jlen, stride = struct.unpack_from("<II", raw, 8)
-    header = json.loads(raw[16:16 + jlen])
+    header = json.loads(raw[16 : 16 + jlen])
     assert raw.count(MAGIC) == 1
     assert [v["name"] for v in header["variables"]] == ["cycle", "flag", "letter", "count", "ratio", "value"]
     assert header["record_size"] == 8 + 1 + 1 + 4 + 4 + 8 and header["cycle_freq"] == 1000
@@ -239,6 +245,7 @@ def test_each_sender_learns_its_own_commands_fate(run_loop, probe_exe):
 def _may_use_fifo(prio: int) -> bool:
     import os
     import resource
+
     return os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_RTPRIO)[0] >= prio
 
 

@@ -20,8 +20,14 @@ SHM = Path("/dev/shm")
 
 def xrf(*args: str, **kw) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2] / "appliance"))
-    return subprocess.Popen([sys.executable, "-m", "xrflab.cli", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env, **kw)
+    return subprocess.Popen(
+        [sys.executable, "-m", "xrflab.cli", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        **kw,
+    )
 
 
 def previous_run_stopped(exe: Path, shm: str, cwd: Path) -> None:
@@ -37,8 +43,9 @@ def previous_run_stopped(exe: Path, shm: str, cwd: Path) -> None:
     assert (SHM / shm).exists()
 
 
-def test_state_wait_follows_a_new_run_that_replaces_an_ended_one(probe_exe: Path, shm_name: str,
-                                                                   tmp_path: Path) -> None:
+def test_state_wait_follows_a_new_run_that_replaces_an_ended_one(
+    probe_exe: Path, shm_name: str, tmp_path: Path
+) -> None:
     previous_run_stopped(probe_exe, shm_name, tmp_path)
     old = (SHM / shm_name).stat().st_ino
     waiter = xrf("state", "--wait", "IDLE", "--timeout", "30", "--shm", shm_name)

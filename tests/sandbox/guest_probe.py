@@ -31,8 +31,18 @@ async def main() -> None:
         with open(run / "out.txt", "wb") as out:
             proc, report = await spawner.spawn(Path(sys.argv[2]), run, shm, {"PATH": "/usr/bin:/bin"}, [], out)
         rc = await proc.wait()
-        print(json.dumps({"report": report.as_dict(), "error": report.error, "rc": rc, "pid": report.pid,
-                          "output": (run / "out.txt").read_text(), "host_uid": os.getuid()}))
+        print(
+            json.dumps(
+                {
+                    "report": report.as_dict(),
+                    "error": report.error,
+                    "rc": rc,
+                    "pid": report.pid,
+                    "output": (run / "out.txt").read_text(),
+                    "host_uid": os.getuid(),
+                }
+            )
+        )
     finally:
         shutil.rmtree(shm, ignore_errors=True)
         shutil.rmtree(tmp, ignore_errors=True)

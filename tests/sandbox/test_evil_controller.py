@@ -18,10 +18,26 @@ REPO = Path(__file__).resolve().parents[2]
 EVIL = REPO / "tests" / "fixtures" / "evil_controller"
 BASE = REPO / "student_projects" / "templates" / "base"
 ATTEMPTS = {
-    "read_accounts_db", "read_accounts_wal", "read_runs_db", "read_audit_db",
-    "list_other_project", "read_other_project", "write_other_project", "write_data_dir", "read_appliance_code",
-    "read_appliance_environ", "read_shadow", "list_home", "list_root_home", "write_etc", "write_usr",
-    "signal_appliance", "connect_appliance", "connect_other_local", "connect_internet", "inherited_fds",
+    "read_accounts_db",
+    "read_accounts_wal",
+    "read_runs_db",
+    "read_audit_db",
+    "list_other_project",
+    "read_other_project",
+    "write_other_project",
+    "write_data_dir",
+    "read_appliance_code",
+    "read_appliance_environ",
+    "read_shadow",
+    "list_home",
+    "list_root_home",
+    "write_etc",
+    "write_usr",
+    "signal_appliance",
+    "connect_appliance",
+    "connect_other_local",
+    "connect_internet",
+    "inherited_fds",
     "setuid_root",
 }
 
@@ -54,7 +70,8 @@ def test_every_attempt_fails_and_nothing_survives(server: Server, data_dir: Path
     other_http, _ = server.login("alice", server.create_user("alice"))
     evil_http, _ = server.login("mallory", server.create_user("mallory"))
     other_pid = other_http.post(
-        "/api/projects", files={"file": ("base.tar.gz", targz(project_files(BASE), "alices"), "application/gzip")}).json()["project"]["id"]
+        "/api/projects", files={"file": ("base.tar.gz", targz(project_files(BASE), "alices"), "application/gzip")}
+    ).json()["project"]["id"]
     # The folder alice's upload created (the only project so far): its unpacked source.
     (other_src,) = (data_dir / "projects").glob("*/src")
     other_main = other_src / "src"
@@ -71,14 +88,21 @@ def test_every_attempt_fails_and_nothing_survives(server: Server, data_dir: Path
         f"#define EVIL_APPLIANCE_PID {server.proc.pid}\n"
     ).encode()
     try:
-        pid, bid = upload_and_build(evil_http, targz({**project_files(BASE), **project_files(EVIL), "src/targets.h": targets}, "evil"), "evil.tar.gz")
+        pid, bid = upload_and_build(
+            evil_http,
+            targz({**project_files(BASE), **project_files(EVIL), "src/targets.h": targets}, "evil"),
+            "evil.tar.gz",
+        )
         assert evil_http.post("/api/lease/take").status_code == 200
         r = evil_http.post(f"/api/projects/{pid}/builds/{bid}/run", json={}, timeout=60)
         assert r.status_code == 201, r.text
         run = r.json()["run"]
         output = data_dir / "runs" / str(run["id"]) / "output.txt"
-        text = wait_for(lambda: output.is_file() and "EVIL done" in output.read_text() and output.read_text(),
-                        30, "the evil controller's report")
+        text = wait_for(
+            lambda: output.is_file() and "EVIL done" in output.read_text() and output.read_text(),
+            30,
+            "the evil controller's report",
+        )
         found = dict(re.findall(r"^EVIL (\w+): (SUCCEEDED|blocked) ", text, re.M))
         assert set(found) == ATTEMPTS, f"attempts not reported: {ATTEMPTS - set(found)}\n{text}"
         # Of the data folder only the bare path to its own run folder and build is there.

@@ -17,7 +17,6 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-
 REPO = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent
 TEST_USER = "xrf-test-guest"  # an ordinary user with subordinate ids (made here when root)
@@ -37,8 +36,9 @@ touch /etc/x 2>/dev/null && echo "etc=WRITABLE" || echo "etc=read-only"
 """
 
 
-def probe_as(user: str | None, tmp: Path, allow_missing: bool = False, no_newuidmap: bool = False,
-             script: str = PROBE) -> dict[str, Any]:
+def probe_as(
+    user: str | None, tmp: Path, allow_missing: bool = False, no_newuidmap: bool = False, script: str = PROBE
+) -> dict[str, Any]:
     # pytest's tmp_path is private to its user: the probe lives where another user may read it.
     tmp = Path(tempfile.mkdtemp(prefix="xrf-probe-"))
     os.chmod(tmp, 0o755)
@@ -58,8 +58,14 @@ def _probe_as(user: str | None, tmp: Path, allow_missing: bool, no_newuidmap: bo
     if user is not None:
         # Another user cannot reach a venv under /root: the system's Python runs the same code.
         python = shutil.which("python3", path="/usr/bin:/bin") or "/usr/bin/python3"
-        cmd = [shutil.which("setpriv") or "/usr/bin/setpriv", f"--reuid={user}", f"--regid={pwd.getpwnam(user).pw_gid}", "--init-groups",
-               python, *cmd[1:]]
+        cmd = [
+            shutil.which("setpriv") or "/usr/bin/setpriv",
+            f"--reuid={user}",
+            f"--regid={pwd.getpwnam(user).pw_gid}",
+            "--init-groups",
+            python,
+            *cmd[1:],
+        ]
     # Without newuidmap on PATH the appliance has no way to a second uid, as without /etc/subuid.
     env = dict(os.environ, PATH="/nonexistent") if no_newuidmap else None
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=60, cwd="/", env=env)
@@ -79,8 +85,22 @@ def assert_confined(data: dict[str, Any], except_layers: set[str] = frozenset())
     assert seen["uid"] != "0" and int(seen["caps"], 16) & ~kept == 0 and seen["nnp"] == "1", seen
     # In its own PID namespace, the only child of the sandbox's init (guest._init).
     assert seen["pid"] == "2" and seen["ppid"] == "1", seen
-    assert set(seen["root"].split()) <= {"bin", "dev", "etc", "lib", "lib32", "lib64", "libx32", "proc", "sbin",
-                                         "sys", "tmp", "usr", "var", "xrf"}, seen
+    assert set(seen["root"].split()) <= {
+        "bin",
+        "dev",
+        "etc",
+        "lib",
+        "lib32",
+        "lib64",
+        "libx32",
+        "proc",
+        "sbin",
+        "sys",
+        "tmp",
+        "usr",
+        "var",
+        "xrf",
+    }, seen
     assert seen["fds"].split() == ["0", "1", "2", "3"], seen  # 3: ls's own listing of the folder
     assert set(seen["env"].split()) <= {"PATH", "PWD", "OLDPWD", "SHLVL", "_"}, seen
     assert seen["lo"] in ("down", "none"), seen
@@ -92,8 +112,20 @@ def ensure_test_user() -> str:
     try:
         pwd.getpwnam(TEST_USER)
     except KeyError:
-        subprocess.run(["useradd", "--system", "--user-group", "--no-create-home", "--home-dir", "/nonexistent",
-                        "--shell", "/usr/sbin/nologin", TEST_USER], check=True)
+        subprocess.run(
+            [
+                "useradd",
+                "--system",
+                "--user-group",
+                "--no-create-home",
+                "--home-dir",
+                "/nonexistent",
+                "--shell",
+                "/usr/sbin/nologin",
+                TEST_USER,
+            ],
+            check=True,
+        )
     for f, flag in (("/etc/subuid", "--add-subuids"), ("/etc/subgid", "--add-subgids")):
         text = Path(f).read_text() if Path(f).exists() else ""
         if not re.search(rf"^{TEST_USER}:", text, re.M):
@@ -105,7 +137,7 @@ def test_a_controller_dies_of_a_signal_it_raises_itself(tmp_path: Path) -> None:
     """As a namespace's PID 1 it would not (the kernel drops such signals for an init): a
     student's raise(SIGSEGV) or abort() must end the run as it would on XRF2, and the launcher
     mirrors that signal."""
-    data = probe_as(None, tmp_path, allow_missing=True, script='#!/bin/sh\nkill -ABRT $$\necho survived\n')
+    data = probe_as(None, tmp_path, allow_missing=True, script="#!/bin/sh\nkill -ABRT $$\necho survived\n")
     assert data["rc"] == -6 and "survived" not in data["output"], data
 
 

@@ -34,8 +34,9 @@ def running_loop(probe_exe: Path, shm_name: str, tmp_path: Path):
     from xrflab.channels import Channels
 
     env = dict(os.environ, XRF_SHM=shm_name, XRF_TRANSPORT="sim", XRF_SIM="relbot")
-    proc = subprocess.Popen([str(probe_exe)], cwd=tmp_path, env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [str(probe_exe)], cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
     deadline = time.monotonic() + 10
     ch = None
     while True:

@@ -13,8 +13,9 @@ import json
 import os
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import pytest
 
@@ -31,6 +32,7 @@ def setting(*path: Any, value: Any) -> Mutation:
         for k in path[:-1]:
             obj = obj[k]
         obj[path[-1]] = value
+
     return mutate
 
 
@@ -40,6 +42,7 @@ def dropping(*path: Any) -> Mutation:
         for k in path[:-1]:
             obj = obj[k]
         del obj[path[-1]]
+
     return mutate
 
 
@@ -63,14 +66,20 @@ REJECTED_BY_THE_OLD_C_PARSER: list[tuple[str, Mutation, str]] = [
     ("settle_ms above the hard limit", setting("pulse", "settle_ms", value=MAX.max_settle_ms + 1), "pulse.settle_ms"),
     ("settle_ms below 0", setting("pulse", "settle_ms", value=-1), "pulse.settle_ms"),
     ("settle_ms not whole", setting("pulse", "settle_ms", value=1.5), "pulse.settle_ms"),
-    ("reset tolerance above 1000", setting("pulse", "reset_tolerance_counts", value=1001),
-     "pulse.reset_tolerance_counts"),
+    (
+        "reset tolerance above 1000",
+        setting("pulse", "reset_tolerance_counts", value=1001),
+        "pulse.reset_tolerance_counts",
+    ),
     ("reset tolerance below 0", setting("pulse", "reset_tolerance_counts", value=-1), "pulse.reset_tolerance_counts"),
     ("echo_frames 0", setting("link", "echo_frames", value=0), "link.echo_frames"),
     ("echo_frames above the hard limit", setting("link", "echo_frames", value=MAX.max_frames + 1), "link.echo_frames"),
     ("timing_frames 0", setting("link", "timing_frames", value=0), "link.timing_frames"),
-    ("timing_frames above the hard limit", setting("link", "timing_frames", value=MAX.max_frames + 1),
-     "link.timing_frames"),
+    (
+        "timing_frames above the hard limit",
+        setting("link", "timing_frames", value=MAX.max_frames + 1),
+        "link.timing_frames",
+    ),
     ("timing_frames not a number", setting("link", "timing_frames", value="all"), "link.timing_frames"),
     ("warn_median_us negative", setting("link", "warn_median_us", value=-1), "link.warn_median_us"),
     ("warn_median_us above 1e6", setting("link", "warn_median_us", value=2e6), "link.warn_median_us"),
@@ -97,11 +106,17 @@ REJECTED_BY_THE_OLD_C_PARSER: list[tuple[str, Mutation, str]] = [
     ("duty negative", spare(duty=-0.1), "channel 3.duty"),
     ("duty not a number", setting("channels", 0, "duty", value="slow"), "channel 1.duty"),
     ("duty 0 on a motor channel", setting("channels", 0, "duty", value=0), "channel 1.duty"),
-    ("duty above limits.pwm_limit on a motor channel",
-     lambda p: (p["limits"].update(pwm_limit=0.1), p["channels"][0].update(duty=0.15)), "channel 1.duty"),
+    (
+        "duty above limits.pwm_limit on a motor channel",
+        lambda p: (p["limits"].update(pwm_limit=0.1), p["channels"][0].update(duty=0.15)),
+        "channel 1.duty",
+    ),
     ("duration_ms 0", setting("channels", 0, "duration_ms", value=0), "channel 1.duration_ms"),
-    ("duration_ms above the hard limit", setting("channels", 0, "duration_ms", value=MAX.max_pulse_ms + 1),
-     "channel 1.duration_ms"),
+    (
+        "duration_ms above the hard limit",
+        setting("channels", 0, "duration_ms", value=MAX.max_pulse_ms + 1),
+        "channel 1.duration_ms",
+    ),
     ("duration_ms not whole", setting("channels", 0, "duration_ms", value=10.5), "channel 1.duration_ms"),
     ("min_counts 0", setting("channels", 0, "min_counts", value=0), "channel 1.min_counts"),
     ("min_counts above 1e7", setting("channels", 0, "min_counts", value=10**7 + 1), "channel 1.min_counts"),
@@ -130,8 +145,11 @@ def relbot() -> dict[str, Any]:
     return copy.deepcopy(prof.load_profile("relbot"))
 
 
-@pytest.mark.parametrize("mutate,field", [(m, f) for _, m, f in REJECTED_BY_THE_OLD_C_PARSER],
-                         ids=[what for what, _, _ in REJECTED_BY_THE_OLD_C_PARSER])
+@pytest.mark.parametrize(
+    "mutate,field",
+    [(m, f) for _, m, f in REJECTED_BY_THE_OLD_C_PARSER],
+    ids=[what for what, _, _ in REJECTED_BY_THE_OLD_C_PARSER],
+)
 def test_every_profile_the_old_checker_refused_is_refused_with_its_field(mutate: Mutation, field: str) -> None:
     p = relbot()
     replaced = mutate(p)
@@ -162,8 +180,12 @@ def test_the_fields_of_problems_found_together() -> None:
     p["mechanics"]["gear_ratio"] = -3
     with pytest.raises(prof.ProfileError) as info:
         prof.validate_profile(p)
-    assert {e.field for e in info.value.problems} == {"channel 1.duty", "channel 2.direction", "link.echo_frames",
-                                                      "mechanics.gear_ratio"}
+    assert {e.field for e in info.value.problems} == {
+        "channel 1.duty",
+        "channel 2.direction",
+        "link.echo_frames",
+        "mechanics.gear_ratio",
+    }
     assert str(info.value) == "; ".join(info.value.errors)
 
 
@@ -190,8 +212,11 @@ for ms in (140, 160):
         out.append([e.field for e in exc.problems])
 print(json.dumps(out))
 """
-    env = dict(os.environ, XRF_RT_CORE=str(tmp_path / "rt_core"),
-               PYTHONPATH=str(REPO / "appliance") + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = dict(
+        os.environ,
+        XRF_RT_CORE=str(tmp_path / "rt_core"),
+        PYTHONPATH=str(REPO / "appliance") + os.pathsep + os.environ.get("PYTHONPATH", ""),
+    )
     res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=60)
     assert res.returncode == 0, res.stderr
     assert json.loads(res.stdout) == [[], ["channel 1.duration_ms"]]

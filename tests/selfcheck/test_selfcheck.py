@@ -16,8 +16,16 @@ import pytest
 
 from xrflab import profiles as prof
 from xrflab.profile_flat import flat_form
-from xrflab.selfcheck import (BenchBusy, Report, SelfCheck, export_report, list_reports, load_report,
-                              run_selfcheck, save_report)
+from xrflab.selfcheck import (
+    BenchBusy,
+    Report,
+    SelfCheck,
+    export_report,
+    list_reports,
+    load_report,
+    run_selfcheck,
+    save_report,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -31,8 +39,25 @@ def statuses(report: Report) -> dict[str, str]:
     return {s.id: s.status for s in report.steps}
 
 
-EXPECTED_IDS = ["spi", "init", "echo", "reset", "motor.1", "motor.2", "motor.3", "motor.4",
-                "dout.1", "dout.2", "dout.3", "dout.4", "din.1", "din.2", "din.3", "din.4", "timing"]
+EXPECTED_IDS = [
+    "spi",
+    "init",
+    "echo",
+    "reset",
+    "motor.1",
+    "motor.2",
+    "motor.3",
+    "motor.4",
+    "dout.1",
+    "dout.2",
+    "dout.3",
+    "dout.4",
+    "din.1",
+    "din.2",
+    "din.3",
+    "din.4",
+    "timing",
+]
 
 
 @pytest.mark.parametrize("bench", ["relbot", "jiwy"])
@@ -176,9 +201,12 @@ def test_checker_sigint_directly(checker_exe, shm_name):
 
     ch = create_for_test(shm_name)
     try:
-        proc = subprocess.Popen([str(checker_exe), "--sim", "jiwy", "--profile", "-",
-                                 "--sim-outputs-shm", shm_name], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                text=True)
+        proc = subprocess.Popen(
+            [str(checker_exe), "--sim", "jiwy", "--profile", "-", "--sim-outputs-shm", shm_name],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
         proc.stdin.write(flat_form(prof.load_profile("jiwy")))
         proc.stdin.close()
         events = []
@@ -201,8 +229,13 @@ def test_refuses_over_active_loop(checker_exe, running_loop, shm_name):
     with pytest.raises(BenchBusy, match="running on the bench"):
         SelfCheck("relbot", transport="sim", shm=shm_name, exe=checker_exe).run()
     # The CLI says so and exits 2.
-    res = subprocess.run([sys.executable, "-m", "xrflab.cli", "selfcheck", "--sim", "relbot", "--shm", shm_name,
-                          "--no-save"], capture_output=True, text=True, env=_env(), timeout=60)
+    res = subprocess.run(
+        [sys.executable, "-m", "xrflab.cli", "selfcheck", "--sim", "relbot", "--shm", shm_name, "--no-save"],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=60,
+    )
     assert res.returncode == 2 and "stop it first" in res.stderr
     # Once the loop is gone (pid dead), the check runs.
     running_loop.kill()
@@ -223,18 +256,54 @@ def _env():
 
 
 def test_cli_report_marks_and_exit_codes(checker_exe, tmp_path):
-    res = subprocess.run([sys.executable, "-m", "xrflab.cli", "selfcheck", "--sim", "jiwy", "--faults",
-                          "dead_encoder=2", "--shm", "xrf-none-here", "--save", str(tmp_path), "-q"],
-                         capture_output=True, text=True, env=_env(), timeout=120)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "xrflab.cli",
+            "selfcheck",
+            "--sim",
+            "jiwy",
+            "--faults",
+            "dead_encoder=2",
+            "--shm",
+            "xrf-none-here",
+            "--save",
+            str(tmp_path),
+            "-q",
+        ],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=120,
+    )
     assert res.returncode == 1, res.stderr
     assert "✗ motor.2" in res.stdout and "✓ motor.1" in res.stdout and "– motor.3" in res.stdout
     assert "encoder 2 does not count" in res.stdout
     saved = list(tmp_path.glob("*-jiwy.json"))
     assert len(saved) == 1
     assert load_report(saved[0]).step("motor.2").status == "fail"
-    res = subprocess.run([sys.executable, "-m", "xrflab.cli", "selfcheck", "--profile", "relbot", "--sim", "relbot",
-                          "--json", "--no-save", "--shm", "xrf-none-here", "-q"],
-                         capture_output=True, text=True, env=_env(), timeout=120)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "xrflab.cli",
+            "selfcheck",
+            "--profile",
+            "relbot",
+            "--sim",
+            "relbot",
+            "--json",
+            "--no-save",
+            "--shm",
+            "xrf-none-here",
+            "-q",
+        ],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=120,
+    )
     assert res.returncode == 0, res.stderr
     assert json.loads(res.stdout)["verdict"] == "pass"
 
@@ -261,7 +330,12 @@ def test_default_profiles_valid_and_consistent_with_simulator():
     names = [i.name for i in prof.list_profiles(data_dir=Path("/nonexistent"))]
     assert {"relbot", "jiwy"} <= set(names)
     rel = prof.load_profile("relbot")["mechanics"]
-    assert (rel["counts_per_rev"], rel["gear_ratio"], rel["wheel_diameter"], rel["track_width"]) == (4096, 15.58, 0.101, 0.20)
+    assert (rel["counts_per_rev"], rel["gear_ratio"], rel["wheel_diameter"], rel["track_width"]) == (
+        4096,
+        15.58,
+        0.101,
+        0.20,
+    )
     assert rel["right_encoder_inverted"] is True and rel["left_encoder_inverted"] is False
     jiwy = prof.load_profile("jiwy")["mechanics"]
     assert jiwy["counts_per_rev"] == 4096 and jiwy["gear_ratio"] == 19
@@ -273,16 +347,19 @@ def test_default_profiles_valid_and_consistent_with_simulator():
                 assert c["duty"] <= 0.2 and c["duration_ms"] <= 200
 
 
-@pytest.mark.parametrize("path,value,words", [
-    (("channels", 0, "duty"), 0.5, "channel 1.duty = 0.5 is out of range"),
-    (("channels", 1, "duration_ms"), 500, "channel 2.duration_ms = 500 is out of range"),
-    (("channels", 0, "direction"), 0, "channel 1.direction must be 1"),
-    (("channels", 0, "min_counts"), "lots", "channel 1.min_counts must be a whole number"),
-    (("limits", "pwm_limit"), 0.1, "channel 1.duty = 0.15 is above limits.pwm_limit = 0.1"),
-    (("mechanics", "gear_ratio"), -3, "mechanics.gear_ratio = -3 is out of range"),
-    (("channels", 0, "inputs", 0, "idle"), 2, "idle must be 0, 1 or null"),
-    (("name",), "Bad Name!", "name 'Bad Name!' must be lower-case"),
-])
+@pytest.mark.parametrize(
+    "path,value,words",
+    [
+        (("channels", 0, "duty"), 0.5, "channel 1.duty = 0.5 is out of range"),
+        (("channels", 1, "duration_ms"), 500, "channel 2.duration_ms = 500 is out of range"),
+        (("channels", 0, "direction"), 0, "channel 1.direction must be 1"),
+        (("channels", 0, "min_counts"), "lots", "channel 1.min_counts must be a whole number"),
+        (("limits", "pwm_limit"), 0.1, "channel 1.duty = 0.15 is above limits.pwm_limit = 0.1"),
+        (("mechanics", "gear_ratio"), -3, "mechanics.gear_ratio = -3 is out of range"),
+        (("channels", 0, "inputs", 0, "idle"), 2, "idle must be 0, 1 or null"),
+        (("name",), "Bad Name!", "name 'Bad Name!' must be lower-case"),
+    ],
+)
 def test_bad_profile_values_are_explained(path, value, words, tmp_path):
     p = copy.deepcopy(prof.load_profile("relbot"))
     obj = p
@@ -303,10 +380,13 @@ def test_native_checker_reads_only_the_validated_flat_form(checker_exe, tmp_path
     malformed value is refused (exit 2, the line and key named); the validation is Python's."""
     f = tmp_path / "bench.json"
     f.write_text(json.dumps(prof.load_profile("relbot")))
-    for text, words in ((None, "not key=value"), ("name=relbot\nchannel.1.dutty=0.1\n", "unknown key 'channel.1.dutty'"),
-                        ("channel.5.duty=0.1\n", "unknown key 'channel.5.duty'"),
-                        ("name=relbot\nchannel.1.duty=lots\n", "line 2: malformed value for 'channel.1.duty'"),
-                        ("pulse.period_us=1000.5\n", "malformed value for 'pulse.period_us'")):
+    for text, words in (
+        (None, "not key=value"),
+        ("name=relbot\nchannel.1.dutty=0.1\n", "unknown key 'channel.1.dutty'"),
+        ("channel.5.duty=0.1\n", "unknown key 'channel.5.duty'"),
+        ("name=relbot\nchannel.1.duty=lots\n", "line 2: malformed value for 'channel.1.duty'"),
+        ("pulse.period_us=1000.5\n", "malformed value for 'pulse.period_us'"),
+    ):
         args = ["--profile", str(f)] if text is None else ["--profile", "-"]
         res = subprocess.run([str(checker_exe), *args], input=text, capture_output=True, text=True, timeout=30)
         assert res.returncode == 2, res.stdout
@@ -314,14 +394,20 @@ def test_native_checker_reads_only_the_validated_flat_form(checker_exe, tmp_path
         assert ev["event"] == "error" and words in ev["message"], ev
     # A bad JSON profile is explained by the validator, through the CLI.
     f.write_text("{ not json")
-    res = subprocess.run([sys.executable, "-m", "xrflab.cli", "selfcheck", "--profile", str(f), "--sim", "relbot"],
-                         capture_output=True, text=True, env=_env(), timeout=60)
+    res = subprocess.run(
+        [sys.executable, "-m", "xrflab.cli", "selfcheck", "--profile", str(f), "--sim", "relbot"],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=60,
+    )
     assert res.returncode == 2 and "not valid JSON" in res.stderr
 
 
 def _dump(checker_exe, text: str) -> dict:
-    res = subprocess.run([str(checker_exe), "--profile", "-", "--dump-profile"], input=text, capture_output=True,
-                         text=True, timeout=30)
+    res = subprocess.run(
+        [str(checker_exe), "--profile", "-", "--dump-profile"], input=text, capture_output=True, text=True, timeout=30
+    )
     assert res.returncode == 0, res.stdout + res.stderr
     return json.loads(res.stdout)
 
@@ -330,15 +416,34 @@ def test_flat_form_reaches_every_field_of_the_checker(checker_exe):
     """Every value the checker uses arrives as the validated profile says (none left at the
     checker's default), text with a newline and a backslash included."""
     p = copy.deepcopy(prof.load_profile("relbot"))
-    p.update(name="every-field", limits={"pwm_limit": 0.17},
-             pulse={"period_us": 1250, "settle_ms": 120, "reset_tolerance_counts": 7},
-             link={"echo_frames": 321, "timing_frames": 432, "warn_median_us": 61.5, "fail_median_us": 151.25,
-                   "warn_max_us": 499.75})
-    p["channels"] = [{"channel": n, "name": f"wheel {n}\nback\\slash", "connector": f"J{n}", "motor": n % 2 == 1,
-                      "direction": -1 if n == 3 else 1, "duty": 0.01 * n + 0.05, "duration_ms": 10 * n,
-                      "min_counts": 100 + n, "max_counts": 9000 + n, "loopback": n == 2,
-                      "inputs": [{"pin": 1, "name": f"limit {n}", "idle": n % 2}, {"pin": 2, "name": "free", "idle": None}]}
-                     for n in (1, 2, 3, 4)]
+    p.update(
+        name="every-field",
+        limits={"pwm_limit": 0.17},
+        pulse={"period_us": 1250, "settle_ms": 120, "reset_tolerance_counts": 7},
+        link={
+            "echo_frames": 321,
+            "timing_frames": 432,
+            "warn_median_us": 61.5,
+            "fail_median_us": 151.25,
+            "warn_max_us": 499.75,
+        },
+    )
+    p["channels"] = [
+        {
+            "channel": n,
+            "name": f"wheel {n}\nback\\slash",
+            "connector": f"J{n}",
+            "motor": n % 2 == 1,
+            "direction": -1 if n == 3 else 1,
+            "duty": 0.01 * n + 0.05,
+            "duration_ms": 10 * n,
+            "min_counts": 100 + n,
+            "max_counts": 9000 + n,
+            "loopback": n == 2,
+            "inputs": [{"pin": 1, "name": f"limit {n}", "idle": n % 2}, {"pin": 2, "name": "free", "idle": None}],
+        }
+        for n in (1, 2, 3, 4)
+    ]
     prof.validate_profile(p)
     got = _dump(checker_exe, flat_form(p))
     assert got["name"] == "every-field" and got["pwm_limit"] == 0.17 and got["period_us"] == 1250
@@ -352,8 +457,15 @@ def test_flat_form_reaches_every_field_of_the_checker(checker_exe):
         assert (c["min_counts"], c["max_counts"]) == (src["min_counts"], src["max_counts"])
         assert c["din_idle"] == [n % 2, -1] and c["pin_name"] == [f"limit {n}", "free"]
     # What the profile leaves out keeps the checker's default (a sparse profile).
-    sparse = _dump(checker_exe, flat_form({"name": "sparse", "channels": [{"channel": 2, "motor": True, "duty": 0.05,
-                                                                          "duration_ms": 20, "min_counts": 10}]}))
+    sparse = _dump(
+        checker_exe,
+        flat_form(
+            {
+                "name": "sparse",
+                "channels": [{"channel": 2, "motor": True, "duty": 0.05, "duration_ms": 20, "min_counts": 10}],
+            }
+        ),
+    )
     assert sparse["period_us"] == 1000 and sparse["channels"][0]["motor"] == 0
     assert sparse["channels"][1]["duty"] == 0.05 and sparse["channels"][1]["connector"] == "PMOD 2"
 
@@ -364,10 +476,13 @@ def test_native_checker_clamps_to_the_hard_limits(checker_exe):
     from xrflab.selfcheck_limits import hard_limits
 
     lim = hard_limits()
-    text = ("name=relbot\nlimits.pwm_limit=0.9\nchannel.1.motor=1\nchannel.1.duty=0.9\n"
-            "channel.1.duration_ms=5000\nchannel.1.min_counts=10\nlink.echo_frames=10\nlink.timing_frames=10\n")
-    res = subprocess.run([str(checker_exe), "--sim", "relbot", "--profile", "-"], input=text, capture_output=True,
-                         text=True, timeout=60)
+    text = (
+        "name=relbot\nlimits.pwm_limit=0.9\nchannel.1.motor=1\nchannel.1.duty=0.9\n"
+        "channel.1.duration_ms=5000\nchannel.1.min_counts=10\nlink.echo_frames=10\nlink.timing_frames=10\n"
+    )
+    res = subprocess.run(
+        [str(checker_exe), "--sim", "relbot", "--profile", "-"], input=text, capture_output=True, text=True, timeout=60
+    )
     events = [json.loads(line) for line in res.stdout.splitlines()]
     m1 = next(e for e in events if e.get("event") == "step" and e["id"] == "motor.1")
     assert m1["data"]["duty"] == lim.max_duty and m1["data"]["duration_ms"] == lim.max_pulse_ms

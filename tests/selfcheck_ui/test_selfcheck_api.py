@@ -10,7 +10,6 @@ import os
 from typing import Any
 
 import pytest
-
 from harness import Server, shared_builds_root, start_server, stop_server
 
 
@@ -19,8 +18,10 @@ def run_check(server: Server, ws: Any, timeout: float = 60, **body: Any) -> dict
     r = server.http.post("/api/selfcheck", json={"profile": "relbot", **body})
     assert r.status_code == 202, r.text
     check = r.json()["id"]
-    return ws.wait_for(lambda m: m.get("type") == "selfcheck" and m.get("check") == check
-                       and m.get("event") in ("report", "error"), timeout=timeout)
+    return ws.wait_for(
+        lambda m: m.get("type") == "selfcheck" and m.get("check") == check and m.get("event") in ("report", "error"),
+        timeout=timeout,
+    )
 
 
 def test_check_on_the_simulated_relbot_events_report_saved_and_listed(server: Server) -> None:
@@ -111,13 +112,17 @@ def test_abort_mid_check_zeroes_the_outputs(server: Server) -> None:
         assert r.status_code == 202
         check = r.json()["id"]
         # Abort while motor 1 is being pulsed.
-        ws.wait_for(lambda m: m.get("type") == "selfcheck" and m.get("event") == "progress"
-                    and m.get("step") == "motor.1", timeout=60)
+        ws.wait_for(
+            lambda m: m.get("type") == "selfcheck" and m.get("event") == "progress" and m.get("step") == "motor.1",
+            timeout=60,
+        )
         again = server.http.post("/api/selfcheck", json={"profile": "relbot"})
         assert again.status_code == 409 and "already running" in again.json()["detail"]
         assert server.http.post("/api/selfcheck/abort").status_code == 200
-        final = ws.wait_for(lambda m: m.get("type") == "selfcheck" and m.get("check") == check
-                            and m.get("event") == "report", timeout=30)
+        final = ws.wait_for(
+            lambda m: m.get("type") == "selfcheck" and m.get("check") == check and m.get("event") == "report",
+            timeout=30,
+        )
     report = final["report"]
     assert report["verdict"] == "aborted" and report["outputs_zeroed"] is True
     assert server.http.post("/api/selfcheck/abort").status_code == 409
@@ -137,8 +142,10 @@ def test_profile_editor_validates_saves_and_resets(server: Server) -> None:
     r = server.http.put("/api/profiles/relbot", json=bad)
     assert r.status_code == 422
     detail = r.json()["detail"]
-    assert any(e["field"] == "channel 1.duty" and "out of range" in e["message"] and "at most 0.2" in e["message"]
-               for e in detail["errors"]), detail
+    assert any(
+        e["field"] == "channel 1.duty" and "out of range" in e["message"] and "at most 0.2" in e["message"]
+        for e in detail["errors"]
+    ), detail
     assert not (server.data_dir / "profiles" / "relbot.json").exists()
     # The field comes from the validator, also where the sentence does not start with it.
     bad = json.loads(json.dumps(profile))
@@ -146,8 +153,12 @@ def test_profile_editor_validates_saves_and_resets(server: Server) -> None:
     r = server.http.put("/api/profiles/relbot", json=bad)
     assert r.status_code == 422
     assert [e["field"] for e in r.json()["detail"]["errors"]] == ["channel 1.inputs[1].idle"], r.json()
-    assert server.http.put("/api/profiles/relbot", content=b"{not json",
-                           headers={"Content-Type": "application/json"}).status_code == 422
+    assert (
+        server.http.put(
+            "/api/profiles/relbot", content=b"{not json", headers={"Content-Type": "application/json"}
+        ).status_code
+        == 422
+    )
     r = server.http.put("/api/profiles/relbot", json={**profile, "name": "other"})
     assert r.status_code == 422 and r.json()["detail"]["errors"][0]["field"] == "name"
 

@@ -9,8 +9,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "appliance"))
-from harness import (CHROMIUM_ARGS, Server, browser_login, session_cookies, shared_builds_root,  # noqa: E402,F401
-                     start_server, stop_server)
+from harness import CHROMIUM_ARGS, Server, browser_login, session_cookies, shared_builds_root, start_server, stop_server  # noqa: E402,F401
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,6 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 import pytest
-
 from harness import Server, browser_login, session_cookies, shared_builds_root, start_server, stop_server
 
 BANNER = "#confinement-banner"
@@ -67,14 +66,20 @@ def _start_from_the_page(page) -> None:
     page.select_option("#build-select", "relbot")
     page.click("#btn-start-run")
     # the run is live, or the start was answered with an error
-    page.wait_for_function("(window.xrf.run && window.xrf.run.active) || /Could not start/.test("
-                           "document.getElementById('run-detail').textContent)", timeout=120_000)
+    page.wait_for_function(
+        "(window.xrf.run && window.xrf.run.active) || /Could not start/.test("
+        "document.getElementById('run-detail').textContent)",
+        timeout=120_000,
+    )
 
 
 def _layers(page) -> dict[str, str]:
     page.wait_for_selector("#sys-checks tr[data-id=confinement] li[data-layer]", timeout=60_000)
-    return dict(page.locator("#sys-checks tr[data-id=confinement] li[data-layer]").evaluate_all(
-        "ls => ls.map(l => [l.dataset.layer, l.dataset.status])"))
+    return dict(
+        page.locator("#sys-checks tr[data-id=confinement] li[data-layer]").evaluate_all(
+            "ls => ls.map(l => [l.dataset.layer, l.dataset.status])"
+        )
+    )
 
 
 def test_no_banner_when_every_layer_holds(server: Server, raw_browser) -> None:
@@ -94,8 +99,17 @@ def test_no_banner_when_every_layer_holds(server: Server, raw_browser) -> None:
     # the System page lists the layers, every one holding
     page.goto(server.url + "/#system")
     layers = _layers(page)
-    assert set(layers) >= {"user", "no_new_privs", "capabilities", "mount", "pid", "network", "environment",
-                           "descriptors", "limits"}
+    assert set(layers) >= {
+        "user",
+        "no_new_privs",
+        "capabilities",
+        "mount",
+        "pid",
+        "network",
+        "environment",
+        "descriptors",
+        "limits",
+    }
     assert set(layers.values()) == {"ok"}
     row = page.locator("#sys-checks tr[data-id=confinement]")
     assert row.get_attribute("data-status") == "ok" and "holds" in row.inner_text()

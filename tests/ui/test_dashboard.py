@@ -71,9 +71,11 @@ def test_dashboard_drives_a_relbot_run(server: Server, browser) -> None:
     state_is(page, "STOPPED")
     # Esc outside RUN/PAUSED ends the run.
     page.keyboard.press("Escape")
-    page.wait_for_function("document.getElementById('state-name').textContent === 'QUIT'"
-                           " || document.getElementById('state-name').textContent === 'NO RUN'"
-                           " || /ended/.test(document.getElementById('run-detail').textContent)")
+    page.wait_for_function(
+        "document.getElementById('state-name').textContent === 'QUIT'"
+        " || document.getElementById('state-name').textContent === 'NO RUN'"
+        " || /ended/.test(document.getElementById('run-detail').textContent)"
+    )
     page.wait_for_function("/ended/.test(document.getElementById('run-detail').textContent)")
     assert page.is_disabled("#commands [data-cmd=start]")
     assert not errors, errors
@@ -92,8 +94,10 @@ def test_dashboard_shows_a_crash(server: Server, browser) -> None:
     assert page.is_visible("#btn-estop")
     os.kill(run["pid"], signal.SIGKILL)
     # A deadline-miss warning may already be up (a loaded machine): the crash must replace it.
-    page.wait_for_function("/crashed/.test(document.getElementById('alarm-text').textContent)"
-                           " && !document.getElementById('alarm').classList.contains('hidden')")
+    page.wait_for_function(
+        "/crashed/.test(document.getElementById('alarm-text').textContent)"
+        " && !document.getElementById('alarm').classList.contains('hidden')"
+    )
     assert "crashed" in page.inner_text("#alarm-text")
     page.wait_for_function("/crashed/.test(document.getElementById('run-detail').textContent)")
     # The stop button stays on screen after scrolling (sticky bar).

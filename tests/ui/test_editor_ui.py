@@ -19,7 +19,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-
 from harness import Server, shared_builds_root, start_server, stop_server, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
@@ -54,8 +53,11 @@ def open_editor(page, server: Server, pid: int) -> None:  # noqa: ANN001
 
 def cm_line_of(page, text: str) -> int:  # noqa: ANN001
     """1-based line of the first line containing `text` in the editor."""
-    n = page.evaluate("(t) => { const cm = xrfEditor.cm; for (let i = 0; i < cm.lineCount(); i++)"
-                      " if (cm.getLine(i).includes(t)) return i + 1; return 0; }", text)
+    n = page.evaluate(
+        "(t) => { const cm = xrfEditor.cm; for (let i = 0; i < cm.lineCount(); i++)"
+        " if (cm.getLine(i).includes(t)) return i + 1; return 0; }",
+        text,
+    )
     assert n, text
     return n
 
@@ -133,8 +135,11 @@ def test_unsaved_text_survives_a_refused_save(server: Server, browser) -> None: 
     open_editor(page, server, pid)
     # Another tab saves the same file first.
     text = server.http.get(f"/api/projects/{pid}/files/src/Template.cpp").json()["content"]
-    r = server.http.put(f"/api/projects/{pid}/files/src/Template.cpp", params={"base": 1, "build": "false"},
-                        content=(text + "// other tab\n").encode())
+    r = server.http.put(
+        f"/api/projects/{pid}/files/src/Template.cpp",
+        params={"base": 1, "build": "false"},
+        content=(text + "// other tab\n").encode(),
+    )
     assert r.status_code == 200
     page.evaluate("xrfEditor.cm.replaceRange('// mine\\n', {line: 0, ch: 0})")
     page.click("#ed-save")
@@ -153,8 +158,14 @@ def test_educator_reviews_a_students_project(server: Server, browser) -> None:  
     student, _ = server.login("ui_ed_student", pw)
     pid = new_project(student, "students_work")
     text = student.get(f"/api/projects/{pid}/files/src/main.cpp").json()["content"]
-    assert student.put(f"/api/projects/{pid}/files/src/main.cpp", params={"base": 1, "build": "false"},
-                       content=(text + "// by the student\n").encode()).status_code == 200
+    assert (
+        student.put(
+            f"/api/projects/{pid}/files/src/main.cpp",
+            params={"base": 1, "build": "false"},
+            content=(text + "// by the student\n").encode(),
+        ).status_code
+        == 200
+    )
     student.close()
     page = browser.new_page(viewport={"width": 1280, "height": 800})  # the harness's educator
     page.goto(server.url + "/#editor")
@@ -167,8 +178,10 @@ def test_educator_reviews_a_students_project(server: Server, browser) -> None:  
     page.close()
 
 
-SAWTOOTH = ("xeno_msg.pos_left = ros_msg.steer_left;",
-            "static long k = 0; k++; xeno_msg.pos_left = (k % 1000) / 1000.0;  // 1 Hz sawtooth 0..1")
+SAWTOOTH = (
+    "xeno_msg.pos_left = ros_msg.steer_left;",
+    "static long k = 0; k++; xeno_msg.pos_left = (k % 1000) / 1000.0;  // 1 Hz sawtooth 0..1",
+)
 
 
 def test_watch_values_freeze_and_trigger(server: Server, browser) -> None:  # noqa: ANN001
@@ -176,11 +189,17 @@ def test_watch_values_freeze_and_trigger(server: Server, browser) -> None:  # no
     pid = new_project(server, "ui_watch")
     text = server.http.get(f"/api/projects/{pid}/files/src/Template.cpp").json()["content"]
     assert SAWTOOTH[0] in text
-    s = server.http.put(f"/api/projects/{pid}/files/src/Template.cpp", params={"base": 1},
-                        content=text.replace(SAWTOOTH[0], SAWTOOTH[1]).encode()).json()
+    s = server.http.put(
+        f"/api/projects/{pid}/files/src/Template.cpp",
+        params={"base": 1},
+        content=text.replace(SAWTOOTH[0], SAWTOOTH[1]).encode(),
+    ).json()
     bid = s["build"]["id"]
-    wait_for(lambda: server.http.get(f"/api/projects/{pid}/builds/{bid}").json()["status"] in ("ok", "failed"),
-             timeout=300, what="the build")
+    wait_for(
+        lambda: server.http.get(f"/api/projects/{pid}/builds/{bid}").json()["status"] in ("ok", "failed"),
+        timeout=300,
+        what="the build",
+    )
     with server.ws() as ws:
         r = server.http.post(f"/api/projects/{pid}/builds/{bid}/run", json={}, timeout=60)
         assert r.status_code == 201, r.text
@@ -192,8 +211,19 @@ def test_watch_values_freeze_and_trigger(server: Server, browser) -> None:  # no
     page = browser.new_page(viewport={"width": 1280, "height": 800})
     page.goto(server.url + "/#watch")
     page.wait_for_selector("#watch-row-x-pos_left")
-    for row in ("x-pos_right", "r-steer_left", "r-steer_right", "enc1", "enc4", "pwm1", "pwm4", "din1", "din8",
-                "dout1", "dout4"):
+    for row in (
+        "x-pos_right",
+        "r-steer_left",
+        "r-steer_right",
+        "enc1",
+        "enc4",
+        "pwm1",
+        "pwm4",
+        "din1",
+        "din8",
+        "dout1",
+        "dout4",
+    ):
         assert page.locator(f"#watch-row-{row}").count() == 1, row
     val = "document.querySelector('#watch-row-x-pos_left td.val').textContent"
     page.wait_for_function(f"{val} !== '–'", timeout=15_000)
@@ -210,7 +240,11 @@ def test_watch_values_freeze_and_trigger(server: Server, browser) -> None:  # no
     # Freeze: the table and the scope stop, while telemetry keeps arriving.
     page.click("#watch-freeze")
     assert page.evaluate("xrfWatch.frozen")
-    frozen_val, updates, shown = page.evaluate(val), page.evaluate("xrfWatch.tableUpdates"), page.evaluate("xrfWatch.shown")
+    frozen_val, updates, shown = (
+        page.evaluate(val),
+        page.evaluate("xrfWatch.tableUpdates"),
+        page.evaluate("xrfWatch.shown"),
+    )
     count = page.evaluate("xrf.telemetryCount")
     time.sleep(1.0)
     assert page.evaluate("xrf.telemetryCount") > count + 10

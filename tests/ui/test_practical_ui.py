@@ -62,8 +62,11 @@ def project(http, name: str, edit: dict[str, tuple[str, str]] | None = None) -> 
     assert r.status_code == 201, r.text
     pid = r.json()["project"]["id"]
     b = http.post(f"/api/projects/{pid}/builds").json()
-    done = wait_for(lambda: (x := http.get(f"/api/projects/{pid}/builds/{b['id']}").json())["status"] in ("ok", "failed") and x,
-                    300, f"build of {name}")
+    done = wait_for(
+        lambda: (x := http.get(f"/api/projects/{pid}/builds/{b['id']}").json())["status"] in ("ok", "failed") and x,
+        300,
+        f"build of {name}",
+    )
     return pid, done
 
 
@@ -114,13 +117,20 @@ def test_esc_stops_from_inside_the_3d_view_and_the_rerun_viewer(server: Server, 
         viewer.keyboard.press("Escape")
         ws.wait_for(lambda m: m.get("type") == "state" and m.get("name") in ("STOPPING", "STOPPED"), 15)
     # the note, once the viewer's busy thread handles the answer
-    viewer.wait_for_function("() => (document.getElementById('xrf-stop-note') || {}).textContent === "
-                             "'Stop sent (Esc): the controller is stopping.'", timeout=60_000, polling=250)
+    viewer.wait_for_function(
+        "() => (document.getElementById('xrf-stop-note') || {}).textContent === "
+        "'Stop sent (Esc): the controller is stopping.'",
+        timeout=60_000,
+        polling=250,
+    )
 
     # Esc again, now in STOPPED: the dashboard's rule ends the run.
     viewer.keyboard.press("Escape")
-    viewer.wait_for_function("() => document.getElementById('xrf-stop-note').textContent.startsWith('Run ended')",
-                             timeout=60_000, polling=250)
+    viewer.wait_for_function(
+        "() => document.getElementById('xrf-stop-note').textContent.startsWith('Run ended')",
+        timeout=60_000,
+        polling=250,
+    )
     assert server.http.get("/api/runs?limit=1").json()[0]["status"] == "ended"
     page.context.close()
     server.stop_run()
@@ -128,8 +138,11 @@ def test_esc_stops_from_inside_the_3d_view_and_the_rerun_viewer(server: Server, 
 
 def test_projects_page_shows_the_selected_projects_build(server: Server, browser) -> None:  # noqa: ANN001
     good, _ = project(server.http, "good_one")
-    bad, b = project(server.http, "broken_one", {"src/Template.cpp": ("xeno_msg.pos_left = ros_msg.steer_left;",
-                                                                      "xeno_msg.pos_left = ros_msg.no_such_field;")})
+    bad, b = project(
+        server.http,
+        "broken_one",
+        {"src/Template.cpp": ("xeno_msg.pos_left = ros_msg.steer_left;", "xeno_msg.pos_left = ros_msg.no_such_field;")},
+    )
     assert b["status"] == "failed"
     page = browser.new_page(viewport=TABLET)
     page.goto(server.url + "/#projects")
@@ -167,7 +180,9 @@ def test_bench_offers_the_project_build_that_ran(server: Server, browser) -> Non
     state_is(page, "ENDED")
     # "Start run" here starts the project again, not the example.
     page.click("#btn-start-run")
-    run = wait_for(lambda: (x := server.http.get("/api/runs?limit=1").json()[0])["status"] == "running" and x, 60, "a run")
+    run = wait_for(
+        lambda: (x := server.http.get("/api/runs?limit=1").json()[0])["status"] == "running" and x, 60, "a run"
+    )
     assert run["build"] == name
     server.stop_run()
     page.close()
@@ -380,9 +395,11 @@ def test_dashboard_stays_connected_while_the_viewer_renders(server: Server, brow
         # From the click to now: the viewer's start (wasm download and compile) and its drawing.
         msgs = [m for m in t["msgs"] if m >= clicked]
         gaps = [b - a for a, b in zip([clicked] + msgs, msgs + [end])]
-        print(f"dashboard from the click ({(started - clicked) / 1000:.1f} s to the viewer's start, then 20 s): "
-              f"{len(msgs)} status messages, longest gap {max(gaps):.0f} ms, "
-              f"longest main-thread pause {t['maxPause']:.0f} ms, sockets {sockets}")
+        print(
+            f"dashboard from the click ({(started - clicked) / 1000:.1f} s to the viewer's start, then 20 s): "
+            f"{len(msgs)} status messages, longest gap {max(gaps):.0f} ms, "
+            f"longest main-thread pause {t['maxPause']:.0f} ms, sockets {sockets}"
+        )
         assert sockets == {"created": 1, "closed": 0}, sockets
         assert page.evaluate("xrf.ws.readyState") == 1
         assert len(msgs) > 20 and max(gaps) < 3000, (len(msgs), max(gaps))

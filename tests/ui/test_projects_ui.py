@@ -13,7 +13,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-
 from harness import Server, shared_builds_root, start_server, stop_server
 
 REPO = Path(__file__).resolve().parents[2]
@@ -55,7 +54,8 @@ def drop(page, selector: str, data: bytes, name: str) -> None:  # noqa: ANN001
         """([b64, name]) => { const bin = atob(b64); const a = new Uint8Array(bin.length);
              for (let i = 0; i < bin.length; i++) a[i] = bin.charCodeAt(i);
              const dt = new DataTransfer(); dt.items.add(new File([a], name)); return dt; }""",
-        [base64.b64encode(data).decode(), name])
+        [base64.b64encode(data).decode(), name],
+    )
     page.dispatch_event(selector, "drop", {"dataTransfer": dt})
 
 
@@ -99,9 +99,23 @@ def test_projects_page_upload_build_run(server: Server, browser) -> None:  # noq
     page.wait_for_selector("#proj-list li[data-id]")
     page.click("#proj-list li[data-id]")
     page.wait_for_selector("#proj-update-file", state="attached")
-    page.set_input_files("#proj-update-file", files=[{"name": "my_base.tar.gz", "mimeType": "application/gzip",
-                                                      "buffer": targz({"src/Template.cpp": ("xeno_msg.pos_left = ros_msg.steer_left;",
-                                                                                            "xeno_msg.pos_left = ros_msg.no_such_field;")})}])
+    page.set_input_files(
+        "#proj-update-file",
+        files=[
+            {
+                "name": "my_base.tar.gz",
+                "mimeType": "application/gzip",
+                "buffer": targz(
+                    {
+                        "src/Template.cpp": (
+                            "xeno_msg.pos_left = ros_msg.steer_left;",
+                            "xeno_msg.pos_left = ros_msg.no_such_field;",
+                        )
+                    }
+                ),
+            }
+        ],
+    )
     page.wait_for_function("document.getElementById('proj-status').textContent.includes('ready to build')")
     page.click("#proj-build")
     page.wait_for_selector("#proj-builds tr.current.st-failed", timeout=120_000)
@@ -114,8 +128,12 @@ def test_projects_page_upload_build_run(server: Server, browser) -> None:  # noq
     page.screenshot(path=str(SHOTS / "projects.png"), full_page=True)
 
     # rename a Ros2Xeno field: after the rebuild the dashboard's setpoint control has the new name
-    renamed = targz({"msg/Ros2Xeno.msg": ("steer_left", "wheel_speed_left"),
-                     "src/Template.cpp": ("ros_msg.steer_left", "ros_msg.wheel_speed_left")})
+    renamed = targz(
+        {
+            "msg/Ros2Xeno.msg": ("steer_left", "wheel_speed_left"),
+            "src/Template.cpp": ("ros_msg.steer_left", "ros_msg.wheel_speed_left"),
+        }
+    )
     drop(page, "#proj-detail", renamed, "my_base.tar.gz")
     page.wait_for_function("document.getElementById('msg-Ros2Xeno').textContent.includes('wheel_speed_left')")
     build_ok(page)

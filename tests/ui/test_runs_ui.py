@@ -4,10 +4,10 @@ rerun viewer from the appliance, opened in a tab of its own."""
 
 from __future__ import annotations
 
+import base64
 import os
 import subprocess
 import sys
-import base64
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -16,8 +16,17 @@ from urllib.parse import quote
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "appliance"))
-from harness import (ADMIN_PASSWORD, ADMIN_USER, Server, browser_login, login_client,  # noqa: E402
-                     shared_builds_root, start_server, stop_server)
+from harness import (  # noqa: E402
+    ADMIN_PASSWORD,
+    ADMIN_USER,
+    Server,
+    browser_login,
+    login_client,
+    shared_builds_root,
+    start_server,
+    stop_server,
+)
+
 from xrf_testing.net import lan_address  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
@@ -36,8 +45,9 @@ def _projects() -> Path:
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     # every interface, so the live test can open the appliance by its LAN address
-    s = start_server(tmp_path_factory.mktemp("data"), shared_builds_root(), projects_dir=str(_projects()),
-                     host="0.0.0.0")
+    s = start_server(
+        tmp_path_factory.mktemp("data"), shared_builds_root(), projects_dir=str(_projects()), host="0.0.0.0"
+    )
     yield s
     stop_server(s)
 
@@ -71,8 +81,22 @@ def test_runs_page_lists_runs_and_downloads_a_csv(server: Server, browser, tmp_p
     download.save_as(got)
     env = dict(os.environ, PYTHONPATH=str(REPO / "appliance"))
     want = tmp_path / "cli.csv"
-    subprocess.run([sys.executable, "-m", "xrflab.cli", "decode", str(server.data_dir / "runs" / str(run["id"]) / name),
-                    "--to", "csv", "-o", str(want)], check=True, env=env, capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "xrflab.cli",
+            "decode",
+            str(server.data_dir / "runs" / str(run["id"]) / name),
+            "--to",
+            "csv",
+            "-o",
+            str(want),
+        ],
+        check=True,
+        env=env,
+        capture_output=True,
+    )
     assert got.read_bytes() == want.read_bytes()
     assert got.read_text().count("\n") == info["files"][0]["records"] + 1
     # The rerun viewer is loaded only when asked for (not to download a CSV)...
@@ -86,7 +110,9 @@ def test_runs_page_lists_runs_and_downloads_a_csv(server: Server, browser, tmp_p
     viewer = opened.value
     viewer.wait_for_url("**/rerun/**", wait_until="commit", timeout=300_000)
     port = server.url.rsplit(":", 1)[1]
-    assert viewer.url == server.url + "/rerun/?url=" + quote(f"rerun+http://127.0.0.1:{port}/proxy", safe=""), viewer.url
+    assert viewer.url == server.url + "/rerun/?url=" + quote(f"rerun+http://127.0.0.1:{port}/proxy", safe=""), (
+        viewer.url
+    )
     assert viewer.evaluate("window.opener") is None
     viewer.close()
     with page.context.expect_page() as opened:
@@ -176,7 +202,9 @@ def test_timing_per_cycle_from_the_bench_page(server: Server, browser) -> None:
     page = browser.new_page()
     try:
         page.goto(server.url + "/")
-        page.wait_for_function(f"[...document.querySelectorAll('#build-select option')].some(o => o.value === '{PROBE}')")
+        page.wait_for_function(
+            f"[...document.querySelectorAll('#build-select option')].some(o => o.value === '{PROBE}')"
+        )
         page.select_option("#build-select", PROBE)
         page.check("#log-timing")
         page.click("#btn-start-run")

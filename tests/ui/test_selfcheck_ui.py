@@ -24,7 +24,9 @@ def test_educator_runs_the_selfcheck_and_sees_the_report(server: Server, browser
     ids = [s for s, _ in statuses]
     assert ids[:4] == ["spi", "init", "echo", "reset"] and "motor.1" in ids and "timing" in ids
     assert all(st in ("pass", "skipped") for _, st in statuses), statuses
-    assert all(st == "pass" for s, st in statuses if s in ("spi", "init", "echo", "reset", "motor.1", "motor.2", "timing"))
+    assert all(
+        st == "pass" for s, st in statuses if s in ("spi", "init", "echo", "reset", "motor.1", "motor.2", "timing")
+    )
     assert page.get_attribute("#sc-zeroed", "data-zeroed") == "yes"
     assert page.locator("#sc-run").is_enabled() and not page.locator("#sc-abort").is_visible()
     # listed with date and bench, exportable

@@ -12,9 +12,13 @@ from harness import Server
 
 def drawn_edges(page: Any) -> list[tuple[str, str, bool]]:
     """(from, command or '' for a completion, enabled) of every edge drawn."""
-    return [tuple(e) for e in page.eval_on_selector_all(
-        "#state-machine .edge",
-        "els => els.map(e => [e.dataset.from, e.dataset.cmd, e.classList.contains('enabled')])")]
+    return [
+        tuple(e)
+        for e in page.eval_on_selector_all(
+            "#state-machine .edge",
+            "els => els.map(e => [e.dataset.from, e.dataset.cmd, e.classList.contains('enabled')])",
+        )
+    ]
 
 
 def expected_edges(machine: dict[str, Any]) -> set[tuple[str, str]]:
@@ -50,15 +54,26 @@ def test_drawing_and_buttons_follow_the_served_machine(server: Server, browser) 
     page.select_option("#build-select", "relbot")
     page.click("#btn-start-run")
     visited = []
-    for cmd, reached in [(None, "IDLE"), ("initialise", "INITIALISED"), ("start", "RUN"), ("pause", "PAUSED"),
-                         ("stop", "STOPPED"), ("reset", "INITIALISED"), ("start", "RUN")]:
+    for cmd, reached in [
+        (None, "IDLE"),
+        ("initialise", "INITIALISED"),
+        ("start", "RUN"),
+        ("pause", "PAUSED"),
+        ("stop", "STOPPED"),
+        ("reset", "INITIALISED"),
+        ("start", "RUN"),
+    ]:
         if cmd is not None:
             page.click(f"#commands [data-cmd={cmd}]")
-        page.wait_for_function(f"document.getElementById('state-name').textContent === {reached!r}",
-                               timeout=120_000 if cmd is None else 10_000)
+        page.wait_for_function(
+            f"document.getElementById('state-name').textContent === {reached!r}",
+            timeout=120_000 if cmd is None else 10_000,
+        )
         page.wait_for_function(f"document.querySelector('#node-{reached}').classList.contains('current')")
         out = {t["cmd"] for t in machine["transitions"] if t["from"] == reached}
-        enabled = set(page.eval_on_selector_all("#commands button", "bs => bs.filter(b => !b.disabled).map(b => b.dataset.cmd)"))
+        enabled = set(
+            page.eval_on_selector_all("#commands button", "bs => bs.filter(b => !b.disabled).map(b => b.dataset.cmd)")
+        )
         assert enabled == out, (reached, enabled, out)
         lit = {(f, c) for f, c, on in drawn_edges(page) if on}
         assert lit == {(reached, c) for c in out}, (reached, lit)
@@ -72,8 +87,10 @@ def test_drawing_and_buttons_follow_the_served_machine(server: Server, browser) 
     other["states"].append({"number": 11, "name": "PARKED"})
     other["transitions"].append({"from": "STOPPED", "cmd": "park", "to": "PARKED"})
     page = browser.new_page(viewport={"width": 1400, "height": 1000})
-    page.route("**/api/state-machine", lambda route: route.fulfill(
-        status=200, content_type="application/json", body=json.dumps(other)))
+    page.route(
+        "**/api/state-machine",
+        lambda route: route.fulfill(status=200, content_type="application/json", body=json.dumps(other)),
+    )
     page.goto(server.url + "/")
     page.wait_for_function("window.xrf && window.xrf.machine")
     assert {(f, c) for f, c, _ in drawn_edges(page)} == expected_edges(other)

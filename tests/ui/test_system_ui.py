@@ -19,7 +19,10 @@ def test_system_page_lists_the_doctor_checks(server: Server, browser) -> None:
     for cid, status in rows:
         if status in ("warning", "failure"):
             row = page.locator(f"#sys-checks tr[data-id={cid}]")
-            fix = page.evaluate("id => fetch('/api/system/doctor').then(r => r.json()).then(d => d.checks.find(c => c.id === id).fix)", cid)
+            fix = page.evaluate(
+                "id => fetch('/api/system/doctor').then(r => r.json()).then(d => d.checks.find(c => c.id === id).fix)",
+                cid,
+            )
             if fix:
                 assert "fix:" in row.inner_text()
             break

@@ -44,7 +44,9 @@ def test_view3d_loads_and_follows_a_jiwy_setpoint(server: Server, browser) -> No
         ws.wait_state("INITIALISED")
         ws.command("start")
         ws.wait_state("RUN")
-    page.wait_for_function("window.xrf.view3d && window.xrf.view3d.kind === 'pan_tilt' && window.xrf.view3d.mode === 'live'")
+    page.wait_for_function(
+        "window.xrf.view3d && window.xrf.view3d.kind === 'pan_tilt' && window.xrf.view3d.mode === 'live'"
+    )
     pan0 = page.evaluate("window.xrf.view3d.joints.pan")
     assert abs(pan0) < 0.05
     # The setpoint goes out through the dashboard's WebSocket, every 0.5 s until the view shows it.

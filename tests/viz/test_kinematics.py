@@ -225,10 +225,15 @@ def test_recorder_thins_to_200_hz_and_keeps_the_last_sample(tmp_path: Path) -> N
 
 def test_replay_of_a_recorded_circle_and_jiwy(tmp_path: Path) -> None:
     left, right, steps = 505470.7, 758206.1, 2000
-    samples = [(k * 5_000_000, (raw(round(left * k / steps)), raw(-round(right * k / steps)), 0, 0))
-               for k in range(steps + 1)]
-    write_recording(tmp_path / "1", {"profile": RELBOT, "profile_name": "relbot"}, samples,
-                    [{"t_ns": 0, "setpoint": {"steer_left": 1.0}}])
+    samples = [
+        (k * 5_000_000, (raw(round(left * k / steps)), raw(-round(right * k / steps)), 0, 0)) for k in range(steps + 1)
+    ]
+    write_recording(
+        tmp_path / "1",
+        {"profile": RELBOT, "profile_name": "relbot"},
+        samples,
+        [{"t_ns": 0, "setpoint": {"steer_left": 1.0}}],
+    )
     r = build_replay(1, tmp_path / "1")
     assert r.kind == "differential_drive" and r.duration == pytest.approx(10.0)
     x, y, th = r.poses[r.index(5.0)]
@@ -236,8 +241,12 @@ def test_replay_of_a_recorded_circle_and_jiwy(tmp_path: Path) -> None:
     assert r.setpoint_at(1.0) == {"steer_left": 1.0}
 
     samples = [(k * 5_000_000, (raw(k * 1945), raw(-k * 3891), 0, 0)) for k in range(11)]
-    write_recording(tmp_path / "2", {"profile": JIWY, "profile_name": "jiwy"}, samples,
-                    [{"t_ns": 20_000_000, "setpoint": {"pan_setpoint": 0.5}}])
+    write_recording(
+        tmp_path / "2",
+        {"profile": JIWY, "profile_name": "jiwy"},
+        samples,
+        [{"t_ns": 20_000_000, "setpoint": {"pan_setpoint": 0.5}}],
+    )
     r = build_replay(2, tmp_path / "2")
     pan, tilt = r.joints[-1]
     assert pan == pytest.approx(19450 * 2 * math.pi / 4096 / 19)

@@ -8,17 +8,17 @@ import re
 import socket
 import time
 import urllib.parse
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import httpx
 import pytest
 import viser
+from harness import Server
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 from websockets.typing import Subprotocol
-
-from harness import Server
 
 
 def wait_state(server: Server, pred: Callable[[dict[str, Any]], bool], timeout: float = 10.0) -> dict[str, Any]:
@@ -60,7 +60,7 @@ def listening_addresses(port: int) -> set[str]:
             if size == 8:
                 found.add(socket.inet_ntop(socket.AF_INET, raw[::-1]))
             else:  # four little-endian 32-bit words
-                words = b"".join(raw[i:i + 4][::-1] for i in range(0, 16, 4))
+                words = b"".join(raw[i : i + 4][::-1] for i in range(0, 16, 4))
                 found.add(socket.inet_ntop(socket.AF_INET6, words))
     return found
 
@@ -89,8 +89,12 @@ def test_viser_is_behind_the_login(server: Server) -> None:
     assert exc.value.response.status_code == 403
     cookie = {"Cookie": f"xrf_session={server.http.cookies.get('xrf_session')}"}
     with pytest.raises(InvalidStatus) as exc:
-        connect(ws_url, subprotocols=[Subprotocol(f"viser-v{viser.__version__}")], origin="http://evil.example",
-                additional_headers=cookie).__enter__()
+        connect(
+            ws_url,
+            subprotocols=[Subprotocol(f"viser-v{viser.__version__}")],
+            origin="http://evil.example",
+            additional_headers=cookie,
+        ).__enter__()
     assert exc.value.response.status_code == 403
     anon.close()
 
@@ -106,7 +110,7 @@ def test_viser_serves_its_client_offline_through_the_proxy(server: Server) -> No
     refs = re.findall(r"<(?:script|link|img|iframe)\b[^>]*?\b(?:src|href)\s*=\s*[\"']([^\"']+)", html, re.I)
     assert all(ref.startswith(("data:", "/", "./")) or "://" not in ref for ref in refs), refs
     head = re.sub(r'data-p="[^"]*"', "", html)  # the compressed bundle is not readable text
-    head = re.sub(r'<script[^>]*>.*?</script>', "", head, flags=re.S)
+    head = re.sub(r"<script[^>]*>.*?</script>", "", head, flags=re.S)
     head = re.sub(r'"data:[^"]*"', '""', head)  # inline data (the icon's SVG names its xmlns)
     assert not re.search(r"https?://", head), re.findall(r"https?://[^\s\"'<>]+", head)
     # gzip passes through as viser sent it
@@ -206,4 +210,3 @@ def test_stage_carriage_follows_the_setpoint(server: Server) -> None:
         t = ws.wait_for(lambda m: m.get("type") == "telemetry" and abs(m["xeno2ros"]["position"] - 0.04) < 0.001, 5)
         assert abs(t["xeno2ros"]["position"] - s["position"]) < 0.001
     server.stop_run()
-

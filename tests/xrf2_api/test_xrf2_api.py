@@ -77,9 +77,21 @@ def _build_surface(release: str, work: Path) -> Path:
         f'  INCLUDE_DIRS "{HERE / "common"}" MSG_DIR "{HERE / "msg"}" TWENTY_SIM "{TWENTY_SIM}")\n'
     )
     build = work / "build"
-    cfg = subprocess.run(["cmake", "-S", str(work), "-B", str(build), f"-DCMAKE_PREFIX_PATH={prefix}",
-                          f"-DXrfRt_DIR={_xrfrt_config_dir(prefix)}", f"-DPython3_EXECUTABLE={sys.executable}"],
-                         capture_output=True, text=True, timeout=300)
+    cfg = subprocess.run(
+        [
+            "cmake",
+            "-S",
+            str(work),
+            "-B",
+            str(build),
+            f"-DCMAKE_PREFIX_PATH={prefix}",
+            f"-DXrfRt_DIR={_xrfrt_config_dir(prefix)}",
+            f"-DPython3_EXECUTABLE={sys.executable}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert cfg.returncode == 0, cfg.stdout[-3000:] + cfg.stderr[-3000:]
     b = subprocess.run(["cmake", "--build", str(build), "-j2"], capture_output=True, text=True, timeout=600)
     assert b.returncode == 0, b.stdout[-6000:] + b.stderr[-3000:]
@@ -87,11 +99,9 @@ def _build_surface(release: str, work: Path) -> Path:
 
 
 @pytest.mark.parametrize("release", RELEASES)
-def test_surface_compiles_against_the_installed_package_and_runs(release: str, tmp_path: Path,
-                                                                 shm_name: str) -> None:
+def test_surface_compiles_against_the_installed_package_and_runs(release: str, tmp_path: Path, shm_name: str) -> None:
     exe = _build_surface(release, tmp_path)
-    lp = LoopProcess(exe, shm_name, tmp_path, XRF_SIM="relbot", XRF_TRANSPORT="sim", XRF_PRIO="0",
-                     XRF_QUIET="0")
+    lp = LoopProcess(exe, shm_name, tmp_path, XRF_SIM="relbot", XRF_TRANSPORT="sim", XRF_PRIO="0", XRF_QUIET="0")
     try:
         assert lp.ch.info["cycle_freq"] == 500
         lp.command("initialise", "RUN")  # initialised() returns 1: straight on to RUN

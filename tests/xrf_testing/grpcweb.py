@@ -34,27 +34,38 @@ def split_frames(buf: bytes) -> tuple[list[tuple[int, bytes]], bytes]:
     """Complete frames in `buf` and the incomplete rest."""
     frames, pos = [], 0
     while len(buf) - pos >= 5:
-        flag, length = buf[pos], struct.unpack(">I", buf[pos + 1:pos + 5])[0]
+        flag, length = buf[pos], struct.unpack(">I", buf[pos + 1 : pos + 5])[0]
         if flag not in (0x00, 0x80):
             raise ValueError(f"not a gRPC-web frame: flag {flag:#x} at byte {pos}")
         if len(buf) - pos - 5 < length:
             break
-        frames.append((flag, buf[pos + 5:pos + 5 + length]))
+        frames.append((flag, buf[pos + 5 : pos + 5 + length]))
         pos += 5 + length
     return frames, buf[pos:]
 
 
-def read_messages(client: httpx.Client, url: str, until: Callable[[bytes], bool] = lambda data: False,
-                  timeout: float = 20.0, headers: dict[str, str] | None = None,
-                  body: bytes = EMPTY_REQUEST, quiet: float = 5.0,
-                  on_message: Callable[[bytes], None] | None = None) -> Stream:
+def read_messages(
+    client: httpx.Client,
+    url: str,
+    until: Callable[[bytes], bool] = lambda data: False,
+    timeout: float = 20.0,
+    headers: dict[str, str] | None = None,
+    body: bytes = EMPTY_REQUEST,
+    quiet: float = 5.0,
+    on_message: Callable[[bytes], None] | None = None,
+) -> Stream:
     """POST a ReadMessages call and read the stream until `until(all payload bytes so far)` is
     true, the server ends it, `timeout` passes or the stream is quiet for `quiet` s (then
     whatever arrived is returned; `ended_by` says which). `on_message(payload)`: each data
     message as it arrives."""
     deadline = time.monotonic() + timeout
-    with client.stream("POST", url, content=body, headers={**GRPC_WEB, **(headers or {})},
-                       timeout=httpx.Timeout(10.0, read=min(timeout, quiet))) as r:
+    with client.stream(
+        "POST",
+        url,
+        content=body,
+        headers={**GRPC_WEB, **(headers or {})},
+        timeout=httpx.Timeout(10.0, read=min(timeout, quiet)),
+    ) as r:
         out = Stream(r.status_code, {k.lower(): v for k, v in r.headers.items()})
         if r.status_code != 200:
             r.read()

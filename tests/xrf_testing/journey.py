@@ -39,11 +39,11 @@ def _targz(folder: Path, top: str) -> bytes:
     return buf.getvalue()
 
 
-def journey(command: list[str], port: int, start_timeout: float, build_timeout: float,
-            modes: list[str] = ()) -> dict:
+def journey(command: list[str], port: int, start_timeout: float, build_timeout: float, modes: list[str] = ()) -> dict:
     out: dict = {"ok": False, "lines": []}
-    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            start_new_session=True)
+    proc = subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
+    )
     lines: list[str] = out["lines"]
     threading.Thread(target=lambda: [lines.append(line.rstrip("\n")) for line in proc.stdout], daemon=True).start()
     try:
@@ -61,7 +61,9 @@ def journey(command: list[str], port: int, start_timeout: float, build_timeout: 
         http.headers["X-CSRF-Token"] = r.json()["csrf"]
         http.post("/api/auth/password", json={"current": secret, "new": "a new password!"}).raise_for_status()
         http.headers["X-CSRF-Token"] = http.cookies.get("xrf_csrf")
-        r = http.post("/api/projects", files={"file": ("my_base.tar.gz", _targz(TEMPLATE, "my_base"), "application/gzip")})
+        r = http.post(
+            "/api/projects", files={"file": ("my_base.tar.gz", _targz(TEMPLATE, "my_base"), "application/gzip")}
+        )
         r.raise_for_status()
         pid = r.json()["project"]["id"]
         b = http.post(f"/api/projects/{pid}/builds")

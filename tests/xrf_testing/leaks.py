@@ -68,8 +68,12 @@ def descendants(pid: int) -> set[int]:
 
 def _untracked(repo: Path) -> set[str]:
     try:
-        out = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--ignored", "--untracked-files=all"],
-                             capture_output=True, text=True, timeout=60).stdout
+        out = subprocess.run(
+            ["git", "-C", str(repo), "status", "--porcelain", "--ignored", "--untracked-files=all"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        ).stdout
     except (OSError, subprocess.TimeoutExpired):
         return set()
     names = {line[3:] for line in out.splitlines() if line[:2] in ("??", "!!")}
@@ -90,14 +94,13 @@ class Snapshot:
 
     @classmethod
     def take(cls, marker: str, temp_root: Path, repo: Path) -> Snapshot:
-        return cls(marker, temp_root, repo, _pids(), set(os.listdir(SHM)) if SHM.is_dir() else set(),
-                   _untracked(repo))
+        return cls(marker, temp_root, repo, _pids(), set(os.listdir(SHM)) if SHM.is_dir() else set(), _untracked(repo))
 
     def _ours(self, pid: int) -> bool:
         env = _environ(pid)
         if f"{MARKER}={self.marker}".encode() in env:
             return True
-        run_dir = next((e[len(b"XRF_RUN_DIR="):] for e in env if e.startswith(b"XRF_RUN_DIR=")), b"")
+        run_dir = next((e[len(b"XRF_RUN_DIR=") :] for e in env if e.startswith(b"XRF_RUN_DIR=")), b"")
         return bool(run_dir) and run_dir.decode(errors="replace").startswith(str(self.temp_root))
 
     def processes(self) -> dict[int, str]:

@@ -45,8 +45,7 @@ class LoopProcess:
         self.shm = shm
         full_env = dict(os.environ, XRF_SHM=shm, **{k: str(v) for k, v in env.items()})
         out = subprocess.PIPE if capture else subprocess.DEVNULL
-        self.proc = subprocess.Popen([str(exe)], cwd=cwd, env=full_env, stdout=out,
-                                     stderr=subprocess.STDOUT, text=True)
+        self.proc = subprocess.Popen([str(exe)], cwd=cwd, env=full_env, stdout=out, stderr=subprocess.STDOUT, text=True)
         try:
             self.ch = open_when_ready(shm, self.proc)
         except RuntimeError as exc:

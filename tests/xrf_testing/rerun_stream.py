@@ -43,11 +43,11 @@ def fields(buf: bytes) -> Iterator[tuple[int, int | bytes]]:
             yield number, value
         elif wire == 2:
             length, pos = _varint(buf, pos)
-            yield number, buf[pos:pos + length]
+            yield number, buf[pos : pos + length]
             pos += length
         elif wire in (1, 5):
             size = 8 if wire == 1 else 4
-            yield number, buf[pos:pos + size]
+            yield number, buf[pos : pos + size]
             pos += size
         else:
             raise ValueError(f"protobuf wire type {wire} (groups are not used by rerun)")
@@ -62,9 +62,9 @@ def _field(buf: bytes, number: int, default: int | bytes | None = None) -> int |
 
 @dataclass
 class Chunk:
-    store_kind: int          # STORE_RECORDING or the blueprint's
+    store_kind: int  # STORE_RECORDING or the blueprint's
     recording_id: str
-    entity: str              # rerun:entity_path of the chunk
+    entity: str  # rerun:entity_path of the chunk
     columns: list[str]
     newest_time_ns: int | None  # max of the `time` index in it, None without one
 
@@ -94,5 +94,10 @@ def chunk_of(frame: bytes) -> Chunk | None:
         newest = int(pa.compute.max(values).as_py())
     meta = table.schema.metadata or {}
     recording_id = store_fields.get(2, b"")
-    return Chunk(int(store_fields.get(1, 0)), recording_id.decode() if isinstance(recording_id, bytes) else "",
-                 meta.get(b"rerun:entity_path", b"").decode(), table.column_names, newest)
+    return Chunk(
+        int(store_fields.get(1, 0)),
+        recording_id.decode() if isinstance(recording_id, bytes) else "",
+        meta.get(b"rerun:entity_path", b"").decode(),
+        table.column_names,
+        newest,
+    )

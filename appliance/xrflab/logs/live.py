@@ -59,38 +59,46 @@ from .runfolder import RunPathError, confine, open_in
 
 log = logging.getLogger("xrflab.logs.live")
 
-WAIT_MS = 20            # longest time between two drains when no doorbell rings
-LIVE_HZ = 100.0         # log records per second sent to the live rerun recording
-TELEMETRY_HZ = 50.0     # telemetry samples per second sent to it
-SEND_PERIOD_S = 0.2     # the live recording is sent in batches this far apart
-RERUN_NICE = 10         # rerun's child processes run below the appliance
+WAIT_MS = 20  # longest time between two drains when no doorbell rings
+LIVE_HZ = 100.0  # log records per second sent to the live rerun recording
+TELEMETRY_HZ = 50.0  # telemetry samples per second sent to it
+SEND_PERIOD_S = 0.2  # the live recording is sent in batches this far apart
+RERUN_NICE = 10  # rerun's child processes run below the appliance
 TIMING_PERIOD_S = 1.0
 
 
 @dataclass
 class WriterStats:
-    files: list[str] = field(default_factory=list)   # paths written, in order
-    records: int = 0            # records in the files
-    unwritten: int = 0          # drained after a write failure, so not in any file
+    files: list[str] = field(default_factory=list)  # paths written, in order
+    records: int = 0  # records in the files
+    unwritten: int = 0  # drained after a write failure, so not in any file
     bytes: int = 0
-    failed: str = ""            # why logging stopped ("" = it did not)
-    lost: int = 0               # the loop's ring drops (status.log_lost), filled in by finish()
+    failed: str = ""  # why logging stopped ("" = it did not)
+    lost: int = 0  # the loop's ring drops (status.log_lost), filled in by finish()
 
 
 # Log channels of the shared memory: (meta, ring, slots) field names.
-SOURCES = {"log": ("log_meta", "log_ring", "log_data"),                  # the student's XenoFrtLogger
-           "cycle_timing": ("timing_meta", "timing_ring", "timing")}     # XRF_LOG_TIMING=1
+SOURCES = {
+    "log": ("log_meta", "log_ring", "log_data"),  # the student's XenoFrtLogger
+    "cycle_timing": ("timing_meta", "timing_ring", "timing"),
+}  # XRF_LOG_TIMING=1
 
 
 class HostLogWriter:
     """Drains one log channel of a run (`source`: the logger's ring, or the per-cycle timing
     records) into its file; a thread of the appliance."""
 
-    def __init__(self, ch: Any, identity: dict[str, str], run_dir: Path,
-                 on_alarm: Callable[[str], None] | None = None,
-                 on_records: Callable[[np.ndarray], None] | None = None,
-                 timing: bool = True, source: str = "log",
-                 on_note: Callable[[str], None] | None = None) -> None:
+    def __init__(
+        self,
+        ch: Any,
+        identity: dict[str, str],
+        run_dir: Path,
+        on_alarm: Callable[[str], None] | None = None,
+        on_records: Callable[[np.ndarray], None] | None = None,
+        timing: bool = True,
+        source: str = "log",
+        on_note: Callable[[str], None] | None = None,
+    ) -> None:
         from .. import channels as chmod
 
         self._ch = ch
@@ -110,7 +118,7 @@ class HostLogWriter:
         self._stride = 0
         self._dtype: np.dtype | None = None
         self._stop = threading.Event()
-        self._lock = threading.Lock()   # one drain at a time (thread vs finish())
+        self._lock = threading.Lock()  # one drain at a time (thread vs finish())
         self._thread: threading.Thread | None = None
         self._last_timing = 0.0
         self._last_hist: dict[str, tuple[int, float]] = {}
@@ -143,7 +151,8 @@ class HostLogWriter:
             status = self._ch.status()
             self.stats.lost = int(status.log_lost)
             if not self._host_writes() and self._lib.xrfpy_load_u32(
-                    self._ffi.addressof(self._ch.shm.log_meta, "ready")):
+                self._ffi.addressof(self._ch.shm.log_meta, "ready")
+            ):
                 self.stats.records = int(status.log_written)  # XRF_LOG_WRITER=process wrote them
         except Exception:  # status locked by a loop that died mid-write: the ring knows too
             self.stats.lost = int(self._ch.shm.log_ring.dropped)
@@ -239,11 +248,21 @@ class HostLogWriter:
         variables = []
         for i in range(min(int(m.nvars), self._lib.XRF_LOG_VARS_MAX)):
             v = m.vars[i]
-            variables.append((self._ffi.string(v.name, self._lib.XRF_NAME_MAX).decode("utf-8", "replace"),
-                              int(v.type), int(v.offset)))
+            variables.append(
+                (
+                    self._ffi.string(v.name, self._lib.XRF_NAME_MAX).decode("utf-8", "replace"),
+                    int(v.type),
+                    int(v.offset),
+                )
+            )
         try:
-            vs = make_variables(Path("<ring>"), [v[0] for v in variables], [v[1] for v in variables],
-                                [v[2] for v in variables], ("seq", "cycle", "t_ns"))
+            vs = make_variables(
+                Path("<ring>"),
+                [v[0] for v in variables],
+                [v[1] for v in variables],
+                [v[2] for v in variables],
+                ("seq", "cycle", "t_ns"),
+            )
             self._dtype = record_dtype(vs, self._stride)
         except Exception:
             self._dtype = None
@@ -262,8 +281,9 @@ class HostLogWriter:
             return
         path = str(self._run_dir / rel)
         try:
-            self._fd = open_in(self._run_dir, rel, os.O_WRONLY | os.O_CREAT | os.O_APPEND,
-                               int(m.file_mode) or 0o644, create_dirs=True)
+            self._fd = open_in(
+                self._run_dir, rel, os.O_WRONLY | os.O_CREAT | os.O_APPEND, int(m.file_mode) or 0o644, create_dirs=True
+            )
             self._size = os.fstat(self._fd).st_size
             self._write_all(self.segment_header())
         except OSError as exc:
@@ -284,13 +304,17 @@ class HostLogWriter:
         the run's identity (what the loop's environment says: loop_env)."""
         info = self._ch.shm.info
         return logformat.segment_header(
-            self._ffi.addressof(self._ch.shm, self._meta_field), int(self._ring().slot_size),
-            program=self._ffi.string(info.program, self._lib.XRF_NAME_MAX), pid=int(info.pid),
+            self._ffi.addressof(self._ch.shm, self._meta_field),
+            int(self._ring().slot_size),
+            program=self._ffi.string(info.program, self._lib.XRF_NAME_MAX),
+            pid=int(info.pid),
             cycle_freq=int(info.cycle_freq),
             start_unix_ns=time.time_ns() if start_unix_ns is None else start_unix_ns,
             start_mono_ns=time.monotonic_ns() if start_mono_ns is None else start_mono_ns,
-            project=self._identity.get("project", ""), build=self._identity.get("build", ""),
-            run=self._identity.get("run", ""))
+            project=self._identity.get("project", ""),
+            build=self._identity.get("build", ""),
+            run=self._identity.get("run", ""),
+        )
 
     def _write_all(self, data: Any) -> None:
         view = memoryview(data)
@@ -316,9 +340,11 @@ class HostLogWriter:
             self.stats.records += done
             self.stats.bytes += done * self._stride
             self.stats.unwritten += n - done
-            self._fail(f"writing the log file failed ({exc.strerror or exc}) after "
-                       f"{self.stats.records} records; logging stopped, the run goes on",
-                       self.stats.files[-1] if self.stats.files else "")
+            self._fail(
+                f"writing the log file failed ({exc.strerror or exc}) after "
+                f"{self.stats.records} records; logging stopped, the run goes on",
+                self.stats.files[-1] if self.stats.files else "",
+            )
             return
         self.stats.records += n
         self.stats.bytes += n * self._stride
@@ -352,13 +378,22 @@ class HostLogWriter:
             prev_n, prev_sum = self._last_hist.get(name, (0, 0.0))
             total = h.mean * h.count
             dn = h.count - prev_n
-            stages[name] = {"n": dn, "mean_ns": round((total - prev_sum) / dn, 1) if dn > 0 else None,
-                            "p50_ns": h.percentile(50) if h.count else None,
-                            "p99_ns": h.percentile(99) if h.count else None,
-                            "max_ns": h.max if h.count else None}
+            stages[name] = {
+                "n": dn,
+                "mean_ns": round((total - prev_sum) / dn, 1) if dn > 0 else None,
+                "p50_ns": h.percentile(50) if h.count else None,
+                "p99_ns": h.percentile(99) if h.count else None,
+                "max_ns": h.max if h.count else None,
+            }
             self._last_hist[name] = (h.count, total)
-        line = {"t_unix": time.time(), "cycles": s.cycles, "missed": s.missed, "log_written": s.log_written,
-                "log_lost": s.log_lost, "stages": stages}
+        line = {
+            "t_unix": time.time(),
+            "cycles": s.cycles,
+            "missed": s.missed,
+            "log_written": s.log_written,
+            "log_lost": s.log_lost,
+            "stages": stages,
+        }
         try:
             fd = open_in(self._run_dir, "timing.jsonl", os.O_WRONLY | os.O_CREAT | os.O_APPEND)
             with open(fd, "a", closefd=True) as f:
@@ -407,8 +442,13 @@ def _spawn_rerun(argv: list[str]) -> subprocess.Popen[bytes]:
     hook below does not run then), so none is left with parent 1 (server/children.popen_tied)."""
     from ..tied import popen_tied
 
-    return popen_tied(argv, death_signal=signal.SIGTERM, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                      stderr=subprocess.DEVNULL)
+    return popen_tied(
+        argv,
+        death_signal=signal.SIGTERM,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
 
 
 class _RerunChild:
@@ -451,9 +491,21 @@ class RerunViewer(_RerunChild):
     def __init__(self) -> None:
         self.web_port = _free_port(int(os.environ.get("XRF_RERUN_WEB_PORT", "9090")))
         grpc_port = _free_port(0)  # --serve-web always opens a gRPC server too; nothing uses it
-        super().__init__(["--serve-web", "--bind", "127.0.0.1", "--port", str(grpc_port),
-                          "--web-viewer-port", str(self.web_port), "--server-memory-limit", "1MiB"],
-                         (self.web_port,), "viewer")
+        super().__init__(
+            [
+                "--serve-web",
+                "--bind",
+                "127.0.0.1",
+                "--port",
+                str(grpc_port),
+                "--web-viewer-port",
+                str(self.web_port),
+                "--server-memory-limit",
+                "1MiB",
+            ],
+            (self.web_port,),
+            "viewer",
+        )
 
     @classmethod
     def get(cls) -> RerunViewer:
@@ -479,9 +531,19 @@ class LiveProxy(_RerunChild):
         self.run_id = run_id
         self.owner = owner
         self.port = _free_port(0)
-        super().__init__(["--serve-grpc", "--bind", "127.0.0.1", "--port", str(self.port),
-                          "--server-memory-limit", os.environ.get("XRF_RERUN_MEMORY", "256MiB")],
-                         (self.port,), "live proxy")
+        super().__init__(
+            [
+                "--serve-grpc",
+                "--bind",
+                "127.0.0.1",
+                "--port",
+                str(self.port),
+                "--server-memory-limit",
+                os.environ.get("XRF_RERUN_MEMORY", "256MiB"),
+            ],
+            (self.port,),
+            "live proxy",
+        )
         self.local_url = f"rerun+http://127.0.0.1:{self.port}/proxy"
         self.read_url = f"http://127.0.0.1:{self.port}"  # where the appliance forwards gRPC-web reads
 
@@ -541,8 +603,8 @@ class LiveRerun:
         self.dropped = 0
         self._wall_offset = time.time_ns() - time.monotonic_ns()
         self._names: list[str] | None = None
-        self._groups: dict[str, list[str]] = {}     # log entity -> its variables (record fields)
-        self._series: dict[str, list[str]] = {}     # entity -> the series names logged for it
+        self._groups: dict[str, list[str]] = {}  # log entity -> its variables (record fields)
+        self._series: dict[str, list[str]] = {}  # entity -> the series names logged for it
         self.rec = rr.RecordingStream("xrflab", recording_id=f"run-{run_id}")
         self.rec.connect_grpc(proxy.local_url)
         self._telemetry_reader = ch.telemetry_reader()
@@ -583,8 +645,10 @@ class LiveRerun:
 
     def _indexes(self, cycle: np.ndarray, t_ns: np.ndarray) -> list[Any]:
         rr = self._rr
-        return [rr.TimeColumn("cycle", sequence=cycle.astype(np.int64)),
-                rr.TimeColumn("time", timestamp=(t_ns.astype(np.int64) + self._wall_offset).view("datetime64[ns]"))]
+        return [
+            rr.TimeColumn("cycle", sequence=cycle.astype(np.int64)),
+            rr.TimeColumn("time", timestamp=(t_ns.astype(np.int64) + self._wall_offset).view("datetime64[ns]")),
+        ]
 
     def _name_series(self, entity: str, names: list[str]) -> None:
         """The series' names of a multi-series entity, once per set of names (static)."""
@@ -613,8 +677,10 @@ class LiveRerun:
         for entity, members in self._groups.items():
             # an array variable (or a char string) is a series per element
             cols = [_plain(rec[n]).astype(np.float64).reshape(len(rec), -1) for n in members]
-            self._name_series(entity, [n if c.shape[1] == 1 else f"{n}[{i}]"
-                                       for n, c in zip(members, cols) for i in range(c.shape[1])])
+            self._name_series(
+                entity,
+                [n if c.shape[1] == 1 else f"{n}[{i}]" for n, c in zip(members, cols) for i in range(c.shape[1])],
+            )
             self.rec.send_columns(entity, indexes=idx, columns=rr.Scalars.columns(scalars=np.hstack(cols)))
 
     def _send_telemetry(self) -> None:
@@ -644,8 +710,9 @@ class LiveRerun:
             plotted.append(name)
         if plotted:
             self._name_series("telemetry/xeno2ros", plotted)
-            self.rec.send_columns("telemetry/xeno2ros", indexes=idx,
-                                  columns=rr.Scalars.columns(scalars=np.column_stack(columns)))
+            self.rec.send_columns(
+                "telemetry/xeno2ros", indexes=idx, columns=rr.Scalars.columns(scalars=np.column_stack(columns))
+            )
 
     def _main(self) -> None:
         # Records arrive in small batches (one per writer drain, up to 50 a second); they are
@@ -691,12 +758,20 @@ class RunLogging:
     writer: HostLogWriter
     live: LiveRerun | None
     starting: threading.Thread | None = None
-    timing: HostLogWriter | None = None   # per-cycle timing records (XRF_LOG_TIMING=1)
+    timing: HostLogWriter | None = None  # per-cycle timing records (XRF_LOG_TIMING=1)
 
 
-def start(ch: Any, run_id: int, run_dir: Path, identity: dict[str, str], owner: str,
-          on_alarm: Callable[[str], None], live: bool = True, log_timing: bool = False,
-          on_note: Callable[[str], None] | None = None) -> RunLogging:
+def start(
+    ch: Any,
+    run_id: int,
+    run_dir: Path,
+    identity: dict[str, str],
+    owner: str,
+    on_alarm: Callable[[str], None],
+    live: bool = True,
+    log_timing: bool = False,
+    on_note: Callable[[str], None] | None = None,
+) -> RunLogging:
     """Start the host writer (and the live rerun stream unless disabled or unavailable; and the
     timing writer when the loop logs its per-cycle timing). `on_note`: a line for the run's
     console (where a log file went)."""
@@ -704,8 +779,9 @@ def start(ch: Any, run_id: int, run_dir: Path, identity: dict[str, str], owner: 
     writer.start()
     rl = RunLogging(writer, None)
     if log_timing:
-        rl.timing = HostLogWriter(ch, identity, run_dir, on_alarm=on_alarm, timing=False, source="cycle_timing",
-                                  on_note=on_note)
+        rl.timing = HostLogWriter(
+            ch, identity, run_dir, on_alarm=on_alarm, timing=False, source="cycle_timing", on_note=on_note
+        )
         rl.timing.start()
     if live and os.environ.get("XRF_LIVE_RERUN", "1") != "0":
         # rerun's import and servers take a moment on the first run: not on the event loop,
@@ -716,6 +792,7 @@ def start(ch: Any, run_id: int, run_dir: Path, identity: dict[str, str], owner: 
                 writer.set_on_records(rl.live.feed)
             except Exception:
                 log.exception("live rerun unavailable")
+
         rl.starting = threading.Thread(target=connect, name=f"xrf-rerun-start-{run_id}", daemon=True)
         rl.starting.start()
     return rl

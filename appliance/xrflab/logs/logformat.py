@@ -35,10 +35,10 @@ HEADER_MAX: int = lib.XRF_LOGFILE_HEADER_MAX
 
 @dataclass(frozen=True)
 class VarType:
-    code: int           # XRF_LOG_* (XRF2's code)
-    name: str           # XRF2's C name: "int", "long int", ...
-    header_dtype: str   # the segment header's "dtype": "int32", "int64", ...
-    dtype: np.dtype     # the record field (char is one raw byte, S1: logformat.h says why)
+    code: int  # XRF_LOG_* (XRF2's code)
+    name: str  # XRF2's C name: "int", "long int", ...
+    header_dtype: str  # the segment header's "dtype": "int32", "int64", ...
+    dtype: np.dtype  # the record field (char is one raw byte, S1: logformat.h says why)
 
 
 def _text(p: Any) -> str:
@@ -56,9 +56,19 @@ def _c_text(value: str | bytes) -> Any:
     return ffi.new("char[]", raw)
 
 
-def segment_header(meta: Any, stride: int, *, program: str | bytes, pid: int, cycle_freq: int,
-                   start_unix_ns: int, start_mono_ns: int, project: str | bytes = "",
-                   build: str | bytes = "", run: str | bytes = "") -> bytes:
+def segment_header(
+    meta: Any,
+    stride: int,
+    *,
+    program: str | bytes,
+    pid: int,
+    cycle_freq: int,
+    start_unix_ns: int,
+    start_mono_ns: int,
+    project: str | bytes = "",
+    build: str | bytes = "",
+    run: str | bytes = "",
+) -> bytes:
     """A segment header by rt_core's ``xrf_logfile_header``. `meta`: a ``struct xrf_log_meta``
     (the run's shared memory's, or one a test fills in), as cdata or a pointer to it. Texts given
     as bytes reach C unchanged (the loop's program name as it sits in the shared memory).
@@ -66,9 +76,16 @@ def segment_header(meta: Any, stride: int, *, program: str | bytes, pid: int, cy
     if ffi.typeof(meta).kind == "struct":
         meta = ffi.addressof(meta)
     texts = {k: _c_text(v) for k, v in (("program", program), ("project", project), ("build", build), ("run", run))}
-    ident = ffi.new("struct xrf_logfile_ident *", {
-        **texts, "pid": pid, "cycle_freq": cycle_freq, "start_unix_ns": start_unix_ns, "start_mono_ns": start_mono_ns,
-    })
+    ident = ffi.new(
+        "struct xrf_logfile_ident *",
+        {
+            **texts,
+            "pid": pid,
+            "cycle_freq": cycle_freq,
+            "start_unix_ns": start_unix_ns,
+            "start_mono_ns": start_mono_ns,
+        },
+    )
     buf = ffi.new("char[]", HEADER_MAX)
     n = lib.xrf_logfile_header(buf, HEADER_MAX, ident, meta, stride)
     if n < 0:
@@ -76,5 +93,15 @@ def segment_header(meta: Any, stride: int, *, program: str | bytes, pid: int, cy
     return bytes(ffi.buffer(buf, n))
 
 
-__all__ = ["ALIGN", "FORMAT_VERSION", "HEADER_MAX", "JSON_LEN_OFFSET", "MAGIC", "PREFIX_SIZE", "STRIDE_OFFSET",
-           "VAR_TYPES", "VarType", "segment_header"]
+__all__ = [
+    "ALIGN",
+    "FORMAT_VERSION",
+    "HEADER_MAX",
+    "JSON_LEN_OFFSET",
+    "MAGIC",
+    "PREFIX_SIZE",
+    "STRIDE_OFFSET",
+    "VAR_TYPES",
+    "VarType",
+    "segment_header",
+]

@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import json
 import mmap
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -49,11 +50,11 @@ class _Damaged(Exception):
 
 @dataclass(frozen=True)
 class Variable:
-    name: str          # as logged (addVariable's name)
-    field: str         # the NumPy field / output column name (unique; see _field_names)
-    code: int          # XRF2 type code
+    name: str  # as logged (addVariable's name)
+    field: str  # the NumPy field / output column name (unique; see _field_names)
+    code: int  # XRF2 type code
     dtype: np.dtype
-    offset: int        # from the start of the payload
+    offset: int  # from the start of the payload
 
     @property
     def type_name(self) -> str:
@@ -65,11 +66,11 @@ class Segment:
     """One run of the logger: its header and its decoded records."""
 
     index: int
-    offset: int                      # file offset of the segment's first byte
+    offset: int  # file offset of the segment's first byte
     header: dict[str, Any]
     variables: tuple[Variable, ...]
-    records: np.ndarray              # structured; a view over the file when undamaged
-    kind: str = "xrflog"             # or "xrf2" (no seq/cycle/t_ns in the file)
+    records: np.ndarray  # structured; a view over the file when undamaged
+    kind: str = "xrflog"  # or "xrf2" (no seq/cycle/t_ns in the file)
 
     def column(self, name: str) -> np.ndarray:
         """A field of the records; for XRF2 files `seq` is the synthesized record index."""
@@ -97,7 +98,7 @@ class Segment:
 @dataclass
 class LogFile:
     path: Path
-    kind: str                                   # "xrflog" or "xrf2"
+    kind: str  # "xrflog" or "xrf2"
     segments: list[Segment] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
     size: int = 0
@@ -135,8 +136,10 @@ class LogFile:
         first = [(v.field, v.dtype) for v in self.segments[0].variables]
         for s in self.segments[1:]:
             if [(v.field, v.dtype) for v in s.variables] != first:
-                raise LogFormatError(f"{self.path}: segment {s.index} (offset {s.offset}) logs other variables "
-                                     f"than segment 0; decode the segments separately (LogFile.segments)")
+                raise LogFormatError(
+                    f"{self.path}: segment {s.index} (offset {s.offset}) logs other variables "
+                    f"than segment 0; decode the segments separately (LogFile.segments)"
+                )
 
     @property
     def records(self) -> np.ndarray:
@@ -158,7 +161,7 @@ class LogFile:
         self.check_uniform()
         for seg in self.segments:
             for start in range(0, len(seg.records), rows):
-                part = seg.records[start:start + rows]
+                part = seg.records[start : start + rows]
                 cols: dict[str, np.ndarray] = {}
                 if self.kind == "xrflog":
                     for name in ("seq", "cycle", "t_ns"):
@@ -171,12 +174,24 @@ class LogFile:
 
     def summary(self) -> dict[str, Any]:
         return {
-            "path": str(self.path), "kind": self.kind, "size": self.size, "records": len(self),
-            "segments": [{"offset": s.offset, "records": len(s.records), "lost": s.lost,
-                          "program": s.header.get("program"), "cycle_freq": s.header.get("cycle_freq")}
-                         for s in self.segments],
+            "path": str(self.path),
+            "kind": self.kind,
+            "size": self.size,
+            "records": len(self),
+            "segments": [
+                {
+                    "offset": s.offset,
+                    "records": len(s.records),
+                    "lost": s.lost,
+                    "program": s.header.get("program"),
+                    "cycle_freq": s.header.get("cycle_freq"),
+                }
+                for s in self.segments
+            ],
             "variables": [{"name": v.name, "column": v.field, "type": v.type_name} for v in self.variables],
-            "lost": self.lost, "skipped_bytes": self.skipped_bytes, "skipped": list(self.skipped),
+            "lost": self.lost,
+            "skipped_bytes": self.skipped_bytes,
+            "skipped": list(self.skipped),
         }
 
 
@@ -203,16 +218,19 @@ def _field_names(names: list[str], reserved: tuple[str, ...]) -> list[str]:
     return out
 
 
-def make_variables(path: Path, names: list[str], codes: list[int], offsets: list[int] | None,
-                   reserved: tuple[str, ...]) -> tuple[Variable, ...]:
+def make_variables(
+    path: Path, names: list[str], codes: list[int], offsets: list[int] | None, reserved: tuple[str, ...]
+) -> tuple[Variable, ...]:
     """Validate type codes and build the variables (packed offsets when none are given)."""
     fields = _field_names(names, reserved)
     out, pos = [], 0
     for i, (name, code) in enumerate(zip(names, codes)):
         vt = VAR_TYPES.get(code)
         if vt is None:
-            raise LogFormatError(f"{path}: variable {name!r} has unknown type code {code} "
-                                 f"(known: {', '.join(f'{c} {t.name}' for c, t in VAR_TYPES.items())})")
+            raise LogFormatError(
+                f"{path}: variable {name!r} has unknown type code {code} "
+                f"(known: {', '.join(f'{c} {t.name}' for c, t in VAR_TYPES.items())})"
+            )
         off = offsets[i] if offsets is not None else pos
         out.append(Variable(name, fields[i], code, vt.dtype, off))
         pos = off + vt.dtype.itemsize
@@ -264,15 +282,17 @@ def _parse_segment_header(path: Path, m: _Mapped, pos: int) -> tuple[dict[str, A
     if jlen == 0 or jlen > MAX_HEADER_BYTES or pos + PREFIX_SIZE + jlen > m.size:
         raise _Damaged(f"implausible JSON header length {jlen}")
     try:
-        header = json.loads(bytes(m.buf[pos + PREFIX_SIZE:pos + PREFIX_SIZE + jlen]).decode("utf-8"))
+        header = json.loads(bytes(m.buf[pos + PREFIX_SIZE : pos + PREFIX_SIZE + jlen]).decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise _Damaged(f"JSON header does not parse ({exc})") from None
     if not isinstance(header, dict) or header.get("format") != "xrflog":
         raise _Damaged("header is not an xrflog header")
     # From here on the header is readable: what we do not understand is an error, not damage.
     if header.get("version") != FORMAT_VERSION:
-        raise LogFormatError(f"{path}: segment at offset {pos} has xrflog version {header.get('version')!r}; "
-                             f"this reader knows version {FORMAT_VERSION}")
+        raise LogFormatError(
+            f"{path}: segment at offset {pos} has xrflog version {header.get('version')!r}; "
+            f"this reader knows version {FORMAT_VERSION}"
+        )
     try:
         spec = header["variables"]
         names = [str(v["name"]) for v in spec]
@@ -281,12 +301,13 @@ def _parse_segment_header(path: Path, m: _Mapped, pos: int) -> tuple[dict[str, A
         record_size = int(header["record_size"])
     except (KeyError, TypeError, ValueError) as exc:
         raise LogFormatError(f"{path}: segment at offset {pos}: header lacks variables/record_size ({exc})") from None
-    variables = make_variables(path, names, codes, offsets,
-                               tuple(n for n, _ in RECORD_HEADER) + (SECONDS_COLUMN,))
+    variables = make_variables(path, names, codes, offsets, tuple(n for n, _ in RECORD_HEADER) + (SECONDS_COLUMN,))
     end = max((v.offset + v.dtype.itemsize for v in variables), default=0)
     if end > record_size or RECORD_HEADER_SIZE + record_size > stride:
-        raise LogFormatError(f"{path}: segment at offset {pos}: variables need {end} bytes, record_size is "
-                             f"{record_size}, stride {stride}: inconsistent header")
+        raise LogFormatError(
+            f"{path}: segment at offset {pos}: variables need {end} bytes, record_size is "
+            f"{record_size}, stride {stride}: inconsistent header"
+        )
     data = pos + (PREFIX_SIZE + jlen + ALIGN - 1) // ALIGN * ALIGN  # counted from the segment's start
     return header, variables, stride, data
 
@@ -304,8 +325,14 @@ class _SegmentScanner:
 
     def __init__(self, m: _Mapped, stride: int, dtype: np.dtype) -> None:
         self.m, self.stride, self.dtype = m, stride, dtype
-        self.hdr_dtype = np.dtype({"names": ["seq", "cycle", "t_ns"], "formats": ["<u8", "<u8", "<i8"],
-                                   "offsets": [0, 8, 16], "itemsize": stride})
+        self.hdr_dtype = np.dtype(
+            {
+                "names": ["seq", "cycle", "t_ns"],
+                "formats": ["<u8", "<u8", "<i8"],
+                "offsets": [0, 8, 16],
+                "itemsize": stride,
+            }
+        )
 
     def _headers(self, pos: int, n: int) -> np.ndarray:
         return np.ndarray((n,), dtype=self.hdr_dtype, buffer=self.m.buf, offset=pos)
@@ -330,9 +357,14 @@ class _SegmentScanner:
             room = (np.arange(count) + a + 2 * S) <= end
             k = int(room.sum())  # offsets with room form a prefix
             if k:
-                nxt = _chain_ok(seq[:k], cyc[:k], t[:k],
-                                self.m.u64_at_each_byte(a + S, k), self.m.u64_at_each_byte(a + S + 8, k),
-                                self.m.i64_at_each_byte(a + S + 16, k))
+                nxt = _chain_ok(
+                    seq[:k],
+                    cyc[:k],
+                    t[:k],
+                    self.m.u64_at_each_byte(a + S, k),
+                    self.m.u64_at_each_byte(a + S + 8, k),
+                    self.m.i64_at_each_byte(a + S + 16, k),
+                )
                 ok[:k] &= nxt
             if last is None:
                 ok[k:] = False
@@ -359,7 +391,9 @@ class _SegmentScanner:
             seq, cyc, t = h["seq"], h["cycle"], h["t_ns"]
             chain = _chain_ok(seq[:-1], cyc[:-1], t[:-1], seq[1:], cyc[1:], t[1:])
             if last is not None:
-                first_ok = bool(_chain_ok(np.uint64(last[0]), np.uint64(last[1]), np.int64(last[2]), seq[0], cyc[0], t[0]))
+                first_ok = bool(
+                    _chain_ok(np.uint64(last[0]), np.uint64(last[1]), np.int64(last[2]), seq[0], cyc[0], t[0])
+                )
             else:
                 first_ok = n == 1 or bool(chain[0])
             if not first_ok:
@@ -425,7 +459,7 @@ def open_log(path: str | Path) -> LogFile:
 
     path = Path(path)
     m = _Mapped(path)
-    if m.size >= len(MAGIC) and bytes(m.buf[:len(MAGIC)]) == MAGIC:
+    if m.size >= len(MAGIC) and bytes(m.buf[: len(MAGIC)]) == MAGIC:
         log = LogFile(path, "xrflog", size=m.size)
         _read_xrflog(path, m, log)
         return log
@@ -436,5 +470,7 @@ def open_log(path: str | Path) -> LogFile:
         log = LogFile(path, "xrflog", size=m.size)
         _read_xrflog(path, m, log)
         return log
-    raise LogFormatError(f"{path}: neither an xrflog file (no {MAGIC!r} magic) nor an XRF2 .bin file "
-                         f"(two text header lines: names, type codes)")
+    raise LogFormatError(
+        f"{path}: neither an xrflog file (no {MAGIC!r} magic) nor an XRF2 .bin file "
+        f"(two text header lines: names, type codes)"
+    )

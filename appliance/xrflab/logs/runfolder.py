@@ -28,7 +28,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 DIR_MODE = 0o770
-FILE_MODE_MASK = 0o660   # never world-readable, whatever mode the loop asks for
+FILE_MODE_MASK = 0o660  # never world-readable, whatever mode the loop asks for
 
 
 class RunPathError(ValueError):
@@ -44,7 +44,7 @@ def confine(run_dir: str | Path, path: str) -> str:
     if os.path.isabs(path):
         for root in {os.path.abspath(run_dir), os.path.realpath(run_dir)}:
             if path == root or path.startswith(root.rstrip("/") + "/"):
-                path = path[len(root):]
+                path = path[len(root) :]
                 break
     parts = [p for p in path.split("/") if p not in ("", ".")]
     if ".." in parts:
@@ -68,8 +68,9 @@ def _open_dir(dir_fd: int, name: str, create: bool) -> int:
     return os.open(name, flags, dir_fd=dir_fd)
 
 
-def open_in(run_dir: str | Path, rel: str, flags: int = os.O_RDONLY, mode: int = 0o640,
-            create_dirs: bool = False) -> int:
+def open_in(
+    run_dir: str | Path, rel: str, flags: int = os.O_RDONLY, mode: int = 0o640, create_dirs: bool = False
+) -> int:
     """Open `rel` (a `confine`d name) under `run_dir` without following a symlink anywhere below
     the run folder; a regular file with one link only. `flags` e.g. ``os.O_WRONLY | os.O_CREAT |
     os.O_APPEND``; `create_dirs` makes missing folders on the way. Returns the fd (close-on-exec)."""
@@ -83,20 +84,23 @@ def open_in(run_dir: str | Path, rel: str, flags: int = os.O_RDONLY, mode: int =
             os.close(fd)
             fd = nxt
         # O_NONBLOCK: a FIFO the loop put there must not hang the writer in open().
-        f = os.open(parts[-1], flags | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK,
-                    mode & FILE_MODE_MASK, dir_fd=fd)
+        f = os.open(parts[-1], flags | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK, mode & FILE_MODE_MASK, dir_fd=fd)
     except OSError as exc:
         if exc.errno in (errno.ELOOP, errno.ENOTDIR):
-            raise OSError(exc.errno, f"{exc.strerror} (a symlink on the way? links in a run folder "
-                                     "are never followed)") from None
+            raise OSError(
+                exc.errno, f"{exc.strerror} (a symlink on the way? links in a run folder are never followed)"
+            ) from None
         raise
     finally:
         os.close(fd)
     st = os.fstat(f)
     if not stat.S_ISREG(st.st_mode) or st.st_nlink != 1:
         os.close(f)
-        raise OSError(errno.EPERM, f"{rel} is not a plain file of the run "
-                                   f"({'a link to another file' if stat.S_ISREG(st.st_mode) else 'not a regular file'})")
+        raise OSError(
+            errno.EPERM,
+            f"{rel} is not a plain file of the run "
+            f"({'a link to another file' if stat.S_ISREG(st.st_mode) else 'not a regular file'})",
+        )
     os.set_blocking(f, True)
     return f
 

@@ -33,12 +33,12 @@ def _split(line: bytes) -> list[str]:
 def try_read(path: Path, buf: Any, size: int) -> LogFile | None:
     """Decode `buf` as an XRF2 file, or None when it does not start like one. A file whose
     header looks like XRF2's but names an unknown type code raises LogFormatError."""
-    head = bytes(buf[:min(size, MAX_HEADER_SCAN)])
+    head = bytes(buf[: min(size, MAX_HEADER_SCAN)])
     first = head.find(b"\n")
     second = head.find(b"\n", first + 1) if first >= 0 else -1
     if first <= 0 or second < 0:
         return None
-    names_line, codes_line = head[:first], head[first + 1:second]
+    names_line, codes_line = head[:first], head[first + 1 : second]
     if not _CODES_LINE.match(codes_line) or b"\0" in names_line:
         return None
     names, code_text = _split(names_line), _split(codes_line)
@@ -52,8 +52,11 @@ def try_read(path: Path, buf: Any, size: int) -> LogFile | None:
     n = (size - data) // stride
     dtype = record_dtype(variables, stride, header=False)
     records = np.ndarray((n,), dtype=dtype, buffer=buf, offset=data) if n else np.empty(0, dtype=dtype)
-    header = {"format": "xrf2", "variables": [{"name": v.name, "type": v.code, "offset": v.offset} for v in variables],
-              "record_size": stride}
+    header = {
+        "format": "xrf2",
+        "variables": [{"name": v.name, "type": v.code, "offset": v.offset} for v in variables],
+        "record_size": stride,
+    }
     log = LogFile(path, "xrf2", size=size)
     log.segments.append(Segment(0, 0, header, variables, records, kind="xrf2"))
     rest = size - data - n * stride

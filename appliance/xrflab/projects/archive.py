@@ -29,9 +29,10 @@ import stat
 import tarfile
 import zipfile
 import zlib
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
-from typing import BinaryIO, Callable, Iterator
+from typing import BinaryIO
 
 CHUNK = 1 << 16
 # Folders a project never needs from the student's machine; skipped when unpacking (still counted).
@@ -40,14 +41,14 @@ SKIPPED_DIRS = {"build", "install", "log", ".git", "__pycache__", ".vscode", ".i
 
 @dataclass(frozen=True)
 class Limits:
-    max_upload: int = 64 << 20          # bytes of the archive itself
-    max_total: int = 256 << 20          # bytes of all files, uncompressed
-    max_files: int = 5000               # entries (files and folders)
-    max_file: int = 64 << 20            # bytes of one file, uncompressed
-    max_ratio: float = 200.0            # uncompressed / compressed, for anything over ratio_floor
-    ratio_floor: int = 4 << 20          # smaller than this, any ratio is fine (a file of spaces)
-    max_name: int = 255                 # bytes of one path component
-    max_path: int = 1024                # bytes of a whole path
+    max_upload: int = 64 << 20  # bytes of the archive itself
+    max_total: int = 256 << 20  # bytes of all files, uncompressed
+    max_files: int = 5000  # entries (files and folders)
+    max_file: int = 64 << 20  # bytes of one file, uncompressed
+    max_ratio: float = 200.0  # uncompressed / compressed, for anything over ratio_floor
+    ratio_floor: int = 4 << 20  # smaller than this, any ratio is fine (a file of spaces)
+    max_name: int = 255  # bytes of one path component
+    max_path: int = 1024  # bytes of a whole path
     max_depth: int = 32
 
 
@@ -62,8 +63,8 @@ class ArchiveRejected(Exception):
 
 @dataclass
 class Entry:
-    name: str                 # normalised relative POSIX path, top-level folder stripped later
-    kind: str                 # file | dir
+    name: str  # normalised relative POSIX path, top-level folder stripped later
+    kind: str  # file | dir
     size: int = 0
 
 
@@ -73,7 +74,7 @@ class Manifest:
     files: list[str] = field(default_factory=list)
     dirs: list[str] = field(default_factory=list)
     total: int = 0
-    prefix: str = ""          # the single top-level folder stripped from every name, if any
+    prefix: str = ""  # the single top-level folder stripped from every name, if any
     skipped: list[str] = field(default_factory=list)
 
 
@@ -83,28 +84,33 @@ def _mb(n: float) -> str:
 
 # ---- names --------------------------------------------------------------------------------------
 
+
 def check_name(raw: str | bytes, limits: Limits, is_dir: bool = False) -> str:
     """A safe relative POSIX path from an archive name, or ArchiveRejected naming it."""
     if isinstance(raw, bytes):
         try:
             name = raw.decode("utf-8")
         except UnicodeDecodeError:
-            raise ArchiveRejected("the name is not valid UTF-8; rename the file (plain letters, "
-                                  "digits, - _ .)", raw.decode("utf-8", "replace")) from None
+            raise ArchiveRejected(
+                "the name is not valid UTF-8; rename the file (plain letters, digits, - _ .)",
+                raw.decode("utf-8", "replace"),
+            ) from None
     else:
         name = raw
         try:
             name.encode("utf-8")
         except UnicodeEncodeError:  # surrogateescape'd bytes from a tar header
             shown = name.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
-            raise ArchiveRejected("the name is not valid UTF-8; rename the file (plain letters, "
-                                  "digits, - _ .)", shown) from None
+            raise ArchiveRejected(
+                "the name is not valid UTF-8; rename the file (plain letters, digits, - _ .)", shown
+            ) from None
     shown = name
     if "\x00" in name or any(ord(c) < 32 or ord(c) == 127 for c in name):
         raise ArchiveRejected("the name contains control characters", repr(shown))
     if name.startswith("/") or name.startswith("\\") or (len(name) > 1 and name[1] == ":"):
-        raise ArchiveRejected("absolute paths are not accepted: pack the project folder's "
-                              "contents with relative names", shown)
+        raise ArchiveRejected(
+            "absolute paths are not accepted: pack the project folder's contents with relative names", shown
+        )
     if "\\" in name:
         raise ArchiveRejected("backslashes are not accepted in names", shown)
     parts = [p for p in name.split("/") if p not in ("", ".")]
@@ -122,6 +128,7 @@ def check_name(raw: str | bytes, limits: Limits, is_dir: bool = False) -> str:
 
 
 # ---- reading archives as a stream of (entry, data chunks) ---------------------------------------
+
 
 class _CountingReader(io.RawIOBase):
     """Counts the compressed bytes consumed, for the ratio check, and caps the archive's size."""
@@ -151,15 +158,15 @@ def detect_format(path: Path) -> str:
         return "zip"
     if len(head) >= 262 and head[257:262] == b"ustar":
         return "tar"
-    raise ArchiveRejected("not a zip, tar or tar.gz archive (pack the folder with "
-                          "`xrf upload`, or as .zip / .tar.gz)")
+    raise ArchiveRejected("not a zip, tar or tar.gz archive (pack the folder with `xrf upload`, or as .zip / .tar.gz)")
 
 
 Chunks = Iterator[bytes]
 
 
-def _tar_entries(path: Path, limits: Limits, fmt: str,
-                 ratio: Callable[[], tuple[int, int]] | None = None) -> Iterator[tuple[Entry, Chunks | None]]:
+def _tar_entries(
+    path: Path, limits: Limits, fmt: str, ratio: Callable[[], tuple[int, int]] | None = None
+) -> Iterator[tuple[Entry, Chunks | None]]:
     raw_file = open(path, "rb")
     counting = _CountingReader(raw_file, limits.max_upload)
     buffered = io.BufferedReader(counting, CHUNK)
@@ -180,8 +187,11 @@ def _tar_entries(path: Path, limits: Limits, fmt: str,
                     raise ArchiveRejected(f"the archive is damaged or truncated ({exc})") from None
                 shown = m.name.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
                 if m.issym() or m.islnk():
-                    raise ArchiveRejected(f"links are not accepted (this one points to {m.linkname!r}); "
-                                          "put the file itself in the project", shown)
+                    raise ArchiveRejected(
+                        f"links are not accepted (this one points to {m.linkname!r}); "
+                        "put the file itself in the project",
+                        shown,
+                    )
                 if m.ischr() or m.isblk():
                     raise ArchiveRejected("device files are not accepted", shown)
                 if m.isfifo():
@@ -193,7 +203,9 @@ def _tar_entries(path: Path, limits: Limits, fmt: str,
                     yield Entry(name, "dir"), None
                     continue
                 if m.size > limits.max_file:
-                    raise ArchiveRejected(f"the file is {_mb(m.size)}; one file may be at most {_mb(limits.max_file)}", shown)
+                    raise ArchiveRejected(
+                        f"the file is {_mb(m.size)}; one file may be at most {_mb(limits.max_file)}", shown
+                    )
                 fobj = tf.extractfile(m)
                 assert fobj is not None
 
@@ -219,16 +231,22 @@ def _tar_entries(path: Path, limits: Limits, fmt: str,
 
 def _ratio_check(out: int, inp: int, limits: Limits, shown: str) -> None:
     if out > limits.ratio_floor and inp and out / inp > limits.max_ratio:
-        raise ArchiveRejected(f"decompresses more than {limits.max_ratio:.0f} times its size "
-                              f"({_mb(out)} from {_mb(inp)}): a zip bomb is refused", shown)
+        raise ArchiveRejected(
+            f"decompresses more than {limits.max_ratio:.0f} times its size "
+            f"({_mb(out)} from {_mb(inp)}): a zip bomb is refused",
+            shown,
+        )
 
 
 def _total_ratio_check(total: int, archive_size: int, limits: Limits, shown: str) -> None:
     """The whole archive's ratio: many entries each small enough to pass on its own (under
     ``ratio_floor``) still add up to a bomb."""
     if total > limits.ratio_floor and total / max(archive_size, 1) > limits.max_ratio:
-        raise ArchiveRejected(f"the archive decompresses more than {limits.max_ratio:.0f} times its size "
-                              f"({_mb(total)} from {_mb(archive_size)}): a zip bomb is refused", shown)
+        raise ArchiveRejected(
+            f"the archive decompresses more than {limits.max_ratio:.0f} times its size "
+            f"({_mb(total)} from {_mb(archive_size)}): a zip bomb is refused",
+            shown,
+        )
 
 
 def _zip_entries(path: Path, limits: Limits) -> Iterator[tuple[Entry, Chunks | None]]:
@@ -242,8 +260,10 @@ def _zip_entries(path: Path, limits: Limits) -> Iterator[tuple[Entry, Chunks | N
     with zf:
         infos = zf.infolist()
         if len(infos) > limits.max_files:
-            raise ArchiveRejected(f"the archive has {len(infos)} entries; at most {limits.max_files} "
-                                  "files and folders are accepted", infos[limits.max_files].filename)
+            raise ArchiveRejected(
+                f"the archive has {len(infos)} entries; at most {limits.max_files} files and folders are accepted",
+                infos[limits.max_files].filename,
+            )
         declared = 0
         for info in infos:
             raw = info.filename
@@ -272,7 +292,9 @@ def _zip_entries(path: Path, limits: Limits) -> Iterator[tuple[Entry, Chunks | N
                 yield Entry(name, "dir"), None
                 continue
             if info.file_size > limits.max_file:
-                raise ArchiveRejected(f"the file is {_mb(info.file_size)}; one file may be at most {_mb(limits.max_file)}", shown)
+                raise ArchiveRejected(
+                    f"the file is {_mb(info.file_size)}; one file may be at most {_mb(limits.max_file)}", shown
+                )
             declared += info.file_size
             if declared > limits.max_total:
                 raise ArchiveRejected(f"the files add up to more than {_mb(limits.max_total)}", shown)
@@ -310,6 +332,7 @@ def entries(path: Path, limits: Limits) -> tuple[str, Iterator[tuple[Entry, Chun
 
 # ---- the check ----------------------------------------------------------------------------------
 
+
 def _walk_checked(path: Path, limits: Limits, sink: Callable[[Entry, Chunks | None], None]) -> Manifest:
     archive_size = path.stat().st_size
     fmt, it = entries(path, limits)
@@ -320,8 +343,11 @@ def _walk_checked(path: Path, limits: Limits, sink: Callable[[Entry, Chunks | No
     for entry, chunks in it:
         count += 1
         if count > limits.max_files:
-            raise ArchiveRejected(f"more than {limits.max_files} files and folders; a project needs far "
-                                  "fewer (did a build folder or a dataset get packed?)", entry.name)
+            raise ArchiveRejected(
+                f"more than {limits.max_files} files and folders; a project needs far "
+                "fewer (did a build folder or a dataset get packed?)",
+                entry.name,
+            )
         prev = seen.get(entry.name)
         if prev is not None and not (prev == "dir" and entry.kind == "dir"):
             raise ArchiveRejected("the name appears twice in the archive", entry.name)
@@ -369,7 +395,7 @@ def _strip_prefix(names: list[str]) -> str:
 
 
 def _relative(name: str, prefix: str) -> str:
-    return name[len(prefix) + 1:] if prefix and name.startswith(prefix + "/") else ("" if name == prefix else name)
+    return name[len(prefix) + 1 :] if prefix and name.startswith(prefix + "/") else ("" if name == prefix else name)
 
 
 def check_stream(path: Path | str, limits: Limits = Limits()) -> Manifest:
@@ -410,9 +436,11 @@ def _check_project(dest: Path, manifest: Manifest) -> None:
         has = sorted({n.split("/", 1)[0] + ("/" if "/" in n else "") for n in files if n})[:12]
         missing = next((w for w in ("CMakeLists.txt", "msg/Ros2Xeno.msg", "Ros2Xeno.msg") if w in exc.message), "")
         raise ArchiveRejected(
-            "this is not a complete project: " + exc.message
+            "this is not a complete project: "
+            + exc.message
             + (". Top level has: " + ", ".join(has) if has else ". The archive holds no files"),
-            missing) from None
+            missing,
+        ) from None
 
 
 # ---- unpacking ----------------------------------------------------------------------------------

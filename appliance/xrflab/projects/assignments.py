@@ -86,10 +86,17 @@ class Assignments:
         tmp.mkdir(mode=0o755)
         try:
             manifest = archive.unpack(archive_path, tmp / "src", LIMITS)
-            info = {"id": aid, "name": str(meta.get("name", aid))[:64], "sha256": digest,
-                    "by": str(meta.get("by", ""))[:64], "t": float(meta.get("t") or time.time()),
-                    "template": str(meta.get("template", ""))[:64], "files": len(manifest.files),
-                    "bytes": manifest.total, "received": time.time()}
+            info = {
+                "id": aid,
+                "name": str(meta.get("name", aid))[:64],
+                "sha256": digest,
+                "by": str(meta.get("by", ""))[:64],
+                "t": float(meta.get("t") or time.time()),
+                "template": str(meta.get("template", ""))[:64],
+                "files": len(manifest.files),
+                "bytes": manifest.total,
+                "received": time.time(),
+            }
             (tmp / "assignment.json").write_text(json.dumps(info))
             final = self._folder(aid)
             old = None

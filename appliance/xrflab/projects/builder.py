@@ -46,15 +46,32 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
-from ..tied import popen_tied
 from ..guest import (
-    CLONE_NEWIPC, CLONE_NEWNET, CLONE_NEWNS, CLONE_NEWPID, CLONE_NEWUSER, MS_NODEV, MS_NOEXEC, MS_NOSUID,
-    MS_PRIVATE, MS_RDONLY, MS_REC, MS_REMOUNT, PR_SET_NO_NEW_PRIVS, PR_SET_PDEATHSIG, bind_fd, mount, prctl, unshare,
+    CLONE_NEWIPC,
+    CLONE_NEWNET,
+    CLONE_NEWNS,
+    CLONE_NEWPID,
+    CLONE_NEWUSER,
+    MS_NODEV,
+    MS_NOEXEC,
+    MS_NOSUID,
+    MS_PRIVATE,
+    MS_RDONLY,
+    MS_REC,
+    MS_REMOUNT,
+    PR_SET_NO_NEW_PRIVS,
+    PR_SET_PDEATHSIG,
+    bind_fd,
+    mount,
+    prctl,
+    unshare,
 )
+from ..tied import popen_tied
 from .store import BuildRow, ProjectRow, ProjectStore
 
 Publish = Callable[[str, dict[str, Any]], None]
@@ -74,17 +91,17 @@ BUILD_UMASK = 0o027
 @dataclass(frozen=True)
 class SandboxConfig:
     timeout_s: float = 300.0
-    memory_mb: int = 2048        # RLIMIT_AS of each process (cc1plus of a big file needs ~1 GB)
-    nproc: int = 256             # RLIMIT_NPROC of the build user
-    fsize_mb: int = 512          # RLIMIT_FSIZE: largest file a build may write
-    cpu_s: int = 900             # RLIMIT_CPU per process
+    memory_mb: int = 2048  # RLIMIT_AS of each process (cc1plus of a big file needs ~1 GB)
+    nproc: int = 256  # RLIMIT_NPROC of the build user
+    fsize_mb: int = 512  # RLIMIT_FSIZE: largest file a build may write
+    cpu_s: int = 900  # RLIMIT_CPU per process
     nofile: int = 1024
     user: str = "xrf-build"
-    rt_cpu: int | None = 1       # the loop's CPU; builds never run there
+    rt_cpu: int | None = 1  # the loop's CPU; builds never run there
     tmpfs_mb: int = 256
 
     @staticmethod
-    def from_settings(settings: Any) -> "SandboxConfig":
+    def from_settings(settings: Any) -> SandboxConfig:
         """Settings attributes ``build_*`` (when the appliance has them), then XRF_BUILD_* env."""
         base = SandboxConfig()
         values: dict[str, Any] = {}
@@ -105,6 +122,7 @@ class SandboxConfig:
 
 # ---- the sandbox (runs in the child, as root or as the appliance's user, then execs) -------------
 
+
 def _confine(config: dict[str, Any]) -> list[str]:
     """Private /tmp, /var/tmp, /run/lock and /dev/shm (empty tmpfs), the data folder (``hide``)
     covered too, then put back at the same paths only ``keep``: (path, read_only) — the project's
@@ -115,8 +133,11 @@ def _confine(config: dict[str, Any]) -> list[str]:
     hide = config.get("hide")
     covered = private + ([hide] if hide else [])
     # O_PATH fds first: once a folder is covered, what was below it cannot be named any more.
-    held = [(path, os.open(path, os.O_PATH | os.O_CLOEXEC), ro) for path, ro in config.get("keep", [])
-            if os.path.exists(path) and any(Path(path).is_relative_to(c) for c in covered)]
+    held = [
+        (path, os.open(path, os.O_PATH | os.O_CLOEXEC), ro)
+        for path, ro in config.get("keep", [])
+        if os.path.exists(path) and any(Path(path).is_relative_to(c) for c in covered)
+    ]
     for target in private:
         mount("tmpfs", target, "tmpfs", MS_NOSUID | MS_NODEV, f"size={config['tmpfs_mb']}m,mode=1777")
     # The folders made on the way must be passable by the build user, whatever the appliance's
@@ -206,8 +227,9 @@ def _relay(child: int) -> int:
     return 128 - code if code < 0 else code
 
 
-def _confined_exec(config: dict[str, Any], cmd: list[str], say: Callable[[str], None], root: bool,
-                   mount_ns: bool, pid_ns: bool) -> None:
+def _confined_exec(
+    config: dict[str, Any], cmd: list[str], say: Callable[[str], None], root: bool, mount_ns: bool, pid_ns: bool
+) -> None:
     import resource
 
     uid, gid = config["uid"], config["gid"]
@@ -270,8 +292,10 @@ def _confined_exec(config: dict[str, Any], cmd: list[str], say: Callable[[str], 
         os.setgid(gid)
         os.setuid(uid)
     os.umask(BUILD_UMASK)
-    say(f"user {pwd.getpwuid(os.getuid()).pw_name} (uid {os.getuid()}), memory {config['memory_mb']} MB/process, "
-        f"{config['nproc']} processes, files up to {config['fsize_mb']} MB, wall time {config['timeout_s']:.0f} s")
+    say(
+        f"user {pwd.getpwuid(os.getuid()).pw_name} (uid {os.getuid()}), memory {config['memory_mb']} MB/process, "
+        f"{config['nproc']} processes, files up to {config['fsize_mb']} MB, wall time {config['timeout_s']:.0f} s"
+    )
     sys.stdout.flush()
     os.execvpe(cmd[0], cmd, config["env"])
 
@@ -289,12 +313,23 @@ def _inner_main(src: str, build_dir: str) -> int:
         out.write_text(json.dumps({"ok": False, "error": exc.message}))
         print(f"error: {exc.message}", flush=True)
         return 1
-    out.write_text(json.dumps({"ok": True, "executable": str(r.executable), "layout": r.layout,
-                               "twenty_sim": r.twenty_sim, "taken": r.taken, "left_out": r.left_out}))
+    out.write_text(
+        json.dumps(
+            {
+                "ok": True,
+                "executable": str(r.executable),
+                "layout": r.layout,
+                "twenty_sim": r.twenty_sim,
+                "taken": r.taken,
+                "left_out": r.left_out,
+            }
+        )
+    )
     return 0
 
 
 # ---- the appliance side -------------------------------------------------------------------------
+
 
 def ensure_build_user(name: str) -> tuple[int, int, str]:
     """(uid, gid, note). As root: the dedicated user, created if missing. Else: ourselves."""
@@ -304,11 +339,25 @@ def ensure_build_user(name: str) -> tuple[int, int, str]:
         pw = pwd.getpwnam(name)
     except KeyError:
         nologin = "/usr/sbin/nologin" if os.path.exists("/usr/sbin/nologin") else "/bin/false"
-        r = subprocess.run(["useradd", "--system", "--user-group", "--no-create-home", "--home-dir", "/nonexistent",
-                            "--shell", nologin, "--comment", "XRF Lab student builds", name],
-                           capture_output=True, text=True)
+        r = subprocess.run(
+            [
+                "useradd",
+                "--system",
+                "--user-group",
+                "--no-create-home",
+                "--home-dir",
+                "/nonexistent",
+                "--shell",
+                nologin,
+                "--comment",
+                "XRF Lab student builds",
+                name,
+            ],
+            capture_output=True,
+            text=True,
+        )
         if r.returncode != 0 and "already exists" not in r.stderr:
-            raise RuntimeError(f"cannot create the build user {name}: {r.stderr.strip()}")
+            raise RuntimeError(f"cannot create the build user {name}: {r.stderr.strip()}") from None
         pw = pwd.getpwnam(name)
     if pw.pw_uid == 0:
         raise RuntimeError(f"build user {name} is root")
@@ -384,8 +433,12 @@ def source_hash(src: Path) -> str:
 
 # ---- diagnostics --------------------------------------------------------------------------------
 
-_DIAG_RE = re.compile(r"^(?P<file>[^\s:][^:]*?):(?P<line>\d+):(?:(?P<col>\d+):)?\s*(?P<kind>fatal error|error|warning|note):\s*(?P<msg>.*)$")
-_CMAKE_RE = re.compile(r"^CMake (?P<kind>Error|Warning)(?: \(dev\))? at (?P<file>[^:]+):(?P<line>\d+)(?: \((?P<cmd>[^)]*)\))?:")
+_DIAG_RE = re.compile(
+    r"^(?P<file>[^\s:][^:]*?):(?P<line>\d+):(?:(?P<col>\d+):)?\s*(?P<kind>fatal error|error|warning|note):\s*(?P<msg>.*)$"
+)
+_CMAKE_RE = re.compile(
+    r"^CMake (?P<kind>Error|Warning)(?: \(dev\))? at (?P<file>[^:]+):(?P<line>\d+)(?: \((?P<cmd>[^)]*)\))?:"
+)
 _MSG_RE = re.compile(r"^(?:.*?error: )?(?P<file>[^\s:]+\.msg):(?P<line>\d+):\s*(?P<msg>.*)$")
 _LINK_RE = re.compile(r"(undefined reference to [`'].*?'|multiple definition of [`'].*?'|cannot find -l\S+)")
 
@@ -399,9 +452,9 @@ def parse_diagnostics(lines: list[str], src: Path, build_dir: Path) -> list[dict
     def rel(path: str) -> tuple[str, bool]:
         p = path.strip()
         if p.startswith(src_s + "/"):
-            return p[len(src_s) + 1:], True
+            return p[len(src_s) + 1 :], True
         if p.startswith(build_s + "/"):
-            return "(build) " + p[len(build_s) + 1:], False
+            return "(build) " + p[len(build_s) + 1 :], False
         if not os.path.isabs(p) and not p.startswith(".."):
             return p, (src / p).is_file()
         return p, False
@@ -412,20 +465,48 @@ def parse_diagnostics(lines: list[str], src: Path, build_dir: Path) -> list[dict
         if m and not line.startswith("$ "):
             f, inside = rel(m.group("file"))
             kind = "error" if m.group("kind") == "fatal error" else m.group("kind")
-            d = {"file": f, "line": int(m.group("line")), "col": int(m.group("col")) if m.group("col") else None,
-                 "kind": kind, "message": m.group("msg"), "in_project": inside, "source": "compiler"}
-        elif (m := _CMAKE_RE.match(line)):
+            d = {
+                "file": f,
+                "line": int(m.group("line")),
+                "col": int(m.group("col")) if m.group("col") else None,
+                "kind": kind,
+                "message": m.group("msg"),
+                "in_project": inside,
+                "source": "compiler",
+            }
+        elif m := _CMAKE_RE.match(line):
             f, inside = rel(m.group("file"))
-            msg = next((x.strip() for x in lines[i + 1:i + 6] if x.strip()), "")
-            d = {"file": f, "line": int(m.group("line")), "col": None, "kind": m.group("kind").lower(),
-                 "message": msg, "in_project": inside, "source": "cmake"}
+            msg = next((x.strip() for x in lines[i + 1 : i + 6] if x.strip()), "")
+            d = {
+                "file": f,
+                "line": int(m.group("line")),
+                "col": None,
+                "kind": m.group("kind").lower(),
+                "message": msg,
+                "in_project": inside,
+                "source": "cmake",
+            }
         elif (m := _MSG_RE.match(line)) and ".msg:" in line:
             f, inside = rel(m.group("file"))
-            d = {"file": f, "line": int(m.group("line")), "col": None, "kind": "error", "message": m.group("msg"),
-                 "in_project": inside, "source": "msg"}
-        elif (m := _LINK_RE.search(line)):
-            d = {"file": "", "line": None, "col": None, "kind": "error", "message": "link error: " + m.group(1),
-                 "in_project": False, "source": "linker"}
+            d = {
+                "file": f,
+                "line": int(m.group("line")),
+                "col": None,
+                "kind": "error",
+                "message": m.group("msg"),
+                "in_project": inside,
+                "source": "msg",
+            }
+        elif m := _LINK_RE.search(line):
+            d = {
+                "file": "",
+                "line": None,
+                "col": None,
+                "kind": "error",
+                "message": "link error: " + m.group(1),
+                "in_project": False,
+                "source": "linker",
+            }
             pre = line.split(":(", 1)[0]
             if pre.endswith((".cpp", ".c", ".cc", ".o")) or ":(" in line:
                 d["context"] = pre
@@ -439,21 +520,39 @@ def parse_diagnostics(lines: list[str], src: Path, build_dir: Path) -> list[dict
 
 
 _HINTS = [
-    (re.compile(r"MemoryError|std::bad_alloc|virtual memory exhausted|Cannot allocate memory|out of memory", re.I),
-     "the build ran out of memory (limit {memory_mb} MB per process)"),
-    (re.compile(r"Resource temporarily unavailable|fork: retry|Cannot fork|can't fork|fork failed", re.I),
-     "the build started too many processes (limit {nproc})"),
-    (re.compile(r"Could not resolve host|Couldn't resolve|Network is unreachable|Name or service not known|"
-                r"Temporary failure in name resolution|file DOWNLOAD|Couldn't connect", re.I),
-     "builds have no network: everything the project needs must be in the project folder"),
+    (
+        re.compile(r"MemoryError|std::bad_alloc|virtual memory exhausted|Cannot allocate memory|out of memory", re.I),
+        "the build ran out of memory (limit {memory_mb} MB per process)",
+    ),
+    (
+        re.compile(r"Resource temporarily unavailable|fork: retry|Cannot fork|can't fork|fork failed", re.I),
+        "the build started too many processes (limit {nproc})",
+    ),
+    (
+        re.compile(
+            r"Could not resolve host|Couldn't resolve|Network is unreachable|Name or service not known|"
+            r"Temporary failure in name resolution|file DOWNLOAD|Couldn't connect",
+            re.I,
+        ),
+        "builds have no network: everything the project needs must be in the project folder",
+    ),
     (re.compile(r"File size limit exceeded", re.I), "the build wrote a file over {fsize_mb} MB"),
-    (re.compile(r"(Permission denied|Read-only file system)", re.I),
-     "a build may only write inside its own build folder"),
+    (
+        re.compile(r"(Permission denied|Read-only file system)", re.I),
+        "a build may only write inside its own build folder",
+    ),
 ]
 
 
-def summarise(ok: bool, lines: list[str], diags: list[dict[str, Any]], cfg: SandboxConfig, timed_out: bool,
-              error: str, duration: float) -> str:
+def summarise(
+    ok: bool,
+    lines: list[str],
+    diags: list[dict[str, Any]],
+    cfg: SandboxConfig,
+    timed_out: bool,
+    error: str,
+    duration: float,
+) -> str:
     if ok:
         return f"built in {duration:.1f} s"
     hint = ""
@@ -463,8 +562,10 @@ def summarise(ok: bool, lines: list[str], diags: list[dict[str, Any]], cfg: Sand
             hint = msg.format(**asdict(cfg))
             break
     if timed_out:
-        return (f"the build took longer than {cfg.timeout_s:.0f} s and was stopped (is something in the build "
-                "waiting or looping?)" + (f" — {hint}" if hint else ""))
+        return (
+            f"the build took longer than {cfg.timeout_s:.0f} s and was stopped (is something in the build "
+            "waiting or looping?)" + (f" — {hint}" if hint else "")
+        )
     first = next((d for d in diags if d["kind"] == "error"), None)
     if first and first["source"] == "linker":
         head = first["message"] + (f" (in {first['context']})" if first.get("context") else "")
@@ -477,6 +578,7 @@ def summarise(ok: bool, lines: list[str], diags: list[dict[str, Any]], cfg: Sand
 
 
 # ---- the queue ----------------------------------------------------------------------------------
+
 
 @dataclass
 class _Job:
@@ -495,7 +597,7 @@ class Builder:
     hide_dir: Path | None = None
 
     def __post_init__(self) -> None:
-        self._queue: "queue.Queue[_Job | None]" = queue.Queue()
+        self._queue: queue.Queue[_Job | None] = queue.Queue()
         self._pending: list[int] = []
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
@@ -561,8 +663,9 @@ class Builder:
             try:
                 row = self._build(job)
             except Exception as exc:  # anything unexpected still ends the build visibly
-                row = self.store.update_build(job.build.id, status="failed", ended=time.time(),
-                                              result=f"internal error: {exc!r}")
+                row = self.store.update_build(
+                    job.build.id, status="failed", ended=time.time(), result=f"internal error: {exc!r}"
+                )
                 self._announce(row, "failed")
             finally:
                 with self._lock:
@@ -572,8 +675,17 @@ class Builder:
                     cb(row)
 
     def _announce(self, row: BuildRow, status: str, **extra: Any) -> None:
-        self.publish("build", {"build_id": row.id, "project_id": row.project_id, "owner": row.owner,
-                               "status": status, "result": row.result, **extra})
+        self.publish(
+            "build",
+            {
+                "build_id": row.id,
+                "project_id": row.project_id,
+                "owner": row.owner,
+                "status": status,
+                "result": row.result,
+                **extra,
+            },
+        )
 
     def _build(self, job: _Job) -> BuildRow:
         from .. import build
@@ -604,8 +716,15 @@ class Builder:
                         logf.write("… log truncated\n")
                 if streamed < STREAM_MAX_LINES:
                     streamed += 1
-                    self.publish("build", {"build_id": row.id, "project_id": row.project_id, "owner": row.owner,
-                                           "line": line if streamed < STREAM_MAX_LINES else "… (more in the build log)"})
+                    self.publish(
+                        "build",
+                        {
+                            "build_id": row.id,
+                            "project_id": row.project_id,
+                            "owner": row.owner,
+                            "line": line if streamed < STREAM_MAX_LINES else "… (more in the build log)",
+                        },
+                    )
 
             error = ""
             timed_out = False
@@ -648,8 +767,14 @@ class Builder:
                     details["cycle_freq"] = freq
             result_text = summarise(ok, lines, diags, cfg, timed_out, error, duration)
             log(("OK: " if ok else "FAILED: ") + result_text)
-        row = self.store.update_build(row.id, status="ok" if ok else "failed", ended=time.time(), duration=duration,
-                                      result=result_text, details=details)
+        row = self.store.update_build(
+            row.id,
+            status="ok" if ok else "failed",
+            ended=time.time(),
+            duration=duration,
+            result=result_text,
+            details=details,
+        )
         self._announce(row, row.status, duration=duration)
         return row
 
@@ -657,8 +782,10 @@ class Builder:
         from . import source, twentysim
 
         located = source.locate(src)
-        return {"twenty_sim_tokens": twentysim.describe(located.project if located else src),
-                "messages": source.message_fields(src, located)}
+        return {
+            "twenty_sim_tokens": twentysim.describe(located.project if located else src),
+            "messages": source.message_fields(src, located),
+        }
 
     def _ensure_user(self) -> tuple[int, int, str]:
         if self._user is None:
@@ -676,7 +803,7 @@ class Builder:
             tmp = mirror / "rt_core" / f".{prefix.name}.{os.getpid()}.tmp"
             shutil.rmtree(tmp, ignore_errors=True)
             shutil.copytree(prefix, tmp, symlinks=True)
-            for dirpath, dirnames, filenames in os.walk(tmp):
+            for dirpath, _dirnames, filenames in os.walk(tmp):
                 os.chmod(dirpath, 0o755)
                 for f in filenames:
                     fp = os.path.join(dirpath, f)
@@ -699,13 +826,19 @@ class Builder:
         base = (self.hide_dir or self.projects_root).resolve()
         for parent in [*reversed(path.parents)]:
             st = parent.stat()
-            if st.st_mode & 0o001 or (st.st_uid == uid and st.st_mode & 0o100) or (st.st_gid == gid and st.st_mode & 0o010):
+            if (
+                st.st_mode & 0o001
+                or (st.st_uid == uid and st.st_mode & 0o100)
+                or (st.st_gid == gid and st.st_mode & 0o010)
+            ):
                 continue
             if parent.resolve().is_relative_to(base) and st.st_uid == os.getuid():
                 os.chmod(parent, stat.S_IMODE(st.st_mode) | 0o001)
                 continue
-            raise RuntimeError(f"the build user cannot reach {parent} (no search permission): put the appliance's "
-                               "data folder where other users may pass (chmod o+x)")
+            raise RuntimeError(
+                f"the build user cannot reach {parent} (no search permission): put the appliance's "
+                "data folder where other users may pass (chmod o+x)"
+            )
 
     def _share_source(self, src: Path, uid: int, gid: int) -> None:
         """The build user reads the project's source through its group (read-only; the source is
@@ -736,8 +869,9 @@ class Builder:
                 return cand
         raise RuntimeError("no Python the build user may run (the appliance's is private): install python3")
 
-    def _run_sandboxed(self, src: Path, build_dir: Path, cache_dir: Path | None, uid: int, gid: int,
-                       log: Callable[[str], None]) -> tuple[bool, int]:
+    def _run_sandboxed(
+        self, src: Path, build_dir: Path, cache_dir: Path | None, uid: int, gid: int, log: Callable[[str], None]
+    ) -> tuple[bool, int]:
         cfg = self.config
         token = secrets.token_hex(16)
         env = {
@@ -760,9 +894,14 @@ class Builder:
 
         cache = Path(env.get("XRF_CACHE_DIR") or build._cache_root()).resolve()
         # What the build needs where the sandbox covers a folder (the data folder, /tmp, ...).
-        keep = [(str(src.resolve()), True), (str(build_dir.resolve()), False), (str(cache), True),
-                (str(APPLIANCE_DIR), True), (str(build.REPO_ROOT / "rt_core"), True),
-                (str(Path(sys.prefix).resolve()), True)]
+        keep = [
+            (str(src.resolve()), True),
+            (str(build_dir.resolve()), False),
+            (str(cache), True),
+            (str(APPLIANCE_DIR), True),
+            (str(build.REPO_ROOT / "rt_core"), True),
+            (str(Path(sys.prefix).resolve()), True),
+        ]
         config["keep"] = keep
         hide = self.hide_dir.resolve() if self.hide_dir else None
         if hide is not None and all(Path(k).is_relative_to(hide) for k, _ in keep[:2]):
@@ -770,9 +909,18 @@ class Builder:
         cmd = [sys.executable, "-m", "xrflab.projects.builder", "--sandbox", json.dumps(config), "--", *inner]
         wenv = {TOKEN_ENV: token, "PATH": env["PATH"], "PYTHONPATH": str(APPLIANCE_DIR), "LANG": "C.UTF-8"}
         # Tied: a build does not run on after the appliance died (server/children.popen_tied).
-        proc = popen_tied(cmd, death_signal=signal.SIGKILL, cwd=build_dir, stdin=subprocess.DEVNULL,
-                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, errors="replace", bufsize=1,
-                          env=wenv)
+        proc = popen_tied(
+            cmd,
+            death_signal=signal.SIGKILL,
+            cwd=build_dir,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            errors="replace",
+            bufsize=1,
+            env=wenv,
+        )
         with self._lock:
             self._procs[proc.pid] = (proc, token)
 
@@ -841,10 +989,12 @@ class _suppress:
 def main(argv: list[str]) -> int:
     if argv and argv[0] == "--sandbox":
         sep = argv.index("--")
-        return _sandbox_main(json.loads(argv[1]), argv[sep + 1:])
+        return _sandbox_main(json.loads(argv[1]), argv[sep + 1 :])
     if argv and argv[0] == "--inner":
         return _inner_main(argv[1], argv[2])
-    print("usage: python -m xrflab.projects.builder --sandbox CONFIG -- CMD... | --inner SRC BUILD_DIR", file=sys.stderr)
+    print(
+        "usage: python -m xrflab.projects.builder --sandbox CONFIG -- CMD... | --inner SRC BUILD_DIR", file=sys.stderr
+    )
     return 2
 
 

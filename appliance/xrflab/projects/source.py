@@ -9,14 +9,14 @@ outside the upload."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 from .. import build
 
 MESSAGES = ("Ros2Xeno", "Xeno2Ros")
 
 
-def locate(src: Path) -> Optional[build.ProjectSource]:
+def locate(src: Path) -> build.ProjectSource | None:
     """The controller and its messages in ``src``, or None when the source is incomplete (an
     editor save removed a file, say): the page still shows it, the build says what is missing."""
     try:
@@ -25,7 +25,7 @@ def locate(src: Path) -> Optional[build.ProjectSource]:
         return None
 
 
-def message_fields(src: Path, located: Optional[build.ProjectSource] = None) -> dict[str, Any]:
+def message_fields(src: Path, located: build.ProjectSource | None = None) -> dict[str, Any]:
     """{message: [{name, type, count}] or {"error": why}} for Ros2Xeno and Xeno2Ros, parsed
     from the files the build takes (the Projects page's schema, the build's recorded facts)."""
     from ..msgdef import Codec, MsgError, parse_msg_file  # type: ignore[attr-defined]

@@ -140,8 +140,14 @@ class VersionRow:
     files: dict[str, str]
 
     def as_dict(self) -> dict[str, Any]:
-        return {"n": self.n, "source_hash": self.source_hash, "created": self.created, "author": self.author,
-                "origin": self.origin, "files": len(self.files)}
+        return {
+            "n": self.n,
+            "source_hash": self.source_hash,
+            "created": self.created,
+            "author": self.author,
+            "origin": self.origin,
+            "files": len(self.files),
+        }
 
 
 _VCOLS = [f.name for f in fields(VersionRow)]
@@ -159,8 +165,11 @@ class ProjectStore:
         self._db.execute("PRAGMA foreign_keys=ON")
         self._db.executescript(_SCHEMA)
         # Builds a previous appliance process left unfinished did not finish.
-        self._db.execute("UPDATE project_builds SET status='failed', result='the appliance stopped during this build', "
-                         "ended=COALESCE(ended, ?) WHERE status IN ('queued', 'building')", (time.time(),))
+        self._db.execute(
+            "UPDATE project_builds SET status='failed', result='the appliance stopped during this build', "
+            "ended=COALESCE(ended, ?) WHERE status IN ('queued', 'building')",
+            (time.time(),),
+        )
 
     def close(self) -> None:
         with self._lock:
@@ -179,8 +188,10 @@ class ProjectStore:
 
     def create_project(self, owner: str, name: str, folder: str, origin: str) -> ProjectRow:
         now = time.time()
-        pid = self._x("INSERT INTO projects (owner, name, folder, created, updated, origin) VALUES (?, ?, ?, ?, ?, ?)",
-                      (owner, name, folder, now, now, origin))
+        pid = self._x(
+            "INSERT INTO projects (owner, name, folder, created, updated, origin) VALUES (?, ?, ?, ?, ?, ?)",
+            (owner, name, folder, now, now, origin),
+        )
         row = self.project(pid)
         assert row is not None
         return row
@@ -215,39 +226,47 @@ class ProjectStore:
 
     # -- source versions (versions.py keeps their files) -----------------------------------------
 
-    def add_version(self, project_id: int, source_hash: str, author: str, origin: str,
-                    files: dict[str, str]) -> "VersionRow":
+    def add_version(
+        self, project_id: int, source_hash: str, author: str, origin: str, files: dict[str, str]
+    ) -> VersionRow:
         """The project's next version number, taken and written in one transaction."""
         with self._lock:
             cur = self._db.execute(
                 "INSERT INTO project_versions (project_id, n, source_hash, created, author, origin, files) "
                 "SELECT ?, COALESCE(MAX(n), 0) + 1, ?, ?, ?, ?, ? FROM project_versions WHERE project_id=?",
-                (project_id, source_hash, time.time(), author, origin, json.dumps(files), project_id))
+                (project_id, source_hash, time.time(), author, origin, json.dumps(files), project_id),
+            )
             vid = int(cur.lastrowid or 0)
         rows = self._q(f"SELECT {', '.join(_VCOLS)} FROM project_versions WHERE id=?", (vid,))
         return _version(rows[0])
 
-    def versions(self, project_id: int) -> list["VersionRow"]:
-        rows = self._q(f"SELECT {', '.join(_VCOLS)} FROM project_versions WHERE project_id=? ORDER BY n DESC",
-                       (project_id,))
+    def versions(self, project_id: int) -> list[VersionRow]:
+        rows = self._q(
+            f"SELECT {', '.join(_VCOLS)} FROM project_versions WHERE project_id=? ORDER BY n DESC", (project_id,)
+        )
         return [_version(r) for r in rows]
 
-    def version(self, project_id: int, n: int) -> "VersionRow | None":
+    def version(self, project_id: int, n: int) -> VersionRow | None:
         if not -(2**63) <= n < 2**63:
             return None
         rows = self._q(f"SELECT {', '.join(_VCOLS)} FROM project_versions WHERE project_id=? AND n=?", (project_id, n))
         return _version(rows[0]) if rows else None
 
-    def latest_version(self, project_id: int) -> "VersionRow | None":
-        rows = self._q(f"SELECT {', '.join(_VCOLS)} FROM project_versions WHERE project_id=? ORDER BY n DESC LIMIT 1",
-                       (project_id,))
+    def latest_version(self, project_id: int) -> VersionRow | None:
+        rows = self._q(
+            f"SELECT {', '.join(_VCOLS)} FROM project_versions WHERE project_id=? ORDER BY n DESC LIMIT 1",
+            (project_id,),
+        )
         return _version(rows[0]) if rows else None
 
     # -- builds ---------------------------------------------------------------------------------
 
     def create_build(self, project: ProjectRow, source_hash: str, toolchain: str) -> BuildRow:
-        bid = self._x("INSERT INTO project_builds (project_id, owner, source_hash, toolchain, status, queued) "
-                      "VALUES (?, ?, ?, ?, 'queued', ?)", (project.id, project.owner, source_hash, toolchain, time.time()))
+        bid = self._x(
+            "INSERT INTO project_builds (project_id, owner, source_hash, toolchain, status, queued) "
+            "VALUES (?, ?, ?, ?, 'queued', ?)",
+            (project.id, project.owner, source_hash, toolchain, time.time()),
+        )
         row = self.build(bid)
         assert row is not None
         return row
@@ -270,26 +289,37 @@ class ProjectStore:
         return _build(r[0]) if r else None
 
     def builds(self, project_id: int, limit: int = 50) -> list[BuildRow]:
-        rows = self._q(f"SELECT {', '.join(_BCOLS)} FROM project_builds WHERE project_id=? ORDER BY id DESC LIMIT ?",
-                       (project_id, limit))
+        rows = self._q(
+            f"SELECT {', '.join(_BCOLS)} FROM project_builds WHERE project_id=? ORDER BY id DESC LIMIT ?",
+            (project_id, limit),
+        )
         return [_build(r) for r in rows]
 
     def reusable(self, project_id: int, source_hash: str, toolchain: str) -> BuildRow | None:
         """The newest successful build of exactly this source with this toolchain, if its executable is still there."""
-        rows = self._q(f"SELECT {', '.join(_BCOLS)} FROM project_builds WHERE project_id=? AND source_hash=? "
-                       "AND toolchain=? AND status='ok' ORDER BY id DESC LIMIT 1", (project_id, source_hash, toolchain))
+        rows = self._q(
+            f"SELECT {', '.join(_BCOLS)} FROM project_builds WHERE project_id=? AND source_hash=? "
+            "AND toolchain=? AND status='ok' ORDER BY id DESC LIMIT 1",
+            (project_id, source_hash, toolchain),
+        )
         if not rows:
             return None
         b = _build(rows[0])
         return b if b.executable and Path(b.executable).exists() else None
 
     def link_run(self, run_id: int, build: BuildRow) -> None:
-        self._x("INSERT OR REPLACE INTO project_runs (run_id, build_id, project_id, owner) VALUES (?, ?, ?, ?)",
-                (run_id, build.id, build.project_id, build.owner))
+        self._x(
+            "INSERT OR REPLACE INTO project_runs (run_id, build_id, project_id, owner) VALUES (?, ?, ?, ?)",
+            (run_id, build.id, build.project_id, build.owner),
+        )
 
     def runs_of(self, project_id: int) -> list[dict[str, int]]:
-        return [{"run_id": r[0], "build_id": r[1]} for r in
-                self._q("SELECT run_id, build_id FROM project_runs WHERE project_id=? ORDER BY run_id DESC", (project_id,))]
+        return [
+            {"run_id": r[0], "build_id": r[1]}
+            for r in self._q(
+                "SELECT run_id, build_id FROM project_runs WHERE project_id=? ORDER BY run_id DESC", (project_id,)
+            )
+        ]
 
     def projects_with_origin(self, origin: str) -> list[ProjectRow]:
         rows = self._q(f"SELECT {', '.join(_PCOLS)} FROM projects WHERE origin=? ORDER BY id", (origin,))
@@ -300,8 +330,10 @@ class ProjectStore:
         return {r[0] for r in self._q("SELECT assignment FROM assignment_copies WHERE owner=?", (owner,))}
 
     def record_copy(self, assignment: str, owner: str, project_id: int) -> None:
-        self._x("INSERT OR IGNORE INTO assignment_copies (assignment, owner, project_id, created) VALUES (?, ?, ?, ?)",
-                (assignment, owner, project_id, time.time()))
+        self._x(
+            "INSERT OR IGNORE INTO assignment_copies (assignment, owner, project_id, created) VALUES (?, ?, ?, ?)",
+            (assignment, owner, project_id, time.time()),
+        )
 
     def run_link(self, run_id: int) -> dict[str, Any] | None:
         r = self._q("SELECT run_id, build_id, project_id, owner FROM project_runs WHERE run_id=?", (run_id,))

@@ -17,7 +17,9 @@ from pathlib import Path
 from typing import Any
 
 MAX_BYTES = 1 << 20
-_TOKEN_RE = re.compile(r"<token\s+name\s*=\s*\"([A-Za-z0-9_]+)\"\s*>\s*(?:<!\[CDATA\[(.*?)\]\]>|([^<]*))\s*</token>", re.S)
+_TOKEN_RE = re.compile(
+    r"<token\s+name\s*=\s*\"([A-Za-z0-9_]+)\"\s*>\s*(?:<!\[CDATA\[(.*?)\]\]>|([^<]*))\s*</token>", re.S
+)
 _SECTION_RE = re.compile(r"^\s*(Inputs|Outputs)\b[^\n]*:\s*$", re.M | re.I)
 _ROW_RE = re.compile(r"^\s*(\d+)\s+([A-Za-z_][\w.\[\]]*)\s*(.*?)\s*$")
 
@@ -29,8 +31,10 @@ def _read(path: Path) -> str:
 
 
 def parse_tokens(text: str) -> dict[str, str]:
-    return {m.group(1): (m.group(2) if m.group(2) is not None else (m.group(3) or "")).strip()
-            for m in _TOKEN_RE.finditer(text)}
+    return {
+        m.group(1): (m.group(2) if m.group(2) is not None else (m.group(3) or "")).strip()
+        for m in _TOKEN_RE.finditer(text)
+    }
 
 
 def parse_info(text: str) -> dict[str, list[dict[str, str]]]:
@@ -39,7 +43,7 @@ def parse_info(text: str) -> dict[str, list[dict[str, str]]]:
     for i, h in enumerate(heads):
         end = heads[i + 1].start() if i + 1 < len(heads) else len(text)
         key = "inputs" if h.group(1).lower() == "inputs" else "outputs"
-        for line in text[h.end():end].splitlines():
+        for line in text[h.end() : end].splitlines():
             if not line.strip():
                 if out[key]:
                     break

@@ -154,8 +154,7 @@ class Versions:
 
 def template_side(template_dir: Path) -> tuple[dict[str, str], Any]:
     """(path -> sha256, reader) of a template folder as the appliance has it now."""
-    hashes = {k: v for k, v in file_hashes(template_dir).items()
-              if k.split("/", 1)[0] not in archive.SKIPPED_DIRS}
+    hashes = {k: v for k, v in file_hashes(template_dir).items() if k.split("/", 1)[0] not in archive.SKIPPED_DIRS}
 
     def read(rel: str) -> bytes | None:
         p = template_dir / rel
@@ -163,6 +162,7 @@ def template_side(template_dir: Path) -> tuple[dict[str, str], Any]:
             return None
         with open(p, "rb") as f:
             return f.read(DIFF_MAX_BYTES + 1)
+
     return hashes, read
 
 
@@ -178,8 +178,15 @@ def _text(data: bytes | None) -> list[str] | None:
     return lines if len(lines) <= DIFF_MAX_LINES else None
 
 
-def diff(a_files: dict[str, str], read_a: Any, b_files: dict[str, str], read_b: Any,
-         a_name: str, b_name: str, context: int = 3) -> list[dict[str, Any]]:
+def diff(
+    a_files: dict[str, str],
+    read_a: Any,
+    b_files: dict[str, str],
+    read_b: Any,
+    a_name: str,
+    b_name: str,
+    context: int = 3,
+) -> list[dict[str, Any]]:
     """Per file that differs: path, status (added | removed | modified), lines added/removed and a
     unified diff (``None`` for a binary or oversized file, whose change is still listed)."""
     out: list[dict[str, Any]] = []

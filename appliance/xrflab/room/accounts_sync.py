@@ -96,9 +96,15 @@ class BenchAccounts:
                 conflicts.append(name)
                 continue
             try:
-                user, revoked = accounts.put_hashed(name, str(u.get("role", "")), str(u.get("password_hash", "")),
-                                                    str(u.get("full_name", "")), str(u.get("email", "")),
-                                                    bool(u.get("disabled")), bool(u.get("must_change")))
+                user, revoked = accounts.put_hashed(
+                    name,
+                    str(u.get("role", "")),
+                    str(u.get("password_hash", "")),
+                    str(u.get("full_name", "")),
+                    str(u.get("email", "")),
+                    bool(u.get("disabled")),
+                    bool(u.get("must_change")),
+                )
             except Exception as exc:
                 log.warning("room class list: %s: %s", name, exc)
                 continue

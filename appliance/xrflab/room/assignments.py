@@ -78,8 +78,16 @@ class RoomAssignments:
         aid = f"a{time.strftime('%Y%m%d')}-{secrets.token_hex(4)}"
         dest = self.archive_path(aid)
         shutil.move(str(source), dest)
-        meta = {"id": aid, "name": name, "by": by, "t": time.time(), "template": template,
-                "size": dest.stat().st_size, "sha256": sha256_file(dest), "files": len(manifest.files)}
+        meta = {
+            "id": aid,
+            "name": name,
+            "by": by,
+            "t": time.time(),
+            "template": template,
+            "size": dest.stat().st_size,
+            "sha256": sha256_file(dest),
+            "files": len(manifest.files),
+        }
         self.index[aid] = meta
         self._save()
         return meta
@@ -104,4 +112,3 @@ class RoomAssignments:
 
     def list(self) -> list[dict[str, Any]]:
         return sorted(self.index.values(), key=lambda m: m["t"])
-

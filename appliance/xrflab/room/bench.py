@@ -28,10 +28,10 @@ from typing import Any
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 
+from ..projects.archive import ArchiveRejected
 from ..projects.assignments import ID_RE as ASSIGNMENT_ID_RE
 from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
 from ..projects.assignments import Assignments
-from ..projects.archive import ArchiveRejected
 from ..server.auth import Perm, client_address, requires
 from . import mqtt, sso
 from .accounts_sync import BenchAccounts
@@ -130,9 +130,15 @@ class RoomLink:
         self.name, self.key, self.room_url = e["name"], e["sso_key"], e.get("room_url", "")
         self.ca_pem = b.get("ca_pem", "")
         handler = CommandHandler(app, asyncio.get_running_loop())
-        self.publisher = BenchPublisher(e["name"], endpoint, next_boot(self.folder), self.facts,
-                                        on_command=handler, on_accounts=self._on_accounts,
-                                        on_assignment=self._on_assignment)
+        self.publisher = BenchPublisher(
+            e["name"],
+            endpoint,
+            next_boot(self.folder),
+            self.facts,
+            on_command=handler,
+            on_accounts=self._on_accounts,
+            on_assignment=self._on_assignment,
+        )
         self.publisher.status["assignments"] = [a["id"] for a in self.assignments.list()]
         handler.publisher = self.publisher
         self._spawn(self._retry_assignments())
@@ -239,8 +245,12 @@ class RoomLink:
                 yield from iter(lambda: f.read(1 << 20), b"")
 
         with self._http(600) as c:
-            r = c.post(f"/api/room/collections/{cid}/benches/{self.name}", params=self._token(cid, "collect"),
-                       content=chunks(), headers={"Content-Type": "application/gzip"})
+            r = c.post(
+                f"/api/room/collections/{cid}/benches/{self.name}",
+                params=self._token(cid, "collect"),
+                content=chunks(),
+                headers={"Content-Type": "application/gzip"},
+            )
         if r.status_code != 200:
             raise RuntimeError(f"the room refused the upload: {r.status_code} {r.text[:200]}")
 
@@ -262,10 +272,15 @@ class RoomLink:
         holder = lease.holder.user.username if lease is not None and lease.holder is not None else ""
         row = run.row if run is not None else sup.last_row
         return {
-            "state": st.get("name", "NO RUN"), "active": bool(st.get("active")),
-            "run_id": row.id if row else None, "run_owner": row.owner if row else "",
-            "cycles": cycles, "misses": int(getattr(last, "missed", 0) or 0) if last else (row.misses if row else 0),
-            "cycle_rate": rate, "cycle_freq": row.cycle_freq if row else None, "holder": holder,
+            "state": st.get("name", "NO RUN"),
+            "active": bool(st.get("active")),
+            "run_id": row.id if row else None,
+            "run_owner": row.owner if row else "",
+            "cycles": cycles,
+            "misses": int(getattr(last, "missed", 0) or 0) if last else (row.misses if row else 0),
+            "cycle_rate": rate,
+            "cycle_freq": row.cycle_freq if row else None,
+            "holder": holder,
             "url": self.dashboard_url or self._guess_url(),
             "accounts_version": self.accounts.version if self.accounts else 0,
             **system_facts(self.settings.data_dir),

@@ -53,7 +53,9 @@ def _private_write(path: Path, text: str) -> None:
 
 
 def tool(name: str) -> str:
-    found = shutil.which(name) or next((p for p in (f"/usr/sbin/{name}", f"/usr/bin/{name}") if os.access(p, os.X_OK)), None)
+    found = shutil.which(name) or next(
+        (p for p in (f"/usr/sbin/{name}", f"/usr/bin/{name}") if os.access(p, os.X_OK)), None
+    )
     if not found:
         raise BrokerError(f"{name} not found: install the Debian packages mosquitto and mosquitto-clients (./lab does)")
     return found
@@ -66,19 +68,21 @@ def acl_text() -> str:
     Anything not granted is refused by the broker (a forged status is dropped; with MQTT 5 and QoS 1
     the publisher is told "not authorized")."""
     root = topics.ROOT
-    return "\n".join([
-        "# Written by xrflab.room.broker; edits are overwritten.",
-        f"user {ROOM_USER}",
-        f"topic readwrite {root}/#",
-        "",
-        "# every other user is a bench named by its username",
-        f"pattern write {root}/bench/%u/#",
-        f"pattern read {root}/cmd/%u",
-        f"pattern read {topics.CMD_ALL}",
-        f"pattern read {topics.ACCOUNTS}",
-        f"pattern read {topics.ASSIGNMENTS}",
-        "",
-    ])
+    return "\n".join(
+        [
+            "# Written by xrflab.room.broker; edits are overwritten.",
+            f"user {ROOM_USER}",
+            f"topic readwrite {root}/#",
+            "",
+            "# every other user is a bench named by its username",
+            f"pattern write {root}/bench/%u/#",
+            f"pattern read {root}/cmd/%u",
+            f"pattern read {topics.CMD_ALL}",
+            f"pattern read {topics.ACCOUNTS}",
+            f"pattern read {topics.ASSIGNMENTS}",
+            "",
+        ]
+    )
 
 
 @dataclass
@@ -160,20 +164,47 @@ class BrokerFiles:
         if self.port is not None:
             lines += ["", f"listener {self.port} {self.bind}", "protocol mqtt"]
         if self.tls_port is not None:
-            lines += ["", f"listener {self.tls_port} {self.bind}", "protocol mqtt",
-                      f"cafile {self.ca_cert}", f"certfile {self.folder / 'server.crt'}",
-                      f"keyfile {self.folder / 'server.key'}", "tls_version tlsv1.2"]
+            lines += [
+                "",
+                f"listener {self.tls_port} {self.bind}",
+                "protocol mqtt",
+                f"cafile {self.ca_cert}",
+                f"certfile {self.folder / 'server.crt'}",
+                f"keyfile {self.folder / 'server.key'}",
+                "tls_version tlsv1.2",
+            ]
         return "\n".join(lines) + "\n"
 
     def _make_tls(self) -> None:
         openssl = tool("openssl")
         key, crt = self.folder / "ca.key", self.ca_cert
         if not crt.exists():
-            subprocess.run([openssl, "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1",
-                            "-nodes", "-keyout", str(key), "-out", str(crt), "-days", "3650",
-                            "-subj", "/CN=XRF Lab room CA", "-addext", "basicConstraints=critical,CA:TRUE",
-                            "-addext", "keyUsage=critical,keyCertSign,cRLSign"],
-                           check=True, capture_output=True)
+            subprocess.run(
+                [
+                    openssl,
+                    "req",
+                    "-x509",
+                    "-newkey",
+                    "ec",
+                    "-pkeyopt",
+                    "ec_paramgen_curve:prime256v1",
+                    "-nodes",
+                    "-keyout",
+                    str(key),
+                    "-out",
+                    str(crt),
+                    "-days",
+                    "3650",
+                    "-subj",
+                    "/CN=XRF Lab room CA",
+                    "-addext",
+                    "basicConstraints=critical,CA:TRUE",
+                    "-addext",
+                    "keyUsage=critical,keyCertSign,cRLSign",
+                ],
+                check=True,
+                capture_output=True,
+            )
             os.chmod(key, 0o600)
         names_file = self.folder / "server.names"
         wanted = "\n".join(sorted(set(self.names)))
@@ -182,15 +213,52 @@ class BrokerFiles:
             return
         san = ",".join(("IP:" if _is_ip(n) else "DNS:") + n for n in sorted(set(self.names)))
         skey, csr = self.folder / "server.key", self.folder / "server.csr"
-        subprocess.run([openssl, "req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
-                        "-keyout", str(skey), "-out", str(csr), "-subj", "/CN=xrf-room-broker"],
-                       check=True, capture_output=True)
+        subprocess.run(
+            [
+                openssl,
+                "req",
+                "-newkey",
+                "ec",
+                "-pkeyopt",
+                "ec_paramgen_curve:prime256v1",
+                "-nodes",
+                "-keyout",
+                str(skey),
+                "-out",
+                str(csr),
+                "-subj",
+                "/CN=xrf-room-broker",
+            ],
+            check=True,
+            capture_output=True,
+        )
         ext = self.folder / "server.ext"
-        ext.write_text(f"subjectAltName={san}\nbasicConstraints=CA:FALSE\nkeyUsage=digitalSignature,keyEncipherment\n"
-                       "extendedKeyUsage=serverAuth\n")
-        subprocess.run([openssl, "x509", "-req", "-in", str(csr), "-CA", str(crt), "-CAkey", str(key),
-                        "-CAcreateserial", "-out", str(server_crt), "-days", "825", "-extfile", str(ext)],
-                       check=True, capture_output=True)
+        ext.write_text(
+            f"subjectAltName={san}\nbasicConstraints=CA:FALSE\nkeyUsage=digitalSignature,keyEncipherment\n"
+            "extendedKeyUsage=serverAuth\n"
+        )
+        subprocess.run(
+            [
+                openssl,
+                "x509",
+                "-req",
+                "-in",
+                str(csr),
+                "-CA",
+                str(crt),
+                "-CAkey",
+                str(key),
+                "-CAcreateserial",
+                "-out",
+                str(server_crt),
+                "-days",
+                "825",
+                "-extfile",
+                str(ext),
+            ],
+            check=True,
+            capture_output=True,
+        )
         os.chmod(skey, 0o600)
         csr.unlink(missing_ok=True)
         names_file.write_text(wanted)
@@ -199,8 +267,9 @@ class BrokerFiles:
     def set_password(self, username: str, password: str) -> None:
         """Add or change a user in the password file (mosquitto_passwd hashes it)."""
         topics.check_bench_name(username) if username != ROOM_USER else None
-        subprocess.run([tool("mosquitto_passwd"), "-b", str(self.passwd), username, password],
-                       check=True, capture_output=True)
+        subprocess.run(
+            [tool("mosquitto_passwd"), "-b", str(self.passwd), username, password], check=True, capture_output=True
+        )
         os.chmod(self.passwd, 0o600)
 
     def delete_user(self, username: str) -> None:
@@ -244,8 +313,13 @@ class BrokerProcess:
 
         self.files.pid_file.unlink(missing_ok=True)
         with open(self.log, "ab") as out:
-            self.proc = popen_tied([tool("mosquitto"), "-c", str(self.files.conf)], stdin=subprocess.DEVNULL,
-                                   stdout=out, stderr=out, close_fds=True)
+            self.proc = popen_tied(
+                [tool("mosquitto"), "-c", str(self.files.conf)],
+                stdin=subprocess.DEVNULL,
+                stdout=out,
+                stderr=out,
+                close_fds=True,
+            )
         port = self.files.port if self.files.port is not None else self.files.tls_port
         host = "127.0.0.1" if self.files.bind in ("0.0.0.0", "") else self.files.bind
         deadline = time.monotonic() + timeout

@@ -33,9 +33,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-BENCH_MAX = 256 << 20        # bytes of one bench's upload
-TOTAL_MAX = 1 << 30          # bytes of files in one collection's archive
-OUTPUT_MAX = 1 << 20         # output.txt is the loop's printout: its first MB
+BENCH_MAX = 256 << 20  # bytes of one bench's upload
+TOTAL_MAX = 1 << 30  # bytes of files in one collection's archive
+OUTPUT_MAX = 1 << 20  # output.txt is the loop's printout: its first MB
 FORMATS = ("csv", "mat", "parquet")
 SAFE = re.compile(r"^[A-Za-z0-9_.+@-][A-Za-z0-9_.+@ -]{0,127}$")
 
@@ -58,8 +58,9 @@ class RunToPack:
     run_dir: str
 
 
-def pack_bench(bench: str, aid: str, runs: list[RunToPack], formats: list[str], out: Path,
-               limit: int = BENCH_MAX) -> dict[str, Any]:
+def pack_bench(
+    bench: str, aid: str, runs: list[RunToPack], formats: list[str], out: Path, limit: int = BENCH_MAX
+) -> dict[str, Any]:
     """Write the bench's .tar.gz of `runs` to `out`; returns bench.json (also inside). Blocking."""
     from ..logs.convert import convert
     from ..logs.runfolder import RunPathError, open_in
@@ -124,10 +125,22 @@ def pack_bench(bench: str, aid: str, runs: list[RunToPack], formats: list[str], 
                 pass
             record = {**r.record, "student": r.student, "bench": bench, "project": r.project, "build_id": r.build_id}
             add_bytes(f"{base}/run.json", json.dumps(record, indent=1, default=str).encode())
-            listed.append({"student": r.student, "run_id": int(r.record["id"]), "project": r.project,
-                           "files": files + [f"{base}/run.json"]})
-        manifest = {"bench": bench, "assignment": aid, "formats": formats, "runs": listed, "left_out": left_out,
-                    "bytes": total}
+            listed.append(
+                {
+                    "student": r.student,
+                    "run_id": int(r.record["id"]),
+                    "project": r.project,
+                    "files": files + [f"{base}/run.json"],
+                }
+            )
+        manifest = {
+            "bench": bench,
+            "assignment": aid,
+            "formats": formats,
+            "runs": listed,
+            "left_out": left_out,
+            "bytes": total,
+        }
         add_bytes("bench.json", json.dumps(manifest, indent=1).encode())
     return manifest
 
@@ -153,10 +166,17 @@ class Collection:
         return time.time() >= self.deadline or all(s != "waiting" for s in self.benches.values())
 
     def view(self) -> dict[str, Any]:
-        return {"id": self.id, "assignment": self.assignment["id"], "name": self.assignment["name"],
-                "formats": self.formats, "benches": dict(self.benches), "errors": dict(self.errors),
-                "done": self.done, "deadline": self.deadline,
-                "archive": f"/api/room/collections/{self.id}/archive" if self.done else None}
+        return {
+            "id": self.id,
+            "assignment": self.assignment["id"],
+            "name": self.assignment["name"],
+            "formats": self.formats,
+            "benches": dict(self.benches),
+            "errors": dict(self.errors),
+            "done": self.done,
+            "deadline": self.deadline,
+            "archive": f"/api/room/collections/{self.id}/archive" if self.done else None,
+        }
 
     def upload_path(self, bench: str) -> Path:
         return self.folder / f"{safe_part(bench)}.tar.gz"
@@ -188,34 +208,63 @@ def assemble(c: Collection, out: Path, total_max: int = TOTAL_MAX) -> dict[str, 
                             entry["bytes"] = mine.get("bytes", 0)
                             for r in mine.get("runs", []):
                                 # the bench's names are <student>/<run id>/...; here they gain the bench
-                                files = ["/".join([p[0], safe_part(bench), *p[1:]])
-                                         for p in (str(f).split("/") for f in r.get("files", [])) if len(p) >= 3]
-                                runs.append({**r, "bench": bench, "files": files,
-                                             "folder": f"{safe_part(str(r.get('student')))}/{safe_part(bench)}/"
-                                                       f"{int(r.get('run_id', 0))}/"})
+                                files = [
+                                    "/".join([p[0], safe_part(bench), *p[1:]])
+                                    for p in (str(f).split("/") for f in r.get("files", []))
+                                    if len(p) >= 3
+                                ]
+                                runs.append(
+                                    {
+                                        **r,
+                                        "bench": bench,
+                                        "files": files,
+                                        "folder": f"{safe_part(str(r.get('student')))}/{safe_part(bench)}/"
+                                        f"{int(r.get('run_id', 0))}/",
+                                    }
+                                )
                             left_out += [{**x, "bench": bench} for x in mine.get("left_out", [])]
                             continue
-                        if (not m.isfile() or len(parts) < 3 or not all(SAFE.match(p) for p in parts)
-                                or not parts[1].isdigit()):
+                        if (
+                            not m.isfile()
+                            or len(parts) < 3
+                            or not all(SAFE.match(p) for p in parts)
+                            or not parts[1].isdigit()
+                        ):
                             left_out.append({"bench": bench, "file": m.name[:300], "why": "not a file of a run"})
                             continue
                         if total + m.size > total_max:
-                            left_out.append({"bench": bench, "file": m.name, "bytes": m.size,
-                                             "why": f"over the collection's {total_max >> 20} MB"})
+                            left_out.append(
+                                {
+                                    "bench": bench,
+                                    "file": m.name,
+                                    "bytes": m.size,
+                                    "why": f"over the collection's {total_max >> 20} MB",
+                                }
+                            )
                             continue
                         f = tar.extractfile(m)
                         if f is None:
                             continue
                         name = "/".join([parts[0], safe_part(bench), *parts[1:]])
                         with z.open(name, "w", force_zip64=True) as dst:
-                            for chunk in iter(lambda: f.read(1 << 20), b""):
+                            for chunk in iter(lambda src=f: src.read(1 << 20), b""):
                                 dst.write(chunk)
                         total += m.size
             except (OSError, tarfile.TarError, ValueError) as exc:
                 entry.update(status="failed", error=f"unreadable upload: {exc}"[:300])
-        manifest = {"assignment": c.assignment, "collection": c.id, "by": c.by, "created": c.created,
-                    "assembled": time.time(), "formats": c.formats, "layout": "<student>/<bench>/<run id>/",
-                    "benches": benches, "missing": sorted(b for b, e in benches.items() if e["status"] != "collected"),
-                    "runs": runs, "left_out": left_out, "bytes": total}
+        manifest = {
+            "assignment": c.assignment,
+            "collection": c.id,
+            "by": c.by,
+            "created": c.created,
+            "assembled": time.time(),
+            "formats": c.formats,
+            "layout": "<student>/<bench>/<run id>/",
+            "benches": benches,
+            "missing": sorted(b for b, e in benches.items() if e["status"] != "collected"),
+            "runs": runs,
+            "left_out": left_out,
+            "bytes": total,
+        }
         z.writestr("manifest.json", json.dumps(manifest, indent=1, default=str))
     return manifest

@@ -60,8 +60,11 @@ class CommandHandler:
         by = str(body.get("by", ""))[:64]
         reply: dict[str, Any] = {"id": cid, "cmd": cmd, "t_recv": t_recv, "t_sent": body.get("t")}
         try:
-            reply.update(await getattr(self, f"_cmd_{cmd}")(body) if cmd in COMMANDS
-                         else {"ok": False, "error": f"unknown command {cmd!r}"})
+            reply.update(
+                await getattr(self, f"_cmd_{cmd}")(body)
+                if cmd in COMMANDS
+                else {"ok": False, "error": f"unknown command {cmd!r}"}
+            )
         except Exception as exc:  # any failure is an answer, never a dead bench
             log.exception("room command %s", cmd)
             reply.update(ok=False, error=str(exc)[:300])
@@ -78,16 +81,22 @@ class CommandHandler:
         if run is None or not run.alive:
             return {"ok": True, "accepted": None, "state": "NO RUN", "note": "no loop running"}
         result = await sup.command("stop")
-        return {"ok": True, "accepted": result.accepted, "state": result.state_name, "reason": result.reason,
-                "t_loop": time.time()}
+        return {
+            "ok": True,
+            "accepted": result.accepted,
+            "state": result.state_name,
+            "reason": result.reason,
+            "t_loop": time.time(),
+        }
 
     async def _cmd_message(self, body: dict[str, Any]) -> dict[str, Any]:
         text = str(body.get("text", "")).strip()[:500]
         if not text:
             return {"ok": False, "error": "empty message"}
         by = str(body.get("by", "")) or "the room"
-        self.app.state.supervisor.hub.publish("alarm", {"kind": "room", "message": f"From {by} (the room): {text}",
-                                                        "from": by})
+        self.app.state.supervisor.hub.publish(
+            "alarm", {"kind": "room", "message": f"From {by} (the room): {text}", "from": by}
+        )
         if self.publisher is not None:
             self.publisher.status["message"] = text
             self.publisher.status_changed()
@@ -134,8 +143,9 @@ class CommandHandler:
             for ln in svc.store.runs_of(p.id):
                 row = runs_store.get(ln["run_id"])
                 if row is not None:
-                    runs.append(RunToPack(p.owner, {"id": p.id, "name": p.name}, ln["build_id"], row.as_dict(),
-                                          row.run_dir))
+                    runs.append(
+                        RunToPack(p.owner, {"id": p.id, "name": p.name}, ln["build_id"], row.as_dict(), row.run_dir)
+                    )
         folder = link.folder
         folder.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=folder, prefix="collect-") as tmp:

@@ -62,8 +62,9 @@ def write_enrolment(data_dir: Path, enrolment: dict[str, Any]) -> Path:
     return path
 
 
-def join(room_url: str, code: str, name: str, data_dir: Path, dashboard_url: str = "",
-         timeout: float = 20.0) -> dict[str, Any]:
+def join(
+    room_url: str, code: str, name: str, data_dir: Path, dashboard_url: str = "", timeout: float = 20.0
+) -> dict[str, Any]:
     """`xrf room join`: ask the room, store what it gives. Raises RuntimeError with the room's reason."""
     import httpx
 
@@ -71,8 +72,9 @@ def join(room_url: str, code: str, name: str, data_dir: Path, dashboard_url: str
 
     name = topics.check_bench_name(name)
     room_url = room_url.rstrip("/")
-    r = httpx.post(f"{room_url}/api/room/enrol", json={"code": code, "name": name}, timeout=timeout,
-                   headers={"Origin": room_url})
+    r = httpx.post(
+        f"{room_url}/api/room/enrol", json={"code": code, "name": name}, timeout=timeout, headers={"Origin": room_url}
+    )
     if r.status_code != 200:
         try:
             detail = r.json().get("detail")

@@ -57,11 +57,17 @@ def next_boot(folder: Path) -> int:
 
 
 class BenchPublisher:
-    def __init__(self, name: str, endpoint: mqtt.Endpoint, boot: int,
-                 facts: Callable[[], dict[str, Any]] = dict, queue_max: int = 1000,
-                 on_command: Callable[[dict[str, Any], float], None] | None = None,
-                 on_accounts: Callable[[dict[str, Any]], None] | None = None,
-                 on_assignment: Callable[[dict[str, Any]], None] | None = None) -> None:
+    def __init__(
+        self,
+        name: str,
+        endpoint: mqtt.Endpoint,
+        boot: int,
+        facts: Callable[[], dict[str, Any]] = dict,
+        queue_max: int = 1000,
+        on_command: Callable[[dict[str, Any], float], None] | None = None,
+        on_accounts: Callable[[dict[str, Any]], None] | None = None,
+        on_assignment: Callable[[dict[str, Any]], None] | None = None,
+    ) -> None:
         self.name = topics.check_bench_name(name)
         self.endpoint = endpoint
         self.boot = boot
@@ -72,8 +78,16 @@ class BenchPublisher:
         self.seq = 0
         self.conn = 0
         self.connected = False
-        self.status: dict[str, Any] = {"state": "NO RUN", "run_id": None, "run_owner": "", "holder": "",
-                                       "alarms": [], "selfcheck": None, "message": "", "assignments": []}
+        self.status: dict[str, Any] = {
+            "state": "NO RUN",
+            "run_id": None,
+            "run_owner": "",
+            "holder": "",
+            "alarms": [],
+            "selfcheck": None,
+            "message": "",
+            "assignments": [],
+        }
         self._events: deque[tuple[int, bytes]] = deque()
         self._inflight: dict[int, int] = {}  # paho mid -> event seq
         self.queue_max = queue_max
@@ -101,8 +115,12 @@ class BenchPublisher:
         if self._heartbeat:
             self._heartbeat.cancel()
         if self.connected:
-            info = self._client.publish(topics.bench(self.name, "online"),
-                                        json.dumps({"online": False, "conn": [self.boot, self.conn]}), qos=1, retain=True)
+            info = self._client.publish(
+                topics.bench(self.name, "online"),
+                json.dumps({"online": False, "conn": [self.boot, self.conn]}),
+                qos=1,
+                retain=True,
+            )
             await asyncio.get_running_loop().run_in_executor(None, lambda: info.wait_for_publish(1.0))
         self._client.disconnect()
         self._client.loop_stop()
@@ -117,7 +135,9 @@ class BenchPublisher:
 
     # -- what the bench says --------------------------------------------------------------------
     def _will(self) -> tuple[str, bytes]:
-        return topics.bench(self.name, "online"), json.dumps({"online": False, "conn": [self.boot, self.conn + 1]}).encode()
+        return topics.bench(self.name, "online"), json.dumps(
+            {"online": False, "conn": [self.boot, self.conn + 1]}
+        ).encode()
 
     def _next_seq(self) -> int:
         with self._lock:
@@ -132,8 +152,16 @@ class BenchPublisher:
             log.exception("room facts")
         with self._lock:
             queued = len(self._events)
-        return {**self.status, **facts, "name": self.name, "boot": self.boot, "seq": self._next_seq(),
-                "t": time.time(), "events_queued": queued, "events_dropped": self.events_dropped}
+        return {
+            **self.status,
+            **facts,
+            "name": self.name,
+            "boot": self.boot,
+            "seq": self._next_seq(),
+            "t": time.time(),
+            "events_queued": queued,
+            "events_dropped": self.events_dropped,
+        }
 
     def publish_status(self) -> None:
         self._last_status_t = time.monotonic()
@@ -142,8 +170,12 @@ class BenchPublisher:
             self._status_pending = None
         if not self.connected:
             return  # never queued: the next connect publishes the newest
-        self._client.publish(topics.bench(self.name, "status"), json.dumps(self.snapshot(), allow_nan=False,
-                                                                          default=str), qos=1, retain=True)
+        self._client.publish(
+            topics.bench(self.name, "status"),
+            json.dumps(self.snapshot(), allow_nan=False, default=str),
+            qos=1,
+            retain=True,
+        )
 
     def status_changed(self) -> None:
         """Publish soon: at once, or after the rate limit's gap (changes in between coalesce)."""
@@ -156,7 +188,14 @@ class BenchPublisher:
             self._status_pending = self._loop.call_later(wait, self.publish_status)
 
     def event(self, kind: str, /, **fields: Any) -> None:
-        payload = {**fields, "kind": kind, "name": self.name, "boot": self.boot, "seq": self._next_seq(), "t": time.time()}
+        payload = {
+            **fields,
+            "kind": kind,
+            "name": self.name,
+            "boot": self.boot,
+            "seq": self._next_seq(),
+            "t": time.time(),
+        }
         data = json.dumps(payload, default=str).encode()
         with self._lock:
             if len(self._events) >= self.queue_max:
@@ -194,13 +233,23 @@ class BenchPublisher:
                 self.status_changed()
             elif payload.get("event") == "ended":
                 s.update(run_id=row.get("id"), run_owner=row.get("owner", ""))
-                self.event("run_ended", run_id=row.get("id"), owner=row.get("owner", ""),
-                           end_reason=row.get("end_reason", ""), cycles=row.get("cycles"), misses=row.get("misses"))
+                self.event(
+                    "run_ended",
+                    run_id=row.get("id"),
+                    owner=row.get("owner", ""),
+                    end_reason=row.get("end_reason", ""),
+                    cycles=row.get("cycles"),
+                    misses=row.get("misses"),
+                )
                 self.status_changed()
         elif kind == "alarm":
             if payload.get("kind") == "room":
                 return  # our own message to the dashboards, not the bench's
-            alarm = {"kind": payload.get("kind", ""), "message": str(payload.get("message", ""))[:300], "t": time.time()}
+            alarm = {
+                "kind": payload.get("kind", ""),
+                "message": str(payload.get("message", ""))[:300],
+                "t": time.time(),
+            }
             s["alarms"] = [*s.get("alarms", []), alarm][-MAX_ALARMS:]
             self.event("alarm", alarm=alarm["kind"], message=alarm["message"], run_id=payload.get("run_id"))
             self.status_changed()
@@ -211,8 +260,13 @@ class BenchPublisher:
         elif kind == "selfcheck" and payload.get("event") == "report":
             report = payload.get("report") or {}
             verdict = report.get("verdict") or ("error" if payload.get("message") else "")
-            s["selfcheck"] = {"verdict": verdict, "t": time.time(), "check": payload.get("check"),
-                              "report": payload.get("name", ""), "message": str(payload.get("message", ""))[:300]}
+            s["selfcheck"] = {
+                "verdict": verdict,
+                "t": time.time(),
+                "check": payload.get("check"),
+                "report": payload.get("name", ""),
+                "message": str(payload.get("message", ""))[:300],
+            }
             self.event("selfcheck", verdict=verdict, check=payload.get("check"), report=payload.get("name", ""))
             self.status_changed()
 
@@ -223,10 +277,15 @@ class BenchPublisher:
             return
         self.conn += 1
         self.connected = True
-        client.subscribe([(topics.cmd(self.name), 1), (topics.CMD_ALL, 1), (topics.ACCOUNTS, 1),
-                          (topics.ASSIGNMENTS, 1)])
-        client.publish(topics.bench(self.name, "online"), json.dumps({"online": True, "conn": [self.boot, self.conn]}),
-                       qos=1, retain=True)
+        client.subscribe(
+            [(topics.cmd(self.name), 1), (topics.CMD_ALL, 1), (topics.ACCOUNTS, 1), (topics.ASSIGNMENTS, 1)]
+        )
+        client.publish(
+            topics.bench(self.name, "online"),
+            json.dumps({"online": True, "conn": [self.boot, self.conn]}),
+            qos=1,
+            retain=True,
+        )
         # the will the broker keeps now is this connection's; the next connect's must name the next
         client.will_set(*self._will(), qos=1, retain=True)
         if self._loop is not None:

@@ -40,12 +40,11 @@ from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
 from starlette.websockets import WebSocketDisconnect
 
-from ..server.accounts import RateLimiter
-from ..server.body_limit import spool_to_file
-from ..server.auth import Perm, Security, SecurityHeaders, User, client_address, current_user, optional_user, requires
 from ..projects import archive as archive_mod
 from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
-from ..server.body_limit import BodyLimit
+from ..server.accounts import RateLimiter
+from ..server.auth import Perm, Security, SecurityHeaders, User, client_address, current_user, optional_user, requires
+from ..server.body_limit import BodyLimit, spool_to_file
 from ..server.settings import Settings
 from . import mqtt, sso, topics
 from .accounts_sync import RoomAccounts
@@ -96,14 +95,29 @@ class Bench:
 
     def view(self) -> dict[str, Any]:
         s = self.status
-        return {"name": self.name, "online": self.online, "state": s.get("state", "?"), "holder": s.get("holder", ""),
-                "run_owner": s.get("run_owner", ""), "run_id": s.get("run_id"), "alarms": s.get("alarms", []),
-                "cycles": s.get("cycles"), "misses": s.get("misses"), "cycle_rate": s.get("cycle_rate"),
-                "selfcheck": s.get("selfcheck"), "cpu_temp_c": s.get("cpu_temp_c"), "throttled": s.get("throttled"),
-                "disk_free_mb": s.get("disk_free_mb"), "url": s.get("url", ""), "seq": s.get("seq"),
-                "t": s.get("t"), "events_dropped": s.get("events_dropped", 0),
-                "accounts_version": s.get("accounts_version", 0), "assignments": s.get("assignments", []),
-                "events": list(self.events)[-5:]}
+        return {
+            "name": self.name,
+            "online": self.online,
+            "state": s.get("state", "?"),
+            "holder": s.get("holder", ""),
+            "run_owner": s.get("run_owner", ""),
+            "run_id": s.get("run_id"),
+            "alarms": s.get("alarms", []),
+            "cycles": s.get("cycles"),
+            "misses": s.get("misses"),
+            "cycle_rate": s.get("cycle_rate"),
+            "selfcheck": s.get("selfcheck"),
+            "cpu_temp_c": s.get("cpu_temp_c"),
+            "throttled": s.get("throttled"),
+            "disk_free_mb": s.get("disk_free_mb"),
+            "url": s.get("url", ""),
+            "seq": s.get("seq"),
+            "t": s.get("t"),
+            "events_dropped": s.get("events_dropped", 0),
+            "accounts_version": s.get("accounts_version", 0),
+            "assignments": s.get("assignments", []),
+            "events": list(self.events)[-5:],
+        }
 
 
 class RoomState:
@@ -187,8 +201,13 @@ class Room:
         self.security = security
         self.state = RoomState()
         self.codes = JoinCodes()
-        self.files = BrokerFiles(config.broker_folder, port=config.broker_port, tls_port=config.broker_tls_port,
-                                 bind=config.broker_bind, names=config.broker_names)
+        self.files = BrokerFiles(
+            config.broker_folder,
+            port=config.broker_port,
+            tls_port=config.broker_tls_port,
+            bind=config.broker_bind,
+            names=config.broker_names,
+        )
         self.broker: BrokerProcess | None = None
         self.benches_path = config.data_dir / "benches.json"
         self.enrolled: dict[str, dict[str, Any]] = self._load_benches()
@@ -231,8 +250,13 @@ class Room:
         self.accounts = RoomAccounts(self.security.accounts)
         port = self.config.broker_port if self.config.broker_port is not None else self.config.broker_tls_port
         tls = self.config.broker_port is None
-        endpoint = mqtt.Endpoint("127.0.0.1", int(port or 0), ROOM_USER, self.files.room_password(),
-                                 self.files.ca_cert.read_text() if tls else "")
+        endpoint = mqtt.Endpoint(
+            "127.0.0.1",
+            int(port or 0),
+            ROOM_USER,
+            self.files.room_password(),
+            self.files.ca_cert.read_text() if tls else "",
+        )
         c = mqtt.client(endpoint, f"room-{secrets.token_hex(4)}")
         c.on_connect = self._on_connect
         c.on_disconnect = self._on_disconnect
@@ -337,8 +361,15 @@ class Room:
         while len(self.collections) > 20:  # the oldest collections' files go
             old = self.collections.pop(next(iter(self.collections)))
             shutil.rmtree(old.folder, ignore_errors=True)
-        body = {"id": cid, "cmd": "collect", "by": by, "t": time.time(), "collection": cid, "assignment": aid,
-                "formats": formats}
+        body = {
+            "id": cid,
+            "cmd": "collect",
+            "by": by,
+            "t": time.time(),
+            "collection": cid,
+            "assignment": aid,
+            "formats": formats,
+        }
         for name, status in c.benches.items():
             if status == "waiting":
                 self.client.publish(topics.cmd(name), json.dumps(body), qos=1)
@@ -375,11 +406,17 @@ class Room:
         self._save_benches()
         self.state.bench(name)
         tls = self.config.tls and self.config.broker_tls_port is not None
-        return {"name": name, "sso_key": key,
-                "broker": {"host": self.config.broker_names[0],
-                           "port": self.config.broker_tls_port if tls else self.config.broker_port,
-                           "username": name, "password": password,
-                           "ca_pem": self.files.ca_cert.read_text() if tls else ""}}
+        return {
+            "name": name,
+            "sso_key": key,
+            "broker": {
+                "host": self.config.broker_names[0],
+                "port": self.config.broker_tls_port if tls else self.config.broker_port,
+                "username": name,
+                "password": password,
+                "ca_pem": self.files.ca_cert.read_text() if tls else "",
+            },
+        }
 
 
 # ---- routes ---------------------------------------------------------------------------------------
@@ -414,8 +451,9 @@ class NewAssignment(BaseModel):
 
 
 class Collect(BaseModel):
-    formats: list[str] = Field(default_factory=lambda: ["csv"], max_length=3,
-                               description="conversions beside each raw log: csv, mat, parquet")
+    formats: list[str] = Field(
+        default_factory=lambda: ["csv"], max_length=3, description="conversions beside each raw log: csv, mat, parquet"
+    )
     wait_s: float = Field(default=60.0, ge=1.0, le=600.0, description="how long benches have to answer")
 
 
@@ -480,9 +518,15 @@ async def selfcheck(body: SelfCheck, request: Request, user: User = Depends(curr
 async def list_assignments(request: Request) -> list[dict[str, Any]]:
     """Every published assignment and the benches that have it (their status says so)."""
     room = _room(request)
-    return [{**a, "benches": sorted(b.name for b in room.state.benches.values()
-                                    if a["id"] in (b.status.get("assignments") or []))}
-            for a in room.assignments.list()]
+    return [
+        {
+            **a,
+            "benches": sorted(
+                b.name for b in room.state.benches.values() if a["id"] in (b.status.get("assignments") or [])
+            ),
+        }
+        for a in room.assignments.list()
+    ]
 
 
 def _publish(request: Request, user: User, meta: dict[str, Any]) -> dict[str, Any]:
@@ -503,8 +547,9 @@ async def publish_template(body: NewAssignment, request: Request, user: User = D
 
 
 @router.post("/assignments/upload", status_code=201, dependencies=[requires(Perm.EDUCATOR)])
-async def publish_archive(request: Request, name: str = Query(min_length=1, max_length=64),
-                          user: User = Depends(current_user)) -> dict[str, Any]:
+async def publish_archive(
+    request: Request, name: str = Query(min_length=1, max_length=64), user: User = Depends(current_user)
+) -> dict[str, Any]:
     """Publish an uploaded archive (zip, tar, tar.gz as the raw body), checked as a student's upload."""
     room = _room(request)
     room.assignments.folder.mkdir(parents=True, exist_ok=True)
@@ -520,8 +565,9 @@ async def publish_archive(request: Request, name: str = Query(min_length=1, max_
 
 # PUBLIC: a bench has no account here; its token, signed with its own enrolment key, is the credential.
 @router.get("/assignments/{aid}/archive", dependencies=[requires(Perm.PUBLIC)])
-async def assignment_archive(aid: str, request: Request, bench: str = Query(max_length=64),
-                             token: str = Query(max_length=1000)) -> Response:
+async def assignment_archive(
+    aid: str, request: Request, bench: str = Query(max_length=64), token: str = Query(max_length=1000)
+) -> Response:
     room = _room(request)
     room.bench_token(bench, token, "assignment", aid)
     if aid not in room.assignments.index:
@@ -557,7 +603,9 @@ async def collection(cid: str, request: Request) -> dict[str, Any]:
 
 # PUBLIC: as the archive above, the bench's signed token is the credential.
 @router.post("/collections/{cid}/benches/{bench}", dependencies=[requires(Perm.PUBLIC)])
-async def collection_upload(cid: str, bench: str, request: Request, token: str = Query(max_length=1000)) -> dict[str, Any]:
+async def collection_upload(
+    cid: str, bench: str, request: Request, token: str = Query(max_length=1000)
+) -> dict[str, Any]:
     room = _room(request)
     room.bench_token(bench, token, "collect", cid)
     c = room.collections.get(cid)
@@ -610,8 +658,11 @@ async def room_ws(ws: WebSocket) -> None:
     q: asyncio.Queue[str] = asyncio.Queue()
     room.state.listeners.add(q)
     try:
-        await ws.send_text(json.dumps({"type": "snapshot", "connected": room.state.connected,
-                                       "benches": room.state.views()}, default=str))
+        await ws.send_text(
+            json.dumps(
+                {"type": "snapshot", "connected": room.state.connected, "benches": room.state.views()}, default=str
+            )
+        )
 
         async def pump() -> None:
             while True:

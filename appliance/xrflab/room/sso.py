@@ -39,8 +39,18 @@ def _unb64(text: str) -> bytes:
 def mint(key: str, bench: str, username: str, ttl_s: float = TTL_S, use: str = "sso") -> str:
     """`username`: who signs on (use ``sso``), or what the bench asks for (an assignment's or a
     collection's id)."""
-    body = _b64(json.dumps({"bench": bench, "user": username, "exp": time.time() + ttl_s, "use": use,
-                            "nonce": secrets.token_urlsafe(12)}, separators=(",", ":")).encode())
+    body = _b64(
+        json.dumps(
+            {
+                "bench": bench,
+                "user": username,
+                "exp": time.time() + ttl_s,
+                "use": use,
+                "nonce": secrets.token_urlsafe(12),
+            },
+            separators=(",", ":"),
+        ).encode()
+    )
     mac = _b64(hmac.new(key.encode(), body.encode(), hashlib.sha256).digest())
     return f"{body}.{mac}"
 

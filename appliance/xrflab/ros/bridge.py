@@ -33,8 +33,9 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 HELP = "run the ROS 2 bridge node (XenoCmd, XenoState, Ros2Xeno, Xeno2Ros; Command, Xenomai_state)"
 
@@ -77,7 +78,7 @@ def gate_client(url: str, token: str) -> CommandGate:
 
     if not url.startswith("unix:"):
         raise ValueError(f"--gate-url {url!r}: only unix:<socket path> is supported")
-    path = url[len("unix:"):]
+    path = url[len("unix:") :]
     state: dict[str, Any] = {"sock": None, "file": None}
     lock = threading.Lock()
 
@@ -117,7 +118,10 @@ def gate_client(url: str, token: str) -> CommandGate:
                 return ask(user, cmd)
             except (OSError, ValueError) as exc:
                 if int(cmd) in _SAFE_WITHOUT_GATE:
-                    return True, f"the appliance's gate is unreachable ({exc}); {_SAFE_WITHOUT_GATE[int(cmd)]} is always allowed"
+                    return (
+                        True,
+                        f"the appliance's gate is unreachable ({exc}); {_SAFE_WITHOUT_GATE[int(cmd)]} is always allowed",
+                    )
                 return False, f"the appliance's gate is unreachable ({exc})"
 
     return gate
@@ -133,25 +137,48 @@ def _login_name() -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--shm", default=os.environ.get("XRF_SHM", "xrf"), help="shared-memory name (default: $XRF_SHM or xrf)")
-    parser.add_argument("--msg-dir", default=None,
-                        help="folder with Ros2Xeno.msg and Xeno2Ros.msg (default: the schemas the running loop publishes)")
-    parser.add_argument("--user", default=os.environ.get("XRF_USER") or _login_name(),
-                        help="the user the bridge acts for (checked against the bench lease)")
+    parser.add_argument(
+        "--shm", default=os.environ.get("XRF_SHM", "xrf"), help="shared-memory name (default: $XRF_SHM or xrf)"
+    )
+    parser.add_argument(
+        "--msg-dir",
+        default=None,
+        help="folder with Ros2Xeno.msg and Xeno2Ros.msg (default: the schemas the running loop publishes)",
+    )
+    parser.add_argument(
+        "--user",
+        default=os.environ.get("XRF_USER") or _login_name(),
+        help="the user the bridge acts for (checked against the bench lease)",
+    )
     parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the loop (default 10)")
     parser.add_argument("--depth", type=int, default=DEFAULT_DEPTH, help=f"QoS history depth (default {DEFAULT_DEPTH})")
-    parser.add_argument("--executor", choices=("single", "events"), default="single",
-                        help="rclpy executor: single (SingleThreadedExecutor, default) or events "
-                             "(rclpy.experimental.EventsExecutor, C++ dispatch)")
-    parser.add_argument("--priority", type=int, default=int(os.environ.get("XRF_ROS_BRIDGE_PRIO", "0")),
-                        help="SCHED_FIFO priority for the bridge's threads (1..79, below the loop's; "
-                             "0 = leave the scheduling alone; needs CAP_SYS_NICE). Default $XRF_ROS_BRIDGE_PRIO or 0")
-    parser.add_argument("--state-period", type=float, default=DEFAULT_STATE_PERIOD_S,
-                        help="seconds between periodic XenoState messages (default 1)")
-    parser.add_argument("--gate-url", default=os.environ.get("XRF_ROS_GATE_URL", ""),
-                        help="ask the appliance before every XenoCmd: unix:<socket> of its lease gate "
-                             f"(token in ${GATE_TOKEN_ENV}; set by the appliance when it starts the bridge). "
-                             "Default $XRF_ROS_GATE_URL; empty = no gate (every command goes through)")
+    parser.add_argument(
+        "--executor",
+        choices=("single", "events"),
+        default="single",
+        help="rclpy executor: single (SingleThreadedExecutor, default) or events "
+        "(rclpy.experimental.EventsExecutor, C++ dispatch)",
+    )
+    parser.add_argument(
+        "--priority",
+        type=int,
+        default=int(os.environ.get("XRF_ROS_BRIDGE_PRIO", "0")),
+        help="SCHED_FIFO priority for the bridge's threads (1..79, below the loop's; "
+        "0 = leave the scheduling alone; needs CAP_SYS_NICE). Default $XRF_ROS_BRIDGE_PRIO or 0",
+    )
+    parser.add_argument(
+        "--state-period",
+        type=float,
+        default=DEFAULT_STATE_PERIOD_S,
+        help="seconds between periodic XenoState messages (default 1)",
+    )
+    parser.add_argument(
+        "--gate-url",
+        default=os.environ.get("XRF_ROS_GATE_URL", ""),
+        help="ask the appliance before every XenoCmd: unix:<socket> of its lease gate "
+        f"(token in ${GATE_TOKEN_ENV}; set by the appliance when it starts the bridge). "
+        "Default $XRF_ROS_GATE_URL; empty = no gate (every command goes through)",
+    )
 
 
 # ---- message conversion -------------------------------------------------------------------------
@@ -404,7 +431,9 @@ def _alive(pid: int) -> bool:
 # ---- running it ---------------------------------------------------------------------------------
 
 
-def prepare_messages(channels: Any, msg_dir: str | Path | None, log: Callable[[str], None] = print) -> tuple[type, type]:
+def prepare_messages(
+    channels: Any, msg_dir: str | Path | None, log: Callable[[str], None] = print
+) -> tuple[type, type]:
     """Build (cached) and import xrf2_msgs for this loop; returns (Ros2Xeno, Xeno2Ros)."""
     from ..msgdef import Codec, parse_msg_file
     from .interfaces import build_interface_package, use_in_this_process
@@ -425,8 +454,10 @@ def prepare_messages(channels: Any, msg_dir: str | Path | None, log: Callable[[s
     if loaded is not None and not str(getattr(loaded, "__file__", "")).startswith(str(prefix) + os.sep):
         # Python modules and the shared libraries (one soname each) cannot be swapped in a
         # running process: one project's xrf2_msgs per process.
-        raise RuntimeError(f"this process already uses xrf2_msgs from {loaded.__file__}; "
-                           f"another project's messages ({prefix}) need their own process")
+        raise RuntimeError(
+            f"this process already uses xrf2_msgs from {loaded.__file__}; "
+            f"another project's messages ({prefix}) need their own process"
+        )
     use_in_this_process(prefix)
     from xrf2_msgs.msg import Ros2Xeno, Xeno2Ros  # noqa: E402  (importable only now)
 
@@ -484,13 +515,22 @@ def run(args: argparse.Namespace, command_gate: CommandGate = allow_all) -> int:
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
     except ImportError as exc:
-        say(f"rclpy is not available ({exc}): pip install ros-rclpy ros-std-msgs ros-rmw-fastrtps-cpp, "
-            "or source /opt/ros/<distro>/setup.bash")
+        say(
+            f"rclpy is not available ({exc}): pip install ros-rclpy ros-std-msgs ros-rmw-fastrtps-cpp, "
+            "or source /opt/ros/<distro>/setup.bash"
+        )
         return 1
 
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
-    bridge = Bridge(ch, ros2xeno_type, xeno2ros_type, user=args.user, command_gate=command_gate,
-                    depth=args.depth, state_period=args.state_period)
+    bridge = Bridge(
+        ch,
+        ros2xeno_type,
+        xeno2ros_type,
+        user=args.user,
+        command_gate=command_gate,
+        depth=args.depth,
+        state_period=args.state_period,
+    )
     if getattr(args, "executor", "single") == "events":
         from rclpy.experimental import EventsExecutor
 
@@ -508,9 +548,11 @@ def run(args: argparse.Namespace, command_gate: CommandGate = allow_all) -> int:
         watchdog.daemon = True
         watchdog.start()
         clean = bridge.stop(SHUTDOWN_TIMEOUT_S / 2)
-        say(f"stopping: {bridge.published} Xeno2Ros published, {bridge.lost} lost in the ring, "
+        say(
+            f"stopping: {bridge.published} Xeno2Ros published, {bridge.lost} lost in the ring, "
             f"{bridge.commands_sent} commands, {bridge.ros2xeno_written} Ros2Xeno written"
-            + ("" if clean else " (threads did not end in time)"))
+            + ("" if clean else " (threads did not end in time)")
+        )
         executor.shutdown(timeout_sec=1.0)
         bridge.node.destroy_node()
         rclpy.try_shutdown()

@@ -27,9 +27,9 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 from ..msgdef import PROJECT_MESSAGES, MsgError, parse_msg_file, schema_text
 
@@ -252,18 +252,29 @@ def build_interface_package(
         # rosidl's generators run as Python; they must use this interpreter (and its packages).
         py = [f"-DPython3_EXECUTABLE={tools.python}", f"-DPYTHON_EXECUTABLE={tools.python}"]
         steps = [
-            ["cmake", "-S", str(src), "-B", str(build), f"-DCMAKE_INSTALL_PREFIX={prefix}",
-             "-DBUILD_TESTING=OFF", "-DCMAKE_BUILD_TYPE=Release",
-             # RUNPATH to the prefix: the Python extension then finds its libraries without
-             # LD_LIBRARY_PATH at interpreter start (see use_in_this_process).
-             f"-DCMAKE_INSTALL_RPATH={prefix / 'lib'}", *py],
+            [
+                "cmake",
+                "-S",
+                str(src),
+                "-B",
+                str(build),
+                f"-DCMAKE_INSTALL_PREFIX={prefix}",
+                "-DBUILD_TESTING=OFF",
+                "-DCMAKE_BUILD_TYPE=Release",
+                # RUNPATH to the prefix: the Python extension then finds its libraries without
+                # LD_LIBRARY_PATH at interpreter start (see use_in_this_process).
+                f"-DCMAKE_INSTALL_RPATH={prefix / 'lib'}",
+                *py,
+            ],
             ["cmake", "--build", str(build), "-j", str(jobs or os.cpu_count() or 2)],
             ["cmake", "--install", str(build)],
         ]
         estimate = _last_build_seconds(prefix.parent)
-        log(f"{PACKAGE}: first build for these messages, about {estimate:.0f} s "
+        log(
+            f"{PACKAGE}: first build for these messages, about {estimate:.0f} s "
             f"({'the last one here took that long' if _timing_file(prefix.parent).exists() else 'a guess'}; "
-            f"once only: cached by message contents in {prefix}); {tools.kind} ROS 2 tools")
+            f"once only: cached by message contents in {prefix}); {tools.kind} ROS 2 tools"
+        )
         t0 = time.monotonic()
         for cmd in steps:
             _run_with_progress(cmd, env, t0, estimate, log)
@@ -293,8 +304,9 @@ def _last_build_seconds(cache_root: Path) -> float:
         return _DEFAULT_ESTIMATE_S
 
 
-def _run_with_progress(cmd: list[str], env: dict[str, str], t0: float, estimate: float,
-                       log: Callable[[str], None]) -> None:
+def _run_with_progress(
+    cmd: list[str], env: dict[str, str], t0: float, estimate: float, log: Callable[[str], None]
+) -> None:
     """Run one build step, saying every PROGRESS_EVERY_S how far it is (CMake's own "[ 42%]"
     when it printed one) and how long is left by the estimate: the first `xrf ros-bridge` used
     to sit silent for a minute. The line comes from a ticker thread, not from the build's
@@ -309,8 +321,10 @@ def _run_with_progress(cmd: list[str], env: dict[str, str], t0: float, estimate:
         while not done.wait(PROGRESS_EVERY_S):
             elapsed = time.monotonic() - t0
             left = max(0.0, estimate - elapsed)
-            log(f"{PACKAGE}: {percent[0] or cmd[1]} after {elapsed:.0f} s"
-                + (f", about {left:.0f} s left" if left >= 1 else ", a little longer than estimated"))
+            log(
+                f"{PACKAGE}: {percent[0] or cmd[1]} after {elapsed:.0f} s"
+                + (f", about {left:.0f} s left" if left >= 1 else ", a little longer than estimated")
+            )
 
     ticker = threading.Thread(target=tick, name="xrf2_msgs-progress", daemon=True)
     ticker.start()

@@ -99,9 +99,17 @@ class User:
         return self.role == "educator"
 
     def public(self) -> dict[str, Any]:
-        return {"id": self.id, "username": self.username, "role": self.role, "full_name": self.full_name,
-                "email": self.email, "disabled": self.disabled, "must_change": self.must_change,
-                "created": self.created, "last_login": self.last_login}
+        return {
+            "id": self.id,
+            "username": self.username,
+            "role": self.role,
+            "full_name": self.full_name,
+            "email": self.email,
+            "disabled": self.disabled,
+            "must_change": self.must_change,
+            "created": self.created,
+            "last_login": self.last_login,
+        }
 
 
 @dataclass(frozen=True)
@@ -116,8 +124,17 @@ _USER_COLUMNS = "id, username, role, full_name, email, disabled, must_change, cr
 
 
 def _user(r: tuple[Any, ...]) -> User:
-    return User(id=r[0], username=r[1], role=r[2], full_name=r[3], email=r[4], disabled=bool(r[5]),
-                must_change=bool(r[6]), created=r[7], last_login=r[8])
+    return User(
+        id=r[0],
+        username=r[1],
+        role=r[2],
+        full_name=r[3],
+        email=r[4],
+        disabled=bool(r[5]),
+        must_change=bool(r[6]),
+        created=r[7],
+        last_login=r[8],
+    )
 
 
 def token_hash(token: str) -> str:
@@ -142,7 +159,9 @@ def check_password_rules(password: str, username: str = "") -> None:
 def check_username(username: str) -> str:
     username = (username or "").strip().lower()
     if not USERNAME_RE.match(username):
-        raise AccountError(f"username {username!r}: 2-32 characters a-z, 0-9, '.', '_', '-', starting with a letter or digit")
+        raise AccountError(
+            f"username {username!r}: 2-32 characters a-z, 0-9, '.', '_', '-', starting with a letter or digit"
+        )
     return username
 
 
@@ -179,15 +198,23 @@ class Accounts:
         return _user(r) if r else None
 
     def by_name(self, username: str) -> User | None:
-        r = self._db.execute(f"SELECT {_USER_COLUMNS} FROM users WHERE username=?",
-                             ((username or "").strip().lower(),)).fetchone()
+        r = self._db.execute(
+            f"SELECT {_USER_COLUMNS} FROM users WHERE username=?", ((username or "").strip().lower(),)
+        ).fetchone()
         return _user(r) if r else None
 
     def list(self) -> list[User]:
         return [_user(r) for r in self._db.execute(f"SELECT {_USER_COLUMNS} FROM users ORDER BY role, username")]
 
-    def create(self, username: str, role: str, password: str | None = None, full_name: str = "", email: str = "",
-               must_change: bool = True) -> tuple[User, str]:
+    def create(
+        self,
+        username: str,
+        role: str,
+        password: str | None = None,
+        full_name: str = "",
+        email: str = "",
+        must_change: bool = True,
+    ) -> tuple[User, str]:
         """A new account; returns it and its password (generated when not given: a one-time one)."""
         username = check_username(username)
         role = check_role(role)
@@ -265,8 +292,9 @@ class Accounts:
             if self.get(user_id) is None:
                 raise AccountError(f"no user {user_id}", 404)
             if values:
-                self._db.execute(f"UPDATE users SET {', '.join(k + '=?' for k in values)} WHERE id=?",
-                                 (*values.values(), user_id))
+                self._db.execute(
+                    f"UPDATE users SET {', '.join(k + '=?' for k in values)} WHERE id=?", (*values.values(), user_id)
+                )
             if values.get("disabled") or "role" in values:
                 self.revoke(user_id)
         user = self.get(user_id)
@@ -284,16 +312,18 @@ class Accounts:
             check_password_rules(password, user.username)
         pw_hash = _hasher.hash(password)
         with self._lock:
-            self._db.execute("UPDATE users SET password_hash=?, must_change=? WHERE id=?",
-                             (pw_hash, int(must_change), user_id))
+            self._db.execute(
+                "UPDATE users SET password_hash=?, must_change=? WHERE id=?", (pw_hash, int(must_change), user_id)
+            )
             self.revoke(user_id)
         return password
 
     def verify(self, username: str, password: str) -> User | None:
         """The user when the password is right and the account enabled; None otherwise. Slow
         (argon2): call it from a thread."""
-        r = self._db.execute("SELECT id, password_hash FROM users WHERE username=?",
-                             ((username or "").strip().lower(),)).fetchone()
+        r = self._db.execute(
+            "SELECT id, password_hash FROM users WHERE username=?", ((username or "").strip().lower(),)
+        ).fetchone()
         stored = r[1] if r else _DUMMY_HASH
         try:
             _hasher.verify(stored, password or "")
@@ -315,13 +345,32 @@ class Accounts:
     def export_hashed(self) -> list[dict[str, Any]]:
         """Every account with its password hash: what the room sends its enrolled benches (argon2id
         hashes only; a bench checks a password exactly as the room would)."""
-        rows = self._db.execute("SELECT username, role, full_name, email, password_hash, disabled, must_change "
-                                "FROM users ORDER BY username").fetchall()
-        return [{"username": r[0], "role": r[1], "full_name": r[2], "email": r[3], "password_hash": r[4],
-                 "disabled": bool(r[5]), "must_change": bool(r[6])} for r in rows]
+        rows = self._db.execute(
+            "SELECT username, role, full_name, email, password_hash, disabled, must_change FROM users ORDER BY username"
+        ).fetchall()
+        return [
+            {
+                "username": r[0],
+                "role": r[1],
+                "full_name": r[2],
+                "email": r[3],
+                "password_hash": r[4],
+                "disabled": bool(r[5]),
+                "must_change": bool(r[6]),
+            }
+            for r in rows
+        ]
 
-    def put_hashed(self, username: str, role: str, password_hash: str, full_name: str = "", email: str = "",
-                   disabled: bool = False, must_change: bool = False) -> tuple[User, bool]:
+    def put_hashed(
+        self,
+        username: str,
+        role: str,
+        password_hash: str,
+        full_name: str = "",
+        email: str = "",
+        disabled: bool = False,
+        must_change: bool = False,
+    ) -> tuple[User, bool]:
         """Create or update an account from a hash made elsewhere (the room). Returns the user and
         whether its sessions and token were ended (new password, disabled, other role)."""
         username, role = check_username(username), check_role(role)
@@ -329,19 +378,23 @@ class Accounts:
             raise AccountError(f"{username}: not an argon2 hash")
         full_name, email = _text(full_name, "full name", 200), _text(email, "email", 200)
         with self._lock:
-            r = self._db.execute("SELECT id, role, password_hash, disabled FROM users WHERE username=?",
-                                 (username,)).fetchone()
+            r = self._db.execute(
+                "SELECT id, role, password_hash, disabled FROM users WHERE username=?", (username,)
+            ).fetchone()
             if r is None:
-                self._db.execute("INSERT INTO users (username, full_name, email, role, password_hash, disabled, "
-                                 "must_change, created) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-                                 (username, full_name, email, role, password_hash, int(disabled), int(must_change),
-                                  time.time()))
+                self._db.execute(
+                    "INSERT INTO users (username, full_name, email, role, password_hash, disabled, "
+                    "must_change, created) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                    (username, full_name, email, role, password_hash, int(disabled), int(must_change), time.time()),
+                )
                 revoked = False
             else:
                 revoked = r[1] != role or r[2] != password_hash or (bool(disabled) and not r[3])
-                self._db.execute("UPDATE users SET full_name=?, email=?, role=?, password_hash=?, disabled=?, "
-                                 "must_change=? WHERE id=?", (full_name, email, role, password_hash, int(disabled),
-                                                             int(must_change), r[0]))
+                self._db.execute(
+                    "UPDATE users SET full_name=?, email=?, role=?, password_hash=?, disabled=?, "
+                    "must_change=? WHERE id=?",
+                    (full_name, email, role, password_hash, int(disabled), int(must_change), r[0]),
+                )
                 if revoked:
                     self.revoke(r[0])
         user = self.by_name(username)
@@ -364,7 +417,9 @@ class Accounts:
                 (token_hash(token), user.id, csrf, now, now, now + self.session_max_s, address[:100]),
             )
             self._db.execute("UPDATE users SET last_login=? WHERE id=?", (now, user.id))
-            self._db.execute("DELETE FROM sessions WHERE expires < ? OR last_seen < ?", (now, now - self.session_idle_s))
+            self._db.execute(
+                "DELETE FROM sessions WHERE expires < ? OR last_seen < ?", (now, now - self.session_idle_s)
+            )
         return token, csrf
 
     def session(self, token: str) -> Session | None:
@@ -373,7 +428,9 @@ class Accounts:
         if not token or len(token) > 200:
             return None
         h = token_hash(token)
-        r = self._db.execute("SELECT user_id, csrf, last_seen, expires FROM sessions WHERE token_hash=?", (h,)).fetchone()
+        r = self._db.execute(
+            "SELECT user_id, csrf, last_seen, expires FROM sessions WHERE token_hash=?", (h,)
+        ).fetchone()
         if r is None:
             return None
         user_id, csrf, last_seen, expires = r
@@ -402,8 +459,10 @@ class Accounts:
         token = "xrf_" + secrets.token_urlsafe(32)
         with self._lock:
             self._db.execute("DELETE FROM api_tokens WHERE user_id=?", (user.id,))
-            self._db.execute("INSERT INTO api_tokens (token_hash, user_id, created) VALUES (?, ?, ?)",
-                             (token_hash(token), user.id, time.time()))
+            self._db.execute(
+                "INSERT INTO api_tokens (token_hash, user_id, created) VALUES (?, ?, ?)",
+                (token_hash(token), user.id, time.time()),
+            )
         return token
 
     def api_token_user(self, token: str) -> User | None:
@@ -481,7 +540,7 @@ class RateLimiter:
         fails.append(now)
         if len(fails) >= self.limit:
             strikes = self._strikes.get(key, 0)
-            self._locked[key] = now + min(self.max_lock_s, self.lock_s * 2 ** strikes)
+            self._locked[key] = now + min(self.max_lock_s, self.lock_s * 2**strikes)
             self._strikes[key] = strikes + 1
             fails = []
         self._fails[key] = fails
@@ -523,8 +582,15 @@ class LoginGuard:
 
     KNOWN_PER_ACCOUNT = 32  # addresses remembered per account (most recent successes)
 
-    def __init__(self, per_client: int = 5, per_address: int = 20, per_account: int = 50, window_s: float = 60.0,
-                 lock_s: float = 60.0, max_lock_s: float = 900.0) -> None:
+    def __init__(
+        self,
+        per_client: int = 5,
+        per_address: int = 20,
+        per_account: int = 50,
+        window_s: float = 60.0,
+        lock_s: float = 60.0,
+        max_lock_s: float = 900.0,
+    ) -> None:
         self.client = RateLimiter(per_client, window_s, lock_s, max_lock_s)
         self.address = RateLimiter(per_address, window_s, lock_s, max_lock_s)
         self.account = RateLimiter(per_account, window_s, lock_s, max_lock_s)

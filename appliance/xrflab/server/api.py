@@ -47,8 +47,10 @@ class BuildInfo(BaseModel):
     status: Literal["not built", "building", "ready", "failed"]
     error: str = ""
     label: str = Field(default="", description="project builds: '<project name> #<build id>'")
-    project_id: int | None = Field(default=None, description="project builds: start them with "
-                                   "POST /api/projects/{project_id}/builds/{build_id}/run")
+    project_id: int | None = Field(
+        default=None,
+        description="project builds: start them with POST /api/projects/{project_id}/builds/{build_id}/run",
+    )
     build_id: int | None = None
 
 
@@ -56,8 +58,11 @@ class StartRun(BaseModel):
     build: str = Field(description="a name from GET /api/builds")
     sim: PlantName | None = Field(default=None, description="override the build's plant (GET /api/plants)")
     max_cycles: int | None = Field(default=None, ge=1, description="leave the loop after N cycles")
-    log_timing: bool = Field(default=False, description="also log every cycle's framework timing (wake-up "
-                             "jitter, stage durations, misses) into cycle_timing.xrf, a log of the run")
+    log_timing: bool = Field(
+        default=False,
+        description="also log every cycle's framework timing (wake-up "
+        "jitter, stage durations, misses) into cycle_timing.xrf, a log of the run",
+    )
 
 
 class ApplianceStatus(BaseModel):
@@ -106,8 +111,12 @@ async def get_plants() -> list[dict[str, Any]]:
 async def get_status(request: Request) -> dict[str, Any]:
     sup = _supervisor(request)
     run = sup.current
-    return {"clients": sup.hub.clients, "published": sup.hub.published,
-            "run_active": bool(run and run.alive), "run_id": run.row.id if run else None}
+    return {
+        "clients": sup.hub.clients,
+        "published": sup.hub.published,
+        "run_active": bool(run and run.alive),
+        "run_id": run.row.id if run else None,
+    }
 
 
 @router.get("/state-machine", response_model=StateMachine, dependencies=[requires(Perm.WATCH)])
@@ -149,12 +158,28 @@ async def _own_project_builds(request: Request) -> list[dict[str, Any]]:
     def newest() -> list[dict[str, Any]]:
         found = []
         for p in svc.store.projects(owner=user.username):
-            b = next((b for b in svc.store.builds(p.id, limit=20)
-                      if b.status == "ok" and b.executable and Path(b.executable).exists()), None)
+            b = next(
+                (
+                    b
+                    for b in svc.store.builds(p.id, limit=20)
+                    if b.status == "ok" and b.executable and Path(b.executable).exists()
+                ),
+                None,
+            )
             if b is not None:
-                found.append({"name": f"project-{p.id}-build-{b.id}", "kind": "project", "path": "",
-                              "sim": svc.settings.sim, "status": "ready", "error": "",
-                              "label": f"{p.name} #{b.id}", "project_id": p.id, "build_id": b.id})
+                found.append(
+                    {
+                        "name": f"project-{p.id}-build-{b.id}",
+                        "kind": "project",
+                        "path": "",
+                        "sim": svc.settings.sim,
+                        "status": "ready",
+                        "error": "",
+                        "label": f"{p.name} #{b.id}",
+                        "project_id": p.id,
+                        "build_id": b.id,
+                    }
+                )
         return found
 
     return await asyncio.to_thread(newest)
@@ -170,8 +195,9 @@ async def start_run(body: StartRun, request: Request, user: User = Depends(curre
         raise
     try:
         # The one start-a-run service (run_start.py): lease bookkeeping and audit as every route
-        row = await run_start.start_run(request, user, run_start.RunRequest(
-            body.build, body.sim, body.max_cycles, body.log_timing))
+        row = await run_start.start_run(
+            request, user, run_start.RunRequest(body.build, body.sim, body.max_cycles, body.log_timing)
+        )
     except SupervisorError as exc:
         raise _http(exc) from None
     return row.as_dict()
@@ -206,8 +232,9 @@ async def command(body: CommandRequest, request: Request, user: User = Depends(c
         check(request, Perm.DRIVE)
     try:
         result = await _supervisor(request).command(body.cmd)
-        audit.record(user, "command", {"cmd": name, "accepted": result.accepted, "via": "http"},
-                     client_address(request))
+        audit.record(
+            user, "command", {"cmd": name, "accepted": result.accepted, "via": "http"}, client_address(request)
+        )
         _zero_setpoints_after_reset(_supervisor(request), name, result.accepted)
     except SupervisorError as exc:
         raise _http(exc) from None
@@ -215,8 +242,13 @@ async def command(body: CommandRequest, request: Request, user: User = Depends(c
         raise HTTPException(status_code=422, detail=str(exc)) from None
     except chmod.ChannelsError as exc:
         raise HTTPException(status_code=503, detail=str(exc)) from None
-    return {"ticket": result.ticket, "accepted": result.accepted, "state": result.state,
-            "state_name": result.state_name, "reason": result.reason}
+    return {
+        "ticket": result.ticket,
+        "accepted": result.accepted,
+        "state": result.state,
+        "state_name": result.state_name,
+        "reason": result.reason,
+    }
 
 
 def _zero_setpoints_after_reset(sup: Supervisor, name: str, accepted: bool) -> None:
@@ -228,8 +260,10 @@ def _zero_setpoints_after_reset(sup: Supervisor, name: str, accepted: bool) -> N
     run = sup.current
     if run is None or not run.setpoint:
         return
-    zeros = {k: (False if isinstance(v, bool) else [0 for _ in v] if isinstance(v, list) else 0)
-             for k, v in run.setpoint.items()}
+    zeros = {
+        k: (False if isinstance(v, bool) else [0 for _ in v] if isinstance(v, list) else 0)
+        for k, v in run.setpoint.items()
+    }
     with contextlib.suppress(SupervisorError, ValueError, chmod.ChannelsError):
         sup.setpoint(zeros)
 
@@ -351,8 +385,10 @@ async def _handle(text: str, client: Client, sup: Supervisor) -> None:
     ref = msg.get("id")  # echoed so a client can match replies to requests
     perm = WS_PERMS.get(kind)
     if perm is None:
-        client.reply("error", {"id": ref, "request": kind,
-                               "error": f"unknown message type {kind!r}; types: {', '.join(WS_PERMS)}"})
+        client.reply(
+            "error",
+            {"id": ref, "request": kind, "error": f"unknown message type {kind!r}; types: {', '.join(WS_PERMS)}"},
+        )
         return
     try:
         user = _ws_authorize(client.ws, client, perm)
@@ -365,11 +401,22 @@ async def _handle(text: str, client: Client, sup: Supervisor) -> None:
             if name not in SAFE_COMMANDS:
                 user = _ws_authorize(client.ws, client, Perm.DRIVE)
             result = await sup.command(cmd)
-            audit.record(user, "command", {"cmd": name, "accepted": result.accepted, "via": "ws"},
-                         client_address(client.ws))
+            audit.record(
+                user, "command", {"cmd": name, "accepted": result.accepted, "via": "ws"}, client_address(client.ws)
+            )
             _zero_setpoints_after_reset(sup, name, result.accepted)
-            client.reply("ack", {"id": ref, "cmd": cmd, "ticket": result.ticket, "accepted": result.accepted,
-                                 "state": result.state, "name": result.state_name, "reason": result.reason})
+            client.reply(
+                "ack",
+                {
+                    "id": ref,
+                    "cmd": cmd,
+                    "ticket": result.ticket,
+                    "accepted": result.accepted,
+                    "state": result.state,
+                    "name": result.state_name,
+                    "reason": result.reason,
+                },
+            )
         elif isinstance(incoming, messages.SetpointRequest):
             merged = sup.setpoint(dict(incoming.fields))
             client.reply("ack", {"id": ref, "setpoint": merged})

@@ -11,31 +11,31 @@ from fastapi import FastAPI, Request, Response
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
-
 from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
+from ..room.bench import attach as attach_room
+from ..room.bench import router as room_bench_router
+from ..viz.scene import VizService
+from .api import router, ws_router
 from .auth import Perm, Security, SecurityHeaders, optional_user, requires
 from .body_limit import BodyLimit
-from .routes_accounts import router as accounts_router
-
-from .api import router, ws_router
-from .routes_projects import router as projects_router
-from .routes_editor import CODEMIRROR_DIR, router as editor_router
 from .hub import Hub
+from .ros_supervisor import RosBridgeSupervisor
+from .routes_accounts import router as accounts_router
+from .routes_editor import CODEMIRROR_DIR
+from .routes_editor import router as editor_router
 from .routes_logs import router as logs_router
+from .routes_projects import router as projects_router
 from .routes_rerun import router as rerun_router
+from .routes_ros import router as ros_router
 from .routes_selfcheck import router as selfcheck_router
 from .routes_system import router as system_router
-from .routes_viz import router as viz_router
 from .routes_viser import router as viser_router
-from .routes_ros import router as ros_router
-from .ros_supervisor import RosBridgeSupervisor
+from .routes_viz import router as viz_router
 from .run_logging import HostLogging
 from .runs import RunStore
 from .settings import Settings
 from .supervisor import Supervisor
-from ..viz.scene import VizService
-from ..room.bench import attach as attach_room, router as room_bench_router
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -96,7 +96,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version="0.1.0",
         lifespan=lifespan,
         # The schema and its browser are behind the login like everything else (routes below).
-        openapi_url=None, docs_url=None, redoc_url=None,
+        openapi_url=None,
+        docs_url=None,
+        redoc_url=None,
     )
     app.state.settings = settings
     security = Security(settings)
@@ -117,6 +119,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.get("/docs", include_in_schema=False, dependencies=[requires(Perm.WATCH)])
     async def api_docs() -> HTMLResponse:
         return get_swagger_ui_html(openapi_url="/openapi.json", title="XRF Lab API")
+
     app.include_router(router)
     app.include_router(ws_router)
     app.include_router(projects_router)
@@ -135,8 +138,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # The editor's CodeMirror from the system package (libjs-codemirror, installed by ./lab and
         # deploy/install): served from here, so a student's browser fetches nothing from outside.
         # Mounted before /static, which would answer for this prefix too.
-        app.mount("/static/vendor/codemirror", StaticFiles(directory=CODEMIRROR_DIR, check_dir=False),
-                  name="codemirror")
+        app.mount(
+            "/static/vendor/codemirror", StaticFiles(directory=CODEMIRROR_DIR, check_dir=False), name="codemirror"
+        )
         app.mount("/static", StaticFiles(directory=frontend), name="static")
 
         # PUBLIC so that it can answer a logged-out browser with the login page (a 303): the

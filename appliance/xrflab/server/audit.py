@@ -56,12 +56,26 @@ class AuditLog:
             detail = {"detail": detail}
         self._db.execute(
             "INSERT INTO audit (t, user_id, username, role, action, detail, address) VALUES (?, ?, ?, ?, ?, ?, ?)",
-            (time.time(), user.id if user else None, user.username if user else "", user.role if user else "",
-             action[:100], json.dumps(detail, default=str, separators=(",", ":"))[:20000], address[:100]),
+            (
+                time.time(),
+                user.id if user else None,
+                user.username if user else "",
+                user.role if user else "",
+                action[:100],
+                json.dumps(detail, default=str, separators=(",", ":"))[:20000],
+                address[:100],
+            ),
         )
 
-    def query(self, username: str | None = None, action: str | None = None, since: float | None = None,
-              until: float | None = None, limit: int = 500, offset: int = 0) -> list[dict[str, Any]]:
+    def query(
+        self,
+        username: str | None = None,
+        action: str | None = None,
+        since: float | None = None,
+        until: float | None = None,
+        limit: int = 500,
+        offset: int = 0,
+    ) -> list[dict[str, Any]]:
         where, args = [], []
         if username:
             where.append("username = ?")

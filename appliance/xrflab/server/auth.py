@@ -19,8 +19,8 @@ from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit
 
 from fastapi import Depends, HTTPException
-from starlette.requests import HTTPConnection
 from starlette.exceptions import WebSocketException
+from starlette.requests import HTTPConnection
 
 from .accounts import Accounts, LoginGuard, User
 
@@ -40,14 +40,14 @@ SAFE_COMMANDS = frozenset({"stop", "pause"})
 
 
 class Perm(str, Enum):
-    PUBLIC = "public"        # reachable without a login: the login page, health
-    SELF = "self"            # any logged-in user, even one who must still change the password: me, logout
-    WATCH = "watch"          # observer and up: state, telemetry, runs list, own logs
-    STOP = "stop"            # student and up, without the lease: stop/pause whatever runs (safety)
-    LEASE = "lease"          # student and up: take, queue for and release the bench lease
-    DRIVE = "drive"          # commands, setpoints, starting/ending runs: the lease holder (educators always)
-    PROJECTS = "projects"    # student and up: own projects, uploads, builds, own runs' logs
-    EDUCATOR = "educator"    # users, self-check, bench profiles, audit, take-over, any project
+    PUBLIC = "public"  # reachable without a login: the login page, health
+    SELF = "self"  # any logged-in user, even one who must still change the password: me, logout
+    WATCH = "watch"  # observer and up: state, telemetry, runs list, own logs
+    STOP = "stop"  # student and up, without the lease: stop/pause whatever runs (safety)
+    LEASE = "lease"  # student and up: take, queue for and release the bench lease
+    DRIVE = "drive"  # commands, setpoints, starting/ending runs: the lease holder (educators always)
+    PROJECTS = "projects"  # student and up: own projects, uploads, builds, own runs' logs
+    EDUCATOR = "educator"  # users, self-check, bench profiles, audit, take-over, any project
 
 
 ROLE_PERMS: dict[str, frozenset[Perm]] = {
@@ -66,9 +66,13 @@ class Security:
         self.lease: Lease | None = None
         self.audit: AuditLog | None = None
         self.hub: Any = None
-        self.login_guard = LoginGuard(settings.login_max_failures, settings.login_max_failures_address,
-                                      settings.login_max_failures_account, settings.login_window_s,
-                                      settings.login_lock_s)
+        self.login_guard = LoginGuard(
+            settings.login_max_failures,
+            settings.login_max_failures_address,
+            settings.login_max_failures_account,
+            settings.login_window_s,
+            settings.login_lock_s,
+        )
         # argon2 is memory-hard on purpose: at most this many checks at once (a login rush on a Pi).
         self.hash_slots = asyncio.Semaphore(4)
 
@@ -225,6 +229,7 @@ def requires_grpc_web(perm: Perm) -> Any:
     every cookie POST), a gRPC-web content type (no HTML form can send it, and a cross-site
     fetch with it needs a CORS preflight, which the appliance never grants) and the
     SameSite=Strict session cookie. Use it only for calls that change nothing."""
+
     async def dependency(conn: HTTPConnection) -> None:
         check(conn, perm, grpc_web=True)
 
@@ -301,8 +306,11 @@ class SecurityHeaders:
     """ASGI middleware: nosniff, no framing by other sites, no Referer to other sites. (Pure ASGI,
     not BaseHTTPMiddleware: streamed responses and the WebSocket pass through untouched.)"""
 
-    HEADERS = [(b"x-content-type-options", b"nosniff"), (b"x-frame-options", b"SAMEORIGIN"),
-               (b"referrer-policy", b"same-origin")]
+    HEADERS = [
+        (b"x-content-type-options", b"nosniff"),
+        (b"x-frame-options", b"SAMEORIGIN"),
+        (b"referrer-policy", b"same-origin"),
+    ]
 
     def __init__(self, app: Any) -> None:
         self.app = app

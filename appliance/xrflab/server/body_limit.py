@@ -84,14 +84,14 @@ class BodyLimit:
             body = message.get("body", b"")
             total += len(body)
             if total > limit:
-                await _refuse(send, 413, f"the request body is over {_size(limit)}; at most {_size(limit)} is "
-                                         "accepted here")
+                await _refuse(
+                    send, 413, f"the request body is over {_size(limit)}; at most {_size(limit)} is accepted here"
+                )
                 return
             chunks.append(body)
             if not message.get("more_body", False):
                 break
         await self.app(scope, _replay(b"".join(chunks), receive), send)
-
 
     async def _stream(self, scope: Scope, receive: Receive, send: Send, limit: int) -> None:
         started = False
@@ -151,14 +151,23 @@ def _counting(receive: Receive, limit: int) -> Receive:
 async def _refuse(send: Send, status: int, detail: str) -> None:
     body = json.dumps({"detail": detail}).encode()
     # Connection: close, so the server does not wait for (or read) the rest of the body.
-    await send({"type": "http.response.start", "status": status,
-                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-                            (b"connection", b"close")]})
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": [
+                (b"content-type", b"application/json"),
+                (b"content-length", str(len(body)).encode()),
+                (b"connection", b"close"),
+            ],
+        }
+    )
     await send({"type": "http.response.body", "body": body})
 
 
-async def spool_to_file(request: Request, folder: Path, limit: int, *, prefix: str = "upload-",
-                        too_large: Any = None) -> Path:
+async def spool_to_file(
+    request: Request, folder: Path, limit: int, *, prefix: str = "upload-", too_large: Any = None
+) -> Path:
     """A route's streamed body (an archive upload) into a private temp file in `folder`, refused
     with 413 (`too_large` as its detail, else "over N MB") the moment it passes `limit` bytes;
     the partial file is removed on any failure. The caller owns the returned file."""

@@ -77,8 +77,14 @@ class Child:
         self.popen.kill()
 
 
-def spawn(argv: Sequence[str], *, pass_fds: Sequence[int] = (), tied: bool = True,
-          death_signal: int = signal.SIGTERM, **popen: Any) -> Child:
+def spawn(
+    argv: Sequence[str],
+    *,
+    pass_fds: Sequence[int] = (),
+    tied: bool = True,
+    death_signal: int = signal.SIGTERM,
+    **popen: Any,
+) -> Child:
     """``subprocess.Popen(argv, close_fds=True, pass_fds=pass_fds, **popen)`` as a `Child`
     (call it on the event loop's thread). `tied`: it dies with the appliance (`popen_tied`); only
     the run sandbox's launcher is not. Raises OSError like Popen (missing executable, ...)."""

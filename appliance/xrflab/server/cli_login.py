@@ -21,7 +21,9 @@ HELP = "log in to an appliance and keep an API token for the CLI (~/.config/xrf-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from .. import credentials
 
-    p.add_argument("--url", default=None, help=f"the appliance (default: the last one, $XRF_URL or {credentials.DEFAULT_URL})")
+    p.add_argument(
+        "--url", default=None, help=f"the appliance (default: the last one, $XRF_URL or {credentials.DEFAULT_URL})"
+    )
     p.add_argument("--user", default=None, help="username (default: asked, suggesting $USER)")
     p.add_argument("--password-stdin", action="store_true", help="read the password from stdin (scripts)")
     p.add_argument("--forget", action="store_true", help="revoke the stored token on the appliance and delete it")

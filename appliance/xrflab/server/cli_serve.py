@@ -22,38 +22,69 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from .. import plants
     from .settings import default_data_dir
 
-    parser.add_argument("--sim", type=plants.arg_type, default="relbot", metavar="PLANT",
-                        help="simulated plant of rt_core's plant table: relbot (default), jiwy, ...")
+    parser.add_argument(
+        "--sim",
+        type=plants.arg_type,
+        default="relbot",
+        metavar="PLANT",
+        help="simulated plant of rt_core's plant table: relbot (default), jiwy, ...",
+    )
     parser.add_argument("--data", type=Path, default=None, help=f"data folder (default {default_data_dir()})")
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0 for the lab network)")
     parser.add_argument("--port", type=int, default=8000)
     parser.add_argument("--telemetry-hz", type=float, default=30.0, help="telemetry rate to browsers (default 30)")
     parser.add_argument("--hang-ms", type=int, default=200, help="no loop cycle for this long = hung (default 200)")
-    parser.add_argument("--allow-origin", action="append", default=[], metavar="URL",
-                        help="another origin allowed to use the API/WebSocket with a login cookie, e.g. "
-                             "https://lab.example.edu (repeatable; the page's own address always is)")
-    parser.add_argument("--lease-idle-min", type=float, default=10.0,
-                        help="release the bench lease after this many minutes without driving (default 10)")
-    parser.add_argument("--ros-bridge", action="store_true", default=None,
-                        help="start the ROS 2 bridge with every loop run (also $XRF_ROS_BRIDGE=1; "
-                             "educators can switch it on the dashboard's ROS 2 page)")
-    parser.add_argument("--trusted-proxy", action="append", default=[], metavar="ADDR",
-                        help="address (or network, e.g. 10.0.0.0/24) of a reverse proxy in front of the appliance "
-                             "whose X-Forwarded-For/-Proto are believed (repeatable; default none: the headers "
-                             "are ignored)")
-    parser.add_argument("--ros-bridge-user", default="", metavar="NAME",
-                        help="the user whose bench lease ROS 2 commands obey (default: who started the run)")
-    parser.add_argument("--allow-unconfined", action="store_true", default=False,
-                        help="let runs start when a protection layer of the run sandbox cannot be had (no "
-                             "subordinate uid, no user namespaces, ...): the controller then runs WITHOUT that "
-                             "layer and the dashboard says so on every page (default: such runs are refused; "
-                             "also $XRF_ALLOW_UNCONFINED=1; `xrf doctor` lists the layers)")
+    parser.add_argument(
+        "--allow-origin",
+        action="append",
+        default=[],
+        metavar="URL",
+        help="another origin allowed to use the API/WebSocket with a login cookie, e.g. "
+        "https://lab.example.edu (repeatable; the page's own address always is)",
+    )
+    parser.add_argument(
+        "--lease-idle-min",
+        type=float,
+        default=10.0,
+        help="release the bench lease after this many minutes without driving (default 10)",
+    )
+    parser.add_argument(
+        "--ros-bridge",
+        action="store_true",
+        default=None,
+        help="start the ROS 2 bridge with every loop run (also $XRF_ROS_BRIDGE=1; "
+        "educators can switch it on the dashboard's ROS 2 page)",
+    )
+    parser.add_argument(
+        "--trusted-proxy",
+        action="append",
+        default=[],
+        metavar="ADDR",
+        help="address (or network, e.g. 10.0.0.0/24) of a reverse proxy in front of the appliance "
+        "whose X-Forwarded-For/-Proto are believed (repeatable; default none: the headers "
+        "are ignored)",
+    )
+    parser.add_argument(
+        "--ros-bridge-user",
+        default="",
+        metavar="NAME",
+        help="the user whose bench lease ROS 2 commands obey (default: who started the run)",
+    )
+    parser.add_argument(
+        "--allow-unconfined",
+        action="store_true",
+        default=False,
+        help="let runs start when a protection layer of the run sandbox cannot be had (no "
+        "subordinate uid, no user namespaces, ...): the controller then runs WITHOUT that "
+        "layer and the dashboard says so on every page (default: such runs are refused; "
+        "also $XRF_ALLOW_UNCONFINED=1; `xrf doctor` lists the layers)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
-    from .app import create_app
     import os
 
+    from .app import create_app
     from .settings import SYSTEM_DATA_DIR, Settings, default_data_dir
 
     settings = Settings(
@@ -75,12 +106,18 @@ def run(args: argparse.Namespace) -> int:
     bench = "real ico board" if settings.bench_is_real() else f"simulated {settings.sim}"
     print(f"XRF Lab: {bench} bench, data in {settings.data_dir}", flush=True)
     if args.data is None and os.geteuid() == 0:
-        print(f"XRF Lab: running as root: the data folder is {SYSTEM_DATA_DIR}, as on the Pi (builds run as "
-              "xrf-build and controllers as xrf-run; they may pass through it, never list it); --data chooses "
-              "another", flush=True)
+        print(
+            f"XRF Lab: running as root: the data folder is {SYSTEM_DATA_DIR}, as on the Pi (builds run as "
+            "xrf-build and controllers as xrf-run; they may pass through it, never list it); --data chooses "
+            "another",
+            flush=True,
+        )
     if settings.allow_unconfined:
-        print("XRF Lab: --allow-unconfined: runs start even when a protection layer of the run sandbox is "
-              "missing (the dashboard then says which)", flush=True)
+        print(
+            "XRF Lab: --allow-unconfined: runs start even when a protection layer of the run sandbox is "
+            "missing (the dashboard then says which)",
+            flush=True,
+        )
     print(f"XRF Lab: open http://{shown}:{args.port}/ in a browser", flush=True)
     serve(create_app(settings), settings)
     return 0

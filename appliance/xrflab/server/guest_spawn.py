@@ -39,13 +39,13 @@ def dropped_for_a_test() -> str:
 
 @dataclass(frozen=True)
 class GuestLimits:
-    memory_mb: int = 1024     # RLIMIT_AS of the controller (the loop itself needs ~60 MB)
-    nproc: int = 64           # RLIMIT_NPROC: threads and processes of the loop user
-    nofile: int = 256         # RLIMIT_NOFILE
-    fsize_mb: int = 512       # RLIMIT_FSIZE: largest file the controller may write
-    run_dir_mb: int = 2048    # the whole run folder; the supervisor stops the run beyond this
-    tmp_mb: int = 64          # its private /tmp and /var/tmp (tmpfs, counted as its memory)
-    memlock_mb: int = 512     # RLIMIT_MEMLOCK granted for mlockall (root mode)
+    memory_mb: int = 1024  # RLIMIT_AS of the controller (the loop itself needs ~60 MB)
+    nproc: int = 64  # RLIMIT_NPROC: threads and processes of the loop user
+    nofile: int = 256  # RLIMIT_NOFILE
+    fsize_mb: int = 512  # RLIMIT_FSIZE: largest file the controller may write
+    run_dir_mb: int = 2048  # the whole run folder; the supervisor stops the run beyond this
+    tmp_mb: int = 64  # its private /tmp and /var/tmp (tmpfs, counted as its memory)
+    memlock_mb: int = 512  # RLIMIT_MEMLOCK granted for mlockall (root mode)
 
 
 @dataclass
@@ -63,8 +63,13 @@ class GuestReport:
         return {k: v for k, v in self.layers.items() if v}
 
     def as_dict(self) -> dict[str, Any]:
-        return {"mode": self.mode, "layers": self.layers, "missing": self.missing, "notes": self.notes,
-                "confined": not self.missing and self.mode != "none"}
+        return {
+            "mode": self.mode,
+            "layers": self.layers,
+            "missing": self.missing,
+            "notes": self.notes,
+            "confined": not self.missing and self.mode != "none",
+        }
 
 
 def _sub_ranges(path: str, user: pwd.struct_passwd) -> list[tuple[int, int]]:
@@ -112,11 +117,25 @@ def identity(run_user: str = RUN_USER) -> Identity:
     su, sg = _sub_range("/etc/subuid", me), _sub_range("/etc/subgid", me)
     tools = shutil.which("newuidmap") and shutil.which("newgidmap")
     if su and sg and tools:
-        return Identity("userns", su[0], sg[0], f"controllers run as subordinate uid {su[0]} of {me.pw_name} "
-                        "(user namespace)", su[0], sg[0])
-    why = "no newuidmap (Debian package uidmap)" if not tools else f"no /etc/subuid and /etc/subgid range for {me.pw_name}"
-    return Identity("userns", os.getuid(), os.getgid(), f"controllers keep uid {os.getuid()} ({why}), in a user "
-                    "namespace without capabilities")
+        return Identity(
+            "userns",
+            su[0],
+            sg[0],
+            f"controllers run as subordinate uid {su[0]} of {me.pw_name} (user namespace)",
+            su[0],
+            sg[0],
+        )
+    why = (
+        "no newuidmap (Debian package uidmap)"
+        if not tools
+        else f"no /etc/subuid and /etc/subgid range for {me.pw_name}"
+    )
+    return Identity(
+        "userns",
+        os.getuid(),
+        os.getgid(),
+        f"controllers keep uid {os.getuid()} ({why}), in a user namespace without capabilities",
+    )
 
 
 class GuestSpawner:
@@ -179,26 +198,50 @@ class GuestSpawner:
             else:
                 os.chmod(d, 0o700)  # the loop is our uid
 
-    def config(self, exe: Path, run_dir: Path, shm_dir: Path, env: dict[str, str], read_only: list[Path],
-               report_fd: int) -> dict[str, Any]:
+    def config(
+        self, exe: Path, run_dir: Path, shm_dir: Path, env: dict[str, str], read_only: list[Path], report_fd: int
+    ) -> dict[str, Any]:
         ident = self.identity
         prio = env.get("XRF_PRIO") or DEFAULT_PRIORITY
         lim = self.limits
         return {
-            "mode": ident.mode, "uid": ident.uid, "gid": ident.gid, "sub_uid": ident.sub_uid, "sub_gid": ident.sub_gid,
-            "device_gids": self.device_gids(), "devices": self.devices(),
-            "exe": str(exe), "run_dir": str(run_dir), "shm_dir": str(shm_dir),
-            "read_only": [str(p) for p in read_only], "env": env, "report_fd": report_fd,
-            "priority": max(1, int(prio)), "memory_mb": lim.memory_mb, "nproc": lim.nproc, "nofile": lim.nofile,
-            "fsize_mb": lim.fsize_mb, "tmp_mb": lim.tmp_mb, "memlock_mb": lim.memlock_mb,
+            "mode": ident.mode,
+            "uid": ident.uid,
+            "gid": ident.gid,
+            "sub_uid": ident.sub_uid,
+            "sub_gid": ident.sub_gid,
+            "device_gids": self.device_gids(),
+            "devices": self.devices(),
+            "exe": str(exe),
+            "run_dir": str(run_dir),
+            "shm_dir": str(shm_dir),
+            "read_only": [str(p) for p in read_only],
+            "env": env,
+            "report_fd": report_fd,
+            "priority": max(1, int(prio)),
+            "memory_mb": lim.memory_mb,
+            "nproc": lim.nproc,
+            "nofile": lim.nofile,
+            "fsize_mb": lim.fsize_mb,
+            "tmp_mb": lim.tmp_mb,
+            "memlock_mb": lim.memlock_mb,
             "allow_missing": bool(getattr(self.settings, "allow_unconfined", False)),
             # TEST ONLY: layers the launcher reports missing ("skipped for a test"), for the tests of
             # the dashboard's "runs WITHOUT" banner. Never set on a bench.
             **({"test_drop": dropped_for_a_test()} if dropped_for_a_test() else {}),
         }
 
-    async def spawn(self, exe: Path, run_dir: Path, shm_dir: Path, env: dict[str, str], read_only: list[Path],
-                    output: Any, tag: str = "", timeout_s: float = 10.0) -> tuple[children.Child, GuestReport]:
+    async def spawn(
+        self,
+        exe: Path,
+        run_dir: Path,
+        shm_dir: Path,
+        env: dict[str, str],
+        read_only: list[Path],
+        output: Any,
+        tag: str = "",
+        timeout_s: float = 10.0,
+    ) -> tuple[children.Child, GuestReport]:
         """Start the launcher; return it and its report once the controller exec'd (or was refused:
         the process has then exited with guest.REFUSED_EXIT and ``report.error`` says why)."""
         bad = sorted(set(env) - guest.ENV_ALLOWED)
@@ -209,14 +252,21 @@ class GuestSpawner:
             cfg = self.config(exe, run_dir, shm_dir, env, read_only, w)
             # The launcher's own environment: XRF_RUN_DIR identifies the run (the orphan reaper checks
             # /proc/<launcher>/environ before signalling a launcher left by an earlier appliance).
-            launcher_env = {"PATH": "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin",
-                            "LANG": "C.UTF-8", "XRF_SHM": tag,
-                            "XRF_RUN_DIR": str(run_dir)}
+            launcher_env = {
+                "PATH": "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin",
+                "LANG": "C.UTF-8",
+                "XRF_SHM": tag,
+                "XRF_RUN_DIR": str(run_dir),
+            }
             # children.spawn: fds 0-2 and the report pipe only (uvloop's subprocess would pass on
             # every inheritable descriptor of ours to the launcher).
             proc = children.spawn(
                 launcher_argv(cfg),
-                pass_fds=(w,), cwd="/", env=launcher_env, stdin=subprocess.DEVNULL, stdout=output,
+                pass_fds=(w,),
+                cwd="/",
+                env=launcher_env,
+                stdin=subprocess.DEVNULL,
+                stdout=output,
                 stderr=subprocess.STDOUT,
                 # Own session: a Ctrl-C on the appliance's terminal reaches the appliance only,
                 # which then stops the run in order (quit, signals).
@@ -236,9 +286,13 @@ class GuestSpawner:
         except (ValueError, IndexError):
             data = {}
         if data:
-            report = GuestReport(mode=data.get("mode", "none"), layers=data.get("layers", {}),
-                                 notes=data.get("notes", []), error=data.get("error", ""),
-                                 pid=int(data.get("pid", 0)))
+            report = GuestReport(
+                mode=data.get("mode", "none"),
+                layers=data.get("layers", {}),
+                notes=data.get("notes", []),
+                error=data.get("error", ""),
+                pid=int(data.get("pid", 0)),
+            )
         else:
             report.error = "the sandbox launcher ended without a report (see the run's output)"
         return proc, report
@@ -246,8 +300,10 @@ class GuestSpawner:
 
 def launcher_argv(cfg: dict[str, Any]) -> list[str]:
     """The launcher's command line: our Python without site packages (it needs none)."""
-    boot = (f"import sys; sys.path.insert(0, {str(APPLIANCE_DIR)!r}); from xrflab.guest import main; "
-            "sys.exit(main(sys.argv[1:]))")
+    boot = (
+        f"import sys; sys.path.insert(0, {str(APPLIANCE_DIR)!r}); from xrflab.guest import main; "
+        "sys.exit(main(sys.argv[1:]))"
+    )
     return [sys.executable, "-S", "-B", "-c", boot, json.dumps(cfg)]
 
 
@@ -273,8 +329,7 @@ def probe(settings: Any) -> GuestReport:
                 spawner.prepare_dirs(run_dir, shm_dir)
                 true = shutil.which("true") or "/bin/true"
                 with open(os.devnull, "wb") as out:
-                    proc, report = await spawner.spawn(Path(true), run_dir, shm_dir, {"PATH": "/usr/bin:/bin"}, [],
-                                                       out)
+                    proc, report = await spawner.spawn(Path(true), run_dir, shm_dir, {"PATH": "/usr/bin:/bin"}, [], out)
                 await proc.wait()
                 return report
             finally:

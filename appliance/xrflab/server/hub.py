@@ -235,8 +235,14 @@ class Hub:
             logging.getLogger(__name__).exception("hub scope failed for %s; educators only", message_type)
             return _FAIL_CLOSED
 
-    def _fan_out(self, message_type: str, payload: dict[str, Any], clients: Iterable[Client],
-                 topics: bool = True, audience: Scoped | None = None) -> None:
+    def _fan_out(
+        self,
+        message_type: str,
+        payload: dict[str, Any],
+        clients: Iterable[Client],
+        topics: bool = True,
+        audience: Scoped | None = None,
+    ) -> None:
         """Each client gets the full message or the public one; each is encoded at most once.
         `audience`: given by the publisher (publish_to_owner), else the scope rule decides."""
         scoped = audience if audience is not None else self._scope(message_type, payload)

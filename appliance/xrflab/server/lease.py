@@ -54,8 +54,12 @@ class Lease(RunObserver):
 
     name = "bench lease"
 
-    def __init__(self, idle_s: float, publish: Callable[[str, dict[str, Any]], None],
-                 record: Callable[[User | None, str, dict[str, Any]], None]) -> None:
+    def __init__(
+        self,
+        idle_s: float,
+        publish: Callable[[str, dict[str, Any]], None],
+        record: Callable[[User | None, str, dict[str, Any]], None],
+    ) -> None:
         self.idle_s = idle_s
         self._publish = publish
         self._record = record

@@ -100,8 +100,7 @@ class RunLifecycle:
             try:
                 obs.on_samples(run, samples)
             except Exception:
-                log.exception("run %s: observer %s failed on samples; it gets none any more",
-                              run.row.id, obs.name)
+                log.exception("run %s: observer %s failed on samples; it gets none any more", run.row.id, obs.name)
                 self._no_samples.add(id(obs))
 
     async def exited(self, run: Run) -> None:

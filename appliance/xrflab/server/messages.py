@@ -19,10 +19,20 @@ fields (a client may tag a request with its own data; ``id`` is echoed back).
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, StrictStr, TypeAdapter
-from pydantic import ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictFloat,
+    StrictInt,
+    StrictStr,
+    TypeAdapter,
+    ValidationError,
+    model_validator,
+)
 
 from .hub import TOPICS
 
@@ -80,8 +90,9 @@ class RunMessage(_Out):
 
     type: Literal["run"]
     event: Literal["current", "started", "ended"]
-    run: dict[str, Any] | None = Field(description="the run record (RunRecord in /openapi.json); "
-                                       "null before the first run")
+    run: dict[str, Any] | None = Field(
+        description="the run record (RunRecord in /openapi.json); null before the first run"
+    )
     active: bool
     redacted: bool | None = Field(default=None, description="true: someone else's run, owner's fields blank")
     program: str | None = None
@@ -281,8 +292,19 @@ class ErrorMessage(_Out):
 
 
 SERVER: tuple[type[BaseModel], ...] = (
-    StateMessage, RunMessage, TelemetryMessage, TimingMessage, MonitorMessage, AlarmMessage, BuildMessage,
-    LeaseMessage, SelfcheckMessage, RosMessage, AckMessage, PongMessage, ErrorMessage,
+    StateMessage,
+    RunMessage,
+    TelemetryMessage,
+    TimingMessage,
+    MonitorMessage,
+    AlarmMessage,
+    BuildMessage,
+    LeaseMessage,
+    SelfcheckMessage,
+    RosMessage,
+    AckMessage,
+    PongMessage,
+    ErrorMessage,
 )
 
 
@@ -316,15 +338,16 @@ class CommandRequest(_In):
         return data
 
 
-Scalar = Union[StrictBool, StrictInt, StrictFloat]
+Scalar = StrictBool | StrictInt | StrictFloat
 
 
 class SetpointRequest(_In):
     """New Ros2Xeno values (DRIVE); fields not named keep their value. Answered by `ack`."""
 
     type: Literal["setpoint"]
-    fields: dict[str, Scalar | list[Scalar]] = Field(min_length=1, description="Ros2Xeno field -> number, "
-                                                     "bool or list (an array field)")
+    fields: dict[str, Scalar | list[Scalar]] = Field(
+        min_length=1, description="Ros2Xeno field -> number, bool or list (an array field)"
+    )
 
     @model_validator(mode="before")
     @classmethod
@@ -373,8 +396,9 @@ def kind_of(model: type[BaseModel]) -> str:
 SERVER_KINDS: dict[str, type[BaseModel]] = {kind_of(m): m for m in SERVER}
 CLIENT_KINDS: dict[str, type[BaseModel]] = {kind_of(m): m for m in CLIENT}
 
-IncomingMessage = Annotated[Union[CommandRequest, SetpointRequest, SubscribeRequest, PingRequest],
-                            Field(discriminator="type")]
+IncomingMessage = Annotated[
+    CommandRequest | SetpointRequest | SubscribeRequest | PingRequest, Field(discriminator="type")
+]
 
 
 class BadMessage(ValueError):
@@ -401,7 +425,7 @@ def parse_incoming(kind: str, msg: dict[str, Any]) -> BaseModel:
 
 
 def _union(models: tuple[type[BaseModel], ...]) -> Any:
-    return Annotated[Union[models], Field(discriminator="type")]  # type: ignore[valid-type]
+    return Annotated[models, Field(discriminator="type")]  # type: ignore[valid-type]
 
 
 def ws_schema() -> dict[str, Any]:

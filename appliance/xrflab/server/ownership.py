@@ -49,8 +49,9 @@ def not_found(what: str, ident: Any) -> HTTPException:
     return HTTPException(404, f"no {what} {ident}")
 
 
-def require(user: User | None, row: T | None, owner: Callable[[T], Any], what: str, ident: Any,
-            detail: str | None = None) -> T:
+def require(
+    user: User | None, row: T | None, owner: Callable[[T], Any], what: str, ident: Any, detail: str | None = None
+) -> T:
     """`row` if it exists and `user` may see it; else the missing-resource 404 (`detail`: the
     route's own words for a missing one, when it has them)."""
     if row is None or not may_see(user, owner(row)):
@@ -126,13 +127,31 @@ async def check_startable(conn: HTTPConnection, name: str) -> None:
 
 # Telemetry fields everyone may see: the robot's motion and the loop's clock. xeno2ros (the
 # controller's own outputs, named by the student) is the owner's.
-PUBLIC_TELEMETRY = frozenset({"run_id", "cycle", "t_ns", "t", "state", "enc", "din", "pwm", "dout", "lost",
-                              "ros2xeno_t_sent_ns"})
+PUBLIC_TELEMETRY = frozenset(
+    {"run_id", "cycle", "t_ns", "t", "state", "enc", "din", "pwm", "dout", "lost", "ros2xeno_t_sent_ns"}
+)
 # Run record fields everyone may see; the rest (build, program, owner, run_dir, shm, pid,
 # message) are blanked, not removed, so clients read one shape.
-PUBLIC_RUN = frozenset({"id", "sim", "started", "ended", "status", "crashed", "crash_reason", "exit_code",
-                        "exit_signal", "state", "cycles", "misses", "cycle_freq", "log_records", "log_lost",
-                        "log_note"})
+PUBLIC_RUN = frozenset(
+    {
+        "id",
+        "sim",
+        "started",
+        "ended",
+        "status",
+        "crashed",
+        "crash_reason",
+        "exit_code",
+        "exit_signal",
+        "state",
+        "cycles",
+        "misses",
+        "cycle_freq",
+        "log_records",
+        "log_lost",
+        "log_note",
+    }
+)
 # confinement: which protection layers of the run sandbox hold is the bench's, for everyone in
 # the room (the dashboard's "runs WITHOUT" banner); it names layers, nothing of the student's.
 PUBLIC_RUN_MESSAGE = frozenset({"event", "active", "cycle_freq", "backend", "transport", "confinement"})
@@ -146,8 +165,10 @@ def scope(topic: str, payload: dict[str, Any], owner_of_run: Callable[[Any], str
     """Whose a published message is and what everyone else receives instead (None: nothing).
     None as the result: the message is the bench's, for everyone who subscribed."""
     if topic == "telemetry":
-        return Scoped(owner_of_run(payload.get("run_id")),
-                      {k: v for k, v in payload.items() if k in PUBLIC_TELEMETRY} | {"xeno2ros": {}})
+        return Scoped(
+            owner_of_run(payload.get("run_id")),
+            {k: v for k, v in payload.items() if k in PUBLIC_TELEMETRY} | {"xeno2ros": {}},
+        )
     if topic == "monitor":
         return Scoped(owner_of_run(payload.get("run_id")), None)
     if topic == "run":

@@ -207,8 +207,20 @@ class RosBridgeSupervisor(RunObserver):
     # -- one run's bridge ---------------------------------------------------------------------
 
     def _argv(self, bp: BridgeProc) -> list[str]:
-        return [sys.executable, "-m", "xrflab.cli", "ros-bridge", "--shm", bp.run.shm, "--user", bp.user,
-                "--priority", str(self.priority), "--gate-url", f"unix:{self.socket_path}"]
+        return [
+            sys.executable,
+            "-m",
+            "xrflab.cli",
+            "ros-bridge",
+            "--shm",
+            bp.run.shm,
+            "--user",
+            bp.user,
+            "--priority",
+            str(self.priority),
+            "--gate-url",
+            f"unix:{self.socket_path}",
+        ]
 
     async def _spawn(self, bp: BridgeProc) -> Child:
         bp.token = secrets.token_urlsafe(32)
@@ -220,14 +232,22 @@ class RosBridgeSupervisor(RunObserver):
         env.pop("XRF_BOOTSTRAP_ADMIN_PASSWORD", None)
         out_path = Path(bp.run.run_dir) / "ros-bridge.txt"
         with open(out_path, "ab") as out:
-            out.write(f"--- {time.strftime('%Y-%m-%d %H:%M:%S')} xrf ros-bridge for user '{bp.user}' "
-                      f"({self.sched_note})\n".encode())
+            out.write(
+                f"--- {time.strftime('%Y-%m-%d %H:%M:%S')} xrf ros-bridge for user '{bp.user}' "
+                f"({self.sched_note})\n".encode()
+            )
             out.flush()
             # children.spawn, not asyncio's: under uvloop that would hand the bridge every
             # descriptor of the appliance that is not close-on-exec.
             return spawn(
-                self._argv(bp), env=env, cwd=bp.run.run_dir, stdin=subprocess.DEVNULL,
-                stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+                self._argv(bp),
+                env=env,
+                cwd=bp.run.run_dir,
+                stdin=subprocess.DEVNULL,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
 
     async def _keep(self, bp: BridgeProc) -> None:
         backoff = BACKOFF_FIRST_S
@@ -332,8 +352,9 @@ class RosBridgeSupervisor(RunObserver):
                     break
                 try:
                     req = json.loads(line)
-                    allowed, reason = self.decide(str(req.get("token", "")), str(req.get("user", "")),
-                                                  int(req.get("cmd")))
+                    allowed, reason = self.decide(
+                        str(req.get("token", "")), str(req.get("user", "")), int(req.get("cmd"))
+                    )
                 except (ValueError, TypeError, AttributeError) as exc:
                     allowed, reason = False, f"bad gate request: {exc}"
                 writer.write(json.dumps({"allowed": allowed, "reason": reason}).encode() + b"\n")
@@ -354,8 +375,9 @@ class RosBridgeSupervisor(RunObserver):
             return False, f"this bridge acts for '{bp.user}', not '{user_name}'"
         name = _command_name(cmd)
         allowed, reason, user = self._rule(bp.user, cmd, name, SAFE_COMMANDS, Perm, may)
-        audit.record(user, "command", {"cmd": name, "via": "ros", "allowed": allowed, "reason": reason,
-                                       "run": bp.run.row.id})
+        audit.record(
+            user, "command", {"cmd": name, "via": "ros", "allowed": allowed, "reason": reason, "run": bp.run.row.id}
+        )
         return allowed, reason
 
     def _rule(self, user_name: str, cmd: int, name: str, safe: Any, perm: Any, may: Any) -> tuple[bool, str, Any]:

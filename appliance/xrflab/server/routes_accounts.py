@@ -12,8 +12,7 @@ from starlette.concurrency import run_in_threadpool
 
 from . import audit
 from .accounts import MAX_PASSWORD, AccountError, User
-from .auth import (CSRF_COOKIE, ROLE_PERMS, SESSION_COOKIE, Perm, Security, client_address, current_user,
-                   requires)
+from .auth import CSRF_COOKIE, ROLE_PERMS, SESSION_COOKIE, Perm, Security, client_address, current_user, requires
 from .lease import LeaseError
 
 router = APIRouter()
@@ -71,8 +70,9 @@ class NewUser(BaseModel):
     role: Role
     full_name: str = Field(default="", max_length=200)
     email: str = Field(default="", max_length=200)
-    password: str | None = Field(default=None, max_length=MAX_PASSWORD,
-                                 description="leave out for a generated one-time password")
+    password: str | None = Field(
+        default=None, max_length=MAX_PASSWORD, description="leave out for a generated one-time password"
+    )
     must_change: bool = True
 
 
@@ -147,9 +147,18 @@ def _accounts(request: Request):  # type: ignore[no-untyped-def]
 
 
 def _me(user: User, csrf: str) -> dict[str, Any]:
-    perms = sorted(p.value for p in ROLE_PERMS[user.role] if not (user.must_change and p not in (Perm.PUBLIC, Perm.SELF)))
-    return {"id": user.id, "username": user.username, "role": user.role, "full_name": user.full_name,
-            "must_change": user.must_change, "csrf": csrf, "perms": perms}
+    perms = sorted(
+        p.value for p in ROLE_PERMS[user.role] if not (user.must_change and p not in (Perm.PUBLIC, Perm.SELF))
+    )
+    return {
+        "id": user.id,
+        "username": user.username,
+        "role": user.role,
+        "full_name": user.full_name,
+        "must_change": user.must_change,
+        "csrf": csrf,
+        "perms": perms,
+    }
 
 
 def _account_error(exc: AccountError) -> HTTPException:
@@ -166,8 +175,9 @@ async def _authenticate(request: Request, username: str, password: str) -> User:
     wait = sec.login_guard.retry_after(name, address, device)
     if wait > 0:
         audit.record(None, "auth.locked", {"username": username[:64]}, address)
-        raise HTTPException(429, f"too many failed logins; try again in {int(wait) + 1} s",
-                            headers={"Retry-After": str(int(wait) + 1)})
+        raise HTTPException(
+            429, f"too many failed logins; try again in {int(wait) + 1} s", headers={"Retry-After": str(int(wait) + 1)}
+        )
     async with sec.hash_slots:
         user = await run_in_threadpool(accounts.verify, username, password)
     if user is None:
@@ -180,12 +190,12 @@ async def _authenticate(request: Request, username: str, password: str) -> User:
 
 def _set_cookies(request: Request, response: Response, token: str, csrf: str, max_age: int) -> None:
     secure = request.url.scheme == "https"
-    response.set_cookie(SESSION_COOKIE, token, max_age=max_age, path="/", httponly=True, samesite="strict",
-                        secure=secure)
+    response.set_cookie(
+        SESSION_COOKIE, token, max_age=max_age, path="/", httponly=True, samesite="strict", secure=secure
+    )
     # Readable by the page (double submit: the page copies it into X-CSRF-Token); it is also
     # bound to the session on the server, so a cookie planted by someone else is useless.
-    response.set_cookie(CSRF_COOKIE, csrf, max_age=max_age, path="/", httponly=False, samesite="strict",
-                        secure=secure)
+    response.set_cookie(CSRF_COOKIE, csrf, max_age=max_age, path="/", httponly=False, samesite="strict", secure=secure)
 
 
 # ---- pages and health ---------------------------------------------------------------------------
@@ -207,16 +217,27 @@ async def health() -> dict[str, Any]:
 # ---- login, sessions, tokens --------------------------------------------------------------------
 
 
-@router.post("/api/auth/login", response_model=Me, dependencies=[requires(Perm.PUBLIC)],
-             responses={401: {"description": "wrong username or password"}, 429: {"description": "rate limited"}})
+@router.post(
+    "/api/auth/login",
+    response_model=Me,
+    dependencies=[requires(Perm.PUBLIC)],
+    responses={401: {"description": "wrong username or password"}, 429: {"description": "rate limited"}},
+)
 async def login(body: Credentials, request: Request, response: Response) -> dict[str, Any]:
     user = await _authenticate(request, body.username, body.password)
     accounts = _accounts(request)
     token, csrf = accounts.new_session(user, client_address(request))
     _set_cookies(request, response, token, csrf, int(accounts.session_max_s))
     # This browser now knows the password: its later logins are counted apart (LoginGuard).
-    response.set_cookie(DEVICE_COOKIE, accounts.new_device_cookie(user), max_age=DEVICE_COOKIE_MAX_AGE,
-                        path="/api/auth", httponly=True, samesite="strict", secure=request.url.scheme == "https")
+    response.set_cookie(
+        DEVICE_COOKIE,
+        accounts.new_device_cookie(user),
+        max_age=DEVICE_COOKIE_MAX_AGE,
+        path="/api/auth",
+        httponly=True,
+        samesite="strict",
+        secure=request.url.scheme == "https",
+    )
     audit.record(user, "auth.login", {"via": "password"}, client_address(request))
     return _me(user, csrf)
 
@@ -238,8 +259,12 @@ async def me(request: Request, user: User = Depends(current_user)) -> dict[str, 
     return _me(user, _sec(request).resolve(request)[2])
 
 
-@router.post("/api/auth/password", status_code=204, dependencies=[requires(Perm.SELF)],
-             responses={401: {"description": "wrong current password"}, 422: {"description": "new password refused"}})
+@router.post(
+    "/api/auth/password",
+    status_code=204,
+    dependencies=[requires(Perm.SELF)],
+    responses={401: {"description": "wrong current password"}, 422: {"description": "new password refused"}},
+)
 async def change_password(body: PasswordChange, request: Request, user: User = Depends(current_user)) -> Response:
     await _authenticate(request, user.username, body.current)
     accounts = _accounts(request)
@@ -258,8 +283,12 @@ async def change_password(body: PasswordChange, request: Request, user: User = D
     return response
 
 
-@router.post("/api/auth/token", response_model=ApiToken, dependencies=[requires(Perm.PUBLIC)],
-             responses={401: {"description": "wrong username or password"}, 429: {"description": "rate limited"}})
+@router.post(
+    "/api/auth/token",
+    response_model=ApiToken,
+    dependencies=[requires(Perm.PUBLIC)],
+    responses={401: {"description": "wrong username or password"}, 429: {"description": "rate limited"}},
+)
 async def api_token(body: Credentials, request: Request) -> dict[str, Any]:
     """An API token for the CLI (`xrf login`); replaces the user's previous one."""
     user = await _authenticate(request, body.username, body.password)
@@ -289,8 +318,14 @@ async def list_users(request: Request) -> list[dict[str, Any]]:
 async def create_user(body: NewUser, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
     try:
         created, password = await run_in_threadpool(
-            _accounts(request).create, body.username, body.role, body.password, body.full_name, body.email,
-            body.must_change)
+            _accounts(request).create,
+            body.username,
+            body.role,
+            body.password,
+            body.full_name,
+            body.email,
+            body.must_change,
+        )
     except AccountError as exc:
         raise _account_error(exc) from None
     audit.record(user, "user.create", {"user": created.username, "role": created.role}, client_address(request))
@@ -309,8 +344,9 @@ async def import_users(body: ClassList, request: Request, user: User = Depends(c
     created = []
     for r in rows:
         try:
-            u, password = await run_in_threadpool(accounts.create, r["username"], r["role"], None, r["full_name"],
-                                                  r["email"])
+            u, password = await run_in_threadpool(
+                accounts.create, r["username"], r["role"], None, r["full_name"], r["email"]
+            )
         except AccountError as exc:  # taken since parsing (a concurrent create): say so, keep the rest
             raise HTTPException(409, f"{r['username']}: {exc}; {len(created)} accounts were created before") from None
         created.append({"user": u.public(), "password": password})
@@ -321,13 +357,19 @@ async def import_users(body: ClassList, request: Request, user: User = Depends(c
 def _guard_last_educator(request: Request, target: User, change: UserChange) -> None:
     accounts = _accounts(request)
     demoted = change.role is not None and change.role != "educator"
-    if target.is_educator and not target.disabled and (change.disabled or demoted) and accounts.educators_enabled() <= 1:
+    if (
+        target.is_educator
+        and not target.disabled
+        and (change.disabled or demoted)
+        and accounts.educators_enabled() <= 1
+    ):
         raise HTTPException(409, "this is the last enabled educator account")
 
 
 @router.patch("/api/users/{user_id}", response_model=UserInfo, dependencies=[requires(Perm.EDUCATOR)])
-async def change_user(user_id: int, body: UserChange, request: Request,
-                      user: User = Depends(current_user)) -> dict[str, Any]:
+async def change_user(
+    user_id: int, body: UserChange, request: Request, user: User = Depends(current_user)
+) -> dict[str, Any]:
     accounts = _accounts(request)
     target = accounts.get(user_id)
     if target is None:
@@ -344,8 +386,9 @@ async def change_user(user_id: int, body: UserChange, request: Request,
         _sec(request).disconnect(user_id)
         if lease is not None:
             lease.forget(user_id, "account disabled" if changed.disabled else "role changed")
-    audit.record(user, "user.update", {"user": changed.username, **body.model_dump(exclude_none=True)},
-                 client_address(request))
+    audit.record(
+        user, "user.update", {"user": changed.username, **body.model_dump(exclude_none=True)}, client_address(request)
+    )
     return changed.public()
 
 
@@ -395,15 +438,29 @@ for _path, _method, _doc in (
     ("queue", "enqueue", "Wait for the bench; taken at once when it is free."),
     ("leave", "leave_queue", "Leave the queue."),
 ):
-    router.add_api_route(f"/api/lease/{_path}", _lease_action(_method), methods=["POST"], response_model=LeaseState,
-                         dependencies=[requires(Perm.LEASE)], description=_doc, name=f"lease_{_path}")
+    router.add_api_route(
+        f"/api/lease/{_path}",
+        _lease_action(_method),
+        methods=["POST"],
+        response_model=LeaseState,
+        dependencies=[requires(Perm.LEASE)],
+        description=_doc,
+        name=f"lease_{_path}",
+    )
 
 
 # ---- audit (educators) --------------------------------------------------------------------------
 
 
-def _audit_rows(request: Request, username: str | None, action: str | None, since: float | None,
-                until: float | None, limit: int, offset: int) -> list[dict[str, Any]]:
+def _audit_rows(
+    request: Request,
+    username: str | None,
+    action: str | None,
+    since: float | None,
+    until: float | None,
+    limit: int,
+    offset: int,
+) -> list[dict[str, Any]]:
     log = _sec(request).audit
     if log is None:
         raise HTTPException(503, "the appliance is starting")
@@ -411,20 +468,31 @@ def _audit_rows(request: Request, username: str | None, action: str | None, sinc
 
 
 @router.get("/api/audit", response_model=list[AuditEntry], dependencies=[requires(Perm.EDUCATOR)])
-async def get_audit(request: Request, username: str | None = Query(None, max_length=64),
-                    action: str | None = Query(None, max_length=100, description="an action or its prefix: lease, run, user.create"),
-                    since: float | None = Query(None, description="Unix time"),
-                    until: float | None = Query(None, description="Unix time"),
-                    limit: int = Query(200, ge=1, le=10000), offset: int = Query(0, ge=0, le=10**9)) -> list[dict[str, Any]]:
+async def get_audit(
+    request: Request,
+    username: str | None = Query(None, max_length=64),
+    action: str | None = Query(None, max_length=100, description="an action or its prefix: lease, run, user.create"),
+    since: float | None = Query(None, description="Unix time"),
+    until: float | None = Query(None, description="Unix time"),
+    limit: int = Query(200, ge=1, le=10000),
+    offset: int = Query(0, ge=0, le=10**9),
+) -> list[dict[str, Any]]:
     return _audit_rows(request, username, action, since, until, limit, offset)
 
 
 @router.get("/api/audit.csv", response_class=PlainTextResponse, dependencies=[requires(Perm.EDUCATOR)])
-async def export_audit(request: Request, username: str | None = Query(None, max_length=64),
-                       action: str | None = Query(None, max_length=100),
-                       since: float | None = None, until: float | None = None,
-                       limit: int = Query(100000, ge=1, le=1000000)) -> PlainTextResponse:
+async def export_audit(
+    request: Request,
+    username: str | None = Query(None, max_length=64),
+    action: str | None = Query(None, max_length=100),
+    since: float | None = None,
+    until: float | None = None,
+    limit: int = Query(100000, ge=1, le=1000000),
+) -> PlainTextResponse:
     rows = _audit_rows(request, username, action, since, until, limit, 0)
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    return PlainTextResponse(_sec(request).audit.to_csv(rows), media_type="text/csv",  # type: ignore[union-attr]
-                             headers={"Content-Disposition": f'attachment; filename="xrf-audit-{stamp}.csv"'})
+    return PlainTextResponse(
+        _sec(request).audit.to_csv(rows),
+        media_type="text/csv",  # type: ignore[union-attr]
+        headers={"Content-Disposition": f'attachment; filename="xrf-audit-{stamp}.csv"'},
+    )

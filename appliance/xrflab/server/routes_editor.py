@@ -41,6 +41,7 @@ SNIFF_BYTES = 8192
 
 # ---- models ---------------------------------------------------------------------------------------
 
+
 class FileInfo(BaseModel):
     path: str
     size: int
@@ -96,6 +97,7 @@ class Diff(BaseModel):
 
 # ---- helpers --------------------------------------------------------------------------------------
 
+
 def _author(request: Request) -> str:
     return str(_user(request).username)
 
@@ -106,8 +108,11 @@ def _checked(path: str, svc: ProjectsService) -> str:
     except archive.ArchiveRejected as exc:
         raise HTTPException(400, f"{path[:200]}: {exc.message}") from None
     if rel.split("/", 1)[0] in archive.SKIPPED_DIRS:
-        raise HTTPException(400, f"{rel}: {rel.split('/', 1)[0]}/ is left out of projects (builds and tools "
-                                 "write there); put the file elsewhere")
+        raise HTTPException(
+            400,
+            f"{rel}: {rel.split('/', 1)[0]}/ is left out of projects (builds and tools "
+            "write there); put the file elsewhere",
+        )
     return rel
 
 
@@ -161,8 +166,11 @@ async def _body(request: Request, limit: int, rel: str) -> bytes:
     async for chunk in request.stream():
         total += len(chunk)
         if total > limit:
-            raise HTTPException(413, f"{rel}: over {limit >> 20} MB; files this large are not edited in the "
-                                     "browser (upload the project instead)")
+            raise HTTPException(
+                413,
+                f"{rel}: over {limit >> 20} MB; files this large are not edited in the "
+                "browser (upload the project instead)",
+            )
         chunks.append(chunk)
     return b"".join(chunks)
 
@@ -173,13 +181,17 @@ def _conflict(svc: ProjectsService, project: ProjectRow, current: VersionRow, ba
         return
     old = svc.store.version(project.id, base)
     if old is None or old.files.get(rel) != current.files.get(rel):
-        raise HTTPException(409, {"error": f"{rel} changed since version {base} (now version {current.n}): "
-                                           "reload it, or save again to overwrite it with your text",
-                                  "current_version": current.n})
+        raise HTTPException(
+            409,
+            {
+                "error": f"{rel} changed since version {base} (now version {current.n}): "
+                "reload it, or save again to overwrite it with your text",
+                "current_version": current.n,
+            },
+        )
 
 
-def _write_working_copy(src: Path, rel: str, data: bytes | None, limits: archive.Limits,
-                        current: VersionRow) -> None:
+def _write_working_copy(src: Path, rel: str, data: bytes | None, limits: archive.Limits, current: VersionRow) -> None:
     """``data`` into ``src/rel`` (None: delete it), atomically: a reader sees the old or the new file."""
     _no_link_below(src, rel)
     target = src / rel
@@ -214,8 +226,9 @@ def _write_working_copy(src: Path, rel: str, data: bytes | None, limits: archive
             tmp.unlink()
 
 
-def _change(svc: ProjectsService, project: ProjectRow, rel: str, data: bytes | None, base: int | None,
-            author: str) -> tuple[VersionRow, bool]:
+def _change(
+    svc: ProjectsService, project: ProjectRow, rel: str, data: bytes | None, base: int | None, author: str
+) -> tuple[VersionRow, bool]:
     """Write (or delete) one file of the working copy and record the next version, under the
     project's lock so two saves never mix."""
     src = svc.src(project)
@@ -226,8 +239,9 @@ def _change(svc: ProjectsService, project: ProjectRow, rel: str, data: bytes | N
         version, new = svc.versions.record(project, author, ("edit " if data is not None else "delete ") + rel)
         if new:
             tree = svc.versions.tree(project, version)
-            svc.store.update_project(project.id, files=len(version.files),
-                                     bytes=sum((tree / f).stat().st_size for f in version.files))
+            svc.store.update_project(
+                project.id, files=len(version.files), bytes=sum((tree / f).stat().st_size for f in version.files)
+            )
         return version, new
 
 
@@ -252,6 +266,7 @@ def _side(svc: ProjectsService, request: Request, project: ProjectRow, which: st
 
 
 # ---- routes ---------------------------------------------------------------------------------------
+
 
 @router.get("/projects/{pid}/files", response_model=FileList, dependencies=[requires(Perm.PROJECTS)])
 async def list_files(pid: int, request: Request) -> dict[str, Any]:
@@ -281,14 +296,28 @@ async def read_file(pid: int, path: str, request: Request, version: int | None =
     assert data is not None
     size = (svc.versions.tree(project, v) / rel).stat().st_size
     if size > FILE_MAX_BYTES:
-        return {"path": rel, "version": v.n, "size": size, "editable": False, "reason": f"over {FILE_MAX_BYTES >> 20} MB"}
+        return {
+            "path": rel,
+            "version": v.n,
+            "size": size,
+            "editable": False,
+            "reason": f"over {FILE_MAX_BYTES >> 20} MB",
+        }
     why = _why_not_text(data, True)
-    return {"path": rel, "version": v.n, "size": size, "editable": not why, "reason": why,
-            "content": "" if why else data.decode("utf-8")}
+    return {
+        "path": rel,
+        "version": v.n,
+        "size": size,
+        "editable": not why,
+        "reason": why,
+        "content": "" if why else data.decode("utf-8"),
+    }
 
 
 @router.put("/projects/{pid}/files/{path:path}", response_model=SaveResult, dependencies=[requires(Perm.PROJECTS)])
-async def save_file(pid: int, path: str, request: Request, base: int | None = None, build: bool = True) -> dict[str, Any]:
+async def save_file(
+    pid: int, path: str, request: Request, base: int | None = None, build: bool = True
+) -> dict[str, Any]:
     """Save one file (the request body: its UTF-8 text) as the project's next version, then queue
     its build (``build=false``: do not). ``base``: the version the text was edited from."""
     svc, project = await _project(request, pid)
@@ -334,5 +363,10 @@ async def diff_versions(pid: int, request: Request, a: str, b: str = "") -> dict
     la, fa, ra = _side(svc, request, project, a)
     lb, fb, rb = _side(svc, request, project, b or str(current.n))
     files = await asyncio.to_thread(versions_mod.diff, fa, ra, fb, rb, la, lb)
-    return {"a": la, "b": lb, "added": sum(f["added"] for f in files), "removed": sum(f["removed"] for f in files),
-            "files": files}
+    return {
+        "a": la,
+        "b": lb,
+        "added": sum(f["added"] for f in files),
+        "removed": sum(f["removed"] for f in files),
+        "files": files,
+    }

@@ -41,8 +41,8 @@ from .runs import record_model
 router = APIRouter()
 
 LOG_SUFFIXES = (".xrf", ".bin")
-CACHE_DIR = ".cache"          # where conversions once lived in the run folder: never listed
-CACHE_ROOT = "log-cache"      # <data>/log-cache/<run id>/: conversions, out of the loop's reach
+CACHE_DIR = ".cache"  # where conversions once lived in the run folder: never listed
+CACHE_ROOT = "log-cache"  # <data>/log-cache/<run id>/: conversions, out of the loop's reach
 NOT_LOGS = ("output.txt", "timing.jsonl", "ros-bridge.txt")
 MEDIA = {
     "raw": "application/octet-stream",
@@ -70,8 +70,13 @@ def _is_log(root: Path, rel: str) -> bool:
     if path.suffix != ".bin":
         return False
     lines = head.split(b"\n", 2)
-    return (len(lines) == 3 and bool(lines[0]) and bool(lines[1])
-            and re.fullmatch(rb"[0-9 ,\r]+", lines[1]) is not None and b"\0" not in lines[0])
+    return (
+        len(lines) == 3
+        and bool(lines[0])
+        and bool(lines[1])
+        and re.fullmatch(rb"[0-9 ,\r]+", lines[1]) is not None
+        and b"\0" not in lines[0]
+    )
 
 
 def run_log_files(run_dir: str | Path) -> list[Path]:
@@ -135,7 +140,8 @@ def read_run_log(run_dir: str | Path, name: str | None = None) -> dict[str, np.n
 # The run record as the log listing shows it: runs.RunRow's fields (one definition), without
 # where the run lived (shm, pid, run folder) and its exit status, plus its duration and liveness.
 RunLogRecord = record_model(
-    "RunLogRecord", exclude=frozenset({"shm", "pid", "exit_code", "exit_signal", "run_dir"}),
+    "RunLogRecord",
+    exclude=frozenset({"shm", "pid", "exit_code", "exit_signal", "run_dir"}),
     duration_s=(float | None, Field(description="ended (or now, while live) - started")),
     live=(bool, Field(description="the run is active; counts are the loop's, live")),
 )
@@ -203,11 +209,25 @@ def _file_info(root: Path, path: Path) -> dict[str, Any]:
     try:
         log = open_run_log(root, path)
     except (OSError, LogFormatError, RunPathError) as exc:
-        return base | {"kind": "unreadable", "records": 0, "lost": 0, "segments": 0, "variables": [],
-                       "skipped": [], "skipped_bytes": 0, "error": str(exc)}
-    return base | {"kind": log.kind, "records": len(log), "lost": log.lost, "segments": len(log.segments),
-                   "variables": [{"name": v.name, "column": v.field, "type": v.type_name} for v in log.variables],
-                   "skipped": list(log.skipped), "skipped_bytes": log.skipped_bytes}
+        return base | {
+            "kind": "unreadable",
+            "records": 0,
+            "lost": 0,
+            "segments": 0,
+            "variables": [],
+            "skipped": [],
+            "skipped_bytes": 0,
+            "error": str(exc),
+        }
+    return base | {
+        "kind": log.kind,
+        "records": len(log),
+        "lost": log.lost,
+        "segments": len(log.segments),
+        "variables": [{"name": v.name, "column": v.field, "type": v.type_name} for v in log.variables],
+        "skipped": list(log.skipped),
+        "skipped_bytes": log.skipped_bytes,
+    }
 
 
 def _download_name(row: Any, path: Path, fmt: str) -> str:
@@ -261,15 +281,23 @@ def _raw_chunks(fd: int, size: int) -> Iterator[bytes]:
 # ---- runs and files -------------------------------------------------------------------------
 
 
-@router.get("/api/logs/runs", response_model=list[RunLogRecord], dependencies=[requires(Perm.WATCH)],
-            summary="runs with their logging figures (newest first)")
+@router.get(
+    "/api/logs/runs",
+    response_model=list[RunLogRecord],
+    dependencies=[requires(Perm.WATCH)],
+    summary="runs with their logging figures (newest first)",
+)
 async def list_runs(request: Request, limit: int = Query(100, ge=1, le=10000)) -> list[dict[str, Any]]:
     sup = _sup(request)
     return [_record(sup, r) for r in ownership.runs(request, limit)]  # the requester's (educators: all)
 
 
-@router.get("/api/logs/runs/{run_id}", response_model=RunLogs, dependencies=[requires(Perm.WATCH)],
-            summary="one run and its log files, with what the decoder skipped")
+@router.get(
+    "/api/logs/runs/{run_id}",
+    response_model=RunLogs,
+    dependencies=[requires(Perm.WATCH)],
+    summary="one run and its log files, with what the decoder skipped",
+)
 async def run_logs(run_id: int, request: Request) -> dict[str, Any]:
     row = _row(request, run_id)
     root = Path(row.run_dir)
@@ -281,11 +309,15 @@ async def run_logs(run_id: int, request: Request) -> dict[str, Any]:
     return {"run": _record(_sup(request), row), "files": files, "timing": (root / "timing.jsonl").is_file()}
 
 
-@router.get("/api/logs/runs/{run_id}/files/{name:path}", dependencies=[requires(Perm.WATCH)],
-            summary="download a log: raw, csv (streamed), mat, parquet or rrd",
-            response_class=Response)
-async def download(run_id: int, name: str, request: Request,
-                   fmt: Literal["raw", "csv", "mat", "parquet", "rrd"] = "raw") -> Response:
+@router.get(
+    "/api/logs/runs/{run_id}/files/{name:path}",
+    dependencies=[requires(Perm.WATCH)],
+    summary="download a log: raw, csv (streamed), mat, parquet or rrd",
+    response_class=Response,
+)
+async def download(
+    run_id: int, name: str, request: Request, fmt: Literal["raw", "csv", "mat", "parquet", "rrd"] = "raw"
+) -> Response:
     from ..logs import LogFormatError, iter_csv_chunks
 
     row = _row(request, run_id)
@@ -314,12 +346,19 @@ async def download(run_id: int, name: str, request: Request,
     return FileResponse(target, media_type=MEDIA[fmt], headers=headers)
 
 
-@router.get("/api/logs/runs/{run_id}/timing", dependencies=[requires(Perm.WATCH)],
-            summary="per-second framework timing of the run (JSON lines)", response_class=Response)
+@router.get(
+    "/api/logs/runs/{run_id}/timing",
+    dependencies=[requires(Perm.WATCH)],
+    summary="per-second framework timing of the run (JSON lines)",
+    response_class=Response,
+)
 async def timing(run_id: int, request: Request) -> Response:
     row = _row(request, run_id)
     path = Path(row.run_dir) / "timing.jsonl"
     if not path.is_file():
         raise HTTPException(404, f"run {run_id} has no timing series")
-    return FileResponse(path, media_type="application/x-ndjson",
-                        headers={"Content-Disposition": f'attachment; filename="run{run_id}_timing.jsonl"'})
+    return FileResponse(
+        path,
+        media_type="application/x-ndjson",
+        headers={"Content-Disposition": f'attachment; filename="run{run_id}_timing.jsonl"'},
+    )

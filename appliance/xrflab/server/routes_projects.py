@@ -44,6 +44,7 @@ _SKIP = set(archive.SKIPPED_DIRS)
 
 # ---- the service (one per app, made on first use) -------------------------------------------------
 
+
 class ProjectsService:
     def __init__(self, app: Any, loop: asyncio.AbstractEventLoop) -> None:
         settings = app.state.settings
@@ -67,8 +68,9 @@ class ProjectsService:
             except RuntimeError:  # loop closed: the appliance is stopping
                 pass
 
-        self.builder = Builder(self.store, self.root, publish, SandboxConfig.from_settings(settings),
-                               hide_dir=settings.data_dir)
+        self.builder = Builder(
+            self.store, self.root, publish, SandboxConfig.from_settings(settings), hide_dir=settings.data_dir
+        )
         # Every change of a project's source is a version; a build compiles a version's tree.
         self.versions = Versions(self.store, self.root)
         # What the room published (issue 21): templates of this bench's, copied to every student.
@@ -115,6 +117,7 @@ def _audit(request: Request, action: str, detail: dict[str, Any]) -> None:
 
 # ---- who ------------------------------------------------------------------------------------------
 
+
 def _user(request: Request) -> Any:
     return ownership.user_of(request)
 
@@ -138,6 +141,7 @@ async def _build(request: Request, pid: int, bid: int) -> tuple[ProjectsService,
 
 # ---- models ---------------------------------------------------------------------------------------
 
+
 class Project(BaseModel):
     id: int
     owner: str
@@ -151,7 +155,9 @@ class Project(BaseModel):
 
 
 class ProjectDetail(Project):
-    twenty_sim: dict[str, Any] | None = Field(description="step size, integration method, inputs/outputs from the tokens")
+    twenty_sim: dict[str, Any] | None = Field(
+        description="step size, integration method, inputs/outputs from the tokens"
+    )
     messages: dict[str, Any] = Field(description="Ros2Xeno / Xeno2Ros fields from msg/")
     file_list: list[str]
     builds: list[dict[str, Any]]
@@ -186,8 +192,10 @@ class UploadResult(BaseModel):
 
 
 class FromTemplate(BaseModel):
-    template: str = Field(pattern=r"^(base|20sim|assignment:[a-z0-9][a-z0-9-]{0,39})$",
-                          description="base, 20sim or assignment:<id> (one the room published)")
+    template: str = Field(
+        pattern=r"^(base|20sim|assignment:[a-z0-9][a-z0-9-]{0,39})$",
+        description="base, 20sim or assignment:<id> (one the room published)",
+    )
     name: str = Field(default="", max_length=64)
 
 
@@ -206,6 +214,7 @@ class Excerpt(BaseModel):
 
 
 # ---- helpers --------------------------------------------------------------------------------------
+
 
 def _clean_name(name: str, fallback: str = "project") -> str:
     name = re.sub(r"[^A-Za-z0-9_.+ -]", "_", name or "").strip(" ._")[:64]
@@ -237,8 +246,10 @@ def _described(src: Path) -> dict[str, Any]:
     """The 20-sim model and the message fields of the controller the source builds (for an XRF2
     workspace: its controller package, the messages from its XRF2 folder or xrf2_msgs package)."""
     located = source.locate(src)
-    return {"twenty_sim": twentysim.describe(located.project if located else src),
-            "messages": source.message_fields(src, located)}
+    return {
+        "twenty_sim": twentysim.describe(located.project if located else src),
+        "messages": source.message_fields(src, located),
+    }
 
 
 def _multipart(body: Path, boundary: bytes, out: Path) -> tuple[str, dict[str, str]]:
@@ -252,7 +263,7 @@ def _multipart(body: Path, boundary: bytes, out: Path) -> tuple[str, dict[str, s
         pos = mm.find(delim)
         while pos != -1:
             start = pos + len(delim)
-            if mm[start:start + 2] == b"--":
+            if mm[start : start + 2] == b"--":
                 break
             head_end = mm.find(b"\r\n\r\n", start)
             if head_end == -1:
@@ -269,7 +280,7 @@ def _multipart(body: Path, boundary: bytes, out: Path) -> tuple[str, dict[str, s
                 filename = fm.group(1)
                 with open(out, "wb") as o:
                     for at in range(data_start, nxt, 1 << 20):
-                        o.write(mm[at:min(at + (1 << 20), nxt)])
+                        o.write(mm[at : min(at + (1 << 20), nxt)])
             elif nm and nxt - data_start < 4096:
                 fields[nm.group(1)] = mm[data_start:nxt].decode("utf-8", "replace")
             pos = nxt + 2
@@ -281,8 +292,12 @@ def _multipart(body: Path, boundary: bytes, out: Path) -> tuple[str, dict[str, s
 async def _receive_archive(request: Request, svc: ProjectsService) -> tuple[Path, str, dict[str, str]]:
     incoming = svc.root / ".incoming"
     limit = svc.limits.max_upload + (1 << 16)
-    body = await spool_to_file(request, incoming, limit, too_large={
-        "error": f"the upload is over {limit >> 20} MB", "entry": "", "message": ""})
+    body = await spool_to_file(
+        request,
+        incoming,
+        limit,
+        too_large={"error": f"the upload is over {limit >> 20} MB", "entry": "", "message": ""},
+    )
     ctype = request.headers.get("content-type", "")
     if ctype.startswith("multipart/form-data"):
         m = re.search(r"boundary=\"?([^\";]+)\"?", ctype)
@@ -362,11 +377,13 @@ class _version_lock:
 
 
 def _download(data: bytes, name: str) -> Response:
-    return Response(data, media_type="application/zip",
-                    headers={"Content-Disposition": f'attachment; filename="{name}.zip"'})
+    return Response(
+        data, media_type="application/zip", headers={"Content-Disposition": f'attachment; filename="{name}.zip"'}
+    )
 
 
 # ---- routes ---------------------------------------------------------------------------------------
+
 
 @router.get("/projects", response_model=list[Project], dependencies=[requires(Perm.PROJECTS)])
 async def list_projects(request: Request, all: bool = False) -> list[dict[str, Any]]:
@@ -399,8 +416,14 @@ async def upload_project(request: Request, name: str = "") -> dict[str, Any]:
     project = svc.store.update_project(project.id, files=len(manifest.files), bytes=manifest.total)
     await _record(svc, project, request, "upload " + (Path(filename).name if filename else "(archive)"))
     _audit(request, "project.upload", {"project": project.id, "name": project.name, "files": len(manifest.files)})
-    return {"project": project.as_dict(), "format": manifest.format, "files": len(manifest.files),
-            "bytes": manifest.total, "stripped_folder": manifest.prefix, "skipped": manifest.skipped}
+    return {
+        "project": project.as_dict(),
+        "format": manifest.format,
+        "files": len(manifest.files),
+        "bytes": manifest.total,
+        "stripped_folder": manifest.prefix,
+        "skipped": manifest.skipped,
+    }
 
 
 @router.put("/projects/{pid}/source", response_model=UploadResult, dependencies=[requires(Perm.PROJECTS)])
@@ -412,11 +435,21 @@ async def replace_source(pid: int, request: Request) -> dict[str, Any]:
     async with _version_lock(svc, project):
         manifest = await _unpack_into(svc, archive_path, svc.folder(project))
         project = svc.store.update_project(project.id, files=len(manifest.files), bytes=manifest.total)
-        await asyncio.to_thread(svc.versions.record, project, _owner_name(_user(request)),
-                                "upload " + (Path(filename).name if filename else "(archive)"))
+        await asyncio.to_thread(
+            svc.versions.record,
+            project,
+            _owner_name(_user(request)),
+            "upload " + (Path(filename).name if filename else "(archive)"),
+        )
     _audit(request, "project.upload", {"project": project.id, "name": project.name, "files": len(manifest.files)})
-    return {"project": project.as_dict(), "format": manifest.format, "files": len(manifest.files),
-            "bytes": manifest.total, "stripped_folder": manifest.prefix, "skipped": manifest.skipped}
+    return {
+        "project": project.as_dict(),
+        "format": manifest.format,
+        "files": len(manifest.files),
+        "bytes": manifest.total,
+        "stripped_folder": manifest.prefix,
+        "skipped": manifest.skipped,
+    }
 
 
 @router.get("/project-templates", dependencies=[requires(Perm.PROJECTS)])
@@ -430,8 +463,15 @@ async def list_templates(request: Request) -> list[dict[str, Any]]:
         out.append({"name": t, "title": first})
     svc = await _service(request)
     for a in await asyncio.to_thread(svc.assignments.list):
-        out.append({"name": ORIGIN_PREFIX + a["id"], "title": a["name"], "assignment": True, "by": a.get("by", ""),
-                    "published": a.get("t")})
+        out.append(
+            {
+                "name": ORIGIN_PREFIX + a["id"],
+                "title": a["name"],
+                "assignment": True,
+                "by": a.get("by", ""),
+                "published": a.get("t"),
+            }
+        )
     return out
 
 
@@ -444,12 +484,14 @@ async def download_template(template: Literal["base", "20sim"], request: Request
 async def _from_tree(svc: ProjectsService, src_t: Path, owner: str, name: str, origin: str) -> ProjectRow:
     """A new project of `owner` whose source is a copy of the folder `src_t`, recorded as version 1."""
     token, folder = _new_folder(svc)
-    await asyncio.to_thread(shutil.copytree, src_t, folder / "src", symlinks=False,
-                            ignore=shutil.ignore_patterns(*_SKIP))
+    await asyncio.to_thread(
+        shutil.copytree, src_t, folder / "src", symlinks=False, ignore=shutil.ignore_patterns(*_SKIP)
+    )
     files = _file_list(folder / "src")
     project = svc.store.create_project(owner, name, token, origin)
-    project = svc.store.update_project(project.id, files=len(files),
-                                       bytes=sum((folder / "src" / f).stat().st_size for f in files))
+    project = svc.store.update_project(
+        project.id, files=len(files), bytes=sum((folder / "src" / f).stat().st_size for f in files)
+    )
     async with _version_lock(svc, project):
         await asyncio.to_thread(svc.versions.record, project, owner, origin)
     return project
@@ -465,8 +507,9 @@ async def _provide_assignments(svc: ProjectsService, owner: str) -> None:
         for a in await asyncio.to_thread(svc.assignments.list):
             if a["id"] in have:
                 continue
-            project = await _from_tree(svc, svc.assignments.src(a["id"]), owner, _clean_name(a["name"], a["id"]),
-                                       ORIGIN_PREFIX + a["id"])
+            project = await _from_tree(
+                svc, svc.assignments.src(a["id"]), owner, _clean_name(a["name"], a["id"]), ORIGIN_PREFIX + a["id"]
+            )
             svc.store.record_copy(a["id"], owner, project.id)
             audit.record(None, "project.create", {"project": project.id, "owner": owner, "assignment": a["id"]})
 
@@ -475,7 +518,7 @@ async def _provide_assignments(svc: ProjectsService, owner: str) -> None:
 async def new_from_template(body: FromTemplate, request: Request) -> dict[str, Any]:
     svc = await _service(request)
     if body.template.startswith(ORIGIN_PREFIX):
-        aid = body.template[len(ORIGIN_PREFIX):]
+        aid = body.template[len(ORIGIN_PREFIX) :]
         meta = svc.assignments.get(aid)
         if meta is None:
             raise HTTPException(404, f"no assignment {aid}")
@@ -492,9 +535,13 @@ async def new_from_template(body: FromTemplate, request: Request) -> dict[str, A
 async def get_project(pid: int, request: Request) -> dict[str, Any]:
     svc, project = await _project(request, pid)
     src = svc.src(project)
-    return {**project.as_dict(), **(await asyncio.to_thread(_described, src)),
-            "file_list": _file_list(src)[:2000], "builds": [_build_dict(svc, b) for b in svc.store.builds(pid, 20)],
-            "runs": svc.store.runs_of(pid)}
+    return {
+        **project.as_dict(),
+        **(await asyncio.to_thread(_described, src)),
+        "file_list": _file_list(src)[:2000],
+        "builds": [_build_dict(svc, b) for b in svc.store.builds(pid, 20)],
+        "runs": svc.store.runs_of(pid),
+    }
 
 
 @router.delete("/projects/{pid}", status_code=204, dependencies=[requires(Perm.PROJECTS)])
@@ -515,7 +562,9 @@ async def download_project(pid: int, request: Request) -> Response:
 
 
 @router.get("/projects/{pid}/source", response_model=Excerpt, dependencies=[requires(Perm.PROJECTS)])
-async def source_excerpt(pid: int, request: Request, path: str, line: int | None = None, context: int = 6) -> dict[str, Any]:
+async def source_excerpt(
+    pid: int, request: Request, path: str, line: int | None = None, context: int = 6
+) -> dict[str, Any]:
     """Lines of one file of the project (around ``line``): what a clicked compiler error shows.
     The path must stay inside the project's source folder; links are not followed."""
     svc, project = await _project(request, pid)
@@ -524,7 +573,7 @@ async def source_excerpt(pid: int, request: Request, path: str, line: int | None
         rel = archive.check_name(path, svc.limits)
     except archive.ArchiveRejected as exc:
         raise HTTPException(400, f"{path}: {exc.message}") from None
-    target = (src / rel)
+    target = src / rel
     try:
         resolved = target.resolve(strict=True)
     except OSError:
@@ -542,7 +591,7 @@ async def source_excerpt(pid: int, request: Request, path: str, line: int | None
         first, chunk = 1, lines[:2000]
     else:
         first = max(1, line - context)
-        chunk = lines[first - 1:line + context]
+        chunk = lines[first - 1 : line + context]
     return {"path": rel, "first": first, "lines": chunk, "total": len(lines), "highlight": line}
 
 
@@ -556,8 +605,9 @@ async def start_build(pid: int, request: Request) -> dict[str, Any]:
     return _build_dict(svc, row, reused)
 
 
-async def submit_version(request: Request, svc: ProjectsService, project: ProjectRow,
-                         version: VersionRow) -> tuple[BuildRow, bool]:
+async def submit_version(
+    request: Request, svc: ProjectsService, project: ProjectRow, version: VersionRow
+) -> tuple[BuildRow, bool]:
     """Queue the build of one source version (its immutable tree, so the build compiles exactly
     that source however the project is edited meanwhile); an unchanged source reuses its build."""
     row, reused = await asyncio.to_thread(svc.builder.submit, project, svc.versions.tree(project, version))
@@ -578,7 +628,9 @@ async def get_build(pid: int, bid: int, request: Request) -> dict[str, Any]:
     return _build_dict(svc, b)
 
 
-@router.get("/projects/{pid}/builds/{bid}/log", response_class=PlainTextResponse, dependencies=[requires(Perm.PROJECTS)])
+@router.get(
+    "/projects/{pid}/builds/{bid}/log", response_class=PlainTextResponse, dependencies=[requires(Perm.PROJECTS)]
+)
 async def build_log(pid: int, bid: int, request: Request) -> str:
     _, _, b = await _build(request, pid, bid)
     if not b.log_path or not Path(b.log_path).exists():
@@ -601,9 +653,13 @@ async def run_build(pid: int, bid: int, body: RunBuild, request: Request) -> dic
     try:
         # The one start-a-run service (run_start.py), as POST /api/runs: the same lease
         # bookkeeping and timing option. The run is the project owner's, whoever starts it.
-        row = await run_start.start_run(request, _user(request), run_start.RunRequest(
-            name, body.sim, body.max_cycles, body.log_timing), owner=project.owner,
-            audit_detail={"project": pid, "build": b.id})
+        row = await run_start.start_run(
+            request,
+            _user(request),
+            run_start.RunRequest(name, body.sim, body.max_cycles, body.log_timing),
+            owner=project.owner,
+            audit_detail={"project": pid, "build": b.id},
+        )
     except SupervisorError as exc:
         raise HTTPException(exc.status, str(exc)) from None
     svc.store.link_run(row.id, b)

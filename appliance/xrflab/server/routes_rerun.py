@@ -50,14 +50,16 @@ router = APIRouter()
 SERVICE = "rerun.sdk_comms.v1alpha1.MessageProxyService"
 READ_METHODS = frozenset({"ReadMessages", "ReadTables"})
 MAX_REQUEST_BYTES = 64 * 1024  # a read request is an (almost) empty protobuf message
-MAX_LIVE_STREAMS = 16          # open live viewers at once (each is a replay of the run's buffer)
+MAX_LIVE_STREAMS = 16  # open live viewers at once (each is a replay of the run's buffer)
 # Response headers of rerun's gRPC-web server worth passing on (the rest are hop-by-hop or CORS,
 # which the same-origin viewer does not need).
 _PASS_HEADERS = ("content-type", "grpc-status", "grpc-message", "grpc-encoding", "grpc-accept-encoding")
 _open_streams = 0
 # The one answer for "nothing live" and for "live, but someone else's run" (ownership.py).
-NO_LIVE_STREAM = ("no run you may watch has streamed since the appliance started "
-                  "(a run's live data is its owner's and the educators')")
+NO_LIVE_STREAM = (
+    "no run you may watch has streamed since the appliance started "
+    "(a run's live data is its owner's and the educators')"
+)
 
 # gRPC status codes (grpc/doc/statuscodes.md) for answers the viewer can show.
 NOT_FOUND, PERMISSION_DENIED, RESOURCE_EXHAUSTED, UNIMPLEMENTED, UNAVAILABLE = 5, 7, 8, 12, 14
@@ -67,10 +69,13 @@ class RerunInfo(BaseModel):
     available: bool
     error: str = ""
     viewer: str = Field(description="viewer page on this appliance (append ?url=...)")
-    live_url: str = Field(description="rerun+http(s) URL of the live stream on this appliance's own origin "
-                          "(the viewer reads it through the login); '' when there is nothing live to show")
-    live_run: int | None = Field(description="run whose live stream the URL shows (the latest run that "
-                                 "streamed), None before the first")
+    live_url: str = Field(
+        description="rerun+http(s) URL of the live stream on this appliance's own origin "
+        "(the viewer reads it through the login); '' when there is nothing live to show"
+    )
+    live_run: int | None = Field(
+        description="run whose live stream the URL shows (the latest run that streamed), None before the first"
+    )
     live_recording: str = Field(description="its rerun recording id, 'run-<id>'")
     live_running: bool = Field(description="that run is still running")
     live_allowed: bool = Field(description="this user may watch it (its owner or an educator)")
@@ -89,24 +94,37 @@ def _origin(request: Request) -> str:
     return f"{scheme}://{host}"
 
 
-@router.get("/api/logs/rerun", response_model=RerunInfo, dependencies=[requires(Perm.WATCH)],
-            summary="where the rerun viewer and the live stream are, for this request's host")
+@router.get(
+    "/api/logs/rerun",
+    response_model=RerunInfo,
+    dependencies=[requires(Perm.WATCH)],
+    summary="where the rerun viewer and the live stream are, for this request's host",
+)
 async def rerun_info(request: Request) -> dict[str, Any]:
     from ..logs.live import LiveProxy
 
     proxy = LiveProxy.current()
     sup = request.app.state.supervisor
     run = sup.current
-    info: dict[str, Any] = {"available": True, "viewer": "/rerun/", "live_url": "", "live_run": None,
-                            "live_recording": "", "live_running": False, "live_allowed": False,
-                            "live_viewers": _open_streams}
+    info: dict[str, Any] = {
+        "available": True,
+        "viewer": "/rerun/",
+        "live_url": "",
+        "live_run": None,
+        "live_recording": "",
+        "live_running": False,
+        "live_allowed": False,
+        "live_viewers": _open_streams,
+    }
     # Someone else's stream answers as no stream at all (ownership.py): not even its run id.
     if proxy is None or not ownership.may_see(ownership.user_of(request), proxy.owner):
         info["live_reason"] = NO_LIVE_STREAM
         return info
-    info.update(live_run=proxy.run_id, live_recording=f"run-{proxy.run_id}",
-                live_running=bool(run is not None and run.row.id == proxy.run_id and run.alive
-                                  and not run.ended.is_set()))
+    info.update(
+        live_run=proxy.run_id,
+        live_recording=f"run-{proxy.run_id}",
+        live_running=bool(run is not None and run.row.id == proxy.run_id and run.alive and not run.ended.is_set()),
+    )
     scheme, hostport = _origin(request).split("://", 1)
     info.update(live_allowed=True, live_url=f"rerun+{scheme}://{hostport}/proxy")
     return info
@@ -118,32 +136,45 @@ OFFLINE_PREFIX = "/rerun/offline/"
 # Absolute URLs the viewer fetches by itself (found by recording a browser's requests, rerun 0.41):
 # analytics, the "new version" check, the examples manifest, map tiles; then the bare web-app
 # origin (links into app.rerun.io). Longer ones first: they contain the shorter.
-WASM_URLS = (b"https://tel.rerun.io/api/pog", b"https://api.github.com/repos/rerun-io/rerun/releases/latest",
-             b"https://app.rerun.io/version/", b"https://tile.openstreetmap.org/", b"https://app.rerun.io")
+WASM_URLS = (
+    b"https://tel.rerun.io/api/pog",
+    b"https://api.github.com/repos/rerun-io/rerun/releases/latest",
+    b"https://app.rerun.io/version/",
+    b"https://tile.openstreetmap.org/",
+    b"https://app.rerun.io",
+)
 # index.html: Google Fonts (the loading text's font; the viewer draws with its own fonts) and the
 # script app.rerun.io loads for its own site.
-_FONT_LINKS = re.compile(r'<link[^>]*(fonts\.googleapis\.com|fonts\.gstatic\.com)[^>]*>', re.S)
+_FONT_LINKS = re.compile(r"<link[^>]*(fonts\.googleapis\.com|fonts\.gstatic\.com)[^>]*>", re.S)
 _SITE_SCRIPT = re.compile(r'if \(window\.location\.hostname == "app\.rerun\.io"\) \{.*?\n      \}\n', re.S)
 # Every viewer file carries it: nothing but this origin (the wasm compiled in the page, workers
 # from blobs, inline scripts and styles of rerun's index.html).
-VIEWER_CSP = ("default-src 'self'; script-src 'self' 'unsafe-inline' 'wasm-unsafe-eval'; "
-              "style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; font-src 'self' data:; "
-              "connect-src 'self'; worker-src 'self' blob:; media-src 'self' blob:; frame-ancestors 'self'; "
-              "form-action 'none'; base-uri 'self'")
+VIEWER_CSP = (
+    "default-src 'self'; script-src 'self' 'unsafe-inline' 'wasm-unsafe-eval'; "
+    "style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; font-src 'self' data:; "
+    "connect-src 'self'; worker-src 'self' blob:; media-src 'self' blob:; frame-ancestors 'self'; "
+    "form-action 'none'; base-uri 'self'"
+)
 # Ours, served from the dashboard's static files (same origin: the CSP's script-src 'self' allows it).
 TAB_SCRIPT = "/static/rerun-tab.js"
 # Part of the prepared copy's folder name: a change to what prepare_viewer does to rerun's files
 # (here: TAB_SCRIPT added to index.html) makes appliances prepare their copy again.
 PREPARED_AS = "offline-tab"
-_MEDIA = {".html": "text/html; charset=utf-8", ".js": "text/javascript", ".wasm": "application/wasm",
-          ".ico": "image/x-icon", ".png": "image/png", ".css": "text/css"}
+_MEDIA = {
+    ".html": "text/html; charset=utf-8",
+    ".js": "text/javascript",
+    ".wasm": "application/wasm",
+    ".ico": "image/x-icon",
+    ".png": "image/png",
+    ".css": "text/css",
+}
 _prepare_lock = asyncio.Lock()
 
 
 def offline_url(url: bytes) -> bytes:
     """A same-origin path exactly as long as `url` (the wasm's strings keep their lengths)."""
     path = OFFLINE_PREFIX.encode() + url.split(b"://", 1)[1].replace(b"/", b"_")
-    return (path + b"_" * len(url))[:len(url)]
+    return (path + b"_" * len(url))[: len(url)]
 
 
 def neutralise_wasm(data: bytes) -> tuple[bytes, list[str]]:
@@ -237,11 +268,14 @@ async def rerun_viewer(asset: str, request: Request) -> Response:
         raise HTTPException(404, "no such viewer file", headers={"Content-Security-Policy": VIEWER_CSP})
     cache = await _viewer_cache(request)
     path = cache / asset
-    headers = {"Cache-Control": "no-cache" if asset == "index.html" else "public, max-age=86400",
-               "Content-Security-Policy": VIEWER_CSP, "Vary": "Accept-Encoding",
-               "X-Content-Type-Options": "nosniff",
-               # the uncompressed size: rerun's loader shows its progress from it
-               "rerun-final-length": str(path.stat().st_size)}
+    headers = {
+        "Cache-Control": "no-cache" if asset == "index.html" else "public, max-age=86400",
+        "Content-Security-Policy": VIEWER_CSP,
+        "Vary": "Accept-Encoding",
+        "X-Content-Type-Options": "nosniff",
+        # the uncompressed size: rerun's loader shows its progress from it
+        "rerun-final-length": str(path.stat().st_size),
+    }
     gz = path.with_name(path.name + ".gz")
     if "gzip" in request.headers.get("accept-encoding", "").lower() and gz.is_file():
         headers["Content-Encoding"] = "gzip"
@@ -254,8 +288,11 @@ async def rerun_viewer(asset: str, request: Request) -> Response:
 
 def grpc_error(http_status: int, code: int, message: str) -> Response:
     """A trailers-only gRPC-web answer (status in the headers) that also reads as plain HTTP."""
-    return Response(status_code=http_status, media_type="application/grpc-web+proto",
-                    headers={"grpc-status": str(code), "grpc-message": urllib.parse.quote(message, safe=" ,.:'()-")})
+    return Response(
+        status_code=http_status,
+        media_type="application/grpc-web+proto",
+        headers={"grpc-status": str(code), "grpc-message": urllib.parse.quote(message, safe=" ,.:'()-")},
+    )
 
 
 async def _read_request(request: Request) -> bytes | None:
@@ -295,8 +332,10 @@ async def live_stream(method: str, request: Request) -> Response:
     # No read timeout: a live stream is quiet between runs and that is not an error.
     client = httpx.AsyncClient(timeout=httpx.Timeout(10.0, read=None))
     try:
-        upstream = await client.send(client.build_request("POST", f"{proxy.read_url}/{SERVICE}/{method}",
-                                                          content=body, headers=headers), stream=True)
+        upstream = await client.send(
+            client.build_request("POST", f"{proxy.read_url}/{SERVICE}/{method}", content=body, headers=headers),
+            stream=True,
+        )
     except httpx.HTTPError as exc:
         await client.aclose()
         return grpc_error(502, UNAVAILABLE, f"the live stream of run {proxy.run_id} does not answer: {exc}")

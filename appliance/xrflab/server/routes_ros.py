@@ -45,6 +45,7 @@ async def ros_toggle(body: RosToggle, request: Request, user: User = Depends(cur
     ros = request.app.state.ros
     was = ros.enabled
     status = await ros.set_enabled(body.enabled)
-    audit.record(user, "ros.bridge", {"enabled": body.enabled, "was": was, "run": status["run_id"]},
-                 client_address(request))
+    audit.record(
+        user, "ros.bridge", {"enabled": body.enabled, "was": was, "run": status["run_id"]}, client_address(request)
+    )
     return status

@@ -32,7 +32,7 @@ import re
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import Any, Literal
 
 from fastapi import APIRouter, Depends, HTTPException, Request
 from fastapi.responses import Response
@@ -58,8 +58,9 @@ MAX_REPORTS_LISTED = 200
 class StartCheck(BaseModel):
     profile: str = Field(description="a bench profile name from GET /api/profiles")
     stop_run: bool = Field(default=False, description="stop the active loop run first instead of refusing")
-    faults: Optional[str] = Field(default=None, max_length=200,
-                                  description="simulated bench only: faults to inject, e.g. dead_encoder=2")
+    faults: str | None = Field(
+        default=None, max_length=200, description="simulated bench only: faults to inject, e.g. dead_encoder=2"
+    )
 
 
 class ReportSummary(BaseModel):
@@ -87,16 +88,24 @@ class ActiveCheck:
     faults: str
     user: str
     started: str
-    check: Optional[scmod.SelfCheck] = None
+    check: scmod.SelfCheck | None = None
     events: list[dict[str, Any]] = field(default_factory=list)  # steps and the latest progress
-    progress: Optional[dict[str, Any]] = None
+    progress: dict[str, Any] | None = None
     abort_requested: bool = False
 
     def payload(self) -> dict[str, Any]:
-        return {"id": self.id, "profile": self.profile, "transport": self.transport, "sim": self.sim,
-                "faults": self.faults, "user": self.user, "started": self.started,
-                "steps": [e for e in self.events if e.get("event") == "step"], "progress": self.progress,
-                "abort_requested": self.abort_requested}
+        return {
+            "id": self.id,
+            "profile": self.profile,
+            "transport": self.transport,
+            "sim": self.sim,
+            "faults": self.faults,
+            "user": self.user,
+            "started": self.started,
+            "steps": [e for e in self.events if e.get("event") == "step"],
+            "progress": self.progress,
+            "abort_requested": self.abort_requested,
+        }
 
 
 class SelfCheckService:
@@ -105,8 +114,8 @@ class SelfCheckService:
     def __init__(self, app: Any) -> None:
         self.app = app
         self.settings = app.state.settings
-        self.current: Optional[ActiveCheck] = None
-        self.last: Optional[dict[str, Any]] = None  # {"check": id, "name": report name, "report": ...}
+        self.current: ActiveCheck | None = None
+        self.last: dict[str, Any] | None = None  # {"check": id, "name": report name, "report": ...}
         self._ids = itertools.count(1)
         self._guard = asyncio.Lock()  # serialises starting
         atexit.register(self.abort)  # appliance exiting: the checker zeroes the outputs and exits
@@ -128,7 +137,7 @@ class SelfCheckService:
             return {"mode": "real", "transport": "spidev", "sim": "", "device": s.spi_device}
         return {"mode": "sim", "transport": "sim", "sim": s.sim, "device": ""}
 
-    def run_active(self) -> Optional[str]:
+    def run_active(self) -> str | None:
         """A sentence when a loop run occupies the bench, else None."""
         run = self.supervisor.current
         if run is not None and not run.ended.is_set():
@@ -136,7 +145,7 @@ class SelfCheckService:
             return f"a loop run is active (run {row.id}, {row.build}): stop the run first"
         return None
 
-    def _busy(self) -> Optional[str]:
+    def _busy(self) -> str | None:
         """bench_busy for SelfCheck (called in the worker thread)."""
         reason = self.run_active()
         if reason:
@@ -151,8 +160,9 @@ class SelfCheckService:
     async def start(self, body: StartCheck, user: User, address: str) -> ActiveCheck:
         async with self._guard:
             if self.current is not None:
-                raise HTTPException(409, f"a self-check is already running (check {self.current.id}): "
-                                         "wait for it or abort it")
+                raise HTTPException(
+                    409, f"a self-check is already running (check {self.current.id}): wait for it or abort it"
+                )
             bench = self.bench()
             faults = (body.faults or "").strip()
             if bench["mode"] == "real":
@@ -163,9 +173,15 @@ class SelfCheckService:
             # Validate the profile before anything stops or moves.
             try:
                 check = scmod.SelfCheck(
-                    body.profile, transport=bench["transport"], sim=bench["sim"] or None, faults=faults or None,
-                    device=bench["device"] or None, data_dir=self.settings.data_dir, bench_busy=self._busy,
-                    shm=None)
+                    body.profile,
+                    transport=bench["transport"],
+                    sim=bench["sim"] or None,
+                    faults=faults or None,
+                    device=bench["device"] or None,
+                    data_dir=self.settings.data_dir,
+                    bench_busy=self._busy,
+                    shm=None,
+                )
             except profmod.ProfileError as exc:
                 raise HTTPException(422, {"message": str(exc), "errors": field_errors(exc.problems)}) from None
             except scmod.SelfCheckError as exc:
@@ -186,22 +202,49 @@ class SelfCheckService:
                     reason = self.run_active()
                 if reason:
                     raise HTTPException(409, reason)
-                active = ActiveCheck(id=next(self._ids), profile=check.profile.get("name", body.profile),
-                                     transport=check.transport, sim=check.sim, faults=check.faults,
-                                     user=user.username if user else "", started=_now_iso(), check=check)
+                active = ActiveCheck(
+                    id=next(self._ids),
+                    profile=check.profile.get("name", body.profile),
+                    transport=check.transport,
+                    sim=check.sim,
+                    faults=check.faults,
+                    user=user.username if user else "",
+                    started=_now_iso(),
+                    check=check,
+                )
                 self.current = active
             except BaseException:
                 if start_lock is not None:
                     start_lock.release()
                 raise
-        audit.record(user, "selfcheck.start", {"check": active.id, "profile": active.profile,
-                                               "transport": active.transport, "sim": active.sim,
-                                               "faults": active.faults}, address)
-        self.publish({"check": active.id, "event": "begin", "profile": active.profile, "transport": active.transport,
-                      "sim": active.sim, "faults": active.faults, "user": active.user, "started": active.started})
+        audit.record(
+            user,
+            "selfcheck.start",
+            {
+                "check": active.id,
+                "profile": active.profile,
+                "transport": active.transport,
+                "sim": active.sim,
+                "faults": active.faults,
+            },
+            address,
+        )
+        self.publish(
+            {
+                "check": active.id,
+                "event": "begin",
+                "profile": active.profile,
+                "transport": active.transport,
+                "sim": active.sim,
+                "faults": active.faults,
+                "user": active.user,
+                "started": active.started,
+            }
+        )
         loop = asyncio.get_running_loop()
-        threading.Thread(target=self._work, args=(active, loop, start_lock), name=f"selfcheck-{active.id}",
-                         daemon=True).start()
+        threading.Thread(
+            target=self._work, args=(active, loop, start_lock), name=f"selfcheck-{active.id}", daemon=True
+        ).start()
         return active
 
     def _work(self, active: ActiveCheck, loop: asyncio.AbstractEventLoop, start_lock: Any) -> None:
@@ -281,9 +324,12 @@ def field_errors(problems: list[profmod.FieldError]) -> list[dict[str, str]]:
 async def selfcheck_status(request: Request) -> dict[str, Any]:
     """What a check would use now, whether the bench is free, the check under way and the last result."""
     svc = service(request)
-    return {"bench": svc.bench(), "run_active": svc.run_active(),
-            "running": svc.current.payload() if svc.current else None,
-            "last": svc.last}
+    return {
+        "bench": svc.bench(),
+        "run_active": svc.run_active(),
+        "running": svc.current.payload() if svc.current else None,
+        "last": svc.last,
+    }
 
 
 @router.post("/api/selfcheck", status_code=202, dependencies=[requires(Perm.EDUCATOR)])
@@ -327,9 +373,20 @@ async def selfcheck_reports(request: Request) -> list[dict[str, Any]]:
                 r = scmod.load_report(path)
             except (OSError, ValueError, TypeError, KeyError):
                 continue
-            out.append({"name": path.stem, "bench": r.bench, "verdict": r.verdict, "started": r.started,
-                        "duration_s": r.duration_s, "transport": r.transport, "sim": r.sim, "faults": r.faults,
-                        "outputs_zeroed": r.outputs_zeroed, "counts": r.counts()})
+            out.append(
+                {
+                    "name": path.stem,
+                    "bench": r.bench,
+                    "verdict": r.verdict,
+                    "started": r.started,
+                    "duration_s": r.duration_s,
+                    "transport": r.transport,
+                    "sim": r.sim,
+                    "faults": r.faults,
+                    "outputs_zeroed": r.outputs_zeroed,
+                    "counts": r.counts(),
+                }
+            )
         return out
 
     return await asyncio.to_thread(work)
@@ -345,13 +402,15 @@ async def selfcheck_report(name: str, request: Request) -> dict[str, Any]:
     return {"name": name, **report.as_dict()}
 
 
-EXPORTS = {"json": ("application/json", "json"), "markdown": ("text/markdown; charset=utf-8", "md"),
-           "text": ("text/plain; charset=utf-8", "txt")}
+EXPORTS = {
+    "json": ("application/json", "json"),
+    "markdown": ("text/markdown; charset=utf-8", "md"),
+    "text": ("text/plain; charset=utf-8", "txt"),
+}
 
 
 @router.get("/api/selfcheck/reports/{name}/export", dependencies=[requires(Perm.EDUCATOR)])
-async def selfcheck_export(name: str, request: Request,
-                           fmt: Literal["json", "markdown", "text"] = "json") -> Response:
+async def selfcheck_export(name: str, request: Request, fmt: Literal["json", "markdown", "text"] = "json") -> Response:
     """The report as a download: JSON, Markdown (a table to paste into a ticket) or plain text."""
     path = _report_path(request, name)
     try:
@@ -359,8 +418,9 @@ async def selfcheck_export(name: str, request: Request,
     except (OSError, ValueError, TypeError, KeyError) as exc:
         raise HTTPException(500, f"cannot read the report: {exc}") from None
     media, ext = EXPORTS[fmt]
-    return Response(text, media_type=media,
-                    headers={"Content-Disposition": f'attachment; filename="selfcheck-{name}.{ext}"'})
+    return Response(
+        text, media_type=media, headers={"Content-Disposition": f'attachment; filename="selfcheck-{name}.{ext}"'}
+    )
 
 
 # ---- routes: bench profiles ---------------------------------------------------------------------
@@ -398,8 +458,13 @@ async def profile_get(name: str, request: Request) -> dict[str, Any]:
     except profmod.ProfileError as exc:
         raise HTTPException(422, {"message": str(exc), "errors": field_errors(exc.problems)}) from None
     edited = path.parent == profmod.profiles_dir(data_dir)
-    return {"name": name, "source": "edited" if edited else "default", "has_default": _has_default(name),
-            "path": str(path), "profile": profile}
+    return {
+        "name": name,
+        "source": "edited" if edited else "default",
+        "has_default": _has_default(name),
+        "path": str(path),
+        "profile": profile,
+    }
 
 
 @router.put("/api/profiles/{name}", dependencies=[requires(Perm.EDUCATOR)])
@@ -410,21 +475,26 @@ async def profile_save(name: str, request: Request, user: User = Depends(current
     try:
         body = await request.json()
     except ValueError as exc:
-        raise HTTPException(422, {"message": f"not valid JSON: {exc}",
-                                  "errors": [{"field": "", "message": f"not valid JSON: {exc}"}]}) from None
+        raise HTTPException(
+            422, {"message": f"not valid JSON: {exc}", "errors": [{"field": "", "message": f"not valid JSON: {exc}"}]}
+        ) from None
     if isinstance(body, dict) and "profile" in body and isinstance(body["profile"], dict) and "channels" not in body:
         body = body["profile"]  # {"profile": {...}} as well as the bare profile
     problems: list[profmod.FieldError] = []
     if isinstance(body, dict) and body.get("name") != name:
-        problems.append(profmod.FieldError("name", f"name {body.get('name')!r} must be {name!r} (the profile being "
-                                                   "edited); to keep both, save it under a new name"))
+        problems.append(
+            profmod.FieldError(
+                "name",
+                f"name {body.get('name')!r} must be {name!r} (the profile being "
+                "edited); to keep both, save it under a new name",
+            )
+        )
     try:
         profmod.validate_profile(body)
     except profmod.ProfileError as exc:
         problems = exc.problems + problems
     if problems:
-        raise HTTPException(422, {"message": "; ".join(p.message for p in problems),
-                                  "errors": field_errors(problems)})
+        raise HTTPException(422, {"message": "; ".join(p.message for p in problems), "errors": field_errors(problems)})
     path = await asyncio.to_thread(profmod.save_profile, body, _data_dir(request))
     audit.record(user, "profile.save", {"profile": name}, client_address(request))
     return {"name": name, "source": "edited", "has_default": _has_default(name), "path": str(path), "profile": body}
@@ -440,5 +510,9 @@ async def profile_reset(name: str, request: Request, user: User = Depends(curren
         raise HTTPException(404, f"{name!r} has no edited copy to remove")
     audit.record(user, "profile.reset", {"profile": name}, client_address(request))
     profile = profmod.load_profile(name, data_dir) if _has_default(name) else None
-    return {"name": name, "source": "default" if profile else "", "has_default": profile is not None,
-            "profile": profile}
+    return {
+        "name": name,
+        "source": "default" if profile else "",
+        "has_default": profile is not None,
+        "profile": profile,
+    }

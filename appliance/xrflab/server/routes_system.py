@@ -41,8 +41,9 @@ class DoctorCheck(BaseModel):
     status: str = Field(description="ok | warning | failure | not checked")
     detail: str
     fix: str = Field(description="what to do, when not ok")
-    items: list[DoctorItem] = Field(default_factory=list,
-                                    description="parts of the check: the run sandbox's protection layers")
+    items: list[DoctorItem] = Field(
+        default_factory=list, description="parts of the check: the run sandbox's protection layers"
+    )
 
 
 class DoctorResult(BaseModel):
@@ -120,10 +121,21 @@ async def system_doctor(request: Request) -> dict[str, Any]:
         t0 = time.monotonic()
         # The confinement check starts /bin/true in the run sandbox exactly as a run would, with
         # this appliance's settings (its user, --allow-unconfined).
-        results = await asyncio.to_thread(doctor.run_checks, Path("/"), data_dir=str(settings.data_dir),
-                                          spi_device=settings.spi_device, live=live, settings=settings)
+        results = await asyncio.to_thread(
+            doctor.run_checks,
+            Path("/"),
+            data_dir=str(settings.data_dir),
+            spi_device=settings.spi_device,
+            live=live,
+            settings=settings,
+        )
         duration = time.monotonic() - t0
     checks = [r.to_dict() for r in results]
     counts = {s: sum(c["status"] == s for c in checks) for s in doctor.STATUSES}
-    return {"checked_at": time.time(), "duration_s": round(duration, 3), "live": live, "counts": counts,
-            "checks": checks}
+    return {
+        "checked_at": time.time(),
+        "duration_s": round(duration, 3),
+        "live": live,
+        "counts": counts,
+        "checks": checks,
+    }

@@ -58,8 +58,9 @@ async def viser_http(path: str, request: Request) -> Response:
     headers = {"accept-encoding": request.headers.get("accept-encoding", "identity")}
     client = httpx.AsyncClient(timeout=httpx.Timeout(30.0))
     try:
-        upstream = await client.send(client.build_request("GET", url, params=request.query_params, headers=headers),
-                                     stream=True)
+        upstream = await client.send(
+            client.build_request("GET", url, params=request.query_params, headers=headers), stream=True
+        )
     except httpx.HTTPError as exc:
         await client.aclose()
         raise HTTPException(502, f"the 3D view does not answer: {exc}") from None
@@ -71,8 +72,9 @@ async def viser_http(path: str, request: Request) -> Response:
     out = {k: v for k, v in upstream.headers.items() if k.lower() in _PASS_HEADERS}
     out.setdefault("cache-control", "no-cache")
     # aiter_raw: the bytes as viser sent them (gzip stays gzip; content-length stays right).
-    return StreamingResponse(upstream.aiter_raw(), status_code=upstream.status_code, headers=out,
-                             background=BackgroundTask(close))
+    return StreamingResponse(
+        upstream.aiter_raw(), status_code=upstream.status_code, headers=out, background=BackgroundTask(close)
+    )
 
 
 @router.websocket("/viser", dependencies=[requires(Perm.WATCH)])
@@ -96,8 +98,14 @@ async def _proxy_ws(ws: WebSocket) -> None:
         return
     offered = [Subprotocol(p) for p in ws.scope.get("subprotocols", [])]
     try:
-        upstream = await connect(f"ws://127.0.0.1:{port}/", subprotocols=offered or None, max_size=MAX_MESSAGE,
-                                 compression=None, open_timeout=10, origin=None)
+        upstream = await connect(
+            f"ws://127.0.0.1:{port}/",
+            subprotocols=offered or None,
+            max_size=MAX_MESSAGE,
+            compression=None,
+            open_timeout=10,
+            origin=None,
+        )
     except Exception:
         await ws.close(code=1011, reason="the 3D view does not answer")
         return

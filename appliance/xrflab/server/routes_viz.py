@@ -6,7 +6,7 @@ reverse proxy to it behind the login (routes_viser.py)."""
 from __future__ import annotations
 
 import asyncio
-from typing import Any, Optional
+from typing import Any
 
 from fastapi import APIRouter, HTTPException, Request
 from pydantic import BaseModel, Field
@@ -20,7 +20,9 @@ router = APIRouter(prefix="/api/viz", tags=["3d view"])
 class VizInfo(BaseModel):
     available: bool = Field(description="false when viser could not start; `error` says why")
     url: str = Field(description="where browsers open the scene: the appliance's /viser/ proxy (login required)")
-    port: Optional[int] = Field(description="internal port of the viser server (127.0.0.1 only, not reachable from the LAN)")
+    port: int | None = Field(
+        description="internal port of the viser server (127.0.0.1 only, not reachable from the LAN)"
+    )
     error: str
     update_hz: float
 
@@ -82,8 +84,14 @@ def _run_owner(request: Request, run_id: int) -> str | None:
 async def replay(body: ReplayRequest, request: Request) -> dict[str, Any]:
     viz = _viz(request)
     # Someone else's run: word for word the answer of a run without a recording (viz.load_replay)
-    ownership.require(ownership.user_of(request), request.app.state.supervisor.store.get(body.run_id),
-                      lambda r: r.owner, "run", body.run_id, detail=f"run {body.run_id} has no 3D recording")
+    ownership.require(
+        ownership.user_of(request),
+        request.app.state.supervisor.store.get(body.run_id),
+        lambda r: r.owner,
+        "run",
+        body.run_id,
+        detail=f"run {body.run_id} has no 3D recording",
+    )
     try:
         r = await asyncio.to_thread(viz.load_replay, body.run_id)
     except LookupError as exc:

@@ -42,8 +42,9 @@ class HostLogging(RunObserver):
 
         def console(text: str) -> None:  # called from the writer thread
             try:
-                loop.call_soon_threadsafe(publish, "monitor", {"run_id": row.id, "source": "appliance",
-                                                               "lines": [{"text": text}]})
+                loop.call_soon_threadsafe(
+                    publish, "monitor", {"run_id": row.id, "source": "appliance", "lines": [{"text": text}]}
+                )
             except RuntimeError:  # event loop closed (shutdown)
                 pass
 
@@ -55,15 +56,24 @@ class HostLogging(RunObserver):
                     store.update(row.id, log_note=message)
                 except Exception:  # the database may sit on the same full disk
                     log.exception("run %s: cannot record the log note", row.id)
+
             try:
                 loop.call_soon_threadsafe(on_loop)
             except RuntimeError:
                 pass
 
         identity = {"project": row.build, "build": row.build, "run": str(row.id)}
-        run.logging = live.start(ch, row.id, run.run_dir, identity, row.owner, alarm,
-                                 live=os.environ.get("XRF_LIVE_RERUN", "1") != "0", log_timing=run.log_timing,
-                                 on_note=console)
+        run.logging = live.start(
+            ch,
+            row.id,
+            run.run_dir,
+            identity,
+            row.owner,
+            alarm,
+            live=os.environ.get("XRF_LIVE_RERUN", "1") != "0",
+            log_timing=run.log_timing,
+            on_note=console,
+        )
 
     async def on_exited(self, run: Run) -> None:
         """The rest of the log ring (the mapping is still ours), then the counts."""
@@ -72,7 +82,8 @@ class HostLogging(RunObserver):
             return
         stats = await asyncio.to_thread(live.finish, rl)
         try:
-            run.row = self._store.update(run.row.id, log_records=stats.records, log_lost=stats.lost + stats.unwritten,
-                                         log_note=stats.failed)
+            run.row = self._store.update(
+                run.row.id, log_records=stats.records, log_lost=stats.lost + stats.unwritten, log_note=stats.failed
+            )
         except Exception:
             log.exception("run %s: cannot record the log counts", run.row.id)

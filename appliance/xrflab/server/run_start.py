@@ -31,8 +31,13 @@ class RunRequest:
     log_timing: bool = False  # the loop logs every cycle's timing (cycle_timing.xrf)
 
 
-async def start_run(conn: HTTPConnection, user: User, req: RunRequest, owner: str | None = None,
-                    audit_detail: dict[str, Any] | None = None) -> RunRow:
+async def start_run(
+    conn: HTTPConnection,
+    user: User,
+    req: RunRequest,
+    owner: str | None = None,
+    audit_detail: dict[str, Any] | None = None,
+) -> RunRow:
     """Start `req` for `user` (who asked: the lease and the audit name them). `owner`: whose run
     it is (who may see it), `user` unless given (a project's build runs as its owner's, even when
     an educator starts it). `audit_detail`: what the route adds to the audit record. Raises
@@ -40,15 +45,18 @@ async def start_run(conn: HTTPConnection, user: User, req: RunRequest, owner: st
     sup: Supervisor = conn.app.state.supervisor
     detail = audit_detail or {}
     try:
-        row = await sup.start_run(req.build, req.sim, req.max_cycles,
-                                  owner=user.username if owner is None else owner, log_timing=req.log_timing)
+        row = await sup.start_run(
+            req.build,
+            req.sim,
+            req.max_cycles,
+            owner=user.username if owner is None else owner,
+            log_timing=req.log_timing,
+        )
     except SupervisorError as exc:
-        audit.record(user, "run.start_failed", {"build": req.build, **detail, "error": str(exc)},
-                     client_address(conn))
+        audit.record(user, "run.start_failed", {"build": req.build, **detail, "error": str(exc)}, client_address(conn))
         raise
     lease = conn.app.state.security.lease
     if lease is not None:
         lease.started_run(user, row.id)
-    audit.record(user, "run.start", {"run": row.id, "build": req.build, "sim": row.sim, **detail},
-                 client_address(conn))
+    audit.record(user, "run.start", {"run": row.id, "build": req.build, "sim": row.sim, **detail}, client_address(conn))
     return row

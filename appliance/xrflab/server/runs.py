@@ -61,8 +61,9 @@ class RunRow:
     ended: float | None = _col("REAL", "Unix time; null while it runs")
     status: RunStatus = _col("TEXT NOT NULL")
     crashed: bool = _col("INTEGER NOT NULL DEFAULT 0")
-    crash_reason: str = _col("TEXT NOT NULL DEFAULT ''",
-                             "signal | exit | hang | self_exit | appliance, empty if not crashed")
+    crash_reason: str = _col(
+        "TEXT NOT NULL DEFAULT ''", "signal | exit | hang | self_exit | appliance, empty if not crashed"
+    )
     exit_code: int | None = _col("INTEGER")
     exit_signal: int | None = _col("INTEGER")
     state: str = _col("TEXT NOT NULL DEFAULT ''", "last loop state seen")
@@ -71,16 +72,30 @@ class RunRow:
     cycle_freq: int = _col("INTEGER NOT NULL DEFAULT 0")
     run_dir: str = _col("TEXT NOT NULL DEFAULT ''")
     message: str = _col("TEXT NOT NULL DEFAULT ''")
-    owner: str = _col("TEXT NOT NULL DEFAULT ''", "username of who started the run ('' = an educator before "
-                      "accounts)", added=True, default="")
-    log_records: int = _col("INTEGER NOT NULL DEFAULT 0", "records written to the run's log files",
-                            added=True, default=0)
-    log_lost: int = _col("INTEGER NOT NULL DEFAULT 0", "records lost: ring full (writer stalled) or not "
-                         "written after a disk error", added=True, default=0)
-    log_note: str = _col("TEXT NOT NULL DEFAULT ''", "why logging stopped (disk full, ...); '' normally",
-                         added=True, default="")
-    end_reason: str = _col("TEXT NOT NULL DEFAULT ''", "how the run ended: " + ", ".join(
-        f"{k} ({v})" for k, v in END_REASONS.items()) + "; empty while it runs", added=True, default="")
+    owner: str = _col(
+        "TEXT NOT NULL DEFAULT ''",
+        "username of who started the run ('' = an educator before accounts)",
+        added=True,
+        default="",
+    )
+    log_records: int = _col(
+        "INTEGER NOT NULL DEFAULT 0", "records written to the run's log files", added=True, default=0
+    )
+    log_lost: int = _col(
+        "INTEGER NOT NULL DEFAULT 0",
+        "records lost: ring full (writer stalled) or not written after a disk error",
+        added=True,
+        default=0,
+    )
+    log_note: str = _col(
+        "TEXT NOT NULL DEFAULT ''", "why logging stopped (disk full, ...); '' normally", added=True, default=""
+    )
+    end_reason: str = _col(
+        "TEXT NOT NULL DEFAULT ''",
+        "how the run ended: " + ", ".join(f"{k} ({v})" for k, v in END_REASONS.items()) + "; empty while it runs",
+        added=True,
+        default="",
+    )
 
     def as_dict(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -95,8 +110,9 @@ def schema() -> str:
     return f"CREATE TABLE IF NOT EXISTS runs (\n{columns}\n);\n"
 
 
-def record_model(name: str = "RunRecord", exclude: frozenset[str] = frozenset(),
-                 **extra: tuple[Any, Any]) -> type[BaseModel]:
+def record_model(
+    name: str = "RunRecord", exclude: frozenset[str] = frozenset(), **extra: tuple[Any, Any]
+) -> type[BaseModel]:
     """The API model of a run record, from RunRow: every field (but `exclude`), typed and
     described as RunRow says, then `extra` (name=(type, pydantic Field)) that the route adds."""
     hints = get_type_hints(RunRow)
@@ -131,7 +147,8 @@ class RunStore:
         # A previous appliance process that died mid-run left rows 'running': they did not end
         # cleanly and nobody watched them end, so say so rather than show them as live.
         self.orphans: list[RunRow] = [
-            _row(r) for r in self._db.execute(
+            _row(r)
+            for r in self._db.execute(
                 f"SELECT {', '.join(_COLUMNS)} FROM runs WHERE status IN ('starting', 'running')"
             ).fetchall()
         ]
@@ -178,8 +195,10 @@ class RunStore:
         if owner is None:
             cur = self._db.execute(f"SELECT {', '.join(_COLUMNS)} FROM runs ORDER BY id DESC LIMIT ?", (limit,))
         else:
-            cur = self._db.execute(f"SELECT {', '.join(_COLUMNS)} FROM runs WHERE lower(trim(owner)) = ? "
-                                   "ORDER BY id DESC LIMIT ?", (owner.strip().lower(), limit))
+            cur = self._db.execute(
+                f"SELECT {', '.join(_COLUMNS)} FROM runs WHERE lower(trim(owner)) = ? ORDER BY id DESC LIMIT ?",
+                (owner.strip().lower(), limit),
+            )
         return [_row(r) for r in cur.fetchall()]
 
 

@@ -73,9 +73,14 @@ def fpga_reset(device: str) -> str:
 def _result(r: Any) -> WatchResult:
     """From a ``struct xrf_watch_result *``."""
     return WatchResult(
-        reason=_REASONS.get(r.reason, str(r.reason)), sim_forced=bool(r.sim_forced),
-        reset_status=r.reset_status, rt_status=r.rt_status, kill_status=r.kill_status,
-        event_ns=r.event_ns, safe_ns=r.safe_ns, heartbeat_ns=r.heartbeat_ns,
+        reason=_REASONS.get(r.reason, str(r.reason)),
+        sim_forced=bool(r.sim_forced),
+        reset_status=r.reset_status,
+        rt_status=r.rt_status,
+        kill_status=r.kill_status,
+        event_ns=r.event_ns,
+        safe_ns=r.safe_ns,
+        heartbeat_ns=r.heartbeat_ns,
     )
 
 
@@ -85,8 +90,17 @@ class SafetyWatcher:
     ``channels`` must stay mapped until ``stop()`` returned (the thread reads the heartbeat and
     writes ``forced_off`` in it)."""
 
-    def __init__(self, pid: int, channels: Channels | None, *, hang_timeout_ms: int, check_ms: int,
-                 force_sim: bool, spi_device: str = "", rt_priority: int = 0) -> None:
+    def __init__(
+        self,
+        pid: int,
+        channels: Channels | None,
+        *,
+        hang_timeout_ms: int,
+        check_ms: int,
+        force_sim: bool,
+        spi_device: str = "",
+        rt_priority: int = 0,
+    ) -> None:
         self._channels = channels  # kept referenced: the mapping must outlive the thread
         self._efd = os.eventfd(0, os.EFD_CLOEXEC | os.EFD_NONBLOCK)
         cfg = ffi.new("struct xrf_watch_config *")

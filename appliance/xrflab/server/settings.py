@@ -72,7 +72,9 @@ class Settings:
     # The run sandbox (xrflab.guest, docs/developers/security.md "The run sandbox"). A run starts
     # only with every protection layer in place, unless an educator allowed otherwise
     # (`xrf serve --allow-unconfined`, $XRF_ALLOW_UNCONFINED=1); the dashboard then says which is missing.
-    allow_unconfined: bool = field(default_factory=lambda: os.environ.get("XRF_ALLOW_UNCONFINED", "") in ("1", "true", "yes"))
+    allow_unconfined: bool = field(
+        default_factory=lambda: os.environ.get("XRF_ALLOW_UNCONFINED", "") in ("1", "true", "yes")
+    )
     run_user: str = "xrf-run"  # as root: the user controllers run as (created on first use)
 
     # WebSocket fan-out.
@@ -96,7 +98,9 @@ class Settings:
     login_max_failures_address: int = 20  # ...per client address, any accounts (a lab's NAT is many students)
     login_max_failures_account: int = 50  # ...per account from all clients: then locked for clients it does not know
     login_window_s: float = 60.0  # failures are counted over this long
-    login_lock_s: float = 60.0  # then the account/address is locked this long; doubles with each further lock, up to 15 min
+    login_lock_s: float = (
+        60.0  # then the account/address is locked this long; doubles with each further lock, up to 15 min
+    )
     lease_idle_s: float = 600.0  # the bench lease is released after this long without driving
     # Addresses of reverse proxies whose X-Forwarded-For/-Proto are believed (`xrf serve
     # --trusted-proxy`); empty = those headers are ignored and the client is the TCP peer.

@@ -30,16 +30,15 @@ from pathlib import Path
 from typing import Any
 
 from .. import channels as chmod
-from .. import guest
-from ..logs import live as loglive
+from .. import guest, plants
 from ..channels import Channels, ChannelsError
+from ..logs import live as loglive
+from .children import Child
+from .guest_spawn import GuestReport, GuestSpawner
 from .hub import Hub
 from .lifecycle import RunLifecycle
 from .runs import END_REASONS, RunRow, RunStore
-from .children import Child
-from .guest_spawn import GuestReport, GuestSpawner
 from .safety import SafetyWatcher, WatchResult, fpga_reset
-from .. import plants
 from .settings import Settings
 
 STATE_RUN = chmod.lib.XRF_STATE_RUN
@@ -360,17 +359,27 @@ class Supervisor:
             lost_at = ch.shm.host_heartbeat_ns
             if lost_at:
                 ago = (time.monotonic_ns() - int(lost_at)) / 1e9
-                parts.append(f"its last heartbeat was at {time.strftime('%H:%M:%S', time.localtime(time.time() - ago))}")
+                parts.append(
+                    f"its last heartbeat was at {time.strftime('%H:%M:%S', time.localtime(time.time() - ago))}"
+                )
             if last.host_lost:
-                parts.append(f"the loop then did what host_timeout_action says "
-                             f"({self.settings.host_timeout_action} after {self.settings.host_timeout_ms} ms)")
+                parts.append(
+                    f"the loop then did what host_timeout_action says "
+                    f"({self.settings.host_timeout_action} after {self.settings.host_timeout_ms} ms)"
+                )
         if stopped_at:
-            parts.append(f"the restarted appliance stopped it at {time.strftime('%H:%M:%S', time.localtime(stopped_at))}")
+            parts.append(
+                f"the restarted appliance stopped it at {time.strftime('%H:%M:%S', time.localtime(stopped_at))}"
+            )
         elif row.pid and not _alive(row.pid):
             parts.append("the loop had already ended")
         values: dict[str, Any] = {
-            "status": "crashed", "crashed": 1, "crash_reason": "appliance", "end_reason": "appliance_restart",
-            "message": "; ".join(parts), "ended": stopped_at or row.ended or time.time(),
+            "status": "crashed",
+            "crashed": 1,
+            "crash_reason": "appliance",
+            "end_reason": "appliance_restart",
+            "message": "; ".join(parts),
+            "ended": stopped_at or row.ended or time.time(),
         }
         if last is not None:
             values.update(state=last.state_name, cycles=last.cycles, misses=last.missed)
@@ -380,8 +389,10 @@ class Supervisor:
         if row.shm:
             remove_shm(row.shm)
         await self.lifecycle.ended(self.last_row, None)
-        self.hub.publish("alarm", {"kind": "crash", "end_reason": "appliance_restart", "run_id": row.id,
-                                   "message": self.last_row.message})
+        self.hub.publish(
+            "alarm",
+            {"kind": "crash", "end_reason": "appliance_restart", "run_id": row.id, "message": self.last_row.message},
+        )
         self.hub.publish("run", {"event": "ended", "run": self.last_row.as_dict(), "active": False})
 
     # -- queries ------------------------------------------------------------------------------
@@ -400,7 +411,11 @@ class Supervisor:
     def run_payload(self, run: Run | None = None, event: str = "current") -> dict[str, Any]:
         run = run or self.current
         row = run.row if run else self.last_row
-        payload: dict[str, Any] = {"event": event, "run": row.as_dict() if row else None, "active": bool(run and run.alive)}
+        payload: dict[str, Any] = {
+            "event": event,
+            "run": row.as_dict() if row else None,
+            "active": bool(run and run.alive),
+        }
         if run and run.channels is not None:
             info = run.channels.info
             payload.update(
@@ -419,8 +434,15 @@ class Supervisor:
     def state_payload(self, run: Run | None = None) -> dict[str, Any]:
         run = run or self.current
         if run is None or run.channels is None or run.last_status is None:
-            return {"run_id": run.row.id if run else None, "active": False, "state": 0, "name": "NO RUN",
-                    "allowed": [], "rejected": None, "last_error": 0}
+            return {
+                "run_id": run.row.id if run else None,
+                "active": False,
+                "state": 0,
+                "name": "NO RUN",
+                "allowed": [],
+                "rejected": None,
+                "last_error": 0,
+            }
         s = run.last_status
         rejected = None
         if s.cmd_rejected:
@@ -447,8 +469,14 @@ class Supervisor:
 
     # -- starting -----------------------------------------------------------------------------
 
-    async def start_run(self, build: str, sim: str | None = None, max_cycles: int | None = None,
-                        owner: str = "", log_timing: bool = False) -> RunRow:
+    async def start_run(
+        self,
+        build: str,
+        sim: str | None = None,
+        max_cycles: int | None = None,
+        owner: str = "",
+        log_timing: bool = False,
+    ) -> RunRow:
         """`owner`: username of who starts it (auth.owns() decides who may see the run).
         `log_timing`: the loop logs every cycle's stage timing (cycle_timing.xrf in the run)."""
         async with self.bench_lock:
@@ -495,20 +523,35 @@ class Supervisor:
                 # turn the loop's next printf into SIGPIPE; a file keeps it running, and kept.
                 with open(run_dir / "output.txt", "ab") as output:
                     proc, report = await self.guests.spawn(
-                        entry.executable, run_dir, shm_dir, env, [entry.executable.parent], output,
-                        tag=shm, timeout_s=self.settings.open_timeout_s)
+                        entry.executable,
+                        run_dir,
+                        shm_dir,
+                        env,
+                        [entry.executable.parent],
+                        output,
+                        tag=shm,
+                        timeout_s=self.settings.open_timeout_s,
+                    )
             except (OSError, ValueError, RuntimeError, asyncio.TimeoutError) as exc:
                 shutil.rmtree(shm_dir, ignore_errors=True)
-                self.store.update(row.id, status="failed", end_reason="start_failed", ended=time.time(),
-                                  message=f"sandbox: {exc}")
+                self.store.update(
+                    row.id, status="failed", end_reason="start_failed", ended=time.time(), message=f"sandbox: {exc}"
+                )
                 raise SupervisorError(f"cannot start {entry.executable.name} in its sandbox: {exc}", 500) from exc
             if report.error:
                 await proc.wait()
                 shutil.rmtree(shm_dir, ignore_errors=True)
-                self.last_row = self.store.update(row.id, status="failed", end_reason="start_failed", ended=time.time(),
-                                                  message=f"sandbox: {report.error}")
-                self.hub.publish("alarm", {"kind": "confinement", "run_id": row.id, "message": report.error,
-                                           "missing": report.missing})
+                self.last_row = self.store.update(
+                    row.id,
+                    status="failed",
+                    end_reason="start_failed",
+                    ended=time.time(),
+                    message=f"sandbox: {report.error}",
+                )
+                self.hub.publish(
+                    "alarm",
+                    {"kind": "confinement", "run_id": row.id, "message": report.error, "missing": report.missing},
+                )
                 raise SupervisorError(f"the controller was not started: {report.error}", 503)
             if report.layers.get("mount"):
                 # No mount namespace (allowed by an educator): the loop's /dev/shm is the host's.
@@ -516,14 +559,19 @@ class Supervisor:
                 row = self.store.update(row.id, shm=shm)
             # The controller's own pid (what `kill` or a test would aim at); we wait on the launcher.
             row = self.store.update(row.id, pid=report.pid or proc.pid, status="starting")
-            run = Run(row=row, proc=proc, shm=shm, run_dir=run_dir, build=entry, log_timing=log_timing,
-                      guest=report)
+            run = Run(row=row, proc=proc, shm=shm, run_dir=run_dir, build=entry, log_timing=log_timing, guest=report)
             self.current = run
             if report.missing:
-                self.hub.publish("alarm", {
-                    "kind": "confinement", "run_id": row.id, "missing": report.missing,
-                    "message": "the controller runs WITHOUT: " + "; ".join(f"{k} ({v})" for k, v in report.missing.items()),
-                })
+                self.hub.publish(
+                    "alarm",
+                    {
+                        "kind": "confinement",
+                        "run_id": row.id,
+                        "missing": report.missing,
+                        "message": "the controller runs WITHOUT: "
+                        + "; ".join(f"{k} ({v})" for k, v in report.missing.items()),
+                    },
+                )
             run.tasks.append(asyncio.create_task(self._watch_exit(run), name=f"run{row.id}-exit"))
             run.tasks.append(asyncio.create_task(self._pipe_output(run), name=f"run{row.id}-output"))
 
@@ -542,8 +590,12 @@ class Supervisor:
             run.tasks.append(asyncio.create_task(self._guarded(self._reader, run), name=f"run{row.id}-reader"))
             run.tasks.append(asyncio.create_task(self._guarded(self._timing, run), name=f"run{row.id}-timing"))
             run.tasks.append(asyncio.create_task(self._disk_guard(run), name=f"run{row.id}-disk"))
-            run.thread = threading.Thread(target=self._doorbell_thread, args=(run, asyncio.get_running_loop()),
-                                          name=f"xrf-doorbell-{row.id}", daemon=True)
+            run.thread = threading.Thread(
+                target=self._doorbell_thread,
+                args=(run, asyncio.get_running_loop()),
+                name=f"xrf-doorbell-{row.id}",
+                daemon=True,
+            )
             run.thread.start()
             self._refresh_state(run)
             self.hub.publish("run", self.run_payload(run, "started"))
@@ -560,8 +612,14 @@ class Supervisor:
                 raise
             except Exception as exc:  # reported to the dashboards, then carry on
                 log.exception("run %s: %s failed", run.row.id, body.__name__)
-                self.hub.publish("monitor", {"run_id": run.row.id, "source": "appliance",
-                                             "lines": [{"text": f"appliance: {body.__name__} failed: {exc!r}"}]})
+                self.hub.publish(
+                    "monitor",
+                    {
+                        "run_id": run.row.id,
+                        "source": "appliance",
+                        "lines": [{"text": f"appliance: {body.__name__} failed: {exc!r}"}],
+                    },
+                )
                 await asyncio.sleep(0.5)
 
     async def _open_channels(self, run: Run) -> bool:
@@ -602,10 +660,15 @@ class Supervisor:
         prio = min(self.settings.watch_priority, loop_prio - 1) if loop_prio > 1 else self.settings.watch_priority
         real = self.settings.bench_is_real()
         try:
-            w = SafetyWatcher(run.row.pid or run.proc.pid, ch, hang_timeout_ms=hang_ms,
-                              check_ms=max(2, min(20, hang_ms // 10)),
-                              force_sim=info.get("transport", "sim") == "sim",
-                              spi_device=self.settings.spi_device if real else "", rt_priority=max(0, prio))
+            w = SafetyWatcher(
+                run.row.pid or run.proc.pid,
+                ch,
+                hang_timeout_ms=hang_ms,
+                check_ms=max(2, min(20, hang_ms // 10)),
+                force_sim=info.get("transport", "sim") == "sim",
+                spi_device=self.settings.spi_device if real else "",
+                rt_priority=max(0, prio),
+            )
         except (OSError, ValueError) as exc:  # ESRCH: the loop is already gone; _watch_exit handles it
             log.warning("run %s: no safety watcher (%s); the event loop watches instead", run.row.id, exc)
             return
@@ -710,7 +773,8 @@ class Supervisor:
             state=last.state_name if last else "",
             cycles=last.cycles if last else 0,
             misses=last.missed if last else 0,
-            message=f"{message}; {run.safe_state}" + (f" {safe_ms:.1f} ms after exit" if crashed and not run.hang else ""),
+            message=f"{message}; {run.safe_state}"
+            + (f" {safe_ms:.1f} ms after exit" if crashed and not run.hang else ""),
         )
         # The record is final: the observers in order (lifecycle.py), then the browsers.
         await self.lifecycle.ended(run.row, run)
@@ -719,21 +783,24 @@ class Supervisor:
         # mapping goes with the last reference, and the name is already unlinked.
         self.last_row = run.row
         if crashed:
-            self.hub.publish("alarm", {
-                "kind": "hang" if run.hang else "crash",
-                "end_reason": end_reason,
-                "run_id": run.row.id,
-                "message": run.row.message,
-                "exit_code": exit_code,
-                "exit_signal": exit_signal,
-                "safe_state": run.safe_state,
-                # From the safety watcher (CLOCK_MONOTONIC ns): when it saw the exit or hang and
-                # when the outputs were safe; 0 where no watcher ran.
-                "event_ns": run.watch.event_ns if run.watch else 0,
-                "safe_ns": run.watch.safe_ns if run.watch else 0,
-                "heartbeat_ns": run.watch.heartbeat_ns if run.watch else 0,  # the loop's last cycle start
-                "watcher_rt": bool(run.watch and run.watch.rt_status == 0),
-            })
+            self.hub.publish(
+                "alarm",
+                {
+                    "kind": "hang" if run.hang else "crash",
+                    "end_reason": end_reason,
+                    "run_id": run.row.id,
+                    "message": run.row.message,
+                    "exit_code": exit_code,
+                    "exit_signal": exit_signal,
+                    "safe_state": run.safe_state,
+                    # From the safety watcher (CLOCK_MONOTONIC ns): when it saw the exit or hang and
+                    # when the outputs were safe; 0 where no watcher ran.
+                    "event_ns": run.watch.event_ns if run.watch else 0,
+                    "safe_ns": run.watch.safe_ns if run.watch else 0,
+                    "heartbeat_ns": run.watch.heartbeat_ns if run.watch else 0,  # the loop's last cycle start
+                    "watcher_rt": bool(run.watch and run.watch.rt_status == 0),
+                },
+            )
         run.ended.set()
         self.hub.publish("run", self.run_payload(run, "ended") | {"active": False})
         self.hub.publish("state", self.state_payload(run) | {"active": False, "allowed": []})
@@ -782,15 +849,24 @@ class Supervisor:
                 chunk = f.read(65536)
                 if chunk:
                     *lines, pending = (pending + chunk).split(b"\n")
-                    self.hub.publish("monitor", {
-                        "run_id": run.row.id,
-                        "source": "stdout",
-                        "lines": [{"text": line.decode("utf-8", "replace")} for line in lines],
-                    })
+                    self.hub.publish(
+                        "monitor",
+                        {
+                            "run_id": run.row.id,
+                            "source": "stdout",
+                            "lines": [{"text": line.decode("utf-8", "replace")} for line in lines],
+                        },
+                    )
                 elif not alive:
                     if pending:
-                        self.hub.publish("monitor", {"run_id": run.row.id, "source": "stdout",
-                                                     "lines": [{"text": pending.decode("utf-8", "replace")}]})
+                        self.hub.publish(
+                            "monitor",
+                            {
+                                "run_id": run.row.id,
+                                "source": "stdout",
+                                "lines": [{"text": pending.decode("utf-8", "replace")}],
+                            },
+                        )
                     return
                 else:
                     await asyncio.sleep(0.1)
@@ -830,8 +906,7 @@ class Supervisor:
             await asyncio.sleep(2.0)
             used = await asyncio.to_thread(_folder_bytes, run.run_dir)
             if used > limit and run.alive:
-                message = (f"the run folder holds {used >> 20} MB, over the limit of {limit >> 20} MB: "
-                           "run stopped")
+                message = f"the run folder holds {used >> 20} MB, over the limit of {limit >> 20} MB: run stopped"
                 run.row = self.store.update(run.row.id, message=message)
                 self.hub.publish("alarm", {"kind": "disk", "run_id": run.row.id, "message": message})
                 run.stop_requested = True
@@ -877,28 +952,34 @@ class Supervisor:
                         continue
                     next_due_ns = max(next_due_ns + period_ns, sample.t_ns - period_ns)
                 run.telemetry_sent += 1
-                self.hub.publish("telemetry", {
-                    "run_id": run_id,
-                    "cycle": sample.cycle,
-                    "t_ns": sample.t_ns,
-                    "t": (sample.t_ns - t0) / 1e9 if t0 else sample.t_ns / 1e9,
-                    "state": sample.state,
-                    "enc": sample.enc,
-                    "din": sample.din,
-                    "pwm": sample.pwm,
-                    "dout": sample.dout,
-                    "xeno2ros": sample.xeno2ros,
-                    "ros2xeno_t_sent_ns": sample.ros2xeno_t_sent_ns,
-                    "lost": telemetry.lost,
-                })
+                self.hub.publish(
+                    "telemetry",
+                    {
+                        "run_id": run_id,
+                        "cycle": sample.cycle,
+                        "t_ns": sample.t_ns,
+                        "t": (sample.t_ns - t0) / 1e9 if t0 else sample.t_ns / 1e9,
+                        "state": sample.state,
+                        "enc": sample.enc,
+                        "din": sample.din,
+                        "pwm": sample.pwm,
+                        "dout": sample.dout,
+                        "xeno2ros": sample.xeno2ros,
+                        "ros2xeno_t_sent_ns": sample.ros2xeno_t_sent_ns,
+                        "lost": telemetry.lost,
+                    },
+                )
             lines = monitor.read()
             if lines:
-                self.hub.publish("monitor", {
-                    "run_id": run_id,
-                    "source": "monitor",
-                    "lines": [{"cycle": m.cycle, "t_ns": m.t_ns, "text": m.text} for m in lines],
-                    "lost": monitor.lost,
-                })
+                self.hub.publish(
+                    "monitor",
+                    {
+                        "run_id": run_id,
+                        "source": "monitor",
+                        "lines": [{"cycle": m.cycle, "t_ns": m.t_ns, "text": m.text} for m in lines],
+                        "lost": monitor.lost,
+                    },
+                )
             self._refresh_state(run)
 
     def _refresh_state(self, run: Run) -> None:
@@ -926,32 +1007,44 @@ class Supervisor:
             except ChannelsError:
                 continue
             stages = {
-                name: {"count": h.count, "min": h.min, "max": h.max, "mean": h.mean,
-                       "p50": h.percentile(50), "p99": h.percentile(99)}
+                name: {
+                    "count": h.count,
+                    "min": h.min,
+                    "max": h.max,
+                    "mean": h.mean,
+                    "p50": h.percentile(50),
+                    "p99": h.percentile(99),
+                }
                 for name, h in hists.items()
             }
             wake = hists.get("wakeup")
-            self.hub.publish("timing", {
-                "run_id": run.row.id,
-                "cycles": s.cycles,
-                "misses": s.missed,
-                "cycle_freq": ch.info["cycle_freq"],
-                "stages": stages,
-                "jitter": {"edges": wake.edges, "counts": wake.counts} if wake else {"edges": [], "counts": []},
-                # every stage's histogram (non-empty buckets: lower edge ns, count), for tools
-                "histograms": {name: {"edges": h.edges, "counts": h.counts} for name, h in hists.items()},
-                "telemetry_sent": run.telemetry_sent,
-                "log_lost": s.log_lost,
-                "host_lost": s.host_lost,
-            })
-            if s.missed > run.last_missed:
-                self.hub.publish("alarm", {
-                    "kind": "deadline_miss",
+            self.hub.publish(
+                "timing",
+                {
                     "run_id": run.row.id,
+                    "cycles": s.cycles,
                     "misses": s.missed,
-                    "new": s.missed - run.last_missed,
-                    "message": f"{s.missed - run.last_missed} deadline miss(es) in the last second ({s.missed} in total)",
-                })
+                    "cycle_freq": ch.info["cycle_freq"],
+                    "stages": stages,
+                    "jitter": {"edges": wake.edges, "counts": wake.counts} if wake else {"edges": [], "counts": []},
+                    # every stage's histogram (non-empty buckets: lower edge ns, count), for tools
+                    "histograms": {name: {"edges": h.edges, "counts": h.counts} for name, h in hists.items()},
+                    "telemetry_sent": run.telemetry_sent,
+                    "log_lost": s.log_lost,
+                    "host_lost": s.host_lost,
+                },
+            )
+            if s.missed > run.last_missed:
+                self.hub.publish(
+                    "alarm",
+                    {
+                        "kind": "deadline_miss",
+                        "run_id": run.row.id,
+                        "misses": s.missed,
+                        "new": s.missed - run.last_missed,
+                        "message": f"{s.missed - run.last_missed} deadline miss(es) in the last second ({s.missed} in total)",
+                    },
+                )
                 run.last_missed = s.missed
 
     # -- controlling --------------------------------------------------------------------------

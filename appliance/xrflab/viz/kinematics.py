@@ -27,8 +27,9 @@ Profile fields used (``mechanics`` of deploy/profiles/*.json):
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Optional, Sequence
+from typing import Any
 
 from .. import plants
 
@@ -56,7 +57,7 @@ class Unwrapper:
     """Raw 14-bit counts in, a continuous count out (an int that never wraps)."""
 
     def __init__(self) -> None:
-        self.raw: Optional[int] = None
+        self.raw: int | None = None
         self.count = 0
 
     def update(self, raw: int) -> int:
@@ -76,8 +77,10 @@ def _mechanics(profile: dict[str, Any]) -> dict[str, Any]:
     mech = profile.get("mechanics") if isinstance(profile, dict) else None
     if not isinstance(mech, dict) or not mech:
         name = profile.get("name", "?") if isinstance(profile, dict) else "?"
-        raise KinematicsError(f"bench profile {name!r} has no 'mechanics' section: the 3D view needs "
-                              "counts per revolution, gear ratio and the robot's geometry")
+        raise KinematicsError(
+            f"bench profile {name!r} has no 'mechanics' section: the 3D view needs "
+            "counts per revolution, gear ratio and the robot's geometry"
+        )
     return mech
 
 
@@ -143,8 +146,11 @@ class PanTilt:
         self.angles = {name: 0.0 for name in self.axes}
 
     def state(self) -> dict[str, Any]:
-        return {"kind": self.kind, "joints": dict(self.angles),
-                "counts": {n: a.unwrap.count for n, a in self.axes.items()}}
+        return {
+            "kind": self.kind,
+            "joints": dict(self.angles),
+            "counts": {n: a.unwrap.count for n, a in self.axes.items()},
+        }
 
 
 # ---- RELbot: differential drive odometry -----------------------------------------------------
@@ -188,7 +194,7 @@ class DiffDrive:
         self.trail_len = trail_len
         self.trail_step_m = trail_step_m
         self.trail: list[tuple[float, float]] = [(0.0, 0.0)]
-        self._last: Optional[tuple[int, int]] = None
+        self._last: tuple[int, int] | None = None
 
     def update(self, enc: Sequence[int]) -> Pose:
         cl = self.left.update(enc[self.left_channel - 1])
@@ -230,8 +236,12 @@ class DiffDrive:
 
     def state(self) -> dict[str, Any]:
         p = self.pose
-        return {"kind": self.kind, "pose": {"x": p.x, "y": p.y, "theta": p.theta},
-                "wheels": dict(self.wheel), "trail_points": len(self.trail)}
+        return {
+            "kind": self.kind,
+            "pose": {"x": p.x, "y": p.y, "theta": p.theta},
+            "wheels": dict(self.wheel),
+            "trail_points": len(self.trail),
+        }
 
 
 # ---- linear stage: one prismatic axis ----------------------------------------------------------
@@ -271,7 +281,10 @@ class LinearStage:
 Kinematics = PanTilt | DiffDrive | LinearStage
 # mechanics.kind -> its model: the 3D view draws a profile whose kind is here.
 KINDS: dict[str, type[PanTilt] | type[DiffDrive] | type[LinearStage]] = {
-    PanTilt.kind: PanTilt, DiffDrive.kind: DiffDrive, LinearStage.kind: LinearStage}
+    PanTilt.kind: PanTilt,
+    DiffDrive.kind: DiffDrive,
+    LinearStage.kind: LinearStage,
+}
 
 
 def from_profile(profile: dict[str, Any]) -> Kinematics:
@@ -279,6 +292,5 @@ def from_profile(profile: dict[str, Any]) -> Kinematics:
     kind = _mechanics(profile).get("kind")
     model = KINDS.get(kind) if isinstance(kind, str) else None
     if model is None:
-        raise KinematicsError(f"mechanics.kind {kind!r} is not one the 3D view can draw "
-                              f"({', '.join(KINDS)})")
+        raise KinematicsError(f"mechanics.kind {kind!r} is not one the 3D view can draw ({', '.join(KINDS)})")
     return model(profile)

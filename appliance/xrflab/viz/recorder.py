@@ -19,9 +19,10 @@ from __future__ import annotations
 import json
 import struct
 import time
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Optional, Sequence
+from typing import Any
 
 RECORD = struct.Struct("<qI4H")
 FORMAT = 1
@@ -35,19 +36,25 @@ def recording_dir(run_dir: Path | str) -> Path:
 class Recorder:
     """Writes one run's recording. Not thread-safe: called from the appliance's event loop only."""
 
-    def __init__(self, run_dir: Path | str, meta: dict[str, Any], min_period_s: float = 0.005,
-                 flush_period_s: float = 1.0) -> None:
+    def __init__(
+        self, run_dir: Path | str, meta: dict[str, Any], min_period_s: float = 0.005, flush_period_s: float = 1.0
+    ) -> None:
         self.dir = recording_dir(run_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.min_period_ns = int(min_period_s * 1e9)
         self.flush_period_s = flush_period_s
-        self.meta = {"format": FORMAT, "record": RECORD.format, "min_period_s": min_period_s,
-                     "created": time.time(), **meta}
+        self.meta = {
+            "format": FORMAT,
+            "record": RECORD.format,
+            "min_period_s": min_period_s,
+            "created": time.time(),
+            **meta,
+        }
         (self.dir / "meta.json").write_text(json.dumps(self.meta, indent=1) + "\n")
         self._bin = open(self.dir / "telemetry.bin", "wb")
         self._events = open(self.dir / "events.jsonl", "a", encoding="utf-8")
-        self._last_kept_ns: Optional[int] = None
-        self._pending: Optional[tuple[int, int, tuple[int, ...]]] = None  # newest sample not kept
+        self._last_kept_ns: int | None = None
+        self._pending: tuple[int, int, tuple[int, ...]] | None = None  # newest sample not kept
         self._last_flush = time.monotonic()
         self.samples = 0
         self.last_t_ns = 0
@@ -146,9 +153,12 @@ def load_recording(run_dir: Path | str) -> Recording:
     return Recording(meta, t_ns, cycle, enc, events)
 
 
-def write_recording(run_dir: Path | str, meta: dict[str, Any],
-                    samples: Iterable[tuple[int, Sequence[int]]],
-                    events: Iterable[dict[str, Any]] = ()) -> Path:
+def write_recording(
+    run_dir: Path | str,
+    meta: dict[str, Any],
+    samples: Iterable[tuple[int, Sequence[int]]],
+    events: Iterable[dict[str, Any]] = (),
+) -> Path:
     """A recording from (t_ns, enc) pairs, every sample kept (tests, converted data)."""
     rec = Recorder(run_dir, meta, min_period_s=0.0)
     for i, (t, enc) in enumerate(samples):

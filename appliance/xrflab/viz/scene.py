@@ -35,7 +35,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 from .. import profiles as profmod
 from ..server.lifecycle import RunObserver
@@ -60,31 +60,43 @@ def setpoint_angles(fields: dict[str, Any]) -> dict[str, float]:
     """{pan, tilt} from Ros2Xeno fields: <axis>_setpoint, else the first <axis>*set* field."""
     out: dict[str, float] = {}
     for axis in ("pan", "tilt"):
-        key = f"{axis}_setpoint" if f"{axis}_setpoint" in fields else next(
-            (k for k in fields if k.startswith(axis) and "set" in k), None)
+        key = (
+            f"{axis}_setpoint"
+            if f"{axis}_setpoint" in fields
+            else next((k for k in fields if k.startswith(axis) and "set" in k), None)
+        )
         v = fields.get(key) if key else None
         if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
             out[axis] = float(v)
     return out
 
 
-def stage_setpoint(fields: dict[str, Any]) -> Optional[float]:
+def stage_setpoint(fields: dict[str, Any]) -> float | None:
     """The linear stage's setpoint (m) from Ros2Xeno fields: position_setpoint, else the first
     position*set* field; None when there is none."""
-    key = "position_setpoint" if "position_setpoint" in fields else next(
-        (k for k in fields if k.startswith("position") and "set" in k), None)
+    key = (
+        "position_setpoint"
+        if "position_setpoint" in fields
+        else next((k for k in fields if k.startswith("position") and "set" in k), None)
+    )
     v = fields.get(key) if key else None
     if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
         return float(v)
     return None
 
 
-def resolve_profile(plant: str, real_bench: bool, data_dir: Optional[Path]) -> tuple[Optional[dict], str, str]:
+def resolve_profile(plant: str, real_bench: bool, data_dir: Path | None) -> tuple[dict | None, str, str]:
     """(profile, name, message): profile None with a message when there is none to use."""
     name = os.environ.get("XRF_BENCH_PROFILE", "") if real_bench else plant
     if not name:
-        return None, "", ("This bench has no profile: the 3D view cannot know what is connected. "
-                          "Start the appliance with XRF_BENCH_PROFILE=<profile name> (e.g. relbot, jiwy).")
+        return (
+            None,
+            "",
+            (
+                "This bench has no profile: the 3D view cannot know what is connected. "
+                "Start the appliance with XRF_BENCH_PROFILE=<profile name> (e.g. relbot, jiwy)."
+            ),
+        )
     try:
         profile = profmod.load_profile(name, data_dir)
     except profmod.ProfileError as exc:
@@ -127,7 +139,7 @@ class Replay:
         return self.setpoints[i] if i >= 0 else {}
 
 
-def build_replay(run_id: int, run_dir: Path, data_dir: Optional[Path] = None) -> Replay:
+def build_replay(run_id: int, run_dir: Path, data_dir: Path | None = None) -> Replay:
     """Run a recording through the same kinematics as the live view (in a worker thread)."""
     rec = load_recording(run_dir)
     t0 = rec.t_ns[0] if rec.t_ns else 0
@@ -182,26 +194,26 @@ class VizService(RunObserver):
         self.supervisor = supervisor
         self.server: Any = None
         self.error = ""  # viser could not start: the page shows this
-        self.port: Optional[int] = None
+        self.port: int | None = None
         self._lock = threading.Lock()
-        self._thread: Optional[threading.Thread] = None
+        self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         # live
         self.mode = "idle"  # idle | live | replay
-        self.run_id: Optional[int] = None
+        self.run_id: int | None = None
         self.run_active = False
         self.plant = ""
         self.profile_name = ""
         self.message = ""
         self.model: Any = None
-        self.recorder: Optional[Recorder] = None
+        self.recorder: Recorder | None = None
         self.setpoint: dict[str, Any] = {}
         self._setpoint_seen: dict[str, Any] = {}
         self.samples = 0
         self.last_t_ns = 0
         self._trail_dirty = True
         # replay
-        self.replay: Optional[Replay] = None
+        self.replay: Replay | None = None
         self.replay_t = 0.0
         # requests from viser's thread / the API
         self._want_reset = False
@@ -217,7 +229,7 @@ class VizService(RunObserver):
     # -- lifecycle ------------------------------------------------------------------------------
 
     @property
-    def data_dir(self) -> Optional[Path]:
+    def data_dir(self) -> Path | None:
         return getattr(self.settings, "data_dir", None)
 
     def _real_bench(self) -> bool:
@@ -252,6 +264,7 @@ class VizService(RunObserver):
         self.server = viser.ViserServer(host="127.0.0.1", port=port, label="XRF Lab 3D", verbose=False)
         self.port = int(self.server.get_port())
         from viser.extras import ViserUrdf  # noqa: F401  (import cost paid here, not on first draw)
+
         self.server.scene.set_up_direction("+z")
         self._build_gui()
 
@@ -266,8 +279,13 @@ class VizService(RunObserver):
             await asyncio.to_thread(self.server.stop)
 
     def info(self) -> dict[str, Any]:
-        return {"available": self.server is not None, "url": "/viser/", "port": self.port, "error": self.error,
-                "update_hz": UPDATE_HZ}
+        return {
+            "available": self.server is not None,
+            "url": "/viser/",
+            "port": self.port,
+            "error": self.error,
+            "update_hz": UPDATE_HZ,
+        }
 
     # -- telemetry in (supervisor hook, event loop) ---------------------------------------------
 
@@ -282,7 +300,7 @@ class VizService(RunObserver):
         if run is not None:  # a run recovered at start-up was never shown here
             self.on_telemetry(run, None)
 
-    def on_telemetry(self, run: Any, samples: Optional[list[Any]]) -> None:
+    def on_telemetry(self, run: Any, samples: list[Any] | None) -> None:
         """(run, samples) per reader batch, (run, None) at the end."""
         with self._lock:
             if samples is None:
@@ -319,8 +337,15 @@ class VizService(RunObserver):
         plant = getattr(row, "sim", "") or getattr(self.settings, "sim", "")
         profile, name, message = resolve_profile(plant, self._real_bench(), self.data_dir)
         self._set_robot(profile, name, message, plant)
-        meta = {"run_id": row.id, "build": row.build, "plant": plant, "profile_name": name,
-                "profile": profile, "message": message, "real_bench": self._real_bench()}
+        meta = {
+            "run_id": row.id,
+            "build": row.build,
+            "plant": plant,
+            "profile_name": name,
+            "profile": profile,
+            "message": message,
+            "real_bench": self._real_bench(),
+        }
         try:
             self.recorder = Recorder(run.run_dir, meta)
         except OSError as exc:
@@ -329,7 +354,7 @@ class VizService(RunObserver):
         if self.mode != "replay":
             self.mode = "live"
 
-    def _set_robot(self, profile: Optional[dict], name: str, message: str, plant: str) -> None:
+    def _set_robot(self, profile: dict | None, name: str, message: str, plant: str) -> None:
         self.plant = plant
         self.profile_name = name
         self.message = message
@@ -382,7 +407,7 @@ class VizService(RunObserver):
             self._trail_dirty = True
         self._sync_replay_gui()
 
-    def _run_dir(self, run_id: int) -> Optional[Path]:
+    def _run_dir(self, run_id: int) -> Path | None:
         sup = self.supervisor
         if sup is not None:
             try:
@@ -401,8 +426,9 @@ class VizService(RunObserver):
             for d in Path(runs_dir).iterdir():
                 if d.name.isdigit() and has_recording(d):
                     active = int(d.name) == self.run_id and self.run_active
-                    out.append({"run_id": int(d.name), "active": active,
-                                "bytes": (d / "viz" / "telemetry.bin").stat().st_size})
+                    out.append(
+                        {"run_id": int(d.name), "active": active, "bytes": (d / "viz" / "telemetry.bin").stat().st_size}
+                    )
         return sorted(out, key=lambda r: -r["run_id"])
 
     # -- the 30 Hz update -------------------------------------------------------------------------
@@ -427,22 +453,36 @@ class VizService(RunObserver):
         if self.mode == "replay" and self.replay is not None:
             r = self.replay
             i = r.index(self.replay_t)
-            f: dict[str, Any] = {"mode": "replay", "kind": r.kind, "message": r.message, "run_id": r.run_id,
-                                 "profile": r.profile_name, "t": self.replay_t, "duration": r.duration,
-                                 "setpoint": r.setpoint_at(self.replay_t)}
+            f: dict[str, Any] = {
+                "mode": "replay",
+                "kind": r.kind,
+                "message": r.message,
+                "run_id": r.run_id,
+                "profile": r.profile_name,
+                "t": self.replay_t,
+                "duration": r.duration,
+                "setpoint": r.setpoint_at(self.replay_t),
+            }
             if r.kind == "pan_tilt" and r.joints:
                 f["joints"] = dict(zip(("pan", "tilt"), r.joints[i]))
             elif r.kind == "differential_drive" and r.poses:
                 f["pose"] = dict(zip(("x", "y", "theta"), r.poses[i]))
                 n = r.trail_n[i]
-                f["trail"] = r.trail[max(r.trail_lo[i], n - TRAIL_MAX):n]
+                f["trail"] = r.trail[max(r.trail_lo[i], n - TRAIL_MAX) : n]
             elif r.kind == "linear_stage" and r.positions:
                 f["position"] = r.positions[i]
             return f
         m = self.model
-        f = {"mode": self.mode, "kind": m.kind if m else "", "message": self.message, "run_id": self.run_id,
-             "profile": self.profile_name, "active": self.run_active, "samples": self.samples,
-             "setpoint": dict(self.setpoint)}
+        f = {
+            "mode": self.mode,
+            "kind": m.kind if m else "",
+            "message": self.message,
+            "run_id": self.run_id,
+            "profile": self.profile_name,
+            "active": self.run_active,
+            "samples": self.samples,
+            "setpoint": dict(self.setpoint),
+        }
         if isinstance(m, kin.PanTilt):
             f["joints"] = dict(m.angles)
         elif isinstance(m, kin.DiffDrive):
@@ -514,8 +554,9 @@ class VizService(RunObserver):
 
             self._nodes["grid"] = scene.add_grid("/floor", width=1.0, height=1.0, cell_size=0.05, section_size=0.25)
             self._nodes["urdf"] = ViserUrdf(self.server, URDF_JIWY, root_node_name="/jiwy")
-            self._nodes["ghost"] = ViserUrdf(self.server, URDF_JIWY, root_node_name="/jiwy_setpoint",
-                                             mesh_color_override=(0.1, 0.8, 0.3, 0.3))
+            self._nodes["ghost"] = ViserUrdf(
+                self.server, URDF_JIWY, root_node_name="/jiwy_setpoint", mesh_color_override=(0.1, 0.8, 0.3, 0.3)
+            )
             self.server.initial_camera.position = (0.55, -0.45, 0.45)
             self.server.initial_camera.look_at = (0.0, 0.0, 0.15)
         elif kind == "differential_drive":
@@ -525,15 +566,26 @@ class VizService(RunObserver):
             self._nodes["grid"] = scene.add_grid("/floor", width=6.0, height=6.0, cell_size=0.1, section_size=1.0)
             robot = scene.add_frame("/relbot", show_axes=False)
             self._nodes["robot"] = robot
-            scene.add_box("/relbot/body", color=(60, 110, 190), dimensions=(0.22, track - 0.04, 0.08),
-                          position=(0.0, 0.0, r + 0.02))
+            scene.add_box(
+                "/relbot/body",
+                color=(60, 110, 190),
+                dimensions=(0.22, track - 0.04, 0.08),
+                position=(0.0, 0.0, r + 0.02),
+            )
             wheel_q = (math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0)  # cylinder axis z -> y
             for side, y in (("left", track / 2), ("right", -track / 2)):
-                scene.add_cylinder(f"/relbot/wheel_{side}", radius=r, height=0.025, color=(30, 30, 30),
-                                   wxyz=wheel_q, position=(0.0, y, r))
+                scene.add_cylinder(
+                    f"/relbot/wheel_{side}",
+                    radius=r,
+                    height=0.025,
+                    color=(30, 30, 30),
+                    wxyz=wheel_q,
+                    position=(0.0, y, r),
+                )
             scene.add_icosphere("/relbot/caster", radius=0.015, color=(120, 120, 120), position=(-0.09, 0.0, 0.015))
-            scene.add_box("/relbot/front", color=(230, 60, 40), dimensions=(0.06, 0.03, 0.01),
-                          position=(0.12, 0.0, r + 0.065))
+            scene.add_box(
+                "/relbot/front", color=(230, 60, 40), dimensions=(0.06, 0.03, 0.01), position=(0.12, 0.0, r + 0.065)
+            )
             self.server.initial_camera.position = (-0.9, -1.1, 1.0)
             self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
             self._send_trail([])
@@ -541,22 +593,38 @@ class VizService(RunObserver):
             lo, hi = getattr(self.model, "limits", (-0.1, 0.1))
             length = hi - lo + 0.06  # the rail reaches past the end stops to the end blocks
             self._nodes["grid"] = scene.add_grid("/floor", width=0.6, height=0.3, cell_size=0.01, section_size=0.05)
-            self._nodes["rail"] = scene.add_box("/stage_rail", color=(150, 150, 160), dimensions=(length, 0.04, 0.02),
-                                                position=((lo + hi) / 2, 0.0, 0.01))
+            self._nodes["rail"] = scene.add_box(
+                "/stage_rail",
+                color=(150, 150, 160),
+                dimensions=(length, 0.04, 0.02),
+                position=((lo + hi) / 2, 0.0, 0.01),
+            )
             for side, x in (("low", lo - 0.02), ("high", hi + 0.02)):
-                self._nodes[f"stop_{side}"] = scene.add_box(f"/stage_stop_{side}", color=(60, 60, 60),
-                                                            dimensions=(0.01, 0.06, 0.05), position=(x, 0.0, 0.025))
-            self._nodes["motor"] = scene.add_cylinder("/stage_motor", radius=0.02, height=0.05, color=(40, 40, 40),
-                                                      wxyz=(math.cos(math.pi / 4), 0.0, math.sin(math.pi / 4), 0.0),
-                                                      position=(lo - 0.05, 0.0, 0.025))
+                self._nodes[f"stop_{side}"] = scene.add_box(
+                    f"/stage_stop_{side}", color=(60, 60, 60), dimensions=(0.01, 0.06, 0.05), position=(x, 0.0, 0.025)
+                )
+            self._nodes["motor"] = scene.add_cylinder(
+                "/stage_motor",
+                radius=0.02,
+                height=0.05,
+                color=(40, 40, 40),
+                wxyz=(math.cos(math.pi / 4), 0.0, math.sin(math.pi / 4), 0.0),
+                position=(lo - 0.05, 0.0, 0.025),
+            )
             carriage = scene.add_frame("/stage_carriage", show_axes=False)
             self._nodes["carriage"] = carriage
-            scene.add_box("/stage_carriage/body", color=(60, 110, 190), dimensions=(0.04, 0.06, 0.03),
-                          position=(0.0, 0.0, 0.035))
+            scene.add_box(
+                "/stage_carriage/body", color=(60, 110, 190), dimensions=(0.04, 0.06, 0.03), position=(0.0, 0.0, 0.035)
+            )
             ghost = scene.add_frame("/stage_setpoint", show_axes=False, visible=False)
             self._nodes["ghost"] = ghost
-            scene.add_box("/stage_setpoint/body", color=(25, 200, 75), opacity=0.3, dimensions=(0.04, 0.06, 0.03),
-                          position=(0.0, 0.0, 0.035))
+            scene.add_box(
+                "/stage_setpoint/body",
+                color=(25, 200, 75),
+                opacity=0.3,
+                dimensions=(0.04, 0.06, 0.03),
+                position=(0.0, 0.0, 0.035),
+            )
             self.server.initial_camera.position = (0.05, -0.35, 0.25)
             self.server.initial_camera.look_at = (0.0, 0.0, 0.02)
         else:
