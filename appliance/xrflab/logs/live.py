@@ -50,6 +50,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import EllipsisType
 from typing import Any
 
 import numpy as np
@@ -614,7 +615,7 @@ class LiveRerun:
 
     def feed(self, records: np.ndarray) -> None:
         """From the writer thread: keep every k-th record (by cycle) and queue it; never blocks."""
-        if "cycle" not in records.dtype.names:
+        if "cycle" not in (records.dtype.names or ()):
             return
         keep = records[records["cycle"] % self._every == 0]
         if len(keep) == 0:
@@ -666,7 +667,7 @@ class LiveRerun:
         from .convert import _plain, variable_groups
 
         rr = self._rr
-        names = [n for n in rec.dtype.names if n not in ("seq", "cycle", "t_ns")]
+        names = [n for n in rec.dtype.names or () if n not in ("seq", "cycle", "t_ns")]
         if names != self._names:
             self._names = names
             self._groups = {}
@@ -721,10 +722,11 @@ class LiveRerun:
         last_telemetry = last_records = 0.0
         pending: list[np.ndarray] = []
         while True:
+            item: np.ndarray | None | EllipsisType
             try:
                 item = self._q.get(timeout=SEND_PERIOD_S)
             except queue.Empty:
-                item = ...
+                item = ...  # nothing new: still time to send what is pending
             if isinstance(item, np.ndarray):
                 pending.append(item)
             done = item is None or (self._stop.is_set() and self._q.empty())

@@ -197,7 +197,7 @@ class LogFile:
 
 def _repack(records: np.ndarray, dtype: np.dtype) -> np.ndarray:
     out = np.zeros(len(records), dtype=dtype)
-    for name in dtype.names:
+    for name in dtype.names or ():
         out[name] = records[name]
     return out
 
@@ -238,7 +238,9 @@ def make_variables(
 
 
 def record_dtype(variables: tuple[Variable, ...], stride: int, header: bool = True) -> np.dtype:
-    names, formats, offsets = [], [], []
+    names: list[str] = []
+    formats: list[str | np.dtype] = []
+    offsets: list[int] = []
     base = 0
     if header:
         for i, (n, f) in enumerate(RECORD_HEADER):
