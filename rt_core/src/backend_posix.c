@@ -90,9 +90,7 @@ static int posix_thread_setup(const struct xrf_rt_config *cfg, int *rt_sched)
     return 0;
 }
 
-static void posix_thread_teardown(void)
-{
-}
+static void posix_thread_teardown(void) {}
 
 static const struct xrf_backend posix_backend = {
     .name = "posix",

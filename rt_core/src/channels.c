@@ -65,10 +65,10 @@ void xrf_timing_meta_init(struct xrf_log_meta *m, uint32_t writer, const char *p
         size_t offset;
     } vars[] = {
 #define XRF_TIMING_VAR(field, type) {#field, type, offsetof(struct xrf_timing_record, field)}
-        XRF_TIMING_VAR(wakeup_ns, XRF_LOG_LONG_INT), XRF_TIMING_VAR(fpga_ns, XRF_LOG_LONG_INT),
-        XRF_TIMING_VAR(data_ns, XRF_LOG_LONG_INT),   XRF_TIMING_VAR(cmd_ns, XRF_LOG_LONG_INT),
+        XRF_TIMING_VAR(wakeup_ns, XRF_LOG_LONG_INT),  XRF_TIMING_VAR(fpga_ns, XRF_LOG_LONG_INT),
+        XRF_TIMING_VAR(data_ns, XRF_LOG_LONG_INT),    XRF_TIMING_VAR(cmd_ns, XRF_LOG_LONG_INT),
         XRF_TIMING_VAR(monitor_ns, XRF_LOG_LONG_INT), XRF_TIMING_VAR(hook_ns, XRF_LOG_LONG_INT),
-        XRF_TIMING_VAR(logger_ns, XRF_LOG_LONG_INT), XRF_TIMING_VAR(cycle_ns, XRF_LOG_LONG_INT),
+        XRF_TIMING_VAR(logger_ns, XRF_LOG_LONG_INT),  XRF_TIMING_VAR(cycle_ns, XRF_LOG_LONG_INT),
         XRF_TIMING_VAR(missed, XRF_LOG_BOOL),
 #undef XRF_TIMING_VAR
     };
@@ -203,8 +203,7 @@ int xrf_data_in_write(struct xrf_data_in *d, const void *data, uint32_t size, in
         s = LOAD_RLX(&d->seq);
         if (s & 1u)
             continue;
-        if (__atomic_compare_exchange_n(&d->seq, &s, s + 1, 0, __ATOMIC_ACQUIRE,
-                                        __ATOMIC_RELAXED))
+        if (__atomic_compare_exchange_n(&d->seq, &s, s + 1, 0, __ATOMIC_ACQUIRE, __ATOMIC_RELAXED))
             break;
     }
     __atomic_thread_fence(__ATOMIC_RELEASE);
@@ -384,8 +383,7 @@ uint32_t xrf_doorbell_wait(struct xrf_shm *shm, uint32_t seen, int timeout_ms)
     __atomic_add_fetch(&shm->doorbell_waiters, 1u, __ATOMIC_ACQ_REL);
     if (LOAD_ACQ(&shm->doorbell) == seen) {
         struct timespec ts = {timeout_ms / 1000, (long)(timeout_ms % 1000) * 1000000L};
-        syscall(SYS_futex, &shm->doorbell, FUTEX_WAIT, seen, timeout_ms >= 0 ? &ts : NULL, NULL,
-                0);
+        syscall(SYS_futex, &shm->doorbell, FUTEX_WAIT, seen, timeout_ms >= 0 ? &ts : NULL, NULL, 0);
     }
     __atomic_sub_fetch(&shm->doorbell_waiters, 1u, __ATOMIC_ACQ_REL);
     return LOAD_ACQ(&shm->doorbell);
@@ -432,12 +430,18 @@ int32_t xrf_cmd_transition(int32_t state, int32_t cmd)
 int32_t xrf_state_complete(int32_t state)
 {
     switch (state) {
-    case XRF_STATE_INITIALISING: return XRF_STATE_INITIALISED;
-    case XRF_STATE_INITIALISED: return XRF_STATE_RUN;
-    case XRF_STATE_RUN: return XRF_STATE_STOPPING;
-    case XRF_STATE_STOPPING: return XRF_STATE_STOPPED;
-    case XRF_STATE_PAUSING: return XRF_STATE_PAUSED;
-    default: return 0; /* STOPPED, PAUSED, ERROR: "complete" leads nowhere; IDLE, QUIT: no hook */
+    case XRF_STATE_INITIALISING:
+        return XRF_STATE_INITIALISED;
+    case XRF_STATE_INITIALISED:
+        return XRF_STATE_RUN;
+    case XRF_STATE_RUN:
+        return XRF_STATE_STOPPING;
+    case XRF_STATE_STOPPING:
+        return XRF_STATE_STOPPED;
+    case XRF_STATE_PAUSING:
+        return XRF_STATE_PAUSED;
+    default:
+        return 0; /* STOPPED, PAUSED, ERROR: "complete" leads nowhere; IDLE, QUIT: no hook */
     }
 }
 
@@ -446,8 +450,10 @@ void xrf_cmd_reject_reason(int32_t state, int32_t cmd, char *buf, size_t len)
     if (len == 0)
         return;
     if (xrf_cmd_transition(state, cmd) == -XRF_REJECT_UNKNOWN) {
-        snprintf(buf, len, "%d is not a command (1 initialise, 2 start, 3 stop, 4 reset, "
-                           "5 pause, 6 quit)", cmd);
+        snprintf(buf, len,
+                 "%d is not a command (1 initialise, 2 start, 3 stop, 4 reset, "
+                 "5 pause, 6 quit)",
+                 cmd);
         return;
     }
     int n = snprintf(buf, len, "%s is not allowed in state %s; allowed:", xrf_cmd_name(cmd),
@@ -465,15 +471,15 @@ void xrf_cmd_reject_reason(int32_t state, int32_t cmd, char *buf, size_t len)
 
 const char *xrf_state_name(int32_t state)
 {
-    static const char *const names[] = {"?",        "IDLE",    "INITIALISING", "INITIALISED",
-                                        "RUN",      "STOPPING", "STOPPED",     "PAUSING",
-                                        "PAUSED",   "ERROR",   "QUIT"};
+    static const char *const names[] = {"?",      "IDLE",     "INITIALISING", "INITIALISED",
+                                        "RUN",    "STOPPING", "STOPPED",      "PAUSING",
+                                        "PAUSED", "ERROR",    "QUIT"};
     return (state >= 1 && state <= 10) ? names[state] : "?";
 }
 
 const char *xrf_cmd_name(int32_t cmd)
 {
-    static const char *const names[] = {"?", "initialise", "start", "stop", "reset", "pause",
-                                        "quit"};
+    static const char *const names[] = {"?",     "initialise", "start", "stop",
+                                        "reset", "pause",      "quit"};
     return (cmd >= 1 && cmd <= 6) ? names[cmd] : "?";
 }

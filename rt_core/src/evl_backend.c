@@ -53,17 +53,17 @@
 #define EVL_CLONE_NONBLOCK 0
 #endif
 
-#define XRF_EVL_BELL_SIZE 8u     /* one eventfd write: a uint64_t */
-#define XRF_EVL_BELL_SLOTS 16u   /* pending bells the proxy can hold; more just coalesce */
+#define XRF_EVL_BELL_SIZE 8u   /* one eventfd write: a uint64_t */
+#define XRF_EVL_BELL_SLOTS 16u /* pending bells the proxy can hold; more just coalesce */
 
 /* ---- state (one loop thread per process) -------------------------------------------------- */
 
-static uint64_t g_demotions;          /* bumped by the SIGDEBUG handler only */
-static uint64_t g_bell_dropped;       /* oob_write to the proxy failed (ring full, ...) */
-static struct xrf_shm *g_bell_shm;    /* set by ring_doorbell, read by the relay */
-static int g_efd = -1;                /* our EVL thread element, -1 while not attached */
-static int g_bell_evfd = -1;          /* eventfd, the proxy's target */
-static int g_bell_proxy = -1;         /* EVL proxy fd the RT side writes to */
+static uint64_t g_demotions;       /* bumped by the SIGDEBUG handler only */
+static uint64_t g_bell_dropped;    /* oob_write to the proxy failed (ring full, ...) */
+static struct xrf_shm *g_bell_shm; /* set by ring_doorbell, read by the relay */
+static int g_efd = -1;             /* our EVL thread element, -1 while not attached */
+static int g_bell_evfd = -1;       /* eventfd, the proxy's target */
+static int g_bell_proxy = -1;      /* EVL proxy fd the RT side writes to */
 static int g_relay_started;
 static int g_relay_stop;
 static pthread_t g_relay;
@@ -265,8 +265,10 @@ static int evl_thread_setup(const struct xrf_rt_config *cfg, int *rt_sched)
         CPU_ZERO(&set);
         CPU_SET(cfg->cpu, &set);
         if (sched_setaffinity(0, sizeof set, &set) != 0)
-            fprintf(stderr, "xrf: warning: cannot pin the loop to CPU %d (%s); it stays on the "
-                            "CPU it attaches on\n", cfg->cpu, strerror(errno));
+            fprintf(stderr,
+                    "xrf: warning: cannot pin the loop to CPU %d (%s); it stays on the "
+                    "CPU it attaches on\n",
+                    cfg->cpu, strerror(errno));
     }
 
     /* 4. In-band SCHED_FIFO, carried over by evl_attach_self (set explicitly again below). */
@@ -276,8 +278,10 @@ static int evl_thread_setup(const struct xrf_rt_config *cfg, int *rt_sched)
         sp.sched_priority = cfg->priority;
         int pr = pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);
         if (pr != 0)
-            fprintf(stderr, "xrf: warning: in-band SCHED_FIFO %d refused (%s); trying "
-                            "evl_set_schedattr after attaching\n", cfg->priority, strerror(pr));
+            fprintf(stderr,
+                    "xrf: warning: in-band SCHED_FIFO %d refused (%s); trying "
+                    "evl_set_schedattr after attaching\n",
+                    cfg->priority, strerror(pr));
     }
 
     /* 5. Demotion counter: handler first, mode bit after attaching. */

@@ -128,7 +128,7 @@ int xrf_evl_spidev_open(const char *device, uint32_t speed_hz, struct xrf_ico_tr
     *out = &s->t;
     return 0;
 
-fail: {
+fail : {
     int err = errno ? -errno : -EIO;
     evl_spidev_close(&s->t);
     return err;

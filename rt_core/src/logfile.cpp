@@ -15,7 +15,8 @@
 #include <time.h>
 #include <unistd.h>
 
-namespace xrf {
+namespace xrf
+{
 
 const char *logfile_write_hint(int err)
 {
@@ -27,7 +28,8 @@ const char *logfile_write_hint(int err)
     return "";
 }
 
-namespace {
+namespace
+{
 
 const char *envOr(const char *name, const char *fallback)
 {
@@ -104,7 +106,8 @@ void logfile_drain(const xrf_shm *shm, xrf_log_meta *meta, xrf_ring *ring, const
         std::memcpy(path, m.path, XRF_PATH_MAX);
         path[XRF_PATH_MAX] = '\0';
         mkdirParents(path);
-        sink->fd = open(path, O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC, m.file_mode ? m.file_mode : 0644);
+        sink->fd =
+            open(path, O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC, m.file_mode ? m.file_mode : 0644);
         if (sink->fd < 0 || !writeHeader(sink->fd, sink, shm, m, ring->slot_size, program)) {
             int err = errno;
             std::fprintf(stderr, "xrf: cannot write the log file %s: %s%s; logging stops\n", path,
@@ -121,8 +124,10 @@ void logfile_drain(const xrf_shm *shm, xrf_log_meta *meta, xrf_ring *ring, const
     while ((run = xrf_spsc_peek_run(ring, slots, &n)) != nullptr) {
         if (sink->fd >= 0 && !writeAll(sink->fd, run, (size_t)n * ring->slot_size)) {
             if (!sink->reported)
-                std::fprintf(stderr, "xrf: writing the log file failed (%s); logging stops, the "
-                                     "loop goes on\n", std::strerror(errno));
+                std::fprintf(stderr,
+                             "xrf: writing the log file failed (%s); logging stops, the "
+                             "loop goes on\n",
+                             std::strerror(errno));
             sink->reported = true;
             close(sink->fd);
             sink->fd = -1;

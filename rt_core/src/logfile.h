@@ -5,7 +5,8 @@
 
 #include "xrf/channels.h"
 
-namespace xrf {
+namespace xrf
+{
 
 struct LogSink;
 

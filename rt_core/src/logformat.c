@@ -37,21 +37,23 @@ const struct xrf_logfile_type *xrf_logfile_type_of(int32_t code)
 #define HEAD_PROJECT ",\"project\":"
 #define HEAD_BUILD ",\"build\":"
 #define HEAD_RUN ",\"run\":"
-#define HEAD_NUMBERS ",\"pid\":%d,\"cycle_freq\":%u,\"start_unix_ns\":%lld,\"start_mono_ns\":%lld," \
-    "\"record_header\":[[\"seq\",\"uint64\"],[\"cycle\",\"uint64\"],[\"t_ns\",\"int64\"]],"        \
+#define HEAD_NUMBERS                                                                        \
+    ",\"pid\":%d,\"cycle_freq\":%u,\"start_unix_ns\":%lld,\"start_mono_ns\":%lld,"          \
+    "\"record_header\":[[\"seq\",\"uint64\"],[\"cycle\",\"uint64\"],[\"t_ns\",\"int64\"]]," \
     "\"record_size\":%u,\"variables\":["
 #define VAR_NAME ",{\"name\":"
 #define VAR_REST ",\"type\":%d,\"dtype\":\"%s\",\"offset\":%d}"
 #define TAIL "]}\n"
 
 #define ESCAPED_MAX(n) (2 + 6 * (size_t)(n)) /* quotes + every byte as \u00XX */
-#define INT_TEXT_MAX 20                        /* "-9223372036854775808" */
-#define DTYPE_MAX 7                            /* "float32", or "?" */
+#define INT_TEXT_MAX 20                      /* "-9223372036854775808" */
+#define DTYPE_MAX 7                          /* "float32", or "?" */
 _Static_assert(XRF_LOGFILE_PREFIX_SIZE + sizeof HEAD_FORMAT + INT_TEXT_MAX + sizeof HEAD_PROGRAM +
                        sizeof HEAD_PROJECT + sizeof HEAD_BUILD + sizeof HEAD_RUN +
-                       4 * ESCAPED_MAX(XRF_LOGFILE_TEXT_MAX) + sizeof HEAD_NUMBERS + 5 * INT_TEXT_MAX +
-                       XRF_LOG_VARS_MAX * (sizeof VAR_NAME + ESCAPED_MAX(XRF_NAME_MAX) + sizeof VAR_REST +
-                                           3 * INT_TEXT_MAX + DTYPE_MAX) +
+                       4 * ESCAPED_MAX(XRF_LOGFILE_TEXT_MAX) + sizeof HEAD_NUMBERS +
+                       5 * INT_TEXT_MAX +
+                       XRF_LOG_VARS_MAX * (sizeof VAR_NAME + ESCAPED_MAX(XRF_NAME_MAX) +
+                                           sizeof VAR_REST + 3 * INT_TEXT_MAX + DTYPE_MAX) +
                        sizeof TAIL + XRF_LOGFILE_ALIGN - 1 <=
                    XRF_LOGFILE_HEADER_MAX,
                "XRF_LOGFILE_HEADER_MAX does not bound every header");

@@ -58,7 +58,7 @@ struct xrf_plant_ops {
     int axes;          /* motor channels wired, 1..axes: PWM n drives the motor behind encoder n */
     int state_len;     /* values state() gives (<= 8, the shared-memory mirror's size) */
     const char *state_names; /* "name unit, ..." in state() order */
-    size_t size;       /* of the plant's struct */
+    size_t size;             /* of the plant's struct */
     void (*init)(void *plant);
     /* duty[ch] in [-1, 1] for channels 1..4 (index 0..3); channels beyond `axes` are ignored. */
     void (*step)(void *plant, const double duty[4], double dt);

@@ -29,11 +29,27 @@ struct axis_figures {
 
 static const struct axis_figures figures[2] = {
     /* pan */
-    {.k = 0.018, .j_motor = 2.06e-7, .b_motor = 1.77e-6, .gearbox = 1.0 / 19.0, .belt = 1.0,
-     .j_camera = 3.0e-4, .b_camera = 2.0e-4, .r = 2.5, .tc = 1.0e-3, .stop_deg = 90.0},
+    {.k = 0.018,
+     .j_motor = 2.06e-7,
+     .b_motor = 1.77e-6,
+     .gearbox = 1.0 / 19.0,
+     .belt = 1.0,
+     .j_camera = 3.0e-4,
+     .b_camera = 2.0e-4,
+     .r = 2.5,
+     .tc = 1.0e-3,
+     .stop_deg = 90.0},
     /* tilt */
-    {.k = 0.00701, .j_motor = 5.28e-8, .b_motor = 4.0e-7, .gearbox = 1.0 / 19.0, .belt = 0.25,
-     .j_camera = 4.5e-5, .b_camera = 1.0e-4, .r = 4.0, .tc = 2.0e-4, .stop_deg = 45.0},
+    {.k = 0.00701,
+     .j_motor = 5.28e-8,
+     .b_motor = 4.0e-7,
+     .gearbox = 1.0 / 19.0,
+     .belt = 0.25,
+     .j_camera = 4.5e-5,
+     .b_camera = 1.0e-4,
+     .r = 4.0,
+     .tc = 2.0e-4,
+     .stop_deg = 45.0},
 };
 
 static void jiwy_init(void *plant)

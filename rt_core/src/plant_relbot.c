@@ -10,16 +10,16 @@
  */
 #include "plant.h"
 
-#define RELBOT_MASS_KG 2.0       /* assumed: Pi, ico board, battery, frame */
-#define RELBOT_WHEEL_J 1.0e-4    /* assumed: one wheel with hub, kg·m² */
-#define RELBOT_MOTOR_J 1.0e-6    /* assumed rotor inertia, kg·m² */
+#define RELBOT_MASS_KG 2.0    /* assumed: Pi, ico board, battery, frame */
+#define RELBOT_WHEEL_J 1.0e-4 /* assumed: one wheel with hub, kg·m² */
+#define RELBOT_MOTOR_J 1.0e-6 /* assumed rotor inertia, kg·m² */
 
 /* Channel 1 = left wheel, channel 2 = right wheel (motor mounted mirrored). */
 struct xrf_relbot {
     struct xrf_dc_motor_params p; /* same motor type on both sides */
-    double gear;         /* motor revolutions per wheel revolution */
-    double wheel_radius; /* m */
-    double track;        /* distance between the wheel contact points, m */
+    double gear;                  /* motor revolutions per wheel revolution */
+    double wheel_radius;          /* m */
+    double track;                 /* distance between the wheel contact points, m */
     double supply_v;
     struct xrf_dc_motor m[2];
     double x, y, theta; /* pose in the start frame: m, m, rad */

@@ -18,9 +18,11 @@
 #include "xrf/plants.h"
 #include "xrf/sim.h"
 
-namespace xrf {
+namespace xrf
+{
 
-namespace {
+namespace
+{
 
 volatile sig_atomic_t g_signal_stop = 0;
 
@@ -98,7 +100,8 @@ int Options::fromEnvironment()
         char *end = nullptr;
         double d = std::strtod(v, &end);
         if (end == v || *end != '\0' || d < 0.0 || d > 1.0) {
-            std::fprintf(stderr, "xrf: XRF_PWM_LIMIT=%s must be a fraction 0..1 (0.2 = 20 %%)\n", v);
+            std::fprintf(stderr, "xrf: XRF_PWM_LIMIT=%s must be a fraction 0..1 (0.2 = 20 %%)\n",
+                         v);
             ok = false;
         } else {
             pwm_limit = d;
@@ -340,9 +343,12 @@ int Runtime::enter(unsigned cycle_freq)
         // Beside the logger's file: in XRF_LOG_DIR, else the working directory (the appliance
         // writes it into the run's folder).
         char path[XRF_PATH_MAX + 32];
-        int n = std::snprintf(path, sizeof path, "%s%scycle_timing.xrf", o.log_dir, o.log_dir[0] ? "/" : "");
+        int n = std::snprintf(path, sizeof path, "%s%scycle_timing.xrf", o.log_dir,
+                              o.log_dir[0] ? "/" : "");
         if (n < 0 || n >= XRF_PATH_MAX) {
-            std::fprintf(stderr, "xrf: XRF_LOG_DIR is too long for cycle_timing.xrf; timing is not logged\n");
+            std::fprintf(
+                stderr,
+                "xrf: XRF_LOG_DIR is too long for cycle_timing.xrf; timing is not logged\n");
         } else {
             xrf_ring_init(&shm_->timing_ring, XRF_TIMING_SLOTS, sizeof(xrf_timing_record));
             xrf_timing_meta_init(&shm_->timing_meta, (uint32_t)o.log_writer, path);
@@ -395,17 +401,20 @@ int Runtime::enter(unsigned cycle_freq)
         // A short main asks for nothing: make the loop real-time as an XRF2 main would. A main
         // that already chose SCHED_FIFO/RR keeps its choice (XRF_PRIO=0 keeps any policy).
         // A main whose SCHED_FIFO thread was refused (unprivileged.cpp) keeps asking for its priority.
-        cfg.priority = main_chose_rt ? 0 : (refusedThreadPriority() > 0 ? refusedThreadPriority() : kDefaultPriority);
+        cfg.priority = main_chose_rt ? 0
+                                     : (refusedThreadPriority() > 0 ? refusedThreadPriority()
+                                                                    : kDefaultPriority);
     }
     cfg.lock_memory = may_lock ? 1 : 0;
     cfg.stack_prefault = 256 * 1024;
     // Printed before the backend's set-up: on EVL the set-up ends with stage-switch warnings on
     // (EVL_T_WOSS) and the thread out-of-band, so any write after it counts as a demotion.
     if (!o.quiet)
-        std::fprintf(stderr,
-                     "xrf: loop '%s' at %u Hz, backend %s, board %s%s%s, shared memory /dev/shm/%s\n",
-                     program_, cycle_freq, backend_->name, transport_name_[0] ? transport_name_ : "none",
-                     info.sim[0] ? " " : "", info.sim, o.shm_name);
+        std::fprintf(
+            stderr,
+            "xrf: loop '%s' at %u Hz, backend %s, board %s%s%s, shared memory /dev/shm/%s\n",
+            program_, cycle_freq, backend_->name, transport_name_[0] ? transport_name_ : "none",
+            info.sim[0] ? " " : "", info.sim, o.shm_name);
     r = backend_->thread_setup(&cfg, &rt_sched_);
     if (r != 0) {
         std::fprintf(stderr, "xrf: the %s backend could not set up the loop thread: %s\n",
@@ -545,7 +554,8 @@ void Runtime::monitorWrite(const char *fmt, va_list ap)
         std::vfprintf(stdout, fmt, ap);
         return;
     }
-    auto *line = static_cast<xrf_monitor_line *>(xrf_bcast_begin(&shm_->monitor_ring, shm_->monitor));
+    auto *line =
+        static_cast<xrf_monitor_line *>(xrf_bcast_begin(&shm_->monitor_ring, shm_->monitor));
     int n = std::vsnprintf(line->text, sizeof line->text, fmt, ap);
     if (n < 0)
         n = 0;
@@ -623,7 +633,8 @@ void Runtime::helperDrain(bool final)
 {
     xrf_monitor_line line;
     uint64_t lost = 0;
-    while (xrf_bcast_read(&shm_->monitor_ring, shm_->monitor, &monitor_cursor_, &line, &lost) == 1) {
+    while (xrf_bcast_read(&shm_->monitor_ring, shm_->monitor, &monitor_cursor_, &line, &lost) ==
+           1) {
         if (!options_.quiet) {
             std::fwrite(line.text, 1, line.len, stdout);
             if (line.len == 0 || line.text[line.len - 1] != '\n')
@@ -635,10 +646,11 @@ void Runtime::helperDrain(bool final)
                      (unsigned long long)lost);
     std::fflush(stdout);
     if (shm_->log_meta.writer == XRF_LOG_WRITER_PROCESS)
-        logfile_drain(shm_, &shm_->log_meta, &shm_->log_ring, shm_->log_data, &log_sink_, program_, final);
-    if (timing_on_ && shm_->timing_meta.writer == XRF_LOG_WRITER_PROCESS)
-        logfile_drain(shm_, &shm_->timing_meta, &shm_->timing_ring, shm_->timing, &timing_sink_, program_,
+        logfile_drain(shm_, &shm_->log_meta, &shm_->log_ring, shm_->log_data, &log_sink_, program_,
                       final);
+    if (timing_on_ && shm_->timing_meta.writer == XRF_LOG_WRITER_PROCESS)
+        logfile_drain(shm_, &shm_->timing_meta, &shm_->timing_ring, shm_->timing, &timing_sink_,
+                      program_, final);
 }
 
 void Runtime::leave()

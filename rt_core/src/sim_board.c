@@ -27,16 +27,16 @@
 #define SIM_MAX_GAP_S 0.050 /* a stalled caller must not make the plant jump */
 
 struct sim_board {
-    struct xrf_ico_transport t; /* first, so the transport pointer is the object pointer */
+    struct xrf_ico_transport t;      /* first, so the transport pointer is the object pointer */
     const struct xrf_plant_ops *ops; /* the plant's row of the plant table (plants.c) */
     struct xrf_sim_faults faults;
     double fixed_dt;
     struct xrf_sim_outputs *outputs;
 
     /* The board's registers. */
-    int16_t pwm[4];      /* signed duty as decoded, magnitude up to 14 bits */
+    int16_t pwm[4]; /* signed duty as decoded, magnitude up to 14 bits */
     uint8_t dout[4];
-    double enc_zero[4];  /* motor angle at the last RESET (the counters' zero) */
+    double enc_zero[4]; /* motor angle at the last RESET (the counters' zero) */
 
     struct timespec last;
     int have_last;

@@ -30,9 +30,11 @@
 #include <sys/syscall.h>
 #include <unistd.h>
 
-namespace xrf {
+namespace xrf
+{
 
-namespace {
+namespace
+{
 
 std::atomic<int> g_refused_priority{0};
 std::atomic<bool> g_locking_off{false};
@@ -80,12 +82,13 @@ void switchLockingOff(const char *why)
 {
     munlockall();
     if (!g_locking_off.exchange(true))
-        std::fprintf(stderr,
-                     "xrf: WARNING: memory is NOT locked (%s; RLIMIT_MEMLOCK is %zu KiB and this user may "
-                     "not raise it): the loop runs, but page faults may add latency. The appliance's run "
-                     "sandbox and deploy/ grant the limit; by hand: ulimit -l unlimited, or CAP_IPC_LOCK "
-                     "(docs/rt_core/runtime.md).\n",
-                     why, memlockLimit() / 1024);
+        std::fprintf(
+            stderr,
+            "xrf: WARNING: memory is NOT locked (%s; RLIMIT_MEMLOCK is %zu KiB and this user may "
+            "not raise it): the loop runs, but page faults may add latency. The appliance's run "
+            "sandbox and deploy/ grant the limit; by hand: ulimit -l unlimited, or CAP_IPC_LOCK "
+            "(docs/rt_core/runtime.md).\n",
+            why, memlockLimit() / 1024);
 }
 
 using CreateFn = int (*)(pthread_t *, const pthread_attr_t *, void *(*)(void *), void *);
@@ -103,8 +106,8 @@ CreateFn realCreate()
 
 // `attr` with the creator's scheduling instead of its explicit SCHED_FIFO/RR; everything else
 // that pthread attributes carry (stack, guard, detach state, CPU affinity, scope) kept.
-int createInheriting(CreateFn real, pthread_t *thread, const pthread_attr_t *attr, void *(*start)(void *),
-                     void *arg)
+int createInheriting(CreateFn real, pthread_t *thread, const pthread_attr_t *attr,
+                     void *(*start)(void *), void *arg)
 {
     pthread_attr_t copy;
     pthread_attr_init(&copy);
@@ -160,7 +163,8 @@ bool fitMemoryLocking(size_t need, bool quiet)
     if (quiet)
         g_locking_off.store(true); // warned about once, by whoever is not quiet
     char why[160];
-    std::snprintf(why, sizeof why, "the loop maps about %zu KiB more than the limit leaves", need / 1024);
+    std::snprintf(why, sizeof why, "the loop maps about %zu KiB more than the limit leaves",
+                  need / 1024);
     switchLockingOff(why);
     return false;
 }
@@ -194,15 +198,15 @@ extern "C" int pthread_create(pthread_t *__restrict thread, const pthread_attr_t
             r = xrf::createInheriting(real, thread, attr, start, arg);
             if (r == 0) {
                 xrf::g_refused_priority.store(sp.sched_priority > 0 ? sp.sched_priority : 1);
-                std::fprintf(stderr,
-                             "xrf: WARNING: a thread asked for %s priority %d, which this user may not have "
-                             "(no CAP_SYS_NICE, RLIMIT_RTPRIO %ld): it runs without real-time scheduling, "
-                             "without timing guarantees (docs/rt_core/runtime.md).\n",
-                             policy == SCHED_FIFO ? "SCHED_FIFO" : "SCHED_RR", sp.sched_priority,
-                             [] {
-                                 rlimit rl{};
-                                 return getrlimit(RLIMIT_RTPRIO, &rl) == 0 ? (long)rl.rlim_cur : -1L;
-                             }());
+                std::fprintf(
+                    stderr,
+                    "xrf: WARNING: a thread asked for %s priority %d, which this user may not have "
+                    "(no CAP_SYS_NICE, RLIMIT_RTPRIO %ld): it runs without real-time scheduling, "
+                    "without timing guarantees (docs/rt_core/runtime.md).\n",
+                    policy == SCHED_FIFO ? "SCHED_FIFO" : "SCHED_RR", sp.sched_priority, [] {
+                        rlimit rl{};
+                        return getrlimit(RLIMIT_RTPRIO, &rl) == 0 ? (long)rl.rlim_cur : -1L;
+                    }());
             }
         }
     }

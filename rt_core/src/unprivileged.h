@@ -5,7 +5,8 @@
 
 #include <cstddef>
 
-namespace xrf {
+namespace xrf
+{
 
 // Bytes RLIMIT_MEMLOCK leaves for locking beyond what this process maps now; (size_t)-1 when
 // locking is not limited (RLIM_INFINITY or CAP_IPC_LOCK).

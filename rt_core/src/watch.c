@@ -122,7 +122,8 @@ static void *watch_thread(void *arg)
         timeout_ms = 1;
     const struct xrf_status *st = w->shm ? &w->shm->status : NULL;
     for (;;) {
-        struct pollfd fds[2] = {{.fd = w->pidfd, .events = POLLIN}, {.fd = w->cancel_fd, .events = POLLIN}};
+        struct pollfd fds[2] = {{.fd = w->pidfd, .events = POLLIN},
+                                {.fd = w->cancel_fd, .events = POLLIN}};
         int n = poll(fds, 2, timeout_ms);
         int64_t t = now_ns();
         /* The exit comes first: a cancel that races with it still gets the outputs made safe. */

@@ -44,7 +44,8 @@ int XenoSpiControllerHandler::transfer(const void *tx_data, void *rx_data, int d
     xrf_ico_transport *t = xrf::Runtime::instance().transport();
     if (t == nullptr)
         return -ENODEV;
-    const int r = t->xfer(t, static_cast<const uint8_t *>(tx_data), static_cast<uint8_t *>(rx_data));
+    const int r =
+        t->xfer(t, static_cast<const uint8_t *>(tx_data), static_cast<uint8_t *>(rx_data));
     return r != 0 ? r : data_size;
 }
 

@@ -4,7 +4,8 @@
 #include <cstdint>
 #include <ctime>
 
-namespace xrf2 {
+namespace xrf2
+{
 
 // A loop timestamp (ns on the monotonic clock) as XRF2's struct timespec members hold it.
 inline struct timespec toTimespec(int64_t ns)

@@ -21,7 +21,8 @@ void xrf2::markLoopThreadAttached() {}
 
 #include "xrf/runtime.hpp"
 
-namespace {
+namespace
+{
 
 // The caller's descriptor once attached (its kernel thread id: unique, positive), else -1.
 thread_local int self_efd = -1;

@@ -16,7 +16,8 @@
 #include "xrf/logformat.h"
 #include "xrf/runtime.hpp"
 
-namespace {
+namespace
+{
 
 // A name with the run folder as its root: "." and empty parts dropped, ".." never climbing
 // above the root (as in a chroot, "/.." is "/"). "/home/x/logs/log" -> "home/x/logs/log".
@@ -85,7 +86,8 @@ XenoFileHandler::XenoFileHandler(bool add_timestamp, const std::string &name,
         std::printf("xrf: log %s -> %s in the run folder\n", base.c_str(), rel.c_str());
     }
     if (path.size() >= sizeof path_) {
-        std::fprintf(stderr, "xrf: the log file name %s is longer than %zu characters; not logged\n",
+        std::fprintf(stderr,
+                     "xrf: the log file name %s is longer than %zu characters; not logged\n",
                      path.c_str(), sizeof path_ - 1);
         path.clear();
     }
@@ -97,8 +99,8 @@ XenoFileHandler::XenoFileHandler(bool add_timestamp, const std::string &name,
         makeParents(path_);
         int fd = open(path_, O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC, mode_);
         if (fd < 0)
-            std::fprintf(stderr, "xrf: cannot write the log file %s: %s%s\n", path_, std::strerror(errno),
-                         xrf::logfile_write_hint(errno));
+            std::fprintf(stderr, "xrf: cannot write the log file %s: %s%s\n", path_,
+                         std::strerror(errno), xrf::logfile_write_hint(errno));
         else
             close(fd);
     }

@@ -6,7 +6,8 @@
 #include "xrf/runtime.hpp"
 #include "xrf2_compat.hpp"
 
-namespace {
+namespace
+{
 
 // Deadline k of the grid, exact for any frequency: no accumulated rounding, no drift.
 inline int64_t gridTime(int64_t t0, uint64_t k, unsigned freq)

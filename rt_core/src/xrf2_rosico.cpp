@@ -8,7 +8,8 @@
 #include "xrf/runtime.hpp"
 #include "xrf2_compat.hpp"
 
-namespace {
+namespace
+{
 
 bool outputsAllowed(int state)
 {
@@ -32,7 +33,8 @@ XenoFrtRosIcoCore::XenoFrtRosIcoCore(unsigned cycle_freq, unsigned write_decimat
     this->monitor_freq = (int)monitor_freq;
     const unsigned f = xrf::Runtime::instance().effectiveFrequency(cycle_freq);
     // 0 disables publishing (XRF2 divided by zero here).
-    decimator_ = write_decimator_freq == 0 ? 0 : (f + write_decimator_freq / 2) / write_decimator_freq;
+    decimator_ =
+        write_decimator_freq == 0 ? 0 : (f + write_decimator_freq / 2) / write_decimator_freq;
     if (write_decimator_freq != 0 && decimator_ == 0)
         decimator_ = 1;
     decimator_count_ = decimator_ ? decimator_ - 1 : 0; // the first cycle publishes
@@ -129,7 +131,8 @@ int XenoFrtRosIcoCore::step()
     const int64_t s0 = rt.cycleStart();
     t1 = xrf2::toTimespec(s0);
     ico_io.setOutputsEnabled(outputsAllowed(state_machine.getState()));
-    if (ico_io.update_io(actuate_data, &sample_data) != 0 && state_machine.getState() != ERROR_STATE)
+    if (ico_io.update_io(actuate_data, &sample_data) != 0 &&
+        state_machine.getState() != ERROR_STATE)
         state_machine.fail(-EIO);
     const int64_t s1 = rt.now();
     rt.stage(XRF_STAGE_FPGA, s1 - s0);

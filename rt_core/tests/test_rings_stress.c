@@ -27,16 +27,16 @@
 
 static int passed, failed;
 
-#define CHECK(cond, ...)                                                                           \
-    do {                                                                                           \
-        if (cond) {                                                                                \
-            passed++;                                                                              \
-        } else {                                                                                   \
-            failed++;                                                                              \
-            fprintf(stderr, "FAIL %s:%d: ", __FILE__, __LINE__);                                   \
-            fprintf(stderr, __VA_ARGS__);                                                          \
-            fputc('\n', stderr);                                                                   \
-        }                                                                                          \
+#define CHECK(cond, ...)                                         \
+    do {                                                         \
+        if (cond) {                                              \
+            passed++;                                            \
+        } else {                                                 \
+            failed++;                                            \
+            fprintf(stderr, "FAIL %s:%d: ", __FILE__, __LINE__); \
+            fprintf(stderr, __VA_ARGS__);                        \
+            fputc('\n', stderr);                                 \
+        }                                                        \
     } while (0)
 
 static double now_s(void)
@@ -75,10 +75,10 @@ struct test_slot {
 struct ring_fixture {
     struct xrf_ring ring;
     struct test_slot *slots;
-    volatile int done;      /* producer finished */
-    uint64_t produced;      /* items the producer handed to the ring (incl. dropped ones) */
+    volatile int done;       /* producer finished */
+    uint64_t produced;       /* items the producer handed to the ring (incl. dropped ones) */
     uint64_t producer_nulls; /* SPSC: begin() calls that found the ring full */
-    int retry_when_full;    /* SPSC: producer waits for room instead of dropping */
+    int retry_when_full;     /* SPSC: producer waits for room instead of dropping */
 };
 
 static void *alloc_slots(uint32_t n)
@@ -138,11 +138,15 @@ static void test_broadcast(void)
     }
     pthread_join(producer, NULL);
     CHECK(torn == 0, "broadcast: %" PRIu64 " torn payloads", torn);
-    CHECK(gaps_unaccounted == 0, "broadcast: %" PRIu64 " gaps not counted as lost", gaps_unaccounted);
-    CHECK(got + lost == f.produced, "broadcast: read %" PRIu64 " + lost %" PRIu64 " != published %" PRIu64,
-          got, lost, f.produced);
-    CHECK(cursor == f.produced, "broadcast: cursor %" PRIu64 " != head %" PRIu64, cursor, f.produced);
-    printf("broadcast: %" PRIu64 " published, %" PRIu64 " read, %" PRIu64 " lost\n", f.produced, got, lost);
+    CHECK(gaps_unaccounted == 0, "broadcast: %" PRIu64 " gaps not counted as lost",
+          gaps_unaccounted);
+    CHECK(got + lost == f.produced,
+          "broadcast: read %" PRIu64 " + lost %" PRIu64 " != published %" PRIu64, got, lost,
+          f.produced);
+    CHECK(cursor == f.produced, "broadcast: cursor %" PRIu64 " != head %" PRIu64, cursor,
+          f.produced);
+    printf("broadcast: %" PRIu64 " published, %" PRIu64 " read, %" PRIu64 " lost\n", f.produced,
+           got, lost);
     free(f.slots);
 }
 
@@ -211,19 +215,20 @@ static void test_spsc(int retry_when_full)
     uint64_t dropped = __atomic_load_n(&f.ring.dropped, __ATOMIC_ACQUIRE);
     CHECK(torn == 0, "%s: %" PRIu64 " torn payloads", mode, torn);
     CHECK(out_of_order == 0, "%s: %" PRIu64 " records out of order", mode, out_of_order);
-    CHECK(dropped == f.producer_nulls, "%s: dropped %" PRIu64 " != full begins %" PRIu64, mode, dropped,
-          f.producer_nulls);
+    CHECK(dropped == f.producer_nulls, "%s: dropped %" PRIu64 " != full begins %" PRIu64, mode,
+          dropped, f.producer_nulls);
     if (retry_when_full) {
-        CHECK(got == f.produced && skipped == 0, "%s: %" PRIu64 " of %" PRIu64 " arrived, %" PRIu64 " skipped",
-              mode, got, f.produced, skipped);
+        CHECK(got == f.produced && skipped == 0,
+              "%s: %" PRIu64 " of %" PRIu64 " arrived, %" PRIu64 " skipped", mode, got, f.produced,
+              skipped);
     } else {
         /* Every missing record is one the producer was told it could not store. */
         CHECK(got + dropped == f.produced && skipped == dropped,
-              "%s: got %" PRIu64 " + dropped %" PRIu64 " != %" PRIu64 " (skipped %" PRIu64 ")", mode, got,
-              dropped, f.produced, skipped);
+              "%s: got %" PRIu64 " + dropped %" PRIu64 " != %" PRIu64 " (skipped %" PRIu64 ")",
+              mode, got, dropped, f.produced, skipped);
     }
-    printf("%s: %" PRIu64 " produced, %" PRIu64 " consumed, %" PRIu64 " found the ring full\n", mode,
-           f.produced, got, dropped);
+    printf("%s: %" PRIu64 " produced, %" PRIu64 " consumed, %" PRIu64 " found the ring full\n",
+           mode, f.produced, got, dropped);
     free(f.slots);
 }
 
@@ -251,7 +256,8 @@ static void *cmd_producer(void *p)
     uint32_t k = 0;
     for (; k < CMD_ITEMS && (k & 1023 || now_s() < t_end); k++) {
         /* t_sent_ns carries a check value so a torn slot (cmd of one, time of another) shows. */
-        while (xrf_cmd_send(&a->f->shm->cmd, (int32_t)k, a->id, (int64_t)k * 7 + a->id) == -EAGAIN) {
+        while (xrf_cmd_send(&a->f->shm->cmd, (int32_t)k, a->id, (int64_t)k * 7 + a->id) ==
+               -EAGAIN) {
             __atomic_add_fetch(&a->f->full, 1, __ATOMIC_RELAXED);
             sched_yield();
         }
@@ -290,7 +296,8 @@ static void test_commands(void)
         if (slot.ticket != last_ticket + 1)
             bad_ticket++;
         last_ticket = slot.ticket;
-        if (slot.source < 0 || slot.source >= CMD_PRODUCERS || slot.t_sent_ns != (int64_t)slot.cmd * 7 + slot.source) {
+        if (slot.source < 0 || slot.source >= CMD_PRODUCERS ||
+            slot.t_sent_ns != (int64_t)slot.cmd * 7 + slot.source) {
             torn++;
             continue;
         }
@@ -307,7 +314,8 @@ static void test_commands(void)
     CHECK(bad_ticket == 0, "commands: %" PRIu64 " tickets out of sequence", bad_ticket);
     CHECK(bad_order == 0, "commands: %" PRIu64 " out of FIFO order within a producer", bad_order);
     CHECK(torn == 0, "commands: %" PRIu64 " torn slots", torn);
-    printf("commands: %" PRIu64 " sent by %d producers, %" PRIu64 " received, ring full %" PRIu64 " times\n",
+    printf("commands: %" PRIu64 " sent by %d producers, %" PRIu64 " received, ring full %" PRIu64
+           " times\n",
            sent, CMD_PRODUCERS, got, f.full);
     free(f.shm);
 }
@@ -354,7 +362,8 @@ static void test_data_in_and_status(void)
     pthread_t writer;
     pthread_create(&writer, NULL, data_writer, &f);
     uint32_t last_seq = 0;
-    uint64_t words[PAYLOAD_WORDS], reads = 0, torn = 0, backwards = 0, status_reads = 0, status_torn = 0;
+    uint64_t words[PAYLOAD_WORDS], reads = 0, torn = 0, backwards = 0, status_reads = 0,
+                                   status_torn = 0;
     int64_t last_t = -1, t_sent = 0;
     struct xrf_status *status = malloc(sizeof *status);
     for (;;) {
@@ -381,9 +390,10 @@ static void test_data_in_and_status(void)
     pthread_join(writer, NULL);
     CHECK(reads > 0 && torn == 0, "ros2xeno: %" PRIu64 " torn of %" PRIu64 " reads", torn, reads);
     CHECK(backwards == 0, "ros2xeno: %" PRIu64 " reads went back in time", backwards);
-    CHECK(status_reads > 0 && status_torn == 0, "status: %" PRIu64 " torn of %" PRIu64 " reads", status_torn,
-          status_reads);
-    printf("ros2xeno/status: %" PRIu64 " writes, %" PRIu64 " fresh reads, %" PRIu64 " status reads\n",
+    CHECK(status_reads > 0 && status_torn == 0, "status: %" PRIu64 " torn of %" PRIu64 " reads",
+          status_torn, status_reads);
+    printf("ros2xeno/status: %" PRIu64 " writes, %" PRIu64 " fresh reads, %" PRIu64
+           " status reads\n",
            f.written, reads, status_reads);
     free(status);
     free(f.shm);

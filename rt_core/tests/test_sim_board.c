@@ -31,13 +31,13 @@ static int passed, failed;
     } while (0)
 
 /* For plumbing inside helpers: fails like CHECK but is not counted as a check. */
-#define MUST(cond)                                                                   \
-    do {                                                                             \
-        if (!(cond)) {                                                               \
-            fprintf(stderr, "%s:%d: required: %s\n", __FILE__, __LINE__, #cond);     \
-            printf("test_sim_board: %d passed, %d failed\n", passed, failed + 1);    \
-            exit(1);                                                                 \
-        }                                                                            \
+#define MUST(cond)                                                                \
+    do {                                                                          \
+        if (!(cond)) {                                                            \
+            fprintf(stderr, "%s:%d: required: %s\n", __FILE__, __LINE__, #cond);  \
+            printf("test_sim_board: %d passed, %d failed\n", passed, failed + 1); \
+            exit(1);                                                              \
+        }                                                                         \
     } while (0)
 
 #define DT 0.001
@@ -283,11 +283,11 @@ static void test_relbot_physics(void)
     double w_1s = st(t, 3);
     struct xrf_ico_in in = run(t, 300, -300, 1000);
     double w_2s = st(t, 3);
-    CHECK(w_early > 0 && w_early < w_1s);            /* accelerating */
-    CHECK(fabs(w_2s - w_1s) < 0.01 * w_2s);          /* settled */
-    CHECK(w_2s > 1.0 && w_2s < 20.0);                /* a plausible wheel speed, rad/s */
-    CHECK(fabs(st(t, 4) - w_2s) < 1e-9);             /* mirrored motor, same speed forward */
-    CHECK(st(t, 0) > 0.2);                           /* x grows */
+    CHECK(w_early > 0 && w_early < w_1s);                  /* accelerating */
+    CHECK(fabs(w_2s - w_1s) < 0.01 * w_2s);                /* settled */
+    CHECK(w_2s > 1.0 && w_2s < 20.0);                      /* a plausible wheel speed, rad/s */
+    CHECK(fabs(st(t, 4) - w_2s) < 1e-9);                   /* mirrored motor, same speed forward */
+    CHECK(st(t, 0) > 0.2);                                 /* x grows */
     CHECK(fabs(st(t, 1)) < 1e-9 && fabs(st(t, 2)) < 1e-9); /* straight */
     /* Left encoder counts up, right one down (it wrapped below zero). */
     CHECK(in.enc[0] > 0 && in.enc[0] < 16384);

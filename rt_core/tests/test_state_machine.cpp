@@ -8,43 +8,113 @@
 #include <utility>
 
 static int passed = 0, failed = 0;
-#define CHECK(cond, ...)                                                                           \
-    do {                                                                                           \
-        if (cond) {                                                                                \
-            passed++;                                                                              \
-        } else {                                                                                   \
-            failed++;                                                                              \
-            std::printf("%s:%d: FAILED: ", __FILE__, __LINE__);                                    \
-            std::printf(__VA_ARGS__);                                                              \
-            std::printf("\n");                                                                     \
-        }                                                                                          \
+#define CHECK(cond, ...)                                        \
+    do {                                                        \
+        if (cond) {                                             \
+            passed++;                                           \
+        } else {                                                \
+            failed++;                                           \
+            std::printf("%s:%d: FAILED: ", __FILE__, __LINE__); \
+            std::printf(__VA_ARGS__);                           \
+            std::printf("\n");                                  \
+        }                                                       \
     } while (0)
 
 // The hook of the state under test returns `ret`; the others return their XRF2 defaults.
 struct Rig {
     int ret = 0;
     int calls[11] = {};
-    FullStateMachine sm{[this] { calls[2]++; return ret; }, [this] { calls[3]++; return ret; },
-                        [this] { calls[4]++; return ret; }, [this] { calls[5]++; return ret; },
-                        [this] { calls[6]++; return ret; }, [this] { calls[7]++; return ret; },
-                        [this] { calls[8]++; return ret; }, [this] { calls[9]++; return ret; }};
+    FullStateMachine sm{[this] {
+                            calls[2]++;
+                            return ret;
+                        },
+                        [this] {
+                            calls[3]++;
+                            return ret;
+                        },
+                        [this] {
+                            calls[4]++;
+                            return ret;
+                        },
+                        [this] {
+                            calls[5]++;
+                            return ret;
+                        },
+                        [this] {
+                            calls[6]++;
+                            return ret;
+                        },
+                        [this] {
+                            calls[7]++;
+                            return ret;
+                        },
+                        [this] {
+                            calls[8]++;
+                            return ret;
+                        },
+                        [this] {
+                            calls[9]++;
+                            return ret;
+                        }};
 };
 
 // Drives a fresh machine into `state` using only commands and hook returns.
 static bool driveTo(Rig &r, int state)
 {
-    auto stepWith = [&](int v) { r.ret = v; r.sm.step(); };
+    auto stepWith = [&](int v) {
+        r.ret = v;
+        r.sm.step();
+    };
     switch (state) {
-    case IDLE_STATE: return r.sm.getState() == IDLE_STATE;
-    case INITIALISING_STATE: r.sm.initialise(); break;
-    case INITIALISED_STATE: r.sm.initialise(); stepWith(1); break;
-    case RUN_STATE: r.sm.initialise(); stepWith(1); r.sm.start(); break;
-    case STOPPING_STATE: r.sm.initialise(); stepWith(1); r.sm.start(); r.sm.stop(); break;
-    case STOPPED_STATE: r.sm.initialise(); stepWith(1); r.sm.start(); r.sm.stop(); stepWith(1); break;
-    case PAUSING_STATE: r.sm.initialise(); stepWith(1); r.sm.start(); r.sm.pause(); break;
-    case PAUSED_STATE: r.sm.initialise(); stepWith(1); r.sm.start(); r.sm.pause(); stepWith(1); break;
-    case ERROR_STATE: r.sm.initialise(); stepWith(-7); break;
-    case QUIT_STATE: r.sm.initialise(); stepWith(-7); r.sm.quit(); break;
+    case IDLE_STATE:
+        return r.sm.getState() == IDLE_STATE;
+    case INITIALISING_STATE:
+        r.sm.initialise();
+        break;
+    case INITIALISED_STATE:
+        r.sm.initialise();
+        stepWith(1);
+        break;
+    case RUN_STATE:
+        r.sm.initialise();
+        stepWith(1);
+        r.sm.start();
+        break;
+    case STOPPING_STATE:
+        r.sm.initialise();
+        stepWith(1);
+        r.sm.start();
+        r.sm.stop();
+        break;
+    case STOPPED_STATE:
+        r.sm.initialise();
+        stepWith(1);
+        r.sm.start();
+        r.sm.stop();
+        stepWith(1);
+        break;
+    case PAUSING_STATE:
+        r.sm.initialise();
+        stepWith(1);
+        r.sm.start();
+        r.sm.pause();
+        break;
+    case PAUSED_STATE:
+        r.sm.initialise();
+        stepWith(1);
+        r.sm.start();
+        r.sm.pause();
+        stepWith(1);
+        break;
+    case ERROR_STATE:
+        r.sm.initialise();
+        stepWith(-7);
+        break;
+    case QUIT_STATE:
+        r.sm.initialise();
+        stepWith(-7);
+        r.sm.quit();
+        break;
     }
     return r.sm.getState() == state;
 }
@@ -81,7 +151,8 @@ int main()
                 CHECK(r.sm.getState() == it->second, "state %d cmd %d: went to %d, want %d", state,
                       cmd, r.sm.getState(), it->second);
             } else {
-                CHECK(rc == -2, "state %d cmd %d: expected not-allowed (-2), got %d", state, cmd, rc);
+                CHECK(rc == -2, "state %d cmd %d: expected not-allowed (-2), got %d", state, cmd,
+                      rc);
                 CHECK(r.sm.getState() == state, "state %d cmd %d: state changed to %d", state, cmd,
                       r.sm.getState());
             }
@@ -122,7 +193,8 @@ int main()
             CHECK(q == 0, "state %d: step returned %d outside QUIT", state, q);
             if (ret < 0) {
                 CHECK(now == ERROR_STATE, "state %d ret %d: want ERROR, got %d", state, ret, now);
-                CHECK(r.sm.getError() == ret, "state %d ret %d: error %d", state, ret, r.sm.getError());
+                CHECK(r.sm.getError() == ret, "state %d ret %d: error %d", state, ret,
+                      r.sm.getError());
             } else if (ret == 1) {
                 CHECK(now == complete.at(state), "state %d ret 1: want %d, got %d", state,
                       complete.at(state), now);

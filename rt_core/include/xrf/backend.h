@@ -15,9 +15,9 @@ extern "C" {
 #endif
 
 struct xrf_rt_config {
-    int cpu;          /* pin the loop thread to this CPU; -1: leave affinity as it is */
-    int priority;     /* SCHED_FIFO priority 1..99; 0: keep the thread's current policy */
-    int lock_memory;  /* mlockall(MCL_CURRENT | MCL_FUTURE) */
+    int cpu;                 /* pin the loop thread to this CPU; -1: leave affinity as it is */
+    int priority;            /* SCHED_FIFO priority 1..99; 0: keep the thread's current policy */
+    int lock_memory;         /* mlockall(MCL_CURRENT | MCL_FUTURE) */
     uint32_t stack_prefault; /* bytes of stack to touch before the first cycle */
 };
 

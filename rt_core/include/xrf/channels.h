@@ -99,7 +99,7 @@ extern "C" {
 #define XRF_END_SIGNAL 3      /* SIGINT/SIGTERM: the runtime's safe stop */
 #define XRF_END_RETURNED 4    /* step() returned non-zero or the program asked to stop */
 
-#define XRF_CMD_SLOTS 64 /* power of two */
+#define XRF_CMD_SLOTS 64   /* power of two */
 #define XRF_CMD_RESULTS 16 /* recent command outcomes kept in the status block */
 #define XRF_TELEM_SLOTS 1024
 #define XRF_MONITOR_SLOTS 256
@@ -128,13 +128,13 @@ struct xrf_info {
     uint32_t monitor_freq;
     uint32_t ros2xeno_size;
     uint32_t xeno2ros_size;
-    int32_t rt_sched;    /* 1 if the loop thread got real-time scheduling */
-    int32_t cpu;         /* CPU the loop thread is pinned to, -1 if not pinned */
-    int32_t priority;    /* SCHED_FIFO priority, 0 if none */
+    int32_t rt_sched; /* 1 if the loop thread got real-time scheduling */
+    int32_t cpu;      /* CPU the loop thread is pinned to, -1 if not pinned */
+    int32_t priority; /* SCHED_FIFO priority, 0 if none */
     uint32_t doorbell_period_cycles;
-    char backend[16];    /* "posix" | "evl" */
-    char transport[16];  /* "sim" | "spidev" | "evl-spidev" */
-    char sim[16];        /* "relbot" | "jiwy" | "" */
+    char backend[16];   /* "posix" | "evl" */
+    char transport[16]; /* "sim" | "spidev" | "evl-spidev" */
+    char sim[16];       /* "relbot" | "jiwy" | "" */
     char program[XRF_NAME_MAX];
     char ros2xeno_schema[XRF_SCHEMA_MAX]; /* normalised .msg text: "float64 steer_left\n..." */
     char xeno2ros_schema[XRF_SCHEMA_MAX];
@@ -149,19 +149,19 @@ struct xrf_status {
     int32_t last_rejected_cmd; /* value of the last rejected command */
     int32_t reject_code;       /* XRF_REJECT_* of the last rejected command */
     uint32_t rejected_count;
-    int32_t running;           /* 1 while loop() cycles, 0 after it returned */
-    int32_t end_reason;        /* XRF_END_*: why loop() returned; NONE while it runs */
+    int32_t running;    /* 1 while loop() cycles, 0 after it returned */
+    int32_t end_reason; /* XRF_END_*: why loop() returned; NONE while it runs */
     uint32_t pad0;
-    uint64_t cmd_done;         /* ticket of the last command handled (accepted or rejected) */
-    uint64_t cmd_rejected;     /* ticket of the last rejected command */
+    uint64_t cmd_done;     /* ticket of the last command handled (accepted or rejected) */
+    uint64_t cmd_rejected; /* ticket of the last rejected command */
     uint64_t cycles;
     uint64_t missed;
-    int64_t t_start_ns;        /* CLOCK_MONOTONIC at the first deadline */
-    int64_t heartbeat_ns;      /* CLOCK_MONOTONIC at the start of the last cycle */
-    uint64_t idle_ns;          /* total time slept */
-    uint64_t demotions;        /* EVL: switches to in-band (EVL_T_WOSS); posix: 0 */
-    uint64_t log_written;      /* records put into the log ring */
-    uint64_t log_lost;         /* records dropped because the ring was full */
+    int64_t t_start_ns;   /* CLOCK_MONOTONIC at the first deadline */
+    int64_t heartbeat_ns; /* CLOCK_MONOTONIC at the start of the last cycle */
+    uint64_t idle_ns;     /* total time slept */
+    uint64_t demotions;   /* EVL: switches to in-band (EVL_T_WOSS); posix: 0 */
+    uint64_t log_written; /* records put into the log ring */
+    uint64_t log_lost;    /* records dropped because the ring was full */
     uint64_t telem_published;
     uint64_t monitor_dropped;  /* monitor.printf calls that did not fit */
     uint64_t host_lost;        /* times the host heartbeat went stale */
@@ -202,13 +202,13 @@ struct xrf_data_in {
 
 /* Header of a ring of fixed-size slots (broadcast or SPSC). */
 struct xrf_ring {
-    uint64_t head;       /* publications so far; written by the producer only */
+    uint64_t head; /* publications so far; written by the producer only */
     uint64_t pad0[7];
-    uint64_t tail;       /* SPSC only: records consumed; written by the consumer only */
+    uint64_t tail; /* SPSC only: records consumed; written by the consumer only */
     uint64_t pad1[7];
-    uint32_t slots;      /* number of slots */
-    uint32_t slot_size;  /* bytes per slot, a multiple of 8, including the slot header */
-    uint64_t dropped;    /* SPSC only: records the producer could not store */
+    uint32_t slots;     /* number of slots */
+    uint32_t slot_size; /* bytes per slot, a multiple of 8, including the slot header */
+    uint64_t dropped;   /* SPSC only: records the producer could not store */
     uint64_t pad2[6];
 };
 
@@ -225,10 +225,10 @@ struct xrf_telemetry {
     struct xrf_slot_hdr hdr;
     int32_t state;
     int32_t enc[4];
-    uint8_t din[8];      /* channel1_1, channel1_2, ..., channel4_2 */
+    uint8_t din[8]; /* channel1_1, channel1_2, ..., channel4_2 */
     int16_t pwm[4];
     uint8_t dout[4];
-    uint32_t size;       /* bytes of xeno2ros in data */
+    uint32_t size;              /* bytes of xeno2ros in data */
     int64_t ros2xeno_t_sent_ns; /* t_sent_ns of the Ros2Xeno in use, for latency measurement */
     uint8_t data[XRF_MSG_MAX];
 };
@@ -265,15 +265,15 @@ struct xrf_log_meta {
  * monitor runs at its own rate; a plain XenoFrtLoop has no FPGA stage). */
 struct xrf_timing_record {
     struct xrf_slot_hdr hdr;
-    int64_t wakeup_ns;   /* start of the cycle - its deadline: the wake-up jitter */
+    int64_t wakeup_ns; /* start of the cycle - its deadline: the wake-up jitter */
     int64_t fpga_ns;
     int64_t data_ns;
     int64_t cmd_ns;
     int64_t monitor_ns;
-    int64_t hook_ns;     /* the student's controller */
+    int64_t hook_ns; /* the student's controller */
     int64_t logger_ns;
-    int64_t cycle_ns;    /* wake-up to end of work */
-    uint8_t missed;      /* the cycle overran its deadline */
+    int64_t cycle_ns; /* wake-up to end of work */
+    uint8_t missed;   /* the cycle overran its deadline */
     uint8_t pad[7];
 };
 
@@ -285,19 +285,19 @@ struct xrf_sim_outputs {
     int16_t pwm[4];
     uint8_t dout[4];
     uint32_t pad;
-    double plant[8];     /* plant state for viewers: jiwy pan, tilt (rad); relbot x, y, theta */
+    double plant[8]; /* plant state for viewers: jiwy pan, tilt (rad); relbot x, y, theta */
 };
 
 struct xrf_shm {
     uint32_t magic;
     uint32_t version;
-    uint32_t size;       /* sizeof(struct xrf_shm), checked by every reader */
-    uint32_t ready;      /* stored last by the loop once info is complete */
+    uint32_t size;  /* sizeof(struct xrf_shm), checked by every reader */
+    uint32_t ready; /* stored last by the loop once info is complete */
     struct xrf_info info;
 
     /* host -> loop */
-    int64_t host_heartbeat_ns;  /* CLOCK_MONOTONIC, written by the supervising host */
-    uint32_t host_timeout_ms;   /* 0: no host supervision */
+    int64_t host_heartbeat_ns;    /* CLOCK_MONOTONIC, written by the supervising host */
+    uint32_t host_timeout_ms;     /* 0: no host supervision */
     uint32_t host_timeout_action; /* XRF_HOST_LOST_* */
 
     /* doorbell (futex word) */
@@ -354,14 +354,14 @@ int xrf_data_in_try_read(struct xrf_data_in *d, uint32_t *last_seq, void *out, u
 
 /* Rings of fixed-size slots. `slots` points at slot 0. */
 void xrf_ring_init(struct xrf_ring *r, uint32_t slots, uint32_t slot_size);
-void *xrf_bcast_begin(struct xrf_ring *r, void *slots);           /* producer */
-void xrf_bcast_commit(struct xrf_ring *r, void *slot);             /* producer */
+void *xrf_bcast_begin(struct xrf_ring *r, void *slots); /* producer */
+void xrf_bcast_commit(struct xrf_ring *r, void *slot);  /* producer */
 /* Reader: copies publication *cursor into out (slot_size bytes) and advances the cursor.
  * Returns 1 copied, 0 nothing new. Publications overwritten before this reader got to them are
  * added to *lost and skipped (the cursor moves to the oldest one still present). */
 int xrf_bcast_read(const struct xrf_ring *r, const void *slots, uint64_t *cursor, void *out,
                    uint64_t *lost);
-void *xrf_spsc_begin(struct xrf_ring *r, void *slots);   /* NULL when full (counted in dropped) */
+void *xrf_spsc_begin(struct xrf_ring *r, void *slots); /* NULL when full (counted in dropped) */
 void xrf_spsc_commit(struct xrf_ring *r, void *slot);
 const void *xrf_spsc_peek(const struct xrf_ring *r, const void *slots); /* NULL when empty */
 void xrf_spsc_release(struct xrf_ring *r);

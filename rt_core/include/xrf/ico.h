@@ -38,8 +38,8 @@ struct xrf_ico_out {
 };
 
 struct xrf_ico_in {
-    int32_t enc[4];  /* 14-bit unsigned counter, 0..16383 */
-    uint8_t din[8];  /* channel1 pin1, channel1 pin2, ..., channel4 pin2 */
+    int32_t enc[4]; /* 14-bit unsigned counter, 0..16383 */
+    uint8_t din[8]; /* channel1 pin1, channel1 pin2, ..., channel4 pin2 */
 };
 
 /* Largest |pwm| allowed for a limit given as a fraction of full scale (0.2 -> 409). */

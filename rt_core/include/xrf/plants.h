@@ -28,8 +28,8 @@ struct xrf_plant_info {
     int32_t axes;      /* motor channels wired, 1..axes (PWM n drives the motor behind encoder n) */
     int32_t state_len; /* values xrf_sim_plant_state() gives and the board mirrors (<= 8) */
     int32_t reserved;
-    char name[XRF_PLANT_NAME_MAX];   /* XRF_SIM=<name>, lower case */
-    char title[XRF_PLANT_TITLE_MAX]; /* for people */
+    char name[XRF_PLANT_NAME_MAX];    /* XRF_SIM=<name>, lower case */
+    char title[XRF_PLANT_TITLE_MAX];  /* for people */
     char state[XRF_PLANT_STATE_TEXT]; /* the state's names and units, comma-separated */
 };
 

@@ -17,13 +17,14 @@
 #include "xrf/ico.h"
 #include "xrf/logformat.h"
 
-namespace xrf {
+namespace xrf
+{
 
 // The in-band file writer's state for one log channel (the logger's, the timing records).
 struct LogSink {
     int fd = -1;
     uint64_t generation = 0;
-    bool reported = false; // a write failure was reported once
+    bool reported = false;               // a write failure was reported once
     char header[XRF_LOGFILE_HEADER_MAX]; // a segment header is formatted here (no allocation)
 };
 
@@ -40,7 +41,8 @@ struct Options {
     uint32_t spi_speed = 31000000;
     unsigned freq_override = 0;
     int cpu = -1;
-    int priority = -1; // -1: SCHED_FIFO kDefaultPriority unless main already made the thread real-time
+    int priority =
+        -1; // -1: SCHED_FIFO kDefaultPriority unless main already made the thread real-time
     double pwm_limit = XRF_ICO_DEFAULT_PWM_LIMIT;
     char log_dir[XRF_PATH_MAX] = "";
     int log_writer = XRF_LOG_WRITER_PROCESS;
@@ -72,16 +74,16 @@ struct CycleReport {
     bool stage_set[XRF_STAGE_COUNT] = {};
 };
 
-class Runtime {
+class Runtime
+{
 public:
     static Runtime &instance();
 
     // --- before the loop (constructors, in-band) ---
     const Options &options();
     // Message layout of a XenoFrtRosIco, recorded for the info block.
-    void describe(unsigned write_decimator_freq, unsigned monitor_freq,
-                  const char *ros2xeno_schema, uint32_t ros2xeno_size,
-                  const char *xeno2ros_schema, uint32_t xeno2ros_size);
+    void describe(unsigned write_decimator_freq, unsigned monitor_freq, const char *ros2xeno_schema,
+                  uint32_t ros2xeno_size, const char *xeno2ros_schema, uint32_t xeno2ros_size);
     unsigned effectiveFrequency(unsigned requested);
     // The ico-board transport chosen by XRF_TRANSPORT; opened on first use. NULL on failure
     // (reason printed once).
@@ -103,7 +105,10 @@ public:
     int64_t cycleStart() const { return cycle_start_ns_; }
     uint64_t missed() const { return missed_; }
     uint64_t idleNs() const { return idle_total_; }
-    bool onLoopThread() const { return shm_ != nullptr && pthread_equal(pthread_self(), loop_thread_); }
+    bool onLoopThread() const
+    {
+        return shm_ != nullptr && pthread_equal(pthread_self(), loop_thread_);
+    }
     CycleReport &report() { return report_; }
     void stage(int idx, int64_t ns)
     {

@@ -21,14 +21,14 @@ extern "C" {
 #define XRF_SIM_JIWY 2
 
 struct xrf_sim_faults {
-    int no_init_reply;       /* INIT answers without the 11 in byte 4 */
-    uint8_t dead_encoder;    /* bit n-1: encoder n never counts */
-    uint8_t reversed_motor;  /* bit n-1: motor n turns the other way */
-    uint8_t stuck_input;     /* bit k: input pin k (0..7, order of xrf_ico_in.din) is stuck */
-    uint8_t stuck_value;     /* bit k: the value it is stuck at */
-    int corrupt_echo;        /* TEST replies with flipped bits */
-    uint32_t slow_link_us;   /* each transfer takes at least this long */
-    uint8_t loopback;        /* bit n-1: digital output n is wired back to input pin 1 of n */
+    int no_init_reply;      /* INIT answers without the 11 in byte 4 */
+    uint8_t dead_encoder;   /* bit n-1: encoder n never counts */
+    uint8_t reversed_motor; /* bit n-1: motor n turns the other way */
+    uint8_t stuck_input;    /* bit k: input pin k (0..7, order of xrf_ico_in.din) is stuck */
+    uint8_t stuck_value;    /* bit k: the value it is stuck at */
+    int corrupt_echo;       /* TEST replies with flipped bits */
+    uint32_t slow_link_us;  /* each transfer takes at least this long */
+    uint8_t loopback;       /* bit n-1: digital output n is wired back to input pin 1 of n */
 };
 
 /* Parses "dead_encoder=2,reversed_motor=1,no_init,corrupt_echo,stuck_input=3:1,slow_link_us=200,

@@ -42,26 +42,27 @@ struct xrf_watch_config {
     int force_sim;           /* set the simulated board's forced_off (and zero its outputs) */
     char spi_device[64];     /* "" or the spidev the FPGA RESET frame goes to */
     uint32_t spi_speed_hz;
-    int notify_fd;           /* -1 or an eventfd written once the outputs are safe */
+    int notify_fd; /* -1 or an eventfd written once the outputs are safe */
 };
 
 struct xrf_watch_result {
-    int32_t reason;          /* XRF_WATCH_* */
-    int32_t sim_forced;      /* 1: forced_off was set */
-    int32_t reset_status;    /* FPGA RESET: 0 sent, -errno failed, XRF_WATCH_RESET_NOT_TRIED */
-    int32_t rt_status;       /* 0: running at SCHED_FIFO rt_priority; -errno: it was refused */
-    int32_t kill_status;     /* hang: 0 killed, -errno otherwise */
+    int32_t reason;       /* XRF_WATCH_* */
+    int32_t sim_forced;   /* 1: forced_off was set */
+    int32_t reset_status; /* FPGA RESET: 0 sent, -errno failed, XRF_WATCH_RESET_NOT_TRIED */
+    int32_t rt_status;    /* 0: running at SCHED_FIFO rt_priority; -errno: it was refused */
+    int32_t kill_status;  /* hang: 0 killed, -errno otherwise */
     int32_t pad;
-    int64_t event_ns;        /* CLOCK_MONOTONIC when the exit or hang was seen */
-    int64_t safe_ns;         /* CLOCK_MONOTONIC when the outputs were safe */
-    int64_t heartbeat_ns;    /* the loop's last heartbeat (start of its last cycle) */
+    int64_t event_ns;     /* CLOCK_MONOTONIC when the exit or hang was seen */
+    int64_t safe_ns;      /* CLOCK_MONOTONIC when the outputs were safe */
+    int64_t heartbeat_ns; /* the loop's last heartbeat (start of its last cycle) */
 };
 
 struct xrf_watch;
 
 /* Start watching `pid` whose shared memory is `shm` (may be NULL: exit watching only, nothing to
  * force in memory). The mapping must outlive the watcher (stop it before unmapping). */
-int xrf_watch_start(struct xrf_shm *shm, const struct xrf_watch_config *cfg, struct xrf_watch **out);
+int xrf_watch_start(struct xrf_shm *shm, const struct xrf_watch_config *cfg,
+                    struct xrf_watch **out);
 /* Copy the result so far; returns its reason (XRF_WATCH_WATCHING while still watching). */
 int xrf_watch_result(struct xrf_watch *w, struct xrf_watch_result *out);
 /* End the watcher and free it. A loop that has already exited is still handled (outputs made

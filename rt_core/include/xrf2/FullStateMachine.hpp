@@ -21,7 +21,8 @@ enum STATE {
 
 enum COMMANDS { INITIALISE_CMD = 1, START_CMD, STOP_CMD, RESET_CMD, PAUSE_CMD, QUIT_CMD };
 
-class FullStateMachine {
+class FullStateMachine
+{
 public:
     using Hook = std::function<int()>;
     using stateFcn = Hook; // XRF2's name for it

@@ -10,7 +10,8 @@
 #include <string.h>
 #include <unistd.h>
 
-class ICommunication {
+class ICommunication
+{
 public:
     virtual ~ICommunication() {}
     virtual void open() = 0;

@@ -3,7 +3,8 @@
 
 #include "ICommunication.h"
 
-class ICommunicationFullDuplex : public ICommunication {
+class ICommunicationFullDuplex : public ICommunication
+{
 public:
     virtual ~ICommunicationFullDuplex() {}
     // Sends data_size bytes of tx_data while receiving as many into rx_data.

@@ -33,13 +33,18 @@
 #define MAX_PWM_VALUE 2047
 #endif
 
-class IcoIo {
+class IcoIo
+{
 public:
     struct IcoWrite {
-        int16_t pwm1; bool val1;
-        int16_t pwm2; bool val2;
-        int16_t pwm3; bool val3;
-        int16_t pwm4; bool val4;
+        int16_t pwm1;
+        bool val1;
+        int16_t pwm2;
+        bool val2;
+        int16_t pwm3;
+        bool val3;
+        int16_t pwm4;
+        bool val4;
     };
     struct IcoRead {
         int channel1, channel2, channel3, channel4;
@@ -63,8 +68,8 @@ public:
     int init();
     // XRF2 opened the SPI device here; the runtime has opened the transport already.
     int spi_init() { return 0; }
-    int reset();   // encoders to zero, outputs off
-    int test();    // TEST echo: 0 intact, -EIO when bits came back wrong
+    int reset(); // encoders to zero, outputs off
+    int test();  // TEST echo: 0 intact, -EIO when bits came back wrong
     int setOutput(int channel, int16_t value, bool pin);
     // The channel's encoder and pins (all zero when the channel is not 1..4 or the transfer failed).
     ReadValue getInput(int channel);

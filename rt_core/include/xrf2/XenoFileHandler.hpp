@@ -21,7 +21,8 @@
 #include "debug_settings.h"
 #include "xrf_evl_compat.h"
 
-class XenoFileHandler {
+class XenoFileHandler
+{
 public:
     XenoFileHandler(bool add_timestamp, const std::string &name, const std::string &type,
                     mode_t mode = 0666);

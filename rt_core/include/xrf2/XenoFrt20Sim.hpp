@@ -6,12 +6,14 @@
 #include "XenoFrtRosIco.hpp"
 
 #ifndef TIME_STEP_SIZE
-#error "TIME_STEP_SIZE is not defined: build with xrf_add_controller(<target> ... TWENTY_SIM <controller folder>)"
+#error \
+    "TIME_STEP_SIZE is not defined: build with xrf_add_controller(<target> ... TWENTY_SIM <controller folder>)"
 #endif
 
 #include "xxmodel.h"
 
-class XenoFrt20Sim : public XenoFrtRosIco {
+class XenoFrt20Sim : public XenoFrtRosIco
+{
 public:
     static constexpr unsigned modelFrequency()
     {

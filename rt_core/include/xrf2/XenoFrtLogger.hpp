@@ -49,7 +49,8 @@ struct loggerInfo {
     variableInfo var_info[100];
 };
 
-class XenoFrtLogger {
+class XenoFrtLogger
+{
 public:
     static constexpr int max_variables = 100;
 

@@ -15,7 +15,8 @@
 #define MSEC 1000000L
 #define SEC 1000000000L
 
-class XenoFrtLoop {
+class XenoFrtLoop
+{
 public:
     explicit XenoFrtLoop(unsigned cycle_time_freq);
     virtual ~XenoFrtLoop() = default;
@@ -42,12 +43,17 @@ protected:
     // XRF2's protected members, with XRF2's meaning, kept up to date by loop() from the
     // timestamps it takes anyway (no extra clock reads). All on the loop's monotonic clock
     // (evl_read_clock(EVL_CLOCK_MONOTONIC, ...) reads the same one).
-    unsigned cycle_time_freq;       // the cycle frequency in Hz (after an XRF_FREQ override)
-    struct timespec start_time{};   // when the loop started (the grid's t0)
-    struct timespec stop_time{};    // when it ended
-    struct timespec idle_time{};    // when the last idle period began (end of the last cycle's work)
-    struct timespec wakeup_time{};  // the current cycle's deadline on the grid (its start)
-    struct timespec run_time{};     // stop_time - start_time, set when the loop ends
+    unsigned cycle_time_freq; // the cycle frequency in Hz (after an XRF_FREQ override)
+    struct timespec start_time {
+    }; // when the loop started (the grid's t0)
+    struct timespec stop_time {
+    }; // when it ended
+    struct timespec idle_time {
+    }; // when the last idle period began (end of the last cycle's work)
+    struct timespec wakeup_time {
+    }; // the current cycle's deadline on the grid (its start)
+    struct timespec run_time {
+    }; // stop_time - start_time, set when the loop ends
 
 private:
     unsigned xrf_cycle_freq_;

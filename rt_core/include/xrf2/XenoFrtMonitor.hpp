@@ -14,7 +14,8 @@
 #define SEC 1000000000L
 #endif
 
-class XenoFrtMonitor {
+class XenoFrtMonitor
+{
 public:
     XenoFrtMonitor(unsigned cycle_freq, unsigned monitor_freq);
     void update();

@@ -13,7 +13,8 @@
 #include "xrf2_msgs/msg/ros2_xeno.hpp"
 #include "xrf2_msgs/msg/xeno2_ros.hpp"
 
-class XenoFrtRosIco : public XenoFrtRosIcoCore {
+class XenoFrtRosIco : public XenoFrtRosIcoCore
+{
 public:
     XenoFrtRosIco(unsigned cycle_freq, unsigned write_decimator_freq, unsigned monitor_freq,
                   XenoFileHandler &file, void *log_data)

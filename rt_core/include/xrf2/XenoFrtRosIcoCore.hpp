@@ -18,15 +18,16 @@
 #include "XenoSpiControllerHandler.hpp"
 #include "configuration.h"
 
-class XenoFrtRosIcoCore : public XenoFrtLoop {
+class XenoFrtRosIcoCore : public XenoFrtLoop
+{
 public:
     int step() override;
 
 protected:
     XenoFrtRosIcoCore(unsigned cycle_freq, unsigned write_decimator_freq, unsigned monitor_freq,
                       XenoFileHandler &file, void *log_data);
-    void xrfMessages(void *ros_msg, uint32_t ros_size, const char *ros_schema,
-                     const void *xeno_msg, uint32_t xeno_size, const char *xeno_schema);
+    void xrfMessages(void *ros_msg, uint32_t ros_size, const char *ros_schema, const void *xeno_msg,
+                     uint32_t xeno_size, const char *xeno_schema);
     void xrfAfterLastCycle() override;
 
     // State hooks and their XRF2 defaults.
@@ -57,7 +58,8 @@ protected:
     // GET_TIMINGS says, from the timestamps the cycle takes anyway): t1 start of the FPGA
     // exchange, t2 data channel, t3 command channel, t4 monitor, t5 state hook, t6 logger,
     // t7 end of the logger. During a hook t1..t5 are this cycle's, t6 and t7 the last cycle's.
-    struct timespec t1{}, t2{}, t3{}, t4{}, t5{}, t6{}, t7{};
+    struct timespec t1 {
+    }, t2{}, t3{}, t4{}, t5{}, t6{}, t7{};
 
 private:
     void publishTelemetry(int state);

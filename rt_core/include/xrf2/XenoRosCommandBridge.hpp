@@ -29,7 +29,8 @@
 #define SEC 1000000000L
 #endif
 
-class XenoRosCommandBridge {
+class XenoRosCommandBridge
+{
 public:
     XenoRosCommandBridge() = default;
     // Returns 0: the framework has done this cycle's command exchange.

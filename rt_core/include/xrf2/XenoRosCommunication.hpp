@@ -12,7 +12,8 @@
 #include "debug_settings.h"
 #include "xrf_evl_compat.h"
 
-class XenoRosCommunication : public ICommunication {
+class XenoRosCommunication : public ICommunication
+{
 public:
     // name: XRF2's cross-buffer name ("XenoCmd"/"Control" for commands, "Ros-Xeno" for data).
     explicit XenoRosCommunication(const char *name, int linux_xeno_buffer_size = 0,

@@ -23,7 +23,8 @@
 #define SEC 1000000000L
 #endif
 
-class XenoRosDataBridge {
+class XenoRosDataBridge
+{
 public:
     XenoRosDataBridge() = default;
     // Returns 0: the framework has done this cycle's data exchange.

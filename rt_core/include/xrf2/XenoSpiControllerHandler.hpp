@@ -31,7 +31,8 @@
 #define BILLION 1000000000L
 #endif
 
-class XenoSpiControllerHandler : public ICommunicationFullDuplex {
+class XenoSpiControllerHandler : public ICommunicationFullDuplex
+{
 public:
     XenoSpiControllerHandler() = default;
     // XRF2's constructor (LSB-first flag, frame length, clock): the runtime's transport decides

@@ -52,7 +52,8 @@ static void usage(FILE *f)
 static void print_error(const char *msg)
 {
     char buf[1024];
-    printf("{\"event\":\"error\",\"message\":%s}\n", xrf_selfcheck_json_string(msg, buf, sizeof buf));
+    printf("{\"event\":\"error\",\"message\":%s}\n",
+           xrf_selfcheck_json_string(msg, buf, sizeof buf));
     fflush(stdout);
 }
 
@@ -60,8 +61,9 @@ static void on_progress(void *user, const char *id, int channel, const char *tex
 {
     (void)user;
     char buf[1024];
-    printf("{\"event\":\"progress\",\"step\":\"%s\",\"channel\":%d,\"fraction\":%.3f,\"text\":%s}\n",
-           id, channel, frac, xrf_selfcheck_json_string(text, buf, sizeof buf));
+    printf(
+        "{\"event\":\"progress\",\"step\":\"%s\",\"channel\":%d,\"fraction\":%.3f,\"text\":%s}\n",
+        id, channel, frac, xrf_selfcheck_json_string(text, buf, sizeof buf));
     fflush(stdout);
 }
 
@@ -141,13 +143,20 @@ int main(int argc, char **argv)
             dump = 1;
             continue;
         }
-        if (strcmp(a, "--transport") == 0) dst = &transport;
-        else if (strcmp(a, "--sim") == 0) dst = &sim;
-        else if (strcmp(a, "--faults") == 0) dst = &faults;
-        else if (strcmp(a, "--device") == 0) dst = &device;
-        else if (strcmp(a, "--profile") == 0) dst = &profile;
-        else if (strcmp(a, "--profile-file") == 0) dst = &profile_file;
-        else if (strcmp(a, "--sim-outputs-shm") == 0) dst = &shm_name;
+        if (strcmp(a, "--transport") == 0)
+            dst = &transport;
+        else if (strcmp(a, "--sim") == 0)
+            dst = &sim;
+        else if (strcmp(a, "--faults") == 0)
+            dst = &faults;
+        else if (strcmp(a, "--device") == 0)
+            dst = &device;
+        else if (strcmp(a, "--profile") == 0)
+            dst = &profile;
+        else if (strcmp(a, "--profile-file") == 0)
+            dst = &profile_file;
+        else if (strcmp(a, "--sim-outputs-shm") == 0)
+            dst = &shm_name;
         else if (strcmp(a, "--speed") == 0 && i + 1 < argc) {
             char *end;
             speed = strtoul(argv[++i], &end, 10);

@@ -33,11 +33,15 @@ struct key {
     size_t size;   /* of a text field */
 };
 
-#define P_FIELD(n, k, f)                                                                       \
-    {n, k, offsetof(struct xrf_selfcheck_profile, f),                                          \
-     sizeof(((struct xrf_selfcheck_profile *)0)->f)}
-#define C_FIELD(n, k, f)                                                                       \
-    {n, k, offsetof(struct xrf_sc_channel, f), sizeof(((struct xrf_sc_channel *)0)->f)}
+#define P_FIELD(n, k, f)                                   \
+    {                                                      \
+        n, k, offsetof(struct xrf_selfcheck_profile, f),   \
+            sizeof(((struct xrf_selfcheck_profile *)0)->f) \
+    }
+#define C_FIELD(n, k, f)                                                                  \
+    {                                                                                     \
+        n, k, offsetof(struct xrf_sc_channel, f), sizeof(((struct xrf_sc_channel *)0)->f) \
+    }
 
 /* The names are the JSON paths of the profile schema (appliance/xrflab/profiles.py); the writer,
  * appliance/xrflab/profile_flat.py, lists the same keys. */
@@ -161,8 +165,7 @@ static int apply(struct xrf_selfcheck_profile *p, const char *key, const char *v
     return -ENOENT;
 }
 
-int xrf_selfcheck_profile_read(FILE *in, struct xrf_selfcheck_profile *p, char *err,
-                               size_t errlen)
+int xrf_selfcheck_profile_read(FILE *in, struct xrf_selfcheck_profile *p, char *err, size_t errlen)
 {
     if (err && errlen)
         err[0] = 0;
@@ -204,11 +207,12 @@ void xrf_selfcheck_profile_dump(FILE *out, const struct xrf_selfcheck_profile *p
     char buf[256];
     fprintf(out, "{\"event\":\"profile\",\"name\":%s,\"pwm_limit\":%.17g,\"period_us\":%d,",
             xrf_selfcheck_json_string(p->name, buf, sizeof buf), p->pwm_limit, p->period_us);
-    fprintf(out,
-            "\"settle_ms\":%d,\"reset_tolerance\":%d,\"echo_frames\":%d,\"timing_frames\":%d,"
-            "\"warn_median_us\":%.17g,\"fail_median_us\":%.17g,\"warn_max_us\":%.17g,\"channels\":[",
-            p->settle_ms, p->reset_tolerance, p->echo_frames, p->timing_frames, p->warn_median_us,
-            p->fail_median_us, p->warn_max_us);
+    fprintf(
+        out,
+        "\"settle_ms\":%d,\"reset_tolerance\":%d,\"echo_frames\":%d,\"timing_frames\":%d,"
+        "\"warn_median_us\":%.17g,\"fail_median_us\":%.17g,\"warn_max_us\":%.17g,\"channels\":[",
+        p->settle_ms, p->reset_tolerance, p->echo_frames, p->timing_frames, p->warn_median_us,
+        p->fail_median_us, p->warn_max_us);
     for (int i = 0; i < 4; i++) {
         const struct xrf_sc_channel *c = &p->ch[i];
         char conn[128], pin0[128], pin1[128];

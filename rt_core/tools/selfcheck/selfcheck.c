@@ -51,11 +51,21 @@ char *xrf_selfcheck_json_string(const char *s, char *buf, size_t len)
         char tmp[8];
         const char *e = NULL;
         switch (*p) {
-        case '"': e = "\\\""; break;
-        case '\\': e = "\\\\"; break;
-        case '\n': e = "\\n"; break;
-        case '\r': e = "\\r"; break;
-        case '\t': e = "\\t"; break;
+        case '"':
+            e = "\\\"";
+            break;
+        case '\\':
+            e = "\\\\";
+            break;
+        case '\n':
+            e = "\\n";
+            break;
+        case '\r':
+            e = "\\r";
+            break;
+        case '\t':
+            e = "\\t";
+            break;
         default:
             if (*p < 0x20) {
                 snprintf(tmp, sizeof tmp, "\\u%04x", *p);
@@ -161,7 +171,8 @@ int xrf_selfcheck_open(const struct xrf_selfcheck_target *tg, struct xrf_ico_tra
         rc = xrf_sim_open(robot, &f, 0.0, tg->sim_outputs, out);
         if (rc == 0) {
             r->status = XRF_SC_PASS;
-            SETF(r->message, "simulated %s board opened (no SPI wire)", tg->sim ? tg->sim : "relbot");
+            SETF(r->message, "simulated %s board opened (no SPI wire)",
+                 tg->sim ? tg->sim : "relbot");
             SETF(r->data, "{\"transport\":\"sim\",\"sim\":%s}",
                  xrf_selfcheck_json_string(tg->sim ? tg->sim : "relbot", js, sizeof js));
             return 0;
@@ -198,7 +209,8 @@ int xrf_selfcheck_open(const struct xrf_selfcheck_target *tg, struct xrf_ico_tra
         SETF(r->action, "stop the running loop (or other SPI program) and run the check again");
         break;
     case ENOSYS:
-        SETF(r->message, "the %s transport is not built into this rt_core (no libevl)", tg->transport);
+        SETF(r->message, "the %s transport is not built into this rt_core (no libevl)",
+             tg->transport);
         SETF(r->action, "use --transport spidev, or build rt_core on the EVL kernel image");
         break;
     default:
@@ -223,14 +235,13 @@ struct sc {
     int have_raw;
     struct xrf_ico_in in;
     int xfer_err;
-    unsigned done;          /* bit i: planned step i reported */
+    unsigned done; /* bit i: planned step i reported */
 };
 
 /* The steps after "spi", in the order they run. */
-static const char *const planned[] = {"init",   "echo",   "reset",  "motor.1", "motor.2",
-                                      "motor.3", "motor.4", "dout.1", "dout.2",  "dout.3",
-                                      "dout.4", "din.1",  "din.2",  "din.3",   "din.4",
-                                      "timing"};
+static const char *const planned[] = {
+    "init",   "echo",   "reset",  "motor.1", "motor.2", "motor.3", "motor.4", "dout.1",
+    "dout.2", "dout.3", "dout.4", "din.1",   "din.2",   "din.3",   "din.4",   "timing"};
 #define N_PLANNED ((int)(sizeof planned / sizeof planned[0]))
 
 static void planned_title(const struct sc *s, int i, char *buf, size_t len)
@@ -261,10 +272,17 @@ static int aborted(const struct sc *s)
 static void emit(struct sc *s, const struct xrf_selfcheck_result *r)
 {
     switch (r->status) {
-    case XRF_SC_PASS: s->sum->passed++; break;
-    case XRF_SC_WARN: s->sum->warned++; break;
-    case XRF_SC_FAIL: s->sum->failed++; break;
-    default: s->sum->skipped++;
+    case XRF_SC_PASS:
+        s->sum->passed++;
+        break;
+    case XRF_SC_WARN:
+        s->sum->warned++;
+        break;
+    case XRF_SC_FAIL:
+        s->sum->failed++;
+        break;
+    default:
+        s->sum->skipped++;
     }
     for (int i = 0; i < N_PLANNED; i++)
         if (strcmp(planned[i], r->id) == 0)
@@ -325,7 +343,8 @@ static int tick(struct sc *s)
     }
     struct timespec now;
     clock_gettime(CLOCK_MONOTONIC, &now);
-    double late = (double)(now.tv_sec - s->next.tv_sec) * 1e9 + (double)(now.tv_nsec - s->next.tv_nsec);
+    double late =
+        (double)(now.tv_sec - s->next.tv_sec) * 1e9 + (double)(now.tv_nsec - s->next.tv_nsec);
     if (late > (double)period_ns) {
         s->next = now; /* fell behind (slow link, preemption): re-anchor, never burst */
     } else {
@@ -383,7 +402,8 @@ static void link_broken(struct sc *s, struct xrf_selfcheck_result *r)
 {
     r->status = XRF_SC_FAIL;
     SETF(r->message, "an SPI transfer failed: %s", strerror(-s->xfer_err));
-    SETF(r->action, "check the connection between the Pi and the ico board and run the check again");
+    SETF(r->action,
+         "check the connection between the Pi and the ico board and run the check again");
 }
 
 /* -- INIT -- */
@@ -476,22 +496,26 @@ static int step_echo(struct sc *s)
              88L * done);
     } else if (zero_replies == bad) {
         r.status = XRF_SC_FAIL;
-        SETF(r.message, "the TEST echo came back as all zeros in %d of %d frames: nothing is "
-             "sent back on the MISO line", bad, done);
+        SETF(r.message,
+             "the TEST echo came back as all zeros in %d of %d frames: nothing is "
+             "sent back on the MISO line",
+             bad, done);
         SETF(r.action, "check the SPI ribbon/wires between Pi and ico board (MISO) and the "
-             "board's power");
+                       "board's power");
     } else if (reversed == bad) {
         r.status = XRF_SC_FAIL;
         SETF(r.message, "the TEST echo comes back bit-reversed: the transport does not match the "
-             "board's LSB-first bit order");
+                        "board's LSB-first bit order");
         SETF(r.action, "this is a software/transport problem, not the bench: report it to the "
-             "lab's developers");
+                       "lab's developers");
     } else {
         r.status = XRF_SC_FAIL;
-        SETF(r.message, "%ld bit errors in %d of %d TEST frames (bit error rate %.2g): the SPI "
-             "link is unreliable", bits, bad, done, ber);
+        SETF(r.message,
+             "%ld bit errors in %d of %d TEST frames (bit error rate %.2g): the SPI "
+             "link is unreliable",
+             bits, bad, done, ber);
         SETF(r.action, "reseat the ico board and check the SPI wires and ground; a loose or long "
-             "cable at 31 MHz flips bits (try a lower SPI speed to confirm)");
+                       "cable at 31 MHz flips bits (try a lower SPI speed to confirm)");
     }
     emit(s, &r);
     return 0;
@@ -545,16 +569,21 @@ static int step_reset(struct sc *s)
     if (not_zero) {
         r.channel = not_zero;
         r.status = XRF_SC_FAIL;
-        SETF(r.message, "encoder %d reads %d right after RESET (expected 0): the board did not "
-             "reset its counters", not_zero, enc_after[not_zero - 1]);
+        SETF(r.message,
+             "encoder %d reads %d right after RESET (expected 0): the board did not "
+             "reset its counters",
+             not_zero, enc_after[not_zero - 1]);
         SETF(r.action, "power-cycle the ico board and run the check again; if it stays, the FPGA "
-             "image on the board is wrong");
+                       "image on the board is wrong");
     } else if (moving) {
         r.channel = moving;
         r.status = XRF_SC_FAIL;
-        SETF(r.message, "encoder %d moved %lld counts in 50 ms with every output off: something "
-             "drives or turns that axis", moving, (long long)drift[moving - 1]);
-        SETF(r.action, "keep hands off the robot during the check; if nobody touched it, the "
+        SETF(r.message,
+             "encoder %d moved %lld counts in 50 ms with every output off: something "
+             "drives or turns that axis",
+             moving, (long long)drift[moving - 1]);
+        SETF(r.action,
+             "keep hands off the robot during the check; if nobody touched it, the "
              "motor driver of %s does not switch off (or the encoder signal is noisy)",
              s->p->ch[moving - 1].connector);
     } else {
@@ -579,7 +608,7 @@ static int pulse(struct sc *s, int ch, int16_t pwm, int ms, int64_t delta[4], co
     memcpy(start, s->pos, sizeof start);
     int on = ms * 1000 / s->p->period_us;
     int settle = s->p->settle_ms * 1000 / s->p->period_us;
-    char id[16];
+    char id[24]; /* "motor." + any int */
     snprintf(id, sizeof id, "motor.%d", ch + 1);
     progress(s, id, ch + 1, 0.0, "%s", what);
     for (int i = 0; i < on + settle; i++) {
@@ -612,7 +641,7 @@ static int classify(int64_t d, int expect_sign, const struct xrf_sc_channel *c)
 static int step_motor(struct sc *s, int ch)
 {
     const struct xrf_sc_channel *c = &s->p->ch[ch];
-    char id[16], title[96];
+    char id[24], title[160]; /* ids: "motor." + any int; titles: the longest channel name */
     snprintf(id, sizeof id, "motor.%d", ch + 1);
     snprintf(title, sizeof title, "channel %d (%s): motor and encoder", ch + 1, c->name);
     if (!c->motor) {
@@ -670,48 +699,69 @@ static int step_motor(struct sc *s, int ch)
     r.status = XRF_SC_FAIL;
     if (sp == P_OK && sm == P_OK) {
         r.status = XRF_SC_PASS;
-        SETF(r.message, "a %.0f %% pulse of %d ms moved encoder %d by %+lld counts, the opposite "
-             "pulse by %+lld: direction and amount as expected", duty * 100, ms, ch + 1,
-             (long long)dp[ch], (long long)dm[ch]);
+        SETF(r.message,
+             "a %.0f %% pulse of %d ms moved encoder %d by %+lld counts, the opposite "
+             "pulse by %+lld: direction and amount as expected",
+             duty * 100, ms, ch + 1, (long long)dp[ch], (long long)dm[ch]);
     } else if (sp == P_NONE && sm == P_NONE && other) {
-        SETF(r.message, "driving motor %d moved encoder %d, not encoder %d: the encoder cables "
-             "of channels %d and %d are swapped", ch + 1, other, ch + 1, ch + 1, other);
+        SETF(r.message,
+             "driving motor %d moved encoder %d, not encoder %d: the encoder cables "
+             "of channels %d and %d are swapped",
+             ch + 1, other, ch + 1, ch + 1, other);
         SETF(r.action, "plug each encoder cable into the connector of its own motor (%s and %s)",
              conn, s->p->ch[other - 1].connector);
     } else if (sp == P_NONE && sm == P_NONE) {
-        SETF(r.message, "encoder %d does not count: it stayed at %+lld / %+lld counts while motor "
-             "%d was driven %.0f %% each way for %d ms", ch + 1, (long long)dp[ch],
-             (long long)dm[ch], ch + 1, duty * 100, ms);
-        SETF(r.action, "check the encoder cable on %s; if the motor did not turn either, check "
-             "the motor cable on %s and the motor power supply", conn, conn);
+        SETF(r.message,
+             "encoder %d does not count: it stayed at %+lld / %+lld counts while motor "
+             "%d was driven %.0f %% each way for %d ms",
+             ch + 1, (long long)dp[ch], (long long)dm[ch], ch + 1, duty * 100, ms);
+        SETF(r.action,
+             "check the encoder cable on %s; if the motor did not turn either, check "
+             "the motor cable on %s and the motor power supply",
+             conn, conn);
     } else if (sp == P_WRONG && sm == P_WRONG) {
-        SETF(r.message, "motor %d turns the wrong way: positive PWM moved encoder %d by %+lld "
-             "counts (expected %s)", ch + 1, ch + 1, (long long)dp[ch],
-             c->direction > 0 ? "up" : "down");
-        SETF(r.action, "the two motor wires (or the encoder's A/B wires) on %s are swapped: swap "
+        SETF(r.message,
+             "motor %d turns the wrong way: positive PWM moved encoder %d by %+lld "
+             "counts (expected %s)",
+             ch + 1, ch + 1, (long long)dp[ch], c->direction > 0 ? "up" : "down");
+        SETF(r.action,
+             "the two motor wires (or the encoder's A/B wires) on %s are swapped: swap "
              "them back; if this bench is wired so on purpose, set direction to %d for channel %d "
-             "in the bench profile", conn, -c->direction, ch + 1);
+             "in the bench profile",
+             conn, -c->direction, ch + 1);
     } else if (sp == P_HIGH || sm == P_HIGH) {
-        SETF(r.message, "encoder %d counted %+lld / %+lld, more than the plausible %d counts for "
-             "this pulse", ch + 1, (long long)dp[ch], (long long)dm[ch], c->max_counts);
+        SETF(r.message,
+             "encoder %d counted %+lld / %+lld, more than the plausible %d counts for "
+             "this pulse",
+             ch + 1, (long long)dp[ch], (long long)dm[ch], c->max_counts);
         SETF(r.action, "check that the right motor/encoder is fitted (counts per revolution, "
-             "gear) or raise max_counts in the bench profile");
-    } else if ((sp == P_NONE) != (sm == P_NONE) && (sp == P_OK || sp == P_WEAK || sm == P_OK ||
-                                                    sm == P_WEAK)) {
-        SETF(r.message, "channel %d moves only one way: %+lld counts for the positive pulse, %+lld "
-             "for the negative one", ch + 1, (long long)dp[ch], (long long)dm[ch]);
-        SETF(r.action, "if the axis sits at an end stop, move it to the middle and run the check "
-             "again; otherwise the motor driver on %s is faulty", conn);
+                       "gear) or raise max_counts in the bench profile");
+    } else if ((sp == P_NONE) != (sm == P_NONE) &&
+               (sp == P_OK || sp == P_WEAK || sm == P_OK || sm == P_WEAK)) {
+        SETF(r.message,
+             "channel %d moves only one way: %+lld counts for the positive pulse, %+lld "
+             "for the negative one",
+             ch + 1, (long long)dp[ch], (long long)dm[ch]);
+        SETF(r.action,
+             "if the axis sits at an end stop, move it to the middle and run the check "
+             "again; otherwise the motor driver on %s is faulty",
+             conn);
     } else if ((sp == P_OK || sp == P_WEAK) && (sm == P_OK || sm == P_WEAK)) {
-        SETF(r.message, "motor %d moves too little: %+lld / %+lld counts, expected at least %d "
-             "each way", ch + 1, (long long)dp[ch], (long long)dm[ch], c->min_counts);
+        SETF(r.message,
+             "motor %d moves too little: %+lld / %+lld counts, expected at least %d "
+             "each way",
+             ch + 1, (long long)dp[ch], (long long)dm[ch], c->min_counts);
         SETF(r.action, "check for stiff or blocked mechanics, a slipping coupling or belt, and "
-             "the motor supply voltage");
+                       "the motor supply voltage");
     } else {
-        SETF(r.message, "encoder %d counts inconsistently: %+lld for the positive pulse, %+lld "
-             "for the negative one", ch + 1, (long long)dp[ch], (long long)dm[ch]);
-        SETF(r.action, "one of the encoder's A/B wires on %s is loose or the signal is noisy: "
-             "check the encoder cable", conn);
+        SETF(r.message,
+             "encoder %d counts inconsistently: %+lld for the positive pulse, %+lld "
+             "for the negative one",
+             ch + 1, (long long)dp[ch], (long long)dm[ch]);
+        SETF(r.action,
+             "one of the encoder's A/B wires on %s is loose or the signal is noisy: "
+             "check the encoder cable",
+             conn);
     }
     emit(s, &r);
     return 0;
@@ -739,17 +789,19 @@ static int wait_pin(struct sc *s, int ch, int dout, int want, int frames, int *s
 static int step_dout(struct sc *s, int ch)
 {
     const struct xrf_sc_channel *c = &s->p->ch[ch];
-    char id[16], title[96];
+    char id[24], title[160]; /* ids: "motor." + any int; titles: the longest channel name */
     snprintf(id, sizeof id, "dout.%d", ch + 1);
     snprintf(title, sizeof title, "channel %d: digital output read back", ch + 1);
     if (!c->loopback) {
-        skip(s, id, ch + 1, title, "no loopback declared for this output in the bench profile: not "
+        skip(s, id, ch + 1, title,
+             "no loopback declared for this output in the bench profile: not "
              "toggled, nothing could read it back");
         return 0;
     }
     struct xrf_selfcheck_result r;
     result_init(&r, id, ch + 1, title);
-    progress(s, id, ch + 1, 0.0, "toggling digital output %d, reading input %d pin 1", ch + 1, ch + 1);
+    progress(s, id, ch + 1, 0.0, "toggling digital output %d, reading input %d pin 1", ch + 1,
+             ch + 1);
     s->have_raw = 0;
     clock_start(s);
     int toggles = 3, ok_on = 0, ok_off = 0, lat_on = 0, lat_off = 0, rc = 0;
@@ -778,21 +830,28 @@ static int step_dout(struct sc *s, int ch)
         emit(s, &r);
         return -1;
     }
-    SETF(r.data, "{\"toggles\":%d,\"seen_on\":%d,\"seen_off\":%d,\"frames_on\":%d,\"frames_off\":%d}",
+    SETF(r.data,
+         "{\"toggles\":%d,\"seen_on\":%d,\"seen_off\":%d,\"frames_on\":%d,\"frames_off\":%d}",
          toggles, ok_on, ok_off, lat_on, lat_off);
     if (start_low && ok_on == toggles && ok_off == toggles) {
         r.status = XRF_SC_PASS;
-        SETF(r.message, "output %d switched on and off %d times and came back on input %d pin 1 "
-             "each time (%d frame(s) later)", ch + 1, toggles, ch + 1, lat_on);
+        SETF(r.message,
+             "output %d switched on and off %d times and came back on input %d pin 1 "
+             "each time (%d frame(s) later)",
+             ch + 1, toggles, ch + 1, lat_on);
     } else if (ok_on == 0 && start_low) {
         r.status = XRF_SC_FAIL;
-        SETF(r.message, "output %d does not come back on input %d pin 1: the input stayed 0 while "
-             "the output was on", ch + 1, ch + 1);
+        SETF(r.message,
+             "output %d does not come back on input %d pin 1: the input stayed 0 while "
+             "the output was on",
+             ch + 1, ch + 1);
         SETF(r.action, "check the loopback wire/plug on %s (output to input pin 1)", c->connector);
     } else if (!start_low || ok_off < toggles) {
         r.status = XRF_SC_FAIL;
-        SETF(r.message, "input %d pin 1 stays 1 while output %d is off: the input is stuck or "
-             "shorted", ch + 1, ch + 1);
+        SETF(r.message,
+             "input %d pin 1 stays 1 while output %d is off: the input is stuck or "
+             "shorted",
+             ch + 1, ch + 1);
         SETF(r.action, "check the loopback wire and the input on %s for a short", c->connector);
     } else {
         r.status = XRF_SC_FAIL;
@@ -808,7 +867,7 @@ static int step_dout(struct sc *s, int ch)
 static int step_din(struct sc *s, int ch)
 {
     const struct xrf_sc_channel *c = &s->p->ch[ch];
-    char id[16], title[96];
+    char id[24], title[160]; /* ids: "motor." + any int; titles: the longest channel name */
     snprintf(id, sizeof id, "din.%d", ch + 1);
     snprintf(title, sizeof title, "channel %d: digital inputs", ch + 1);
     struct xrf_selfcheck_result r;
@@ -836,9 +895,11 @@ static int step_din(struct sc *s, int ch)
         level[k] = ones[k] == 0 ? 0 : ones[k] == frames ? 1 : -1;
         desc[k] = level[k] == 0 ? "0" : level[k] == 1 ? "1" : "flickering";
     }
-    SETF(r.data, "{\"pin1\":%d,\"pin2\":%d,\"pin1_ones\":%d,\"pin2_ones\":%d,\"frames\":%d,"
-         "\"idle\":[%d,%d]}", level[0] < 0 ? 2 : level[0], level[1] < 0 ? 2 : level[1], ones[0],
-         ones[1], frames, c->din_idle[0], c->din_idle[1]);
+    SETF(r.data,
+         "{\"pin1\":%d,\"pin2\":%d,\"pin1_ones\":%d,\"pin2_ones\":%d,\"frames\":%d,"
+         "\"idle\":[%d,%d]}",
+         level[0] < 0 ? 2 : level[0], level[1] < 0 ? 2 : level[1], ones[0], ones[1], frames,
+         c->din_idle[0], c->din_idle[1]);
     int bad = 0;
     for (int k = 0; k < 2 && !bad; k++) {
         if (c->din_idle[k] < 0 || level[k] == c->din_idle[k])
@@ -850,19 +911,25 @@ static int step_din(struct sc *s, int ch)
         SETF(r.message, "pin 1 (%s) reads %s, pin 2 (%s) reads %s%s", c->pin_name[0], desc[0],
              c->pin_name[1], desc[1],
              c->din_idle[0] < 0 && c->din_idle[1] < 0 ? " (reported only: the profile expects "
-                                                          "no level)" : ", as expected");
+                                                        "no level)"
+                                                      : ", as expected");
     } else {
         int k = bad - 1;
         r.status = XRF_SC_FAIL;
         if (level[k] < 0)
-            SETF(r.message, "input pin %d of channel %d (%s) flickers (1 in %d of %d frames) with "
-                 "nothing connected to drive it", bad, ch + 1, c->pin_name[k], ones[k], frames);
+            SETF(r.message,
+                 "input pin %d of channel %d (%s) flickers (1 in %d of %d frames) with "
+                 "nothing connected to drive it",
+                 bad, ch + 1, c->pin_name[k], ones[k], frames);
         else
-            SETF(r.message, "input pin %d of channel %d (%s) reads %d with the outputs off "
-                 "(expected %d): the input is stuck or its wire is shorted", bad, ch + 1,
-                 c->pin_name[k], level[k], c->din_idle[k]);
-        SETF(r.action, "check the wiring on %s (a pressed switch also reads 1); if nothing is "
-             "connected there, the input on the ico board is damaged", c->connector);
+            SETF(r.message,
+                 "input pin %d of channel %d (%s) reads %d with the outputs off "
+                 "(expected %d): the input is stuck or its wire is shorted",
+                 bad, ch + 1, c->pin_name[k], level[k], c->din_idle[k]);
+        SETF(r.action,
+             "check the wiring on %s (a pressed switch also reads 1); if nothing is "
+             "connected there, the input on the ico board is damaged",
+             c->connector);
     }
     emit(s, &r);
     return 0;
@@ -914,23 +981,28 @@ static int step_timing(struct sc *s)
     double mn = us[0], mx = us[n - 1], med = us[n / 2], mean = sum / n;
     double p99 = us[(int)((n - 1) * 0.99)];
     free(us);
-    SETF(r.data, "{\"frames\":%d,\"min_us\":%.2f,\"median_us\":%.2f,\"mean_us\":%.2f,"
+    SETF(r.data,
+         "{\"frames\":%d,\"min_us\":%.2f,\"median_us\":%.2f,\"mean_us\":%.2f,"
          "\"p99_us\":%.2f,\"max_us\":%.2f,\"warn_median_us\":%.1f,\"fail_median_us\":%.1f,"
-         "\"warn_max_us\":%.1f}", n, mn, med, mean, p99, mx, s->p->warn_median_us,
-         s->p->fail_median_us, s->p->warn_max_us);
+         "\"warn_max_us\":%.1f}",
+         n, mn, med, mean, p99, mx, s->p->warn_median_us, s->p->fail_median_us, s->p->warn_max_us);
     if (med > s->p->fail_median_us) {
         r.status = XRF_SC_FAIL;
-        SETF(r.message, "the link is slow: one frame takes %.1f us (median; min %.1f, max %.1f), "
+        SETF(r.message,
+             "the link is slow: one frame takes %.1f us (median; min %.1f, max %.1f), "
              "above the %.0f us this bench allows; a 1 kHz loop spends that much of every "
-             "1000 us cycle waiting for the board", med, mn, mx, s->p->fail_median_us);
+             "1000 us cycle waiting for the board",
+             med, mn, mx, s->p->fail_median_us);
         SETF(r.action, "check the SPI clock setting and CPU load (stop other programs); the EVL "
-             "out-of-band transport (evl-spidev) is faster than in-band spidev");
+                       "out-of-band transport (evl-spidev) is faster than in-band spidev");
     } else if (med > s->p->warn_median_us || mx > s->p->warn_max_us) {
         r.status = XRF_SC_WARN;
-        SETF(r.message, "the link is slower than expected: median %.1f us, max %.1f us (warn "
-             "above %.0f us median or %.0f us max)", med, mx, s->p->warn_median_us,
-             s->p->warn_max_us);
-        SETF(r.action, "usable, but look at the CPU load and the SPI clock if loops miss deadlines");
+        SETF(r.message,
+             "the link is slower than expected: median %.1f us, max %.1f us (warn "
+             "above %.0f us median or %.0f us max)",
+             med, mx, s->p->warn_median_us, s->p->warn_max_us);
+        SETF(r.action,
+             "usable, but look at the CPU load and the SPI clock if loops miss deadlines");
     } else {
         r.status = XRF_SC_PASS;
         SETF(r.message, "one frame takes %.1f us (median; min %.1f, max %.1f over %d frames)", med,

@@ -37,30 +37,30 @@ extern "C" {
 #define XRF_SC_DATA 768
 
 struct xrf_sc_channel {
-    char name[64];        /* "left wheel" */
-    char connector[32];   /* "PMOD 1": where the educator finds the cable */
-    int motor;            /* 1: a motor + encoder is wired to this channel */
-    int direction;        /* +1: positive PWM counts the encoder up; -1: down */
-    double duty;          /* pulse duty as a fraction of full scale (<= XRF_SC_MAX_DUTY) */
-    int duration_ms;      /* pulse length each way (<= XRF_SC_MAX_PULSE_MS) */
-    int min_counts;       /* |counts| a pulse must at least move the encoder */
-    int max_counts;       /* 0 = no upper bound; more than this is implausible */
-    int loopback;         /* 1: digital output wired back to input pin 1 of this channel */
-    int din_idle[2];      /* expected level of pin 1/2 with outputs off; -1 = not checked */
+    char name[64];      /* "left wheel" */
+    char connector[32]; /* "PMOD 1": where the educator finds the cable */
+    int motor;          /* 1: a motor + encoder is wired to this channel */
+    int direction;      /* +1: positive PWM counts the encoder up; -1: down */
+    double duty;        /* pulse duty as a fraction of full scale (<= XRF_SC_MAX_DUTY) */
+    int duration_ms;    /* pulse length each way (<= XRF_SC_MAX_PULSE_MS) */
+    int min_counts;     /* |counts| a pulse must at least move the encoder */
+    int max_counts;     /* 0 = no upper bound; more than this is implausible */
+    int loopback;       /* 1: digital output wired back to input pin 1 of this channel */
+    int din_idle[2];    /* expected level of pin 1/2 with outputs off; -1 = not checked */
     char pin_name[2][64];
 };
 
 struct xrf_selfcheck_profile {
     char name[64];
-    double pwm_limit;       /* fraction of full scale handed to the frame builder (<= 0.2) */
-    int period_us;          /* frame period of the timed loops (default 1000) */
-    int settle_ms;          /* zero-PWM time after each pulse, encoders still read */
-    int reset_tolerance;    /* counts an encoder may read after RESET */
-    int echo_frames;        /* TEST frames (default 1000) */
-    int timing_frames;      /* ALL frames timed (default 1000) */
-    double warn_median_us;  /* link timing: warn above this median */
-    double fail_median_us;  /* link timing: fail above this median */
-    double warn_max_us;     /* link timing: warn above this maximum */
+    double pwm_limit;      /* fraction of full scale handed to the frame builder (<= 0.2) */
+    int period_us;         /* frame period of the timed loops (default 1000) */
+    int settle_ms;         /* zero-PWM time after each pulse, encoders still read */
+    int reset_tolerance;   /* counts an encoder may read after RESET */
+    int echo_frames;       /* TEST frames (default 1000) */
+    int timing_frames;     /* ALL frames timed (default 1000) */
+    double warn_median_us; /* link timing: warn above this median */
+    double fail_median_us; /* link timing: fail above this median */
+    double warn_max_us;    /* link timing: warn above this maximum */
     struct xrf_sc_channel ch[4];
 };
 
@@ -96,10 +96,10 @@ struct xrf_selfcheck_summary {
 /* Where the board is. transport: "sim", "spidev", "evl-spidev". */
 struct xrf_selfcheck_target {
     const char *transport;
-    const char *device;      /* spidev path (default /dev/spidev0.0) */
-    uint32_t speed_hz;       /* default 31 MHz */
-    const char *sim;         /* "relbot" / "jiwy" */
-    const char *faults;      /* xrf_sim_parse_faults spec, may be NULL */
+    const char *device;                  /* spidev path (default /dev/spidev0.0) */
+    uint32_t speed_hz;                   /* default 31 MHz */
+    const char *sim;                     /* "relbot" / "jiwy" */
+    const char *faults;                  /* xrf_sim_parse_faults spec, may be NULL */
     struct xrf_sim_outputs *sim_outputs; /* mirror of the simulated board, may be NULL */
 };
 
@@ -109,8 +109,7 @@ void xrf_selfcheck_profile_defaults(struct xrf_selfcheck_profile *p);
  * xrflab.profile_flat writes it: "channel.1.duty=0.15") on top of what *p holds. Only the
  * form is checked here, no ranges (xrf_selfcheck_run clamps to the hard limits). Returns 0, or
  * -EINVAL for an unknown key or a malformed line/value, with the line number and key in err. */
-int xrf_selfcheck_profile_read(FILE *in, struct xrf_selfcheck_profile *p, char *err,
-                               size_t errlen);
+int xrf_selfcheck_profile_read(FILE *in, struct xrf_selfcheck_profile *p, char *err, size_t errlen);
 /* Writes *p as one JSON object line {"event":"profile",...} (xrf-selfcheck --dump-profile):
  * what the checker will use, for tests that the flat form reaches every field. */
 void xrf_selfcheck_profile_dump(FILE *out, const struct xrf_selfcheck_profile *p);

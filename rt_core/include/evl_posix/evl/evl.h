@@ -124,7 +124,8 @@ static inline int evl_udelay(unsigned int usecs)
 {
     struct timespec t0, t;
     clock_gettime(CLOCK_MONOTONIC, &t0);
-    const long long end = (long long)t0.tv_sec * 1000000000LL + t0.tv_nsec + (long long)usecs * 1000LL;
+    const long long end =
+        (long long)t0.tv_sec * 1000000000LL + t0.tv_nsec + (long long)usecs * 1000LL;
     do
         clock_gettime(CLOCK_MONOTONIC, &t);
     while ((long long)t.tv_sec * 1000000000LL + t.tv_nsec < end);

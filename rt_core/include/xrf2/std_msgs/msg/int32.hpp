@@ -15,8 +15,10 @@
 #include <type_traits>
 #include <vector>
 
-namespace std_msgs {
-namespace msg {
+namespace std_msgs
+{
+namespace msg
+{
 
 struct Int32 {
     using _data_type = int32_t;
