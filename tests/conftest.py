@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import sys
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -13,12 +12,9 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
-# Tests import the package from the source tree even when it is not installed (editable or not).
-if str(REPO_ROOT / "appliance") not in sys.path:
-    sys.path.insert(0, str(REPO_ROOT / "appliance"))
-# Shared test helpers (tests/xrf_testing) import as `xrf_testing`.
-if str(REPO_ROOT / "tests") not in sys.path:
-    sys.path.insert(0, str(REPO_ROOT / "tests"))
+# pyproject.toml's `pythonpath = ["appliance", "tests"]` puts this checkout's appliance/ first
+# (a clone under /tmp tests its own code, not the editable install's) and makes the shared test
+# helpers importable as `xrf_testing`; no test changes sys.path itself.
 
 try:
     from hypothesis import settings

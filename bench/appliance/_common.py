@@ -13,9 +13,9 @@ from typing import Any
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO_ROOT / "appliance"))
-sys.path.insert(0, str(REPO_ROOT / "tests" / "appliance"))
+sys.path.insert(0, str(REPO_ROOT / "tests"))  # the test helpers: xrf_testing
 
-from harness import Server, shared_builds_root, start_server, stop_server  # noqa: E402
+from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server  # noqa: E402
 
 
 @contextmanager

@@ -33,8 +33,9 @@ from xrflab.channels import Channels
 
 
 async def _clients(url: str, ws_url: str, n: int, seconds: float) -> None:
-    from harness import ADMIN_PASSWORD, ADMIN_USER, login_client
     from websockets.asyncio.client import connect
+
+    from xrf_testing.harness import ADMIN_PASSWORD, ADMIN_USER, login_client
 
     # In a session, as a browser is: /ws refuses a connection without a session cookie (before,
     # every client was refused at once and the "with clients" slices had no clients at all).

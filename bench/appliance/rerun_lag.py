@@ -37,9 +37,9 @@ def viewer(url: str, seconds: float, edge_s: float) -> None:
     """Read the live stream for `seconds` (or until caught up when seconds < 0: a late viewer);
     print one JSON line: [arrival_ns, newest_ns] per frame with a time, the connect time, counts."""
     import httpx
-    from harness import ADMIN_PASSWORD, ADMIN_USER, login_client
 
     from xrf_testing.grpcweb import EMPTY_REQUEST, GRPC_WEB, READ_MESSAGES, split_frames
+    from xrf_testing.harness import ADMIN_PASSWORD, ADMIN_USER, login_client
     from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of
 
     http = login_client(url, ADMIN_USER, ADMIN_PASSWORD)

@@ -21,11 +21,10 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
-sys.path[:0] = [str(REPO / "appliance"), str(REPO / "tests" / "appliance"), str(REPO / "tests" / "projects_upload")]
+sys.path[:0] = [str(REPO / "appliance"), str(REPO / "tests")]
 
-from harness import shared_builds_root, start_server, stop_server  # noqa: E402
-from projects_support import reachable_tmp  # noqa: E402
-
+from xrf_testing.harness import shared_builds_root, start_server, stop_server  # noqa: E402
+from xrf_testing.projects_support import reachable_tmp  # noqa: E402
 from xrflab.projects import archive  # noqa: E402
 
 TEMPLATES = {"base": REPO / "student_projects/templates/base", "20sim": REPO / "student_projects/templates/20sim"}

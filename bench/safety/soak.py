@@ -34,16 +34,14 @@ from typing import Any
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO_ROOT / "appliance"))
-sys.path.insert(0, str(REPO_ROOT / "tests" / "appliance"))
-sys.path.insert(0, str(REPO_ROOT / "tests" / "logs_appliance"))
 sys.path.insert(0, str(REPO_ROOT / "bench" / "appliance"))
 sys.path.insert(0, str(REPO_ROOT / "tests"))
 
 from _common import pct  # noqa: E402
-from harness import Server, WsClient, stop_server, ws_connect  # noqa: E402
-from logs_support import COST, start  # noqa: E402
 
+from xrf_testing.harness import Server, WsClient, stop_server, ws_connect  # noqa: E402
 from xrf_testing.leaks import descendants  # noqa: E402
+from xrf_testing.logs_support import COST, start  # noqa: E402
 
 
 def rss_kb(pid: int) -> int:

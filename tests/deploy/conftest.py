@@ -7,15 +7,12 @@ from __future__ import annotations
 
 import os
 import shutil
-import sys
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from deploy_support import fresh_root, source_snapshot  # noqa: E402
-from fresh_background import BACKGROUND, Background  # noqa: E402
+from xrf_testing.deploy_support import fresh_root, source_snapshot
+from xrf_testing.fresh_background import BACKGROUND, Background
 
 FRESH_MODULE = Path(__file__).resolve().parent / "test_fresh_machine.py"
 

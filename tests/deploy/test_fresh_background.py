@@ -19,7 +19,8 @@ import time
 from pathlib import Path
 
 import pytest
-from fresh_background import Run
+
+from xrf_testing.fresh_background import Run
 
 REPO = Path(__file__).resolve().parents[2]
 FIRST = "tests/doctor/test_doctor.py::test_evl_ok"  # a quick test to be the session's first

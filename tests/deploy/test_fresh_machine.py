@@ -33,10 +33,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
-from fresh_background import BACKGROUND, Run
-from fresh_machine import Machine
-from fresh_run import CMAKE_TEST, JUNIT, UI_TEST, apt_packages
-from fresh_run import tail as _tail
+
+from xrf_testing.fresh_background import BACKGROUND, Run
+from xrf_testing.fresh_machine import Machine
+from xrf_testing.fresh_run import CMAKE_TEST, JUNIT, UI_TEST, apt_packages
+from xrf_testing.fresh_run import tail as _tail
 
 pytestmark = pytest.mark.timeout(2400)
 
@@ -112,8 +113,8 @@ def _installed(tree: Path) -> set[str]:
 def test_the_tree_starts_without_the_project(fresh: Fresh) -> None:
     """What makes the check mean something: before ./lab, none of what it installs was there
     (read from the cached tree, which ./lab never touches)."""
-    from deploy_support import ensure_debian_tree
-    from fresh_machine import PACKAGES
+    from xrf_testing.deploy_support import ensure_debian_tree
+    from xrf_testing.fresh_machine import PACKAGES
 
     pristine = _installed(ensure_debian_tree(PACKAGES))
     assert not {"python3", "cmake", "g++", "chromium", "build-essential"} & pristine

@@ -14,7 +14,8 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from deploy_support import REPO, run_install, tree_digest
+
+from xrf_testing.deploy_support import REPO, run_install, tree_digest
 
 pytestmark = pytest.mark.timeout(1800)
 

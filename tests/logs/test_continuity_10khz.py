@@ -10,9 +10,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from harness import stop_server
-from logs_support import COST, start
 
+from xrf_testing.harness import stop_server
+from xrf_testing.logs_support import COST, start
 from xrflab.logs import open_log
 
 SECONDS = float(os.environ.get("XRF_CONTINUITY_SECONDS", "60"))

@@ -12,9 +12,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from harness import Server
-from logs_support import PROBE, REPO
 
+from xrf_testing.harness import Server
+from xrf_testing.logs_support import PROBE, REPO
 from xrf_testing.loops import LoopProcess
 from xrflab.channels import STAGE_NAMES
 from xrflab.logs import open_log

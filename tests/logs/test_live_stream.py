@@ -14,10 +14,10 @@ from pathlib import Path
 
 import httpx
 import pytest
-from harness import ADMIN_PASSWORD, ADMIN_USER, Server, login_client, stop_server
-from logs_support import PROBE, start, wait_for
 
 from xrf_testing.grpcweb import GRPC_WEB, READ_MESSAGES, read_messages
+from xrf_testing.harness import ADMIN_PASSWORD, ADMIN_USER, Server, login_client, stop_server
+from xrf_testing.logs_support import PROBE, start, wait_for
 from xrf_testing.net import established_to, lan_address, listening_addresses
 from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of
 from xrflab.server.routes_rerun import NO_LIVE_STREAM

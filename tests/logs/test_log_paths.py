@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from harness import stop_server
-from logs_support import REPO, shared_builds_root, start_server, wait_for
 
+from xrf_testing.harness import stop_server
+from xrf_testing.logs_support import REPO, shared_builds_root, start_server, wait_for
 from xrf_testing.loops import LoopProcess
 from xrflab.logs import open_log
 from xrflab.logs.live import HostLogWriter

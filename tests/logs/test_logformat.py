@@ -12,8 +12,8 @@ import struct
 from pathlib import Path
 
 import pytest
-from writers import TYPES
 
+from xrf_testing.writers import TYPES
 from xrflab.logs import LogFormatError, logformat, open_log
 from xrflab.logs.logformat import MAGIC, VAR_TYPES, ffi, lib
 

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from log_cases import VARIABLES, columns_of, edge_rows, same_bits
-from writers import xrf2_bin, xrflog_segment
 
+from xrf_testing.log_cases import VARIABLES, columns_of, edge_rows, same_bits
+from xrf_testing.writers import xrf2_bin, xrflog_segment
 from xrflab.logs import LogFormatError, open_log
 from xrflab.logs.reader import MAGIC
 

@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 import pytest
-from harness import Server, stop_server
-from logs_support import COST, PROBE, REPO, start, wait_for
 
+from xrf_testing.harness import Server, stop_server
+from xrf_testing.logs_support import COST, PROBE, REPO, start, wait_for
 from xrflab.logs import open_log
 
 

@@ -4,18 +4,12 @@ private to root), a Builder for sandbox tests, an appliance for the API tests.""
 from __future__ import annotations
 
 import shutil
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from projects_support import reachable_tmp
 
-REPO = Path(__file__).resolve().parents[2]
-HERE = Path(__file__).resolve().parent
-for p in (REPO / "appliance", REPO / "tests" / "appliance", HERE):
-    if str(p) not in sys.path:
-        sys.path.insert(0, str(p))
+from xrf_testing.projects_support import reachable_tmp
 
 
 @pytest.fixture

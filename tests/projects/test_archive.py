@@ -5,20 +5,17 @@ on a late failure)."""
 from __future__ import annotations
 
 import os
-import sys
 import time
 from pathlib import Path
 
 import pytest
 
+from xrf_testing import hostile
+from xrflab.projects import archive
+from xrflab.projects.archive import ArchiveRejected
+
 REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO / "appliance"))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import hostile  # noqa: E402
-
-from xrflab.projects import archive  # noqa: E402
-from xrflab.projects.archive import ArchiveRejected  # noqa: E402
 
 CASES = {
     # name: (maker, expected entry (substring), expected words in the message)

@@ -9,9 +9,9 @@ import time
 import uuid
 from pathlib import Path
 
-from projects_support import reachable_tmp, wait_build
 from test_sandbox import PRELUDE, TAIL, _builder, _project
 
+from xrf_testing.projects_support import reachable_tmp, wait_build
 from xrflab.projects.builder import build_processes
 
 

@@ -13,7 +13,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from harness import Server, shared_builds_root, start_server, stop_server
+
+from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server
 
 RUN_LINE = "int Template::run()\n{\n"
 

@@ -12,7 +12,6 @@ import re
 import resource
 import shutil
 import subprocess
-import sys
 import time
 import uuid
 from collections.abc import Iterator
@@ -20,11 +19,10 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
-if str(REPO / "appliance") not in sys.path:
-    sys.path.insert(0, str(REPO / "appliance"))
+from xrflab.build import BuildError, BuildResult, build_project
 
-from xrflab.build import BuildError, BuildResult, build_project  # noqa: E402
+REPO = Path(__file__).resolve().parents[2]
+
 
 PROJECTS = {
     "base": REPO / "student_projects/templates/base",

@@ -13,10 +13,11 @@ import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 
-import hostile
 import pytest
-from harness import Server, shared_builds_root, start_server, stop_server
-from projects_support import build_and_wait, targz
+
+from xrf_testing import hostile
+from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server
+from xrf_testing.projects_support import build_and_wait, targz
 
 REPO = Path(__file__).resolve().parents[2]
 BASE = REPO / "student_projects/templates/base"

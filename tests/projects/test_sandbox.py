@@ -12,8 +12,8 @@ import uuid
 from pathlib import Path
 
 import pytest
-from projects_support import wait_build
 
+from xrf_testing.projects_support import wait_build
 from xrflab.projects.builder import Builder, SandboxConfig
 from xrflab.projects.store import ProjectStore
 

@@ -19,9 +19,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from harness import Server, shared_builds_root, start_server, stop_server
-from projects_support import build_and_wait
 from test_projects_api import run_to_run, upload
+
+from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server
+from xrf_testing.projects_support import build_and_wait
 
 REPO = Path(__file__).resolve().parents[2]
 V10 = REPO / "tests/fixtures/xrf2_v1_0_project"

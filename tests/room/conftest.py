@@ -3,16 +3,12 @@ writes), real appliances and a real room service. Helpers live in room_support.p
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "appliance"))
-
-from room_support import broker_files, start_broker  # noqa: E402
+from xrf_testing.room_support import broker_files, start_broker
 
 
 @pytest.fixture

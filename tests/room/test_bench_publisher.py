@@ -9,9 +9,8 @@ import os
 import signal
 import time
 
-from harness import shared_builds_root, start_server, stop_server, wait_for
-from room_support import Recorder, room_endpoint
-
+from xrf_testing.harness import shared_builds_root, start_server, stop_server, wait_for
+from xrf_testing.room_support import Recorder, room_endpoint
 from xrflab.room import topics
 from xrflab.room.enrol import write_enrolment
 

@@ -8,8 +8,8 @@ import ssl
 import subprocess
 
 import pytest
-from room_support import Recorder, bench_endpoint, room_endpoint
 
+from xrf_testing.room_support import Recorder, bench_endpoint, room_endpoint
 from xrflab.room import mqtt, topics
 from xrflab.room.broker import acl_text
 

@@ -11,9 +11,9 @@ from collections.abc import Iterator
 
 import httpx
 import pytest
-from harness import CHROMIUM_ARGS, login_client, wait_for
-from room_support import TEACHER, TEACHER_PW, Lab, Recorder, room_endpoint, room_lab
 
+from xrf_testing.harness import CHROMIUM_ARGS, login_client, wait_for
+from xrf_testing.room_support import TEACHER, TEACHER_PW, Lab, Recorder, room_endpoint, room_lab
 from xrflab.room import topics
 
 N = 5

@@ -11,18 +11,16 @@ import io
 import json
 import os
 import shutil
-import sys
 import time
 import zipfile
 from collections.abc import Iterator
 
 import httpx
 import pytest
-from harness import REPO_ROOT, login_client, wait_for, ws_connect
-from room_support import Lab, room_lab
 
-sys.path.insert(0, str(REPO_ROOT / "tests" / "projects_upload"))
-from projects_support import build_and_wait, reachable_tmp, targz  # noqa: E402
+from xrf_testing.harness import REPO_ROOT, login_client, wait_for, ws_connect
+from xrf_testing.projects_support import build_and_wait, reachable_tmp, targz
+from xrf_testing.room_support import Lab, room_lab
 
 N = 3
 BASE = REPO_ROOT / "student_projects" / "templates" / "base"
@@ -270,9 +268,10 @@ def test_password_reset_in_the_room_takes_effect_on_a_bench(lab: Lab) -> None:
 def test_publish_and_collect_from_the_page(lab: Lab, chromium_path: str) -> None:
     """The room page's buttons: publish a template by name, see it reach the benches, collect its
     runs and get the download link (the archive itself is checked above)."""
-    from harness import CHROMIUM_ARGS
     from playwright.sync_api import sync_playwright
-    from room_support import TEACHER, TEACHER_PW
+
+    from xrf_testing.harness import CHROMIUM_ARGS
+    from xrf_testing.room_support import TEACHER, TEACHER_PW
 
     wait_for(lambda: lab.online() >= {"b1", "b2", "b3"}, 20, "all online")
     with sync_playwright() as p:

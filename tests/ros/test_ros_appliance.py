@@ -16,7 +16,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from harness import Server
+
+from xrf_testing.harness import Server
 
 pytestmark = pytest.mark.ros
 

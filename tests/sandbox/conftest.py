@@ -4,19 +4,15 @@ reach, and student accounts."""
 from __future__ import annotations
 
 import shutil
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
-for p in (REPO / "appliance", REPO / "tests" / "appliance", REPO / "tests" / "projects_upload"):
-    if str(p) not in sys.path:
-        sys.path.insert(0, str(p))
+from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server
+from xrf_testing.projects_support import reachable_tmp
 
-from harness import Server, shared_builds_root, start_server, stop_server  # noqa: E402
-from projects_support import reachable_tmp  # noqa: E402
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

@@ -10,9 +10,9 @@ import re
 import socket
 from pathlib import Path
 
-from harness import Server, wait_for
-from hostile import project_files
-from projects_support import build_and_wait, targz
+from xrf_testing.harness import Server, wait_for
+from xrf_testing.hostile import project_files
+from xrf_testing.projects_support import build_and_wait, targz
 
 REPO = Path(__file__).resolve().parents[2]
 EVIL = REPO / "tests" / "fixtures" / "evil_controller"

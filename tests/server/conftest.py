@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from harness import Server, shared_builds_root, start_server, stop_server  # noqa: E402
+from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server
 
 
 @pytest.fixture(scope="session")

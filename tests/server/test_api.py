@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from harness import Server
+from xrf_testing.harness import Server
 
 
 def test_bench_is_simulated(server: Server) -> None:

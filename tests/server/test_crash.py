@@ -8,8 +8,7 @@ import signal
 import time
 from typing import Any
 
-from harness import Server, WsClient
-
+from xrf_testing.harness import Server, WsClient
 from xrf_testing.leaks import descendants
 from xrflab.channels import Channels
 
@@ -137,12 +136,9 @@ def test_appliance_death_pauses_the_loop_and_restart_closes_the_run(tmp_path) ->
     cycling; nothing else the appliance started runs on; a restart on the same port and data
     stops the loop, closes the run with the counts from the loop's memory and log (the records
     the dead appliance had not written yet included), frees the bench, and says what happened."""
-    import sys
 
-    from harness import REPO_ROOT, stop_server
-
-    sys.path.insert(0, str(REPO_ROOT / "tests" / "logs_appliance"))
-    from logs_support import PROBE, start
+    from xrf_testing.harness import stop_server
+    from xrf_testing.logs_support import PROBE, start
 
     s = start(tmp_path)
     restarted = None

@@ -13,7 +13,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from harness import REPO_ROOT, free_port
+
+from xrf_testing.harness import REPO_ROOT, free_port
 
 JOURNEY = REPO_ROOT / "tests" / "xrf_testing" / "journey.py"
 RULE = "from xrflab.server.settings import default_data_dir; print(default_data_dir())"

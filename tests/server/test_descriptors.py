@@ -24,7 +24,8 @@ from pathlib import Path
 
 import httpx
 import pytest
-from harness import (
+
+from xrf_testing.harness import (
     ADMIN_PASSWORD,
     ADMIN_USER,
     HERE,
@@ -35,12 +36,8 @@ from harness import (
     shared_builds_root,
     wait_for,
 )
-
-sys.path.insert(0, str(REPO_ROOT / "tests"))
-sys.path.insert(0, str(REPO_ROOT / "tests" / "projects_upload"))
-from hostile import project_files
-from projects_support import reachable_tmp, targz
-
+from xrf_testing.hostile import project_files
+from xrf_testing.projects_support import reachable_tmp, targz
 from xrf_testing.ros import isolated_ros_env, require_rclpy
 
 # Shared with the appliance and its children legitimately (each opens its own): not inherited.

@@ -10,8 +10,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from harness import free_port
 
+from xrf_testing.harness import free_port
 from xrflab.server.lifecycle import RunLifecycle, RunObserver
 from xrflab.server.runs import RunRow, RunStore
 

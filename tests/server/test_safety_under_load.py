@@ -20,10 +20,9 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from harness import REPO_ROOT, Server, WsClient, stop_server
 
-sys.path.insert(0, str(REPO_ROOT / "tests" / "logs_appliance"))
-from logs_support import PROBE, start  # noqa: E402
+from xrf_testing.harness import REPO_ROOT, Server, WsClient, stop_server
+from xrf_testing.logs_support import PROBE, start
 
 BOUND_NS = 100_000_000
 CLIENTS = 30

@@ -10,7 +10,8 @@ import os
 from typing import Any
 
 import pytest
-from harness import Server, shared_builds_root, start_server, stop_server
+
+from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server
 
 
 def run_check(server: Server, ws: Any, timeout: float = 60, **body: Any) -> dict[str, Any]:

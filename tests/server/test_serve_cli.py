@@ -10,8 +10,8 @@ import time
 from pathlib import Path
 
 import httpx
-from harness import REPO_ROOT, free_port, login_client
 
+from xrf_testing.harness import REPO_ROOT, free_port, login_client
 from xrflab.server.safety import fpga_reset
 
 

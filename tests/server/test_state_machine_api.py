@@ -3,8 +3,7 @@ machine says what channels.c does when a loop handles that command (issue 20).""
 
 from __future__ import annotations
 
-from harness import Server
-
+from xrf_testing.harness import Server
 from xrflab import channels
 
 

@@ -9,7 +9,8 @@ import time
 from typing import Any
 
 import pytest
-from harness import Server, WsClient, shared_builds_root, start_server, stop_server
+
+from xrf_testing.harness import Server, WsClient, shared_builds_root, start_server, stop_server
 
 
 def to_run(ws: WsClient) -> None:

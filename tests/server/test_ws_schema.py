@@ -9,9 +9,9 @@ import signal
 from typing import Any
 
 import httpx
-from harness import Server, WsClient
 from jsonschema import Draft202012Validator
 
+from xrf_testing.harness import Server, WsClient
 from xrflab.server import api, hub, messages
 
 

@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "appliance"))
-from harness import CHROMIUM_ARGS, Server, browser_login, session_cookies, shared_builds_root, start_server, stop_server  # noqa: E402,F401
+from xrf_testing.harness import (  # noqa: F401
+    CHROMIUM_ARGS,
+    Server,
+    browser_login,
+    session_cookies,
+    shared_builds_root,
+    start_server,
+    stop_server,
+)
 
 
 @pytest.fixture(scope="module")

@@ -12,11 +12,14 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 REPO_ROOT = HERE.parents[1]
+# A program (`python tests/ui/screenshot.py`), not run by pytest: pyproject's pythonpath does not
+# apply, so this checkout's appliance/ and the test helpers are put first here.
 sys.path.insert(0, str(REPO_ROOT / "appliance"))
-sys.path.insert(0, str(REPO_ROOT / "tests" / "appliance"))
+sys.path.insert(0, str(REPO_ROOT / "tests"))
 
-from harness import CHROMIUM_ARGS, session_cookies, shared_builds_root, start_server, stop_server  # noqa: E402
 from playwright.sync_api import sync_playwright  # noqa: E402
+
+from xrf_testing.harness import CHROMIUM_ARGS, session_cookies, shared_builds_root, start_server, stop_server  # noqa: E402
 
 
 def main() -> None:

@@ -13,7 +13,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 import pytest
-from harness import Server, browser_login, session_cookies, shared_builds_root, start_server, stop_server
+
+from xrf_testing.harness import Server, browser_login, session_cookies, shared_builds_root, start_server, stop_server
 
 BANNER = "#confinement-banner"
 

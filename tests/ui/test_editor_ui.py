@@ -13,18 +13,17 @@ upwards fires and freezes the capture around it, and a level it never reaches ne
 from __future__ import annotations
 
 import shutil
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from harness import Server, shared_builds_root, start_server, stop_server, wait_for
+
+from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server, wait_for
+from xrf_testing.projects_support import reachable_tmp
 
 REPO = Path(__file__).resolve().parents[2]
 SHOTS = REPO / "test-results"
-sys.path.insert(0, str(REPO / "tests" / "projects_upload"))
-from projects_support import reachable_tmp  # noqa: E402
 
 
 @pytest.fixture(scope="module")

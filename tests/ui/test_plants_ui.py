@@ -5,8 +5,8 @@ The page has no list of its own, so a plant added to the C table appears here wi
 from __future__ import annotations
 
 import httpx
-from harness import Server
 
+from xrf_testing.harness import Server
 from xrflab import plants
 
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 import io
 import os
 import signal
-import sys
 import tarfile
 import time
 from collections.abc import Iterator
@@ -17,12 +16,10 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "appliance"))
-from harness import Server, browser_login, shared_builds_root, start_server, stop_server, wait_for  # noqa: E402
+from xrf_testing.harness import Server, browser_login, shared_builds_root, start_server, stop_server, wait_for
+from xrf_testing.projects_support import reachable_tmp
 
 REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO / "tests" / "projects_upload"))
-from projects_support import reachable_tmp  # noqa: E402
 
 BASE = REPO / "student_projects/templates/base"
 TABLET = {"width": 768, "height": 1024}

@@ -7,17 +7,16 @@ from __future__ import annotations
 
 import base64
 import io
-import sys
 import tarfile
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from harness import Server, shared_builds_root, start_server, stop_server
+
+from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server
+from xrf_testing.projects_support import reachable_tmp
 
 REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO / "tests" / "projects_upload"))
-from projects_support import reachable_tmp  # noqa: E402
 
 BASE = REPO / "student_projects/templates/base"
 SHOTS = REPO / "test-results"

@@ -8,7 +8,7 @@ from __future__ import annotations
 import time
 from urllib.parse import urlsplit
 
-from harness import Server
+from xrf_testing.harness import Server
 
 
 def test_viewer_fetches_nothing_from_the_internet(server: Server, browser) -> None:  # noqa: ANN001

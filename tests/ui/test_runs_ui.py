@@ -15,8 +15,7 @@ from urllib.parse import quote
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "appliance"))
-from harness import (  # noqa: E402
+from xrf_testing.harness import (
     ADMIN_PASSWORD,
     ADMIN_USER,
     Server,
@@ -26,8 +25,7 @@ from harness import (  # noqa: E402
     start_server,
     stop_server,
 )
-
-from xrf_testing.net import lan_address  # noqa: E402
+from xrf_testing.net import lan_address
 
 REPO = Path(__file__).resolve().parents[2]
 PROBE = "logs-probe"

@@ -5,7 +5,7 @@ editor shows the server's validation error next to the field."""
 
 from __future__ import annotations
 
-from harness import Server
+from xrf_testing.harness import Server
 
 
 def test_educator_runs_the_selfcheck_and_sees_the_report(server: Server, browser) -> None:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from harness import Server
+from xrf_testing.harness import Server
 
 
 def drawn_edges(page: Any) -> list[tuple[str, str, bool]]:

@@ -3,7 +3,7 @@ fix, and the appliance's facts."""
 
 from __future__ import annotations
 
-from harness import Server
+from xrf_testing.harness import Server
 
 DOCTOR_IDS = ["evl", "isolcpus", "governor", "throttling", "spi", "fpga", "clock", "disk", "ros2", "confinement"]
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import urllib.parse
 from pathlib import Path
 
-from harness import Server
+from xrf_testing.harness import Server
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SHOTS = REPO_ROOT / "test-results"

@@ -5,16 +5,14 @@ from __future__ import annotations
 
 import copy
 import math
-import sys
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "appliance"))
-from xrflab.profiles import load_profile  # noqa: E402
-from xrflab.viz import kinematics as kin  # noqa: E402
-from xrflab.viz.recorder import Recorder, load_recording, write_recording  # noqa: E402
-from xrflab.viz.scene import build_replay, resolve_profile, setpoint_angles  # noqa: E402
+from xrflab.profiles import load_profile
+from xrflab.viz import kinematics as kin
+from xrflab.viz.recorder import Recorder, load_recording, write_recording
+from xrflab.viz.scene import build_replay, resolve_profile, setpoint_angles
 
 JIWY = load_profile("jiwy")
 RELBOT = load_profile("relbot")

@@ -15,10 +15,11 @@ from typing import Any
 import httpx
 import pytest
 import viser
-from harness import Server
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 from websockets.typing import Subprotocol
+
+from xrf_testing.harness import Server
 
 
 def wait_state(server: Server, pred: Callable[[dict[str, Any]], bool], timeout: float = 10.0) -> dict[str, Any]:

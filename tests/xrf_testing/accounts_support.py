@@ -7,7 +7,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import httpx
-from harness import Server, WsClient
+
+from xrf_testing.harness import Server, WsClient
 
 
 @dataclass

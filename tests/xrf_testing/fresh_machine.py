@@ -30,7 +30,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from deploy_support import REPO, ensure_debian_tree, source_snapshot
+from xrf_testing.deploy_support import REPO, ensure_debian_tree, source_snapshot
 
 PACKAGES = ["git", "ca-certificates"]
 HOME = "/root-fresh"

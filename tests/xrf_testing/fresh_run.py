@@ -29,10 +29,13 @@ import traceback
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+if __name__ == "__main__":
+    # Run as a program (fresh_background.py starts it by path, outside pytest): tests/ is put on
+    # the path so its helpers import as `xrf_testing` here as they do in the tests.
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from deploy_support import REPO  # noqa: E402
-from fresh_machine import Machine, _user_pip_conf, make_machine  # noqa: E402
+from xrf_testing.deploy_support import REPO  # noqa: E402
+from xrf_testing.fresh_machine import Machine, _user_pip_conf, make_machine  # noqa: E402
 
 UI_TEST = "tests/ui/test_system_ui.py"  # the quickest browser test: needs chromium and serve
 CMAKE_TEST = "tests/rt_core/test_ctest.py"  # CMake + g++ build rt_core's unit tests, then runs them

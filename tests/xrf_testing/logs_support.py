@@ -5,13 +5,11 @@ controller (N doubles every cycle, bench/logs/logger_cost_project)."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
+from xrf_testing.harness import Server, shared_builds_root, start_server, wait_for  # noqa: F401 (wait_for: re-exported)
+
 REPO = Path(__file__).resolve().parents[2]
-if str(REPO / "tests" / "appliance") not in sys.path:
-    sys.path.insert(0, str(REPO / "tests" / "appliance"))
-from harness import Server, shared_builds_root, start_server, wait_for  # noqa: E402,F401 (wait_for: re-exported)
 
 PROBE = "logs-probe"
 COST = "logs-cost"

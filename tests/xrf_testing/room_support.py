@@ -142,8 +142,9 @@ import sys  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 
 import httpx  # noqa: E402
-from harness import ADMIN_PASSWORD, REPO_ROOT, Server, login_client  # noqa: E402
-from harness import HERE as APPLIANCE_TESTS  # noqa: E402
+
+from xrf_testing.harness import ADMIN_PASSWORD, REPO_ROOT, Server, login_client  # noqa: E402
+from xrf_testing.harness import HERE as APPLIANCE_TESTS  # noqa: E402
 
 
 def netns_possible() -> bool:
@@ -339,7 +340,7 @@ def join(
 from collections.abc import Iterator  # noqa: E402
 from contextlib import contextmanager  # noqa: E402
 
-from harness import shared_builds_root  # noqa: E402
+from xrf_testing.harness import shared_builds_root  # noqa: E402
 
 TEACHER, TEACHER_PW = "teacher", "teacher-room-pw-1"
 

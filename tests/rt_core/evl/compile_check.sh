@@ -9,7 +9,7 @@
 # libevl is itself built with gnu11, and CMake's C_STANDARD 11 (extensions on) passes -std=gnu11.
 set -eu
 here=$(cd "$(dirname "$0")" && pwd)
-root=$(cd "$here/../.." && pwd)
+root=$(cd "$here/../../.." && pwd)
 CC=${CC:-cc}
 
 dirs=""

@@ -30,7 +30,7 @@ from xrflab.build import BuildError, build_project
 from xrflab.channels import lib
 
 HERE = Path(__file__).resolve().parent
-REPO = HERE.parents[1]
+REPO = HERE.parents[2]
 LOOKALIKE = HERE / "lookalike"
 PROJECTS = {
     "relbot": REPO / "student_projects/examples/relbot",

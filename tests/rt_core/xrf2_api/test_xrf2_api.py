@@ -16,7 +16,7 @@ import pytest
 from xrf_testing.loops import LoopProcess
 from xrflab.build import _xrfrt_config_dir, ensure_rt_core
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 HERE = Path(__file__).resolve().parent
 CONTRACT = REPO / "docs/students/xrf2-api.md"
 TWENTY_SIM = REPO / "student_projects/templates/20sim/controller"

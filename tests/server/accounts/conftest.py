@@ -3,17 +3,12 @@ account per role, each logged in through the real login endpoint."""
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "appliance"))
-from harness import Server, shared_builds_root, start_server, stop_server  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from accounts_support import Account, make_account  # noqa: E402
+from xrf_testing.accounts_support import Account, make_account
+from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server
 
 
 @pytest.fixture(scope="module")

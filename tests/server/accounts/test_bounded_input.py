@@ -18,7 +18,8 @@ from pathlib import Path
 
 import httpx
 import pytest
-from harness import (
+
+from xrf_testing.harness import (
     ADMIN_PASSWORD,
     ADMIN_USER,
     Server,
@@ -29,7 +30,7 @@ from harness import (
 )
 
 MB = 1 << 20
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 BASE = REPO / "student_projects/templates/base"
 
 

@@ -8,7 +8,8 @@ import subprocess
 import sys
 
 import httpx
-from harness import REPO_ROOT, Server
+
+from xrf_testing.harness import REPO_ROOT, Server
 
 
 def xrf(args: list[str], home, stdin: str = "") -> subprocess.CompletedProcess[str]:  # type: ignore[no-untyped-def]

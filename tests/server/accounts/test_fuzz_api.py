@@ -11,10 +11,11 @@ from collections.abc import Iterator
 import pytest
 import requests
 import schemathesis
-from harness import Server, shared_builds_root, start_server, stop_server
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis.errors import Unsatisfiable
 from schemathesis import GenerationMode
+
+from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server
 
 EXAMPLES = 4
 # Operations that would log the fuzzing session out or lock it (they are tested on their own).

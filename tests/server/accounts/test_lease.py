@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import time
 
-from accounts_support import Account, make_account
-from harness import Server, shared_builds_root, start_server, stop_server
+from xrf_testing.accounts_support import Account, make_account
+from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server
 
 
 def holder(server: Server) -> str | None:

@@ -7,7 +7,16 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pytest
-from harness import CHROMIUM_ARGS, Server, browser_login, session_cookies, shared_builds_root, start_server, stop_server
+
+from xrf_testing.harness import (
+    CHROMIUM_ARGS,
+    Server,
+    browser_login,
+    session_cookies,
+    shared_builds_root,
+    start_server,
+    stop_server,
+)
 
 IDLE_S = 8.0
 ERRORS: list[str] = []  # uncaught JavaScript errors of every page

@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import re
 import shutil
-import sys
 import time
 import urllib.parse
 import uuid
@@ -27,20 +26,19 @@ from typing import Any
 
 import httpx
 import pytest
-from accounts_support import Account, make_account
 from fastapi.routing import APIRoute, APIWebSocketRoute
-from harness import Server, shared_builds_root, start_server, stop_server
 from test_route_table import permissions_of, walk
 
+from xrf_testing.accounts_support import Account, make_account
+from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server
+from xrf_testing.hostile import project_files
+from xrf_testing.projects_support import reachable_tmp, targz
 from xrflab.server.app import create_app
 from xrflab.server.auth import Perm
 from xrflab.server.routes_rerun import NO_LIVE_STREAM, SERVICE
 from xrflab.server.settings import Settings
 
-REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO / "tests" / "projects_upload"))
-from hostile import project_files  # noqa: E402
-from projects_support import reachable_tmp, targz  # noqa: E402
+REPO = Path(__file__).resolve().parents[3]
 
 BASE = REPO / "student_projects" / "templates" / "base"
 MISSING = 999_999  # an id nobody has

@@ -11,9 +11,18 @@ import zipfile
 
 import httpx
 import pytest
-from accounts_support import Account, make_account
-from harness import ADMIN_PASSWORD, Server, login_client, shared_builds_root, start_server, stop_server, ws_connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
+
+from xrf_testing.accounts_support import Account, make_account
+from xrf_testing.harness import (
+    ADMIN_PASSWORD,
+    Server,
+    login_client,
+    shared_builds_root,
+    start_server,
+    stop_server,
+    ws_connect,
+)
 
 
 def anon(server: Server, **headers: str) -> httpx.Client:
