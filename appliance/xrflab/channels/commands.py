@@ -1,0 +1,72 @@
+"""Passing a command to the loop and learning what it made of it.
+
+A command goes into the segment's command ring (``xrf_cmd_send``) and gets a ticket; the loop
+handles it at its next command stage and writes the outcome into a small table of results in the
+status block, indexed by ticket. A host waits for ``cmd_done`` to reach its ticket and reads its
+slot — unless so many commands were handled since that the slot was reused.
+"""
+
+from __future__ import annotations
+
+import errno
+import time
+from dataclasses import dataclass
+
+from .binding import CData, c_str, ffi, lib
+from .errors import ChannelsError, CommandRingFull, CommandTimeout
+from .names import command_number, state_name
+from .status import read_status, status_from_struct
+
+
+@dataclass(frozen=True)
+class CommandResult:
+    ticket: int
+    accepted: bool
+    state: int
+    state_name: str
+    reason: str
+
+
+def send(shm: CData, name: str, cmd: str | int, source: int) -> int:
+    """Queue a command in segment ``shm`` (called ``name`` in errors); returns its ticket."""
+    number = command_number(cmd)
+    ticket = lib.xrf_cmd_send(ffi.addressof(shm, "cmd"), number, source, time.monotonic_ns())
+    if ticket == -errno.EAGAIN:
+        raise CommandRingFull(
+            f"{name}: command ring full ({lib.XRF_CMD_SLOTS} pending): "
+            "the loop is not taking commands (is it still running?)"
+        )
+    if ticket <= 0:
+        raise ChannelsError(f"{name}: xrf_cmd_send failed ({ticket})")
+    return int(ticket)
+
+
+def wait(shm: CData, name: str, ticket: int, timeout: float) -> CommandResult:
+    """The outcome of command ``ticket``, once the loop has handled it (CommandTimeout if it does
+    not within ``timeout`` seconds)."""
+    deadline = time.monotonic() + timeout
+    slot = ticket % lib.XRF_CMD_RESULTS
+    while True:
+        s = read_status(shm, name)
+        if s.cmd_done >= ticket:
+            result = int(s.cmd_results[slot])
+            if result >> 1 == ticket:
+                accepted = not (result & 1)
+                reason = "" if accepted else c_str(s.cmd_reasons[slot])
+            else:
+                # More than XRF_CMD_RESULTS commands were handled since: the outcome is gone.
+                accepted, reason = False, "outcome no longer known (too many commands since)"
+            return CommandResult(
+                ticket=ticket,
+                accepted=accepted,
+                state=int(s.state),
+                state_name=state_name(int(s.state)),
+                reason=reason,
+            )
+        if time.monotonic() >= deadline:
+            st = status_from_struct(s)
+            raise CommandTimeout(
+                f"{name}: command #{ticket} not handled within {timeout:g} s "
+                f"(state {st.state_name}, loop {'running' if st.running else 'not running'})"
+            )
+        time.sleep(0.001)

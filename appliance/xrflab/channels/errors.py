@@ -1,0 +1,20 @@
+"""What can go wrong between a host and a loop's segment, as exceptions callers catch by kind.
+
+In a module of their own because every other module of the package raises them and callers
+(the CLI, the supervisor, the ROS 2 bridge) catch ``ChannelsError`` without caring which part of
+the package raised it.
+"""
+
+from __future__ import annotations
+
+
+class ChannelsError(RuntimeError):
+    """The shared memory is missing, foreign, or a channel refused an operation."""
+
+
+class CommandRingFull(ChannelsError):
+    """The loop is not taking commands (stopped cycling, or far behind)."""
+
+
+class CommandTimeout(ChannelsError, TimeoutError):
+    """A command was queued but the loop did not handle it in time."""

@@ -1,0 +1,124 @@
+"""A loop's segment as a file: where it is, mapping it, checking its layout, telling whose it is.
+
+A name is reused, an object is not (docs/developers/architecture.md, "Whose segment"): a loop
+creates its segment under its name, replacing a dead loop's leftover. So what is mapped is
+remembered by (device, inode) — its ``identity`` — and compared with what the name points to now,
+and a segment is removed only when it is still the one its loop process made.
+"""
+
+from __future__ import annotations
+
+import mmap
+import os
+import time
+from pathlib import Path
+
+from .binding import CData, ffi, lib
+from .errors import ChannelsError
+
+SHM_DIR = Path("/dev/shm")
+SHM_SIZE: int = ffi.sizeof("struct xrf_shm")
+
+# (st_dev, st_ino) of one segment object.
+Identity = tuple[int, int]
+
+
+def shm_path(name: str) -> Path:
+    """/dev/shm/<name>. A run started by the appliance has ``<run folder>/<name>``: its loop sees
+    that folder of the host's /dev/shm as its own /dev/shm (xrflab.guest)."""
+    parts = name.split("/") if name else []
+    if not 1 <= len(parts) <= 2 or any(p in ("", ".", "..") for p in parts):
+        raise ValueError(f"bad shared-memory name {name!r} (a plain name, or folder/name)")
+    return SHM_DIR.joinpath(*parts)
+
+
+def identity(path: Path) -> Identity | None:
+    """The object ``path`` names now, or None when there is none."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
+def try_map(path: Path) -> tuple[mmap.mmap | None, Identity | None]:
+    """Map the segment at ``path`` read-write, or (None, None) while it is missing or being sized."""
+    try:
+        fd = os.open(path, os.O_RDWR)
+    except FileNotFoundError:
+        return None, None
+    try:
+        st = os.fstat(fd)
+        size = st.st_size
+        if 0 < size < SHM_SIZE:
+            # Not a loop still sizing it (ftruncate is immediate): a loop built against another
+            # layout. Say so instead of waiting for an object that will never fit.
+            raise ChannelsError(
+                f"{path}: {size} bytes, this host expects {SHM_SIZE}: the controller was built "
+                "against another rt_core; rebuild it"
+            )
+        if size < SHM_SIZE:
+            return None, None
+        return mmap.mmap(fd, SHM_SIZE, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE), (st.st_dev, st.st_ino)
+    finally:
+        os.close(fd)
+
+
+def check_layout(path: Path, shm: CData) -> None:
+    """Refuse a segment that is not ours or that a loop built against another channels.h made."""
+    if shm.magic != lib.XRF_SHM_MAGIC:
+        raise ChannelsError(f"{path}: not an XRF shared-memory object (magic {shm.magic:#x})")
+    if shm.version != lib.XRF_SHM_VERSION:
+        raise ChannelsError(
+            f"{path}: layout version {shm.version}, this host speaks {lib.XRF_SHM_VERSION} "
+            "(rebuild the controller against this rt_core)"
+        )
+    if shm.size != SHM_SIZE:
+        raise ChannelsError(f"{path}: layout size {shm.size} bytes, expected {SHM_SIZE}")
+
+
+def attach(path: Path, wait_s: float) -> tuple[mmap.mmap, Identity | None]:
+    """Map the segment at ``path`` once its loop has published ``ready`` (waiting up to wait_s),
+    its layout checked; the mapping and the identity of the object mapped."""
+    deadline = time.monotonic() + wait_s
+    waiting_for = "the shared memory object to appear"
+    while True:
+        mapping, ident = try_map(path)
+        if mapping is not None:
+            shm = ffi.from_buffer("struct xrf_shm *", mapping)
+            magic = lib.xrfpy_load_u32(ffi.addressof(shm, "magic"))
+            if magic == 0:
+                waiting_for = "the loop to initialise it"
+            else:
+                check_layout(path, shm)
+                if lib.xrfpy_load_u32(ffi.addressof(shm, "ready")):
+                    return mapping, ident
+                waiting_for = "the loop to mark it ready"
+            del shm
+            mapping.close()
+        if time.monotonic() >= deadline:
+            raise ChannelsError(f"{path}: gave up after {wait_s:g} s waiting for {waiting_for}")
+        time.sleep(0.01)
+
+
+def remove_if_owned(name: str, pid: int) -> bool:
+    """Unlink /dev/shm/<name> if it is the segment of loop process `pid` (`xrf run` after its
+    controller exited: nothing needs the final state any more, the summary is printed; readers
+    still attached keep their mapping). A segment a newer loop made under the name is left."""
+    path = shm_path(name)
+    mapping, ident = try_map(path)
+    if mapping is None:
+        return False
+    try:
+        shm = ffi.from_buffer("struct xrf_shm *", mapping)
+        owned = shm.magic == lib.XRF_SHM_MAGIC and shm.info.pid == pid
+        del shm
+    finally:
+        mapping.close()
+    if owned and identity(path) == ident:
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            return False
+        return True
+    return False
