@@ -202,7 +202,7 @@ def ensure_rt_core(log: Log = print, source_root: Path | None = None) -> Path:
             raise BuildError(f"{p}: not found (cannot build rt_core)")
     # The installed libevl is part of what gets built (the evl backend exists only with it):
     # installing or upgrading libevl must not reuse a posix-only build. XRF_EVL_PREFIX names
-    # another libevl install than /usr/evl (CI's EVL look-alike, tests/evl/lookalike).
+    # another libevl install than /usr/evl (CI's EVL look-alike, tests/rt_core/evl/lookalike).
     evl_prefix = Path(os.environ.get("XRF_EVL_PREFIX") or "/usr/evl")
     evl = evl_prefix / "lib" / "libevl.so"
     evl_tag = f"evl:{evl_prefix}:{evl.stat().st_mtime_ns}" if evl.exists() else "evl:none"

@@ -57,7 +57,7 @@ OWN_OPENS = (
 def _start(
     data_dir: Path, port: int, pass_fds: tuple[int, ...] = (), builds_root: Path | None = None, **settings: object
 ) -> Server:
-    """tests/appliance/harness.start_server, on a given port and with descriptors passed on."""
+    """tests/xrf_testing/harness.start_server, on a given port and with descriptors passed on."""
     config = {
         "data_dir": str(data_dir),
         "builds_root": str(builds_root or shared_builds_root()),

@@ -1,5 +1,4 @@
-"""Helpers of the accounts tests (not in conftest.py: suites run together share one `conftest`
-module name)."""
+"""Helpers of the accounts tests (tests/server/accounts): an account per role, logged in."""
 
 from __future__ import annotations
 

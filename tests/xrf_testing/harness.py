@@ -1,6 +1,6 @@
 """Test harness: a real appliance in a subprocess (uvicorn on a free port) running real loop
 processes built from the bundled examples. No mocks: what the tests see is what a browser sees.
-Shared by tests/appliance and tests/ui."""
+Shared by every suite that needs a running appliance (tests/server, tests/ui, tests/logs, ...)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,5 @@
 """The table of edge values for all six log types, shared by the reader and converter tests
-(a module of its own, not conftest.py: `from conftest import` picks whichever conftest was
-imported first when several test folders run together)."""
+(tests/logs)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""Helpers for the logging tests through the appliance (a module of its own, not conftest, so that
-importing it never clashes with another suite's conftest): a real server (tests/appliance/harness.py)
+"""Helpers for the logging tests through the appliance (tests/logs, tests/server): a real server (tests/xrf_testing/harness.py)
 whose bundled projects are the loop probe (all six log types every cycle) and the logger-cost
 controller (N doubles every cycle, bench/logs/logger_cost_project)."""
 

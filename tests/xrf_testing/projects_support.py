@@ -1,4 +1,5 @@
-"""Helpers shared by tests/projects_upload and tests/ui/test_projects_ui.py (no conftest name clash)."""
+"""Helpers shared by the suites that upload and build projects (tests/projects, tests/sandbox,
+tests/ui, tests/room, tests/server)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""ROS 2 set-up shared by the bridge suites (tests/ros, tests/ros_appliance)."""
+"""ROS 2 set-up shared by the bridge tests (tests/ros: the bridge on its own and
+run by the appliance) and tests/server/test_descriptors.py."""
 
 from __future__ import annotations
 

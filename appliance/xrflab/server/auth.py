@@ -1,6 +1,6 @@
 """Permissions: every HTTP route and every WebSocket message type declares the one it needs.
 
-Routes declare theirs with ``dependencies=[requires(Perm.X)]``; a test (tests/accounts/
+Routes declare theirs with ``dependencies=[requires(Perm.X)]``; a test (tests/server/accounts/
 test_route_table.py) walks the route table and fails for any route without one. WebSocket
 message types are declared in api.py's ``WS_PERMS``. ``check()`` resolves the user (session
 cookie or ``Authorization: Bearer`` API token), enforces CSRF on state-changing requests made with

@@ -3,7 +3,7 @@
 This module is the protocol's one definition. The appliance publishes it as JSON Schema at
 ``GET /api/ws-schema`` (next to ``/openapi.json``); the dashboard dispatches on the kinds it
 lists (frontend/app.js); the /ws handler parses every incoming message with these models; and
-tests/appliance/test_ws_schema.py checks that every message a realistic session sends matches.
+tests/server/test_ws_schema.py checks that every message a realistic session sends matches.
 
 Every message is a JSON object whose ``type`` names its kind. Server -> browser kinds are topics
 (a client may ``subscribe`` to some of them: ``hub.TOPICS``) except ``ack``, ``pong`` and
@@ -309,7 +309,7 @@ SERVER: tuple[type[BaseModel], ...] = (
 
 
 # ---- browser -> server --------------------------------------------------------------------------
-# The checks run before the typed fields so that a refusal reads as it always has (tests/appliance/
+# The checks run before the typed fields so that a refusal reads as it always has (tests/server/
 # test_ws.py BAD_INPUT): pydantic's own wording is kept for what they do not cover.
 
 

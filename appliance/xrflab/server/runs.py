@@ -49,7 +49,7 @@ def _col(sql: str, doc: str = "", added: bool = False, **default: Any) -> Any:
 class RunRow:
     """The run record: THE definition. The SQL table (`schema()`), the API's RunRecord
     (`record_model()`) and the log listing's record (routes_logs.RunLogRecord) derive from it; a
-    field added here is in all three (tests/appliance/test_run_record.py)."""
+    field added here is in all three (tests/server/test_run_record.py)."""
 
     id: int = _col("INTEGER PRIMARY KEY AUTOINCREMENT")
     build: str = _col("TEXT NOT NULL", "the build that ran (GET /api/builds)")

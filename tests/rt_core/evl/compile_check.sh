@@ -1,6 +1,6 @@
 #!/bin/sh
 # Compile-check the EVL sources (rt_core/src/evl_*.c) against libevl headers, with warnings as
-# errors. Usage: tests/evl/compile_check.sh [EVL_INCLUDE_DIR...]   (or set XRF_EVL_INCLUDE,
+# errors. Usage: tests/rt_core/evl/compile_check.sh [EVL_INCLUDE_DIR...]   (or set XRF_EVL_INCLUDE,
 # colon-separated for several directories). Each directory is passed as -I; a libevl install
 # (/usr/evl/include) needs only one, a hand-assembled tree may need the libevl include/ and the
 # kernel uapi directory. See docs/rt_core/evl.md.

@@ -1,4 +1,4 @@
-"""The EVL build path on every CI run, against the EVL look-alike (tests/evl/lookalike: a libevl
+"""The EVL build path on every CI run, against the EVL look-alike (tests/rt_core/evl/lookalike: a libevl
 stand-in written here, not libevl): rt_core built with XRF_HAVE_EVL and installed, the RELbot
 example and the 20-sim template built against the installed package by xrflab.build exactly as
 `xrf build` does on a Pi (only XRF_EVL_PREFIX and XRF_CACHE_DIR point elsewhere), and run with

@@ -1,5 +1,5 @@
 """XRF2's student API, both releases, as a contract: small translation units written here
-(tests/xrf2_api/{common,v1_0,v1_1}) use every name the contract in docs/students/xrf2-api.md
+(tests/rt_core/xrf2_api/{common,v1_0,v1_1}) use every name the contract in docs/students/xrf2-api.md
 lists, are compiled against rt_core's installed package (find_package(XrfRt) +
 xrf_add_controller, as a student project is), and run on the simulated RELbot: driven to RUN,
 they check what the members hold and print "surface: N failed"."""

@@ -1,4 +1,4 @@
-"""Fixtures for the accounts tests: a real appliance (tests/appliance/harness.py) with one
+"""Fixtures for the accounts tests: a real appliance (tests/xrf_testing/harness.py) with one
 account per role, each logged in through the real login endpoint."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 /*
  * EVL LOOK-ALIKE for CI — a stand-in for libevl on plain Linux, NOT libevl (see include/evl/evl.h).
- * Built by tests/evl/lookalike/build.sh into <prefix>/lib/libevl.so next to <prefix>/include/evl,
+ * Built by tests/rt_core/evl/lookalike/build.sh into <prefix>/lib/libevl.so next to <prefix>/include/evl,
  * the layout of a libevl install under /usr/evl, so rt_core's CMake finds it with
  * -DXRF_EVL_PREFIX=<prefix> and takes its XRF_HAVE_EVL path.
  *

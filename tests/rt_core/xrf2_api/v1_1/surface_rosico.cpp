@@ -1,7 +1,7 @@
 // XRF2 v1.1's XenoFrtRosIco surface (message members ros_msg / xeno_msg), used the way a
 // student controller uses it: every protected member, the eight hooks, the loop's
 // protected timing members and getters. Driven to RUN by the test, it also checks what the
-// members hold and prints "surface: N failed" at the end (tests/xrf2_api/test_xrf2_api.py).
+// members hold and prints "surface: N failed" at the end (tests/rt_core/xrf2_api/test_xrf2_api.py).
 #include "XenoFrtRosIco.hpp"
 
 #include "surface_check.hpp"

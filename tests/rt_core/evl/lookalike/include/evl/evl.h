@@ -1,5 +1,5 @@
 /*
- * EVL LOOK-ALIKE for CI (tests/evl/lookalike) -- NOT libevl, and never installed on a Pi.
+ * EVL LOOK-ALIKE for CI (tests/rt_core/evl/lookalike) -- NOT libevl, and never installed on a Pi.
  *
  * Written here from libevl's documented API (names, signatures, return conventions); no code,
  * header or text of libevl was copied or fetched. It declares exactly what rt_core's evl backend
