@@ -1,8 +1,8 @@
 /*
  * xrf/channels.h — the one definition of the shared memory between a loop process and its host
  * side (appliance, CLI, ROS 2 bridge). The C/C++ runtime includes it; the Python side binds the
- * part between the cffi markers with cffi (appliance/xrflab/_cffi_build.py, for xrflab.channels), so there is no second
- * copy of this layout anywhere.
+ * part between the cffi markers with cffi (appliance/xrflab/_cffi_build.py, for the package
+ * xrflab.channels), so there is no second copy of this layout anywhere.
  *
  * Rules for the part between the markers (cffi parses it): plain integer #defines, structs of
  * fixed-width fields with explicit padding (no attributes), and prototypes. Every struct keeps
