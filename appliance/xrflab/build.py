@@ -312,7 +312,9 @@ _CMAKE_VAR = re.compile(r"\$\{([A-Za-z0-9_.+-]+)\}")
 def _cmake_commands(text: str) -> Iterable[tuple[str, list[tuple[str, bool]]]]:
     """The commands of a CMakeLists.txt as (name, [(argument, quoted)]), comments dropped.
     Enough of CMake's syntax for the flat files XRF2 projects have."""
-    name, args, depth = None, [], 0
+    name: str | None = None
+    args: list[tuple[str, bool]] = []
+    depth = 0
     pending: str | None = None
     for m in _CMAKE_TOKEN.finditer(text):
         quoted, word, lpar, rpar, comment = m.groups()
@@ -448,7 +450,8 @@ def _read_xrf2_cmake(project: Path, globs: bool = True) -> _CMakeRead:
                 variables[values[1]] = []
             elif name == "file" and len(values) >= 2 and values[0].upper() in ("GLOB", "GLOB_RECURSE"):
                 recurse = values[0].upper() == "GLOB_RECURSE"
-                var, pats, found = values[1], values[2:], []
+                var, pats = values[1], values[2:]
+                found: list[str] = []
                 relative = None
                 while pats and pats[0].upper() in (
                     "CONFIGURE_DEPENDS",

@@ -737,8 +737,8 @@ def launch(cfg: dict[str, Any]) -> None:
     os.close(proc_fd)
     os.write(report_fd, (json.dumps(_status_report(L) | {"pid": controller}) + "\n").encode())
     os.close(report_fd)
-    for sig in pending:
-        forward(sig, None)
+    for early in pending:
+        forward(early, None)
     while True:
         try:
             _, status = os.waitpid(pid, 0)

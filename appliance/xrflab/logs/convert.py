@@ -18,6 +18,7 @@ exact value; rerun has its own time axes.
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import json
 import os
@@ -167,7 +168,7 @@ class _LazyColumns(Mapping[str, Any]):
     def __len__(self) -> int:
         return len(self._items)
 
-    def items(self):  # type: ignore[override]
+    def items(self):  # a lazy mapping: each column is read when scipy asks for it
         for k, make in self._items:
             yield k, make()
 
@@ -189,8 +190,8 @@ def _to_mat(log: LogFile, out: Path, chunk_rows: int) -> None:
     columns = table_columns(log)
     header_names = columns[: len(columns) - len(log.variables)]
     var_names = matlab_names([v.field for v in log.variables], reserved=tuple(header_names) + ("log_header",))
-    items: list[tuple[str, Callable[[], Any]]] = [(n, (lambda n=n: _column(log, n))) for n in header_names]
-    items += [(mname, (lambda f=v.field: _column(log, f))) for mname, v in zip(var_names, log.variables)]
+    items: list[tuple[str, Callable[[], Any]]] = [(n, functools.partial(_column, log, n)) for n in header_names]
+    items += [(mname, functools.partial(_column, log, v.field)) for mname, v in zip(var_names, log.variables)]
     # The headers (cycle frequency, start time, identity; original names) as one JSON string.
     items.append(("log_header", lambda: json.dumps([s.header for s in log.segments])))
     with open(out, "wb") as f:

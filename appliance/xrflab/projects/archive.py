@@ -32,7 +32,7 @@ import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 CHUNK = 1 << 16
 # Folders a project never needs from the student's machine; skipped when unpacking (still counted).
@@ -141,8 +141,8 @@ class _CountingReader(io.RawIOBase):
     def readable(self) -> bool:
         return True
 
-    def readinto(self, b) -> int:  # type: ignore[override]
-        n = self.f.readinto(b)
+    def readinto(self, b: Any) -> int:
+        n = self.f.readinto(b)  # type: ignore[attr-defined]  # every file object the uploads give has it
         self.count += n or 0
         if self.count > self.limit:
             raise ArchiveRejected(f"the archive is larger than {_mb(self.limit)}")

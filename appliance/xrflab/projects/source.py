@@ -28,7 +28,7 @@ def locate(src: Path) -> build.ProjectSource | None:
 def message_fields(src: Path, located: build.ProjectSource | None = None) -> dict[str, Any]:
     """{message: [{name, type, count}] or {"error": why}} for Ros2Xeno and Xeno2Ros, parsed
     from the files the build takes (the Projects page's schema, the build's recorded facts)."""
-    from ..msgdef import Codec, MsgError, parse_msg_file  # type: ignore[attr-defined]
+    from ..msgdef import Codec, MsgError, parse_msg_file
 
     if located is None:
         try:

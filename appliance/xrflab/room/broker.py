@@ -321,6 +321,7 @@ class BrokerProcess:
                 close_fds=True,
             )
         port = self.files.port if self.files.port is not None else self.files.tls_port
+        assert port is not None, "BrokerFiles listens on a plain or a TLS port"
         host = "127.0.0.1" if self.files.bind in ("0.0.0.0", "") else self.files.bind
         deadline = time.monotonic() + timeout
         import socket

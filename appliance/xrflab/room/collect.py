@@ -21,6 +21,7 @@
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import os
@@ -247,7 +248,7 @@ def assemble(c: Collection, out: Path, total_max: int = TOTAL_MAX) -> dict[str, 
                             continue
                         name = "/".join([parts[0], safe_part(bench), *parts[1:]])
                         with z.open(name, "w", force_zip64=True) as dst:
-                            for chunk in iter(lambda src=f: src.read(1 << 20), b""):
+                            for chunk in iter(functools.partial(f.read, 1 << 20), b""):
                                 dst.write(chunk)
                         total += m.size
             except (OSError, tarfile.TarError, ValueError) as exc:

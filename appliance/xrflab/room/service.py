@@ -137,7 +137,7 @@ class RoomState:
             b = self.benches[name] = Bench(name)
         return b
 
-    def on_message(self, topic: str, payload: bytes) -> None:
+    def on_message(self, topic: str, payload: bytes | bytearray) -> None:
         parsed = topics.parse_bench_topic(topic)
         if parsed is None:
             return
@@ -153,7 +153,7 @@ class RoomState:
             conn = tuple(body.get("conn") or (0, 0))
             if b.conn is not None and conn < b.conn:
                 return  # the will of an older connection: the bench is back already
-            b.conn = conn  # type: ignore[assignment]
+            b.conn = conn
             b.online_flag = bool(body.get("online"))
             b.heard = time.monotonic()
         elif leaf == "status":
@@ -260,7 +260,7 @@ class Room:
         c = mqtt.client(endpoint, f"room-{secrets.token_hex(4)}")
         c.on_connect = self._on_connect
         c.on_disconnect = self._on_disconnect
-        c.on_message = lambda _c, _u, msg: self.loop.call_soon_threadsafe(self.state.on_message, msg.topic, msg.payload)
+        c.on_message = self._on_mqtt_message
         self.client = c
         mqtt.connect_async(c, endpoint)
         c.loop_start()
@@ -275,6 +275,11 @@ class Room:
             self.client.loop_stop()
         if self.broker is not None:
             await asyncio.get_running_loop().run_in_executor(None, self.broker.stop)
+
+    def _on_mqtt_message(self, _client: Any, _userdata: Any, msg: Any) -> None:
+        # paho's network thread: the state is the event loop's, so the message is handed over.
+        assert self.loop is not None, "the client starts in start(), after the loop is known"
+        self.loop.call_soon_threadsafe(self.state.on_message, msg.topic, msg.payload)
 
     def _on_connect(self, client: Any, _u: Any, _f: Any, reason: Any, _p: Any = None) -> None:
         if not mqtt.reason_ok(reason):

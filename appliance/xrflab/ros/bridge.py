@@ -35,7 +35,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 HELP = "run the ROS 2 bridge node (XenoCmd, XenoState, Ros2Xeno, Xeno2Ros; Command, Xenomai_state)"
 
@@ -206,10 +206,17 @@ def _from_ros(ftype: str) -> Callable[[Any], Any]:
     return lambda v: v
 
 
+class RosMessageType(Protocol):
+    """A message class rosidl generated (its classes share no base type we could name)."""
+
+    @classmethod
+    def get_fields_and_field_types(cls) -> dict[str, str]: ...
+
+
 class MessageMap:
     """Field-by-field mapping between a ROS message class and the loop's Codec (by field name)."""
 
-    def __init__(self, codec: Any, msg_type: type) -> None:
+    def __init__(self, codec: Any, msg_type: type[RosMessageType]) -> None:
         ros_fields = set(msg_type.get_fields_and_field_types())
         missing = [n for n in codec.field_names if n not in ros_fields]
         if missing or len(ros_fields) != len(codec.field_names):
@@ -256,8 +263,8 @@ class Bridge:
     def __init__(
         self,
         channels: Any,
-        ros2xeno_type: type,
-        xeno2ros_type: type,
+        ros2xeno_type: type[RosMessageType],
+        xeno2ros_type: type[RosMessageType],
         *,
         user: str = "",
         command_gate: CommandGate = allow_all,
@@ -290,7 +297,7 @@ class Bridge:
         self.log = self.node.get_logger()
         self.pub_state = self.node.create_publisher(Int32, TOPIC_STATE, qos)
         self.pub_state_v1_0 = self.node.create_publisher(Int32, TOPIC_STATE_V1_0, qos)
-        self.pub_xeno2ros = self.node.create_publisher(xeno2ros_type, TOPIC_XENO2ROS, qos)
+        self.pub_xeno2ros: Any = self.node.create_publisher(xeno2ros_type, TOPIC_XENO2ROS, qos)
         self.node.create_subscription(Int32, TOPIC_CMD, self._on_cmd, qos)
         self.node.create_subscription(Int32, TOPIC_CMD_V1_0, self._on_cmd, qos)
         self.node.create_subscription(ros2xeno_type, TOPIC_ROS2XENO, self._on_ros2xeno, qos)

@@ -165,14 +165,14 @@ def runtime_env(prefix: str | Path, base: dict[str, str] | None = None) -> dict[
     base = dict(os.environ if base is None else base)
     pyver = f"python{sys.version_info.major}.{sys.version_info.minor}"
     site = [prefix / "lib" / pyver / "site-packages", prefix / "local" / "lib" / pyver / "dist-packages"]
-    site = [str(p) for p in site if p.is_dir()] or [str(site[0])]
+    site_paths = [str(p) for p in site if p.is_dir()] or [str(site[0])]
 
     def join(new: list[str], old: str) -> str:
         parts = new + [p for p in old.split(os.pathsep) if p and p not in new]
         return os.pathsep.join(parts)
 
     return {
-        "PYTHONPATH": join(site, base.get("PYTHONPATH", "")),
+        "PYTHONPATH": join(site_paths, base.get("PYTHONPATH", "")),
         "LD_LIBRARY_PATH": join([str(prefix / "lib")], base.get("LD_LIBRARY_PATH", "")),
         # The ament index lets rclpy/rosidl find the package's type supports by name.
         "AMENT_PREFIX_PATH": join([str(prefix)], base.get("AMENT_PREFIX_PATH", "")),

@@ -11,6 +11,7 @@ request); password hashing is the slow part and the callers run it in a thread.
 
 from __future__ import annotations
 
+import builtins  # `Accounts.list` shadows the builtin inside the class body
 import csv
 import hashlib
 import hmac
@@ -237,7 +238,7 @@ class Accounts:
         assert user is not None
         return user, password
 
-    def parse_class_list(self, text: str) -> list[dict[str, str]]:
+    def parse_class_list(self, text: str) -> builtins.list[dict[str, str]]:
         """CSV `username,full name,role[,email]` (a header row is allowed). Every row is checked
         before anything is created: one bad row refuses the whole list, naming each problem."""
         rows: list[dict[str, str]] = []
@@ -342,7 +343,7 @@ class Accounts:
 
     # -- the lab room's class list (room/accounts_sync.py) ----------------------------------------
 
-    def export_hashed(self) -> list[dict[str, Any]]:
+    def export_hashed(self) -> builtins.list[dict[str, Any]]:
         """Every account with its password hash: what the room sends its enrolled benches (argon2id
         hashes only; a bench checks a password exactly as the room would)."""
         rows = self._db.execute(

@@ -268,7 +268,7 @@ def _zero_setpoints_after_reset(sup: Supervisor, name: str, accepted: bool) -> N
         sup.setpoint(zeros)
 
 
-@router.get("/runs", response_model=list[RunRecord], dependencies=[requires(Perm.WATCH)])
+@router.get("/runs", response_model=list[RunRecord], dependencies=[requires(Perm.WATCH)])  # type: ignore[valid-type]
 async def list_runs(request: Request, limit: int = Query(100, ge=1, le=10_000)) -> list[dict[str, Any]]:
     """Runs the user may see: all for educators, their own for students and observers."""
     return [r.as_dict() for r in ownership.runs(request, limit)]

@@ -76,7 +76,8 @@ class AuditLog:
         limit: int = 500,
         offset: int = 0,
     ) -> list[dict[str, Any]]:
-        where, args = [], []
+        where: list[str] = []
+        args: list[str | float] = []
         if username:
             where.append("username = ?")
             args.append(username.strip().lower())

@@ -214,7 +214,8 @@ def requires(perm: Perm) -> Any:
     async def dependency(conn: HTTPConnection) -> None:
         check(conn, perm)
 
-    dependency.xrf_permission = perm  # read by the route-table test
+    # read by the route-table test (a function attribute: FastAPI keeps the dependency callable)
+    setattr(dependency, "xrf_permission", perm)  # noqa: B010
     return Depends(dependency)
 
 
@@ -233,7 +234,8 @@ def requires_grpc_web(perm: Perm) -> Any:
     async def dependency(conn: HTTPConnection) -> None:
         check(conn, perm, grpc_web=True)
 
-    dependency.xrf_permission = perm  # read by the route-table test
+    # read by the route-table test (a function attribute: FastAPI keeps the dependency callable)
+    setattr(dependency, "xrf_permission", perm)  # noqa: B010
     return Depends(dependency)
 
 
@@ -257,18 +259,16 @@ def owns(user: User | HTTPConnection, owner: int | str | None) -> bool:
     table's `owner` column)? Educators: everything; everyone else: their own only (resources
     without an owner belong to the educators). `user` may also be the request itself.
     Routes and the WebSocket use it through ownership.py (the 404, lists, the live run)."""
-    if isinstance(user, HTTPConnection):
-        resolved = user.app.state.security.resolve(user)[0]
-        if resolved is None:
-            return False
-        user = resolved
-    if user.is_educator:
+    who: User | None = user.app.state.security.resolve(user)[0] if isinstance(user, HTTPConnection) else user
+    if who is None:
+        return False
+    if who.is_educator:
         return True
     if owner is None or owner == "":
         return False
     if isinstance(owner, str):  # usernames may be all digits (student numbers): a str is a name
-        return owner.strip().lower() == user.username
-    return owner == user.id
+        return owner.strip().lower() == who.username
+    return owner == who.id
 
 
 def client_address(conn: HTTPConnection) -> str:

@@ -87,6 +87,12 @@ def run(args: argparse.Namespace) -> int:
     from .app import create_app
     from .settings import SYSTEM_DATA_DIR, Settings, default_data_dir
 
+    # Only when given: without the option Settings' default decides (e.g. $XRF_ALLOW_UNCONFINED).
+    only_given: dict[str, Any] = {}
+    if args.ros_bridge:
+        only_given["ros_bridge"] = True
+    if getattr(args, "allow_unconfined", False):
+        only_given["allow_unconfined"] = True
     settings = Settings(
         data_dir=(args.data or default_data_dir()).expanduser(),
         sim=args.sim,
@@ -98,9 +104,7 @@ def run(args: argparse.Namespace) -> int:
         lease_idle_s=args.lease_idle_min * 60,
         ros_bridge_user=args.ros_bridge_user,
         trusted_proxies=tuple(args.trusted_proxy),
-        **({"ros_bridge": True} if args.ros_bridge else {}),
-        # Only when given: without the option $XRF_ALLOW_UNCONFINED (Settings' default) decides.
-        **({"allow_unconfined": True} if getattr(args, "allow_unconfined", False) else {}),
+        **only_given,
     )
     shown = "localhost" if args.host in ("127.0.0.1", "0.0.0.0", "::") else args.host
     bench = "real ico board" if settings.bench_is_real() else f"simulated {settings.sim}"

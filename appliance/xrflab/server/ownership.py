@@ -59,7 +59,11 @@ def require(
     return row
 
 
-def visible(user: User | None, rows: Iterable[T], owner: Callable[[T], Any] = lambda r: r.owner) -> list[T]:
+def _owner_column(row: Any) -> Any:
+    return row.owner
+
+
+def visible(user: User | None, rows: Iterable[T], owner: Callable[[T], Any] = _owner_column) -> list[T]:
     """The rows of a list that `user` may see."""
     return [r for r in rows if may_see(user, owner(r))]
 

@@ -12,6 +12,7 @@ from starlette.concurrency import run_in_threadpool
 
 from . import audit
 from .accounts import MAX_PASSWORD, AccountError, User
+from .audit import AuditLog
 from .auth import CSRF_COOKIE, ROLE_PERMS, SESSION_COOKIE, Perm, Security, client_address, current_user, requires
 from .lease import LeaseError
 
@@ -139,7 +140,7 @@ def _sec(request: Request) -> Security:
     return request.app.state.security
 
 
-def _accounts(request: Request):  # type: ignore[no-untyped-def]
+def _accounts(request: Request):
     accounts = _sec(request).accounts
     if accounts is None:
         raise HTTPException(503, "the appliance is starting")
@@ -341,7 +342,7 @@ async def import_users(body: ClassList, request: Request, user: User = Depends(c
             raise AccountError("at most 500 accounts per class list")
     except AccountError as exc:
         raise _account_error(exc) from None
-    created = []
+    created: list[dict[str, Any]] = []
     for r in rows:
         try:
             u, password = await run_in_threadpool(
@@ -409,7 +410,7 @@ async def reset_user(user_id: int, request: Request, user: User = Depends(curren
 # ---- the bench lease ----------------------------------------------------------------------------
 
 
-def _lease(request: Request):  # type: ignore[no-untyped-def]
+def _lease(request: Request):
     lease = _sec(request).lease
     if lease is None:
         raise HTTPException(503, "the appliance is starting")
@@ -421,7 +422,7 @@ async def get_lease(request: Request) -> dict[str, Any]:
     return _lease(request).payload()
 
 
-def _lease_action(name: str):  # type: ignore[no-untyped-def]
+def _lease_action(name: str):
     async def action(request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
         lease = _lease(request)
         try:
@@ -461,10 +462,14 @@ def _audit_rows(
     limit: int,
     offset: int,
 ) -> list[dict[str, Any]]:
+    return _audit_log(request).query(username, action, since, until, limit, offset)
+
+
+def _audit_log(request: Request) -> AuditLog:
     log = _sec(request).audit
     if log is None:
         raise HTTPException(503, "the appliance is starting")
-    return log.query(username, action, since, until, limit, offset)
+    return log
 
 
 @router.get("/api/audit", response_model=list[AuditEntry], dependencies=[requires(Perm.EDUCATOR)])
@@ -492,7 +497,7 @@ async def export_audit(
     rows = _audit_rows(request, username, action, since, until, limit, 0)
     stamp = time.strftime("%Y%m%d-%H%M%S")
     return PlainTextResponse(
-        _sec(request).audit.to_csv(rows),
-        media_type="text/csv",  # type: ignore[union-attr]
+        _audit_log(request).to_csv(rows),
+        media_type="text/csv",
         headers={"Content-Disposition": f'attachment; filename="xrf-audit-{stamp}.csv"'},
     )

@@ -283,7 +283,7 @@ def _raw_chunks(fd: int, size: int) -> Iterator[bytes]:
 
 @router.get(
     "/api/logs/runs",
-    response_model=list[RunLogRecord],
+    response_model=list[RunLogRecord],  # type: ignore[valid-type]  # a model made at import (runs.record_model)
     dependencies=[requires(Perm.WATCH)],
     summary="runs with their logging figures (newest first)",
 )

@@ -93,7 +93,7 @@ async def _service(request: HTTPConnection) -> ProjectsService:
 
 async def service_of(app: Any) -> ProjectsService:
     """The app's projects service (also for the room's commands, which have no request)."""
-    svc = getattr(app.state, "projects", None)
+    svc: ProjectsService | None = getattr(app.state, "projects", None)
     if svc is None:
         async with _lock:
             svc = getattr(app.state, "projects", None)

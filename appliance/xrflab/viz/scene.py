@@ -220,7 +220,7 @@ class VizService(RunObserver):
         # what the scene shows now (GET /api/viz/state)
         self.shown: dict[str, Any] = {}
         self.frames = 0
-        self._scene_kind = None  # kind the scene's robot nodes were built for
+        self._scene_kind: str | None = None  # kind the scene's robot nodes were built for
         self._nodes: dict[str, Any] = {}
         self._gui: dict[str, Any] = {}
         self._last_trail_send = 0.0
@@ -414,7 +414,7 @@ class VizService(RunObserver):
                 row = sup.store.get(run_id)
             except Exception:
                 row = None
-            if row is not None and getattr(row, "run_dir", ""):
+            if row is not None and row.run_dir:
                 return Path(row.run_dir)
         runs_dir = getattr(self.settings, "runs_dir", None)
         return Path(runs_dir) / str(run_id) if runs_dir else None
@@ -523,13 +523,13 @@ class VizService(RunObserver):
                 with self._lock:
                     self._trail_dirty = False
         elif f["kind"] == "linear_stage":
-            x = f.get("position") or 0.0
-            n["carriage"].position = (x, 0.0, 0.0)
-            sp = stage_setpoint(f.get("setpoint") or {})
-            if sp is not None:
-                n["ghost"].position = (sp, 0.0, 0.0)
-            n["ghost"].visible = sp is not None
-            f["ghost"] = sp
+            carriage_x = f.get("position") or 0.0
+            n["carriage"].position = (carriage_x, 0.0, 0.0)
+            sp_x = stage_setpoint(f.get("setpoint") or {})
+            if sp_x is not None:
+                n["ghost"].position = (sp_x, 0.0, 0.0)
+            n["ghost"].visible = sp_x is not None
+            f["ghost"] = sp_x
         self.frames += 1
         f.pop("trail", None)
         f["frame"] = self.frames
