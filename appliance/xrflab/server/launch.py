@@ -1,0 +1,179 @@
+"""Launching a run's loop process: its environment, its sandbox, its shared memory.
+
+The controller never sees the appliance's own environment: it gets an allow-list
+(guest.ENV_ALLOWED; docs/developers/architecture.md lists the variables) and starts inside the
+run sandbox (guest_spawn.py: own uid, namespaces, limits; docs/developers/security.md). Its
+output goes to a file in the run folder, not a pipe to us: if the appliance dies, a pipe would
+turn the loop's next printf into SIGPIPE; a file keeps it running, and kept.
+
+A run starts only with every protection layer of the sandbox in place unless an educator allowed
+otherwise; a refused start is recorded (``start_failed``) and raised as `StartRefused`, whose
+confinement alarm the supervisor publishes once it has kept the record. A started run is mapped
+(`open_channels`) once the loop marks its shared memory ready, unless the process dies first.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import shutil
+import time
+from pathlib import Path
+
+from .. import guest
+from ..channels import Channels
+from ..logs import live as loglive
+from .catalog import BuildEntry
+from .guest_spawn import GuestReport, GuestSpawner
+from .hub import Hub
+from .run import Run, SupervisorError
+from .run_control import terminate
+from .runs import RunRow, RunStore
+from .settings import Settings
+
+
+class StartRefused(SupervisorError):
+    """The sandbox refused to start the controller (a protection layer missing, not allowed);
+    `row` is the run's final record, `report` says which layers hold."""
+
+    def __init__(self, message: str, row: RunRow, report: GuestReport) -> None:
+        super().__init__(message, 503)
+        self.row = row
+        self.report = report
+
+
+def loop_env(
+    settings: Settings, run_id: int, build: str, plant: str, run_dir: Path, max_cycles: int | None, log_timing: bool
+) -> dict[str, str]:
+    """The loop process's whole environment: an allow-list, never a copy of our own
+    (xrflab.guest.ENV_ALLOWED)."""
+    env = {
+        "PATH": "/usr/local/bin:/usr/bin:/bin",
+        "LANG": "C.UTF-8",
+        "HOME": str(run_dir),
+        "TMPDIR": "/tmp",
+        "XRF_SHM": guest.SHM_NAME,
+        "XRF_SIM": plant,
+        "XRF_LOG_DIR": str(run_dir),
+        "XRF_HOST_TIMEOUT_MS": str(settings.host_timeout_ms),
+        "XRF_HOST_TIMEOUT_ACTION": settings.host_timeout_action,
+        # We read monitor lines from the ring; the process echoing them to stdout as well
+        # would show every line twice in the console.
+        "XRF_QUIET": "1",
+    }
+    env.update(loglive.loop_env(run_id, build, log_timing))
+    if not settings.bench_is_real():
+        env["XRF_TRANSPORT"] = "sim"
+    if max_cycles:
+        env["XRF_MAX_CYCLES"] = str(max_cycles)
+    env.update({k: v for k, v in settings.loop_env.items() if k in guest.ENV_ALLOWED})
+    return env
+
+
+async def spawn(
+    row: RunRow,
+    entry: BuildEntry,
+    plant: str,
+    max_cycles: int | None,
+    log_timing: bool,
+    settings: Settings,
+    guests: GuestSpawner,
+    store: RunStore,
+) -> Run:
+    """Start `entry`'s controller for the run `row` (just created) in its sandbox; the Run,
+    its record saying ``starting``. Raises SupervisorError (500) when the sandbox could not be
+    set up, StartRefused (503) when it refused the controller."""
+    assert entry.executable is not None
+    shm_dir = guests.shm_dir_for(f"xrf-lab-{os.getpid()}-{row.id}")
+    shm = f"{shm_dir.name}/{guest.SHM_NAME}"  # the host's path below /dev/shm
+    run_dir = settings.runs_dir / str(row.id)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    row = store.update(row.id, shm=shm, run_dir=str(run_dir))
+    env = loop_env(settings, row.id, entry.name, plant, run_dir, max_cycles, log_timing)
+    try:
+        guests.prepare_dirs(run_dir, shm_dir)
+        with open(run_dir / "output.txt", "ab") as output:
+            proc, report = await guests.spawn(
+                entry.executable,
+                run_dir,
+                shm_dir,
+                env,
+                [entry.executable.parent],
+                output,
+                tag=shm,
+                timeout_s=settings.open_timeout_s,
+            )
+    except (OSError, ValueError, RuntimeError, asyncio.TimeoutError) as exc:
+        shutil.rmtree(shm_dir, ignore_errors=True)
+        store.update(row.id, status="failed", end_reason="start_failed", ended=time.time(), message=f"sandbox: {exc}")
+        raise SupervisorError(f"cannot start {entry.executable.name} in its sandbox: {exc}", 500) from exc
+    if report.error:
+        await proc.wait()
+        shutil.rmtree(shm_dir, ignore_errors=True)
+        final = store.update(
+            row.id,
+            status="failed",
+            end_reason="start_failed",
+            ended=time.time(),
+            message=f"sandbox: {report.error}",
+        )
+        raise StartRefused(f"the controller was not started: {report.error}", final, report)
+    if report.layers.get("mount"):
+        # No mount namespace (allowed by an educator): the loop's /dev/shm is the host's.
+        shm = guest.unconfined_shm_name(str(shm_dir))
+        row = store.update(row.id, shm=shm)
+    # The controller's own pid (what `kill` or a test would aim at); we wait on the launcher.
+    row = store.update(row.id, pid=report.pid or proc.pid, status="starting")
+    return Run(row=row, proc=proc, shm=shm, run_dir=run_dir, build=entry, log_timing=log_timing, guest=report)
+
+
+def announce_refused(refused: StartRefused, hub: Hub) -> None:
+    hub.publish(
+        "alarm",
+        {
+            "kind": "confinement",
+            "run_id": refused.row.id,
+            "message": refused.report.error,
+            "missing": refused.report.missing,
+        },
+    )
+
+
+def announce_unconfined(run: Run, hub: Hub) -> None:
+    """A run started without some protection layer (an educator allowed it): everyone is told
+    which (the dashboard's banner)."""
+    report = run.guest
+    if report is None or not report.missing:
+        return
+    hub.publish(
+        "alarm",
+        {
+            "kind": "confinement",
+            "run_id": run.row.id,
+            "missing": report.missing,
+            "message": "the controller runs WITHOUT: " + "; ".join(f"{k} ({v})" for k, v in report.missing.items()),
+        },
+    )
+
+
+async def open_channels(run: Run, settings: Settings, store: RunStore) -> bool:
+    """Map the run's shm once the loop marks it ready, unless the process dies first."""
+    opening = asyncio.ensure_future(asyncio.to_thread(Channels.open, run.shm, settings.open_timeout_s))
+    exited = asyncio.ensure_future(run.ended.wait())
+    done, _ = await asyncio.wait({opening, exited}, return_when=asyncio.FIRST_COMPLETED)
+    exited.cancel()
+    if opening in done and opening.exception() is None:
+        ch = opening.result()
+        if run.ended.is_set():
+            return False
+        run.channels = ch
+        ch.configure_host_timeout(settings.host_timeout_ms, settings.host_timeout_action)
+        run.last_status = ch.status()
+        return True
+    if opening in done:  # the loop never made its shm ready: treat as a failed start
+        message = f"loop did not open its shared memory: {opening.exception()}"
+        run.row = store.update(run.row.id, message=message)
+        await terminate(run, settings)
+    else:
+        opening.add_done_callback(lambda f: f.exception())  # let the thread finish quietly
+    return False

@@ -1,0 +1,94 @@
+"""One run: a loop process, its shared memory, the tasks that watch it and what they learnt.
+
+A `Run` is the live object the supervisor's parts share (launch, watch, reader, timing,
+control, end); its record in the database is `run.row` (runs.RunRow), kept up to date as the run
+goes. Everything here is data, no behaviour beyond `alive`: each part of the supervisor is a
+module of its own that takes the run it works on.
+
+The run's shared memory belongs to the appliance, not to the loop: the loop never unlinks it (a
+crash could not), and the appliance needs the final state after the loop's end. `remove_shm`
+lets go of it once the run is recorded (docs/developers/architecture.md, "Whose segment").
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import shutil
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from .. import channels as chmod
+from .. import guest
+from ..channels import Channels
+from ..logs import live as loglive
+from .children import Child
+from .guest_spawn import GuestReport
+from .runs import RunRow
+from .safety import SafetyWatcher, WatchResult
+
+if TYPE_CHECKING:
+    from .catalog import BuildEntry
+
+
+class SupervisorError(Exception):
+    """A request the supervisor cannot honour; `status` is the HTTP status to answer with."""
+
+    def __init__(self, message: str, status: int = 409) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+@dataclass
+class Run:
+    row: RunRow
+    proc: Child  # the run sandbox's launcher (its exit mirrors the controller's)
+    shm: str
+    run_dir: Path
+    build: BuildEntry
+    channels: Channels | None = None
+    stop_requested: bool = False
+    hang: bool = False
+    safe_state: str = ""
+    exited_at: float = 0.0
+    safe_at: float = 0.0
+    ended: asyncio.Event = field(default_factory=asyncio.Event)
+    tasks: list[asyncio.Task[Any]] = field(default_factory=list)
+    setpoint: dict[str, Any] = field(default_factory=dict)
+    # doorbell thread <-> reader task (run_reader.py)
+    wake: asyncio.Event = field(default_factory=asyncio.Event)
+    wake_pending: bool = False
+    thread_stop: threading.Event = field(default_factory=threading.Event)
+    thread: threading.Thread | None = None
+    last_state_key: tuple[Any, ...] | None = None
+    last_status: chmod.Status | None = None
+    last_missed: int = 0
+    telemetry_sent: int = 0
+    telemetry_lost: int = 0
+    logging: loglive.RunLogging | None = None  # host log writer, live rerun (run_logging.py sets it)
+    log_timing: bool = False  # the loop logs per-cycle timing (XRF_LOG_TIMING=1)
+    guest: GuestReport | None = None  # which protection layers of the run sandbox hold
+    watcher: SafetyWatcher | None = None  # the C thread that makes the outputs safe (safety.py)
+    watch: WatchResult | None = None  # what it did, once it acted
+    end_reason: str = ""  # set by whoever ends the run on purpose (runs.END_REASONS)
+
+    @property
+    def alive(self) -> bool:
+        return self.proc.returncode is None
+
+
+def remove_shm(name: str) -> None:
+    """Unlink a run's shared memory and the run's folder of it in /dev/shm (xrflab.guest)."""
+    try:
+        path = chmod.shm_path(name)
+    except ValueError:
+        return
+    if path.parent != chmod.SHM_DIR:
+        shutil.rmtree(path.parent, ignore_errors=True)
+        return
+    with contextlib.suppress(FileNotFoundError):
+        path.unlink()
+    if name.endswith(guest.UNCONFINED_SUFFIX):  # its (unused) shm folder lies beside it
+        shutil.rmtree(chmod.SHM_DIR / name.removesuffix(guest.UNCONFINED_SUFFIX), ignore_errors=True)
