@@ -10,149 +10,197 @@ Every build is kept: source hash, toolchain, duration, result, log path, the exe
 what the page shows of it (20-sim tokens, message fields, compiler diagnostics). Runs of a
 project build are linked in ``project_runs``.
 
+Each table's record is defined once, below (records.py: a dataclass whose fields carry their
+SQLite declaration and API description): the tables, the rows read back and the API's models
+(``<Row>.api_model()``, used by routes_projects and routes_editor) are made from it.
+
 Used from the event loop and from the build thread: one connection, a lock, autocommit, WAL.
 """
 
 from __future__ import annotations
 
-import json
 import sqlite3
 import threading
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar, Literal
 
+from pydantic import BaseModel
+from pydantic import Field as ApiField
+
+from ..records import (
+    Record,
+    add_missing_columns,
+    api_model,
+    column,
+    column_names,
+    create_table,
+    from_sql,
+    served,
+    to_sql,
+)
 from ..server.private_files import private_db
 
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS projects (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    owner TEXT NOT NULL,
-    name TEXT NOT NULL,
-    folder TEXT NOT NULL UNIQUE,
-    created REAL NOT NULL,
-    updated REAL NOT NULL,
-    source_hash TEXT NOT NULL DEFAULT '',
-    origin TEXT NOT NULL DEFAULT '',      -- upload | template:<name>
-    files INTEGER NOT NULL DEFAULT 0,
-    bytes INTEGER NOT NULL DEFAULT 0
-);
-CREATE INDEX IF NOT EXISTS projects_owner ON projects(owner);
-CREATE TABLE IF NOT EXISTS project_builds (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    project_id INTEGER NOT NULL REFERENCES projects(id) ON DELETE CASCADE,
-    owner TEXT NOT NULL,
-    source_hash TEXT NOT NULL,
-    toolchain TEXT NOT NULL DEFAULT '',
-    status TEXT NOT NULL,                 -- queued | building | ok | failed
-    result TEXT NOT NULL DEFAULT '',      -- one line a student reads
-    queued REAL NOT NULL,
-    started REAL,
-    ended REAL,
-    duration REAL,
-    log_path TEXT NOT NULL DEFAULT '',
-    executable TEXT NOT NULL DEFAULT '',
-    details TEXT NOT NULL DEFAULT '{}'    -- JSON: diagnostics, twenty_sim, messages, cycle_freq, sandbox
-);
-CREATE INDEX IF NOT EXISTS builds_project ON project_builds(project_id);
--- Every state of a project's source (upload, template, each save in the editor): versions.py.
-CREATE TABLE IF NOT EXISTS project_versions (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    project_id INTEGER NOT NULL REFERENCES projects(id) ON DELETE CASCADE,
-    n INTEGER NOT NULL,                   -- 1, 2, ... within the project
-    source_hash TEXT NOT NULL,            -- builder.source_hash of the tree: the builds' key
-    created REAL NOT NULL,
-    author TEXT NOT NULL,
-    origin TEXT NOT NULL,                 -- upload | template:<name> | edit <path> | delete <path> | ...
-    files TEXT NOT NULL DEFAULT '{}',     -- JSON: path -> sha256 of the content
-    UNIQUE (project_id, n)
-);
-CREATE TABLE IF NOT EXISTS project_runs (
-    run_id INTEGER PRIMARY KEY,
-    build_id INTEGER NOT NULL,
-    project_id INTEGER NOT NULL,
-    owner TEXT NOT NULL
-);
--- The copy of a room's assignment made for a student (assignments.py): made once, so a copy the
--- student deleted is not made again.
-CREATE TABLE IF NOT EXISTS assignment_copies (
-    assignment TEXT NOT NULL,
-    owner TEXT NOT NULL,
-    project_id INTEGER NOT NULL,
-    created REAL NOT NULL,
-    PRIMARY KEY (assignment, owner)
-);
-"""
+BuildStatus = Literal["queued", "building", "ok", "failed"]
+
+# What a record's answer in the API adds to its served columns (name -> (type, pydantic Field)):
+# computed by the row's as_dict(), declared here once for its API model (the row's api_model()).
+Computed = dict[str, tuple[Any, Any]]
 
 
 @dataclass
 class ProjectRow:
-    id: int
-    owner: str
-    name: str
-    folder: str
-    created: float
-    updated: float
-    source_hash: str
-    origin: str
-    files: int
-    bytes: int
+    """A project: THE definition. The table ``projects`` and the API's Project (``api_model()``)
+    are made from it (tests/projects/test_project_record.py)."""
+
+    id: int = column("INTEGER PRIMARY KEY AUTOINCREMENT")
+    owner: str = column("TEXT NOT NULL", "username of the project's owner")
+    name: str = column("TEXT NOT NULL")
+    # Random (routes_projects._new_folder): says nothing about the owner, and is not served, so
+    # another student's build cannot be pointed at it.
+    folder: str = column("TEXT NOT NULL UNIQUE", api=False)
+    created: float = column("REAL NOT NULL", "Unix time")
+    updated: float = column("REAL NOT NULL", "Unix time of the last change")
+    source_hash: str = column("TEXT NOT NULL DEFAULT ''", "the source hash of the newest build asked for")
+    origin: str = column("TEXT NOT NULL DEFAULT ''", "upload | template:<name> | assignment:<id>")
+    files: int = column("INTEGER NOT NULL DEFAULT 0", "files in the source")
+    bytes: int = column("INTEGER NOT NULL DEFAULT 0", "their total size")
+
+    COMPUTED: ClassVar[Computed] = {}
 
     def as_dict(self) -> dict[str, Any]:
-        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "folder"}
+        return served(self)
+
+    @classmethod
+    def api_model(cls, name: str = "Project", **extra: tuple[Any, Any]) -> type[BaseModel]:
+        return api_model(cls, name, {**cls.COMPUTED, **extra})
 
 
 @dataclass
 class BuildRow:
-    id: int
-    project_id: int
-    owner: str
-    source_hash: str
-    toolchain: str
-    status: str
-    result: str
-    queued: float
-    started: float | None
-    ended: float | None
-    duration: float | None
-    log_path: str
-    executable: str
-    details: dict[str, Any]
+    """A build of a project: THE definition (table ``project_builds``, the API's Build)."""
+
+    id: int = column("INTEGER PRIMARY KEY AUTOINCREMENT")
+    project_id: int = column("INTEGER NOT NULL REFERENCES projects(id) ON DELETE CASCADE")
+    owner: str = column("TEXT NOT NULL", "the project's owner")
+    source_hash: str = column(
+        "TEXT NOT NULL", "hash of the source built: the same source with the same toolchain is not built again"
+    )
+    toolchain: str = column("TEXT NOT NULL DEFAULT ''", "cmake's and the compiler's versions, rt_core's hash")
+    status: BuildStatus = column("TEXT NOT NULL")
+    result: str = column("TEXT NOT NULL DEFAULT ''", "one line a student reads")
+    queued: float = column("REAL NOT NULL", "Unix time")
+    started: float | None = column("REAL", "Unix time; null while queued")
+    ended: float | None = column("REAL", "Unix time; null until it ends")
+    duration: float | None = column("REAL", "seconds")
+    # Where the appliance keeps the build's output: its business, not the API's.
+    log_path: str = column("TEXT NOT NULL DEFAULT ''", api=False)
+    executable: str = column("TEXT NOT NULL DEFAULT ''", api=False)
+    details: dict[str, Any] = column(
+        "TEXT NOT NULL DEFAULT '{}'",
+        "diagnostics, twenty_sim, messages, cycle_freq, sandbox",
+        json_text=True,
+        default_factory=dict,
+    )
+
+    COMPUTED: ClassVar[Computed] = {
+        "runnable": (bool, ApiField(description="the build succeeded: POST .../builds/{id}/run starts it")),
+    }
 
     def as_dict(self) -> dict[str, Any]:
-        d = {f.name: getattr(self, f.name) for f in fields(self)}
-        d.pop("log_path")
-        d.pop("executable")
-        d["runnable"] = self.status == "ok"
-        return d
+        return {**served(self), "runnable": self.status == "ok"}
+
+    @classmethod
+    def api_model(cls, name: str = "Build", **extra: tuple[Any, Any]) -> type[BaseModel]:
+        return api_model(cls, name, {**cls.COMPUTED, **extra})
 
 
 @dataclass
 class VersionRow:
-    id: int
-    project_id: int
-    n: int
-    source_hash: str
-    created: float
-    author: str
-    origin: str
-    files: dict[str, str]
+    """A source version of a project (versions.py keeps its files): THE definition (table
+    ``project_versions``, the API's Version)."""
+
+    id: int = column("INTEGER PRIMARY KEY AUTOINCREMENT", api=False)
+    project_id: int = column("INTEGER NOT NULL REFERENCES projects(id) ON DELETE CASCADE", api=False)
+    n: int = column("INTEGER NOT NULL", "1, 2, ... within the project")
+    source_hash: str = column("TEXT NOT NULL", "hash of the version's tree: the key its builds are found by")
+    created: float = column("REAL NOT NULL", "Unix time")
+    author: str = column("TEXT NOT NULL", "username of who made it")
+    origin: str = column(
+        "TEXT NOT NULL", "upload <file> | template:<name> | assignment:<id> | edit <path> | delete <path> | ..."
+    )
+    # path -> sha256 of the content; the API serves how many (COMPUTED, in this field's place).
+    files: dict[str, str] = column("TEXT NOT NULL DEFAULT '{}'", api=False, json_text=True, default_factory=dict)
+
+    CONSTRAINTS: ClassVar[tuple[str, ...]] = ("UNIQUE (project_id, n)",)
+    COMPUTED: ClassVar[Computed] = {"files": (int, ApiField(description="how many files the version has"))}
 
     def as_dict(self) -> dict[str, Any]:
-        return {
-            "n": self.n,
-            "source_hash": self.source_hash,
-            "created": self.created,
-            "author": self.author,
-            "origin": self.origin,
-            "files": len(self.files),
-        }
+        return {**served(self), "files": len(self.files)}
+
+    @classmethod
+    def api_model(cls, name: str = "Version", **extra: tuple[Any, Any]) -> type[BaseModel]:
+        return api_model(cls, name, {**cls.COMPUTED, **extra})
 
 
-_VCOLS = [f.name for f in fields(VersionRow)]
-_PCOLS = [f.name for f in fields(ProjectRow)]
-_BCOLS = [f.name for f in fields(BuildRow)]
+@dataclass
+class RunLinkRow:
+    """A run of a project build (its record is the run store's): THE definition of the table
+    ``project_runs`` and of a project's ``runs`` in the API."""
+
+    run_id: int = column("INTEGER PRIMARY KEY", "the run (GET /api/runs/{run_id})")
+    build_id: int = column("INTEGER NOT NULL", "the build that ran")
+    project_id: int = column("INTEGER NOT NULL", api=False)
+    owner: str = column("TEXT NOT NULL", api=False)
+
+    COMPUTED: ClassVar[Computed] = {}
+
+    def as_dict(self) -> dict[str, Any]:
+        return served(self)
+
+    @classmethod
+    def api_model(cls, name: str = "ProjectRun", **extra: tuple[Any, Any]) -> type[BaseModel]:
+        return api_model(cls, name, {**cls.COMPUTED, **extra})
+
+
+@dataclass
+class AssignmentCopyRow:
+    """The copy of a room's assignment made for a student (assignments.py): made once, so a copy
+    the student deleted is not made again. Not served."""
+
+    assignment: str = column("TEXT NOT NULL")
+    owner: str = column("TEXT NOT NULL")
+    project_id: int = column("INTEGER NOT NULL")
+    created: float = column("REAL NOT NULL")
+
+    CONSTRAINTS: ClassVar[tuple[str, ...]] = ("PRIMARY KEY (assignment, owner)",)
+
+
+# Every table of the store: its name, its record. The indexes are the store's own (not records).
+TABLES: dict[str, type[Record]] = {
+    "projects": ProjectRow,
+    "project_builds": BuildRow,
+    "project_versions": VersionRow,
+    "project_runs": RunLinkRow,
+    "assignment_copies": AssignmentCopyRow,
+}
+_INDEXES = """
+CREATE INDEX IF NOT EXISTS projects_owner ON projects(owner);
+CREATE INDEX IF NOT EXISTS builds_project ON project_builds(project_id);
+"""
+
+
+def schema() -> str:
+    """CREATE TABLE for every table (from its record), then the indexes."""
+    tables = "".join(create_table(t, r, getattr(r, "CONSTRAINTS", ())) for t, r in TABLES.items())
+    return tables + _INDEXES
+
+
+_PCOLS = column_names(ProjectRow)
+_BCOLS = column_names(BuildRow)
+_VCOLS = column_names(VersionRow)
+_LCOLS = column_names(RunLinkRow)
 
 
 class ProjectStore:
@@ -163,7 +211,9 @@ class ProjectStore:
         self._db = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False)
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA foreign_keys=ON")
-        self._db.executescript(_SCHEMA)
+        self._db.executescript(schema())
+        for table, record in TABLES.items():
+            add_missing_columns(self._db, table, record)
         # Builds a previous appliance process left unfinished did not finish.
         self._db.execute(
             "UPDATE project_builds SET status='failed', result='the appliance stopped during this build', "
@@ -197,9 +247,7 @@ class ProjectStore:
         return row
 
     def update_project(self, pid: int, **values: Any) -> ProjectRow:
-        unknown = set(values) - set(_PCOLS)
-        if unknown:
-            raise KeyError(sorted(unknown))
+        values = to_sql(ProjectRow, values)
         values.setdefault("updated", time.time())
         self._x(f"UPDATE projects SET {', '.join(k + '=?' for k in values)} WHERE id=?", (*values.values(), pid))
         row = self.project(pid)
@@ -210,14 +258,14 @@ class ProjectStore:
         if not -(2**63) <= pid < 2**63:  # beyond SQLite's INTEGER (a guessed or fuzzed id): none
             return None
         r = self._q(f"SELECT {', '.join(_PCOLS)} FROM projects WHERE id=?", (pid,))
-        return ProjectRow(*r[0]) if r else None
+        return _project(r[0]) if r else None
 
     def projects(self, owner: str | None = None) -> list[ProjectRow]:
         if owner is None:
             rows = self._q(f"SELECT {', '.join(_PCOLS)} FROM projects ORDER BY id DESC")
         else:
             rows = self._q(f"SELECT {', '.join(_PCOLS)} FROM projects WHERE owner=? ORDER BY id DESC", (owner,))
-        return [ProjectRow(*r) for r in rows]
+        return [_project(r) for r in rows]
 
     def delete_project(self, pid: int) -> None:
         self._x("DELETE FROM project_versions WHERE project_id=?", (pid,))
@@ -234,7 +282,15 @@ class ProjectStore:
             cur = self._db.execute(
                 "INSERT INTO project_versions (project_id, n, source_hash, created, author, origin, files) "
                 "SELECT ?, COALESCE(MAX(n), 0) + 1, ?, ?, ?, ?, ? FROM project_versions WHERE project_id=?",
-                (project_id, source_hash, time.time(), author, origin, json.dumps(files), project_id),
+                (
+                    project_id,
+                    source_hash,
+                    time.time(),
+                    author,
+                    origin,
+                    to_sql(VersionRow, {"files": files})["files"],
+                    project_id,
+                ),
             )
             vid = int(cur.lastrowid or 0)
         rows = self._q(f"SELECT {', '.join(_VCOLS)} FROM project_versions WHERE id=?", (vid,))
@@ -272,11 +328,7 @@ class ProjectStore:
         return row
 
     def update_build(self, bid: int, **values: Any) -> BuildRow:
-        unknown = set(values) - set(_BCOLS)
-        if unknown:
-            raise KeyError(sorted(unknown))
-        if "details" in values:
-            values["details"] = json.dumps(values["details"])
+        values = to_sql(BuildRow, values)
         self._x(f"UPDATE project_builds SET {', '.join(k + '=?' for k in values)} WHERE id=?", (*values.values(), bid))
         row = self.build(bid)
         assert row is not None
@@ -313,17 +365,16 @@ class ProjectStore:
             (run_id, build.id, build.project_id, build.owner),
         )
 
-    def runs_of(self, project_id: int) -> list[dict[str, int]]:
-        return [
-            {"run_id": r[0], "build_id": r[1]}
-            for r in self._q(
-                "SELECT run_id, build_id FROM project_runs WHERE project_id=? ORDER BY run_id DESC", (project_id,)
-            )
-        ]
+    def runs_of(self, project_id: int) -> list[dict[str, Any]]:
+        """The project's runs as the API serves them (RunLinkRow's served fields), newest first."""
+        rows = self._q(
+            f"SELECT {', '.join(_LCOLS)} FROM project_runs WHERE project_id=? ORDER BY run_id DESC", (project_id,)
+        )
+        return [_link(r).as_dict() for r in rows]
 
     def projects_with_origin(self, origin: str) -> list[ProjectRow]:
         rows = self._q(f"SELECT {', '.join(_PCOLS)} FROM projects WHERE origin=? ORDER BY id", (origin,))
-        return [ProjectRow(*r) for r in rows]
+        return [_project(r) for r in rows]
 
     def copies_made(self, owner: str) -> set[str]:
         """The assignments a copy was made of for `owner` (deleted since or not)."""
@@ -335,18 +386,23 @@ class ProjectStore:
             (assignment, owner, project_id, time.time()),
         )
 
-    def run_link(self, run_id: int) -> dict[str, Any] | None:
-        r = self._q("SELECT run_id, build_id, project_id, owner FROM project_runs WHERE run_id=?", (run_id,))
-        return dict(zip(("run_id", "build_id", "project_id", "owner"), r[0])) if r else None
+    def run_link(self, run_id: int) -> RunLinkRow | None:
+        r = self._q(f"SELECT {', '.join(_LCOLS)} FROM project_runs WHERE run_id=?", (run_id,))
+        return _link(r[0]) if r else None
+
+
+# A row SELECTed in its record's column order, as its record (records.from_sql: JSON decoded).
+def _project(r: tuple[Any, ...]) -> ProjectRow:
+    return from_sql(ProjectRow, r)
 
 
 def _build(r: tuple[Any, ...]) -> BuildRow:
-    d = dict(zip(_BCOLS, r))
-    d["details"] = json.loads(d["details"] or "{}")
-    return BuildRow(**d)
+    return from_sql(BuildRow, r)
 
 
 def _version(r: tuple[Any, ...]) -> VersionRow:
-    d = dict(zip(_VCOLS, r))
-    d["files"] = json.loads(d["files"] or "{}")
-    return VersionRow(**d)
+    return from_sql(VersionRow, r)
+
+
+def _link(r: tuple[Any, ...]) -> RunLinkRow:
+    return from_sql(RunLinkRow, r)

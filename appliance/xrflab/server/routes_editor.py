@@ -29,6 +29,7 @@ from pydantic import BaseModel, Field
 from ..projects import archive
 from ..projects import versions as versions_mod
 from ..projects.store import ProjectRow, VersionRow
+from ..records import list_of
 from .auth import Perm, requires
 from .routes_projects import ProjectsService, _audit, _build_dict, _project, _user, submit_version
 
@@ -63,18 +64,15 @@ class FileContent(BaseModel):
     content: str = Field("", description="the text; empty when not editable")
 
 
-class Version(BaseModel):
-    n: int
-    source_hash: str
-    created: float
-    author: str
-    origin: str
-    files: int
-    build: dict[str, Any] | None = Field(None, description="the newest build of this source: id, status, result")
+# A version as served: its one definition, projects/store.py's VersionRow, plus its newest build.
+Version = VersionRow.api_model(
+    "Version",
+    build=(dict[str, Any] | None, Field(None, description="the newest build of this source: id, status, result")),
+)
 
 
 class SaveResult(BaseModel):
-    version: Version
+    version: Version  # type: ignore[valid-type]  # a model made at import (VersionRow.api_model)
     new_version: bool = Field(description="false: the text was the same as the latest version's")
     build: dict[str, Any] | None = Field(None, description="the build queued (or reused) for this version")
 
@@ -346,7 +344,7 @@ async def delete_file(pid: int, path: str, request: Request, base: int | None = 
     return {"version": _version_dict(svc, project, version), "new_version": new, "build": None}
 
 
-@router.get("/projects/{pid}/versions", response_model=list[Version], dependencies=[requires(Perm.PROJECTS)])
+@router.get("/projects/{pid}/versions", response_model=list_of(Version), dependencies=[requires(Perm.PROJECTS)])
 async def list_versions(pid: int, request: Request) -> list[dict[str, Any]]:
     """Every version of the project's source, newest first, each with its newest build."""
     svc, project = await _project(request, pid)

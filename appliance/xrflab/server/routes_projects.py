@@ -28,8 +28,9 @@ from starlette.requests import HTTPConnection
 from ..projects import archive, source, twentysim
 from ..projects.assignments import ORIGIN_PREFIX, Assignments
 from ..projects.builder import Builder, SandboxConfig
-from ..projects.store import BuildRow, ProjectRow, ProjectStore, VersionRow
+from ..projects.store import BuildRow, ProjectRow, ProjectStore, RunLinkRow, VersionRow
 from ..projects.versions import Versions
+from ..records import list_of
 from . import auth as authmod
 from . import ownership
 from .auth import Perm, requires
@@ -142,48 +143,31 @@ async def _build(request: Request, pid: int, bid: int) -> tuple[ProjectsService,
 # ---- models ---------------------------------------------------------------------------------------
 
 
-class Project(BaseModel):
-    id: int
-    owner: str
-    name: str
-    created: float
-    updated: float
-    source_hash: str
-    origin: str
-    files: int
-    bytes: int
-
-
-class ProjectDetail(Project):
-    twenty_sim: dict[str, Any] | None = Field(
-        description="step size, integration method, inputs/outputs from the tokens"
-    )
-    messages: dict[str, Any] = Field(description="Ros2Xeno / Xeno2Ros fields from msg/")
-    file_list: list[str]
-    builds: list[dict[str, Any]]
-    runs: list[dict[str, int]]
-
-
-class Build(BaseModel):
-    id: int
-    project_id: int
-    owner: str
-    source_hash: str
-    toolchain: str
-    status: Literal["queued", "building", "ok", "failed"]
-    result: str
-    queued: float
-    started: float | None
-    ended: float | None
-    duration: float | None
-    details: dict[str, Any]
-    runnable: bool
-    reused: bool = False
-    position: int = -1
+# The API's project records are made from their one definition in projects/store.py (ProjectRow,
+# BuildRow, VersionRow, RunLinkRow: SQL columns and API fields alike), plus what these routes add;
+# tests/projects/test_project_record.py compares them with the tables and /openapi.json.
+Project = ProjectRow.api_model("Project")
+Build = BuildRow.api_model(
+    "Build",
+    reused=(bool, Field(default=False, description="an unchanged source: this earlier build is the answer")),
+    position=(int, Field(default=-1, description="queued or building: place in the build queue; else -1")),
+)
+ProjectRun = RunLinkRow.api_model("ProjectRun")
+ProjectDetail = ProjectRow.api_model(
+    "ProjectDetail",
+    twenty_sim=(
+        dict[str, Any] | None,
+        Field(description="step size, integration method, inputs/outputs from the tokens"),
+    ),
+    messages=(dict[str, Any], Field(description="Ros2Xeno / Xeno2Ros fields from msg/")),
+    file_list=(list[str], ...),
+    builds=(list_of(Build), Field(description="the newest 20 builds")),
+    runs=(list_of(ProjectRun), ...),
+)
 
 
 class UploadResult(BaseModel):
-    project: Project
+    project: Project  # type: ignore[valid-type]  # a model made at import (ProjectRow.api_model)
     format: str
     files: int
     bytes: int
@@ -385,7 +369,7 @@ def _download(data: bytes, name: str) -> Response:
 # ---- routes ---------------------------------------------------------------------------------------
 
 
-@router.get("/projects", response_model=list[Project], dependencies=[requires(Perm.PROJECTS)])
+@router.get("/projects", response_model=list_of(Project), dependencies=[requires(Perm.PROJECTS)])
 async def list_projects(request: Request, all: bool = False) -> list[dict[str, Any]]:
     """The requester's projects; an educator's own too, or with ``all=true`` everyone's. A student
     finds a copy of every assignment the room published here (made on the first listing)."""
@@ -616,7 +600,7 @@ async def submit_version(
     return row, reused
 
 
-@router.get("/projects/{pid}/builds", response_model=list[Build], dependencies=[requires(Perm.PROJECTS)])
+@router.get("/projects/{pid}/builds", response_model=list_of(Build), dependencies=[requires(Perm.PROJECTS)])
 async def list_builds(pid: int, request: Request) -> list[dict[str, Any]]:
     svc, project = await _project(request, pid)
     return [_build_dict(svc, b) for b in svc.store.builds(project.id)]

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import sqlite3
 import time
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Literal, get_type_hints
+from typing import Any, Literal
 
-from pydantic import BaseModel, Field, create_model
+from pydantic import BaseModel
 
+from ..records import add_missing_columns, api_model, column, column_names, create_table, from_sql
 from .private_files import private_db
 
 # Every way a run can end: the `end_reason` of its record (and of its alarm), one name each.
@@ -39,10 +40,10 @@ RunStatus = Literal["starting", "running", "ended", "crashed", "failed"]
 
 
 def _col(sql: str, doc: str = "", added: bool = False, **default: Any) -> Any:
-    """A run record field: its SQLite declaration, its description in the API, and whether it
-    came after the first release (then an older database gets it with ALTER TABLE, so existing
-    run records survive an upgrade)."""
-    return field(metadata={"sql": sql, "doc": doc, "added": added}, **default)
+    """A run record field (records.column): its SQLite declaration, its description in the API,
+    and whether it came after the first release (then an older database gets it with ALTER
+    TABLE, so existing run records survive an upgrade)."""
+    return column(sql, doc, added=added, **default)
 
 
 @dataclass
@@ -101,13 +102,12 @@ class RunRow:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
-_COLUMNS = [f.name for f in fields(RunRow)]
+_COLUMNS = column_names(RunRow)
 
 
 def schema() -> str:
     """CREATE TABLE for the run records, from RunRow."""
-    columns = ",\n".join(f"    {f.name} {f.metadata['sql']}" for f in fields(RunRow))
-    return f"CREATE TABLE IF NOT EXISTS runs (\n{columns}\n);\n"
+    return create_table("runs", RunRow)
 
 
 def record_model(
@@ -115,18 +115,7 @@ def record_model(
 ) -> type[BaseModel]:
     """The API model of a run record, from RunRow: every field (but `exclude`), typed and
     described as RunRow says, then `extra` (name=(type, pydantic Field)) that the route adds."""
-    hints = get_type_hints(RunRow)
-    spec: dict[str, Any] = {}
-    for f in fields(RunRow):
-        if f.name in exclude:
-            continue
-        doc = f.metadata.get("doc") or None
-        if f.default is not MISSING:
-            spec[f.name] = (hints[f.name], Field(default=f.default, description=doc))
-        else:
-            spec[f.name] = (hints[f.name], Field(description=doc))
-    spec.update(extra)
-    return create_model(name, **spec)
+    return api_model(RunRow, name, extra, exclude)
 
 
 # What the API answers for a run (GET /api/runs, POST /api/runs, ...).
@@ -140,10 +129,7 @@ class RunStore:
         self._db = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False)
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.executescript(schema())
-        have = {r[1] for r in self._db.execute("PRAGMA table_info(runs)")}
-        for f in fields(RunRow):
-            if f.name not in have and f.metadata["added"]:
-                self._db.execute(f"ALTER TABLE runs ADD COLUMN {f.name} {f.metadata['sql']}")
+        add_missing_columns(self._db, "runs", RunRow)
         # A previous appliance process that died mid-run left rows 'running': they did not end
         # cleanly and nobody watched them end, so say so rather than show them as live.
         self.orphans: list[RunRow] = [
@@ -203,6 +189,4 @@ class RunStore:
 
 
 def _row(r: tuple[Any, ...]) -> RunRow:
-    d = dict(zip(_COLUMNS, r))
-    d["crashed"] = bool(d["crashed"])
-    return RunRow(**d)
+    return from_sql(RunRow, r)  # crashed: SQLite's 0/1 as the bool RunRow declares
