@@ -15,6 +15,10 @@ dataclass come:
 
 Tests compare the table (PRAGMA table_info) and /openapi.json with the dataclass
 (tests/server/test_run_record.py, tests/projects/test_project_record.py).
+
+Importing this module needs the standard library only (pydantic is imported when a model is
+made): the build sandbox runs projects/builder.py, which reads the project rows, with a system
+Python that has nothing else.
 """
 
 from __future__ import annotations
@@ -22,11 +26,11 @@ from __future__ import annotations
 import json
 import sqlite3
 from collections.abc import Mapping
-from dataclasses import MISSING, Field, field, fields
-from typing import Any, ClassVar, Protocol, TypeVar, cast, get_type_hints
+from dataclasses import MISSING, Field, dataclass, field, fields
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, TypeVar, cast, get_type_hints
 
-from pydantic import BaseModel, create_model
-from pydantic import Field as ApiField
+if TYPE_CHECKING:
+    from pydantic import BaseModel
 
 
 class Record(Protocol):
@@ -36,6 +40,16 @@ class Record(Protocol):
 
 
 R = TypeVar("R", bound=Record)
+
+
+@dataclass(frozen=True)
+class Served:
+    """A value the API serves beyond a record's columns, computed by the row's ``as_dict()`` (a
+    build's ``runnable``): its type and description, declared on the row next to the code that
+    makes it."""
+
+    type: Any
+    doc: str
 
 
 def column(
@@ -103,15 +117,19 @@ def served(row: Record) -> dict[str, Any]:
 def api_model(
     record: type[Record],
     name: str,
-    extra: Mapping[str, tuple[Any, Any]] | None = None,
+    extra: Mapping[str, tuple[Any, Any] | Served] | None = None,
     exclude: frozenset[str] = frozenset(),
 ) -> type[BaseModel]:
     """The API model of ``record``: its served fields in order (but ``exclude``: what one answer
     leaves out), typed and described as the dataclass says, then ``extra`` (name -> (type,
-    pydantic Field)): what the answer adds. An extra named like a field the API does not serve
-    takes that field's place (a version's ``files``: stored as the file table, served as its size)."""
+    pydantic Field), or a Served): what the answer adds. An extra named like a field the API does
+    not serve takes that field's place (a version's ``files``: stored as the file table, served as
+    its size)."""
+    from pydantic import Field as ApiField
+    from pydantic import create_model
+
     hints = get_type_hints(record)
-    added = dict(extra or {})
+    added = {k: (v.type, ApiField(description=v.doc)) if isinstance(v, Served) else v for k, v in (extra or {}).items()}
     spec: dict[str, Any] = {}
     for f in fields(record):
         if f.name in added:

@@ -6,6 +6,8 @@ times: the SQL text, the row classes, routes_projects' and routes_editor's model
 from __future__ import annotations
 
 import sqlite3
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -143,3 +145,10 @@ def test_api_models_are_the_definition(tmp_path: Path) -> None:
     assert "assignment:<id>" in schemas["Project"]["properties"]["origin"]["description"]
     builds = schemas["ProjectDetail"]["properties"]["builds"]
     assert builds["items"] == {"$ref": "#/components/schemas/Build"}
+
+
+def test_the_rows_need_only_the_standard_library() -> None:
+    """The build sandbox runs projects/builder.py, which reads these rows, with a system Python
+    that has no pydantic: the models are made only when a route asks for them."""
+    code = "import sys, xrflab.projects.builder, xrflab.projects.store; assert 'pydantic' not in sys.modules"
+    subprocess.run([sys.executable, "-c", code], check=True)

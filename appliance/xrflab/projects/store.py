@@ -24,13 +24,11 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar, Literal
-
-from pydantic import BaseModel
-from pydantic import Field as ApiField
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 from ..records import (
     Record,
+    Served,
     add_missing_columns,
     api_model,
     column,
@@ -44,9 +42,12 @@ from ..server.private_files import private_db
 
 BuildStatus = Literal["queued", "building", "ok", "failed"]
 
-# What a record's answer in the API adds to its served columns (name -> (type, pydantic Field)):
-# computed by the row's as_dict(), declared here once for its API model (the row's api_model()).
-Computed = dict[str, tuple[Any, Any]]
+if TYPE_CHECKING:
+    from pydantic import BaseModel
+
+# What a record's answer in the API adds to its served columns: computed by the row's as_dict(),
+# declared here once for its API model (the row's api_model()).
+Computed = dict[str, Served]
 
 
 @dataclass
@@ -105,7 +106,7 @@ class BuildRow:
     )
 
     COMPUTED: ClassVar[Computed] = {
-        "runnable": (bool, ApiField(description="the build succeeded: POST .../builds/{id}/run starts it")),
+        "runnable": Served(bool, "the build succeeded: POST .../builds/{id}/run starts it"),
     }
 
     def as_dict(self) -> dict[str, Any]:
@@ -134,7 +135,7 @@ class VersionRow:
     files: dict[str, str] = column("TEXT NOT NULL DEFAULT '{}'", api=False, json_text=True, default_factory=dict)
 
     CONSTRAINTS: ClassVar[tuple[str, ...]] = ("UNIQUE (project_id, n)",)
-    COMPUTED: ClassVar[Computed] = {"files": (int, ApiField(description="how many files the version has"))}
+    COMPUTED: ClassVar[Computed] = {"files": Served(int, "how many files the version has")}
 
     def as_dict(self) -> dict[str, Any]:
         return {**served(self), "files": len(self.files)}
