@@ -12,7 +12,7 @@ from pathlib import Path
 from test_sandbox import PRELUDE, TAIL, _builder, _project
 
 from xrf_testing.projects_support import reachable_tmp, wait_build
-from xrflab.projects.builder import build_processes
+from xrflab.projects.build_procs import build_processes
 
 
 def _processes_with(needle: str) -> list[str]:

@@ -13,7 +13,7 @@ run code that is not the build they clicked. A version's tree never changes, so 
 runs exactly the source that was saved. Unchanged files are hard links to the previous version's
 (same content, read-only), so a version costs the files that changed, not the whole project.
 
-The version's ``source_hash`` is ``builder.source_hash`` of its tree: the key builds are reused by,
+The version's ``source_hash`` is ``build_key.source_hash`` of its tree: the key builds are reused by,
 so a version and its builds are found from each other.
 
 Diffs (between two versions, or a version and a template as it is in the appliance: what the
@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from . import archive
-from .builder import source_hash
+from .build_key import source_hash
 from .store import ProjectRow, ProjectStore, VersionRow
 
 # Larger files are not diffed line by line (their change is still listed).

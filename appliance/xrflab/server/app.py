@@ -45,7 +45,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         # Built inside the running loop: the supervisor's locks and events belong to it.
         # Private when we create it (e.g. /var/lib/xrf-lab of a root appliance): the build user is
-        # given search permission on the folders down to a build, and only those (builder.py).
+        # given search permission on the folders down to a build, and only those (projects/build_user.py).
         settings.data_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
         store = RunStore(settings.runs_db)
         hub = Hub(settings.client_queue_telemetry, settings.client_queue_max, settings.slow_client_s)

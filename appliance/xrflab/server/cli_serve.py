@@ -160,7 +160,7 @@ def close_inherited_fds() -> None:
 
 # Everything the appliance creates (databases and their WAL/SHM, runs, logs, projects, uploads,
 # builds it starts) is private to its user whatever umask it was started with; what another user
-# must read (the build user: a project's source) is granted explicitly (projects/builder.py).
+# must read (the build user: a project's source) is granted explicitly (projects/build_user.py).
 DATA_UMASK = 0o077
 
 

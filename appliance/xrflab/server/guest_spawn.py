@@ -109,7 +109,7 @@ class Identity:
 
 def identity(run_user: str = RUN_USER) -> Identity:
     if os.geteuid() == 0:
-        from ..projects.builder import ensure_build_user
+        from ..projects.build_user import ensure_build_user
 
         uid, gid, _ = ensure_build_user(run_user)
         return Identity("root", uid, gid, f"controllers run as {run_user} (uid {uid})")

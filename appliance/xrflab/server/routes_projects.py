@@ -27,7 +27,8 @@ from starlette.requests import HTTPConnection
 
 from ..projects import archive, source, twentysim
 from ..projects.assignments import ORIGIN_PREFIX, Assignments
-from ..projects.builder import Builder, SandboxConfig
+from ..projects.builder import Builder
+from ..projects.sandbox_config import SandboxConfig
 from ..projects.store import BuildRow, ProjectRow, ProjectStore, RunLinkRow, VersionRow
 from ..projects.versions import Versions
 from ..records import list_of
