@@ -112,6 +112,16 @@ function drawStateMachine(machine) {
 
 // ---- state ----------------------------------------------------------------------------------
 
+// States a reset is accepted from (the C table, through GET /api/state-machine), and the states
+// whose hook completes into one of them: the state published may skip that step.
+function resettableStates() {
+  const m = xrf.machine;
+  if (!m) return new Set();
+  const from = new Set(m.transitions.filter((t) => t.cmd === "reset").map((t) => t.from));
+  for (const c of m.completions) if (from.has(c.to)) from.add(c.from);
+  return from;
+}
+
 function applyState(s) {
   const before = xrf.state;
   const ended = xrf.run && !xrf.run.active && xrf.run.run;
@@ -128,8 +138,7 @@ function applyState(s) {
   // An accepted reset zeroes the setpoints on the appliance (api.py): show that here too.
   // (From these states only a reset leads to INITIALISING/INITIALISED; the state published may
   // skip INITIALISING when the controller's init is quick.)
-  const resettable = ["RUN", "PAUSING", "PAUSED", "STOPPING", "STOPPED", "ERROR"];
-  if (s.active && ["INITIALISING", "INITIALISED"].includes(s.name) && before.active && resettable.includes(before.name)) {
+  if (s.active && ["INITIALISING", "INITIALISED"].includes(s.name) && before.active && resettableStates().has(before.name)) {
     showSetpoints(zeroed(xrf.appliedSetpoint));
   }
   document.querySelectorAll("#state-machine .node").forEach((n) => n.classList.toggle("current", s.active && n.id === "node-" + s.name));
