@@ -6,7 +6,7 @@ headless viewers read the run's live stream as the web viewer does, by gRPC-web 
 appliance's route (login cookie, same Origin), each in a process of its own (one per browser).
 Each data frame is decoded as far as its chunk's ``time`` index (tests/xrf_testing/rerun_stream.py:
 protobuf by hand, LZ4 block, Arrow IPC): the newest sample it carries, in wall-clock ns (the
-loop's sample time + the run's wall offset, logs/live.py). lag = the frame's arrival wall time -
+loop's sample time + the run's wall offset, logs/rerun_live.py). lag = the frame's arrival wall time -
 that sample's wall time, over every frame that carries one.
 
 Cases (each a fresh run): 1 viewer, N viewers (--viewers, default 5), 1 viewer with the other core

@@ -1,4 +1,4 @@
-"""The host log writer (xrflab.logs.live.HostLogWriter) against a real loop process run with
+"""The host log writer (xrflab.logs.host_writer.HostLogWriter) against a real loop process run with
 XRF_LOG_WRITER=host: continuous records, kill -9 loses nothing that reached the ring, a full
 disk stops logging cleanly (whole records only) while the loop goes on."""
 
@@ -15,7 +15,7 @@ import pytest
 
 from xrf_testing.loops import LoopProcess
 from xrflab.logs import open_log
-from xrflab.logs.live import HostLogWriter
+from xrflab.logs.host_writer import HostLogWriter
 
 
 @pytest.fixture
@@ -123,7 +123,8 @@ def test_live_rerun_stream_takes_records_and_telemetry(loop, tmp_path: Path, cap
     import httpx
 
     from xrf_testing.grpcweb import READ_MESSAGES, read_messages
-    from xrflab.logs.live import LiveProxy, LiveRerun, live_blueprint
+    from xrflab.logs.rerun_live import LiveRerun, live_blueprint
+    from xrflab.logs.rerun_servers import LiveProxy
 
     caplog.set_level(logging.ERROR, logger="xrflab.logs.live")
     lp = loop(tmp_path)

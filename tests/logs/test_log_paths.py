@@ -28,7 +28,7 @@ from xrf_testing.harness import stop_server
 from xrf_testing.logs_support import REPO, shared_builds_root, start_server, wait_for
 from xrf_testing.loops import LoopProcess
 from xrflab.logs import open_log
-from xrflab.logs.live import HostLogWriter
+from xrflab.logs.host_writer import HostLogWriter
 from xrflab.logs.logformat import MAGIC
 from xrflab.logs.runfolder import RunPathError, confine, open_in
 

@@ -7,7 +7,7 @@ IPC stream (schema + one record batch: one chunk of one entity). Field numbers f
 ``log_msg.proto``/``sdk_comms.proto`` (rerun 0.41); the protobuf wire format is read by hand
 (varints and length-delimited fields are all these messages use), the Arrow payload by pyarrow.
 
-The appliance's live recording (logs/live.py, ``LiveRerun._indexes``) carries a ``time`` index of
+The appliance's live recording (logs/rerun_live.py, ``LiveRerun._indexes``) carries a ``time`` index of
 wall-clock nanoseconds (the loop's sample time + the run's wall offset): the newest value in a
 message is the newest sample it brings, so arrival time - that = how far the viewer is behind."""
 

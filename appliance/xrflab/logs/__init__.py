@@ -7,6 +7,11 @@
 Imported eagerly (NumPy, ~0.1 s): a lazy __getattr__ cannot work here because importing the
 submodule `convert` rebinds the package attribute `convert` to the module. scipy, pyarrow and
 rerun are imported only by the converter that needs them.
+
+The appliance's side of a run's logging is not imported here: ``live`` (a run's logging, start to
+finish), ``host_writer`` (ring -> file), ``log_channel`` (the shared memory's log ring and layout),
+``record_file`` (whole records only), ``timing_series``, ``rerun_live`` (the live recording) and
+``rerun_servers`` (rerun's child processes).
 """
 
 from .convert import FORMATS, convert, iter_csv_chunks

@@ -3,8 +3,9 @@
 rt_core/include/xrf/logformat.h is the one definition of a segment header: the magic, the fixed
 prefix's layout, the variable type codes with their names, and ``xrf_logfile_header``, which
 composes a header. This module reads all of it through the cffi binding (``_cffi_build``) and adds
-nothing of its own, so the host log writer (logs/live.py) writes the bytes the loop's own writer
-(rt_core/src/logfile.cpp) writes, and the reader (logs/reader.py) knows the types the writers know.
+nothing of its own, so the host log writer (logs/host_writer.py, through logs/log_channel.py)
+writes the bytes the loop's own writer (rt_core/src/logfile.cpp) writes, and the reader
+(logs/reader.py) knows the types the writers know.
 A second copy of any of it could silently disagree with the loop (issue 20).
 """
 

@@ -85,9 +85,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             security.close()
             await supervisor.shutdown()
             await viz.stop()
-            from ..logs import live as live_rerun  # its rerun child processes (127.0.0.1 servers)
+            from ..logs import rerun_servers  # its rerun child processes (127.0.0.1 servers)
 
-            live_rerun.stop_rerun_children()
+            rerun_servers.stop_rerun_children()
             store.close()
 
     app = FastAPI(

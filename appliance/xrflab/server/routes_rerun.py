@@ -1,7 +1,7 @@
 """The rerun viewer and the live stream, behind the login, on the appliance's own origin.
 
 - ``GET /rerun/<file>``: the rerun web viewer (from the installed rerun-sdk, no CDN), copied once
-  from rerun's internal file server (``logs.live.RerunViewer``, 127.0.0.1) into the data folder.
+  from rerun's internal file server (``logs.rerun_servers.RerunViewer``, 127.0.0.1) into the data folder.
   Same origin as the dashboard, so the viewer fetches a finished run's ``.rrd`` from the API with
   the session cookie. **Offline** (issue 19): as shipped, the viewer fetches Google Fonts, sends
   analytics to tel.rerun.io, asks GitHub for the latest release and app.rerun.io for its examples,
@@ -18,7 +18,7 @@
 - ``POST /rerun.sdk_comms.v1alpha1.MessageProxyService/{ReadMessages,ReadTables}``: the live
   stream. rerun's viewer, given ``rerun+http://<host>:<port>/proxy``, calls these gRPC-web methods
   at the root of ``<host>:<port>`` (its URL parser accepts no path prefix), so they are answered
-  here, at the appliance's root, by streaming the current run's rerun proxy (``logs.live.LiveProxy``,
+  here, at the appliance's root, by streaming the current run's rerun proxy (``logs.rerun_servers.LiveProxy``,
   127.0.0.1 only) through: the login, the run's read permission (its owner or an educator, as for
   its log files; someone else's run answers as no stream at all) and a same-origin check apply to the live data as to everything else, and the
   Pi opened by its LAN address works like the Pi itself. Only the two read methods pass: nobody
@@ -101,7 +101,7 @@ def _origin(request: Request) -> str:
     summary="where the rerun viewer and the live stream are, for this request's host",
 )
 async def rerun_info(request: Request) -> dict[str, Any]:
-    from ..logs.live import LiveProxy
+    from ..logs.rerun_servers import LiveProxy
 
     proxy = LiveProxy.current()
     sup = request.app.state.supervisor
@@ -231,7 +231,7 @@ async def _viewer_cache(request: Request) -> Path:
     import httpx
     import rerun
 
-    from ..logs.live import RerunViewer
+    from ..logs.rerun_servers import RerunViewer
 
     settings = request.app.state.settings
     cache = Path(settings.data_dir) / "rerun-viewer" / f"{rerun.__version__}-{PREPARED_AS}"
@@ -313,7 +313,7 @@ async def live_stream(method: str, request: Request) -> Response:
     global _open_streams
     import httpx
 
-    from ..logs.live import LiveProxy
+    from ..logs.rerun_servers import LiveProxy
 
     if method not in READ_METHODS:
         return grpc_error(403, PERMISSION_DENIED, f"{method}: the live stream is read-only here")

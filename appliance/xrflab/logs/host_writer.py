@@ -1,0 +1,254 @@
+"""The host log writer: a thread of the appliance that writes a run's log files.
+
+When the loop runs with ``XRF_LOG_WRITER=host``, a thread of the appliance drains the loop's
+lossless log ring (``log_channel.py``: the longest run of ready slots that is contiguous, one
+``write()`` each) into the file named in ``log_meta.path``, in the format of
+docs/logging/file-format.md; each segment header comes from rt_core's ``xrf_logfile_header``
+(logformat.h, through cffi: the function the loop's own writer calls, so the bytes are the same
+whichever side writes). A new layout (the channel's generation) starts a new segment, appended
+to the file the loop names then. It wakes on the loop's doorbell (futex, no polling; at most
+``WAIT_MS`` between drains). Because the appliance keeps the run's shared memory mapped after the
+loop process is gone, a crashed or killed loop loses nothing that reached the ring: ``finish()``
+drains the rest.
+
+Faults: the loop never waits on us: if we stall, the ring fills and the loop counts
+``log_lost`` (sequence numbers make the gap visible). A write that fails (disk full, I/O error,
+file too large) stops logging for the run, cuts the file back to its last complete record
+(``record_file.py``: what was written stays decodable) and raises an alarm once; records drained
+after that are counted as ``unwritten`` so the run record still adds up: ``seq`` of the last
+record + 1 = records in the file + lost + unwritten.
+
+The same thread samples the run's timing series (``timing_series.py``) and hands each drained
+batch of records to ``on_records`` (the live rerun stream, ``rerun_live.py``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import struct
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .log_channel import LogChannel
+from .record_file import PartialWrite, RecordFile
+from .runfolder import RunPathError, confine
+from .timing_series import TimingSeries
+
+if TYPE_CHECKING:
+    from ..channels import Channels
+
+# One logger for a run's host logging, whichever module of it speaks (as before the split).
+log = logging.getLogger("xrflab.logs.live")
+
+WAIT_MS = 20  # longest time between two drains when no doorbell rings
+
+
+@dataclass
+class WriterStats:
+    files: list[str] = field(default_factory=list)  # paths written, in order
+    records: int = 0  # records in the files
+    unwritten: int = 0  # drained after a write failure, so not in any file
+    bytes: int = 0
+    failed: str = ""  # why logging stopped ("" = it did not)
+    lost: int = 0  # the loop's ring drops (status.log_lost), filled in by finish()
+
+
+class HostLogWriter:
+    """Drains one log channel of a run (`source`: the logger's ring, or the per-cycle timing
+    records) into its file; a thread of the appliance."""
+
+    def __init__(
+        self,
+        ch: Channels,
+        identity: dict[str, str],
+        run_dir: Path,
+        on_alarm: Callable[[str], None] | None = None,
+        on_records: Callable[[np.ndarray], None] | None = None,
+        timing: bool = True,
+        source: str = "log",
+        on_note: Callable[[str], None] | None = None,
+    ) -> None:
+        self._ch = ch
+        self._chan = LogChannel(ch, source)
+        self._source = source
+        self._identity = identity
+        self._run_dir = run_dir
+        self._on_alarm = on_alarm
+        self._on_note = on_note
+        self._on_records = on_records
+        self._timing = TimingSeries(ch, run_dir) if timing else None
+        self.stats = WriterStats()
+        self._file: RecordFile | None = None
+        self._generation = 0
+        self._stride = 0
+        self._dtype: np.dtype | None = None
+        self._stop = threading.Event()
+        self._lock = threading.Lock()  # one drain at a time (thread vs finish())
+        self._thread: threading.Thread | None = None
+
+    # -- life cycle -------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._main, name=f"xrf-{self._source}-writer", daemon=True)
+        self._thread.start()
+
+    def finish(self) -> WriterStats:
+        """Stop the thread and drain what is left (the loop may be dead: the mapping is ours)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+        self.drain(final=True)
+        with self._lock:
+            if self._file is not None:
+                self._file.close(sync=True)
+                self._file = None
+        if self._source != "log":
+            self.stats.lost = self._chan.dropped()
+            return self.stats
+        try:
+            status = self._ch.status()
+            self.stats.lost = int(status.log_lost)
+            if not self._chan.host_writes() and self._chan.ready():
+                self.stats.records = int(status.log_written)  # XRF_LOG_WRITER=process wrote them
+        except Exception:  # status locked by a loop that died mid-write: the ring knows too
+            self.stats.lost = self._chan.dropped()
+        self._sample_timing(force=True)
+        return self.stats
+
+    def _main(self) -> None:
+        seen = self._ch.doorbell
+        while not self._stop.is_set():
+            try:
+                self.drain()
+                self._sample_timing()
+            except Exception:  # never let a bug end logging silently
+                log.exception("log writer")
+                time.sleep(0.1)
+            seen = self._ch.wait_doorbell(seen, WAIT_MS)
+
+    def skip_through(self, last_seq: int) -> int:
+        """Release the ring's records numbered <= `last_seq` without writing them: a dead
+        appliance wrote them to the file but was killed before it released them (the read
+        position lives in shared memory). Call before start(). Returns how many were skipped."""
+        stride = self._chan.slot_size()
+        skipped = 0
+        while True:
+            run = self._chan.peek_run(stride)
+            if run is None:
+                return skipped
+            buf, n = run
+            k = 0
+            while k < n and struct.unpack_from("<Q", buf, k * stride)[0] <= last_seq:  # seq: the header's first word
+                k += 1
+            if k:
+                self._chan.release(k)
+                skipped += k
+            if k < n:
+                return skipped
+
+    def set_on_records(self, fn: Callable[[np.ndarray], None] | None) -> None:
+        with self._lock:
+            self._on_records = fn
+
+    # -- draining ----------------------------------------------------------------------------
+
+    def drain(self, final: bool = False) -> int:
+        """Write every ready record; returns how many were taken from the ring."""
+        with self._lock:
+            if not self._chan.host_writes():
+                return 0
+            gen = self._chan.generation()
+            if gen != self._generation:
+                self._open_segment(gen)
+            taken = 0
+            while True:
+                run = self._chan.peek_run(self._stride)
+                if run is None:
+                    break
+                buf, n = run
+                if self._on_records is not None and self._dtype is not None:
+                    # A copy: the slots are reused as soon as they are released.
+                    self._on_records(np.frombuffer(bytes(buf), dtype=self._dtype))
+                self._write(buf, n)
+                self._chan.release(n)
+                taken += n
+            return taken
+
+    def _open_segment(self, gen: int) -> None:
+        layout = self._chan.layout()
+        self._generation = gen
+        self._stride = layout.stride
+        self._dtype = layout.dtype
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+        if self.stats.failed:
+            return
+        published = layout.path
+        # The loop names the file and is not trusted: the name is confined to the run folder
+        # and opened without following symlinks (runfolder.py), whatever the loop published.
+        try:
+            rel = confine(self._run_dir, published)
+        except RunPathError as exc:
+            self._fail(f"{exc}: refused, not logged", published)
+            return
+        path = str(self._run_dir / rel)
+        try:
+            self._file = RecordFile.open(self._run_dir, rel, layout.file_mode, layout.stride)
+            self._file.write_all(self.segment_header())
+        except OSError as exc:
+            self._fail(f"cannot write the log file {rel} of the run: {exc.strerror or exc}", path)
+            return
+        self.stats.files.append(path)
+        if self._on_note is not None:
+            # Where the file went, in the console: an XRF2 name like /home/x/logs/log is not
+            # where the student will find it (the runtime says so too, at set-up).
+            outside = os.path.isabs(published) and not published.startswith(str(self._run_dir) + "/")
+            shown = published if outside else rel
+            self._on_note(f"log {shown} -> {self._run_dir.parent.name}/{self._run_dir.name}/{rel}")
+
+    def segment_header(self, start_unix_ns: int | None = None, start_mono_ns: int | None = None) -> bytes:
+        """The header of a segment of the channel's current layout, starting now (or at the given
+        clocks), with the run's identity (LogChannel.segment_header)."""
+        return self._chan.segment_header(self._identity, start_unix_ns, start_mono_ns)
+
+    def _write(self, buf: memoryview, n: int) -> None:
+        if self._file is None:
+            self.stats.unwritten += n
+            return
+        try:
+            self._file.append(buf, n)
+        except PartialWrite as cut:
+            # Whole records only: the file ends at its last complete record.
+            self.stats.records += cut.done
+            self.stats.bytes += cut.done * self._stride
+            self.stats.unwritten += n - cut.done
+            self._fail(
+                f"writing the log file failed ({cut.error.strerror or cut.error}) after "
+                f"{self.stats.records} records; logging stopped, the run goes on",
+                self.stats.files[-1] if self.stats.files else "",
+            )
+            return
+        self.stats.records += n
+        self.stats.bytes += n * self._stride
+
+    def _fail(self, message: str, path: str) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+        if not self.stats.failed:
+            self.stats.failed = message
+            log.error("%s", message)
+            if self._on_alarm is not None:
+                self._on_alarm(message)
+
+    def _sample_timing(self, force: bool = False) -> None:
+        if self._timing is not None:
+            self._timing.sample(force)

@@ -1,0 +1,200 @@
+"""The rerun child processes of the appliance: the web viewer's file server and a run's live proxy.
+
+Both are ``rerun`` processes whose servers listen on 127.0.0.1 only: they have no login of their
+own, so browsers reach them only through the appliance (its /rerun/ files route and its gRPC-web
+read proxy, server/routes_rerun.py). They run below the appliance's priority (``RERUN_NICE``) and
+end with it: by ``stop_rerun_children`` on a normal exit (atexit, and the app's shutdown), by a
+parent-death signal when it is killed (``tied.popen_tied``).
+
+- ``RerunViewer``: one per appliance, started on first use, only for the web viewer's files.
+- ``LiveProxy``: one per run, the message proxy the run's live recording (``rerun_live.py``)
+  writes to and viewers read from.
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+RERUN_NICE = 10  # rerun's child processes run below the appliance
+
+
+def _listening(port: int) -> bool:
+    with socket.socket() as s:
+        s.settimeout(0.2)
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+def _free_port(preferred: int) -> int:
+    for port in (preferred, 0):
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return s.getsockname()[1]
+    raise OSError("no free port")
+
+
+def _rerun_cli() -> list[str]:
+    # The binary itself, not the venv's `rerun` wrapper script: the wrapper runs it as a child, and
+    # that child would outlive the appliance (the parent-death signal goes to the wrapper).
+    with contextlib.suppress(ImportError):
+        import rerun_cli
+
+        exe = Path(rerun_cli.__file__).with_name("rerun")
+        if exe.is_file():
+            return [str(exe)]
+    found = shutil.which("rerun")
+    if found:
+        return [found]
+    return [sys.executable, "-m", "rerun_cli"]
+
+
+def _spawn_rerun(argv: list[str]) -> subprocess.Popen[bytes]:
+    """A rerun server that gets SIGTERM when the appliance dies, a kill -9 included (the atexit
+    hook below does not run then), so none is left with parent 1 (server/children.popen_tied)."""
+    from ..tied import popen_tied
+
+    return popen_tied(
+        argv,
+        death_signal=signal.SIGTERM,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+
+
+class _RerunChild:
+    """A ``rerun`` child process whose servers listen on 127.0.0.1 only: they have no login of
+    their own, so browsers reach them only through the appliance (its /rerun/ files route and its
+    gRPC-web read proxy, server/routes_rerun.py). Stopped with the appliance (stop_rerun_children)."""
+
+    def __init__(self, args: list[str], ports: tuple[int, ...], what: str) -> None:
+        # Below the appliance (`nice` execs rerun, so every rerun thread inherits it): a live
+        # proxy starting with each run must not delay the supervisor's reaction to that run
+        # crashing (outputs off within 100 ms).
+        nice = ["nice", "-n", str(RERUN_NICE)] if shutil.which("nice") else []
+        self.proc = _spawn_rerun([*nice, *_rerun_cli(), *args])
+        deadline = time.monotonic() + 20
+        while not all(_listening(p) for p in ports):
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                self.stop()
+                raise OSError(f"the rerun {what} did not start (exit {self.proc.poll()})")
+            time.sleep(0.05)
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+class RerunViewer(_RerunChild):
+    """One per appliance, started on first use: ``rerun --serve-web``, only for the web viewer's
+    files (they come from the installed rerun-sdk; nothing from the internet). The appliance
+    copies each file once into its data folder and serves it under /rerun/ behind the login.
+    Port from XRF_RERUN_WEB_PORT (default 9090; a taken port falls back to a free one)."""
+
+    _instance: RerunViewer | None = None
+    _lock = threading.Lock()
+
+    def __init__(self) -> None:
+        self.web_port = _free_port(int(os.environ.get("XRF_RERUN_WEB_PORT", "9090")))
+        grpc_port = _free_port(0)  # --serve-web always opens a gRPC server too; nothing uses it
+        super().__init__(
+            [
+                "--serve-web",
+                "--bind",
+                "127.0.0.1",
+                "--port",
+                str(grpc_port),
+                "--web-viewer-port",
+                str(self.web_port),
+                "--server-memory-limit",
+                "1MiB",
+            ],
+            (self.web_port,),
+            "viewer",
+        )
+
+    @classmethod
+    def get(cls) -> RerunViewer:
+        with cls._lock:
+            if cls._instance is None or cls._instance.proc.poll() is not None:
+                cls._instance = cls()
+            return cls._instance
+
+
+class LiveProxy(_RerunChild):
+    """The live stream of ONE run: a ``rerun --serve-grpc`` message proxy on 127.0.0.1 that the
+    run's recording (``LiveRerun``) writes to and viewers read from, through the appliance's
+    gRPC-web read proxy. One per run, not one per appliance, because a rerun proxy replays
+    everything it still buffers to each new viewer: with one shared proxy a student opening the
+    live view would receive earlier runs of other students. Opening the next run's proxy stops
+    the previous one; the last stays up after its run ends, so its viewers keep their plots.
+    Buffer limit XRF_RERUN_MEMORY (default 256MiB: about 8 minutes of 100 Hz × 64 variables)."""
+
+    _current: LiveProxy | None = None
+    _lock = threading.Lock()
+
+    def __init__(self, run_id: int, owner: str) -> None:
+        self.run_id = run_id
+        self.owner = owner
+        self.port = _free_port(0)
+        super().__init__(
+            [
+                "--serve-grpc",
+                "--bind",
+                "127.0.0.1",
+                "--port",
+                str(self.port),
+                "--server-memory-limit",
+                os.environ.get("XRF_RERUN_MEMORY", "256MiB"),
+            ],
+            (self.port,),
+            "live proxy",
+        )
+        self.local_url = f"rerun+http://127.0.0.1:{self.port}/proxy"
+        self.read_url = f"http://127.0.0.1:{self.port}"  # where the appliance forwards gRPC-web reads
+
+    @classmethod
+    def open_for_run(cls, run_id: int, owner: str) -> LiveProxy:
+        with cls._lock:
+            if cls._current is not None:
+                cls._current.stop()
+                cls._current = None
+            cls._current = cls(run_id, owner)
+            return cls._current
+
+    @classmethod
+    def current(cls) -> LiveProxy | None:
+        proxy = cls._current
+        return proxy if proxy is not None and proxy.proc.poll() is None else None
+
+    @classmethod
+    def stop_all(cls) -> None:
+        with cls._lock:
+            if cls._current is not None:
+                cls._current.stop()
+                cls._current = None
+
+
+@atexit.register  # the appliance's normal exit (SIGTERM under systemd) ends them
+def stop_rerun_children() -> None:
+    """Stop the live proxy and the viewer's file server (also called by the app's shutdown)."""
+    LiveProxy.stop_all()
+    if RerunViewer._instance is not None:
+        RerunViewer._instance.stop()
