@@ -1,14 +1,18 @@
 """The hub's public API (no module reads its client set or patches its snapshot): snapshot
-sources in order, per-audience publishing with the ownership rule, closing one user's sockets."""
+sources in order, per-audience publishing with the ownership rule, closing one user's sockets;
+it takes messages.py models only and sends the fields their senders set."""
 
 from __future__ import annotations
 
 import asyncio
 import json
 
+import pytest
+
 from xrflab.server import ownership
 from xrflab.server.accounts import User
 from xrflab.server.hub import Client, Hub
+from xrflab.server.messages import AlarmMessage, BuildMessage, ErrorMessage, LeaseMessage, RunMessage, StateMessage
 
 ALICE = User(1, "alice", "student")
 BOB = User(2, "bob", "student")
@@ -28,8 +32,8 @@ def _queued(client: Client) -> list[dict[str, object]]:
 def _hub() -> tuple[Hub, dict[str, Client]]:
     hub = Hub()
     hub.may_see = ownership.may_see
-    hub.add_snapshot(lambda: [("run", {"event": "current", "run": None})])
-    hub.add_snapshot(lambda: [("lease", {"event": "current", "holder": None})])
+    hub.add_snapshot(lambda: [RunMessage(event="current", run=None, active=False)])
+    hub.add_snapshot(lambda: [LeaseMessage(event="current", holder=None, queue=[], idle_s=600, idle_left_s=None)])
     clients = {u.username: hub.new_client(None, u) for u in (ALICE, BOB, TEACH)}  # type: ignore[arg-type]
     return hub, clients
 
@@ -44,9 +48,9 @@ def test_publish_to_owner_and_to_educators() -> None:
     hub, clients = _hub()
     for c in clients.values():
         _queued(c)  # the snapshot
-    hub.publish_to_owner("build", {"build": "p", "line": "alice's compiler output"}, "alice")
-    hub.publish_to_educators("alarm", {"kind": "disk", "message": "for educators"})
-    hub.publish("alarm", {"kind": "room", "message": "for everyone"})
+    hub.publish_to_owner(BuildMessage(build="p", line="alice's compiler output"), "alice")
+    hub.publish_to_educators(AlarmMessage(kind="disk", message="for educators"))
+    hub.publish(AlarmMessage(kind="room", message="for everyone"))
     got = {name: [m.get("line") or m.get("message") for m in _queued(c)] for name, c in clients.items()}
     assert got == {
         "alice": ["alice's compiler output", "for everyone"],
@@ -60,3 +64,52 @@ def test_disconnect_user_closes_only_that_users_sockets() -> None:
     assert hub.disconnect_user(BOB.id, "your session ended") == 1
     assert clients["bob"].kicked.is_set() and clients["bob"].kick_reason == "your session ended"
     assert not clients["alice"].kicked.is_set() and not clients["teach"].kicked.is_set()
+
+
+def _texts(client: Client) -> list[str]:
+    q = client.queue
+
+    async def drain() -> list[str]:
+        return [await q.get() for _ in range(len(q))]
+
+    return asyncio.run(drain())
+
+
+def test_the_hub_refuses_anything_but_a_message_model() -> None:
+    hub, clients = _hub()
+    for c in clients.values():
+        _queued(c)  # the snapshot
+    heard: list[str] = []
+    hub.listeners.append(lambda kind, fields: heard.append(kind))
+    plain = {"type": "alarm", "kind": "room", "message": "a dict"}
+    with pytest.raises(TypeError, match="messages.py models"):
+        hub.publish(plain)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="messages.py models"):
+        hub.publish_to_owner(plain, "alice")  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="messages.py models"):
+        hub.publish_to_educators(plain)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="messages.py models"):
+        clients["alice"].reply(plain)  # type: ignore[arg-type]
+    hub.add_snapshot(lambda: [plain])  # type: ignore[list-item]
+    with pytest.raises(TypeError, match="messages.py models"):
+        hub.new_client(None, ALICE)  # type: ignore[arg-type]
+    assert heard == [] and all(_queued(c) == [] for c in clients.values())  # nothing went anywhere
+
+
+def test_a_message_carries_the_fields_its_sender_set() -> None:
+    """What app.js and the room's publisher read: a field left out is absent, one set to None is
+    null, `from_` is `from`, and `type` comes first, as the dicts the senders built before."""
+    hub, clients = _hub()
+    alice = clients["alice"]
+    _queued(alice)
+    hub.publish(
+        StateMessage(run_id=None, active=False, state=0, name="NO RUN", allowed=[], rejected=None, last_error=0)
+    )
+    hub.publish(AlarmMessage.model_validate({"kind": "room", "message": "m", "from": "teach"}))
+    alice.reply(ErrorMessage(error="malformed JSON"))
+    assert _texts(alice) == [
+        '{"type":"state","run_id":null,"active":false,"state":0,"name":"NO RUN","allowed":[],"rejected":null,'
+        '"last_error":0}',
+        '{"type":"alarm","kind":"room","message":"m","from":"teach"}',
+        '{"type":"error","error":"malformed JSON"}',
+    ]

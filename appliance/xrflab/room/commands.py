@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from ..server.messages import AlarmMessage
 from .publisher import BenchPublisher, Recent
 
 log = logging.getLogger(__name__)
@@ -94,9 +95,9 @@ class CommandHandler:
         if not text:
             return {"ok": False, "error": "empty message"}
         by = str(body.get("by", "")) or "the room"
-        self.app.state.supervisor.hub.publish(
-            "alarm", {"kind": "room", "message": f"From {by} (the room): {text}", "from": by}
-        )
+        # model_validate: the field's JSON name, "from", is a Python keyword (AlarmMessage.from_).
+        alarm = AlarmMessage.model_validate({"kind": "room", "message": f"From {by} (the room): {text}", "from": by})
+        self.app.state.supervisor.hub.publish(alarm)
         if self.publisher is not None:
             self.publisher.status["message"] = text
             self.publisher.status_changed()

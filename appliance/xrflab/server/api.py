@@ -362,10 +362,10 @@ async def _receive(ws: WebSocket, client: Client, sup: Supervisor) -> None:
             return
         text = message.get("text")
         if text is None:
-            client.reply("error", {"error": "binary frames are not accepted; send JSON text"})
+            client.reply(messages.ErrorMessage(error="binary frames are not accepted; send JSON text"))
             continue
         if len(text) > limit:
-            client.reply("error", {"error": f"frame of {len(text)} bytes is over the {limit} byte limit"})
+            client.reply(messages.ErrorMessage(error=f"frame of {len(text)} bytes is over the {limit} byte limit"))
             continue
         await _handle(text, client, sup)
 
@@ -376,18 +376,19 @@ async def _handle(text: str, client: Client, sup: Supervisor) -> None:
     try:
         msg = json.loads(text)
     except ValueError as exc:
-        client.reply("error", {"error": f"malformed JSON: {exc}"})
+        client.reply(messages.ErrorMessage(error=f"malformed JSON: {exc}"))
         return
     if not isinstance(msg, dict) or not isinstance(msg.get("type"), str):
-        client.reply("error", {"error": "a message is a JSON object with a string 'type'"})
+        client.reply(messages.ErrorMessage(error="a message is a JSON object with a string 'type'"))
         return
     kind = msg["type"]
     ref = msg.get("id")  # echoed so a client can match replies to requests
     perm = WS_PERMS.get(kind)
     if perm is None:
         client.reply(
-            "error",
-            {"id": ref, "request": kind, "error": f"unknown message type {kind!r}; types: {', '.join(WS_PERMS)}"},
+            messages.ErrorMessage(
+                id=ref, request=kind, error=f"unknown message type {kind!r}; types: {', '.join(WS_PERMS)}"
+            )
         )
         return
     try:
@@ -406,33 +407,32 @@ async def _handle(text: str, client: Client, sup: Supervisor) -> None:
             )
             _zero_setpoints_after_reset(sup, name, result.accepted)
             client.reply(
-                "ack",
-                {
-                    "id": ref,
-                    "cmd": cmd,
-                    "ticket": result.ticket,
-                    "accepted": result.accepted,
-                    "state": result.state,
-                    "name": result.state_name,
-                    "reason": result.reason,
-                },
+                messages.AckMessage(
+                    id=ref,
+                    cmd=cmd,
+                    ticket=result.ticket,
+                    accepted=result.accepted,
+                    state=result.state,
+                    name=result.state_name,
+                    reason=result.reason,
+                )
             )
         elif isinstance(incoming, messages.SetpointRequest):
             merged = sup.setpoint(dict(incoming.fields))
-            client.reply("ack", {"id": ref, "setpoint": merged})
+            client.reply(messages.AckMessage(id=ref, setpoint=merged))
         elif isinstance(incoming, messages.SubscribeRequest):
             client.topics = set(incoming.topics)
-            client.reply("ack", {"id": ref, "topics": sorted(client.topics)})
+            client.reply(messages.AckMessage(id=ref, topics=sorted(client.topics)))
         elif isinstance(incoming, messages.PingRequest):
-            client.reply("pong", {"id": ref, "t": incoming.t})
+            client.reply(messages.PongMessage(id=ref, t=incoming.t))
         else:
             raise ValueError(f"unknown message type {kind!r}; types: {', '.join(WS_PERMS)}")
     except WsDenied as exc:
-        client.reply("error", {"id": ref, "request": kind, "error": str(exc), "denied": True})
+        client.reply(messages.ErrorMessage(id=ref, request=kind, error=str(exc), denied=True))
         if exc.close:
             client.kick_reason = str(exc)
             client.kicked.set()
     except SupervisorError as exc:
-        client.reply("error", {"id": ref, "request": kind, "error": str(exc)})
+        client.reply(messages.ErrorMessage(id=ref, request=kind, error=str(exc)))
     except (ValueError, OverflowError, TypeError, struct.error, chmod.ChannelsError) as exc:
-        client.reply("error", {"id": ref, "request": kind, "error": str(exc)})
+        client.reply(messages.ErrorMessage(id=ref, request=kind, error=str(exc)))

@@ -89,7 +89,7 @@ class Security:
         lease = Lease(settings.lease_idle_s, hub.publish, auditmod.record)
         self.lease = lease
         bootstrap_admin(self.accounts)
-        hub.add_snapshot(lambda: [("lease", lease.payload())])
+        hub.add_snapshot(lambda: [lease.message()])
         from . import ownership
 
         ownership.attach(hub, supervisor)  # what each WebSocket client may see of the live run

@@ -13,9 +13,9 @@ import asyncio
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from .. import plants
+from .messages import BuildMessage
 from .run import SupervisorError
 from .settings import Settings
 
@@ -36,7 +36,7 @@ class BuildEntry:
 class BuildCatalog:
     """The projects that come with the appliance, built on first use in a worker thread."""
 
-    def __init__(self, settings: Settings, publish: Callable[[str, dict[str, Any]], None]) -> None:
+    def __init__(self, settings: Settings, publish: Callable[[BuildMessage], None]) -> None:
         self._settings = settings
         self._publish = publish
         self._entries: dict[str, BuildEntry] = {}
@@ -83,7 +83,7 @@ class BuildCatalog:
 
             def log(line: str) -> None:  # called from the build thread
                 entry.log_tail = (entry.log_tail + [line])[-200:]
-                loop.call_soon_threadsafe(self._publish, "build", {"build": name, "line": line})
+                loop.call_soon_threadsafe(self._publish, BuildMessage(build=name, line=line))
 
             def work() -> Path:
                 from .. import build
@@ -95,13 +95,13 @@ class BuildCatalog:
                 result = build.build_project(entry.path, build_dir, log=log)
                 return Path(result.executable)
 
-            self._publish("build", {"build": name, "status": "building"})
+            self._publish(BuildMessage(build=name, status="building"))
             try:
                 entry.executable = await asyncio.to_thread(work)
             except Exception as exc:  # BuildError and anything unexpected: the user sees why
                 entry.status, entry.error = "failed", str(exc).splitlines()[0] if str(exc) else repr(exc)
-                self._publish("build", {"build": name, "status": "failed", "error": entry.error})
+                self._publish(BuildMessage(build=name, status="failed", error=entry.error))
                 raise SupervisorError(f"build {name} failed: {entry.error}", 422) from exc
             entry.status = "ready"
-            self._publish("build", {"build": name, "status": "ready"})
+            self._publish(BuildMessage(build=name, status="ready"))
             return entry

@@ -12,6 +12,11 @@ losing telemetry continuously for `slow_client_s`, is disconnected.
 Not every message is everyone's: `Hub.scope` (ownership.scope, set by ownership.attach) names
 a message's owner and what other clients receive instead; the full text goes to clients whose
 user `Hub.may_see` the owner, the public one (encoded once too) to the rest.
+
+What the hub takes is typed: a model of messages.py (`ServerMessage`), never a dict, so a message
+is checked against the protocol where it is built and its sender's name is in the traceback. It
+is turned into its wire fields once (`unpack`: the fields the sender set, as JSON values), which
+the listeners, the scope rule and the encoder share.
 """
 
 from __future__ import annotations
@@ -26,9 +31,22 @@ from typing import Any, NamedTuple
 
 from starlette.websockets import WebSocket
 
-# Topics a client may subscribe to. `error` and `ack` replies go to the asking client only.
-TOPICS = frozenset({"state", "monitor", "telemetry", "timing", "alarm", "run", "build", "lease", "selfcheck", "ros"})
+from .messages import SERVER, TOPICS, ReplyMessage, ServerMessage
+
+__all__ = ["TOPICS", "Client", "ClientQueue", "Hub", "Scoped", "SlowClient", "encode", "unpack"]
+
 LOSSY = "telemetry"
+# `type` leads the encoded message (encode); the payload is everything else.
+_NOT_PAYLOAD = {"type"}
+
+
+def unpack(message: ServerMessage) -> tuple[str, dict[str, Any]]:
+    """(kind, fields) of a message model: the fields its sender set (exclude_unset: a field left
+    out stays absent, as the dicts the senders built before the models left it), JSON values,
+    `from_` as `from`. Refuses anything but a messages.py server model (TypeError)."""
+    if not isinstance(message, SERVER):
+        raise TypeError(f"the hub sends messages.py models (ServerMessage), not {type(message).__name__}")
+    return message.type, message.model_dump(mode="json", by_alias=True, exclude_unset=True, exclude=_NOT_PAYLOAD)
 
 
 def encode(message_type: str, payload: dict[str, Any]) -> str:
@@ -136,9 +154,10 @@ class Client:
             self.kick_reason = str(exc)
             self.kicked.set()
 
-    def reply(self, message_type: str, payload: dict[str, Any]) -> None:
+    def reply(self, message: ReplyMessage) -> None:
         """A message for this client only (errors, acks); never dropped as telemetry is."""
-        self.deliver(message_type, encode(message_type, payload))
+        kind, fields = unpack(message)
+        self.deliver(kind, encode(kind, fields))
 
     async def pump(self) -> None:
         """Sender task: the only place that awaits this client's socket."""
@@ -156,8 +175,9 @@ class Hub:
         self.published = 0
         # What a new client needs first (current run, state, lease, ROS bridge...): each part's
         # source adds itself with add_snapshot(), in the order the client receives them.
-        self._snapshots: list[Callable[[], Iterable[tuple[str, dict[str, Any]]]]] = []
-        # Called with every published message before the fan-out (the bench lease watches runs end).
+        self._snapshots: list[Callable[[], Iterable[ServerMessage]]] = []
+        # Called with every published message's (kind, payload) before the fan-out (the room's
+        # bench publisher: it hears what the dashboards hear).
         self.listeners: list[Callable[[str, dict[str, Any]], None]] = []
         # Per-client filtering (ownership.attach sets both): whose a message is, and whether a
         # client's user may see what that owner owns. The defaults let everyone see everything.
@@ -168,20 +188,21 @@ class Hub:
     def clients(self) -> int:
         return len(self._clients)
 
-    def add_snapshot(self, source: Callable[[], Iterable[tuple[str, dict[str, Any]]]]) -> None:
-        """`source()`: (type, payload) messages a client connecting now receives first; sources
-        are asked in the order they were added."""
+    def add_snapshot(self, source: Callable[[], Iterable[ServerMessage]]) -> None:
+        """`source()`: the messages a client connecting now receives first; sources are asked in
+        the order they were added."""
         self._snapshots.append(source)
 
-    def snapshot(self) -> list[tuple[str, dict[str, Any]]]:
+    def snapshot(self) -> list[ServerMessage]:
         return [message for source in self._snapshots for message in source()]
 
     def new_client(self, ws: WebSocket, user: Any = None) -> Client:
         """`user`: who is connecting (set before the snapshot, which is filtered as any message)."""
         client = Client(ws, ClientQueue(self._max_telemetry, self._max_total, self._slow_after_s))
         client.user = user
-        for message_type, payload in self.snapshot():
-            self._fan_out(message_type, payload, (client,), topics=False)
+        for message in self.snapshot():
+            kind, fields = unpack(message)
+            self._fan_out(kind, fields, (client,), topics=False)
         self._clients.add(client)
         return client
 
@@ -199,24 +220,26 @@ class Hub:
     def remove(self, client: Client) -> None:
         self._clients.discard(client)
 
-    def publish_to_owner(self, message_type: str, payload: dict[str, Any], owner: str | None) -> None:
+    def publish_to_owner(self, message: ServerMessage, owner: str | None) -> None:
         """A message only for `owner` (a username) and whoever may see what they own (educators);
         owner None: educators only. Nobody else receives anything in its place."""
-        self._publish(message_type, payload, Scoped(owner, None))
+        self._publish(message, Scoped(owner, None))
 
-    def publish_to_educators(self, message_type: str, payload: dict[str, Any]) -> None:
-        self._publish(message_type, payload, Scoped(None, None))
+    def publish_to_educators(self, message: ServerMessage) -> None:
+        self._publish(message, Scoped(None, None))
 
-    def publish(self, message_type: str, payload: dict[str, Any]) -> None:
+    def publish(self, message: ServerMessage) -> None:
         """Fan a message out to every subscribed client, each getting what `scope` lets them see
         (ownership.scope: the owner's part of a run to its owner and educators, the public part to
-        the rest). Never blocks, never raises per client."""
-        self._publish(message_type, payload, None)
+        the rest). Never blocks, never raises per client; raises TypeError for anything but a
+        messages.py server model."""
+        self._publish(message, None)
 
-    def _publish(self, message_type: str, payload: dict[str, Any], audience: Scoped | None) -> None:
+    def _publish(self, message: ServerMessage, audience: Scoped | None) -> None:
+        kind, fields = unpack(message)  # checked and dumped even with nobody listening: one rule
         for listener in self.listeners:
             try:
-                listener(message_type, payload)
+                listener(kind, fields)
             except Exception:  # a listener's bug must not stop the fan-out
                 import logging
 
@@ -224,7 +247,7 @@ class Hub:
         if not self._clients:
             return
         self.published += 1
-        self._fan_out(message_type, payload, tuple(self._clients), audience=audience)
+        self._fan_out(kind, fields, tuple(self._clients), audience=audience)
 
     def _scope(self, message_type: str, payload: dict[str, Any]) -> Scoped | None:
         try:

@@ -26,6 +26,7 @@ from ..logs import live as loglive
 from .catalog import BuildEntry
 from .guest_spawn import GuestReport, GuestSpawner
 from .hub import Hub
+from .messages import AlarmMessage
 from .run import Run, SupervisorError
 from .run_control import terminate
 from .runs import RunRow, RunStore
@@ -129,13 +130,12 @@ async def spawn(
 
 def announce_refused(refused: StartRefused, hub: Hub) -> None:
     hub.publish(
-        "alarm",
-        {
-            "kind": "confinement",
-            "run_id": refused.row.id,
-            "message": refused.report.error,
-            "missing": refused.report.missing,
-        },
+        AlarmMessage(
+            kind="confinement",
+            run_id=refused.row.id,
+            message=refused.report.error,
+            missing=refused.report.missing,
+        )
     )
 
 
@@ -146,13 +146,12 @@ def announce_unconfined(run: Run, hub: Hub) -> None:
     if report is None or not report.missing:
         return
     hub.publish(
-        "alarm",
-        {
-            "kind": "confinement",
-            "run_id": run.row.id,
-            "missing": report.missing,
-            "message": "the controller runs WITHOUT: " + "; ".join(f"{k} ({v})" for k, v in report.missing.items()),
-        },
+        AlarmMessage(
+            kind="confinement",
+            run_id=run.row.id,
+            missing=report.missing,
+            message="the controller runs WITHOUT: " + "; ".join(f"{k} ({v})" for k, v in report.missing.items()),
+        )
     )
 
 

@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 from .accounts import User
 from .lifecycle import RunObserver
+from .messages import LeaseMessage
 
 if TYPE_CHECKING:
     from .runs import RunRow
@@ -57,7 +58,7 @@ class Lease(RunObserver):
     def __init__(
         self,
         idle_s: float,
-        publish: Callable[[str, dict[str, Any]], None],
+        publish: Callable[[LeaseMessage], None],
         record: Callable[[User | None, str, dict[str, Any]], None],
     ) -> None:
         self.idle_s = idle_s
@@ -85,6 +86,10 @@ class Lease(RunObserver):
             "idle_left_s": idle_left,
             **extra,
         }
+
+    def message(self, event: str = "current", **extra: Any) -> LeaseMessage:
+        """The `lease` WebSocket message: `payload`, checked against messages.LeaseMessage."""
+        return LeaseMessage.model_validate(self.payload(event, **extra))
 
     # -- changes ----------------------------------------------------------------------------------
 
@@ -201,5 +206,5 @@ class Lease(RunObserver):
         """Publish and audit a change; `by` in the message is who did it (None: the appliance)."""
         extra.pop("holder_user", None)
         payload = self.payload(event, by=_who(actor), **extra)
-        self._publish("lease", payload)
+        self._publish(LeaseMessage.model_validate(payload))
         self._record(actor, f"lease.{event}", {k: v for k, v in payload.items() if k not in ("idle_s", "idle_left_s")})

@@ -6,13 +6,20 @@ lists (frontend/app.js); the /ws handler parses every incoming message with thes
 tests/server/test_ws_schema.py checks that every message a realistic session sends matches.
 
 Every message is a JSON object whose ``type`` names its kind. Server -> browser kinds are topics
-(a client may ``subscribe`` to some of them: ``hub.TOPICS``) except ``ack``, ``pong`` and
+(a client may ``subscribe`` to some of them: ``TOPICS``) except ``ack``, ``pong`` and
 ``error``, which go to the asking client only. Adding a kind: a model here (with its ``type``
 Literal), listed in ``SERVER`` or ``CLIENT``; a client kind also gets its permission in
 ``api.WS_PERMS``. docs/developers/architecture.md ("WebSocket messages") has the walk-through.
 
+Senders build the model (``StateMessage(run_id=..., ...)``; an outgoing model's ``type`` has its
+kind as default, and stays required in the published schema) and hand it to the hub, which takes
+nothing else (``ServerMessage``, ``ReplyMessage``). The model is validated when it is built, so a
+sender whose message does not fit fails there, with the field named, and never reaches a browser.
+On the wire a message has the fields its sender set, nothing else: a field left out is absent (not
+null), as app.js and the room's bench publisher read them (``hub.unpack``: exclude_unset).
+
 Outgoing models forbid fields they do not declare, so a sender that grows a field without
-saying so here fails the schema test instead of drifting silently. Incoming models accept extra
+saying so here fails at once instead of drifting silently. Incoming models accept extra
 fields (a client may tag a request with its own data; ``id`` is echoed back).
 """
 
@@ -34,11 +41,24 @@ from pydantic import (
     model_validator,
 )
 
-from .hub import TOPICS
+# Topics a client may subscribe to (the hub's per-client filter). `error`, `ack` and `pong` replies
+# go to the asking client only.
+TOPICS = frozenset({"state", "monitor", "telemetry", "timing", "alarm", "run", "build", "lease", "selfcheck", "ros"})
+
+
+def _type_required(schema: dict[str, Any]) -> None:
+    """An outgoing model's `type` has a default (its kind: senders need not spell it) but every
+    message carries it: the published schema says it is required, as it did before the default."""
+    kind = schema.get("properties", {}).get("type")
+    if kind is None:
+        return
+    kind.pop("default", None)
+    if "type" not in schema.setdefault("required", []):
+        schema["required"].insert(0, "type")
 
 
 class _Out(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_type_required)
 
 
 class _In(BaseModel):
@@ -60,7 +80,7 @@ class Rejected(_Out):
 class StateMessage(_Out):
     """The loop's state, whenever the state, a rejection or liveness changes."""
 
-    type: Literal["state"]
+    type: Literal["state"] = "state"
     run_id: int | None
     active: bool = Field(description="the loop cycles; false: no run, or the run ended")
     state: int = Field(description="state number (GET /api/state-machine), 0 without a run")
@@ -88,7 +108,7 @@ class Confinement(_Out):
 class RunMessage(_Out):
     """A run started or ended, or the current one (a new client's first message)."""
 
-    type: Literal["run"]
+    type: Literal["run"] = "run"
     event: Literal["current", "started", "ended"]
     run: dict[str, Any] | None = Field(
         description="the run record (RunRecord in /openapi.json); null before the first run"
@@ -108,7 +128,7 @@ class RunMessage(_Out):
 class TelemetryMessage(_Out):
     """One decimated sample (telemetry_hz); the only topic a slow client loses (oldest first)."""
 
-    type: Literal["telemetry"]
+    type: Literal["telemetry"] = "telemetry"
     run_id: int
     cycle: int
     t_ns: int
@@ -140,7 +160,7 @@ class Histogram(_Out):
 class TimingMessage(_Out):
     """Once per timing period (1 s): cycles, misses, per-stage summaries and histograms."""
 
-    type: Literal["timing"]
+    type: Literal["timing"] = "timing"
     run_id: int
     cycles: int
     misses: int
@@ -162,7 +182,7 @@ class MonitorLine(_Out):
 class MonitorMessage(_Out):
     """Console lines: the loop's monitor ring, its stdout/stderr, the appliance's notes."""
 
-    type: Literal["monitor"]
+    type: Literal["monitor"] = "monitor"
     run_id: int
     source: Literal["monitor", "stdout", "appliance"]
     lines: list[MonitorLine]
@@ -172,7 +192,7 @@ class MonitorMessage(_Out):
 class AlarmMessage(_Out):
     """Something someone must see: the dashboard's alarm bar (or its confinement banner)."""
 
-    type: Literal["alarm"]
+    type: Literal["alarm"] = "alarm"
     kind: Literal["crash", "hang", "deadline_miss", "confinement", "disk", "log", "room"]
     message: str
     run_id: int | None = None
@@ -193,7 +213,7 @@ class AlarmMessage(_Out):
 class BuildMessage(_Out):
     """A build's progress: a bundled example's (`build`) or an uploaded project's (`build_id`)."""
 
-    type: Literal["build"]
+    type: Literal["build"] = "build"
     build: str | None = Field(default=None, description="a bundled build's name")
     build_id: int | None = Field(default=None, description="a project build's id")
     project_id: int | None = None
@@ -219,7 +239,7 @@ class LeaseHolder(Who):
 class LeaseMessage(_Out):
     """Who holds the bench and who queues for it (lease.py)."""
 
-    type: Literal["lease"]
+    type: Literal["lease"] = "lease"
     event: str = Field(description="current | take | takeover | released | handover | queue | unqueue (lease.py)")
     holder: LeaseHolder | None
     queue: list[Who]
@@ -235,9 +255,9 @@ class SelfcheckMessage(BaseModel):
     checker's own events (xrflab/selfcheck.py, their fields are the checker's), `report` or
     `error` last."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = ConfigDict(extra="allow", json_schema_extra=_type_required)
 
-    type: Literal["selfcheck"]
+    type: Literal["selfcheck"] = "selfcheck"
     check: int
     event: str = Field(description="begin | start | progress | step | end | error | report")
 
@@ -245,7 +265,7 @@ class SelfcheckMessage(BaseModel):
 class RosMessage(_Out):
     """The ROS 2 bridge of the current run (ros_supervisor.py)."""
 
-    type: Literal["ros"]
+    type: Literal["ros"] = "ros"
     enabled: bool
     state: Literal["running", "stopped", "failed"]
     pid: int | None
@@ -263,7 +283,7 @@ class RosMessage(_Out):
 class AckMessage(_Out):
     """To the asking client: a command's outcome, the setpoint applied, the topics subscribed."""
 
-    type: Literal["ack"]
+    type: Literal["ack"] = "ack"
     id: Any = None
     cmd: str | int | None = None
     ticket: int | None = None
@@ -276,7 +296,7 @@ class AckMessage(_Out):
 
 
 class PongMessage(_Out):
-    type: Literal["pong"]
+    type: Literal["pong"] = "pong"
     id: Any = None
     t: Any = Field(default=None, description="the ping's t, echoed")
 
@@ -284,7 +304,7 @@ class PongMessage(_Out):
 class ErrorMessage(_Out):
     """To the asking client: why its message was refused; the connection carries on."""
 
-    type: Literal["error"]
+    type: Literal["error"] = "error"
     error: str
     id: Any = None
     request: str | None = Field(default=None, description="the refused message's type")
@@ -306,6 +326,25 @@ SERVER: tuple[type[BaseModel], ...] = (
     PongMessage,
     ErrorMessage,
 )
+# What the hub takes (hub.publish, publish_to_owner, publish_to_educators, a snapshot source's
+# messages): a model of SERVER, never a dict (the hub checks it at run time too).
+ServerMessage = (
+    StateMessage
+    | RunMessage
+    | TelemetryMessage
+    | TimingMessage
+    | MonitorMessage
+    | AlarmMessage
+    | BuildMessage
+    | LeaseMessage
+    | SelfcheckMessage
+    | RosMessage
+    | AckMessage
+    | PongMessage
+    | ErrorMessage
+)
+# What goes to the asking client only (hub.Client.reply).
+ReplyMessage = AckMessage | PongMessage | ErrorMessage
 
 
 # ---- browser -> server --------------------------------------------------------------------------

@@ -28,6 +28,7 @@ from .. import channels as chmod
 from ..channels import Channels, ChannelsError
 from ..logs import live as loglive
 from .hub import Hub
+from .messages import AlarmMessage, RunMessage
 from .run import remove_shm
 from .runs import RunRow, RunStore
 from .settings import Settings
@@ -175,8 +176,5 @@ async def recover(row: RunRow, settings: Settings, store: RunStore) -> RunRow:
 
 def announce(row: RunRow, hub: Hub) -> None:
     """Tell the browsers a recovered run ended (after the run observers heard it)."""
-    hub.publish(
-        "alarm",
-        {"kind": "crash", "end_reason": "appliance_restart", "run_id": row.id, "message": row.message},
-    )
-    hub.publish("run", {"event": "ended", "run": row.as_dict(), "active": False})
+    hub.publish(AlarmMessage(kind="crash", end_reason="appliance_restart", run_id=row.id, message=row.message))
+    hub.publish(RunMessage(event="ended", run=row.as_dict(), active=False))

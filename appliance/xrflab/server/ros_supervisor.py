@@ -40,6 +40,7 @@ from .. import channels as chmod
 from . import audit
 from .children import Child, spawn
 from .lifecycle import RunObserver
+from .messages import RosMessage, ServerMessage
 
 log = logging.getLogger("xrflab.ros_supervisor")
 
@@ -333,11 +334,15 @@ class RosBridgeSupervisor(RunObserver):
             "configured_user": self.settings.ros_bridge_user,
         }
 
-    def _publish(self) -> None:
-        self.hub.publish("ros", self.status())
+    def message(self) -> RosMessage:
+        """`status`, as the `ros` WebSocket message (messages.RosMessage)."""
+        return RosMessage.model_validate(self.status())
 
-    def snapshot(self) -> list[tuple[str, dict[str, Any]]]:
-        return [("ros", self.status())]
+    def _publish(self) -> None:
+        self.hub.publish(self.message())
+
+    def snapshot(self) -> list[ServerMessage]:
+        return [self.message()]
 
     # -- the gate -----------------------------------------------------------------------------
 

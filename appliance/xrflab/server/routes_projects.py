@@ -36,6 +36,7 @@ from . import auth as authmod
 from . import ownership
 from .auth import Perm, requires
 from .body_limit import spool_to_file
+from .messages import BuildMessage
 from .plant_field import PlantName
 
 router = APIRouter(prefix="/api", tags=["projects"])
@@ -63,10 +64,11 @@ class ProjectsService:
 
         # Build messages carry their project's `owner`: the hub gives them to the owner's (and
         # educators') WebSockets only (ownership.scope): one student's compiler output is nobody
-        # else's business.
+        # else's business. The builder names the kind (always `build`); the model checks it.
         def publish(kind: str, payload: dict[str, Any]) -> None:
+            message = BuildMessage.model_validate({**payload, "type": kind})
             try:
-                loop.call_soon_threadsafe(hub.publish, kind, payload)
+                loop.call_soon_threadsafe(hub.publish, message)
             except RuntimeError:  # loop closed: the appliance is stopping
                 pass
 

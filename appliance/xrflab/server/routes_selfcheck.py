@@ -42,6 +42,7 @@ from .. import profiles as profmod
 from .. import selfcheck as scmod
 from . import audit
 from .auth import Perm, User, client_address, current_user, requires
+from .messages import SelfcheckMessage
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +126,9 @@ class SelfCheckService:
         return self.app.state.supervisor
 
     def publish(self, payload: dict[str, Any]) -> None:
-        self.supervisor.hub.publish("selfcheck", payload)
+        """A self-check event to the dashboards: its fields are the checker's own (SelfcheckMessage
+        keeps what it does not declare)."""
+        self.supervisor.hub.publish(SelfcheckMessage.model_validate(payload))
 
     # -- the bench ------------------------------------------------------------------------------
 

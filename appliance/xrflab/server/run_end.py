@@ -25,8 +25,9 @@ from .. import channels as chmod
 from ..channels import ChannelsError
 from .hub import Hub
 from .lifecycle import RunLifecycle
+from .messages import AlarmMessage
 from .run import Run, remove_shm
-from .run_messages import run_payload, state_payload
+from .run_messages import ended
 from .runs import END_REASONS, RunStore
 from .settings import Settings
 
@@ -135,26 +136,25 @@ def announce(run: Run, ending: Ending, hub: Hub) -> None:
     ended, and let go of what it held."""
     if ending.crashed:
         hub.publish(
-            "alarm",
-            {
-                "kind": "hang" if run.hang else "crash",
-                "end_reason": ending.end_reason,
-                "run_id": run.row.id,
-                "message": run.row.message,
-                "exit_code": ending.exit_code,
-                "exit_signal": ending.exit_signal,
-                "safe_state": run.safe_state,
+            AlarmMessage(
+                kind="hang" if run.hang else "crash",
+                end_reason=ending.end_reason,
+                run_id=run.row.id,
+                message=run.row.message,
+                exit_code=ending.exit_code,
+                exit_signal=ending.exit_signal,
+                safe_state=run.safe_state,
                 # From the safety watcher (CLOCK_MONOTONIC ns): when it saw the exit or hang and
                 # when the outputs were safe; 0 where no watcher ran.
-                "event_ns": run.watch.event_ns if run.watch else 0,
-                "safe_ns": run.watch.safe_ns if run.watch else 0,
-                "heartbeat_ns": run.watch.heartbeat_ns if run.watch else 0,  # the loop's last cycle start
-                "watcher_rt": bool(run.watch and run.watch.rt_status == 0),
-            },
+                event_ns=run.watch.event_ns if run.watch else 0,
+                safe_ns=run.watch.safe_ns if run.watch else 0,
+                heartbeat_ns=run.watch.heartbeat_ns if run.watch else 0,  # the loop's last cycle start
+                watcher_rt=bool(run.watch and run.watch.rt_status == 0),
+            )
         )
     run.ended.set()
-    hub.publish("run", run_payload(run, None, "ended") | {"active": False})
-    hub.publish("state", state_payload(run) | {"active": False, "allowed": []})
+    for message in ended(run):
+        hub.publish(message)
     # Let go of the run's tasks and log writer now: a cancelled task's traceback holds its
     # frames, whose locals hold the run's 10 MB mapping; left to the cyclic GC, a lab day of
     # crashes kept dozens of them (and their descriptors) alive.

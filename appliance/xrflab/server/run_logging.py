@@ -13,10 +13,11 @@ import asyncio
 import logging
 import os
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from ..logs import live
 from .lifecycle import RunObserver
+from .messages import AlarmMessage, MonitorLine, MonitorMessage, ServerMessage
 from .runs import RunStore
 
 if TYPE_CHECKING:
@@ -28,7 +29,7 @@ log = logging.getLogger("xrflab.logs")
 class HostLogging(RunObserver):
     name = "host logging"
 
-    def __init__(self, publish: Callable[[str, dict[str, Any]], None], store: RunStore) -> None:
+    def __init__(self, publish: Callable[[ServerMessage], None], store: RunStore) -> None:
         self._publish = publish
         self._store = store
 
@@ -43,15 +44,15 @@ class HostLogging(RunObserver):
         def console(text: str) -> None:  # called from the writer thread
             try:
                 loop.call_soon_threadsafe(
-                    publish, "monitor", {"run_id": row.id, "source": "appliance", "lines": [{"text": text}]}
+                    publish, MonitorMessage(run_id=row.id, source="appliance", lines=[MonitorLine(text=text)])
                 )
             except RuntimeError:  # event loop closed (shutdown)
                 pass
 
         def alarm(message: str) -> None:  # called from the writer thread
             def on_loop() -> None:
-                publish("alarm", {"kind": "log", "run_id": row.id, "message": message})
-                publish("monitor", {"run_id": row.id, "source": "appliance", "lines": [{"text": message}]})
+                publish(AlarmMessage(kind="log", run_id=row.id, message=message))
+                publish(MonitorMessage(run_id=row.id, source="appliance", lines=[MonitorLine(text=message)]))
                 try:
                     store.update(row.id, log_note=message)
                 except Exception:  # the database may sit on the same full disk

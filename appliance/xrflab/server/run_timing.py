@@ -13,6 +13,7 @@ import asyncio
 
 from ..channels import ChannelsError
 from .hub import Hub
+from .messages import AlarmMessage, Histogram, StageSummary, TimingMessage
 from .run import Run
 
 
@@ -27,42 +28,40 @@ async def timing(run: Run, period_s: float, hub: Hub) -> None:
         except ChannelsError:
             continue
         stages = {
-            name: {
-                "count": h.count,
-                "min": h.min,
-                "max": h.max,
-                "mean": h.mean,
-                "p50": h.percentile(50),
-                "p99": h.percentile(99),
-            }
+            name: StageSummary(
+                count=h.count,
+                min=h.min,
+                max=h.max,
+                mean=h.mean,
+                p50=h.percentile(50),
+                p99=h.percentile(99),
+            )
             for name, h in hists.items()
         }
         wake = hists.get("wakeup")
         hub.publish(
-            "timing",
-            {
-                "run_id": run.row.id,
-                "cycles": s.cycles,
-                "misses": s.missed,
-                "cycle_freq": ch.info["cycle_freq"],
-                "stages": stages,
-                "jitter": {"edges": wake.edges, "counts": wake.counts} if wake else {"edges": [], "counts": []},
+            TimingMessage(
+                run_id=run.row.id,
+                cycles=s.cycles,
+                misses=s.missed,
+                cycle_freq=ch.info["cycle_freq"],
+                stages=stages,
+                jitter=Histogram(edges=wake.edges, counts=wake.counts) if wake else Histogram(edges=[], counts=[]),
                 # every stage's histogram (non-empty buckets: lower edge ns, count), for tools
-                "histograms": {name: {"edges": h.edges, "counts": h.counts} for name, h in hists.items()},
-                "telemetry_sent": run.telemetry_sent,
-                "log_lost": s.log_lost,
-                "host_lost": s.host_lost,
-            },
+                histograms={name: Histogram(edges=h.edges, counts=h.counts) for name, h in hists.items()},
+                telemetry_sent=run.telemetry_sent,
+                log_lost=s.log_lost,
+                host_lost=s.host_lost,
+            )
         )
         if s.missed > run.last_missed:
             hub.publish(
-                "alarm",
-                {
-                    "kind": "deadline_miss",
-                    "run_id": run.row.id,
-                    "misses": s.missed,
-                    "new": s.missed - run.last_missed,
-                    "message": f"{s.missed - run.last_missed} deadline miss(es) in the last second ({s.missed} in total)",
-                },
+                AlarmMessage(
+                    kind="deadline_miss",
+                    run_id=run.row.id,
+                    misses=s.missed,
+                    new=s.missed - run.last_missed,
+                    message=f"{s.missed - run.last_missed} deadline miss(es) in the last second ({s.missed} in total)",
+                )
             )
             run.last_missed = s.missed

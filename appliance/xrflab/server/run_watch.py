@@ -26,6 +26,7 @@ from pathlib import Path
 
 from ..channels import ChannelsError
 from .hub import Hub
+from .messages import AlarmMessage
 from .run import Run
 from .run_control import terminate
 from .runs import RunStore
@@ -179,7 +180,7 @@ async def disk_guard(run: Run, limit: int, settings: Settings, store: RunStore, 
         if used > limit and run.alive:
             message = f"the run folder holds {used >> 20} MB, over the limit of {limit >> 20} MB: run stopped"
             run.row = store.update(run.row.id, message=message)
-            hub.publish("alarm", {"kind": "disk", "run_id": run.row.id, "message": message})
+            hub.publish(AlarmMessage(kind="disk", run_id=run.row.id, message=message))
             run.stop_requested = True
             run.end_reason = "disk"
             await terminate(run, settings)

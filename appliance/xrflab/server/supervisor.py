@@ -39,8 +39,9 @@ from .catalog import BuildCatalog, BuildEntry
 from .guest_spawn import GuestSpawner
 from .hub import Hub
 from .lifecycle import RunLifecycle
+from .messages import RunMessage, ServerMessage, StateMessage
 from .run import Run, SupervisorError, remove_shm
-from .run_messages import refresh_state, run_payload, schema_fields, state_payload
+from .run_messages import RunEvent, refresh_state, run_message, schema_fields, state_message
 from .run_timing import timing
 from .runs import RunRow, RunStore
 from .settings import Settings
@@ -97,14 +98,20 @@ class Supervisor:
             "telemetry_hz": self.settings.telemetry_hz,
         }
 
-    def run_payload(self, run: Run | None = None, event: str = "current") -> dict[str, Any]:
-        return run_payload(run or self.current, self.last_row, event)
+    def run_message(self, run: Run | None = None, event: RunEvent = "current") -> RunMessage:
+        return run_message(run or self.current, self.last_row, event)
 
-    def state_payload(self, run: Run | None = None) -> dict[str, Any]:
-        return state_payload(run or self.current)
+    def state_message(self, run: Run | None = None) -> StateMessage:
+        return state_message(run or self.current)
 
-    def snapshot(self) -> list[tuple[str, dict[str, Any]]]:
-        return [("run", self.run_payload()), ("state", self.state_payload())]
+    def state_payload(self) -> dict[str, Any]:
+        """The current `state` message's fields as a dict, for code that is not a browser (the
+        room's bench facts)."""
+        return self.state_message().model_dump(exclude_unset=True, exclude={"type"})
+
+    def snapshot(self) -> list[ServerMessage]:
+        """What a new WebSocket client receives first (hub.add_snapshot): the run, its state."""
+        return [self.run_message(), self.state_message()]
 
     # -- starting -----------------------------------------------------------------------------
 
@@ -155,7 +162,7 @@ class Supervisor:
             self.lifecycle.started(run)  # host logging first: the log writer starts draining now
             self._start_tasks(run)
             refresh_state(run, self.hub)
-            self.hub.publish("run", self.run_payload(run, "started"))
+            self.hub.publish(self.run_message(run, "started"))
             return run.row
 
     def _start_tasks(self, run: Run) -> None:
