@@ -14,8 +14,10 @@ from pathlib import Path
 
 import pytest
 
+from xrflab import plants
 from xrflab import profiles as prof
 from xrflab.profile_flat import flat_form
+from xrflab.profiles import load_profile
 from xrflab.selfcheck import (
     BenchBusy,
     Report,
@@ -505,3 +507,32 @@ def test_edited_profile_overrides_default(checker_exe, tmp_path):
     assert prof.load_profile("jiwy", tmp_path)["title"] != "Jiwy, bench 3"
     with pytest.raises(prof.ProfileError, match="no bench profile named 'nope'"):
         prof.load_profile("nope", tmp_path)
+
+
+@pytest.mark.parametrize("plant", plants.names())
+def test_the_tool_alone_checks_the_plant_its_profile_names(checker_exe, plant):
+    """`xrf-selfcheck` run by hand without --sim: a profile named after a plant of the table checks
+    that plant's simulated board (the tool once knew only "jiwy, else relbot")."""
+    proc = subprocess.run(
+        [str(checker_exe), "--transport", "sim", "--profile", "-"],
+        input=flat_form(load_profile(plant)),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    start = json.loads(proc.stdout.splitlines()[0])
+    assert start["event"] == "start" and start["sim"] == plant, proc.stdout[:500] + proc.stderr
+
+
+def test_an_unknown_simulated_robot_names_the_table(checker_exe):
+    proc = subprocess.run(
+        [str(checker_exe), "--transport", "sim", "--sim", "youbot", "--profile", "-"],
+        input=flat_form(load_profile("relbot")),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode != 0
+    assert "unknown simulated robot 'youbot'" in proc.stdout + proc.stderr
+    for name in plants.names():
+        assert name in proc.stdout + proc.stderr

@@ -4,7 +4,7 @@
  * {"event":"end",...}. Exit code: 0 every step passed (warnings allowed), 1 some step failed,
  * 2 the check could not run (bad arguments or profile) or was aborted.
  *
- *   xrf-selfcheck [--transport sim|spidev|evl-spidev] [--sim relbot|jiwy] [--faults SPEC]
+ *   xrf-selfcheck [--transport sim|spidev|evl-spidev] [--sim PLANT] [--faults SPEC]
  *                 [--device /dev/spidev0.0] [--speed HZ] [--profile FLAT|-]
  *                 [--profile-file PATH] [--sim-outputs-shm NAME] [--dump-profile]
  *
@@ -29,6 +29,7 @@
 #include <unistd.h>
 
 #include "xrf/channels.h"
+#include "xrf/plants.h"
 #include "selfcheck.h"
 
 static volatile sig_atomic_t stop_flag;
@@ -41,7 +42,7 @@ static void on_signal(int sig)
 
 static void usage(FILE *f)
 {
-    fprintf(f, "usage: xrf-selfcheck [--transport sim|spidev|evl-spidev] [--sim relbot|jiwy]\n"
+    fprintf(f, "usage: xrf-selfcheck [--transport sim|spidev|evl-spidev] [--sim PLANT]\n"
                "                     [--faults SPEC] [--device PATH] [--speed HZ]\n"
                "                     [--profile FLAT|-] [--profile-file PATH]\n"
                "                     [--sim-outputs-shm NAME] [--dump-profile]\n"
@@ -189,8 +190,10 @@ int main(int argc, char **argv)
         xrf_selfcheck_profile_dump(stdout, &prof);
         return 0;
     }
+    /* A profile named after a plant of the table checks that plant's simulated board (relbot,
+     * jiwy, stage, ...); an edited profile with a name of its own gets the RELbot's. */
     if (!sim)
-        sim = strcmp(prof.name, "jiwy") == 0 ? "jiwy" : "relbot";
+        sim = xrf_plant_id(prof.name) > 0 ? prof.name : "relbot";
 
     struct xrf_shm *shm = NULL;
     if (shm_name) {

@@ -20,6 +20,7 @@
 #include <unistd.h>
 
 #include "selfcheck.h"
+#include "xrf/plants.h"
 #include "xrf/sim.h"
 
 /* ---- small helpers ------------------------------------------------------------------------- */
@@ -159,7 +160,10 @@ int xrf_selfcheck_open(const struct xrf_selfcheck_target *tg, struct xrf_ico_tra
         int robot = xrf_sim_robot_from_name(tg->sim ? tg->sim : "relbot");
         if (robot < 0) {
             r->status = XRF_SC_FAIL;
-            SETF(r->message, "unknown simulated robot '%s' (use relbot or jiwy)", tg->sim);
+            char names[128];
+            xrf_plant_names(names, sizeof names);
+            SETF(r->message, "unknown simulated robot '%s' (the plant table has: %s)", tg->sim,
+                 names);
             return -EINVAL;
         }
         if (xrf_sim_parse_faults(tg->faults, &f) != 0) {
