@@ -33,6 +33,16 @@ PREFIX_SIZE: int = lib.XRF_LOGFILE_PREFIX_SIZE
 ALIGN: int = lib.XRF_LOGFILE_ALIGN
 HEADER_MAX: int = lib.XRF_LOGFILE_HEADER_MAX
 
+# Every record starts with the ring slot's header (channels.h struct xrf_slot_hdr: seq, cycle,
+# t_ns), written as it is in memory: its fields, offsets and size come from the struct itself.
+_SLOT_HDR = ffi.typeof("struct xrf_slot_hdr")
+RECORD_HEADER_SIZE: int = ffi.sizeof(_SLOT_HDR)
+# (name, little-endian NumPy type, offset) per field
+RECORD_HEADER: tuple[tuple[str, str, int], ...] = tuple(
+    (name, f"<{'i' if field.type.cname.startswith('int') else 'u'}{ffi.sizeof(field.type)}", field.offset)
+    for name, field in _SLOT_HDR.fields
+)
+
 
 @dataclass(frozen=True)
 class VarType:

@@ -21,11 +21,19 @@ from typing import Any
 import numpy as np
 
 # The format's magic, prefix layout and type table: rt_core's logformat.h, through cffi.
-from .logformat import ALIGN, FORMAT_VERSION, JSON_LEN_OFFSET, MAGIC, PREFIX_SIZE, STRIDE_OFFSET, VAR_TYPES
+# seq, cycle, t_ns: the record header (channels.h struct xrf_slot_hdr) likewise.
+from .logformat import (
+    ALIGN,
+    FORMAT_VERSION,
+    JSON_LEN_OFFSET,
+    MAGIC,
+    PREFIX_SIZE,
+    RECORD_HEADER,
+    RECORD_HEADER_SIZE,
+    STRIDE_OFFSET,
+    VAR_TYPES,
+)
 
-# seq, cycle, t_ns: the 24-byte record header every xrflog record starts with.
-RECORD_HEADER = (("seq", "<u8"), ("cycle", "<u8"), ("t_ns", "<i8"))
-RECORD_HEADER_SIZE = 24
 # The derived column the tabular formats add after t_ns (logs/convert.py: seconds from the run's
 # start); reserved like the header's names so a variable called t_s becomes t_s_2, not a clash.
 SECONDS_COLUMN = "t_s"
@@ -145,7 +153,7 @@ class LogFile:
     def records(self) -> np.ndarray:
         """All segments' records as one array (a view when there is a single undamaged run)."""
         if not self.segments:
-            return np.empty(0, dtype=np.dtype(list(RECORD_HEADER)))
+            return np.empty(0, dtype=np.dtype([(n, f) for n, f, _ in RECORD_HEADER]))
         if len(self.segments) == 1:
             return self.segments[0].records
         dtypes = {s.records.dtype for s in self.segments}
@@ -243,10 +251,10 @@ def record_dtype(variables: tuple[Variable, ...], stride: int, header: bool = Tr
     offsets: list[int] = []
     base = 0
     if header:
-        for i, (n, f) in enumerate(RECORD_HEADER):
+        for n, f, offset in RECORD_HEADER:
             names.append(n)
             formats.append(f)
-            offsets.append(8 * i)
+            offsets.append(offset)
         base = RECORD_HEADER_SIZE
     for v in variables:
         names.append(v.field)
@@ -303,7 +311,7 @@ def _parse_segment_header(path: Path, m: _Mapped, pos: int) -> tuple[dict[str, A
         record_size = int(header["record_size"])
     except (KeyError, TypeError, ValueError) as exc:
         raise LogFormatError(f"{path}: segment at offset {pos}: header lacks variables/record_size ({exc})") from None
-    variables = make_variables(path, names, codes, offsets, tuple(n for n, _ in RECORD_HEADER) + (SECONDS_COLUMN,))
+    variables = make_variables(path, names, codes, offsets, tuple(n for n, _, _ in RECORD_HEADER) + (SECONDS_COLUMN,))
     end = max((v.offset + v.dtype.itemsize for v in variables), default=0)
     if end > record_size or RECORD_HEADER_SIZE + record_size > stride:
         raise LogFormatError(
