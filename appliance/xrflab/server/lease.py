@@ -29,7 +29,7 @@ from .messages import LeaseMessage
 
 if TYPE_CHECKING:
     from .runs import RunRow
-    from .supervisor import Run
+    from .run import Run
 
 
 class LeaseError(Exception):

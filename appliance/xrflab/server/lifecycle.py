@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from .runs import RunRow
-    from .supervisor import Run
+    from .run import Run
 
 log = logging.getLogger("xrflab.lifecycle")
 
@@ -47,7 +47,7 @@ class RunObserver:
         ``running``; the reader has not taken a sample yet."""
 
     def on_samples(self, run: Run, samples: Sequence[Any]) -> None:
-        """A batch of telemetry samples (channels.TelemetrySample) the reader just took, every
+        """A batch of telemetry samples (channels.Telemetry) the reader just took, every
         one of them (before the dashboards' decimation). Must be quick: it runs per batch."""
 
     async def on_exited(self, run: Run) -> None:

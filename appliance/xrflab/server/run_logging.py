@@ -21,7 +21,7 @@ from .messages import AlarmMessage, MonitorLine, MonitorMessage, ServerMessage
 from .runs import RunStore
 
 if TYPE_CHECKING:
-    from .supervisor import Run
+    from .run import Run
 
 log = logging.getLogger("xrflab.logs")
 
