@@ -158,7 +158,7 @@ def _enc(s: str | None) -> bytes | None:
     return s.encode() if s is not None else None
 
 
-# The namespace primitives, shared with the build sandbox (projects/builder.py).
+# The namespace primitives, shared with the build sandbox (projects/sandbox.py).
 
 
 def mount(src: str | None, target: str, fstype: str | None, flags: int, data: str | None = None) -> None:
