@@ -118,7 +118,7 @@ class LogChannel:
                 [v[0] for v in variables],
                 [v[1] for v in variables],
                 [v[2] for v in variables],
-                ("seq", "cycle", "t_ns"),
+                tuple(name for name, _, _ in logformat.RECORD_HEADER),
             )
             dtype = record_dtype(vs, stride)
         except Exception:

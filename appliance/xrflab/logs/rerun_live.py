@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from . import logformat
 from .rerun_servers import LiveProxy
 
 if TYPE_CHECKING:
@@ -124,7 +125,8 @@ class LiveRerun:
         from .convert import _plain, variable_groups
 
         rr = self._rr
-        names = [n for n in rec.dtype.names or () if n not in ("seq", "cycle", "t_ns")]
+        header = {name for name, _, _ in logformat.RECORD_HEADER}  # seq, cycle, t_ns
+        names = [n for n in rec.dtype.names or () if n not in header]
         if names != self._names:
             self._names = names
             self._groups = {}
