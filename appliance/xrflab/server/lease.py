@@ -28,8 +28,8 @@ from .lifecycle import RunObserver
 from .messages import LeaseMessage
 
 if TYPE_CHECKING:
-    from .runs import RunRow
     from .run import Run
+    from .runs import RunRow
 
 
 class LeaseError(Exception):

@@ -28,8 +28,8 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from .runs import RunRow
     from .run import Run
+    from .runs import RunRow
 
 log = logging.getLogger("xrflab.lifecycle")
 
