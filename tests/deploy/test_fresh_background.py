@@ -138,6 +138,10 @@ PLUGIN = textwrap.dedent("""
             time.sleep(0.2)
         PIDS.write_text("".join(f"{p} {_cmdline(p)}\\n" for p in tree))
         if HOW == "interrupt":
+            # Ctrl-C as in a terminal. A session started in the background by a non-interactive
+            # shell (`.ci/run &`) inherits SIGINT ignored, and Python then installs no handler:
+            # the signal would be lost and the test would measure the shell, not the clean-up.
+            signal.signal(signal.SIGINT, signal.default_int_handler)
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(5)
         if HOW == "kill":
