@@ -80,7 +80,7 @@ def test_the_hub_refuses_anything_but_a_message_model() -> None:
     for c in clients.values():
         _queued(c)  # the snapshot
     heard: list[str] = []
-    hub.listeners.append(lambda kind, fields: heard.append(kind))
+    hub.listeners.append(lambda message: heard.append(message.type))
     plain = {"type": "alarm", "kind": "room", "message": "a dict"}
     with pytest.raises(TypeError, match="messages.py models"):
         hub.publish(plain)  # type: ignore[arg-type]

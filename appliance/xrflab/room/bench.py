@@ -36,7 +36,7 @@ from ..server.auth import Perm, client_address, requires
 from . import mqtt, sso
 from .accounts_sync import BenchAccounts
 from .commands import CommandHandler
-from .publisher import BenchPublisher, next_boot
+from .publisher import BenchPublisher, RoomRunObserver, next_boot
 from .sso import SsoError, Verifier
 
 log = logging.getLogger(__name__)
@@ -86,6 +86,7 @@ class RoomLink:
         self.settings = app.state.settings
         self.folder = room_folder(self.settings.data_dir)
         self.publisher: BenchPublisher | None = None
+        self.run_observer: RoomRunObserver | None = None
         self.verifier: Verifier | None = None
         self.accounts: BenchAccounts | None = None
         self._poll: asyncio.Task[None] | None = None
@@ -142,6 +143,8 @@ class RoomLink:
         self.publisher.status["assignments"] = [a["id"] for a in self.assignments.list()]
         handler.publisher = self.publisher
         self._spawn(self._retry_assignments())
+        self.run_observer = RoomRunObserver(self.publisher)
+        app.state.supervisor.lifecycle.register(self.run_observer)
         app.state.supervisor.hub.listeners.append(self.publisher.on_hub)
         self.publisher.start()
         log.warning("room: bench %s reports to %s:%s", e["name"], b["host"], b["port"])
@@ -307,6 +310,8 @@ class RoomLink:
                 self.app.state.supervisor.hub.listeners.remove(self.publisher.on_hub)
             except ValueError:
                 pass
+            if self.run_observer is not None:
+                self.app.state.supervisor.lifecycle.unregister(self.run_observer)
             await self.publisher.stop()
 
 

@@ -1,9 +1,10 @@
 """A bench's voice in the room: retained status, a last will, and events that survive an outage.
 
-One more observer of the run life cycle: `on_hub` is a listener of the appliance's hub
-(``hub.listeners``), so it hears exactly what the dashboards hear (state, run started/ended,
-alarms, lease, self-check) without a wire of its own into the supervisor; `facts` (bench.py) is
-asked once a second for what no message carries (cycles, misses, CPU temperature, disk).
+One more observer of the run life cycle (`RoomRunObserver`: runs started and ended, from the run
+record), and a listener of the appliance's hub (``hub.listeners``: state, alarms, lease,
+self-check, as the dashboards get them, as typed messages), without a wire of its own into the
+supervisor; `facts` (bench.py) is asked once a second for what no message carries (cycles,
+misses, CPU temperature, disk).
 
 - ``xrf/bench/<name>/online``: ``{"online": true, "conn": [boot, n]}`` on every connect; the same
   topic with ``false`` is the MQTT last will the broker publishes when the bench goes silent
@@ -31,9 +32,15 @@ import time
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from ..server.lifecycle import RunObserver
+from ..server.messages import AlarmMessage, LeaseMessage, SelfcheckMessage, ServerMessage, StateMessage
 from . import mqtt, topics
+
+if TYPE_CHECKING:
+    from ..server.run import Run
+    from ..server.runs import RunRow
 
 log = logging.getLogger(__name__)
 
@@ -217,57 +224,58 @@ class BenchPublisher:
                 with self._lock:
                     self._inflight[info.mid] = seq
 
-    # -- hub listener (the appliance's event loop) ----------------------------------------------
-    def on_hub(self, kind: str, payload: dict[str, Any]) -> None:
+    # -- the run life cycle (the appliance's event loop) ----------------------------------------
+    def run_started(self, row: RunRow) -> None:
         s = self.status
-        if kind == "state":
-            changed = s.get("state") != payload.get("name")
-            s["state"] = payload.get("name", s.get("state"))
+        s.update(run_id=row.id, run_owner=row.owner, alarms=[])
+        self.event("run_started", run_id=row.id, owner=row.owner, build=row.build)
+        self.status_changed()
+
+    def run_ended(self, row: RunRow) -> None:
+        self.status.update(run_id=row.id, run_owner=row.owner)
+        self.event(
+            "run_ended",
+            run_id=row.id,
+            owner=row.owner,
+            end_reason=row.end_reason,
+            cycles=row.cycles,
+            misses=row.misses,
+        )
+        self.status_changed()
+
+    # -- hub listener (the appliance's event loop) ----------------------------------------------
+    def on_hub(self, message: ServerMessage) -> None:
+        """Every message the dashboards get, as its typed model (messages.py): a renamed field
+        fails the type check here instead of silently stopping the room's view of the bench."""
+        s = self.status
+        if isinstance(message, StateMessage):
+            changed = s.get("state") != message.name
+            s["state"] = message.name
             if changed:
                 self.status_changed()
-        elif kind == "run":
-            row = payload.get("run") or {}
-            if payload.get("event") == "started":
-                s.update(run_id=row.get("id"), run_owner=row.get("owner", ""), alarms=[])
-                self.event("run_started", run_id=row.get("id"), owner=row.get("owner", ""), build=row.get("build", ""))
-                self.status_changed()
-            elif payload.get("event") == "ended":
-                s.update(run_id=row.get("id"), run_owner=row.get("owner", ""))
-                self.event(
-                    "run_ended",
-                    run_id=row.get("id"),
-                    owner=row.get("owner", ""),
-                    end_reason=row.get("end_reason", ""),
-                    cycles=row.get("cycles"),
-                    misses=row.get("misses"),
-                )
-                self.status_changed()
-        elif kind == "alarm":
-            if payload.get("kind") == "room":
+        elif isinstance(message, AlarmMessage):
+            if message.kind == "room":
                 return  # our own message to the dashboards, not the bench's
-            alarm = {
-                "kind": payload.get("kind", ""),
-                "message": str(payload.get("message", ""))[:300],
-                "t": time.time(),
-            }
+            alarm = {"kind": message.kind, "message": message.message[:300], "t": time.time()}
             s["alarms"] = [*s.get("alarms", []), alarm][-MAX_ALARMS:]
-            self.event("alarm", alarm=alarm["kind"], message=alarm["message"], run_id=payload.get("run_id"))
+            self.event("alarm", alarm=alarm["kind"], message=alarm["message"], run_id=message.run_id)
             self.status_changed()
-        elif kind == "lease":
-            holder = payload.get("holder")
-            s["holder"] = holder.get("username", "") if isinstance(holder, dict) else (holder or "")
+        elif isinstance(message, LeaseMessage):
+            s["holder"] = message.holder.username if message.holder is not None else ""
             self.status_changed()
-        elif kind == "selfcheck" and payload.get("event") == "report":
-            report = payload.get("report") or {}
-            verdict = report.get("verdict") or ("error" if payload.get("message") else "")
+        elif isinstance(message, SelfcheckMessage) and message.event == "report":
+            # The checker's own fields are extra fields of the model (messages.SelfcheckMessage).
+            extra = message.model_extra or {}
+            report = extra.get("report") or {}
+            verdict = report.get("verdict") or ("error" if extra.get("message") else "")
             s["selfcheck"] = {
                 "verdict": verdict,
                 "t": time.time(),
-                "check": payload.get("check"),
-                "report": payload.get("name", ""),
-                "message": str(payload.get("message", ""))[:300],
+                "check": message.check,
+                "report": extra.get("name", ""),
+                "message": str(extra.get("message", ""))[:300],
             }
-            self.event("selfcheck", verdict=verdict, check=payload.get("check"), report=payload.get("name", ""))
+            self.event("selfcheck", verdict=verdict, check=message.check, report=extra.get("name", ""))
             self.status_changed()
 
     # -- paho's thread --------------------------------------------------------------------------
@@ -341,3 +349,19 @@ class Recent(OrderedDict[str, None]):
         if len(self) > self.size:
             self.popitem(last=False)
         return False
+
+
+class RoomRunObserver(RunObserver):
+    """The bench publisher's place in the run life cycle (server/lifecycle.py): runs started and
+    ended reach the room from the run record, not from the dashboards' run message."""
+
+    name = "room"
+
+    def __init__(self, publisher: BenchPublisher) -> None:
+        self.publisher = publisher
+
+    def on_started(self, run: Run) -> None:
+        self.publisher.run_started(run.row)
+
+    async def on_ended(self, row: RunRow, run: Run | None) -> None:
+        self.publisher.run_ended(row)

@@ -176,9 +176,9 @@ class Hub:
         # What a new client needs first (current run, state, lease, ROS bridge...): each part's
         # source adds itself with add_snapshot(), in the order the client receives them.
         self._snapshots: list[Callable[[], Iterable[ServerMessage]]] = []
-        # Called with every published message's (kind, payload) before the fan-out (the room's
+        # Called with every published message (its typed model) before the fan-out (the room's
         # bench publisher: it hears what the dashboards hear).
-        self.listeners: list[Callable[[str, dict[str, Any]], None]] = []
+        self.listeners: list[Callable[[ServerMessage], None]] = []
         # Per-client filtering (ownership.attach sets both): whose a message is, and whether a
         # client's user may see what that owner owns. The defaults let everyone see everything.
         self.scope: Callable[[str, dict[str, Any]], Scoped | None] = lambda message_type, payload: None
@@ -239,7 +239,7 @@ class Hub:
         kind, fields = unpack(message)  # checked and dumped even with nobody listening: one rule
         for listener in self.listeners:
             try:
-                listener(kind, fields)
+                listener(message)
             except Exception:  # a listener's bug must not stop the fan-out
                 import logging
 
