@@ -10,8 +10,11 @@ SIGKILL: a new appliance must bind the same port at once (no orphan keeps the so
 
 from __future__ import annotations
 
+import ctypes
+import errno
 import json
 import os
+import platform
 import shutil
 import signal
 import subprocess
@@ -124,6 +127,23 @@ def descendants(root: int) -> list[int]:
     return out
 
 
+_SYS_KCMP = {"x86_64": 312, "aarch64": 272, "armv7l": 378}.get(platform.machine())
+_KCMP_FILE = 0
+_libc = ctypes.CDLL(None, use_errno=True)
+
+
+def same_open_file(pid1: int, fd1: int, pid2: int, fd2: int) -> bool | None:
+    """True: the two descriptors are one open file description (one was inherited or passed
+    from the other); False: two separate opens, or one of them is gone (EBADF/ESRCH: nothing is
+    shared any more); None: cannot tell (kcmp refused or unknown here)."""
+    if _SYS_KCMP is None:
+        return None
+    r = _libc.syscall(_SYS_KCMP, pid1, pid2, _KCMP_FILE, fd1, fd2)
+    if r >= 0:
+        return r == 0  # 0: the same; 1, 2, 3: different
+    return False if ctypes.get_errno() in (errno.EBADF, errno.ESRCH) else None
+
+
 def fd_targets(pid: int) -> dict[int, str]:
     out = {}
     try:
@@ -175,8 +195,10 @@ class Sampler:
 
     def _main(self) -> None:
         while not self._stop.is_set():
-            ours = {t for t in fd_targets(self.root).values() if t.startswith(("socket:", "pipe:", "/"))}
-            ours = {t for t in ours if not t.startswith(OWN_OPENS)}
+            ours: dict[str, list[int]] = {}  # the appliance's open targets -> its fd numbers
+            for rfd, t in fd_targets(self.root).items():
+                if t.startswith(("socket:", "pipe:", "/")) and not t.startswith(OWN_OPENS):
+                    ours.setdefault(t, []).append(rfd)
             for pid in descendants(self.root):
                 cmd = cmdline(pid)
                 if not cmd:
@@ -189,9 +211,25 @@ class Sampler:
                     # The run sandbox's launcher is passed one pipe on purpose: its report to the
                     # appliance (pass_fds); the controller it execs gets none of it.
                     passed = "xrflab.guest" in cmd and target.startswith("pipe:")
-                    if target in self.forbidden or (target in ours and not passed):
+                    if target in self.forbidden or (
+                        target in ours and not passed and self._shares(pid, fd, ours[target])
+                    ):
                         self.bad.append(f"pid {pid} ({cmd[:120]}): fd {fd} -> {target}")
             time.sleep(0.005)
+
+    def _shares(self, pid: int, fd: int, root_fds: list[int]) -> bool:
+        """Is `pid`'s fd one of the appliance's open file descriptions (inherited or passed), not
+        its own open of the same path? A path says only which file: the run sandbox's launcher
+        opens the run folder itself (O_PATH, for its bind mounts) while the appliance's log writer
+        has it open too. kcmp(KCMP_FILE) compares the open files themselves; where the kernel
+        refuses it (no permission, unknown architecture), the same target counts as shared."""
+        for rfd in root_fds:
+            same = same_open_file(self.root, rfd, pid, fd)
+            if same is None:
+                return True
+            if same:
+                return True
+        return False
 
     def matching(self, text: str) -> list[int]:
         return [p for p, c in self.seen.items() if text in c]
