@@ -403,6 +403,11 @@ async def upload_project(request: Request, name: str = "") -> dict[str, Any]:
     project = svc.store.update_project(project.id, files=len(manifest.files), bytes=manifest.total)
     await _record(svc, project, request, "upload " + (Path(filename).name if filename else "(archive)"))
     _audit(request, "project.upload", {"project": project.id, "name": project.name, "files": len(manifest.files)})
+    return _upload_result(project, manifest)
+
+
+def _upload_result(project: ProjectRow, manifest: archive.Manifest) -> dict[str, Any]:
+    """What an upload (the first or a new version) answers: UploadResult."""
     return {
         "project": project.as_dict(),
         "format": manifest.format,
@@ -429,14 +434,7 @@ async def replace_source(pid: int, request: Request) -> dict[str, Any]:
             "upload " + (Path(filename).name if filename else "(archive)"),
         )
     _audit(request, "project.upload", {"project": project.id, "name": project.name, "files": len(manifest.files)})
-    return {
-        "project": project.as_dict(),
-        "format": manifest.format,
-        "files": len(manifest.files),
-        "bytes": manifest.total,
-        "stripped_folder": manifest.prefix,
-        "skipped": manifest.skipped,
-    }
+    return _upload_result(project, manifest)
 
 
 @router.get("/project-templates", dependencies=[requires(Perm.PROJECTS)])
