@@ -10,6 +10,7 @@ import os
 import shutil
 import subprocess
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -41,6 +42,7 @@ def check(root: Path, part: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+@contextmanager
 def planted(path: Path, text: str) -> Iterator[None]:
     original = path.read_text() if path.exists() else None
     path.write_text((original or "") + text)
@@ -59,7 +61,7 @@ def test_python_lint_and_format(tree: Path) -> None:
         ("import os\n", "F401"),  # unused import
         ("x = {  'a':1 }\n", "planted_lint.py"),  # lints clean, but not formatted
     ]:
-        for _ in planted(bad, text):
+        with planted(bad, text):
             proc = check(tree, "python")
             assert proc.returncode != 0, proc.stdout + proc.stderr
             assert finding in proc.stdout + proc.stderr
@@ -68,7 +70,7 @@ def test_python_lint_and_format(tree: Path) -> None:
 
 def test_types(tree: Path) -> None:
     bad = tree / "appliance" / "xrflab" / "planted_types.py"
-    for _ in planted(bad, "def half(n: int) -> int:\n    return n / 2\n"):
+    with planted(bad, "def half(n: int) -> int:\n    return n / 2\n"):
         proc = check(tree, "types")
         assert proc.returncode != 0
         assert "planted_types.py:2" in proc.stdout + proc.stderr
@@ -76,12 +78,12 @@ def test_types(tree: Path) -> None:
 
 def test_c_format_and_warnings(tree: Path) -> None:
     src = tree / "rt_core" / "src" / "plants.c"
-    for _ in planted(src, "\nint  xrf_planted_format (void) { return 0 ; }\n"):
+    with planted(src, "\nint  xrf_planted_format (void) { return 0 ; }\n"):
         proc = check(tree, "c")
         assert proc.returncode != 0
         assert "plants.c" in proc.stderr
     # Formatted, but a warning (-Wunused-variable) that -Werror turns into a failed build.
-    for _ in planted(src, "\nint xrf_planted_warning(void)\n{\n    int unused = 1;\n    return 0;\n}\n"):
+    with planted(src, "\nint xrf_planted_warning(void)\n{\n    int unused = 1;\n    return 0;\n}\n"):
         proc = check(tree, "c")
         assert proc.returncode != 0
         assert "unused" in proc.stderr and "Werror" in proc.stderr
@@ -89,7 +91,7 @@ def test_c_format_and_warnings(tree: Path) -> None:
 
 def test_shell(tree: Path) -> None:
     script = tree / "deploy" / "planted.sh"
-    for _ in planted(script, "#!/bin/sh\nrm -rf $1/data\n"):
+    with planted(script, "#!/bin/sh\nrm -rf $1/data\n"):
         script.chmod(0o755)
         proc = check(tree, "shell")
         assert proc.returncode != 0
