@@ -193,7 +193,9 @@ class AlarmMessage(_Out):
     """Something someone must see: the dashboard's alarm bar (or its confinement banner)."""
 
     type: Literal["alarm"] = "alarm"
-    kind: Literal["crash", "hang", "deadline_miss", "confinement", "disk", "log", "room"]
+    kind: Literal[
+        "crash", "hang", "deadline_miss", "confinement", "disk", "log", "room", "corrupt_channel", "memory", "pids", "cpu"
+    ]
     message: str
     run_id: int | None = None
     end_reason: str | None = Field(default=None, description="crash, hang: runs.END_REASONS")

@@ -32,6 +32,10 @@ END_REASONS: dict[str, str] = {
     "appliance_restart": "the appliance died during the run; its restart ended it",
     "shutdown": "the appliance shut down",
     "disk": "the run folder went over its disk limit",
+    "corrupt_channel": "the controller broke the rules of its shared memory (sizes, counters, layout)",
+    "memory": "the run went over its memory limit (its processes and its /dev/shm together)",
+    "pids": "the run went over its process limit",
+    "cpu": "the run went over its CPU limit (real-time time without blocking, or CPU time)",
     "start_failed": "the controller did not start",
 }
 
