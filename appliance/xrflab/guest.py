@@ -35,7 +35,17 @@ Layers (each reported by name; ``LAYERS``):
   appliance's port included. ``ipc`` and ``uts`` namespaces likewise.
 - ``environment``: built by the appliance from an allow-list (``ENV_ALLOWED``), never a copy.
 - ``descriptors``: only 0, 1, 2 reach the controller.
-- ``limits``: address space, processes, open files, file size, no core dumps.
+- ``limits``: address space, processes, open files, file size, no core dumps; real-time
+  priority at most the loop's (``RLIMIT_RTPRIO``: below the safety watcher's) and real-time time
+  without blocking (``RLIMIT_RTTIME``: a spinning SCHED_FIFO thread gets SIGXCPU, then SIGKILL).
+- ``memory``, ``pids``, ``cpu``: the run's cgroup (server/cgroups.py, made by the appliance): its
+  memory with its /dev/shm and /tmp, its processes and threads, the CPUs it may use (the loop's).
+  The controller moves itself into it just before its exec (``cgroup_procs``: descriptors the
+  launcher opened, so the move is checked against the launcher's credentials), so the bounds hold
+  from its first instruction; the init stays outside (spinning threads on the run's CPU cannot
+  starve the process that reaps them).
+- ``disk``: the run folder is a file system of its own (server/run_disk.py, mounted by the
+  appliance before the launcher starts): nothing to do here but report it.
 
 If a layer cannot be had, the launcher refuses to start the controller unless the appliance
 said ``allow_missing`` (the educator's ``--allow-unconfined``); either way it tells the
@@ -70,7 +80,14 @@ LAYERS = (
     "environment",
     "descriptors",
     "limits",
+    "memory",
+    "pids",
+    "cpu",
+    "disk",
 )
+# The layers the appliance sets up before the launcher starts (the run's cgroup and file
+# system): it says in the configuration ("limit_layers") whether each holds.
+KERNEL_LIMIT_LAYERS = ("memory", "pids", "cpu", "disk")
 # The only variables a controller gets (values chosen by the appliance, never copied from it).
 ENV_ALLOWED = frozenset(
     {
@@ -227,6 +244,7 @@ class _Launch:
         self.dma_fd = -1
         self.loop_ids: tuple[int, int, list[int]] = (0, 0, [])  # userns mode: (uid, gid, groups) inside
         self.ambient: list[int] = []  # capabilities the controller keeps (plan_realtime)
+        self.cgroup_fds: list[int] = []  # the run cgroup's cgroup.procs files (open_cgroups)
 
     def missing(self, layer: str, why: str) -> None:
         self.layers[layer] = why
@@ -265,6 +283,23 @@ class _Launch:
                 self.src[path] = os.open(path, os.O_PATH | os.O_CLOEXEC | os.O_NOFOLLOW)
             except OSError:
                 continue
+
+    def open_cgroups(self) -> None:
+        """The run's cgroup.procs files, opened now, before any namespace: the kernel checks a
+        move against the credentials of the process that opened the file (Linux 5.16+), so the
+        controller can move itself in after it dropped every privilege."""
+        for path in self.cfg.get("cgroup_procs", []):
+            try:
+                self.cgroup_fds.append(os.open(path, os.O_WRONLY | os.O_CLOEXEC))
+            except OSError as exc:
+                raise GuestError(f"cannot open the run's cgroup {path}: {exc.strerror}") from exc
+
+    def join_cgroups(self) -> None:
+        """Move this process (the controller, about to exec) into the run's cgroup."""
+        for fd in self.cgroup_fds:
+            os.write(fd, b"0")  # "0": the writer itself, whatever its pid in its namespace
+            os.close(fd)
+        self.cgroup_fds = []
 
     def hold_dma_latency(self) -> None:
         """The loop's CPUs stay out of deep idle while the run lasts (what cyclictest does): the
@@ -449,11 +484,8 @@ class _Launch:
             os.chdir(cfg["run_dir"])
             self.set_limits()
             os.umask(0o007)  # what the loop writes stays readable by the appliance's group only
-            # Descriptors: 0-2, the error and status pipes (close-on-exec) only.
-            low, high = sorted((err_w, status_w))
-            os.closerange(3, low)
-            os.closerange(low + 1, high)
-            os.closerange(high + 1, 1 << 20)
+            # Descriptors: 0-2, the error and status pipes and the cgroup files (all close-on-exec) only.
+            _close_all_but({err_w, status_w, *self.cgroup_fds})
             uid, gid, groups = self.loop_identity()
             if self.mode == "root":
                 keep = set(self.ambient)
@@ -481,7 +513,8 @@ class _Launch:
             exe = f"/xrf/{os.path.basename(cfg['exe'])}" if root is not None else cfg["exe"]
             argv = [cfg.get("argv0") or os.path.basename(cfg["exe"])]
             if os.getpid() == 1:
-                _init(exe, argv, cfg["env"], err_w, status_w)
+                _init(exe, argv, cfg["env"], err_w, status_w, self.cgroup_fds)
+            self.join_cgroups()
             os.execve(exe, argv, cfg["env"])
         except BaseException as exc:  # noqa: BLE001 - anything: report it, never run unconfined
             try:
@@ -493,17 +526,25 @@ class _Launch:
         cfg = self.cfg
         mb = 1 << 20
         limits = [
-            (resource.RLIMIT_AS, cfg["memory_mb"] * mb),
-            (resource.RLIMIT_NPROC, cfg["nproc"]),
-            (resource.RLIMIT_NOFILE, cfg["nofile"]),
-            (resource.RLIMIT_FSIZE, cfg["fsize_mb"] * mb),
-            (resource.RLIMIT_CORE, 0),
+            (resource.RLIMIT_AS, cfg["memory_mb"] * mb, cfg["memory_mb"] * mb),
+            (resource.RLIMIT_NPROC, cfg["nproc"], cfg["nproc"]),
+            (resource.RLIMIT_NOFILE, cfg["nofile"], cfg["nofile"]),
+            (resource.RLIMIT_FSIZE, cfg["fsize_mb"] * mb, cfg["fsize_mb"] * mb),
+            (resource.RLIMIT_CORE, 0, 0),
         ]
-        for which, value in limits:
-            _soft, hard = resource.getrlimit(which)
-            if hard != resource.RLIM_INFINITY and value > hard:
-                value = hard  # never more than we were given
-            resource.setrlimit(which, (value, value))
+        if cfg.get("rttime_us"):
+            # A real-time thread that runs this long without blocking: SIGXCPU (the run ends with
+            # `cpu`); at twice this SIGKILL, for a controller that ignores SIGXCPU.
+            limits.append((resource.RLIMIT_RTTIME, cfg["rttime_us"], 2 * cfg["rttime_us"]))
+        if self.mode != "root":
+            # Never above the loop's priority (the service may allow more, LimitRTPRIO=): the
+            # safety watcher runs above it. Root mode sets exactly this below.
+            limits.append((resource.RLIMIT_RTPRIO, cfg["priority"], cfg["priority"]))
+        for which, soft, hard in limits:
+            _soft, given = resource.getrlimit(which)
+            if given != resource.RLIM_INFINITY:  # never more than we were given
+                soft, hard = min(soft, given), min(hard, given)
+            resource.setrlimit(which, (soft, hard))
         if self.mode == "root":
             for which, value, _cap in self.realtime_limits():
                 if _cap not in self.ambient:
@@ -529,6 +570,11 @@ class _Launch:
             except (ValueError, OSError):
                 self.ambient.append(cap)
                 self.notes.append(f"kept {CAP_NAMES[cap]}: limit {which} cannot be raised here")
+                if cap == CAP_SYS_NICE:
+                    self.notes.append(
+                        "with CAP_SYS_NICE the controller may take any real-time priority, the safety "
+                        "watcher's included: only its cpuset keeps it off the watcher's CPUs"
+                    )
 
 
 class _CapHeader(ctypes.Structure):
@@ -573,7 +619,16 @@ def _status_report(launch: _Launch, error: str = "") -> dict[str, Any]:
 FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2)
 
 
-def _init(exe: str, argv: list[str], env: dict[str, str], err_w: int, status_w: int) -> None:
+def _close_all_but(keep: set[int]) -> None:
+    """Close every descriptor from 3 up except `keep`."""
+    low = 3
+    for fd in sorted(keep):
+        os.closerange(low, fd)
+        low = fd + 1
+    os.closerange(low, 1 << 20)
+
+
+def _init(exe: str, argv: list[str], env: dict[str, str], err_w: int, status_w: int, cgroup_fds: list[int]) -> None:
     """PID 1 of the run's namespace: a small init, the controller its only child.
 
     A controller that were PID 1 itself would not die of its own raise(SIGSEGV), and abort()
@@ -601,6 +656,8 @@ def _init(exe: str, argv: list[str], env: dict[str, str], err_w: int, status_w: 
         return  # the caller execs (or reports the failure on err_w)
     child[0] = pid
     os.close(err_w)  # the launcher's EOF comes with the controller's exec
+    for fd in cgroup_fds:  # the controller moves itself in; the init stays outside
+        os.close(fd)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, FORWARDED)
     while True:
         try:
@@ -665,6 +722,7 @@ def launch(cfg: dict[str, Any]) -> None:
     root: str | None = None
     os.umask(0o022)  # the sandbox's own folders (/xrf, /etc, ...) must be passable by the loop user
     try:
+        L.open_cgroups()
         L.hold_dma_latency()
         L.enter_namespaces()
         # After the unshare: a bind mount's source must be a mount of our own namespace.
@@ -680,6 +738,13 @@ def launch(cfg: dict[str, Any]) -> None:
         cfg["env"]["XRF_SHM"] = unconfined_shm_name(cfg["shm_dir"])
     for layer in filter(None, cfg.get("test_drop", "").split(",")):  # TEST ONLY (guest_spawn.TEST_DROP_ENV)
         L.missing(layer, "skipped for a test")
+    for layer, why in cfg.get("limit_layers", {}).items():  # the appliance's (KERNEL_LIMIT_LAYERS)
+        if layer in KERNEL_LIMIT_LAYERS:
+            L.missing(layer, why) if why else L.ok(layer)
+    for layer in KERNEL_LIMIT_LAYERS:
+        if layer not in cfg.get("limit_layers", {}):
+            L.missing(layer, "not set up by the appliance")
+    L.notes.extend(cfg.get("limit_notes", []))
     L.ok("user")
     for layer in ("no_new_privs", "capabilities", "environment", "descriptors", "limits"):
         L.ok(layer)

@@ -588,11 +588,17 @@ void Runtime::startHelper()
     pthread_attr_t attr;
     pthread_attr_init(&attr);
     if (loop_cpu >= 0) {
+        // The CPUs this process may use (a cpuset may give the run only the loop's): asking for
+        // one outside them would make pthread_create fail. The main thread's (the process's
+        // pid), not this thread's: the loop thread may be pinned already.
+        cpu_set_t allowed;
+        CPU_ZERO(&allowed);
+        const bool known = sched_getaffinity(getpid(), sizeof allowed, &allowed) == 0;
         cpu_set_t others;
         CPU_ZERO(&others);
         const long n = sysconf(_SC_NPROCESSORS_ONLN);
         for (int c = 0; c < n && c < CPU_SETSIZE; c++)
-            if (c != loop_cpu)
+            if (c != loop_cpu && (!known || CPU_ISSET(c, &allowed)))
                 CPU_SET(c, &others);
         if (CPU_COUNT(&others) > 0)
             pthread_attr_setaffinity_np(&attr, sizeof others, &others);

@@ -110,9 +110,27 @@ static void finish(struct xrf_watch *w, int reason, int64_t event_ns)
     }
 }
 
+/* Keep the watcher off the run's CPUs: a controller's spinning SCHED_FIFO threads there
+ * cannot delay it, whatever their priority. Only where another CPU is left to it. */
+static void avoid_cpus(uint64_t avoid)
+{
+    if (avoid == 0)
+        return;
+    cpu_set_t set;
+    CPU_ZERO(&set);
+    if (sched_getaffinity(0, sizeof set, &set) != 0)
+        return;
+    for (int c = 0; c < 64; c++)
+        if (avoid & (UINT64_C(1) << c))
+            CPU_CLR(c, &set);
+    if (CPU_COUNT(&set) > 0)
+        (void)sched_setaffinity(0, sizeof set, &set);
+}
+
 static void *watch_thread(void *arg)
 {
     struct xrf_watch *w = arg;
+    avoid_cpus(w->cfg.avoid_cpus);
     if (w->cfg.rt_priority > 0) {
         struct sched_param sp = {.sched_priority = w->cfg.rt_priority};
         w->result.rt_status = -pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);

@@ -26,12 +26,19 @@ async def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="xrf-guest-test-"))
     run = tmp / "run"
     run.mkdir()
-    spawner = GuestSpawner(Settings(data_dir=tmp, allow_unconfined=sys.argv[3] == "1", real_bench=False))
+    spawner = GuestSpawner(
+        Settings(data_dir=tmp, allow_unconfined=sys.argv[3] == "1", real_bench=False, run_disk_mb=16, run_files=256)
+    )
     shm = Path("/dev/shm") / f"xrf-guest-test-{os.getpid()}"
+    limits = None
     try:
+        # As a run: its cgroup and file system first (launch.spawn).
+        limits = await spawner.prepare_limits(spawner.cgroup_name(f"probe{os.getpid()}"), run, tmp / "run.img")
         spawner.prepare_dirs(run, shm)
         with open(run / "out.txt", "wb") as out:
-            proc, report = await spawner.spawn(Path(sys.argv[2]), run, shm, {"PATH": "/usr/bin:/bin"}, [], out)
+            proc, report = await spawner.spawn(
+                Path(sys.argv[2]), run, shm, {"PATH": "/usr/bin:/bin"}, [], out, limits=limits
+            )
         rc = await proc.wait()
         print(
             json.dumps(
@@ -46,6 +53,8 @@ async def main() -> None:
             )
         )
     finally:
+        if limits is not None:
+            await asyncio.to_thread(limits.release)
         shutil.rmtree(shm, ignore_errors=True)
         shutil.rmtree(tmp, ignore_errors=True)
 

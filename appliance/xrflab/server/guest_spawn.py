@@ -21,7 +21,8 @@ from pathlib import Path
 from typing import Any
 
 from .. import guest
-from . import children
+from . import children, run_limits
+from .run_limits import RunLimits
 
 APPLIANCE_DIR = Path(__file__).resolve().parents[2]  # appliance/ (the xrflab package's parent)
 DEFAULT_PRIORITY = 80  # rt_core's kDefaultPriority: the loop's SCHED_FIFO priority unless XRF_PRIO
@@ -43,7 +44,6 @@ class GuestLimits:
     nproc: int = 64  # RLIMIT_NPROC: threads and processes of the loop user
     nofile: int = 256  # RLIMIT_NOFILE
     fsize_mb: int = 512  # RLIMIT_FSIZE: largest file the controller may write
-    run_dir_mb: int = 2048  # the whole run folder; the supervisor stops the run beyond this
     tmp_mb: int = 64  # its private /tmp and /var/tmp (tmpfs, counted as its memory)
     memlock_mb: int = 512  # RLIMIT_MEMLOCK granted for mlockall (root mode)
 
@@ -198,11 +198,28 @@ class GuestSpawner:
             else:
                 os.chmod(d, 0o700)  # the loop is our uid
 
+    async def prepare_limits(self, name: str, run_dir: Path, image: Path) -> RunLimits:
+        """The run's cgroup (``name``: its folder's name) and its file system (``image`` mounted
+        on ``run_dir``), before prepare_dirs; raises run_limits.NoRoom when the disk is full."""
+        return await asyncio.to_thread(run_limits.prepare, self.settings, name, run_dir, image, self.identity.gid)
+
+    def cgroup_name(self, run: int | str) -> str:
+        return f"{run_limits.cgroups.PREFIX}{run_limits.tag(self.settings.data_dir)}-{run}"
+
     def config(
-        self, exe: Path, run_dir: Path, shm_dir: Path, env: dict[str, str], read_only: list[Path], report_fd: int
+        self,
+        exe: Path,
+        run_dir: Path,
+        shm_dir: Path,
+        env: dict[str, str],
+        read_only: list[Path],
+        report_fd: int,
+        limits: RunLimits | None = None,
     ) -> dict[str, Any]:
         ident = self.identity
-        prio = env.get("XRF_PRIO") or DEFAULT_PRIORITY
+        # The loop's priority, and the most any thread of the run may take (RLIMIT_RTPRIO): below
+        # the safety watcher's (settings.watch_priority), so the run cannot starve it.
+        prio = min(max(1, int(env.get("XRF_PRIO") or DEFAULT_PRIORITY)), max(1, self.settings.watch_priority - 1))
         lim = self.limits
         return {
             "mode": ident.mode,
@@ -218,7 +235,7 @@ class GuestSpawner:
             "read_only": [str(p) for p in read_only],
             "env": env,
             "report_fd": report_fd,
-            "priority": max(1, int(prio)),
+            "priority": prio,
             "memory_mb": lim.memory_mb,
             "nproc": lim.nproc,
             "nofile": lim.nofile,
@@ -226,6 +243,7 @@ class GuestSpawner:
             "tmp_mb": lim.tmp_mb,
             "memlock_mb": lim.memlock_mb,
             "allow_missing": bool(getattr(self.settings, "allow_unconfined", False)),
+            **(limits.launcher_config() if limits is not None else {}),
             # TEST ONLY: layers the launcher reports missing ("skipped for a test"), for the tests of
             # the dashboard's "runs WITHOUT" banner. Never set on a bench.
             **({"test_drop": dropped_for_a_test()} if dropped_for_a_test() else {}),
@@ -241,6 +259,7 @@ class GuestSpawner:
         output: Any,
         tag: str = "",
         timeout_s: float = 10.0,
+        limits: RunLimits | None = None,
     ) -> tuple[children.Child, GuestReport]:
         """Start the launcher; return it and its report once the controller exec'd (or was refused:
         the process has then exited with guest.REFUSED_EXIT and ``report.error`` says why)."""
@@ -249,7 +268,7 @@ class GuestSpawner:
             raise ValueError(f"environment not on the allow-list: {', '.join(bad)}")
         r, w = os.pipe()
         try:
-            cfg = self.config(exe, run_dir, shm_dir, env, read_only, w)
+            cfg = self.config(exe, run_dir, shm_dir, env, read_only, w, limits)
             # The launcher's own environment: XRF_RUN_DIR identifies the run (the orphan reaper checks
             # /proc/<launcher>/environ before signalling a launcher left by an earlier appliance).
             launcher_env = {
@@ -324,15 +343,23 @@ def probe(settings: Any) -> GuestReport:
             run_dir = Path(tmp) / "run"
             run_dir.mkdir()
             shm_dir = spawner.shm_dir_for(f"xrf-probe-{os.getpid()}")
+            limits = None
             try:
                 os.chmod(tmp, 0o755)
+                limits = await spawner.prepare_limits(
+                    spawner.cgroup_name(f"probe{os.getpid()}"), run_dir, Path(tmp) / "run.img"
+                )
                 spawner.prepare_dirs(run_dir, shm_dir)
                 true = shutil.which("true") or "/bin/true"
                 with open(os.devnull, "wb") as out:
-                    proc, report = await spawner.spawn(Path(true), run_dir, shm_dir, {"PATH": "/usr/bin:/bin"}, [], out)
+                    proc, report = await spawner.spawn(
+                        Path(true), run_dir, shm_dir, {"PATH": "/usr/bin:/bin"}, [], out, limits=limits
+                    )
                 await proc.wait()
                 return report
             finally:
+                if limits is not None:
+                    await asyncio.to_thread(limits.release)
                 shutil.rmtree(shm_dir, ignore_errors=True)
 
     return asyncio.run(go())

@@ -6,6 +6,9 @@ run sandbox (guest_spawn.py: own uid, namespaces, limits; docs/developers/securi
 output goes to a file in the run folder, not a pipe to us: if the appliance dies, a pipe would
 turn the loop's next printf into SIGPIPE; a file keeps it running, and kept.
 
+Before the launcher starts, the run gets what the kernel bounds (run_limits.py): its cgroup
+(memory with its /dev/shm, processes, CPUs) and its run folder as a file system of its own.
+
 A run starts only with every protection layer of the sandbox in place unless an educator allowed
 otherwise; a refused start is recorded (``start_failed``) and raised as `StartRefused`, whose
 confinement alarm the supervisor publishes once it has kept the record. A started run is mapped
@@ -23,12 +26,14 @@ from pathlib import Path
 from .. import guest
 from ..channels import Channels
 from ..logs import live as loglive
+from . import run_disk
 from .catalog import BuildEntry
 from .guest_spawn import GuestReport, GuestSpawner
 from .hub import Hub
 from .messages import AlarmMessage
 from .run import Run, SupervisorError
 from .run_control import terminate
+from .run_limits import NoRoom, RunLimits
 from .runs import RunRow, RunStore
 from .settings import Settings
 
@@ -91,7 +96,13 @@ async def spawn(
     run_dir.mkdir(parents=True, exist_ok=True)
     row = store.update(row.id, shm=shm, run_dir=str(run_dir))
     env = loop_env(settings, row.id, entry.name, plant, run_dir, max_cycles, log_timing)
+    limits: RunLimits | None = None
     try:
+        # First the kernel's bounds (the run folder becomes its own file system), then the folders'
+        # owners and modes, then the output file inside it: the controller's stdout counts too.
+        limits = await guests.prepare_limits(
+            guests.cgroup_name(row.id), run_dir, run_disk.image_for(settings.data_dir, row.id)
+        )
         guests.prepare_dirs(run_dir, shm_dir)
         with open(run_dir / "output.txt", "ab") as output:
             proc, report = await guests.spawn(
@@ -103,13 +114,20 @@ async def spawn(
                 output,
                 tag=shm,
                 timeout_s=settings.open_timeout_s,
+                limits=limits,
             )
+    except NoRoom as exc:
+        shutil.rmtree(shm_dir, ignore_errors=True)
+        store.update(row.id, status="failed", end_reason="start_failed", ended=time.time(), message=f"disk: {exc}")
+        raise SupervisorError(f"no room for another run: {exc}", 507) from exc
     except (OSError, ValueError, RuntimeError, asyncio.TimeoutError) as exc:
+        await _let_go(limits)
         shutil.rmtree(shm_dir, ignore_errors=True)
         store.update(row.id, status="failed", end_reason="start_failed", ended=time.time(), message=f"sandbox: {exc}")
         raise SupervisorError(f"cannot start {entry.executable.name} in its sandbox: {exc}", 500) from exc
     if report.error:
         await proc.wait()
+        await _let_go(limits)
         shutil.rmtree(shm_dir, ignore_errors=True)
         final = store.update(
             row.id,
@@ -125,7 +143,15 @@ async def spawn(
         row = store.update(row.id, shm=shm)
     # The controller's own pid (what `kill` or a test would aim at); we wait on the launcher.
     row = store.update(row.id, pid=report.pid or proc.pid, status="starting")
-    return Run(row=row, proc=proc, shm=shm, run_dir=run_dir, build=entry, log_timing=log_timing, guest=report)
+    return Run(
+        row=row, proc=proc, shm=shm, run_dir=run_dir, build=entry, log_timing=log_timing, guest=report, limits=limits
+    )
+
+
+async def _let_go(limits: RunLimits | None) -> None:
+    """A start that failed: its run folder keeps what was written (the refusal in output.txt)."""
+    if limits is not None:
+        await asyncio.to_thread(limits.release)
 
 
 def announce_refused(refused: StartRefused, hub: Hub) -> None:

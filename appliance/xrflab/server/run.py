@@ -26,6 +26,7 @@ from ..channels import Channels
 from ..logs import live as loglive
 from .children import Child
 from .guest_spawn import GuestReport
+from .run_limits import RunLimits
 from .runs import RunRow
 from .safety import SafetyWatcher, WatchResult
 
@@ -73,6 +74,8 @@ class Run:
     watcher: SafetyWatcher | None = None  # the C thread that makes the outputs safe (safety.py)
     watch: WatchResult | None = None  # what it did, once it acted
     end_reason: str = ""  # set by whoever ends the run on purpose (runs.END_REASONS)
+    limits: RunLimits | None = None  # its cgroup and file system (run_limits.py)
+    limit_alarm: str = ""  # the kind of the limit alarm already published ("memory", ...)
 
     @property
     def alive(self) -> bool:

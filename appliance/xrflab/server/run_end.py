@@ -4,13 +4,15 @@ Called once the loop process is gone and its outputs are safe (run_watch.wait_fo
 order: the tasks that touch the shared memory stop; the run observers hear that the process is
 gone (lifecycle.py: host logging drains the rest of the log ring and records its counts); the
 record gets its final state, counts and `end_reason` (runs.END_REASONS); the observers hear the
-run ended; the shared memory is unlinked. The supervisor then keeps the record as its last run
+run ended; the shared memory is unlinked; the run's cgroup and file system are let go of (its
+files kept, run_limits.py). The supervisor then keeps the record as its last run
 and `announce` tells the browsers: a crash or hang alarm with the safety watcher's times, the
 `run` ended message and the inactive state.
 
-`end_reason` decides the name: whoever ended the run on purpose wins (the disk guard, a
-shutdown, another user), then a stop that was asked for, then the exit status and what the loop
-wrote about leaving its loop.
+`end_reason` decides the name: a hang first, then whoever ended the run on purpose (the limits
+guard, a shutdown, another user), then a limit the run went over that the guard had not seen yet
+(an OOM kill of the controller itself, SIGXCPU), then a stop that was asked for, then the exit
+status and what the loop wrote about leaving its loop.
 """
 
 from __future__ import annotations
@@ -28,11 +30,12 @@ from .lifecycle import RunLifecycle
 from .messages import AlarmMessage
 from .run import Run, remove_shm
 from .run_messages import ended
+from .run_watch import LIMIT_REASONS, publish_limit_alarm
 from .runs import END_REASONS, RunStore
 from .settings import Settings
 
 # The tasks that read the run's mapping, cancelled before it is let go (by the name's end).
-MAPPING_TASKS = ("heartbeat", "reader", "timing", "disk")
+MAPPING_TASKS = ("heartbeat", "reader", "timing", "limits")
 
 
 class Ending(NamedTuple):
@@ -97,6 +100,11 @@ async def record(run: Run, returncode: int, settings: Settings, store: RunStore,
     exit_signal = -returncode if returncode < 0 else None
     exit_code = returncode if returncode >= 0 else None
     last = status or run.last_status
+    if run.limits is not None and not run.hang and not run.end_reason:
+        over = await asyncio.to_thread(run.limits.over, exit_signal or 0)
+        if over is not None:
+            run.end_reason = over[0]
+            run.row = store.update(run.row.id, message=over[1])
     reason, crashed, crash_reason = end_reason(run, returncode, last)
     how = f"signal {signal.Signals(exit_signal).name}" if exit_signal else f"exit status {exit_code}"
     if run.row.message:
@@ -125,7 +133,11 @@ async def record(run: Run, returncode: int, settings: Settings, store: RunStore,
     )
     # The record is final: the observers in order (lifecycle.py), then the browsers (announce).
     await lifecycle.ended(run.row, run)
-    remove_shm(run.shm)
+    remove_shm(run.shm)  # its pages were charged to the run's cgroup: gone before the cgroup
+    if run.limits is not None:
+        await asyncio.to_thread(run.limits.release)
+        if run.limits.kept_note:
+            run.row = store.update(run.row.id, message=f"{run.row.message}; {run.limits.kept_note}")
     # No explicit unmap: a worker thread may still hold the Channels (a command wait); the
     # mapping goes with the last reference, and the name is already unlinked.
     return Ending(reason, crashed, exit_code, exit_signal)
@@ -152,6 +164,9 @@ def announce(run: Run, ending: Ending, hub: Hub) -> None:
                 watcher_rt=bool(run.watch and run.watch.rt_status == 0),
             )
         )
+    if ending.end_reason in LIMIT_REASONS:
+        # Over a limit the guard had not seen before the end (the kernel killed the controller).
+        publish_limit_alarm(run, ending.end_reason, run.row.message, hub)
     run.ended.set()
     for message in ended(run):
         hub.publish(message)

@@ -9,7 +9,8 @@ through an eventfd (`on_watch`). A busy event loop delays the record, never the 
 
 The heartbeat task writes the host heartbeat the loop checks (XRF_HOST_TIMEOUT_MS: the loop
 pauses itself if the appliance dies or hangs) and, only where no watcher could start, detects a
-hang itself. The disk guard stops a run whose folder outgrows the sandbox's limit. `wait_for_exit`
+hang itself. The limits guard stops a run that went over what the kernel bounds (run_limits.py:
+memory, processes, its run folder's file system), from the run's start. `wait_for_exit`
 is the run's last word: the launcher's exit, the watcher's account of it, and safe outputs where
 no watcher made them so; run_end.py then records how the run ended.
 """
@@ -19,16 +20,15 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import os
 import signal
 import time
-from pathlib import Path
 
 from ..channels import ChannelsError
 from .hub import Hub
 from .messages import AlarmMessage
 from .run import Run
 from .run_control import terminate
+from .run_limits import RunLimits
 from .runs import RunStore
 from .safety import SafetyWatcher, WatchResult, fpga_reset
 from .settings import Settings
@@ -48,9 +48,11 @@ def start_watcher(run: Run, settings: Settings) -> None:
     # missed periods at the least, never one long cycle.
     period_ms = 1000 // max(1, int(info.get("cycle_freq", 0)) or 1)
     hang_ms = max(settings.hang_timeout_ms, 3 * period_ms)
-    # Below the loop's real-time priority, above everything else we run.
-    loop_prio = int(info.get("priority", 0))
-    prio = min(settings.watch_priority, loop_prio - 1) if loop_prio > 1 else settings.watch_priority
+    # Above any real-time priority the run may take (the launcher caps it below this one), and
+    # off the run's CPUs where its cpuset holds: the run's own threads cannot starve the watcher.
+    prio = settings.watch_priority
+    lim = run.limits
+    avoid = lim.cpus if lim is not None and not lim.layers.get("cpu") else set()
     real = settings.bench_is_real()
     try:
         w = SafetyWatcher(
@@ -61,6 +63,7 @@ def start_watcher(run: Run, settings: Settings) -> None:
             force_sim=info.get("transport", "sim") == "sim",
             spi_device=settings.spi_device if real else "",
             rt_priority=max(0, prio),
+            avoid_cpus=avoid,
         )
     except (OSError, ValueError) as exc:  # ESRCH: the loop is already gone; wait_for_exit handles it
         log.warning("run %s: no safety watcher (%s); the event loop watches instead", run.row.id, exc)
@@ -158,30 +161,38 @@ async def heartbeat(run: Run, settings: Settings) -> None:
         await asyncio.sleep(min(settings.host_heartbeat_period_s, settings.hang_timeout_ms / 4000))
 
 
-# ---- disk use -----------------------------------------------------------------------------------
+# ---- the kernel's limits -------------------------------------------------------------------------
+
+LIMITS_PERIOD_S = 0.25
+LIMIT_REASONS = ("memory", "pids", "disk", "cpu")
 
 
-def folder_bytes(path: Path) -> int:
-    total = 0
-    for dirpath, _dirs, files in os.walk(path):
-        for f in files:
-            with contextlib.suppress(OSError):
-                total += os.lstat(os.path.join(dirpath, f)).st_blocks * 512
-    return total
+def announce_limit(run: Run, over: tuple[str, str], store: RunStore, hub: Hub) -> None:
+    """The run went over a limit: it ends with that name, its record says why, everyone is told."""
+    reason, message = over
+    run.end_reason = run.end_reason or reason
+    run.row = store.update(run.row.id, message=message)
+    publish_limit_alarm(run, reason, message, hub)
 
 
-async def disk_guard(run: Run, limit: int, settings: Settings, store: RunStore, hub: Hub) -> None:
-    """The run folder's disk use stays under `limit` bytes (the sandbox's): beyond it the run is
-    stopped (the controller's own files; the appliance's log writer has its own full-disk
-    handling)."""
+def publish_limit_alarm(run: Run, reason: str, message: str, hub: Hub) -> None:
+    """The alarm of a limit (kind = runs.END_REASONS' name), once per run."""
+    if run.limit_alarm:
+        return
+    run.limit_alarm = reason
+    hub.publish(AlarmMessage(kind=reason, run_id=run.row.id, end_reason=reason, message=message))  # type: ignore[arg-type]
+
+
+async def limits_guard(run: Run, limits: RunLimits, settings: Settings, store: RunStore, hub: Hub) -> None:
+    """From the run's start (before its shared memory exists): the kernel already refuses what
+    goes over a limit (a page, a fork, a write); once the run did, it is stopped with an alarm of
+    that kind. Reading a few cgroup counters and one statvfs, four times a second."""
     while run.alive and not run.ended.is_set():
-        await asyncio.sleep(2.0)
-        used = await asyncio.to_thread(folder_bytes, run.run_dir)
-        if used > limit and run.alive:
-            message = f"the run folder holds {used >> 20} MB, over the limit of {limit >> 20} MB: run stopped"
-            run.row = store.update(run.row.id, message=message)
-            hub.publish(AlarmMessage(kind="disk", run_id=run.row.id, message=message))
+        await asyncio.sleep(LIMITS_PERIOD_S)
+        over = await asyncio.to_thread(limits.over)
+        if over is not None and run.alive and not run.ended.is_set():
+            log.warning("run %s: %s", run.row.id, over[1])
+            announce_limit(run, over, store, hub)
             run.stop_requested = True
-            run.end_reason = "disk"
             await terminate(run, settings)
             return

@@ -100,6 +100,7 @@ class SafetyWatcher:
         force_sim: bool,
         spi_device: str = "",
         rt_priority: int = 0,
+        avoid_cpus: frozenset[int] | set[int] = frozenset(),
     ) -> None:
         self._channels = channels  # kept referenced: the mapping must outlive the thread
         self._efd = os.eventfd(0, os.EFD_CLOEXEC | os.EFD_NONBLOCK)
@@ -115,6 +116,7 @@ class SafetyWatcher:
         cfg.spi_device = device
         cfg.spi_speed_hz = SPI_SPEED_HZ
         cfg.notify_fd = self._efd
+        cfg.avoid_cpus = sum(1 << c for c in avoid_cpus if 0 <= c < 64)
         out = ffi.new("struct xrf_watch **")
         shm = channels.shm if channels is not None else ffi.NULL
         r = lib.xrf_watch_start(shm, cfg, out)

@@ -59,9 +59,11 @@ class Settings:
     host_timeout_ms: int = 1000
     host_timeout_action: str = "pause"
     hang_timeout_ms: int = 200
-    # SCHED_FIFO priority of the safety watcher thread (safety.py), kept below the loop's (80);
-    # where real time is refused it runs SCHED_OTHER and says so in the run's record.
-    watch_priority: int = 70
+    # SCHED_FIFO priority of the safety watcher thread (safety.py): above any priority a guest
+    # may take (its RLIMIT_RTPRIO is kept below this one, guest.py), so a controller's own
+    # real-time threads cannot starve it; off the guest's CPUs as well (run_watch.start_watcher).
+    # Where real time is refused it runs SCHED_OTHER and says so in the run's record.
+    watch_priority: int = 90
     open_timeout_s: float = 10.0
     stop_state_timeout_s: float = 2.0  # stop -> STOPPED, quit -> exit
     signal_timeout_s: float = 2.0  # SIGINT -> exit, SIGTERM -> exit, then SIGKILL
@@ -76,6 +78,19 @@ class Settings:
         default_factory=lambda: os.environ.get("XRF_ALLOW_UNCONFINED", "") in ("1", "true", "yes")
     )
     run_user: str = "xrf-run"  # as root: the user controllers run as (created on first use)
+    # What the kernel bounds for each run (run_limits.py; docs/developers/security.md, "Resources
+    # the kernel bounds"). Defaults fit a 2 GB Pi 4 running the appliance and ROS 2 beside a run.
+    run_memory_mb: int = 1024  # memory cgroup: its processes, its /dev/shm and /tmp together
+    run_pids: int = 256  # pids cgroup: processes and threads of the run
+    run_disk_mb: int = 2048  # its run folder: a file system of this size, from the first byte
+    run_files: int = 65536  # ...holding at most this many files and folders
+    runs_total_mb: int = 8192  # every run folder kept on disk together (checked at each start)
+    # The CPUs a run's processes may use (cpuset, "3" or "2-3"); "" = the isolated CPUs
+    # (isolcpus=), else $XRF_CPU of loop_env, else the last CPU.
+    loop_cpus: str = ""
+    # RLIMIT_RTTIME: a real-time thread of the run that runs this long without blocking gets
+    # SIGXCPU (the run ends with `cpu`), SIGKILL at twice this.
+    rt_time_ms: int = 500
 
     # WebSocket fan-out.
     max_frame_bytes: int = 64 * 1024

@@ -10,7 +10,7 @@ is a module of its own that takes the `Run` it works on:
 
 - catalog.py: the builds a run starts from (bundled examples built on first use, uploads);
 - launch.py: the loop's environment, its sandbox, mapping its shared memory;
-- run_watch.py: the safety watcher, the heartbeats, the disk guard, the exit (safe outputs first);
+- run_watch.py: the safety watcher, the heartbeats, the limits guard, the exit (safe outputs first);
 - run_reader.py: telemetry and monitor lines on the doorbell, the loop's printed output;
 - run_timing.py: the once-a-second timing message and deadline-miss alarm;
 - run_control.py: commands, setpoints, stopping in order;
@@ -34,7 +34,7 @@ from typing import Any
 
 from .. import channels as chmod
 from .. import plants
-from . import launch, orphans, run_control, run_end, run_reader, run_watch
+from . import launch, orphans, run_control, run_end, run_limits, run_reader, run_watch
 from .catalog import BuildCatalog, BuildEntry
 from .guest_spawn import GuestSpawner
 from .hub import Hub
@@ -84,6 +84,14 @@ class Supervisor:
                 except Exception:  # one bad record must not keep the appliance from serving
                     log.exception("run %s: recovering the orphaned run failed", row.id)
                     orphans.abandon(row)
+        # What a killed appliance left of its runs' cgroups and file systems (the run's files kept).
+        async with self.bench_lock:
+            live = {self.current.run_dir} if self.current is not None and not self.current.ended.is_set() else set()
+            try:
+                for note in await asyncio.to_thread(run_limits.sweep, self.settings, live):
+                    log.warning("left by an earlier appliance: %s", note)
+            except Exception:
+                log.exception("cleaning up what an earlier appliance left failed")
 
     # -- queries ------------------------------------------------------------------------------
 
@@ -147,6 +155,9 @@ class Supervisor:
             self.current = run
             launch.announce_unconfined(run, self.hub)
             run.tasks.append(asyncio.create_task(self._watch_exit(run), name=f"run{row.id}-exit"))
+            if run.limits is not None:  # from the start: a controller may fill its disk before its shm exists
+                guard = run_watch.limits_guard(run, run.limits, self.settings, self.store, self.hub)
+                run.tasks.append(asyncio.create_task(guard, name=f"run{row.id}-limits"))
             run.tasks.append(asyncio.create_task(run_reader.pipe_output(run, self.hub), name=f"run{row.id}-output"))
 
             opened = await launch.open_channels(run, self.settings, self.store)
@@ -177,9 +188,6 @@ class Supervisor:
         run.tasks.append(asyncio.create_task(reader, name=f"run{rid}-reader"))
         timer = run_reader.guarded("_timing", lambda: timing(run, settings.timing_period_s, hub), run, hub)
         run.tasks.append(asyncio.create_task(timer, name=f"run{rid}-timing"))
-        limit = self.guests.limits.run_dir_mb << 20
-        guard = run_watch.disk_guard(run, limit, settings, self.store, hub)
-        run.tasks.append(asyncio.create_task(guard, name=f"run{rid}-disk"))
         run.thread = threading.Thread(
             target=run_reader.doorbell_thread,
             args=(run, asyncio.get_running_loop()),

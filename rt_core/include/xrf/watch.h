@@ -5,7 +5,8 @@
  * It is started by the host that supervises a run (the appliance, through the cffi binding) and
  * never needs that host again until it has acted: it is woken by the kernel (a pidfd turns
  * readable when the loop process exits), checks the loop's heartbeat in the shared memory on a
- * short timer, and runs at a real-time priority below the loop's when it may. On exit or hang it
+ * short timer, and runs at a real-time priority above any the run may take, off the run's CPUs,
+ * when it may. On exit or hang it
  *   1. forces the outputs safe: the simulated board's forced_off flag and/or an FPGA RESET frame
  *      over spidev (xrf_ico_frame_op + the spidev transport: the one C implementation),
  *   2. on a hang, kills the loop (pidfd_send_signal, so no pid can be reused under it),
@@ -43,6 +44,9 @@ struct xrf_watch_config {
     char spi_device[64];     /* "" or the spidev the FPGA RESET frame goes to */
     uint32_t spi_speed_hz;
     int notify_fd; /* -1 or an eventfd written once the outputs are safe */
+    /* CPUs (bit n = CPU n, n < 64) the watcher keeps off: the run's own, where its threads may
+     * spin at a real-time priority. Ignored when no other CPU is allowed to the watcher. */
+    uint64_t avoid_cpus;
 };
 
 struct xrf_watch_result {
