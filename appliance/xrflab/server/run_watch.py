@@ -186,10 +186,15 @@ def publish_limit_alarm(run: Run, reason: str, message: str, hub: Hub) -> None:
 async def limits_guard(run: Run, limits: RunLimits, settings: Settings, store: RunStore, hub: Hub) -> None:
     """From the run's start (before its shared memory exists): the kernel already refuses what
     goes over a limit (a page, a fork, a write); once the run did, it is stopped with an alarm of
-    that kind. Reading a few cgroup counters and one statvfs, four times a second."""
+    that kind. A few cgroup counters and one statvfs, four times a second: read here, not in a
+    worker thread (the default executor's few threads may all be waiting on something slow)."""
     while run.alive and not run.ended.is_set():
         await asyncio.sleep(LIMITS_PERIOD_S)
-        over = await asyncio.to_thread(limits.over)
+        try:
+            over = limits.over()
+        except Exception:  # never let the guard die quietly: the run would go on unwatched
+            log.exception("run %s: reading its limits failed", run.row.id)
+            continue
         if over is not None and run.alive and not run.ended.is_set():
             log.warning("run %s: %s", run.row.id, over[1])
             announce_limit(run, over, store, hub)

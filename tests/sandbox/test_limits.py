@@ -1,0 +1,315 @@
+"""Resources the kernel bounds (issue 26, holes 5-7 and real-time starvation): a hostile
+controller (tests/fixtures/limits_controller over the base template) uploaded, built once and run
+through the appliance, each run asked to do one thing (its XRF_MAX_CYCLES says which, see
+hostile.cpp): forked children over the memory limit, /dev/shm filled, the run folder filled from
+main() before the shared memory exists, a fork bomb, SCHED_FIFO spinners on every CPU it can
+reach. Small limits per appliance keep it quick (128 MB, 64 MB of disk, 48 processes).
+
+Each run must end with an alarm naming the limit, the appliance must answer throughout, and
+nothing of the run may be left but its kept folder: no cgroup, no mount, no loop device, no image.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from xrf_testing.harness import Server, WsClient, shared_builds_root, start_server, stop_server, wait_for
+from xrf_testing.hostile import project_files
+from xrf_testing.projects_support import reachable_tmp, targz
+
+from xrflab.server import cgroups, run_disk, run_limits
+
+REPO = Path(__file__).resolve().parents[2]
+HOSTILE = REPO / "tests" / "fixtures" / "limits_controller"
+BASE = REPO / "student_projects" / "templates" / "base"
+MEMORY, SHM, DISK, FORK_BOMB, SPIN_HANG, SPIN_CRASH, SPIN_ONLY = 1, 2, 3, 4, 5, 6, 7
+LIMITS = {"run_memory_mb": 128, "run_disk_mb": 64, "run_files": 4096, "run_pids": 48, "runs_total_mb": 4096}
+BOUND_NS = 100_000_000  # outputs safe within 100 ms of the exit (tests/server/test_safety_under_load.py)
+
+pytestmark = pytest.mark.skipif(
+    os.geteuid() != 0,
+    reason="the kernel's limits need root here (cgroup v1 and loop mounts); a non-root appliance's "
+    "missing layers are tested in test_launcher.py",
+)
+
+
+def code(mode: int, mb: int = 0) -> int:
+    return 1_000_000_000 + mode * 1_000_000 + mb
+
+
+def start(data_dir: Path, **settings: Any) -> Server:
+    return start_server(data_dir, shared_builds_root(), **{**LIMITS, **settings})
+
+
+@pytest.fixture(scope="module")
+def data_dir() -> Iterator[Path]:
+    d = reachable_tmp("limits")
+    yield d
+    import shutil
+
+    shutil.rmtree(d, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def server(data_dir: Path) -> Iterator[Server]:
+    s = start(data_dir)
+    yield s
+    stop_server(s)
+
+
+@pytest.fixture(scope="module")
+def hostile(server: Server) -> tuple[httpx.Client, int, int]:
+    """mallory, holding the bench, with the hostile controller built: (client, project, build)."""
+    http, _ = server.login("mallory", server.create_user("mallory"))
+    files = {**project_files(BASE), **project_files(HOSTILE)}
+    r = http.post("/api/projects", files={"file": ("limits.tar.gz", targz(files, "limits"), "application/gzip")})
+    assert r.status_code == 201, r.text
+    pid = r.json()["project"]["id"]
+    from xrf_testing.projects_support import build_and_wait
+
+    b = build_and_wait(http, pid)
+    assert b["status"] == "ok", http.get(f"/api/projects/{pid}/builds/{b['id']}/log").text[-3000:]
+    assert http.post("/api/lease/take").status_code == 200
+    return http, pid, b["id"]
+
+
+def run_hostile(server: Server, hostile: tuple[httpx.Client, int, int], mode: int, mb: int = 0) -> dict[str, Any]:
+    http, pid, bid = hostile
+    server.stop_run()
+    r = http.post(f"/api/projects/{pid}/builds/{bid}/run", json={"max_cycles": code(mode, mb)}, timeout=60)
+    assert r.status_code == 201, r.text
+    return r.json()["run"]
+
+
+def ended(server: Server, run_id: int, timeout: float = 30) -> dict[str, Any]:
+    """The run's final record, once its file system and cgroup were let go of (run_end.record
+    does that after storing the record)."""
+
+    def final() -> dict[str, Any] | None:
+        r = server.http.get(f"/api/runs/{run_id}").json()
+        return r if r["status"] in ("ended", "crashed", "failed") else None
+
+    row = wait_for(final, timeout, f"run {run_id} to end")
+    wait_for(
+        lambda: not cgroup_left(server, run_id) and not run_disk.is_mounted(server.data_dir / "runs" / str(run_id)),
+        10,
+        "the run's cgroup and file system to be let go of",
+    )
+    return row
+
+
+def cgroup_left(server: Server, run_id: int) -> list[str]:
+    name = f"{cgroups.PREFIX}{run_limits.tag(server.data_dir)}-{run_id}"
+    return [str(p.base / name) for p in cgroups.find().values() if (p.base / name).exists()]
+
+
+def wait_alarm(server: Server, ws: WsClient, kind: str, run_id: int, timeout: float = 30) -> dict[str, Any]:
+    """The alarm of `kind` for the run; failing, what was seen instead."""
+    try:
+        return ws.wait_type("alarm", timeout, kind=kind, run_id=run_id)
+    except AssertionError:
+        seen = [m for m in ws.messages if m.get("type") in ("alarm", "run")]
+        row = server.http.get(f"/api/runs/{run_id}").json()
+        raise AssertionError(f"no {kind} alarm for run {run_id}: seen {seen}; record {row}") from None
+
+
+def output(server: Server, run_id: int) -> str:
+    path = server.data_dir / "runs" / str(run_id) / "output.txt"
+    return path.read_text(errors="replace") if path.is_file() else ""
+
+
+def assert_nothing_left(server: Server, run_id: int) -> None:
+    """The run's cgroup, mount, loop device and image are gone; its folder is an ordinary one."""
+    run_dir = server.data_dir / "runs" / str(run_id)
+    assert not cgroup_left(server, run_id)
+    assert not run_disk.is_mounted(run_dir), f"{run_dir} still mounted"
+    assert not run_disk.image_for(server.data_dir, run_id).exists()
+    # The loop device frees itself once the last reference to the file system is gone: a reader
+    # of the appliance finishing, and any process that made a mount namespace while the run's
+    # file system was mounted (a build, another appliance's run on this shared machine): their
+    # namespace holds a copy until they exit. None may be of this appliance.
+    deadline = time.monotonic() + 5
+    while (held := holders(server.data_dir)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    ours = [h for h in held if str(server.data_dir) in h or f"XRF_RUN_DIR={server.data_dir}" in h]
+    assert not ours, f"the run's file system is still held by: {ours}"
+
+
+def holders(data_dir: Path) -> list[str]:
+    """Processes whose mount namespace still has a run file system of `data_dir` (debugging)."""
+    devices = {d for d, f in run_disk._backing_files().items() if str(data_dir) in f}
+    out = []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            info = Path(f"/proc/{pid}/mountinfo").read_text()
+            comm = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()[:300]
+        except OSError:
+            continue
+        if any(f" {d} " in info for d in devices):
+            with contextlib.suppress(OSError):
+                comm += " " + Path(f"/proc/{pid}/environ").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            out.append(f"{pid} {comm}")
+    return out
+
+
+def assert_answers(server: Server) -> None:
+    t = time.monotonic()
+    assert server.http.get("/api/health").status_code == 200
+    assert time.monotonic() - t < 2.0
+
+
+def test_forked_children_over_the_memory_limit(server: Server, hostile: Any) -> None:
+    """Hole 5: four children of 100 MB each, 128 MB for the run: the kernel kills, the run ends
+    with `memory`, the appliance is untouched."""
+    with server.ws() as ws:
+        run = run_hostile(server, hostile, MEMORY, 100)
+        alarm = wait_alarm(server, ws, "memory", run["id"])
+    assert "memory limit (128 MB" in alarm["message"], alarm
+    row = ended(server, run["id"])
+    assert row["end_reason"] == "memory", row
+    assert "memory child 3" in output(server, run["id"])
+    assert_answers(server)
+    assert_nothing_left(server, run["id"])
+
+
+def test_dev_shm_filled(server: Server, hostile: Any) -> None:
+    """Hole 6: its /dev/shm (a folder of the host's tmpfs) counts as the run's memory."""
+    with server.ws() as ws:
+        run = run_hostile(server, hostile, SHM, 400)
+        wait_alarm(server, ws, "memory", run["id"])
+    row = ended(server, run["id"])
+    assert row["end_reason"] == "memory", row
+    assert not (Path("/dev/shm") / row["shm"].split("/")[0]).exists()
+    assert_answers(server)
+    assert_nothing_left(server, run["id"])
+
+
+def test_disk_filled_from_main_before_the_shared_memory(server: Server, hostile: Any) -> None:
+    """Hole 7: 200 MB of files written by main() before the loop (and its shared memory) starts,
+    64 MB allowed: the kernel stops the writes at the limit from the first byte, the run ends
+    with `disk`, and what it wrote up to the limit is kept in an ordinary run folder."""
+    with server.ws() as ws:
+        run = run_hostile(server, hostile, DISK, 200)
+        alarm = wait_alarm(server, ws, "disk", run["id"])
+    assert "run folder is full" in alarm["message"], alarm
+    row = ended(server, run["id"])
+    assert row["end_reason"] == "disk", row
+    text = output(server, run["id"])
+    wrote = int(text.split("LIMITS disk wrote ", 1)[1].split(" MB", 1)[0])
+    assert 40 <= wrote <= 64 and "No space left on device" in text, text
+    assert_nothing_left(server, run["id"])
+    run_dir = server.data_dir / "runs" / str(run["id"])
+    kept = sorted(p.name for p in run_dir.glob("fill*.bin"))
+    assert wrote <= len(kept) <= wrote + 1, kept  # and the one the kernel cut short
+    assert run_disk.kept_bytes(run_dir) <= 64 << 20
+    assert server.http.get(f"/api/logs/runs/{run['id']}").status_code == 200  # the run's files, listed
+    assert_answers(server)
+
+
+def test_fork_bomb(server: Server, hostile: Any) -> None:
+    with server.ws() as ws:
+        run = run_hostile(server, hostile, FORK_BOMB)
+        wait_alarm(server, ws, "pids", run["id"])
+    row = ended(server, run["id"])
+    assert row["end_reason"] == "pids", row
+    n = int(output(server, run["id"]).split("fork bomb: ", 1)[1].split(" ", 1)[0])
+    assert n < LIMITS["run_pids"], n
+    assert_answers(server)
+    assert_nothing_left(server, run["id"])
+
+
+class Pinger:
+    """Asks the appliance for /api/health every 50 ms while the spinners run: the slowest answer."""
+
+    def __init__(self, server: Server) -> None:
+        self.url = server.url
+        self.worst = 0.0
+        self.count = 0
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        with httpx.Client(base_url=self.url, timeout=10) as c:
+            while not self.stop.is_set():
+                t = time.monotonic()
+                c.get("/api/health")
+                self.worst = max(self.worst, time.monotonic() - t)
+                self.count += 1
+                time.sleep(0.05)
+
+    def __enter__(self) -> Pinger:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self.thread.join()
+
+
+def spinners_then(server: Server, hostile: Any, mode: int, kind: str) -> dict[str, Any]:
+    """SCHED_FIFO spinners on every CPU the controller can reach, then its loop hangs (starved)
+    or it crashes: the outputs are safe within the usual bound, the appliance answers."""
+    with server.ws() as ws, Pinger(server) as pinger:
+        run = run_hostile(server, hostile, mode)
+        alarm = wait_alarm(server, ws, kind, run["id"])
+        ended(server, run["id"])
+    text = output(server, run["id"])
+    assert "LIMITS spinners on 1 CPU(s)" in text, text  # the run's cpuset: the loop's CPU only
+    assert "LIMITS spinning on CPU" in text, text
+    assert alarm["safe_ns"] - alarm["event_ns"] < BOUND_NS, alarm
+    assert alarm["watcher_rt"], alarm
+    assert pinger.count > 5 and pinger.worst < 1.0, (pinger.count, pinger.worst)
+    assert_nothing_left(server, run["id"])
+    return alarm
+
+
+def test_spinners_starve_the_loop_the_watcher_is_not_starved(server: Server, hostile: Any) -> None:
+    alarm = spinners_then(server, hostile, SPIN_HANG, "hang")
+    # Seen within the hang timeout (200 ms) and a check period of the last beat.
+    assert alarm["event_ns"] - alarm["heartbeat_ns"] < 200_000_000 + BOUND_NS, alarm
+
+
+def test_spinners_then_a_crash(server: Server, hostile: Any) -> None:
+    alarm = spinners_then(server, hostile, SPIN_CRASH, "crash")
+    assert alarm["exit_signal"] == signal.SIGSEGV, alarm
+
+
+def test_a_real_time_thread_that_never_blocks_is_stopped(hostile: Any) -> None:
+    """RLIMIT_RTTIME: spinners alone (no loop to starve, a hang timeout far away): after 300 ms of
+    real-time CPU without blocking the kernel sends SIGXCPU; the run ends with `cpu`."""
+    d = reachable_tmp("limits-cpu")
+    s = start(d, rt_time_ms=300, hang_timeout_ms=5000)
+    try:
+        http, _ = s.login("mallory", s.create_user("mallory"))
+        _, pid, bid = hostile
+        # The build belongs to the other appliance: upload and build here too (same sources: quick).
+        files = {**project_files(BASE), **project_files(HOSTILE)}
+        r = http.post("/api/projects", files={"file": ("limits.tar.gz", targz(files, "limits"), "application/gzip")})
+        pid = r.json()["project"]["id"]
+        from xrf_testing.projects_support import build_and_wait
+
+        bid = build_and_wait(http, pid)["id"]
+        assert http.post("/api/lease/take").status_code == 200
+        with s.ws() as ws, Pinger(s) as pinger:
+            run = run_hostile(s, (http, pid, bid), SPIN_ONLY)
+            alarm = wait_alarm(s, ws, "cpu", run["id"])
+            row = ended(s, run["id"])
+        assert row["end_reason"] == "cpu" and row["exit_signal"] == signal.SIGXCPU, row
+        assert "RLIMIT_RTTIME" in alarm["message"], alarm
+        assert pinger.worst < 1.0, pinger.worst
+        assert_nothing_left(s, run["id"])
+    finally:
+        stop_server(s)
+        import shutil
+
+        shutil.rmtree(d, ignore_errors=True)
