@@ -62,6 +62,7 @@ EXTERNAL_SUBCOMMANDS: dict[str, str] = {
     "upload": "xrflab.projects_cli",
     "new": "xrflab.projects.cli_new",
     "room": "xrflab.room.cli",
+    "run-disk-helper": "xrflab.server.run_disk_helper",
 }
 
 

@@ -2,7 +2,10 @@
 the launcher's report, the exit code and what the probe saw. Started by test_launcher.py,
 possibly as another user: needs only the standard library and xrflab's pure-Python modules.
 
-usage: guest_probe.py APPLIANCE_DIR PROBE_SCRIPT ALLOW_MISSING(0|1)
+usage: guest_probe.py APPLIANCE_DIR PROBE_SCRIPT ALLOW_MISSING(0|1) [DATA_DIR RUN_DISK_HELPER]
+
+With DATA_DIR (and the socket of a run-disk helper serving it), the run folder is
+DATA_DIR/runs/<pid> (kept) as a run's would be; else a temporary folder (removed).
 """
 
 from __future__ import annotations
@@ -24,10 +27,19 @@ from xrflab.server.settings import Settings  # noqa: E402
 
 async def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="xrf-guest-test-"))
-    run = tmp / "run"
-    run.mkdir()
+    data, helper = (Path(sys.argv[4]), sys.argv[5]) if len(sys.argv) > 5 else (tmp, "/nonexistent")
+    run = data / "runs" / str(os.getpid())
+    run.mkdir(parents=True)
     spawner = GuestSpawner(
-        Settings(data_dir=tmp, allow_unconfined=sys.argv[3] == "1", real_bench=False, run_disk_mb=16, run_files=256)
+        Settings(
+            data_dir=data,
+            allow_unconfined=sys.argv[3] == "1",
+            real_bench=False,
+            run_disk_mb=16,
+            run_files=256,
+            runs_total_mb=1024,
+            run_disk_helper=helper,
+        )
     )
     shm = Path("/dev/shm") / f"xrf-guest-test-{os.getpid()}"
     limits = None
@@ -49,6 +61,7 @@ async def main() -> None:
                     "pid": report.pid,
                     "output": (run / "out.txt").read_text(),
                     "host_uid": os.getuid(),
+                    "run_dir": str(run),
                 }
             )
         )

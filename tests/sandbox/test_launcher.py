@@ -5,6 +5,7 @@ shell probe running in the sandbox."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import pwd
@@ -14,12 +15,23 @@ import stat
 import subprocess
 import sys
 import tempfile
+import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent
 TEST_USER = "xrf-test-guest"  # an ordinary user with subordinate ids (made here when root)
+# What the kernel offers no non-root appliance on this machine: cgroup v1 (a v1 cgroup takes a
+# process of another uid only from root; the Pi's cgroup v2 with systemd's Delegate= would);
+# the run folder's own file system comes from the root helper (run_disk_helper.py) when it runs.
+NON_ROOT_MISSING = {"memory", "pids", "cpu"}
+# Fills the run folder beyond its 16 MB file system (guest_probe.py's limit) and says whether it stayed bounded.
+FILL = r"""
+dd if=/dev/zero of="$PWD/fill" bs=1M count=32 2>/dev/null
+[ "$(du -m "$PWD/fill" | cut -f1)" -le 16 ] && echo "disk=bounded" || echo "disk=UNBOUNDED"
+"""
 PROBE = r"""#!/bin/sh
 echo "uid=$(id -u)"
 echo "caps=$(grep CapEff /proc/self/status | cut -f2)"
@@ -37,24 +49,33 @@ touch /etc/x 2>/dev/null && echo "etc=WRITABLE" || echo "etc=read-only"
 
 
 def probe_as(
-    user: str | None, tmp: Path, allow_missing: bool = False, no_newuidmap: bool = False, script: str = PROBE
+    user: str | None,
+    tmp: Path,
+    allow_missing: bool = False,
+    no_newuidmap: bool = False,
+    script: str = PROBE,
+    helper: tuple[Path, str] | None = None,
 ) -> dict[str, Any]:
     # pytest's tmp_path is private to its user: the probe lives where another user may read it.
     tmp = Path(tempfile.mkdtemp(prefix="xrf-probe-"))
     os.chmod(tmp, 0o755)
     try:
-        return _probe_as(user, tmp, allow_missing, no_newuidmap, script)
+        return _probe_as(user, tmp, allow_missing, no_newuidmap, script, helper)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _probe_as(user: str | None, tmp: Path, allow_missing: bool, no_newuidmap: bool, text: str) -> dict[str, Any]:
+def _probe_as(
+    user: str | None, tmp: Path, allow_missing: bool, no_newuidmap: bool, text: str, helper: tuple[Path, str] | None
+) -> dict[str, Any]:
     script = tmp / "probe.sh"
     script.write_text(text)
     script.chmod(0o755)
     os.chmod(tmp, 0o755)
     python = sys.executable
     cmd = [python, str(HERE / "guest_probe.py"), str(REPO / "appliance"), str(script), "1" if allow_missing else "0"]
+    if helper is not None:
+        cmd += [str(helper[0]), helper[1]]
     if user is not None:
         # Another user cannot reach a venv under /root: the system's Python runs the same code.
         python = shutil.which("python3", path="/usr/bin:/bin") or "/usr/bin/python3"
@@ -154,16 +175,54 @@ def test_as_this_user(tmp_path: Path) -> None:
         assert_confined(data)
 
 
+@contextlib.contextmanager
+def run_disk_helper(owner: str) -> Iterator[tuple[Path, str]]:
+    """As root: a data folder of `owner`'s and the root helper that makes its run folders file
+    systems of their own (deploy/systemd/xrf-run-disk.service on a Pi), on a socket of its own."""
+    base = Path(tempfile.mkdtemp(prefix="xrf-helper-"))
+    os.chmod(base, 0o755)
+    data, images, sock = base / "data", base / "images", base / "run-disk.sock"
+    (data / "runs").mkdir(parents=True)
+    for d in (data, data / "runs"):
+        shutil.chown(d, owner, pwd.getpwnam(owner).pw_gid)
+    helper = subprocess.Popen(
+        [sys.executable, "-m", "xrflab.server.run_disk_helper", "--data", str(data), "--images", str(images)]
+        + ["--owner", owner, "--socket", str(sock), "--max-mb", "16", "--max-files", "256"],
+        env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")),
+    )
+    try:
+        deadline = time.monotonic() + 20
+        while not sock.exists():
+            assert helper.poll() is None and time.monotonic() < deadline, "the run-disk helper did not start"
+            time.sleep(0.05)
+        yield data, str(sock)
+    finally:
+        helper.terminate()
+        helper.wait(timeout=10)
+        shutil.rmtree(base, ignore_errors=True)
+
+
 def test_ordinary_user_with_subordinate_ids(tmp_path: Path) -> None:
+    """The Pi's case: an appliance that is not root, with subordinate ids; the run folder made a
+    file system of its own by the root helper (as root here; without it, `disk` is missing too)."""
     if os.geteuid() != 0:
-        data = probe_as(None, tmp_path)
-        if data["report"]["missing"]:  # this user has no /etc/subuid range: refused, clearly
-            assert data["rc"] == 126 and "subordinate" in data["error"]
+        data = probe_as(None, tmp_path, allow_missing=True)
+        if "user" in data["report"]["missing"]:  # this user has no /etc/subuid range: refused, clearly
+            refused = probe_as(None, tmp_path)
+            assert refused["rc"] == 126 and "subordinate" in refused["error"]
             return
+        assert_confined(data, except_layers=NON_ROOT_MISSING | {"disk"})
     else:
-        data = probe_as(ensure_test_user(), tmp_path)
+        user = ensure_test_user()
+        with run_disk_helper(user) as helper:
+            data = probe_as(user, tmp_path, allow_missing=True, helper=helper, script=PROBE + FILL)
+            assert_confined(data, except_layers=NON_ROOT_MISSING)
+            assert data["seen"]["disk"] == "bounded", data["output"]
+            # Released: an ordinary folder again, with what the controller wrote in it.
+            run_dir = Path(data["run_dir"])
+            assert (run_dir / "written").is_file() and os.stat(run_dir).st_dev == os.stat(run_dir.parent).st_dev
+            assert not list((helper[0].parent / "images").glob("*.img"))
     assert data["report"]["mode"] == "userns"
-    assert_confined(data)
     # The files the controller wrote belong to its own host uid, neither root nor the appliance's.
     assert data["seen"]["uid"] == "1"
 
@@ -172,11 +231,12 @@ def test_no_subordinate_ids_refused_unless_allowed(tmp_path: Path) -> None:
     """No second uid to be had (no newuidmap; as root: `nobody`, which has no /etc/subuid range)."""
     user = "nobody" if os.geteuid() == 0 else None
     refused = probe_as(user, tmp_path, no_newuidmap=True)
-    assert refused["rc"] == 126 and set(refused["report"]["missing"]) == {"user"}
+    missing = {"user", "disk"} | NON_ROOT_MISSING  # no helper runs for this one
+    assert refused["rc"] == 126 and set(refused["report"]["missing"]) == missing
     assert "REFUSED" in refused["output"] and "--allow-unconfined" in refused["error"]
     assert "written" not in refused["output"]
     allowed = probe_as(user, tmp_path, allow_missing=True, no_newuidmap=True)
-    assert_confined(allowed, except_layers={"user"})
+    assert_confined(allowed, except_layers=missing)
     assert allowed["seen"]["uid"] == "65534"  # unmapped in its nested namespace: no identity, no capability
 
 

@@ -50,6 +50,7 @@ LO_FLAGS_AUTOCLEAR = 4
 SYS_OPEN_TREE = 428  # the same number on every architecture (added after the tables were unified)
 OPEN_TREE_CLONE = 1
 OPEN_TREE_CLOEXEC = os.O_CLOEXEC
+AT_EMPTY_PATH = 0x1000
 MAX_DEPTH = 64  # folders nested deeper than this are not copied out (counted as skipped)
 
 
@@ -63,6 +64,7 @@ class DiskSpec:
     files: int
     uid: int  # owner of the run folder (the appliance)
     gid: int  # its group (the loop's, so it may write: guest_spawn.prepare_dirs)
+    reserve_for: int = 0  # the uid that may use the reserved blocks (the appliance)
 
     @property
     def reserve_bytes(self) -> int:
@@ -117,9 +119,16 @@ def _mkfs(image: Path, spec: DiskSpec) -> None:
         str(image),
         str(blocks),
     ]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=60, env={"PATH": "/usr/sbin:/sbin:/usr/bin:/bin"})
+    env = {"PATH": "/usr/sbin:/sbin:/usr/bin:/bin"}
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=60, env=env)
     if r.returncode != 0:
         raise DiskError(f"mkfs.ext4 failed: {(r.stderr or r.stdout).strip()[:300]}")
+    if spec.reserve_for:  # ext4 gives its reserve to root unless told (mke2fs has no option for it)
+        r = subprocess.run(
+            ["tune2fs", "-u", str(spec.reserve_for), str(image)], capture_output=True, text=True, timeout=60, env=env
+        )
+        if r.returncode != 0:
+            raise DiskError(f"tune2fs failed: {(r.stderr or r.stdout).strip()[:300]}")
 
 
 def _loop_attach(image_fd: int) -> tuple[int, str]:
@@ -146,60 +155,82 @@ def _loop_attach(image_fd: int) -> tuple[int, str]:
         os.close(ctl)
 
 
-def attach(run_dir: Path, image: Path, spec: DiskSpec) -> None:
-    """Make `image` and mount it on `run_dir` (an empty folder of ours)."""
+def open_dir(parent: int, name: str) -> int:
+    """The folder `name` in `parent` (a descriptor), never through a symlink."""
+    return os.open(name, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC, dir_fd=parent)
+
+
+def attach(runs: int, name: str, image: Path, spec: DiskSpec) -> None:
+    """Make `image` (in a folder only we write) and mount it on the folder `name` in `runs`."""
     image.parent.mkdir(mode=0o700, exist_ok=True)
     try:
         with open(image, "xb") as f:
             f.truncate(spec.size_bytes)
         _mkfs(image, spec)
-        mount_image(image, run_dir)
+        mount_image(image, runs, name)
     except (OSError, subprocess.SubprocessError, DiskError) as exc:
         with contextlib.suppress(OSError):
             image.unlink()
         raise DiskError(f"cannot make the run's file system: {exc}") from exc
 
 
-def mount_image(image: Path, run_dir: Path) -> None:
+def mount_image(image: Path, runs: int, name: str) -> None:
     image_fd = os.open(image, os.O_RDWR | os.O_CLOEXEC | os.O_NOFOLLOW)
     try:
         loop_fd, device = _loop_attach(image_fd)
     finally:
         os.close(image_fd)
     try:
-        target = os.open(run_dir, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC)
+        target = open_dir(runs, name)
         try:
             guest.mount(device, f"/proc/self/fd/{target}", "ext4", guest.MS_NOSUID | guest.MS_NODEV, "noinit_itable")
         finally:
             os.close(target)
     finally:
         os.close(loop_fd)  # the mount holds the device now (or, failed, autoclear frees it)
-    with contextlib.suppress(OSError):
-        (run_dir / "lost+found").rmdir()  # mkfs's, empty; not the run's
+    root = open_dir(runs, name)
+    try:
+        with contextlib.suppress(OSError):
+            os.rmdir("lost+found", dir_fd=root)  # mkfs's, empty; not the run's
+    finally:
+        os.close(root)
+
+
+def mounted(runs: int, name: str) -> bool:
+    """The folder `name` in `runs` is the root of another file system (the run's)."""
+    try:
+        st = os.stat(name, dir_fd=runs, follow_symlinks=False)
+    except OSError:
+        return False
+    return stat.S_ISDIR(st.st_mode) and st.st_dev != os.fstat(runs).st_dev
 
 
 def is_mounted(run_dir: Path) -> bool:
     try:
-        return os.stat(run_dir).st_dev != os.stat(run_dir.parent).st_dev
+        runs = os.open(run_dir.parent, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
     except OSError:
         return False
+    try:
+        return mounted(runs, run_dir.name)
+    finally:
+        os.close(runs)
 
 
-def _underneath(run_dir: Path) -> int:
-    """A descriptor of the folder the run's mount covers: opened in a clone of the parent's
-    mount, which has no submounts (OPEN_TREE_CLONE without AT_RECURSIVE)."""
+def _underneath(runs: int, name: str) -> int:
+    """A descriptor of the folder the run's mount covers: opened in a clone of the runs folder
+    (a bind mount of it without submounts: OPEN_TREE_CLONE without AT_RECURSIVE)."""
     libc = ctypes.CDLL(None, use_errno=True)
     tree = libc.syscall(
         ctypes.c_long(SYS_OPEN_TREE),
-        ctypes.c_int(-100),  # AT_FDCWD
-        str(run_dir.parent).encode(),
-        ctypes.c_uint(OPEN_TREE_CLONE | OPEN_TREE_CLOEXEC),
+        ctypes.c_int(runs),
+        b"",
+        ctypes.c_uint(OPEN_TREE_CLONE | OPEN_TREE_CLOEXEC | AT_EMPTY_PATH),
     )
     if tree < 0:
         e = ctypes.get_errno()
-        raise OSError(e, f"open_tree {run_dir.parent}: {os.strerror(e)}")
+        raise OSError(e, f"open_tree: {os.strerror(e)}")
     try:
-        return os.open(run_dir.name, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC, dir_fd=tree)
+        return open_dir(tree, name)
     finally:
         os.close(tree)
 
@@ -312,24 +343,25 @@ def copy_tree(src_root: int, dst_root: int, budget: int) -> CopyStats:
     return stats
 
 
-def release(run_dir: Path, image: Path) -> CopyStats | None:
+def release(runs: int, name: str, image: Path) -> CopyStats | None:
     """The run has ended: keep what its file system holds in the folder underneath, then
-    detach the mount and delete the image. None when `run_dir` had no mount of its own."""
+    detach the mount and delete the image. None when the folder had no mount of its own."""
     stats = None
-    if is_mounted(run_dir):
-        used = usage(run_dir).used
-        src = os.open(run_dir, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC)
+    if mounted(runs, name):
+        src = open_dir(runs, name)
         try:
-            dst = _underneath(run_dir)
+            st = os.fstatvfs(src)
+            dst = _underneath(runs, name)
             try:
-                stats = copy_tree(src, dst, budget=used + (1 << 20))
+                stats = copy_tree(src, dst, budget=(st.f_blocks - st.f_bfree) * st.f_frsize + (1 << 20))
             finally:
                 os.close(dst)
+            # Through the descriptor: the path is not looked up again (it is the appliance's).
+            if guest._libc.umount2(f"/proc/self/fd/{src}".encode(), ctypes.c_int(guest.MNT_DETACH)) != 0:
+                e = ctypes.get_errno()
+                raise OSError(e, f"umount {name}: {os.strerror(e)}")
         finally:
             os.close(src)
-        if guest._libc.umount2(str(run_dir).encode(), ctypes.c_int(guest.MNT_DETACH)) != 0:
-            e = ctypes.get_errno()
-            raise OSError(e, f"umount {run_dir}: {os.strerror(e)}")
     with contextlib.suppress(FileNotFoundError):
         image.unlink()
     return stats
@@ -346,10 +378,10 @@ def _backing_files() -> dict[str, str]:
     return out
 
 
-def mounted_runs(runs_dir: Path, images_dir: Path) -> dict[Path, Path]:
-    """Run folder -> image, for every run image of this data folder mounted now."""
+def mounted_runs(runs_dir: Path, images_dir: Path) -> dict[str, Path]:
+    """Run folder name -> image, for every run image of `images_dir` mounted in `runs_dir` now."""
     backing = _backing_files()
-    out: dict[Path, Path] = {}
+    out: dict[str, Path] = {}
     prefix = str(images_dir) + "/"
     with contextlib.suppress(OSError):
         for line in Path("/proc/self/mountinfo").read_text().splitlines():
@@ -360,35 +392,43 @@ def mounted_runs(runs_dir: Path, images_dir: Path) -> dict[Path, Path]:
             point = Path(fields[4].replace("\\040", " "))
             image = backing.get(rest[1], "").removesuffix(" (deleted)")
             if point.parent == runs_dir and image.startswith(prefix):
-                out[point] = Path(image)
+                out[point.name] = Path(image)
     return out
 
 
-def sweep(data_dir: Path, live: set[Path]) -> list[str]:
-    """Finish what a killed appliance left of this data folder's run file systems (not those of
-    `live` run folders): mounted ones are copied out and removed; an image without a mount (a
-    reboot) is mounted again first. Returns what was done, for the log."""
-    runs_dir, images_dir = data_dir / "runs", data_dir / IMAGES
+def sweep(runs_dir: Path, images_dir: Path, live: set[str]) -> list[str]:
+    """Finish what a killed appliance left of its run file systems (not those of the `live` run
+    folders): mounted ones are copied out and removed; an image without a mount (a reboot) is
+    mounted again first. Returns what was done, for the log."""
     done: list[str] = []
-    for run_dir, image in mounted_runs(runs_dir, images_dir).items():
-        if run_dir not in live:
-            with contextlib.suppress(OSError):
-                release(run_dir, image)
-                done.append(f"kept {run_dir.name} (its file system was still mounted)")
-    if images_dir.is_dir():
-        for image in images_dir.glob("*.img"):
-            run_dir = runs_dir / image.stem
-            if run_dir in live or is_mounted(run_dir):
+    try:
+        runs = os.open(runs_dir, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    except OSError:
+        return done
+    try:
+        for name, image in mounted_runs(runs_dir, images_dir).items():
+            if name not in live:
+                try:
+                    release(runs, name, image)
+                    done.append(f"kept run {name} (its file system was still mounted)")
+                except OSError as exc:
+                    done.append(f"run {name}: {exc}")
+        for image in sorted(images_dir.glob("*.img")) if images_dir.is_dir() else []:
+            name = image.stem
+            if name in live or mounted(runs, name):
                 continue
             try:
-                if run_dir.is_dir():
-                    mount_image(image, run_dir)
-                release(run_dir, image)
-                done.append(f"kept {image.stem} (from its image)")
+                with contextlib.suppress(FileNotFoundError):
+                    os.close(open_dir(runs, name))
+                    mount_image(image, runs, name)
+                release(runs, name, image)
+                done.append(f"kept run {name} (from its image)")
             except OSError as exc:
-                done.append(f"lost {image.stem}: {exc}")
+                done.append(f"lost run {name}: {exc}")
                 with contextlib.suppress(OSError):
                     image.unlink()
+    finally:
+        os.close(runs)
     return done
 
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from . import cgroups, run_disk
+from . import cgroups, run_disk, run_disk_helper
 from .cgroups import CgroupError, RunCgroup
 from .run_disk import DiskError, DiskSpec
 
@@ -56,12 +56,61 @@ def loop_cpus(settings: Any) -> set[int]:
     return {max(os.sched_getaffinity(0))}
 
 
+class RunDisk:
+    """A run folder made a file system of its own: by the appliance itself (root) or by the
+    root helper on its behalf (run_disk_helper.py)."""
+
+    def __init__(self, run_dir: Path, image: Path | None = None, helper: str = "") -> None:
+        self.run_dir, self.image, self.helper = run_dir, image, helper
+
+    @classmethod
+    def attach(cls, settings: Any, run_dir: Path, image: Path, gid: int) -> RunDisk:
+        if os.geteuid() == 0:
+            spec = DiskSpec(settings.run_disk_mb * MB, settings.run_files, os.getuid(), gid)
+            runs = os.open(run_dir.parent, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+            try:
+                run_disk.attach(runs, run_dir.name, image, spec)
+            finally:
+                os.close(runs)
+            return cls(run_dir, image)
+        helper = settings.run_disk_helper
+        req: dict[str, Any] = {"op": "ping"}
+        if run_dir.name.isdigit():  # a run of the data folder; else a probe (xrf doctor): is the helper there?
+            req = {"op": "attach", "run": int(run_dir.name), "mb": settings.run_disk_mb, "files": settings.run_files}
+        try:
+            run_disk_helper.request(helper, req)
+        except (OSError, ValueError) as exc:
+            raise DiskError(
+                f"a non-root appliance needs the root helper for it (xrf-run-disk.socket, deploy/install): "
+                f"{helper}: {exc.strerror if isinstance(exc, OSError) and exc.strerror else exc}"
+            ) from exc
+        except RuntimeError as exc:
+            raise DiskError(f"the run-disk helper refused: {exc}") from exc
+        return cls(run_dir, helper=helper if req["op"] == "attach" else "")
+
+    def release(self) -> str:
+        """Keep the run's files, remove its file system; what was not kept ("" if all was)."""
+        if self.helper:
+            answer = run_disk_helper.request(self.helper, {"op": "release", "run": int(self.run_dir.name)})
+            return f"not kept: {answer['skipped']} ({'; '.join(answer['why'])})" if answer.get("skipped") else ""
+        if self.image is None:
+            return ""
+        runs = os.open(self.run_dir.parent, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+        try:
+            stats = run_disk.release(runs, self.run_dir.name, self.image)
+        finally:
+            os.close(runs)
+        if stats is not None and stats.skipped_count:
+            return f"not kept: {stats.skipped_count} ({'; '.join(stats.skipped[:3])})"
+        return ""
+
+
 @dataclass
 class RunLimits:
     """One run's cgroup and file system, and which of the four layers hold (layer -> "" or why)."""
 
     run_dir: Path
-    image: Path | None = None  # the run's file system image, while mounted
+    disk: RunDisk | None = None  # the run's file system, while mounted
     cgroup: RunCgroup | None = None
     layers: dict[str, str] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
@@ -98,7 +147,7 @@ class RunLimits:
                         f"the run went over its limit of processes and threads: the kernel refused "
                         f"{ev['pids_max']} fork(s)"
                     )
-        if self.image is not None:
+        if self.disk is not None:
             with contextlib.suppress(OSError):
                 u = run_disk.usage(self.run_dir)
                 if u.full:
@@ -109,14 +158,12 @@ class RunLimits:
     def release(self) -> None:
         """After the run: keep its files (copied out of its file system), remove the file
         system and the cgroup. Safe to call twice."""
-        if self.image is not None:
+        if self.disk is not None:
             try:
-                stats = run_disk.release(self.run_dir, self.image)
-                if stats is not None and stats.skipped_count:
-                    self.kept_note = f"not kept: {stats.skipped_count} ({'; '.join(stats.skipped[:3])})"
-            except OSError as exc:
+                self.kept_note = self.disk.release()
+            except (OSError, RuntimeError) as exc:
                 log.warning("run folder %s: releasing its file system failed: %s", self.run_dir, exc)
-            self.image = None
+            self.disk = None
         if self.cgroup is not None:
             if not self.cgroup.remove():
                 log.warning("run cgroup %s still busy: removed at the next start", self.cgroup.name)
@@ -154,9 +201,6 @@ def prepare(settings: Any, name: str, run_dir: Path, image: Path, gid: int) -> R
 
 def _disk(settings: Any, lim: RunLimits, run_dir: Path, image: Path, gid: int) -> None:
     size = settings.run_disk_mb * MB
-    if os.geteuid() != 0:
-        lim.layers["disk"] = "a run folder of its own size needs root (a mount); not root here"
-        return
     runs_dir = run_dir.parent
     kept = run_disk.kept_bytes(runs_dir)
     if kept + size > settings.runs_total_mb * MB:
@@ -164,26 +208,34 @@ def _disk(settings: Any, lim: RunLimits, run_dir: Path, image: Path, gid: int) -
             f"the kept runs use {kept // MB} MB of the {settings.runs_total_mb} MB for all runs and a run may "
             f"write {settings.run_disk_mb} MB: delete old runs first"
         )
-    free = os.statvfs(image.parent if image.parent.is_dir() else runs_dir).f_bavail * os.statvfs(runs_dir).f_frsize
+    st = os.statvfs(runs_dir)
+    free = st.f_bavail * st.f_frsize
     if free < 2 * size:  # the (sparse) image may fill, and its copy when the run ends
         raise NoRoom(f"{free // MB} MB free on the data folder's disk, a run needs {2 * settings.run_disk_mb} MB")
     try:
-        run_disk.attach(run_dir, image, DiskSpec(size, settings.run_files, os.getuid(), gid))
+        lim.disk = RunDisk.attach(settings, run_dir, image, gid)
     except DiskError as exc:
         lim.layers["disk"] = str(exc)
         return
-    lim.image = image
     lim.layers["disk"] = ""
-    u = run_disk.usage(run_dir)
-    lim.notes.append(f"run folder: its own file system, {u.available // MB} MB and {settings.run_files} files")
+    if run_disk.is_mounted(run_dir):
+        u = run_disk.usage(run_dir)
+        lim.notes.append(f"run folder: its own file system, {u.available // MB} MB and {u.files_left} files")
+    else:  # a probe of a non-root appliance: the helper answered
+        lim.notes.append(f"run folders: file systems of their own, made by the root helper ({settings.run_disk_helper})")
 
 
 def sweep(settings: Any, live: set[Path] | None = None) -> list[str]:
     """What an earlier appliance of this data folder left (killed before a run's end): run
     file systems (copied out, removed) and empty run cgroups."""
     done = []
+    names = {p.name for p in live or set()}
     if os.geteuid() == 0:
-        done += run_disk.sweep(settings.data_dir, live or set())
+        done += run_disk.sweep(settings.runs_dir, settings.data_dir / run_disk.IMAGES, names)
+    elif Path(settings.run_disk_helper).exists():
+        with contextlib.suppress(OSError, RuntimeError, ValueError):
+            live_ids = [int(n) for n in names if n.isdigit()]
+            done += run_disk_helper.request(settings.run_disk_helper, {"op": "sweep", "live": live_ids})["done"]
     kept = cgroups.sweep(tag(settings.data_dir))
     if kept:
         done.append(f"run cgroups still in use: {', '.join(kept)}")

@@ -85,6 +85,9 @@ class Settings:
     run_disk_mb: int = 2048  # its run folder: a file system of this size, from the first byte
     run_files: int = 65536  # ...holding at most this many files and folders
     runs_total_mb: int = 8192  # every run folder kept on disk together (checked at each start)
+    # A non-root appliance has its run folders mounted by this root helper (run_disk_helper.py,
+    # deploy/systemd/xrf-run-disk.socket); a root appliance mounts them itself.
+    run_disk_helper: str = "/run/xrf-lab/run-disk.sock"
     # The CPUs a run's processes may use (cpuset, "3" or "2-3"); "" = the isolated CPUs
     # (isolcpus=), else $XRF_CPU of loop_env, else the last CPU.
     loop_cpus: str = ""
