@@ -26,7 +26,6 @@ import pytest
 from xrf_testing.harness import Server, WsClient, shared_builds_root, start_server, stop_server, wait_for
 from xrf_testing.hostile import project_files
 from xrf_testing.projects_support import reachable_tmp, targz
-
 from xrflab.server import cgroups, run_disk, run_limits
 
 REPO = Path(__file__).resolve().parents[2]
@@ -310,6 +309,84 @@ def test_a_real_time_thread_that_never_blocks_is_stopped(hostile: Any) -> None:
         assert_nothing_left(s, run["id"])
     finally:
         stop_server(s)
+        import shutil
+
+        shutil.rmtree(d, ignore_errors=True)
+
+
+def _parent_of(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+
+
+def _live(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_a_killed_appliance_leaves_nothing_after_its_restart(hostile: Any) -> None:
+    """kill -9 of the appliance mid-run: the run's cgroup and file system stay (the loop runs on,
+    by design) until the restarted appliance closes the run: then its files are kept in an
+    ordinary folder and nothing else is left. And a run file system whose mount was lost (a
+    reboot) is mounted again from its image, kept, removed."""
+    d = reachable_tmp("limits-kill")
+    s = start(d)
+    restarted = None
+    try:
+        password = s.create_user("mallory")
+        http, _ = s.login("mallory", password)
+        files = {**project_files(BASE), **project_files(HOSTILE)}
+        r = http.post("/api/projects", files={"file": ("limits.tar.gz", targz(files, "limits"), "application/gzip")})
+        pid = r.json()["project"]["id"]
+        from xrf_testing.projects_support import build_and_wait
+
+        bid = build_and_wait(http, pid)["id"]
+        assert http.post("/api/lease/take").status_code == 200
+        first = run_hostile(s, (http, pid, bid), DISK, 5)  # 5 MB written, then an ordinary loop
+        wait_for(lambda: "LIMITS disk wrote 5 MB" in output(s, first["id"]), 20, "the first run's files")
+        os.kill(s.proc.pid, signal.SIGKILL)
+        s.proc.wait()
+        run_dir = d / "runs" / str(first["id"])
+        assert run_disk.is_mounted(run_dir) and cgroup_left(s, first["id"])  # still the run's, live
+
+        restarted = start(d, port=int(s.url.rsplit(":", 1)[1]))
+        row = wait_for(
+            lambda: (
+                (r := restarted.http.get(f"/api/runs/{first['id']}").json())["end_reason"] == "appliance_restart" and r
+            ),
+            20,
+            "the orphaned run to be closed",
+        )
+        wait_for(lambda: not run_disk.is_mounted(run_dir) and not cgroup_left(restarted, first["id"]), 10, "clean-up")
+        assert_nothing_left(restarted, first["id"])
+        assert len(list(run_dir.glob("fill*.bin"))) == 5 and "LIMITS disk wrote 5 MB" in output(restarted, first["id"])
+        assert row["status"] == "crashed"
+
+        # A reboot: the run and its mount are gone, its image is not.
+        http2, _ = restarted.login("mallory", password)
+        assert http2.post("/api/lease/take").status_code == 200
+        second = run_hostile(restarted, (http2, pid, bid), DISK, 3)
+        wait_for(lambda: "LIMITS disk wrote 3 MB" in output(restarted, second["id"]), 20, "the second run's files")
+        launcher = _parent_of(_parent_of(second["pid"]))
+        os.kill(restarted.proc.pid, signal.SIGKILL)
+        restarted.proc.wait()
+        os.kill(launcher, signal.SIGKILL)  # the controller and its namespace go with it
+        wait_for(lambda: not _live(second["pid"]), 10, "the run to end")
+        run_dir = d / "runs" / str(second["id"])
+        import subprocess
+
+        subprocess.run(["umount", "--lazy", str(run_dir)], check=True)
+        assert run_disk.image_for(d, second["id"]).exists() and not run_disk.is_mounted(run_dir)
+        restarted = start(d, port=int(s.url.rsplit(":", 1)[1]))
+        wait_for(lambda: not run_disk.image_for(d, second["id"]).exists(), 20, "the image to be kept and removed")
+        assert len(list(run_dir.glob("fill*.bin"))) == 3
+        wait_for(lambda: not cgroup_left(restarted, second["id"]), 10, "the run cgroup to be removed")
+        assert_nothing_left(restarted, second["id"])
+    finally:
+        for server in (restarted, s):
+            if server is not None and server.proc.poll() is None:
+                stop_server(server)
         import shutil
 
         shutil.rmtree(d, ignore_errors=True)

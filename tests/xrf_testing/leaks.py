@@ -1,5 +1,5 @@
 """What a test session leaves behind: processes it started, shared-memory objects, files in the
-checkout. tests/conftest.py takes a `Snapshot` when the session starts and fails the session if
+checkout, mounts (a run folder's own file system) and run cgroups. tests/conftest.py takes a `Snapshot` when the session starts and fails the session if
 `Snapshot.leftovers()` finds anything at its end (then removes it, so the machine stays clean).
 
 How a process is known to be the suite's: it carries the session's marker in its environment
@@ -66,6 +66,30 @@ def descendants(pid: int) -> set[int]:
     return found
 
 
+def _mounts() -> set[str]:
+    out = set()
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/self/mountinfo").read_text().splitlines():
+            fields = line.split()
+            if len(fields) > 4:
+                out.add(fields[4].replace("\\040", " "))
+    return out
+
+
+def _run_cgroups() -> set[str]:
+    from xrflab.server import cgroups
+
+    try:
+        places = cgroups.find()
+    except cgroups.CgroupError:
+        return set()
+    out = set()
+    for base in {p.base for p in places.values()}:
+        with contextlib.suppress(OSError):
+            out |= {str(e) for e in base.iterdir() if e.name.startswith(cgroups.PREFIX)}
+    return out
+
+
 def _untracked(repo: Path) -> set[str]:
     try:
         out = subprocess.run(
@@ -91,10 +115,29 @@ class Snapshot:
     shm: set[str] = field(default_factory=set)
     files: set[str] = field(default_factory=set)
     me: int = field(default_factory=os.getpid)
+    mounts: set[str] = field(default_factory=set)
+    cgroups: set[str] = field(default_factory=set)
 
     @classmethod
     def take(cls, marker: str, temp_root: Path, repo: Path) -> Snapshot:
-        return cls(marker, temp_root, repo, _pids(), set(os.listdir(SHM)) if SHM.is_dir() else set(), _untracked(repo))
+        shm = set(os.listdir(SHM)) if SHM.is_dir() else set()
+        return cls(marker, temp_root, repo, _pids(), shm, _untracked(repo), mounts=_mounts(), cgroups=_run_cgroups())
+
+    def mounts_left(self) -> set[str]:
+        """Mounts made during the session under its temporary folder or the checkout (a run
+        folder's file system, run_disk.py), still mounted here."""
+        roots = (str(self.temp_root) + "/", str(self.repo) + "/")
+        return {m for m in _mounts() - self.mounts if m.startswith(roots)}
+
+    def cgroups_left(self) -> set[str]:
+        """Run cgroups (server/cgroups.py) made during the session and left empty: a run cgroup
+        with processes in it is a live run of another session's appliance."""
+        left = set()
+        for path in _run_cgroups() - self.cgroups:
+            with contextlib.suppress(OSError):
+                if not Path(path, "cgroup.procs").read_text().strip():
+                    left.add(path)
+        return left
 
     def _ours(self, pid: int) -> bool:
         env = _environ(pid)
@@ -184,12 +227,15 @@ class Snapshot:
         while True:
             procs, shm = self.processes(), self.shm_objects()
             files = _untracked(self.repo) - self.files
-            if not (procs or shm or files) or time.monotonic() > deadline:
+            mounts, groups = self.mounts_left(), self.cgroups_left()
+            if not (procs or shm or files or mounts or groups) or time.monotonic() > deadline:
                 break
             time.sleep(0.25)
         report = [f"process {p}: {c}" for p, c in procs.items()]
         report += [f"/dev/shm/{n}" for n in sorted(shm)]
         report += [f"file in the checkout: {n}" for n in sorted(files)]
+        report += [f"mount: {m}" for m in sorted(mounts)]
+        report += [f"run cgroup: {g}" for g in sorted(groups)]
         return report
 
     def clean(self) -> None:
@@ -197,6 +243,11 @@ class Snapshot:
         for pid in self.processes():
             with contextlib.suppress(OSError):
                 os.kill(pid, signal.SIGKILL)
+        for mount in sorted(self.mounts_left(), reverse=True):
+            subprocess.run(["umount", "--lazy", mount], capture_output=True, timeout=30)
+        for group in self.cgroups_left():
+            with contextlib.suppress(OSError):
+                os.rmdir(group)
         for name in self.shm_objects():
             path = SHM / name
             with contextlib.suppress(OSError):
