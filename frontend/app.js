@@ -638,11 +638,12 @@ function appendMonitor(lines, source) {
 // count until dismissed or the next run starts, instead of coming and going every few seconds.
 function showAlarm(m) {
   const box = $("alarm");
-  const serious = ["crash", "hang", "confinement", "log"];
+  const serious = ["crash", "hang", "confinement", "log", "memory", "pids", "disk", "cpu"];
   if (m.kind === "deadline_miss" && !box.classList.contains("hidden") && serious.includes(box.dataset.kind)) return;
   box.classList.toggle("warn", m.kind === "deadline_miss");
   const prefix = { crash: "Loop crashed: ", hang: "Loop hung: ", log: "Logging stopped: ", deadline_miss: "Timing: ",
-    confinement: "Run sandbox: " };
+    confinement: "Run sandbox: ", memory: "Run stopped, memory: ", pids: "Run stopped, processes: ",
+    disk: "Run stopped, disk: ", cpu: "Run stopped, CPU: " };
   let text = (prefix[m.kind] || "") + m.message;
   if (m.kind === "deadline_miss") {
     showAlarm.misses = (box.dataset.kind === "deadline_miss" && !box.classList.contains("hidden") ? showAlarm.misses || 0 : 0) + 1;

@@ -645,6 +645,16 @@ LAYER_FIX = {
 }
 for _layer in ("pid", "network", "ipc"):
     LAYER_FIX[_layer] = LAYER_FIX["mount"]
+LAYER_FIX["memory"] = (
+    "give the appliance a cgroup of its own to divide: cgroup v2 with `Delegate=memory pids cpuset` in "
+    "xrf-lab.service (deploy/install), or run the appliance as root; on a Pi kernel the memory controller may "
+    "need `cgroup_enable=memory` on the kernel command line"
+)
+LAYER_FIX["pids"] = LAYER_FIX["cpu"] = LAYER_FIX["memory"]
+LAYER_FIX["disk"] = (
+    "a non-root appliance needs the root helper that mounts its run folders: `sudo deploy/install` "
+    "(xrf-run-disk.socket); as root it needs mkfs.ext4 and loop devices (modprobe loop)"
+)
 ALLOW_HINT = (
     "runs are refused until this is fixed (an educator may accept the risk with `xrf serve --allow-unconfined`)"
 )

@@ -70,6 +70,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="NAME",
         help="the user whose bench lease ROS 2 commands obey (default: who started the run)",
     )
+    limits = parser.add_argument_group(
+        "what the kernel bounds for each run (docs/developers/security.md, 'Resources the kernel bounds')"
+    )
+    limits.add_argument(
+        "--run-memory-mb", type=int, default=1024, help="memory of a run, its /dev/shm and /tmp included (default 1024)"
+    )
+    limits.add_argument("--run-pids", type=int, default=256, help="processes and threads of a run (default 256)")
+    limits.add_argument("--run-disk-mb", type=int, default=2048, help="a run folder's own file system (default 2048)")
+    limits.add_argument("--run-files", type=int, default=65536, help="files and folders in it (default 65536)")
+    limits.add_argument(
+        "--runs-total-mb", type=int, default=8192, help="every kept run folder together (default 8192)"
+    )
+    limits.add_argument(
+        "--loop-cpus",
+        default="",
+        metavar="LIST",
+        help="the CPUs a run may use, e.g. 3 or 2-3 (default: the isolated ones, else $XRF_CPU, else the last)",
+    )
+    limits.add_argument(
+        "--rt-time-ms",
+        type=int,
+        default=500,
+        help="a real-time thread of a run that runs this long without blocking ends the run (default 500)",
+    )
     parser.add_argument(
         "--allow-unconfined",
         action="store_true",
@@ -104,6 +128,13 @@ def run(args: argparse.Namespace) -> int:
         lease_idle_s=args.lease_idle_min * 60,
         ros_bridge_user=args.ros_bridge_user,
         trusted_proxies=tuple(args.trusted_proxy),
+        run_memory_mb=args.run_memory_mb,
+        run_pids=args.run_pids,
+        run_disk_mb=args.run_disk_mb,
+        run_files=args.run_files,
+        runs_total_mb=args.runs_total_mb,
+        loop_cpus=args.loop_cpus,
+        rt_time_ms=args.rt_time_ms,
         **only_given,
     )
     shown = "localhost" if args.host in ("127.0.0.1", "0.0.0.0", "::") else args.host
