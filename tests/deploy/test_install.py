@@ -19,7 +19,7 @@ from xrf_testing.deploy_support import REPO, run_install, tree_digest
 
 pytestmark = pytest.mark.timeout(1800)
 
-UNITS = ["xrf-lab.service", "xrf-cpufreq.service"]
+UNITS = ["xrf-lab.service", "xrf-cpufreq.service", "xrf-run-disk.socket", "xrf-run-disk.service"]
 # superseded by the run sandbox (xrflab.guest): never installed, removed when an older install left them
 STALE = ["etc/systemd/system/xrf-loop@.service", "etc/polkit-1/rules.d/50-xrf-lab.rules"]
 
@@ -70,6 +70,7 @@ def test_install_creates_users_folders_units(installed):
         assert (root / "etc/systemd/system" / u).exists(), u
     for u in ("xrf-lab.service", "xrf-cpufreq.service"):
         assert (root / "etc/systemd/system/multi-user.target.wants" / u).is_symlink()
+    assert (root / "etc/systemd/system/sockets.target.wants/xrf-run-disk.socket").is_symlink()
     assert (root / "etc/udev/rules.d/60-xrf-lab.rules").exists()
     limits = (root / "etc/security/limits.d/90-xrf-lab.conf").read_text()
     assert "rtprio" in limits and "memlock" in limits
@@ -114,6 +115,8 @@ def test_run_sandbox_ids_devices_and_namespaces(installed):
     assert "CapabilityBoundingSet=CAP_SETUID CAP_SETGID" in directives and "AmbientCapabilities=" in directives
     assert "RestrictNamespaces=user net mnt pid ipc uts" in directives
     assert "SupplementaryGroups=spi gpio evl video" in directives
+    # the run's cgroup (memory, pids, cpuset) below the service's: delegated, and writable
+    assert "Delegate=memory pids cpuset" in directives and not any(d.startswith("ProtectControlGroups=") for d in directives)
     # no uidmap in this tree (and --no-deps: no apt-get): said, not silently skipped
     if not (root / "usr/bin/newuidmap").exists():
         assert "apt-get install uidmap" in first.stdout, first.stdout
@@ -159,10 +162,11 @@ def test_units_pass_systemd_analyze_verify(installed):
     is needed for verify."""
     root, *_ = installed
     exe = _systemd_analyze()
-    units = ["/etc/systemd/system/xrf-lab.service", "/etc/systemd/system/xrf-cpufreq.service"]
+    units = [f"/etc/systemd/system/{u}" for u in UNITS]
     proc = subprocess.run([exe, "verify", f"--root={root}", "--man=no", *units], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "xrf-lab.service" not in proc.stderr, proc.stderr  # no warnings about our units
+    for u in UNITS:
+        assert u not in proc.stderr, proc.stderr  # no warnings about our units
 
 
 def test_room_service_only_when_asked(installed, source):
@@ -289,6 +293,8 @@ def test_uninstall_keeps_data_then_purge_removes_it(installed, source):
         "etc/security/limits.d/90-xrf-lab.conf",
         "etc/sysctl.d/60-xrf-lab.conf",
         "etc/systemd/system/multi-user.target.wants/xrf-lab.service",
+        "etc/systemd/system/xrf-run-disk.socket",
+        "etc/systemd/system/sockets.target.wants/xrf-run-disk.socket",
         "etc/systemd/system/xrf-room.service",
         "etc/systemd/system/multi-user.target.wants/xrf-room.service",
         "etc/default/xrf-room",

@@ -63,6 +63,13 @@ class Helper:
         finally:
             os.close(data)
 
+    def _images(self) -> None:
+        """The images' folder: root's own, 0700, not a link (made on first use)."""
+        self.images.mkdir(mode=0o700, exist_ok=True)
+        st = os.lstat(self.images)
+        if not stat.S_ISDIR(st.st_mode) or st.st_uid != 0 or st.st_mode & 0o077:
+            raise ValueError(f"{self.images} must be a folder of root's, mode 0700")
+
     def handle(self, req: dict[str, Any]) -> dict[str, Any]:
         from . import run_disk
 
@@ -94,7 +101,7 @@ class Helper:
                 mb = max(1, min(int(req.get("mb", self.max_mb)), self.max_mb))
                 files = max(64, min(int(req.get("files", self.max_files)), self.max_files))
                 spec = run_disk.DiskSpec(mb << 20, files, self.owner, st.st_gid, reserve_for=self.owner)
-                self.images.mkdir(mode=0o700, exist_ok=True)
+                self._images()
                 run_disk.attach(runs, name, image, spec)
                 return {"ok": True, "mb": mb, "files": files}
             if op == "release":
