@@ -116,7 +116,9 @@ def test_run_sandbox_ids_devices_and_namespaces(installed):
     assert "RestrictNamespaces=user net mnt pid ipc uts" in directives
     assert "SupplementaryGroups=spi gpio evl video" in directives
     # the run's cgroup (memory, pids, cpuset) below the service's: delegated, and writable
-    assert "Delegate=memory pids cpuset" in directives and not any(d.startswith("ProtectControlGroups=") for d in directives)
+    assert "Delegate=memory pids cpuset" in directives and not any(
+        d.startswith("ProtectControlGroups=") for d in directives
+    )
     # no uidmap in this tree (and --no-deps: no apt-get): said, not silently skipped
     if not (root / "usr/bin/newuidmap").exists():
         assert "apt-get install uidmap" in first.stdout, first.stdout

@@ -132,7 +132,9 @@ def find() -> dict[str, Place]:
     if os.geteuid() != 0 and any(p.version == 1 for p in places.values()):
         # v1 lets a process move another into a cgroup only as root or as the same user; the
         # controller runs as another uid than the appliance. v2 checks the folders' permissions.
-        raise CgroupError("cgroup v1 hierarchies: only a root appliance can place its runs (cgroup v2 with delegation can)")
+        raise CgroupError(
+            "cgroup v1 hierarchies: only a root appliance can place its runs (cgroup v2 with delegation can)"
+        )
     missing = [c for c in CONTROLLERS if c not in places]
     if missing:
         raise CgroupError(f"no {', '.join(missing)} cgroup controller available to the appliance")
@@ -235,10 +237,14 @@ class RunCgroup:
                 _write(mem / "memory.oom.group", "1")
         _write(pids / "pids.max", str(spec.pids))
         parent = cpus.parent
-        allowed = parse_cpus(_read(parent / ("cpuset.cpus" if self.places["cpuset"].version == 1 else "cpuset.cpus.effective")))
+        allowed = parse_cpus(
+            _read(parent / ("cpuset.cpus" if self.places["cpuset"].version == 1 else "cpuset.cpus.effective"))
+        )
         wanted = parse_cpus(spec.cpus)
         if not wanted or not wanted <= allowed:
-            raise OSError(0, f"CPUs {spec.cpus!r} are not all available to the appliance (its cpuset: {format_cpus(allowed)})")
+            raise OSError(
+                0, f"CPUs {spec.cpus!r} are not all available to the appliance (its cpuset: {format_cpus(allowed)})"
+            )
         if self.places["cpuset"].version == 1:
             _write(cpus / "cpuset.mems", _read(parent / "cpuset.mems").strip())  # v1: no tasks without mems
         _write(cpus / "cpuset.cpus", spec.cpus)

@@ -79,9 +79,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     limits.add_argument("--run-pids", type=int, default=256, help="processes and threads of a run (default 256)")
     limits.add_argument("--run-disk-mb", type=int, default=2048, help="a run folder's own file system (default 2048)")
     limits.add_argument("--run-files", type=int, default=65536, help="files and folders in it (default 65536)")
-    limits.add_argument(
-        "--runs-total-mb", type=int, default=8192, help="every kept run folder together (default 8192)"
-    )
+    limits.add_argument("--runs-total-mb", type=int, default=8192, help="every kept run folder together (default 8192)")
     limits.add_argument(
         "--loop-cpus",
         default="",

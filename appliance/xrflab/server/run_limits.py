@@ -222,7 +222,9 @@ def _disk(settings: Any, lim: RunLimits, run_dir: Path, image: Path, gid: int) -
         u = run_disk.usage(run_dir)
         lim.notes.append(f"run folder: its own file system, {u.available // MB} MB and {u.files_left} files")
     else:  # a probe of a non-root appliance: the helper answered
-        lim.notes.append(f"run folders: file systems of their own, made by the root helper ({settings.run_disk_helper})")
+        lim.notes.append(
+            f"run folders: file systems of their own, made by the root helper ({settings.run_disk_helper})"
+        )
 
 
 def sweep(settings: Any, live: set[Path] | None = None) -> list[str]:

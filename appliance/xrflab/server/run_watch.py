@@ -180,7 +180,7 @@ def publish_limit_alarm(run: Run, reason: str, message: str, hub: Hub) -> None:
     if run.limit_alarm:
         return
     run.limit_alarm = reason
-    hub.publish(AlarmMessage(kind=reason, run_id=run.row.id, end_reason=reason, message=message))  # type: ignore[arg-type]
+    hub.publish(AlarmMessage(kind=reason, run_id=run.row.id, end_reason=reason, message=message))
 
 
 async def limits_guard(run: Run, limits: RunLimits, settings: Settings, store: RunStore, hub: Hub) -> None:
