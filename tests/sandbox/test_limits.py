@@ -390,3 +390,14 @@ def test_a_killed_appliance_leaves_nothing_after_its_restart(hostile: Any) -> No
         import shutil
 
         shutil.rmtree(d, ignore_errors=True)
+
+
+def test_without_a_file_system_of_its_own_the_folder_is_watched(tmp_path: Path) -> None:
+    """Where the `disk` layer is missing (a non-root appliance without the helper, allowed by an
+    educator), the run folder's size is still watched (every 2 s by the limits guard), as before."""
+    lim = run_limits.RunLimits(tmp_path, disk_mb=1)
+    assert lim.watched_disk_over() is None
+    (tmp_path / "deep" / "er").mkdir(parents=True)
+    (tmp_path / "deep" / "er" / "big").write_bytes(b"x" * (2 << 20))
+    over = lim.watched_disk_over()
+    assert over is not None and over[0] == "disk" and "watched" in over[1], over

@@ -63,6 +63,11 @@ class RunDisk:
     def __init__(self, run_dir: Path, image: Path | None = None, helper: str = "") -> None:
         self.run_dir, self.image, self.helper = run_dir, image, helper
 
+    @property
+    def bounded(self) -> bool:
+        """The run folder is a file system of its own (not just a probe's answer from the helper)."""
+        return self.image is not None or bool(self.helper)
+
     @classmethod
     def attach(cls, settings: Any, run_dir: Path, image: Path, gid: int) -> RunDisk:
         if os.geteuid() == 0:
@@ -117,6 +122,7 @@ class RunLimits:
     cpus: set[int] = field(default_factory=set)
     rttime_us: int = 0
     memory_mb: int = 0
+    disk_mb: int = 0
     kept_note: str = ""  # what release() kept of the run's file system, for the record
 
     def launcher_config(self) -> dict[str, Any]:
@@ -147,13 +153,27 @@ class RunLimits:
                         f"the run went over its limit of processes and threads: the kernel refused "
                         f"{ev['pids_max']} fork(s)"
                     )
-        if self.disk is not None:
+        if self.disk is not None and self.disk.bounded:
             with contextlib.suppress(OSError):
                 u = run_disk.usage(self.run_dir)
                 if u.full:
                     what = "files" if u.files_left <= 0 else f"{u.used // MB} MB of {u.size // MB} MB"
                     return "disk", f"the run folder is full ({what}): the kernel refuses its writes"
         return None
+
+    def watched_disk_over(self) -> tuple[str, str] | None:
+        """Where the `disk` layer is missing (an educator allowed the run without it): the run
+        folder's size, walked, over ``run_disk_mb`` stops the run. A watch, not a bound: the run
+        writes what it can between two looks (the limits guard looks every 2 s)."""
+        if self.disk is not None and self.disk.bounded:
+            return None
+        used = folder_bytes(self.run_dir)
+        if used <= self.disk_mb * MB:
+            return None
+        return "disk", (
+            f"the run folder holds {used // MB} MB, over the limit of {self.disk_mb} MB (watched: it has no "
+            "file system of its own here)"
+        )
 
     def release(self) -> None:
         """After the run: keep its files (copied out of its file system), remove the file
@@ -170,11 +190,21 @@ class RunLimits:
             self.cgroup = None
 
 
+def folder_bytes(path: Path) -> int:
+    """Disk used under `path`, not following links (the run's files are the guest's)."""
+    total = 0
+    for dirpath, _dirs, files in os.walk(path):
+        for f in files:
+            with contextlib.suppress(OSError):
+                total += os.lstat(os.path.join(dirpath, f)).st_blocks * 512
+    return total
+
+
 def prepare(settings: Any, name: str, run_dir: Path, image: Path, gid: int) -> RunLimits:
     """Set up the run's cgroup and file system (blocking: run it in a thread). A layer that
     cannot be had is reported, not raised (the launcher refuses the run unless an educator
     allowed that). Raises NoRoom when the disk has no room for another run."""
-    lim = RunLimits(run_dir, memory_mb=settings.run_memory_mb)
+    lim = RunLimits(run_dir, memory_mb=settings.run_memory_mb, disk_mb=settings.run_disk_mb)
     lim.cpus = loop_cpus(settings)
     lim.rttime_us = max(0, settings.rt_time_ms) * 1000
     try:

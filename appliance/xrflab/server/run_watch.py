@@ -164,6 +164,7 @@ async def heartbeat(run: Run, settings: Settings) -> None:
 # ---- the kernel's limits -------------------------------------------------------------------------
 
 LIMITS_PERIOD_S = 0.25
+WATCHED_DISK_EVERY = 8  # looks (2 s): walking a run folder is not free
 LIMIT_REASONS = ("memory", "pids", "disk", "cpu")
 
 
@@ -188,10 +189,14 @@ async def limits_guard(run: Run, limits: RunLimits, settings: Settings, store: R
     goes over a limit (a page, a fork, a write); once the run did, it is stopped with an alarm of
     that kind. A few cgroup counters and one statvfs, four times a second: read here, not in a
     worker thread (the default executor's few threads may all be waiting on something slow)."""
+    looks = 0
     while run.alive and not run.ended.is_set():
         await asyncio.sleep(LIMITS_PERIOD_S)
+        looks += 1
         try:
             over = limits.over()
+            if over is None and looks % WATCHED_DISK_EVERY == 0:  # no file system of its own: walked
+                over = await asyncio.to_thread(limits.watched_disk_over)
         except Exception:  # never let the guard die quietly: the run would go on unwatched
             log.exception("run %s: reading its limits failed", run.row.id)
             continue
