@@ -31,7 +31,7 @@ from xrflab.server import cgroups, run_disk, run_limits
 REPO = Path(__file__).resolve().parents[2]
 HOSTILE = REPO / "tests" / "fixtures" / "limits_controller"
 BASE = REPO / "student_projects" / "templates" / "base"
-MEMORY, SHM, DISK, FORK_BOMB, SPIN_HANG, SPIN_CRASH, SPIN_ONLY = 1, 2, 3, 4, 5, 6, 7
+MEMORY, SHM, DISK, FORK_BOMB, SPIN_HANG, SPIN_CRASH, SPIN_ONLY, DISK_LATER = 1, 2, 3, 4, 5, 6, 7, 8
 LIMITS = {"run_memory_mb": 128, "run_disk_mb": 64, "run_files": 4096, "run_pids": 48, "runs_total_mb": 4096}
 BOUND_NS = 100_000_000  # outputs safe within 100 ms of the exit (tests/server/test_safety_under_load.py)
 
@@ -213,6 +213,28 @@ def test_disk_filled_from_main_before_the_shared_memory(server: Server, hostile:
     assert run_disk.kept_bytes(run_dir) <= 64 << 20
     assert server.http.get(f"/api/logs/runs/{run['id']}").status_code == 200  # the run's files, listed
     assert_answers(server)
+
+
+def test_the_log_stays_whole_when_the_controller_fills_its_folder(server: Server, hostile: Any) -> None:
+    """The appliance writes into the run folder too (the host log writer): when the controller
+    has filled its share, the appliance's reserve (ext4's reserved blocks) still takes the log,
+    so the run's log is whole up to its end, and the run stops with `disk`. The controller
+    ignores SIGINT and SIGTERM once it fills its folder, so it logs on for 4 s until SIGKILL
+    (without the reserve: "No space left on device" after ~4300 records, ~2800 lost)."""
+    with server.ws() as ws:
+        run = run_hostile(server, hostile, DISK_LATER, 200)
+        assert ws.command("initialise")["accepted"]
+        ws.wait_state("INITIALISED")
+        assert ws.command("start")["accepted"]
+        ws.wait_state("RUN")  # logging every cycle (the template's logger)
+        wait_alarm(server, ws, "disk", run["id"])
+    row = ended(server, run["id"])
+    assert row["end_reason"] == "disk" and row["log_note"] == "", row  # logging never failed
+    assert row["log_records"] > 1000 and row["log_lost"] == 0, row
+    logs = server.http.get(f"/api/logs/runs/{run['id']}").json()
+    assert sum(f["records"] for f in logs["files"] if f["kind"] == "xrflog") == row["log_records"], logs
+    assert "LIMITS disk wrote" in output(server, run["id"])
+    assert_nothing_left(server, run["id"])
 
 
 def test_fork_bomb(server: Server, hostile: Any) -> None:
