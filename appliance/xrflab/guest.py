@@ -739,8 +739,10 @@ def launch(cfg: dict[str, Any]) -> None:
     for layer in filter(None, cfg.get("test_drop", "").split(",")):  # TEST ONLY (guest_spawn.TEST_DROP_ENV)
         L.missing(layer, "skipped for a test")
     for layer, why in cfg.get("limit_layers", {}).items():  # the appliance's (KERNEL_LIMIT_LAYERS)
-        if layer in KERNEL_LIMIT_LAYERS:
-            L.missing(layer, why) if why else L.ok(layer)
+        if layer in KERNEL_LIMIT_LAYERS and why:
+            L.missing(layer, why)
+        elif layer in KERNEL_LIMIT_LAYERS:
+            L.ok(layer)
     for layer in KERNEL_LIMIT_LAYERS:
         if layer not in cfg.get("limit_layers", {}):
             L.missing(layer, "not set up by the appliance")
