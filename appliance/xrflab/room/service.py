@@ -630,6 +630,12 @@ async def enrol(body: EnrolRequest, request: Request) -> dict[str, Any]:
     address = client_address(request)
     if room.enrol_limit.retry_after(address) > 0:
         raise HTTPException(429, "too many wrong join codes; wait a minute")
+    try:  # before the code is used up: a typo in the address does not cost a code
+        topics.check_bench_name(body.name)
+        check_url(body.url)
+        sso.load_public(body.bench_key)
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
     if not room.codes.take(body.code):
         room.enrol_limit.failed(address)
         raise HTTPException(403, "unknown or expired join code")
