@@ -350,13 +350,15 @@ class BenchPublisher:
             self._client.publish(topics.bench(self.name, "reply"), data, qos=1)
 
 
-# Kept for callers that want an ordered set of recent ids (commands.py).
-class Recent(OrderedDict[str, None]):
+class Recent(OrderedDict[Any, None]):
+    """The last `size` keys seen, oldest out first: a bounded memory of ids (commands.py) and of
+    (boot, seq) of events (the room's), which a sender cannot grow."""
+
     def __init__(self, size: int = 256) -> None:
         super().__init__()
         self.size = size
 
-    def seen(self, key: str) -> bool:
+    def seen(self, key: Any) -> bool:
         if key in self:
             return True
         self[key] = None

@@ -42,7 +42,7 @@ import re
 import secrets
 import shutil
 import time
-from collections import OrderedDict, deque
+from collections import deque
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
@@ -67,6 +67,7 @@ from .assignments import RoomAssignments
 from .broker import ROOM_USER, BrokerFiles, BrokerProcess, private_write
 from .collect import BENCH_MAX, FORMATS, Collection, assemble
 from .enrol import REENROL, EnrolAnswer, EnrolRequest, JoinCodes, check_url
+from .publisher import Recent
 
 log = logging.getLogger(__name__)
 
@@ -111,22 +112,6 @@ class Enrolled(BaseModel):
     @property
     def outdated(self) -> bool:
         return not (self.url and self.bench_key)
-
-
-class Recent(OrderedDict[Any, None]):
-    """The last `size` keys seen (bounded: a bench cannot grow it)."""
-
-    def __init__(self, size: int) -> None:
-        super().__init__()
-        self.size = size
-
-    def seen(self, key: Any) -> bool:
-        if key in self:
-            return True
-        self[key] = None
-        if len(self) > self.size:
-            self.popitem(last=False)
-        return False
 
 
 @dataclass
