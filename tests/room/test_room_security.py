@@ -142,6 +142,23 @@ def test_forged_status_neither_displaces_the_bench_nor_redirects_open(lab: Lab) 
         attacker.close()
 
 
+def test_only_an_educator_moves_a_bench(lab: Lab) -> None:
+    """The address "open bench" uses changes with an educator's PATCH (audited), nothing else."""
+    real = lab.benches[1].url
+    anon = httpx.Client(base_url=lab.room.url, timeout=10)
+    assert anon.patch("/api/room/benches/b2", json={"url": EVIL}).status_code in (401, 403)
+    anon.close()
+    assert lab.teacher.patch("/api/room/benches/b2", json={"url": "javascript:alert(1)"}).status_code == 422
+    assert lab.teacher.patch("/api/room/benches/b2", json={"url": "http://10.9.9.9:8000"}).status_code == 200
+    try:
+        assert lab.teacher.post("/api/room/benches/b2/sso").json()["url"].startswith("http://10.9.9.9:8000/room/sso?")
+        audit = lab.room.http.get("/api/audit", params={"action": "room.bench_address"}).json()
+        assert "10.9.9.9" in json.dumps(audit)
+    finally:
+        assert lab.teacher.patch("/api/room/benches/b2", json={"url": real}).status_code == 200
+    assert lab.teacher.post("/api/room/benches/b2/sso").json()["url"].startswith(real + "/room/sso?")
+
+
 # Payloads no topic accepts: not JSON, not UTF-8, not an object, nested without end, wrong types,
 # impossible numbers.
 GARBAGE: list[bytes] = [

@@ -121,8 +121,8 @@ class RoomLink:
         endpoint = mqtt.Endpoint(b.host, b.port, b.username, b.password, b.ca_pem)
         security = app.state.security
         if isinstance(e, Enrolment):
-            self.verifier = Verifier(sso.load_public(e.room_key), e.name, "sso")
-            self.key = sso.load_private(e.bench_key)
+            room_key, own_key = sso.load_public(e.room_key), sso.load_private(e.bench_key)  # both, or neither
+            self.verifier, self.key = Verifier(room_key, e.name, "sso"), own_key
         else:
             self.outdated = True
             log.error("room: %s", OUTDATED)
