@@ -15,14 +15,15 @@ confinement alarm the supervisor publishes once it has kept the record. A starte
 from __future__ import annotations
 
 import asyncio
+import logging
 import os
-import shutil
 import time
 from pathlib import Path
 
 from .. import guest
 from ..channels import Channels
 from ..logs import live as loglive
+from ..logs.runfolder import open_in, remove_folder
 from .catalog import BuildEntry
 from .guest_spawn import GuestReport, GuestSpawner
 from .hub import Hub
@@ -31,6 +32,29 @@ from .run import Run, SupervisorError
 from .run_control import terminate
 from .runs import RunRow, RunStore
 from .settings import Settings
+
+log = logging.getLogger("xrflab.supervisor")
+OUTPUT = "output.txt"  # the controller's stdout and stderr, in its run folder
+
+
+def fresh_run_folder(run_dir: Path) -> None:
+    """Make the run's folder. One left from an earlier database with this run id (its runs.db
+    removed, the runs kept) is a former guest's: it is moved aside, never reused."""
+    try:
+        run_dir.mkdir(parents=True)
+    except FileExistsError:
+        aside = run_dir.with_name(f"{run_dir.name}.old-{int(time.time())}")
+        log.warning("run folder %s exists (an earlier database's run): moved to %s", run_dir, aside.name)
+        os.rename(run_dir, aside)
+        run_dir.mkdir()
+
+
+def remove_quietly(folder: Path) -> None:
+    """The run's /dev/shm folder (the guest's to fill) without following a link in it."""
+    try:
+        remove_folder(folder)
+    except OSError as exc:
+        log.warning("cannot remove %s: %s", folder, exc)
 
 
 class StartRefused(SupervisorError):
@@ -88,12 +112,13 @@ async def spawn(
     shm_dir = guests.shm_dir_for(f"xrf-lab-{os.getpid()}-{row.id}")
     shm = f"{shm_dir.name}/{guest.SHM_NAME}"  # the host's path below /dev/shm
     run_dir = settings.runs_dir / str(row.id)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    fresh_run_folder(run_dir)
     row = store.update(row.id, shm=shm, run_dir=str(run_dir))
     env = loop_env(settings, row.id, entry.name, plant, run_dir, max_cycles, log_timing)
     try:
         guests.prepare_dirs(run_dir, shm_dir)
-        with open(run_dir / "output.txt", "ab") as output:
+        # Made before the controller exists, and ours (the console reads it back: pipe_output).
+        with os.fdopen(open_in(run_dir, OUTPUT, os.O_WRONLY | os.O_CREAT | os.O_APPEND, own=True), "ab") as output:
             proc, report = await guests.spawn(
                 entry.executable,
                 run_dir,
@@ -105,12 +130,12 @@ async def spawn(
                 timeout_s=settings.open_timeout_s,
             )
     except (OSError, ValueError, RuntimeError, asyncio.TimeoutError) as exc:
-        shutil.rmtree(shm_dir, ignore_errors=True)
+        remove_quietly(shm_dir)
         store.update(row.id, status="failed", end_reason="start_failed", ended=time.time(), message=f"sandbox: {exc}")
         raise SupervisorError(f"cannot start {entry.executable.name} in its sandbox: {exc}", 500) from exc
     if report.error:
         await proc.wait()
-        shutil.rmtree(shm_dir, ignore_errors=True)
+        remove_quietly(shm_dir)
         final = store.update(
             row.id,
             status="failed",
