@@ -19,6 +19,7 @@ import logging
 import os
 import time
 from pathlib import Path
+from typing import BinaryIO
 
 from .. import guest
 from ..channels import Channels
@@ -47,6 +48,17 @@ def fresh_run_folder(run_dir: Path) -> None:
         log.warning("run folder %s exists (an earlier database's run): moved to %s", run_dir, aside.name)
         os.rename(run_dir, aside)
         run_dir.mkdir()
+
+
+def open_output(run_dir: Path) -> BinaryIO:
+    """The controller's output.txt for reading (the console follows it): through the run
+    folder's helper, our own file only, so a link (to /etc/shadow, say) or a FIFO the loop put
+    in its place is never followed; an empty stream when it is refused."""
+    try:
+        return os.fdopen(open_in(run_dir, OUTPUT, own=True), "rb")
+    except (OSError, ValueError) as exc:
+        log.warning("%s: the loop's output is not followed: %s", run_dir, exc)
+        return open(os.devnull, "rb")
 
 
 def remove_quietly(folder: Path) -> None:

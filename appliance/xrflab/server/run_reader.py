@@ -18,8 +18,8 @@ import asyncio
 import logging
 from collections.abc import Awaitable, Callable
 
-from ..logs.runfolder import open_in
 from .hub import Hub
+from .launch import open_output
 from .lifecycle import RunLifecycle
 from .messages import MonitorLine, MonitorMessage, TelemetryMessage
 from .run import Run
@@ -104,14 +104,7 @@ async def pipe_output(run: Run, hub: Hub) -> None:
     """Follow the loop's stdout/stderr file into the monitor console. Polled every 100 ms:
     this is for people reading, nothing safety-related waits on it."""
     pending = b""
-    try:
-        # Through the run folder's helper, our own file only: the loop may have put a link (to
-        # /etc/shadow, say) or a FIFO in its place, which the console must not follow.
-        fd = open_in(run.run_dir, "output.txt", own=True)
-    except (OSError, ValueError) as exc:
-        log.warning("run %s: the loop's output is not followed: %s", run.row.id, exc)
-        return
-    with open(fd, "rb") as f:
+    with open_output(run.run_dir) as f:  # through the run folder's helper: never a link the loop put there
         while True:
             alive = run.alive  # sampled before reading, so the last output is not missed
             chunk = f.read(65536)
