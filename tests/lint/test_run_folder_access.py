@@ -65,9 +65,7 @@ ALLOWED = {
         "server/launch.py",
         "run_dir = settings.runs_dir / str(row.id)",
     ): "the run folder's own path, made by the appliance",
-    ("server/launch.py", "run_dir.mkdir(parents=True)"): "makes the run folder, before any guest exists",
-    ("server/launch.py", "os.rename(run_dir, aside)"): "moves a stale run folder aside (its own path, not inside)",
-    ("server/launch.py", "run_dir.mkdir()"): "makes the run folder, before any guest exists",
+    ("server/launch.py", "run_dir.mkdir(parents=True, exist_ok=True)"): "makes the run folder, before any guest",
     ("server/launch.py", "open(os.devnull"): "not the run folder",
     ("server/launch.py", "os.fdopen(open_in(run_dir"): "opened through runfolder.open_in",
     (

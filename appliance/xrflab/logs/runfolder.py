@@ -10,8 +10,10 @@ through this module, which cannot leave the folder and takes plain files only:
 
 - **Resolution** (`RunFolder`): the folder is opened once (a directory fd, ``O_NOFOLLOW``) and
   every name is resolved from that fd by ``openat2(RESOLVE_BENEATH | RESOLVE_NO_SYMLINKS |
-  RESOLVE_NO_MAGICLINKS | RESOLVE_NO_XDEV)``: the kernel refuses a symlink anywhere on the way,
-  ``..`` out of the folder and a mount crossing (ELOOP/EXDEV). Where openat2 is missing (Linux
+  RESOLVE_NO_MAGICLINKS)``: the kernel refuses a symlink anywhere on the way and ``..`` out of
+  the folder (ELOOP/EXDEV). Mount points are crossed: only the appliance mounts anything in a run
+  folder (a size-limited file system, a test's tiny tmpfs); the guest's own mounts stay in its
+  private mount namespace (guest.py makes it MS_PRIVATE). Where openat2 is missing (Linux
   < 5.6, or a seccomp filter that refuses it) the same is done by hand: one
   ``openat(O_NOFOLLOW | O_DIRECTORY)`` per folder from the folder's fd, ``O_NOFOLLOW`` on the last
   part. Names are plain relative names (`confine`): ``..``, empty parts and NUL are refused.
@@ -63,7 +65,7 @@ RESOLVE_NO_XDEV = 0x01
 RESOLVE_NO_MAGICLINKS = 0x02
 RESOLVE_NO_SYMLINKS = 0x04
 RESOLVE_BENEATH = 0x08
-RESOLVE = RESOLVE_BENEATH | RESOLVE_NO_SYMLINKS | RESOLVE_NO_MAGICLINKS | RESOLVE_NO_XDEV
+RESOLVE = RESOLVE_BENEATH | RESOLVE_NO_SYMLINKS | RESOLVE_NO_MAGICLINKS
 _O_PATH_FLAGS = os.O_PATH | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC  # all openat2 takes with O_PATH
 
 
@@ -181,7 +183,7 @@ def _why(exc: OSError, rel: str) -> OSError:
     err = exc.errno or errno.EIO
     if err == errno.ELOOP:
         text = "a symlink on the way (links in a run folder are never followed)"
-    elif err == errno.EXDEV:
+    elif err == errno.EXDEV:  # RESOLVE_BENEATH
         text = "it would leave the run folder"
     elif err == errno.ENOTDIR:
         text = "not a folder on the way (or a symlink: links in a run folder are never followed)"

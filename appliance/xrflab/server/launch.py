@@ -38,18 +38,6 @@ log = logging.getLogger("xrflab.supervisor")
 OUTPUT = "output.txt"  # the controller's stdout and stderr, in its run folder
 
 
-def fresh_run_folder(run_dir: Path) -> None:
-    """Make the run's folder. One left from an earlier database with this run id (its runs.db
-    removed, the runs kept) is a former guest's: it is moved aside, never reused."""
-    try:
-        run_dir.mkdir(parents=True)
-    except FileExistsError:
-        aside = run_dir.with_name(f"{run_dir.name}.old-{int(time.time())}")
-        log.warning("run folder %s exists (an earlier database's run): moved to %s", run_dir, aside.name)
-        os.rename(run_dir, aside)
-        run_dir.mkdir()
-
-
 def open_output(run_dir: Path) -> BinaryIO:
     """The controller's output.txt for reading (the console follows it): through the run
     folder's helper, our own file only, so a link (to /etc/shadow, say) or a FIFO the loop put
@@ -124,7 +112,7 @@ async def spawn(
     shm_dir = guests.shm_dir_for(f"xrf-lab-{os.getpid()}-{row.id}")
     shm = f"{shm_dir.name}/{guest.SHM_NAME}"  # the host's path below /dev/shm
     run_dir = settings.runs_dir / str(row.id)
-    fresh_run_folder(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
     row = store.update(row.id, shm=shm, run_dir=str(run_dir))
     env = loop_env(settings, row.id, entry.name, plant, run_dir, max_cycles, log_timing)
     try:
