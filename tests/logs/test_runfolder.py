@@ -299,3 +299,20 @@ def test_a_name_that_is_not_utf8_is_opened_by_its_shown_form(resolver: str, tree
         (rel,) = [r for r, _ in rf.walk_files()]
         assert shown(rel) == "bad\\xff.bin"
         assert rf.read_bytes(unshown("bad\\xff.bin"), 10) == b"log"
+
+
+def test_a_planted_recording_is_read_within_bounds(tree: tuple[Path, Path]) -> None:
+    """The 3D replay reads what the loop may have written in place of the recorder's files."""
+    from xrflab.viz.recorder import load_recording, recording_size, write_recording
+
+    run, outside = tree
+    write_recording(run, {"profile": None}, [(i * 1_000_000, (i, 0, 0, 0)) for i in range(10)])
+    assert recording_size(run) == 10 * 20 and len(load_recording(run)) == 10
+    (run / "viz" / "meta.json").write_bytes(b"[" * 500_000)
+    with pytest.raises(ValueError):
+        load_recording(run)
+    (run / "viz" / "meta.json").unlink()
+    (run / "viz" / "meta.json").symlink_to(outside / "secret")
+    assert recording_size(run) is None
+    with pytest.raises(OSError):
+        load_recording(run)

@@ -174,7 +174,10 @@ def load_recording(run_dir: Path | str) -> Recording:
     ignored."""
     d = recording_dir(run_dir)
     with RunFolder(run_dir) as rf:
-        meta = json.loads(rf.read_bytes(META, MAX_META))
+        try:
+            meta = json.loads(rf.read_bytes(META, MAX_META))
+        except RecursionError:  # a meta.json the loop wrote: 1 MB of '['
+            raise ValueError(f"{d}: meta.json is nested too deep") from None
         if not isinstance(meta, dict) or meta.get("format") != FORMAT:
             raise ValueError(
                 f"{d}: recording format {meta.get('format') if isinstance(meta, dict) else meta!r} is not known"
@@ -196,8 +199,8 @@ def load_recording(run_dir: Path | str) -> Recording:
     for line in event_bytes.decode("utf-8", "replace").splitlines():
         try:
             ev = json.loads(line)
-        except json.JSONDecodeError:
-            continue  # a torn last line
+        except (json.JSONDecodeError, RecursionError):
+            continue  # a torn last line (or one the loop wrote)
         if isinstance(ev, dict) and isinstance(ev.get("t_ns"), int):
             events.append(ev)
     events.sort(key=lambda e: e["t_ns"])
