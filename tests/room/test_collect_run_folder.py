@@ -1,7 +1,8 @@
-"""Issue 26, guest-writable folders (a guard: main already packed through open_in): a bench packing a collection (room/collect.py, `pack_bench`)
+"""Issue 26, guest-writable folders: a bench packing a collection (room/collect.py, `pack_bench`)
 reads run folders through the run folder's helper. What the loop planted there - a link to a
 secret named like a log, output.txt replaced by a link, a folder link, a FIFO, a name that is
-not UTF-8 - is never followed into the archive the room gets; the run's own files are."""
+not UTF-8 - is never followed into the archive the room gets; the run's own files are. (A guard:
+main already packed through open_in, so this passes there too.)"""
 
 from __future__ import annotations
 
