@@ -29,6 +29,7 @@ import pytest
 from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server, wait_for
 from xrf_testing.hostile import project_files
 from xrf_testing.projects_support import build_and_wait, reachable_tmp, targz
+from xrf_testing.writers import xrflog_segment
 
 REPO = Path(__file__).resolve().parents[2]
 HOSTILE = REPO / "tests" / "fixtures" / "hostile_run_folder"
@@ -192,6 +193,15 @@ def test_names_that_are_not_utf8_are_listed_and_downloadable(student: Student) -
     csv = student.http.get(f"/api/logs/runs/{run_id}/files/bad%5Cxff.bin", params={"fmt": "csv"})
     assert csv.status_code == 200 and csv.text.count("\n") == 1001
     student.stop()
+    # A log the loop wrote itself may also name a variable with a lone surrogate (JSON \udcff):
+    # planted here as the loop could have.
+    (folder / "odd.xrf").write_bytes(xrflog_segment([("ok", 5), ("bad\udcff", 5)], [(1.0, 2.0), (3.0, 4.0)]))
+    r = student.http.get(f"/api/logs/runs/{run_id}")
+    assert r.status_code == 200, r.text
+    (odd,) = [f for f in r.json()["files"] if f["name"] == "odd.xrf"]
+    assert [v["name"] for v in odd["variables"]] == ["ok", "bad\\udcff"]
+    for fmt in ("csv", "parquet", "rrd"):
+        assert student.http.get(f"/api/logs/runs/{run_id}/files/odd.xrf", params={"fmt": fmt}).status_code == 200
     assert student.http.get(f"/api/logs/runs/{run_id}").status_code == 200
     assert student.http.get("/api/logs/runs").status_code == 200
 

@@ -230,7 +230,11 @@ def _field_names(names: list[str], reserved: tuple[str, ...]) -> list[str]:
 def make_variables(
     path: Path, names: list[str], codes: list[int], offsets: list[int] | None, reserved: tuple[str, ...]
 ) -> tuple[Variable, ...]:
-    """Validate type codes and build the variables (packed offsets when none are given)."""
+    """Validate type codes and build the variables (packed offsets when none are given). A name
+    that is not valid Unicode text (a lone surrogate from a JSON ``\\udcff`` escape: whoever wrote
+    the file chose it) is kept with that character written out (``\\udcff``), so every column
+    name can be encoded: CSV, Parquet, rrd and the JSON listing never fail on it."""
+    names = [n.encode("utf-8", "backslashreplace").decode("utf-8") if isinstance(n, str) else str(n) for n in names]
     fields = _field_names(names, reserved)
     out, pos = [], 0
     for i, (name, code) in enumerate(zip(names, codes)):
