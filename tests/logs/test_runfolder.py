@@ -316,3 +316,48 @@ def test_a_planted_recording_is_read_within_bounds(tree: tuple[Path, Path]) -> N
     assert recording_size(run) is None
     with pytest.raises(OSError):
         load_recording(run)
+
+
+def test_decoding_a_file_the_guest_keeps_truncating_never_faults(tmp_path: Path) -> None:
+    """The reader's whole path (open_mappable, open_log, the CSV stream) against a file cut to
+    nothing and grown back every 0.5 ms, as the hostile controller does: a mapping of the file
+    itself would fault (SIGBUS kills this test process, which is the failure)."""
+    import threading
+
+    from xrflab.logs import LogFormatError, iter_csv_chunks
+    from xrflab.server.routes_logs import open_run_log
+
+    run = tmp_path / "run"
+    run.mkdir()
+    head, n = b"x,y\n5,5\n", 1 << 16
+    (run / "big.bin").write_bytes(head + b"\0" * 16 * n)
+    os.chmod(run / "big.bin", 0o660)  # the group (the guest) may write it
+    stop = threading.Event()
+
+    def cut_and_regrow() -> None:
+        fd = os.open(run / "big.bin", os.O_RDWR)
+        try:
+            while not stop.is_set():
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, head, 0)
+                os.ftruncate(fd, len(head) + 16 * n)
+                time.sleep(0.0005)
+        finally:
+            os.close(fd)
+
+    t = threading.Thread(target=cut_and_regrow)
+    t.start()
+    decoded = 0
+    try:
+        deadline = time.monotonic() + 3
+        while time.monotonic() < deadline:
+            with RunFolder(run) as rf:
+                try:
+                    log = open_run_log(rf, "big.bin")
+                except LogFormatError:  # caught with no header: not a log at that instant
+                    continue
+            decoded += sum(chunk.count(b"\n") for chunk in iter_csv_chunks(log.path, log=log)) > 0
+    finally:
+        stop.set()
+        t.join()
+    assert decoded > 0
