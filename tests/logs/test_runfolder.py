@@ -361,3 +361,22 @@ def test_decoding_a_file_the_guest_keeps_truncating_never_faults(tmp_path: Path)
         stop.set()
         t.join()
     assert decoded > 0
+
+
+def test_the_segment_name_in_the_runs_shm_folder_is_not_followed(tree: tuple[Path, Path]) -> None:
+    """The run's /dev/shm folder is the guest's too: a link where its segment should be (to a
+    file of the appliance's, big enough to map) is refused, never mapped read-write."""
+    from xrflab.channels import ChannelsError
+    from xrflab.channels.segment import SHM_SIZE, try_map
+
+    run, outside = tree
+    big = outside / "logs" / "big"
+    big.write_bytes(b"\0" * SHM_SIZE)
+    (run / "xrf").symlink_to(big)
+    os.mkfifo(run / "fifo")
+    for name in ("xrf", "fifo"):
+        t0 = time.monotonic()
+        with pytest.raises(ChannelsError, match="not the loop's shared memory object"):
+            try_map(run / name)
+        assert time.monotonic() - t0 < 1.0
+    big.unlink()
