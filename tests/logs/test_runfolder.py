@@ -380,3 +380,14 @@ def test_the_segment_name_in_the_runs_shm_folder_is_not_followed(tree: tuple[Pat
             try_map(run / name)
         assert time.monotonic() - t0 < 1.0
     big.unlink()
+
+
+def test_usage_counts_deep_trees_without_a_descriptor_leak(tree: tuple[Path, Path]) -> None:
+    run, _ = tree
+    _deep_chain(run, 200)  # below the disk guard's 256 levels: the deepest file is counted
+    fds_before = len(os.listdir("/proc/self/fd"))
+    before = runfolder.folder_bytes(run)
+    (run / ("dd/" * 200) / "f").write_bytes(os.urandom(1 << 20))
+    grown = runfolder.folder_bytes(run) - before
+    assert len(os.listdir("/proc/self/fd")) == fds_before
+    assert (1 << 20) - 8192 <= grown <= (1 << 20) + 65536, grown

@@ -57,6 +57,7 @@ FILE_MODE_MASK = 0o640
 
 MAX_DEPTH = 32  # folders below the run folder a listing enters (logs sit 3-4 deep: home/x/logs/)
 MAX_ENTRIES = 20_000  # entries a listing looks at before it stops (a normal run has < 20)
+USAGE_DEPTH, USAGE_ENTRIES = 256, 1_000_000  # what the disk guard's count walks
 
 # openat2(2): <linux/openat2.h>. New system calls have one number on every architecture.
 _SYS_OPENAT2 = 437
@@ -420,8 +421,10 @@ class RunFolder:
                 yield rel, st
 
     def usage(self) -> int:
-        """Bytes the folder's entries take on disk (st_blocks), as far as `walk` reaches."""
-        return sum(st.st_blocks * 512 for _, st in self.walk(max_entries=1_000_000))
+        """Bytes the folder's entries take on disk (st_blocks), as far as `walk` reaches: 256
+        levels and a million entries (one descriptor per level; deeper than that the kernel's
+        limits are the bound, see docs/developers/security.md)."""
+        return sum(st.st_blocks * 512 for _, st in self.walk(max_depth=USAGE_DEPTH, max_entries=USAGE_ENTRIES))
 
     # -- removal ------------------------------------------------------------------------------
 
