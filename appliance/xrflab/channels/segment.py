@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import mmap
 import os
+import stat
 import time
 from pathlib import Path
 
@@ -44,11 +45,18 @@ def identity(path: Path) -> Identity | None:
 def try_map(path: Path) -> tuple[mmap.mmap | None, Identity | None]:
     """Map the segment at ``path`` read-write, or (None, None) while it is missing or being sized."""
     try:
-        fd = os.open(path, os.O_RDWR)
+        # The run's /dev/shm folder is the loop's to fill (issue 26): its name is not followed if
+        # the loop made it a link (to a file of the appliance's, mapped read-write), nor opened
+        # if it is not a regular file.
+        fd = os.open(path, os.O_RDWR | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
     except FileNotFoundError:
         return None, None
+    except OSError as exc:
+        raise ChannelsError(f"{path}: not the loop's shared memory object ({exc.strerror})") from None
     try:
         st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise ChannelsError(f"{path}: not the loop's shared memory object (not a regular file)")
         size = st.st_size
         if 0 < size < SHM_SIZE:
             # Not a loop still sizing it (ftruncate is immediate): a loop built against another

@@ -15,14 +15,16 @@ confinement alarm the supervisor publishes once it has kept the record. A starte
 from __future__ import annotations
 
 import asyncio
+import logging
 import os
-import shutil
 import time
 from pathlib import Path
+from typing import BinaryIO
 
 from .. import guest
 from ..channels import Channels
 from ..logs import live as loglive
+from ..logs.runfolder import open_in, remove_folder
 from .catalog import BuildEntry
 from .guest_spawn import GuestReport, GuestSpawner
 from .hub import Hub
@@ -31,6 +33,28 @@ from .run import Run, SupervisorError
 from .run_control import terminate
 from .runs import RunRow, RunStore
 from .settings import Settings
+
+log = logging.getLogger("xrflab.supervisor")
+OUTPUT = "output.txt"  # the controller's stdout and stderr, in its run folder
+
+
+def open_output(run_dir: Path) -> BinaryIO:
+    """The controller's output.txt for reading (the console follows it): through the run
+    folder's helper, our own file only, so a link (to /etc/shadow, say) or a FIFO the loop put
+    in its place is never followed; an empty stream when it is refused."""
+    try:
+        return os.fdopen(open_in(run_dir, OUTPUT, own=True), "rb")
+    except (OSError, ValueError) as exc:
+        log.warning("%s: the loop's output is not followed: %s", run_dir, exc)
+        return open(os.devnull, "rb")
+
+
+def remove_quietly(folder: Path) -> None:
+    """The run's /dev/shm folder (the guest's to fill) without following a link in it."""
+    try:
+        remove_folder(folder)
+    except OSError as exc:
+        log.warning("cannot remove %s: %s", folder, exc)
 
 
 class StartRefused(SupervisorError):
@@ -93,7 +117,8 @@ async def spawn(
     env = loop_env(settings, row.id, entry.name, plant, run_dir, max_cycles, log_timing)
     try:
         guests.prepare_dirs(run_dir, shm_dir)
-        with open(run_dir / "output.txt", "ab") as output:
+        # Made before the controller exists, and ours (the console reads it back: pipe_output).
+        with os.fdopen(open_in(run_dir, OUTPUT, os.O_WRONLY | os.O_CREAT | os.O_APPEND, own=True), "ab") as output:
             proc, report = await guests.spawn(
                 entry.executable,
                 run_dir,
@@ -105,12 +130,12 @@ async def spawn(
                 timeout_s=settings.open_timeout_s,
             )
     except (OSError, ValueError, RuntimeError, asyncio.TimeoutError) as exc:
-        shutil.rmtree(shm_dir, ignore_errors=True)
+        remove_quietly(shm_dir)
         store.update(row.id, status="failed", end_reason="start_failed", ended=time.time(), message=f"sandbox: {exc}")
         raise SupervisorError(f"cannot start {entry.executable.name} in its sandbox: {exc}", 500) from exc
     if report.error:
         await proc.wait()
-        shutil.rmtree(shm_dir, ignore_errors=True)
+        remove_quietly(shm_dir)
         final = store.update(
             row.id,
             status="failed",

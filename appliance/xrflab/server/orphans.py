@@ -56,13 +56,18 @@ def last_logged_seq(ch: Channels, run_dir: Path) -> int | None:
     """The `seq` of the last record in the run's log file (the one the loop's log_meta names),
     None if there is none yet."""
     from ..logs.reader import open_log
-    from ..logs.runfolder import RunPathError, confine
+    from ..logs.runfolder import RunFolder, RunPathError, confine
 
     meta = ch.shm.log_meta
     published = chmod.ffi.string(meta.path, chmod.lib.XRF_PATH_MAX).decode("utf-8", "replace")
     try:
-        path = run_dir / confine(run_dir, published)
-        records = open_log(path).records
+        rel = confine(run_dir, published)
+        with RunFolder(run_dir) as rf:  # the loop named it: through the run folder's helper
+            fd = rf.open_mappable(rel)
+        try:
+            records = open_log(run_dir / rel, fd=fd).records
+        finally:
+            os.close(fd)
     except (RunPathError, OSError, ValueError, KeyError):  # no file yet, or nothing readable in it
         return None
     return int(records["seq"][-1]) if len(records) else None

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import shutil
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,6 +23,7 @@ from .. import channels as chmod
 from .. import guest
 from ..channels import Channels
 from ..logs import live as loglive
+from ..logs.runfolder import remove_folder
 from .children import Child
 from .guest_spawn import GuestReport
 from .runs import RunRow
@@ -85,10 +85,13 @@ def remove_shm(name: str) -> None:
         path = chmod.shm_path(name)
     except ValueError:
         return
+    # The run's folder in /dev/shm is the loop's to fill: removed without following a link in it.
     if path.parent != chmod.SHM_DIR:
-        shutil.rmtree(path.parent, ignore_errors=True)
+        with contextlib.suppress(OSError):
+            remove_folder(path.parent)
         return
     with contextlib.suppress(FileNotFoundError):
         path.unlink()
     if name.endswith(guest.UNCONFINED_SUFFIX):  # its (unused) shm folder lies beside it
-        shutil.rmtree(chmod.SHM_DIR / name.removesuffix(guest.UNCONFINED_SUFFIX), ignore_errors=True)
+        with contextlib.suppress(OSError):
+            remove_folder(chmod.SHM_DIR / name.removesuffix(guest.UNCONFINED_SUFFIX))

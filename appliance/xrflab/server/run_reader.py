@@ -20,6 +20,7 @@ from collections.abc import Awaitable, Callable
 from typing import Literal
 
 from .hub import Hub
+from .launch import open_output
 from .lifecycle import RunLifecycle
 from .messages import MonitorLine, MonitorMessage, TelemetryMessage
 from .output_lines import OutputLines
@@ -118,7 +119,7 @@ async def pipe_output(run: Run, hub: Hub) -> None:
             note = f"appliance: {skipped} lines of output not shown here (too many at once); output.txt has them"
             publish([note], "appliance")
 
-    with open(run.run_dir / "output.txt", "rb") as f:
+    with open_output(run.run_dir) as f:  # through the run folder's helper: never a link the loop put there
         while True:
             alive = run.alive  # sampled before reading, so the last output is not missed
             lines: list[str] = []

@@ -19,12 +19,11 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import os
 import signal
 import time
-from pathlib import Path
 
 from ..channels import ChannelsError
+from ..logs.runfolder import folder_bytes
 from .hub import Hub
 from .messages import AlarmMessage
 from .run import Run
@@ -161,21 +160,13 @@ async def heartbeat(run: Run, settings: Settings) -> None:
 # ---- disk use -----------------------------------------------------------------------------------
 
 
-def folder_bytes(path: Path) -> int:
-    total = 0
-    for dirpath, _dirs, files in os.walk(path):
-        for f in files:
-            with contextlib.suppress(OSError):
-                total += os.lstat(os.path.join(dirpath, f)).st_blocks * 512
-    return total
-
-
 async def disk_guard(run: Run, limit: int, settings: Settings, store: RunStore, hub: Hub) -> None:
     """The run folder's disk use stays under `limit` bytes (the sandbox's): beyond it the run is
     stopped (the controller's own files; the appliance's log writer has its own full-disk
     handling)."""
     while run.alive and not run.ended.is_set():
         await asyncio.sleep(2.0)
+        # The run folder is the loop's: walked through its helper, entered by descriptor only.
         used = await asyncio.to_thread(folder_bytes, run.run_dir)
         if used > limit and run.alive:
             message = f"the run folder holds {used >> 20} MB, over the limit of {limit >> 20} MB: run stopped"
