@@ -633,11 +633,15 @@ void Runtime::helperDrain(bool final)
 {
     xrf_monitor_line line;
     uint64_t lost = 0;
-    while (xrf_bcast_read(&shm_->monitor_ring, shm_->monitor, &monitor_cursor_, &line, &lost) ==
-           1) {
+    // The geometry xrf_shm_init gave the ring, from this side's own memory (channels.h: a
+    // reader never takes it from the segment, the loop's own helper included).
+    static const xrf_ring_geom geom = {XRF_MONITOR_SLOTS, sizeof(xrf_monitor_line)};
+    while (xrf_bcast_read_g(&shm_->monitor_ring, &geom, shm_->monitor, &monitor_cursor_, &line,
+                            &lost) == 1) {
         if (!options_.quiet) {
-            std::fwrite(line.text, 1, line.len, stdout);
-            if (line.len == 0 || line.text[line.len - 1] != '\n')
+            const uint32_t len = line.len < XRF_MONITOR_TEXT ? line.len : XRF_MONITOR_TEXT;
+            std::fwrite(line.text, 1, len, stdout);
+            if (len == 0 || line.text[len - 1] != '\n')
                 std::fputc('\n', stdout);
         }
     }
@@ -646,11 +650,11 @@ void Runtime::helperDrain(bool final)
                      (unsigned long long)lost);
     std::fflush(stdout);
     if (shm_->log_meta.writer == XRF_LOG_WRITER_PROCESS)
-        logfile_drain(shm_, &shm_->log_meta, &shm_->log_ring, shm_->log_data, &log_sink_, program_,
-                      final);
+        logfile_drain(shm_, &shm_->log_meta, &shm_->log_ring, shm_->log_data, XRF_LOG_RING_BYTES,
+                      &log_sink_, program_, final);
     if (timing_on_ && shm_->timing_meta.writer == XRF_LOG_WRITER_PROCESS)
-        logfile_drain(shm_, &shm_->timing_meta, &shm_->timing_ring, shm_->timing, &timing_sink_,
-                      program_, final);
+        logfile_drain(shm_, &shm_->timing_meta, &shm_->timing_ring, shm_->timing,
+                      sizeof shm_->timing, &timing_sink_, program_, final);
 }
 
 void Runtime::leave()

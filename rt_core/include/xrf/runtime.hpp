@@ -24,7 +24,11 @@ namespace xrf
 struct LogSink {
     int fd = -1;
     uint64_t generation = 0;
-    bool reported = false;               // a write failure was reported once
+    bool reported = false;  // a write failure was reported once
+    bool layout_ok = false; // meta, geom and tail below hold a checked layout
+    xrf_log_meta meta{};    // the channel's layout as checked when its generation changed
+    xrf_ring_geom geom{};   // its ring's geometry, in this writer's memory (xrf_log_meta_check)
+    uint64_t tail = 0;      // the consumer's position, kept here and published to the ring
     char header[XRF_LOGFILE_HEADER_MAX]; // a segment header is formatted here (no allocation)
 };
 
