@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from .. import guest
-from ..channels import Channels
+from ..channels import Channels, ChannelsCorrupt
 from ..logs import live as loglive
 from .catalog import BuildEntry
 from .guest_spawn import GuestReport, GuestSpawner
@@ -169,6 +169,13 @@ async def open_channels(run: Run, settings: Settings, store: RunStore) -> bool:
         ch.configure_host_timeout(settings.host_timeout_ms, settings.host_timeout_action)
         run.last_status = ch.status()
         return True
+    if opening in done and isinstance(opening.exception(), ChannelsCorrupt) and run.report_corrupt is not None:
+        # Ready, but not a segment our runtime writes (a ring's geometry, the info block): the
+        # run is stopped as any run that breaks its segment (run_corrupt.py).
+        exc = opening.exception()
+        assert isinstance(exc, ChannelsCorrupt)
+        run.report_corrupt(exc)
+        return False
     if opening in done:  # the loop never made its shm ready: treat as a failed start
         message = f"loop did not open its shared memory: {opening.exception()}"
         run.row = store.update(run.row.id, message=message)

@@ -24,7 +24,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .. import channels as chmod
 from ..channels import Channels, ChannelsError
 from ..logs import live as loglive
 from .hub import Hub
@@ -55,13 +54,18 @@ def alive(pid: int) -> bool:
 def last_logged_seq(ch: Channels, run_dir: Path) -> int | None:
     """The `seq` of the last record in the run's log file (the one the loop's log_meta names),
     None if there is none yet."""
+    from ..logs.log_channel import LogChannel
     from ..logs.reader import open_log
     from ..logs.runfolder import RunPathError, confine
 
-    meta = ch.shm.log_meta
-    published = chmod.ffi.string(meta.path, chmod.lib.XRF_PATH_MAX).decode("utf-8", "replace")
+    try:  # the layout as every reader takes it: copied and checked (log_channel.py)
+        layout = LogChannel(ch, "log").take_layout()
+    except ChannelsError:
+        return None
+    if layout is None:
+        return None
     try:
-        path = run_dir / confine(run_dir, published)
+        path = run_dir / confine(run_dir, layout.path)
         records = open_log(path).records
     except (RunPathError, OSError, ValueError, KeyError):  # no file yet, or nothing readable in it
         return None

@@ -16,13 +16,14 @@ import asyncio
 import contextlib
 import shutil
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from .. import channels as chmod
 from .. import guest
-from ..channels import Channels
+from ..channels import Channels, ChannelsCorrupt
 from ..logs import live as loglive
 from .children import Child
 from .guest_spawn import GuestReport
@@ -73,6 +74,10 @@ class Run:
     watcher: SafetyWatcher | None = None  # the C thread that makes the outputs safe (safety.py)
     watch: WatchResult | None = None  # what it did, once it acted
     end_reason: str = ""  # set by whoever ends the run on purpose (runs.END_REASONS)
+    # The loop broke the rules of its segment (run_corrupt.py): what, once it did; and how a
+    # reader of the segment says so (from any thread; run_corrupt.watch sets it).
+    corrupt: str = ""
+    report_corrupt: Callable[[ChannelsCorrupt], None] | None = None
 
     @property
     def alive(self) -> bool:
