@@ -393,10 +393,19 @@ int xrf_log_meta_check(const struct xrf_log_meta *m, const struct xrf_ring *r, u
     return 0;
 }
 
+/* The ring header no longer says the geometry the reader took: a loop never changes it after
+ * setting it up, so one that does is writing where it should not. Compared, never used. */
+static inline int ring_moved(const struct xrf_ring *r, const struct xrf_ring_geom *g)
+{
+    return LOAD_RLX(&r->slots) != g->slots || LOAD_RLX(&r->slot_size) != g->slot_size;
+}
+
 int xrf_bcast_read_g(const struct xrf_ring *r, const struct xrf_ring_geom *g, const void *slots,
                      uint64_t *cursor, void *out, uint64_t *lost)
 {
     const uint64_t nslots = g->slots;
+    if (ring_moved(r, g))
+        return -EPROTO;
     for (int tries = 0; tries < XRF_SPIN_LIMIT; tries++) {
         uint64_t head = LOAD_ACQ(&r->head);
         uint64_t c = *cursor;
@@ -435,6 +444,8 @@ int xrf_spsc_peek_run_g(const struct xrf_ring *r, const struct xrf_ring_geom *g,
                         uint64_t tail, const void **first)
 {
     *first = NULL;
+    if (ring_moved(r, g))
+        return -EPROTO;
     uint64_t head = LOAD_ACQ(&r->head);
     uint64_t ready = head - tail; /* a head behind the tail wraps to a huge count */
     if (ready == 0)

@@ -86,6 +86,9 @@ int Options::fromEnvironment()
     x = cpu;
     ok &= envLong("XRF_CPU", -1, 1023, &x);
     cpu = (int)x;
+    x = -1;
+    ok &= envLong("XRF_SHM_FD", -1, 1 << 20, &x);
+    shm_fd = (int)x;
     x = priority;
     ok &= envLong("XRF_PRIO", -1, 99, &x);
     priority = (int)x;
@@ -230,9 +233,36 @@ xrf_ico_transport *Runtime::transport()
     return transport_;
 }
 
+int Runtime::mapShm(int fd, const char *what)
+{
+    shm_size_ = sizeof(xrf_shm);
+    void *p = mmap(nullptr, shm_size_, PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
+    close(fd);
+    if (p == MAP_FAILED) {
+        int e = errno;
+        std::fprintf(stderr, "xrf: cannot map shared memory %s: %s\n", what, std::strerror(e));
+        return -e;
+    }
+    // Touch every page now: the loop must not take a page fault on its first telemetry slot.
+    std::memset(p, 0, shm_size_);
+    shm_ = static_cast<xrf_shm *>(p);
+    xrf_shm_init(shm_);
+    return 0;
+}
+
 int Runtime::createShm()
 {
     const Options &o = options();
+    if (o.shm_fd >= 0) {
+        // Made and sized by the appliance (a sealed memfd): mapped as it is, never resized.
+        struct stat st;
+        if (fstat(o.shm_fd, &st) != 0 || (size_t)st.st_size < sizeof(xrf_shm)) {
+            std::fprintf(stderr, "xrf: XRF_SHM_FD=%d is not a segment of %zu bytes\n", o.shm_fd,
+                         sizeof(xrf_shm));
+            return -EINVAL;
+        }
+        return mapShm(o.shm_fd, "XRF_SHM_FD");
+    }
     char path[XRF_NAME_MAX + 16];
     std::snprintf(path, sizeof path, "/%s", o.shm_name);
     int fd = shm_open(path, O_RDWR | O_CREAT | O_EXCL, 0660);
@@ -270,25 +300,13 @@ int Runtime::createShm()
         return -e;
     }
     fchmod(fd, 0660); // the umask must not make it world-writable nor unreadable for the group
-    shm_size_ = sizeof(xrf_shm);
-    if (ftruncate(fd, (off_t)shm_size_) != 0) {
+    if (ftruncate(fd, (off_t)sizeof(xrf_shm)) != 0) {
         int e = errno;
         close(fd);
         std::fprintf(stderr, "xrf: cannot size shared memory %s: %s\n", path, std::strerror(e));
         return -e;
     }
-    void *p = mmap(nullptr, shm_size_, PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
-    close(fd);
-    if (p == MAP_FAILED) {
-        int e = errno;
-        std::fprintf(stderr, "xrf: cannot map shared memory %s: %s\n", path, std::strerror(e));
-        return -e;
-    }
-    // Touch every page now: the loop must not take a page fault on its first telemetry slot.
-    std::memset(p, 0, shm_size_);
-    shm_ = static_cast<xrf_shm *>(p);
-    xrf_shm_init(shm_);
-    return 0;
+    return mapShm(fd, path);
 }
 
 int Runtime::enter(unsigned cycle_freq)

@@ -9,6 +9,7 @@ and a segment is removed only when it is still the one its loop process made.
 from __future__ import annotations
 
 import errno
+import fcntl
 import mmap
 import os
 import time
@@ -99,6 +100,34 @@ def take_geometry(where: str | Path, shm: CData, mapped: int) -> CData:
             f"{lib.XRF_MONITOR_SLOTS} x {ffi.sizeof('struct xrf_monitor_line')})"
         )
     return geom
+
+
+# F_SEAL_* (linux/fcntl.h): Python's fcntl has them from 3.8 on Linux.
+SEALS = fcntl.F_SEAL_SHRINK | fcntl.F_SEAL_GROW | fcntl.F_SEAL_SEAL
+
+
+def create_sealed(label: str) -> int:
+    """A new segment for a loop the appliance starts: a memfd of the layout's size whose size is
+    sealed (no shrink, no growth, no further seals), so the loop -- which maps it read-write --
+    cannot truncate it under the appliance's mapping (SIGBUS on the next read). The loop gets
+    the descriptor (XRF_SHM_FD) instead of creating /dev/shm/<name> itself. Close-on-exec: pass
+    it on explicitly. `label`: its name in /proc/<pid>/fd (memfd:<label>)."""
+    fd = os.memfd_create(label, os.MFD_CLOEXEC | os.MFD_ALLOW_SEALING)
+    try:
+        os.ftruncate(fd, SHM_SIZE)
+        fcntl.fcntl(fd, fcntl.F_ADD_SEALS, SEALS)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def is_sealed(fd: int) -> bool:
+    """The descriptor's size is sealed as create_sealed seals it."""
+    try:
+        return fcntl.fcntl(fd, fcntl.F_GET_SEALS) & SEALS == SEALS
+    except OSError:  # not a memfd (a tmpfs file from shm_open)
+        return False
 
 
 def map_fd(fd: int, where: str | Path) -> mmap.mmap:

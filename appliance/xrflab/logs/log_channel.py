@@ -191,7 +191,9 @@ class LogChannel:
         """The header of a segment of the channel's taken layout, starting now (or at the given
         clocks): rt_core's composer with what the loop's writer gives it, the program name, pid and
         cycle frequency from the info block Channels took at open, and the run's identity (what
-        the loop's environment says: live.loop_env)."""
+        the loop's environment says: live.loop_env). Takes the layout first if none is yet."""
+        if not self.taken:
+            self.take_layout()
         info = self._ch.info
         return logformat.segment_header(
             self._meta,

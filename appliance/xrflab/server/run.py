@@ -5,9 +5,11 @@ control, end); its record in the database is `run.row` (runs.RunRow), kept up to
 goes. Everything here is data, no behaviour beyond `alive`: each part of the supervisor is a
 module of its own that takes the run it works on.
 
-The run's shared memory belongs to the appliance, not to the loop: the loop never unlinks it (a
-crash could not), and the appliance needs the final state after the loop's end. `remove_shm`
-lets go of it once the run is recorded (docs/developers/architecture.md, "Whose segment").
+The run's shared memory belongs to the appliance, not to the loop: the appliance makes it (a
+sealed memfd, `shm_fd`: the loop cannot resize it under the appliance's mapping), the loop never
+unlinks it (a crash could not), and the appliance needs the final state after the loop's end.
+`remove_shm` lets go of its name once the run is recorded (docs/developers/architecture.md,
+"Whose segment").
 """
 
 from __future__ import annotations
@@ -34,6 +36,11 @@ if TYPE_CHECKING:
     from .catalog import BuildEntry
 
 
+# The run segment's name below /dev/shm: <the loop's /dev/shm folder> + this, a symlink to the
+# appliance's descriptor of it (launch.segment_link).
+SEGMENT_LINK_SUFFIX = "-segment"
+
+
 class SupervisorError(Exception):
     """A request the supervisor cannot honour; `status` is the HTTP status to answer with."""
 
@@ -49,6 +56,7 @@ class Run:
     shm: str
     run_dir: Path
     build: BuildEntry
+    shm_fd: int = -1  # the run's segment (a sealed memfd), ours until remove_shm; -1: by name only
     channels: Channels | None = None
     stop_requested: bool = False
     hang: bool = False
@@ -95,5 +103,7 @@ def remove_shm(name: str) -> None:
         return
     with contextlib.suppress(FileNotFoundError):
         path.unlink()
-    if name.endswith(guest.UNCONFINED_SUFFIX):  # its (unused) shm folder lies beside it
-        shutil.rmtree(chmod.SHM_DIR / name.removesuffix(guest.UNCONFINED_SUFFIX), ignore_errors=True)
+    # A name beside the loop's (then unused, or its own /dev/shm) folder, named after it.
+    for suffix in (guest.UNCONFINED_SUFFIX, SEGMENT_LINK_SUFFIX):
+        if name.endswith(suffix):
+            shutil.rmtree(chmod.SHM_DIR / name.removesuffix(suffix), ignore_errors=True)

@@ -412,14 +412,15 @@ int xrf_log_meta_check(const struct xrf_log_meta *m, const struct xrf_ring *r, u
 
 /* Broadcast reader: copies publication *cursor (g->slot_size bytes: `out` holds at least that)
  * and advances the cursor. 1 copied, 0 nothing new, -EPROTO the head went back behind this
- * reader. Publications overwritten before this reader got to them are added to *lost and
+ * reader or the ring header no longer says g (compared, never used: a loop never changes it). Publications overwritten before this reader got to them are added to *lost and
  * skipped (the cursor moves to the oldest one still present). */
 int xrf_bcast_read_g(const struct xrf_ring *r, const struct xrf_ring_geom *g, const void *slots,
                      uint64_t *cursor, void *out, uint64_t *lost);
 /* SPSC consumer at position `tail` (its own copy): the longest run of ready slots that is
  * contiguous in memory (for one write()). Returns the number of slots, 1 .. g->slots, and sets
  * *first; 0 when empty; -EPROTO when the head claims more records than the ring holds (or is
- * behind the tail). */
+ * behind the tail), or the ring header no longer says g (a log channel set up again: take its
+ * layout anew, see its generation). */
 int xrf_spsc_peek_run_g(const struct xrf_ring *r, const struct xrf_ring_geom *g, const void *slots,
                         uint64_t tail, const void **first);
 /* SPSC consumer: gives n slots back (*tail += n, published for the producer). */

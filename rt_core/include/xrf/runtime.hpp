@@ -37,6 +37,10 @@ constexpr int kDefaultPriority = 80;
 
 struct Options {
     char shm_name[XRF_NAME_MAX] = "xrf";
+    // XRF_SHM_FD: the segment, made by whoever started the loop (the appliance: a memfd whose
+    // size is sealed, so the loop cannot shrink it under the host's mapping). -1: create
+    // /dev/shm/<shm_name> as a plain `xrf run` does.
+    int shm_fd = -1;
     char backend[16] = "auto";
     char transport[16] = "auto";
     char sim[16] = "relbot";
@@ -136,6 +140,7 @@ public:
 private:
     Runtime() = default;
     int createShm();
+    int mapShm(int fd, const char *what); // maps, zeroes, xrf_shm_init; closes fd
     void startHelper();
     static void *helperMain(void *self);
     void helperDrain(bool final);
