@@ -154,7 +154,9 @@ def test_broadcast_reader_bounds_a_head_far_ahead(ch: Channels) -> None:
     slot_size=st.sampled_from([0, 8, 24, 48, 0xFFFFFFF8]),
     seqs=st.lists(st.integers(0, 2**64 - 1), min_size=4, max_size=4),
 )
-def test_bcast_read_g_never_leaves_its_ring(head: int, cursor: int, slots: int, slot_size: int, seqs: list[int]) -> None:
+def test_bcast_read_g_never_leaves_its_ring(
+    head: int, cursor: int, slots: int, slot_size: int, seqs: list[int]
+) -> None:
     """Whatever the loop writes in the header and the slots' seqs: 1, 0 or -EPROTO, and only the
     reader's 4 x 48 bytes are ever read (ASan in the fuzz harness checks the same in C)."""
     r = ffi.new("struct xrf_ring *")
