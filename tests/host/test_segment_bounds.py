@@ -365,6 +365,21 @@ def test_a_republished_layout_is_taken_not_refused(ch: Channels, tmp_path: Path)
     assert not seen and [len(s.records) for s in open_log(tmp_path / "log.xrf").segments] == [5, 3]
 
 
+def test_a_layout_that_never_settles_is_corrupt(ch: Channels, tmp_path: Path) -> None:
+    """Each new generation starts a segment (a header of up to 56 KiB): a loop bumping it at
+    every drain is stopped, not given a file of headers."""
+    from xrflab.logs.log_channel import MAX_LAYOUTS
+
+    publish_log(ch.shm, [("x", lib.XRF_LOG_DOUBLE)])
+    w, seen = _host_writer_over(ch, tmp_path)
+    for _ in range(MAX_LAYOUTS + 5):
+        ch.shm.log_meta.generation += 1
+        w.drain()
+    w.finish()
+    assert len(seen) == 1 and "changed" in str(seen[0])
+    assert len(open_log(tmp_path / "log.xrf").segments) <= MAX_LAYOUTS
+
+
 def test_log_channel_layout_is_the_checked_copy(ch: Channels) -> None:
     publish_log(ch.shm, [("x", lib.XRF_LOG_DOUBLE)], path=b"a/b.xrf")
     chan = LogChannel(ch, "log")
