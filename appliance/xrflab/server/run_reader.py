@@ -19,6 +19,7 @@ import logging
 from collections.abc import Awaitable, Callable
 from typing import Literal
 
+from ..channels import ChannelsCorrupt
 from .hub import Hub
 from .launch import open_output
 from .lifecycle import RunLifecycle
@@ -150,6 +151,12 @@ async def guarded(name: str, body: Callable[[], Awaitable[None]], run: Run, hub:
             return
         except asyncio.CancelledError:
             raise
+        except ChannelsCorrupt as exc:
+            # Not a bug to retry: the loop broke its segment. The run is stopped (run_corrupt.py)
+            # and nothing of the segment is read here again.
+            if run.report_corrupt is not None:
+                run.report_corrupt(exc)
+            return
         except Exception as exc:  # reported to the dashboards, then carry on
             log.exception("run %s: %s failed", run.row.id, name)
             hub.publish(
