@@ -67,6 +67,14 @@ ALLOWED = {
     ): "the run folder's own path, made by the appliance",
     ("server/launch.py", "run_dir.mkdir(parents=True, exist_ok=True)"): "makes the run folder, before any guest",
     ("server/launch.py", "open(os.devnull"): "not the run folder",
+    (
+        "server/launch.py",
+        "link.unlink()",
+    ): "the appliance's own link directly in /dev/shm, beside the loop's folder, out of the loop's reach",
+    (
+        "server/launch.py",
+        'os.symlink(f"/proc/{os.getpid()}/fd/{shm_fd}", link)',
+    ): "makes the appliance's own link directly in /dev/shm, out of the loop's reach",
     ("server/launch.py", "os.fdopen(open_in(run_dir"): "opened through runfolder.open_in",
     (
         "server/guest_spawn.py",

@@ -30,6 +30,7 @@ from xrf_testing.harness import Server, shared_builds_root, start_server, stop_s
 from xrf_testing.hostile import project_files
 from xrf_testing.projects_support import build_and_wait, reachable_tmp, targz
 from xrf_testing.writers import xrflog_segment
+from xrflab.channels.segment import SEGMENT_LINK_SUFFIX
 
 REPO = Path(__file__).resolve().parents[2]
 HOSTILE = REPO / "tests" / "fixtures" / "hostile_run_folder"
@@ -250,7 +251,9 @@ def test_a_file_truncated_under_the_reader_does_not_kill_the_appliance(student: 
 def test_shm_clean_up_removes_the_links_not_their_targets(student: Student, server: Server, outside: Path) -> None:
     run_id, folder = student.run("shm")
     shm = server.http.get(f"/api/runs/{run_id}").json()["shm"]
-    shm_dir = Path("/dev/shm") / shm.split("/")[0]
+    # The run's shm name is the appliance's link to its sealed segment, named after the loop's
+    # /dev/shm folder (server/launch.segment_link), or <folder>/<name> where no link is made.
+    shm_dir = Path("/dev/shm") / shm.split("/")[0].removesuffix(SEGMENT_LINK_SUFFIX)
     assert (shm_dir / "outside").is_symlink()
     (outside / "dir" / "keep").write_text("mine")
     try:

@@ -20,6 +20,9 @@ from .binding import CData, ffi, lib
 from .errors import ChannelsCorrupt, ChannelsError
 
 SHM_DIR = Path("/dev/shm")
+# The appliance's own name for a run's sealed segment (server/launch.py: segment_link), a link
+# directly in /dev/shm to the memfd it made: "<the run's /dev/shm folder>" + this.
+SEGMENT_LINK_SUFFIX = "-segment"
 SHM_SIZE: int = ffi.sizeof("struct xrf_shm")
 
 # (st_dev, st_ino) of one segment object.
@@ -49,8 +52,11 @@ def try_map(path: Path) -> tuple[mmap.mmap | None, Identity | None]:
     try:
         # The run's /dev/shm folder is the loop's to fill (issue 26): its name is not followed if
         # the loop made it a link (to a file of the appliance's, mapped read-write), nor opened
-        # if it is not a regular file.
-        fd = os.open(path, os.O_RDWR | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+        # if it is not a regular file. The one link followed is the appliance's own name for a
+        # run's sealed segment (launch.segment_link): directly in /dev/shm, where no loop reaches.
+        follow = path.parent == SHM_DIR and path.name.endswith(SEGMENT_LINK_SUFFIX)
+        flags = os.O_RDWR | os.O_NONBLOCK | os.O_CLOEXEC | (0 if follow else os.O_NOFOLLOW)
+        fd = os.open(path, flags)
     except FileNotFoundError:
         return None, None
     except OSError as exc:

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 from .. import channels as chmod
 from .. import guest
-from ..channels import Channels, ChannelsCorrupt
+from ..channels import Channels, ChannelsCorrupt, segment
 from ..logs import live as loglive
 from ..logs.runfolder import remove_folder
 from .children import Child
@@ -37,8 +37,8 @@ if TYPE_CHECKING:
 
 
 # The run segment's name below /dev/shm: <the loop's /dev/shm folder> + this, a symlink to the
-# appliance's descriptor of it (launch.segment_link).
-SEGMENT_LINK_SUFFIX = "-segment"
+# appliance's descriptor of it (launch.segment_link); defined where the segment is opened.
+SEGMENT_LINK_SUFFIX = segment.SEGMENT_LINK_SUFFIX
 
 
 class SupervisorError(Exception):
