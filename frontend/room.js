@@ -53,11 +53,12 @@
     t.append(el("div", "line facts", facts.join(" · ")));
     const sc = b.selfcheck;
     t.append(el("div", "line selfcheck", sc ? "self-check: " + (sc.verdict || "?") : ""));
+    if (b.problem) t.append(el("div", "line problem", b.problem));
     const btns = el("div", "btns");
     const stop = el("button", "stop", "Stop");
     stop.addEventListener("click", () => post("/api/room/stop", { bench: b.name }).then(() => note("stop sent to " + b.name), (e) => note(e.message)));
     const open = el("button", "open", "Open");
-    open.disabled = !b.online;
+    open.disabled = !b.online || b.enrolment !== "ok";
     open.addEventListener("click", async () => {
       try { const r = await post("/api/room/benches/" + encodeURIComponent(b.name) + "/sso"); window.open(r.url, "_blank", "noopener"); }
       catch (e) { note(e.message); }

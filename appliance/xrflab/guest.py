@@ -34,7 +34,8 @@ Layers (each reported by name; ``LAYERS``):
 - ``network``: its own network namespace with a downed loopback: no route anywhere, the
   appliance's port included. ``ipc`` and ``uts`` namespaces likewise.
 - ``environment``: built by the appliance from an allow-list (``ENV_ALLOWED``), never a copy.
-- ``descriptors``: only 0, 1, 2 reach the controller.
+- ``descriptors``: only 0, 1, 2 reach the controller, and the run's segment (``shm_fd``: a memfd
+  the appliance made and sealed at its size, XRF_SHM_FD; the launcher keeps it open too).
 - ``limits``: address space, processes, open files, file size, no core dumps; real-time
   priority at most the loop's (``RLIMIT_RTPRIO``: below the safety watcher's) and real-time time
   without blocking (``RLIMIT_RTTIME``: a spinning SCHED_FIFO thread gets SIGXCPU, then SIGKILL).
@@ -115,6 +116,7 @@ ENV_ALLOWED = frozenset(
         "XRF_QUIET",
         "XRF_RUN_ID",
         "XRF_SHM",
+        "XRF_SHM_FD",
         "XRF_SIM",
         "XRF_SIM_FAULTS",
         "XRF_SPI_DEVICE",
@@ -484,8 +486,10 @@ class _Launch:
             os.chdir(cfg["run_dir"])
             self.set_limits()
             os.umask(0o007)  # what the loop writes stays readable by the appliance's group only
-            # Descriptors: 0-2, the error and status pipes and the cgroup files (all close-on-exec) only.
-            _close_all_but({err_w, status_w, *self.cgroup_fds})
+            # Descriptors: 0-2, the error and status pipes and the cgroup files (all close-on-exec)
+            # and the run's segment only.
+            shm_fd = {cfg["shm_fd"]} if cfg.get("shm_fd") is not None else set()
+            _close_all_but({err_w, status_w, *self.cgroup_fds, *shm_fd})
             uid, gid, groups = self.loop_identity()
             if self.mode == "root":
                 keep = set(self.ambient)

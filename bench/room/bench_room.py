@@ -23,6 +23,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "appliance"))
@@ -30,7 +31,7 @@ sys.path.insert(0, str(REPO / "appliance"))
 import httpx  # noqa: E402
 from websockets.sync.client import connect  # noqa: E402
 
-from xrflab.room import mqtt  # noqa: E402
+from xrflab.room import mqtt, sso  # noqa: E402
 from xrflab.room.publisher import BenchPublisher  # noqa: E402
 
 PASSWORD = "bench-room-admin-pw"
@@ -78,23 +79,20 @@ class SimBench:
             "cycles": int((time.monotonic() - self.t0) * 1000),
             "cycle_rate": 1000.0,
             "misses": 0,
-            "url": "http://127.0.0.1:9",
         }
 
-    def on_command(self, body: dict, t_recv: float) -> None:
+    def on_command(self, command: Any, t_recv: float) -> None:
         # the simulated loop takes the stop as the appliance hands it over: on its event loop
         def done() -> None:
             self.state = "STOPPED"
             self.pub.reply(
-                {
-                    "id": body.get("id"),
-                    "cmd": body.get("cmd"),
-                    "ok": True,
-                    "accepted": True,
-                    "t_recv": t_recv,
-                    "t_loop": time.time(),
-                    "t_sent": body.get("t"),
-                }
+                id=command.id,
+                cmd=command.cmd,
+                ok=True,
+                accepted=True,
+                t_recv=t_recv,
+                t_loop=time.time(),
+                t_sent=getattr(command, "t", None),
             )
             self.state = "RUN"
 
@@ -141,7 +139,9 @@ def run(n: int, seconds: float, stops: int) -> dict:
         enrolments = []
         for i in range(n):
             code = http.post("/api/room/join-codes").json()["code"]
-            enrolments.append(httpx.post(url + "/api/room/enrol", json={"code": code, "name": f"sim{i:02d}"}).json())
+            request = {"code": code, "name": f"sim{i:02d}", "url": "http://127.0.0.1:9"}
+            request["bench_key"] = sso.public_text(sso.new_private_key())
+            enrolments.append(httpx.post(url + "/api/room/enrol", json=request).json())
         broker_pid = int((tmp / "broker" / "mosquitto.pid").read_text())
 
         loop = asyncio.new_event_loop()

@@ -246,3 +246,17 @@ def test_cli_decode(edge_file: Path, tmp_path: Path, capsys) -> None:
     bad.write_bytes(xrflog_segment([("x", 5)], [(1.0,)]).replace(b'"type": 5', b'"type": 42'))
     assert xrf_main(["decode", str(bad)]) == 1
     assert "unknown type code 42" in capsys.readouterr().err
+
+
+def test_a_log_of_no_records_is_converted_from_itself_not_reopened_by_path(tmp_path: Path) -> None:
+    """Issue 26: the appliance hands the converter the LogFile it opened safely (a private copy
+    of a file the loop may truncate); a LogFile of no records is falsy, and `log or open_log(path)`
+    reopened - and mapped - the loop's file by its name, where a truncation killed the appliance."""
+    empty = tmp_path / "empty.xrf"
+    empty.write_bytes(xrflog_segment([("x", 5)], []))
+    log = open_log(empty)
+    assert len(log) == 0
+    gone = tmp_path / "no-such-file.xrf"  # the name given: never opened
+    assert b"x" in b"".join(iter_csv_chunks(gone, log=log))
+    for fmt in ("csv", "parquet", "mat"):
+        convert(gone, fmt, tmp_path / f"o.{fmt}", log=log)

@@ -200,3 +200,18 @@ def test_xrf2_bin_with_trailing_separators_and_unknown_code(tmp_path: Path) -> N
 
 def test_magic_constant_matches_the_spec() -> None:
     assert MAGIC == bytes.fromhex("5852464C4F47310A")
+
+
+def test_a_variable_name_that_is_not_text_is_written_out_and_every_format_takes_it(tmp_path: Path) -> None:
+    """Issue 26: a file the loop wrote itself may name a variable with a lone surrogate (JSON
+    ``\\udcff``); it becomes the text ``\\udcff``, so the listing's JSON and CSV, Parquet and rrd
+    (all UTF-8) never fail on it."""
+    from xrflab.logs import convert
+
+    path = tmp_path / "s.xrf"
+    path.write_bytes(xrflog_segment([("ok", 5), ("bad\udcff", 5)], [(1.0, 2.0), (3.0, 4.0)]))
+    log = open_log(path)
+    assert [v.name for v in log.variables] == ["ok", "bad\\udcff"]
+    for fmt in ("csv", "parquet", "mat"):
+        convert(path, fmt, tmp_path / f"o.{fmt}")
+    assert "bad\\udcff" in (tmp_path / "o.csv").read_text()

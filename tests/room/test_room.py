@@ -13,7 +13,16 @@ import httpx
 import pytest
 
 from xrf_testing.harness import CHROMIUM_ARGS, login_client, wait_for
-from xrf_testing.room_support import TEACHER, TEACHER_PW, Lab, Recorder, room_endpoint, room_lab
+from xrf_testing.room_support import (
+    TEACHER,
+    TEACHER_PW,
+    Lab,
+    Recorder,
+    enrol_fake,
+    enrol_request,
+    room_endpoint,
+    room_lab,
+)
 from xrflab.room import topics
 
 N = 5
@@ -32,9 +41,14 @@ def test_enrolment_brings_every_bench_online(lab: Lab) -> None:
     # a code works once; a wrong one is refused
     code = lab.room.http.post("/api/room/join-codes").json()["code"]
     anon = httpx.Client(base_url=lab.room.url, timeout=10)
-    assert anon.post("/api/room/enrol", json={"code": code, "name": "b9"}).status_code == 200
-    assert anon.post("/api/room/enrol", json={"code": code, "name": "b9"}).status_code == 403
-    assert anon.post("/api/room/enrol", json={"code": "nope", "name": "b8"}).status_code == 403
+    assert anon.post("/api/room/enrol", json=enrol_request(code, "b9")).status_code == 200
+    assert anon.post("/api/room/enrol", json=enrol_request(code, "b9")).status_code == 403
+    assert anon.post("/api/room/enrol", json=enrol_request("nope", "b8")).status_code == 403
+    # a bench's address must be a dashboard's, its key a key
+    code = lab.room.http.post("/api/room/join-codes").json()["code"]
+    assert anon.post("/api/room/enrol", json=enrol_request(code, "b8", "file:///etc/passwd")).status_code == 422
+    assert anon.post("/api/room/enrol", json={**enrol_request(code, "b8"), "bench_key": "not-a-key"}).status_code == 422
+    assert anon.post("/api/room/enrol", json=enrol_request(code, "b8")).status_code == 200  # the code still works
     # everything else of the room needs an educator's login
     assert anon.get("/api/room/benches").status_code == 401
     assert anon.post("/api/room/stop", json={}).status_code == 401
@@ -49,7 +63,11 @@ def test_stop_all_reaches_every_loop(lab: Lab) -> None:
             ws.wait_state("INITIALISED", 15)
             assert ws.command("start")["accepted"]
             ws.wait_state("RUN", 15)
-    wait_for(lambda: all(b["state"] == "RUN" for n, b in lab.views().items() if n != "b9"), 10, "all RUN in the room")
+    wait_for(
+        lambda: all(b["state"] == "RUN" for n, b in lab.views().items() if n not in ("b8", "b9")),
+        10,
+        "all RUN in the room",
+    )
     sent = lab.teacher.post("/api/room/stop", json={}).json()
     replies = wait_for(
         lambda: (r := lab.room.http.get(f"/api/room/commands/{sent['id']}").json()["replies"]) and len(r) >= N and r,
@@ -62,7 +80,9 @@ def test_stop_all_reaches_every_loop(lab: Lab) -> None:
     print(f"stop-all: loop accepted after {[round(x * 1000, 1) for x in lat]} ms")
     assert all(r["accepted"] for r in replies)
     assert lat[-1] < 1.0  # 200 ms p99 is the LAN figure (bench/room); a loaded CI machine gets slack
-    wait_for(lambda: all(b["state"] == "STOPPED" for n, b in lab.views().items() if n != "b9"), 10, "STOPPED")
+    wait_for(
+        lambda: all(b["state"] == "STOPPED" for n, b in lab.views().items() if n not in ("b8", "b9")), 10, "STOPPED"
+    )
     for s in lab.benches:
         s.stop_run()  # end the runs: the loops' processes exit
 
@@ -160,6 +180,8 @@ def test_grid_in_chromium(lab: Lab, chromium_path: str) -> None:
     from playwright.sync_api import sync_playwright
 
     files = lab.broker.files
+    for k in range(25):  # the room hears enrolled benches only
+        enrol_fake(lab.room, f"z{k:02d}")
     fake = Recorder(room_endpoint(files), "fakes")  # the room's own credentials: may write any bench's topics
     assert fake.wait_connected()
     boot = int(time.time() * 1000)

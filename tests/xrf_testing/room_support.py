@@ -335,6 +335,21 @@ def join(
     )
 
 
+def enrol_request(code: str, name: str, url: str = "http://127.0.0.1:9") -> dict[str, str]:
+    """What `xrf room join` posts to /api/room/enrol, with a fresh key pair of its own."""
+    from xrflab.room import sso
+
+    return {"code": code, "name": name, "bench_key": sso.public_text(sso.new_private_key()), "url": url}
+
+
+def enrol_fake(room: RoomServer, name: str, url: str = "http://127.0.0.1:9") -> dict[str, Any]:
+    """Enrol a bench that is not an appliance (the room then hears its name): the room's answer."""
+    code = room.http.post("/api/room/join-codes").json()["code"]
+    r = httpx.post(room.url + "/api/room/enrol", json=enrol_request(code, name, url), timeout=30)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
 # ---- a whole lab: broker, room, N enrolled appliances ---------------------------------------------
 
 from collections.abc import Iterator  # noqa: E402

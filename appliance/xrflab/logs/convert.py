@@ -95,7 +95,7 @@ def iter_csv_chunks(path: str | Path, chunk_rows: int = CHUNK_ROWS, log: LogFile
     """
     import pyarrow.csv as pcsv
 
-    log = log or open_log(path)
+    log = log if log is not None else open_log(path)  # not `or`: a LogFile of no records is falsy
     sink = io.BytesIO()
     # The header row is ours (Arrow quotes every name); names are quoted only when they must be.
     head = io.StringIO()
@@ -311,7 +311,7 @@ def convert(
     format's suffix); returns the written path. Raises LogFormatError for undecodable input."""
     if fmt not in _WRITERS:
         raise ValueError(f"unknown format {fmt!r}; formats: {', '.join(FORMATS)}")
-    log = log or open_log(path)
+    log = log if log is not None else open_log(path)  # not `or`: a LogFile of no records is falsy
     target = Path(out) if out is not None else Path(path).with_suffix(SUFFIX[fmt])
     tmp = target.with_name(f".{target.name}.{os.getpid()}.part")
     try:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import mmap
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -229,7 +230,11 @@ def _field_names(names: list[str], reserved: tuple[str, ...]) -> list[str]:
 def make_variables(
     path: Path, names: list[str], codes: list[int], offsets: list[int] | None, reserved: tuple[str, ...]
 ) -> tuple[Variable, ...]:
-    """Validate type codes and build the variables (packed offsets when none are given)."""
+    """Validate type codes and build the variables (packed offsets when none are given). A name
+    that is not valid Unicode text (a lone surrogate from a JSON ``\\udcff`` escape: whoever wrote
+    the file chose it) is kept with that character written out (``\\udcff``), so every column
+    name can be encoded: CSV, Parquet, rrd and the JSON listing never fail on it."""
+    names = [n.encode("utf-8", "backslashreplace").decode("utf-8") if isinstance(n, str) else str(n) for n in names]
     fields = _field_names(names, reserved)
     out, pos = [], 0
     for i, (name, code) in enumerate(zip(names, codes)):
@@ -264,12 +269,17 @@ def record_dtype(variables: tuple[Variable, ...], stride: int, header: bool = Tr
 
 
 class _Mapped:
-    """The file's bytes, memory-mapped (an empty file has nothing to map)."""
+    """The file's bytes, memory-mapped (an empty file has nothing to map). From `fd` when given
+    (a file opened by the caller, e.g. in a run folder by runfolder.open_mappable), else by path."""
 
-    def __init__(self, path: Path) -> None:
-        with open(path, "rb") as f:
-            size = f.seek(0, 2)
-            self.buf: Any = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b""
+    def __init__(self, path: Path, fd: int | None = None) -> None:
+        if fd is not None:
+            size = os.fstat(fd).st_size
+            self.buf: Any = mmap.mmap(fd, size, access=mmap.ACCESS_READ) if size else b""
+        else:
+            with open(path, "rb") as f:
+                size = f.seek(0, 2)
+                self.buf = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b""
         self.size = size
 
     def find(self, needle: bytes, start: int) -> int:
@@ -463,12 +473,14 @@ def _read_xrflog(path: Path, m: _Mapped, log: LogFile) -> None:
     log._skipped_bytes = skipped_bytes
 
 
-def open_log(path: str | Path) -> LogFile:
-    """Open an xrflog file or an XRF2 `.bin` file (recognised by content, not by name)."""
+def open_log(path: str | Path, fd: int | None = None) -> LogFile:
+    """Open an xrflog file or an XRF2 `.bin` file (recognised by content, not by name). `fd`: read
+    that open file instead (`path` then only names it in the LogFile and in messages); the
+    mapping stays valid after the caller closes it."""
     from . import xrf2bin
 
     path = Path(path)
-    m = _Mapped(path)
+    m = _Mapped(path, fd)
     if m.size >= len(MAGIC) and bytes(m.buf[: len(MAGIC)]) == MAGIC:
         log = LogFile(path, "xrflog", size=m.size)
         _read_xrflog(path, m, log)

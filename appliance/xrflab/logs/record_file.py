@@ -3,7 +3,9 @@
 A write can fail part-way (disk full, I/O error, file too large). The file is then cut back to
 its last complete record, so what was written stays decodable by the reader, and the caller
 learns how many of the records it handed over made it (``PartialWrite``). The file is opened in
-the run folder without following symlinks (``runfolder.open_in``): the loop names it.
+the run folder through its helper (``runfolder.open_in``: no symlink followed, a plain file of the
+appliance's own, never group-writable): the loop names it, and must not be able to truncate it
+under a reader that maps it.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ class RecordFile:
     def open(run_dir: Path, rel: str, mode: int, stride: int) -> RecordFile:
         """`rel` (confined to the run folder already) for appending, made with `mode` and the
         folders on the way when missing."""
-        fd = open_in(run_dir, rel, os.O_WRONLY | os.O_CREAT | os.O_APPEND, mode, create_dirs=True)
+        fd = open_in(run_dir, rel, os.O_WRONLY | os.O_CREAT | os.O_APPEND, mode, create_dirs=True, own=True)
         try:
             return RecordFile(fd, stride)
         except OSError:

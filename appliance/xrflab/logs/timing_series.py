@@ -64,8 +64,10 @@ class TimingSeries:
             "stages": stages,
         }
         try:
-            fd = open_in(self._run_dir, TIMING_FILE, os.O_WRONLY | os.O_CREAT | os.O_APPEND)
+            # Through the run folder's helper, the appliance's own file only: a link, a FIFO or a
+            # file the loop put in its place is refused (and this sample skipped), never followed.
+            fd = open_in(self._run_dir, TIMING_FILE, os.O_WRONLY | os.O_CREAT | os.O_APPEND, own=True)
             with open(fd, "a", closefd=True) as f:
                 f.write(json.dumps(line, separators=(",", ":")) + "\n")
-        except OSError:
+        except (OSError, ValueError):
             pass  # a full disk already raised the log alarm; timing is best effort

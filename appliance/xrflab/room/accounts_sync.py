@@ -2,7 +2,8 @@
 
 The room publishes its whole accounts table (usernames, roles, names, argon2id hashes, disabled,
 must-change) as one retained message on ``xrf/accounts`` whenever it changes (``RoomAccounts``:
-its digest is looked at twice a second), with a ``version`` that only grows. The broker's ACL lets
+its digest is looked at twice a second), with a ``version`` that only grows (payloads.ClassList: at
+most ``CLASS_LIST_MAX`` accounts, every field bounded as the accounts themselves are). The broker's ACL lets
 benches read it and nobody but the room write it.
 
 A bench (``BenchAccounts``) applies a newer version to its own accounts database: new accounts are
@@ -25,6 +26,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from .payloads import ClassList
+
 log = logging.getLogger(__name__)
 
 
@@ -40,8 +43,9 @@ class RoomAccounts:
         self.version = 0
         self._digest = ""
 
-    def changed(self) -> dict[str, Any] | None:
-        """The list to publish when it differs from the last one, else None."""
+    def changed(self) -> ClassList | None:
+        """The list to publish when it differs from the last one, else None (ValueError: a list
+        the contract cannot carry, e.g. more than CLASS_LIST_MAX accounts)."""
         users = self.accounts.export_hashed()
         d = digest(users)
         if d == self._digest:
@@ -49,9 +53,9 @@ class RoomAccounts:
         self._digest = d
         # wall-clock ms: a restarted room still counts above what the benches have
         self.version = max(self.version + 1, time.time_ns() // 1_000_000)
-        return {"version": self.version, "users": users}
+        return ClassList.make(version=self.version, users=users)
 
-    def current(self) -> dict[str, Any]:
+    def current(self) -> ClassList:
         self._digest = ""
         out = self.changed()
         assert out is not None
@@ -74,12 +78,11 @@ class BenchAccounts:
     def version(self) -> int:
         return int(self.state.get("version", 0))
 
-    def apply(self, body: dict[str, Any]) -> int:
+    def apply(self, body: ClassList) -> int:
         """Apply a class list from the room; returns how many accounts' sessions were ended."""
         accounts = self.security.accounts
-        version = int(body.get("version", 0))
-        users = body.get("users")
-        if accounts is None or not isinstance(users, list) or version <= self.version:
+        version = body.version
+        if accounts is None or version <= self.version:
             return 0  # older, or the same again (retained on every reconnect)
         if self.state.get("local") is None:
             # first list: what exists now is the bench's own
@@ -88,22 +91,14 @@ class BenchAccounts:
         owned: set[str] = set(self.state.get("owned", []))
         listed: set[str] = set()
         conflicts, ended = [], 0
-        for u in users:
-            if not isinstance(u, dict):
-                continue
-            name = str(u.get("username", ""))
+        for u in body.users:
+            name = u.username
             if name in local:
                 conflicts.append(name)
                 continue
             try:
                 user, revoked = accounts.put_hashed(
-                    name,
-                    str(u.get("role", "")),
-                    str(u.get("password_hash", "")),
-                    str(u.get("full_name", "")),
-                    str(u.get("email", "")),
-                    bool(u.get("disabled")),
-                    bool(u.get("must_change")),
+                    name, u.role, u.password_hash, u.full_name, u.email, u.disabled, u.must_change
                 )
             except Exception as exc:
                 log.warning("room class list: %s: %s", name, exc)

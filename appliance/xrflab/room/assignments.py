@@ -7,7 +7,7 @@ on ``xrf/assignment/<id>`` (QoS 1): every enrolled bench gets it now, and a benc
 gets it from the broker when it reconnects. The broker keeps no disk (broker.py), so the room
 publishes every assignment again whenever it (re)connects.
 
-The message carries the id, name, who published it, the archive's size and sha256, and either the
+The message (payloads.Assignment) carries the id, name, who published it, the archive's size and sha256, and either the
 archive itself (``inline``, base64, up to ``INLINE_MAX`` bytes) or nothing more: a bench then
 fetches ``GET /api/room/assignments/<id>/archive`` from the room over HTTP(S) with a token it
 signs with its own enrolment key (sso.mint, use ``assignment``, 60 s, once), so MQTT never carries
@@ -30,8 +30,8 @@ from typing import Any
 from ..projects import archive
 from ..projects.assignments import LIMITS
 from ..projects.versions import sha256_file
+from .payloads import INLINE_MAX, Assignment
 
-INLINE_MAX = 128 << 10  # MQTT could carry more; a retained message is held for every bench
 SKIP = set(archive.SKIPPED_DIRS)
 
 
@@ -102,13 +102,17 @@ class RoomAssignments:
         finally:
             Path(tmp).unlink(missing_ok=True)
 
-    def message(self, aid: str) -> dict[str, Any]:
+    def message(self, aid: str) -> Assignment:
         """What ``xrf/assignment/<id>`` says."""
-        meta = dict(self.index[aid])
-        meta["path"] = f"/api/room/assignments/{aid}/archive"
+        meta = self.index[aid]
+        inline = None
         if meta["size"] <= INLINE_MAX:
-            meta["inline"] = base64.b64encode(self.archive_path(aid).read_bytes()).decode()
-        return meta
+            inline = base64.b64encode(self.archive_path(aid).read_bytes()).decode()
+        return Assignment.make(
+            **{k: meta[k] for k in ("id", "name", "by", "t", "template", "size", "sha256", "files")},
+            path=f"/api/room/assignments/{aid}/archive",
+            inline=inline,
+        )
 
     def list(self) -> list[dict[str, Any]]:
         return sorted(self.index.values(), key=lambda m: m["t"])

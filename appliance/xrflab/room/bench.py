@@ -1,11 +1,12 @@
 """The room on a bench: wired into the appliance once it is enrolled (``xrf room join``).
 
 ``RoomLink.open`` is called from the appliance's lifespan; it looks for
-``<data>/room/enrolment.json`` (written by ``xrf room join``, 0600) now and every few seconds, so
-joining needs no restart. Once enrolled, the publisher listens to the hub, commands are handled,
-the class list is applied, published assignments are received (inline, or fetched from the room
-with a token signed by this bench's key; retried every ``FETCH_RETRY_S`` until they arrive) and
-``/room/sso`` signs users in from the room.
+``<data>/room/enrolment.json`` (written by ``xrf room join``: enrol.py says who may read it) now
+and every few seconds, so joining needs no restart. Once enrolled, the publisher listens to the
+hub, commands are handled, the class list is applied, published assignments are received (inline,
+or fetched from the room with a token signed by this bench's own key; retried every
+``FETCH_RETRY_S`` until they arrive) and ``/room/sso`` signs users in from the room with tokens
+checked against the room's public key (sso.py: nothing this bench holds can make one).
 
 Nothing here may stop the bench: the MQTT client reconnects on its own, and a broker or room that
 is gone only means the status is not seen (the bench runs on; its events wait in a bounded queue).
@@ -15,7 +16,6 @@ from __future__ import annotations
 
 import asyncio
 import base64
-import json
 import logging
 import secrets
 import shutil
@@ -29,13 +29,13 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 
 from ..projects.archive import ArchiveRejected
-from ..projects.assignments import ID_RE as ASSIGNMENT_ID_RE
 from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
 from ..projects.assignments import Assignments
 from ..server.auth import Perm, client_address, requires
-from . import mqtt, sso
+from . import mqtt, payloads, sso
 from .accounts_sync import BenchAccounts
 from .commands import CommandHandler
+from .enrol import REENROL, Enrolment, EnrolmentError, Outdated, read_enrolment
 from .publisher import BenchPublisher, RoomRunObserver, next_boot
 from .sso import SsoError, Verifier
 
@@ -49,15 +49,7 @@ def room_folder(data_dir: Path) -> Path:
     return data_dir / "room"
 
 
-def enrolment_path(data_dir: Path) -> Path:
-    return room_folder(data_dir) / "enrolment.json"
-
-
-def read_enrolment(data_dir: Path) -> dict[str, Any] | None:
-    try:
-        return json.loads(enrolment_path(data_dir).read_text())
-    except (OSError, ValueError):
-        return None
+OUTDATED = "this bench was enrolled before the room signed its tokens; " + REENROL
 
 
 def system_facts(data_dir: Path) -> dict[str, Any]:
@@ -91,13 +83,14 @@ class RoomLink:
         self.accounts: BenchAccounts | None = None
         self._poll: asyncio.Task[None] | None = None
         self._last_cycles: tuple[float, int] | None = None
-        self.dashboard_url = ""
         self.name = ""
-        self.key = ""
+        self.key: sso.Ed25519PrivateKey | None = None  # this bench's own: its tokens to the room
+        self.outdated = False  # enrolled before signed tokens: no sign-on, fetch or upload
         self.room_url = ""
         self.ca_pem = ""
         self.assignments = Assignments(self.settings.data_dir / "assignments")
-        self._wanted: dict[str, dict[str, Any]] = {}  # published here, not received yet
+        self._wanted: dict[str, payloads.Assignment] = {}  # published here, not received yet
+        self._problem = ""
         self._receiving: set[str] = set()
         self._tasks: set[asyncio.Task[Any]] = set()
 
@@ -110,29 +103,35 @@ class RoomLink:
             await asyncio.sleep(ENROL_POLL_S)
 
     def _try_start(self) -> bool:
-        enrolment = read_enrolment(self.settings.data_dir)
-        if enrolment is None:
-            return False
         try:
-            self._start(enrolment)
-        except Exception:
-            log.exception("room: cannot start with %s", enrolment_path(self.settings.data_dir))
+            enrolment = read_enrolment(self.settings.data_dir)
+            if enrolment is not None:
+                self._start(enrolment)
+        except Exception as exc:
+            problem = str(exc) if isinstance(exc, EnrolmentError) else f"cannot start: {exc}"
+            if problem != self._problem:  # said once, not at every poll
+                self._problem = problem
+                log.error("room: %s", problem, exc_info=not isinstance(exc, EnrolmentError))
             return False
-        return True
+        return enrolment is not None
 
-    def _start(self, e: dict[str, Any]) -> None:
+    def _start(self, e: Enrolment | Outdated) -> None:
         app = self.app
-        b = e["broker"]
-        endpoint = mqtt.Endpoint(b["host"], int(b["port"]), b["username"], b["password"], b.get("ca_pem", ""))
+        b = e.broker
+        endpoint = mqtt.Endpoint(b.host, b.port, b.username, b.password, b.ca_pem)
         security = app.state.security
+        if isinstance(e, Enrolment):
+            room_key, own_key = sso.load_public(e.room_key), sso.load_private(e.bench_key)  # both, or neither
+            self.verifier, self.key = Verifier(room_key, e.name, "sso"), own_key
+        else:
+            self.outdated = True
+            log.error("room: %s", OUTDATED)
         self.accounts = BenchAccounts(security, self.folder)
-        self.verifier = Verifier(e["sso_key"], e["name"])
-        self.dashboard_url = e.get("dashboard_url", "")
-        self.name, self.key, self.room_url = e["name"], e["sso_key"], e.get("room_url", "")
-        self.ca_pem = b.get("ca_pem", "")
+        self.name, self.room_url = e.name, e.room_url
+        self.ca_pem = b.ca_pem
         handler = CommandHandler(app, asyncio.get_running_loop())
         self.publisher = BenchPublisher(
-            e["name"],
+            e.name,
             endpoint,
             next_boot(self.folder),
             self.facts,
@@ -147,9 +146,9 @@ class RoomLink:
         app.state.supervisor.lifecycle.register(self.run_observer)
         app.state.supervisor.hub.listeners.append(self.publisher.on_hub)
         self.publisher.start()
-        log.warning("room: bench %s reports to %s:%s", e["name"], b["host"], b["port"])
+        log.warning("room: bench %s reports to %s:%s", e.name, b.host, b.port)
 
-    def _on_accounts(self, body: dict[str, Any]) -> None:
+    def _on_accounts(self, body: payloads.ClassList) -> None:
         if self.accounts is not None:
             self.accounts.apply(body)
             if self.publisher is not None:
@@ -162,10 +161,8 @@ class RoomLink:
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
-    def _on_assignment(self, body: dict[str, Any]) -> None:
-        aid, sha = str(body.get("id", "")), str(body.get("sha256", ""))
-        if not ASSIGNMENT_ID_RE.match(aid) or not sha:
-            return
+    def _on_assignment(self, body: payloads.Assignment) -> None:
+        aid = body.id  # checked by the model (payloads.Assignment)
         self._wanted[aid] = body
         if aid not in self._receiving:
             self._spawn(self._receive(aid))
@@ -185,15 +182,15 @@ class RoomLink:
         self._receiving.add(aid)
         tmp = self.assignments.root / f".dl-{aid}-{secrets.token_hex(4)}"
         try:
-            if await asyncio.to_thread(self.assignments.has, aid, body["sha256"]):
+            if await asyncio.to_thread(self.assignments.has, aid, body.sha256):
                 self._wanted.pop(aid, None)
                 return
             self.assignments.root.mkdir(parents=True, exist_ok=True)
-            if "inline" in body:
-                tmp.write_bytes(base64.b64decode(str(body["inline"])))
+            if body.inline is not None:
+                tmp.write_bytes(base64.b64decode(body.inline, validate=True))
             else:
-                await asyncio.to_thread(self._fetch, aid, str(body.get("path", "")), tmp)
-            info = await asyncio.to_thread(self.assignments.install, body, tmp)
+                await asyncio.to_thread(self._fetch, aid, body.path, tmp)
+            info = await asyncio.to_thread(self.assignments.install, body.model_dump(), tmp)
         except (ValueError, ArchiveRejected) as exc:  # refused for good: not fetched again
             self._wanted.pop(aid, None)
             log.error("room: assignment %s refused: %s", aid, exc)
@@ -221,11 +218,13 @@ class RoomLink:
         return httpx.Client(base_url=self.room_url, timeout=timeout, verify=ctx)
 
     def _token(self, subject: str, use: str) -> dict[str, str]:
+        if self.key is None:
+            raise RuntimeError(OUTDATED)
         return {"bench": self.name, "token": sso.mint(self.key, self.name, subject, ttl_s=sso.TTL_S, use=use)}
 
     def _fetch(self, aid: str, path: str, out: Path) -> None:
         """An assignment too large for MQTT, from the room (blocking; bounded as an upload is)."""
-        if not self.room_url or not path.startswith("/api/room/assignments/"):
+        if not self.room_url or path != f"/api/room/assignments/{aid}/archive":
             raise RuntimeError("no room address to fetch the assignment from (enrolled by an old xrf room join?)")
         total = 0
         with self._http(120) as c, c.stream("GET", path, params=self._token(aid, "assignment")) as r:
@@ -284,21 +283,9 @@ class RoomLink:
             "cycle_rate": rate,
             "cycle_freq": row.cycle_freq if row else None,
             "holder": holder,
-            "url": self.dashboard_url or self._guess_url(),
             "accounts_version": self.accounts.version if self.accounts else 0,
             **system_facts(self.settings.data_dir),
         }
-
-    def _guess_url(self) -> str:
-        """The dashboard's address as the room can reach it: the address this bench talks to the
-        broker from (its LAN address), the appliance's port."""
-        host = self.settings.host
-        if host in ("0.0.0.0", "::", "") and self.publisher is not None:
-            try:
-                host = self.publisher._client.socket().getsockname()[0]  # type: ignore[union-attr]
-            except (AttributeError, OSError):
-                host = "127.0.0.1"
-        return f"http://{host}:{self.settings.port}"
 
     async def close(self) -> None:
         if self._poll:
@@ -327,6 +314,8 @@ async def room_sso(request: Request, token: str = Query("", max_length=1000)) ->
 
     link: RoomLink | None = getattr(request.app.state, "room", None)
     security = request.app.state.security
+    if link is not None and link.outdated:
+        return HTMLResponse(OUTDATED, status_code=404)
     if link is None or link.verifier is None or security.accounts is None:
         return HTMLResponse("this bench is not enrolled in a room", status_code=404)
     try:

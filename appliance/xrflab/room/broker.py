@@ -30,7 +30,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from . import topics
+from . import payloads, topics
 
 ROOM_USER = "room"
 
@@ -39,7 +39,7 @@ class BrokerError(Exception):
     pass
 
 
-def _private_write(path: Path, text: str) -> None:
+def private_write(path: Path, text: str) -> None:
     """Write atomically, 0600 from the first byte (a password or key is never world-readable)."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
     try:
@@ -130,15 +130,15 @@ class BrokerFiles:
         self.folder.mkdir(parents=True, exist_ok=True)
         os.chmod(self.folder, 0o700)
         if not self.passwd.exists():
-            _private_write(self.passwd, "")
+            private_write(self.passwd, "")
         if not self.room_secret.exists():
             secret = secrets.token_urlsafe(24)
             self.set_password(ROOM_USER, secret)
-            _private_write(self.room_secret, secret + "\n")
+            private_write(self.room_secret, secret + "\n")
         if self.tls_port is not None:
             self._make_tls()
-        _private_write(self.acl, acl_text())
-        _private_write(self.conf, self.config_text())
+        private_write(self.acl, acl_text())
+        private_write(self.conf, self.config_text())
 
     def config_text(self) -> str:
         lines = [
@@ -160,6 +160,10 @@ class BrokerFiles:
             # A bench's queued events are resent after an outage; the broker need not hold more for
             # a client than this.
             "max_queued_messages 1000",
+            # A client that sends a larger packet is disconnected (the room's class list is the
+            # largest message; a bench's are far smaller and each receiver bounds them again:
+            # payloads.py).
+            f"max_packet_size {payloads.BROKER_MAX_PACKET}",
         ]
         if self.port is not None:
             lines += ["", f"listener {self.port} {self.bind}", "protocol mqtt"]

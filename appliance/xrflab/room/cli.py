@@ -50,8 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     join.add_argument(
         "--url",
         default="",
-        help="this bench's dashboard address as the room's browsers reach it "
-        "(default: its address towards the broker, port of xrf serve)",
+        help="this bench's dashboard address as the room's browsers reach it, recorded by the room "
+        "(default: this bench's address towards the room, the appliance's default port)",
     )
 
 
@@ -66,10 +66,11 @@ def run(args: argparse.Namespace) -> int:
         except (RuntimeError, ValueError) as exc:
             print(f"xrf room join: {exc}")
             return 1
-        b = e["broker"]
+        b = e.broker
         print(
-            f"xrf room join: bench {e['name']} enrolled; broker {b['host']}:{b['port']} "
-            f"({'TLS' if b.get('ca_pem') else 'plain'}); the running appliance joins within seconds"
+            f"xrf room join: bench {e.name} enrolled; broker {b.host}:{b.port} "
+            f"({'TLS' if b.ca_pem else 'plain'}); dashboard {e.dashboard_url}; "
+            "the running appliance joins within seconds"
         )
         return 0
     import os

@@ -64,8 +64,8 @@ def pack_bench(
 ) -> dict[str, Any]:
     """Write the bench's .tar.gz of `runs` to `out`; returns bench.json (also inside). Blocking."""
     from ..logs.convert import convert
-    from ..logs.runfolder import RunPathError, open_in
-    from ..server.routes_logs import open_run_log, run_log_files
+    from ..logs.runfolder import RunFolder, RunPathError
+    from ..server.routes_logs import log_files, open_run_log
 
     total = 0
     listed: list[dict[str, Any]] = []
@@ -96,34 +96,42 @@ def pack_bench(
         for r in runs:
             base = f"{safe_part(r.student)}/{int(r.record['id'])}"
             files: list[str] = []
-            root = Path(r.run_dir)
-            for path in run_log_files(root):
-                rel = path.relative_to(root).as_posix()
-                name = f"{base}/logs/{'/'.join(safe_part(p) for p in rel.split('/'))}"
-                try:
-                    if add_file(name, None, open_in(root, rel)):
-                        files.append(name)
-                except (OSError, RunPathError) as exc:
-                    left_out.append({"file": name, "why": str(exc)[:200]})
-                    continue
-                for fmt in formats:
-                    conv = Path(name).with_suffix("." + fmt).as_posix()
-                    target = Path(tmp) / f"c{len(files)}.{fmt}"
-                    try:
-                        convert(path, fmt, target, log=open_run_log(root, path))
-                    except Exception as exc:  # an undecodable log still has its raw file above
-                        left_out.append({"file": conv, "why": f"not converted: {exc}"[:300]})
-                        continue
-                    if add_file(conv, target):
-                        files.append(conv)
-                    target.unlink(missing_ok=True)
+            # The run folder is the loop's: everything in it through its helper (no link
+            # followed, plain files only, output.txt read up to OUTPUT_MAX).
             try:
-                fd = open_in(root, "output.txt")
-                with os.fdopen(fd, "rb") as f:
-                    add_bytes(f"{base}/output.txt", f.read(OUTPUT_MAX))
-                files.append(f"{base}/output.txt")
-            except (OSError, RunPathError):
-                pass
+                rf = RunFolder(r.run_dir)
+            except OSError as exc:
+                left_out.append({"file": f"{base}/", "why": f"no run folder: {exc.strerror}"})
+                rf = None
+            if rf is not None:
+                with rf:
+                    for rel, _ in log_files(rf):
+                        name = f"{base}/logs/{'/'.join(safe_part(p) for p in rel.split('/'))}"
+                        try:  # a copy if the loop could still change it (its size must hold)
+                            if add_file(name, None, rf.open_mappable(rel)):
+                                files.append(name)
+                        except (OSError, RunPathError) as exc:
+                            left_out.append({"file": name, "why": str(exc)[:200]})
+                            continue
+                        for fmt in formats:
+                            conv = Path(name).with_suffix("." + fmt).as_posix()
+                            target = Path(tmp) / f"c{len(files)}.{fmt}"
+                            try:
+                                log = open_run_log(rf, rel)
+                                convert(log.path, fmt, target, log=log)
+                            except Exception as exc:  # an undecodable log still has its raw file above
+                                left_out.append({"file": conv, "why": f"not converted: {exc}"[:300]})
+                                continue
+                            if add_file(conv, target):
+                                files.append(conv)
+                            target.unlink(missing_ok=True)
+                    try:
+                        fd = rf.open("output.txt")
+                        with os.fdopen(fd, "rb") as f:
+                            add_bytes(f"{base}/output.txt", f.read(OUTPUT_MAX))
+                        files.append(f"{base}/output.txt")
+                    except (OSError, RunPathError):
+                        pass
             record = {**r.record, "student": r.student, "bench": bench, "project": r.project, "build_id": r.build_id}
             add_bytes(f"{base}/run.json", json.dumps(record, indent=1, default=str).encode())
             listed.append(

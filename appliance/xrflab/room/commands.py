@@ -1,7 +1,9 @@
 """What a bench does with the room's commands (``xrf/cmd/<name>`` and ``xrf/cmd/all``).
 
 Only the room may publish there (the broker's ACL), so a command needs no further login; who in
-the room asked is in ``by`` and goes to the bench's audit trail as ``room.<cmd>``. Every command
+the room asked is in ``by`` and goes to the bench's audit trail as ``room.<cmd>``. Each arrives
+parsed by its model (payloads.Command: the fields and bounds of each command); one that does not
+parse is answered ``ok: false`` when its id can be read, and otherwise only logged. Every command
 is answered on ``xrf/bench/<name>/reply`` with its ``id``, the wall-clock time it arrived
 (``t_recv``) and the time it was done (``t_done``: for ``stop``, when the loop accepted it), which
 is what the room and the benchmark measure.
@@ -21,19 +23,17 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import re
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 from ..server.messages import AlarmMessage
+from . import payloads
+from .payloads import safe_text
 from .publisher import BenchPublisher, Recent
 
 log = logging.getLogger(__name__)
-
-COMMANDS = ("stop", "message", "selfcheck", "collect")
-COLLECTION_ID_RE = re.compile(r"^[a-f0-9]{8,32}$")
 
 
 class CommandHandler:
@@ -44,39 +44,40 @@ class CommandHandler:
         self._seen = Recent()
         self._tasks: set[asyncio.Task[Any]] = set()
 
-    def __call__(self, body: dict[str, Any], t_recv: float) -> None:
+    def __call__(self, command: payloads.Command | payloads.CommandHead, t_recv: float) -> None:
         """paho's thread: hand over to the event loop without waiting for anything else."""
-        self.loop.call_soon_threadsafe(self._spawn, body, t_recv)
+        self.loop.call_soon_threadsafe(self._spawn, command, t_recv)
 
-    def _spawn(self, body: dict[str, Any], t_recv: float) -> None:
-        cid = str(body.get("id", ""))[:64]
-        if cid and self._seen.seen(cid):
+    def _spawn(self, command: payloads.Command | payloads.CommandHead, t_recv: float) -> None:
+        if self._seen.seen(command.id):
             return  # QoS 1 may deliver twice
-        task = self.loop.create_task(self._run(cid, body, t_recv))
+        task = self.loop.create_task(self._run(command, t_recv))
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
-    async def _run(self, cid: str, body: dict[str, Any], t_recv: float) -> None:
-        cmd = str(body.get("cmd", ""))
-        by = str(body.get("by", ""))[:64]
-        reply: dict[str, Any] = {"id": cid, "cmd": cmd, "t_recv": t_recv, "t_sent": body.get("t")}
+    async def _run(self, command: payloads.Command | payloads.CommandHead, t_recv: float) -> None:
+        cmd = command.cmd
+        reply: dict[str, Any] = {"id": command.id, "cmd": cmd, "t_recv": t_recv}
+        by = ""
         try:
-            reply.update(
-                await getattr(self, f"_cmd_{cmd}")(body)
-                if cmd in COMMANDS
-                else {"ok": False, "error": f"unknown command {cmd!r}"}
-            )
+            if isinstance(command, payloads.CommandHead):  # it did not parse as any command
+                reply.update(ok=False, error=f"unknown or malformed command {cmd!r}")
+            else:
+                by = command.by
+                reply["t_sent"] = command.t
+                handler = getattr(self, f"_cmd_{cmd}")
+                reply.update(await handler(command))
         except Exception as exc:  # any failure is an answer, never a dead bench
             log.exception("room command %s", cmd)
-            reply.update(ok=False, error=str(exc)[:300])
+            reply.update(ok=False, error=safe_text(exc, 300))
         reply["t_done"] = time.time()
         from ..server import audit
 
-        audit.record(None, f"room.{cmd}", {"by": by, "ok": reply.get("ok"), "id": cid})
+        audit.record(None, f"room.{cmd}", {"by": by, "ok": reply.get("ok"), "id": command.id})
         if self.publisher is not None:
-            self.publisher.reply(reply)
+            self.publisher.reply(**reply)
 
-    async def _cmd_stop(self, body: dict[str, Any]) -> dict[str, Any]:
+    async def _cmd_stop(self, _command: payloads.Stop) -> dict[str, Any]:
         sup = self.app.state.supervisor
         run = sup.current
         if run is None or not run.alive:
@@ -86,15 +87,15 @@ class CommandHandler:
             "ok": True,
             "accepted": result.accepted,
             "state": result.state_name,
-            "reason": result.reason,
+            "reason": safe_text(result.reason, 300) if result.reason is not None else None,
             "t_loop": time.time(),
         }
 
-    async def _cmd_message(self, body: dict[str, Any]) -> dict[str, Any]:
-        text = str(body.get("text", "")).strip()[:500]
+    async def _cmd_message(self, command: payloads.Message) -> dict[str, Any]:
+        text = command.text.strip()
         if not text:
             return {"ok": False, "error": "empty message"}
-        by = str(body.get("by", "")) or "the room"
+        by = command.by or "the room"
         # model_validate: the field's JSON name, "from", is a Python keyword (AlarmMessage.from_).
         alarm = AlarmMessage.model_validate({"kind": "room", "message": f"From {by} (the room): {text}", "from": by})
         self.app.state.supervisor.hub.publish(alarm)
@@ -103,7 +104,7 @@ class CommandHandler:
             self.publisher.status_changed()
         return {"ok": True}
 
-    async def _cmd_selfcheck(self, body: dict[str, Any]) -> dict[str, Any]:
+    async def _cmd_selfcheck(self, command: payloads.Selfcheck) -> dict[str, Any]:
         from fastapi import HTTPException
 
         from ..server.accounts import User
@@ -119,24 +120,23 @@ class CommandHandler:
         svc = getattr(self.app.state, "selfcheck", None)
         if svc is None:
             svc = self.app.state.selfcheck = SelfCheckService(self.app)
-        who = User(id=0, username=f"room:{str(body.get('by', ''))[:32]}", role="educator")
+        who = User(id=0, username=f"room:{command.by[:32]}", role="educator")
         try:
-            active = await svc.start(StartCheck(profile=str(body.get("profile") or "relbot")), who, "room")
+            active = await svc.start(StartCheck(profile=command.profile), who, "room")
         except HTTPException as exc:
-            return {"ok": False, "error": str(exc.detail)}
+            return {"ok": False, "error": safe_text(exc.detail, 300)}
         return {"ok": True, "check": active.id}
 
-    async def _cmd_collect(self, body: dict[str, Any]) -> dict[str, Any]:
-        from ..projects.assignments import check_id, origin
+    async def _cmd_collect(self, command: payloads.Collect) -> dict[str, Any]:
+        from ..projects.assignments import origin
         from ..server.routes_projects import service_of
-        from .collect import FORMATS, RunToPack, pack_bench
+        from .collect import RunToPack, pack_bench
 
         link = getattr(self.app.state, "room", None)
-        aid = check_id(str(body.get("assignment", "")))
-        cid = str(body.get("collection", ""))
-        if link is None or not COLLECTION_ID_RE.match(cid):
+        aid, cid = command.assignment, command.collection
+        if link is None:
             return {"ok": False, "error": "not a collection of this room"}
-        formats = [f for f in body.get("formats") or [] if f in FORMATS]
+        formats: list[str] = sorted(set(command.formats))
         svc = await service_of(self.app)
         runs_store = self.app.state.supervisor.store
         runs: list[RunToPack] = []

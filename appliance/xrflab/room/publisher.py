@@ -6,17 +6,22 @@ self-check, as the dashboards get them, as typed messages), without a wire of it
 supervisor; `facts` (bench.py) is asked once a second for what no message carries (cycles,
 misses, CPU temperature, disk).
 
-- ``xrf/bench/<name>/online``: ``{"online": true, "conn": [boot, n]}`` on every connect; the same
-  topic with ``false`` is the MQTT last will the broker publishes when the bench goes silent
+Every payload is a model of payloads.py, built here with its bounds (``Model.build``) and parsed
+there by the room; what the room sends (commands, the class list, assignments) is parsed here the
+same way, and whatever does not fit is dropped and logged, never acted on.
+
+- ``xrf/bench/<name>/online`` (payloads.Online): true with ``conn`` = (boot, n) on every connect;
+  the same topic with false is the MQTT last will the broker publishes when the bench goes silent
   (power, network, crash). `conn` tells the room which connection a will belongs to: the will of
   an older connection never marks a reconnected bench offline.
-- ``xrf/bench/<name>/status`` (retained): the whole status, on every change (at most
-  ``MAX_STATUS_HZ``) and every second. Statuses are never queued: only the newest is worth
-  sending, and it carries (boot, seq) so a late or old one never overwrites a newer one.
-- ``xrf/bench/<name>/event`` (QoS 1): alarms, run started/ended, self-check verdicts. Kept in a
-  bounded queue until the broker acknowledges each (an outage loses nothing up to ``queue_max``
-  events; beyond, the oldest go and ``events_dropped`` says how many), resent after reconnecting.
-  The room drops duplicates by (boot, seq).
+- ``xrf/bench/<name>/status`` (retained, payloads.Status): the whole status, on every change (at
+  most ``MAX_STATUS_HZ``) and every second. Statuses are never queued: only the newest is worth
+  sending, and it carries (boot, seq) so a late or duplicated one does not overwrite a newer one.
+  It says nothing about where the bench is: the room links to the address recorded at enrolment.
+- ``xrf/bench/<name>/event`` (QoS 1, payloads.Event): alarms, run started/ended, self-check
+  verdicts, assignments received. Kept in a bounded queue until the broker acknowledges each (an
+  outage loses nothing up to ``queue_max`` events; beyond, the oldest go and ``events_dropped``
+  says how many), resent after reconnecting. The room drops duplicates by (boot, seq).
 
 paho's network thread calls our callbacks; the appliance's state is touched only on its event
 loop (``call_soon_threadsafe``).
@@ -25,7 +30,6 @@ loop (``call_soon_threadsafe``).
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import threading
 import time
@@ -36,7 +40,8 @@ from typing import TYPE_CHECKING, Any
 
 from ..server.lifecycle import RunObserver
 from ..server.messages import AlarmMessage, LeaseMessage, SelfcheckMessage, ServerMessage, StateMessage
-from . import mqtt, topics
+from . import mqtt, payloads, topics
+from .payloads import MAX_ALARMS, Malformed, safe_text
 
 if TYPE_CHECKING:
     from ..server.run import Run
@@ -46,7 +51,6 @@ log = logging.getLogger(__name__)
 
 MAX_STATUS_HZ = 20.0
 HEARTBEAT_S = 1.0
-MAX_ALARMS = 5
 
 
 def next_boot(folder: Path) -> int:
@@ -71,9 +75,9 @@ class BenchPublisher:
         boot: int,
         facts: Callable[[], dict[str, Any]] = dict,
         queue_max: int = 1000,
-        on_command: Callable[[dict[str, Any], float], None] | None = None,
-        on_accounts: Callable[[dict[str, Any]], None] | None = None,
-        on_assignment: Callable[[dict[str, Any]], None] | None = None,
+        on_command: Callable[[payloads.Command | payloads.CommandHead, float], None] | None = None,
+        on_accounts: Callable[[payloads.ClassList], None] | None = None,
+        on_assignment: Callable[[payloads.Assignment], None] | None = None,
     ) -> None:
         self.name = topics.check_bench_name(name)
         self.endpoint = endpoint
@@ -82,6 +86,7 @@ class BenchPublisher:
         self.on_command = on_command
         self.on_accounts = on_accounts
         self.on_assignment = on_assignment
+        self.drops = payloads.Drops(f"bench {self.name}")
         self.seq = 0
         self.conn = 0
         self.connected = False
@@ -123,10 +128,7 @@ class BenchPublisher:
             self._heartbeat.cancel()
         if self.connected:
             info = self._client.publish(
-                topics.bench(self.name, "online"),
-                json.dumps({"online": False, "conn": [self.boot, self.conn]}),
-                qos=1,
-                retain=True,
+                topics.bench(self.name, "online"), self._online(False, self.conn), qos=1, retain=True
             )
             await asyncio.get_running_loop().run_in_executor(None, lambda: info.wait_for_publish(1.0))
         self._client.disconnect()
@@ -141,17 +143,18 @@ class BenchPublisher:
                 log.exception("room status")
 
     # -- what the bench says --------------------------------------------------------------------
+    def _online(self, online: bool, conn: int) -> bytes:
+        return payloads.Online.make(online=online, conn=(self.boot, conn)).wire()
+
     def _will(self) -> tuple[str, bytes]:
-        return topics.bench(self.name, "online"), json.dumps(
-            {"online": False, "conn": [self.boot, self.conn + 1]}
-        ).encode()
+        return topics.bench(self.name, "online"), self._online(False, self.conn + 1)
 
     def _next_seq(self) -> int:
         with self._lock:
             self.seq += 1
             return self.seq
 
-    def snapshot(self) -> dict[str, Any]:
+    def snapshot(self) -> payloads.Status:
         facts: dict[str, Any] = {}
         try:
             facts = self.facts()
@@ -159,16 +162,17 @@ class BenchPublisher:
             log.exception("room facts")
         with self._lock:
             queued = len(self._events)
-        return {
-            **self.status,
-            **facts,
-            "name": self.name,
-            "boot": self.boot,
-            "seq": self._next_seq(),
-            "t": time.time(),
-            "events_queued": queued,
-            "events_dropped": self.events_dropped,
-        }
+        return payloads.Status.make(
+            **{
+                **self.status,
+                **facts,
+                "boot": self.boot,
+                "seq": self._next_seq(),
+                "t": time.time(),
+                "events_queued": queued,
+                "events_dropped": self.events_dropped,
+            }
+        )
 
     def publish_status(self) -> None:
         self._last_status_t = time.monotonic()
@@ -177,12 +181,7 @@ class BenchPublisher:
             self._status_pending = None
         if not self.connected:
             return  # never queued: the next connect publishes the newest
-        self._client.publish(
-            topics.bench(self.name, "status"),
-            json.dumps(self.snapshot(), allow_nan=False, default=str),
-            qos=1,
-            retain=True,
-        )
+        self._client.publish(topics.bench(self.name, "status"), self.snapshot().wire(), qos=1, retain=True)
 
     def status_changed(self) -> None:
         """Publish soon: at once, or after the rate limit's gap (changes in between coalesce)."""
@@ -195,20 +194,17 @@ class BenchPublisher:
             self._status_pending = self._loop.call_later(wait, self.publish_status)
 
     def event(self, kind: str, /, **fields: Any) -> None:
-        payload = {
-            **fields,
-            "kind": kind,
-            "name": self.name,
-            "boot": self.boot,
-            "seq": self._next_seq(),
-            "t": time.time(),
-        }
-        data = json.dumps(payload, default=str).encode()
+        seq = self._next_seq()
+        try:
+            data = payloads.build_event(kind, **fields, boot=self.boot, seq=seq, t=time.time()).wire()
+        except (TypeError, ValueError):  # a sender out of step with payloads.py: said, not sent
+            log.exception("room event %s", kind)
+            return
         with self._lock:
             if len(self._events) >= self.queue_max:
                 self._events.popleft()
                 self.events_dropped += 1
-            self._events.append((payload["seq"], data))
+            self._events.append((seq, data))
         self._flush()
 
     def _flush(self) -> None:
@@ -228,7 +224,7 @@ class BenchPublisher:
     def run_started(self, row: RunRow) -> None:
         s = self.status
         s.update(run_id=row.id, run_owner=row.owner, alarms=[])
-        self.event("run_started", run_id=row.id, owner=row.owner, build=row.build)
+        self.event("run_started", run_id=row.id, owner=row.owner, build=safe_text(row.build, 128))
         self.status_changed()
 
     def run_ended(self, row: RunRow) -> None:
@@ -237,7 +233,7 @@ class BenchPublisher:
             "run_ended",
             run_id=row.id,
             owner=row.owner,
-            end_reason=row.end_reason,
+            end_reason=safe_text(row.end_reason, 32),
             cycles=row.cycles,
             misses=row.misses,
         )
@@ -256,7 +252,7 @@ class BenchPublisher:
         elif isinstance(message, AlarmMessage):
             if message.kind == "room":
                 return  # our own message to the dashboards, not the bench's
-            alarm = {"kind": message.kind, "message": message.message[:300], "t": time.time()}
+            alarm = {"kind": message.kind, "message": safe_text(message.message, 300), "t": time.time()}
             s["alarms"] = [*s.get("alarms", []), alarm][-MAX_ALARMS:]
             self.event("alarm", alarm=alarm["kind"], message=alarm["message"], run_id=message.run_id)
             self.status_changed()
@@ -268,14 +264,16 @@ class BenchPublisher:
             extra = message.model_extra or {}
             report = extra.get("report") or {}
             verdict = report.get("verdict") or ("error" if extra.get("message") else "")
+            verdict = safe_text(verdict, 32)
+            name = safe_text(extra.get("name", ""), 128)
             s["selfcheck"] = {
                 "verdict": verdict,
                 "t": time.time(),
                 "check": message.check,
-                "report": extra.get("name", ""),
-                "message": str(extra.get("message", ""))[:300],
+                "report": name,
+                "message": safe_text(extra.get("message", ""), 300),
             }
-            self.event("selfcheck", verdict=verdict, check=message.check, report=extra.get("name", ""))
+            self.event("selfcheck", verdict=verdict, check=message.check, report=name)
             self.status_changed()
 
     # -- paho's thread --------------------------------------------------------------------------
@@ -288,12 +286,7 @@ class BenchPublisher:
         client.subscribe(
             [(topics.cmd(self.name), 1), (topics.CMD_ALL, 1), (topics.ACCOUNTS, 1), (topics.ASSIGNMENTS, 1)]
         )
-        client.publish(
-            topics.bench(self.name, "online"),
-            json.dumps({"online": True, "conn": [self.boot, self.conn]}),
-            qos=1,
-            retain=True,
-        )
+        client.publish(topics.bench(self.name, "online"), self._online(True, self.conn), qos=1, retain=True)
         # the will the broker keeps now is this connection's; the next connect's must name the next
         client.will_set(*self._will(), qos=1, retain=True)
         if self._loop is not None:
@@ -315,34 +308,57 @@ class BenchPublisher:
                 self._events = deque((s, d) for s, d in self._events if s != seq)
 
     def _on_message(self, _client: Any, _userdata: Any, msg: Any) -> None:
+        """The room's messages, each parsed by its model (payloads.py) before anything acts on it;
+        a malformed one is dropped and logged. An empty payload clears a retained message: nothing."""
         t_recv = time.time()
+        topic, data = str(msg.topic), msg.payload
+        if not data:
+            return
+        limit = payloads.ROOM_MAX_BYTES
         try:
-            body = json.loads(msg.payload)
-        except ValueError:
-            return
-        if not isinstance(body, dict):
-            return
-        if msg.topic == topics.ACCOUNTS:
-            if self.on_accounts is not None and self._loop is not None:
-                self._loop.call_soon_threadsafe(self.on_accounts, body)
-        elif msg.topic.startswith(topics.assignment("")):
-            if self.on_assignment is not None and self._loop is not None:
-                self._loop.call_soon_threadsafe(self.on_assignment, body)
-        elif self.on_command is not None:
-            self.on_command(body, t_recv)  # called here: stop must not wait for the loop's queue
+            if topic == topics.ACCOUNTS:
+                accounts = payloads.parse(payloads.CLASS_LIST, data, limit)
+                if self.on_accounts is not None and self._loop is not None:
+                    self._loop.call_soon_threadsafe(self.on_accounts, accounts)
+            elif topic.startswith(topics.assignment("")):
+                assignment = payloads.parse(payloads.ASSIGNMENT, data, limit)
+                if topic != topics.assignment(assignment.id):
+                    raise Malformed(f"the assignment {assignment.id} on another's topic")
+                if self.on_assignment is not None and self._loop is not None:
+                    self._loop.call_soon_threadsafe(self.on_assignment, assignment)
+            elif topic in (topics.cmd(self.name), topics.CMD_ALL):
+                command: payloads.Command | payloads.CommandHead
+                try:
+                    command = payloads.parse(payloads.COMMAND, data, payloads.BENCH_MAX_BYTES)
+                except Malformed as exc:
+                    # answered when it says who asked (its id): "not understood", then dropped
+                    command = payloads.parse(payloads.COMMAND_HEAD, data, payloads.BENCH_MAX_BYTES)
+                    self.drops.drop("room", topic, str(exc))
+                if self.on_command is not None:
+                    self.on_command(command, t_recv)  # called here: stop must not wait for the loop's queue
+        except Malformed as exc:
+            self.drops.drop("room", topic, str(exc))
 
-    def reply(self, body: dict[str, Any]) -> None:
+    def reply(self, **fields: Any) -> None:
+        """Answer a command (payloads.Reply); one that does not fit is logged, never sent half."""
+        try:
+            data = payloads.Reply.make(**fields).wire()
+        except (TypeError, ValueError):
+            log.exception("room reply %s", fields.get("cmd"))
+            return
         if self.connected:
-            self._client.publish(topics.bench(self.name, "reply"), json.dumps(body, default=str), qos=1)
+            self._client.publish(topics.bench(self.name, "reply"), data, qos=1)
 
 
-# Kept for callers that want an ordered set of recent ids (commands.py).
-class Recent(OrderedDict[str, None]):
+class Recent(OrderedDict[Any, None]):
+    """The last `size` keys seen, oldest out first: a bounded memory of ids (commands.py) and of
+    (boot, seq) of events (the room's), which a sender cannot grow."""
+
     def __init__(self, size: int = 256) -> None:
         super().__init__()
         self.size = size
 
-    def seen(self, key: str) -> bool:
+    def seen(self, key: Any) -> bool:
         if key in self:
             return True
         self[key] = None

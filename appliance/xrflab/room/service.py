@@ -7,13 +7,28 @@ routes are for educators only, but ``POST /api/room/enrol`` (a bench's `xrf room
 has no account: the one-time code is its credential).
 
 Assignments (assignments.py) are published from here and their runs collected back as one
-archive (collect.py); benches fetch and upload over HTTP with tokens signed by their own
-enrolment key (``_bench_token``), never with an account.
+archive (collect.py); benches fetch and upload over HTTP with tokens signed by their own key
+(``bench_token``: checked with the public key the bench gave at enrolment), never with an account.
+
+What the room believes about a bench comes from its enrolment (``Enrolled``, in
+``<room data>/benches.json``): its name, its public key and its dashboard address, recorded when
+an educator's join code was used and changed only by an educator (``PATCH /api/room/benches/<name>``)
+or a new enrolment. A bench's messages only fill its tile: "open bench" signs the educator on at
+the enrolled address, whatever a status says.
 
 ``RoomState`` is the grid's model, fed by one MQTT subscription to ``xrf/bench/+/+`` (paho's
-thread hands every message to the event loop). A bench is offline when its last will says so or
-when nothing was heard from it for ``SILENT_S`` (it publishes every second): whichever comes first.
-Every change is pushed to the page's WebSocket (``/api/room/ws``) at once.
+thread hands every message to the event loop). Only enrolled names are heard; every payload is
+parsed by its model (payloads.py) and dropped (counted in the tile's ``dropped``, logged) when it
+does not fit. A bench is offline when its last will says so or when nothing was heard from it for
+``SILENT_S`` (it publishes every second): whichever comes first. Every change is pushed to the
+page's WebSocket (``/api/room/ws``) at once.
+
+Which status the tile shows: the newest by the bench's (boot, seq), but a bench cannot make itself
+"newer" for good. A status whose boot is more than ``BOOT_AHEAD_MS`` ahead of the room's clock is
+dropped; a retained status (from the past, delivered when the room subscribes) is replaced by the
+first live one whatever its order; and the shown status only holds off older ones while it is live,
+i.e. was received within ``STALE_S``: when the source of a "newer" status falls silent (a forged
+one, or a bench whose clock went back), the live bench's next status is shown again.
 """
 
 from __future__ import annotations
@@ -28,7 +43,7 @@ import secrets
 import shutil
 import time
 from collections import deque
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,7 +52,7 @@ from typing import Any
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request, WebSocket
 from fastapi.responses import FileResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.websockets import WebSocketDisconnect
 
 from ..projects import archive as archive_mod
@@ -46,18 +61,23 @@ from ..server.accounts import RateLimiter
 from ..server.auth import Perm, Security, SecurityHeaders, User, client_address, current_user, optional_user, requires
 from ..server.body_limit import BodyLimit, spool_to_file
 from ..server.settings import Settings
-from . import mqtt, sso, topics
+from . import mqtt, payloads, sso, topics
 from .accounts_sync import RoomAccounts
 from .assignments import RoomAssignments
-from .broker import ROOM_USER, BrokerFiles, BrokerProcess
+from .broker import ROOM_USER, BrokerFiles, BrokerProcess, private_write
 from .collect import BENCH_MAX, FORMATS, Collection, assemble
-from .enrol import JoinCodes
+from .enrol import REENROL, EnrolAnswer, EnrolRequest, JoinCodes, check_url
+from .publisher import Recent
 
 log = logging.getLogger(__name__)
 
 SILENT_S = 4.0  # no status for this long = offline (statuses come every second)
+STALE_S = 2.5  # the shown status holds off older ones for this long after it was received
+BOOT_AHEAD_MS = 24 * 3600 * 1000  # a bench's boot (ms since the epoch) ahead of the room's clock: dropped
 TICK_S = 0.25
 ACCOUNTS_POLL_S = 0.5
+MAX_EVENT_KEYS = 1000  # (boot, seq) of recent events, to drop duplicates
+MAX_REPLIES = 500  # commands whose answers the room keeps
 
 
 @dataclass
@@ -78,56 +98,84 @@ class RoomConfig:
         return self.data_dir / "broker"
 
 
+class Enrolled(BaseModel):
+    """A bench as its enrolment recorded it (benches.json). `bench_key`: its Ed25519 public key;
+    `url`: its dashboard. Both empty: enrolled before signed tokens (``outdated``)."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    enrolled: float = 0.0
+    address: str = Field(default="", max_length=100, description="where the enrolment came from")
+    url: str = Field(default="", max_length=200)
+    bench_key: str = Field(default="", max_length=64)
+
+    @property
+    def outdated(self) -> bool:
+        return not (self.url and self.bench_key)
+
+
 @dataclass
 class Bench:
     name: str
-    status: dict[str, Any] = field(default_factory=dict)
-    order: tuple[int, int] | None = None  # (boot, seq) of `status`
+    url: str = ""  # from its enrolment
+    outdated: bool = False
+    status: payloads.Status | None = None
+    order: tuple[int, int] = (0, 0)  # (boot, seq) of `status`
+    shown_at: float = -1e9  # monotonic time the shown status was received live (retained: never)
     online_flag: bool = False
     conn: tuple[int, int] | None = None
-    heard: float = 0.0  # monotonic time of the last message
-    events: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=50))
-    event_keys: set[tuple[int, int]] = field(default_factory=set)
+    heard: float = -1e9  # monotonic time of the last live message
+    events: deque[payloads.Event] = field(default_factory=lambda: deque(maxlen=50))
+    event_keys: Recent = field(default_factory=lambda: Recent(MAX_EVENT_KEYS))
+    dropped: int = 0
+    problem: str = ""
 
     @property
     def online(self) -> bool:
         return self.online_flag and time.monotonic() - self.heard < SILENT_S
 
     def view(self) -> dict[str, Any]:
-        s = self.status
+        s = self.status if self.status is not None else payloads.Status(boot=0, seq=0)
         return {
             "name": self.name,
             "online": self.online,
-            "state": s.get("state", "?"),
-            "holder": s.get("holder", ""),
-            "run_owner": s.get("run_owner", ""),
-            "run_id": s.get("run_id"),
-            "alarms": s.get("alarms", []),
-            "cycles": s.get("cycles"),
-            "misses": s.get("misses"),
-            "cycle_rate": s.get("cycle_rate"),
-            "selfcheck": s.get("selfcheck"),
-            "cpu_temp_c": s.get("cpu_temp_c"),
-            "throttled": s.get("throttled"),
-            "disk_free_mb": s.get("disk_free_mb"),
-            "url": s.get("url", ""),
-            "seq": s.get("seq"),
-            "t": s.get("t"),
-            "events_dropped": s.get("events_dropped", 0),
-            "accounts_version": s.get("accounts_version", 0),
-            "assignments": s.get("assignments", []),
-            "events": list(self.events)[-5:],
+            "url": self.url,
+            "enrolment": "outdated" if self.outdated else "ok",
+            "problem": self.problem or (f"enrolled before signed tokens: {REENROL}" if self.outdated else ""),
+            "dropped": self.dropped,
+            "state": s.state,
+            "holder": s.holder,
+            "run_owner": s.run_owner,
+            "run_id": s.run_id,
+            "alarms": [a.model_dump() for a in s.alarms],
+            "cycles": s.cycles,
+            "misses": s.misses,
+            "cycle_rate": s.cycle_rate,
+            "selfcheck": s.selfcheck.model_dump() if s.selfcheck is not None else None,
+            "cpu_temp_c": s.cpu_temp_c,
+            "throttled": s.throttled,
+            "disk_free_mb": s.disk_free_mb,
+            "seq": s.seq if self.status is not None else None,
+            "t": s.t,
+            "events_dropped": s.events_dropped,
+            "accounts_version": s.accounts_version,
+            "assignments": list(s.assignments),
+            "active": s.active,
+            "events": [e.model_dump() for e in list(self.events)[-5:]],
         }
 
 
 class RoomState:
-    """Benches as the room knows them; `changed` names benches to push to the pages."""
+    """Benches as the room knows them; `changed` names benches to push to the pages. `enrolled`
+    says which names are benches (the room's enrolments): nothing else is heard."""
 
-    def __init__(self) -> None:
+    def __init__(self, enrolled: Callable[[str], bool] = lambda _name: True) -> None:
         self.benches: dict[str, Bench] = {}
         self.replies: dict[str, list[dict[str, Any]]] = {}
         self.listeners: set[asyncio.Queue[str]] = set()
         self.connected = False
+        self.enrolled = enrolled
+        self.drops = payloads.Drops("room")
         self._was_online: dict[str, bool] = {}
         self.on_reply: Any = None  # the Room's: a bench's answer to a collection
 
@@ -137,43 +185,73 @@ class RoomState:
             b = self.benches[name] = Bench(name)
         return b
 
-    def on_message(self, topic: str, payload: bytes | bytearray) -> None:
+    def on_message(self, topic: str, payload: bytes | bytearray, retained: bool = False) -> None:
+        """One message from the broker (the event loop). `retained`: delivered from the broker's
+        store when the room subscribed, i.e. from the past, not from a live connection."""
         parsed = topics.parse_bench_topic(topic)
         if parsed is None:
             return
         name, leaf = parsed
-        try:
-            body = json.loads(payload)
-        except ValueError:
+        if not payload:
+            return  # a retained message cleared
+        if not self.enrolled(name):
+            self.drops.drop(name, topic, "not an enrolled bench")
             return
-        if not isinstance(body, dict):
-            return
+        adapter = payloads.BENCH_LEAVES.get(leaf)
         b = self.bench(name)
-        if leaf == "online":
-            conn = tuple(body.get("conn") or (0, 0))
-            if b.conn is not None and conn < b.conn:
-                return  # the will of an older connection: the bench is back already
-            b.conn = conn
-            b.online_flag = bool(body.get("online"))
-            b.heard = time.monotonic()
-        elif leaf == "status":
-            order = (int(body.get("boot", 0)), int(body.get("seq", 0)))
-            if not topics.newer(b.order, order):
-                return  # stale: a newer state is already shown
-            b.order, b.status = order, body
-            b.heard = time.monotonic()
-        elif leaf == "event":
-            key = (int(body.get("boot", 0)), int(body.get("seq", 0)))
-            if key in b.event_keys:
-                return  # resent after an outage, seen already
-            b.event_keys.add(key)
-            b.events.append(body)
-        elif leaf == "reply":
-            self.replies.setdefault(str(body.get("id", "")), []).append({**body, "bench": name, "t_room": time.time()})
-            if self.on_reply is not None:
-                self.on_reply(name, body)
+        try:
+            if adapter is None:
+                raise payloads.Malformed(f"no such topic {leaf!r}")
+            msg = payloads.parse(adapter, payload, payloads.BENCH_MAX_BYTES)
+            changed = self._apply(b, msg, retained)
+        except payloads.Malformed as exc:
+            b.dropped += 1
+            self.drops.drop(name, topic, str(exc))
             return
-        self.push(name)
+        if changed:
+            self.push(name)
+
+    def _apply(self, b: Bench, msg: Any, retained: bool) -> bool:
+        """A parsed message into the bench's state; whether the tile changed. Malformed: dropped."""
+        now = time.monotonic()
+        if isinstance(msg, payloads.Online):
+            if not retained:
+                b.heard = now
+            if msg.online:
+                b.conn, b.online_flag = msg.conn, True
+            elif b.conn is None or msg.conn >= b.conn:
+                b.online_flag = False  # not the will of a connection older than the live one
+            return True
+        if isinstance(msg, payloads.Status):
+            ahead_ms = msg.boot - time.time_ns() // 1_000_000
+            if ahead_ms > BOOT_AHEAD_MS:
+                b.problem = (
+                    f"its boot counter is {ahead_ms // 3_600_000} h ahead of the room's clock: check the "
+                    "bench's clock, then remove <data>/room/boot there"
+                )
+                raise payloads.Malformed(f"boot {msg.boot} is {ahead_ms} ms ahead of the room's clock")
+            if not retained:
+                b.heard, b.online_flag = now, True  # a live status: the bench is connected now
+            order = (msg.boot, msg.seq)
+            live = now - b.shown_at < STALE_S
+            if b.status is not None and order <= b.order and (retained or live):
+                return False  # older than the shown one, which is live: a duplicate or a delayed one
+            b.status, b.order, b.problem = msg, order, ""
+            b.shown_at = -1e9 if retained else now
+            return True
+        if isinstance(msg, payloads.Reply):
+            replies = self.replies.get(msg.id)
+            if replies is None or any(r["bench"] == b.name for r in replies):
+                raise payloads.Malformed(f"a reply to {msg.id}, which the room did not ask of it")
+            replies.append({**msg.model_dump(exclude_none=True), "bench": b.name, "t_room": time.time()})
+            if self.on_reply is not None:
+                self.on_reply(b.name, msg)
+            return False
+        # an event
+        if b.event_keys.seen((msg.boot, msg.seq)):
+            return False  # resent after an outage, seen already
+        b.events.append(msg)
+        return True
 
     def push(self, name: str) -> None:
         b = self.benches[name]
@@ -199,7 +277,7 @@ class Room:
     def __init__(self, config: RoomConfig, security: Security) -> None:
         self.config = config
         self.security = security
-        self.state = RoomState()
+        self.state = RoomState(lambda name: name in self.enrolled)
         self.codes = JoinCodes()
         self.files = BrokerFiles(
             config.broker_folder,
@@ -210,7 +288,7 @@ class Room:
         )
         self.broker: BrokerProcess | None = None
         self.benches_path = config.data_dir / "benches.json"
-        self.enrolled: dict[str, dict[str, Any]] = self._load_benches()
+        self.enrolled: dict[str, Enrolled] = self._load_benches()
         self.enrol_limit = RateLimiter(10, 60.0, 60.0)
         self.client: Any = None
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -218,31 +296,53 @@ class Room:
         self.assignments = RoomAssignments(config.data_dir / "assignments")
         self.collections: dict[str, Collection] = {}
         self.state.on_reply = self._on_reply
-        self._verifiers: dict[tuple[str, str], sso.Verifier] = {}
+        self._key: sso.Ed25519PrivateKey | None = None
+        self._verifiers: dict[tuple[str, str], tuple[str, sso.Verifier]] = {}
         self._tasks: list[asyncio.Task[Any]] = []
 
-    def _load_benches(self) -> dict[str, dict[str, Any]]:
+    @property
+    def key(self) -> sso.Ed25519PrivateKey:
+        """The room's signing key (sso.py), made on first use."""
+        if self._key is None:
+            self._key = sso.room_key(self.config.data_dir)
+        return self._key
+
+    def _load_benches(self) -> dict[str, Enrolled]:
+        """benches.json; an entry of an enrolment before signed tokens loses its HMAC key (nothing
+        honours it any more) and stays, outdated, until the bench is enrolled again."""
         try:
-            return json.loads(self.benches_path.read_text())
+            raw = json.loads(self.benches_path.read_text())
         except (OSError, ValueError):
             return {}
+        out: dict[str, Enrolled] = {}
+        migrated = False
+        for name, entry in raw.items() if isinstance(raw, dict) else ():
+            try:
+                out[topics.check_bench_name(name)] = Enrolled.model_validate(entry)
+            except (ValueError, ValidationError):
+                log.error("room: %s: entry %r is not a bench's enrolment; left out", self.benches_path, name[:40])
+                continue
+            migrated |= isinstance(entry, dict) and "sso_key" in entry
+            if out[name].outdated:
+                log.warning("room: bench %s was enrolled before signed tokens; %s", name, REENROL)
+        if migrated:
+            self.enrolled = out
+            self._save_benches()
+        return out
 
     def _save_benches(self) -> None:
-        import os
-
-        tmp = self.benches_path.with_suffix(".tmp")
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)  # SSO keys: private
-        with os.fdopen(fd, "w") as f:
-            json.dump(self.enrolled, f)
-        tmp.replace(self.benches_path)
+        text = json.dumps({n: e.model_dump() for n, e in self.enrolled.items()})
+        private_write(self.benches_path, text)
 
     # -- life -----------------------------------------------------------------------------------
     async def start(self) -> None:
         self.loop = asyncio.get_running_loop()
         self.config.data_dir.mkdir(parents=True, exist_ok=True)
         self.files.write()
-        for name in self.enrolled:
-            self.state.bench(name)
+        _ = self.key
+        for name, e in self.enrolled.items():
+            b = self.state.bench(name)
+            b.url, b.outdated = e.url, e.outdated
         if self.config.spawn_broker:
             self.broker = BrokerProcess(self.files)
             await self.loop.run_in_executor(None, self.broker.start)
@@ -279,7 +379,7 @@ class Room:
     def _on_mqtt_message(self, _client: Any, _userdata: Any, msg: Any) -> None:
         # paho's network thread: the state is the event loop's, so the message is handed over.
         assert self.loop is not None, "the client starts in start(), after the loop is known"
-        self.loop.call_soon_threadsafe(self.state.on_message, msg.topic, msg.payload)
+        self.loop.call_soon_threadsafe(self.state.on_message, msg.topic, msg.payload, bool(msg.retain))
 
     def _on_connect(self, client: Any, _u: Any, _f: Any, reason: Any, _p: Any = None) -> None:
         if not mqtt.reason_ok(reason):
@@ -311,19 +411,22 @@ class Room:
 
     def _republish_accounts(self) -> None:
         if self.accounts is not None:
-            self._send_accounts(self.accounts.current())
+            self._send_accounts(self.accounts.current)
 
-    def _send_accounts(self, body: dict[str, Any]) -> None:
-        if self.client is not None:
-            self.client.publish(topics.ACCOUNTS, json.dumps(body), qos=1, retain=True)
+    def _send_accounts(self, make: Callable[[], payloads.ClassList | None]) -> None:
+        try:
+            body = make()
+        except ValueError as exc:  # e.g. more accounts than one class list carries: said, not sent
+            log.error("room: the class list cannot be published: %s", str(exc)[:300])
+            return
+        if body is not None and self.client is not None:
+            self.client.publish(topics.ACCOUNTS, body.wire(), qos=1, retain=True)
 
     async def _publish_accounts(self) -> None:
         while True:
             await asyncio.sleep(ACCOUNTS_POLL_S)
             if self.accounts is not None and self.state.connected:
-                body = self.accounts.changed()
-                if body is not None:
-                    self._send_accounts(body)
+                self._send_accounts(self.accounts.changed)
 
     # -- assignments and collections ------------------------------------------------------------
     def _republish_assignments(self) -> None:
@@ -332,19 +435,23 @@ class Room:
 
     def publish_assignment(self, aid: str) -> None:
         if self.client is not None:
-            self.client.publish(topics.assignment(aid), json.dumps(self.assignments.message(aid)), qos=1, retain=True)
+            self.client.publish(topics.assignment(aid), self.assignments.message(aid).wire(), qos=1, retain=True)
 
     def bench_token(self, bench: str, token: str, use: str, subject: str) -> None:
-        """A bench's own signed token (sso.mint with its enrolment key) for `use` and `subject`; 403
-        for anything else, without saying what."""
+        """A bench's own signed token (sso.mint with its private key) for `use` and `subject`,
+        checked with the public key it gave at enrolment; 403 for anything else, without saying what."""
         enrolled = self.enrolled.get(bench)
-        if enrolled is None:
+        if enrolled is None or not enrolled.bench_key:
             raise HTTPException(403, "invalid token")
-        v = self._verifiers.get((bench, use))
-        if v is None or v.key != enrolled["sso_key"]:
-            v = self._verifiers[(bench, use)] = sso.Verifier(enrolled["sso_key"], bench, use)
+        cached = self._verifiers.get((bench, use))
+        if cached is None or cached[0] != enrolled.bench_key:
+            try:
+                cached = (enrolled.bench_key, sso.Verifier(sso.load_public(enrolled.bench_key), bench, use))
+            except ValueError:
+                raise HTTPException(403, "invalid token") from None
+            self._verifiers[(bench, use)] = cached
         try:
-            if v.verify(token) != subject:
+            if cached[1].verify(token) != subject:
                 raise HTTPException(403, "invalid token")
         except sso.SsoError:
             raise HTTPException(403, "invalid token") from None
@@ -366,25 +473,26 @@ class Room:
         while len(self.collections) > 20:  # the oldest collections' files go
             old = self.collections.pop(next(iter(self.collections)))
             shutil.rmtree(old.folder, ignore_errors=True)
-        body = {
-            "id": cid,
-            "cmd": "collect",
-            "by": by,
-            "t": time.time(),
-            "collection": cid,
-            "assignment": aid,
-            "formats": formats,
-        }
+        body = payloads.Collect.make(
+            id=cid, by=by, t=time.time(), collection=cid, assignment=aid, formats=formats
+        ).wire()
+        self._expect_replies(cid)
         for name, status in c.benches.items():
             if status == "waiting":
-                self.client.publish(topics.cmd(name), json.dumps(body), qos=1)
+                self.client.publish(topics.cmd(name), body, qos=1)
         return c
 
-    def _on_reply(self, bench: str, body: dict[str, Any]) -> None:
-        c = self.collections.get(str(body.get("id", "")))
-        if c is not None and body.get("cmd") == "collect" and not body.get("ok") and c.benches.get(bench) == "waiting":
+    def _on_reply(self, bench: str, reply: payloads.Reply) -> None:
+        c = self.collections.get(reply.id)
+        if c is not None and reply.cmd == "collect" and not reply.ok and c.benches.get(bench) == "waiting":
             c.benches[bench] = "failed"
-            c.errors[bench] = str(body.get("error", ""))[:300]
+            c.errors[bench] = reply.error
+
+    def _expect_replies(self, cid: str) -> None:
+        """Answers to `cid` are kept (answers to anything else are dropped: RoomState._apply)."""
+        self.state.replies[cid] = []
+        while len(self.state.replies) > MAX_REPLIES:
+            self.state.replies.pop(next(iter(self.state.replies)))
 
     # -- actions --------------------------------------------------------------------------------
     def command(self, bench: str | None, cmd: str, by: str, **fields: Any) -> dict[str, Any]:
@@ -392,36 +500,56 @@ class Room:
             raise HTTPException(404, f"no bench {bench}")
         cid = secrets.token_hex(8)
         t = time.time()
-        body = {"id": cid, "cmd": cmd, "by": by, "t": t, **fields}
+        body = payloads.build_command(cmd, id=cid, by=by, t=t, **fields).wire()
         if self.client is None or not self.state.connected:
             raise HTTPException(503, "the room is not connected to its broker")
-        self.client.publish(topics.cmd(bench) if bench else topics.CMD_ALL, json.dumps(body), qos=1)
-        self.state.replies[cid] = []
-        if len(self.state.replies) > 500:
-            self.state.replies.pop(next(iter(self.state.replies)))
+        self._expect_replies(cid)
+        self.client.publish(topics.cmd(bench) if bench else topics.CMD_ALL, body, qos=1)
         return {"id": cid, "t": t, "benches": [bench] if bench else sorted(self.state.benches)}
 
-    def enrol(self, name: str, address: str) -> dict[str, Any]:
-        name = topics.check_bench_name(name)
+    def enrol(self, request: EnrolRequest, address: str) -> EnrolAnswer:
+        """Record a bench (a new one, or one enrolled again: its old password and key are replaced)
+        and give it its broker login and the room's public key."""
+        name = topics.check_bench_name(request.name)
+        url = check_url(request.url)
+        sso.load_public(request.bench_key)  # ValueError: not a key
         password = secrets.token_urlsafe(24)
         self.files.set_password(name, password)
         self.files.reload()
-        key = secrets.token_urlsafe(32)
-        self.enrolled[name] = {"sso_key": key, "enrolled": time.time(), "address": address}
+        self.enrolled[name] = Enrolled(
+            enrolled=time.time(), address=address[:100], url=url, bench_key=request.bench_key
+        )
         self._save_benches()
-        self.state.bench(name)
+        self._verifiers.pop((name, "assignment"), None)
+        self._verifiers.pop((name, "collect"), None)
+        b = self.state.bench(name)
+        b.url, b.outdated, b.problem = url, False, ""
         tls = self.config.tls and self.config.broker_tls_port is not None
-        return {
-            "name": name,
-            "sso_key": key,
-            "broker": {
-                "host": self.config.broker_names[0],
-                "port": self.config.broker_tls_port if tls else self.config.broker_port,
-                "username": name,
-                "password": password,
-                "ca_pem": self.files.ca_cert.read_text() if tls else "",
-            },
-        }
+        return EnrolAnswer.model_validate(
+            {
+                "name": name,
+                "room_key": sso.public_text(self.key),
+                "broker": {
+                    "host": self.config.broker_names[0],
+                    "port": self.config.broker_tls_port if tls else self.config.broker_port,
+                    "username": name,
+                    "password": password,
+                    "ca_pem": self.files.ca_cert.read_text() if tls else "",
+                },
+            }
+        )
+
+    def set_url(self, name: str, url: str) -> Enrolled:
+        """An educator changes where a bench's dashboard is (the bench itself cannot)."""
+        enrolled = self.enrolled.get(name)
+        if enrolled is None:
+            raise HTTPException(404, f"no bench {name}")
+        enrolled.url = check_url(url)
+        self._save_benches()
+        b = self.state.bench(name)
+        b.url, b.outdated = enrolled.url, enrolled.outdated
+        self.state.push(name)
+        return enrolled
 
 
 # ---- routes ---------------------------------------------------------------------------------------
@@ -433,11 +561,6 @@ def _room(request: Request | WebSocket) -> Room:
     return request.app.state.room
 
 
-class EnrolRequest(BaseModel):
-    code: str = Field(max_length=64)
-    name: str = Field(max_length=64)
-
-
 class Target(BaseModel):
     bench: str | None = Field(default=None, max_length=64, description="a bench's name; none = every bench")
 
@@ -447,7 +570,11 @@ class Message(Target):
 
 
 class SelfCheck(BaseModel):
-    profile: str = Field(default="relbot", max_length=64)
+    profile: str = Field(default="relbot", pattern=r"^[A-Za-z0-9_.-]{1,64}$")
+
+
+class BenchAddress(BaseModel):
+    url: str = Field(max_length=200, description="the bench's dashboard, http(s)://host[:port]")
 
 
 class NewAssignment(BaseModel):
@@ -488,13 +615,36 @@ async def enrol(body: EnrolRequest, request: Request) -> dict[str, Any]:
     address = client_address(request)
     if room.enrol_limit.retry_after(address) > 0:
         raise HTTPException(429, "too many wrong join codes; wait a minute")
+    try:  # before the code is used up: a typo in the address does not cost a code
+        topics.check_bench_name(body.name)
+        check_url(body.url)
+        sso.load_public(body.bench_key)
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
     if not room.codes.take(body.code):
         room.enrol_limit.failed(address)
         raise HTTPException(403, "unknown or expired join code")
     try:
-        return await asyncio.get_running_loop().run_in_executor(None, room.enrol, body.name, address)
+        answer = await asyncio.get_running_loop().run_in_executor(None, room.enrol, body, address)
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
+    return answer.model_dump()
+
+
+@router.patch("/benches/{name}", dependencies=[requires(Perm.EDUCATOR)])
+async def set_bench_address(
+    name: str, body: BenchAddress, request: Request, user: User = Depends(current_user)
+) -> dict[str, Any]:
+    """Where a bench's dashboard is (what "open bench" links to); recorded at enrolment, changed
+    only here or by enrolling the bench again."""
+    from ..server import audit
+
+    try:
+        enrolled = _room(request).set_url(name, body.url)
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
+    audit.record(user, "room.bench_address", {"bench": name, "url": enrolled.url}, client_address(request))
+    return {"name": name, "url": enrolled.url}
 
 
 @router.post("/stop", dependencies=[requires(Perm.EDUCATOR)])
@@ -514,7 +664,7 @@ async def selfcheck(body: SelfCheck, request: Request, user: User = Depends(curr
     arrive in the grid (``selfcheck`` of each bench), side by side."""
     room = _room(request)
     online = sorted(b.name for b in room.state.benches.values() if b.online)
-    busy = [n for n in online if room.state.benches[n].status.get("active")]
+    busy = [n for n in online if (st := room.state.benches[n].status) is not None and st.active]
     sent = [room.command(name, "selfcheck", user.username, profile=body.profile) for name in online]
     return {"benches": online, "busy": busy, "ids": [s["id"] for s in sent]}
 
@@ -527,7 +677,7 @@ async def list_assignments(request: Request) -> list[dict[str, Any]]:
         {
             **a,
             "benches": sorted(
-                b.name for b in room.state.benches.values() if a["id"] in (b.status.get("assignments") or [])
+                b.name for b in room.state.benches.values() if b.status is not None and a["id"] in b.status.assignments
             ),
         }
         for a in room.assignments.list()
@@ -644,13 +794,16 @@ async def replies(cid: str, request: Request) -> dict[str, Any]:
 
 @router.post("/benches/{name}/sso", dependencies=[requires(Perm.EDUCATOR)])
 async def sign_on(name: str, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
+    """A link that signs the educator on at the bench's enrolled address (never an address the
+    bench's messages name), with a token only the room can sign."""
     room = _room(request)
     enrolled = room.enrolled.get(name)
-    bench = room.state.benches.get(name)
-    if enrolled is None or bench is None or not bench.status.get("url"):
-        raise HTTPException(404, f"no bench {name} with a known address")
-    token = sso.mint(enrolled["sso_key"], name, user.username)
-    return {"url": f"{bench.status['url']}/room/sso?token={token}"}
+    if enrolled is None:
+        raise HTTPException(404, f"no bench {name}")
+    if enrolled.outdated:
+        raise HTTPException(409, f"bench {name} was enrolled before the room signed its tokens; {REENROL}")
+    token = sso.mint(room.key, name, user.username)
+    return {"url": f"{enrolled.url}/room/sso?token={token}"}
 
 
 ws_router = APIRouter()

@@ -1,18 +1,17 @@
-"""The room's MQTT topics and payload rules: the one contract between benches and the room.
+"""The room's MQTT topics: the one list of them (payloads.py defines what each carries).
 
-    xrf/bench/<name>/online   retained  {"online": bool, "conn": int}  -- the last will says false
-    xrf/bench/<name>/status   retained  {"seq", "boot", "t", ...}       -- publisher.py STATUS_FIELDS
-    xrf/bench/<name>/event    QoS 1     {"seq", "boot", "t", "kind", ...}  alarms, run started/ended
-    xrf/bench/<name>/reply    QoS 1     {"id", "t_recv", "t_done", "ok", ...}  answers to commands
-    xrf/cmd/<name>            QoS 1     {"id", "cmd", "t", ...}          -- the room's commands
-    xrf/cmd/all               QoS 1     the same, for every bench
-    xrf/accounts              retained  {"version", "users": [...]}    -- the class list (accounts_sync.py)
-    xrf/assignment/<id>       retained  {"id", "name", "sha256", ...}  -- a published assignment (assignments.py)
+    xrf/bench/<name>/online   retained  payloads.Online     true on connect; false: the last will
+    xrf/bench/<name>/status   retained  payloads.Status     the tile: every change (<= 20 Hz), every second
+    xrf/bench/<name>/event    QoS 1     payloads.Event      alarms, runs started/ended, self-checks, assignments
+    xrf/bench/<name>/reply    QoS 1     payloads.Reply      answers to commands
+    xrf/cmd/<name>            QoS 1     payloads.Command    the room's commands to one bench
+    xrf/cmd/all               QoS 1     payloads.Command    the same, for every bench
+    xrf/accounts              retained  payloads.ClassList  the class list (accounts_sync.py)
+    xrf/assignment/<id>       retained  payloads.Assignment a published assignment (assignments.py)
 
-Only the room writes under xrf/cmd, xrf/accounts and xrf/assignment, and a bench writes only under its own
-xrf/bench/<name> (broker.acl_text). Every bench message carries (boot, seq): `boot` is the
-appliance's start time in ns (a restarted bench counts higher), `seq` counts up within it, so the
-room keeps the newest whatever order messages arrive in (``newer``).
+Only the room writes under xrf/cmd, xrf/accounts and xrf/assignment, and a bench writes only under
+its own xrf/bench/<name>, <name> being its broker login (broker.acl_text): the topic, not anything
+in a payload, says which bench spoke. The room listens only to enrolled names.
 """
 
 from __future__ import annotations
@@ -55,9 +54,3 @@ def parse_bench_topic(topic: str) -> tuple[str, str] | None:
     if len(parts) == 4 and parts[0] == ROOT and parts[1] == "bench":
         return parts[2], parts[3]
     return None
-
-
-def newer(a: tuple[int, int] | None, b: tuple[int, int]) -> bool:
-    """Is the (boot, seq) `b` newer than `a`? A bench that comes back with an old retained state
-    (or a message delayed behind a newer one) never overwrites what the room already has."""
-    return a is None or b > a

@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import channels as chmod
+from ..logs.runfolder import open_in
 from . import audit
 from .children import Child, spawn
 from .lifecycle import RunObserver
@@ -46,6 +47,7 @@ log = logging.getLogger("xrflab.ros_supervisor")
 
 TOPICS = ["XenoCmd", "XenoState", "Ros2Xeno", "Xeno2Ros"]
 GATE_TOKEN_ENV = "XRF_ROS_GATE_TOKEN"
+BRIDGE_OUTPUT = "ros-bridge.txt"  # the bridge's output, in the run's folder
 BACKOFF_FIRST_S = 0.5
 BACKOFF_MAX_S = 10.0
 STABLE_AFTER_S = 30.0  # a bridge that ran this long starts the backoff afresh when it dies
@@ -231,8 +233,13 @@ class RosBridgeSupervisor(RunObserver):
         env[GATE_TOKEN_ENV] = bp.token
         env["XRF_USER"] = bp.user
         env.pop("XRF_BOOTSTRAP_ADMIN_PASSWORD", None)
-        out_path = Path(bp.run.run_dir) / "ros-bridge.txt"
-        with open(out_path, "ab") as out:
+        # In the run folder (the loop's to write too): through its helper, our own file only, so
+        # a link the loop put there (to /etc/passwd, say) is refused, never appended to.
+        try:
+            fd = open_in(bp.run.run_dir, BRIDGE_OUTPUT, os.O_WRONLY | os.O_CREAT | os.O_APPEND, own=True)
+        except ValueError as exc:
+            raise OSError(str(exc)) from None
+        with os.fdopen(fd, "ab") as out:
             out.write(
                 f"--- {time.strftime('%Y-%m-%d %H:%M:%S')} xrf ros-bridge for user '{bp.user}' "
                 f"({self.sched_note})\n".encode()
@@ -303,11 +310,11 @@ class RosBridgeSupervisor(RunObserver):
     @staticmethod
     def _last_line(bp: BridgeProc) -> str:
         try:
-            with open(Path(bp.run.run_dir) / "ros-bridge.txt", "rb") as f:
+            with open(open_in(bp.run.run_dir, BRIDGE_OUTPUT, own=True), "rb") as f:
                 f.seek(0, os.SEEK_END)
                 f.seek(max(0, f.tell() - 4096))
-                lines = [ln.strip() for ln in f.read().decode("utf-8", "replace").splitlines() if ln.strip()]
-        except OSError:
+                lines = [ln.strip() for ln in f.read(4096).decode("utf-8", "replace").splitlines() if ln.strip()]
+        except (OSError, ValueError):
             return ""
         return lines[-1][:300] if lines else ""
 
@@ -330,7 +337,7 @@ class RosBridgeSupervisor(RunObserver):
             "restarts": self.restarts,
             "started": self.started_at if self.state == "running" else None,
             "scheduling": self.sched_note,
-            "output": str(Path(run.run_dir) / "ros-bridge.txt") if run is not None else "",
+            "output": str(Path(run.run_dir) / BRIDGE_OUTPUT) if run is not None else "",
             "configured_user": self.settings.ros_bridge_user,
         }
 

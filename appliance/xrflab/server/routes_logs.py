@@ -9,10 +9,13 @@ size and mtime, so a file that grew is converted again) and then served as files
 is what `xrf decode` writes for the same file: the same code (`xrflab.logs.convert`).
 
 A run folder's contents are the loop's to make (its log files in nested folders, like
-``home/x/logs/log_…xrf``, but also symlinks or FIFOs if it wants): files are listed without
-following symlinks and opened with ``O_NOFOLLOW`` from the run folder down
-(``logs/runfolder.py``), so no name in a run folder reads anything outside it, and conversions
-are written outside the run folder, where the loop cannot plant a symlink for them to follow.
+``home/x/logs/log_…xrf``, but also symlinks, FIFOs, hard links or names that are not UTF-8 if it
+wants): every listing, open and stat here goes through ``logs/runfolder.py`` (openat2 with
+RESOLVE_BENEATH | RESOLVE_NO_SYMLINKS from the run folder's descriptor, plain files only), files
+are served from the descriptor that was checked, never by name, a file is mapped only when the
+loop cannot truncate it, names are shown escaped (``runfolder.shown``: ``bad\\xff.bin``) and
+taken back exactly, and conversions are written outside the run folder, where the loop cannot
+plant a symlink for them to follow.
 
 The rerun viewer (live and recorded) and its live stream are in routes_rerun.py.
 """
@@ -20,20 +23,23 @@ The rerun viewer (live and recorded) and its live stream are in routes_rerun.py.
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import os
 import re
 import time
 from collections.abc import Iterator
-from pathlib import Path
-from typing import Any, Literal
+from pathlib import Path, PurePosixPath
+from typing import Any, BinaryIO, Literal
 
 import numpy as np
 from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import FileResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
+from starlette.background import BackgroundTask
 
 from ..logs.logformat import MAGIC
-from ..logs.runfolder import RunPathError, fd_path, open_in, walk_files
+from ..logs.runfolder import RunFolder, RunPathError, shown, unshown
+from ..logs.timing_series import TIMING_FILE
 from . import ownership
 from .auth import Perm, requires
 from .runs import record_model
@@ -43,7 +49,7 @@ router = APIRouter()
 LOG_SUFFIXES = (".xrf", ".bin")
 CACHE_DIR = ".cache"  # where conversions once lived in the run folder: never listed
 CACHE_ROOT = "log-cache"  # <data>/log-cache/<run id>/: conversions, out of the loop's reach
-NOT_LOGS = ("output.txt", "timing.jsonl", "ros-bridge.txt")
+NOT_LOGS = ("output.txt", TIMING_FILE, "ros-bridge.txt")
 MEDIA = {
     "raw": "application/octet-stream",
     "csv": "text/csv; charset=utf-8",
@@ -57,17 +63,17 @@ _convert_locks: dict[str, asyncio.Lock] = {}
 # ---- finding a run's logs (also for other modules) ------------------------------------------
 
 
-def _is_log(root: Path, rel: str) -> bool:
+def _is_log(rf: RunFolder, rel: str) -> bool:
     """xrflog by its magic; an XRF2 .bin by its two header lines (names, type codes)."""
-    path = Path(rel)
     try:
-        with open(open_in(root, rel), "rb") as f:
-            head = f.read(64 * 1024)
+        fd = rf.open(rel)
     except (OSError, RunPathError):
         return False
+    with open(fd, "rb") as f:
+        head = f.read(64 * 1024)
     if head.startswith(MAGIC):
         return True
-    if path.suffix != ".bin":
+    if not rel.endswith(".bin"):
         return False
     lines = head.split(b"\n", 2)
     return (
@@ -79,52 +85,59 @@ def _is_log(root: Path, rel: str) -> bool:
     )
 
 
-def run_log_files(run_dir: str | Path) -> list[Path]:
-    """The log files of a run folder (xrflog by content, XRF2 .bin by name), oldest first;
-    conversions (.cache/) and the loop's output are not logs."""
-    root = Path(run_dir)
-    if not root.is_dir():
-        return []
-    found = []
-    # Nested folders too (an XRF2 name like /home/x/logs/log lands in <run>/home/x/logs/);
-    # symlinks are not followed: the loop made this folder.
-    for rel, st in walk_files(root, skip_top=(CACHE_DIR, "viz", *NOT_LOGS)):
-        if _is_log(root, rel):
-            found.append((st.st_mtime_ns, rel))
-    return [root / rel for _, rel in sorted(found)]
+def log_files(rf: RunFolder) -> list[tuple[str, os.stat_result]]:
+    """(name relative to the run folder, its lstat) of each log file, oldest first: xrflog by
+    content, XRF2 .bin by name; conversions (.cache/), the 3D recording and the loop's output
+    are not logs. Nested folders too (an XRF2 name like /home/x/logs/log lands in
+    <run>/home/x/logs/); links are neither listed nor entered (runfolder.RunFolder.walk)."""
+    found = [(st.st_mtime_ns, rel, st) for rel, st in rf.walk_files(skip_top=(CACHE_DIR, "viz", *NOT_LOGS))]
+    return [(rel, st) for _, rel, st in sorted(found, key=lambda x: (x[0], x[1])) if _is_log(rf, rel)]
 
 
-def open_run_log(root: Path, path: Path) -> Any:
-    """`open_log` of a run's file, opened without following symlinks (runfolder.open_in); the
-    LogFile keeps the file's own path (names in conversions, messages)."""
-    from ..logs import LogFormatError, open_log
-
-    rel = path.relative_to(root).as_posix()
-    fd = open_in(root, rel)
+def run_log_files(run_dir: str | Path) -> list[str]:
+    """`log_files` of a run folder by its path: the names only ([] when there is no folder)."""
     try:
-        log = open_log(fd_path(fd))  # mapped: stays valid after the fd is closed
-    except LogFormatError as exc:
-        raise LogFormatError(str(exc).replace(fd_path(fd), str(path))) from None
+        rf = RunFolder(run_dir)
+    except OSError:
+        return []
+    with rf:
+        return [rel for rel, _ in log_files(rf)]
+
+
+def open_run_log(rf: RunFolder, rel: str) -> Any:
+    """`open_log` of a run's file through the run folder's helper: opened without following a
+    link, mapped only if the loop cannot truncate it (else a private copy: open_mappable). The
+    LogFile names the file by its path with the name shown escaped (names in conversions,
+    messages)."""
+    from ..logs import open_log
+
+    fd = rf.open_mappable(rel)
+    try:
+        return open_log(rf.path / shown(rel), fd=fd)  # mapped: stays valid after the fd is closed
     finally:
         os.close(fd)
-    log.path = path
-    return log
 
 
 def read_run_log(run_dir: str | Path, name: str | None = None) -> dict[str, np.ndarray]:
     """A run's log as NumPy arrays: {column: 1-D array} with `seq`, `cycle`, `t_ns` (xrflog) and
     one array per logged variable (char as uint8), plus `t` (seconds since the first record,
-    float64) when the file has a clock. `name`: a file name relative to the run folder (default:
-    the newest log). Raises FileNotFoundError when the run has no log; damaged files give every
-    complete record (see docs/logging/decoding.md). Blocking: call it off the event loop."""
+    float64) when the file has a clock. `name`: a file name relative to the run folder, as the
+    listing shows it (default: the newest log). Raises FileNotFoundError when the run has no
+    log; damaged files give every complete record (see docs/logging/decoding.md). Blocking: call
+    it off the event loop."""
     from ..logs.convert import _plain
 
-    files = run_log_files(run_dir)
-    if name is not None:
-        files = [p for p in files if p.relative_to(run_dir).as_posix() == name]
-    if not files:
-        raise FileNotFoundError(f"{run_dir}: no log file" + (f" named {name!r}" if name else ""))
-    log = open_run_log(Path(run_dir), files[-1])
+    try:
+        rf = RunFolder(run_dir)
+    except OSError:
+        raise FileNotFoundError(f"{run_dir}: no run folder") from None
+    with rf:
+        files = [rel for rel, _ in log_files(rf)]
+        if name is not None:
+            files = [rel for rel in files if name in (rel, shown(rel))]
+        if not files:
+            raise FileNotFoundError(f"{run_dir}: no log file" + (f" named {name!r}" if name else ""))
+        log = open_run_log(rf, files[-1])
     rec = log.records
     out = {col: np.array(_plain(rec[col])) for col in log.columns if col in rec.dtype.names}
     if log.kind == "xrf2":
@@ -193,21 +206,26 @@ def _row(request: Request, run_id: int) -> Any:
     return ownership.run_or_404(request, run_id)
 
 
-def _file(row: Any, name: str) -> Path:
-    """A log of the run by its relative name; only names the listing would give are accepted."""
-    root = Path(row.run_dir)
-    for p in run_log_files(root):
-        if p.relative_to(root).as_posix() == name:
-            return p
-    raise HTTPException(404, f"run {row.id} has no log file {name!r}")
+def _file(row: Any, name: str) -> str:
+    """A log of the run by the name the listing shows; only names the listing would give are
+    accepted. Returns the name relative to the run folder (as the file system has it). Blocking."""
+    rel = unshown(name)
+    if rel not in run_log_files(row.run_dir):
+        raise HTTPException(404, f"run {row.id} has no log file {name!r}")
+    return rel
 
 
-def _file_info(root: Path, path: Path) -> dict[str, Any]:
+def _text(message: str) -> str:
+    """A message that may hold a file system name: no lone surrogate reaches JSON."""
+    return message.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+def _file_info(rf: RunFolder, rel: str, st: os.stat_result) -> dict[str, Any]:
     from ..logs import LogFormatError
 
-    base = {"name": path.relative_to(root).as_posix(), "size": path.lstat().st_size}
+    base = {"name": shown(rel), "size": st.st_size}
     try:
-        log = open_run_log(root, path)
+        log = open_run_log(rf, rel)
     except (OSError, LogFormatError, RunPathError) as exc:
         return base | {
             "kind": "unreadable",
@@ -217,22 +235,24 @@ def _file_info(root: Path, path: Path) -> dict[str, Any]:
             "variables": [],
             "skipped": [],
             "skipped_bytes": 0,
-            "error": str(exc),
+            "error": _text(str(exc)),
         }
     return base | {
+        "size": log.size,
         "kind": log.kind,
         "records": len(log),
         "lost": log.lost,
         "segments": len(log.segments),
-        "variables": [{"name": v.name, "column": v.field, "type": v.type_name} for v in log.variables],
-        "skipped": list(log.skipped),
+        "variables": [{"name": _text(v.name), "column": v.field, "type": v.type_name} for v in log.variables],
+        "skipped": [_text(x) for x in log.skipped],
         "skipped_bytes": log.skipped_bytes,
     }
 
 
-def _download_name(row: Any, path: Path, fmt: str) -> str:
+def _download_name(row: Any, rel: str, fmt: str) -> str:
+    path = PurePosixPath(rel)
     stem = re.sub(r"[^A-Za-z0-9._-]", "_", path.stem) or "log"
-    suffix = path.suffix if fmt == "raw" else "." + fmt
+    suffix = re.sub(r"[^A-Za-z0-9._-]", "_", path.suffix) if fmt == "raw" else "." + fmt
     return f"run{row.id}_{stem}{suffix}"
 
 
@@ -242,12 +262,28 @@ def _cache_dir(request: Request, row: Any) -> Path:
     return Path(data) / CACHE_ROOT / str(row.id)
 
 
-async def _cached(path: Path, root: Path, fmt: str, cache: Path) -> Path:
+def _open_file(run_dir: str | Path, rel: str) -> tuple[int, os.stat_result]:
+    """`rel` opened through the run folder's helper, with its fstat (what is served is what was
+    checked: the descriptor, not the name)."""
+    with RunFolder(run_dir) as rf:
+        fd = rf.open(rel)
+    return fd, os.fstat(fd)
+
+
+def _open_log_in(run_dir: str | Path, rel: str) -> Any:
+    with RunFolder(run_dir) as rf:
+        return open_run_log(rf, rel)
+
+
+async def _cached(run_dir: str | Path, rel: str, fmt: str, cache: Path) -> Path:
     from ..logs import convert
 
-    rel = path.relative_to(root).as_posix()
-    st = await asyncio.to_thread(_stat_in, root, rel)
-    key = re.sub(r"[^A-Za-z0-9._-]", "_", rel)
+    fd, st = await asyncio.to_thread(_open_file, run_dir, rel)
+    os.close(fd)
+    # One cache name per file: its name made safe, plus a digest of the real name (two names
+    # that differ only where they are not plain ASCII do not share a conversion).
+    digest = hashlib.sha256(os.fsencode(rel)).hexdigest()[:10]
+    key = re.sub(r"[^A-Za-z0-9._-]", "_", rel)[:100] + "-" + digest
     target = cache / f"{key}.{st.st_size}-{st.st_mtime_ns}.{fmt}"
     lock = _convert_locks.setdefault(str(target), asyncio.Lock())
     async with lock:
@@ -255,27 +291,28 @@ async def _cached(path: Path, root: Path, fmt: str, cache: Path) -> Path:
             cache.mkdir(parents=True, exist_ok=True, mode=0o700)
             for old in cache.glob(f"{key}.*.{fmt}"):  # superseded conversions of a grown file
                 old.unlink(missing_ok=True)
-            log = await asyncio.to_thread(open_run_log, root, path)
-            await asyncio.to_thread(convert, path, fmt, target, log=log)
+            log = await asyncio.to_thread(_open_log_in, run_dir, rel)
+            await asyncio.to_thread(convert, log.path, fmt, target, log=log)
     return target
 
 
-def _stat_in(root: Path, rel: str) -> os.stat_result:
-    fd = open_in(root, rel)
-    try:
-        return os.fstat(fd)
-    finally:
-        os.close(fd)
-
-
-def _raw_chunks(fd: int, size: int) -> Iterator[bytes]:
-    with open(fd, "rb") as f:  # closed when the response ends, or is dropped
+def _raw_chunks(f: BinaryIO, size: int) -> Iterator[bytes]:
+    with f:  # closed when the response ends (or by its background task, if never started)
         while size > 0:
             chunk = f.read(min(size, 1 << 20))
             if not chunk:
                 return
             size -= len(chunk)
             yield chunk
+
+
+def _stream(fd: int, size: int, media: str, headers: dict[str, str]) -> StreamingResponse:
+    """The open file `fd` (its first `size` bytes) as the response body."""
+    f = open(fd, "rb")
+    headers["Content-Length"] = str(size)
+    return StreamingResponse(
+        _raw_chunks(f, size), media_type=media, headers=headers, background=BackgroundTask(f.close)
+    )
 
 
 # ---- runs and files -------------------------------------------------------------------------
@@ -300,13 +337,17 @@ async def list_runs(request: Request, limit: int = Query(100, ge=1, le=10000)) -
 )
 async def run_logs(run_id: int, request: Request) -> dict[str, Any]:
     row = _row(request, run_id)
-    root = Path(row.run_dir)
 
-    def work() -> list[dict[str, Any]]:
-        return [_file_info(root, p) for p in run_log_files(root)]
+    def work() -> tuple[list[dict[str, Any]], bool]:
+        try:
+            rf = RunFolder(row.run_dir)
+        except OSError:
+            return [], False
+        with rf:
+            return [_file_info(rf, rel, st) for rel, st in log_files(rf)], rf.is_file(TIMING_FILE)
 
-    files = await asyncio.to_thread(work)
-    return {"run": _record(_sup(request), row), "files": files, "timing": (root / "timing.jsonl").is_file()}
+    files, has_timing = await asyncio.to_thread(work)
+    return {"run": _record(_sup(request), row), "files": files, "timing": has_timing}
 
 
 @router.get(
@@ -321,26 +362,23 @@ async def download(
     from ..logs import LogFormatError, iter_csv_chunks
 
     row = _row(request, run_id)
-    path = _file(row, name)
-    root = Path(row.run_dir)
-    headers = {"Content-Disposition": f'attachment; filename="{_download_name(row, path, fmt)}"'}
+    rel = await asyncio.to_thread(_file, row, name)
+    headers = {"Content-Disposition": f'attachment; filename="{_download_name(row, rel, fmt)}"'}
     try:
         if fmt == "raw":
-            # Read through a descriptor opened without following symlinks, not by name: the
-            # loop may swap the file for a symlink after the listing.
-            fd = open_in(root, path.relative_to(root).as_posix())
-            size = os.fstat(fd).st_size
-            headers["Content-Length"] = str(size)
-            return StreamingResponse(_raw_chunks(fd, size), media_type=MEDIA["raw"], headers=headers)
+            # Read through the descriptor that was checked, not by name: the loop may swap the
+            # file for a symlink after the listing.
+            fd, st = await asyncio.to_thread(_open_file, row.run_dir, rel)
+            return _stream(fd, st.st_size, MEDIA["raw"], headers)
         if fmt == "csv":
-            log = await asyncio.to_thread(open_run_log, root, path)
+            log = await asyncio.to_thread(_open_log_in, row.run_dir, rel)
             log.check_uniform()
             headers["X-Log-Skipped"] = str(len(log.skipped))
             headers["X-Log-Lost"] = str(log.lost)
-            return StreamingResponse(iter_csv_chunks(path, log=log), media_type=MEDIA["csv"], headers=headers)
-        target = await _cached(path, root, fmt, _cache_dir(request, row))
+            return StreamingResponse(iter_csv_chunks(log.path, log=log), media_type=MEDIA["csv"], headers=headers)
+        target = await _cached(row.run_dir, rel, fmt, _cache_dir(request, row))
     except LogFormatError as exc:
-        raise HTTPException(422, str(exc)) from None
+        raise HTTPException(422, _text(str(exc))) from None
     except (OSError, RunPathError):
         raise HTTPException(404, f"run {row.id} has no log file {name!r}") from None
     return FileResponse(target, media_type=MEDIA[fmt], headers=headers)
@@ -354,11 +392,9 @@ async def download(
 )
 async def timing(run_id: int, request: Request) -> Response:
     row = _row(request, run_id)
-    path = Path(row.run_dir) / "timing.jsonl"
-    if not path.is_file():
-        raise HTTPException(404, f"run {run_id} has no timing series")
-    return FileResponse(
-        path,
-        media_type="application/x-ndjson",
-        headers={"Content-Disposition": f'attachment; filename="run{run_id}_timing.jsonl"'},
-    )
+    try:
+        fd, st = await asyncio.to_thread(_open_file, row.run_dir, TIMING_FILE)
+    except (OSError, RunPathError):  # none, or not a plain file of the run (a link, a FIFO, ...)
+        raise HTTPException(404, f"run {run_id} has no timing series") from None
+    headers = {"Content-Disposition": f'attachment; filename="run{run_id}_timing.jsonl"'}
+    return _stream(fd, st.st_size, "application/x-ndjson", headers)

@@ -96,6 +96,10 @@ async def replay(body: ReplayRequest, request: Request) -> dict[str, Any]:
         r = await asyncio.to_thread(viz.load_replay, body.run_id)
     except LookupError as exc:
         raise HTTPException(404, str(exc)) from None
+    except OSError as exc:  # a recording file that is not a plain one of the run, or too large
+        raise HTTPException(
+            404, f"run {body.run_id} has no 3D recording that can be replayed: {exc.strerror}"
+        ) from None
     except ValueError as exc:
         raise HTTPException(409, str(exc)) from None
     return {"run_id": r.run_id, "duration": r.duration, "kind": r.kind, "samples": len(r.t), "message": r.message}

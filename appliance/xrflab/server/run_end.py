@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import signal
 import time
 from typing import NamedTuple
@@ -134,6 +135,9 @@ async def record(run: Run, returncode: int, settings: Settings, store: RunStore,
     # The record is final: the observers in order (lifecycle.py), then the browsers (announce).
     await lifecycle.ended(run.row, run)
     remove_shm(run.shm)  # its pages were charged to the run's cgroup: gone before the cgroup
+    if run.shm_fd >= 0:  # the mapping stays valid without it
+        os.close(run.shm_fd)
+        run.shm_fd = -1
     if run.limits is not None:
         await asyncio.to_thread(run.limits.release)
         if run.limits.kept_note:
@@ -175,3 +179,4 @@ def announce(run: Run, ending: Ending, hub: Hub) -> None:
     # crashes kept dozens of them (and their descriptors) alive.
     run.tasks.clear()
     run.logging = None
+    run.report_corrupt = None  # its closure holds the run: a cycle, left to the GC otherwise

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..logs.runfolder import folder_bytes
 from . import cgroups, run_disk, run_disk_helper
 from .cgroups import CgroupError, RunCgroup
 from .run_disk import DiskError, DiskSpec
@@ -188,16 +189,6 @@ class RunLimits:
             if not self.cgroup.remove():
                 log.warning("run cgroup %s still busy: removed at the next start", self.cgroup.name)
             self.cgroup = None
-
-
-def folder_bytes(path: Path) -> int:
-    """Disk used under `path`, not following links (the run's files are the guest's)."""
-    total = 0
-    for dirpath, _dirs, files in os.walk(path):
-        for f in files:
-            with contextlib.suppress(OSError):
-                total += os.lstat(os.path.join(dirpath, f)).st_blocks * 512
-    return total
 
 
 def prepare(settings: Any, name: str, run_dir: Path, image: Path, gid: int) -> RunLimits:

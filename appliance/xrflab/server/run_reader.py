@@ -17,15 +17,20 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Awaitable, Callable
+from typing import Literal
 
+from ..channels import ChannelsCorrupt
 from .hub import Hub
+from .launch import open_output
 from .lifecycle import RunLifecycle
 from .messages import MonitorLine, MonitorMessage, TelemetryMessage
+from .output_lines import OutputLines
 from .run import Run
 from .run_messages import refresh_state
 
 log = logging.getLogger("xrflab.supervisor")
 DOORBELL_WAIT_MS = 50  # also the fallback poll period if a loop never rings
+READS_PER_POLL = 64  # 4 MiB of output per poll at most, then the event loop gets its turn
 
 
 def doorbell_thread(run: Run, loop: asyncio.AbstractEventLoop) -> None:
@@ -101,33 +106,39 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub)
 
 async def pipe_output(run: Run, hub: Hub) -> None:
     """Follow the loop's stdout/stderr file into the monitor console. Polled every 100 ms:
-    this is for people reading, nothing safety-related waits on it."""
-    pending = b""
-    with open(run.run_dir / "output.txt", "rb") as f:
+    this is for people reading, nothing safety-related waits on it. What the guest printed is
+    bounded on the way (output_lines.py): long lines are cut, floods are counted, not queued."""
+    cutter = OutputLines()
+
+    def publish(lines: list[str], source: Literal["stdout", "appliance"] = "stdout") -> None:
+        if lines:
+            hub.publish(MonitorMessage(run_id=run.row.id, source=source, lines=[MonitorLine(text=t) for t in lines]))
+
+    def say_skipped() -> None:
+        skipped = cutter.take_skipped()
+        if skipped:
+            note = f"appliance: {skipped} lines of output not shown here (too many at once); output.txt has them"
+            publish([note], "appliance")
+
+    with open_output(run.run_dir) as f:  # through the run folder's helper: never a link the loop put there
         while True:
             alive = run.alive  # sampled before reading, so the last output is not missed
-            chunk = f.read(65536)
-            if chunk:
-                *lines, pending = (pending + chunk).split(b"\n")
-                hub.publish(
-                    MonitorMessage(
-                        run_id=run.row.id,
-                        source="stdout",
-                        lines=[MonitorLine(text=line.decode("utf-8", "replace")) for line in lines],
-                    )
-                )
-            elif not alive:
-                if pending:
-                    hub.publish(
-                        MonitorMessage(
-                            run_id=run.row.id,
-                            source="stdout",
-                            lines=[MonitorLine(text=pending.decode("utf-8", "replace"))],
-                        )
-                    )
+            lines: list[str] = []
+            # Catch up with the file, a bounded amount per poll so a flood cannot hold the event
+            # loop; the console gets at most lines_per_poll of it.
+            for _ in range(READS_PER_POLL):
+                chunk = f.read(65536)
+                cutter.feed(chunk, lines)
+                if len(chunk) < 65536:
+                    break
+            caught_up = len(chunk) < 65536
+            if caught_up and not alive:
+                cutter.flush(lines)
+            publish(lines)
+            say_skipped()
+            if caught_up and not alive:
                 return
-            else:
-                await asyncio.sleep(0.1)
+            await asyncio.sleep(0.1 if caught_up else 0.01)
 
 
 async def guarded(name: str, body: Callable[[], Awaitable[None]], run: Run, hub: Hub) -> None:
@@ -140,6 +151,12 @@ async def guarded(name: str, body: Callable[[], Awaitable[None]], run: Run, hub:
             return
         except asyncio.CancelledError:
             raise
+        except ChannelsCorrupt as exc:
+            # Not a bug to retry: the loop broke its segment. The run is stopped (run_corrupt.py)
+            # and nothing of the segment is read here again.
+            if run.report_corrupt is not None:
+                run.report_corrupt(exc)
+            return
         except Exception as exc:  # reported to the dashboards, then carry on
             log.exception("run %s: %s failed", run.row.id, name)
             hub.publish(

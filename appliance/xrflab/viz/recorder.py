@@ -8,6 +8,11 @@ supervisor's reader already takes (nothing is added to the loop):
     <run_dir>/viz/telemetry.bin    fixed 20-byte records: t_ns (int64), cycle (uint32), enc[4] (uint16)
     <run_dir>/viz/events.jsonl     {"t_ns": .., "setpoint": {...}} / {"t_ns": .., "reset_odometry": true}
 
+The run folder is the loop's to write too (it can rename viz/, put a link or a FIFO in its place):
+every file here is opened, written and read through the run folder's helper
+(``logs/runfolder.py``): nothing is followed, meta.json is rewritten as a new file renamed over
+the old name (never written through what the loop put there), reads are bounded.
+
 At most one sample per ``min_period_s`` (5 ms: 200 Hz, 4 kB/s) is kept; a slower loop has every
 sample kept. That is fast enough to unwrap the 14-bit counters (a shaft would have to turn two
 motor revolutions in 5 ms to be misread) and small enough to keep for every run. The raw counts
@@ -17,6 +22,8 @@ are recorded, not angles: a corrected profile replays an old run correctly.
 from __future__ import annotations
 
 import json
+import os
+import stat
 import struct
 import time
 from collections.abc import Iterable, Sequence
@@ -24,9 +31,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..logs.runfolder import RunFolder, RunPathError
+
 RECORD = struct.Struct("<qI4H")
 FORMAT = 1
 SUBDIR = "viz"
+META, TELEMETRY, EVENTS = f"{SUBDIR}/meta.json", f"{SUBDIR}/telemetry.bin", f"{SUBDIR}/events.jsonl"
+# What a replay reads at most (200 samples/s of 20 bytes is 14 MB an hour: 256 MB is 18 hours).
+MAX_META = 1 << 20
+MAX_TELEMETRY = 256 << 20
+MAX_EVENTS = 64 << 20
+_APPEND = os.O_WRONLY | os.O_CREAT | os.O_APPEND
 
 
 def recording_dir(run_dir: Path | str) -> Path:
@@ -40,7 +55,8 @@ class Recorder:
         self, run_dir: Path | str, meta: dict[str, Any], min_period_s: float = 0.005, flush_period_s: float = 1.0
     ) -> None:
         self.dir = recording_dir(run_dir)
-        self.dir.mkdir(parents=True, exist_ok=True)
+        Path(run_dir).mkdir(parents=True, exist_ok=True)  # the appliance's path (tests: a fresh one)
+        self._folder = RunFolder(run_dir)
         self.min_period_ns = int(min_period_s * 1e9)
         self.flush_period_s = flush_period_s
         self.meta = {
@@ -50,9 +66,17 @@ class Recorder:
             "created": time.time(),
             **meta,
         }
-        (self.dir / "meta.json").write_text(json.dumps(self.meta, indent=1) + "\n")
-        self._bin = open(self.dir / "telemetry.bin", "wb")
-        self._events = open(self.dir / "events.jsonl", "a", encoding="utf-8")
+        try:
+            self._folder.replace(META, self._meta_bytes())
+            self._bin = open(self._folder.open(TELEMETRY, os.O_WRONLY | os.O_CREAT, own=True, truncate=True), "wb")
+            try:
+                self._events = open(self._folder.open(EVENTS, _APPEND, own=True), "a", encoding="utf-8")
+            except BaseException:
+                self._bin.close()
+                raise
+        except BaseException:
+            self._folder.close()
+            raise
         self._last_kept_ns: int | None = None
         self._pending: tuple[int, int, tuple[int, ...]] | None = None  # newest sample not kept
         self._last_flush = time.monotonic()
@@ -101,7 +125,15 @@ class Recorder:
         self._events.close()
         self.meta["samples"] = self.samples
         self.meta["closed"] = time.time()
-        (self.dir / "meta.json").write_text(json.dumps(self.meta, indent=1) + "\n")
+        try:
+            self._folder.replace(META, self._meta_bytes())
+        except (OSError, RunPathError):
+            pass  # the loop took viz/ away (or put a link there): its recording ends unclosed
+        finally:
+            self._folder.close()
+
+    def _meta_bytes(self) -> bytes:
+        return (json.dumps(self.meta, indent=1) + "\n").encode()
 
 
 @dataclass
@@ -120,19 +152,41 @@ class Recording:
         return len(self.t_ns)
 
 
+def recording_size(run_dir: Path | str) -> int | None:
+    """Bytes of the run's telemetry recording, None if it has none (plain files only)."""
+    try:
+        with RunFolder(run_dir) as rf:
+            if not rf.is_file(META):
+                return None
+            st = rf.lstat(TELEMETRY)
+    except (OSError, RunPathError):
+        return None
+    return st.st_size if stat.S_ISREG(st.st_mode) and st.st_nlink == 1 else None
+
+
 def has_recording(run_dir: Path | str) -> bool:
-    d = recording_dir(run_dir)
-    return (d / "meta.json").is_file() and (d / "telemetry.bin").is_file()
+    return recording_size(run_dir) is not None
 
 
 def load_recording(run_dir: Path | str) -> Recording:
-    """Read a run's recording (FileNotFoundError if there is none). A torn last record (the
-    appliance died mid-write) is ignored."""
+    """Read a run's recording (FileNotFoundError if there is none; OSError if a file is not a
+    plain one of the run or too large). A torn last record (the appliance died mid-write) is
+    ignored."""
     d = recording_dir(run_dir)
-    meta = json.loads((d / "meta.json").read_text())
-    if meta.get("format") != FORMAT:
-        raise ValueError(f"{d}: recording format {meta.get('format')!r} is not known")
-    data = (d / "telemetry.bin").read_bytes()
+    with RunFolder(run_dir) as rf:
+        try:
+            meta = json.loads(rf.read_bytes(META, MAX_META))
+        except RecursionError:  # a meta.json the loop wrote: 1 MB of '['
+            raise ValueError(f"{d}: meta.json is nested too deep") from None
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+            raise ValueError(
+                f"{d}: recording format {meta.get('format') if isinstance(meta, dict) else meta!r} is not known"
+            )
+        data = rf.read_bytes(TELEMETRY, MAX_TELEMETRY)
+        try:
+            event_bytes = rf.read_bytes(EVENTS, MAX_EVENTS)
+        except FileNotFoundError:
+            event_bytes = b""
     n = len(data) // RECORD.size
     t_ns: list[int] = []
     cycle: list[int] = []
@@ -142,14 +196,14 @@ def load_recording(run_dir: Path | str) -> Recording:
         cycle.append(c)
         enc.append((e1, e2, e3, e4))
     events: list[dict[str, Any]] = []
-    ev_path = d / "events.jsonl"
-    if ev_path.is_file():
-        for line in ev_path.read_text(encoding="utf-8").splitlines():
-            try:
-                events.append(json.loads(line))
-            except json.JSONDecodeError:
-                continue  # a torn last line
-    events.sort(key=lambda e: e.get("t_ns", 0))
+    for line in event_bytes.decode("utf-8", "replace").splitlines():
+        try:
+            ev = json.loads(line)
+        except (json.JSONDecodeError, RecursionError):
+            continue  # a torn last line (or one the loop wrote)
+        if isinstance(ev, dict) and isinstance(ev.get("t_ns"), int):
+            events.append(ev)
+    events.sort(key=lambda e: e["t_ns"])
     return Recording(meta, t_ns, cycle, enc, events)
 
 

@@ -40,7 +40,7 @@ from typing import Any
 from .. import profiles as profmod
 from ..server.lifecycle import RunObserver
 from . import kinematics as kin
-from .recorder import Recorder, has_recording, load_recording
+from .recorder import Recorder, has_recording, load_recording, recording_size
 
 log = logging.getLogger("xrflab.viz")
 URDF_JIWY = Path(__file__).resolve().parent / "urdf" / "jiwy.urdf"
@@ -423,12 +423,11 @@ class VizService(RunObserver):
         runs_dir = getattr(self.settings, "runs_dir", None)
         out = []
         if runs_dir and Path(runs_dir).is_dir():
-            for d in Path(runs_dir).iterdir():
-                if d.name.isdigit() and has_recording(d):
+            for d in Path(runs_dir).iterdir():  # <data>/runs/: the appliance's folder
+                size = recording_size(d) if d.name.isdigit() else None  # inside a run: its helper
+                if size is not None:
                     active = int(d.name) == self.run_id and self.run_active
-                    out.append(
-                        {"run_id": int(d.name), "active": active, "bytes": (d / "viz" / "telemetry.bin").stat().st_size}
-                    )
+                    out.append({"run_id": int(d.name), "active": active, "bytes": size})
         return sorted(out, key=lambda r: -r["run_id"])
 
     # -- the 30 Hz update -------------------------------------------------------------------------
