@@ -30,7 +30,7 @@ from xrf_testing.loops import LoopProcess
 from xrflab.logs import open_log
 from xrflab.logs.host_writer import HostLogWriter
 from xrflab.logs.logformat import MAGIC
-from xrflab.logs.runfolder import RunPathError, confine, open_in
+from xrflab.runfolder import RunPathError, confine, open_in
 
 XRF2_NAME = "xrf2-home-log"
 STUDENT_LOG = "/home/student/logs/log"  # what the student's XenoFileHandler names

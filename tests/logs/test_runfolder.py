@@ -1,4 +1,4 @@
-"""The run-folder helper (xrflab.logs.runfolder) on a real file system, with both resolvers: the
+"""The run-folder helper (xrflab.runfolder) on a real file system, with both resolvers: the
 kernel's openat2 (RESOLVE_BENEATH | RESOLVE_NO_SYMLINKS) and the O_NOFOLLOW walk used where
 openat2 is missing. Everything a guest can plant in its folder - symlinks to files and folders,
 on the way and at the end, FIFOs, hard links, files of its own where the appliance's should be,
@@ -19,8 +19,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from xrflab.logs import runfolder
-from xrflab.logs.runfolder import RunFolder, RunPathError, remove_folder, shown, unshown
+from xrflab import runfolder
+from xrflab.runfolder import RunFolder, RunPathError, remove_folder, shown, unshown
 
 SECRET = b"secret: not the run's\n"
 

@@ -42,9 +42,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..channels.errors import ChannelsCorrupt
+from ..runfolder import RunPathError, confine
 from .log_channel import LogChannel, SegmentLayout
 from .record_file import PartialWrite, RecordFile
-from .runfolder import RunPathError, confine
 from .timing_series import TimingSeries
 
 if TYPE_CHECKING:

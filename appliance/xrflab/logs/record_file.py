@@ -13,7 +13,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from .runfolder import open_in
+from ..runfolder import open_in
 
 
 class PartialWrite(Exception):

@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .runfolder import open_in
+from ..runfolder import open_in
 
 if TYPE_CHECKING:
     from ..channels import Channels

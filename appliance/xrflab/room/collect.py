@@ -64,7 +64,7 @@ def pack_bench(
 ) -> dict[str, Any]:
     """Write the bench's .tar.gz of `runs` to `out`; returns bench.json (also inside). Blocking."""
     from ..logs.convert import convert
-    from ..logs.runfolder import RunFolder, RunPathError
+    from ..runfolder import RunFolder, RunPathError
     from ..server.routes_logs import log_files, open_run_log
 
     total = 0

@@ -28,7 +28,7 @@ from typing import BinaryIO
 from .. import guest
 from ..channels import Channels, ChannelsCorrupt, segment
 from ..logs import live as loglive
-from ..logs.runfolder import open_in
+from ..runfolder import open_in
 from . import run_disk
 from .catalog import BuildEntry
 from .guest_spawn import GuestReport, GuestSpawner

@@ -57,7 +57,7 @@ def last_logged_seq(ch: Channels, run_dir: Path) -> int | None:
     None if there is none yet."""
     from ..logs.log_channel import LogChannel
     from ..logs.reader import open_log
-    from ..logs.runfolder import RunFolder, RunPathError, confine
+    from ..runfolder import RunFolder, RunPathError, confine
 
     try:  # the layout as every reader takes it: copied and checked (log_channel.py)
         layout = LogChannel(ch, "log").take_layout()

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import channels as chmod
-from ..logs.runfolder import open_in
+from ..runfolder import open_in
 from . import audit
 from .children import Child, spawn
 from .lifecycle import RunObserver

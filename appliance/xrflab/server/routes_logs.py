@@ -10,7 +10,7 @@ is what `xrf decode` writes for the same file: the same code (`xrflab.logs.conve
 
 A run folder's contents are the loop's to make (its log files in nested folders, like
 ``home/x/logs/log_…xrf``, but also symlinks, FIFOs, hard links or names that are not UTF-8 if it
-wants): every listing, open and stat here goes through ``logs/runfolder.py`` (openat2 with
+wants): every listing, open and stat here goes through ``runfolder.py`` (openat2 with
 RESOLVE_BENEATH | RESOLVE_NO_SYMLINKS from the run folder's descriptor, plain files only), files
 are served from the descriptor that was checked, never by name, a file is mapped only when the
 loop cannot truncate it, names are shown escaped (``runfolder.shown``: ``bad\\xff.bin``) and
@@ -38,8 +38,8 @@ from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
 
 from ..logs.logformat import MAGIC
-from ..logs.runfolder import RunFolder, RunPathError, shown, unshown
 from ..logs.timing_series import TIMING_FILE
+from ..runfolder import RunFolder, RunPathError, shown, unshown
 from . import ownership
 from .auth import Perm, requires
 from .runs import record_model

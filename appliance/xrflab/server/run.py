@@ -26,7 +26,7 @@ from .. import channels as chmod
 from .. import guest
 from ..channels import Channels, ChannelsCorrupt, segment
 from ..logs import live as loglive
-from ..logs.runfolder import remove_folder
+from ..runfolder import remove_folder
 from .children import Child
 from .guest_spawn import GuestReport
 from .run_limits import RunLimits

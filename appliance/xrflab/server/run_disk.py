@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .. import guest
+from ..runfolder import folder_bytes
 
 IMAGES = "run-images"  # beside runs/ in the data folder
 BLOCK = 4096
@@ -433,20 +434,18 @@ def sweep(runs_dir: Path, images_dir: Path, live: set[str]) -> list[str]:
 
 
 def kept_bytes(runs_dir: Path) -> int:
-    """Disk used by the kept run folders (mounted, live ones not counted)."""
+    """Disk used by the kept run folders (mounted, live ones not counted). Each is walked through
+    the run folder's helper (by descriptor, links never followed, bounded depth and count): a run
+    allowed without a file system of its own is still the guest's while it runs."""
     total = 0
     try:
         dev = os.stat(runs_dir).st_dev
+        names = os.listdir(runs_dir)
     except OSError:
         return 0
-    for dirpath, dirs, files in os.walk(runs_dir):
-        kept = []
-        for d in dirs:
-            with contextlib.suppress(OSError):
-                if os.lstat(os.path.join(dirpath, d)).st_dev == dev:
-                    kept.append(d)
-        dirs[:] = kept
-        for f in files:
-            with contextlib.suppress(OSError):
-                total += os.lstat(os.path.join(dirpath, f)).st_blocks * 512
+    for name in names:
+        with contextlib.suppress(OSError):
+            st = os.lstat(runs_dir / name)
+            if stat.S_ISDIR(st.st_mode) and st.st_dev == dev:
+                total += folder_bytes(runs_dir / name)
     return total

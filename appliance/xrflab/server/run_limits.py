@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..logs.runfolder import folder_bytes
+from ..runfolder import folder_bytes
 from . import cgroups, run_disk, run_disk_helper
 from .cgroups import CgroupError, RunCgroup
 from .run_disk import DiskError, DiskSpec

@@ -10,7 +10,7 @@ supervisor's reader already takes (nothing is added to the loop):
 
 The run folder is the loop's to write too (it can rename viz/, put a link or a FIFO in its place):
 every file here is opened, written and read through the run folder's helper
-(``logs/runfolder.py``): nothing is followed, meta.json is rewritten as a new file renamed over
+(``runfolder.py``): nothing is followed, meta.json is rewritten as a new file renamed over
 the old name (never written through what the loop put there), reads are bounded.
 
 At most one sample per ``min_period_s`` (5 ms: 200 Hz, 4 kB/s) is kept; a slower loop has every
@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..logs.runfolder import RunFolder, RunPathError
+from ..runfolder import RunFolder, RunPathError
 
 RECORD = struct.Struct("<qI4H")
 FORMAT = 1

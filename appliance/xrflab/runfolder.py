@@ -37,6 +37,9 @@ through this module, which cannot leave the folder and takes plain files only:
 - **Names that are not UTF-8** are shown escaped (`shown`: ``\\xNN`` for each byte that is not
   UTF-8, ``\\\\`` for a backslash) and taken back exactly (`unshown`): listed and downloadable,
   never a 500.
+
+A module of its own at the package's top, standard library only (like guest.py): the launcher's
+side (run_disk, run_limits) imports it with a bare python3, and it is not a logs concern.
 """
 
 from __future__ import annotations
