@@ -34,7 +34,8 @@ Layers (each reported by name; ``LAYERS``):
 - ``network``: its own network namespace with a downed loopback: no route anywhere, the
   appliance's port included. ``ipc`` and ``uts`` namespaces likewise.
 - ``environment``: built by the appliance from an allow-list (``ENV_ALLOWED``), never a copy.
-- ``descriptors``: only 0, 1, 2 reach the controller.
+- ``descriptors``: only 0, 1, 2 reach the controller, and the run's segment (``shm_fd``: a memfd
+  the appliance made and sealed at its size, XRF_SHM_FD; the launcher keeps it open too).
 - ``limits``: address space, processes, open files, file size, no core dumps.
 
 If a layer cannot be had, the launcher refuses to start the controller unless the appliance
@@ -98,6 +99,7 @@ ENV_ALLOWED = frozenset(
         "XRF_QUIET",
         "XRF_RUN_ID",
         "XRF_SHM",
+        "XRF_SHM_FD",
         "XRF_SIM",
         "XRF_SIM_FAULTS",
         "XRF_SPI_DEVICE",
@@ -449,11 +451,12 @@ class _Launch:
             os.chdir(cfg["run_dir"])
             self.set_limits()
             os.umask(0o007)  # what the loop writes stays readable by the appliance's group only
-            # Descriptors: 0-2, the error and status pipes (close-on-exec) only.
-            low, high = sorted((err_w, status_w))
-            os.closerange(3, low)
-            os.closerange(low + 1, high)
-            os.closerange(high + 1, 1 << 20)
+            # Descriptors: 0-2, the error and status pipes (close-on-exec) and the run's segment only.
+            low = 3
+            for fd in sorted({err_w, status_w} | ({cfg["shm_fd"]} if cfg.get("shm_fd") is not None else set())):
+                os.closerange(low, fd)
+                low = fd + 1
+            os.closerange(low, 1 << 20)
             uid, gid, groups = self.loop_identity()
             if self.mode == "root":
                 keep = set(self.ambient)

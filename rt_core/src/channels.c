@@ -26,6 +26,12 @@
 
 /* How often a reader retries a slot that a (possibly dead) writer holds before giving up. */
 #define XRF_SPIN_LIMIT 100000
+/* Tries of a status read: each may copy the whole block (~33 KiB), so a loop that flips its seq
+ * all the time must not hold a reader for long (1000 tries: a few ms at most). A real loop
+ * holds the lock for well under a microsecond once a cycle. */
+#define XRF_STATUS_TRIES 1000
+/* Largest ring a reader accepts: counts stay within an int, offsets within 64 bits. */
+#define XRF_RING_SLOTS_MAX (1u << 30)
 
 _Static_assert(sizeof(struct xrf_telemetry) % 8 == 0, "telemetry slot must keep 8-byte alignment");
 _Static_assert(sizeof(struct xrf_monitor_line) % 8 == 0, "monitor slot must keep 8-byte alignment");
@@ -138,7 +144,7 @@ void xrf_status_write_end(struct xrf_status *s)
 
 int xrf_status_read(const struct xrf_status *s, struct xrf_status *out)
 {
-    for (int tries = 0; tries < XRF_SPIN_LIMIT; tries++) {
+    for (int tries = 0; tries < XRF_STATUS_TRIES; tries++) {
         uint32_t s1 = LOAD_ACQ(&s->seq);
         if (s1 & 1u)
             continue;
@@ -156,7 +162,13 @@ int64_t xrf_cmd_send(struct xrf_cmd_ring *r, int32_t cmd, int32_t source, int64_
 {
     uint64_t pos = LOAD_RLX(&r->head);
     struct xrf_cmd_slot *slot;
-    for (;;) {
+    /* head and the slot seqs are the loop's memory: a loop that sets them so that no slot ever
+     * looks free-for-this-position must not keep a host here (it used to spin forever). */
+    for (int tries = 0;; tries++) {
+        if (tries >= XRF_SPIN_LIMIT)
+            return -EBUSY;
+        if (pos >= (uint64_t)INT64_MAX)
+            return -EPROTO; /* no ticket (> 0 as an int64) follows this head */
         slot = &r->slot[pos & (XRF_CMD_SLOTS - 1)];
         int64_t dif = (int64_t)LOAD_ACQ(&slot->seq) - (int64_t)pos;
         if (dif == 0) {
@@ -268,41 +280,6 @@ void xrf_bcast_commit(struct xrf_ring *r, void *slot)
     STORE_REL(&r->head, n + 1);
 }
 
-int xrf_bcast_read(const struct xrf_ring *r, const void *slots, uint64_t *cursor, void *out,
-                   uint64_t *lost)
-{
-    uint32_t nslots = LOAD_ACQ(&r->slots);
-    if (nslots == 0)
-        return 0;
-    for (int tries = 0; tries < XRF_SPIN_LIMIT; tries++) {
-        uint64_t head = LOAD_ACQ(&r->head);
-        uint64_t c = *cursor;
-        if (c >= head)
-            return 0;
-        if (head - c > nslots) {
-            *lost += head - nslots - c;
-            c = head - nslots;
-            *cursor = c;
-        }
-        const struct xrf_slot_hdr *slot = slot_at(r, slots, c);
-        uint64_t s1 = LOAD_ACQ(&slot->seq);
-        if (s1 == 2 * c + 2) {
-            memcpy(out, slot, r->slot_size);
-            __atomic_thread_fence(__ATOMIC_ACQUIRE);
-            if (LOAD_RLX(&slot->seq) == s1) {
-                *cursor = c + 1;
-                return 1;
-            }
-        }
-        /* The producer lapped this reader while it copied; the head check above catches up. */
-        if (tries > 1000) {
-            *lost += 1;
-            *cursor = c + 1;
-        }
-    }
-    return 0;
-}
-
 void *xrf_spsc_begin(struct xrf_ring *r, void *slots)
 {
     uint64_t head = r->head;
@@ -319,39 +296,6 @@ void xrf_spsc_commit(struct xrf_ring *r, void *slot)
     STORE_REL(&r->head, r->head + 1);
 }
 
-const void *xrf_spsc_peek(const struct xrf_ring *r, const void *slots)
-{
-    uint64_t tail = r->tail;
-    if (LOAD_ACQ(&r->slots) == 0 || LOAD_ACQ(&r->head) == tail)
-        return NULL;
-    return slot_at(r, slots, tail);
-}
-
-void xrf_spsc_release(struct xrf_ring *r)
-{
-    STORE_REL(&r->tail, r->tail + 1);
-}
-
-const void *xrf_spsc_peek_run(const struct xrf_ring *r, const void *slots, uint32_t *count)
-{
-    uint64_t tail = r->tail;
-    uint32_t n = LOAD_ACQ(&r->slots);
-    uint64_t head = LOAD_ACQ(&r->head);
-    if (n == 0 || head == tail) {
-        *count = 0;
-        return NULL;
-    }
-    uint64_t ready = head - tail;
-    uint64_t to_end = n - (tail & (n - 1));
-    *count = (uint32_t)(ready < to_end ? ready : to_end);
-    return slot_at(r, slots, tail);
-}
-
-void xrf_spsc_release_n(struct xrf_ring *r, uint32_t n)
-{
-    STORE_REL(&r->tail, r->tail + n);
-}
-
 uint32_t xrf_log_slots_for(uint32_t record_size, uint32_t ring_bytes, uint32_t *slot_size)
 {
     uint32_t ss = (uint32_t)((sizeof(struct xrf_slot_hdr) + record_size + 7u) & ~7u);
@@ -362,6 +306,162 @@ uint32_t xrf_log_slots_for(uint32_t record_size, uint32_t ring_bytes, uint32_t *
     if (slot_size)
         *slot_size = ss;
     return n ? p : 0;
+}
+
+/* ---- reading a segment: geometry in the reader's memory, every guest value bounded --------- */
+
+int xrf_ring_geom_check(const struct xrf_ring *r, uint32_t slots, uint32_t slot_size,
+                        uint64_t capacity, struct xrf_ring_geom *g)
+{
+    if (r == NULL || g == NULL)
+        return -EINVAL;
+    /* The geometry the reader expects must itself be a ring: a power of two of slots, each a
+     * header and 8-byte aligned, all of them inside the space the layout gives the ring. */
+    if (slots == 0 || slots > XRF_RING_SLOTS_MAX || (slots & (slots - 1)) != 0 ||
+        slot_size < sizeof(struct xrf_slot_hdr) || slot_size % 8 != 0 ||
+        (uint64_t)slots * slot_size > capacity)
+        return -EINVAL;
+    /* One read of each: what the loop says is compared, never used. */
+    if (LOAD_ACQ(&r->slots) != slots || LOAD_RLX(&r->slot_size) != slot_size)
+        return -EPROTO;
+    g->slots = slots;
+    g->slot_size = slot_size;
+    return 0;
+}
+
+int xrf_shm_check(const struct xrf_shm *shm, uint64_t mapped, struct xrf_shm_geom *g)
+{
+    if (shm == NULL || g == NULL || mapped < sizeof(struct xrf_shm))
+        return -EINVAL;
+    if (LOAD_ACQ(&shm->magic) != XRF_SHM_MAGIC || LOAD_RLX(&shm->version) != XRF_SHM_VERSION ||
+        LOAD_RLX(&shm->size) != sizeof(struct xrf_shm))
+        return -EPROTO;
+    int rc = xrf_ring_geom_check(&shm->telem_ring, XRF_TELEM_SLOTS, sizeof(struct xrf_telemetry),
+                                 sizeof shm->telem, &g->telem);
+    if (rc == 0)
+        rc = xrf_ring_geom_check(&shm->monitor_ring, XRF_MONITOR_SLOTS,
+                                 sizeof(struct xrf_monitor_line), sizeof shm->monitor, &g->monitor);
+    return rc;
+}
+
+/* A char array the loop filled holds a C string: a NUL within it. */
+static int terminated(const char *s, size_t n)
+{
+    return memchr(s, '\0', n) != NULL;
+}
+
+int xrf_log_meta_check(const struct xrf_log_meta *m, const struct xrf_ring *r, uint32_t capacity,
+                       struct xrf_log_meta *out, struct xrf_ring_geom *g, uint64_t *tail)
+{
+    if (m == NULL || r == NULL || out == NULL || g == NULL || tail == NULL)
+        return -EINVAL;
+    if (LOAD_ACQ(&m->ready) == 0)
+        return -EAGAIN;
+    /* One copy, checked and used from here on: the loop may change the segment's meta at any
+     * moment, the copy it cannot. The generation around it tells a copy torn by a (real)
+     * re-publication, to be retried, from one the loop scribbled on, which the checks refuse. */
+    uint64_t gen = LOAD_ACQ(&m->generation);
+    memcpy(out, m, sizeof *out);
+    uint64_t t = LOAD_ACQ(&r->tail);
+    __atomic_thread_fence(__ATOMIC_ACQUIRE);
+    if (LOAD_RLX(&m->generation) != gen)
+        return -EAGAIN;
+    out->ready = 1;
+    out->generation = gen;
+
+    if (out->writer != XRF_LOG_WRITER_PROCESS && out->writer != XRF_LOG_WRITER_HOST)
+        return -EPROTO;
+    if (out->nvars > XRF_LOG_VARS_MAX || !terminated(out->path, sizeof out->path))
+        return -EPROTO;
+    if (out->record_size > capacity || capacity - out->record_size < sizeof(struct xrf_slot_hdr))
+        return -EPROTO;
+    for (uint32_t i = 0; i < out->nvars; i++) {
+        const struct xrf_log_var *v = &out->vars[i];
+        const struct xrf_logfile_type *t = xrf_logfile_type_of(v->type);
+        if (t == NULL || !terminated(v->name, sizeof v->name) || v->offset < 0 ||
+            (uint64_t)(uint32_t)v->offset + t->size > out->record_size)
+            return -EPROTO;
+    }
+    uint32_t slot_size = 0;
+    uint32_t slots = xrf_log_slots_for(out->record_size, capacity, &slot_size);
+    if (slots == 0)
+        return -EPROTO;
+    int rc = xrf_ring_geom_check(r, slots, slot_size, capacity, g);
+    if (rc != 0)
+        return -EPROTO; /* whichever way it differs, it is not what a logger sets */
+    *tail = t;
+    return 0;
+}
+
+/* The ring header no longer says the geometry the reader took: a loop never changes it after
+ * setting it up, so one that does is writing where it should not. Compared, never used. */
+static inline int ring_moved(const struct xrf_ring *r, const struct xrf_ring_geom *g)
+{
+    return LOAD_RLX(&r->slots) != g->slots || LOAD_RLX(&r->slot_size) != g->slot_size;
+}
+
+int xrf_bcast_read_g(const struct xrf_ring *r, const struct xrf_ring_geom *g, const void *slots,
+                     uint64_t *cursor, void *out, uint64_t *lost)
+{
+    const uint64_t nslots = g->slots;
+    if (ring_moved(r, g))
+        return -EPROTO;
+    for (int tries = 0; tries < XRF_SPIN_LIMIT; tries++) {
+        uint64_t head = LOAD_ACQ(&r->head);
+        uint64_t c = *cursor;
+        if (c == head)
+            return 0;
+        if (c > head)
+            return -EPROTO; /* publications are never taken back */
+        if (head - c > nslots) {
+            *lost += head - nslots - c;
+            c = head - nslots;
+            *cursor = c;
+        }
+        /* The index comes from the reader's cursor and geometry only. */
+        const struct xrf_slot_hdr *slot =
+            (const struct xrf_slot_hdr *)((const uint8_t *)slots +
+                                          (size_t)(c & (nslots - 1)) * g->slot_size);
+        uint64_t s1 = LOAD_ACQ(&slot->seq);
+        if (s1 == 2 * c + 2) {
+            memcpy(out, slot, g->slot_size);
+            __atomic_thread_fence(__ATOMIC_ACQUIRE);
+            if (LOAD_RLX(&slot->seq) == s1) {
+                *cursor = c + 1;
+                return 1;
+            }
+        }
+        /* The producer lapped this reader while it copied; the head check above catches up. */
+        if (tries > 1000) {
+            *lost += 1;
+            *cursor = c + 1;
+        }
+    }
+    return 0;
+}
+
+int xrf_spsc_peek_run_g(const struct xrf_ring *r, const struct xrf_ring_geom *g, const void *slots,
+                        uint64_t tail, const void **first)
+{
+    *first = NULL;
+    if (ring_moved(r, g))
+        return -EPROTO;
+    uint64_t head = LOAD_ACQ(&r->head);
+    uint64_t ready = head - tail; /* a head behind the tail wraps to a huge count */
+    if (ready == 0)
+        return 0;
+    if (ready > g->slots)
+        return -EPROTO;
+    uint64_t at = tail & (g->slots - 1);
+    uint64_t to_end = g->slots - at;
+    *first = (const uint8_t *)slots + (size_t)at * g->slot_size;
+    return (int)(ready < to_end ? ready : to_end);
+}
+
+void xrf_spsc_release_g(struct xrf_ring *r, uint64_t *tail, uint32_t n)
+{
+    *tail += n;
+    STORE_REL(&r->tail, *tail);
 }
 
 /* ---- doorbell ------------------------------------------------------------------------------ */

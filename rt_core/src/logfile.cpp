@@ -92,25 +92,31 @@ bool writeHeader(int fd, LogSink *sink, const xrf_shm *shm, const xrf_log_meta &
 
 } // namespace
 
-void logfile_drain(const xrf_shm *shm, xrf_log_meta *meta, xrf_ring *ring, const void *slots,
-                   LogSink *sink, const char *program, bool final)
+void logfile_drain(const xrf_shm *shm, const xrf_log_meta *meta, xrf_ring *ring, const void *slots,
+                   uint32_t capacity, LogSink *sink, const char *program, bool final)
 {
-    xrf_log_meta &m = *meta;
-    if (__atomic_load_n(&m.ready, __ATOMIC_ACQUIRE) == 0)
+    if (__atomic_load_n(&meta->ready, __ATOMIC_ACQUIRE) == 0)
         return;
-    uint64_t gen = __atomic_load_n(&m.generation, __ATOMIC_ACQUIRE);
+    uint64_t gen = __atomic_load_n(&meta->generation, __ATOMIC_ACQUIRE);
     if (gen != sink->generation) {
         logfile_close(sink);
-        sink->generation = gen;
-        char path[XRF_PATH_MAX + 1];
-        std::memcpy(path, m.path, XRF_PATH_MAX);
-        path[XRF_PATH_MAX] = '\0';
-        mkdirParents(path);
-        sink->fd =
-            open(path, O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC, m.file_mode ? m.file_mode : 0644);
-        if (sink->fd < 0 || !writeHeader(sink->fd, sink, shm, m, ring->slot_size, program)) {
+        int rc = xrf_log_meta_check(meta, ring, capacity, &sink->meta, &sink->geom, &sink->tail);
+        if (rc == -EAGAIN)
+            return; // published meanwhile: taken at the next drain
+        sink->generation = rc == 0 ? sink->meta.generation : gen;
+        sink->layout_ok = rc == 0;
+        if (rc != 0) {
+            std::fprintf(stderr, "xrf: the log layout in the shared memory is not one the logger "
+                                 "publishes (overwritten?); logging stops\n");
+            return;
+        }
+        const xrf_log_meta &m = sink->meta;
+        mkdirParents(m.path);
+        sink->fd = open(m.path, O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC,
+                        m.file_mode ? m.file_mode : 0644);
+        if (sink->fd < 0 || !writeHeader(sink->fd, sink, shm, m, sink->geom.slot_size, program)) {
             int err = errno;
-            std::fprintf(stderr, "xrf: cannot write the log file %s: %s%s; logging stops\n", path,
+            std::fprintf(stderr, "xrf: cannot write the log file %s: %s%s; logging stops\n", m.path,
                          std::strerror(err), logfile_write_hint(err));
             if (sink->fd >= 0)
                 close(sink->fd);
@@ -119,10 +125,12 @@ void logfile_drain(const xrf_shm *shm, xrf_log_meta *meta, xrf_ring *ring, const
             sink->reported = false;
         }
     }
-    uint32_t n = 0;
-    const void *run;
-    while ((run = xrf_spsc_peek_run(ring, slots, &n)) != nullptr) {
-        if (sink->fd >= 0 && !writeAll(sink->fd, run, (size_t)n * ring->slot_size)) {
+    if (!sink->layout_ok)
+        return;
+    const void *run = nullptr;
+    int n;
+    while ((n = xrf_spsc_peek_run_g(ring, &sink->geom, slots, sink->tail, &run)) > 0) {
+        if (sink->fd >= 0 && !writeAll(sink->fd, run, (size_t)n * sink->geom.slot_size)) {
             if (!sink->reported)
                 std::fprintf(stderr,
                              "xrf: writing the log file failed (%s); logging stops, the "
@@ -133,7 +141,7 @@ void logfile_drain(const xrf_shm *shm, xrf_log_meta *meta, xrf_ring *ring, const
             sink->fd = -1;
         }
         // Consumed either way: a dead disk must not turn into a full ring that hides the cause.
-        xrf_spsc_release_n(ring, n);
+        xrf_spsc_release_g(ring, &sink->tail, (uint32_t)n);
     }
     if (final && sink->fd >= 0)
         fsync(sink->fd);

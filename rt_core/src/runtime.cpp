@@ -86,6 +86,9 @@ int Options::fromEnvironment()
     x = cpu;
     ok &= envLong("XRF_CPU", -1, 1023, &x);
     cpu = (int)x;
+    x = -1;
+    ok &= envLong("XRF_SHM_FD", -1, 1 << 20, &x);
+    shm_fd = (int)x;
     x = priority;
     ok &= envLong("XRF_PRIO", -1, 99, &x);
     priority = (int)x;
@@ -230,9 +233,36 @@ xrf_ico_transport *Runtime::transport()
     return transport_;
 }
 
+int Runtime::mapShm(int fd, const char *what)
+{
+    shm_size_ = sizeof(xrf_shm);
+    void *p = mmap(nullptr, shm_size_, PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
+    close(fd);
+    if (p == MAP_FAILED) {
+        int e = errno;
+        std::fprintf(stderr, "xrf: cannot map shared memory %s: %s\n", what, std::strerror(e));
+        return -e;
+    }
+    // Touch every page now: the loop must not take a page fault on its first telemetry slot.
+    std::memset(p, 0, shm_size_);
+    shm_ = static_cast<xrf_shm *>(p);
+    xrf_shm_init(shm_);
+    return 0;
+}
+
 int Runtime::createShm()
 {
     const Options &o = options();
+    if (o.shm_fd >= 0) {
+        // Made and sized by the appliance (a sealed memfd): mapped as it is, never resized.
+        struct stat st;
+        if (fstat(o.shm_fd, &st) != 0 || (size_t)st.st_size < sizeof(xrf_shm)) {
+            std::fprintf(stderr, "xrf: XRF_SHM_FD=%d is not a segment of %zu bytes\n", o.shm_fd,
+                         sizeof(xrf_shm));
+            return -EINVAL;
+        }
+        return mapShm(o.shm_fd, "XRF_SHM_FD");
+    }
     char path[XRF_NAME_MAX + 16];
     std::snprintf(path, sizeof path, "/%s", o.shm_name);
     int fd = shm_open(path, O_RDWR | O_CREAT | O_EXCL, 0660);
@@ -270,25 +300,13 @@ int Runtime::createShm()
         return -e;
     }
     fchmod(fd, 0660); // the umask must not make it world-writable nor unreadable for the group
-    shm_size_ = sizeof(xrf_shm);
-    if (ftruncate(fd, (off_t)shm_size_) != 0) {
+    if (ftruncate(fd, (off_t)sizeof(xrf_shm)) != 0) {
         int e = errno;
         close(fd);
         std::fprintf(stderr, "xrf: cannot size shared memory %s: %s\n", path, std::strerror(e));
         return -e;
     }
-    void *p = mmap(nullptr, shm_size_, PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
-    close(fd);
-    if (p == MAP_FAILED) {
-        int e = errno;
-        std::fprintf(stderr, "xrf: cannot map shared memory %s: %s\n", path, std::strerror(e));
-        return -e;
-    }
-    // Touch every page now: the loop must not take a page fault on its first telemetry slot.
-    std::memset(p, 0, shm_size_);
-    shm_ = static_cast<xrf_shm *>(p);
-    xrf_shm_init(shm_);
-    return 0;
+    return mapShm(fd, path);
 }
 
 int Runtime::enter(unsigned cycle_freq)
@@ -633,11 +651,15 @@ void Runtime::helperDrain(bool final)
 {
     xrf_monitor_line line;
     uint64_t lost = 0;
-    while (xrf_bcast_read(&shm_->monitor_ring, shm_->monitor, &monitor_cursor_, &line, &lost) ==
-           1) {
+    // The geometry xrf_shm_init gave the ring, from this side's own memory (channels.h: a
+    // reader never takes it from the segment, the loop's own helper included).
+    static const xrf_ring_geom geom = {XRF_MONITOR_SLOTS, sizeof(xrf_monitor_line)};
+    while (xrf_bcast_read_g(&shm_->monitor_ring, &geom, shm_->monitor, &monitor_cursor_, &line,
+                            &lost) == 1) {
         if (!options_.quiet) {
-            std::fwrite(line.text, 1, line.len, stdout);
-            if (line.len == 0 || line.text[line.len - 1] != '\n')
+            const uint32_t len = line.len < XRF_MONITOR_TEXT ? line.len : XRF_MONITOR_TEXT;
+            std::fwrite(line.text, 1, len, stdout);
+            if (len == 0 || line.text[len - 1] != '\n')
                 std::fputc('\n', stdout);
         }
     }
@@ -646,11 +668,11 @@ void Runtime::helperDrain(bool final)
                      (unsigned long long)lost);
     std::fflush(stdout);
     if (shm_->log_meta.writer == XRF_LOG_WRITER_PROCESS)
-        logfile_drain(shm_, &shm_->log_meta, &shm_->log_ring, shm_->log_data, &log_sink_, program_,
-                      final);
+        logfile_drain(shm_, &shm_->log_meta, &shm_->log_ring, shm_->log_data, XRF_LOG_RING_BYTES,
+                      &log_sink_, program_, final);
     if (timing_on_ && shm_->timing_meta.writer == XRF_LOG_WRITER_PROCESS)
-        logfile_drain(shm_, &shm_->timing_meta, &shm_->timing_ring, shm_->timing, &timing_sink_,
-                      program_, final);
+        logfile_drain(shm_, &shm_->timing_meta, &shm_->timing_ring, shm_->timing,
+                      sizeof shm_->timing, &timing_sink_, program_, final);
 }
 
 void Runtime::leave()

@@ -121,10 +121,14 @@ static void test_broadcast(void)
 
     uint64_t cursor = 0, lost = 0, got = 0, torn = 0, gaps_unaccounted = 0, expected = 0;
     struct test_slot out;
+    struct xrf_ring_geom geom;
+    CHECK(xrf_ring_geom_check(&f.ring, 64, sizeof(struct test_slot), 64 * sizeof(struct test_slot),
+                              &geom) == 0,
+          "broadcast: geometry refused");
     for (;;) {
         int finished = __atomic_load_n(&f.done, __ATOMIC_ACQUIRE);
         uint64_t lost_before = lost;
-        if (xrf_bcast_read(&f.ring, f.slots, &cursor, &out, &lost)) {
+        if (xrf_bcast_read_g(&f.ring, &geom, f.slots, &cursor, &out, &lost) == 1) {
             got++;
             if (!intact(out.words, out.hdr.cycle))
                 torn++;
@@ -187,9 +191,20 @@ static void test_spsc(int retry_when_full)
     pthread_create(&producer, NULL, spsc_producer, &f);
 
     uint64_t got = 0, torn = 0, out_of_order = 0, skipped = 0, next = 0, consumed = 0;
+    uint64_t tail = 0;
+    struct xrf_ring_geom geom;
+    CHECK(xrf_ring_geom_check(&f.ring, 256, sizeof(struct test_slot),
+                              256 * sizeof(struct test_slot), &geom) == 0,
+          "%s: geometry refused", mode);
     for (;;) {
         int finished = __atomic_load_n(&f.done, __ATOMIC_ACQUIRE);
-        const struct test_slot *s = xrf_spsc_peek(&f.ring, f.slots);
+        const void *first = NULL;
+        int ready = xrf_spsc_peek_run_g(&f.ring, &geom, f.slots, tail, &first);
+        if (ready < 0) {
+            CHECK(0, "%s: peek refused a sound ring (%d)", mode, ready);
+            break;
+        }
+        const struct test_slot *s = ready > 0 ? first : NULL;
         if (!s) {
             if (finished)
                 break;
@@ -197,7 +212,7 @@ static void test_spsc(int retry_when_full)
             continue;
         }
         struct test_slot copy = *s;
-        xrf_spsc_release(&f.ring);
+        xrf_spsc_release_g(&f.ring, &tail, 1);
         got++;
         if (!intact(copy.words, copy.hdr.seq))
             torn++;

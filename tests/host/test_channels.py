@@ -37,6 +37,9 @@ class SlotRing:
         self.ring = ffi.new("struct xrf_ring *")
         self.slots = ffi.new("uint64_t[]", nslots * SLOT_SIZE // 8)  # 8-byte aligned storage
         lib.xrf_ring_init(self.ring, nslots, SLOT_SIZE)
+        # The reader's own copy of the geometry, as a host takes it at attach.
+        self.geom = ffi.new("struct xrf_ring_geom *")
+        assert lib.xrf_ring_geom_check(self.ring, nslots, SLOT_SIZE, nslots * SLOT_SIZE, self.geom) == 0
 
     def slot_words(self, slot) -> tuple[int, int, list[int]]:
         """(seq, cycle, payload) of a slot pointer."""
@@ -62,7 +65,7 @@ class BroadcastReader:
 
     def drain(self) -> list[tuple[int, list[int]]]:
         got = []
-        while lib.xrf_bcast_read(self.ring.ring, self.ring.slots, self.cursor, self.out, self.lost):
+        while lib.xrf_bcast_read_g(self.ring.ring, self.ring.geom, self.ring.slots, self.cursor, self.out, self.lost) == 1:
             _seq, cycle, payload = self.ring.slot_words(self.out)
             got.append((cycle, payload))
         return got
@@ -170,6 +173,8 @@ def test_spsc_no_loss_until_full_and_dropped_counted(nslots: int, ops) -> None:
     ring = SlotRing(nslots)
     queue: list[int] = []
     produced = dropped = 0
+    tail = ffi.new("uint64_t *", 0)  # the consumer's own position
+    first = ffi.new("void **")
     for op, n in ops:
         for _ in range(n):
             if op == "produce":
@@ -184,14 +189,15 @@ def test_spsc_no_loss_until_full_and_dropped_counted(nslots: int, ops) -> None:
                     queue.append(produced)
                 produced += 1
             else:
-                slot = lib.xrf_spsc_peek(ring.ring, ring.slots)
+                ready = lib.xrf_spsc_peek_run_g(ring.ring, ring.geom, ring.slots, tail[0], first)
                 if not queue:
-                    assert slot == ffi.NULL
+                    assert ready == 0 and first[0] == ffi.NULL
                     continue
-                _seq, cycle, payload = ring.slot_words(slot)
+                assert 1 <= ready <= len(queue)
+                _seq, cycle, payload = ring.slot_words(first[0])
                 expected = queue.pop(0)
                 assert cycle == expected and payload == pattern(expected)
-                lib.xrf_spsc_release(ring.ring)
+                lib.xrf_spsc_release_g(ring.ring, tail, 1)
         assert ring.ring.dropped == dropped
     assert ring.ring.head - ring.ring.tail == len(queue)
 
@@ -513,6 +519,7 @@ def test_rings_stress_in_c(repo_root: Path, tmp_path: Path) -> None:
             "-I",
             str(repo_root / "rt_core" / "include"),
             str(repo_root / "rt_core" / "src" / "channels.c"),
+            str(repo_root / "rt_core" / "src" / "logformat.c"),  # the log type table (xrf_log_meta_check)
             str(repo_root / "rt_core" / "tests" / "test_rings_stress.c"),
             "-o",
             str(exe),

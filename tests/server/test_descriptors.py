@@ -209,13 +209,28 @@ class Sampler:
                         continue
                     self.fds.setdefault(pid, {}).setdefault(fd, target)
                     # The run sandbox's launcher is passed one pipe on purpose: its report to the
-                    # appliance (pass_fds); the controller it execs gets none of it.
-                    passed = "xrflab.guest" in cmd and target.startswith("pipe:")
+                    # appliance (pass_fds); the controller it execs gets none of it. The run's
+                    # segment (a sealed memfd the appliance made) goes to the launcher and on to
+                    # the controller on purpose too, and to nothing else.
+                    passed = ("xrflab.guest" in cmd and target.startswith("pipe:")) or (
+                        target.startswith("/memfd:xrf-run-") and self._in_sandbox(pid)
+                    )
                     if target in self.forbidden or (
                         target in ours and not passed and self._shares(pid, fd, ours[target])
                     ):
                         self.bad.append(f"pid {pid} ({cmd[:120]}): fd {fd} -> {target}")
             time.sleep(0.005)
+
+    def _in_sandbox(self, pid: int) -> bool:
+        """`pid` is the run sandbox's launcher or runs below it (its init, the controller)."""
+        while pid > 1 and pid != self.root:
+            if "xrflab.guest" in cmdline(pid):
+                return True
+            try:
+                pid = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                return False
+        return False
 
     def _shares(self, pid: int, fd: int, root_fds: list[int]) -> bool:
         """Is `pid`'s fd one of the appliance's open file descriptions (inherited or passed), not

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from .binding import ffi, lib
 from .commands import CommandResult
-from .errors import ChannelsError, CommandRingFull, CommandTimeout
+from .errors import ChannelsCorrupt, ChannelsError, CommandRingFull, CommandTimeout
 from .host import Channels
 from .names import (
     COMMAND_NUMBERS,
@@ -47,6 +47,7 @@ __all__ = [
     "STAGE_NAMES",
     "STATE_NUMBERS",
     "Channels",
+    "ChannelsCorrupt",
     "ChannelsError",
     "CommandResult",
     "CommandRingFull",

@@ -13,7 +13,7 @@ import time
 from dataclasses import dataclass
 
 from .binding import CData, c_str, ffi, lib
-from .errors import ChannelsError, CommandRingFull, CommandTimeout
+from .errors import ChannelsCorrupt, ChannelsError, CommandRingFull, CommandTimeout
 from .names import command_number, state_name
 from .status import read_status, status_from_struct
 
@@ -36,6 +36,10 @@ def send(shm: CData, name: str, cmd: str | int, source: int) -> int:
             f"{name}: command ring full ({lib.XRF_CMD_SLOTS} pending): "
             "the loop is not taking commands (is it still running?)"
         )
+    if ticket in (-errno.EBUSY, -errno.EPROTO):
+        # No slot free for its position after many tries, or a head no ticket can follow: the
+        # loop wrote the ring's counters (a real loop only moves its tail).
+        raise ChannelsCorrupt(f"{name}: the command ring's head and slot sequence numbers do not fit together")
     if ticket <= 0:
         raise ChannelsError(f"{name}: xrf_cmd_send failed ({ticket})")
     return int(ticket)

@@ -12,6 +12,13 @@ class ChannelsError(RuntimeError):
     """The shared memory is missing, foreign, or a channel refused an operation."""
 
 
+class ChannelsCorrupt(ChannelsError):
+    """The loop broke the rules of its segment: a ring's geometry, a head or tail, a log layout,
+    a schema is not one the runtime writes. Everything in the segment is the loop's (a student's
+    program) to write: a reader that sees this stops trusting the segment, and the appliance
+    stops the run (alarm and end reason ``corrupt_channel``). The message says what was wrong."""
+
+
 class CommandRingFull(ChannelsError):
     """The loop is not taking commands (stopped cycling, or far behind)."""
 

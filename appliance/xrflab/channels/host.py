@@ -14,11 +14,11 @@ import os
 import time
 from typing import TYPE_CHECKING, Any
 
-from ..msgdef import Codec
+from ..msgdef import Codec, MsgError
 from . import commands, segment
 from .binding import CData, c_str, ffi, lib
 from .commands import CommandResult
-from .errors import ChannelsError
+from .errors import ChannelsCorrupt, ChannelsError
 from .names import HOST_LOST_ACTIONS, STAGE_NAMES
 from .rings import MonitorReader, TelemetryReader
 from .segment import Identity, shm_path
@@ -32,19 +32,64 @@ def _char_array_fields(ctype: CData) -> set[str]:
     return {name for name, f in ctype.fields if f.type.kind == "array" and f.type.item.cname == "char"}
 
 
+# What the runtime writes into xrf_info (runtime.cpp, Runtime::enter): a value outside these is
+# not a loop of ours speaking, and nothing downstream (the watcher's period and priority, the
+# codecs) may take it.
+_INFO_RANGES = {
+    "cycle_freq": (1, 100_000),
+    "priority": (0, 99),
+    "cpu": (-1, 1 << 16),
+    "rt_sched": (0, 1),
+    "ros2xeno_size": (0, lib.XRF_MSG_MAX),
+    "xeno2ros_size": (0, lib.XRF_MSG_MAX),
+}
+
+
+def take_info(name: str, shm: CData) -> dict[str, Any]:
+    """The loop's info block, copied once into our memory and checked (ChannelsCorrupt): the
+    loop writes it before `ready` and never again, so what it says later is not taken."""
+    ctype = ffi.typeof("struct xrf_info")
+    copy = ffi.new("struct xrf_info *")
+    ffi.memmove(copy, ffi.addressof(shm, "info"), ffi.sizeof(ctype))
+    strings = _char_array_fields(ctype)
+    # c_str stops at the array's end: a name without its NUL is cut, never read beyond.
+    info = {f: c_str(getattr(copy, f)) if f in strings else int(getattr(copy, f)) for f, _ in ctype.fields}
+    for field, (low, high) in _INFO_RANGES.items():
+        if not low <= info[field] <= high:
+            raise ChannelsCorrupt(f"{name}: info.{field} = {info[field]}, outside {low}..{high}")
+    return info
+
+
+def take_codec(name: str, info: dict[str, Any], which: str) -> Codec:
+    """The codec of a message from the schema in the info copy: parsed by msgdef's bounded parser
+    (at most XRF_MSG_MAX bytes of scalars and fixed arrays), else ChannelsCorrupt."""
+    try:
+        return Codec(info[f"{which}_schema"])
+    except (MsgError, ValueError, OverflowError) as exc:
+        raise ChannelsCorrupt(f"{name}: the {which} schema in the info block does not parse: {exc}") from None
+
+
 class Channels:
     """One loop's shared memory, mapped read-write (commands and Ros2Xeno go host -> loop)."""
 
     def __init__(self, name: str, mapping: mmap.mmap, identity: Identity | None = None) -> None:
+        """`mapping`: the whole segment, its loop ready. Takes what is constant for the run into
+        our own memory now -- the fixed rings' geometry, the info block, the codecs -- checked
+        (ChannelsCorrupt); nothing of it is read from the segment again."""
         self.name = name
         self._mmap = mapping
         # (st_dev, st_ino) of the object mapped: a loop that replaces it (same name, new object:
         # runtime.cpp unlinks and re-creates) or its removal is seen by comparing (replaced()).
         self.identity = identity
         self.shm = ffi.from_buffer("struct xrf_shm *", mapping)
-        self._info: dict[str, Any] | None = None
-        self._ros2xeno_codec: Codec | None = None
-        self._xeno2ros_codec: Codec | None = None
+        try:
+            self.geom: CData = segment.take_geometry(name, self.shm, len(mapping))
+            self._info = take_info(name, self.shm)
+            self._ros2xeno_codec = take_codec(name, self._info, "ros2xeno")
+            self._xeno2ros_codec = take_codec(name, self._info, "xeno2ros")
+        except ChannelsError:
+            self.close()
+            raise
 
     # -- opening ------------------------------------------------------------------------------
 
@@ -53,6 +98,19 @@ class Channels:
         """Map /dev/shm/<name>, wait up to wait_s for the loop to publish `ready`, check the layout."""
         mapping, identity = segment.attach(shm_path(name), wait_s)
         return cls(name, mapping, identity)
+
+    @classmethod
+    def open_fd(cls, fd: int, name: str, wait_s: float = 5.0) -> Channels:
+        """Map the segment behind `fd` (a run's sealed memfd, which the appliance made: see
+        segment_fd.py) and wait up to wait_s for its loop to publish `ready`. `name`: the run's
+        segment name, for messages and replaced(). The descriptor stays the caller's."""
+        mapping = segment.map_fd(fd, name)
+        try:
+            segment.wait_ready(name, mapping, wait_s)
+        except BaseException:
+            mapping.close()
+            raise
+        return cls(name, mapping, None)
 
     def close(self) -> None:
         """Unmap. Objects read from this Channels (readers, cdata) must not be used afterwards."""
@@ -73,25 +131,15 @@ class Channels:
 
     @property
     def info(self) -> dict[str, Any]:
-        if self._info is None:
-            info = self.shm.info
-            strings = _char_array_fields(ffi.typeof("struct xrf_info"))
-            self._info = {
-                name: c_str(getattr(info, name)) if name in strings else int(getattr(info, name))
-                for name, _ in ffi.typeof("struct xrf_info").fields
-            }
+        """The info block as the loop published it before `ready` (copied at open)."""
         return self._info
 
     @property
     def ros2xeno_codec(self) -> Codec:
-        if self._ros2xeno_codec is None:
-            self._ros2xeno_codec = Codec(self.info["ros2xeno_schema"])
         return self._ros2xeno_codec
 
     @property
     def xeno2ros_codec(self) -> Codec:
-        if self._xeno2ros_codec is None:
-            self._xeno2ros_codec = Codec(self.info["xeno2ros_schema"])
         return self._xeno2ros_codec
 
     # -- status -------------------------------------------------------------------------------

@@ -3,6 +3,8 @@
 The loop overwrites its rings without waiting for anyone (``xrf_bcast_*`` in channels.c). Each
 reader keeps its own cursor, so any number of hosts can watch the same loop without disturbing
 it or each other, and counts in ``lost`` what the loop overwrote before the reader got to it.
+The ring's geometry is the one ``Channels`` took at open (``xrf_bcast_read_g``): a slot is
+copied into our memory whole, and its sizes (``size``, ``len``) are bounded before use.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
 from .binding import CData, ffi, lib
+from .errors import ChannelsCorrupt
 
 if TYPE_CHECKING:
     from .host import Channels
@@ -45,9 +48,15 @@ Item = TypeVar("Item")
 class _BroadcastReader(Generic[Item]):
     """A private cursor over one broadcast ring; counts what the loop overwrote before we read."""
 
-    def __init__(self, ring: CData, slots: CData, slot_type: str, from_start: bool) -> None:
+    def __init__(self, name: str, ring: CData, geom: CData, slots: CData, slot_type: str, from_start: bool) -> None:
+        self._name = name
         self._ring = ring
+        # A copy of its own: the reader may outlive the Channels' attributes it came from.
+        self._geom = ffi.new("struct xrf_ring_geom *", {"slots": geom.slots, "slot_size": geom.slot_size})
         self._slots = slots
+        # xrf_bcast_read_g copies geom.slot_size bytes into _out: Channels checked that it is
+        # the slot type's size.
+        assert geom.slot_size == ffi.sizeof(slot_type)
         head = lib.xrfpy_load_u64(ffi.addressof(ring, "head"))
         self._cursor = ffi.new("uint64_t *", 0 if from_start else head)
         self._lost = ffi.new("uint64_t *", 0)
@@ -62,9 +71,18 @@ class _BroadcastReader(Generic[Item]):
         return int(self._cursor[0])
 
     def read(self, max_items: int | None = None) -> list[Item]:
+        """What was published since the last read, at most one ring's worth (or `max_items`): a
+        loop that keeps moving its head cannot keep a reader here."""
         items: list[Item] = []
-        while max_items is None or len(items) < max_items:
-            if not lib.xrf_bcast_read(self._ring, self._slots, self._cursor, self._out, self._lost):
+        limit = int(self._geom.slots) if max_items is None else min(max_items, int(self._geom.slots))
+        while len(items) < limit:
+            rc = lib.xrf_bcast_read_g(self._ring, self._geom, self._slots, self._cursor, self._out, self._lost)
+            if rc < 0:
+                head = int(lib.xrfpy_load_u64(ffi.addressof(self._ring, "head")))
+                raise ChannelsCorrupt(
+                    f"{self._name}: a ring's head went back from {self.cursor} to {head} (publications are never taken back)"
+                )
+            if rc == 0:
                 break
             items.append(self._convert(self._out))
         return items
@@ -76,7 +94,14 @@ class _BroadcastReader(Generic[Item]):
 class TelemetryReader(_BroadcastReader[Telemetry]):
     def __init__(self, channels: Channels, from_start: bool = False) -> None:
         shm = channels.shm
-        super().__init__(ffi.addressof(shm, "telem_ring"), shm.telem, "struct xrf_telemetry", from_start)
+        super().__init__(
+            channels.name,
+            ffi.addressof(shm, "telem_ring"),
+            ffi.addressof(channels.geom, "telem"),
+            shm.telem,
+            "struct xrf_telemetry",
+            from_start,
+        )
         self._codec = channels.xeno2ros_codec
 
     def _convert(self, t: CData) -> Telemetry:
@@ -97,7 +122,14 @@ class TelemetryReader(_BroadcastReader[Telemetry]):
 class MonitorReader(_BroadcastReader[MonitorLine]):
     def __init__(self, channels: Channels, from_start: bool = False) -> None:
         shm = channels.shm
-        super().__init__(ffi.addressof(shm, "monitor_ring"), shm.monitor, "struct xrf_monitor_line", from_start)
+        super().__init__(
+            channels.name,
+            ffi.addressof(shm, "monitor_ring"),
+            ffi.addressof(channels.geom, "monitor"),
+            shm.monitor,
+            "struct xrf_monitor_line",
+            from_start,
+        )
 
     def _convert(self, m: CData) -> MonitorLine:
         n = min(m.len, lib.XRF_MONITOR_TEXT)

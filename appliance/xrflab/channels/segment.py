@@ -8,13 +8,15 @@ and a segment is removed only when it is still the one its loop process made.
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import mmap
 import os
 import time
 from pathlib import Path
 
 from .binding import CData, ffi, lib
-from .errors import ChannelsError
+from .errors import ChannelsCorrupt, ChannelsError
 
 SHM_DIR = Path("/dev/shm")
 SHM_SIZE: int = ffi.sizeof("struct xrf_shm")
@@ -75,6 +77,87 @@ def check_layout(path: Path, shm: CData) -> None:
         )
     if shm.size != SHM_SIZE:
         raise ChannelsError(f"{path}: layout size {shm.size} bytes, expected {SHM_SIZE}")
+
+
+def take_geometry(where: str | Path, shm: CData, mapped: int) -> CData:
+    """The geometry of the segment's fixed rings (telemetry, monitor), checked once against this
+    layout and the mapping's size, in our own memory (a ``struct xrf_shm_geom *``): the readers
+    use it and never read a ring's slots or slot size from the segment again (channels.h,
+    "reading a segment"). ChannelsCorrupt when the loop's ring headers say otherwise."""
+    geom = ffi.new("struct xrf_shm_geom *")
+    rc = lib.xrf_shm_check(shm, mapped, geom)
+    if rc == -errno.EINVAL:
+        raise ChannelsError(f"{where}: {mapped} bytes mapped, the layout needs {SHM_SIZE}")
+    if rc != 0:
+        # Read once more, for the message only: what the loop claims now.
+        rings = ", ".join(
+            f"{name} ring {int(getattr(shm, name).slots)} slots of {int(getattr(shm, name).slot_size)} bytes"
+            for name in ("telem_ring", "monitor_ring")
+        )
+        raise ChannelsCorrupt(
+            f"{where}: the segment's header or ring geometry is not this layout's ({rings}; the layout has "
+            f"{lib.XRF_TELEM_SLOTS} x {ffi.sizeof('struct xrf_telemetry')} and "
+            f"{lib.XRF_MONITOR_SLOTS} x {ffi.sizeof('struct xrf_monitor_line')})"
+        )
+    return geom
+
+
+# F_SEAL_* (linux/fcntl.h): Python's fcntl has them from 3.8 on Linux.
+SEALS = fcntl.F_SEAL_SHRINK | fcntl.F_SEAL_GROW | fcntl.F_SEAL_SEAL
+
+
+def create_sealed(label: str) -> int:
+    """A new segment for a loop the appliance starts: a memfd of the layout's size whose size is
+    sealed (no shrink, no growth, no further seals), so the loop -- which maps it read-write --
+    cannot truncate it under the appliance's mapping (SIGBUS on the next read). The loop gets
+    the descriptor (XRF_SHM_FD) instead of creating /dev/shm/<name> itself. Close-on-exec: pass
+    it on explicitly. `label`: its name in /proc/<pid>/fd (memfd:<label>)."""
+    fd = os.memfd_create(label, os.MFD_CLOEXEC | os.MFD_ALLOW_SEALING)
+    try:
+        os.ftruncate(fd, SHM_SIZE)
+        fcntl.fcntl(fd, fcntl.F_ADD_SEALS, SEALS)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def is_sealed(fd: int) -> bool:
+    """The descriptor's size is sealed as create_sealed seals it."""
+    try:
+        return fcntl.fcntl(fd, fcntl.F_GET_SEALS) & SEALS == SEALS
+    except OSError:  # not a memfd (a tmpfs file from shm_open)
+        return False
+
+
+def map_fd(fd: int, where: str | Path) -> mmap.mmap:
+    """Map the segment behind descriptor `fd` (a run's sealed memfd: the appliance made it and
+    fixed its size, so no one can shrink it under the mapping)."""
+    size = os.fstat(fd).st_size
+    if size < SHM_SIZE:
+        raise ChannelsError(f"{where}: {size} bytes, the layout needs {SHM_SIZE}")
+    return mmap.mmap(fd, SHM_SIZE, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
+
+
+def wait_ready(where: str | Path, mapping: mmap.mmap, wait_s: float) -> None:
+    """Wait up to wait_s for the loop to initialise the mapped segment and publish ``ready``,
+    its layout checked."""
+    deadline = time.monotonic() + wait_s
+    shm = ffi.from_buffer("struct xrf_shm *", mapping)
+    try:
+        while True:
+            if lib.xrfpy_load_u32(ffi.addressof(shm, "magic")) == 0:
+                waiting_for = "the loop to initialise it"
+            else:
+                check_layout(Path(str(where)), shm)
+                if lib.xrfpy_load_u32(ffi.addressof(shm, "ready")):
+                    return
+                waiting_for = "the loop to mark it ready"
+            if time.monotonic() >= deadline:
+                raise ChannelsError(f"{where}: gave up after {wait_s:g} s waiting for {waiting_for}")
+            time.sleep(0.01)
+    finally:
+        del shm
 
 
 def attach(path: Path, wait_s: float) -> tuple[mmap.mmap, Identity | None]:

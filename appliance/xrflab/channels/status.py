@@ -2,7 +2,9 @@
 
 The loop writes the block every cycle under a seqlock (``xrf_status_read`` in channels.c retries
 a torn read); a reader copies it out whole and converts the copy, so one snapshot never mixes two
-cycles. ``read_status`` gives up when the block stays locked: a loop that died mid-write.
+cycles. ``read_status`` gives up when the block stays locked: a loop that died mid-write (or one
+that flips the lock on purpose: the tries are bounded, a few ms in all). Every field is a number
+of a fixed width; the strings are cut at their array's end.
 """
 
 from __future__ import annotations
@@ -15,7 +17,9 @@ from .binding import CData, c_str, ffi, lib
 from .errors import ChannelsError
 from .names import state_name
 
-_STATUS_READ_ATTEMPTS = 100
+# Each attempt is up to XRF_STATUS_TRIES (1000) copies in C; a real loop holds the lock for well
+# under a microsecond a cycle, so a few attempts always succeed.
+_STATUS_READ_ATTEMPTS = 10
 
 
 @dataclass(frozen=True)

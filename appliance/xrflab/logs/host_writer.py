@@ -11,6 +11,11 @@ to the file the loop names then. It wakes on the loop's doorbell (futex, no poll
 loop process is gone, a crashed or killed loop loses nothing that reached the ring: ``finish()``
 drains the rest.
 
+A loop that breaks the rules of its log channel (a layout the logger never publishes, a ring
+head beyond what the ring holds: log_channel.py checks both) stops this writer: the file keeps
+its complete records up to there, nothing of the segment is read again, and ``on_corrupt``
+tells the supervisor, which stops the run (``corrupt_channel``).
+
 Faults: the loop never waits on us: if we stall, the ring fills and the loop counts
 ``log_lost`` (sequence numbers make the gap visible). A write that fails (disk full, I/O error,
 file too large) stops logging for the run, cuts the file back to its last complete record
@@ -36,7 +41,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .log_channel import LogChannel
+from ..channels.errors import ChannelsCorrupt
+from .log_channel import LogChannel, SegmentLayout
 from .record_file import PartialWrite, RecordFile
 from .runfolder import RunPathError, confine
 from .timing_series import TimingSeries
@@ -74,6 +80,7 @@ class HostLogWriter:
         timing: bool = True,
         source: str = "log",
         on_note: Callable[[str], None] | None = None,
+        on_corrupt: Callable[[ChannelsCorrupt], None] | None = None,
     ) -> None:
         self._ch = ch
         self._chan = LogChannel(ch, source)
@@ -83,6 +90,8 @@ class HostLogWriter:
         self._on_alarm = on_alarm
         self._on_note = on_note
         self._on_records = on_records
+        self._on_corrupt = on_corrupt
+        self.corrupt = ""  # what the loop broke, once it did: nothing is read from then on
         self._timing = TimingSeries(ch, run_dir) if timing else None
         self.stats = WriterStats()
         self._file: RecordFile | None = None
@@ -115,7 +124,7 @@ class HostLogWriter:
         try:
             status = self._ch.status()
             self.stats.lost = int(status.log_lost)
-            if not self._chan.host_writes() and self._chan.ready():
+            if self._chan.taken and not self._chan.host_writes():
                 self.stats.records = int(status.log_written)  # XRF_LOG_WRITER=process wrote them
         except Exception:  # status locked by a loop that died mid-write: the ring knows too
             self.stats.lost = self._chan.dropped()
@@ -137,10 +146,24 @@ class HostLogWriter:
         """Release the ring's records numbered <= `last_seq` without writing them: a dead
         appliance wrote them to the file but was killed before it released them (the read
         position lives in shared memory). Call before start(). Returns how many were skipped."""
+        with self._lock:
+            try:
+                return self._skip_through(last_seq)
+            except ChannelsCorrupt as exc:
+                self._corrupted(exc)
+                return 0
+
+    def _skip_through(self, last_seq: int) -> int:
+        if not self._chan.taken:
+            layout = self._chan.take_layout() if self._chan.ready() else None
+            if layout is None:
+                return 0
+            # The segment is opened as the dead appliance's was: the same generation, appended.
+            self._open_segment(layout)
         stride = self._chan.slot_size()
         skipped = 0
         while True:
-            run = self._chan.peek_run(stride)
+            run = self._chan.peek_run()
             if run is None:
                 return skipped
             buf, n = run
@@ -162,35 +185,61 @@ class HostLogWriter:
     def drain(self, final: bool = False) -> int:
         """Write every ready record; returns how many were taken from the ring."""
         with self._lock:
-            if not self._chan.host_writes():
+            if self.corrupt:
                 return 0
-            gen = self._chan.generation()
-            if gen != self._generation:
-                self._open_segment(gen)
-            taken = 0
-            while True:
-                run = self._chan.peek_run(self._stride)
-                if run is None:
-                    break
-                buf, n = run
-                if self._on_records is not None and self._dtype is not None:
-                    # A copy: the slots are reused as soon as they are released.
-                    self._on_records(np.frombuffer(bytes(buf), dtype=self._dtype))
-                self._write(buf, n)
-                self._chan.release(n)
-                taken += n
-            return taken
+            try:
+                return self._drain()
+            except ChannelsCorrupt as exc:
+                self._corrupted(exc)
+                return 0
 
-    def _open_segment(self, gen: int) -> None:
-        layout = self._chan.layout()
-        self._generation = gen
+    def _corrupted(self, exc: ChannelsCorrupt) -> None:
+        """The loop broke its log channel: stop here (the file ends at its last whole record)
+        and tell the supervisor, once."""
+        if self.corrupt:
+            return
+        self.corrupt = str(exc)
+        log.error("%s", exc)
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+        if self._on_corrupt is not None:
+            self._on_corrupt(exc)
+
+    def _drain(self) -> int:
+        if not self._chan.ready():
+            return 0
+        if self._chan.generation() != self._generation:
+            layout = self._chan.take_layout()
+            if layout is None:
+                return 0  # being published: the next drain takes it
+            self._open_segment(layout)
+        if not self._chan.host_writes():
+            return 0
+        taken = 0
+        while True:
+            run = self._chan.peek_run()
+            if run is None:
+                break
+            buf, n = run
+            if self._on_records is not None and self._dtype is not None:
+                # A copy: the slots are reused as soon as they are released.
+                self._on_records(np.frombuffer(bytes(buf), dtype=self._dtype))
+            self._write(buf, n)
+            self._chan.release(n)
+            taken += n
+        return taken
+
+    def _open_segment(self, layout: SegmentLayout) -> None:
+        """A new segment of the file for a layout just taken (LogChannel.take_layout)."""
+        self._generation = self._chan.taken_generation
         self._stride = layout.stride
         self._dtype = layout.dtype
         if self._file is not None:
             self._file.close()
             self._file = None
-        if self.stats.failed:
-            return
+        if self.stats.failed or not self._chan.host_writes():
+            return  # logging stopped, or the loop's own writer writes this layout
         published = layout.path
         # The loop names the file and is not trusted: the name is confined to the run folder
         # and opened without following symlinks (runfolder.py), whatever the loop published.

@@ -29,7 +29,7 @@ from .rerun_live import LiveRerun
 from .rerun_servers import LiveProxy
 
 if TYPE_CHECKING:
-    from ..channels import Channels
+    from ..channels import Channels, ChannelsCorrupt
 
 log = logging.getLogger("xrflab.logs.live")
 
@@ -52,16 +52,25 @@ def start(
     live: bool = True,
     log_timing: bool = False,
     on_note: Callable[[str], None] | None = None,
+    on_corrupt: Callable[[ChannelsCorrupt], None] | None = None,
 ) -> RunLogging:
     """Start the host writer (and the live rerun stream unless disabled or unavailable; and the
     timing writer when the loop logs its per-cycle timing). `on_note`: a line for the run's
-    console (where a log file went)."""
-    writer = HostLogWriter(ch, identity, run_dir, on_alarm=on_alarm, on_note=on_note)
+    console (where a log file went). `on_corrupt`: the loop broke a log channel (the writer of it
+    has stopped; the supervisor stops the run)."""
+    writer = HostLogWriter(ch, identity, run_dir, on_alarm=on_alarm, on_note=on_note, on_corrupt=on_corrupt)
     writer.start()
     rl = RunLogging(writer, None)
     if log_timing:
         rl.timing = HostLogWriter(
-            ch, identity, run_dir, on_alarm=on_alarm, timing=False, source="cycle_timing", on_note=on_note
+            ch,
+            identity,
+            run_dir,
+            on_alarm=on_alarm,
+            timing=False,
+            source="cycle_timing",
+            on_note=on_note,
+            on_corrupt=on_corrupt,
         )
         rl.timing.start()
     if live and os.environ.get("XRF_LIVE_RERUN", "1") != "0":

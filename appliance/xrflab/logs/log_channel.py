@@ -3,18 +3,23 @@
 A loop has two lossless log channels, each a layout block (``*_meta``: the variables, the file
 the loop names, who writes the file) and a single-producer ring of fixed-size records: the
 student's logger (``log``) and the per-cycle timing records (``cycle_timing``, XRF_LOG_TIMING=1).
-Everything here goes through rt_core's own functions via cffi (``xrf_spsc_peek_run``,
-``xrf_spsc_release_n``, the atomic loads, ``xrf_logfile_header``), so the host reads the ring and
-composes a segment header exactly as the loop's own writer does. The loop never waits for the
-host: what the host does not release in time, the loop counts as lost.
+Everything here goes through rt_core's own functions via cffi (``xrf_log_meta_check``,
+``xrf_spsc_peek_run_g``, ``xrf_spsc_release_g``, the atomic loads, ``xrf_logfile_header``), so the
+host reads the ring and composes a segment header exactly as the loop's own writer does. The
+loop never waits for the host: what the host does not release in time, the loop counts as lost.
 
 A channel's layout may change while the loop runs (the logger set up again): its
 ``generation`` counts the layouts, and each one starts a new segment of the file
-(``SegmentLayout``).
+(``SegmentLayout``). The loop is not trusted with any of it: when the generation changes, the
+layout is copied once into our memory and checked (``take_layout``: writer, variables inside
+the record, the ring's geometry what the logger sets, the consumer's position); the ring is
+then read with that copy's geometry and our own read position, and a head that claims more
+than the ring holds is ``ChannelsCorrupt``. No size or offset is read from the segment again.
 """
 
 from __future__ import annotations
 
+import errno
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,54 +57,104 @@ class LogChannel:
         self.source = source
         self._meta_field, self._ring_field, self._slots_field = SOURCES[source]
         self._lib, self._ffi = chmod.lib, chmod.ffi
-        self._count = self._ffi.new("uint32_t *")
+        # The space the layout gives this channel's slots: what its geometry must fit.
+        self._capacity = int(self._ffi.sizeof(getattr(ch.shm, self._slots_field)))
+        # Ours, never the segment's: the layout as checked, its ring's geometry, our read position.
+        self._meta = self._ffi.new("struct xrf_log_meta *")
+        self._geom = self._ffi.new("struct xrf_ring_geom *")
+        self._tail = self._ffi.new("uint64_t *")
+        self._first = self._ffi.new("void **")
+        self.taken = False  # a layout was taken (and checked)
 
-    # cffi has no static types for the segment's structs: these two stay inside this module.
-    def _meta(self) -> Any:
-        return getattr(self._ch.shm, self._meta_field)
+    # cffi has no static types for the segment's structs: these stay inside this module.
+    def _meta_in_segment(self) -> Any:
+        return self._ffi.addressof(self._ch.shm, self._meta_field)
 
-    def _ring(self) -> Any:
-        return getattr(self._ch.shm, self._ring_field)
+    def _ring_in_segment(self) -> Any:
+        return self._ffi.addressof(self._ch.shm, self._ring_field)
 
     def ready(self) -> bool:
         """The loop has published the channel's layout."""
-        return bool(self._lib.xrfpy_load_u32(self._ffi.addressof(self._meta(), "ready")))
-
-    def host_writes(self) -> bool:
-        """The loop asked the host to write the file (XRF_LOG_WRITER=host)."""
-        if not self.ready():
-            return False
-        return int(self._meta().writer) == self._lib.XRF_LOG_WRITER_HOST
+        return bool(self._lib.xrfpy_load_u32(self._ffi.addressof(self._meta_in_segment(), "ready")))
 
     def generation(self) -> int:
-        return int(self._lib.xrfpy_load_u64(self._ffi.addressof(self._meta(), "generation")))
+        """The generation the segment says now (only compared with the taken one's)."""
+        return int(self._lib.xrfpy_load_u64(self._ffi.addressof(self._meta_in_segment(), "generation")))
+
+    @property
+    def taken_generation(self) -> int:
+        return int(self._meta.generation) if self.taken else 0
+
+    def take_layout(self) -> SegmentLayout | None:
+        """Copy the channel's layout and check it (xrf_log_meta_check): the layout, or None when
+        it is not published or changed during the copy (try again later). ChannelsCorrupt when
+        it is not one the runtime's logger publishes; the previous layout is then kept."""
+        from ..channels import ChannelsCorrupt
+
+        meta = self._ffi.new("struct xrf_log_meta *")
+        geom = self._ffi.new("struct xrf_ring_geom *")
+        tail = self._ffi.new("uint64_t *")
+        rc = self._lib.xrf_log_meta_check(
+            self._meta_in_segment(), self._ring_in_segment(), self._capacity, meta, geom, tail
+        )
+        if rc == -errno.EAGAIN:
+            return None
+        if rc != 0:
+            raise ChannelsCorrupt(
+                f"{self._ch.name}: the {self.source} channel's layout is not one the logger publishes "
+                f"(nvars {int(meta.nvars)}, record_size {int(meta.record_size)}, writer {int(meta.writer)}; "
+                f"ring {int(self._ring_in_segment().slots)} slots of {int(self._ring_in_segment().slot_size)} bytes "
+                f"in {self._capacity})"
+            )
+        self._meta, self._geom, self._tail, self.taken = meta, geom, tail, True
+        return self.layout()
+
+    def host_writes(self) -> bool:
+        """The taken layout asks the host to write the file (XRF_LOG_WRITER=host)."""
+        return self.taken and int(self._meta.writer) == self._lib.XRF_LOG_WRITER_HOST
 
     def slot_size(self) -> int:
-        return int(self._ring().slot_size)
+        """The record stride of the taken layout (0 before one is taken)."""
+        return int(self._geom.slot_size) if self.taken else 0
 
     def dropped(self) -> int:
-        """Records the loop could not put in the ring (it was full)."""
-        return int(self._ring().dropped)
+        """Records the loop could not put in the ring (it was full): the loop's count, a number."""
+        return int(self._lib.xrfpy_load_u64(self._ffi.addressof(self._ring_in_segment(), "dropped")))
 
-    def peek_run(self, stride: int) -> tuple[memoryview, int] | None:
+    def peek_run(self) -> tuple[memoryview, int] | None:
         """The longest run of ready records that is contiguous in the ring (bytes, count), left
-        in place until ``release``; None when the ring is empty."""
-        ring = self._ffi.addressof(self._ch.shm, self._ring_field)
-        slots = getattr(self._ch.shm, self._slots_field)
-        p = self._lib.xrf_spsc_peek_run(ring, slots, self._count)
-        if p == self._ffi.NULL:
+        in place until ``release``; None when the ring is empty, no layout is taken, or the loop
+        has published a new layout since (take it first). ChannelsCorrupt when the ring's head
+        claims more records than the ring holds, or lies behind our read position."""
+        from ..channels import ChannelsCorrupt
+
+        if not self.taken:
             return None
-        n = int(self._count[0])
-        return memoryview(self._ffi.buffer(p, n * stride)), n
+        ring = self._ring_in_segment()
+        slots = getattr(self._ch.shm, self._slots_field)
+        n = self._lib.xrf_spsc_peek_run_g(ring, self._geom, slots, self._tail[0], self._first)
+        if n == 0:
+            return None
+        if n < 0:
+            if self.generation() != self.taken_generation:
+                return None  # re-published (the ring was set up again): the new layout first
+            head = int(self._lib.xrfpy_load_u64(self._ffi.addressof(ring, "head")))
+            raise ChannelsCorrupt(
+                f"{self._ch.name}: the {self.source} ring's head {head} is not within "
+                f"{int(self._geom.slots)} records of the read position {int(self._tail[0])}"
+            )
+        # n <= slots - (tail mod slots): the bytes lie inside the ring's slots (xrf_spsc_peek_run_g).
+        return memoryview(self._ffi.buffer(self._first[0], n * int(self._geom.slot_size))), n
 
     def release(self, n: int) -> None:
         """Give the oldest `n` records' slots back to the loop."""
-        self._lib.xrf_spsc_release_n(self._ffi.addressof(self._ch.shm, self._ring_field), n)
+        self._lib.xrf_spsc_release_g(self._ring_in_segment(), self._tail, n)
 
     def layout(self) -> SegmentLayout:
+        """The taken layout (its copy) as the writer and the live stream use it."""
         from .reader import make_variables, record_dtype
 
-        m = self._meta()
+        m = self._meta
         stride = self.slot_size()
         variables = []
         for i in range(min(int(m.nvars), self._lib.XRF_LOG_VARS_MAX)):
@@ -133,17 +188,19 @@ class LogChannel:
     def segment_header(
         self, identity: dict[str, str], start_unix_ns: int | None = None, start_mono_ns: int | None = None
     ) -> bytes:
-        """The header of a segment of the channel's current layout, starting now (or at the given
+        """The header of a segment of the channel's taken layout, starting now (or at the given
         clocks): rt_core's composer with what the loop's writer gives it, the program name, pid and
-        cycle frequency from the loop's info block (the program's bytes as they are there) and
-        the run's identity (what the loop's environment says: live.loop_env)."""
-        info = self._ch.shm.info
+        cycle frequency from the info block Channels took at open, and the run's identity (what
+        the loop's environment says: live.loop_env). Takes the layout first if none is yet."""
+        if not self.taken:
+            self.take_layout()
+        info = self._ch.info
         return logformat.segment_header(
-            self._ffi.addressof(self._ch.shm, self._meta_field),
+            self._meta,
             self.slot_size(),
-            program=self._ffi.string(info.program, self._lib.XRF_NAME_MAX),
-            pid=int(info.pid),
-            cycle_freq=int(info.cycle_freq),
+            program=str(info["program"]),
+            pid=int(info["pid"]),
+            cycle_freq=int(info["cycle_freq"]),
             start_unix_ns=time.time_ns() if start_unix_ns is None else start_unix_ns,
             start_mono_ns=time.monotonic_ns() if start_mono_ns is None else start_mono_ns,
             project=identity.get("project", ""),

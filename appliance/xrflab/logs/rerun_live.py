@@ -22,11 +22,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..channels.errors import ChannelsCorrupt
 from . import logformat
 from .rerun_servers import LiveProxy
 
 if TYPE_CHECKING:
-    from ..channels import Channels
+    from ..channels import Channels, TelemetryReader
 
 # One logger for a run's host logging, whichever module of it speaks (as before the split).
 log = logging.getLogger("xrflab.logs.live")
@@ -66,7 +67,7 @@ class LiveRerun:
         self._series: dict[str, list[str]] = {}  # entity -> the series names logged for it
         self.rec = rr.RecordingStream("xrflab", recording_id=f"run-{run_id}")
         self.rec.connect_grpc(proxy.local_url)
-        self._telemetry_reader = ch.telemetry_reader()
+        self._telemetry_reader: TelemetryReader | None = ch.telemetry_reader()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._main, name=f"xrf-rerun-{run_id}", daemon=True)
         self._thread.start()
@@ -145,7 +146,15 @@ class LiveRerun:
 
     def _send_telemetry(self) -> None:
         rr = self._rr
-        samples = self._telemetry_reader.read()
+        if self._telemetry_reader is None:
+            return
+        try:
+            samples = self._telemetry_reader.read()
+        except ChannelsCorrupt:
+            # The supervisor's own reader sees the same and stops the run (corrupt_channel);
+            # this stream just stops reading the segment.
+            self._telemetry_reader = None
+            return
         if not samples:
             return
         step = max(1, int(round(len(samples) / max(1.0, TELEMETRY_HZ * SEND_PERIOD_S))))

@@ -241,15 +241,20 @@ class GuestSpawner:
         output: Any,
         tag: str = "",
         timeout_s: float = 10.0,
+        shm_fd: int | None = None,
     ) -> tuple[children.Child, GuestReport]:
         """Start the launcher; return it and its report once the controller exec'd (or was refused:
-        the process has then exited with guest.REFUSED_EXIT and ``report.error`` says why)."""
+        the process has then exited with guest.REFUSED_EXIT and ``report.error`` says why).
+        `shm_fd`: the run's segment (channels.segment.create_sealed), passed to the launcher and
+        the controller under its number (``env`` names it: XRF_SHM_FD)."""
         bad = sorted(set(env) - guest.ENV_ALLOWED)
         if bad:
             raise ValueError(f"environment not on the allow-list: {', '.join(bad)}")
         r, w = os.pipe()
         try:
             cfg = self.config(exe, run_dir, shm_dir, env, read_only, w)
+            if shm_fd is not None:
+                cfg["shm_fd"] = shm_fd
             # The launcher's own environment: XRF_RUN_DIR identifies the run (the orphan reaper checks
             # /proc/<launcher>/environ before signalling a launcher left by an earlier appliance).
             launcher_env = {
@@ -257,12 +262,15 @@ class GuestSpawner:
                 "LANG": "C.UTF-8",
                 "XRF_SHM": tag,
                 "XRF_RUN_DIR": str(run_dir),
+                # Where the launcher keeps the segment: a restarted appliance reopens it there
+                # (/proc/<launcher>/fd/<n>, server/orphans.py).
+                **({"XRF_SHM_FD": str(shm_fd)} if shm_fd is not None else {}),
             }
-            # children.spawn: fds 0-2 and the report pipe only (uvloop's subprocess would pass on
+            # children.spawn: fds 0-2, the report pipe and the segment only (uvloop's subprocess would pass on
             # every inheritable descriptor of ours to the launcher).
             proc = children.spawn(
                 launcher_argv(cfg),
-                pass_fds=(w,),
+                pass_fds=(w,) if shm_fd is None else (w, shm_fd),
                 cwd="/",
                 env=launcher_env,
                 stdin=subprocess.DEVNULL,

@@ -15,19 +15,19 @@ confinement alarm the supervisor publishes once it has kept the record. A starte
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
-import shutil
 import time
 from pathlib import Path
 
 from .. import guest
-from ..channels import Channels
+from ..channels import Channels, ChannelsCorrupt, segment
 from ..logs import live as loglive
 from .catalog import BuildEntry
 from .guest_spawn import GuestReport, GuestSpawner
 from .hub import Hub
 from .messages import AlarmMessage
-from .run import Run, SupervisorError
+from .run import SEGMENT_LINK_SUFFIX, Run, SupervisorError, remove_shm
 from .run_control import terminate
 from .runs import RunRow, RunStore
 from .settings import Settings
@@ -85,12 +85,21 @@ async def spawn(
     its record saying ``starting``. Raises SupervisorError (500) when the sandbox could not be
     set up, StartRefused (503) when it refused the controller."""
     assert entry.executable is not None
-    shm_dir = guests.shm_dir_for(f"xrf-lab-{os.getpid()}-{row.id}")
-    shm = f"{shm_dir.name}/{guest.SHM_NAME}"  # the host's path below /dev/shm
+    shm_dir = guests.shm_dir_for(f"xrf-lab-{os.getpid()}-{row.id}")  # the loop's /dev/shm
+    # The run's segment is ours (a sealed memfd: the loop cannot resize it under our mapping);
+    # its name is a link beside the loop's folder, out of the loop's reach (segment_link).
+    shm_fd = segment.create_sealed(f"xrf-run-{row.id}")
+    shm = segment_link(shm_dir, shm_fd)
     run_dir = settings.runs_dir / str(row.id)
     run_dir.mkdir(parents=True, exist_ok=True)
     row = store.update(row.id, shm=shm, run_dir=str(run_dir))
     env = loop_env(settings, row.id, entry.name, plant, run_dir, max_cycles, log_timing)
+    env["XRF_SHM_FD"] = str(shm_fd)
+
+    def let_go() -> None:
+        os.close(shm_fd)
+        remove_shm(shm)  # the link and the loop's folder
+
     try:
         guests.prepare_dirs(run_dir, shm_dir)
         with open(run_dir / "output.txt", "ab") as output:
@@ -103,14 +112,15 @@ async def spawn(
                 output,
                 tag=shm,
                 timeout_s=settings.open_timeout_s,
+                shm_fd=shm_fd,
             )
     except (OSError, ValueError, RuntimeError, asyncio.TimeoutError) as exc:
-        shutil.rmtree(shm_dir, ignore_errors=True)
+        let_go()
         store.update(row.id, status="failed", end_reason="start_failed", ended=time.time(), message=f"sandbox: {exc}")
         raise SupervisorError(f"cannot start {entry.executable.name} in its sandbox: {exc}", 500) from exc
     if report.error:
         await proc.wait()
-        shutil.rmtree(shm_dir, ignore_errors=True)
+        let_go()
         final = store.update(
             row.id,
             status="failed",
@@ -119,13 +129,32 @@ async def spawn(
             message=f"sandbox: {report.error}",
         )
         raise StartRefused(f"the controller was not started: {report.error}", final, report)
-    if report.layers.get("mount"):
-        # No mount namespace (allowed by an educator): the loop's /dev/shm is the host's.
-        shm = guest.unconfined_shm_name(str(shm_dir))
-        row = store.update(row.id, shm=shm)
     # The controller's own pid (what `kill` or a test would aim at); we wait on the launcher.
     row = store.update(row.id, pid=report.pid or proc.pid, status="starting")
-    return Run(row=row, proc=proc, shm=shm, run_dir=run_dir, build=entry, log_timing=log_timing, guest=report)
+    return Run(
+        row=row,
+        proc=proc,
+        shm=shm,
+        run_dir=run_dir,
+        build=entry,
+        log_timing=log_timing,
+        guest=report,
+        shm_fd=shm_fd,
+    )
+
+
+def segment_link(shm_dir: Path, shm_fd: int) -> str:
+    """A name for the run's segment (a memfd has none) for whoever opens it by name as before --
+    the ROS 2 bridge, `xrf` commands, tests: a symlink beside the loop's /dev/shm folder (so the
+    loop, which sees only that folder, cannot replace it) to /proc/<appliance>/fd/<shm_fd>. The
+    kernel lets only the appliance's own user follow it (ptrace access); it dangles once the
+    appliance lets go of the segment. Returns the name below /dev/shm (shm_path)."""
+    name = shm_dir.name + SEGMENT_LINK_SUFFIX
+    link = shm_dir.parent / name
+    with contextlib.suppress(FileNotFoundError):
+        link.unlink()  # a leftover of a dead appliance with the same pid
+    os.symlink(f"/proc/{os.getpid()}/fd/{shm_fd}", link)
+    return name
 
 
 def announce_refused(refused: StartRefused, hub: Hub) -> None:
@@ -157,7 +186,12 @@ def announce_unconfined(run: Run, hub: Hub) -> None:
 
 async def open_channels(run: Run, settings: Settings, store: RunStore) -> bool:
     """Map the run's shm once the loop marks it ready, unless the process dies first."""
-    opening = asyncio.ensure_future(asyncio.to_thread(Channels.open, run.shm, settings.open_timeout_s))
+    if run.shm_fd >= 0:  # the sealed memfd launch.spawn made
+        opening = asyncio.ensure_future(
+            asyncio.to_thread(Channels.open_fd, run.shm_fd, run.shm, settings.open_timeout_s)
+        )
+    else:
+        opening = asyncio.ensure_future(asyncio.to_thread(Channels.open, run.shm, settings.open_timeout_s))
     exited = asyncio.ensure_future(run.ended.wait())
     done, _ = await asyncio.wait({opening, exited}, return_when=asyncio.FIRST_COMPLETED)
     exited.cancel()
@@ -169,6 +203,13 @@ async def open_channels(run: Run, settings: Settings, store: RunStore) -> bool:
         ch.configure_host_timeout(settings.host_timeout_ms, settings.host_timeout_action)
         run.last_status = ch.status()
         return True
+    if opening in done and isinstance(opening.exception(), ChannelsCorrupt) and run.report_corrupt is not None:
+        # Ready, but not a segment our runtime writes (a ring's geometry, the info block): the
+        # run is stopped as any run that breaks its segment (run_corrupt.py).
+        exc = opening.exception()
+        assert isinstance(exc, ChannelsCorrupt)
+        run.report_corrupt(exc)
+        return False
     if opening in done:  # the loop never made its shm ready: treat as a failed start
         message = f"loop did not open its shared memory: {opening.exception()}"
         run.row = store.update(run.row.id, message=message)

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import channels as chmod
-from ..channels import Channels, ChannelsError
+from ..channels import Channels, ChannelsError, segment
 from ..logs import live as loglive
 from .hub import Hub
 from .messages import AlarmMessage, RunMessage
@@ -55,13 +55,18 @@ def alive(pid: int) -> bool:
 def last_logged_seq(ch: Channels, run_dir: Path) -> int | None:
     """The `seq` of the last record in the run's log file (the one the loop's log_meta names),
     None if there is none yet."""
+    from ..logs.log_channel import LogChannel
     from ..logs.reader import open_log
     from ..logs.runfolder import RunPathError, confine
 
-    meta = ch.shm.log_meta
-    published = chmod.ffi.string(meta.path, chmod.lib.XRF_PATH_MAX).decode("utf-8", "replace")
+    try:  # the layout as every reader takes it: copied and checked (log_channel.py)
+        layout = LogChannel(ch, "log").take_layout()
+    except ChannelsError:
+        return None
+    if layout is None:
+        return None
     try:
-        path = run_dir / confine(run_dir, published)
+        path = run_dir / confine(run_dir, layout.path)
         records = open_log(path).records
     except (RunPathError, OSError, ValueError, KeyError):  # no file yet, or nothing readable in it
         return None
@@ -98,13 +103,37 @@ def abandon(row: RunRow) -> None:
         remove_shm(row.shm)
 
 
+def open_segment(row: RunRow) -> Channels:
+    """The orphaned run's segment. A run of this appliance's has a sealed memfd, which its
+    launcher keeps open as XRF_SHM_FD (guest_spawn.py): reopened through /proc/<launcher>/fd,
+    only when the launcher is this run's (launcher_of). The name's link pointed at the dead
+    appliance's descriptor and is not followed (its pid may be anyone's now). A segment of an
+    older appliance's run is a file of that name."""
+    launcher = launcher_of(row)
+    if launcher:
+        environ = Path(f"/proc/{launcher}/environ").read_bytes().split(b"\0")
+        number = next((v.split(b"=", 1)[1] for v in environ if v.startswith(b"XRF_SHM_FD=")), b"")
+        if number.isdigit():
+            fd = os.open(f"/proc/{launcher}/fd/{int(number)}", os.O_RDWR | os.O_CLOEXEC)
+            try:
+                if not segment.is_sealed(fd):
+                    raise ChannelsError(f"{row.shm}: the launcher's XRF_SHM_FD is not a sealed segment")
+                return Channels.open_fd(fd, row.shm, 0.2)
+            finally:
+                os.close(fd)
+    path = chmod.shm_path(row.shm)
+    if path.is_symlink():
+        raise ChannelsError(f"{row.shm}: the segment went with its launcher")
+    return Channels.open(row.shm, 0.2)
+
+
 async def recover(row: RunRow, settings: Settings, store: RunStore) -> RunRow:
     """Close one orphaned run: its final record (the run observers and the browsers are told by
     the supervisor, `announce`); its shared memory is unlinked when this returns."""
     ch: Channels | None = None
     if row.shm:
         with contextlib.suppress(Exception):
-            ch = await asyncio.to_thread(Channels.open, row.shm, 0.2)
+            ch = await asyncio.to_thread(open_segment, row)
     writer = None
     if ch is not None and row.run_dir and Path(row.run_dir).is_dir():
         # The ring's read position lives in the shared memory: a new writer goes on where the

@@ -5,9 +5,11 @@ control, end); its record in the database is `run.row` (runs.RunRow), kept up to
 goes. Everything here is data, no behaviour beyond `alive`: each part of the supervisor is a
 module of its own that takes the run it works on.
 
-The run's shared memory belongs to the appliance, not to the loop: the loop never unlinks it (a
-crash could not), and the appliance needs the final state after the loop's end. `remove_shm`
-lets go of it once the run is recorded (docs/developers/architecture.md, "Whose segment").
+The run's shared memory belongs to the appliance, not to the loop: the appliance makes it (a
+sealed memfd, `shm_fd`: the loop cannot resize it under the appliance's mapping), the loop never
+unlinks it (a crash could not), and the appliance needs the final state after the loop's end.
+`remove_shm` lets go of its name once the run is recorded (docs/developers/architecture.md,
+"Whose segment").
 """
 
 from __future__ import annotations
@@ -16,13 +18,14 @@ import asyncio
 import contextlib
 import shutil
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from .. import channels as chmod
 from .. import guest
-from ..channels import Channels
+from ..channels import Channels, ChannelsCorrupt
 from ..logs import live as loglive
 from .children import Child
 from .guest_spawn import GuestReport
@@ -31,6 +34,11 @@ from .safety import SafetyWatcher, WatchResult
 
 if TYPE_CHECKING:
     from .catalog import BuildEntry
+
+
+# The run segment's name below /dev/shm: <the loop's /dev/shm folder> + this, a symlink to the
+# appliance's descriptor of it (launch.segment_link).
+SEGMENT_LINK_SUFFIX = "-segment"
 
 
 class SupervisorError(Exception):
@@ -48,6 +56,7 @@ class Run:
     shm: str
     run_dir: Path
     build: BuildEntry
+    shm_fd: int = -1  # the run's segment (a sealed memfd), ours until remove_shm; -1: by name only
     channels: Channels | None = None
     stop_requested: bool = False
     hang: bool = False
@@ -73,6 +82,10 @@ class Run:
     watcher: SafetyWatcher | None = None  # the C thread that makes the outputs safe (safety.py)
     watch: WatchResult | None = None  # what it did, once it acted
     end_reason: str = ""  # set by whoever ends the run on purpose (runs.END_REASONS)
+    # The loop broke the rules of its segment (run_corrupt.py): what, once it did; and how a
+    # reader of the segment says so (from any thread; run_corrupt.watch sets it).
+    corrupt: str = ""
+    report_corrupt: Callable[[ChannelsCorrupt], None] | None = None
 
     @property
     def alive(self) -> bool:
@@ -90,5 +103,7 @@ def remove_shm(name: str) -> None:
         return
     with contextlib.suppress(FileNotFoundError):
         path.unlink()
-    if name.endswith(guest.UNCONFINED_SUFFIX):  # its (unused) shm folder lies beside it
-        shutil.rmtree(chmod.SHM_DIR / name.removesuffix(guest.UNCONFINED_SUFFIX), ignore_errors=True)
+    # A name beside the loop's (then unused, or its own /dev/shm) folder, named after it.
+    for suffix in (guest.UNCONFINED_SUFFIX, SEGMENT_LINK_SUFFIX):
+        if name.endswith(suffix):
+            shutil.rmtree(chmod.SHM_DIR / name.removesuffix(suffix), ignore_errors=True)

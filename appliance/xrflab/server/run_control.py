@@ -19,7 +19,7 @@ import time
 from typing import Any
 
 from .. import channels as chmod
-from ..channels import ChannelsError
+from ..channels import ChannelsCorrupt, ChannelsError
 from .hub import Hub
 from .run import Run, SupervisorError
 from .run_messages import refresh_state
@@ -52,7 +52,12 @@ async def command(run: Run, number: int, hub: Hub) -> chmod.CommandResult:
     """Queue a command, wait until the loop handled it, publish the state at once."""
     ch = run.channels
     assert ch is not None
-    ticket = ch.send_command(number, source=SOURCE_APPLIANCE)
+    try:
+        ticket = ch.send_command(number, source=SOURCE_APPLIANCE)
+    except ChannelsCorrupt as exc:
+        if run.report_corrupt is not None:
+            run.report_corrupt(exc)
+        raise SupervisorError(f"the run is being stopped: {exc}") from None
     try:
         result = await asyncio.to_thread(ch.wait_command, ticket, 2.0)
     finally:

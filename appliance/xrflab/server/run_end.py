@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import signal
 import time
 from typing import NamedTuple
@@ -126,6 +127,9 @@ async def record(run: Run, returncode: int, settings: Settings, store: RunStore,
     # The record is final: the observers in order (lifecycle.py), then the browsers (announce).
     await lifecycle.ended(run.row, run)
     remove_shm(run.shm)
+    if run.shm_fd >= 0:  # the mapping stays valid without it
+        os.close(run.shm_fd)
+        run.shm_fd = -1
     # No explicit unmap: a worker thread may still hold the Channels (a command wait); the
     # mapping goes with the last reference, and the name is already unlinked.
     return Ending(reason, crashed, exit_code, exit_signal)
@@ -160,3 +164,4 @@ def announce(run: Run, ending: Ending, hub: Hub) -> None:
     # crashes kept dozens of them (and their descriptors) alive.
     run.tasks.clear()
     run.logging = None
+    run.report_corrupt = None  # its closure holds the run: a cycle, left to the GC otherwise

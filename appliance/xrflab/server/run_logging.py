@@ -74,6 +74,7 @@ class HostLogging(RunObserver):
             live=os.environ.get("XRF_LIVE_RERUN", "1") != "0",
             log_timing=run.log_timing,
             on_note=console,
+            on_corrupt=run.report_corrupt,
         )
 
     async def on_exited(self, run: Run) -> None:

@@ -18,6 +18,7 @@ import asyncio
 import logging
 from collections.abc import Awaitable, Callable
 
+from ..channels import ChannelsCorrupt
 from .hub import Hub
 from .lifecycle import RunLifecycle
 from .messages import MonitorLine, MonitorMessage, TelemetryMessage
@@ -140,6 +141,12 @@ async def guarded(name: str, body: Callable[[], Awaitable[None]], run: Run, hub:
             return
         except asyncio.CancelledError:
             raise
+        except ChannelsCorrupt as exc:
+            # Not a bug to retry: the loop broke its segment. The run is stopped (run_corrupt.py)
+            # and nothing of the segment is read here again.
+            if run.report_corrupt is not None:
+                run.report_corrupt(exc)
+            return
         except Exception as exc:  # reported to the dashboards, then carry on
             log.exception("run %s: %s failed", run.row.id, name)
             hub.publish(

@@ -15,6 +15,7 @@ is a module of its own that takes the `Run` it works on:
 - run_timing.py: the once-a-second timing message and deadline-miss alarm;
 - run_control.py: commands, setpoints, stopping in order;
 - run_end.py: how a run ended, in its record, then the browsers;
+- run_corrupt.py: a run whose loop broke the rules of its shared memory, stopped with its alarm;
 - orphans.py: runs a dead appliance left live, closed at start-up;
 - run_messages.py: the `run` and `state` messages;
 - run.py: the `Run` itself, `SupervisorError`, `remove_shm`.
@@ -34,7 +35,7 @@ from typing import Any
 
 from .. import channels as chmod
 from .. import plants
-from . import launch, orphans, run_control, run_end, run_reader, run_watch
+from . import launch, orphans, run_control, run_corrupt, run_end, run_reader, run_watch
 from .catalog import BuildCatalog, BuildEntry
 from .guest_spawn import GuestSpawner
 from .hub import Hub
@@ -145,6 +146,7 @@ class Supervisor:
                 launch.announce_refused(refused, self.hub)
                 raise
             self.current = run
+            run_corrupt.watch(run, self.settings, self.store, self.hub)
             launch.announce_unconfined(run, self.hub)
             run.tasks.append(asyncio.create_task(self._watch_exit(run), name=f"run{row.id}-exit"))
             run.tasks.append(asyncio.create_task(run_reader.pipe_output(run, self.hub), name=f"run{row.id}-output"))

@@ -339,37 +339,92 @@ void xrf_hist_add(struct xrf_hist *h, uint64_t ns);
 /* Status seqlock. */
 void xrf_status_write_begin(struct xrf_status *s);
 void xrf_status_write_end(struct xrf_status *s);
-int xrf_status_read(const struct xrf_status *s, struct xrf_status *out); /* 0 or -EAGAIN */
+/* Reader: a consistent copy of the block into out; 0, or -EAGAIN when it stayed locked (or kept
+ * changing) for a bounded number of tries. */
+int xrf_status_read(const struct xrf_status *s, struct xrf_status *out);
 
-/* Commands. Returns the ticket (> 0) or -EAGAIN when the ring is full. */
+/* Commands. Returns the ticket (> 0), -EAGAIN when the ring is full, -EBUSY when the slot seqs
+ * kept the sender from claiming one for a bounded number of tries, -EPROTO for a head no
+ * ticket can follow. */
 int64_t xrf_cmd_send(struct xrf_cmd_ring *r, int32_t cmd, int32_t source, int64_t t_sent_ns);
 int xrf_cmd_poll(struct xrf_cmd_ring *r, struct xrf_cmd_slot *out); /* 1 taken, 0 empty */
 
-/* Ros2Xeno, latest wins. */
+/* Ros2Xeno, latest wins. Host: 0, -EMSGSIZE, -EBUSY (held by another writer, or a dead one, for a
+ * bounded number of tries). */
 int xrf_data_in_write(struct xrf_data_in *d, const void *data, uint32_t size, int64_t t_sent_ns);
 /* Loop side: copies into out only if a complete message newer than *last_seq exists.
  * Returns 1 copied, 0 nothing new (or a write in progress: keep the old one). */
 int xrf_data_in_try_read(struct xrf_data_in *d, uint32_t *last_seq, void *out, uint32_t size,
                          int64_t *t_sent_ns);
 
-/* Rings of fixed-size slots. `slots` points at slot 0. */
+/* Rings of fixed-size slots. `slots` points at slot 0. Producer side (the loop): these take the
+ * geometry from the ring header, which the loop itself set. */
 void xrf_ring_init(struct xrf_ring *r, uint32_t slots, uint32_t slot_size);
 void *xrf_bcast_begin(struct xrf_ring *r, void *slots); /* producer */
 void xrf_bcast_commit(struct xrf_ring *r, void *slot);  /* producer */
-/* Reader: copies publication *cursor into out (slot_size bytes) and advances the cursor.
- * Returns 1 copied, 0 nothing new. Publications overwritten before this reader got to them are
- * added to *lost and skipped (the cursor moves to the oldest one still present). */
-int xrf_bcast_read(const struct xrf_ring *r, const void *slots, uint64_t *cursor, void *out,
-                   uint64_t *lost);
-void *xrf_spsc_begin(struct xrf_ring *r, void *slots); /* NULL when full (counted in dropped) */
+void *xrf_spsc_begin(struct xrf_ring *r, void *slots);  /* NULL when full (counted in dropped) */
 void xrf_spsc_commit(struct xrf_ring *r, void *slot);
-const void *xrf_spsc_peek(const struct xrf_ring *r, const void *slots); /* NULL when empty */
-void xrf_spsc_release(struct xrf_ring *r);
-/* Consumer: the longest run of ready slots that is contiguous in memory (for one write()).
- * Returns its first slot and sets *count, or NULL when empty. */
-const void *xrf_spsc_peek_run(const struct xrf_ring *r, const void *slots, uint32_t *count);
-void xrf_spsc_release_n(struct xrf_ring *r, uint32_t n);
 uint32_t xrf_log_slots_for(uint32_t record_size, uint32_t ring_bytes, uint32_t *slot_size);
+
+/* ---- reading a segment: everything in it is hostile input ------------------------------------
+ * The segment is written by the loop, i.e. by a student's program, at any time: no size, offset,
+ * count, index or name in it is used unbounded. A reader (the appliance, the CLI, the ROS 2
+ * bridge, and the loop's own in-band helper, which uses the same code) takes each ring's
+ * geometry ONCE into its own memory -- at attach (xrf_shm_check) or when a log channel publishes
+ * its layout (xrf_log_meta_check) -- checked against the space the layout gives that ring, and
+ * passes that copy to the readers below. They never read slots/slot_size from the segment,
+ * bound every head, tail and count they do read, copy only sizes the reader fixed, and give up
+ * after a bounded number of retries where a (dead or hostile) loop holds a lock.
+ *
+ * Errors: -EPROTO the segment broke the protocol (a reader stops trusting it: the appliance stops
+ * the run with a corrupt-channel alarm); -EINVAL the caller's own arguments are wrong; -EAGAIN
+ * nothing consistent to take now (retry later). The loop's steady-state path uses none of these. */
+
+/* A ring's geometry as the reader holds it (never in the segment). */
+struct xrf_ring_geom {
+    uint32_t slots;     /* power of two, 1 .. 2^30 */
+    uint32_t slot_size; /* multiple of 8, >= sizeof(struct xrf_slot_hdr) */
+};
+
+/* The geometry of every fixed ring of a segment, taken at attach. */
+struct xrf_shm_geom {
+    struct xrf_ring_geom telem;
+    struct xrf_ring_geom monitor;
+};
+
+/* Checks that (slots, slot_size) is a ring whose slots fit `capacity` bytes (-EINVAL if not),
+ * and that the ring header r says the same (read once; -EPROTO if not); fills *g. */
+int xrf_ring_geom_check(const struct xrf_ring *r, uint32_t slots, uint32_t slot_size,
+                        uint64_t capacity, struct xrf_ring_geom *g);
+/* At attach: `mapped` bytes are mapped at shm (-EINVAL when fewer than sizeof(struct xrf_shm):
+ * the caller must not read it); magic, version and size are this layout's and the telemetry
+ * and monitor rings are as xrf_shm_init made them (-EPROTO otherwise); fills *g. */
+int xrf_shm_check(const struct xrf_shm *shm, uint64_t mapped, struct xrf_shm_geom *g);
+/* A log channel's layout, once `m` is ready: copies *m once into *out and checks the copy --
+ * writer known, nvars <= XRF_LOG_VARS_MAX, every variable of a known type and inside
+ * record_size, names and path NUL-terminated, record_size fits a slot of a ring of
+ * `capacity` bytes -- and that ring r has the geometry xrf_log_slots_for gives, as the loop's
+ * logger set it (*g). *tail: the consumer's position, read from the segment this once; the
+ * reader keeps it in its own memory from here on. 0; -EAGAIN not ready, or the generation
+ * changed during the copy; -EPROTO. out->generation is the generation the copy belongs to. */
+int xrf_log_meta_check(const struct xrf_log_meta *m, const struct xrf_ring *r, uint32_t capacity,
+                       struct xrf_log_meta *out, struct xrf_ring_geom *g, uint64_t *tail);
+
+/* Broadcast reader: copies publication *cursor (g->slot_size bytes: `out` holds at least that)
+ * and advances the cursor. 1 copied, 0 nothing new, -EPROTO the head went back behind this
+ * reader or the ring header no longer says g (compared, never used: a loop never changes it). Publications overwritten before this reader got to them are added to *lost and
+ * skipped (the cursor moves to the oldest one still present). */
+int xrf_bcast_read_g(const struct xrf_ring *r, const struct xrf_ring_geom *g, const void *slots,
+                     uint64_t *cursor, void *out, uint64_t *lost);
+/* SPSC consumer at position `tail` (its own copy): the longest run of ready slots that is
+ * contiguous in memory (for one write()). Returns the number of slots, 1 .. g->slots, and sets
+ * *first; 0 when empty; -EPROTO when the head claims more records than the ring holds (or is
+ * behind the tail), or the ring header no longer says g (a log channel set up again: take its
+ * layout anew, see its generation). */
+int xrf_spsc_peek_run_g(const struct xrf_ring *r, const struct xrf_ring_geom *g, const void *slots,
+                        uint64_t tail, const void **first);
+/* SPSC consumer: gives n slots back (*tail += n, published for the producer). */
+void xrf_spsc_release_g(struct xrf_ring *r, uint64_t *tail, uint32_t n);
 
 /* Doorbell. */
 int xrf_doorbell_should_ring(struct xrf_shm *shm); /* loop: bump the word; 1 if someone waits */

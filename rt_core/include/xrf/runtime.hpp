@@ -24,7 +24,11 @@ namespace xrf
 struct LogSink {
     int fd = -1;
     uint64_t generation = 0;
-    bool reported = false;               // a write failure was reported once
+    bool reported = false;  // a write failure was reported once
+    bool layout_ok = false; // meta, geom and tail below hold a checked layout
+    xrf_log_meta meta{};    // the channel's layout as checked when its generation changed
+    xrf_ring_geom geom{};   // its ring's geometry, in this writer's memory (xrf_log_meta_check)
+    uint64_t tail = 0;      // the consumer's position, kept here and published to the ring
     char header[XRF_LOGFILE_HEADER_MAX]; // a segment header is formatted here (no allocation)
 };
 
@@ -33,6 +37,10 @@ constexpr int kDefaultPriority = 80;
 
 struct Options {
     char shm_name[XRF_NAME_MAX] = "xrf";
+    // XRF_SHM_FD: the segment, made by whoever started the loop (the appliance: a memfd whose
+    // size is sealed, so the loop cannot shrink it under the host's mapping). -1: create
+    // /dev/shm/<shm_name> as a plain `xrf run` does.
+    int shm_fd = -1;
     char backend[16] = "auto";
     char transport[16] = "auto";
     char sim[16] = "relbot";
@@ -132,6 +140,7 @@ public:
 private:
     Runtime() = default;
     int createShm();
+    int mapShm(int fd, const char *what); // maps, zeroes, xrf_shm_init; closes fd
     void startHelper();
     static void *helperMain(void *self);
     void helperDrain(bool final);
