@@ -1,19 +1,24 @@
 /*
  * libFuzzer harness of the host side of xrf/channels.h (issue 26): everything the appliance reads
  * from a loop's shared segment is written by a guest, so every host-side reader and writer of
- * channels.c (status, commands, ros2xeno, telemetry and monitor rings, the log and timing rings,
- * the doorbell) and logformat.c's header composer (which reads a log_meta) is driven over
- * arbitrary segment bytes that also change while the host reads them.
+ * channels.c and logformat.c is driven over arbitrary segment bytes that also change while the
+ * host reads them, the way the appliance calls them: attach (xrf_shm_check, the geometry taken
+ * once), status (xrf_status_read), commands (xrf_cmd_send), ros2xeno (xrf_data_in_write), the
+ * telemetry and monitor rings (xrf_bcast_read_g, a live reader and one from the start), the log
+ * and timing channels (xrf_log_meta_check whenever the generation moves, xrf_logfile_header of the
+ * checked copy, xrf_spsc_peek_run_g and xrf_spsc_release_g as the host writer does) and the
+ * doorbell (xrf_doorbell_wait, timeout 0).
  *
  * The segment: a private mapping of a template segment (initialised as an honest loop leaves it,
  * its logger published) of exactly sizeof(struct xrf_shm), with inaccessible guard space on both
  * sides, so a read or write one byte outside it faults as it would in the appliance (ASan adds
- * heap overflows into the host's own buffers, UBSan undefined arithmetic). Each input starts from
- * the template again (madvise(MADV_DONTNEED) drops the private copies of the pages it changed).
+ * overflows of the host's own buffers, UBSan undefined arithmetic and misaligned access). Each
+ * input starts from the template again (madvise(MADV_DONTNEED) drops the private copies of the
+ * pages it changed).
  *
  * The input is a script of operations (struct op below); each opcode byte says when its
  * operation runs:
- *   - setup:       before the host reads anything;
+ *   - setup:       before the host attaches;
  *   - interleaved: one at a time between two host calls (deterministic, reproducible);
  *   - concurrent:  in a second thread that repeats them while the host reads (a guest racing
  *                  the host: torn seqlocks, heads moving under a copy).
@@ -23,9 +28,10 @@
  * ones index the rings with the geometry the loop set up (never with what is in the segment), so
  * the guest side of this harness never leaves the segment itself: any fault is the host's.
  *
- * On top of the sanitizers the harness checks the contracts the appliance's code relies on: a run
- * of log records returned by xrf_spsc_peek_run lies inside its ring's data area, and every call
- * returns (libFuzzer's -timeout catches a host spinning for ever on guest data).
+ * On top of the sanitizers the harness checks the contracts the appliance's code relies on (see
+ * contract()): a run of log records lies inside its ring, a layout xrf_log_meta_check accepted is
+ * one the writer can use, and every call returns (libFuzzer's -timeout catches a host spinning
+ * for ever on guest data).
  *
  * XRF_FUZZ_WRITE_SEEDS=<folder> makes the harness write its seed corpus (the seeds[] below) into
  * <folder> and exit: rt_core/fuzz/corpus/channels/ is that output, so the opcodes are defined in
@@ -52,9 +58,9 @@
  * guest's geometry lands here (or further, where nothing is mapped) and faults. */
 #define GUARD_BYTES ((size_t)16 << 30)
 
-static struct xrf_shm *shm;  /* the segment under test (a private view of the template) */
-static uint8_t *map_base;    /* its pages */
-static size_t map_len;       /* sizeof(struct xrf_shm) rounded up to pages */
+static struct xrf_shm *shm; /* the segment under test (a private view of the template) */
+static uint8_t *map_base;   /* its pages */
+static size_t map_len;      /* sizeof(struct xrf_shm) rounded up to pages */
 /* The log ring's geometry as the honest logger last published it: slots << 32 | slot_size, one
  * word, so that a thread never pairs one layout's slot count with another's slot size. */
 static uint64_t log_geometry;
@@ -66,9 +72,12 @@ struct field {
     size_t offset;
     size_t width;
 };
-#define F(member) {#member, offsetof(struct xrf_shm, member), sizeof(((struct xrf_shm *)0)->member)}
+#define F(member)                                                                        \
+    {                                                                                    \
+#member, offsetof(struct xrf_shm, member), sizeof(((struct xrf_shm *)0)->member) \
+    }
 #define RING_FIELDS(r) F(r.head), F(r.tail), F(r.slots), F(r.slot_size), F(r.dropped)
-#define META_FIELDS(m)                                                                       \
+#define META_FIELDS(m)                                                                      \
     F(m.ready), F(m.nvars), F(m.record_size), F(m.writer), F(m.generation), F(m.file_mode), \
         F(m.vars[0].type), F(m.vars[0].offset), F(m.vars[1].offset), F(m.vars[99].offset)
 static const struct field fields[] = {
@@ -210,8 +219,8 @@ static void map_segment(void)
     }
     init_template((struct xrf_shm *)(tmpl + lead));
     munmap(tmpl, map_len);
-    map_base = mmap(space + GUARD_BYTES, map_len, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_FIXED,
-                    fd, 0);
+    map_base =
+        mmap(space + GUARD_BYTES, map_len, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_FIXED, fd, 0);
     if (map_base == MAP_FAILED) {
         perror("fuzz_channels: mmap");
         abort();
@@ -483,8 +492,7 @@ static void apply(const struct op *o)
         publish_log_layout(shm, 8u * (1u + o->a16 % 4096u), o->a8);
         break;
     case OP_SPIN:
-        for (volatile unsigned i = 0; i < o->a16; i++) {
-        }
+        for (volatile unsigned i = 0; i < o->a16; i++) {}
         break;
     case OP_FILL: {
         size_t n = o->a16 % sizeof(struct xrf_shm);
@@ -521,15 +529,6 @@ static void *race(void *arg)
 
 static volatile uint64_t sink; /* keeps the reads of the log records */
 
-struct host {
-    uint64_t telem_live, telem_start, monitor_live, monitor_start, lost;
-    uint32_t doorbell;
-    struct xrf_status *status;       /* each out-buffer exactly the size of its type: */
-    struct xrf_telemetry *telemetry; /* ASan sees a copy larger than it */
-    struct xrf_monitor_line *monitor;
-    char *header;
-};
-
 static void contract(int ok, const char *what)
 {
     if (!ok) {
@@ -538,83 +537,139 @@ static void contract(int ok, const char *what)
     }
 }
 
-static void host_bcast(const struct xrf_ring *r, const void *slots, uint64_t *cursor, void *out)
+/* A log channel as the host writer holds it (xrflab/logs/log_channel.py): the layout copied and
+ * checked, its ring's geometry and the read position, all in the host's memory. */
+struct log_host {
+    struct xrf_log_meta *meta;
+    struct xrf_ring_geom geom;
+    uint64_t tail;
+    int taken;
+};
+
+struct host {
+    struct xrf_shm_geom geom; /* taken at attach (xrf_shm_check) */
+    uint64_t telem_live, telem_start, monitor_live, monitor_start, lost;
+    uint32_t doorbell;
+    struct log_host log, timing;
+    struct xrf_status *status;       /* each out-buffer exactly the size of its type: */
+    struct xrf_telemetry *telemetry; /* ASan sees a copy larger than it */
+    struct xrf_monitor_line *monitor;
+    char *header;
+};
+
+static void host_bcast(const struct xrf_ring *r, const struct xrf_ring_geom *g, const void *slots,
+                       uint64_t *cursor, void *out, struct host *h)
 {
+    /* After -EPROTO the appliance stops the run; the reader is called on regardless: a refusal
+     * must be as safe as a read. */
     for (int i = 0; i < READ_LIMIT; i++)
-        if (!xrf_bcast_read(r, slots, cursor, out, &(uint64_t){0}))
+        if (xrf_bcast_read_g(r, g, slots, cursor, out, &h->lost) != 1)
             break;
 }
 
-/* The host log writer (xrflab/logs/host_writer.py): the run of ready records, each record's seq
- * read, the run's bytes written out (here: summed), then released. */
-static void host_log(struct xrf_ring *r, const void *slots, size_t data_bytes)
+/* What xrf_log_meta_check promises of the copy it accepted: the writer and the header composer
+ * rely on it. */
+static void check_layout(const struct xrf_log_meta *m, const struct xrf_ring_geom *g,
+                         size_t capacity)
 {
-    const uint8_t *base = slots;
-    uint32_t stride = r->slot_size; /* what host_writer.py takes as the stride */
-    uint32_t count = 0;
-    const uint8_t *p = xrf_spsc_peek_run(r, slots, &count);
-    if (p == NULL)
+    contract(m->nvars <= XRF_LOG_VARS_MAX, "xrf_log_meta_check: nvars over the maximum");
+    contract(memchr(m->path, 0, sizeof m->path) != NULL, "xrf_log_meta_check: path unterminated");
+    for (uint32_t i = 0; i < m->nvars; i++) {
+        const struct xrf_logfile_type *t = xrf_logfile_type_of(m->vars[i].type);
+        contract(t != NULL && m->vars[i].offset >= 0 &&
+                     (uint64_t)m->vars[i].offset + t->size <= m->record_size,
+                 "xrf_log_meta_check: a variable outside the record");
+        contract(memchr(m->vars[i].name, 0, sizeof m->vars[i].name) != NULL,
+                 "xrf_log_meta_check: a name unterminated");
+    }
+    contract(g->slots > 0 && (g->slots & (g->slots - 1)) == 0 && g->slot_size % 8 == 0 &&
+                 g->slot_size >= sizeof(struct xrf_slot_hdr) + m->record_size &&
+                 (uint64_t)g->slots * g->slot_size <= capacity,
+             "xrf_log_meta_check: a geometry that does not fit its ring");
+}
+
+/* The host log writer (xrflab/logs/host_writer.py): take the layout when the loop published a
+ * new one (and compose its file's segment header), then the run of ready records: each record's
+ * seq read, the run's bytes written out (here: summed), then released. */
+static void host_log(struct host *h, struct log_host *lh, const struct xrf_log_meta *m,
+                     struct xrf_ring *r, const void *slots, size_t capacity)
+{
+    uint64_t generation = __atomic_load_n(&m->generation, __ATOMIC_ACQUIRE);
+    if (!lh->taken || generation != lh->meta->generation) {
+        struct xrf_log_meta *copy = malloc(sizeof *copy);
+        struct xrf_ring_geom g;
+        uint64_t tail = 0;
+        if (copy == NULL)
+            abort();
+        if (xrf_log_meta_check(m, r, (uint32_t)capacity, copy, &g, &tail) == 0) {
+            check_layout(copy, &g, capacity);
+            free(lh->meta);
+            lh->meta = copy;
+            lh->geom = g;
+            lh->tail = tail;
+            lh->taken = 1;
+            struct xrf_logfile_ident id = {.program = "fuzz",
+                                           .project = "p",
+                                           .build = "b",
+                                           .run = "r",
+                                           .pid = 1,
+                                           .cycle_freq = 1000};
+            int n = xrf_logfile_header(h->header, XRF_LOGFILE_HEADER_MAX, &id, lh->meta,
+                                       lh->geom.slot_size);
+            contract(n <= XRF_LOGFILE_HEADER_MAX, "xrf_logfile_header: longer than its bound");
+        } else {
+            free(copy); /* the previous layout (if any) is kept */
+        }
+    }
+    if (!lh->taken)
         return;
-    contract(p >= base && p < base + data_bytes, "xrf_spsc_peek_run: run starts outside its ring");
-    contract((size_t)count * stride <= (size_t)(base + data_bytes - p),
-             "xrf_spsc_peek_run: count * slot_size runs past its ring");
+    const uint8_t *base = slots;
+    const void *first = NULL;
+    int count = xrf_spsc_peek_run_g(r, &lh->geom, slots, lh->tail, &first);
+    if (count <= 0)
+        return;
+    const uint8_t *p = first;
+    size_t stride = lh->geom.slot_size;
+    contract(count <= (int)lh->geom.slots, "xrf_spsc_peek_run_g: more records than slots");
+    contract(p >= base && p < base + capacity, "xrf_spsc_peek_run_g: run starts outside its ring");
+    contract((size_t)count * stride <= (size_t)(base + capacity - p),
+             "xrf_spsc_peek_run_g: count * slot_size runs past its ring");
     /* The first and last record's seq (the writer's recovery reads the leading ones), then
      * every cache line of the run, as write() would. */
     uint64_t sum = 0, seq = 0;
-    if (count > 0 && stride >= sizeof seq) {
-        memcpy(&seq, p, sizeof seq); /* a guest's stride need not keep 8-byte alignment */
-        sum = seq;
-        memcpy(&seq, p + (size_t)(count - 1) * stride, sizeof seq);
-        sum += seq;
-    }
+    memcpy(&seq, p, sizeof seq);
+    sum = seq;
+    memcpy(&seq, p + (size_t)(count - 1) * stride, sizeof seq);
+    sum += seq;
     for (size_t i = 0; i < (size_t)count * stride; i += 64)
         sum += p[i];
     sink = sum;
-    xrf_spsc_release_n(r, count);
-    const uint8_t *one = xrf_spsc_peek(r, slots);
-    if (one != NULL) {
-        contract(one >= base && one + stride <= base + data_bytes,
-                 "xrf_spsc_peek: slot outside its ring");
-        uint64_t seq = 0;
-        memcpy(&seq, one, sizeof seq);
-        sink = seq;
-        xrf_spsc_release(r);
-    }
-}
-
-static void host_header(struct host *h, const struct xrf_log_meta *m, const struct xrf_ring *r)
-{
-    struct xrf_logfile_ident id = {.program = shm->info.program[0] ? "fuzz" : NULL,
-                                   .project = "p",
-                                   .build = "b",
-                                   .run = "r",
-                                   .pid = shm->info.pid,
-                                   .cycle_freq = shm->info.cycle_freq};
-    int n = xrf_logfile_header(h->header, XRF_LOGFILE_HEADER_MAX, &id, m, r->slot_size);
-    contract(n < 0 || n <= XRF_LOGFILE_HEADER_MAX, "xrf_logfile_header: longer than its bound");
+    xrf_spsc_release_g(r, &lh->tail, (uint32_t)count);
 }
 
 static void host_round(struct host *h, int round, const struct script *s, size_t *next)
 {
     /* Between two calls the next interleaved operation (if any) runs. */
-#define STEP(call)                                                                                 \
-    do {                                                                                           \
-        call;                                                                                      \
-        if (*next < s->ninterleaved)                                                               \
-            apply(&s->interleaved[(*next)++]);                                                     \
+#define STEP(call)                             \
+    do {                                       \
+        call;                                  \
+        if (*next < s->ninterleaved)           \
+            apply(&s->interleaved[(*next)++]); \
     } while (0)
     static const uint8_t payload[XRF_MSG_MAX] = {1, 2, 3};
     STEP(xrf_status_read(&shm->status, h->status));
     STEP(xrf_cmd_send(&shm->cmd, 1 + round % 6, XRF_SOURCE_APPLIANCE, round));
     STEP(xrf_data_in_write(&shm->ros2xeno, payload, (uint32_t)(16 << round) % XRF_MSG_MAX, round));
-    STEP(host_bcast(&shm->telem_ring, shm->telem, &h->telem_live, h->telemetry));
-    STEP(host_bcast(&shm->telem_ring, shm->telem, &h->telem_start, h->telemetry));
-    STEP(host_bcast(&shm->monitor_ring, shm->monitor, &h->monitor_live, h->monitor));
-    STEP(host_bcast(&shm->monitor_ring, shm->monitor, &h->monitor_start, h->monitor));
-    STEP(host_log(&shm->log_ring, shm->log_data, sizeof shm->log_data));
-    STEP(host_log(&shm->timing_ring, shm->timing, sizeof shm->timing));
-    STEP(host_header(h, &shm->log_meta, &shm->log_ring));
-    STEP(host_header(h, &shm->timing_meta, &shm->timing_ring));
+    STEP(host_bcast(&shm->telem_ring, &h->geom.telem, shm->telem, &h->telem_live, h->telemetry, h));
+    STEP(
+        host_bcast(&shm->telem_ring, &h->geom.telem, shm->telem, &h->telem_start, h->telemetry, h));
+    STEP(host_bcast(&shm->monitor_ring, &h->geom.monitor, shm->monitor, &h->monitor_live,
+                    h->monitor, h));
+    STEP(host_bcast(&shm->monitor_ring, &h->geom.monitor, shm->monitor, &h->monitor_start,
+                    h->monitor, h));
+    STEP(host_log(h, &h->log, &shm->log_meta, &shm->log_ring, shm->log_data, sizeof shm->log_data));
+    STEP(host_log(h, &h->timing, &shm->timing_meta, &shm->timing_ring, shm->timing,
+                  sizeof shm->timing));
     STEP(h->doorbell = xrf_doorbell_wait(shm, h->doorbell, 0));
 #undef STEP
 }
@@ -629,12 +684,22 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
     for (size_t i = 0; i < script.nsetup; i++)
         apply(&script.setup[i]);
 
+    /* Attach: a segment whose fixed rings are not as xrf_shm_init made them is refused (the
+     * appliance does not run it). */
+    if (xrf_shm_check(shm, sizeof(struct xrf_shm), &host.geom) != 0)
+        return 0;
+    contract(host.geom.telem.slots == XRF_TELEM_SLOTS &&
+                 host.geom.telem.slot_size == sizeof(struct xrf_telemetry) &&
+                 host.geom.monitor.slots == XRF_MONITOR_SLOTS &&
+                 host.geom.monitor.slot_size == sizeof(struct xrf_monitor_line),
+             "xrf_shm_check: accepted another geometry");
     /* A reader that follows live and one that starts from the oldest publication, as the
      * appliance's telemetry stream and a rerun do. */
     host.telem_live = __atomic_load_n(&shm->telem_ring.head, __ATOMIC_ACQUIRE);
     host.monitor_live = __atomic_load_n(&shm->monitor_ring.head, __ATOMIC_ACQUIRE);
     host.telem_start = host.monitor_start = 0;
     host.doorbell = __atomic_load_n(&shm->doorbell, __ATOMIC_ACQUIRE);
+    host.log.taken = host.timing.taken = 0;
 
     struct racer racer = {&script, 0};
     pthread_t thread;
@@ -679,8 +744,8 @@ static int write_seed(const char *dir, const char *name, const uint8_t *bytes, s
     return 0;
 }
 
-/* The seed corpus: well-formed segments and the honest loop's own races. Inputs that broke
- * the readers belong here once the readers are fixed (they are regressions then). */
+/* The seed corpus: well-formed segments, the honest loop's own races, and the attacks that broke
+ * the readers before issue 26 (regressions now). */
 static int write_seeds(const char *dir)
 {
     const uint8_t status_seq = (uint8_t)field_index("status.seq");
@@ -688,32 +753,104 @@ static int write_seeds(const char *dir)
     const uint8_t cmd_head = (uint8_t)field_index("cmd.head");
     const uint8_t telem_head = (uint8_t)field_index("telem_ring.head");
     const uint8_t log_tail = (uint8_t)field_index("log_ring.tail");
+    const uint8_t log_head = (uint8_t)field_index("log_ring.head");
+    const uint8_t log_slots = (uint8_t)field_index("log_ring.slots");
+    const uint8_t log_slot_size = (uint8_t)field_index("log_ring.slot_size");
+    const uint8_t log_generation = (uint8_t)field_index("log_meta.generation");
+    const uint8_t log_nvars = (uint8_t)field_index("log_meta.nvars");
+    const uint8_t monitor_slots = (uint8_t)field_index("monitor_ring.slots");
+    const uint8_t monitor_slot_size = (uint8_t)field_index("monitor_ring.slot_size");
+    const uint8_t monitor_head = (uint8_t)field_index("monitor_ring.head");
+    /* One operation a line (clang-format would pack them into a table). */
+    // clang-format off
     const uint8_t published[] = {
-        S(OP_PUB_TELEM),   50, S(OP_PUB_MONITOR), 10, S(OP_LOG_PUSH), 20, S(OP_TIMING_PUSH),
-        5,  S(OP_STATUS_BEGIN), S(OP_STATUS_END), S(OP_DOORBELL),
+        S(OP_PUB_TELEM), 50,
+        S(OP_PUB_MONITOR), 10,
+        S(OP_LOG_PUSH), 20,
+        S(OP_TIMING_PUSH), 5,
+        S(OP_STATUS_BEGIN),
+        S(OP_STATUS_END),
+        S(OP_DOORBELL),
     };
     const uint8_t wrapped[] = {
-        S(OP_PUB_TELEM),  255, S(OP_PUB_TELEM),  255, S(OP_PUB_TELEM),  255, S(OP_PUB_TELEM),
-        255,              S(OP_PUB_TELEM),  255, S(OP_PUB_MONITOR), 255, S(OP_PUB_MONITOR),
-        200,              S(OP_LOG_PUBLISH), U16(511), 100, S(OP_LOG_PUSH), 255,
-        S(OP_LOG_PUSH),   255, S(OP_LOG_PUSH),   255, S(OP_STORE), log_tail, U64(700),
-        S(OP_LOG_PUSH),   200,
+        S(OP_PUB_TELEM), 255, S(OP_PUB_TELEM), 255, S(OP_PUB_TELEM), 255, S(OP_PUB_TELEM), 255,
+        S(OP_PUB_TELEM), 255,
+        S(OP_PUB_MONITOR), 255, S(OP_PUB_MONITOR), 200,
+        S(OP_LOG_PUBLISH), U16(511), 100, /* 4096-byte records, 100 variables */
+        S(OP_LOG_PUSH), 255, S(OP_LOG_PUSH), 255, S(OP_LOG_PUSH), 255,
+        S(OP_STORE), log_tail, U64(700), /* the host took 700 of them */
+        S(OP_LOG_PUSH), 200,
     };
     const uint8_t live_loop[] = {
-        C(OP_PUB_TELEM), 1, C(OP_PUB_MONITOR), 1, C(OP_LOG_PUSH), 1, C(OP_TIMING_PUSH), 1,
-        C(OP_STATUS_BEGIN), C(OP_SPIN), U16(50), C(OP_STATUS_END), C(OP_CMD_POLL), 4,
-        C(OP_DOORBELL), C(OP_YIELD),
+        C(OP_PUB_TELEM), 1,
+        C(OP_PUB_MONITOR), 1,
+        C(OP_LOG_PUSH), 1,
+        C(OP_TIMING_PUSH), 1,
+        C(OP_STATUS_BEGIN),
+        C(OP_SPIN), U16(50),
+        C(OP_STATUS_END),
+        C(OP_CMD_POLL), 4,
+        C(OP_DOORBELL),
+        C(OP_YIELD),
     };
     const uint8_t stalled[] = {
         /* A loop stopped mid-write: status odd, ros2xeno claimed, command ring full. */
-        S(OP_STATUS_BEGIN), S(OP_STORE), data_seq, U64(7), S(OP_STORE), cmd_head,
-        U64(XRF_CMD_SLOTS), S(OP_STORE), telem_head, U64(5000), S(OP_SLOT_SEQ), RING_TELEM,
-        U16(3), U64(1),
+        S(OP_STATUS_BEGIN),
+        S(OP_STORE), data_seq, U64(7),
+        S(OP_STORE), cmd_head, U64(XRF_CMD_SLOTS),
+        S(OP_STORE), telem_head, U64(5000),
+        S(OP_SLOT_SEQ), RING_TELEM, U16(3), U64(1),
     };
     const uint8_t relayout[] = {
-        S(OP_LOG_PUSH), 30, I(OP_LOG_PUSH), 10, I(OP_LOG_PUBLISH), U16(63), 8, I(OP_LOG_PUSH),
-        40, I(OP_STATUS_BEGIN), I(OP_PUB_TELEM), 3, I(OP_STATUS_END), I(OP_DOORBELL),
+        S(OP_LOG_PUSH), 30,
+        I(OP_LOG_PUSH), 10,
+        I(OP_LOG_PUBLISH), U16(63), 8, /* the logger set up again: 512-byte records */
+        I(OP_LOG_PUSH), 40,
+        I(OP_STATUS_BEGIN),
+        I(OP_PUB_TELEM), 3,
+        I(OP_STATUS_END),
+        I(OP_DOORBELL),
         I(OP_STORE), status_seq, U64(2),
+    };
+    /* The attacks of issue 26 (holes 3 and 4) and their kin, each after the host attached:
+     * they crashed or hung the readers before the geometry was taken once (xrf_shm_check). */
+    const uint8_t log_geometry[] = {
+        /* hole 3: a new layout generation, the log ring made huge, its head far ahead */
+        S(OP_LOG_PUSH), 10,
+        I(OP_STORE), log_generation, U64(9),
+        I(OP_STORE), log_slots, U64(1u << 31),
+        I(OP_STORE), log_slot_size, U64(0xFFFFFFF8u),
+        I(OP_STORE), log_head, U64(50000000),
+        I(OP_STORE), log_nvars, U64(100000),
+        I(OP_LOG_PUSH), 5,
+    };
+    const uint8_t monitor_geometry[] = {
+        /* hole 4: the monitor ring's slot size and count rewritten under a reader */
+        S(OP_PUB_MONITOR), 20,
+        I(OP_STORE), monitor_slot_size, U64(0xFFFFFFF8u),
+        I(OP_STORE), monitor_slots, U64(1u << 31),
+        I(OP_STORE), monitor_head, U64(1u << 20),
+        C(OP_PUB_MONITOR), 1,
+    };
+    const uint8_t misaligned[] = {
+        /* a slot size that is no multiple of 8 (an alignment fault on the Pi's atomics) */
+        S(OP_PUB_MONITOR), 3,
+        I(OP_ADD), monitor_slot_size, U32(4),
+        I(OP_PUB_MONITOR), 3,
+    };
+    const uint8_t command_spin[] = {
+        /* every command slot's seq ahead of the head: the sender once spun for ever */
+        S(OP_SLOT_SEQ), RING_CMD, U16(0), U64(UINT64_MAX / 2),
+        S(OP_SLOT_SEQ), RING_CMD, U16(1), U64(1000),
+        S(OP_STORE), cmd_head, U64(1),
+        C(OP_SLOT_SEQ), RING_CMD, U16(2), U64(5),
+    };
+    const uint8_t status_flip[] = {
+        /* a loop that flips its status seqlock all the time */
+        C(OP_STATUS_BEGIN),
+        C(OP_STATUS_END),
+        C(OP_STATUS_BEGIN),
+        C(OP_YIELD),
     };
     struct {
         const char *name;
@@ -726,7 +863,13 @@ static int write_seeds(const char *dir)
         {"live-loop", live_loop, sizeof live_loop},
         {"stalled-loop", stalled, sizeof stalled},
         {"relayout", relayout, sizeof relayout},
+        {"hole3-log-geometry", log_geometry, sizeof log_geometry},
+        {"hole4-monitor-geometry", monitor_geometry, sizeof monitor_geometry},
+        {"misaligned-slot-size", misaligned, sizeof misaligned},
+        {"command-spin", command_spin, sizeof command_spin},
+        {"status-flip", status_flip, sizeof status_flip},
     };
+    // clang-format on
     for (size_t i = 0; i < sizeof seeds / sizeof seeds[0]; i++)
         if (write_seed(dir, seeds[i].name, seeds[i].bytes, seeds[i].n) != 0)
             return -1;
