@@ -42,7 +42,9 @@ def build_fuzzer(build: Path) -> Path:
             text=True,
         )
         assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
-    r = subprocess.run(["cmake", "--build", str(build), "--target", "fuzz_channels", "-j2"], capture_output=True, text=True)
+    r = subprocess.run(
+        ["cmake", "--build", str(build), "--target", "fuzz_channels", "-j2"], capture_output=True, text=True
+    )
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
     return build / "fuzz_channels"
 
@@ -71,7 +73,9 @@ def test_seed_corpus_is_the_harness_output(fuzzer: Path, tmp_path: Path) -> None
     assert r.returncode == 0, r.stderr.decode()[-2000:]
     written = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
     kept = {p.name: p.read_bytes() for p in SEEDS.iterdir()}
-    assert written == kept, "rt_core/fuzz/corpus/channels/ is stale: regenerate it with XRF_FUZZ_WRITE_SEEDS=<that folder>"
+    assert written == kept, (
+        "rt_core/fuzz/corpus/channels/ is stale: regenerate it with XRF_FUZZ_WRITE_SEEDS=<that folder>"
+    )
 
 
 def test_host_readers_survive_fuzzing(fuzzer: Path, tmp_path: Path) -> None:
