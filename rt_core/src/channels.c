@@ -26,10 +26,12 @@
 
 /* How often a reader retries a slot that a (possibly dead) writer holds before giving up. */
 #define XRF_SPIN_LIMIT 100000
-/* Tries of a status read: each may copy the whole block (~33 KiB), so a loop that flips its seq
- * all the time must not hold a reader for long (1000 tries: a few ms at most). A real loop
- * holds the lock for well under a microsecond once a cycle. */
-#define XRF_STATUS_TRIES 1000
+/* Tries of one status read: each may copy the whole block (~33 KiB), so a loop that flips its
+ * seq all the time holds a reader for a fraction of a millisecond (64 tries, ~2 MiB copied).
+ * The caller retries for a bounded time, sleeping in between: a real loop holds the lock for
+ * about a microsecond once a cycle, but may be descheduled while it does (valgrind, a busy
+ * host without real time). */
+#define XRF_STATUS_TRIES 64
 /* Largest ring a reader accepts: counts stay within an int, offsets within 64 bits. */
 #define XRF_RING_SLOTS_MAX (1u << 30)
 

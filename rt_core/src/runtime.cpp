@@ -233,11 +233,12 @@ xrf_ico_transport *Runtime::transport()
     return transport_;
 }
 
-int Runtime::mapShm(int fd, const char *what)
+int Runtime::mapShm(int fd, const char *what, bool keep_fd)
 {
     shm_size_ = sizeof(xrf_shm);
     void *p = mmap(nullptr, shm_size_, PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
-    close(fd);
+    if (!keep_fd)
+        close(fd);
     if (p == MAP_FAILED) {
         int e = errno;
         std::fprintf(stderr, "xrf: cannot map shared memory %s: %s\n", what, std::strerror(e));
@@ -261,7 +262,9 @@ int Runtime::createShm()
                          sizeof(xrf_shm));
             return -EINVAL;
         }
-        return mapShm(o.shm_fd, "XRF_SHM_FD");
+        // Kept open: it is the launcher's to give and the mapping's to hold, closing it gains
+        // nothing (its seals, not its absence, keep the size fixed).
+        return mapShm(o.shm_fd, "XRF_SHM_FD", true);
     }
     char path[XRF_NAME_MAX + 16];
     std::snprintf(path, sizeof path, "/%s", o.shm_name);
@@ -306,7 +309,7 @@ int Runtime::createShm()
         std::fprintf(stderr, "xrf: cannot size shared memory %s: %s\n", path, std::strerror(e));
         return -e;
     }
-    return mapShm(fd, path);
+    return mapShm(fd, path, false);
 }
 
 int Runtime::enter(unsigned cycle_freq)

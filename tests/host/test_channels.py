@@ -65,7 +65,9 @@ class BroadcastReader:
 
     def drain(self) -> list[tuple[int, list[int]]]:
         got = []
-        while lib.xrf_bcast_read_g(self.ring.ring, self.ring.geom, self.ring.slots, self.cursor, self.out, self.lost) == 1:
+        while (
+            lib.xrf_bcast_read_g(self.ring.ring, self.ring.geom, self.ring.slots, self.cursor, self.out, self.lost) == 1
+        ):
             _seq, cycle, payload = self.ring.slot_words(self.out)
             got.append((cycle, payload))
         return got

@@ -53,7 +53,9 @@ def take_info(name: str, shm: CData) -> dict[str, Any]:
     ffi.memmove(copy, ffi.addressof(shm, "info"), ffi.sizeof(ctype))
     strings = _char_array_fields(ctype)
     # c_str stops at the array's end: a name without its NUL is cut, never read beyond.
-    info = {f: c_str(getattr(copy, f)) if f in strings else int(getattr(copy, f)) for f, _ in ctype.fields}
+    info: dict[str, Any] = {
+        f: c_str(getattr(copy, f)) if f in strings else int(getattr(copy, f)) for f, _ in ctype.fields
+    }
     for field, (low, high) in _INFO_RANGES.items():
         if not low <= info[field] <= high:
             raise ChannelsCorrupt(f"{name}: info.{field} = {info[field]}, outside {low}..{high}")

@@ -3,7 +3,7 @@
 The loop writes the block every cycle under a seqlock (``xrf_status_read`` in channels.c retries
 a torn read); a reader copies it out whole and converts the copy, so one snapshot never mixes two
 cycles. ``read_status`` gives up when the block stays locked: a loop that died mid-write (or one
-that flips the lock on purpose: the tries are bounded, a few ms in all). Every field is a number
+that flips the lock on purpose: the tries are bounded, 20 ms in all). Every field is a number
 of a fixed width; the strings are cut at their array's end.
 """
 
@@ -17,9 +17,12 @@ from .binding import CData, c_str, ffi, lib
 from .errors import ChannelsError
 from .names import state_name
 
-# Each attempt is up to XRF_STATUS_TRIES (1000) copies in C; a real loop holds the lock for well
-# under a microsecond a cycle, so a few attempts always succeed.
-_STATUS_READ_ATTEMPTS = 10
+# Attempts (up to XRF_STATUS_TRIES copies each in C, a fraction of a millisecond) for at most this
+# long, a short sleep between them: enough for a loop descheduled while it writes the block (a
+# busy host, valgrind), short enough that a loop holding or flipping the lock on purpose does
+# not hold the caller (the event loop, for the heartbeat and the state) for long.
+_STATUS_READ_S = 0.02
+_STATUS_RETRY_SLEEP_S = 0.0002
 
 
 @dataclass(frozen=True)
@@ -82,10 +85,13 @@ class Histogram:
 def read_status(shm: CData, name: str) -> CData:
     """A consistent copy of the segment's status block (a ``struct xrf_status *``)."""
     out = ffi.new("struct xrf_status *")
-    for _ in range(_STATUS_READ_ATTEMPTS):
+    deadline = time.monotonic() + _STATUS_READ_S
+    while True:
         if lib.xrf_status_read(ffi.addressof(shm, "status"), out) == 0:
             return out
-        time.sleep(0)
+        if time.monotonic() >= deadline:
+            break
+        time.sleep(_STATUS_RETRY_SLEEP_S)
     raise ChannelsError(f"{name}: status block stays locked (loop died while writing it?)")
 
 

@@ -162,7 +162,7 @@ class HostLogWriter:
             self._open_segment(layout)
         stride = self._chan.slot_size()
         skipped = 0
-        while True:
+        while skipped < 2 * self._chan.slots():  # bounded as a drain is
             run = self._chan.peek_run()
             if run is None:
                 return skipped
@@ -175,6 +175,7 @@ class HostLogWriter:
                 skipped += k
             if k < n:
                 return skipped
+        return skipped
 
     def set_on_records(self, fn: Callable[[np.ndarray], None] | None) -> None:
         with self._lock:
@@ -217,7 +218,10 @@ class HostLogWriter:
         if not self._chan.host_writes():
             return 0
         taken = 0
-        while True:
+        # At most two rings' worth a drain: a loop that moves its head as fast as we release
+        # cannot keep this thread (and finish(), waiting for the lock) here.
+        budget = 2 * self._chan.slots()
+        while taken < budget:
             run = self._chan.peek_run()
             if run is None:
                 break

@@ -32,6 +32,11 @@ from . import logformat
 if TYPE_CHECKING:
     from ..channels import Channels
 
+# Layouts a run's channel may publish: a logger publishes one (XenoFrtLogger::publish, once per
+# logger object). A loop that keeps bumping the generation would have the writer start a new
+# segment (a header of up to 56 KiB) at every drain.
+MAX_LAYOUTS = 100
+
 # Log channels of the shared memory: (meta, ring, slots) field names.
 SOURCES = {
     "log": ("log_meta", "log_ring", "log_data"),  # the student's XenoFrtLogger
@@ -65,6 +70,7 @@ class LogChannel:
         self._tail = self._ffi.new("uint64_t *")
         self._first = self._ffi.new("void **")
         self.taken = False  # a layout was taken (and checked)
+        self.layouts = 0  # how many
 
     # cffi has no static types for the segment's structs: these stay inside this module.
     def _meta_in_segment(self) -> Any:
@@ -106,6 +112,12 @@ class LogChannel:
                 f"ring {int(self._ring_in_segment().slots)} slots of {int(self._ring_in_segment().slot_size)} bytes "
                 f"in {self._capacity})"
             )
+        self.layouts += 1
+        if self.layouts > MAX_LAYOUTS:
+            raise ChannelsCorrupt(
+                f"{self._ch.name}: the {self.source} channel's layout changed {self.layouts} times "
+                f"(a logger publishes one)"
+            )
         self._meta, self._geom, self._tail, self.taken = meta, geom, tail, True
         return self.layout()
 
@@ -116,6 +128,10 @@ class LogChannel:
     def slot_size(self) -> int:
         """The record stride of the taken layout (0 before one is taken)."""
         return int(self._geom.slot_size) if self.taken else 0
+
+    def slots(self) -> int:
+        """The ring's slots in the taken layout (0 before one is taken)."""
+        return int(self._geom.slots) if self.taken else 0
 
     def dropped(self) -> int:
         """Records the loop could not put in the ring (it was full): the loop's count, a number."""

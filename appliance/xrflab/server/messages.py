@@ -194,7 +194,17 @@ class AlarmMessage(_Out):
 
     type: Literal["alarm"] = "alarm"
     kind: Literal[
-        "crash", "hang", "deadline_miss", "confinement", "disk", "log", "room", "corrupt_channel", "memory", "pids", "cpu"
+        "crash",
+        "hang",
+        "deadline_miss",
+        "confinement",
+        "disk",
+        "log",
+        "room",
+        "corrupt_channel",
+        "memory",
+        "pids",
+        "cpu",
     ]
     message: str
     run_id: int | None = None

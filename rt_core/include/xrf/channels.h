@@ -340,7 +340,7 @@ void xrf_hist_add(struct xrf_hist *h, uint64_t ns);
 void xrf_status_write_begin(struct xrf_status *s);
 void xrf_status_write_end(struct xrf_status *s);
 /* Reader: a consistent copy of the block into out; 0, or -EAGAIN when it stayed locked (or kept
- * changing) for a bounded number of tries. */
+ * changing) for a bounded number of tries (retry after a pause, for a bounded time). */
 int xrf_status_read(const struct xrf_status *s, struct xrf_status *out);
 
 /* Commands. Returns the ticket (> 0), -EAGAIN when the ring is full, -EBUSY when the slot seqs

@@ -140,7 +140,7 @@ public:
 private:
     Runtime() = default;
     int createShm();
-    int mapShm(int fd, const char *what); // maps, zeroes, xrf_shm_init; closes fd
+    int mapShm(int fd, const char *what, bool keep_fd); // maps, zeroes, xrf_shm_init
     void startHelper();
     static void *helperMain(void *self);
     void helperDrain(bool final);
