@@ -42,7 +42,6 @@
 #include "xrf/channels.h"
 #include "xrf/logformat.h"
 
-#include <errno.h>
 #include <pthread.h>
 #include <sanitizer/asan_interface.h>
 #include <sched.h>
@@ -72,10 +71,11 @@ struct field {
     size_t offset;
     size_t width;
 };
-#define F(member)                                                                        \
-    {                                                                                    \
-#member, offsetof(struct xrf_shm, member), sizeof(((struct xrf_shm *)0)->member) \
+#define FIELD(name, offset, width) \
+    {                              \
+        name, offset, width        \
     }
+#define F(m) FIELD(#m, offsetof(struct xrf_shm, m), sizeof(((struct xrf_shm *)0)->m))
 #define RING_FIELDS(r) F(r.head), F(r.tail), F(r.slots), F(r.slot_size), F(r.dropped)
 #define META_FIELDS(m)                                                                      \
     F(m.ready), F(m.nvars), F(m.record_size), F(m.writer), F(m.generation), F(m.file_mode), \
