@@ -199,7 +199,10 @@ class Topology:
         return f"10.211.{i}.2" if self.netns else "127.0.0.1"
 
     def prefix(self, i: int) -> list[str]:
-        return ["ip", "netns", "exec", self.ns(i)] if self.netns else []
+        # Only the network namespace: `ip netns exec` would also give the bench a mount namespace
+        # with a fresh /sys and no cgroup file systems, and the run sandbox refuses to start a
+        # controller without its cgroup (issue 26). A real bench is a host of its own anyway.
+        return ["nsenter", f"--net=/run/netns/{self.ns(i)}", "--"] if self.netns else []
 
     def cut(self, i: int, server: Server) -> None:
         if self.netns:
