@@ -845,6 +845,11 @@ static int write_seeds(const char *dir)
         S(OP_STORE), cmd_head, U64(1),
         C(OP_SLOT_SEQ), RING_CMD, U16(2), U64(5),
     };
+    const uint8_t command_overflow[] = {
+        /* a slot seq and a head whose difference overflows an int64 (found by the long run) */
+        S(OP_STORE), cmd_head, U64((1ull << 62) + 1),
+        S(OP_SLOT_SEQ), RING_CMD, U16(1), U64(1ull << 63),
+    };
     const uint8_t status_flip[] = {
         /* a loop that flips its status seqlock all the time */
         C(OP_STATUS_BEGIN),
@@ -867,6 +872,7 @@ static int write_seeds(const char *dir)
         {"hole4-monitor-geometry", monitor_geometry, sizeof monitor_geometry},
         {"misaligned-slot-size", misaligned, sizeof misaligned},
         {"command-spin", command_spin, sizeof command_spin},
+        {"command-seq-overflow", command_overflow, sizeof command_overflow},
         {"status-flip", status_flip, sizeof status_flip},
     };
     // clang-format on

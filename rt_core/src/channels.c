@@ -172,7 +172,8 @@ int64_t xrf_cmd_send(struct xrf_cmd_ring *r, int32_t cmd, int32_t source, int64_
         if (pos >= (uint64_t)INT64_MAX)
             return -EPROTO; /* no ticket (> 0 as an int64) follows this head */
         slot = &r->slot[pos & (XRF_CMD_SLOTS - 1)];
-        int64_t dif = (int64_t)LOAD_ACQ(&slot->seq) - (int64_t)pos;
+        /* The difference in uint64 (wraps, defined), then signed: both may be anything. */
+        int64_t dif = (int64_t)(LOAD_ACQ(&slot->seq) - pos);
         if (dif == 0) {
             if (__atomic_compare_exchange_n(&r->head, &pos, pos + 1, 0, __ATOMIC_RELAXED,
                                             __ATOMIC_RELAXED))
