@@ -12,7 +12,7 @@ from pathlib import Path
 
 from xrf_testing.harness import Server, wait_for
 from xrf_testing.hostile import project_files
-from xrf_testing.projects_support import build_and_wait, targz
+from xrf_testing.projects_support import targz, upload_and_build
 
 REPO = Path(__file__).resolve().parents[2]
 EVIL = REPO / "tests" / "fixtures" / "evil_controller"
@@ -40,17 +40,6 @@ ATTEMPTS = {
     "inherited_fds",
     "setuid_root",
 }
-
-
-def upload_and_build(http, data: bytes, name: str) -> tuple[int, int]:  # noqa: ANN001
-    r = http.post("/api/projects", files={"file": (name, data, "application/gzip")})
-    assert r.status_code == 201, r.text
-    pid = r.json()["project"]["id"]
-    b = build_and_wait(http, pid)
-    if b["status"] != "ok":
-        log = http.get(f"/api/projects/{pid}/builds/{b['id']}/log").text
-        raise AssertionError(f"build failed: {b.get('result')}\n{log[-3000:]}")
-    return pid, b["id"]
 
 
 def processes_named(comm: str) -> list[int]:

@@ -27,7 +27,7 @@ import pytest
 from xrf_testing.grpcweb import READ_MESSAGES, read_messages
 from xrf_testing.harness import Server, WsClient, wait_for
 from xrf_testing.hostile import project_files
-from xrf_testing.projects_support import build_and_wait, targz
+from xrf_testing.projects_support import targz, upload_and_build
 from xrflab.logs.reader import open_log
 
 REPO = Path(__file__).resolve().parents[2]
@@ -49,24 +49,10 @@ class Student:
 def mallory(server: Server) -> Iterator[Student]:
     """A student with the hostile controller uploaded and built (once for the module)."""
     http, ws = server.login("mallory", server.create_user("mallory"))
-    r = http.post(
-        "/api/projects",
-        files={
-            "file": (
-                "hostile.tar.gz",
-                targz({**project_files(BASE), **project_files(HOSTILE)}, "hostile"),
-                "application/gzip",
-            )
-        },
-    )
-    assert r.status_code == 201, r.text
-    pid = r.json()["project"]["id"]
-    b = build_and_wait(http, pid)
-    if b["status"] != "ok":
-        log = http.get(f"/api/projects/{pid}/builds/{b['id']}/log").text
-        raise AssertionError(f"build failed: {b.get('result')}\n{log[-3000:]}")
+    archive = targz({**project_files(BASE), **project_files(HOSTILE)}, "hostile")
+    pid, bid = upload_and_build(http, archive, "hostile.tar.gz")
     assert http.post("/api/lease/take").status_code == 200
-    yield Student(http, ws, pid, b["id"])
+    yield Student(http, ws, pid, bid)
     http.close()
 
 

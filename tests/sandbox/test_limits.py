@@ -25,7 +25,7 @@ import pytest
 
 from xrf_testing.harness import Server, WsClient, shared_builds_root, start_server, stop_server, wait_for
 from xrf_testing.hostile import project_files
-from xrf_testing.projects_support import reachable_tmp, targz
+from xrf_testing.projects_support import reachable_tmp, targz, upload_and_build
 from xrflab.server import cgroups, run_disk, run_limits
 
 REPO = Path(__file__).resolve().parents[2]
@@ -46,17 +46,13 @@ def code(mode: int, mb: int = 0) -> int:
     return 1_000_000_000 + mode * 1_000_000 + mb
 
 
+def archive() -> bytes:
+    """The hostile controller: the base template with the fixture's files over it."""
+    return targz({**project_files(BASE), **project_files(HOSTILE)}, "limits")
+
+
 def start(data_dir: Path, **settings: Any) -> Server:
     return start_server(data_dir, shared_builds_root(), **{**LIMITS, **settings})
-
-
-@pytest.fixture(scope="module")
-def data_dir() -> Iterator[Path]:
-    d = reachable_tmp("limits")
-    yield d
-    import shutil
-
-    shutil.rmtree(d, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")
@@ -70,16 +66,9 @@ def server(data_dir: Path) -> Iterator[Server]:
 def hostile(server: Server) -> tuple[httpx.Client, int, int]:
     """mallory, holding the bench, with the hostile controller built: (client, project, build)."""
     http, _ = server.login("mallory", server.create_user("mallory"))
-    files = {**project_files(BASE), **project_files(HOSTILE)}
-    r = http.post("/api/projects", files={"file": ("limits.tar.gz", targz(files, "limits"), "application/gzip")})
-    assert r.status_code == 201, r.text
-    pid = r.json()["project"]["id"]
-    from xrf_testing.projects_support import build_and_wait
-
-    b = build_and_wait(http, pid)
-    assert b["status"] == "ok", http.get(f"/api/projects/{pid}/builds/{b['id']}/log").text[-3000:]
+    pid, bid = upload_and_build(http, archive(), "limits.tar.gz")
     assert http.post("/api/lease/take").status_code == 200
-    return http, pid, b["id"]
+    return http, pid, bid
 
 
 def run_hostile(server: Server, hostile: tuple[httpx.Client, int, int], mode: int, mb: int = 0) -> dict[str, Any]:
@@ -314,14 +303,8 @@ def test_a_real_time_thread_that_never_blocks_is_stopped(hostile: Any) -> None:
     s = start(d, rt_time_ms=300, hang_timeout_ms=5000)
     try:
         http, _ = s.login("mallory", s.create_user("mallory"))
-        _, pid, bid = hostile
         # The build belongs to the other appliance: upload and build here too (same sources: quick).
-        files = {**project_files(BASE), **project_files(HOSTILE)}
-        r = http.post("/api/projects", files={"file": ("limits.tar.gz", targz(files, "limits"), "application/gzip")})
-        pid = r.json()["project"]["id"]
-        from xrf_testing.projects_support import build_and_wait
-
-        bid = build_and_wait(http, pid)["id"]
+        pid, bid = upload_and_build(http, archive(), "limits.tar.gz")
         assert http.post("/api/lease/take").status_code == 200
         with s.ws() as ws, Pinger(s) as pinger:
             run = run_hostile(s, (http, pid, bid), SPIN_ONLY)
@@ -362,12 +345,7 @@ def test_a_killed_appliance_leaves_nothing_after_its_restart(hostile: Any) -> No
     try:
         password = s.create_user("mallory")
         http, _ = s.login("mallory", password)
-        files = {**project_files(BASE), **project_files(HOSTILE)}
-        r = http.post("/api/projects", files={"file": ("limits.tar.gz", targz(files, "limits"), "application/gzip")})
-        pid = r.json()["project"]["id"]
-        from xrf_testing.projects_support import build_and_wait
-
-        bid = build_and_wait(http, pid)["id"]
+        pid, bid = upload_and_build(http, archive(), "limits.tar.gz")
         assert http.post("/api/lease/take").status_code == 200
         first = run_hostile(s, (http, pid, bid), DISK, 5)  # 5 MB written, then an ordinary loop
         wait_for(lambda: "LIMITS disk wrote 5 MB" in output(s, first["id"]), 20, "the first run's files")

@@ -58,3 +58,16 @@ def build_and_wait(http, pid: int, timeout: float = 300) -> dict:  # noqa: ANN00
         time.sleep(0.2)
         b = http.get(f"/api/projects/{pid}/builds/{b['id']}").json()
     return b
+
+
+def upload_and_build(http, data: bytes, name: str) -> tuple[int, int]:  # noqa: ANN001
+    """Upload the archive `data` as a new project and build it: (project id, build id). A build
+    that fails fails the test with the end of its log."""
+    r = http.post("/api/projects", files={"file": (name, data, "application/gzip")})
+    assert r.status_code == 201, r.text
+    pid = r.json()["project"]["id"]
+    b = build_and_wait(http, pid)
+    if b["status"] != "ok":
+        log = http.get(f"/api/projects/{pid}/builds/{b['id']}/log").text
+        raise AssertionError(f"build failed: {b.get('result')}\n{log[-3000:]}")
+    return pid, b["id"]
