@@ -44,7 +44,7 @@ def test_status_events_will_and_broker_restart(broker, tmp_path) -> None:
     files = broker.files
     data = tmp_path / "bench"
     data.mkdir()
-    room = Recorder(room_endpoint(files), "room", [topics.BENCH_ALL])
+    room = Recorder(room_endpoint(files), "room", [topics.BENCH_ALL], listens=True)
     assert room.wait_connected()
     _enrol(files, data, "b1")
     server = start_server(data, shared_builds_root())
@@ -77,7 +77,18 @@ def test_status_events_will_and_broker_restart(broker, tmp_path) -> None:
         assert r.status_code == 200
         room.close()
         broker.start()
-        room2 = Recorder(room_endpoint(files), "room2", [topics.BENCH_ALL])
+        # the bench is back before the room: it holds its events (a restarted broker has no
+        # subscriptions; QoS 1 to nobody would be acknowledged and lost) and says so on its tile
+        watch = Recorder(room_endpoint(files), "watch", [topics.BENCH_ALL])
+        assert watch.wait_connected()
+        wait_for(
+            lambda: any(s["state"] != "RUN" and s["events_queued"] >= 1 for s in _status(watch, "b1")),
+            15,
+            "a status with the events held",
+        )
+        assert not _events(watch, "b1")
+        watch.close()
+        room2 = Recorder(room_endpoint(files), "room2", [topics.BENCH_ALL], listens=True)
         assert room2.wait_connected()
         # the queued run_ended arrives after the restart, and the retained status is the newest
         wait_for(lambda: any(e["kind"] == "run_ended" for e in _events(room2, "b1")), 15, "queued run_ended")

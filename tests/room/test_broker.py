@@ -45,6 +45,9 @@ def test_bench_publishes_only_under_its_own_name(broker) -> None:
         # nor rewrite the class list
         acc = b1.publish(topics.ACCOUNTS, {"users": []})
         assert int(b1.wait_ack(acc).value) == NOT_AUTHORIZED
+        # nor say that the room listens (its peers would send their events to nobody)
+        fake = b1.publish(topics.ROOM_ONLINE, {"online": True, "conn": "b1"}, retain=True)
+        assert int(b1.wait_ack(fake).value) == NOT_AUTHORIZED
         # the room commands b1 and all; b1 never receives b2's commands
         room.publish(topics.cmd("b2"), {"id": "x2", "cmd": "stop"})
         room.publish(topics.cmd("b1"), {"id": "x1", "cmd": "stop"})

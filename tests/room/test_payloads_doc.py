@@ -26,6 +26,7 @@ MODELS: dict[str, type[BaseModel]] = {
         payloads.ClassList,
         payloads.Account,
         payloads.Assignment,
+        payloads.RoomOnline,
     )
 }
 

@@ -11,7 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from xrflab.room import mqtt, topics
+from xrflab.room import mqtt, payloads, topics
 from xrflab.room.broker import ROOM_USER, BrokerFiles, BrokerProcess
 
 
@@ -54,22 +54,37 @@ class Recorder:
         client_id: str,
         subscribe: list[str] | None = None,
         will: tuple[str, bytes] | None = None,
+        listens: bool = False,
     ) -> None:
+        """`listens`: play the room's presence (payloads.RoomOnline true once subscribed, false as
+        the will), without which benches hold their events."""
         self.messages: list[tuple[str, bytes, bool]] = []
         self.acks: dict[int, Any] = {}
         self.connected = threading.Event()
+        self.subscribed = threading.Event()
         self.refused: Any = None
         self._lock = threading.Lock()
+        if listens:
+            will = (topics.ROOM_ONLINE, payloads.RoomOnline.make(online=False, conn="fe").wire())
         self.c = mqtt.client(endpoint, client_id, will)
         subs = subscribe or []
+        sub_mid: list[int] = []
 
         def on_connect(c: Any, _u: Any, _f: Any, rc: Any, _p: Any = None) -> None:
             if not mqtt.reason_ok(rc):
                 self.refused = rc
                 return
-            for s in subs:
-                c.subscribe(s, qos=1)
+            if subs:
+                sub_mid[:] = [c.subscribe([(s, 1) for s in subs])[1]]
+            else:
+                self.subscribed.set()
+            if listens:
+                c.publish(topics.ROOM_ONLINE, payloads.RoomOnline.make(online=True, conn="fe").wire(), 1, True)
             self.connected.set()
+
+        def on_subscribe(_c: Any, _u: Any, mid: int, _rc: Any, _p: Any = None) -> None:
+            if mid in sub_mid:
+                self.subscribed.set()
 
         def on_message(_c: Any, _u: Any, msg: Any) -> None:
             with self._lock:
@@ -79,14 +94,14 @@ class Recorder:
             self.acks[mid] = rc
 
         self.c.on_connect, self.c.on_message, self.c.on_publish = on_connect, on_message, on_publish
+        self.c.on_subscribe = on_subscribe
         mqtt.connect_async(self.c, endpoint)
         self.c.loop_start()
 
     def wait_connected(self, timeout: float = 5.0) -> bool:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            if self.connected.is_set():
-                time.sleep(0.1)  # the SUBACK
+            if self.subscribed.is_set():
                 return True
             if self.refused is not None:
                 return False

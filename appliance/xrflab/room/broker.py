@@ -63,8 +63,8 @@ def tool(name: str) -> str:
 
 def acl_text() -> str:
     """The ACL: the room reads and writes everything of the room; a bench writes only under its own
-    name (its username, ``%u``) and reads only the commands meant for it, for all, the class list and
-    the published assignments.
+    name (its username, ``%u``) and reads only the commands meant for it, for all, the class list,
+    the published assignments and whether the room listens.
     Anything not granted is refused by the broker (a forged status is dropped; with MQTT 5 and QoS 1
     the publisher is told "not authorized")."""
     root = topics.ROOT
@@ -80,6 +80,7 @@ def acl_text() -> str:
             f"pattern read {topics.CMD_ALL}",
             f"pattern read {topics.ACCOUNTS}",
             f"pattern read {topics.ASSIGNMENTS}",
+            f"pattern read {topics.ROOM_ONLINE}",
             "",
         ]
     )

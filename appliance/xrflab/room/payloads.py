@@ -330,6 +330,21 @@ class Assignment(_Payload):
     inline: Annotated[str, Field(max_length=_B64_MAX, pattern=r"^[A-Za-z0-9+/]*={0,2}$")] | None = None
 
 
+# ---- room -> benches: xrf/room/online --------------------------------------------------------
+
+
+class RoomOnline(_Payload):
+    """``xrf/room/online`` (retained): true once the room has subscribed to the benches' topics;
+    false as its last will or its clean goodbye. A bench sends its queued events only while it is
+    true: QoS 1 only reaches subscribers, so events sent while the room is away (a broker restart
+    forgets every subscription) would be acknowledged by the broker and lost. `conn` names the room's
+    connection (a random token each connect): the room puts itself back when an older connection's
+    will says false after it connected again."""
+
+    online: bool
+    conn: Annotated[str, Field(pattern=r"^[0-9a-f]{1,32}$")]
+
+
 # Parsers (TypeAdapter: the unions have no class of their own)
 ONLINE = TypeAdapter(Online)
 STATUS = TypeAdapter(Status)
@@ -339,6 +354,7 @@ COMMAND: TypeAdapter[Command] = TypeAdapter(Command)
 COMMAND_HEAD = TypeAdapter(CommandHead)
 CLASS_LIST = TypeAdapter(ClassList)
 ASSIGNMENT = TypeAdapter(Assignment)
+ROOM_ONLINE = TypeAdapter(RoomOnline)
 
 BENCH_LEAVES: dict[str, TypeAdapter[Any]] = {"online": ONLINE, "status": STATUS, "event": EVENT, "reply": REPLY}
 

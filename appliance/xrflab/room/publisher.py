@@ -21,7 +21,8 @@ same way, and whatever does not fit is dropped and logged, never acted on.
 - ``xrf/bench/<name>/event`` (QoS 1, payloads.Event): alarms, run started/ended, self-check
   verdicts, assignments received. Kept in a bounded queue until the broker acknowledges each (an
   outage loses nothing up to ``queue_max`` events; beyond, the oldest go and ``events_dropped``
-  says how many), resent after reconnecting. The room drops duplicates by (boot, seq).
+  says how many), resent after reconnecting, sent only while the room says it listens
+  (``xrf/room/online``). The room drops duplicates by (boot, seq).
 
 paho's network thread calls our callbacks; the appliance's state is touched only on its event
 loop (``call_soon_threadsafe``).
@@ -90,6 +91,7 @@ class BenchPublisher:
         self.seq = 0
         self.conn = 0
         self.connected = False
+        self.room_listens = False  # xrf/room/online (payloads.RoomOnline): events wait until true
         self.status: dict[str, Any] = {
             "state": "NO RUN",
             "run_id": None,
@@ -208,8 +210,10 @@ class BenchPublisher:
         self._flush()
 
     def _flush(self) -> None:
-        """Send every queued event not in flight (paho's thread or the loop: both may call)."""
-        if not self.connected:
+        """Send every queued event not in flight (paho's thread or the loop: both may call).
+        Only while the room listens: the broker acknowledges a QoS 1 message nobody subscribed to,
+        and after a broker restart the bench is often back before the room (payloads.RoomOnline)."""
+        if not (self.connected and self.room_listens):
             return
         with self._lock:
             flying = set(self._inflight.values())
@@ -284,7 +288,13 @@ class BenchPublisher:
         self.conn += 1
         self.connected = True
         client.subscribe(
-            [(topics.cmd(self.name), 1), (topics.CMD_ALL, 1), (topics.ACCOUNTS, 1), (topics.ASSIGNMENTS, 1)]
+            [
+                (topics.cmd(self.name), 1),
+                (topics.CMD_ALL, 1),
+                (topics.ACCOUNTS, 1),
+                (topics.ASSIGNMENTS, 1),
+                (topics.ROOM_ONLINE, 1),
+            ]
         )
         client.publish(topics.bench(self.name, "online"), self._online(True, self.conn), qos=1, retain=True)
         # the will the broker keeps now is this connection's; the next connect's must name the next
@@ -297,6 +307,7 @@ class BenchPublisher:
 
     def _on_disconnect(self, _client: Any, _userdata: Any, _flags: Any, _reason: Any, _props: Any = None) -> None:
         self.connected = False
+        self.room_listens = False  # the retained RoomOnline says it again on the next connect
         with self._lock:
             self._inflight.clear()  # unacknowledged: sent again on the next connect
 
@@ -316,7 +327,10 @@ class BenchPublisher:
             return
         limit = payloads.ROOM_MAX_BYTES
         try:
-            if topic == topics.ACCOUNTS:
+            if topic == topics.ROOM_ONLINE:
+                self.room_listens = payloads.parse(payloads.ROOM_ONLINE, data, limit).online
+                self._flush()
+            elif topic == topics.ACCOUNTS:
                 accounts = payloads.parse(payloads.CLASS_LIST, data, limit)
                 if self.on_accounts is not None and self._loop is not None:
                     self._loop.call_soon_threadsafe(self.on_accounts, accounts)

@@ -291,6 +291,8 @@ class Room:
         self.enrolled: dict[str, Enrolled] = self._load_benches()
         self.enrol_limit = RateLimiter(10, 60.0, 60.0)
         self.client: Any = None
+        self._conn = ""  # this room's connection token (payloads.RoomOnline)
+        self._stopping = False
         self.loop: asyncio.AbstractEventLoop | None = None
         self.accounts: RoomAccounts | None = None
         self.assignments = RoomAssignments(config.data_dir / "assignments")
@@ -357,7 +359,8 @@ class Room:
             self.files.room_password(),
             self.files.ca_cert.read_text() if tls else "",
         )
-        c = mqtt.client(endpoint, f"room-{secrets.token_hex(4)}")
+        self._conn = secrets.token_hex(4)
+        c = mqtt.client(endpoint, f"room-{self._conn}", will=self._presence(False))
         c.on_connect = self._on_connect
         c.on_disconnect = self._on_disconnect
         c.on_message = self._on_mqtt_message
@@ -371,21 +374,43 @@ class Room:
         for t in self._tasks:
             t.cancel()
         if self.client is not None:
+            self._stopping = True
+            if self.state.connected:  # a clean goodbye (a disconnect on purpose sends no will)
+                info = self.client.publish(*self._presence(False), qos=1, retain=True)
+                await asyncio.get_running_loop().run_in_executor(None, lambda: info.wait_for_publish(1.0))
             self.client.disconnect()
             self.client.loop_stop()
         if self.broker is not None:
             await asyncio.get_running_loop().run_in_executor(None, self.broker.stop)
 
+    def _presence(self, online: bool) -> tuple[str, bytes]:
+        return topics.ROOM_ONLINE, payloads.RoomOnline.make(online=online, conn=self._conn).wire()
+
     def _on_mqtt_message(self, _client: Any, _userdata: Any, msg: Any) -> None:
         # paho's network thread: the state is the event loop's, so the message is handed over.
         assert self.loop is not None, "the client starts in start(), after the loop is known"
+        if msg.topic == topics.ROOM_ONLINE:
+            # An older connection's will (the broker noticed it late) must not leave the benches
+            # holding their events while this one listens: say it again.
+            try:
+                said = (
+                    payloads.parse(payloads.ROOM_ONLINE, msg.payload, payloads.BENCH_MAX_BYTES) if msg.payload else None
+                )
+            except payloads.Malformed:
+                said = None
+            if (said is None or not said.online) and self.state.connected and not self._stopping:
+                _client.publish(*self._presence(True), qos=1, retain=True)
+            return
         self.loop.call_soon_threadsafe(self.state.on_message, msg.topic, msg.payload, bool(msg.retain))
 
     def _on_connect(self, client: Any, _u: Any, _f: Any, reason: Any, _p: Any = None) -> None:
         if not mqtt.reason_ok(reason):
             log.error("room: the broker refused the room: %s", reason)
             return
-        client.subscribe(topics.BENCH_ALL, qos=1)
+        client.subscribe([(topics.BENCH_ALL, 1), (topics.ROOM_ONLINE, 1)])
+        # After the SUBSCRIBE on the same connection: the broker has the subscription in place when
+        # a bench hears this and sends its queued events (payloads.RoomOnline).
+        client.publish(*self._presence(True), qos=1, retain=True)
         self.state.connected = True
         if self.accounts is not None and self.loop is not None:
             # a restarted broker lost the retained class list and assignments: publish them again

@@ -8,8 +8,11 @@
     xrf/cmd/all               QoS 1     payloads.Command    the same, for every bench
     xrf/accounts              retained  payloads.ClassList  the class list (accounts_sync.py)
     xrf/assignment/<id>       retained  payloads.Assignment a published assignment (assignments.py)
+    xrf/room/online           retained  payloads.RoomOnline the room listens (true after it subscribed;
+                                                            false: its last will): benches hold their
+                                                            events until then
 
-Only the room writes under xrf/cmd, xrf/accounts and xrf/assignment, and a bench writes only under
+Only the room writes under xrf/cmd, xrf/accounts, xrf/assignment and xrf/room, and a bench writes only under
 its own xrf/bench/<name>, <name> being its broker login (broker.acl_text): the topic, not anything
 in a payload, says which bench spoke. The room listens only to enrolled names.
 """
@@ -23,6 +26,7 @@ CMD_ALL = f"{ROOT}/cmd/all"
 ACCOUNTS = f"{ROOT}/accounts"
 BENCH_ALL = f"{ROOT}/bench/+/+"
 ASSIGNMENTS = f"{ROOT}/assignment/+"
+ROOM_ONLINE = f"{ROOT}/room/online"
 
 # A bench's name is its broker username and part of its topics: no MQTT wildcards or separators.
 NAME_RE = re.compile(r"^[a-z0-9][a-z0-9-]{0,31}$")
