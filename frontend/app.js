@@ -135,7 +135,7 @@ function applyState(s) {
   name.textContent = s.name;
   name.classList.toggle("none", !s.active);
   stripState(s.name, s.active ? (s.name === "RUN" ? "run" : "live") : (s.name === "CRASHED" ? "bad" : "none"));
-  // An accepted reset zeroes the setpoints on the appliance (api.py): show that here too.
+  // An accepted reset zeroes the setpoints on the appliance (server/http/runs.py): show that here too.
   // (From these states only a reset leads to INITIALISING/INITIALISED; the state published may
   // skip INITIALISING when the controller's init is quick.)
   if (s.active && ["INITIALISING", "INITIALISED"].includes(s.name) && before.active && resettableStates().has(before.name)) {
@@ -716,7 +716,7 @@ function route() {
 
 // ---- the WebSocket --------------------------------------------------------------------------
 // What the Bench page does with each kind of message /ws sends. The kinds and their fields are
-// defined once, on the appliance (xrflab/server/messages.py, published at GET /api/ws-schema);
+// defined once, on the appliance (xrflab/server/ws/messages.py, published at GET /api/ws-schema);
 // this table has an entry for every server kind there (tests/ui/test_state_machine_ui.py checks
 // it against the schema). Pages add their own listeners with xrf.on(kind, fn).
 const HANDLERS = {

@@ -53,8 +53,8 @@ SUBCOMMANDS: dict[str, Subcommand] = {}
 
 # name -> module providing HELP, add_arguments(parser), run(args); imported when the parser is built.
 EXTERNAL_SUBCOMMANDS: dict[str, str] = {
-    "serve": "xrflab.server.cli_serve",
-    "login": "xrflab.server.cli_login",
+    "serve": "xrflab.server.cli.serve",
+    "login": "xrflab.server.cli.login",
     "decode": "xrflab.logs.cli",
     "doctor": "xrflab.doctor",
     "selfcheck": "xrflab.selfcheck",
@@ -62,7 +62,7 @@ EXTERNAL_SUBCOMMANDS: dict[str, str] = {
     "upload": "xrflab.projects_cli",
     "new": "xrflab.projects.cli_new",
     "room": "xrflab.room.cli",
-    "run-disk-helper": "xrflab.server.run_disk_helper",
+    "run-disk-helper": "xrflab.server.runs.disk_helper",
 }
 
 

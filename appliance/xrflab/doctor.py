@@ -99,7 +99,7 @@ class CheckResult:
 @dataclass
 class ConfinementProbe:
     """What the run sandbox did with a harmless controller (``/bin/true``): the launcher's
-    report (``xrflab.server.guest_spawn.GuestReport``) and who controllers run as."""
+    report (``xrflab.server.runs.guest_spawn.GuestReport``) and who controllers run as."""
 
     report: Any  # GuestReport: mode, layers (name -> "" or why missing), notes, error
     identity: str  # guest_spawn.identity().note
@@ -664,7 +664,7 @@ def probe_confinement(ctx: Context) -> ConfinementProbe:
     """Start /bin/true in the run sandbox exactly as a run would (``guest_spawn.probe``)."""
     import pwd
 
-    from .server import guest_spawn
+    from .server.runs import guest_spawn
     from .server.settings import Settings
 
     settings = ctx.settings

@@ -39,13 +39,13 @@ Layers (each reported by name; ``LAYERS``):
 - ``limits``: address space, processes, open files, file size, no core dumps; real-time
   priority at most the loop's (``RLIMIT_RTPRIO``: below the safety watcher's) and real-time time
   without blocking (``RLIMIT_RTTIME``: a spinning SCHED_FIFO thread gets SIGXCPU, then SIGKILL).
-- ``memory``, ``pids``, ``cpu``: the run's cgroup (server/cgroups.py, made by the appliance): its
+- ``memory``, ``pids``, ``cpu``: the run's cgroup (server/runs/cgroups.py, made by the appliance): its
   memory with its /dev/shm and /tmp, its processes and threads, the CPUs it may use (the loop's).
   The controller moves itself into it just before its exec (``cgroup_procs``: descriptors the
   launcher opened, so the move is checked against the launcher's credentials), so the bounds hold
   from its first instruction; the init stays outside (spinning threads on the run's CPU cannot
   starve the process that reaps them).
-- ``disk``: the run folder is a file system of its own (server/run_disk.py, mounted by the
+- ``disk``: the run folder is a file system of its own (server/runs/disk.py, mounted by the
   appliance before the launcher starts): nothing to do here but report it.
 
 If a layer cannot be had, the launcher refuses to start the controller unless the appliance

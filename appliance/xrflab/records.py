@@ -2,7 +2,7 @@
 their SQLite declaration and their API description.
 
 DESIGN.md's rule — one definition, no copies — for the appliance's own records (the run record,
-server/runs.py; projects, their builds, versions and run links, projects/store.py). From the
+server/runs/store.py; projects, their builds, versions and run links, projects/store.py). From the
 dataclass come:
 
 - the table: ``create_table`` (CREATE TABLE), ``add_missing_columns`` (ALTER TABLE for a field

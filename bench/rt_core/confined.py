@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
 from xrflab.channels import Channels  # noqa: E402
-from xrflab.server import guest_spawn  # noqa: E402
+from xrflab.server.runs import guest_spawn  # noqa: E402
 from xrflab.server.settings import Settings  # noqa: E402
 
 PCTS = (50.0, 99.0, 99.9)

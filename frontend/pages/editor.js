@@ -2,7 +2,7 @@
 // nothing is fetched from outside), save = the project's next source version, built at once, the
 // compiler's errors as markers at their lines, "Build & run" that runs exactly the build of the
 // saved source, and the version history with diffs (against the template too).
-// API: routes_editor.py. Docs: docs/students/editor.md.
+// API: server/http/editor.py. Docs: docs/students/editor.md.
 "use strict";
 (function () {
   const CM_BASE = "/static/vendor/codemirror/";

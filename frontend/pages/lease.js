@@ -1,6 +1,6 @@
 // The bench lease in the header (who drives, the queue, Take / Release / Queue), the user menu
 // (password change, log out) and the STOP rule for people who do not hold the bench.
-// Server side: appliance/xrflab/server/lease.py; the rule: docs/educators/accounts.md.
+// Server side: appliance/xrflab/server/security/lease.py; the rule: docs/educators/accounts.md.
 "use strict";
 
 (function () {

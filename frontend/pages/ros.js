@@ -1,6 +1,6 @@
 // ROS 2 page: the bridge the appliance runs with every loop run (XenoCmd, XenoState, Ros2Xeno,
 // Xeno2Ros). Everybody sees its status; educators switch it on/off. API: appliance/xrflab/server/
-// routes_ros.py; live updates: the `ros` WebSocket message. Docs: docs/ros2/bridge.md.
+// server/http/ros.py; live updates: the `ros` WebSocket message. Docs: docs/ros2/bridge.md.
 "use strict";
 
 (function () {

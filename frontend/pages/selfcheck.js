@@ -1,6 +1,6 @@
 // Self-check page (educators): is it the bench or the student's code? Runs the bench self-check
 // (progress live from `selfcheck` WebSocket messages), shows the report, keeps past reports and
-// edits bench profiles. API: appliance/xrflab/server/routes_selfcheck.py.
+// edits bench profiles. API: appliance/xrflab/server/http/selfcheck.py.
 "use strict";
 
 (function () {

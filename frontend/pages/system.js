@@ -1,5 +1,5 @@
 // System page: the `xrf doctor` checks (ok / warning / failure with the exact fix), refreshed on
-// demand, and facts about the appliance. API: appliance/xrflab/server/routes_system.py.
+// demand, and facts about the appliance. API: appliance/xrflab/server/http/system.py.
 "use strict";
 
 (function () {

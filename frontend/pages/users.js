@@ -1,5 +1,5 @@
 // Users page (educators): accounts (create, disable, reset, role), CSV class list import and
-// the audit trail with filters and CSV export. API: appliance/xrflab/server/routes_accounts.py.
+// the audit trail with filters and CSV export. API: appliance/xrflab/server/http/accounts.py.
 "use strict";
 
 (function () {

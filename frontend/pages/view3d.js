@@ -87,7 +87,7 @@
     const $ = (id) => el.querySelector("#" + id);
     $("v3d-reset").addEventListener("click", () => xrf.api("POST", "/api/viz/reset-odometry").catch(() => {}));
     // A refusal is said on the page (not an alert, not nothing): replay and live switch the scene
-    // every viewer sees, so they need the bench, which its holder now keeps after a run (lease.py).
+    // every viewer sees, so they need the bench, which its holder now keeps after a run (server/security/lease.py).
     const refused = (e) => {
       const msg = $("v3d-message");
       msg.textContent = (e.status === 403 ? "Replay and live need the bench: " : "") + (e.message || e);

@@ -98,10 +98,10 @@ def test_run_sandbox_ids_devices_and_namespaces(installed):
     for name in ("subuid", "subgid"):
         st = (root / "etc" / name).stat()
         assert (st.st_uid, st.st_gid, oct(st.st_mode & 0o777)) == (0, 0, "0o644"), name
-    # the appliance's own reading of those files (xrflab.server.guest_spawn) finds xrf-loop's ids first
+    # the appliance's own reading of those files (xrflab.server.runs.guest_spawn) finds xrf-loop's ids first
     import pwd
 
-    from xrflab.server.guest_spawn import _sub_range
+    from xrflab.server.runs.guest_spawn import _sub_range
 
     xrf = pwd.struct_passwd(("xrf", "x", int(users["xrf"][2]), int(users["xrf"][3]), "", "", ""))
     assert _sub_range(str(root / "etc/subuid"), xrf) == (int(users["xrf-loop"][2]), 1)

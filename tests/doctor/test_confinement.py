@@ -15,7 +15,7 @@ import pytest
 
 from xrflab import doctor, guest
 from xrflab.doctor import FAILURE, OK, SKIPPED, WARNING, ConfinementProbe, Context
-from xrflab.server.guest_spawn import GuestReport, identity
+from xrflab.server.runs.guest_spawn import GuestReport, identity
 from xrflab.server.settings import Settings
 
 ALL_HOLD = {name: "" for name in guest.LAYERS}
@@ -114,7 +114,7 @@ def sandbox_or_skip(tmp_path) -> None:
     """As a normal user on a machine without user namespaces the sandbox cannot start at all
     (the check then fails, tested above with a faked report): nothing more to see here."""
     if not _AVAILABLE:
-        from xrflab.server.guest_spawn import probe
+        from xrflab.server.runs.guest_spawn import probe
 
         report = probe(Settings(data_dir=tmp_path, allow_unconfined=True))
         _AVAILABLE.append(not (report.error and not report.missing))
@@ -184,7 +184,7 @@ def test_serve_allow_unconfined_reaches_the_settings(tmp_path, monkeypatch):
     is made with; without it the environment's default holds (off)."""
     from xrflab import cli
     from xrflab.server import app as app_module
-    from xrflab.server import cli_serve
+    from xrflab.server.cli import serve as cli_serve
 
     seen = []
     monkeypatch.setattr(app_module, "create_app", lambda settings: settings)

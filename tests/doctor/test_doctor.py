@@ -13,7 +13,7 @@ import pytest
 
 from xrflab import doctor
 from xrflab.doctor import FAILURE, OK, SKIPPED, WARNING, ConfinementProbe, Context, InitProbe
-from xrflab.server.guest_spawn import GuestReport
+from xrflab.server.runs.guest_spawn import GuestReport
 
 NOW = 1_790_000_000.0  # 2026
 

@@ -12,8 +12,8 @@ from pydantic import ValidationError
 
 from xrflab import cli, plants
 from xrflab.channels import lib
-from xrflab.server.api import StartRun
-from xrflab.server.routes_projects import RunBuild
+from xrflab.server.http.projects import RunBuild
+from xrflab.server.http.runs import StartRun
 from xrflab.viz import kinematics
 
 RT_SRC = Path(__file__).resolve().parents[2] / "rt_core" / "src"

@@ -23,7 +23,7 @@ HELPER = CODE / "runfolder.py"
 # folder before the launcher starts and copies the image's files out after the run's processes are
 # gone, by descriptor only (O_NOFOLLOW on every open, links copied as links, never followed, a
 # depth bound), so it is a helper of the same kind as runfolder.py, reviewed as one.
-DESCRIPTOR_MODULES = {HELPER, CODE / "server" / "run_disk.py"}
+DESCRIPTOR_MODULES = {HELPER, CODE / "server" / "runs" / "disk.py"}
 
 NAMES = ("_?run_dir", "shm_dir")  # what the code calls a run folder (plus what is assigned from one)
 # `x = <expression naming a run folder>` makes x a run folder too (root = Path(row.run_dir)),
@@ -67,54 +67,60 @@ def _named(names: list[str]) -> re.Pattern[str]:
 # (file below appliance/xrflab, a fragment of the line) -> why it is safe.
 ALLOWED = {
     (
-        "server/launch.py",
+        "server/runs/launch.py",
         "run_dir = settings.runs_dir / str(row.id)",
     ): "the run folder's own path, made by the appliance",
-    ("server/launch.py", "run_dir.mkdir(parents=True, exist_ok=True)"): "makes the run folder, before any guest",
-    ("server/launch.py", "open(os.devnull"): "not the run folder",
+    ("server/runs/launch.py", "run_dir.mkdir(parents=True, exist_ok=True)"): "makes the run folder, before any guest",
+    ("server/runs/launch.py", "open(os.devnull"): "not the run folder",
     (
-        "server/run_limits.py",
+        "server/runs/limits.py",
         "runs = os.open(run_dir.parent, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)",
     ): "the runs folder (the appliance's), the parent of the run folder; run_disk works from it by descriptor",
     (
-        "server/run_limits.py",
+        "server/runs/limits.py",
         "runs = os.open(self.run_dir.parent, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)",
     ): "the runs folder (the appliance's), the parent of the run folder; run_disk works from it by descriptor",
     (
-        "server/launch.py",
+        "server/runs/launch.py",
         "link.unlink()",
     ): "the appliance's own link directly in /dev/shm, beside the loop's folder, out of the loop's reach",
     (
-        "server/launch.py",
+        "server/runs/launch.py",
         'os.symlink(f"/proc/{os.getpid()}/fd/{shm_fd}", link)',
     ): "makes the appliance's own link directly in /dev/shm, out of the loop's reach",
-    ("server/launch.py", "os.fdopen(open_in(run_dir"): "opened through runfolder.open_in",
+    ("server/runs/launch.py", "os.fdopen(open_in(run_dir"): "opened through runfolder.open_in",
     (
-        "server/guest_spawn.py",
+        "server/runs/guest_spawn.py",
         "shm_dir.mkdir(mode=0o700, exist_ok=False)",
     ): "makes the run's /dev/shm folder, before the guest",
-    ("server/guest_spawn.py", "run_dir.mkdir()"): "xrf doctor's probe: a temporary folder of its own, no guest yet",
     (
-        "server/guest_spawn.py",
+        "server/runs/guest_spawn.py",
+        "run_dir.mkdir()",
+    ): "xrf doctor's probe: a temporary folder of its own, no guest yet",
+    (
+        "server/runs/guest_spawn.py",
         "shutil.rmtree(shm_dir, ignore_errors=True)",
     ): "xrf doctor's probe: /bin/true wrote nothing there",
     (
-        "server/orphans.py",
+        "server/runs/orphans.py",
         "open_log(run_dir / rel, fd=fd)",
     ): "a name for messages; the file is the fd from open_mappable",
     (
-        "server/routes_logs.py",
+        "server/http/logs.py",
         "return Path(data) / CACHE_ROOT",
     ): "<data>/log-cache: the appliance's folder, not the run's",
-    ("server/routes_logs.py", "if not target.exists():"): "the conversion in <data>/log-cache, not in the run folder",
-    ("server/orphans.py", "Path(row.run_dir).is_dir()"): "the run folder's own path (the appliance's), nothing inside",
+    ("server/http/logs.py", "if not target.exists():"): "the conversion in <data>/log-cache, not in the run folder",
+    (
+        "server/runs/orphans.py",
+        "Path(row.run_dir).is_dir()",
+    ): "the run folder's own path (the appliance's), nothing inside",
     (
         "guest.py",
         'os.chdir(cfg["run_dir"])',
     ): "the launcher, in the guest's namespace before it exists: the folder's own path",
     ("logs/host_writer.py", "RecordFile.open(self._run_dir, rel"): "record_file.py opens through runfolder.open_in",
-    ("server/ros_supervisor.py", "with open(open_in(bp.run.run_dir"): "opened through runfolder.open_in",
-    ("server/ros_supervisor.py", "str(Path(run.run_dir) / BRIDGE_OUTPUT)"): "a path shown in the status, never opened",
+    ("server/runs/ros_bridge.py", "with open(open_in(bp.run.run_dir"): "opened through runfolder.open_in",
+    ("server/runs/ros_bridge.py", "str(Path(run.run_dir) / BRIDGE_OUTPUT)"): "a path shown in the status, never opened",
     (
         "logs/host_writer.py",
         "path = str(self._run_dir / rel)",

@@ -20,7 +20,7 @@ from xrf_testing.harness import ADMIN_PASSWORD, ADMIN_USER, Server, login_client
 from xrf_testing.logs_support import PROBE, start, wait_for
 from xrf_testing.net import established_to, lan_address, listening_addresses
 from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of
-from xrflab.server.routes_rerun import NO_LIVE_STREAM
+from xrflab.server.http.rerun import NO_LIVE_STREAM
 
 SERVICE = "/rerun.sdk_comms.v1alpha1.MessageProxyService"
 
@@ -151,7 +151,7 @@ def test_only_the_owner_and_educators_see_a_run_live(lan) -> None:
         run_id = run_probe(server, alice)
         mine = read_messages(alice, READ_MESSAGES, until=lambda d: f"run-{run_id}".encode() in d)
         assert mine.status == 200 and f"run-{run_id}".encode() in mine.data
-        # Someone else's live run answers as no live run at all (ownership.py): not its id, not
+        # Someone else's live run answers as no live run at all (server/security/ownership.py): not its id, not
         # its owner, and the stream a 404 NOT_FOUND word for word like the one before any run.
         info = bob.get("/api/logs/rerun").json()
         assert info["live_run"] is None and not info["live_allowed"] and info["live_url"] == ""

@@ -325,7 +325,7 @@ def test_decoding_a_file_the_guest_keeps_truncating_never_faults(tmp_path: Path)
     import threading
 
     from xrflab.logs import LogFormatError, iter_csv_chunks
-    from xrflab.server.routes_logs import open_run_log
+    from xrflab.server.http.logs import open_run_log
 
     run = tmp_path / "run"
     run.mkdir()

@@ -124,8 +124,8 @@ def test_a_first_release_database_reads_as_the_records(tmp_path: Path) -> None:
 
 def test_api_models_are_the_definition(tmp_path: Path) -> None:
     from xrflab.server.app import create_app
-    from xrflab.server.routes_editor import Version
-    from xrflab.server.routes_projects import Build, Project, ProjectDetail, ProjectRun
+    from xrflab.server.http.editor import Version
+    from xrflab.server.http.projects import Build, Project, ProjectDetail, ProjectRun
     from xrflab.server.settings import Settings
 
     models = {"Project": Project, "Build": Build, "Version": Version, "ProjectRun": ProjectRun}

@@ -237,7 +237,7 @@ def test_students_do_not_see_each_other(server: Server) -> None:
 
 
 def test_projects_route_starts_a_run_like_the_bench_route(server: Server) -> None:
-    """One start-a-run service (server/run_start.py): a project build started from the Projects
+    """One start-a-run service (server/runs/start.py): a project build started from the Projects
     page gets the timing option and the lease's bookkeeping as POST /api/runs does. Here an
     educator holds the bench and runs a student's build (the run is the student's): the run's
     end must count as the holder's activity (lease.started_run noted the run), so the idle time

@@ -21,7 +21,7 @@ from pathlib import Path
 # Run inside the sandbox by a bare python3 (no pytest, no venv .pth): the checkout's appliance/
 # comes on argv.
 sys.path.insert(0, sys.argv[1])
-from xrflab.server.guest_spawn import GuestSpawner  # noqa: E402
+from xrflab.server.runs.guest_spawn import GuestSpawner  # noqa: E402
 from xrflab.server.settings import Settings  # noqa: E402
 
 

@@ -71,7 +71,7 @@ def test_every_attempt_fails_and_nothing_survives(server: Server, data_dir: Path
     targets = (
         f'#define EVIL_DATA_DIR "{data_dir}"\n'
         f'#define EVIL_OTHER_SRC "{other_main}"\n'
-        f'#define EVIL_APPLIANCE_CODE "{REPO}/appliance/xrflab/server/accounts.py"\n'
+        f'#define EVIL_APPLIANCE_CODE "{REPO}/appliance/xrflab/server/security/accounts.py"\n'
         f"#define EVIL_APPLIANCE_PORT {server.url.rsplit(':', 1)[1]}\n"
         f"#define EVIL_OTHER_PORT {listener.getsockname()[1]}\n"
         f"#define EVIL_APPLIANCE_PID {server.proc.pid}\n"

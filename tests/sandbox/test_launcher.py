@@ -25,7 +25,7 @@ HERE = Path(__file__).resolve().parent
 TEST_USER = "xrf-test-guest"  # an ordinary user with subordinate ids (made here when root)
 # What the kernel offers no non-root appliance on this machine: cgroup v1 (a v1 cgroup takes a
 # process of another uid only from root; the Pi's cgroup v2 with systemd's Delegate= would);
-# the run folder's own file system comes from the root helper (run_disk_helper.py) when it runs.
+# the run folder's own file system comes from the root helper (server/runs/disk_helper.py) when it runs.
 NON_ROOT_MISSING = {"memory", "pids", "cpu"}
 # Fills the run folder beyond its 16 MB file system (guest_probe.py's limit) and says whether it stayed bounded.
 FILL = r"""
@@ -186,7 +186,7 @@ def run_disk_helper(owner: str) -> Iterator[tuple[Path, str]]:
     for d in (data, data / "runs"):
         shutil.chown(d, owner, pwd.getpwnam(owner).pw_gid)
     helper = subprocess.Popen(
-        [sys.executable, "-m", "xrflab.server.run_disk_helper", "--data", str(data), "--images", str(images)]
+        [sys.executable, "-m", "xrflab.server.runs.disk_helper", "--data", str(data), "--images", str(images)]
         + ["--owner", owner, "--socket", str(sock), "--max-mb", "16", "--max-files", "256"],
         env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")),
     )

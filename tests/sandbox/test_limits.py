@@ -26,7 +26,9 @@ import pytest
 from xrf_testing.harness import Server, WsClient, shared_builds_root, start_server, stop_server, wait_for
 from xrf_testing.hostile import project_files
 from xrf_testing.projects_support import reachable_tmp, targz, upload_and_build
-from xrflab.server import cgroups, run_disk, run_limits
+from xrflab.server.runs import cgroups
+from xrflab.server.runs import disk as run_disk
+from xrflab.server.runs import limits as run_limits
 
 REPO = Path(__file__).resolve().parents[2]
 HOSTILE = REPO / "tests" / "fixtures" / "limits_controller"

@@ -1,6 +1,6 @@
 """The hub's public API (no module reads its client set or patches its snapshot): snapshot
 sources in order, per-audience publishing with the ownership rule, closing one user's sockets;
-it takes messages.py models only and sends the fields their senders set."""
+it takes server/ws/messages.py models only and sends the fields their senders set."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import json
 
 import pytest
 
-from xrflab.server import ownership
-from xrflab.server.accounts import User
-from xrflab.server.hub import Client, Hub
-from xrflab.server.messages import AlarmMessage, BuildMessage, ErrorMessage, LeaseMessage, RunMessage, StateMessage
+from xrflab.server.security import ownership
+from xrflab.server.security.accounts import User
+from xrflab.server.ws.hub import Client, Hub
+from xrflab.server.ws.messages import AlarmMessage, BuildMessage, ErrorMessage, LeaseMessage, RunMessage, StateMessage
 
 ALICE = User(1, "alice", "student")
 BOB = User(2, "bob", "student")
@@ -82,16 +82,16 @@ def test_the_hub_refuses_anything_but_a_message_model() -> None:
     heard: list[str] = []
     hub.listeners.append(lambda message: heard.append(message.type))
     plain = {"type": "alarm", "kind": "room", "message": "a dict"}
-    with pytest.raises(TypeError, match="messages.py models"):
+    with pytest.raises(TypeError, match="server/ws/messages.py models"):
         hub.publish(plain)  # type: ignore[arg-type]
-    with pytest.raises(TypeError, match="messages.py models"):
+    with pytest.raises(TypeError, match="server/ws/messages.py models"):
         hub.publish_to_owner(plain, "alice")  # type: ignore[arg-type]
-    with pytest.raises(TypeError, match="messages.py models"):
+    with pytest.raises(TypeError, match="server/ws/messages.py models"):
         hub.publish_to_educators(plain)  # type: ignore[arg-type]
-    with pytest.raises(TypeError, match="messages.py models"):
+    with pytest.raises(TypeError, match="server/ws/messages.py models"):
         clients["alice"].reply(plain)  # type: ignore[arg-type]
     hub.add_snapshot(lambda: [plain])  # type: ignore[list-item]
-    with pytest.raises(TypeError, match="messages.py models"):
+    with pytest.raises(TypeError, match="server/ws/messages.py models"):
         hub.new_client(None, ALICE)  # type: ignore[arg-type]
     assert heard == [] and all(_queued(c) == [] for c in clients.values())  # nothing went anywhere
 

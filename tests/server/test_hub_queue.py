@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from xrflab.server.hub import ClientQueue, SlowClient, encode
+from xrflab.server.ws.hub import ClientQueue, SlowClient, encode
 
 
 def test_telemetry_drops_oldest_and_counts() -> None:

@@ -1,4 +1,4 @@
-"""The run life cycle (server/lifecycle.py): one ordered list of observers, told in order, none
+"""The run life cycle (server/runs/lifecycle.py): one ordered list of observers, told in order, none
 able to keep the next from hearing; and the app registers host logging, the 3D view, the lease
 and the ROS bridge in the documented order."""
 
@@ -12,8 +12,8 @@ from typing import Any
 import pytest
 
 from xrf_testing.harness import free_port
-from xrflab.server.lifecycle import RunLifecycle, RunObserver
-from xrflab.server.runs import RunRow, RunStore
+from xrflab.server.runs.lifecycle import RunLifecycle, RunObserver
+from xrflab.server.runs.store import RunRow, RunStore
 
 
 class Recording(RunObserver):

@@ -1,9 +1,9 @@
 """The loop's printed output is the guest's: the console cutter holds at most one line, cuts long
-lines and counts floods instead of queueing them (server/output_lines.py)."""
+lines and counts floods instead of queueing them (server/runs/output_lines.py)."""
 
 from __future__ import annotations
 
-from xrflab.server.output_lines import OutputLines
+from xrflab.server.runs.output_lines import OutputLines
 
 
 def feed(cutter: OutputLines, data: bytes) -> list[str]:

@@ -8,7 +8,7 @@ import sqlite3
 from dataclasses import fields
 from pathlib import Path
 
-from xrflab.server.runs import RunRecord, RunRow, RunStore
+from xrflab.server.runs.store import RunRecord, RunRow, RunStore
 
 DEFINITION = [f.name for f in fields(RunRow)]
 LOG_LISTING_LEAVES_OUT = {"shm", "pid", "exit_code", "exit_signal", "run_dir"}
@@ -52,7 +52,7 @@ def test_a_first_release_database_gains_every_later_field(tmp_path: Path) -> Non
 
 def test_api_models_are_the_definition(tmp_path: Path) -> None:
     from xrflab.server.app import create_app
-    from xrflab.server.routes_logs import RunLogRecord
+    from xrflab.server.http.logs import RunLogRecord
     from xrflab.server.settings import Settings
 
     assert list(RunRecord.model_fields) == DEFINITION

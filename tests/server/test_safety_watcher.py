@@ -1,4 +1,4 @@
-"""The safety watcher (rt_core/src/watch.c through server/safety.py) on real processes.
+"""The safety watcher (rt_core/src/watch.c through server/runs/safety.py) on real processes.
 
 The shared memory here is a real `struct xrf_shm` in this process's memory (what the watcher
 reads and writes is the same layout the loop maps): the point is what the watcher does to a
@@ -15,7 +15,7 @@ import time
 import pytest
 
 from xrflab.channels import ffi, lib
-from xrflab.server.safety import SafetyWatcher
+from xrflab.server.runs.safety import SafetyWatcher
 
 
 class _FakeChannels:

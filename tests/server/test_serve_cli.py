@@ -12,7 +12,7 @@ from pathlib import Path
 import httpx
 
 from xrf_testing.harness import REPO_ROOT, free_port, login_client
-from xrflab.server.safety import fpga_reset
+from xrflab.server.runs.safety import fpga_reset
 
 
 def test_xrf_serve_prints_url_and_serves(tmp_path: Path) -> None:

@@ -1,5 +1,5 @@
 """Every message /ws sends in a realistic session matches the schema the appliance publishes
-(GET /api/ws-schema, xrflab/server/messages.py), and bad incoming messages get a clear error
+(GET /api/ws-schema, xrflab/server/ws/messages.py), and bad incoming messages get a clear error
 (issue 20)."""
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ import httpx
 from jsonschema import Draft202012Validator
 
 from xrf_testing.harness import Server, WsClient
-from xrflab.server import api, hub, messages
+from xrflab.server.http import runs as api
+from xrflab.server.ws import hub, messages
 
 
 def validator(schema: dict[str, Any], direction: str) -> Draft202012Validator:

@@ -77,7 +77,7 @@ def _mounts() -> set[str]:
 
 
 def _run_cgroups() -> set[str]:
-    from xrflab.server import cgroups
+    from xrflab.server.runs import cgroups
 
     try:
         places = cgroups.find()
@@ -125,12 +125,12 @@ class Snapshot:
 
     def mounts_left(self) -> set[str]:
         """Mounts made during the session under its temporary folder or the checkout (a run
-        folder's file system, run_disk.py), still mounted here."""
+        folder's file system, server/runs/disk.py), still mounted here."""
         roots = (str(self.temp_root) + "/", str(self.repo) + "/")
         return {m for m in _mounts() - self.mounts if m.startswith(roots)}
 
     def cgroups_left(self) -> set[str]:
-        """Run cgroups (server/cgroups.py) made during the session and left empty: a run cgroup
+        """Run cgroups (server/runs/cgroups.py) made during the session and left empty: a run cgroup
         with processes in it is a live run of another session's appliance."""
         left = set()
         for path in _run_cgroups() - self.cgroups:

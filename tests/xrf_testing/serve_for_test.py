@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from xrflab.server.app import create_app
-from xrflab.server.cli_serve import serve
+from xrflab.server.cli.serve import serve
 from xrflab.server.settings import Settings
 
 PATH_FIELDS = {"data_dir", "frontend_dir", "projects_dir", "builds_root"}

@@ -20,7 +20,7 @@ from .binding import CData, ffi, lib
 from .errors import ChannelsCorrupt, ChannelsError
 
 SHM_DIR = Path("/dev/shm")
-# The appliance's own name for a run's sealed segment (server/launch.py: segment_link), a link
+# The appliance's own name for a run's sealed segment (server/runs/launch.py: segment_link), a link
 # directly in /dev/shm to the memfd it made: "<the run's /dev/shm folder>" + this.
 SEGMENT_LINK_SUFFIX = "-segment"
 SHM_SIZE: int = ffi.sizeof("struct xrf_shm")

@@ -1,7 +1,7 @@
 """A run's logging on the appliance, as one unit: what starts with a run and ends with it.
 
 A run that logs gets, from ``start`` (called by the host-logging run observer,
-server/run_logging.py) to ``finish`` (once its loop process is gone):
+server/runs/log_writer.py) to ``finish`` (once its loop process is gone):
 
 - the **host log writer** of its logger's ring (``host_writer.py``: ring → file segments, the
   per-second timing series of ``timing_series.py``);
@@ -102,8 +102,8 @@ def finish(rl: RunLogging) -> WriterStats:
 __all__ = ["HostLogWriter", "RunLogging", "WriterStats", "finish", "loop_env", "start"]
 
 
-# ---- the loop's environment (appliance/xrflab/server/launch.py) ------------------------------
-# Starting and finishing a run's logging: server/run_logging.py, a run observer (lifecycle.py).
+# ---- the loop's environment (appliance/xrflab/server/runs/launch.py) ------------------------------
+# Starting and finishing a run's logging: server/runs/log_writer.py, a run observer (server/runs/lifecycle.py).
 
 
 def loop_env(run_id: int, build: str, log_timing: bool = False) -> dict[str, str]:

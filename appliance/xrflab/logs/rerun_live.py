@@ -3,7 +3,7 @@
 The records the host writer hands over (decimated to ``LIVE_HZ``) and the loop's telemetry are
 sent, in batches every ``SEND_PERIOD_S``, to the run's recording (``recording_id = run-<id>``) on
 the run's own rerun message proxy (``rerun_servers.LiveProxy``, 127.0.0.1 only); browsers read it
-through the appliance (server/routes_rerun.py). A run's blueprint has one time-series view per
+through the appliance (server/http/rerun.py). A run's blueprint has one time-series view per
 variable group plus encoders, PWM and Xeno2Ros, each view one entity (a series per variable): a
 batch is one message per view, whatever the number of variables (rerun's viewer pays per
 message). Sending happens on a thread of its own: the writer's thread only queues (and drops,

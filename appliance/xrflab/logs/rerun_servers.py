@@ -2,7 +2,7 @@
 
 Both are ``rerun`` processes whose servers listen on 127.0.0.1 only: they have no login of their
 own, so browsers reach them only through the appliance (its /rerun/ files route and its gRPC-web
-read proxy, server/routes_rerun.py). They run below the appliance's priority (``RERUN_NICE``) and
+read proxy, server/http/rerun.py). They run below the appliance's priority (``RERUN_NICE``) and
 end with it: by ``stop_rerun_children`` on a normal exit (atexit, and the app's shutdown), by a
 parent-death signal when it is killed (``tied.popen_tied``).
 
@@ -77,7 +77,7 @@ def _spawn_rerun(argv: list[str]) -> subprocess.Popen[bytes]:
 class _RerunChild:
     """A ``rerun`` child process whose servers listen on 127.0.0.1 only: they have no login of
     their own, so browsers reach them only through the appliance (its /rerun/ files route and its
-    gRPC-web read proxy, server/routes_rerun.py). Stopped with the appliance (stop_rerun_children)."""
+    gRPC-web read proxy, server/http/rerun.py). Stopped with the appliance (stop_rerun_children)."""
 
     def __init__(self, args: list[str], ports: tuple[int, ...], what: str) -> None:
         # Below the appliance (`nice` execs rerun, so every rerun thread inherits it): a live

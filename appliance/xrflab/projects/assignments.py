@@ -6,7 +6,7 @@ upload, ``archive.unpack``) and ``assignment.json`` (id, name, sha256 of the arc
 published it, when). Installing is atomic (a folder renamed into place), so a half-received
 assignment is never listed.
 
-How students get it (routes_projects.py): an assignment is one more template (``GET
+How students get it (server/http/projects.py): an assignment is one more template (``GET
 /api/project-templates`` lists it as ``assignment:<id>``; ``POST /api/projects/from-template``
 copies it), and the first time a student lists their projects on this bench after it arrived, a
 copy is made for them: a project of their own (origin ``assignment:<id>``) under the ordinary

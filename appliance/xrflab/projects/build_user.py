@@ -1,7 +1,7 @@
 """Who a build runs as, and what that user may reach.
 
 As root the appliance builds as the dedicated unprivileged user ``xrf-build`` (created on first
-use; the run sandbox's ``xrf-run`` is made the same way, server/guest_spawn.py); without root a
+use; the run sandbox's ``xrf-run`` is made the same way, server/runs/guest_spawn.py); without root a
 build runs as the appliance's own user. The build user reads exactly what a build needs: the
 folders down to its build folder may be passed (``o+x``, never listed), the project's source is
 shared through the group (never through "other" bits: a data-folder file is never

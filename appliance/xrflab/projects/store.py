@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
+from ..private_files import private_db
 from ..records import (
     Record,
     Served,
@@ -38,7 +39,6 @@ from ..records import (
     served,
     to_sql,
 )
-from ..server.private_files import private_db
 
 BuildStatus = Literal["queued", "building", "ok", "failed"]
 

@@ -31,7 +31,7 @@ from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from ..projects.archive import ArchiveRejected
 from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
 from ..projects.assignments import Assignments
-from ..server.auth import Perm, client_address, requires
+from ..server.security.auth import Perm, client_address, requires
 from . import mqtt, payloads, sso
 from .accounts_sync import BenchAccounts
 from .commands import CommandHandler
@@ -309,8 +309,8 @@ router = APIRouter()
 # the credential (sso.py). Anything wrong answers 403 without saying more.
 @router.get("/room/sso", include_in_schema=False, dependencies=[requires(Perm.PUBLIC)])
 async def room_sso(request: Request, token: str = Query("", max_length=1000)) -> Response:
-    from ..server import audit
-    from ..server.routes_accounts import _set_cookies
+    from ..server.http.accounts import _set_cookies
+    from ..server.security import audit
 
     link: RoomLink | None = getattr(request.app.state, "room", None)
     security = request.app.state.security

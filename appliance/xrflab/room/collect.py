@@ -65,7 +65,7 @@ def pack_bench(
     """Write the bench's .tar.gz of `runs` to `out`; returns bench.json (also inside). Blocking."""
     from ..logs.convert import convert
     from ..runfolder import RunFolder, RunPathError
-    from ..server.routes_logs import log_files, open_run_log
+    from ..server.http.logs import log_files, open_run_log
 
     total = 0
     listed: list[dict[str, Any]] = []

@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ..server.messages import AlarmMessage
+from ..server.ws.messages import AlarmMessage
 from . import payloads
 from .payloads import safe_text
 from .publisher import BenchPublisher, Recent
@@ -71,7 +71,7 @@ class CommandHandler:
             log.exception("room command %s", cmd)
             reply.update(ok=False, error=safe_text(exc, 300))
         reply["t_done"] = time.time()
-        from ..server import audit
+        from ..server.security import audit
 
         audit.record(None, f"room.{cmd}", {"by": by, "ok": reply.get("ok"), "id": command.id})
         if self.publisher is not None:
@@ -107,8 +107,8 @@ class CommandHandler:
     async def _cmd_selfcheck(self, command: payloads.Selfcheck) -> dict[str, Any]:
         from fastapi import HTTPException
 
-        from ..server.accounts import User
-        from ..server.routes_selfcheck import SelfCheckService, StartCheck
+        from ..server.http.selfcheck import SelfCheckService, StartCheck
+        from ..server.security.accounts import User
 
         sup = self.app.state.supervisor
         if sup.current is not None and sup.current.alive:
@@ -129,7 +129,7 @@ class CommandHandler:
 
     async def _cmd_collect(self, command: payloads.Collect) -> dict[str, Any]:
         from ..projects.assignments import origin
-        from ..server.routes_projects import service_of
+        from ..server.http.projects import service_of
         from .collect import RunToPack, pack_bench
 
         link = getattr(self.app.state, "room", None)

@@ -30,7 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from ..projects.assignments import ID_RE as ASSIGNMENT_ID_RE
 from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
-from ..server.accounts import ROLES, USERNAME_RE
+from ..server.security.accounts import ROLES, USERNAME_RE
 from .topics import NAME_RE
 
 log = logging.getLogger(__name__)

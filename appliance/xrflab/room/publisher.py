@@ -39,14 +39,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..server.lifecycle import RunObserver
-from ..server.messages import AlarmMessage, LeaseMessage, SelfcheckMessage, ServerMessage, StateMessage
+from ..server.runs.lifecycle import RunObserver
+from ..server.ws.messages import AlarmMessage, LeaseMessage, SelfcheckMessage, ServerMessage, StateMessage
 from . import mqtt, payloads, topics
 from .payloads import MAX_ALARMS, Malformed, safe_text
 
 if TYPE_CHECKING:
-    from ..server.run import Run
-    from ..server.runs import RunRow
+    from ..server.runs.run import Run
+    from ..server.runs.store import RunRow
 
 log = logging.getLogger(__name__)
 
@@ -245,7 +245,7 @@ class BenchPublisher:
 
     # -- hub listener (the appliance's event loop) ----------------------------------------------
     def on_hub(self, message: ServerMessage) -> None:
-        """Every message the dashboards get, as its typed model (messages.py): a renamed field
+        """Every message the dashboards get, as its typed model (server/ws/messages.py): a renamed field
         fails the type check here instead of silently stopping the room's view of the bench."""
         s = self.status
         if isinstance(message, StateMessage):
@@ -382,7 +382,7 @@ class Recent(OrderedDict[Any, None]):
 
 
 class RoomRunObserver(RunObserver):
-    """The bench publisher's place in the run life cycle (server/lifecycle.py): runs started and
+    """The bench publisher's place in the run life cycle (server/runs/lifecycle.py): runs started and
     ended reach the room from the run record, not from the dashboards' run message."""
 
     name = "room"

@@ -1,8 +1,8 @@
 """`xrf room`: the room service. One page with every bench, the class list, the educator's actions.
 
 A FastAPI app like the appliance, with the appliance's own login rules: the same accounts code,
-sessions, CSRF, rate limits and permission declarations (``server/auth.py``,
-``server/routes_accounts.py``: login, users, class-list import, password resets). The room's own
+sessions, CSRF, rate limits and permission declarations (``server/security/auth.py``,
+``server/http/accounts.py``: login, users, class-list import, password resets). The room's own
 routes are for educators only, but ``POST /api/room/enrol`` (a bench's `xrf room join`, which
 has no account: the one-time code is its credential).
 
@@ -57,9 +57,18 @@ from starlette.websockets import WebSocketDisconnect
 
 from ..projects import archive as archive_mod
 from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
-from ..server.accounts import RateLimiter
-from ..server.auth import Perm, Security, SecurityHeaders, User, client_address, current_user, optional_user, requires
-from ..server.body_limit import BodyLimit, spool_to_file
+from ..server.security.accounts import RateLimiter
+from ..server.security.auth import (
+    Perm,
+    Security,
+    SecurityHeaders,
+    User,
+    client_address,
+    current_user,
+    optional_user,
+    requires,
+)
+from ..server.security.body_limit import BodyLimit, spool_to_file
 from ..server.settings import Settings
 from . import mqtt, payloads, sso, topics
 from .accounts_sync import RoomAccounts
@@ -627,7 +636,7 @@ async def benches(request: Request) -> dict[str, Any]:
 @router.post("/join-codes", dependencies=[requires(Perm.EDUCATOR)])
 async def join_code(request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
     code, expires = _room(request).codes.new()
-    from ..server import audit
+    from ..server.security import audit
 
     audit.record(user, "room.join_code", {}, client_address(request))
     return {"code": code, "expires": expires}
@@ -662,7 +671,7 @@ async def set_bench_address(
 ) -> dict[str, Any]:
     """Where a bench's dashboard is (what "open bench" links to); recorded at enrolment, changed
     only here or by enrolling the bench again."""
-    from ..server import audit
+    from ..server.security import audit
 
     try:
         enrolled = _room(request).set_url(name, body.url)
@@ -710,7 +719,7 @@ async def list_assignments(request: Request) -> list[dict[str, Any]]:
 
 
 def _publish(request: Request, user: User, meta: dict[str, Any]) -> dict[str, Any]:
-    from ..server import audit
+    from ..server.security import audit
 
     _room(request).publish_assignment(meta["id"])
     audit.record(user, "room.assignment", {"id": meta["id"], "name": meta["name"]}, client_address(request))
@@ -759,7 +768,7 @@ async def assignment_archive(
 async def collect(aid: str, body: Collect, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
     """Ask every enrolled bench for the runs of projects made from `aid`; offline ones are missing.
     Follow ``GET /api/room/collections/<id>`` until ``done``, then download its ``archive``."""
-    from ..server import audit
+    from ..server.security import audit
 
     bad = [f for f in body.formats if f not in FORMATS]
     if bad:
@@ -884,10 +893,10 @@ def create_room_app(config: RoomConfig) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        from ..server import audit as auditmod
-        from ..server.accounts import Accounts
-        from ..server.audit import AuditLog
-        from ..server.auth import bootstrap_admin
+        from ..server.security import audit as auditmod
+        from ..server.security.accounts import Accounts
+        from ..server.security.audit import AuditLog
+        from ..server.security.auth import bootstrap_admin
 
         config.data_dir.mkdir(parents=True, exist_ok=True)
         security.accounts = Accounts(settings.accounts_db, settings.session_max_s, settings.session_idle_s)
@@ -907,7 +916,7 @@ def create_room_app(config: RoomConfig) -> FastAPI:
     app.state.room = room
     app.add_middleware(SecurityHeaders)
     app.add_middleware(RoomBodyLimit, limit=settings.max_body_bytes, upload_limit=BENCH_MAX + (1 << 20))
-    from ..server.routes_accounts import router as accounts_router
+    from ..server.http.accounts import router as accounts_router
 
     app.include_router(accounts_router)
     app.include_router(router)

@@ -21,7 +21,7 @@ and reported.
 The bench lease is not part of this module: ``command_gate(user, cmd) -> (allowed, reason)``
 is called for every XenoCmd. ``--gate-url unix:<socket>`` (set by the appliance when it starts the
 bridge) makes it ``gate_client``: the appliance's lease gate is asked (xrflab/server/
-ros_supervisor.py). Without it every command goes through.
+server/runs/ros_bridge.py). Without it every command goes through.
 """
 
 from __future__ import annotations

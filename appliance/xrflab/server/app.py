@@ -16,26 +16,26 @@ from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 from ..room.bench import attach as attach_room
 from ..room.bench import router as room_bench_router
 from ..viz.scene import VizService
-from .api import router, ws_router
-from .auth import Perm, Security, SecurityHeaders, optional_user, requires
-from .body_limit import BodyLimit
-from .hub import Hub
-from .ros_supervisor import RosBridgeSupervisor
-from .routes_accounts import router as accounts_router
-from .routes_editor import CODEMIRROR_DIR
-from .routes_editor import router as editor_router
-from .routes_logs import router as logs_router
-from .routes_projects import router as projects_router
-from .routes_rerun import router as rerun_router
-from .routes_ros import router as ros_router
-from .routes_selfcheck import router as selfcheck_router
-from .routes_system import router as system_router
-from .routes_viser import router as viser_router
-from .routes_viz import router as viz_router
-from .run_logging import HostLogging
-from .runs import RunStore
+from .http.accounts import router as accounts_router
+from .http.editor import CODEMIRROR_DIR
+from .http.editor import router as editor_router
+from .http.logs import router as logs_router
+from .http.projects import router as projects_router
+from .http.rerun import router as rerun_router
+from .http.ros import router as ros_router
+from .http.runs import router, ws_router
+from .http.selfcheck import router as selfcheck_router
+from .http.system import router as system_router
+from .http.viser import router as viser_router
+from .http.viz import router as viz_router
+from .runs.log_writer import HostLogging
+from .runs.ros_bridge import RosBridgeSupervisor
+from .runs.store import RunStore
+from .runs.supervisor import Supervisor
+from .security.auth import Perm, Security, SecurityHeaders, optional_user, requires
+from .security.body_limit import BodyLimit
 from .settings import Settings
-from .supervisor import Supervisor
+from .ws.hub import Hub
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -54,7 +54,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.supervisor = supervisor
         security.open(hub, supervisor)  # accounts, audit trail, bench lease (issue 7)
         # The run observers, in the order they are told of a run's start, samples and end
-        # (lifecycle.py). Host logging first: it adds the log counts to the ended run's record.
+        # (server/runs/lifecycle.py). Host logging first: it adds the log counts to the ended run's record.
         supervisor.lifecycle.register(HostLogging(hub.publish, store))
         # 3D view: viser on 127.0.0.1 (settings.port + 1), reached only through /viser/ (login),
         # fed by the supervisor's reader
@@ -64,7 +64,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.viz = viz
         assert security.lease is not None  # made by security.open
         supervisor.lifecycle.register(security.lease)  # a run's end is the holder's activity
-        # ROS 2 bridge per run when enabled (ros_supervisor.py); its lease gate asks `security`.
+        # ROS 2 bridge per run when enabled (server/runs/ros_bridge.py); its lease gate asks `security`.
         # Registers itself last: one bridge per run, started and stopped with it.
         ros = RosBridgeSupervisor(settings, supervisor, hub, security)
         hub.add_snapshot(ros.snapshot)

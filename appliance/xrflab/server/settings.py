@@ -59,7 +59,7 @@ class Settings:
     host_timeout_ms: int = 1000
     host_timeout_action: str = "pause"
     hang_timeout_ms: int = 200
-    # SCHED_FIFO priority of the safety watcher thread (safety.py): above any priority a guest
+    # SCHED_FIFO priority of the safety watcher thread (server/runs/safety.py): above any priority a guest
     # may take (its RLIMIT_RTPRIO is kept below this one, guest.py), so a controller's own
     # real-time threads cannot starve it; off the guest's CPUs as well (run_watch.start_watcher).
     # Where real time is refused it runs SCHED_OTHER and says so in the run's record.
@@ -78,14 +78,14 @@ class Settings:
         default_factory=lambda: os.environ.get("XRF_ALLOW_UNCONFINED", "") in ("1", "true", "yes")
     )
     run_user: str = "xrf-run"  # as root: the user controllers run as (created on first use)
-    # What the kernel bounds for each run (run_limits.py; docs/developers/security.md, "Resources
+    # What the kernel bounds for each run (server/runs/limits.py; docs/developers/security.md, "Resources
     # the kernel bounds"). Defaults fit a 2 GB Pi 4 running the appliance and ROS 2 beside a run.
     run_memory_mb: int = 1024  # memory cgroup: its processes, its /dev/shm and /tmp together
     run_pids: int = 256  # pids cgroup: processes and threads of the run
     run_disk_mb: int = 2048  # its run folder: a file system of this size, from the first byte
     run_files: int = 65536  # ...holding at most this many files and folders
     runs_total_mb: int = 8192  # every run folder kept on disk together (checked at each start)
-    # A non-root appliance has its run folders mounted by this root helper (run_disk_helper.py,
+    # A non-root appliance has its run folders mounted by this root helper (server/runs/disk_helper.py,
     # deploy/systemd/xrf-run-disk.socket); a root appliance mounts them itself.
     run_disk_helper: str = "/run/xrf-lab/run-disk.sock"
     # The CPUs a run's processes may use (cpuset, "3" or "2-3"); "" = the isolated CPUs
@@ -123,7 +123,7 @@ class Settings:
     # Addresses of reverse proxies whose X-Forwarded-For/-Proto are believed (`xrf serve
     # --trusted-proxy`); empty = those headers are ignored and the client is the TCP peer.
     trusted_proxies: tuple[str, ...] = ()
-    # Request bodies (body_limit.py): JSON routes take at most this much; archive uploads have
+    # Request bodies (server/security/body_limit.py): JSON routes take at most this much; archive uploads have
     # their own limit (projects/archive.py Limits.max_upload) and this ceiling above it.
     max_body_bytes: int = 256 * 1024
     max_upload_body_bytes: int = (64 << 20) + (1 << 20)

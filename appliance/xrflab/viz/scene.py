@@ -9,7 +9,7 @@
   translucent green carriage (the ghost) at the setpoint (Ros2Xeno ``position_setpoint``).
 
 Data path (nothing touches the loop): the supervisor's telemetry reader hands every batch it
-reads to ``VizService.on_telemetry`` (a run observer: server/lifecycle.py). Samples are thinned to
+reads to ``VizService.on_telemetry`` (a run observer: server/runs/lifecycle.py). Samples are thinned to
 200 Hz by the run's ``Recorder`` (the replay file), and the same kept samples drive the live
 kinematics, so a replay shows exactly what the live view showed. The scene itself is pushed to
 the browsers at 30 Hz by ``run()``, in a thread of its own (scene building never holds up the
@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import profiles as profmod
-from ..server.lifecycle import RunObserver
+from ..server.runs.lifecycle import RunObserver
 from . import kinematics as kin
 from .recorder import Recorder, has_recording, load_recording, recording_size
 
@@ -260,7 +260,7 @@ class VizService(RunObserver):
 
         port = getattr(self.settings, "viz_port", None) or int(self.settings.port) + 1
         # Loopback only, whatever --host is: browsers reach it through the appliance's /viser/
-        # proxy (server/routes_viser.py), behind the login.
+        # proxy (server/http/viser.py), behind the login.
         self.server = viser.ViserServer(host="127.0.0.1", port=port, label="XRF Lab 3D", verbose=False)
         self.port = int(self.server.get_port())
         from viser.extras import ViserUrdf  # noqa: F401  (import cost paid here, not on first draw)
@@ -289,7 +289,7 @@ class VizService(RunObserver):
 
     # -- telemetry in (supervisor hook, event loop) ---------------------------------------------
 
-    # A run observer (server/lifecycle.py), after host logging: samples per reader batch, and
+    # A run observer (server/runs/lifecycle.py), after host logging: samples per reader batch, and
     # the end, which closes the run's recording.
     name = "3D view"
 

@@ -1,4 +1,4 @@
-"""The one ownership rule (server/ownership.py) through a real appliance, driven by the route
+"""The one ownership rule (server/security/ownership.py) through a real appliance, driven by the route
 table: student A's project, build, run, logs, 3D recording and live stream exist, and student B
 
 - gets, for every by-id route (path ids and body ids alike), exactly what a missing id gets:
@@ -34,8 +34,8 @@ from xrf_testing.harness import Server, shared_builds_root, start_server, stop_s
 from xrf_testing.hostile import project_files
 from xrf_testing.projects_support import reachable_tmp, targz
 from xrflab.server.app import create_app
-from xrflab.server.auth import Perm
-from xrflab.server.routes_rerun import NO_LIVE_STREAM, SERVICE
+from xrflab.server.http.rerun import NO_LIVE_STREAM, SERVICE
+from xrflab.server.security.auth import Perm
 from xrflab.server.settings import Settings
 
 REPO = Path(__file__).resolve().parents[3]

@@ -17,7 +17,7 @@ from fastapi.routing import APIRoute
 from test_route_table import permissions_of, walk
 
 from xrflab.server.app import create_app
-from xrflab.server.auth import ROLE_PERMS, Perm
+from xrflab.server.security.auth import ROLE_PERMS, Perm
 from xrflab.server.settings import Settings
 
 ROLES = ("anonymous", "observer", "student", "educator")
@@ -80,7 +80,7 @@ def test_matrix(
     method: str, path: str, perm: Perm, role: str, clients: dict[str, httpx.Client], free_bench: None
 ) -> None:
     kw: dict[str, Any] = {"json": {}} if method in ("POST", "PUT", "PATCH") else {}
-    grpc_web = path.startswith("/rerun.sdk_comms.")  # the live rerun stream (routes_rerun.py)
+    grpc_web = path.startswith("/rerun.sdk_comms.")  # the live rerun stream (server/http/rerun.py)
     if grpc_web:
         kw = {"content": b"\0" * 5, "headers": {"content-type": "application/grpc-web+proto"}}
     r = clients[role].request(method, concrete(path), **kw)

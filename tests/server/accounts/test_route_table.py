@@ -10,9 +10,9 @@ from typing import Any
 from fastapi.routing import APIRoute, APIWebSocketRoute
 from starlette.routing import Mount
 
-from xrflab.server import api
 from xrflab.server.app import create_app
-from xrflab.server.auth import Perm
+from xrflab.server.http import runs as api
+from xrflab.server.security.auth import Perm
 from xrflab.server.settings import Settings
 
 # Mounts serve files and carry no dependencies: each one is listed here with why it may be public.

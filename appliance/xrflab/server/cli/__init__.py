@@ -1,0 +1,1 @@
+"""The command line's appliance commands: `xrf serve` and `xrf login`."""

@@ -1,0 +1,1 @@
+"""HTTP routes: the appliance's REST API, one module per resource. Only app.py imports these."""

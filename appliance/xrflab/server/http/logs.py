@@ -1,0 +1,400 @@
+"""Runs and their logs: the run list with logging figures, downloads in every format (`.rrd`
+for the rerun viewer among them), and `read_run_log()` for other parts of the appliance (the 3D view
+replays a finished run from it).
+
+Downloads: `raw` is the file itself (streamed); `csv` streams (`iter_csv_chunks`, iterated
+in Starlette's thread pool, memory bounded by one chunk); `mat`, `parquet` and `rrd` are
+converted once, off the event loop, into `<data>/log-cache/<run>/` (keyed by the source's name,
+size and mtime, so a file that grew is converted again) and then served as files. Every output
+is what `xrf decode` writes for the same file: the same code (`xrflab.logs.convert`).
+
+A run folder's contents are the loop's to make (its log files in nested folders, like
+``home/x/logs/log_…xrf``, but also symlinks, FIFOs, hard links or names that are not UTF-8 if it
+wants): every listing, open and stat here goes through ``runfolder.py`` (openat2 with
+RESOLVE_BENEATH | RESOLVE_NO_SYMLINKS from the run folder's descriptor, plain files only), files
+are served from the descriptor that was checked, never by name, a file is mapped only when the
+loop cannot truncate it, names are shown escaped (``runfolder.shown``: ``bad\\xff.bin``) and
+taken back exactly, and conversions are written outside the run folder, where the loop cannot
+plant a symlink for them to follow.
+
+The rerun viewer (live and recorded) and its live stream are in server/http/rerun.py.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import os
+import re
+import time
+from collections.abc import Iterator
+from pathlib import Path, PurePosixPath
+from typing import Any, BinaryIO, Literal
+
+import numpy as np
+from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi.responses import FileResponse, Response, StreamingResponse
+from pydantic import BaseModel, Field
+from starlette.background import BackgroundTask
+
+from ...logs.logformat import MAGIC
+from ...logs.timing_series import TIMING_FILE
+from ...runfolder import RunFolder, RunPathError, shown, unshown
+from ..runs.store import record_model
+from ..security import ownership
+from ..security.auth import Perm, requires
+
+router = APIRouter()
+
+LOG_SUFFIXES = (".xrf", ".bin")
+CACHE_DIR = ".cache"  # where conversions once lived in the run folder: never listed
+CACHE_ROOT = "log-cache"  # <data>/log-cache/<run id>/: conversions, out of the loop's reach
+NOT_LOGS = ("output.txt", TIMING_FILE, "ros-bridge.txt")
+MEDIA = {
+    "raw": "application/octet-stream",
+    "csv": "text/csv; charset=utf-8",
+    "mat": "application/x-matlab-data",
+    "parquet": "application/vnd.apache.parquet",
+    "rrd": "application/octet-stream",
+}
+_convert_locks: dict[str, asyncio.Lock] = {}
+
+
+# ---- finding a run's logs (also for other modules) ------------------------------------------
+
+
+def _is_log(rf: RunFolder, rel: str) -> bool:
+    """xrflog by its magic; an XRF2 .bin by its two header lines (names, type codes)."""
+    try:
+        fd = rf.open(rel)
+    except (OSError, RunPathError):
+        return False
+    with open(fd, "rb") as f:
+        head = f.read(64 * 1024)
+    if head.startswith(MAGIC):
+        return True
+    if not rel.endswith(".bin"):
+        return False
+    lines = head.split(b"\n", 2)
+    return (
+        len(lines) == 3
+        and bool(lines[0])
+        and bool(lines[1])
+        and re.fullmatch(rb"[0-9 ,\r]+", lines[1]) is not None
+        and b"\0" not in lines[0]
+    )
+
+
+def log_files(rf: RunFolder) -> list[tuple[str, os.stat_result]]:
+    """(name relative to the run folder, its lstat) of each log file, oldest first: xrflog by
+    content, XRF2 .bin by name; conversions (.cache/), the 3D recording and the loop's output
+    are not logs. Nested folders too (an XRF2 name like /home/x/logs/log lands in
+    <run>/home/x/logs/); links are neither listed nor entered (runfolder.RunFolder.walk)."""
+    found = [(st.st_mtime_ns, rel, st) for rel, st in rf.walk_files(skip_top=(CACHE_DIR, "viz", *NOT_LOGS))]
+    return [(rel, st) for _, rel, st in sorted(found, key=lambda x: (x[0], x[1])) if _is_log(rf, rel)]
+
+
+def run_log_files(run_dir: str | Path) -> list[str]:
+    """`log_files` of a run folder by its path: the names only ([] when there is no folder)."""
+    try:
+        rf = RunFolder(run_dir)
+    except OSError:
+        return []
+    with rf:
+        return [rel for rel, _ in log_files(rf)]
+
+
+def open_run_log(rf: RunFolder, rel: str) -> Any:
+    """`open_log` of a run's file through the run folder's helper: opened without following a
+    link, mapped only if the loop cannot truncate it (else a private copy: open_mappable). The
+    LogFile names the file by its path with the name shown escaped (names in conversions,
+    messages)."""
+    from ...logs import open_log
+
+    fd = rf.open_mappable(rel)
+    try:
+        return open_log(rf.path / shown(rel), fd=fd)  # mapped: stays valid after the fd is closed
+    finally:
+        os.close(fd)
+
+
+def read_run_log(run_dir: str | Path, name: str | None = None) -> dict[str, np.ndarray]:
+    """A run's log as NumPy arrays: {column: 1-D array} with `seq`, `cycle`, `t_ns` (xrflog) and
+    one array per logged variable (char as uint8), plus `t` (seconds since the first record,
+    float64) when the file has a clock. `name`: a file name relative to the run folder, as the
+    listing shows it (default: the newest log). Raises FileNotFoundError when the run has no
+    log; damaged files give every complete record (see docs/logging/decoding.md). Blocking: call
+    it off the event loop."""
+    from ...logs.convert import _plain
+
+    try:
+        rf = RunFolder(run_dir)
+    except OSError:
+        raise FileNotFoundError(f"{run_dir}: no run folder") from None
+    with rf:
+        files = [rel for rel, _ in log_files(rf)]
+        if name is not None:
+            files = [rel for rel in files if name in (rel, shown(rel))]
+        if not files:
+            raise FileNotFoundError(f"{run_dir}: no log file" + (f" named {name!r}" if name else ""))
+        log = open_run_log(rf, files[-1])
+    rec = log.records
+    out = {col: np.array(_plain(rec[col])) for col in log.columns if col in rec.dtype.names}
+    if log.kind == "xrf2":
+        out["seq"] = np.arange(len(rec), dtype=np.uint64)
+    if "t_ns" in out and len(out["t_ns"]):
+        out["t"] = (out["t_ns"] - out["t_ns"][0]) / 1e9
+    return out
+
+
+# ---- models ---------------------------------------------------------------------------------
+
+
+# The run record as the log listing shows it: runs.RunRow's fields (one definition), without
+# where the run lived (shm, pid, run folder) and its exit status, plus its duration and liveness.
+RunLogRecord = record_model(
+    "RunLogRecord",
+    exclude=frozenset({"shm", "pid", "exit_code", "exit_signal", "run_dir"}),
+    duration_s=(float | None, Field(description="ended (or now, while live) - started")),
+    live=(bool, Field(description="the run is active; counts are the loop's, live")),
+)
+
+
+class LogFileInfo(BaseModel):
+    name: str = Field(description="path relative to the run folder; use it in download URLs")
+    size: int
+    kind: str = Field(description="xrflog | xrf2 | unreadable")
+    records: int
+    lost: int
+    segments: int
+    variables: list[dict[str, str]]
+    skipped: list[str] = Field(description="what the decoder could not use (damage, truncation)")
+    skipped_bytes: int
+    error: str = ""
+
+
+class RunLogs(BaseModel):
+    run: RunLogRecord  # type: ignore[valid-type]  # a model made by runs.record_model
+    files: list[LogFileInfo]
+    timing: bool = Field(description="timing.jsonl (per-second stage timing) exists")
+
+
+# ---- helpers --------------------------------------------------------------------------------
+
+
+def _sup(request: Request) -> Any:
+    return request.app.state.supervisor
+
+
+def _record(sup: Any, row: Any) -> dict[str, Any]:
+    d = row.as_dict()
+    run = sup.current
+    live = bool(run is not None and run.row.id == row.id and run.alive and not run.ended.is_set())
+    if live and run.last_status is not None:
+        s = run.last_status
+        d.update(cycles=s.cycles, misses=s.missed, log_lost=s.log_lost)
+        rl = run.logging
+        d["log_records"] = rl.writer.stats.records if rl is not None else s.log_written
+    end = d["ended"] if d["ended"] is not None else (time.time() if live else None)
+    d["duration_s"] = round(end - d["started"], 3) if end is not None else None
+    d["live"] = live
+    return d
+
+
+def _row(request: Request, run_id: int) -> Any:
+    """The run if the requester may read it; someone else's answers as a missing one (404)."""
+    return ownership.run_or_404(request, run_id)
+
+
+def _file(row: Any, name: str) -> str:
+    """A log of the run by the name the listing shows; only names the listing would give are
+    accepted. Returns the name relative to the run folder (as the file system has it). Blocking."""
+    rel = unshown(name)
+    if rel not in run_log_files(row.run_dir):
+        raise HTTPException(404, f"run {row.id} has no log file {name!r}")
+    return rel
+
+
+def _text(message: str) -> str:
+    """A message that may hold a file system name: no lone surrogate reaches JSON."""
+    return message.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+def _file_info(rf: RunFolder, rel: str, st: os.stat_result) -> dict[str, Any]:
+    from ...logs import LogFormatError
+
+    base = {"name": shown(rel), "size": st.st_size}
+    try:
+        log = open_run_log(rf, rel)
+    except (OSError, LogFormatError, RunPathError) as exc:
+        return base | {
+            "kind": "unreadable",
+            "records": 0,
+            "lost": 0,
+            "segments": 0,
+            "variables": [],
+            "skipped": [],
+            "skipped_bytes": 0,
+            "error": _text(str(exc)),
+        }
+    return base | {
+        "size": log.size,
+        "kind": log.kind,
+        "records": len(log),
+        "lost": log.lost,
+        "segments": len(log.segments),
+        "variables": [{"name": _text(v.name), "column": v.field, "type": v.type_name} for v in log.variables],
+        "skipped": [_text(x) for x in log.skipped],
+        "skipped_bytes": log.skipped_bytes,
+    }
+
+
+def _download_name(row: Any, rel: str, fmt: str) -> str:
+    path = PurePosixPath(rel)
+    stem = re.sub(r"[^A-Za-z0-9._-]", "_", path.stem) or "log"
+    suffix = re.sub(r"[^A-Za-z0-9._-]", "_", path.suffix) if fmt == "raw" else "." + fmt
+    return f"run{row.id}_{stem}{suffix}"
+
+
+def _cache_dir(request: Request, row: Any) -> Path:
+    settings = getattr(request.app.state, "settings", None)
+    data = settings.data_dir if settings is not None else Path(row.run_dir).parent.parent
+    return Path(data) / CACHE_ROOT / str(row.id)
+
+
+def _open_file(run_dir: str | Path, rel: str) -> tuple[int, os.stat_result]:
+    """`rel` opened through the run folder's helper, with its fstat (what is served is what was
+    checked: the descriptor, not the name)."""
+    with RunFolder(run_dir) as rf:
+        fd = rf.open(rel)
+    return fd, os.fstat(fd)
+
+
+def _open_log_in(run_dir: str | Path, rel: str) -> Any:
+    with RunFolder(run_dir) as rf:
+        return open_run_log(rf, rel)
+
+
+async def _cached(run_dir: str | Path, rel: str, fmt: str, cache: Path) -> Path:
+    from ...logs import convert
+
+    fd, st = await asyncio.to_thread(_open_file, run_dir, rel)
+    os.close(fd)
+    # One cache name per file: its name made safe, plus a digest of the real name (two names
+    # that differ only where they are not plain ASCII do not share a conversion).
+    digest = hashlib.sha256(os.fsencode(rel)).hexdigest()[:10]
+    key = re.sub(r"[^A-Za-z0-9._-]", "_", rel)[:100] + "-" + digest
+    target = cache / f"{key}.{st.st_size}-{st.st_mtime_ns}.{fmt}"
+    lock = _convert_locks.setdefault(str(target), asyncio.Lock())
+    async with lock:
+        if not target.exists():
+            cache.mkdir(parents=True, exist_ok=True, mode=0o700)
+            for old in cache.glob(f"{key}.*.{fmt}"):  # superseded conversions of a grown file
+                old.unlink(missing_ok=True)
+            log = await asyncio.to_thread(_open_log_in, run_dir, rel)
+            await asyncio.to_thread(convert, log.path, fmt, target, log=log)
+    return target
+
+
+def _raw_chunks(f: BinaryIO, size: int) -> Iterator[bytes]:
+    with f:  # closed when the response ends (or by its background task, if never started)
+        while size > 0:
+            chunk = f.read(min(size, 1 << 20))
+            if not chunk:
+                return
+            size -= len(chunk)
+            yield chunk
+
+
+def _stream(fd: int, size: int, media: str, headers: dict[str, str]) -> StreamingResponse:
+    """The open file `fd` (its first `size` bytes) as the response body."""
+    f = open(fd, "rb")
+    headers["Content-Length"] = str(size)
+    return StreamingResponse(
+        _raw_chunks(f, size), media_type=media, headers=headers, background=BackgroundTask(f.close)
+    )
+
+
+# ---- runs and files -------------------------------------------------------------------------
+
+
+@router.get(
+    "/api/logs/runs",
+    response_model=list[RunLogRecord],  # type: ignore[valid-type]  # a model made at import (runs.record_model)
+    dependencies=[requires(Perm.WATCH)],
+    summary="runs with their logging figures (newest first)",
+)
+async def list_runs(request: Request, limit: int = Query(100, ge=1, le=10000)) -> list[dict[str, Any]]:
+    sup = _sup(request)
+    return [_record(sup, r) for r in ownership.runs(request, limit)]  # the requester's (educators: all)
+
+
+@router.get(
+    "/api/logs/runs/{run_id}",
+    response_model=RunLogs,
+    dependencies=[requires(Perm.WATCH)],
+    summary="one run and its log files, with what the decoder skipped",
+)
+async def run_logs(run_id: int, request: Request) -> dict[str, Any]:
+    row = _row(request, run_id)
+
+    def work() -> tuple[list[dict[str, Any]], bool]:
+        try:
+            rf = RunFolder(row.run_dir)
+        except OSError:
+            return [], False
+        with rf:
+            return [_file_info(rf, rel, st) for rel, st in log_files(rf)], rf.is_file(TIMING_FILE)
+
+    files, has_timing = await asyncio.to_thread(work)
+    return {"run": _record(_sup(request), row), "files": files, "timing": has_timing}
+
+
+@router.get(
+    "/api/logs/runs/{run_id}/files/{name:path}",
+    dependencies=[requires(Perm.WATCH)],
+    summary="download a log: raw, csv (streamed), mat, parquet or rrd",
+    response_class=Response,
+)
+async def download(
+    run_id: int, name: str, request: Request, fmt: Literal["raw", "csv", "mat", "parquet", "rrd"] = "raw"
+) -> Response:
+    from ...logs import LogFormatError, iter_csv_chunks
+
+    row = _row(request, run_id)
+    rel = await asyncio.to_thread(_file, row, name)
+    headers = {"Content-Disposition": f'attachment; filename="{_download_name(row, rel, fmt)}"'}
+    try:
+        if fmt == "raw":
+            # Read through the descriptor that was checked, not by name: the loop may swap the
+            # file for a symlink after the listing.
+            fd, st = await asyncio.to_thread(_open_file, row.run_dir, rel)
+            return _stream(fd, st.st_size, MEDIA["raw"], headers)
+        if fmt == "csv":
+            log = await asyncio.to_thread(_open_log_in, row.run_dir, rel)
+            log.check_uniform()
+            headers["X-Log-Skipped"] = str(len(log.skipped))
+            headers["X-Log-Lost"] = str(log.lost)
+            return StreamingResponse(iter_csv_chunks(log.path, log=log), media_type=MEDIA["csv"], headers=headers)
+        target = await _cached(row.run_dir, rel, fmt, _cache_dir(request, row))
+    except LogFormatError as exc:
+        raise HTTPException(422, _text(str(exc))) from None
+    except (OSError, RunPathError):
+        raise HTTPException(404, f"run {row.id} has no log file {name!r}") from None
+    return FileResponse(target, media_type=MEDIA[fmt], headers=headers)
+
+
+@router.get(
+    "/api/logs/runs/{run_id}/timing",
+    dependencies=[requires(Perm.WATCH)],
+    summary="per-second framework timing of the run (JSON lines)",
+    response_class=Response,
+)
+async def timing(run_id: int, request: Request) -> Response:
+    row = _row(request, run_id)
+    try:
+        fd, st = await asyncio.to_thread(_open_file, row.run_dir, TIMING_FILE)
+    except (OSError, RunPathError):  # none, or not a plain file of the run (a link, a FIFO, ...)
+        raise HTTPException(404, f"run {run_id} has no timing series") from None
+    headers = {"Content-Disposition": f'attachment; filename="run{run_id}_timing.jsonl"'}
+    return _stream(fd, st.st_size, "application/x-ndjson", headers)

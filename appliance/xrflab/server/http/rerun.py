@@ -1,0 +1,369 @@
+"""The rerun viewer and the live stream, behind the login, on the appliance's own origin.
+
+- ``GET /rerun/<file>``: the rerun web viewer (from the installed rerun-sdk, no CDN), copied once
+  from rerun's internal file server (``logs.rerun_servers.RerunViewer``, 127.0.0.1) into the data folder.
+  Same origin as the dashboard, so the viewer fetches a finished run's ``.rrd`` from the API with
+  the session cookie. **Offline** (issue 19): as shipped, the viewer fetches Google Fonts, sends
+  analytics to tel.rerun.io, asks GitHub for the latest release and app.rerun.io for its examples,
+  from every student's browser. Its web build has no switch for any of these, so the copy is
+  neutralised (``prepare_viewer``): the font links leave index.html, and the absolute URLs in the
+  wasm are overwritten, byte for byte the same length, by paths under ``/rerun/offline/`` on the
+  appliance, which answers 404 at once. A Content-Security-Policy (``connect-src 'self'`` and
+  friends) on every viewer file stops whatever a later rerun version adds before it leaves the
+  browser. **Compressed**: each file is kept gzipped beside the original (the 43 MB wasm is 14 MB)
+  and served with ``Content-Encoding: gzip`` to browsers that accept it. **Ours**: index.html
+  also loads ``/static/rerun-tab.js`` (``TAB_SCRIPT``): the Runs page opens the viewer in a tab of
+  its own, where that script makes Esc stop the run (issue 19).
+- ``GET /api/logs/rerun``: where the viewer and the live stream are for this request's host.
+- ``POST /rerun.sdk_comms.v1alpha1.MessageProxyService/{ReadMessages,ReadTables}``: the live
+  stream. rerun's viewer, given ``rerun+http://<host>:<port>/proxy``, calls these gRPC-web methods
+  at the root of ``<host>:<port>`` (its URL parser accepts no path prefix), so they are answered
+  here, at the appliance's root, by streaming the current run's rerun proxy (``logs.rerun_servers.LiveProxy``,
+  127.0.0.1 only) through: the login, the run's read permission (its owner or an educator, as for
+  its log files; someone else's run answers as no stream at all) and a same-origin check apply to the live data as to everything else, and the
+  Pi opened by its LAN address works like the Pi itself. Only the two read methods pass: nobody
+  writes into a run's recording from a browser.
+
+docs/logging/appliance.md describes the whole path.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import re
+import urllib.parse
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+from fastapi import APIRouter, HTTPException, Request
+from fastapi.responses import FileResponse, Response, StreamingResponse
+from pydantic import BaseModel, Field
+from starlette.background import BackgroundTask
+
+from ..security import ownership
+from ..security.auth import Perm, requires, requires_grpc_web
+
+router = APIRouter()
+
+SERVICE = "rerun.sdk_comms.v1alpha1.MessageProxyService"
+READ_METHODS = frozenset({"ReadMessages", "ReadTables"})
+MAX_REQUEST_BYTES = 64 * 1024  # a read request is an (almost) empty protobuf message
+MAX_LIVE_STREAMS = 16  # open live viewers at once (each is a replay of the run's buffer)
+# Response headers of rerun's gRPC-web server worth passing on (the rest are hop-by-hop or CORS,
+# which the same-origin viewer does not need).
+_PASS_HEADERS = ("content-type", "grpc-status", "grpc-message", "grpc-encoding", "grpc-accept-encoding")
+_open_streams = 0
+# The one answer for "nothing live" and for "live, but someone else's run" (server/security/ownership.py).
+NO_LIVE_STREAM = (
+    "no run you may watch has streamed since the appliance started "
+    "(a run's live data is its owner's and the educators')"
+)
+
+# gRPC status codes (grpc/doc/statuscodes.md) for answers the viewer can show.
+NOT_FOUND, PERMISSION_DENIED, RESOURCE_EXHAUSTED, UNIMPLEMENTED, UNAVAILABLE = 5, 7, 8, 12, 14
+
+
+class RerunInfo(BaseModel):
+    available: bool
+    error: str = ""
+    viewer: str = Field(description="viewer page on this appliance (append ?url=...)")
+    live_url: str = Field(
+        description="rerun+http(s) URL of the live stream on this appliance's own origin "
+        "(the viewer reads it through the login); '' when there is nothing live to show"
+    )
+    live_run: int | None = Field(
+        description="run whose live stream the URL shows (the latest run that streamed), None before the first"
+    )
+    live_recording: str = Field(description="its rerun recording id, 'run-<id>'")
+    live_running: bool = Field(description="that run is still running")
+    live_allowed: bool = Field(description="this user may watch it (its owner or an educator)")
+    live_reason: str = Field(default="", description="why not, or why there is no live stream")
+    live_viewers: int = Field(description="live viewers connected to the appliance right now")
+
+
+def _origin(request: Request) -> str:
+    """scheme://host:port of this request, with an explicit port (rerun's URL parser does not know
+    the default port of a rerun+http(s) URL)."""
+    scheme = request.url.scheme if request.url.scheme in ("http", "https") else "http"
+    host = request.headers.get("host") or f"{request.url.hostname}:{request.url.port}"
+    has_port = host.rsplit("]", 1)[-1].count(":") == 1
+    if not has_port:
+        host = f"{host}:{443 if scheme == 'https' else 80}"
+    return f"{scheme}://{host}"
+
+
+@router.get(
+    "/api/logs/rerun",
+    response_model=RerunInfo,
+    dependencies=[requires(Perm.WATCH)],
+    summary="where the rerun viewer and the live stream are, for this request's host",
+)
+async def rerun_info(request: Request) -> dict[str, Any]:
+    from ...logs.rerun_servers import LiveProxy
+
+    proxy = LiveProxy.current()
+    sup = request.app.state.supervisor
+    run = sup.current
+    info: dict[str, Any] = {
+        "available": True,
+        "viewer": "/rerun/",
+        "live_url": "",
+        "live_run": None,
+        "live_recording": "",
+        "live_running": False,
+        "live_allowed": False,
+        "live_viewers": _open_streams,
+    }
+    # Someone else's stream answers as no stream at all (server/security/ownership.py): not even its run id.
+    if proxy is None or not ownership.may_see(ownership.user_of(request), proxy.owner):
+        info["live_reason"] = NO_LIVE_STREAM
+        return info
+    info.update(
+        live_run=proxy.run_id,
+        live_recording=f"run-{proxy.run_id}",
+        live_running=bool(run is not None and run.row.id == proxy.run_id and run.alive and not run.ended.is_set()),
+    )
+    scheme, hostport = _origin(request).split("://", 1)
+    info.update(live_allowed=True, live_url=f"rerun+{scheme}://{hostport}/proxy")
+    return info
+
+
+# The viewer's files, prepared once per rerun version (prepare_viewer).
+VIEWER_FILES = ("index.html", "re_viewer.js", "re_viewer_bg.wasm", "favicon.ico", "apple-touch-icon.png")
+OFFLINE_PREFIX = "/rerun/offline/"
+# Absolute URLs the viewer fetches by itself (found by recording a browser's requests, rerun 0.41):
+# analytics, the "new version" check, the examples manifest, map tiles; then the bare web-app
+# origin (links into app.rerun.io). Longer ones first: they contain the shorter.
+WASM_URLS = (
+    b"https://tel.rerun.io/api/pog",
+    b"https://api.github.com/repos/rerun-io/rerun/releases/latest",
+    b"https://app.rerun.io/version/",
+    b"https://tile.openstreetmap.org/",
+    b"https://app.rerun.io",
+)
+# index.html: Google Fonts (the loading text's font; the viewer draws with its own fonts) and the
+# script app.rerun.io loads for its own site.
+_FONT_LINKS = re.compile(r"<link[^>]*(fonts\.googleapis\.com|fonts\.gstatic\.com)[^>]*>", re.S)
+_SITE_SCRIPT = re.compile(r'if \(window\.location\.hostname == "app\.rerun\.io"\) \{.*?\n      \}\n', re.S)
+# Every viewer file carries it: nothing but this origin (the wasm compiled in the page, workers
+# from blobs, inline scripts and styles of rerun's index.html).
+VIEWER_CSP = (
+    "default-src 'self'; script-src 'self' 'unsafe-inline' 'wasm-unsafe-eval'; "
+    "style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; font-src 'self' data:; "
+    "connect-src 'self'; worker-src 'self' blob:; media-src 'self' blob:; frame-ancestors 'self'; "
+    "form-action 'none'; base-uri 'self'"
+)
+# Ours, served from the dashboard's static files (same origin: the CSP's script-src 'self' allows it).
+TAB_SCRIPT = "/static/rerun-tab.js"
+# Part of the prepared copy's folder name: a change to what prepare_viewer does to rerun's files
+# (here: TAB_SCRIPT added to index.html) makes appliances prepare their copy again.
+PREPARED_AS = "offline-tab"
+_MEDIA = {
+    ".html": "text/html; charset=utf-8",
+    ".js": "text/javascript",
+    ".wasm": "application/wasm",
+    ".ico": "image/x-icon",
+    ".png": "image/png",
+    ".css": "text/css",
+}
+_prepare_lock = asyncio.Lock()
+
+
+def offline_url(url: bytes) -> bytes:
+    """A same-origin path exactly as long as `url` (the wasm's strings keep their lengths)."""
+    path = OFFLINE_PREFIX.encode() + url.split(b"://", 1)[1].replace(b"/", b"_")
+    return (path + b"_" * len(url))[: len(url)]
+
+
+def neutralise_wasm(data: bytes) -> tuple[bytes, list[str]]:
+    """The wasm with WASM_URLS pointed at the appliance; also the URLs not found (a new rerun)."""
+    missing = []
+    for url in WASM_URLS:
+        if url not in data:
+            missing.append(url.decode())
+        data = data.replace(url, offline_url(url))
+    return data, missing
+
+
+def neutralise_index(text: str) -> str:
+    text = _FONT_LINKS.sub("", text)
+    text = _SITE_SCRIPT.sub("", text)
+    # No bug-report links to GitHub in the viewer's error page: a student reports to the educator.
+    text = text.replace("https://github.com/rerun-io/rerun/issues/new/", "#")
+    # Our script, at the end of the head: Esc stops the run from the viewer's
+    # tab (the dashboard's key handler is in another tab) and a live viewer follows the next run.
+    tag = f'<script src="{TAB_SCRIPT}"></script>\n'
+    return text.replace("</head>", tag + "</head>", 1) if "</head>" in text else tag + text
+
+
+def prepare_viewer(cache: Path, fetch: Any) -> None:
+    """Fetch the viewer's files (``fetch(name) -> bytes``), neutralise them, write each file and
+    its gzip beside it into `cache` (a folder per rerun version; written to a temporary folder
+    and renamed, so a half-prepared viewer is never served). In a worker thread: the wasm's gzip
+    takes seconds."""
+    import gzip
+    import logging
+    import shutil
+
+    if (cache / "ready").is_file():
+        return
+    tmp = cache.with_name(f".{cache.name}.{os.getpid()}.part")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    for name in VIEWER_FILES:
+        data = fetch(name)
+        if name == "index.html":
+            data = neutralise_index(data.decode()).encode()
+        elif name.endswith(".wasm"):
+            data, missing = neutralise_wasm(data)
+            if missing:  # a newer rerun: the CSP still stops them in the browser
+                logging.getLogger("xrflab.rerun").warning("rerun viewer: URLs not found to neutralise: %s", missing)
+        (tmp / name).write_bytes(data)
+        (tmp / (name + ".gz")).write_bytes(gzip.compress(data, compresslevel=6, mtime=0))
+    (tmp / "ready").write_text("")
+    shutil.rmtree(cache, ignore_errors=True)
+    os.replace(tmp, cache)
+
+
+async def _viewer_cache(request: Request) -> Path:
+    import httpx
+    import rerun
+
+    from ...logs.rerun_servers import RerunViewer
+
+    settings = request.app.state.settings
+    cache = Path(settings.data_dir) / "rerun-viewer" / f"{rerun.__version__}-{PREPARED_AS}"
+    if (cache / "ready").is_file():
+        return cache
+    async with _prepare_lock:
+        if (cache / "ready").is_file():
+            return cache
+        try:
+            viewer = await asyncio.to_thread(RerunViewer.get)
+        except OSError as exc:
+            raise HTTPException(503, f"the rerun viewer is not available: {exc}") from None
+
+        def fetch(name: str) -> bytes:
+            r = httpx.get(f"http://127.0.0.1:{viewer.web_port}/{name}", timeout=120)
+            r.raise_for_status()
+            return r.content
+
+        try:
+            await asyncio.to_thread(prepare_viewer, cache, fetch)
+        except (OSError, httpx.HTTPError) as exc:
+            raise HTTPException(503, f"the rerun viewer could not be prepared: {exc}") from None
+    return cache
+
+
+@router.get("/rerun/{asset:path}", dependencies=[requires(Perm.WATCH)], include_in_schema=False)
+async def rerun_viewer(asset: str, request: Request) -> Response:
+    """The rerun web viewer's files, prepared once from rerun's internal server and kept on disk
+    (keyed by the rerun version): neutralised (nothing fetched from the internet), gzipped, served
+    by us with our caching, auth and Content-Security-Policy. Anything else under /rerun/ (the
+    neutralised URLs under /rerun/offline/ among them) is a 404, at once."""
+    asset = asset or "index.html"
+    if asset not in VIEWER_FILES:
+        raise HTTPException(404, "no such viewer file", headers={"Content-Security-Policy": VIEWER_CSP})
+    cache = await _viewer_cache(request)
+    path = cache / asset
+    headers = {
+        "Cache-Control": "no-cache" if asset == "index.html" else "public, max-age=86400",
+        "Content-Security-Policy": VIEWER_CSP,
+        "Vary": "Accept-Encoding",
+        "X-Content-Type-Options": "nosniff",
+        # the uncompressed size: rerun's loader shows its progress from it
+        "rerun-final-length": str(path.stat().st_size),
+    }
+    gz = path.with_name(path.name + ".gz")
+    if "gzip" in request.headers.get("accept-encoding", "").lower() and gz.is_file():
+        headers["Content-Encoding"] = "gzip"
+        return FileResponse(gz, media_type=_MEDIA.get(path.suffix), headers=headers)
+    return FileResponse(path, media_type=_MEDIA.get(path.suffix), headers=headers)
+
+
+# ---- the live stream ------------------------------------------------------------------------
+
+
+def grpc_error(http_status: int, code: int, message: str) -> Response:
+    """A trailers-only gRPC-web answer (status in the headers) that also reads as plain HTTP."""
+    return Response(
+        status_code=http_status,
+        media_type="application/grpc-web+proto",
+        headers={"grpc-status": str(code), "grpc-message": urllib.parse.quote(message, safe=" ,.:'()-")},
+    )
+
+
+async def _read_request(request: Request) -> bytes | None:
+    """The request body, or None when it is larger than a read request can be."""
+    declared = request.headers.get("content-length")
+    if declared is not None and (not declared.isdigit() or int(declared) > MAX_REQUEST_BYTES):
+        return None
+    body = bytearray()
+    async for chunk in request.stream():
+        body += chunk
+        if len(body) > MAX_REQUEST_BYTES:
+            return None
+    return bytes(body)
+
+
+@router.post(f"/{SERVICE}/{{method}}", dependencies=[requires_grpc_web(Perm.WATCH)], include_in_schema=False)
+async def live_stream(method: str, request: Request) -> Response:
+    global _open_streams
+    import httpx
+
+    from ...logs.rerun_servers import LiveProxy
+
+    if method not in READ_METHODS:
+        return grpc_error(403, PERMISSION_DENIED, f"{method}: the live stream is read-only here")
+    proxy = LiveProxy.current()
+    if proxy is None or not ownership.may_see(ownership.user_of(request), proxy.owner):
+        return grpc_error(404, NOT_FOUND, NO_LIVE_STREAM)  # someone else's: as if there were none
+    body = await _read_request(request)
+    if body is None:
+        return grpc_error(413, RESOURCE_EXHAUSTED, f"a read request is at most {MAX_REQUEST_BYTES} bytes")
+    if _open_streams >= MAX_LIVE_STREAMS:
+        return grpc_error(503, RESOURCE_EXHAUSTED, f"{MAX_LIVE_STREAMS} live viewers are open already; close one")
+
+    headers = {"content-type": request.headers.get("content-type", "application/grpc-web+proto"), "x-grpc-web": "1"}
+    if "grpc-timeout" in request.headers:
+        headers["grpc-timeout"] = request.headers["grpc-timeout"]
+    # No read timeout: a live stream is quiet between runs and that is not an error.
+    client = httpx.AsyncClient(timeout=httpx.Timeout(10.0, read=None))
+    try:
+        upstream = await client.send(
+            client.build_request("POST", f"{proxy.read_url}/{SERVICE}/{method}", content=body, headers=headers),
+            stream=True,
+        )
+    except httpx.HTTPError as exc:
+        await client.aclose()
+        return grpc_error(502, UNAVAILABLE, f"the live stream of run {proxy.run_id} does not answer: {exc}")
+    _open_streams += 1
+    closed = False
+
+    async def close() -> None:
+        nonlocal closed
+        global _open_streams
+        if not closed:
+            closed = True
+            _open_streams -= 1
+            await upstream.aclose()
+            await client.aclose()
+
+    async def relay() -> AsyncIterator[bytes]:
+        # Runs until the run's proxy ends the stream (the next run replaced it) or the browser
+        # goes away (Starlette cancels us): either way both connections are closed here.
+        try:
+            async for chunk in upstream.aiter_raw():
+                yield chunk
+        except httpx.HTTPError:
+            pass  # the run's proxy stopped mid-stream: end ours; the viewer reports the closed stream
+        finally:
+            await close()
+
+    out = {k: v for k, v in upstream.headers.items() if k.lower() in _PASS_HEADERS}
+    out["cache-control"] = "no-store"
+    out["x-accel-buffering"] = "no"  # a reverse proxy in front must not hold the stream back
+    # The background close covers a response cancelled before its first chunk.
+    return StreamingResponse(relay(), status_code=upstream.status_code, headers=out, background=BackgroundTask(close))

@@ -1,0 +1,148 @@
+"""The 3D view's viser server, behind the login: a reverse proxy at ``/viser/``.
+
+viser (xrflab.viz.scene) listens on 127.0.0.1 only (an internal port); browsers reach it through
+the appliance, with the same session and permission (``Perm.WATCH``) as the rest of the dashboard:
+
+- ``GET /viser/<path>``: viser's client files, streamed from its internal HTTP server (httpx).
+- WebSocket ``/viser`` (and ``/viser/<path>``): viser's client opens its WebSocket at the page's
+  own URL without the query and the trailing slash (``getDefaultServerFromUrl`` in viser's
+  ``client/src/App.tsx``), so a page at ``/viser/`` connects to ``ws(s)://<host>/viser``. The
+  handshake needs a session and, with the cookie, a same-origin ``Origin`` (``auth.check``, as for
+  ``/ws``); the subprotocol (``viser-v<version>``, viser's version check) is passed through. The
+  session is checked again every few seconds: a logout or a disabled account closes the scene.
+
+The scene's own panel is display only (scene.py ``_build_gui``): changes go through /api/viz.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from typing import Any
+
+from fastapi import APIRouter, HTTPException, Request, WebSocket
+from fastapi.responses import RedirectResponse, Response, StreamingResponse
+from starlette.background import BackgroundTask
+from starlette.websockets import WebSocketDisconnect
+
+from ..security.auth import Perm, may, requires
+
+router = APIRouter(include_in_schema=False)
+
+# Response headers of viser's server worth passing on (the rest are hop-by-hop or ours).
+_PASS_HEADERS = ("content-type", "content-length", "content-encoding", "cache-control", "last-modified", "etag")
+SESSION_RECHECK_S = 5.0
+MAX_MESSAGE = 50 * 1024 * 1024  # viser's own limit
+
+
+def _viser_port(app: Any) -> int | None:
+    viz = getattr(app.state, "viz", None)
+    if viz is None or getattr(viz, "server", None) is None or not viz.port:
+        return None
+    return int(viz.port)
+
+
+@router.get("/viser", dependencies=[requires(Perm.WATCH)])
+async def viser_root() -> RedirectResponse:
+    return RedirectResponse("/viser/", status_code=307)
+
+
+@router.get("/viser/{path:path}", dependencies=[requires(Perm.WATCH)])
+async def viser_http(path: str, request: Request) -> Response:
+    import httpx
+
+    port = _viser_port(request.app)
+    if port is None:
+        raise HTTPException(503, "the 3D view is not running")
+    url = f"http://127.0.0.1:{port}/{path}"
+    headers = {"accept-encoding": request.headers.get("accept-encoding", "identity")}
+    client = httpx.AsyncClient(timeout=httpx.Timeout(30.0))
+    try:
+        upstream = await client.send(
+            client.build_request("GET", url, params=request.query_params, headers=headers), stream=True
+        )
+    except httpx.HTTPError as exc:
+        await client.aclose()
+        raise HTTPException(502, f"the 3D view does not answer: {exc}") from None
+
+    async def close() -> None:
+        await upstream.aclose()
+        await client.aclose()
+
+    out = {k: v for k, v in upstream.headers.items() if k.lower() in _PASS_HEADERS}
+    out.setdefault("cache-control", "no-cache")
+    # aiter_raw: the bytes as viser sent them (gzip stays gzip; content-length stays right).
+    return StreamingResponse(
+        upstream.aiter_raw(), status_code=upstream.status_code, headers=out, background=BackgroundTask(close)
+    )
+
+
+@router.websocket("/viser", dependencies=[requires(Perm.WATCH)])
+async def viser_ws(ws: WebSocket) -> None:
+    await _proxy_ws(ws)
+
+
+@router.websocket("/viser/{path:path}", dependencies=[requires(Perm.WATCH)])
+async def viser_ws_path(ws: WebSocket, path: str) -> None:
+    await _proxy_ws(ws)
+
+
+async def _proxy_ws(ws: WebSocket) -> None:
+    from websockets.asyncio.client import connect
+    from websockets.exceptions import ConnectionClosed
+    from websockets.typing import Subprotocol
+
+    port = _viser_port(ws.app)
+    if port is None:
+        await ws.close(code=1011, reason="the 3D view is not running")
+        return
+    offered = [Subprotocol(p) for p in ws.scope.get("subprotocols", [])]
+    try:
+        upstream = await connect(
+            f"ws://127.0.0.1:{port}/",
+            subprotocols=offered or None,
+            max_size=MAX_MESSAGE,
+            compression=None,
+            open_timeout=10,
+            origin=None,
+        )
+    except Exception:
+        await ws.close(code=1011, reason="the 3D view does not answer")
+        return
+    async with upstream:
+        await ws.accept(subprotocol=upstream.subprotocol)
+
+        async def browser_to_viser() -> None:
+            while True:
+                message = await ws.receive()
+                if message["type"] == "websocket.disconnect":
+                    return
+                data = message.get("bytes")
+                await upstream.send(data if data is not None else message.get("text") or "")
+
+        async def viser_to_browser() -> None:
+            async for data in upstream:
+                if isinstance(data, bytes):
+                    await ws.send_bytes(data)
+                else:
+                    await ws.send_text(data)
+
+        async def session_alive() -> None:
+            security = ws.app.state.security
+            while True:
+                await asyncio.sleep(SESSION_RECHECK_S)
+                ws.scope.pop("xrf_auth", None)
+                user = security.resolve(ws)[0]
+                if user is None or user.must_change or not may(user, Perm.WATCH):
+                    return
+
+        tasks = [asyncio.create_task(c) for c in (browser_to_viser(), viser_to_browser(), session_alive())]
+        try:
+            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+        ended = tasks[2] in done
+        with contextlib.suppress(Exception, WebSocketDisconnect, ConnectionClosed):
+            await ws.close(code=1008 if ended else 1000, reason="your session ended" if ended else "")

@@ -1,0 +1,110 @@
+"""What the browsers are told about the run: its `run` message (started, ended, or the current
+one for a client that connects) and its `state` message, made from a `Run`.
+
+The models are server/ws/messages.py's (RunMessage, StateMessage); who sees which part of them is
+ownership.scope's. A field a message leaves out (the run's program before its shared memory is
+open, `cycles` without a run) is not set, so it stays absent on the wire, as app.js expects. `state` goes out when something a person would see changed (the state, a
+rejection, the loop's liveness), not per sample: the reader calls `refresh_state` after every
+batch, and a command's answer calls it at once.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from typing import Any, Literal
+
+from ... import channels as chmod
+from ...channels import ChannelsError
+from ..ws.hub import Hub
+from ..ws.messages import Rejected, RunMessage, StateMessage
+from .run import Run
+from .store import RunRow
+
+
+def schema_fields(schema: str) -> list[dict[str, Any]]:
+    """[{name, type}] from a normalised .msg text, for the dashboard's controls and plots."""
+    from ...msgdef import Codec
+
+    return [{"name": f.name, "type": f.type, "count": f.count} for f in Codec(schema).fields]
+
+
+RunEvent = Literal["current", "started", "ended"]
+
+
+def run_message(run: Run | None, last_row: RunRow | None, event: RunEvent = "current") -> RunMessage:
+    """The `run` message of `run`, or of the last run's record (`last_row`) when none is live."""
+    row = run.row if run else last_row
+    fields: dict[str, Any] = {}
+    if run and run.channels is not None:
+        info = run.channels.info
+        fields.update(
+            program=info["program"],
+            cycle_freq=info["cycle_freq"],
+            backend=info["backend"],
+            transport=info["transport"],
+            ros2xeno=schema_fields(info["ros2xeno_schema"]),
+            xeno2ros=schema_fields(info["xeno2ros_schema"]),
+            setpoint=run.setpoint,
+        )
+    if run and run.guest is not None:
+        fields["confinement"] = run.guest.as_dict()
+    return RunMessage(event=event, run=row.as_dict() if row else None, active=bool(run and run.alive), **fields)
+
+
+def state_message(run: Run | None) -> StateMessage:
+    """The `state` message: the loop's state and the commands it accepts now ("NO RUN" without
+    a run whose shared memory is open)."""
+    if run is None or run.channels is None or run.last_status is None:
+        return StateMessage(
+            run_id=run.row.id if run else None,
+            active=False,
+            state=0,
+            name="NO RUN",
+            allowed=[],
+            rejected=None,
+            last_error=0,
+        )
+    s = run.last_status
+    rejected = None
+    if s.cmd_rejected:
+        rejected = Rejected(
+            ticket=s.cmd_rejected,
+            cmd=s.last_rejected_cmd,
+            name=chmod.command_name(s.last_rejected_cmd),
+            reason=s.reject_reason,
+        )
+    alive = bool(run.alive and s.running)
+    return StateMessage(
+        run_id=run.row.id,
+        active=alive,
+        state=s.state,
+        name=s.state_name,
+        allowed=chmod.allowed_commands(s.state) if alive else [],
+        rejected=rejected,
+        last_error=s.last_error,
+        cycles=s.cycles,
+    )
+
+
+def ended(run: Run) -> tuple[RunMessage, StateMessage]:
+    """The `run` and `state` messages of a run that just ended: inactive, no command allowed
+    (whatever the last status the loop left says)."""
+    return (
+        run_message(run, None, "ended").model_copy(update={"active": False}),
+        state_message(run).model_copy(update={"active": False, "allowed": []}),
+    )
+
+
+def refresh_state(run: Run, hub: Hub) -> None:
+    """Publish `state` when the state, a rejection, or liveness changed."""
+    if run.channels is None:
+        return
+    with contextlib.suppress(ChannelsError):
+        run.last_status = run.channels.status()
+    s = run.last_status
+    if s is None:
+        return
+    key = (s.state, s.cmd_rejected, s.running, s.last_error, run.alive)
+    if key != run.last_state_key:
+        run.last_state_key = key
+        hub.publish(state_message(run))

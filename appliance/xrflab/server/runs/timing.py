@@ -1,0 +1,67 @@
+"""Once per timing period (1 s): how the loop keeps its time, for the dashboards' timing panel,
+and the deadline-miss alarm.
+
+The loop keeps a histogram per cycle stage in its shared memory (rt_core's status block); this
+task reads them with the counters and sends one `timing` message: per-stage summaries, the
+wake-up jitter, every stage's histogram (for tools), the telemetry and log counters. New missed
+deadlines since the last period raise a `deadline_miss` alarm that says how many.
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+from ...channels import ChannelsError
+from ..ws.hub import Hub
+from ..ws.messages import AlarmMessage, Histogram, StageSummary, TimingMessage
+from .run import Run
+
+
+async def timing(run: Run, period_s: float, hub: Hub) -> None:
+    ch = run.channels
+    assert ch is not None
+    while True:
+        await asyncio.sleep(period_s)
+        try:
+            s = ch.status()
+            hists = ch.histograms()
+        except ChannelsError:
+            continue
+        stages = {
+            name: StageSummary(
+                count=h.count,
+                min=h.min,
+                max=h.max,
+                mean=h.mean,
+                p50=h.percentile(50),
+                p99=h.percentile(99),
+            )
+            for name, h in hists.items()
+        }
+        wake = hists.get("wakeup")
+        hub.publish(
+            TimingMessage(
+                run_id=run.row.id,
+                cycles=s.cycles,
+                misses=s.missed,
+                cycle_freq=ch.info["cycle_freq"],
+                stages=stages,
+                jitter=Histogram(edges=wake.edges, counts=wake.counts) if wake else Histogram(edges=[], counts=[]),
+                # every stage's histogram (non-empty buckets: lower edge ns, count), for tools
+                histograms={name: Histogram(edges=h.edges, counts=h.counts) for name, h in hists.items()},
+                telemetry_sent=run.telemetry_sent,
+                log_lost=s.log_lost,
+                host_lost=s.host_lost,
+            )
+        )
+        if s.missed > run.last_missed:
+            hub.publish(
+                AlarmMessage(
+                    kind="deadline_miss",
+                    run_id=run.row.id,
+                    misses=s.missed,
+                    new=s.missed - run.last_missed,
+                    message=f"{s.missed - run.last_missed} deadline miss(es) in the last second ({s.missed} in total)",
+                )
+            )
+            run.last_missed = s.missed

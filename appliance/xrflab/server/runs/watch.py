@@ -1,0 +1,208 @@
+"""Watching a live run from outside: its safety watcher, the heartbeats, its disk use, its exit.
+
+Safety: every run with open shared memory has a safety watcher (server/runs/safety.py, rt_core's
+watch.c): a C thread outside the event loop, woken by the kernel when the loop process exits, that
+checks the loop's heartbeat every few milliseconds. On an exit, or a hang (no cycle for
+``hang_timeout_ms``: it kills the loop), it puts the outputs in a safe state first (the simulated
+board's ``forced_off``, or an FPGA RESET over spidev on a real bench) and only then tells us
+through an eventfd (`on_watch`). A busy event loop delays the record, never the safe outputs.
+
+The heartbeat task writes the host heartbeat the loop checks (XRF_HOST_TIMEOUT_MS: the loop
+pauses itself if the appliance dies or hangs) and, only where no watcher could start, detects a
+hang itself. The limits guard stops a run that went over what the kernel bounds (server/runs/limits.py:
+memory, processes, its run folder's file system), from the run's start. `wait_for_exit`
+is the run's last word: the launcher's exit, the watcher's account of it, and safe outputs where
+no watcher made them so; server/runs/end.py then records how the run ended.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+import time
+
+from ...channels import ChannelsError
+from ..settings import Settings
+from ..ws.hub import Hub
+from ..ws.messages import AlarmMessage
+from .control import terminate
+from .limits import RunLimits
+from .run import Run
+from .safety import SafetyWatcher, WatchResult, fpga_reset
+from .store import RunStore
+
+log = logging.getLogger("xrflab.supervisor")
+
+
+# ---- the safety watcher -------------------------------------------------------------------------
+
+
+def start_watcher(run: Run, settings: Settings) -> None:
+    """The safety watcher for a run whose shared memory is open (server/runs/safety.py)."""
+    ch = run.channels
+    assert ch is not None
+    info = ch.info
+    # A slow loop (10 Hz) beats less often than the default timeout: a hang is three
+    # missed periods at the least, never one long cycle.
+    period_ms = 1000 // max(1, int(info.get("cycle_freq", 0)) or 1)
+    hang_ms = max(settings.hang_timeout_ms, 3 * period_ms)
+    # Above any real-time priority the run may take (the launcher caps it below this one), and
+    # off the run's CPUs where its cpuset holds: the run's own threads cannot starve the watcher.
+    prio = settings.watch_priority
+    lim = run.limits
+    avoid = lim.cpus if lim is not None and not lim.layers.get("cpu") else set()
+    real = settings.bench_is_real()
+    try:
+        w = SafetyWatcher(
+            run.row.pid or run.proc.pid,
+            ch,
+            hang_timeout_ms=hang_ms,
+            check_ms=max(2, min(20, hang_ms // 10)),
+            force_sim=info.get("transport", "sim") == "sim",
+            spi_device=settings.spi_device if real else "",
+            rt_priority=max(0, prio),
+            avoid_cpus=avoid,
+        )
+    except (OSError, ValueError) as exc:  # ESRCH: the loop is already gone; wait_for_exit handles it
+        log.warning("run %s: no safety watcher (%s); the event loop watches instead", run.row.id, exc)
+        return
+    run.watcher = w
+    asyncio.get_running_loop().add_reader(w.fileno(), on_watch, run)
+
+
+def on_watch(run: Run) -> None:
+    """The watcher acted (outputs already safe): take note. The record follows the exit."""
+    w = run.watcher
+    if w is None:
+        return
+    with contextlib.suppress(ValueError, OSError):
+        asyncio.get_running_loop().remove_reader(w.fileno())
+    result = w.result()
+    if result is not None:
+        take_watch(run, result)
+
+
+def take_watch(run: Run, result: WatchResult) -> None:
+    if not result.acted or run.watch is not None:
+        return
+    run.watch = result
+    run.safe_state = result.describe()
+    run.exited_at = result.event_ns / 1e9
+    run.safe_at = result.safe_ns / 1e9
+    if result.reason == "hang":
+        run.hang = True
+        if result.kill_status != 0:  # could not kill it through the pidfd: the launcher can
+            with contextlib.suppress(ProcessLookupError):
+                run.proc.send_signal(signal.SIGKILL)
+
+
+def safe_state(run: Run, settings: Settings) -> None:
+    """Outputs off where no watcher did it (the loop died before its memory was open, or the
+    watcher could not start)."""
+    if run.safe_state:
+        return
+    transport = run.channels.info.get("transport", "sim") if run.channels else ""
+    if run.channels is not None and transport == "sim":
+        run.channels.force_sim_outputs_off()
+        run.safe_state = "sim outputs forced off"
+    elif settings.bench_is_real():
+        run.safe_state = fpga_reset(settings.spi_device)
+    else:
+        # The simulated board lives inside the loop process: with no shm it died with it.
+        run.safe_state = "simulated board ended with the process"
+    run.safe_at = time.monotonic()
+
+
+async def wait_for_exit(run: Run, settings: Settings) -> int:
+    """Wait for the loop process to end; its return code, once the outputs are safe."""
+    returncode = await run.proc.wait()
+    if run.watcher is not None:
+        w = run.watcher
+        with contextlib.suppress(ValueError, OSError):
+            asyncio.get_running_loop().remove_reader(w.fileno())
+        # The exit has happened: stop() lets the thread handle it first if it has not yet.
+        take_watch(run, await asyncio.to_thread(w.stop))
+    if not run.exited_at:
+        run.exited_at = time.monotonic()
+    safe_state(run, settings)
+    return returncode
+
+
+# ---- heartbeats ---------------------------------------------------------------------------------
+
+
+async def heartbeat(run: Run, settings: Settings) -> None:
+    """Host heartbeat out, loop heartbeat in (hang detection where no watcher runs)."""
+    ch = run.channels
+    assert ch is not None
+    hang_ns = settings.hang_timeout_ms * 1_000_000
+    last_good = time.monotonic_ns()
+    while run.alive:
+        ch.host_heartbeat()
+        now = time.monotonic_ns()
+        try:
+            s = ch.status()
+        except ChannelsError:
+            s = None  # seqlock held: a loop stopped mid-write looks exactly like this
+        if s is not None:
+            run.last_status = s
+            stale = s.running and s.heartbeat_ns > 0 and now - s.heartbeat_ns > hang_ns
+            if not stale:
+                last_good = now
+        if run.watcher is None and now - last_good > hang_ns and run.alive:
+            run.hang = True
+            safe_state(run, settings)
+            run.exited_at = time.monotonic()
+            with contextlib.suppress(ProcessLookupError):
+                run.proc.send_signal(signal.SIGKILL)
+            return
+        await asyncio.sleep(min(settings.host_heartbeat_period_s, settings.hang_timeout_ms / 4000))
+
+
+# ---- the kernel's limits -------------------------------------------------------------------------
+
+LIMITS_PERIOD_S = 0.25
+WATCHED_DISK_EVERY = 8  # looks (2 s): walking a run folder is not free
+LIMIT_REASONS = ("memory", "pids", "disk", "cpu")
+
+
+def announce_limit(run: Run, over: tuple[str, str], store: RunStore, hub: Hub) -> None:
+    """The run went over a limit: it ends with that name, its record says why, everyone is told."""
+    reason, message = over
+    run.end_reason = run.end_reason or reason
+    run.row = store.update(run.row.id, message=message)
+    publish_limit_alarm(run, reason, message, hub)
+
+
+def publish_limit_alarm(run: Run, reason: str, message: str, hub: Hub) -> None:
+    """The alarm of a limit (kind = runs.END_REASONS' name), once per run."""
+    if run.limit_alarm:
+        return
+    run.limit_alarm = reason
+    hub.publish(AlarmMessage(kind=reason, run_id=run.row.id, end_reason=reason, message=message))
+
+
+async def limits_guard(run: Run, limits: RunLimits, settings: Settings, store: RunStore, hub: Hub) -> None:
+    """From the run's start (before its shared memory exists): the kernel already refuses what
+    goes over a limit (a page, a fork, a write); once the run did, it is stopped with an alarm of
+    that kind. A few cgroup counters and one statvfs, four times a second: read here, not in a
+    worker thread (the default executor's few threads may all be waiting on something slow)."""
+    looks = 0
+    while run.alive and not run.ended.is_set():
+        await asyncio.sleep(LIMITS_PERIOD_S)
+        looks += 1
+        try:
+            over = limits.over()
+            if over is None and looks % WATCHED_DISK_EVERY == 0:  # no file system of its own: walked
+                over = await asyncio.to_thread(limits.watched_disk_over)
+        except Exception:  # never let the guard die quietly: the run would go on unwatched
+            log.exception("run %s: reading its limits failed", run.row.id)
+            continue
+        if over is not None and run.alive and not run.ended.is_set():
+            log.warning("run %s: %s", run.row.id, over[1])
+            announce_limit(run, over, store, hub)
+            run.stop_requested = True
+            await terminate(run, settings)
+            return

@@ -1,0 +1,1 @@
+"""Who may do what: accounts, sessions and permissions, the bench lease, ownership, the audit log, body limits."""

@@ -1,0 +1,284 @@
+"""WebSocket fan-out: one producer (the run's reader task) to many browsers, none able to slow
+the others down.
+
+Every message is encoded to JSON once and the same string is queued for each client, so 30
+clients cost 30 queue appends, not 30 encodings. Each client has its own bounded queue and its
+own sender task: a browser that reads slowly only fills its own queue. Telemetry is the only
+topic that is allowed to be lossy (a newer sample supersedes an older one), so a full telemetry
+queue drops its oldest entry and counts it; everything else (state, alarms, run events, errors,
+monitor lines) is kept, and a client whose queue grows past a hard limit, or that has been
+losing telemetry continuously for `slow_client_s`, is disconnected.
+
+Not every message is everyone's: `Hub.scope` (ownership.scope, set by ownership.attach) names
+a message's owner and what other clients receive instead; the full text goes to clients whose
+user `Hub.may_see` the owner, the public one (encoded once too) to the rest.
+
+What the hub takes is typed: a model of server/ws/messages.py (`ServerMessage`), never a dict, so a message
+is checked against the protocol where it is built and its sender's name is in the traceback. It
+is turned into its wire fields once (`unpack`: the fields the sender set, as JSON values), which
+the listeners, the scope rule and the encoder share.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from typing import Any, NamedTuple
+
+from starlette.websockets import WebSocket
+
+from .messages import SERVER, TOPICS, ReplyMessage, ServerMessage
+
+__all__ = ["TOPICS", "Client", "ClientQueue", "Hub", "Scoped", "SlowClient", "encode", "unpack"]
+
+LOSSY = "telemetry"
+# `type` leads the encoded message (encode); the payload is everything else.
+_NOT_PAYLOAD = {"type"}
+
+
+def unpack(message: ServerMessage) -> tuple[str, dict[str, Any]]:
+    """(kind, fields) of a message model: the fields its sender set (exclude_unset: a field left
+    out stays absent, as the dicts the senders built before the models left it), JSON values,
+    `from_` as `from`. Refuses anything but a server/ws/messages.py server model (TypeError)."""
+    if not isinstance(message, SERVER):
+        raise TypeError(f"the hub sends server/ws/messages.py models (ServerMessage), not {type(message).__name__}")
+    return message.type, message.model_dump(mode="json", by_alias=True, exclude_unset=True, exclude=_NOT_PAYLOAD)
+
+
+def encode(message_type: str, payload: dict[str, Any]) -> str:
+    message = {"type": message_type, **payload}
+    try:
+        return json.dumps(message, separators=(",", ":"), allow_nan=False)
+    except ValueError:
+        # A controller computing NaN/inf must not break the fan-out, and browsers' JSON.parse
+        # rejects those tokens: they go out as null.
+        return json.dumps(_finite(message), separators=(",", ":"), allow_nan=False)
+
+
+def _finite(value: Any) -> Any:
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    return value
+
+
+class Scoped(NamedTuple):
+    """A message that belongs to someone: `owner` (a username, None = unknown: educators only)
+    and what everyone else receives in its place (None: nothing)."""
+
+    owner: str | None
+    public: dict[str, Any] | None
+
+
+# A bug in the scope function must not hand a message to everyone: it goes to educators only.
+_FAIL_CLOSED = Scoped(None, None)
+
+
+class SlowClient(Exception):
+    """The client cannot keep up and is being disconnected."""
+
+
+class ClientQueue:
+    """Two deques: lossy telemetry (drop-oldest) and everything else (kept, hard-capped)."""
+
+    def __init__(self, max_telemetry: int, max_total: int, slow_after_s: float) -> None:
+        self._telemetry: deque[str] = deque()
+        self._other: deque[str] = deque()
+        self._max_telemetry = max_telemetry
+        self._max_total = max_total
+        self._slow_after_s = slow_after_s
+        self._ready = asyncio.Event()
+        self.dropped = 0
+        # monotonic time since which every telemetry put had to drop something; None = keeping up
+        self._pressure_since: float | None = None
+
+    def __len__(self) -> int:
+        return len(self._telemetry) + len(self._other)
+
+    def put(self, topic: str, text: str) -> None:
+        """Queue a message; raises SlowClient when the client has to go."""
+        if topic == LOSSY:
+            if len(self._telemetry) >= self._max_telemetry:
+                self._telemetry.popleft()
+                self.dropped += 1
+                now = time.monotonic()
+                if self._pressure_since is None:
+                    self._pressure_since = now
+                elif now - self._pressure_since > self._slow_after_s:
+                    raise SlowClient(
+                        f"dropped telemetry for {now - self._pressure_since:.1f} s ({self.dropped} messages)"
+                    )
+            self._telemetry.append(text)
+        else:
+            if len(self._other) >= self._max_total:
+                raise SlowClient(f"{len(self._other)} messages waiting")
+            self._other.append(text)
+        self._ready.set()
+
+    async def get(self) -> str:
+        while True:
+            # Control messages first: a state change must not wait behind a backlog of samples.
+            if self._other:
+                return self._other.popleft()
+            if self._telemetry:
+                text = self._telemetry.popleft()
+                if len(self._telemetry) <= self._max_telemetry // 2:
+                    self._pressure_since = None  # drained to half: the client is keeping up
+                return text
+            self._ready.clear()
+            await self._ready.wait()
+
+
+class Client:
+    def __init__(self, ws: WebSocket, queue: ClientQueue) -> None:
+        self.ws = ws
+        self.queue = queue
+        self.topics: set[str] = set(TOPICS)
+        self.kicked = asyncio.Event()
+        self.kick_reason = ""
+        self.user: Any = None  # the logged-in accounts.User (set by the /ws handler)
+
+    def deliver(self, topic: str, text: str) -> None:
+        if self.kicked.is_set():
+            return
+        try:
+            self.queue.put(topic, text)
+        except SlowClient as exc:
+            self.kick_reason = str(exc)
+            self.kicked.set()
+
+    def reply(self, message: ReplyMessage) -> None:
+        """A message for this client only (errors, acks); never dropped as telemetry is."""
+        kind, fields = unpack(message)
+        self.deliver(kind, encode(kind, fields))
+
+    async def pump(self) -> None:
+        """Sender task: the only place that awaits this client's socket."""
+        while True:
+            text = await self.queue.get()
+            await self.ws.send_text(text)
+
+
+class Hub:
+    def __init__(self, max_telemetry: int = 64, max_total: int = 2048, slow_after_s: float = 3.0) -> None:
+        self._clients: set[Client] = set()
+        self._max_telemetry = max_telemetry
+        self._max_total = max_total
+        self._slow_after_s = slow_after_s
+        self.published = 0
+        # What a new client needs first (current run, state, lease, ROS bridge...): each part's
+        # source adds itself with add_snapshot(), in the order the client receives them.
+        self._snapshots: list[Callable[[], Iterable[ServerMessage]]] = []
+        # Called with every published message (its typed model) before the fan-out (the room's
+        # bench publisher: it hears what the dashboards hear).
+        self.listeners: list[Callable[[ServerMessage], None]] = []
+        # Per-client filtering (ownership.attach sets both): whose a message is, and whether a
+        # client's user may see what that owner owns. The defaults let everyone see everything.
+        self.scope: Callable[[str, dict[str, Any]], Scoped | None] = lambda message_type, payload: None
+        self.may_see: Callable[[Any, str | None], bool] = lambda user, owner: True
+
+    @property
+    def clients(self) -> int:
+        return len(self._clients)
+
+    def add_snapshot(self, source: Callable[[], Iterable[ServerMessage]]) -> None:
+        """`source()`: the messages a client connecting now receives first; sources are asked in
+        the order they were added."""
+        self._snapshots.append(source)
+
+    def snapshot(self) -> list[ServerMessage]:
+        return [message for source in self._snapshots for message in source()]
+
+    def new_client(self, ws: WebSocket, user: Any = None) -> Client:
+        """`user`: who is connecting (set before the snapshot, which is filtered as any message)."""
+        client = Client(ws, ClientQueue(self._max_telemetry, self._max_total, self._slow_after_s))
+        client.user = user
+        for message in self.snapshot():
+            kind, fields = unpack(message)
+            self._fan_out(kind, fields, (client,), topics=False)
+        self._clients.add(client)
+        return client
+
+    def disconnect_user(self, user_id: int, reason: str) -> int:
+        """Close every WebSocket of the user with this id (their sessions ended: disabled, reset);
+        how many were open."""
+        n = 0
+        for client in tuple(self._clients):
+            if client.user is not None and client.user.id == user_id:
+                client.kick_reason = reason
+                client.kicked.set()
+                n += 1
+        return n
+
+    def remove(self, client: Client) -> None:
+        self._clients.discard(client)
+
+    def publish_to_owner(self, message: ServerMessage, owner: str | None) -> None:
+        """A message only for `owner` (a username) and whoever may see what they own (educators);
+        owner None: educators only. Nobody else receives anything in its place."""
+        self._publish(message, Scoped(owner, None))
+
+    def publish_to_educators(self, message: ServerMessage) -> None:
+        self._publish(message, Scoped(None, None))
+
+    def publish(self, message: ServerMessage) -> None:
+        """Fan a message out to every subscribed client, each getting what `scope` lets them see
+        (ownership.scope: the owner's part of a run to its owner and educators, the public part to
+        the rest). Never blocks, never raises per client; raises TypeError for anything but a
+        server/ws/messages.py server model."""
+        self._publish(message, None)
+
+    def _publish(self, message: ServerMessage, audience: Scoped | None) -> None:
+        kind, fields = unpack(message)  # checked and dumped even with nobody listening: one rule
+        for listener in self.listeners:
+            try:
+                listener(message)
+            except Exception:  # a listener's bug must not stop the fan-out
+                import logging
+
+                logging.getLogger(__name__).exception("hub listener failed")
+        if not self._clients:
+            return
+        self.published += 1
+        self._fan_out(kind, fields, tuple(self._clients), audience=audience)
+
+    def _scope(self, message_type: str, payload: dict[str, Any]) -> Scoped | None:
+        try:
+            return self.scope(message_type, payload)
+        except Exception:
+            import logging
+
+            logging.getLogger(__name__).exception("hub scope failed for %s; educators only", message_type)
+            return _FAIL_CLOSED
+
+    def _fan_out(
+        self,
+        message_type: str,
+        payload: dict[str, Any],
+        clients: Iterable[Client],
+        topics: bool = True,
+        audience: Scoped | None = None,
+    ) -> None:
+        """Each client gets the full message or the public one; each is encoded at most once.
+        `audience`: given by the publisher (publish_to_owner), else the scope rule decides."""
+        scoped = audience if audience is not None else self._scope(message_type, payload)
+        text: str | None = None
+        public: str | None = None
+        for client in clients:
+            if topics and message_type not in client.topics:
+                continue
+            if scoped is None or self.may_see(client.user, scoped.owner):
+                if text is None:
+                    text = encode(message_type, payload)
+                client.deliver(message_type, text)
+            elif scoped.public is not None:
+                if public is None:
+                    public = encode(message_type, scoped.public)
+                client.deliver(message_type, public)
