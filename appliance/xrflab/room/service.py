@@ -57,6 +57,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from ..projects import archive as archive_mod
 from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
+from ..server.http import errors as http_errors
 from ..server.security.accounts import RateLimiter
 from ..server.security.auth import (
     Perm,
@@ -911,6 +912,7 @@ def create_room_app(config: RoomConfig) -> FastAPI:
             security.close()
 
     app = FastAPI(title="XRF Lab room", lifespan=lifespan, openapi_url=None, docs_url=None, redoc_url=None)
+    http_errors.install(app)
     app.state.settings = settings
     app.state.security = security
     app.state.room = room

@@ -16,6 +16,7 @@ from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 from ..room.bench import attach as attach_room
 from ..room.bench import router as room_bench_router
 from ..viz.scene import VizService
+from .http import errors as http_errors
 from .http.accounts import router as accounts_router
 from .http.editor import CODEMIRROR_DIR
 from .http.editor import router as editor_router
@@ -103,6 +104,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     security = Security(settings)
     app.state.security = security
+    http_errors.install(app)  # services raise xrflab.errors.XrfError; one handler answers
     app.add_middleware(SecurityHeaders)
     # Added last = outermost: a body is bounded before any other code sees the request.
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes, upload_limit=settings.max_upload_body_bytes)

@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 from ... import channels as chmod
 from ... import guest
 from ...channels import Channels, ChannelsCorrupt, segment
+from ...errors import XrfError
 from ...logs import live as loglive
 from ...runfolder import remove_folder
 from .children import Child
@@ -42,12 +43,10 @@ if TYPE_CHECKING:
 SEGMENT_LINK_SUFFIX = segment.SEGMENT_LINK_SUFFIX
 
 
-class SupervisorError(Exception):
-    """A request the supervisor cannot honour; `status` is the HTTP status to answer with."""
+class SupervisorError(XrfError):
+    """A request the supervisor cannot honour (by default: not now, 409)."""
 
-    def __init__(self, message: str, status: int = 409) -> None:
-        super().__init__(message)
-        self.status = status
+    status = 409
 
 
 @dataclass
