@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .errors import Invalid
 from .selfcheck_limits import hard_limits
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -45,15 +46,20 @@ class FieldError:
         return {"field": self.field, "message": self.message}
 
 
-class ProfileError(ValueError):
+class ProfileError(Invalid, ValueError):
     """A profile that cannot be used; ``problems`` lists every problem found (``errors``: their
-    sentences)."""
+    sentences). An XrfError (422) whose typed detail is ``{"message", "errors": [{"field",
+    "message"}, ...]}``: the profile editor marks each field."""
+
+    typed_detail = True  # ProfileNotFound: a plain 404 message
 
     def __init__(self, problems: Sequence[FieldError | str], source: str = "") -> None:
         self.problems = [p if isinstance(p, FieldError) else FieldError("", p) for p in problems]
         self.source = source
         head = f"{source}: " if source else ""
-        super().__init__(head + "; ".join(self.errors))
+        text = head + "; ".join(self.errors)
+        detail = {"message": text, "errors": [p.as_dict() for p in self.problems]} if self.typed_detail else None
+        super().__init__(text, detail=detail)
 
     @property
     def errors(self) -> list[str]:
@@ -61,7 +67,10 @@ class ProfileError(ValueError):
 
 
 class ProfileNotFound(ProfileError):
-    """No profile of that name (neither an edited copy nor a default)."""
+    """No profile of that name (neither an edited copy nor a default): 404."""
+
+    status = 404
+    typed_detail = False
 
 
 @dataclass(frozen=True)

@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from . import plants
+from .errors import Invalid
 from .profile_flat import flat_form
 from .profiles import ProfileError, default_data_dir, find_profile, load_profile, validate_profile
 
@@ -55,12 +56,15 @@ DEFAULT_SPI_DEVICE = "/dev/spidev0.0"
 BenchBusyCheck = Callable[[], bool | str | None]
 
 
-class SelfCheckError(RuntimeError):
-    """The check could not be started (checker missing, bad profile, bad arguments)."""
+class SelfCheckError(Invalid, RuntimeError):
+    """The check could not be started (checker missing, bad profile, bad arguments): an XrfError
+    (422), answered by server/http/errors.py."""
 
 
 class BenchBusy(SelfCheckError):
-    """A loop is running on the bench: stop it first."""
+    """A loop is running on the bench: stop it first (409, not now)."""
+
+    status = 409
 
 
 @dataclass

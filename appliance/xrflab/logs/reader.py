@@ -21,6 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import Invalid
+
 # The format's magic, prefix layout and type table: rt_core's logformat.h, through cffi.
 # seq, cycle, t_ns: the record header (channels.h struct xrf_slot_hdr) likewise.
 from .logformat import (
@@ -49,8 +51,9 @@ MAX_SEQ_JUMP = 1 << 40
 RESYNC_WINDOW = 1 << 20
 
 
-class LogFormatError(ValueError):
-    """A file that cannot be decoded at all: not a log file, an unknown version or type code."""
+class LogFormatError(Invalid, ValueError):
+    """A file that cannot be decoded at all: not a log file, an unknown version or type code.
+    An XrfError (422): a request for such a file is answered with this message."""
 
 
 class _Damaged(Exception):

@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any, BinaryIO
 
+from ..errors import Invalid
+
 CHUNK = 1 << 16
 # Folders a project never needs from the student's machine; skipped when unpacking (still counted).
 SKIPPED_DIRS = {"build", "install", "log", ".git", "__pycache__", ".vscode", ".idea"}
@@ -52,13 +54,17 @@ class Limits:
     max_depth: int = 32
 
 
-class ArchiveRejected(Exception):
-    """The archive is refused. ``entry`` names the offending entry ('' for the archive itself)."""
+class ArchiveRejected(Invalid):
+    """The archive is refused (422). ``entry`` names the offending entry ('' for the archive
+    itself), ``message`` the reason alone; str() is both. Its answer (server/http/errors.py) is the
+    typed ``detail`` the dashboard shows: ``{"error": "archive refused: <entry>: <reason>", "entry",
+    "message"}``. A route that names the path itself (the editor's) answers its own words."""
 
     def __init__(self, message: str, entry: str = "") -> None:
-        self.message = message
+        text = f"{entry}: {message}" if entry else message
+        super().__init__(text, detail={"error": "archive refused: " + text, "entry": entry, "message": message})
+        self.message = message  # the reason alone, as callers quote it (XrfError's is the whole text)
         self.entry = entry
-        super().__init__(f"{entry}: {message}" if entry else message)
 
 
 @dataclass

@@ -5,11 +5,12 @@ from __future__ import annotations
 import time
 from typing import Any, Literal
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
+from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import FileResponse, PlainTextResponse
 from pydantic import BaseModel, Field
 from starlette.concurrency import run_in_threadpool
 
+from ...errors import Busy, Conflict, Denied, Invalid, NotFound, Unavailable, XrfError
 from ..security import audit
 from ..security.accounts import MAX_PASSWORD, AccountError, User
 from ..security.audit import AuditLog
@@ -23,7 +24,6 @@ from ..security.auth import (
     current_user,
     requires,
 )
-from ..security.lease import LeaseError
 
 router = APIRouter()
 
@@ -152,7 +152,7 @@ def _sec(request: Request) -> Security:
 def _accounts(request: Request):
     accounts = _sec(request).accounts
     if accounts is None:
-        raise HTTPException(503, "the appliance is starting")
+        raise Unavailable("the appliance is starting")
     return accounts
 
 
@@ -171,10 +171,6 @@ def _me(user: User, csrf: str) -> dict[str, Any]:
     }
 
 
-def _account_error(exc: AccountError) -> HTTPException:
-    return HTTPException(exc.status, str(exc))
-
-
 async def _authenticate(request: Request, username: str, password: str) -> User:
     """Password check with the login guard's limits (accounts.LoginGuard); 401 / 429 otherwise."""
     sec = _sec(request)
@@ -185,15 +181,15 @@ async def _authenticate(request: Request, username: str, password: str) -> User:
     wait = sec.login_guard.retry_after(name, address, device)
     if wait > 0:
         audit.record(None, "auth.locked", {"username": username[:64]}, address)
-        raise HTTPException(
-            429, f"too many failed logins; try again in {int(wait) + 1} s", headers={"Retry-After": str(int(wait) + 1)}
+        raise Busy(
+            f"too many failed logins; try again in {int(wait) + 1} s", headers={"Retry-After": str(int(wait) + 1)}
         )
     async with sec.hash_slots:
         user = await run_in_threadpool(accounts.verify, username, password)
     if user is None:
         sec.login_guard.failed(name, address, device)
         audit.record(None, "auth.failed", {"username": username[:64]}, address)
-        raise HTTPException(401, "wrong username or password")
+        raise XrfError("wrong username or password", 401)
     sec.login_guard.succeeded(name, address, device)
     return user
 
@@ -215,7 +211,7 @@ def _set_cookies(request: Request, response: Response, token: str, csrf: str, ma
 async def login_page(request: Request) -> FileResponse:
     page = request.app.state.settings.frontend_dir / "login.html"
     if not page.is_file():
-        raise HTTPException(404, "no login page in this install; use POST /api/auth/login")
+        raise NotFound("no login page in this install; use POST /api/auth/login")
     return FileResponse(page, headers={"Cache-Control": "no-cache"})
 
 
@@ -279,11 +275,8 @@ async def change_password(body: PasswordChange, request: Request, user: User = D
     await _authenticate(request, user.username, body.current)
     accounts = _accounts(request)
     if body.new == body.current:
-        raise HTTPException(422, "the new password must differ from the current one")
-    try:
-        await run_in_threadpool(accounts.set_password, user.id, body.new, False)
-    except AccountError as exc:
-        raise _account_error(exc) from None
+        raise Invalid("the new password must differ from the current one")
+    await run_in_threadpool(accounts.set_password, user.id, body.new, False)  # AccountError: 422
     # set_password ended every session and token; a browser gets a fresh session.
     response = Response(status_code=204)
     if request.scope.get("xrf_session"):
@@ -303,7 +296,7 @@ async def api_token(body: Credentials, request: Request) -> dict[str, Any]:
     """An API token for the CLI (`xrf login`); replaces the user's previous one."""
     user = await _authenticate(request, body.username, body.password)
     if user.must_change:
-        raise HTTPException(403, "change your one-time password in the dashboard first")
+        raise Denied("change your one-time password in the dashboard first")
     token = _accounts(request).new_api_token(user)
     audit.record(user, "auth.token", {}, client_address(request))
     return {"token": token, "username": user.username, "role": user.role}
@@ -326,18 +319,15 @@ async def list_users(request: Request) -> list[dict[str, Any]]:
 
 @router.post("/api/users", response_model=UserWithPassword, status_code=201, dependencies=[requires(Perm.EDUCATOR)])
 async def create_user(body: NewUser, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
-    try:
-        created, password = await run_in_threadpool(
-            _accounts(request).create,
-            body.username,
-            body.role,
-            body.password,
-            body.full_name,
-            body.email,
-            body.must_change,
-        )
-    except AccountError as exc:
-        raise _account_error(exc) from None
+    created, password = await run_in_threadpool(
+        _accounts(request).create,
+        body.username,
+        body.role,
+        body.password,
+        body.full_name,
+        body.email,
+        body.must_change,
+    )
     audit.record(user, "user.create", {"user": created.username, "role": created.role}, client_address(request))
     return {"user": created.public(), "password": password}
 
@@ -345,12 +335,9 @@ async def create_user(body: NewUser, request: Request, user: User = Depends(curr
 @router.post("/api/users/import", response_model=Imported, status_code=201, dependencies=[requires(Perm.EDUCATOR)])
 async def import_users(body: ClassList, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
     accounts = _accounts(request)
-    try:
-        rows = accounts.parse_class_list(body.csv)
-        if len(rows) > 500:
-            raise AccountError("at most 500 accounts per class list")
-    except AccountError as exc:
-        raise _account_error(exc) from None
+    rows = accounts.parse_class_list(body.csv)
+    if len(rows) > 500:
+        raise Invalid("at most 500 accounts per class list")
     created: list[dict[str, Any]] = []
     for r in rows:
         try:
@@ -358,7 +345,7 @@ async def import_users(body: ClassList, request: Request, user: User = Depends(c
                 accounts.create, r["username"], r["role"], None, r["full_name"], r["email"]
             )
         except AccountError as exc:  # taken since parsing (a concurrent create): say so, keep the rest
-            raise HTTPException(409, f"{r['username']}: {exc}; {len(created)} accounts were created before") from None
+            raise Conflict(f"{r['username']}: {exc}; {len(created)} accounts were created before") from None
         created.append({"user": u.public(), "password": password})
     audit.record(user, "user.import", {"users": [c["user"]["username"] for c in created]}, client_address(request))
     return {"created": created}
@@ -373,7 +360,7 @@ def _guard_last_educator(request: Request, target: User, change: UserChange) -> 
         and (change.disabled or demoted)
         and accounts.educators_enabled() <= 1
     ):
-        raise HTTPException(409, "this is the last enabled educator account")
+        raise Conflict("this is the last enabled educator account")
 
 
 @router.patch("/api/users/{user_id}", response_model=UserInfo, dependencies=[requires(Perm.EDUCATOR)])
@@ -383,14 +370,11 @@ async def change_user(
     accounts = _accounts(request)
     target = accounts.get(user_id)
     if target is None:
-        raise HTTPException(404, f"no user {user_id}")
+        raise NotFound(f"no user {user_id}")
     if target.id == user.id and (body.disabled or (body.role is not None and body.role != user.role)):
-        raise HTTPException(409, "you cannot disable your own account or change your own role")
+        raise Conflict("you cannot disable your own account or change your own role")
     _guard_last_educator(request, target, body)
-    try:
-        changed = accounts.update(user_id, **body.model_dump(exclude_none=True))
-    except AccountError as exc:
-        raise _account_error(exc) from None
+    changed = accounts.update(user_id, **body.model_dump(exclude_none=True))
     lease = _sec(request).lease
     if changed.disabled or changed.role != target.role:  # their sessions ended: so do their sockets
         _sec(request).disconnect(user_id)
@@ -405,10 +389,7 @@ async def change_user(
 @router.post("/api/users/{user_id}/reset", response_model=UserWithPassword, dependencies=[requires(Perm.EDUCATOR)])
 async def reset_user(user_id: int, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
     accounts = _accounts(request)
-    try:
-        password = await run_in_threadpool(accounts.set_password, user_id, None)
-    except AccountError as exc:
-        raise _account_error(exc) from None
+    password = await run_in_threadpool(accounts.set_password, user_id, None)
     target = accounts.get(user_id)
     assert target is not None
     _sec(request).disconnect(user_id)
@@ -422,7 +403,7 @@ async def reset_user(user_id: int, request: Request, user: User = Depends(curren
 def _lease(request: Request):
     lease = _sec(request).lease
     if lease is None:
-        raise HTTPException(503, "the appliance is starting")
+        raise Unavailable("the appliance is starting")
     return lease
 
 
@@ -433,11 +414,7 @@ async def get_lease(request: Request) -> dict[str, Any]:
 
 def _lease_action(name: str):
     async def action(request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
-        lease = _lease(request)
-        try:
-            return getattr(lease, name)(user)
-        except LeaseError as exc:
-            raise HTTPException(exc.status, str(exc)) from None
+        return getattr(_lease(request), name)(user)  # a refusal is a LeaseError (an XrfError)
 
     return action
 
@@ -477,7 +454,7 @@ def _audit_rows(
 def _audit_log(request: Request) -> AuditLog:
     log = _sec(request).audit
     if log is None:
-        raise HTTPException(503, "the appliance is starting")
+        raise Unavailable("the appliance is starting")
     return log
 
 

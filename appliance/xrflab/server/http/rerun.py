@@ -37,11 +37,12 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
-from fastapi import APIRouter, HTTPException, Request
+from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
 
+from ...errors import NotFound, Unavailable
 from ..security import ownership
 from ..security.auth import Perm, requires, requires_grpc_web
 
@@ -243,7 +244,7 @@ async def _viewer_cache(request: Request) -> Path:
         try:
             viewer = await asyncio.to_thread(RerunViewer.get)
         except OSError as exc:
-            raise HTTPException(503, f"the rerun viewer is not available: {exc}") from None
+            raise Unavailable(f"the rerun viewer is not available: {exc}") from None
 
         def fetch(name: str) -> bytes:
             r = httpx.get(f"http://127.0.0.1:{viewer.web_port}/{name}", timeout=120)
@@ -253,7 +254,7 @@ async def _viewer_cache(request: Request) -> Path:
         try:
             await asyncio.to_thread(prepare_viewer, cache, fetch)
         except (OSError, httpx.HTTPError) as exc:
-            raise HTTPException(503, f"the rerun viewer could not be prepared: {exc}") from None
+            raise Unavailable(f"the rerun viewer could not be prepared: {exc}") from None
     return cache
 
 
@@ -265,7 +266,7 @@ async def rerun_viewer(asset: str, request: Request) -> Response:
     neutralised URLs under /rerun/offline/ among them) is a 404, at once."""
     asset = asset or "index.html"
     if asset not in VIEWER_FILES:
-        raise HTTPException(404, "no such viewer file", headers={"Content-Security-Policy": VIEWER_CSP})
+        raise NotFound("no such viewer file", headers={"Content-Security-Policy": VIEWER_CSP})
     cache = await _viewer_cache(request)
     path = cache / asset
     headers = {

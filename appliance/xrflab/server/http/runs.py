@@ -10,12 +10,13 @@ import json
 import struct
 from typing import Any, Literal
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Request, WebSocket
+from fastapi import APIRouter, Depends, Query, Request, WebSocket
 from pydantic import BaseModel, Field
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from ... import channels as chmod
 from ... import plants
+from ...errors import Denied, Invalid, Unavailable, XrfError
 from ...statemachine import StateMachine, state_machine
 from ..runs import start as run_start
 from ..runs.store import RunRecord  # the run record's API model, made from runs.RunRow
@@ -88,10 +89,6 @@ class CommandReply(BaseModel):
 
 def _supervisor(request: Request) -> Supervisor:
     return request.app.state.supervisor
-
-
-def _http(exc: SupervisorError) -> HTTPException:
-    return HTTPException(status_code=exc.status, detail=str(exc))
 
 
 # ---- REST ---------------------------------------------------------------------------------------
@@ -192,25 +189,20 @@ async def start_run(body: StartRun, request: Request, user: User = Depends(curre
     try:
         # Only a bundled example/template or a build of one's own project (else: a missing build).
         await ownership.check_startable(request, body.build)
-    except HTTPException as exc:
-        audit.record(user, "run.start_failed", {"build": body.build, "error": str(exc.detail)}, client_address(request))
+    except XrfError as exc:  # audited, then answered as it is (server/http/errors.py)
+        audit.record(user, "run.start_failed", {"build": body.build, "error": str(exc)}, client_address(request))
         raise
-    try:
-        # The one start-a-run service (server/runs/start.py): lease bookkeeping and audit as every route
-        row = await run_start.start_run(
-            request, user, run_start.RunRequest(body.build, body.sim, body.max_cycles, body.log_timing)
-        )
-    except SupervisorError as exc:
-        raise _http(exc) from None
+    # The one start-a-run service (server/runs/start.py): lease bookkeeping and audit as every route;
+    # a refusal is a SupervisorError (an XrfError: its status and message are the answer).
+    row = await run_start.start_run(
+        request, user, run_start.RunRequest(body.build, body.sim, body.max_cycles, body.log_timing)
+    )
     return row.as_dict()
 
 
 @router.post("/runs/current/stop", response_model=RunRecord, dependencies=[requires(Perm.DRIVE)])
 async def stop_run(request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
-    try:
-        row = await _supervisor(request).stop_current(by=user.username)
-    except SupervisorError as exc:
-        raise _http(exc) from None
+    row = await _supervisor(request).stop_current(by=user.username)  # none active: SupervisorError 409
     audit.record(user, "run.stop", {"run": row.id}, client_address(request))
     return row.as_dict()
 
@@ -228,22 +220,18 @@ def command_name(cmd: str | int) -> str:
 async def command(body: CommandRequest, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
     try:
         name = command_name(body.cmd)
-    except ValueError as exc:
-        raise HTTPException(status_code=422, detail=str(exc)) from None
+    except ValueError as exc:  # an unknown command name: the request's own content
+        raise Invalid(str(exc)) from None
     if name not in SAFE_COMMANDS:
         check(request, Perm.DRIVE)
     try:
-        result = await _supervisor(request).command(body.cmd)
-        audit.record(
-            user, "command", {"cmd": name, "accepted": result.accepted, "via": "http"}, client_address(request)
-        )
-        _zero_setpoints_after_reset(_supervisor(request), name, result.accepted)
-    except SupervisorError as exc:
-        raise _http(exc) from None
-    except ValueError as exc:
-        raise HTTPException(status_code=422, detail=str(exc)) from None
-    except chmod.ChannelsError as exc:
-        raise HTTPException(status_code=503, detail=str(exc)) from None
+        result = await _supervisor(request).command(body.cmd)  # no run / stopping: SupervisorError 409
+    except ValueError as exc:  # a command number the channels cannot carry
+        raise Invalid(str(exc)) from None
+    except chmod.ChannelsError as exc:  # the loop's shared memory is gone or full
+        raise Unavailable(str(exc)) from None
+    audit.record(user, "command", {"cmd": name, "accepted": result.accepted, "via": "http"}, client_address(request))
+    _zero_setpoints_after_reset(_supervisor(request), name, result.accepted)
     return {
         "ticket": result.ticket,
         "accepted": result.accepted,
@@ -300,8 +288,9 @@ if set(WS_PERMS) != set(messages.CLIENT_KINDS):
     raise RuntimeError(f"api.WS_PERMS {sorted(WS_PERMS)} and messages.CLIENT {sorted(messages.CLIENT_KINDS)} differ")
 
 
-class WsDenied(Exception):
-    """The message is refused (error reply); `close` when the session itself is gone."""
+class WsDenied(Denied):
+    """The message is refused for want of a permission (error reply, `denied`); `close` when the
+    session itself is gone."""
 
     def __init__(self, message: str, close: bool = False) -> None:
         super().__init__(message)
@@ -429,12 +418,13 @@ async def _handle(text: str, client: Client, sup: Supervisor) -> None:
             client.reply(messages.PongMessage(id=ref, t=incoming.t))
         else:
             raise ValueError(f"unknown message type {kind!r}; types: {', '.join(WS_PERMS)}")
-    except WsDenied as exc:
-        client.reply(messages.ErrorMessage(id=ref, request=kind, error=str(exc), denied=True))
-        if exc.close:
+    except XrfError as exc:
+        # A service's refusal, answered as HTTP answers it (server/http/errors.py): its message; a
+        # refusal for want of a permission (403: the session, the role, the lease) is flagged `denied`.
+        denied = True if exc.status == 403 else None
+        client.reply(messages.ErrorMessage(id=ref, request=kind, error=str(exc), denied=denied))
+        if isinstance(exc, WsDenied) and exc.close:
             client.kick_reason = str(exc)
             client.kicked.set()
-    except SupervisorError as exc:
-        client.reply(messages.ErrorMessage(id=ref, request=kind, error=str(exc)))
     except (ValueError, OverflowError, TypeError, struct.error, chmod.ChannelsError) as exc:
         client.reply(messages.ErrorMessage(id=ref, request=kind, error=str(exc)))

@@ -20,11 +20,12 @@ import asyncio
 import contextlib
 from typing import Any
 
-from fastapi import APIRouter, HTTPException, Request, WebSocket
+from fastapi import APIRouter, Request, WebSocket
 from fastapi.responses import RedirectResponse, Response, StreamingResponse
 from starlette.background import BackgroundTask
 from starlette.websockets import WebSocketDisconnect
 
+from ...errors import Unavailable, XrfError
 from ..security.auth import Perm, may, requires
 
 router = APIRouter(include_in_schema=False)
@@ -53,7 +54,7 @@ async def viser_http(path: str, request: Request) -> Response:
 
     port = _viser_port(request.app)
     if port is None:
-        raise HTTPException(503, "the 3D view is not running")
+        raise Unavailable("the 3D view is not running")
     url = f"http://127.0.0.1:{port}/{path}"
     headers = {"accept-encoding": request.headers.get("accept-encoding", "identity")}
     client = httpx.AsyncClient(timeout=httpx.Timeout(30.0))
@@ -63,7 +64,7 @@ async def viser_http(path: str, request: Request) -> Response:
         )
     except httpx.HTTPError as exc:
         await client.aclose()
-        raise HTTPException(502, f"the 3D view does not answer: {exc}") from None
+        raise XrfError(f"the 3D view does not answer: {exc}", 502) from None  # bad gateway
 
     async def close() -> None:
         await upstream.aclose()

@@ -8,9 +8,10 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
-from fastapi import APIRouter, HTTPException, Request
+from fastapi import APIRouter, Request
 from pydantic import BaseModel, Field
 
+from ...errors import Conflict, NotFound, Unavailable
 from ..security import ownership
 from ..security.auth import Perm, requires
 
@@ -38,7 +39,7 @@ class SeekRequest(BaseModel):
 def _viz(request: Request) -> Any:
     viz = getattr(request.app.state, "viz", None)
     if viz is None:
-        raise HTTPException(503, "the 3D view is not running")
+        raise Unavailable("the 3D view is not running")
     return viz
 
 
@@ -65,7 +66,7 @@ async def viz_state(request: Request) -> dict[str, Any]:
 @router.post("/reset-odometry", dependencies=[requires(Perm.DRIVE)])
 async def reset_odometry(request: Request) -> dict[str, Any]:
     if not _viz(request).reset_odometry():
-        raise HTTPException(409, "no RELbot is shown live: nothing to reset")
+        raise Conflict("no RELbot is shown live: nothing to reset")
     return {"ok": True}
 
 
@@ -94,14 +95,13 @@ async def replay(body: ReplayRequest, request: Request) -> dict[str, Any]:
     )
     try:
         r = await asyncio.to_thread(viz.load_replay, body.run_id)
-    except LookupError as exc:
-        raise HTTPException(404, str(exc)) from None
+    # viz/scene.py says what went wrong with builtin errors; what each means to the caller:
+    except LookupError as exc:  # no recording of that run
+        raise NotFound(str(exc)) from None
     except OSError as exc:  # a recording file that is not a plain one of the run, or too large
-        raise HTTPException(
-            404, f"run {body.run_id} has no 3D recording that can be replayed: {exc.strerror}"
-        ) from None
-    except ValueError as exc:
-        raise HTTPException(409, str(exc)) from None
+        raise NotFound(f"run {body.run_id} has no 3D recording that can be replayed: {exc.strerror}") from None
+    except ValueError as exc:  # a recording that cannot be shown now
+        raise Conflict(str(exc)) from None
     return {"run_id": r.run_id, "duration": r.duration, "kind": r.kind, "samples": len(r.t), "message": r.message}
 
 
@@ -109,8 +109,8 @@ async def replay(body: ReplayRequest, request: Request) -> dict[str, Any]:
 async def seek(body: SeekRequest, request: Request) -> dict[str, Any]:
     try:
         return {"t": _viz(request).seek(body.t)}
-    except LookupError as exc:
-        raise HTTPException(409, str(exc)) from None
+    except LookupError as exc:  # nothing is being replayed
+        raise Conflict(str(exc)) from None
 
 
 @router.post("/live", dependencies=[requires(Perm.DRIVE)])

@@ -28,6 +28,7 @@ from typing import Any
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatchError
 
+from ...errors import XrfError
 from ...private_files import private_db
 
 ROLES = ("educator", "student", "observer")
@@ -77,10 +78,11 @@ _hasher = PasswordHasher(time_cost=2, memory_cost=19 * 1024, parallelism=1)
 _DUMMY_HASH = _hasher.hash(secrets.token_urlsafe(16))
 
 
-class AccountError(Exception):
-    def __init__(self, message: str, status: int = 422) -> None:
-        super().__init__(message)
-        self.status = status
+class AccountError(XrfError):
+    """An account request refused (422 by default; 409 a taken name, 404 no such user): an
+    XrfError, so the routes let server/http/errors.py answer it."""
+
+    status = 422
 
 
 @dataclass(frozen=True)

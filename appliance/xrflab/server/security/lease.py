@@ -23,6 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from ...errors import XrfError
 from ..runs.lifecycle import RunObserver
 from ..ws.messages import LeaseMessage
 from .accounts import User
@@ -32,10 +33,11 @@ if TYPE_CHECKING:
     from ..runs.store import RunRow
 
 
-class LeaseError(Exception):
-    def __init__(self, message: str, status: int = 409) -> None:
-        super().__init__(message)
-        self.status = status
+class LeaseError(XrfError):
+    """A lease action refused (409 by default, 403 releasing someone else's): an XrfError, so
+    the routes let server/http/errors.py answer it."""
+
+    status = 409
 
 
 @dataclass
