@@ -7,7 +7,11 @@ service's error only to translate it by hand."""
 from __future__ import annotations
 
 import ast
+import asyncio
+import json
 from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
 
 import pytest
 from fastapi import FastAPI
@@ -124,6 +128,62 @@ def test_the_appliance_installs_the_handler(tmp_path: Path) -> None:
     # No lifespan (nothing started): a public route whose page is missing raises NotFound.
     r = TestClient(app).get("/login")
     assert (r.status_code, r.json()) == (404, {"detail": "no login page in this install; use POST /api/auth/login"})
+
+
+# ---- the WebSocket: a service's XrfError is an `error` reply with its message ---------------------
+
+
+class _Client:
+    """What /ws's message handler uses of a hub client: its socket (the app's security) and replies."""
+
+    def __init__(self, user: Any) -> None:
+        security = SimpleNamespace(resolve=lambda ws: (user, None, None), lease=None)
+        self.ws = SimpleNamespace(app=SimpleNamespace(state=SimpleNamespace(security=security)), scope={}, client=None)
+        self.user = user
+        self.replies: list[Any] = []
+        self.kick_reason = ""
+        self.kicked = asyncio.Event()
+
+    def reply(self, message: Any) -> None:
+        self.replies.append(message.model_dump(exclude_none=True))
+
+
+class _Supervisor:
+    async def command(self, cmd: Any) -> Any:
+        raise SupervisorError("no run is active; start one first")
+
+    def setpoint(self, fields: dict[str, Any]) -> dict[str, Any]:
+        raise LeaseError("the bench is held by a, not you", 403)
+
+
+def _ws(user: Any, message: dict[str, Any]) -> _Client:
+    from xrflab.server.http.runs import _handle
+
+    client = _Client(user)
+    asyncio.run(_handle(json.dumps(message), client, _Supervisor()))  # type: ignore[arg-type]
+    return client
+
+
+def test_ws_answers_a_service_error_with_its_message() -> None:
+    from xrflab.server.security.accounts import User
+
+    educator = User(id=1, username="e", role="educator")
+    c = _ws(educator, {"type": "command", "cmd": "stop", "id": 5})
+    assert c.replies == [{"type": "error", "id": 5, "request": "command", "error": "no run is active; start one first"}]
+    # 403: refused for want of a permission, so flagged `denied`; the connection carries on.
+    c = _ws(educator, {"type": "setpoint", "fields": {"x": 1}, "id": 6})
+    assert c.replies == [
+        {"type": "error", "id": 6, "request": "setpoint", "error": "the bench is held by a, not you", "denied": True}
+    ]
+    assert not c.kicked.is_set()
+
+
+def test_ws_a_session_gone_is_denied_and_closes() -> None:
+    c = _ws(None, {"type": "ping", "id": 1})
+    assert c.replies == [
+        {"type": "error", "id": 1, "request": "ping", "error": "your session ended; log in again", "denied": True}
+    ]
+    assert c.kicked.is_set() and c.kick_reason == "your session ended; log in again"
 
 
 # ---- the source: nobody else answers HTTP, no route translates ---------------------------------
