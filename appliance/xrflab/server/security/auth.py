@@ -22,6 +22,7 @@ from fastapi import Depends, HTTPException
 from starlette.exceptions import WebSocketException
 from starlette.requests import HTTPConnection
 
+from ...channels import names as _names
 from .accounts import Accounts, LoginGuard, User
 
 if TYPE_CHECKING:
@@ -36,7 +37,8 @@ CSRF_COOKIE = "xrf_csrf"
 CSRF_HEADER = "x-csrf-token"
 UNSAFE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 # Commands anyone who may stop (student and up) sends without holding the lease: stopping is safe.
-SAFE_COMMANDS = frozenset({"stop", "pause"})
+# Which ones is a property of the command: channels.h's XRF_CMDS says (stop, pause).
+SAFE_COMMANDS = _names.SAFE_COMMANDS
 
 
 class Perm(str, Enum):
