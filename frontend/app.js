@@ -726,10 +726,10 @@ const HANDLERS = {
   timing: (m) => applyTiming(m),
   monitor: (m) => appendMonitor(m.lines, m.source),
   alarm: (m) => {
-    // A started run missing a layer: the banner (the run message says the same). A refused
-    // run (its message says why it was not started): the alarm bar.
-    if (m.kind === "confinement" && m.message && m.message.startsWith("the controller runs WITHOUT")) showConfinement(m.run_id, m.missing);
-    else if (m.kind === "confinement" && !String(m.message).startsWith("the controller was not started")) {
+    // A started run missing a layer (`started`): the banner (the run message says the same). A
+    // refused run (its message says why it was not started): the alarm bar.
+    if (m.kind === "confinement" && m.started) showConfinement(m.run_id, m.missing);
+    else if (m.kind === "confinement" && m.started === false) {
       showAlarm({ ...m, message: "the controller was not started: " + m.message });  // as POST /api/runs says
     } else showAlarm(m);
   },

@@ -286,18 +286,11 @@ async def get_run(run_id: int, request: Request) -> dict[str, Any]:
 ws_router = APIRouter()
 
 
-# Every client->server message type and the permission it needs. A type not listed here is
-# refused as unknown before anything else happens: a new type cannot skip its declaration.
-# `command` is STOP (stop and pause are the safety exception); any other command needs DRIVE.
-WS_PERMS: dict[str, Perm] = {
-    "command": Perm.STOP,
-    "setpoint": Perm.DRIVE,
-    "subscribe": Perm.WATCH,
-    "ping": Perm.WATCH,
-}
-# Each of them has its model in server/ws/messages.py (the published schema), and nothing else does.
-if set(WS_PERMS) != set(messages.CLIENT_KINDS):
-    raise RuntimeError(f"api.WS_PERMS {sorted(WS_PERMS)} and messages.CLIENT {sorted(messages.CLIENT_KINDS)} differ")
+# Every client->server message type and the permission it needs, as its model in
+# server/ws/messages.py declares it (`perm`): a type without a model is refused as unknown before
+# anything else happens. `command` is STOP (stop and pause, the commands channels.h marks safe, are
+# the safety exception); any other command needs DRIVE.
+WS_PERMS: dict[str, Perm] = {kind: Perm(model.perm) for kind, model in messages.CLIENT_KINDS.items()}
 
 
 class WsDenied(Exception):
