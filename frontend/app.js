@@ -39,6 +39,9 @@ xrf.meReady = fetch("/api/me").then((r) => {
   if (r.status === 401) { xrf.toLogin(); return new Promise(() => {}); }
   return r.json();
 }).then((me) => { xrf.me = me; if (me.must_change) xrf.toLogin(); return me; });
+// What the user may do: a permission of /api/me's `perms` (server/security/roles.py's Perm: "watch",
+// "stop", "lease", "drive", "projects", "educator"). Pages ask this, never a role's name.
+xrf.may = (perm) => !!xrf.me && xrf.me.perms.includes(perm);
 
 // ---- state machine drawing ------------------------------------------------------------------
 

@@ -22,6 +22,7 @@ from ..runs.store import RunRecord  # the run record's API model, made from runs
 from ..runs.supervisor import Supervisor, SupervisorError
 from ..security import audit, ownership
 from ..security.auth import SAFE_COMMANDS, Perm, User, check, client_address, current_user, may, requires
+from ..security.roles import role_has
 from ..ws import messages
 from ..ws.hub import Client
 from .plant_field import PlantInfo, PlantName
@@ -153,7 +154,7 @@ async def _own_project_builds(request: Request) -> list[dict[str, Any]]:
     from .projects import _service
 
     user = ownership.user_of(request)
-    if user is None or user.role == "observer":
+    if user is None or not role_has(user.role, Perm.PROJECTS):  # observers have no projects
         return []
     svc = await _service(request)
 
@@ -313,7 +314,7 @@ def _ws_authorize(ws: WebSocket, client: Client, perm: Perm) -> User:
     if user.must_change:
         raise WsDenied("change your password first")
     if not may(user, perm, security.lease):
-        if perm is Perm.DRIVE and user.role == "student":
+        if perm is Perm.DRIVE and role_has(user.role, perm):  # the role drives, but not without the lease
             holder = security.lease.holder if security.lease else None
             who = f"{holder.user.username} holds it" if holder else "nobody holds it; take it first"
             raise WsDenied(f"you do not hold the bench ({who})")
