@@ -113,6 +113,22 @@ function drawStateMachine(machine) {
   }
 }
 
+// A button per command, in the C list's order; a safe one (stop, pause: channels.h's XRF_CMDS)
+// stays usable without the bench (accounts.css, data-safe).
+function drawCommands(machine) {
+  const box = $("commands");
+  box.textContent = "";
+  for (const c of machine.commands) {
+    const b = document.createElement("button");
+    b.dataset.cmd = c.name;
+    if (c.safe) b.dataset.safe = "";
+    b.textContent = c.name;
+    b.disabled = true;  // until applyState says the command is allowed now
+    b.addEventListener("click", () => sendCommand(c.name));
+    box.appendChild(b);
+  }
+}
+
 // ---- state ----------------------------------------------------------------------------------
 
 // States a reset is accepted from (the C table, through GET /api/state-machine), and the states
@@ -181,7 +197,7 @@ function emergencyStop() {
   // when stopping would end the run). Stop and pause themselves work for every student.
   if (xrf.stopBlocked && xrf.stopBlocked()) return;
   const s = xrf.state;
-  if (s.active && (s.name === "RUN" || s.name === "PAUSED")) {
+  if (s.active && s.allowed.includes("stop")) {  // RUN or PAUSED (the C command table says)
     sendCommand("stop");
   } else if (xrf.run && xrf.run.active) {
     endRun();
@@ -837,9 +853,9 @@ function init() {
   xrf.machineReady = fetch("/api/state-machine").then((r) => r.json()).then((machine) => {
     xrf.machine = machine;
     drawStateMachine(machine);
+    drawCommands(machine);
     applyState(xrf.state);  // the state may have come first: mark its node and edges now
   });
-  document.querySelectorAll("#commands button").forEach((b) => b.addEventListener("click", () => sendCommand(b.dataset.cmd)));
   $("btn-estop").addEventListener("click", emergencyStop);
   $("btn-start-run").addEventListener("click", startRun);
   $("btn-end-run").addEventListener("click", endRun);

@@ -118,7 +118,7 @@
     }
     if (xrf.mayDrive()) return false;
     const s = xrf.state;
-    if (s.active && (s.name === "RUN" || s.name === "PAUSED")) return false;  // stop: allowed for everyone
+    if (s.active && s.allowed.includes("stop")) return false;  // RUN, PAUSED: stop is safe, for everyone
     if (xrf.run && xrf.run.active) {
       const who = L.lease && L.lease.holder ? L.lease.holder.username : "nobody";
       say(`You do not hold the bench (${who} does): STOP stops a running or paused controller for anyone, but only the holder or an educator ends the run.`, 8000);

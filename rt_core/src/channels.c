@@ -620,3 +620,10 @@ int xrf_cmd_safe(int32_t cmd)
         return 0;
     }
 }
+
+#define XRF_TRANSPORT_NAME_(NAME, name) name,
+const char *xrf_transport_name(int32_t transport)
+{
+    static const char *const names[] = {XRF_TRANSPORTS(XRF_TRANSPORT_NAME_)};
+    return (transport >= 0 && transport < XRF_TRANSPORT_COUNT) ? names[transport] : NULL;
+}

@@ -25,6 +25,10 @@ HOST_LOST_ACTIONS = {
 }
 
 
+# The board transports of channels.h's XRF_TRANSPORTS ("sim", "spidev", "evl-spidev").
+TRANSPORTS: tuple[str, ...] = tuple(c_str(lib.xrf_transport_name(t)) for t in range(lib.XRF_TRANSPORT_COUNT))
+
+
 def state_name(state: int) -> str:
     return c_str(lib.xrf_state_name(state))
 

@@ -88,6 +88,13 @@ extern "C" {
     X(PAUSE, pause, 5, 1)           \
     X(QUIT, quit, 6, 0)
 
+/* The board transports a loop can use (XRF_TRANSPORT, xrf_info.transport): X(NAME, "name").
+ * runtime.cpp opens each; hosts list them from here (names.TRANSPORTS: the CLI, the self-check). */
+#define XRF_TRANSPORTS(X) \
+    X(SIM, "sim")         \
+    X(SPIDEV, "spidev")   \
+    X(EVL_SPIDEV, "evl-spidev")
+
 /* Why a command was rejected (xrf_status.reject_code). */
 #define XRF_REJECT_NONE 0
 #define XRF_REJECT_UNKNOWN 1     /* not a command number */
@@ -148,7 +155,7 @@ struct xrf_info {
     int32_t priority; /* SCHED_FIFO priority, 0 if none */
     uint32_t doorbell_period_cycles;
     char backend[16];   /* "posix" | "evl" */
-    char transport[16]; /* "sim" | "spidev" | "evl-spidev" */
+    char transport[16]; /* a name of XRF_TRANSPORTS */
     char sim[16];       /* "relbot" | "jiwy" | "" */
     char program[XRF_NAME_MAX];
     char ros2xeno_schema[XRF_SCHEMA_MAX]; /* normalised .msg text: "float64 steer_left\n..." */
@@ -462,6 +469,8 @@ const char *xrf_state_name(int32_t state);
 const char *xrf_cmd_name(int32_t cmd);
 /* 1 for a command XRF_CMDS marks safe (stop, pause), else 0 (also for a number no command has). */
 int xrf_cmd_safe(int32_t cmd);
+/* The name of transport XRF_TRANSPORT_<NAME> (0 .. XRF_TRANSPORT_COUNT - 1), else NULL. */
+const char *xrf_transport_name(int32_t transport);
 /* cffi-end */
 
 /* The constants of the lists above, for C and C++ (cffi gets the same names from _cffi_build.py,
@@ -471,6 +480,8 @@ int xrf_cmd_safe(int32_t cmd);
 #define XRF_COUNT_ONE_(...) +1
 enum { XRF_STATES(XRF_STATE_CONST_) XRF_STATE_COUNT = 0 XRF_STATES(XRF_COUNT_ONE_) };
 enum { XRF_CMDS(XRF_CMD_CONST_) XRF_CMD_COUNT = 0 XRF_CMDS(XRF_COUNT_ONE_) };
+#define XRF_TRANSPORT_CONST_(NAME, name) XRF_TRANSPORT_##NAME,
+enum { XRF_TRANSPORTS(XRF_TRANSPORT_CONST_) XRF_TRANSPORT_COUNT };
 
 #ifdef __cplusplus
 }
