@@ -25,7 +25,7 @@ HOST_LOST_ACTIONS = {
 }
 
 
-# The board transports of channels.h's XRF_TRANSPORTS ("sim", "spidev", "evl-spidev").
+# The board transports of channels.h's XRF_TRANSPORTS (XRF_TRANSPORT / xrf_info.transport values).
 TRANSPORTS: tuple[str, ...] = tuple(c_str(lib.xrf_transport_name(t)) for t in range(lib.XRF_TRANSPORT_COUNT))
 
 

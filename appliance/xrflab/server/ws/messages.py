@@ -380,7 +380,7 @@ def _value_ok(name: str, value: Any) -> None:
 class CommandRequest(_In):
     """A state machine command (needs STOP for stop/pause, DRIVE for the rest); answered by `ack`."""
 
-    perm = "stop"  # stop, pause: STOP; any other command DRIVE (runs.py)
+    perm = "stop"  # enough for a safe command; runs.py asks DRIVE for any other
     type: Literal["command"]
     cmd: StrictStr | StrictInt = Field(description="a command name (GET /api/state-machine) or number")
 
