@@ -299,12 +299,10 @@ async function startRun() {
       await api("POST", "/api/runs", { build: $("build-select").value, ...body });
     }
   } catch (e) {
+    // Refused by the run sandbox (a protection layer missing, runs not allowed without it): the
+    // appliance also says so to every page as a confinement alarm (`started: false`), which the
+    // alarm bar shows (HANDLERS.alarm).
     $("run-detail").textContent = "Could not start: " + e.message;
-    // Refused by the run sandbox (a protection layer missing, runs not allowed without it):
-    // said in the alarm bar too, which every page shows.
-    if (e.status === 503 && e.message.startsWith("the controller was not started")) {
-      showAlarm({ kind: "confinement", message: e.message });
-    }
   } finally {
     btn.disabled = false;
     loadBuilds().catch(() => {});

@@ -205,9 +205,10 @@ def test_a_planted_copy_is_found(name: str, tmp_path: Path) -> None:
 # ---- permissions from role names, and prose read as data -----------------------------------------
 
 ROLE_COMPARISON = re.compile(r"""\brole\s*(?:===?|!==?)\s*["']""")
-# A server message's prose matched in the browser instead of a typed field (issue 27: the page
-# looked for "the controller runs WITHOUT" in a confinement alarm; now `started` says it).
-PROSE_MATCH = re.compile(r"""\bm\.message\b[^;\n]*\.(?:startsWith|includes|indexOf|match)\(|String\(m\.message\)\.""")
+# A message's prose matched in the browser instead of a typed field (issue 27: the page looked
+# for "the controller runs WITHOUT" in a confinement alarm; now `started` says it). Covers a
+# WebSocket message's `m.message` and an HTTP error's `e.message` alike.
+PROSE_MATCH = re.compile(r"""\.message\b[^;\n]*\.(?:startsWith|includes|indexOf|match)\(|String\(\w+\.message\)\.""")
 
 
 def scan_lines(pattern: re.Pattern[str], files: Iterable[Path], root: Path = REPO) -> list[str]:
