@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import pytest
@@ -238,3 +238,39 @@ def test_the_browser_reads_typed_fields_not_prose(tmp_path: Path) -> None:
     planted.parent.mkdir()
     planted.write_text('if (m.message && m.message.startsWith("the controller runs WITHOUT")) banner();\n')
     assert scan_lines(PROSE_MATCH, scanned_files(tmp_path), root=tmp_path)
+
+
+# ---- inside messages.py: each model in one union ---------------------------------------------------
+
+
+def listings(text: str, models: Iterable[str]) -> dict[str, int]:
+    """How many code lines of messages.py name each model, but its class line, docstrings' and
+    comments' mentions (``...``, #) and ReplyMessage (which says which server kinds are replies:
+    a fact of its own, not a second list of them)."""
+    code = [
+        line
+        for line in text.splitlines()
+        if not line.lstrip().startswith(("class ", "#", "ReplyMessage = ")) and "``" not in line
+    ]
+    return {m: sum(1 for line in code if re.search(rf"\b{m}\b", line)) for m in models}
+
+
+def test_messages_lists_each_kind_once(tmp_path: Path) -> None:
+    """messages.py listed the server kinds three times (SERVER, ServerMessage, TOPICS) and the client
+    kinds twice (CLIENT, IncomingMessage): now each model is named in one union."""
+    text = (REPO / MESSAGES_PY).read_text()
+    models = re.findall(r"^class (\w+(?:Message|Request))\((?:_Out|_In|BaseModel)\)", text, re.MULTILINE)
+    assert len(models) >= len(SPECS["server message kinds"].items) + len(SPECS["client message kinds"].items)
+    counts = listings(text, models)
+    assert all(n == 1 for n in counts.values()), f"name each model in one union only: {counts}"
+    again = text + "\nSERVER = (StateMessage, RunMessage)\n"
+    assert listings(again, models)["StateMessage"] == 2
+    # Nor are the kinds spelled out again as strings there (TOPICS was a set of them): each
+    # model's `type: Literal["kind"]` is the only place, one per class, never a stretch of them.
+    for name in ("server message kinds", "client message kinds"):
+        spec = replace(SPECS[name], definition="")
+        assert not copies(spec, [REPO / MESSAGES_PY])
+        planted = tmp_path / MESSAGES_PY
+        planted.parent.mkdir(parents=True, exist_ok=True)
+        planted.write_text(text + "\nTOPICS = frozenset({" + ", ".join(f'"{k}"' for k in spec.items) + "})\n")
+        assert copies(spec, [planted], root=tmp_path)
