@@ -39,6 +39,9 @@ xrf.meReady = fetch("/api/me").then((r) => {
   if (r.status === 401) { xrf.toLogin(); return new Promise(() => {}); }
   return r.json();
 }).then((me) => { xrf.me = me; if (me.must_change) xrf.toLogin(); return me; });
+// What the user may do: a permission of /api/me's `perms` (server/security/roles.py's Perm: "watch",
+// "stop", "lease", "drive", "projects", "educator"). Pages ask this, never a role's name.
+xrf.may = (perm) => !!xrf.me && xrf.me.perms.includes(perm);
 
 // ---- state machine drawing ------------------------------------------------------------------
 
@@ -110,6 +113,22 @@ function drawStateMachine(machine) {
   }
 }
 
+// A button per command, in the C list's order; a safe one (stop, pause: channels.h's XRF_CMDS)
+// stays usable without the bench (accounts.css, data-safe).
+function drawCommands(machine) {
+  const box = $("commands");
+  box.textContent = "";
+  for (const c of machine.commands) {
+    const b = document.createElement("button");
+    b.dataset.cmd = c.name;
+    if (c.safe) b.dataset.safe = "";
+    b.textContent = c.name;
+    b.disabled = true;  // until applyState says the command is allowed now
+    b.addEventListener("click", () => sendCommand(c.name));
+    box.appendChild(b);
+  }
+}
+
 // ---- state ----------------------------------------------------------------------------------
 
 // States a reset is accepted from (the C table, through GET /api/state-machine), and the states
@@ -178,7 +197,7 @@ function emergencyStop() {
   // when stopping would end the run). Stop and pause themselves work for every student.
   if (xrf.stopBlocked && xrf.stopBlocked()) return;
   const s = xrf.state;
-  if (s.active && (s.name === "RUN" || s.name === "PAUSED")) {
+  if (s.active && s.allowed.includes("stop")) {  // RUN or PAUSED (the C command table says)
     sendCommand("stop");
   } else if (xrf.run && xrf.run.active) {
     endRun();
@@ -280,12 +299,10 @@ async function startRun() {
       await api("POST", "/api/runs", { build: $("build-select").value, ...body });
     }
   } catch (e) {
+    // Refused by the run sandbox (a protection layer missing, runs not allowed without it): the
+    // appliance also says so to every page as a confinement alarm (`started: false`), which the
+    // alarm bar shows (HANDLERS.alarm).
     $("run-detail").textContent = "Could not start: " + e.message;
-    // Refused by the run sandbox (a protection layer missing, runs not allowed without it):
-    // said in the alarm bar too, which every page shows.
-    if (e.status === 503 && e.message.startsWith("the controller was not started")) {
-      showAlarm({ kind: "confinement", message: e.message });
-    }
   } finally {
     btn.disabled = false;
     loadBuilds().catch(() => {});
@@ -726,10 +743,10 @@ const HANDLERS = {
   timing: (m) => applyTiming(m),
   monitor: (m) => appendMonitor(m.lines, m.source),
   alarm: (m) => {
-    // A started run missing a layer: the banner (the run message says the same). A refused
-    // run (its message says why it was not started): the alarm bar.
-    if (m.kind === "confinement" && m.message && m.message.startsWith("the controller runs WITHOUT")) showConfinement(m.run_id, m.missing);
-    else if (m.kind === "confinement" && !String(m.message).startsWith("the controller was not started")) {
+    // A started run missing a layer (`started`): the banner (the run message says the same). A
+    // refused run (its message says why it was not started): the alarm bar.
+    if (m.kind === "confinement" && m.started) showConfinement(m.run_id, m.missing);
+    else if (m.kind === "confinement" && m.started === false) {
       showAlarm({ ...m, message: "the controller was not started: " + m.message });  // as POST /api/runs says
     } else showAlarm(m);
   },
@@ -834,9 +851,9 @@ function init() {
   xrf.machineReady = fetch("/api/state-machine").then((r) => r.json()).then((machine) => {
     xrf.machine = machine;
     drawStateMachine(machine);
+    drawCommands(machine);
     applyState(xrf.state);  // the state may have come first: mark its node and edges now
   });
-  document.querySelectorAll("#commands button").forEach((b) => b.addEventListener("click", () => sendCommand(b.dataset.cmd)));
   $("btn-estop").addEventListener("click", emergencyStop);
   $("btn-start-run").addEventListener("click", startRun);
   $("btn-end-run").addEventListener("click", endRun);

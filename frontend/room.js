@@ -183,7 +183,7 @@
 
   fetch("/api/me").then((r) => (r.ok ? r.json() : null)).then((me) => {
     if (!me) { location.replace("/login"); return; }
-    if (me.role !== "educator") { note("the room is for educators"); return; }
+    if (!me.perms.includes("educator")) { note("the room is for educators"); return; }
     connect();
     loadAssignments();
     setInterval(loadAssignments, 3000); // which benches have each assignment

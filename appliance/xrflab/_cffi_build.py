@@ -18,6 +18,7 @@ import fcntl
 import hashlib
 import importlib.util
 import os
+import re
 import sys
 import sysconfig
 from pathlib import Path
@@ -82,13 +83,30 @@ def _sources() -> tuple[list[Path], list[Path]]:
     return headers, sources
 
 
+# An X-macro list in the cffi part (channels.h's XRF_STATES, XRF_CMDS): `#define XRF_<LIST>S(X)`
+# with one `X(NAME, ...)` per line continued by backslashes. cffi cannot parse a function-like
+# macro, and the C side makes XRF_<LIST>_<NAME> and XRF_<LIST>_COUNT from the list.
+XMACRO_RE = re.compile(r"^#define (XRF_[A-Z0-9_]+)S\(X\)((?:[^\n]*\\\n)*[^\n]*)$", re.MULTILINE)
+XMACRO_ITEM_RE = re.compile(r"\bX\(\s*([A-Z][A-Z0-9_]*)\s*,")
+
+
+def xmacro_constants(match: re.Match[str]) -> str:
+    """The cdef for one X-macro list: its constants by name, each value ("...") taken from the
+    compiled header, so the list itself is read once, from the header."""
+    prefix, body = match.group(1), match.group(2)
+    names = XMACRO_ITEM_RE.findall(body)
+    if not names:
+        raise ValueError(f"{prefix}S(X) lists no X(NAME, ...) item")
+    return "".join(f"#define {prefix}_{name} ...\n" for name in [*names, "COUNT"])
+
+
 def extract_cdef(header_text: str) -> str:
-    """The part of a header meant for cffi."""
+    """The part of a header meant for cffi, its X-macro lists turned into constants."""
     start = header_text.find(CDEF_BEGIN)
     end = header_text.find(CDEF_END)
     if start < 0 or end < start:
         raise ValueError(f"header lacks the {CDEF_BEGIN} ... {CDEF_END} markers")
-    return header_text[start + len(CDEF_BEGIN) : end]
+    return XMACRO_RE.sub(xmacro_constants, header_text[start + len(CDEF_BEGIN) : end])
 
 
 def build_hash() -> str:

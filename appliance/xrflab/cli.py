@@ -66,6 +66,16 @@ EXTERNAL_SUBCOMMANDS: dict[str, str] = {
 }
 
 
+def _transport(text: str) -> str:
+    """--transport: "auto" or one of rt_core's transports (channels.h's XRF_TRANSPORTS), looked up
+    only when the option is given (the list comes through the cffi binding)."""
+    from .channels.names import TRANSPORTS
+
+    if text not in (*TRANSPORTS, "auto"):
+        raise argparse.ArgumentTypeError(f"invalid choice: {text!r} (choose from {', '.join([*TRANSPORTS, 'auto'])})")
+    return text
+
+
 def subcommand(name: str, help: str, add_arguments: Callable[[argparse.ArgumentParser], None]):
     """Decorator registering `run` as ``xrf <name>``."""
 
@@ -423,7 +433,12 @@ def _run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--faults", help="simulator fault spec (XRF_SIM_FAULTS)")
     p.add_argument("--max-cycles", type=int, help="leave the loop after N cycles (XRF_MAX_CYCLES)")
     p.add_argument("--backend", choices=["posix", "evl", "auto"], help="XRF_BACKEND")
-    p.add_argument("--transport", choices=["sim", "spidev", "evl-spidev", "auto"], help="XRF_TRANSPORT")
+    p.add_argument(
+        "--transport",
+        type=_transport,
+        metavar="TRANSPORT",
+        help="XRF_TRANSPORT: a board transport of rt_core (sim, spidev, ...) or auto",
+    )
     p.add_argument(
         "--stop-timeout", type=float, default=STOP_GRACE_S, help="seconds between SIGINT and SIGTERM on Ctrl-C"
     )

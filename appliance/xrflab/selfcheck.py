@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from . import plants
+from .channels import names as _names
 from .errors import Invalid
 from .profile_flat import flat_form
 from .profiles import ProfileError, default_data_dir, find_profile, load_profile, validate_profile
@@ -50,7 +51,8 @@ EXIT_FAIL = 1
 EXIT_COULD_NOT_RUN = 2
 
 MARKS = {"pass": "✓", "warn": "!", "fail": "✗", "skipped": "–"}
-TRANSPORTS = ("auto", "sim", "spidev", "evl-spidev")
+# "auto" (spidev when the device exists, else sim) and rt_core's transports (channels.h).
+TRANSPORTS = ("auto", *_names.TRANSPORTS)
 DEFAULT_SPI_DEVICE = "/dev/spidev0.0"
 
 BenchBusyCheck = Callable[[], bool | str | None]

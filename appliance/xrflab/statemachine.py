@@ -12,11 +12,19 @@ from __future__ import annotations
 from pydantic import BaseModel, Field
 
 from .channels import COMMAND_NUMBERS, STATE_NUMBERS, lib
+from .channels.names import SAFE_COMMANDS
 
 
 class Named(BaseModel):
     number: int = Field(description="the value in xrf_status.state / a command ring slot")
     name: str
+
+
+class Command(Named):
+    safe: bool = Field(
+        description="only brings a running controller to rest (stop, pause): anyone who may stop "
+        "sends it without the bench lease (channels.h's XRF_CMDS says which)"
+    )
 
 
 class Transition(BaseModel):
@@ -39,7 +47,7 @@ class StateMachine(BaseModel):
     `transitions` is rejected by the loop as not allowed."""
 
     states: list[Named]
-    commands: list[Named]
+    commands: list[Command]
     transitions: list[Transition]
     completions: list[Completion]
 
@@ -63,7 +71,7 @@ def state_machine() -> StateMachine:
     ]
     return StateMachine(
         states=[Named(number=n, name=name) for name, n in STATE_NUMBERS.items()],
-        commands=[Named(number=n, name=name) for name, n in COMMAND_NUMBERS.items()],
+        commands=[Command(number=n, name=name, safe=name in SAFE_COMMANDS) for name, n in COMMAND_NUMBERS.items()],
         transitions=transitions,
         completions=completions,
     )

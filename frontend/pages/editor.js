@@ -87,7 +87,7 @@
   async function loadProjects() {
     // An educator reviews every student's project (and its history against the template).
     const me = await xrf.meReady;
-    const edu = me && me.role === "educator";
+    const edu = xrf.may("educator");
     const list = await xrf.api("GET", "/api/projects" + (edu ? "?all=true" : ""));
     const sel = q("ed-project");
     sel.textContent = "";

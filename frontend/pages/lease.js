@@ -59,7 +59,7 @@
   const mine = () => !!(xrf.me && L.lease && L.lease.holder && L.lease.holder.id === xrf.me.id);
   const queued = () => !!(xrf.me && L.lease && L.lease.queue.some((u) => u.id === xrf.me.id));
   xrf.holdsBench = mine;
-  xrf.mayDrive = () => !!xrf.me && (xrf.me.role === "educator" || mine());
+  xrf.mayDrive = () => xrf.may("educator") || (xrf.may("drive") && mine());
 
   function render() {
     const l = L.lease;
@@ -70,12 +70,12 @@
     holder.classList.toggle("mine", mine());
     holder.title = l.holder ? `held by ${l.holder.username} (${l.holder.role}) since ${new Date(l.holder.since * 1000).toLocaleTimeString()}` : "nobody holds the bench";
     $("lease-queue").textContent = l.queue.length ? "queue: " + l.queue.map((u) => u.username).join(", ") : "";
-    const canLease = m.role !== "observer";
+    const canLease = xrf.may("lease");
     const show = {
       take: canLease && !l.holder,
-      takeover: m.role === "educator" && l.holder && !mine(),
-      release: l.holder && (mine() || m.role === "educator"),
-      queue: canLease && m.role !== "educator" && l.holder && !mine() && !queued(),
+      takeover: xrf.may("educator") && l.holder && !mine(),
+      release: l.holder && (mine() || xrf.may("educator")),
+      queue: canLease && !xrf.may("educator") && l.holder && !mine() && !queued(),
       leave: queued(),
     };
     Object.entries(buttons).forEach(([k, b]) => b.classList.toggle("hidden", !show[k]));
@@ -112,13 +112,13 @@
   xrf.stopBlocked = function () {
     const m = xrf.me;
     if (!m) return false;
-    if (m.role === "observer") {
+    if (!xrf.may("stop")) {
       say("Observers watch only: ask the student at the bench or an educator to stop it.", 6000);
       return true;
     }
     if (xrf.mayDrive()) return false;
     const s = xrf.state;
-    if (s.active && (s.name === "RUN" || s.name === "PAUSED")) return false;  // stop: allowed for everyone
+    if (s.active && s.allowed.includes("stop")) return false;  // RUN, PAUSED: stop is safe, for everyone
     if (xrf.run && xrf.run.active) {
       const who = L.lease && L.lease.holder ? L.lease.holder.username : "nobody";
       say(`You do not hold the bench (${who} does): STOP stops a running or paused controller for anyone, but only the holder or an educator ends the run.`, 8000);

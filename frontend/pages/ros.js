@@ -23,7 +23,7 @@
   function render(s) {
     last = s;
     if (!$("ros-facts")) return;
-    const isEdu = xrf.me && xrf.me.role === "educator";
+    const isEdu = xrf.may("educator");
     const t = $("ros-toggle");
     t.checked = !!s.enabled;
     t.disabled = !isEdu;
@@ -58,7 +58,7 @@
         ev.target.disabled = true;
         try { render(await xrf.api("POST", "/api/ros", { enabled: want })); $("ros-msg").textContent = ""; }
         catch (e) { $("ros-msg").textContent = e.message; ev.target.checked = !want; }
-        finally { ev.target.disabled = !(xrf.me && xrf.me.role === "educator"); }
+        finally { ev.target.disabled = !xrf.may("educator"); }
       });
       if (last) render(last);
       load();

@@ -327,7 +327,7 @@
   }
 
   xrf.meReady.then((me) => {
-    if (me.role !== "educator") return;
+    if (!xrf.may("educator")) return;
     xrf.on("selfcheck", onMessage);
     xrf.addPage({
       id: "selfcheck", title: "Self-check", order: 70,

@@ -13,7 +13,7 @@
       <form id="u-create" class="row">
         <input id="u-name" placeholder="username" required autocapitalize="none" spellcheck="false">
         <input id="u-full" placeholder="full name">
-        <select id="u-role"><option>student</option><option>observer</option><option>educator</option></select>
+        <select id="u-role"></select>
         <input id="u-email" placeholder="email (optional)" type="email">
         <button id="u-create-btn" type="submit">Create</button>
       </form>
@@ -42,7 +42,15 @@
     </section>
   </div>`;
 
+  // The roles and the one a new account gets first come from the appliance (GET /api/roles,
+  // server/security/roles.py): this page has no list of its own.
+  let rolesReady = null;
+  const loadRoles = () => (rolesReady = rolesReady || xrf.api("GET", "/api/roles").catch((e) => { rolesReady = null; throw e; }));
+  const roleOptions = (roles, chosen) => roles.roles.map((r) => `<option${r.name === chosen ? " selected" : ""}>${esc(r.name)}</option>`).join("");
+
   async function loadUsers() {
+    const roles = await loadRoles();
+    if (!$("u-role").options.length) $("u-role").innerHTML = roleOptions(roles, roles.default);
     const users = await xrf.api("GET", "/api/users");
     const body = $("u-body");
     body.innerHTML = "";
@@ -51,7 +59,7 @@
       tr.id = "user-" + u.username;
       if (u.disabled) tr.className = "disabled";
       tr.innerHTML = `<td>${esc(u.username)}</td><td>${esc(u.full_name)}</td>
-        <td><select data-act="role">${["student", "observer", "educator"].map((r) => `<option${r === u.role ? " selected" : ""}>${r}</option>`).join("")}</select></td>
+        <td><select data-act="role">${roleOptions(roles, u.role)}</select></td>
         <td>${u.disabled ? "disabled" : u.must_change ? "one-time password" : "active"}</td><td>${when(u.last_login)}</td>
         <td><button type="button" class="secondary" data-act="reset">Reset password</button>
             <button type="button" class="secondary" data-act="toggle">${u.disabled ? "Enable" : "Disable"}</button></td>`;
@@ -125,7 +133,7 @@
   }
 
   xrf.meReady.then((me) => {
-    if (me.role !== "educator") return;
+    if (!xrf.may("educator")) return;
     xrf.addPage({
       id: "users", title: "Users", order: 90,
       init(el) {

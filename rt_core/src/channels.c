@@ -548,21 +548,34 @@ int32_t xrf_state_complete(int32_t state)
     }
 }
 
+/* The numbers of XRF_STATES and XRF_CMDS are 1..count: the switches below make a number given
+ * twice a compile error (duplicate case), these a number outside the range. Hosts (names.py)
+ * walk 1..count. */
+#define XRF_STATE_IN_RANGE_(NAME, number) \
+    _Static_assert((number) >= 1 && (number) <= XRF_STATE_COUNT, #NAME ": not in 1..count");
+#define XRF_CMD_IN_RANGE_(NAME, name, number, safe) \
+    _Static_assert((number) >= 1 && (number) <= XRF_CMD_COUNT, #NAME ": not in 1..count");
+XRF_STATES(XRF_STATE_IN_RANGE_)
+XRF_CMDS(XRF_CMD_IN_RANGE_)
+
 void xrf_cmd_reject_reason(int32_t state, int32_t cmd, char *buf, size_t len)
 {
     if (len == 0)
         return;
     if (xrf_cmd_transition(state, cmd) == -XRF_REJECT_UNKNOWN) {
-        snprintf(buf, len,
-                 "%d is not a command (1 initialise, 2 start, 3 stop, 4 reset, "
-                 "5 pause, 6 quit)",
-                 cmd);
+        /* "5 is not a command (1 initialise, 2 start, ...)", the list from XRF_CMDS */
+        int n = snprintf(buf, len, "%d is not a command (", cmd);
+        for (int32_t c = 1; c <= XRF_CMD_COUNT && n > 0 && (size_t)n < len; c++)
+            n += snprintf(buf + n, len - (size_t)n, "%s%d %s", c > 1 ? ", " : "", c,
+                          xrf_cmd_name(c));
+        if (n > 0 && (size_t)n < len)
+            snprintf(buf + n, len - (size_t)n, ")");
         return;
     }
     int n = snprintf(buf, len, "%s is not allowed in state %s; allowed:", xrf_cmd_name(cmd),
                      xrf_state_name(state));
     int any = 0;
-    for (int32_t c = XRF_CMD_INITIALISE; c <= XRF_CMD_QUIT && n > 0 && (size_t)n < len; c++) {
+    for (int32_t c = 1; c <= XRF_CMD_COUNT && n > 0 && (size_t)n < len; c++) {
         if (xrf_cmd_transition(state, c) > 0) {
             n += snprintf(buf + n, len - (size_t)n, " %s", xrf_cmd_name(c));
             any = 1;
@@ -572,17 +585,45 @@ void xrf_cmd_reject_reason(int32_t state, int32_t cmd, char *buf, size_t len)
         snprintf(buf + n, len - (size_t)n, " none");
 }
 
+#define XRF_STATE_NAME_CASE_(NAME, number) \
+    case number:                           \
+        return #NAME;
 const char *xrf_state_name(int32_t state)
 {
-    static const char *const names[] = {"?",      "IDLE",     "INITIALISING", "INITIALISED",
-                                        "RUN",    "STOPPING", "STOPPED",      "PAUSING",
-                                        "PAUSED", "ERROR",    "QUIT"};
-    return (state >= 1 && state <= 10) ? names[state] : "?";
+    switch (state) {
+        XRF_STATES(XRF_STATE_NAME_CASE_)
+    default:
+        return "?";
+    }
 }
 
+#define XRF_CMD_NAME_CASE_(NAME, name, number, safe) \
+    case number:                                     \
+        return #name;
 const char *xrf_cmd_name(int32_t cmd)
 {
-    static const char *const names[] = {"?",     "initialise", "start", "stop",
-                                        "reset", "pause",      "quit"};
-    return (cmd >= 1 && cmd <= 6) ? names[cmd] : "?";
+    switch (cmd) {
+        XRF_CMDS(XRF_CMD_NAME_CASE_)
+    default:
+        return "?";
+    }
+}
+
+#define XRF_CMD_SAFE_CASE_(NAME, name, number, safe) \
+    case number:                                     \
+        return safe;
+int xrf_cmd_safe(int32_t cmd)
+{
+    switch (cmd) {
+        XRF_CMDS(XRF_CMD_SAFE_CASE_)
+    default:
+        return 0;
+    }
+}
+
+#define XRF_TRANSPORT_NAME_(NAME, name) name,
+const char *xrf_transport_name(int32_t transport)
+{
+    static const char *const names[] = {XRF_TRANSPORTS(XRF_TRANSPORT_NAME_)};
+    return (transport >= 0 && transport < XRF_TRANSPORT_COUNT) ? names[transport] : NULL;
 }

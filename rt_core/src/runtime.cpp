@@ -219,7 +219,10 @@ xrf_ico_transport *Runtime::transport()
     } else if (std::strcmp(want, "evl-spidev") == 0) {
         r = xrf_evl_spidev_open(o.spi_device, o.spi_speed, &transport_);
     } else {
-        std::fprintf(stderr, "xrf: XRF_TRANSPORT=%s: use sim, spidev, evl-spidev or auto\n", want);
+        std::fprintf(stderr, "xrf: XRF_TRANSPORT=%s: use", want);
+        for (int32_t t = 0; t < XRF_TRANSPORT_COUNT; t++)
+            std::fprintf(stderr, "%s %s", t ? "," : "", xrf_transport_name(t));
+        std::fprintf(stderr, " or auto\n");
     }
     if (r != 0 || transport_ == nullptr) {
         if (r != -EINVAL)

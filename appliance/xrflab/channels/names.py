@@ -1,8 +1,9 @@
 """Names of the C side's numbers: states, commands, cycle stages, host-lost actions.
 
-channels.h numbers them and channels.c names them (``xrf_state_name``, ``xrf_cmd_name``) and holds
-the one command table (``xrf_cmd_transition``); these tables are made from those at import, so a
-state or command added in C appears here without an edit.
+channels.h lists them once (the X-macros ``XRF_STATES``, ``XRF_CMDS``: number, name, whether a
+command is safe) and channels.c names them (``xrf_state_name``, ``xrf_cmd_name``, ``xrf_cmd_safe``)
+and holds the one command table (``xrf_cmd_transition``); these tables are made from those at
+import, so a state or command added in C appears here without an edit.
 """
 
 from __future__ import annotations
@@ -24,6 +25,10 @@ HOST_LOST_ACTIONS = {
 }
 
 
+# The board transports of channels.h's XRF_TRANSPORTS (XRF_TRANSPORT / xrf_info.transport values).
+TRANSPORTS: tuple[str, ...] = tuple(c_str(lib.xrf_transport_name(t)) for t in range(lib.XRF_TRANSPORT_COUNT))
+
+
 def state_name(state: int) -> str:
     return c_str(lib.xrf_state_name(state))
 
@@ -32,8 +37,12 @@ def command_name(cmd: int) -> str:
     return c_str(lib.xrf_cmd_name(cmd))
 
 
-COMMAND_NUMBERS: dict[str, int] = {command_name(c): c for c in range(lib.XRF_CMD_INITIALISE, lib.XRF_CMD_QUIT + 1)}
-STATE_NUMBERS: dict[str, int] = {state_name(s): s for s in range(lib.XRF_STATE_IDLE, lib.XRF_STATE_QUIT + 1)}
+# channels.c asserts the numbers are 1..count.
+COMMAND_NUMBERS: dict[str, int] = {command_name(c): c for c in range(1, lib.XRF_CMD_COUNT + 1)}
+STATE_NUMBERS: dict[str, int] = {state_name(s): s for s in range(1, lib.XRF_STATE_COUNT + 1)}
+# Commands that only bring a controller to rest (stop, pause): anyone who may stop sends them
+# without the bench lease (server/security/auth.py), the ROS bridge even without the lease gate.
+SAFE_COMMANDS: frozenset[str] = frozenset(name for name, number in COMMAND_NUMBERS.items() if lib.xrf_cmd_safe(number))
 
 
 def command_number(cmd: str | int) -> int:

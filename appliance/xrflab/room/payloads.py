@@ -30,7 +30,8 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from ..projects.assignments import ID_RE as ASSIGNMENT_ID_RE
 from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
-from ..server.security.accounts import ROLES, USERNAME_RE
+from ..server.security.accounts import USERNAME_RE
+from ..server.security.roles import Role
 from .topics import NAME_RE
 
 log = logging.getLogger(__name__)
@@ -295,7 +296,7 @@ class CommandHead(_Payload):
 
 class Account(_Payload):
     username: Annotated[str, Field(pattern=USERNAME_RE.pattern)]
-    role: Literal[ROLES]  # type: ignore[valid-type]
+    role: Role
     password_hash: Annotated[str, Field(pattern=r"^\$argon2", max_length=512)]
     full_name: Annotated[str, Field(max_length=200)] = ""
     email: Annotated[str, Field(max_length=200)] = ""

@@ -64,9 +64,8 @@ def allow_all(user: str, cmd: int) -> tuple[bool, str]:
 
 GATE_TOKEN_ENV = "XRF_ROS_GATE_TOKEN"
 GATE_TIMEOUT_S = 2.0
-# Stopping is always safe (the appliance's STOP rule): with the appliance unreachable these still go
-# through; every other command is refused.
-_SAFE_WITHOUT_GATE = {3: "stop", 5: "pause"}
+# Stopping is always safe (the appliance's STOP rule): with the appliance unreachable the commands
+# channels.h marks safe (names.SAFE_COMMANDS) still go through; every other command is refused.
 
 
 def gate_client(url: str, token: str) -> CommandGate:
@@ -117,11 +116,11 @@ def gate_client(url: str, token: str) -> CommandGate:
             try:
                 return ask(user, cmd)
             except (OSError, ValueError) as exc:
-                if int(cmd) in _SAFE_WITHOUT_GATE:
-                    return (
-                        True,
-                        f"the appliance's gate is unreachable ({exc}); {_SAFE_WITHOUT_GATE[int(cmd)]} is always allowed",
-                    )
+                from ..channels.names import SAFE_COMMANDS, command_name
+
+                name = command_name(int(cmd))
+                if name in SAFE_COMMANDS:
+                    return True, f"the appliance's gate is unreachable ({exc}); {name} is always allowed"
                 return False, f"the appliance's gate is unreachable ({exc})"
 
     return gate

@@ -54,24 +54,46 @@ extern "C" {
 #define XRF_STAGE_CYCLE 7 /* whole step(), wake-up to end of work */
 #define XRF_STAGE_COUNT 8
 
-/* FullStateMachine states and commands (XRF2_API.md). */
-#define XRF_STATE_IDLE 1
-#define XRF_STATE_INITIALISING 2
-#define XRF_STATE_INITIALISED 3
-#define XRF_STATE_RUN 4
-#define XRF_STATE_STOPPING 5
-#define XRF_STATE_STOPPED 6
-#define XRF_STATE_PAUSING 7
-#define XRF_STATE_PAUSED 8
-#define XRF_STATE_ERROR 9
-#define XRF_STATE_QUIT 10
+/* FullStateMachine states and commands (XRF2_API.md): the one list of each, as X-macros. Every
+ * other list is made from these: the XRF_STATE_<NAME> and XRF_CMD_<NAME> constants and their
+ * counts (below the cffi part), the name tables and the reject text (channels.c), XRF2's
+ * IDLE_STATE/START_CMD enums (xrf2/FullStateMachine.hpp), Python's names
+ * (appliance/xrflab/channels/names.py: _cffi_build.py turns each list into the constants cffi
+ * binds), and through the appliance the browser's state machine and command buttons
+ * (GET /api/state-machine). The numbers are the wire's (shared memory, ROS XenoState/XenoCmd):
+ * never renumber, add at the end.
+ *
+ * States: X(NAME, number). */
+#define XRF_STATES(X)  \
+    X(IDLE, 1)         \
+    X(INITIALISING, 2) \
+    X(INITIALISED, 3)  \
+    X(RUN, 4)          \
+    X(STOPPING, 5)     \
+    X(STOPPED, 6)      \
+    X(PAUSING, 7)      \
+    X(PAUSED, 8)       \
+    X(ERROR, 9)        \
+    X(QUIT, 10)
 
-#define XRF_CMD_INITIALISE 1
-#define XRF_CMD_START 2
-#define XRF_CMD_STOP 3
-#define XRF_CMD_RESET 4
-#define XRF_CMD_PAUSE 5
-#define XRF_CMD_QUIT 6
+/* Commands: X(NAME, name, number, safe). `name` is how hosts spell it (CLI, WebSocket, HTTP).
+ * `safe` (1) marks a command that only brings a running controller to rest (stop, pause): any
+ * user who may stop sends it without holding the bench lease (the appliance's auth), and the ROS
+ * bridge passes it on even when the appliance's lease gate cannot be asked. */
+#define XRF_CMDS(X)                 \
+    X(INITIALISE, initialise, 1, 0) \
+    X(START, start, 2, 0)           \
+    X(STOP, stop, 3, 1)             \
+    X(RESET, reset, 4, 0)           \
+    X(PAUSE, pause, 5, 1)           \
+    X(QUIT, quit, 6, 0)
+
+/* The board transports a loop can use (XRF_TRANSPORT, xrf_info.transport): X(NAME, "name").
+ * runtime.cpp opens each; hosts list them from here (names.TRANSPORTS: the CLI, the self-check). */
+#define XRF_TRANSPORTS(X) \
+    X(SIM, "sim")         \
+    X(SPIDEV, "spidev")   \
+    X(EVL_SPIDEV, "evl-spidev")
 
 /* Why a command was rejected (xrf_status.reject_code). */
 #define XRF_REJECT_NONE 0
@@ -133,7 +155,7 @@ struct xrf_info {
     int32_t priority; /* SCHED_FIFO priority, 0 if none */
     uint32_t doorbell_period_cycles;
     char backend[16];   /* "posix" | "evl" */
-    char transport[16]; /* "sim" | "spidev" | "evl-spidev" */
+    char transport[16]; /* a name of XRF_TRANSPORTS */
     char sim[16];       /* "relbot" | "jiwy" | "" */
     char program[XRF_NAME_MAX];
     char ros2xeno_schema[XRF_SCHEMA_MAX]; /* normalised .msg text: "float64 steer_left\n..." */
@@ -445,7 +467,21 @@ void xrf_cmd_reject_reason(int32_t state, int32_t cmd, char *buf, size_t len);
 /* Names for humans (static strings). */
 const char *xrf_state_name(int32_t state);
 const char *xrf_cmd_name(int32_t cmd);
+/* 1 for a command XRF_CMDS marks safe (stop, pause), else 0 (also for a number no command has). */
+int xrf_cmd_safe(int32_t cmd);
+/* The name of transport XRF_TRANSPORT_<NAME> (0 .. XRF_TRANSPORT_COUNT - 1), else NULL. */
+const char *xrf_transport_name(int32_t transport);
 /* cffi-end */
+
+/* The constants of the lists above, for C and C++ (cffi gets the same names from _cffi_build.py,
+ * which reads the lists; an enum because cffi cannot parse a function-like macro). */
+#define XRF_STATE_CONST_(NAME, number) XRF_STATE_##NAME = number,
+#define XRF_CMD_CONST_(NAME, name, number, safe) XRF_CMD_##NAME = number,
+#define XRF_COUNT_ONE_(...) +1
+enum { XRF_STATES(XRF_STATE_CONST_) XRF_STATE_COUNT = 0 XRF_STATES(XRF_COUNT_ONE_) };
+enum { XRF_CMDS(XRF_CMD_CONST_) XRF_CMD_COUNT = 0 XRF_CMDS(XRF_COUNT_ONE_) };
+#define XRF_TRANSPORT_CONST_(NAME, name) XRF_TRANSPORT_##NAME,
+enum { XRF_TRANSPORTS(XRF_TRANSPORT_CONST_) XRF_TRANSPORT_COUNT };
 
 #ifdef __cplusplus
 }

@@ -5,21 +5,14 @@
 #include <functional>
 
 #include "debug_settings.h"
+#include "xrf/channels.h"
 
-enum STATE {
-    IDLE_STATE = 1,
-    INITIALISING_STATE,
-    INITIALISED_STATE,
-    RUN_STATE,
-    STOPPING_STATE,
-    STOPPED_STATE,
-    PAUSING_STATE,
-    PAUSED_STATE,
-    ERROR_STATE,
-    QUIT_STATE
-};
-
-enum COMMANDS { INITIALISE_CMD = 1, START_CMD, STOP_CMD, RESET_CMD, PAUSE_CMD, QUIT_CMD };
+// XRF2's names for the states and commands (IDLE_STATE, START_CMD, ...), made from the one list
+// of each in channels.h, so they carry the same numbers.
+#define XRF2_STATE_ENUM_(NAME, number) NAME##_STATE = number,
+#define XRF2_CMD_ENUM_(NAME, name, number, safe) NAME##_CMD = number,
+enum STATE { XRF_STATES(XRF2_STATE_ENUM_) };
+enum COMMANDS { XRF_CMDS(XRF2_CMD_ENUM_) };
 
 class FullStateMachine
 {

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from typing import Any, Literal
+from typing import Any
 
 from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import FileResponse, PlainTextResponse
@@ -24,14 +24,13 @@ from ..security.auth import (
     current_user,
     requires,
 )
+from ..security.roles import DEFAULT_ROLE, ROLES, Role, role_has
 
 router = APIRouter()
 
 # Proof that a browser logged in to an account before (accounts.LoginGuard); no session in it.
 DEVICE_COOKIE = "xrf_device"
 DEVICE_COOKIE_MAX_AGE = 180 * 24 * 3600
-
-Role = Literal["educator", "student", "observer"]
 
 
 # ---- models -------------------------------------------------------------------------------------
@@ -158,7 +157,7 @@ def _accounts(request: Request):
 
 def _me(user: User, csrf: str) -> dict[str, Any]:
     perms = sorted(
-        p.value for p in ROLE_PERMS[user.role] if not (user.must_change and p not in (Perm.PUBLIC, Perm.SELF))
+        p.value for p in Perm if role_has(user.role, p) and not (user.must_change and p not in (Perm.PUBLIC, Perm.SELF))
     )
     return {
         "id": user.id,
@@ -265,6 +264,26 @@ async def me(request: Request, user: User = Depends(current_user)) -> dict[str, 
     return _me(user, _sec(request).resolve(request)[2])
 
 
+class RoleInfo(BaseModel):
+    name: Role
+    perms: list[str] = Field(description="what the role may do (server/security/roles.py's Perm values)")
+
+
+class Roles(BaseModel):
+    roles: list[RoleInfo]
+    default: Role = Field(description="the role offered first for a new account")
+
+
+@router.get("/api/roles", response_model=Roles, dependencies=[requires(Perm.WATCH)])
+async def roles() -> dict[str, Any]:
+    """Every role and its permissions (server/security/roles.py): the Users page's role menus list
+    these; pages decide what to show by /api/me's `perms`, never by a role's name."""
+    return {
+        "roles": [{"name": r, "perms": sorted(p.value for p in ROLE_PERMS[r])} for r in ROLES],
+        "default": DEFAULT_ROLE,
+    }
+
+
 @router.post(
     "/api/auth/password",
     status_code=204,
@@ -353,7 +372,7 @@ async def import_users(body: ClassList, request: Request, user: User = Depends(c
 
 def _guard_last_educator(request: Request, target: User, change: UserChange) -> None:
     accounts = _accounts(request)
-    demoted = change.role is not None and change.role != "educator"
+    demoted = change.role is not None and not role_has(change.role, Perm.EDUCATOR)
     if (
         target.is_educator
         and not target.disabled

@@ -23,6 +23,7 @@ from ..runs.store import RunRecord  # the run record's API model, made from runs
 from ..runs.supervisor import Supervisor, SupervisorError
 from ..security import audit, ownership
 from ..security.auth import SAFE_COMMANDS, Perm, User, check, client_address, current_user, may, requires
+from ..security.roles import role_has
 from ..ws import messages
 from ..ws.hub import Client
 from .plant_field import PlantInfo, PlantName
@@ -150,7 +151,7 @@ async def _own_project_builds(request: Request) -> list[dict[str, Any]]:
     from .projects import _service
 
     user = ownership.user_of(request)
-    if user is None or user.role == "observer":
+    if user is None or not role_has(user.role, Perm.PROJECTS):  # observers have no projects
         return []
     svc = await _service(request)
 
@@ -274,18 +275,11 @@ async def get_run(run_id: int, request: Request) -> dict[str, Any]:
 ws_router = APIRouter()
 
 
-# Every client->server message type and the permission it needs. A type not listed here is
-# refused as unknown before anything else happens: a new type cannot skip its declaration.
-# `command` is STOP (stop and pause are the safety exception); any other command needs DRIVE.
-WS_PERMS: dict[str, Perm] = {
-    "command": Perm.STOP,
-    "setpoint": Perm.DRIVE,
-    "subscribe": Perm.WATCH,
-    "ping": Perm.WATCH,
-}
-# Each of them has its model in server/ws/messages.py (the published schema), and nothing else does.
-if set(WS_PERMS) != set(messages.CLIENT_KINDS):
-    raise RuntimeError(f"api.WS_PERMS {sorted(WS_PERMS)} and messages.CLIENT {sorted(messages.CLIENT_KINDS)} differ")
+# Every client->server message type and the permission it needs, as its model in
+# server/ws/messages.py declares it (`perm`): a type without a model is refused as unknown before
+# anything else happens. `command` is STOP (stop and pause, the commands channels.h marks safe, are
+# the safety exception); any other command needs DRIVE.
+WS_PERMS: dict[str, Perm] = {kind: Perm(model.perm) for kind, model in messages.CLIENT_KINDS.items()}
 
 
 class WsDenied(Denied):
@@ -309,7 +303,7 @@ def _ws_authorize(ws: WebSocket, client: Client, perm: Perm) -> User:
     if user.must_change:
         raise WsDenied("change your password first")
     if not may(user, perm, security.lease):
-        if perm is Perm.DRIVE and user.role == "student":
+        if perm is Perm.DRIVE and role_has(user.role, perm):  # the role drives, but not without the lease
             holder = security.lease.holder if security.lease else None
             who = f"{holder.user.username} holds it" if holder else "nobody holds it; take it first"
             raise WsDenied(f"you do not hold the bench ({who})")

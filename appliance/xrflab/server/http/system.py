@@ -116,7 +116,7 @@ async def system_doctor(request: Request) -> dict[str, Any]:
     settings = request.app.state.settings
     # Talking to the FPGA (INIT) is an educator's call; everyone else sees the passive checks.
     user = optional_user(request)
-    live = _bench_free(request) and user is not None and user.role == "educator"
+    live = _bench_free(request) and user is not None and user.is_educator
     async with _doctor_lock:  # one at a time; a second caller waits for a fresh result
         t0 = time.monotonic()
         # The confinement check starts /bin/true in the run sandbox exactly as a run would, with

@@ -207,6 +207,7 @@ def announce_refused(refused: StartRefused, hub: Hub) -> None:
             run_id=refused.row.id,
             message=refused.report.error,
             missing=refused.report.missing,
+            started=False,
         )
     )
 
@@ -222,6 +223,7 @@ def announce_unconfined(run: Run, hub: Hub) -> None:
             kind="confinement",
             run_id=run.row.id,
             missing=report.missing,
+            started=True,
             message="the controller runs WITHOUT: " + "; ".join(f"{k} ({v})" for k, v in report.missing.items()),
         )
     )

@@ -30,8 +30,8 @@ from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatc
 
 from ...errors import XrfError
 from ...private_files import private_db
+from .roles import ROLES, Perm, role_has
 
-ROLES = ("educator", "student", "observer")
 USERNAME_RE = re.compile(r"^[a-z0-9][a-z0-9._-]{1,31}$")
 MIN_PASSWORD = 10
 MAX_PASSWORD = 256
@@ -99,7 +99,8 @@ class User:
 
     @property
     def is_educator(self) -> bool:
-        return self.role == "educator"
+        """Has the educator's powers (roles.py): drives without the lease, sees everyone's."""
+        return role_has(self.role, Perm.EDUCATOR)
 
     def public(self) -> dict[str, Any]:
         return {

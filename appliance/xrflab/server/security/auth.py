@@ -14,7 +14,6 @@ from __future__ import annotations
 import asyncio
 import hmac
 import time
-from enum import Enum
 from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit
 
@@ -22,39 +21,24 @@ from fastapi import Depends, HTTPException
 from starlette.exceptions import WebSocketException
 from starlette.requests import HTTPConnection
 
+from ...channels import names as _names
 from .accounts import Accounts, LoginGuard, User
+from .roles import ROLE_PERMS, Perm, role_has
 
 if TYPE_CHECKING:
     from ..settings import Settings
     from .audit import AuditLog
     from .lease import Lease
 
-__all__ = ["Perm", "User", "check", "requires", "current_user", "owns", "Security", "SAFE_COMMANDS"]
+__all__ = ["Perm", "ROLE_PERMS", "User", "check", "requires", "current_user", "owns", "Security", "SAFE_COMMANDS"]
 
 SESSION_COOKIE = "xrf_session"
 CSRF_COOKIE = "xrf_csrf"
 CSRF_HEADER = "x-csrf-token"
 UNSAFE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 # Commands anyone who may stop (student and up) sends without holding the lease: stopping is safe.
-SAFE_COMMANDS = frozenset({"stop", "pause"})
-
-
-class Perm(str, Enum):
-    PUBLIC = "public"  # reachable without a login: the login page, health
-    SELF = "self"  # any logged-in user, even one who must still change the password: me, logout
-    WATCH = "watch"  # observer and up: state, telemetry, runs list, own logs
-    STOP = "stop"  # student and up, without the lease: stop/pause whatever runs (safety)
-    LEASE = "lease"  # student and up: take, queue for and release the bench lease
-    DRIVE = "drive"  # commands, setpoints, starting/ending runs: the lease holder (educators always)
-    PROJECTS = "projects"  # student and up: own projects, uploads, builds, own runs' logs
-    EDUCATOR = "educator"  # users, self-check, bench profiles, audit, take-over, any project
-
-
-ROLE_PERMS: dict[str, frozenset[Perm]] = {
-    "observer": frozenset({Perm.PUBLIC, Perm.SELF, Perm.WATCH}),
-    "student": frozenset({Perm.PUBLIC, Perm.SELF, Perm.WATCH, Perm.STOP, Perm.LEASE, Perm.DRIVE, Perm.PROJECTS}),
-    "educator": frozenset(Perm),
-}
+# Which ones is a property of the command: channels.h's XRF_CMDS says (stop, pause).
+SAFE_COMMANDS = _names.SAFE_COMMANDS
 
 
 class Security:
@@ -163,7 +147,7 @@ def _deny(conn: HTTPConnection, status: int, detail: str) -> Exception:
 
 def may(user: User, perm: Perm, lease: Lease | None = None) -> bool:
     """The role allows `perm`; for a student's DRIVE, only while holding the lease."""
-    if perm not in ROLE_PERMS.get(user.role, frozenset()):
+    if not role_has(user.role, perm):
         return False
     if perm is Perm.DRIVE and not user.is_educator:
         return lease is not None and lease.holds(user)
@@ -199,7 +183,7 @@ def check(conn: HTTPConnection, perm: Perm, *, grpc_web: bool = False) -> User |
                 raise _deny(conn, 403, "missing or wrong CSRF token (X-CSRF-Token)")
     if user.must_change and perm is not Perm.SELF:
         raise _deny(conn, 403, "change your password first (POST /api/auth/password)")
-    if perm is Perm.DRIVE and user.role == "student" and not may(user, perm, security.lease):
+    if perm is Perm.DRIVE and role_has(user.role, perm) and not may(user, perm, security.lease):
         holder = security.lease.holder if security.lease else None
         who = f"{holder.user.username} holds it" if holder else "nobody holds it; take it first"
         raise _deny(conn, 403, f"you do not hold the bench ({who})")

@@ -26,7 +26,7 @@ fields (a client may tag a request with its own data; ``id`` is echoed back).
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, ClassVar, Literal, Union, get_args
 
 from pydantic import (
     BaseModel,
@@ -40,10 +40,6 @@ from pydantic import (
     ValidationError,
     model_validator,
 )
-
-# Topics a client may subscribe to (the hub's per-client filter). `error`, `ack` and `pong` replies
-# go to the asking client only.
-TOPICS = frozenset({"state", "monitor", "telemetry", "timing", "alarm", "run", "build", "lease", "selfcheck", "ros"})
 
 
 def _type_required(schema: dict[str, Any]) -> None:
@@ -63,6 +59,10 @@ class _Out(BaseModel):
 
 class _In(BaseModel):
     model_config = ConfigDict(extra="allow")
+
+    # The permission (server/security/auth.py's Perm, by value) a client needs to send this kind:
+    # server/http/runs.py's WS_PERMS is made from it, so a new kind cannot lack one.
+    perm: ClassVar[str]
 
     id: Any = Field(default=None, description="any value; echoed in the reply so a client can match it")
 
@@ -217,6 +217,11 @@ class AlarmMessage(_Out):
     heartbeat_ns: int | None = Field(default=None, description="crash, hang: the loop's last cycle start")
     watcher_rt: bool | None = None
     missing: dict[str, str] | None = Field(default=None, description="confinement: layer -> why it does not hold")
+    started: bool | None = Field(
+        default=None,
+        description="confinement: true when the run started without the layers in `missing` (the "
+        "dashboard's banner), false when it was refused (not started)",
+    )
     misses: int | None = Field(default=None, description="deadline_miss: misses in total")
     new: int | None = Field(default=None, description="deadline_miss: misses since the last alarm")
     from_: str | None = Field(default=None, alias="from", description="room: who sent it")
@@ -325,23 +330,9 @@ class ErrorMessage(_Out):
     denied: bool | None = Field(default=None, description="refused for want of a permission")
 
 
-SERVER: tuple[type[BaseModel], ...] = (
-    StateMessage,
-    RunMessage,
-    TelemetryMessage,
-    TimingMessage,
-    MonitorMessage,
-    AlarmMessage,
-    BuildMessage,
-    LeaseMessage,
-    SelfcheckMessage,
-    RosMessage,
-    AckMessage,
-    PongMessage,
-    ErrorMessage,
-)
 # What the hub takes (hub.publish, publish_to_owner, publish_to_educators, a snapshot source's
-# messages): a model of SERVER, never a dict (the hub checks it at run time too).
+# messages): a model of these, never a dict (the hub checks it at run time too). The one list of
+# server kinds: SERVER, SERVER_KINDS, TOPICS and the published schema are made from it.
 ServerMessage = (
     StateMessage
     | RunMessage
@@ -357,8 +348,18 @@ ServerMessage = (
     | PongMessage
     | ErrorMessage
 )
-# What goes to the asking client only (hub.Client.reply).
+# What goes to the asking client only (hub.Client.reply): every other server kind is a topic.
 ReplyMessage = AckMessage | PongMessage | ErrorMessage
+SERVER: tuple[type[BaseModel], ...] = get_args(ServerMessage)
+
+
+def kind_of(model: type[BaseModel]) -> str:
+    """The `type` value a model's messages carry."""
+    return model.model_fields["type"].annotation.__args__[0]  # type: ignore[union-attr]
+
+
+# Topics a client may subscribe to (the hub's per-client filter): the server kinds but the replies.
+TOPICS = frozenset(kind_of(m) for m in SERVER if m not in get_args(ReplyMessage))
 
 
 # ---- browser -> server --------------------------------------------------------------------------
@@ -379,6 +380,7 @@ def _value_ok(name: str, value: Any) -> None:
 class CommandRequest(_In):
     """A state machine command (needs STOP for stop/pause, DRIVE for the rest); answered by `ack`."""
 
+    perm = "stop"  # enough for a safe command; runs.py asks DRIVE for any other
     type: Literal["command"]
     cmd: StrictStr | StrictInt = Field(description="a command name (GET /api/state-machine) or number")
 
@@ -397,6 +399,7 @@ Scalar = StrictBool | StrictInt | StrictFloat
 class SetpointRequest(_In):
     """New Ros2Xeno values (DRIVE); fields not named keep their value. Answered by `ack`."""
 
+    perm = "drive"
     type: Literal["setpoint"]
     fields: dict[str, Scalar | list[Scalar]] = Field(
         min_length=1, description="Ros2Xeno field -> number, bool or list (an array field)"
@@ -416,6 +419,7 @@ class SetpointRequest(_In):
 class SubscribeRequest(_In):
     """The topics this client wants from now on (all of them at first). Answered by `ack`."""
 
+    perm = "watch"
     type: Literal["subscribe"]
     topics: list[Literal[tuple(sorted(TOPICS))]]  # type: ignore[valid-type]
 
@@ -434,24 +438,20 @@ class SubscribeRequest(_In):
 class PingRequest(_In):
     """Answered by `pong` with the same `t`."""
 
+    perm = "watch"
     type: Literal["ping"]
     t: Any = None
 
 
-CLIENT: tuple[type[BaseModel], ...] = (CommandRequest, SetpointRequest, SubscribeRequest, PingRequest)
-
-
-def kind_of(model: type[BaseModel]) -> str:
-    """The `type` value a model's messages carry."""
-    return model.model_fields["type"].annotation.__args__[0]  # type: ignore[union-attr]
+# The one list of client kinds: CLIENT, CLIENT_KINDS, runs.py's WS_PERMS and the schema come from it.
+ClientMessage = CommandRequest | SetpointRequest | SubscribeRequest | PingRequest
+CLIENT: tuple[type[_In], ...] = get_args(ClientMessage)
 
 
 SERVER_KINDS: dict[str, type[BaseModel]] = {kind_of(m): m for m in SERVER}
-CLIENT_KINDS: dict[str, type[BaseModel]] = {kind_of(m): m for m in CLIENT}
+CLIENT_KINDS: dict[str, type[_In]] = {kind_of(m): m for m in CLIENT}
 
-IncomingMessage = Annotated[
-    CommandRequest | SetpointRequest | SubscribeRequest | PingRequest, Field(discriminator="type")
-]
+IncomingMessage = Annotated[ClientMessage, Field(discriminator="type")]
 
 
 class BadMessage(ValueError):
