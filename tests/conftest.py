@@ -12,6 +12,9 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
+# The fast tier (--fast, the `live` mark): which tests start processes, read from their code.
+pytest_plugins = ["xrf_testing.tiers"]
+
 # pyproject.toml's `pythonpath = ["appliance", "tests"]` puts this checkout's appliance/ first
 # (a clone under /tmp tests its own code, not the editable install's) and makes the shared test
 # helpers importable as `xrf_testing`; no test changes sys.path itself.

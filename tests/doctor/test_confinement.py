@@ -122,6 +122,7 @@ def sandbox_or_skip(tmp_path) -> None:
         pytest.skip("the run sandbox cannot start a controller on this machine as this user")
 
 
+@pytest.mark.live  # the real probe: a sandbox and mkfs, processes the walk cannot see (tiers.py)
 def test_real_probe_reports_this_machines_sandbox(tmp_path):
     """guest_spawn.probe starts /bin/true in the sandbox: as root every layer holds here; the
     mode and identity are those guest_spawn.identity() gives."""
@@ -140,6 +141,7 @@ def test_real_probe_reports_this_machines_sandbox(tmp_path):
             assert i["detail"] and i["name"] in r.detail
 
 
+@pytest.mark.live  # the real probe: a sandbox and mkfs, processes the walk cannot see (tiers.py)
 @pytest.mark.parametrize("allow,status", [(False, FAILURE), (True, WARNING)])
 def test_real_probe_with_a_dropped_layer(tmp_path, monkeypatch, allow, status):
     sandbox_or_skip(tmp_path)

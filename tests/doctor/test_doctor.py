@@ -282,6 +282,7 @@ def test_fpga_probe_without_selfcheck_tool_is_not_checked(tmp_path, monkeypatch)
     assert p.status == SKIPPED and "xrf-selfcheck not found" in p.detail
 
 
+@pytest.mark.live  # probe_fpga_init starts the (stand-in) xrf-selfcheck tool
 def test_fpga_probe_stops_after_init(tmp_path):
     """The real probe against a stand-in xrf-selfcheck that would go on to the motor steps."""
     root = spi_ready(tmp_path)

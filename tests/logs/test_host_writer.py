@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from xrf_testing.harness import wait_for
 from xrf_testing.loops import LoopProcess
 from xrflab.logs import open_log
 from xrflab.logs.host_writer import HostLogWriter
@@ -89,15 +90,12 @@ def test_disk_full_stops_logging_cleanly_and_the_loop_goes_on(loop, tmp_path: Pa
         lp.command("initialise", "INITIALISED")
         lp.command("start", "RUN")
         # 48-byte stride at 1 kHz: 256 KiB fill in ~5 s
-        deadline = time.monotonic() + 20
-        while not w.stats.failed:
-            assert time.monotonic() < deadline, "the disk never filled"
-            time.sleep(0.05)
+        wait_for(lambda: w.stats.failed, 20, "the disk to fill")
         c = lp.ch.status().cycles
         lp.wait_cycles(300)  # the loop goes on
         assert lp.ch.status().state_name == "RUN" and lp.ch.status().cycles >= c + 300
         lp.ch.send_command("stop")
-        time.sleep(0.1)
+        lp.wait_state("STOPPED")  # quit is accepted in STOPPED, not while STOPPING
         lp.ch.send_command("quit")
         assert lp.proc.wait(10) == 0
         stats = w.finish()

@@ -341,7 +341,7 @@ def test_decoding_a_file_the_guest_keeps_truncating_never_faults(tmp_path: Path)
                 os.ftruncate(fd, 0)
                 os.pwrite(fd, head, 0)
                 os.ftruncate(fd, len(head) + 16 * n)
-                time.sleep(0.0005)
+                time.sleep(0.0005)  # the attacker's pace: cut and regrow as the reader decodes
         finally:
             os.close(fd)
 

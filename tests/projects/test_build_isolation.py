@@ -4,13 +4,14 @@ left in the host's world-writable folders (/tmp, /var/tmp, /run/lock)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
-import time
 import uuid
 from pathlib import Path
 
 from test_sandbox import PRELUDE, TAIL, _builder, _project
 
+from xrf_testing.harness import wait_for
 from xrf_testing.projects_support import reachable_tmp, wait_build
 from xrflab.projects.build_procs import build_processes
 
@@ -33,13 +34,11 @@ def _processes_with(needle: str) -> list[str]:
 
 
 def _wait_log(store, bid: int, text: str, timeout: float = 120) -> None:
-    deadline = time.monotonic() + timeout
-    while True:
+    def logged() -> bool:
         path = store.build(bid).log_path
-        if path and os.path.exists(path) and text in Path(path).read_text():
-            return
-        assert time.monotonic() < deadline, f"build {bid} never logged {text!r}"
-        time.sleep(0.1)
+        return bool(path) and os.path.exists(path) and text in Path(path).read_text()
+
+    wait_for(logged, timeout, f"build {bid} to log {text!r}")
 
 
 def test_one_builders_cleanup_spares_the_others_build(data_dir: Path) -> None:
@@ -72,7 +71,9 @@ def test_one_builders_cleanup_spares_the_others_build(data_dir: Path) -> None:
         a = wait_build(store_a, row_a.id, timeout=60)
         assert a.status == "failed" and "a-is-done" in Path(a.log_path).read_text()
         assert store_b.build(row_b.id).status == "building", "B ended with A"
-        time.sleep(0.3)
+        # A's cleanup kills its tree as A ends; a moment for the kernel to reap it, no more
+        with contextlib.suppress(AssertionError):
+            wait_for(lambda: not _processes_with(f"sleep {marker}"), 5, "A's processes to go")
         assert not _processes_with(f"sleep {marker}"), "A's detached process outlived A"
         b = wait_build(store_b, row_b.id, timeout=300)
         log_b = Path(b.log_path).read_text()

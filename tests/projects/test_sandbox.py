@@ -3,6 +3,7 @@ leave nothing behind: no process of the build user, no file outside the build fo
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pwd
 import shutil
@@ -13,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from xrf_testing.harness import wait_for
 from xrf_testing.projects_support import wait_build
 from xrflab.projects.builder import Builder, SandboxConfig
 from xrflab.projects.store import ProjectStore
@@ -68,6 +70,13 @@ def _user_processes() -> list[str]:
     return [ln for ln in r.stdout.splitlines() if ln.strip() and not ln.strip().startswith("Z")]
 
 
+def _no_user_processes_soon() -> None:
+    """The build user's processes are gone: killed with the build, reaped a moment later."""
+    with contextlib.suppress(AssertionError):
+        wait_for(lambda: not _user_processes(), 5, "the build user's processes to go")
+    assert not _user_processes(), _user_processes()
+
+
 PRELUDE = "cmake_minimum_required(VERSION 3.16)\n"
 TAIL = "project(p LANGUAGES C CXX)\nfind_package(XrfRt REQUIRED)\nxrf_add_controller(p SOURCES src/main.cpp src/Template.cpp INCLUDE_DIRS include)\n"
 
@@ -81,9 +90,8 @@ def test_ok_build_streams_and_is_sandboxed(data_dir: Path) -> None:
         assert "user xrf-build" in log
     assert any(m.get("line", "").startswith("[") for m in messages), "build lines are streamed"
     # The record is stored first, then announced: the final message may trail the store by a moment.
-    deadline = time.monotonic() + 5
-    while not any(m.get("status") == "ok" for m in messages) and time.monotonic() < deadline:
-        time.sleep(0.01)
+    with contextlib.suppress(AssertionError):
+        wait_for(lambda: any(m.get("status") == "ok" for m in messages), 5, "the final message")
     assert [m["status"] for m in messages if "status" in m] == ["queued", "building", "ok"]
     assert Path(b.executable).is_file()
     assert b.toolchain.startswith("cmake version")
@@ -148,8 +156,7 @@ def test_build_that_runs_forever_is_stopped(data_dir: Path) -> None:
     assert time.monotonic() - t0 < 30
     assert b.status == "failed"
     assert "longer than 4 s" in b.result
-    time.sleep(0.2)
-    assert not _user_processes(), _user_processes()
+    _no_user_processes_soon()
 
 
 @pytest.mark.skipif(not ROOT, reason="RLIMIT_NPROC counts the build user's processes: needs the dedicated user")
@@ -166,8 +173,7 @@ def test_fork_bomb_is_limited(data_dir: Path) -> None:
     b, log, _, _ = _build(data_dir, cml, nproc=64, timeout_s=30)
     assert b.status == "failed"
     assert "too many processes" in b.result, (b.result, log[-1500:])
-    time.sleep(0.2)
-    assert not _user_processes(), _user_processes()
+    _no_user_processes_soon()
 
 
 def test_memory_eater_is_limited(data_dir: Path) -> None:

@@ -6,14 +6,18 @@ from __future__ import annotations
 import json
 import ssl
 import subprocess
+import time
 
 import pytest
 
+from xrf_testing.harness import wait_for
 from xrf_testing.room_support import Recorder, bench_endpoint, room_endpoint
 from xrflab.room import mqtt, topics
 from xrflab.room.broker import acl_text
 
 NOT_AUTHORIZED = 135  # MQTT 5 reason code
+# How long a test listens for a message that must not arrive.
+SILENCE_S = 0.3
 
 
 def _enrol(files, *names):
@@ -54,9 +58,8 @@ def test_bench_publishes_only_under_its_own_name(broker) -> None:
         room.publish(topics.CMD_ALL, {"id": "xa", "cmd": "stop"})
         b1.wait_message(lambda t, p: t == topics.CMD_ALL)
         b1.wait_message(lambda t, p: t == topics.cmd("b1"))
-        import time
-
-        time.sleep(0.3)
+        # b2's command went out before b1's, so it would have arrived by now; still listen a while
+        time.sleep(SILENCE_S)
         assert not b1.received(lambda t, p: t == topics.cmd("b2"))
         assert not room.received(lambda t, p: b"forged" in p)
         assert not b1.received(lambda t, p: t == topics.CMD_ALL and b"users" in p)
@@ -110,14 +113,15 @@ def test_deleted_bench_is_refused_after_reload(broker) -> None:
     ok.close()
     files.delete_user("b3")
     assert files.reload()
-    import time
 
-    time.sleep(0.3)
-    again = Recorder(bench_endpoint(files, "b3", pws["b3"]), "b3b")
-    try:
-        assert not again.wait_connected(3)
-    finally:
-        again.close()
+    def refused() -> bool:  # once mosquitto has applied the reload (SIGHUP, asynchronous)
+        again = Recorder(bench_endpoint(files, "b3", pws["b3"]), "b3b")
+        try:
+            return not again.wait_connected(3)
+        finally:
+            again.close()
+
+    wait_for(refused, 15, "the deleted bench to be refused")
 
 
 def test_tls_with_the_rooms_own_ca(broker) -> None:

@@ -239,7 +239,7 @@ def test_grid_in_chromium(lab: Lab, chromium_path: str) -> None:
             assert alarmed == sorted(alarmed, reverse=True) and dict(flags)["z17"], flags
             # a stale status (older seq) never overwrites the newer one the grid shows
             fake.publish(topics.bench("z03", "status"), {"boot": boot, "seq": 0, "state": "PAUSED"}, retain=True)
-            time.sleep(0.5)
+            time.sleep(0.5)  # the point: within this window the grid must NOT change
             assert page.eval_on_selector("[data-bench=z03] .state", "e => e.textContent") == "RUN"
             fake.publish(
                 topics.bench("z03", "status"), {"boot": boot - 1, "seq": 10**6, "state": "PAUSED"}, retain=True
@@ -261,6 +261,6 @@ def test_grid_in_chromium(lab: Lab, chromium_path: str) -> None:
         beating.clear()
         for k in range(25):  # leave no retained fakes behind
             fake.publish(topics.bench(f"z{k:02d}", "status"), b"", retain=True)
-            fake.publish(topics.bench(f"z{k:02d}", "online"), b"", retain=True)
-        time.sleep(0.2)
+            last = fake.publish(topics.bench(f"z{k:02d}", "online"), b"", retain=True)
+        fake.wait_ack(last)  # QoS 1 in order: the broker has every clear before the connection goes
         fake.close()

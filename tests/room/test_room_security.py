@@ -268,8 +268,7 @@ def test_malformed_payloads_are_dropped_both_ways(lab: Lab) -> None:
         assert b1.http.get("/api/health").status_code == 200
         assert lab.views()["b1"]["online"]
     finally:
-        room.publish(topics.assignment("a1"), b"", retain=True)
-        time.sleep(0.2)
+        room.wait_ack(room.publish(topics.assignment("a1"), b"", retain=True))  # cleared before we go
         room.close()
         attacker.close()
 

@@ -13,6 +13,7 @@ import sys
 import time
 from pathlib import Path
 
+from xrf_testing.harness import wait_for
 from xrf_testing.loops import LoopProcess
 
 SHM = Path("/dev/shm")
@@ -28,6 +29,14 @@ def xrf(*args: str, **kw) -> subprocess.Popen:
         env=env,
         **kw,
     )
+
+
+def _maps(pid: int, shm: str) -> bool:
+    """Process `pid` has /dev/shm/<shm> mapped (its status reader attached)."""
+    try:
+        return f"/dev/shm/{shm}" in Path(f"/proc/{pid}/maps").read_text()
+    except OSError:
+        return False
 
 
 def previous_run_stopped(exe: Path, shm: str, cwd: Path) -> None:
@@ -51,7 +60,9 @@ def test_state_wait_follows_a_new_run_that_replaces_an_ended_one(
     waiter = xrf("state", "--wait", "IDLE", "--timeout", "30", "--shm", shm_name)
     run = None
     try:
-        time.sleep(1.0)  # the waiter has attached to the ended run's segment by now
+        # the waiter has the ended run's segment mapped (what the test is about: it must notice
+        # the new run's segment replacing it)
+        wait_for(lambda: _maps(waiter.pid, shm_name) or waiter.poll() is not None, 10, "the waiter to attach")
         assert waiter.poll() is None, waiter.communicate()
         run = xrf("run", str(probe_exe), "--shm", shm_name, start_new_session=True, cwd=tmp_path)
         out, err = waiter.communicate(timeout=40)

@@ -9,11 +9,11 @@ import json
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
+from xrf_testing.harness import wait_for
 from xrflab import plants
 from xrflab import profiles as prof
 from xrflab.profile_flat import flat_form
@@ -181,8 +181,8 @@ def test_abort_while_pulsing_leaves_pwm_zero(checker_exe, shm_name):
         seen_pwm = None
         for ev in sc.events():
             if ev["event"] == "progress" and ev["step"] == "motor.1" and "PWM +" in ev["text"]:
-                time.sleep(0.06)  # well inside the 150 ms pulse
-                seen_pwm = int(ch.shm.sim.pwm[0])
+                # the pulse (150 ms) is on the output: abort inside it
+                seen_pwm = wait_for(lambda: max(0, int(ch.shm.sim.pwm[0])), 1, "PWM + on motor 1")
                 sc.abort()
         r = sc.report
         assert seen_pwm and seen_pwm > 0, "the pulse was under way when the abort came"
@@ -216,8 +216,7 @@ def test_checker_sigint_directly(checker_exe, shm_name):
             ev = json.loads(line)
             events.append(ev)
             if ev["event"] == "progress" and ev["step"] == "motor.2" and "PWM -" in ev["text"]:
-                time.sleep(0.03)
-                assert int(ch.shm.sim.pwm[1]) < 0
+                wait_for(lambda: int(ch.shm.sim.pwm[1]) < 0, 1, "PWM - on motor 2")  # mid-pulse
                 proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=5) == 2
         assert events[-1]["event"] == "end" and events[-1]["verdict"] == "aborted"

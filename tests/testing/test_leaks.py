@@ -7,6 +7,7 @@ import subprocess
 import uuid
 from pathlib import Path
 
+from xrf_testing.harness import wait_for
 from xrf_testing.leaks import MARKER, SHM, Snapshot
 
 
@@ -31,9 +32,9 @@ def test_it_finds_the_sessions_processes_and_shm_and_only_those(tmp_path: Path) 
     shm = SHM / f"xrf-leak-check-{marker[:8]}"
     shm.write_bytes(b"x")
     try:
-        import time
-
-        time.sleep(0.2)  # the marked shell's own child exists
+        wait_for(
+            lambda: Path(f"/proc/{marked.pid}/task/{marked.pid}/children").read_text().strip(), 5, "the shell's child"
+        )
         left = snap.leftovers(grace_s=0)
         pids = {int(line.split()[1].rstrip(":")) for line in left if line.startswith("process")}
         assert marked.pid in pids and launcher.pid in pids and stranger not in pids, left

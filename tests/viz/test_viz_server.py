@@ -19,18 +19,20 @@ from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 from websockets.typing import Subprotocol
 
-from xrf_testing.harness import Server
+from xrf_testing.harness import Server, wait_for
 
 
 def wait_state(server: Server, pred: Callable[[dict[str, Any]], bool], timeout: float = 10.0) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout
-    while True:
-        s = server.http.get("/api/viz/state").json()
-        if pred(s):
-            return s
-        if time.monotonic() > deadline:
-            raise AssertionError(f"3D view state never matched; last {s}")
-        time.sleep(0.05)
+    last: list[dict[str, Any]] = [{}]
+
+    def matched() -> dict[str, Any] | None:
+        last[0] = server.http.get("/api/viz/state").json()
+        return last[0] if pred(last[0]) else None
+
+    try:
+        return wait_for(matched, timeout, "the 3D view state")
+    except AssertionError:
+        raise AssertionError(f"3D view state never matched; last {last[0]}") from None
 
 
 def to_run(server: Server, build: str) -> None:
