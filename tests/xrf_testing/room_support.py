@@ -173,31 +173,44 @@ def netns_possible() -> bool:
 
 
 class Topology:
-    """Where benches live. `netns`: bench i is a host of its own (namespace, veth, 10.211.i.2) that
-    reaches the broker at 10.211.0.1 (an address of this host); cut = its interface down. Else all on
-    loopback with their own ports; cut = the appliance stopped (SIGSTOP: silent as a pulled cable)."""
+    """Where benches live. `netns`: bench i is a host of its own (namespace, veth, 10.N.i.2) that
+    reaches the broker at 10.N.0.1 (an address of this host); cut = its interface down. Else all on
+    loopback with their own ports; cut = the appliance stopped (SIGSTOP: silent as a pulled cable).
+    N is the first of NETS whose broker address this host does not have yet: two test sessions on
+    one machine (two checkouts) each get their own network."""
 
-    BROKER_ADDR = "10.211.0.1"
+    NETS = range(211, 241)
 
     def __init__(self, n: int) -> None:
         self.netns = netns_possible()
         self.n = n
         self.tag = f"{os.getpid() % 100000}"
         self.created: list[str] = []
+        self.net = f"10.{self.NETS[0]}"
         if self.netns:
             run = lambda *a: subprocess.run(a, check=True, capture_output=True)  # noqa: E731
-            run("ip", "addr", "add", f"{self.BROKER_ADDR}/32", "dev", "lo")
+            for net in self.NETS:
+                self.net = f"10.{net}"
+                add = ["ip", "addr", "add", f"{self.BROKER_ADDR}/32", "dev", "lo"]
+                if subprocess.run(add, capture_output=True).returncode == 0:
+                    break
+            else:
+                raise RuntimeError(f"every test network 10.{self.NETS[0]}-{self.NETS[-1]}.0.1 is taken on lo")
             for i in range(1, n + 1):
                 ns, host_if = self.ns(i), f"x{self.tag}h{i}"
                 run("ip", "netns", "add", ns)
                 self.created.append(ns)
                 run("ip", "link", "add", host_if, "type", "veth", "peer", "name", "eth0", "netns", ns)
-                run("ip", "addr", "add", f"10.211.{i}.1/30", "dev", host_if)
+                run("ip", "addr", "add", f"{self.net}.{i}.1/30", "dev", host_if)
                 run("ip", "link", "set", host_if, "up")
-                run("ip", "-n", ns, "addr", "add", f"10.211.{i}.2/30", "dev", "eth0")
+                run("ip", "-n", ns, "addr", "add", f"{self.net}.{i}.2/30", "dev", "eth0")
                 run("ip", "-n", ns, "link", "set", "lo", "up")
                 run("ip", "-n", ns, "link", "set", "eth0", "up")
-                run("ip", "-n", ns, "route", "add", "default", "via", f"10.211.{i}.1")
+                run("ip", "-n", ns, "route", "add", "default", "via", f"{self.net}.{i}.1")
+
+    @property
+    def BROKER_ADDR(self) -> str:  # noqa: N802 (read like the constant it was)
+        return f"{self.net}.0.1"
 
     @property
     def mode(self) -> str:
@@ -211,7 +224,7 @@ class Topology:
         return self.BROKER_ADDR if self.netns else "127.0.0.1"
 
     def bench_host(self, i: int) -> str:
-        return f"10.211.{i}.2" if self.netns else "127.0.0.1"
+        return f"{self.net}.{i}.2" if self.netns else "127.0.0.1"
 
     def prefix(self, i: int) -> list[str]:
         # Only the network namespace: `ip netns exec` would also give the bench a mount namespace
@@ -228,7 +241,9 @@ class Topology:
     def heal(self, i: int, server: Server) -> None:
         if self.netns:
             subprocess.run(["ip", "-n", self.ns(i), "link", "set", "eth0", "up"], check=True)
-            subprocess.run(["ip", "-n", self.ns(i), "route", "replace", "default", "via", f"10.211.{i}.1"], check=True)
+            subprocess.run(
+                ["ip", "-n", self.ns(i), "route", "replace", "default", "via", f"{self.net}.{i}.1"], check=True
+            )
         else:
             os.kill(server.proc.pid, signal.SIGCONT)
 
