@@ -43,6 +43,7 @@ from typing import Any
 from . import plants
 from .profile_flat import flat_form
 from .profiles import ProfileError, default_data_dir, find_profile, load_profile, validate_profile
+from .server.settings import Settings
 
 EXIT_PASS = 0
 EXIT_FAIL = 1
@@ -50,7 +51,7 @@ EXIT_COULD_NOT_RUN = 2
 
 MARKS = {"pass": "✓", "warn": "!", "fail": "✗", "skipped": "–"}
 TRANSPORTS = ("auto", "sim", "spidev", "evl-spidev")
-DEFAULT_SPI_DEVICE = "/dev/spidev0.0"
+DEFAULT_SPI_DEVICE = Settings.spi_device
 
 BenchBusyCheck = Callable[[], bool | str | None]
 
@@ -296,7 +297,7 @@ class SelfCheck:
 
     def __init__(
         self,
-        profile: str | Path | dict[str, Any] = "relbot",
+        profile: str | Path | dict[str, Any] = Settings.sim,
         *,
         transport: str = "sim",
         sim: str | None = None,
@@ -328,7 +329,7 @@ class SelfCheck:
             transport = "spidev" if Path(dev).exists() else "sim"
         self.transport = transport
         robot = self.profile.get("robot", "")
-        self.sim = (sim or (robot if robot in plants.names() else "relbot")) if transport == "sim" else ""
+        self.sim = (sim or (robot if robot in plants.names() else Settings.sim)) if transport == "sim" else ""
         self.faults = faults or ""
         self.device = dev if transport != "sim" else ""
         self.speed_hz = speed_hz or (self.profile.get("link", {}).get("spi_speed_hz") if transport != "sim" else None)
@@ -519,7 +520,7 @@ class SelfCheck:
 
 
 def run_selfcheck(
-    profile: str | Path | dict[str, Any] = "relbot",
+    profile: str | Path | dict[str, Any] = Settings.sim,
     *,
     on_event: Callable[[dict[str, Any]], None] | None = None,
     **kwargs: Any,
@@ -537,7 +538,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--profile",
         help="bench profile: relbot, jiwy, an edited profile's name or a FILE.json "
-        "(default: the --sim robot, else relbot)",
+        f"(default: the --sim robot, else {Settings.sim})",
     )
     p.add_argument(
         "--sim",
@@ -571,7 +572,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     transport = args.transport or ("sim" if args.sim or args.faults else "auto")
-    profile = args.profile or args.sim or "relbot"
+    profile = args.profile or args.sim or Settings.sim
     try:
         check = SelfCheck(
             profile,
