@@ -24,12 +24,10 @@ const xrf = {                // also the test hook: tests read window.xrf
 window.xrf = xrf;
 
 // ---- who is logged in (docs/developers/security.md) -----------------------------------------
-// The session cookie is HttpOnly; the CSRF token is in the readable xrf_csrf cookie and goes back
-// in X-CSRF-Token on every state-changing request. No session: the login page.
-xrf.csrfHeaders = function () {
-  const m = document.cookie.match(/(?:^|;\s*)xrf_csrf=([^;]+)/);
-  return m ? { "X-CSRF-Token": decodeURIComponent(m[1]) } : {};
-};
+// Escaping, the CSRF header and requests are frontend/lib.js's (loaded first); the pages reach
+// them as xrf.esc, xrf.csrfHeaders and xrf.api. No session: the login page.
+xrf.esc = xrfLib.esc;
+xrf.csrfHeaders = xrfLib.csrfHeaders;
 // How a run ended (runs.END_REASONS on the server: "self exit", "hang", "appliance restart", ...).
 xrf.endReason = (r) => r.end_reason ? ` (${r.end_reason.replace(/_/g, " ")})` : (r.crash_reason ? ` (${r.crash_reason})` : "");
 const endReason = xrf.endReason;
@@ -207,14 +205,11 @@ function emergencyStop() {
 // ---- run ------------------------------------------------------------------------------------
 
 async function api(method, path, body) {
-  const headers = method === "GET" ? {} : xrf.csrfHeaders();
-  if (body) headers["Content-Type"] = "application/json";
-  const res = await fetch(path, { method, headers, body: body ? JSON.stringify(body) : undefined });
-  if (res.status === 401) { xrf.toLogin(); throw new Error("logged out"); }
-  const data = await res.json().catch(() => ({}));
-  if (!res.ok) {
+  const { ok, status, data, res } = await xrfLib.send(method, path, body || undefined);
+  if (status === 401) { xrf.toLogin(); throw new Error("logged out"); }
+  if (!ok) {
     const err = new Error(data.detail ? (typeof data.detail === "string" ? data.detail : JSON.stringify(data.detail)) : res.statusText);
-    err.status = res.status;
+    err.status = status;
     throw err;
   }
   return data;

@@ -5,11 +5,6 @@
 (function () {
   const $ = (id) => document.getElementById(id);
 
-  function csrf() {
-    const m = document.cookie.match(/(?:^|;\s*)xrf_csrf=([^;]+)/);
-    return m ? decodeURIComponent(m[1]) : "";
-  }
-
   function next() {
     const n = new URLSearchParams(location.search).get("next") || "/";
     // Only a local path: never an open redirect to another site ("//evil", "/\evil", "https:").
@@ -17,11 +12,8 @@
   }
 
   async function post(path, body) {
-    const res = await fetch(path, {
-      method: "POST", headers: { "Content-Type": "application/json", "X-CSRF-Token": csrf() }, body: JSON.stringify(body),
-    });
-    const data = res.status === 204 ? {} : await res.json().catch(() => ({}));
-    if (!res.ok) {
+    const { ok, data, res } = await xrfLib.send("POST", path, body);  // frontend/lib.js
+    if (!ok) {
       const d = data.detail;
       throw new Error(typeof d === "string" ? d : Array.isArray(d) ? d.map((e) => e.msg).join("; ") : res.statusText);
     }

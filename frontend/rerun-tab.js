@@ -11,15 +11,8 @@
   const FOLLOW_MS = 3000;
   let busy = false, noteTimer = null;
 
-  function csrf() {
-    const m = document.cookie.match(/(?:^|;\s*)xrf_csrf=([^;]+)/);
-    return m ? { "X-CSRF-Token": decodeURIComponent(m[1]) } : {};
-  }
-
   async function post(path, body) {
-    const headers = Object.assign({ "Content-Type": "application/json" }, csrf());
-    const res = await fetch(path, { method: "POST", headers, body: JSON.stringify(body || {}), credentials: "same-origin" });
-    const data = await res.json().catch(() => ({}));
+    const { data, res } = await xrfLib.send("POST", path, body || {});  // frontend/lib.js, loaded before this
     const detail = typeof data.detail === "string" ? data.detail : data.detail ? JSON.stringify(data.detail) : res.statusText;
     return { ok: res.ok, status: res.status, data, detail };
   }

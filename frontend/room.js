@@ -7,16 +7,9 @@
   const benches = new Map();
   window.xrfRoom = { benches, connected: false };
 
-  function csrf() {
-    const m = document.cookie.match(/(?:^|;\s*)xrf_csrf=([^;]+)/);
-    return m ? decodeURIComponent(m[1]) : "";
-  }
-
   async function post(path, body) {
-    const res = await fetch(path, { method: "POST", headers: { "Content-Type": "application/json", "X-CSRF-Token": csrf() },
-      body: JSON.stringify(body || {}) });
-    const data = await res.json().catch(() => ({}));
-    if (!res.ok) throw new Error(typeof data.detail === "string" ? data.detail : res.statusText);
+    const { ok, data, res } = await xrfLib.send("POST", path, body || {});  // frontend/lib.js
+    if (!ok) throw new Error(typeof data.detail === "string" ? data.detail : res.statusText);
     return data;
   }
 
@@ -168,10 +161,9 @@
       if (template === "upload") {
         const file = $("room-assign-file").files[0];
         if (!file) throw new Error("choose an archive first");
-        const res = await fetch("/api/room/assignments/upload?name=" + encodeURIComponent(name),
-          { method: "POST", headers: { "X-CSRF-Token": csrf() }, body: file });
-        a = await res.json().catch(() => ({}));
-        if (!res.ok) throw new Error(typeof a.detail === "string" ? a.detail : res.statusText);
+        const up = await xrfLib.send("POST", "/api/room/assignments/upload?name=" + encodeURIComponent(name), file);
+        a = up.data;
+        if (!up.ok) throw new Error(typeof a.detail === "string" ? a.detail : up.res.statusText);
       } else {
         a = await post("/api/room/assignments", { name, template });
       }

@@ -8,7 +8,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-DEFAULT_URL = "http://127.0.0.1:8000"
+from .server.settings import Settings
+
+DEFAULT_URL = f"http://{Settings.host}:{Settings.port}"
 
 
 def config_dir() -> Path:

@@ -45,6 +45,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .server.settings import SYSTEM_DATA_DIR, Settings
+
 HELP = (
     "check this machine for real-time readiness (EVL, isolated CPU, governor, throttling, SPI, clock, disk, "
     "ROS 2) and which run sandbox confines students' controllers"
@@ -53,9 +55,9 @@ HELP = (
 OK, WARNING, FAILURE, SKIPPED = "ok", "warning", "failure", "not checked"
 STATUSES = (OK, WARNING, FAILURE, SKIPPED)
 
-DEFAULT_DATA_DIR = "/var/lib/xrf-lab"
+DEFAULT_DATA_DIR = str(SYSTEM_DATA_DIR)
 DEFAULT_LOOP_USER = "xrf-loop"
-SPI_DEVICE = "/dev/spidev0.0"
+SPI_DEVICE = Settings.spi_device
 EVL_SYSFS = ("sys/devices/virtual/evl/control", "sys/class/evl/control")
 THROTTLED_SYSFS = "sys/devices/platform/soc/soc:firmware/get_throttled"
 DISK_FAIL_BYTES = 200 * 1000**2
@@ -665,7 +667,6 @@ def probe_confinement(ctx: Context) -> ConfinementProbe:
     import pwd
 
     from .server.runs import guest_spawn
-    from .server.settings import Settings
 
     settings = ctx.settings
     if settings is None:
@@ -673,7 +674,7 @@ def probe_confinement(ctx: Context) -> ConfinementProbe:
         if ctx.allow_unconfined is not None:
             kw["allow_unconfined"] = ctx.allow_unconfined
         settings = Settings(**kw)
-    ident = guest_spawn.identity(getattr(settings, "run_user", guest_spawn.RUN_USER))
+    ident = guest_spawn.identity(settings.run_user)
     report = guest_spawn.probe(settings)
     try:
         user = pwd.getpwuid(os.getuid()).pw_name
@@ -686,7 +687,7 @@ def _allow_unconfined(ctx: Context) -> bool:
     if ctx.allow_unconfined is not None:
         return ctx.allow_unconfined
     if ctx.settings is not None:
-        return bool(getattr(ctx.settings, "allow_unconfined", False))
+        return bool(ctx.settings.allow_unconfined)
     return os.environ.get("XRF_ALLOW_UNCONFINED", "") in ("1", "true", "yes")
 
 

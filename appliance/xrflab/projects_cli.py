@@ -37,7 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--url",
         default=credentials.url(),
-        help="the appliance (default $XRF_URL, the one of `xrf login`, or http://127.0.0.1:8000)",
+        help=f"the appliance (default $XRF_URL, the one of `xrf login`, or {credentials.DEFAULT_URL})",
     )
     p.add_argument(
         "--token", default=credentials.token(), help="API token (default $XRF_TOKEN or the one of `xrf login`)"

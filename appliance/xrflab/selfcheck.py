@@ -45,6 +45,7 @@ from .channels import names as _names
 from .errors import Invalid
 from .profile_flat import flat_form
 from .profiles import ProfileError, default_data_dir, find_profile, load_profile, validate_profile
+from .server.settings import Settings
 
 EXIT_PASS = 0
 EXIT_FAIL = 1
@@ -53,7 +54,7 @@ EXIT_COULD_NOT_RUN = 2
 MARKS = {"pass": "✓", "warn": "!", "fail": "✗", "skipped": "–"}
 # "auto" (spidev when the device exists, else sim) and rt_core's transports (channels.h).
 TRANSPORTS = ("auto", *_names.TRANSPORTS)
-DEFAULT_SPI_DEVICE = "/dev/spidev0.0"
+DEFAULT_SPI_DEVICE = Settings.spi_device
 
 BenchBusyCheck = Callable[[], bool | str | None]
 
@@ -302,7 +303,7 @@ class SelfCheck:
 
     def __init__(
         self,
-        profile: str | Path | dict[str, Any] = "relbot",
+        profile: str | Path | dict[str, Any] = Settings.sim,
         *,
         transport: str = "sim",
         sim: str | None = None,
@@ -334,7 +335,7 @@ class SelfCheck:
             transport = "spidev" if Path(dev).exists() else "sim"
         self.transport = transport
         robot = self.profile.get("robot", "")
-        self.sim = (sim or (robot if robot in plants.names() else "relbot")) if transport == "sim" else ""
+        self.sim = (sim or (robot if robot in plants.names() else Settings.sim)) if transport == "sim" else ""
         self.faults = faults or ""
         self.device = dev if transport != "sim" else ""
         self.speed_hz = speed_hz or (self.profile.get("link", {}).get("spi_speed_hz") if transport != "sim" else None)
@@ -525,7 +526,7 @@ class SelfCheck:
 
 
 def run_selfcheck(
-    profile: str | Path | dict[str, Any] = "relbot",
+    profile: str | Path | dict[str, Any] = Settings.sim,
     *,
     on_event: Callable[[dict[str, Any]], None] | None = None,
     **kwargs: Any,
@@ -543,7 +544,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--profile",
         help="bench profile: relbot, jiwy, an edited profile's name or a FILE.json "
-        "(default: the --sim robot, else relbot)",
+        f"(default: the --sim robot, else {Settings.sim})",
     )
     p.add_argument(
         "--sim",
@@ -577,7 +578,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     transport = args.transport or ("sim" if args.sim or args.faults else "auto")
-    profile = args.profile or args.sim or "relbot"
+    profile = args.profile or args.sim or Settings.sim
     try:
         check = SelfCheck(
             profile,

@@ -183,9 +183,8 @@
     status(`Saving ${path}…`);
     try {
       const base = overwrite != null ? overwrite : b.base;
-      const res = await fetch(`/api/projects/${E.pid}/files/${enc(path)}?base=${base}`, {
-        method: "PUT", body: text, headers: { ...xrf.csrfHeaders(), "Content-Type": "text/plain; charset=utf-8" } });
-      const data = await res.json().catch(() => ({}));
+      const { data, res } = await xrfLib.send("PUT", `/api/projects/${E.pid}/files/${enc(path)}?base=${base}`, text,
+        { "Content-Type": "text/plain; charset=utf-8" });
       if (res.status === 401) { xrf.toLogin(); return null; }
       if (!res.ok) {
         // Nothing is lost: the text stays in the editor, unsaved.
@@ -346,9 +345,8 @@
     const path = q("ed-newpath").value.trim();
     if (!path) return;
     if (E.files.some((f) => f.path === path)) { await openFile(path); return; }
-    const res = await fetch(`/api/projects/${E.pid}/files/${enc(path)}?build=false`, {
-      method: "PUT", body: "", headers: { ...xrf.csrfHeaders(), "Content-Type": "text/plain; charset=utf-8" } });
-    const data = await res.json().catch(() => ({}));
+    const { data, res } = await xrfLib.send("PUT", `/api/projects/${E.pid}/files/${enc(path)}?build=false`, "",
+      { "Content-Type": "text/plain; charset=utf-8" });
     if (!res.ok) { status(typeof data.detail === "string" ? data.detail : res.statusText, "bad"); return; }
     q("ed-newpath").value = "";
     status(`${path} added: version ${data.version.n}`);

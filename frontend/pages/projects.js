@@ -16,19 +16,13 @@
   const q = (id) => document.getElementById(id);
   const fmtErr = (e) => { try { const d = JSON.parse(e.message); return d.error || e.message; } catch (_) { return e.message; } };
 
-  function csrfHeaders() {
-    const m = document.cookie.match(/(?:^|;\s*)xrf_csrf=([^;]+)/);
-    return m ? { "X-CSRF-Token": decodeURIComponent(m[1]) } : {};
-  }
-
   async function uploadFile(file, pid) {
     const form = new FormData();
     form.append("file", file, file.name);
     const url = pid ? `/api/projects/${pid}/source` : "/api/projects";
     status(`Checking ${file.name}…`);
-    const res = await fetch(url, { method: pid ? "PUT" : "POST", body: form, headers: csrfHeaders() });
-    const data = await res.json().catch(() => ({}));
-    if (!res.ok) {
+    const { ok, data, res } = await xrfLib.send(pid ? "PUT" : "POST", url, form);
+    if (!ok) {
       const d = data.detail;
       const text = d && typeof d === "object" ? (d.error || JSON.stringify(d)) : (d || res.statusText);
       status(text, true);

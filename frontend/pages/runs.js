@@ -13,7 +13,7 @@
   const FORMATS = [["raw", "raw"], ["csv", "CSV"], ["mat", "MAT"], ["parquet", "Parquet"], ["rrd", ".rrd"]];
   let el0 = null, timer = null, selected = null, rerun = null;
 
-  const esc = (s) => String(s).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
+  const esc = xrf.esc;  // frontend/lib.js
   const when = (t) => new Date(t * 1000).toLocaleString();
   const dur = (s) => s == null ? "–" : s < 60 ? s.toFixed(1) + " s" : s < 3600 ? `${Math.floor(s / 60)} min ${Math.round(s % 60)} s` : `${(s / 3600).toFixed(1)} h`;
   const num = (n) => (n == null ? "–" : Number(n).toLocaleString("en-US"));

@@ -10,7 +10,7 @@
     document.head.append(css);
   }
   const $ = (id) => document.getElementById(id);
-  const esc = (s) => String(s ?? "").replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
+  const esc = xrf.esc;  // frontend/lib.js
   const MARK = { pass: "✓", warn: "!", fail: "✗", skipped: "–" };
   const WORD = { pass: "passed", warn: "warning", fail: "FAILED", skipped: "skipped" };
   const when = (iso) => { const d = new Date(iso); return isNaN(d) ? (iso || "–") : d.toLocaleString(); };
@@ -294,9 +294,9 @@
     let body;
     try { body = JSON.parse($("pf-text").value); }
     catch (e) { errs.innerHTML = `<li data-field=""><b>JSON</b>: ${esc(e.message)}</li>`; return; }
-    const res = await fetch(`/api/profiles/${encodeURIComponent(name)}`, {
-      method: "PUT", headers: { "Content-Type": "application/json", ...xrf.csrfHeaders() }, body: JSON.stringify(body) });
-    const data = await res.json().catch(() => ({}));
+    // Encoded here: whatever JSON was typed (even a bare string) goes as JSON.
+    const { data, res } = await xrfLib.send("PUT", `/api/profiles/${encodeURIComponent(name)}`, JSON.stringify(body),
+      { "Content-Type": "application/json" });
     if (res.status === 422 && data.detail && data.detail.errors) {
       $("pf-result").innerHTML = `<span class="bad">Not saved: ${data.detail.errors.length} problem(s).</span>`;
       for (const e of data.detail.errors) {

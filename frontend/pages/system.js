@@ -9,7 +9,7 @@
     document.head.append(css);
   }
   const $ = (id) => document.getElementById(id);
-  const esc = (s) => String(s ?? "").replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
+  const esc = xrf.esc;  // frontend/lib.js
   const LABEL = { ok: "ok", warning: "warning", failure: "FAILURE", "not checked": "not checked" };
   const CLS = { ok: "ok", warning: "warning", failure: "failure", "not checked": "skipped" };
 

@@ -4,7 +4,7 @@
 
 (function () {
   const $ = (id) => document.getElementById(id);
-  const esc = (s) => String(s ?? "").replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
+  const esc = xrf.esc;  // frontend/lib.js
   const when = (t) => (t ? new Date(t * 1000).toLocaleString() : "–");
 
   const HTML = `<div class="page-body users">

@@ -91,3 +91,25 @@ def test_fpga_reset_goes_through_the_c_transport() -> None:
     assert fpga_reset("/nonexistent/spidev9.9") == "no spidev to reset"
     # /dev/null opens but is no SPI device: the first spidev ioctl (SPI_IOC_WR_MODE) fails.
     assert fpga_reset("/dev/null") == "FPGA RESET failed: Inappropriate ioctl for device"
+
+
+def test_xrf_serve_options_take_their_defaults_from_settings(tmp_path: Path) -> None:
+    """In process: every option's default is its Settings field's (server/cli/serve.py reads them),
+    so `xrf serve` with no options is Settings' defaults; given options reach their fields."""
+    import argparse
+
+    from xrflab.server.cli import serve
+    from xrflab.server.settings import Settings
+
+    parser = argparse.ArgumentParser()
+    serve.add_arguments(parser)
+    assert serve.settings_from(parser.parse_args(["--data", str(tmp_path)])) == Settings(data_dir=tmp_path)
+    given = parser.parse_args(
+        ["--data", str(tmp_path), "--sim", "jiwy", "--port", "8123", "--lease-idle-min", "5", "--hang-ms", "300"]
+        + ["--allow-origin", "https://lab.example.edu/", "--trusted-proxy", "10.0.0.1", "--run-pids", "64"]
+    )
+    settings = serve.settings_from(given)
+    assert (settings.sim, settings.port, settings.lease_idle_s, settings.hang_timeout_ms) == ("jiwy", 8123, 300, 300)
+    assert settings.allow_origins == ("https://lab.example.edu",) and settings.trusted_proxies == ("10.0.0.1",)
+    assert settings.run_pids == 64 and settings.run_memory_mb == Settings.run_memory_mb
+    assert f"default {Settings.telemetry_hz:g})" in parser.format_help()

@@ -11,7 +11,10 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from ..server.settings import Settings
 
 
 @dataclass(frozen=True)
@@ -27,20 +30,16 @@ class SandboxConfig:
     tmpfs_mb: int = 256
 
     @staticmethod
-    def from_settings(settings: object) -> SandboxConfig:
-        """Settings attributes ``build_*`` (when the appliance has them), then XRF_BUILD_* env."""
+    def from_settings(settings: Settings) -> SandboxConfig:
+        """These defaults, then XRF_BUILD_* env; builds keep off the loop's CPU (XRF_CPU of the
+        appliance's loop_env, else of the environment)."""
         base = SandboxConfig()
         values: dict[str, Any] = {}
         for f in ("timeout_s", "memory_mb", "nproc", "fsize_mb", "cpu_s", "nofile", "user"):
-            v = getattr(settings, "build_" + f, None)
             env = os.environ.get("XRF_BUILD_" + f.upper())
             if env is not None:
-                v = type(getattr(base, f))(env)
-            if v is not None:
-                values[f] = v
-        cpu = getattr(settings, "loop_cpu", None)
-        if cpu is None:
-            cpu = (getattr(settings, "loop_env", {}) or {}).get("XRF_CPU") or os.environ.get("XRF_CPU")
+                values[f] = type(getattr(base, f))(env)
+        cpu = settings.loop_env.get("XRF_CPU") or os.environ.get("XRF_CPU")
         if cpu not in (None, ""):
             values["rt_cpu"] = int(cpu)
         return SandboxConfig(**{**asdict(base), **values})

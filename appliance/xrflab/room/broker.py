@@ -93,8 +93,8 @@ class BrokerFiles:
     broker (its certificate's subjectAltName: addresses and DNS names)."""
 
     folder: Path
-    port: int | None = 1883
-    tls_port: int | None = 8883
+    port: int | None = topics.MQTT_PORT
+    tls_port: int | None = topics.MQTT_TLS_PORT
     bind: str = "0.0.0.0"
     names: list[str] = field(default_factory=lambda: ["127.0.0.1", "localhost"])
 

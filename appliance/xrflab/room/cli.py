@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .topics import MQTT_PORT, MQTT_TLS_PORT
+
 HELP = "the lab room: every bench on one page, one class list (`xrf room join` enrols a bench)"
 
 
@@ -29,8 +31,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the address benches use for the broker (repeatable; the first is given to benches; "
         "the broker's certificate names them all; default: 127.0.0.1)",
     )
-    parser.add_argument("--broker-port", type=int, default=1883, help="plain MQTT port (0: none; default 1883)")
-    parser.add_argument("--broker-tls-port", type=int, default=8883, help="MQTT over TLS port (0: none; default 8883)")
+    parser.add_argument(
+        "--broker-port", type=int, default=MQTT_PORT, help=f"plain MQTT port (0: none; default {MQTT_PORT})"
+    )
+    parser.add_argument(
+        "--broker-tls-port",
+        type=int,
+        default=MQTT_TLS_PORT,
+        help=f"MQTT over TLS port (0: none; default {MQTT_TLS_PORT})",
+    )
     parser.add_argument(
         "--no-tls", action="store_true", help="enrol benches on the plain port (a closed lab network only)"
     )

@@ -30,8 +30,8 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from ..projects.assignments import ID_RE as ASSIGNMENT_ID_RE
 from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
-from ..server.security.accounts import USERNAME_RE
-from ..server.security.roles import Role
+from ..server.security.roles import USERNAME_RE, Role
+from ..server.settings import Settings
 from .topics import NAME_RE
 
 log = logging.getLogger(__name__)
@@ -273,7 +273,7 @@ class Message(_Command):
 
 class Selfcheck(_Command):
     cmd: Literal["selfcheck"] = "selfcheck"
-    profile: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")] = "relbot"
+    profile: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")] = Settings.sim
 
 
 class Collect(_Command):

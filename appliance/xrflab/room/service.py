@@ -97,8 +97,8 @@ class RoomConfig:
     port: int = 8100
     # what benches call the broker (its certificate names all of them), and its ports
     broker_names: list[str] = field(default_factory=lambda: ["127.0.0.1", "localhost"])
-    broker_port: int | None = 1883
-    broker_tls_port: int | None = 8883
+    broker_port: int | None = topics.MQTT_PORT
+    broker_tls_port: int | None = topics.MQTT_TLS_PORT
     broker_bind: str = "0.0.0.0"
     tls: bool = True  # benches are enrolled to the TLS listener when there is one
     spawn_broker: bool = True  # False: mosquitto is started by someone else with <data>/broker/mosquitto.conf
@@ -605,7 +605,7 @@ class Message(Target):
 
 
 class SelfCheck(BaseModel):
-    profile: str = Field(default="relbot", pattern=r"^[A-Za-z0-9_.-]{1,64}$")
+    profile: str = Field(default=Settings.sim, pattern=r"^[A-Za-z0-9_.-]{1,64}$")
 
 
 class BenchAddress(BaseModel):

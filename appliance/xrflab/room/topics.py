@@ -28,6 +28,11 @@ BENCH_ALL = f"{ROOT}/bench/+/+"
 ASSIGNMENTS = f"{ROOT}/assignment/+"
 ROOM_ONLINE = f"{ROOT}/room/online"
 
+# Where the room's broker listens unless told otherwise (IANA's MQTT ports): written once, here,
+# because this module is stdlib only and `xrf room`'s parser (built by every `xrf` call) reads them.
+MQTT_PORT = 1883
+MQTT_TLS_PORT = 8883
+
 # A bench's name is its broker username and part of its topics: no MQTT wildcards or separators.
 NAME_RE = re.compile(r"^[a-z0-9][a-z0-9-]{0,31}$")
 RESERVED = frozenset({"all", "room"})

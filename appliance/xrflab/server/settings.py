@@ -28,22 +28,29 @@ def default_data_dir() -> Path:
     return Path(base) / "xrf-lab"
 
 
-def real_bench_present(spi_device: str = "/dev/spidev0.0") -> bool:
-    """A real bench needs the EVL core and an SPI device to the ico board; else we simulate."""
-    return Path("/dev/evl").exists() and Path(spi_device).exists()
+def real_bench_present(spi_device: str | None = None) -> bool:
+    """A real bench needs the EVL core and an SPI device to the ico board (default Settings.spi_device);
+    else we simulate."""
+    return Path("/dev/evl").exists() and Path(spi_device or Settings.spi_device).exists()
 
 
 @dataclass(frozen=True)
 class Settings:
+    """Every default of the appliance is written here once; code elsewhere that needs one without an
+    instance reads the class attribute (``Settings.sim``, ``Settings.port``, ``Settings.spi_device``),
+    and ``xrf serve``'s options take their defaults and help from these fields (server/cli/serve.py).
+    tests/lint/test_written_once.py fails on a copy of these values elsewhere in the code."""
+
     data_dir: Path = field(default_factory=default_data_dir)
     # Plant of the simulated board when a build does not name one (an example named after a plant
-    # runs on it). The plants are rt_core's plant table's (xrflab.plants).
+    # runs on it). The plants are rt_core's plant table's (xrflab.plants). Also the bench profile a
+    # self-check uses when none is named (`xrf selfcheck`, the room's self-check command).
     sim: str = "relbot"
     host: str = "127.0.0.1"
     port: int = 8000
     # None = detect (real only with /dev/evl and the spidev present); False forces simulation.
     real_bench: bool | None = None
-    spi_device: str = "/dev/spidev0.0"
+    spi_device: str = "/dev/spidev0.0"  # the SPI device to the ico board (also `xrf doctor`, `xrf selfcheck`)
 
     frontend_dir: Path = REPO_ROOT / "frontend"
     projects_dir: Path = REPO_ROOT / "student_projects"

@@ -230,7 +230,7 @@ class VizService(RunObserver):
 
     @property
     def data_dir(self) -> Path | None:
-        return getattr(self.settings, "data_dir", None)
+        return Path(self.settings.data_dir)
 
     def _real_bench(self) -> bool:
         try:
@@ -239,7 +239,7 @@ class VizService(RunObserver):
             return False
 
     async def start(self) -> None:
-        """Start viser (own thread, 127.0.0.1 only, own port: settings.viz_port, else port + 1; viser moves up
+        """Start viser (own thread, 127.0.0.1 only, own port: the appliance's port + 1; viser moves up
         to the next free port if that one is taken) and the 30 Hz task."""
         try:
             await asyncio.to_thread(self._start_viser)
@@ -247,7 +247,7 @@ class VizService(RunObserver):
             self.error = f"3D view unavailable: {exc}"
             log.warning("%s", self.error)
             return
-        plant = getattr(self.settings, "sim", "relbot")
+        plant = self.settings.sim
         profile, name, message = resolve_profile(plant, self._real_bench(), self.data_dir)
         self._set_robot(profile, name, message, plant)
         # Its own thread, not a task: building a scene (loading the URDF) takes long enough to
@@ -258,7 +258,7 @@ class VizService(RunObserver):
     def _start_viser(self) -> None:
         import viser
 
-        port = getattr(self.settings, "viz_port", None) or int(self.settings.port) + 1
+        port = int(self.settings.port) + 1
         # Loopback only, whatever --host is: browsers reach it through the appliance's /viser/
         # proxy (server/http/viser.py), behind the login.
         self.server = viser.ViserServer(host="127.0.0.1", port=port, label="XRF Lab 3D", verbose=False)
@@ -334,7 +334,7 @@ class VizService(RunObserver):
         self.run_active = True
         self.samples = 0
         self.setpoint, self._setpoint_seen = {}, {}
-        plant = getattr(row, "sim", "") or getattr(self.settings, "sim", "")
+        plant = getattr(row, "sim", "") or self.settings.sim
         profile, name, message = resolve_profile(plant, self._real_bench(), self.data_dir)
         self._set_robot(profile, name, message, plant)
         meta = {
@@ -416,11 +416,10 @@ class VizService(RunObserver):
                 row = None
             if row is not None and row.run_dir:
                 return Path(row.run_dir)
-        runs_dir = getattr(self.settings, "runs_dir", None)
-        return Path(runs_dir) / str(run_id) if runs_dir else None
+        return Path(self.settings.runs_dir) / str(run_id)
 
     def recordings(self) -> list[dict[str, Any]]:
-        runs_dir = getattr(self.settings, "runs_dir", None)
+        runs_dir = self.settings.runs_dir
         out = []
         if runs_dir and Path(runs_dir).is_dir():
             for d in Path(runs_dir).iterdir():  # <data>/runs/: the appliance's folder

@@ -4,7 +4,9 @@ imports stay inside ``run`` because every ``xrf`` call imports this module to bu
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import socket
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -18,35 +20,151 @@ HELP = "serve the dashboard and API (simulated bench unless EVL and the ico boar
 WS_PROTOCOL_MAX = 4 * 1024 * 1024
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+# Each option sets one Settings field, and takes its default from it: the defaults are written
+# once, in Settings (server/settings.py). "{default}" in a help text is that default as the option
+# takes it. flag: (field, help, option value -> field value, field default -> option default, more
+# add_argument keywords). --data, --ros-bridge and --allow-unconfined are below: their defaults are
+# decided when Settings is made (the user's data folder, $XRF_ROS_BRIDGE, $XRF_ALLOW_UNCONFINED).
+def _same(v: Any) -> Any:
+    return v
+
+
+def _options() -> dict[str, tuple[str, str, Callable[[Any], Any], Callable[[Any], Any], dict[str, Any]]]:
     from ... import plants
+
+    return {
+        "--sim": (
+            "sim",
+            "simulated plant of rt_core's plant table: {default} (default), jiwy, ...",
+            _same,
+            _same,
+            {"type": plants.arg_type, "metavar": "PLANT"},
+        ),
+        "--host": ("host", "address to listen on (0.0.0.0 for the lab network)", _same, _same, {}),
+        "--port": ("port", "", _same, _same, {"type": int}),
+        "--telemetry-hz": (
+            "telemetry_hz",
+            "telemetry rate to browsers (default {default})",
+            _same,
+            _same,
+            {"type": float},
+        ),
+        "--hang-ms": (
+            "hang_timeout_ms",
+            "no loop cycle for this long = hung (default {default})",
+            _same,
+            _same,
+            {"type": int},
+        ),
+        "--allow-origin": (
+            "allow_origins",
+            "another origin allowed to use the API/WebSocket with a login cookie, e.g. "
+            "https://lab.example.edu (repeatable; the page's own address always is)",
+            lambda v: tuple(o.rstrip("/") for o in v),
+            list,
+            {"action": "append", "metavar": "URL"},
+        ),
+        "--lease-idle-min": (
+            "lease_idle_s",
+            "release the bench lease after this many minutes without driving (default {default})",
+            lambda v: v * 60,
+            lambda s: s / 60,
+            {"type": float},
+        ),
+        "--trusted-proxy": (
+            "trusted_proxies",
+            "address (or network, e.g. 10.0.0.0/24) of a reverse proxy in front of the appliance "
+            "whose X-Forwarded-For/-Proto are believed (repeatable; default none: the headers "
+            "are ignored)",
+            tuple,
+            list,
+            {"action": "append", "metavar": "ADDR"},
+        ),
+        "--ros-bridge-user": (
+            "ros_bridge_user",
+            "the user whose bench lease ROS 2 commands obey (default: who started the run)",
+            _same,
+            _same,
+            {"metavar": "NAME"},
+        ),
+    }
+
+
+# What the kernel bounds for each run: the same, in a group of their own.
+def _limit_options() -> dict[str, tuple[str, str, Callable[[Any], Any], Callable[[Any], Any], dict[str, Any]]]:
+    return {
+        "--run-memory-mb": (
+            "run_memory_mb",
+            "memory of a run, its /dev/shm and /tmp included (default {default})",
+            _same,
+            _same,
+            {"type": int},
+        ),
+        "--run-pids": ("run_pids", "processes and threads of a run (default {default})", _same, _same, {"type": int}),
+        "--run-disk-mb": (
+            "run_disk_mb",
+            "a run folder's own file system (default {default})",
+            _same,
+            _same,
+            {"type": int},
+        ),
+        "--run-files": ("run_files", "files and folders in it (default {default})", _same, _same, {"type": int}),
+        "--runs-total-mb": (
+            "runs_total_mb",
+            "every kept run folder together (default {default})",
+            _same,
+            _same,
+            {"type": int},
+        ),
+        "--loop-cpus": (
+            "loop_cpus",
+            "the CPUs a run may use, e.g. 3 or 2-3 (default: the isolated ones, else $XRF_CPU, else the last)",
+            _same,
+            _same,
+            {"metavar": "LIST"},
+        ),
+        "--rt-time-ms": (
+            "rt_time_ms",
+            "a real-time thread of a run that runs this long without blocking ends the run (default {default})",
+            _same,
+            _same,
+            {"type": int},
+        ),
+    }
+
+
+def field_default(name: str) -> Any:
+    """A Settings field's default (its factory's value for a field that has one)."""
+    from ..settings import Settings
+
+    f = {f.name: f for f in dataclasses.fields(Settings)}[name]
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    assert f.default_factory is not dataclasses.MISSING, name
+    return f.default_factory()
+
+
+def _add(
+    parser: Any, options: dict[str, tuple[str, str, Callable[[Any], Any], Callable[[Any], Any], dict[str, Any]]]
+) -> None:
+    for flag, (name, help_text, _, to_option, more) in options.items():
+        default = to_option(field_default(name))
+        shown = f"{default:g}" if isinstance(default, float) else default
+        parser.add_argument(flag, default=default, help=help_text.format(default=shown) or None, **more)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ..settings import default_data_dir
 
-    parser.add_argument(
-        "--sim",
-        type=plants.arg_type,
-        default="relbot",
-        metavar="PLANT",
-        help="simulated plant of rt_core's plant table: relbot (default), jiwy, ...",
-    )
+    options = _options()
+    _add(parser, {"--sim": options.pop("--sim")})
     parser.add_argument("--data", type=Path, default=None, help=f"data folder (default {default_data_dir()})")
-    parser.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0 for the lab network)")
-    parser.add_argument("--port", type=int, default=8000)
-    parser.add_argument("--telemetry-hz", type=float, default=30.0, help="telemetry rate to browsers (default 30)")
-    parser.add_argument("--hang-ms", type=int, default=200, help="no loop cycle for this long = hung (default 200)")
-    parser.add_argument(
-        "--allow-origin",
-        action="append",
-        default=[],
-        metavar="URL",
-        help="another origin allowed to use the API/WebSocket with a login cookie, e.g. "
-        "https://lab.example.edu (repeatable; the page's own address always is)",
-    )
-    parser.add_argument(
-        "--lease-idle-min",
-        type=float,
-        default=10.0,
-        help="release the bench lease after this many minutes without driving (default 10)",
+    _add(
+        parser,
+        {
+            k: options.pop(k)
+            for k in ("--host", "--port", "--telemetry-hz", "--hang-ms", "--allow-origin", "--lease-idle-min")
+        },
     )
     parser.add_argument(
         "--ros-bridge",
@@ -55,43 +173,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="start the ROS 2 bridge with every loop run (also $XRF_ROS_BRIDGE=1; "
         "educators can switch it on the dashboard's ROS 2 page)",
     )
-    parser.add_argument(
-        "--trusted-proxy",
-        action="append",
-        default=[],
-        metavar="ADDR",
-        help="address (or network, e.g. 10.0.0.0/24) of a reverse proxy in front of the appliance "
-        "whose X-Forwarded-For/-Proto are believed (repeatable; default none: the headers "
-        "are ignored)",
-    )
-    parser.add_argument(
-        "--ros-bridge-user",
-        default="",
-        metavar="NAME",
-        help="the user whose bench lease ROS 2 commands obey (default: who started the run)",
-    )
+    _add(parser, options)
     limits = parser.add_argument_group(
         "what the kernel bounds for each run (docs/developers/security.md, 'Resources the kernel bounds')"
     )
-    limits.add_argument(
-        "--run-memory-mb", type=int, default=1024, help="memory of a run, its /dev/shm and /tmp included (default 1024)"
-    )
-    limits.add_argument("--run-pids", type=int, default=256, help="processes and threads of a run (default 256)")
-    limits.add_argument("--run-disk-mb", type=int, default=2048, help="a run folder's own file system (default 2048)")
-    limits.add_argument("--run-files", type=int, default=65536, help="files and folders in it (default 65536)")
-    limits.add_argument("--runs-total-mb", type=int, default=8192, help="every kept run folder together (default 8192)")
-    limits.add_argument(
-        "--loop-cpus",
-        default="",
-        metavar="LIST",
-        help="the CPUs a run may use, e.g. 3 or 2-3 (default: the isolated ones, else $XRF_CPU, else the last)",
-    )
-    limits.add_argument(
-        "--rt-time-ms",
-        type=int,
-        default=500,
-        help="a real-time thread of a run that runs this long without blocking ends the run (default 500)",
-    )
+    _add(limits, _limit_options())
     parser.add_argument(
         "--allow-unconfined",
         action="store_true",
@@ -103,38 +189,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def settings_from(args: argparse.Namespace) -> Settings:
+    """The Settings `xrf serve`'s options ask for: every option's field, the rest Settings' defaults."""
+    from ..settings import Settings, default_data_dir
+
+    fields: dict[str, Any] = {"data_dir": (args.data or default_data_dir()).expanduser()}
+    for flag, (name, _, to_field, _, _) in {**_options(), **_limit_options()}.items():
+        fields[name] = to_field(getattr(args, flag[2:].replace("-", "_")))
+    # Only when given: without the option Settings' default decides (e.g. $XRF_ALLOW_UNCONFINED).
+    if args.ros_bridge:
+        fields["ros_bridge"] = True
+    if getattr(args, "allow_unconfined", False):
+        fields["allow_unconfined"] = True
+    return Settings(**fields)
+
+
 def run(args: argparse.Namespace) -> int:
     import os
 
     from ..app import create_app
-    from ..settings import SYSTEM_DATA_DIR, Settings, default_data_dir
+    from ..settings import SYSTEM_DATA_DIR
 
-    # Only when given: without the option Settings' default decides (e.g. $XRF_ALLOW_UNCONFINED).
-    only_given: dict[str, Any] = {}
-    if args.ros_bridge:
-        only_given["ros_bridge"] = True
-    if getattr(args, "allow_unconfined", False):
-        only_given["allow_unconfined"] = True
-    settings = Settings(
-        data_dir=(args.data or default_data_dir()).expanduser(),
-        sim=args.sim,
-        host=args.host,
-        port=args.port,
-        telemetry_hz=args.telemetry_hz,
-        hang_timeout_ms=args.hang_ms,
-        allow_origins=tuple(o.rstrip("/") for o in args.allow_origin),
-        lease_idle_s=args.lease_idle_min * 60,
-        ros_bridge_user=args.ros_bridge_user,
-        trusted_proxies=tuple(args.trusted_proxy),
-        run_memory_mb=args.run_memory_mb,
-        run_pids=args.run_pids,
-        run_disk_mb=args.run_disk_mb,
-        run_files=args.run_files,
-        runs_total_mb=args.runs_total_mb,
-        loop_cpus=args.loop_cpus,
-        rt_time_ms=args.rt_time_ms,
-        **only_given,
-    )
+    settings = settings_from(args)
     shown = "localhost" if args.host in ("127.0.0.1", "0.0.0.0", "::") else args.host
     bench = "real ico board" if settings.bench_is_real() else f"simulated {settings.sim}"
     print(f"XRF Lab: {bench} bench, data in {settings.data_dir}", flush=True)

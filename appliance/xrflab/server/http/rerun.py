@@ -12,7 +12,7 @@
   friends) on every viewer file stops whatever a later rerun version adds before it leaves the
   browser. **Compressed**: each file is kept gzipped beside the original (the 43 MB wasm is 14 MB)
   and served with ``Content-Encoding: gzip`` to browsers that accept it. **Ours**: index.html
-  also loads ``/static/rerun-tab.js`` (``TAB_SCRIPT``): the Runs page opens the viewer in a tab of
+  also loads ``/static/rerun-tab.js`` (``TAB_SCRIPT``, after ``/static/lib.js``): the Runs page opens the viewer in a tab of
   its own, where that script makes Esc stop the run (issue 19).
 - ``GET /api/logs/rerun``: where the viewer and the live stream are for this request's host.
 - ``POST /rerun.sdk_comms.v1alpha1.MessageProxyService/{ReadMessages,ReadTables}``: the live
@@ -158,9 +158,11 @@ VIEWER_CSP = (
 )
 # Ours, served from the dashboard's static files (same origin: the CSP's script-src 'self' allows it).
 TAB_SCRIPT = "/static/rerun-tab.js"
+# ...after the frontend's shared helpers (escaping, the CSRF header, requests) it uses.
+LIB_SCRIPT = "/static/lib.js"
 # Part of the prepared copy's folder name: a change to what prepare_viewer does to rerun's files
-# (here: TAB_SCRIPT added to index.html) makes appliances prepare their copy again.
-PREPARED_AS = "offline-tab"
+# (here: LIB_SCRIPT and TAB_SCRIPT added to index.html) makes appliances prepare their copy again.
+PREPARED_AS = "offline-tab-lib"
 _MEDIA = {
     ".html": "text/html; charset=utf-8",
     ".js": "text/javascript",
@@ -195,7 +197,7 @@ def neutralise_index(text: str) -> str:
     text = text.replace("https://github.com/rerun-io/rerun/issues/new/", "#")
     # Our script, at the end of the head: Esc stops the run from the viewer's
     # tab (the dashboard's key handler is in another tab) and a live viewer follows the next run.
-    tag = f'<script src="{TAB_SCRIPT}"></script>\n'
+    tag = f'<script src="{LIB_SCRIPT}"></script>\n<script src="{TAB_SCRIPT}"></script>\n'
     return text.replace("</head>", tag + "</head>", 1) if "</head>" in text else tag + text
 
 

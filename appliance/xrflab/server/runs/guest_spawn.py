@@ -21,13 +21,14 @@ from pathlib import Path
 from typing import Any
 
 from ... import guest
+from ..settings import Settings
 from . import children
 from . import limits as run_limits
 from .limits import RunLimits
 
 APPLIANCE_DIR = Path(__file__).resolve().parents[3]  # appliance/ (the xrflab package's parent)
 DEFAULT_PRIORITY = 80  # rt_core's kDefaultPriority: the loop's SCHED_FIFO priority unless XRF_PRIO
-RUN_USER = "xrf-run"
+RUN_USER = Settings.run_user
 # TEST ONLY: $XRF_GUEST_TEST_DROP=<layer>[,<layer>] makes the launcher report those layers missing
 # ("skipped for a test"), as on a machine that cannot have them. Not for "mount" (the channel
 # segment's place depends on it). Used by tests/ui; never set it on a bench.
@@ -142,13 +143,13 @@ def identity(run_user: str = RUN_USER) -> Identity:
 class GuestSpawner:
     def __init__(self, settings: Any) -> None:
         self.settings = settings
-        self.limits: GuestLimits = getattr(settings, "guest_limits", None) or GuestLimits()
+        self.limits = GuestLimits()
         self._identity: Identity | None = None
 
     @property
     def identity(self) -> Identity:
         if self._identity is None:
-            self._identity = identity(getattr(self.settings, "run_user", RUN_USER))
+            self._identity = identity(self.settings.run_user)
         return self._identity
 
     def devices(self) -> list[str]:
@@ -243,7 +244,7 @@ class GuestSpawner:
             "fsize_mb": lim.fsize_mb,
             "tmp_mb": lim.tmp_mb,
             "memlock_mb": lim.memlock_mb,
-            "allow_missing": bool(getattr(self.settings, "allow_unconfined", False)),
+            "allow_missing": bool(self.settings.allow_unconfined),
             **(limits.launcher_config() if limits is not None else {}),
             # TEST ONLY: layers the launcher reports missing ("skipped for a test"), for the tests of
             # the dashboard's "runs WITHOUT" banner. Never set on a bench.

@@ -16,7 +16,6 @@ import csv
 import hashlib
 import hmac
 import io
-import re
 import secrets
 import sqlite3
 import threading
@@ -30,9 +29,8 @@ from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatc
 
 from ...errors import XrfError
 from ...private_files import private_db
-from .roles import ROLES, Perm, role_has
+from .roles import ROLES, USERNAME_RE, Perm, role_has
 
-USERNAME_RE = re.compile(r"^[a-z0-9][a-z0-9._-]{1,31}$")
 MIN_PASSWORD = 10
 MAX_PASSWORD = 256
 

@@ -9,6 +9,7 @@ of roles (``GET /api/roles``): no page compares role names, it asks for a permis
 
 from __future__ import annotations
 
+import re
 from enum import Enum
 from typing import Literal, get_args
 
@@ -26,6 +27,9 @@ class Perm(str, Enum):
 
 Role = Literal["educator", "student", "observer"]
 ROLES: tuple[Role, ...] = get_args(Role)
+# Who an account is: lowercase, 2-32 characters; also a broker-side and file-name-safe token
+# (the room's class list carries it: room/payloads.py).
+USERNAME_RE = re.compile(r"^[a-z0-9][a-z0-9._-]{1,31}$")
 # The role the Users page offers first for a new account.
 DEFAULT_ROLE: Role = "student"
 
