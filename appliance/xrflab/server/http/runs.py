@@ -16,6 +16,8 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from ... import channels as chmod
 from ... import plants
+from ...errors import XrfError
+from ...projects.service import projects_of
 from ...statemachine import StateMachine, state_machine
 from ..runs import start as run_start
 from ..runs.store import RunRecord  # the run record's API model, made from runs.RunRow
@@ -150,12 +152,10 @@ async def get_builds(request: Request) -> list[dict[str, Any]]:
 async def _own_project_builds(request: Request) -> list[dict[str, Any]]:
     from pathlib import Path
 
-    from .projects import _service
-
     user = ownership.user_of(request)
     if user is None or user.role == "observer":
         return []
-    svc = await _service(request)
+    svc = projects_of(request)
 
     def newest() -> list[dict[str, Any]]:
         found = []
@@ -192,8 +192,8 @@ async def start_run(body: StartRun, request: Request, user: User = Depends(curre
     try:
         # Only a bundled example/template or a build of one's own project (else: a missing build).
         await ownership.check_startable(request, body.build)
-    except HTTPException as exc:
-        audit.record(user, "run.start_failed", {"build": body.build, "error": str(exc.detail)}, client_address(request))
+    except XrfError as exc:
+        audit.record(user, "run.start_failed", {"build": body.build, "error": str(exc)}, client_address(request))
         raise
     try:
         # The one start-a-run service (server/runs/start.py): lease bookkeeping and audit as every route

@@ -23,9 +23,10 @@ import re
 from collections.abc import Callable, Iterable
 from typing import Any, TypeVar
 
-from fastapi import HTTPException
 from starlette.requests import HTTPConnection
 
+from ...errors import NotFound
+from ..runs.errors import SupervisorError
 from ..ws.hub import Scoped
 from .auth import User, owns
 
@@ -44,9 +45,9 @@ def may_see(user: User | None, owner: int | str | None) -> bool:
     return user is not None and owns(user, owner)
 
 
-def not_found(what: str, ident: Any) -> HTTPException:
+def not_found(what: str, ident: Any) -> NotFound:
     """The answer for a missing resource and for someone else's: one body for both."""
-    return HTTPException(404, f"no {what} {ident}")
+    return NotFound(f"no {what} {ident}")
 
 
 def require(
@@ -55,7 +56,7 @@ def require(
     """`row` if it exists and `user` may see it; else the missing-resource 404 (`detail`: the
     route's own words for a missing one, when it has them)."""
     if row is None or not may_see(user, owner(row)):
-        raise HTTPException(404, detail) if detail is not None else not_found(what, ident)
+        raise NotFound(detail) if detail is not None else not_found(what, ident)
     return row
 
 
@@ -88,10 +89,10 @@ def runs(conn: HTTPConnection, limit: int) -> list[Any]:
 # ---- starting a run -------------------------------------------------------------------------
 
 
-def missing_build(conn: HTTPConnection, name: str) -> HTTPException:
+def missing_build(conn: HTTPConnection, name: str) -> NotFound:
     """Word for word what the catalog answers for a name it does not know (BuildCatalog.get)."""
     have = ", ".join(e.name for e in conn.app.state.supervisor.catalog.entries())
-    return HTTPException(404, f"no build named {name!r}; have: {have}")
+    return NotFound(f"no build named {name!r}; have: {have}")
 
 
 async def check_startable(conn: HTTPConnection, name: str) -> None:
@@ -107,9 +108,7 @@ async def check_startable(conn: HTTPConnection, name: str) -> None:
         return
     m = PROJECT_BUILD.fullmatch(name)
     if m is not None:
-        from ..http.projects import project_store
-
-        store = await project_store(conn)
+        store = conn.app.state.projects.store  # the projects service (made in server/app.py's lifespan)
         project = store.project(int(m.group(1)))
         build = store.build(int(m.group(2)))
         if project is None or build is None or build.project_id != project.id or not may_see(user, project.owner):
@@ -117,8 +116,6 @@ async def check_startable(conn: HTTPConnection, name: str) -> None:
         return
     catalog = conn.app.state.supervisor.catalog
     if name not in {e.name for e in catalog.entries()}:  # not bundled: an uploaded build by another name
-        from ..runs.supervisor import SupervisorError
-
         try:
             entry = catalog.get(name)
         except SupervisorError:  # unknown: start_run answers its own 404
