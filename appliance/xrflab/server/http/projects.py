@@ -5,6 +5,9 @@ Every route declares PROJECTS (DRIVE to start a run) and every project route che
 a project that is not the requester's answers 404, exactly like one that does not exist. The
 owner is the username (as in the runs table); the rule is server/security/ownership.py's (educators see
 everything), for the routes and for the build messages on the WebSocket alike.
+
+The projects service (xrflab/projects/service.py: store, build queue, versions, assignments) is
+made in the app's lifespan (server/app.py); these routes reach it through ``projects_of``.
 """
 
 from __future__ import annotations
