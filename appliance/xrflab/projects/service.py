@@ -13,18 +13,21 @@ from __future__ import annotations
 
 import asyncio
 import os
+import re
+import secrets
+import shutil
 from pathlib import Path
 from typing import Any
 
 from starlette.requests import HTTPConnection
 
-from ..errors import NotFound
+from ..errors import Invalid, NotFound
 from ..server.security import audit, ownership
 from ..server.security.accounts import User
 from ..server.settings import Settings
 from ..server.ws.messages import BuildMessage
 from . import archive
-from .assignments import Assignments
+from .assignments import ORIGIN_PREFIX, Assignments
 from .builder import Builder
 from .sandbox_config import SandboxConfig
 from .store import BuildRow, ProjectRow, ProjectStore, VersionRow
@@ -32,6 +35,44 @@ from .versions import Versions
 
 # The appliance's project templates (in <projects_dir>/templates), offered by name.
 TEMPLATES = ("base", "20sim")
+_SKIP = set(archive.SKIPPED_DIRS)
+
+
+def clean_name(name: str, fallback: str = "project") -> str:
+    """A project name as shown and stored: plain characters, at most 64 (else `fallback`)."""
+    name = re.sub(r"[^A-Za-z0-9_.+ -]", "_", name or "").strip(" ._")[:64]
+    return name or fallback
+
+
+def file_list(src: Path) -> list[str]:
+    """A source folder's files (relative, sorted), without what an upload leaves out."""
+    out = []
+    for dirpath, dirnames, filenames in os.walk(src):
+        dirnames[:] = sorted(d for d in dirnames if d not in _SKIP)
+        for f in sorted(filenames):
+            out.append((Path(dirpath) / f).relative_to(src).as_posix())
+    return out
+
+
+def refused(exc: archive.ArchiveRejected) -> Invalid:
+    """An archive the checker refused: 422 naming the offending entry."""
+    text = f"{exc.entry}: {exc.message}" if exc.entry else exc.message
+    detail = {"error": "archive refused: " + text, "entry": exc.entry, "message": exc.message}
+    return Invalid("archive refused: " + text, detail=detail)
+
+
+class VersionLock:
+    """A project's version lock (a thread lock: the editor's saves take it in a worker thread),
+    taken without blocking the event loop."""
+
+    def __init__(self, versions: Versions, project: ProjectRow) -> None:
+        self.lock = versions.lock(project)
+
+    async def __aenter__(self) -> None:
+        await asyncio.to_thread(self.lock.acquire)
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.lock.release()
 
 
 class ProjectsService:
@@ -71,6 +112,74 @@ class ProjectsService:
 
     def src(self, project: ProjectRow) -> Path:
         return self.folder(project) / "src"
+
+    # -- making and changing sources ----------------------------------------------------------------
+
+    def version_lock(self, project: ProjectRow) -> VersionLock:
+        return VersionLock(self.versions, project)
+
+    def new_folder(self) -> tuple[str, Path]:
+        """A new project's folder (its random token and path), with its builds folder."""
+        token = secrets.token_hex(8)
+        folder = self.root / token
+        folder.mkdir(mode=0o755)
+        os.chmod(folder, 0o755)
+        (folder / "builds").mkdir(mode=0o755)
+        # Explicit: `xrf serve` runs with umask 077 (private data files), and the build user must
+        # pass through this folder to its own build folder (search only, as for the folders above).
+        os.chmod(folder / "builds", 0o711)
+        return token, folder
+
+    async def unpack_into(self, archive_path: Path, folder: Path) -> archive.Manifest:
+        """Check + unpack next to the current source, then swap it in; the old source goes. The
+        archive is removed either way; a refused one is Invalid (422, the entry named)."""
+        new = folder / f"src.new-{secrets.token_hex(4)}"
+        try:
+            manifest = await asyncio.to_thread(archive.unpack, archive_path, new, self.limits)
+        except archive.ArchiveRejected as exc:
+            raise refused(exc) from None
+        finally:
+            archive_path.unlink(missing_ok=True)
+        src = folder / "src"
+        old = folder / f"src.old-{secrets.token_hex(4)}"
+        if src.exists():
+            os.rename(src, old)
+        os.rename(new, src)
+        shutil.rmtree(old, ignore_errors=True)
+        return manifest
+
+    async def record(self, project: ProjectRow, author: str, origin: str) -> None:
+        """The project's current source as its next version (under its version lock)."""
+        async with self.version_lock(project):
+            await asyncio.to_thread(self.versions.record, project, author, origin)
+
+    async def from_tree(self, src_t: Path, owner: str, name: str, origin: str) -> ProjectRow:
+        """A new project of `owner` whose source is a copy of the folder `src_t`, recorded as version 1."""
+        token, folder = self.new_folder()
+        await asyncio.to_thread(
+            shutil.copytree, src_t, folder / "src", symlinks=False, ignore=shutil.ignore_patterns(*_SKIP)
+        )
+        files = file_list(folder / "src")
+        project = self.store.create_project(owner, name, token, origin)
+        project = self.store.update_project(
+            project.id, files=len(files), bytes=sum((folder / "src" / f).stat().st_size for f in files)
+        )
+        await self.record(project, owner, origin)
+        return project
+
+    async def provide_assignments(self, owner: str) -> None:
+        """A copy of every received assignment this student has not had one of yet (one at a time:
+        two pages listing at once make one copy)."""
+        async with self.assignment_lock:
+            have = self.store.copies_made(owner)
+            for a in await asyncio.to_thread(self.assignments.list):
+                if a["id"] in have:
+                    continue
+                project = await self.from_tree(
+                    self.assignments.src(a["id"]), owner, clean_name(a["name"], a["id"]), ORIGIN_PREFIX + a["id"]
+                )
+                self.store.record_copy(a["id"], owner, project.id)
+                audit.record(None, "project.create", {"project": project.id, "owner": owner, "assignment": a["id"]})
 
     # -- whose --------------------------------------------------------------------------------------
 

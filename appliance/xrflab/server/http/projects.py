@@ -17,7 +17,6 @@ import io
 import mmap
 import os
 import re
-import secrets
 import shutil
 import zipfile
 from pathlib import Path
@@ -29,7 +28,7 @@ from pydantic import BaseModel, Field
 
 from ...projects import archive, source, twentysim
 from ...projects.assignments import ORIGIN_PREFIX
-from ...projects.service import TEMPLATES, ProjectsService, projects_of
+from ...projects.service import TEMPLATES, ProjectsService, clean_name, file_list, projects_of
 from ...projects.store import BuildRow, ProjectRow, RunLinkRow
 from ...records import list_of
 from ..runs import start as run_start
@@ -41,7 +40,6 @@ from .plant_field import PlantName
 
 router = APIRouter(prefix="/api", tags=["projects"])
 SOURCE_MAX_BYTES = 1 << 20
-_SKIP = set(archive.SKIPPED_DIRS)
 
 
 def _audit(request: Request, action: str, detail: dict[str, Any]) -> None:
@@ -130,25 +128,6 @@ class Excerpt(BaseModel):
 # ---- helpers --------------------------------------------------------------------------------------
 
 
-def _clean_name(name: str, fallback: str = "project") -> str:
-    name = re.sub(r"[^A-Za-z0-9_.+ -]", "_", name or "").strip(" ._")[:64]
-    return name or fallback
-
-
-def _rejected(exc: archive.ArchiveRejected) -> HTTPException:
-    text = f"{exc.entry}: {exc.message}" if exc.entry else exc.message
-    return HTTPException(422, {"error": "archive refused: " + text, "entry": exc.entry, "message": exc.message})
-
-
-def _file_list(src: Path) -> list[str]:
-    out = []
-    for dirpath, dirnames, filenames in os.walk(src):
-        dirnames[:] = sorted(d for d in dirnames if d not in _SKIP)
-        for f in sorted(filenames):
-            out.append((Path(dirpath) / f).relative_to(src).as_posix())
-    return out
-
-
 def _described(src: Path) -> dict[str, Any]:
     """The 20-sim model and the message fields of the controller the source builds (for an XRF2
     workspace: its controller package, the messages from its XRF2 folder or xrf2_msgs package)."""
@@ -223,64 +202,15 @@ async def _receive_archive(request: Request, svc: ProjectsService) -> tuple[Path
     return body, request.query_params.get("filename", ""), {}
 
 
-async def _unpack_into(svc: ProjectsService, archive_path: Path, folder: Path) -> archive.Manifest:
-    """Check + unpack next to the current source, then swap it in; the old source goes."""
-    new = folder / f"src.new-{secrets.token_hex(4)}"
-    try:
-        manifest = await asyncio.to_thread(archive.unpack, archive_path, new, svc.limits)
-    except archive.ArchiveRejected as exc:
-        raise _rejected(exc) from None
-    finally:
-        archive_path.unlink(missing_ok=True)
-    src = folder / "src"
-    old = folder / f"src.old-{secrets.token_hex(4)}"
-    if src.exists():
-        os.rename(src, old)
-    os.rename(new, src)
-    shutil.rmtree(old, ignore_errors=True)
-    return manifest
-
-
-def _new_folder(svc: ProjectsService) -> tuple[str, Path]:
-    token = secrets.token_hex(8)
-    folder = svc.root / token
-    folder.mkdir(mode=0o755)
-    os.chmod(folder, 0o755)
-    (folder / "builds").mkdir(mode=0o755)
-    # Explicit: `xrf serve` runs with umask 077 (private data files), and the build user must
-    # pass through this folder to its own build folder (search only, as for the folders above).
-    os.chmod(folder / "builds", 0o711)
-    return token, folder
-
-
 def _zip_dir(src: Path, top: str) -> bytes:
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
-        for rel in _file_list(src):
+        for rel in file_list(src):
             p = src / rel
             if p.is_symlink() or not p.is_file():
                 continue
             z.write(p, f"{top}/{rel}")
     return buf.getvalue()
-
-
-async def _record(svc: ProjectsService, project: ProjectRow, request: Request, origin: str) -> None:
-    async with _version_lock(svc, project):
-        await asyncio.to_thread(svc.versions.record, project, _owner_name(_user(request)), origin)
-
-
-class _version_lock:
-    """The project's version lock (a thread lock: the editor's saves take it in a worker thread),
-    taken without blocking the event loop."""
-
-    def __init__(self, svc: ProjectsService, project: ProjectRow) -> None:
-        self.lock = svc.versions.lock(project)
-
-    async def __aenter__(self) -> None:
-        await asyncio.to_thread(self.lock.acquire)
-
-    async def __aexit__(self, *exc: object) -> None:
-        self.lock.release()
 
 
 def _download(data: bytes, name: str) -> Response:
@@ -300,7 +230,7 @@ async def list_projects(
     finds a copy of every assignment the room published here (made on the first listing)."""
     user = _user(request)
     if user is not None and not user.is_educator:
-        await _provide_assignments(svc, _owner_name(user))
+        await svc.provide_assignments(_owner_name(user))
     rows = svc.store.projects() if all else svc.store.projects(owner=_owner_name(user))
     return [p.as_dict() for p in ownership.visible(user, rows)]
 
@@ -314,16 +244,18 @@ async def upload_project(
     a refusal (422) names the offending entry."""
     archive_path, filename, fields = await _receive_archive(request, svc)
     base = re.sub(r"(\.tar\.gz|\.tgz|\.zip|\.tar)$", "", Path(filename).name) if filename else ""
-    token, folder = _new_folder(svc)
+    token, folder = svc.new_folder()
     try:
-        manifest = await _unpack_into(svc, archive_path, folder)
+        manifest = await svc.unpack_into(archive_path, folder)
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
         raise
-    pname = _clean_name(name or fields.get("name", "") or manifest.prefix or base)
+    pname = clean_name(name or fields.get("name", "") or manifest.prefix or base)
     project = svc.store.create_project(_owner_name(_user(request)), pname, token, "upload")
     project = svc.store.update_project(project.id, files=len(manifest.files), bytes=manifest.total)
-    await _record(svc, project, request, "upload " + (Path(filename).name if filename else "(archive)"))
+    await svc.record(
+        project, _owner_name(_user(request)), "upload " + (Path(filename).name if filename else "(archive)")
+    )
     _audit(request, "project.upload", {"project": project.id, "name": project.name, "files": len(manifest.files)})
     return _upload_result(project, manifest)
 
@@ -346,8 +278,8 @@ async def replace_source(pid: int, request: Request) -> dict[str, Any]:
     svc, project = _project(request, pid)
     archive_path, filename, _ = await _receive_archive(request, svc)
     # Under the project's version lock: an editor save never lands between the swap and its record.
-    async with _version_lock(svc, project):
-        manifest = await _unpack_into(svc, archive_path, svc.folder(project))
+    async with svc.version_lock(project):
+        manifest = await svc.unpack_into(archive_path, svc.folder(project))
         project = svc.store.update_project(project.id, files=len(manifest.files), bytes=manifest.total)
         await asyncio.to_thread(
             svc.versions.record,
@@ -387,37 +319,6 @@ async def download_template(template: Literal["base", "20sim"], request: Request
     return _download(await asyncio.to_thread(_zip_dir, src, f"my_{template}"), f"my_{template}")
 
 
-async def _from_tree(svc: ProjectsService, src_t: Path, owner: str, name: str, origin: str) -> ProjectRow:
-    """A new project of `owner` whose source is a copy of the folder `src_t`, recorded as version 1."""
-    token, folder = _new_folder(svc)
-    await asyncio.to_thread(
-        shutil.copytree, src_t, folder / "src", symlinks=False, ignore=shutil.ignore_patterns(*_SKIP)
-    )
-    files = _file_list(folder / "src")
-    project = svc.store.create_project(owner, name, token, origin)
-    project = svc.store.update_project(
-        project.id, files=len(files), bytes=sum((folder / "src" / f).stat().st_size for f in files)
-    )
-    async with _version_lock(svc, project):
-        await asyncio.to_thread(svc.versions.record, project, owner, origin)
-    return project
-
-
-async def _provide_assignments(svc: ProjectsService, owner: str) -> None:
-    """A copy of every received assignment this student has not had one of yet (one at a time:
-    two pages listing at once make one copy)."""
-    async with svc.assignment_lock:
-        have = svc.store.copies_made(owner)
-        for a in await asyncio.to_thread(svc.assignments.list):
-            if a["id"] in have:
-                continue
-            project = await _from_tree(
-                svc, svc.assignments.src(a["id"]), owner, _clean_name(a["name"], a["id"]), ORIGIN_PREFIX + a["id"]
-            )
-            svc.store.record_copy(a["id"], owner, project.id)
-            audit.record(None, "project.create", {"project": project.id, "owner": owner, "assignment": a["id"]})
-
-
 @router.post("/projects/from-template", response_model=Project, status_code=201, dependencies=[requires(Perm.PROJECTS)])
 async def new_from_template(
     body: FromTemplate, request: Request, svc: ProjectsService = Depends(projects_of)
@@ -427,11 +328,11 @@ async def new_from_template(
         meta = svc.assignments.get(aid)
         if meta is None:
             raise HTTPException(404, f"no assignment {aid}")
-        src_t, default, origin = svc.assignments.src(aid), _clean_name(meta["name"], aid), body.template
+        src_t, default, origin = svc.assignments.src(aid), clean_name(meta["name"], aid), body.template
     else:
         src_t = request.app.state.settings.projects_dir / "templates" / body.template
         default, origin = f"my_{body.template}", f"template:{body.template}"
-    project = await _from_tree(svc, src_t, _owner_name(_user(request)), _clean_name(body.name, default), origin)
+    project = await svc.from_tree(src_t, _owner_name(_user(request)), clean_name(body.name, default), origin)
     _audit(request, "project.create", {"project": project.id, "name": project.name, "template": body.template})
     return project.as_dict()
 
@@ -443,7 +344,7 @@ async def get_project(pid: int, request: Request) -> dict[str, Any]:
     return {
         **project.as_dict(),
         **(await asyncio.to_thread(_described, src)),
-        "file_list": _file_list(src)[:2000],
+        "file_list": file_list(src)[:2000],
         "builds": [svc.build_dict(b) for b in svc.store.builds(pid, 20)],
         "runs": svc.store.runs_of(pid),
     }
