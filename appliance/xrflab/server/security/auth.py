@@ -30,17 +30,7 @@ if TYPE_CHECKING:
     from .audit import AuditLog
     from .lease import Lease
 
-__all__ = [
-    "Perm",
-    "User",
-    "check",
-    "requires",
-    "current_user",
-    "owns",
-    "Security",
-    "SAFE_COMMANDS",
-    "set_session_cookies",
-]
+__all__ = ["Perm", "User", "check", "requires", "current_user", "owns", "Security", "SAFE_COMMANDS"]
 
 SESSION_COOKIE = "xrf_session"
 CSRF_COOKIE = "xrf_csrf"
