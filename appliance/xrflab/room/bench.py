@@ -31,7 +31,7 @@ from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from ..projects.archive import ArchiveRejected
 from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
 from ..projects.assignments import Assignments
-from ..server.security.auth import Perm, client_address, requires
+from ..server.security.auth import Perm, client_address, requires, set_session_cookies
 from . import mqtt, payloads, sso
 from .accounts_sync import BenchAccounts
 from .commands import CommandHandler
@@ -309,7 +309,6 @@ router = APIRouter()
 # the credential (sso.py). Anything wrong answers 403 without saying more.
 @router.get("/room/sso", include_in_schema=False, dependencies=[requires(Perm.PUBLIC)])
 async def room_sso(request: Request, token: str = Query("", max_length=1000)) -> Response:
-    from ..server.http.accounts import _set_cookies
     from ..server.security import audit
 
     link: RoomLink | None = getattr(request.app.state, "room", None)
@@ -331,7 +330,7 @@ async def room_sso(request: Request, token: str = Query("", max_length=1000)) ->
     token_, csrf = security.accounts.new_session(user, client_address(request))
     audit.record(user, "auth.login", {"via": "room"}, client_address(request))
     response = RedirectResponse("/", status_code=303)
-    _set_cookies(request, response, token_, csrf, int(security.accounts.session_max_s))
+    set_session_cookies(request, response, token_, csrf, int(security.accounts.session_max_s))
     return response
 
 

@@ -64,8 +64,8 @@ def pack_bench(
 ) -> dict[str, Any]:
     """Write the bench's .tar.gz of `runs` to `out`; returns bench.json (also inside). Blocking."""
     from ..logs.convert import convert
+    from ..logs.runlogs import log_files, open_run_log
     from ..runfolder import RunFolder, RunPathError
-    from ..server.http.logs import log_files, open_run_log
 
     total = 0
     listed: list[dict[str, Any]] = []

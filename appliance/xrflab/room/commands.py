@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from ..errors import XrfError
 from ..server.ws.messages import AlarmMessage
 from . import payloads
 from .payloads import safe_text
@@ -105,9 +106,7 @@ class CommandHandler:
         return {"ok": True}
 
     async def _cmd_selfcheck(self, command: payloads.Selfcheck) -> dict[str, Any]:
-        from fastapi import HTTPException
-
-        from ..server.http.selfcheck import SelfCheckService, StartCheck
+        from ..selfcheck_service import SelfCheckService, StartCheck
         from ..server.security.accounts import User
 
         sup = self.app.state.supervisor
@@ -117,19 +116,17 @@ class CommandHandler:
                 self.publisher.status["selfcheck"] = {"verdict": "skipped", "t": time.time(), "message": why}
                 self.publisher.status_changed()
             return {"ok": False, "skipped": "busy", "error": why}
-        svc = getattr(self.app.state, "selfcheck", None)
-        if svc is None:
-            svc = self.app.state.selfcheck = SelfCheckService(self.app)
+        svc: SelfCheckService = self.app.state.selfcheck  # the appliance's, made at start-up (server/app.py)
         who = User(id=0, username=f"room:{command.by[:32]}", role="educator")
         try:
             active = await svc.start(StartCheck(profile=command.profile), who, "room")
-        except HTTPException as exc:
-            return {"ok": False, "error": safe_text(exc.detail, 300)}
+        except XrfError as exc:  # what the route would answer (its body's detail) is the reply's error
+            return {"ok": False, "error": safe_text(exc.body()["detail"], 300)}
         return {"ok": True, "check": active.id}
 
     async def _cmd_collect(self, command: payloads.Collect) -> dict[str, Any]:
         from ..projects.assignments import origin
-        from ..server.http.projects import service_of
+        from ..projects.service import ProjectsService
         from .collect import RunToPack, pack_bench
 
         link = getattr(self.app.state, "room", None)
@@ -137,7 +134,7 @@ class CommandHandler:
         if link is None:
             return {"ok": False, "error": "not a collection of this room"}
         formats: list[str] = sorted(set(command.formats))
-        svc = await service_of(self.app)
+        svc: ProjectsService = self.app.state.projects  # the appliance's, made at start-up (server/app.py)
         runs_store = self.app.state.supervisor.store
         runs: list[RunToPack] = []
         for p in svc.store.projects_with_origin(origin(aid)):  # every student's copy, on this bench

@@ -13,8 +13,10 @@ from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Redirect
 from fastapi.staticfiles import StaticFiles
 from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
+from ..projects.service import ProjectsService
 from ..room.bench import attach as attach_room
 from ..room.bench import router as room_bench_router
+from ..selfcheck_service import SelfCheckService
 from ..viz.scene import VizService
 from .http import errors as http_errors
 from .http.accounts import router as accounts_router
@@ -33,6 +35,7 @@ from .runs.log_writer import HostLogging
 from .runs.ros_bridge import RosBridgeSupervisor
 from .runs.store import RunStore
 from .runs.supervisor import Supervisor
+from .security import ownership
 from .security.auth import Perm, Security, SecurityHeaders, optional_user, requires
 from .security.body_limit import BodyLimit
 from .settings import Settings
@@ -53,7 +56,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         supervisor = Supervisor(settings, hub, store)
         hub.add_snapshot(supervisor.snapshot)  # the run and its state first, then the lease (security)
         app.state.supervisor = supervisor
-        security.open(hub, supervisor)  # accounts, audit trail, bench lease (issue 7)
+        security.open(hub)  # accounts, audit trail, bench lease (issue 7)
+        lease = security.lease
+        assert lease is not None  # made by security.open
+        hub.add_snapshot(lambda: [lease.message()])
+        ownership.attach(hub, supervisor)  # what each WebSocket client may see of the live run
+        # The services the routes, the ownership rule and the room's commands are handed (through
+        # app.state and the routes' dependencies: projects_of, selfcheck_of): made here, once,
+        # never on first use inside a route module.
+        app.state.projects = await asyncio.to_thread(ProjectsService, settings, supervisor, asyncio.get_running_loop())
+        selfcheck = SelfCheckService(settings, supervisor)
+        app.state.selfcheck = selfcheck
         # The run observers, in the order they are told of a run's start, samples and end
         # (server/runs/lifecycle.py). Host logging first: it adds the log counts to the ended run's record.
         supervisor.lifecycle.register(HostLogging(hub.publish, store))
@@ -63,8 +76,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         supervisor.lifecycle.register(viz)
         await viz.start()
         app.state.viz = viz
-        assert security.lease is not None  # made by security.open
-        supervisor.lifecycle.register(security.lease)  # a run's end is the holder's activity
+        supervisor.lifecycle.register(lease)  # a run's end is the holder's activity
         # ROS 2 bridge per run when enabled (server/runs/ros_bridge.py); its lease gate asks `security`.
         # Registers itself last: one bridge per run, started and stopped with it.
         ros = RosBridgeSupervisor(settings, supervisor, hub, security)
@@ -82,6 +94,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             with contextlib.suppress(Exception):
                 await recovering
             await room.close()
+            selfcheck.close()
             await ros.close()
             security.close()
             await supervisor.shutdown()

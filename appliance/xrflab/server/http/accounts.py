@@ -23,6 +23,7 @@ from ..security.auth import (
     client_address,
     current_user,
     requires,
+    set_session_cookies,
 )
 from ..security.roles import DEFAULT_ROLE, ROLES, Role, role_has
 
@@ -193,16 +194,6 @@ async def _authenticate(request: Request, username: str, password: str) -> User:
     return user
 
 
-def _set_cookies(request: Request, response: Response, token: str, csrf: str, max_age: int) -> None:
-    secure = request.url.scheme == "https"
-    response.set_cookie(
-        SESSION_COOKIE, token, max_age=max_age, path="/", httponly=True, samesite="strict", secure=secure
-    )
-    # Readable by the page (double submit: the page copies it into X-CSRF-Token); it is also
-    # bound to the session on the server, so a cookie planted by someone else is useless.
-    response.set_cookie(CSRF_COOKIE, csrf, max_age=max_age, path="/", httponly=False, samesite="strict", secure=secure)
-
-
 # ---- pages and health ---------------------------------------------------------------------------
 
 
@@ -232,7 +223,7 @@ async def login(body: Credentials, request: Request, response: Response) -> dict
     user = await _authenticate(request, body.username, body.password)
     accounts = _accounts(request)
     token, csrf = accounts.new_session(user, client_address(request))
-    _set_cookies(request, response, token, csrf, int(accounts.session_max_s))
+    set_session_cookies(request, response, token, csrf, int(accounts.session_max_s))
     # This browser now knows the password: its later logins are counted apart (LoginGuard).
     response.set_cookie(
         DEVICE_COOKIE,
@@ -300,7 +291,7 @@ async def change_password(body: PasswordChange, request: Request, user: User = D
     response = Response(status_code=204)
     if request.scope.get("xrf_session"):
         token, csrf = accounts.new_session(user, client_address(request))
-        _set_cookies(request, response, token, csrf, int(accounts.session_max_s))
+        set_session_cookies(request, response, token, csrf, int(accounts.session_max_s))
     audit.record(user, "user.password", {"user": user.username}, client_address(request))
     return response
 

@@ -28,10 +28,11 @@ from pydantic import BaseModel, Field
 
 from ...projects import archive
 from ...projects import versions as versions_mod
+from ...projects.service import TEMPLATES, ProjectsService, projects_of
 from ...projects.store import ProjectRow, VersionRow
 from ...records import list_of
-from ..security.auth import Perm, requires
-from .projects import ProjectsService, _audit, _build_dict, _project, _user, submit_version
+from ..security import audit, ownership
+from ..security.auth import Perm, client_address, requires
 
 router = APIRouter(prefix="/api", tags=["editor"])
 # Debian's libjs-codemirror (CodeMirror 5); XRF_CODEMIRROR_DIR for another install of it.
@@ -94,6 +95,20 @@ class Diff(BaseModel):
 
 
 # ---- helpers --------------------------------------------------------------------------------------
+
+
+def _user(request: Request) -> Any:
+    return ownership.user_of(request)
+
+
+def _project(request: Request, pid: int) -> tuple[ProjectsService, ProjectRow]:
+    """The projects service and the requester's project `pid` (someone else's: 404, as missing)."""
+    svc = projects_of(request)
+    return svc, svc.project_for(_user(request), pid)
+
+
+def _audit(request: Request, action: str, detail: dict[str, Any]) -> None:
+    audit.record(_user(request), action, detail, client_address(request))
 
 
 def _author(request: Request) -> str:
@@ -247,8 +262,6 @@ def _side(svc: ProjectsService, request: Request, project: ProjectRow, which: st
     """(label, path -> sha256, reader) of one side of a diff: a version number or template:<name>."""
     if which.startswith("template:"):
         name = which.split(":", 1)[1]
-        from .projects import TEMPLATES
-
         if name not in TEMPLATES:
             raise HTTPException(400, f"no template {name!r}; have: {', '.join(TEMPLATES)}")
         files, read = versions_mod.template_side(request.app.state.settings.projects_dir / "templates" / name)
@@ -269,7 +282,7 @@ def _side(svc: ProjectsService, request: Request, project: ProjectRow, which: st
 @router.get("/projects/{pid}/files", response_model=FileList, dependencies=[requires(Perm.PROJECTS)])
 async def list_files(pid: int, request: Request) -> dict[str, Any]:
     """The files of the project's current version, each with whether the editor can open it."""
-    svc, project = await _project(request, pid)
+    svc, project = _project(request, pid)
     v = await asyncio.to_thread(svc.versions.current, project, _author(request))
     tree = svc.versions.tree(project, v)
     files = await asyncio.to_thread(lambda: [_file_info(tree, rel) for rel in sorted(v.files)])
@@ -279,7 +292,7 @@ async def list_files(pid: int, request: Request) -> dict[str, Any]:
 @router.get("/projects/{pid}/files/{path:path}", response_model=FileContent, dependencies=[requires(Perm.PROJECTS)])
 async def read_file(pid: int, path: str, request: Request, version: int | None = None) -> dict[str, Any]:
     """One file's text, of the current version or of ``version``."""
-    svc, project = await _project(request, pid)
+    svc, project = _project(request, pid)
     rel = _checked(path, svc)
     if version is None:
         v = await asyncio.to_thread(svc.versions.current, project, _author(request))
@@ -318,7 +331,7 @@ async def save_file(
 ) -> dict[str, Any]:
     """Save one file (the request body: its UTF-8 text) as the project's next version, then queue
     its build (``build=false``: do not). ``base``: the version the text was edited from."""
-    svc, project = await _project(request, pid)
+    svc, project = _project(request, pid)
     rel = _checked(path, svc)
     data = await _body(request, FILE_MAX_BYTES, rel)
     why = _why_not_text(data, True)
@@ -328,8 +341,8 @@ async def save_file(
     _audit(request, "project.edit", {"project": pid, "path": rel, "version": version.n, "bytes": len(data)})
     out: dict[str, Any] = {"version": _version_dict(svc, project, version), "new_version": new, "build": None}
     if build:
-        row, reused = await submit_version(request, svc, project, version)
-        out["build"] = _build_dict(svc, row, reused)
+        row, reused = await svc.submit(project, version, _user(request), client_address(request))
+        out["build"] = svc.build_dict(row, reused)
         out["version"] = _version_dict(svc, project, version)
     return out
 
@@ -337,7 +350,7 @@ async def save_file(
 @router.delete("/projects/{pid}/files/{path:path}", response_model=SaveResult, dependencies=[requires(Perm.PROJECTS)])
 async def delete_file(pid: int, path: str, request: Request, base: int | None = None) -> dict[str, Any]:
     """Remove one file: the project's next version is without it (earlier versions keep it)."""
-    svc, project = await _project(request, pid)
+    svc, project = _project(request, pid)
     rel = _checked(path, svc)
     version, new = await asyncio.to_thread(_change, svc, project, rel, None, base, _author(request))
     _audit(request, "project.edit", {"project": pid, "path": rel, "version": version.n, "deleted": True})
@@ -347,7 +360,7 @@ async def delete_file(pid: int, path: str, request: Request, base: int | None = 
 @router.get("/projects/{pid}/versions", response_model=list_of(Version), dependencies=[requires(Perm.PROJECTS)])
 async def list_versions(pid: int, request: Request) -> list[dict[str, Any]]:
     """Every version of the project's source, newest first, each with its newest build."""
-    svc, project = await _project(request, pid)
+    svc, project = _project(request, pid)
     await asyncio.to_thread(svc.versions.current, project, _author(request))
     return [_version_dict(svc, project, v) for v in svc.store.versions(project.id)]
 
@@ -356,7 +369,7 @@ async def list_versions(pid: int, request: Request) -> list[dict[str, Any]]:
 async def diff_versions(pid: int, request: Request, a: str, b: str = "") -> dict[str, Any]:
     """What changed from ``a`` to ``b`` (each a version number or ``template:base``/``template:20sim``,
     the template as the appliance has it; ``b`` defaults to the current version)."""
-    svc, project = await _project(request, pid)
+    svc, project = _project(request, pid)
     current = await asyncio.to_thread(svc.versions.current, project, _author(request))
     la, fa, ra = _side(svc, request, project, a)
     lb, fb, rb = _side(svc, request, project, b or str(current.n))

@@ -5,6 +5,9 @@ Every route declares PROJECTS (DRIVE to start a run) and every project route che
 a project that is not the requester's answers 404, exactly like one that does not exist. The
 owner is the username (as in the runs table); the rule is server/security/ownership.py's (educators see
 everything), for the routes and for the build messages on the WebSocket alike.
+
+The projects service (xrflab/projects/service.py: store, build queue, versions, assignments) is
+made in the app's lifespan (server/app.py); these routes reach it through ``projects_of``.
 """
 
 from __future__ import annotations
@@ -14,108 +17,33 @@ import io
 import mmap
 import os
 import re
-import secrets
 import shutil
 import zipfile
 from pathlib import Path
 from typing import Any, Literal
 
-from fastapi import APIRouter, HTTPException, Request
+from fastapi import APIRouter, Depends, HTTPException, Request
 from fastapi.responses import PlainTextResponse, Response
 from pydantic import BaseModel, Field
-from starlette.requests import HTTPConnection
 
 from ...projects import archive, source, twentysim
-from ...projects.assignments import ORIGIN_PREFIX, Assignments
-from ...projects.builder import Builder
-from ...projects.sandbox_config import SandboxConfig
-from ...projects.store import BuildRow, ProjectRow, ProjectStore, RunLinkRow, VersionRow
-from ...projects.versions import Versions
+from ...projects.assignments import ORIGIN_PREFIX
+from ...projects.service import TEMPLATES, ProjectsService, clean_name, file_list, projects_of
+from ...projects.store import BuildRow, ProjectRow, RunLinkRow
 from ...records import list_of
+from ..runs import start as run_start
+from ..security import audit, ownership
 from ..security import auth as authmod
-from ..security import ownership
 from ..security.auth import Perm, requires
 from ..security.body_limit import spool_to_file
-from ..ws.messages import BuildMessage
 from .plant_field import PlantName
 
 router = APIRouter(prefix="/api", tags=["projects"])
-TEMPLATES = ("base", "20sim")
 SOURCE_MAX_BYTES = 1 << 20
-_SKIP = set(archive.SKIPPED_DIRS)
-
-
-# ---- the service (one per app, made on first use) -------------------------------------------------
-
-
-class ProjectsService:
-    def __init__(self, app: Any, loop: asyncio.AbstractEventLoop) -> None:
-        settings = app.state.settings
-        self.settings = settings
-        self.supervisor = app.state.supervisor
-        self.root: Path = settings.data_dir / "projects"
-        self.root.mkdir(parents=True, exist_ok=True)
-        os.chmod(self.root, 0o711)  # passable (the build user needs its project), not listable
-        (self.root / ".incoming").mkdir(exist_ok=True)
-        os.chmod(self.root / ".incoming", 0o700)
-        self.store = ProjectStore(settings.data_dir / "projects.sqlite3")
-        hub = self.supervisor.hub
-        self.limits = archive.Limits()
-
-        # Build messages carry their project's `owner`: the hub gives them to the owner's (and
-        # educators') WebSockets only (ownership.scope): one student's compiler output is nobody
-        # else's business. The builder names the kind (always `build`); the model checks it.
-        def publish(kind: str, payload: dict[str, Any]) -> None:
-            message = BuildMessage.model_validate({**payload, "type": kind})
-            try:
-                loop.call_soon_threadsafe(hub.publish, message)
-            except RuntimeError:  # loop closed: the appliance is stopping
-                pass
-
-        self.builder = Builder(
-            self.store, self.root, publish, SandboxConfig.from_settings(settings), hide_dir=settings.data_dir
-        )
-        # Every change of a project's source is a version; a build compiles a version's tree.
-        self.versions = Versions(self.store, self.root)
-        # What the room published (issue 21): templates of this bench's, copied to every student.
-        self.assignments = Assignments(settings.data_dir / "assignments")
-        self.assignment_lock = asyncio.Lock()
-
-    def folder(self, project: ProjectRow) -> Path:
-        return self.root / project.folder
-
-    def src(self, project: ProjectRow) -> Path:
-        return self.folder(project) / "src"
-
-
-_lock = asyncio.Lock()
-
-
-async def _service(request: HTTPConnection) -> ProjectsService:
-    return await service_of(request.app)
-
-
-async def service_of(app: Any) -> ProjectsService:
-    """The app's projects service (also for the room's commands, which have no request)."""
-    svc: ProjectsService | None = getattr(app.state, "projects", None)
-    if svc is None:
-        async with _lock:
-            svc = getattr(app.state, "projects", None)
-            if svc is None:
-                svc = await asyncio.to_thread(ProjectsService, app, asyncio.get_running_loop())
-                app.state.projects = svc
-    return svc
-
-
-async def project_store(conn: HTTPConnection) -> ProjectStore:
-    """The projects database, for other routes (ownership.check_startable)."""
-    return (await _service(conn)).store
 
 
 def _audit(request: Request, action: str, detail: dict[str, Any]) -> None:
     """The audit trail (issue 7): who uploaded, built and ran what."""
-    from ..security import audit
-
     audit.record(_user(request), action, detail, authmod.client_address(request))
 
 
@@ -130,17 +58,14 @@ def _owner_name(user: Any) -> str:
     return str(user.username)
 
 
-async def _project(request: Request, pid: int) -> tuple[ProjectsService, ProjectRow]:
-    svc = await _service(request)
-    return svc, ownership.require(_user(request), svc.store.project(pid), lambda p: p.owner, "project", pid)
+def _project(request: Request, pid: int) -> tuple[ProjectsService, ProjectRow]:
+    svc = projects_of(request)
+    return svc, svc.project_for(_user(request), pid)
 
 
-async def _build(request: Request, pid: int, bid: int) -> tuple[ProjectsService, ProjectRow, BuildRow]:
-    svc, project = await _project(request, pid)
-    b = svc.store.build(bid)
-    if b is None or b.project_id != project.id:
-        raise HTTPException(404, f"no build {bid} of project {pid}")
-    return svc, project, b
+def _build(request: Request, pid: int, bid: int) -> tuple[ProjectsService, ProjectRow, BuildRow]:
+    svc = projects_of(request)
+    return svc, *svc.build_for(_user(request), pid, bid)
 
 
 # ---- models ---------------------------------------------------------------------------------------
@@ -201,32 +126,6 @@ class Excerpt(BaseModel):
 
 
 # ---- helpers --------------------------------------------------------------------------------------
-
-
-def _clean_name(name: str, fallback: str = "project") -> str:
-    name = re.sub(r"[^A-Za-z0-9_.+ -]", "_", name or "").strip(" ._")[:64]
-    return name or fallback
-
-
-def _rejected(exc: archive.ArchiveRejected) -> HTTPException:
-    text = f"{exc.entry}: {exc.message}" if exc.entry else exc.message
-    return HTTPException(422, {"error": "archive refused: " + text, "entry": exc.entry, "message": exc.message})
-
-
-def _build_dict(svc: ProjectsService, b: BuildRow, reused: bool = False) -> dict[str, Any]:
-    d = b.as_dict()
-    d["reused"] = reused
-    d["position"] = svc.builder.position(b.id) if b.status in ("queued", "building") else -1
-    return d
-
-
-def _file_list(src: Path) -> list[str]:
-    out = []
-    for dirpath, dirnames, filenames in os.walk(src):
-        dirnames[:] = sorted(d for d in dirnames if d not in _SKIP)
-        for f in sorted(filenames):
-            out.append((Path(dirpath) / f).relative_to(src).as_posix())
-    return out
 
 
 def _described(src: Path) -> dict[str, Any]:
@@ -303,64 +202,15 @@ async def _receive_archive(request: Request, svc: ProjectsService) -> tuple[Path
     return body, request.query_params.get("filename", ""), {}
 
 
-async def _unpack_into(svc: ProjectsService, archive_path: Path, folder: Path) -> archive.Manifest:
-    """Check + unpack next to the current source, then swap it in; the old source goes."""
-    new = folder / f"src.new-{secrets.token_hex(4)}"
-    try:
-        manifest = await asyncio.to_thread(archive.unpack, archive_path, new, svc.limits)
-    except archive.ArchiveRejected as exc:
-        raise _rejected(exc) from None
-    finally:
-        archive_path.unlink(missing_ok=True)
-    src = folder / "src"
-    old = folder / f"src.old-{secrets.token_hex(4)}"
-    if src.exists():
-        os.rename(src, old)
-    os.rename(new, src)
-    shutil.rmtree(old, ignore_errors=True)
-    return manifest
-
-
-def _new_folder(svc: ProjectsService) -> tuple[str, Path]:
-    token = secrets.token_hex(8)
-    folder = svc.root / token
-    folder.mkdir(mode=0o755)
-    os.chmod(folder, 0o755)
-    (folder / "builds").mkdir(mode=0o755)
-    # Explicit: `xrf serve` runs with umask 077 (private data files), and the build user must
-    # pass through this folder to its own build folder (search only, as for the folders above).
-    os.chmod(folder / "builds", 0o711)
-    return token, folder
-
-
 def _zip_dir(src: Path, top: str) -> bytes:
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
-        for rel in _file_list(src):
+        for rel in file_list(src):
             p = src / rel
             if p.is_symlink() or not p.is_file():
                 continue
             z.write(p, f"{top}/{rel}")
     return buf.getvalue()
-
-
-async def _record(svc: ProjectsService, project: ProjectRow, request: Request, origin: str) -> None:
-    async with _version_lock(svc, project):
-        await asyncio.to_thread(svc.versions.record, project, _owner_name(_user(request)), origin)
-
-
-class _version_lock:
-    """The project's version lock (a thread lock: the editor's saves take it in a worker thread),
-    taken without blocking the event loop."""
-
-    def __init__(self, svc: ProjectsService, project: ProjectRow) -> None:
-        self.lock = svc.versions.lock(project)
-
-    async def __aenter__(self) -> None:
-        await asyncio.to_thread(self.lock.acquire)
-
-    async def __aexit__(self, *exc: object) -> None:
-        self.lock.release()
 
 
 def _download(data: bytes, name: str) -> Response:
@@ -373,35 +223,39 @@ def _download(data: bytes, name: str) -> Response:
 
 
 @router.get("/projects", response_model=list_of(Project), dependencies=[requires(Perm.PROJECTS)])
-async def list_projects(request: Request, all: bool = False) -> list[dict[str, Any]]:
+async def list_projects(
+    request: Request, all: bool = False, svc: ProjectsService = Depends(projects_of)
+) -> list[dict[str, Any]]:
     """The requester's projects; an educator's own too, or with ``all=true`` everyone's. A student
     finds a copy of every assignment the room published here (made on the first listing)."""
-    svc = await _service(request)
     user = _user(request)
     if user is not None and not user.is_educator:
-        await _provide_assignments(svc, _owner_name(user))
+        await svc.provide_assignments(_owner_name(user))
     rows = svc.store.projects() if all else svc.store.projects(owner=_owner_name(user))
     return [p.as_dict() for p in ownership.visible(user, rows)]
 
 
 @router.post("/projects", response_model=UploadResult, status_code=201, dependencies=[requires(Perm.PROJECTS)])
-async def upload_project(request: Request, name: str = "") -> dict[str, Any]:
+async def upload_project(
+    request: Request, name: str = "", svc: ProjectsService = Depends(projects_of)
+) -> dict[str, Any]:
     """Upload a project as zip / tar / tar.gz: multipart/form-data (field ``file``, optional
     ``name``) or the archive as the raw body. Checked completely before anything is unpacked;
     a refusal (422) names the offending entry."""
-    svc = await _service(request)
     archive_path, filename, fields = await _receive_archive(request, svc)
     base = re.sub(r"(\.tar\.gz|\.tgz|\.zip|\.tar)$", "", Path(filename).name) if filename else ""
-    token, folder = _new_folder(svc)
+    token, folder = svc.new_folder()
     try:
-        manifest = await _unpack_into(svc, archive_path, folder)
+        manifest = await svc.unpack_into(archive_path, folder)
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
         raise
-    pname = _clean_name(name or fields.get("name", "") or manifest.prefix or base)
+    pname = clean_name(name or fields.get("name", "") or manifest.prefix or base)
     project = svc.store.create_project(_owner_name(_user(request)), pname, token, "upload")
     project = svc.store.update_project(project.id, files=len(manifest.files), bytes=manifest.total)
-    await _record(svc, project, request, "upload " + (Path(filename).name if filename else "(archive)"))
+    await svc.record(
+        project, _owner_name(_user(request)), "upload " + (Path(filename).name if filename else "(archive)")
+    )
     _audit(request, "project.upload", {"project": project.id, "name": project.name, "files": len(manifest.files)})
     return _upload_result(project, manifest)
 
@@ -421,11 +275,11 @@ def _upload_result(project: ProjectRow, manifest: archive.Manifest) -> dict[str,
 @router.put("/projects/{pid}/source", response_model=UploadResult, dependencies=[requires(Perm.PROJECTS)])
 async def replace_source(pid: int, request: Request) -> dict[str, Any]:
     """A new version of the project's source (same rules as the first upload); builds are kept."""
-    svc, project = await _project(request, pid)
+    svc, project = _project(request, pid)
     archive_path, filename, _ = await _receive_archive(request, svc)
     # Under the project's version lock: an editor save never lands between the swap and its record.
-    async with _version_lock(svc, project):
-        manifest = await _unpack_into(svc, archive_path, svc.folder(project))
+    async with svc.version_lock(project):
+        manifest = await svc.unpack_into(archive_path, svc.folder(project))
         project = svc.store.update_project(project.id, files=len(manifest.files), bytes=manifest.total)
         await asyncio.to_thread(
             svc.versions.record,
@@ -438,7 +292,7 @@ async def replace_source(pid: int, request: Request) -> dict[str, Any]:
 
 
 @router.get("/project-templates", dependencies=[requires(Perm.PROJECTS)])
-async def list_templates(request: Request) -> list[dict[str, Any]]:
+async def list_templates(request: Request, svc: ProjectsService = Depends(projects_of)) -> list[dict[str, Any]]:
     """The appliance's templates, then the assignments the room published (``assignment:<id>``)."""
     root = request.app.state.settings.projects_dir / "templates"
     out: list[dict[str, Any]] = []
@@ -446,7 +300,6 @@ async def list_templates(request: Request) -> list[dict[str, Any]]:
         readme = root / t / "README.md"
         first = readme.read_text(errors="replace").strip().splitlines()[0].lstrip("# ") if readme.exists() else t
         out.append({"name": t, "title": first})
-    svc = await _service(request)
     for a in await asyncio.to_thread(svc.assignments.list):
         out.append(
             {
@@ -466,72 +319,40 @@ async def download_template(template: Literal["base", "20sim"], request: Request
     return _download(await asyncio.to_thread(_zip_dir, src, f"my_{template}"), f"my_{template}")
 
 
-async def _from_tree(svc: ProjectsService, src_t: Path, owner: str, name: str, origin: str) -> ProjectRow:
-    """A new project of `owner` whose source is a copy of the folder `src_t`, recorded as version 1."""
-    token, folder = _new_folder(svc)
-    await asyncio.to_thread(
-        shutil.copytree, src_t, folder / "src", symlinks=False, ignore=shutil.ignore_patterns(*_SKIP)
-    )
-    files = _file_list(folder / "src")
-    project = svc.store.create_project(owner, name, token, origin)
-    project = svc.store.update_project(
-        project.id, files=len(files), bytes=sum((folder / "src" / f).stat().st_size for f in files)
-    )
-    async with _version_lock(svc, project):
-        await asyncio.to_thread(svc.versions.record, project, owner, origin)
-    return project
-
-
-async def _provide_assignments(svc: ProjectsService, owner: str) -> None:
-    """A copy of every received assignment this student has not had one of yet (one at a time:
-    two pages listing at once make one copy)."""
-    from ..security import audit
-
-    async with svc.assignment_lock:
-        have = svc.store.copies_made(owner)
-        for a in await asyncio.to_thread(svc.assignments.list):
-            if a["id"] in have:
-                continue
-            project = await _from_tree(
-                svc, svc.assignments.src(a["id"]), owner, _clean_name(a["name"], a["id"]), ORIGIN_PREFIX + a["id"]
-            )
-            svc.store.record_copy(a["id"], owner, project.id)
-            audit.record(None, "project.create", {"project": project.id, "owner": owner, "assignment": a["id"]})
-
-
 @router.post("/projects/from-template", response_model=Project, status_code=201, dependencies=[requires(Perm.PROJECTS)])
-async def new_from_template(body: FromTemplate, request: Request) -> dict[str, Any]:
-    svc = await _service(request)
+async def new_from_template(
+    body: FromTemplate, request: Request, svc: ProjectsService = Depends(projects_of)
+) -> dict[str, Any]:
     if body.template.startswith(ORIGIN_PREFIX):
         aid = body.template[len(ORIGIN_PREFIX) :]
         meta = svc.assignments.get(aid)
         if meta is None:
             raise HTTPException(404, f"no assignment {aid}")
-        src_t, default, origin = svc.assignments.src(aid), _clean_name(meta["name"], aid), body.template
+        src_t, default, origin = svc.assignments.src(aid), clean_name(meta["name"], aid), body.template
     else:
         src_t = request.app.state.settings.projects_dir / "templates" / body.template
         default, origin = f"my_{body.template}", f"template:{body.template}"
-    project = await _from_tree(svc, src_t, _owner_name(_user(request)), _clean_name(body.name, default), origin)
+    project = await svc.from_tree(src_t, _owner_name(_user(request)), clean_name(body.name, default), origin)
     _audit(request, "project.create", {"project": project.id, "name": project.name, "template": body.template})
     return project.as_dict()
 
 
 @router.get("/projects/{pid}", response_model=ProjectDetail, dependencies=[requires(Perm.PROJECTS)])
 async def get_project(pid: int, request: Request) -> dict[str, Any]:
-    svc, project = await _project(request, pid)
+    svc, project = _project(request, pid)
     src = svc.src(project)
     return {
         **project.as_dict(),
         **(await asyncio.to_thread(_described, src)),
-        "file_list": _file_list(src)[:2000],
-        "builds": [_build_dict(svc, b) for b in svc.store.builds(pid, 20)],
+        "file_list": file_list(src)[:2000],
+        "builds": [svc.build_dict(b) for b in svc.store.builds(pid, 20)],
         "runs": svc.store.runs_of(pid),
     }
 
 
 @router.delete("/projects/{pid}", status_code=204, dependencies=[requires(Perm.PROJECTS)])
 async def delete_project(pid: int, request: Request) -> Response:
-    svc, project = await _project(request, pid)
+    svc, project = _project(request, pid)
     if any(b.status in ("queued", "building") for b in svc.store.builds(pid, 5)):
         raise HTTPException(409, "a build of this project is queued or running; wait for it")
     _audit(request, "project.delete", {"project": pid})
@@ -542,7 +363,7 @@ async def delete_project(pid: int, request: Request) -> Response:
 
 @router.get("/projects/{pid}/download", dependencies=[requires(Perm.PROJECTS)])
 async def download_project(pid: int, request: Request) -> Response:
-    svc, project = await _project(request, pid)
+    svc, project = _project(request, pid)
     return _download(await asyncio.to_thread(_zip_dir, svc.src(project), project.name), project.name)
 
 
@@ -552,7 +373,7 @@ async def source_excerpt(
 ) -> dict[str, Any]:
     """Lines of one file of the project (around ``line``): what a clicked compiler error shows.
     The path must stay inside the project's source folder; links are not followed."""
-    svc, project = await _project(request, pid)
+    svc, project = _project(request, pid)
     src = svc.src(project).resolve()
     try:
         rel = archive.check_name(path, svc.limits)
@@ -584,40 +405,29 @@ async def source_excerpt(
 async def start_build(pid: int, request: Request) -> dict[str, Any]:
     """Queue a build (one runs at a time). An unchanged source that built before is not built
     again: that build comes back with ``reused: true``."""
-    svc, project = await _project(request, pid)
+    svc, project = _project(request, pid)
     version = await asyncio.to_thread(svc.versions.current, project, _owner_name(_user(request)))
-    row, reused = await submit_version(request, svc, project, version)
-    return _build_dict(svc, row, reused)
-
-
-async def submit_version(
-    request: Request, svc: ProjectsService, project: ProjectRow, version: VersionRow
-) -> tuple[BuildRow, bool]:
-    """Queue the build of one source version (its immutable tree, so the build compiles exactly
-    that source however the project is edited meanwhile); an unchanged source reuses its build."""
-    row, reused = await asyncio.to_thread(svc.builder.submit, project, svc.versions.tree(project, version))
-    svc.store.update_project(project.id, source_hash=row.source_hash)
-    _audit(request, "build.start", {"project": project.id, "build": row.id, "reused": reused, "version": version.n})
-    return row, reused
+    row, reused = await svc.submit(project, version, _user(request), authmod.client_address(request))
+    return svc.build_dict(row, reused)
 
 
 @router.get("/projects/{pid}/builds", response_model=list_of(Build), dependencies=[requires(Perm.PROJECTS)])
 async def list_builds(pid: int, request: Request) -> list[dict[str, Any]]:
-    svc, project = await _project(request, pid)
-    return [_build_dict(svc, b) for b in svc.store.builds(project.id)]
+    svc, project = _project(request, pid)
+    return [svc.build_dict(b) for b in svc.store.builds(project.id)]
 
 
 @router.get("/projects/{pid}/builds/{bid}", response_model=Build, dependencies=[requires(Perm.PROJECTS)])
 async def get_build(pid: int, bid: int, request: Request) -> dict[str, Any]:
-    svc, _, b = await _build(request, pid, bid)
-    return _build_dict(svc, b)
+    svc, _, b = _build(request, pid, bid)
+    return svc.build_dict(b)
 
 
 @router.get(
     "/projects/{pid}/builds/{bid}/log", response_class=PlainTextResponse, dependencies=[requires(Perm.PROJECTS)]
 )
 async def build_log(pid: int, bid: int, request: Request) -> str:
-    _, _, b = await _build(request, pid, bid)
+    _, _, b = _build(request, pid, bid)
     if not b.log_path or not Path(b.log_path).exists():
         return ""
     return await asyncio.to_thread(Path(b.log_path).read_text, errors="replace")
@@ -627,25 +437,20 @@ async def build_log(pid: int, bid: int, request: Request) -> str:
 async def run_build(pid: int, bid: int, body: RunBuild, request: Request) -> dict[str, Any]:
     """Start a successful build on the bench; the run record names the build
     (``project-<pid>-build-<bid>``) and is linked to it."""
-    svc, project, b = await _build(request, pid, bid)
+    svc, project, b = _build(request, pid, bid)
     if b.status != "ok" or not b.executable or not Path(b.executable).exists():
         raise HTTPException(409, f"build {bid} is {b.status}; only a successful build can run")
-    from ..runs import start as run_start
-    from ..runs.supervisor import SupervisorError
-
     name = f"project-{pid}-build-{bid}"
     svc.supervisor.catalog.add_external(name, svc.src(project), Path(b.executable), body.sim or svc.settings.sim)
-    try:
-        # The one start-a-run service (server/runs/start.py), as POST /api/runs: the same lease
-        # bookkeeping and timing option. The run is the project owner's, whoever starts it.
-        row = await run_start.start_run(
-            request,
-            _user(request),
-            run_start.RunRequest(name, body.sim, body.max_cycles, body.log_timing),
-            owner=project.owner,
-            audit_detail={"project": pid, "build": b.id},
-        )
-    except SupervisorError as exc:
-        raise HTTPException(exc.status, str(exc)) from None
+    # The one start-a-run service (server/runs/start.py), as POST /api/runs: the same lease
+    # bookkeeping and timing option. The run is the project owner's, whoever starts it. Its
+    # refusals (SupervisorError, an xrflab.errors kind) answer through the one handler.
+    row = await run_start.start_run(
+        request,
+        _user(request),
+        run_start.RunRequest(name, body.sim, body.max_cycles, body.log_timing),
+        owner=project.owner,
+        audit_detail={"project": pid, "build": b.id},
+    )
     svc.store.link_run(row.id, b)
     return {"run": row.as_dict(), "build_id": b.id, "project_id": pid}

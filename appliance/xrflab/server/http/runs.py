@@ -17,6 +17,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 from ... import channels as chmod
 from ... import plants
 from ...errors import Denied, Invalid, Unavailable, XrfError
+from ...projects.service import projects_of
 from ...statemachine import StateMachine, state_machine
 from ..runs import start as run_start
 from ..runs.store import RunRecord  # the run record's API model, made from runs.RunRow
@@ -148,12 +149,10 @@ async def get_builds(request: Request) -> list[dict[str, Any]]:
 async def _own_project_builds(request: Request) -> list[dict[str, Any]]:
     from pathlib import Path
 
-    from .projects import _service
-
     user = ownership.user_of(request)
     if user is None or not role_has(user.role, Perm.PROJECTS):  # observers have no projects
         return []
-    svc = await _service(request)
+    svc = projects_of(request)
 
     def newest() -> list[dict[str, Any]]:
         found = []

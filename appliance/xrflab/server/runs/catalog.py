@@ -17,7 +17,7 @@ from pathlib import Path
 from ... import plants
 from ..settings import Settings
 from ..ws.messages import BuildMessage
-from .run import SupervisorError
+from .errors import SupervisorError
 
 
 @dataclass

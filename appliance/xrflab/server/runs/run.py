@@ -25,10 +25,10 @@ from typing import TYPE_CHECKING, Any
 from ... import channels as chmod
 from ... import guest
 from ...channels import Channels, ChannelsCorrupt, segment
-from ...errors import XrfError
 from ...logs import live as loglive
 from ...runfolder import remove_folder
 from .children import Child
+from .errors import SupervisorError as SupervisorError  # its home is errors.py; launch and control import it here
 from .guest_spawn import GuestReport
 from .limits import RunLimits
 from .safety import SafetyWatcher, WatchResult
@@ -41,12 +41,6 @@ if TYPE_CHECKING:
 # The run segment's name below /dev/shm: <the loop's /dev/shm folder> + this, a symlink to the
 # appliance's descriptor of it (launch.segment_link); defined where the segment is opened.
 SEGMENT_LINK_SUFFIX = segment.SEGMENT_LINK_SUFFIX
-
-
-class SupervisorError(XrfError):
-    """A request the supervisor cannot honour (by default: not now, 409)."""
-
-    status = 409
 
 
 @dataclass

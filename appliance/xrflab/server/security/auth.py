@@ -17,11 +17,12 @@ import time
 from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit
 
-from fastapi import Depends, HTTPException
+from fastapi import Depends, Response
 from starlette.exceptions import WebSocketException
 from starlette.requests import HTTPConnection
 
 from ...channels import names as _names
+from ...errors import XrfError
 from .accounts import Accounts, LoginGuard, User
 from .roles import ROLE_PERMS, Perm, role_has
 
@@ -60,8 +61,10 @@ class Security:
         # argon2 is memory-hard on purpose: at most this many checks at once (a login rush on a Pi).
         self.hash_slots = asyncio.Semaphore(4)
 
-    def open(self, hub: Any, supervisor: Any) -> None:
-        """In the app's lifespan, once the hub and supervisor exist."""
+    def open(self, hub: Any) -> None:
+        """In the app's lifespan, once the hub exists: the lease publishes on it, and a user whose
+        sessions end is disconnected from it. The app (server/app.py) wires the rest: the lease's
+        snapshot for new clients and the ownership rule of the hub's fan-out."""
         from . import audit as auditmod
         from .audit import AuditLog
         from .lease import Lease
@@ -73,10 +76,6 @@ class Security:
         lease = Lease(settings.lease_idle_s, hub.publish, auditmod.record)
         self.lease = lease
         bootstrap_admin(self.accounts)
-        hub.add_snapshot(lambda: [lease.message()])
-        from . import ownership
-
-        ownership.attach(hub, supervisor)  # what each WebSocket client may see of the live run
         self.hub = hub
         lease.start()
 
@@ -142,7 +141,20 @@ def _deny(conn: HTTPConnection, status: int, detail: str) -> Exception:
     if conn.scope["type"] == "websocket":
         return WebSocketException(code=1008, reason=detail[:120])
     headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
-    return HTTPException(status_code=status, detail=detail, headers=headers)
+    return XrfError(detail, status, headers=headers)  # 401 or 403, answered by server/http/errors.py
+
+
+def set_session_cookies(conn: HTTPConnection, response: Response, token: str, csrf: str, max_age: int) -> None:
+    """A new session's cookies on `response`: the session (HTTP only) and its CSRF token. For every
+    way of logging in: the password (server/http/accounts.py), a changed password, the room's
+    sign-on link (room/bench.py)."""
+    secure = conn.url.scheme == "https"
+    response.set_cookie(
+        SESSION_COOKIE, token, max_age=max_age, path="/", httponly=True, samesite="strict", secure=secure
+    )
+    # Readable by the page (double submit: the page copies it into X-CSRF-Token); it is also
+    # bound to the session on the server, so a cookie planted by someone else is useless.
+    response.set_cookie(CSRF_COOKIE, csrf, max_age=max_age, path="/", httponly=False, samesite="strict", secure=secure)
 
 
 def may(user: User, perm: Perm, lease: Lease | None = None) -> bool:
@@ -155,7 +167,7 @@ def may(user: User, perm: Perm, lease: Lease | None = None) -> bool:
 
 
 def check(conn: HTTPConnection, perm: Perm, *, grpc_web: bool = False) -> User | None:
-    """Raise (HTTPException, or WebSocketException on a handshake) when the request may not do
+    """Raise (XrfError 401/403, or WebSocketException on a handshake) when the request may not do
     `perm`; return the user (None for an anonymous PUBLIC request). `grpc_web`: see
     requires_grpc_web()."""
     security: Security = conn.app.state.security

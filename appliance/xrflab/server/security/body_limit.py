@@ -22,7 +22,9 @@ from collections.abc import Awaitable, Callable, MutableMapping
 from pathlib import Path
 from typing import Any
 
-from fastapi import HTTPException, Request
+from fastapi import Request
+
+from ...errors import TooLarge
 
 Scope = MutableMapping[str, Any]
 Message = MutableMapping[str, Any]
@@ -178,7 +180,7 @@ async def spool_to_file(
             async for chunk in request.stream():
                 total += len(chunk)
                 if total > limit:
-                    raise HTTPException(413, too_large if too_large is not None else f"over {limit >> 20} MB")
+                    raise TooLarge(f"over {limit >> 20} MB", detail=too_large)
                 f.write(chunk)
     except BaseException:
         os.unlink(name)

@@ -26,6 +26,7 @@ from typing import Any, TypeVar
 from starlette.requests import HTTPConnection
 
 from ...errors import NotFound
+from ..runs.errors import SupervisorError
 from ..ws.hub import Scoped
 from .auth import User, owns
 
@@ -107,9 +108,7 @@ async def check_startable(conn: HTTPConnection, name: str) -> None:
         return
     m = PROJECT_BUILD.fullmatch(name)
     if m is not None:
-        from ..http.projects import project_store
-
-        store = await project_store(conn)
+        store = conn.app.state.projects.store  # the projects service (made in server/app.py's lifespan)
         project = store.project(int(m.group(1)))
         build = store.build(int(m.group(2)))
         if project is None or build is None or build.project_id != project.id or not may_see(user, project.owner):
@@ -117,8 +116,6 @@ async def check_startable(conn: HTTPConnection, name: str) -> None:
         return
     catalog = conn.app.state.supervisor.catalog
     if name not in {e.name for e in catalog.entries()}:  # not bundled: an uploaded build by another name
-        from ..runs.supervisor import SupervisorError
-
         try:
             entry = catalog.get(name)
         except SupervisorError:  # unknown: start_run answers its own 404
