@@ -51,6 +51,7 @@ LAYER_OF: dict[str, str] = {
     # ---- services: stateful parts the roots make and hand to the routes
     "xrflab.server.runs": "services",  # the run supervisor and its parts, run records
     "xrflab.server.security": "services",  # accounts, sessions, permissions, the lease, the audit trail
+    "xrflab.server.security.roles": "domain",  # the roles and their permissions: a rule, shared with the room's payloads
     "xrflab.room": "services",  # the lab room's bench side: MQTT, publisher, enrolment, sign-on
     "xrflab.room.topics": "domain",  # the room's MQTT topic names: pure strings, shared by both ends
     "xrflab.room.payloads": "domain",  # the room's MQTT payload models: the wire's types
