@@ -89,6 +89,7 @@ LAYER_OF: dict[str, str] = {
     "xrflab.tied": "domain",  # a process primitive (children die with their parent); knows nothing of the appliance
     "xrflab.records": "domain",  # column(...): a dataclass as a SQLite table and an API model
     "xrflab.plants": "domain",  # the plant table (through the binding)
+    "xrflab.plant_field": "domain",  # the API's field naming a plant of the table, shared by two routers
     "xrflab.statemachine": "domain",  # the state machine (through the binding)
     "xrflab.profiles": "domain",  # the bench profile schema and its validator
     "xrflab.profile_flat": "domain",  # a profile's flat form for the checker

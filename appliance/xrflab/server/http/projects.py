@@ -25,6 +25,7 @@ from fastapi.responses import PlainTextResponse, Response
 from pydantic import BaseModel, Field
 from starlette.requests import HTTPConnection
 
+from ...plant_field import PlantName
 from ...projects import archive, source, twentysim
 from ...projects.assignments import ORIGIN_PREFIX, Assignments
 from ...projects.builder import Builder
@@ -37,7 +38,6 @@ from ..security import ownership
 from ..security.auth import Perm, requires
 from ..security.body_limit import spool_to_file
 from ..ws.messages import BuildMessage
-from .plant_field import PlantName
 
 router = APIRouter(prefix="/api", tags=["projects"])
 TEMPLATES = ("base", "20sim")

@@ -16,6 +16,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from ... import channels as chmod
 from ... import plants
+from ...plant_field import PlantInfo, PlantName
 from ...statemachine import StateMachine, state_machine
 from ..runs import start as run_start
 from ..runs.store import RunRecord  # the run record's API model, made from runs.RunRow
@@ -24,7 +25,6 @@ from ..security import audit, ownership
 from ..security.auth import SAFE_COMMANDS, Perm, User, check, client_address, current_user, may, requires
 from ..ws import messages
 from ..ws.hub import Client
-from .plant_field import PlantInfo, PlantName
 
 router = APIRouter(prefix="/api")
 
