@@ -282,10 +282,17 @@ def cycles(edges: list[Edge], modules: dict[str, Path]) -> list[str]:
 def check(appliance: Path) -> list[str]:
     modules = module_names(appliance)
     edges: dict[tuple[str, str], Edge] = {}
+    unreadable: list[str] = []
     for name, path in modules.items():
-        for e in imports_of(name, path, modules):
+        try:
+            found = imports_of(name, path, modules)
+        except SyntaxError as exc:  # its imports cannot be known: a problem, not a traceback
+            unreadable.append(f"{path}:{exc.lineno}: {name} does not parse ({exc.msg})")
+            continue
+        for e in found:
             edges.setdefault((e.source, e.target), e)  # one line per pair: its first import
-    return unplaced(modules) + layer_violations(list(edges.values())) + cycles(list(edges.values()), modules)
+    found_edges = list(edges.values())
+    return unreadable + unplaced(modules) + layer_violations(found_edges) + cycles(found_edges, modules)
 
 
 def main(argv: list[str]) -> int:

@@ -101,3 +101,11 @@ def test_a_module_in_no_layer_is_refused(tree: Path) -> None:
     (tree / "appliance" / "xrflab" / "server" / "planted.py").write_text('"""Nowhere yet."""\n')
     [found] = new_lines(tree, before)
     assert "xrflab.server.planted is in no layer" in found
+
+
+def test_a_module_that_does_not_parse_is_a_problem_not_a_traceback(tree: Path) -> None:
+    """A merge's conflict markers left in a module: the check names it and fails cleanly."""
+    before = run_tool(tree / "appliance").stdout
+    plant(tree / "appliance" / "xrflab" / "records.py", "<<<<<<< HEAD\n")
+    [found] = new_lines(tree, before)
+    assert "xrflab.records does not parse" in found
