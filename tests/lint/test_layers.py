@@ -7,6 +7,7 @@ whatever state the rest of the tree is in."""
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import shutil
 import subprocess
@@ -19,10 +20,17 @@ REPO = Path(__file__).resolve().parents[2]
 TOOL = REPO / "tests" / "lint" / "layers.py"
 
 
-def run_tool(appliance: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, str(TOOL), str(appliance)], capture_output=True, text=True, timeout=120, check=False
-    )
+# The tool, loaded from its file (tests/lint is no package): called in-process, so every test here
+# but the one through ./lab is in the fast tier.
+_spec = importlib.util.spec_from_file_location("lint_layers", TOOL)
+assert _spec is not None and _spec.loader is not None
+layers = importlib.util.module_from_spec(_spec)
+sys.modules["lint_layers"] = layers  # its dataclass looks its module up while the module runs
+_spec.loader.exec_module(layers)
+
+
+def problems(appliance: Path) -> list[str]:
+    return layers.check(appliance)
 
 
 @pytest.fixture
@@ -45,24 +53,20 @@ def plant(path: Path, text: str) -> None:
     path.write_text(path.read_text() + text)
 
 
-def new_lines(tree: Path, before: str) -> list[str]:
+def new_lines(tree: Path, before: list[str]) -> list[str]:
     """What the tool reports in the planted tree that it did not report before planting."""
-    proc = run_tool(tree / "appliance")
-    assert proc.returncode == 1, proc.stdout + proc.stderr
-    seen = set(before.splitlines())
-    return [line for line in proc.stdout.splitlines() if line not in seen]
+    return [line for line in problems(tree / "appliance") if line not in set(before)]
 
 
 def test_the_checkout_has_no_cycle_and_no_back_import() -> None:
-    proc = run_tool(REPO / "appliance")
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert proc.stdout == ""
+    found = problems(REPO / "appliance")
+    assert found == [], "\n".join(found)
 
 
 def test_lab_check_fails_on_a_planted_back_import(tree: Path) -> None:
     """A domain module reaching up into a service, from inside a function (a deferred import is
     still an import): `./lab check layers` fails and names both modules and both layers."""
-    before = run_tool(tree / "appliance").stdout
+    before = problems(tree / "appliance")
     runfolder = tree / "appliance" / "xrflab" / "runfolder.py"
     plant(runfolder, "\n\ndef _planted() -> None:\n    from . import credentials  # noqa: F401\n")
     line = runfolder.read_text().splitlines().index("    from . import credentials  # noqa: F401") + 1
@@ -80,7 +84,7 @@ def test_lab_check_fails_on_a_planted_back_import(tree: Path) -> None:
 
 
 def test_a_service_importing_a_route_is_refused(tree: Path) -> None:
-    before = run_tool(tree / "appliance").stdout
+    before = problems(tree / "appliance")
     plant(tree / "appliance" / "xrflab" / "viz" / "scene.py", "\nimport xrflab.server.http.viz  # noqa: E402, F401\n")
     [found] = new_lines(tree, before)
     assert found.endswith("xrflab.viz.scene imports xrflab.server.http.viz (layer services → routes)")
@@ -88,7 +92,7 @@ def test_a_service_importing_a_route_is_refused(tree: Path) -> None:
 
 def test_a_planted_cycle_is_named(tree: Path) -> None:
     """Two modules of one layer importing each other: allowed by the layers, refused as a cycle."""
-    before = run_tool(tree / "appliance").stdout
+    before = problems(tree / "appliance")
     pkg = tree / "appliance" / "xrflab"
     plant(pkg / "records.py", "\nfrom . import runfolder  # noqa: E402, F401\n")
     plant(pkg / "runfolder.py", "\nfrom .records import column  # noqa: E402, F401\n")
@@ -97,7 +101,7 @@ def test_a_planted_cycle_is_named(tree: Path) -> None:
 
 def test_a_module_in_no_layer_is_refused(tree: Path) -> None:
     """A new module is placed on purpose: one the table does not cover is an error."""
-    before = run_tool(tree / "appliance").stdout
+    before = problems(tree / "appliance")
     (tree / "appliance" / "xrflab" / "server" / "planted.py").write_text('"""Nowhere yet."""\n')
     [found] = new_lines(tree, before)
     assert "xrflab.server.planted is in no layer" in found
@@ -105,7 +109,7 @@ def test_a_module_in_no_layer_is_refused(tree: Path) -> None:
 
 def test_a_module_that_does_not_parse_is_a_problem_not_a_traceback(tree: Path) -> None:
     """A merge's conflict markers left in a module: the check names it and fails cleanly."""
-    before = run_tool(tree / "appliance").stdout
+    before = problems(tree / "appliance")
     plant(tree / "appliance" / "xrflab" / "records.py", "<<<<<<< HEAD\n")
     [found] = new_lines(tree, before)
     assert "xrflab.records does not parse" in found
