@@ -80,10 +80,10 @@ LAYER_OF: dict[str, str] = {
     "xrflab.credentials": "services",  # the saved login of `xrf login`, read by the command-line tools
     # ---- domain: data, formats and rules; no appliance state
     "xrflab$": "domain",  # xrflab/__init__.py: the package's version, nothing wired
-    "xrflab.server$": "domain",  # server/__init__.py and any package marker under it: nothing wired
+    "xrflab.server$": "domain",  # server/__init__.py only (its folders take their own entries): nothing wired
     "xrflab.server.ws": "domain",  # WebSocket message models and the hub: the wire's types and their fan-out
     "xrflab.server.settings": "domain",  # Settings: the appliance's configuration, read by everyone
-    "xrflab.projects": "domain",  # the projects' data: archives, source layout, build keys, diagnostics, 20-sim facts
+    "xrflab.projects": "domain",  # projects data: archives, source layout, build keys, digests, diagnostics, 20-sim
     "xrflab.projects.assignments": "domain",  # an assignment's id, limits and its folder on a bench (no store)
     "xrflab.build": "domain",  # where a project's sources are and how cmake builds them (`xrf build`, the builder)
     "xrflab.tied": "domain",  # a process primitive (children die with their parent); knows nothing of the appliance
