@@ -297,7 +297,7 @@ class SelfCheck:
     transport: sim | spidev | evl-spidev | auto (spidev when `device` exists, else sim).
     bench_busy: callable returning a reason (str or True) when the bench is in use; default:
     ``loop_active(shm)``. Pass ``shm=None`` and no callable to skip the test.
-    sim_outputs_shm: a shared-memory object (made by xrflab.channels.create_for_test) into which
+    sim_outputs_shm: a shared-memory object (made by the tests' xrf_testing.testloop.create_for_test) into which
     the simulated board mirrors its outputs (tests).
     """
 

@@ -18,6 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from xrf_testing.testloop import LoopSide, create_for_test
 from xrflab import channels, msgdef
 from xrflab.channels import Channels, ChannelsError, CommandRingFull, ffi, lib
 
@@ -156,7 +157,7 @@ def test_command_ring_fifo_tickets_and_full(ops) -> None:
 
 
 def test_channels_send_command_on_full_ring_raises(shm_name: str) -> None:
-    with channels.create_for_test(shm_name) as ch:
+    with create_for_test(shm_name) as ch:
         tickets = [ch.send_command("start") for _ in range(lib.XRF_CMD_SLOTS)]
         assert tickets == list(range(1, lib.XRF_CMD_SLOTS + 1))
         with pytest.raises(CommandRingFull, match="not taking commands"):
@@ -277,8 +278,8 @@ def test_allowed_commands_per_state() -> None:
 
 def test_command_table_through_channels(shm_name: str) -> None:
     """Every (state, command) pair end to end: Channels -> ring -> loop side -> status -> result."""
-    with channels.create_for_test(shm_name) as ch:
-        loop = ch.loop_side()
+    with create_for_test(shm_name) as ch:
+        loop = LoopSide(ch)
         for state in ALL_STATES:
             for cmd in [1, 2, 3, 4, 5, 6, *INVALID_COMMANDS]:
                 loop.set_state(state)
@@ -333,8 +334,8 @@ def test_value_falls_in_its_bucket_with_6_percent_resolution(ns: int) -> None:
 
 
 def test_histograms_from_status(shm_name: str) -> None:
-    with channels.create_for_test(shm_name) as ch:
-        loop = ch.loop_side()
+    with create_for_test(shm_name) as ch:
+        loop = LoopSide(ch)
         samples = [1000] * 90 + [50_000] * 10
         for ns in samples:
             loop.add_timing("fpga", ns)
@@ -354,7 +355,7 @@ def test_histograms_from_status(shm_name: str) -> None:
 
 
 def test_open_checks_and_info(shm_name: str) -> None:
-    with channels.create_for_test(shm_name, program="relbot_ctrl") as created:
+    with create_for_test(shm_name, program="relbot_ctrl") as created:
         with Channels.open(shm_name, wait_s=1) as ch:
             info = ch.info
             assert info["program"] == "relbot_ctrl" and info["backend"] == "posix"
@@ -363,7 +364,7 @@ def test_open_checks_and_info(shm_name: str) -> None:
             assert ch.status().state_name == "IDLE"
             # create_for_test plays a loop inside loop(): running, so host tools take it as alive
             assert ch.status().running is True and ch.loop_alive()
-            created.loop_side().set_state(channels.lib.XRF_STATE_STOPPED, running=False)
+            LoopSide(created).set_state(channels.lib.XRF_STATE_STOPPED, running=False)
             assert ch.status().running is False and not ch.loop_alive()
 
 
@@ -381,7 +382,7 @@ def test_open_rejects_foreign_and_unready_objects(shm_name: str) -> None:
     with pytest.raises(ChannelsError, match="not an XRF"):
         Channels.open(shm_name, wait_s=0.2)
     path.unlink()
-    with channels.create_for_test(shm_name) as ch:
+    with create_for_test(shm_name) as ch:
         ch.shm.ready = 0
         with pytest.raises(ChannelsError, match="ready"):
             Channels.open(shm_name, wait_s=0.2)
@@ -392,7 +393,7 @@ def test_open_rejects_foreign_and_unready_objects(shm_name: str) -> None:
 
 
 def test_open_waits_for_ready(shm_name: str) -> None:
-    with channels.create_for_test(shm_name) as ch:
+    with create_for_test(shm_name) as ch:
         ch.shm.ready = 0
         timer = threading.Timer(0.2, lambda: lib.xrf_shm_publish_ready(ch.shm))
         timer.start()
@@ -402,8 +403,8 @@ def test_open_waits_for_ready(shm_name: str) -> None:
 
 
 def test_write_ros2xeno(shm_name: str) -> None:
-    with channels.create_for_test(shm_name) as ch:
-        loop = ch.loop_side()
+    with create_for_test(shm_name) as ch:
+        loop = LoopSide(ch)
         before = time.monotonic_ns()
         ch.write_ros2xeno({"steer_left": 1.5})
         assert loop.read_ros2xeno() == {"steer_left": 1.5, "steer_right": 0.0}
@@ -413,8 +414,8 @@ def test_write_ros2xeno(shm_name: str) -> None:
 
 
 def test_telemetry_and_monitor_readers(shm_name: str) -> None:
-    with channels.create_for_test(shm_name) as ch:
-        loop = ch.loop_side()
+    with create_for_test(shm_name) as ch:
+        loop = LoopSide(ch)
         loop.publish_telemetry(0)  # before the reader: not seen
         reader = ch.telemetry_reader()
         early = ch.telemetry_reader(from_start=True)
@@ -457,8 +458,8 @@ def test_telemetry_and_monitor_readers(shm_name: str) -> None:
 
 
 def test_doorbell_wakes_a_waiting_host(shm_name: str) -> None:
-    with channels.create_for_test(shm_name) as ch:
-        loop = ch.loop_side()
+    with create_for_test(shm_name) as ch:
+        loop = LoopSide(ch)
         seen = ch.doorbell
         threading.Timer(0.1, lambda: loop.publish_monitor(1, "ring")).start()
         t0 = time.monotonic()
@@ -470,7 +471,7 @@ def test_doorbell_wakes_a_waiting_host(shm_name: str) -> None:
 
 
 def test_heartbeat_timeout_and_sim_outputs(shm_name: str) -> None:
-    with channels.create_for_test(shm_name) as ch:
+    with create_for_test(shm_name) as ch:
         ch.configure_host_timeout(250, "stop")
         assert (ch.shm.host_timeout_ms, ch.shm.host_timeout_action) == (250, lib.XRF_HOST_LOST_STOP)
         first = ch.shm.host_heartbeat_ns
@@ -481,7 +482,7 @@ def test_heartbeat_timeout_and_sim_outputs(shm_name: str) -> None:
 
 
 def test_wait_command_times_out_without_a_loop(shm_name: str) -> None:
-    with channels.create_for_test(shm_name) as ch:
+    with create_for_test(shm_name) as ch:
         ticket = ch.send_command("initialise")
         with pytest.raises(channels.CommandTimeout, match="not handled"):
             ch.wait_command(ticket, timeout=0.05)

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 
+from xrf_testing.testloop import LoopSide, create_for_test
 from xrflab import channels, cli
 
 
@@ -26,7 +27,7 @@ class FakeLoop(threading.Thread):
 
     def __init__(self, ch: channels.Channels, period_s: float = 0.005) -> None:
         super().__init__(daemon=True)
-        self.loop = ch.loop_side()
+        self.loop = LoopSide(ch)
         self.period_s = period_s
         self.stopping = threading.Event()
         self.cycle = 0
@@ -47,7 +48,7 @@ class FakeLoop(threading.Thread):
 
 @pytest.fixture
 def fake_loop(shm_name: str):
-    ch = channels.create_for_test(shm_name)
+    ch = create_for_test(shm_name)
     loop = FakeLoop(ch)
     loop.start()
     yield ch, loop
@@ -94,8 +95,8 @@ def test_state_plain_json_and_wait(fake_loop, shm_name: str) -> None:
 
 
 def test_pub_writes_the_ros2xeno_buffer(shm_name: str) -> None:
-    with channels.create_for_test(shm_name) as ch:
-        loop = ch.loop_side()
+    with create_for_test(shm_name) as ch:
+        loop = LoopSide(ch)
         done = xrf("pub", "Ros2Xeno", "steer_left=1.5", "steer_right=-2", "--shm", shm_name)
         assert done.returncode == 0, done.stderr
         assert json.loads(done.stdout) == {"steer_left": 1.5, "steer_right": -2.0}
@@ -126,8 +127,8 @@ def test_echo_prints_count_json_lines(fake_loop, shm_name: str, topic: str) -> N
 
 def test_echo_is_woken_by_the_doorbell(shm_name: str) -> None:
     """With no publication for a while, echo sleeps in the doorbell wait and wakes on the next."""
-    with channels.create_for_test(shm_name) as ch:
-        loop = ch.loop_side()
+    with create_for_test(shm_name) as ch:
+        loop = LoopSide(ch)
         threading.Timer(1.0, lambda: loop.publish_monitor(1, "late")).start()
         t0 = time.monotonic()
         done = xrf("echo", "monitor", "--count", "1", "--timeout", "10", "--shm", shm_name)
@@ -137,7 +138,7 @@ def test_echo_is_woken_by_the_doorbell(shm_name: str) -> None:
 
 
 def test_echo_timeout(shm_name: str) -> None:
-    with channels.create_for_test(shm_name):
+    with create_for_test(shm_name):
         done = xrf("echo", "monitor", "--count", "1", "--timeout", "0.3", "--shm", shm_name)
         assert done.returncode == 1 and "timed out" in done.stderr
 

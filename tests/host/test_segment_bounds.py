@@ -18,6 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from xrf_testing.testloop import LoopSide, create_for_test
 from xrflab import channels
 from xrflab.channels import Channels, ChannelsCorrupt, ChannelsError, ffi, lib, segment
 from xrflab.logs.host_writer import HostLogWriter
@@ -39,7 +40,7 @@ def fresh_shm():  # noqa: ANN201 - cdata
 
 @pytest.fixture
 def ch(shm_name: str) -> Iterator[Channels]:
-    c = channels.create_for_test(shm_name)
+    c = create_for_test(shm_name)
     yield c
     c.close()
     channels.shm_path(shm_name).unlink(missing_ok=True)
@@ -81,7 +82,7 @@ def test_shm_check_refuses_a_short_mapping_a_foreign_header_and_a_moved_ring() -
 
 def test_channels_refuse_a_segment_whose_rings_or_info_are_not_the_runtimes(shm_name: str) -> None:
     def broken(change) -> str:  # noqa: ANN001
-        c = channels.create_for_test(shm_name)
+        c = create_for_test(shm_name)
         try:
             change(c.shm)
             with pytest.raises(ChannelsCorrupt) as exc:
@@ -122,7 +123,7 @@ def test_channels_copy_what_is_constant_at_open(ch: Channels) -> None:
 
 
 def test_broadcast_reader_refuses_a_moved_ring_and_a_head_going_back(ch: Channels) -> None:
-    loop = ch.loop_side()
+    loop = LoopSide(ch)
     reader = ch.monitor_reader()
     loop.publish_monitor(1, "hello")
     assert [m.text for m in reader.read()] == ["hello"]

@@ -1,5 +1,5 @@
 """The bridge's message mapping and its no-drop reading, against a Python-driven loop side
-(``channels.create_for_test``: the real shared memory and ring code, no loop process) and real
+(``xrf_testing.testloop.create_for_test``: the real shared memory and ring code, no loop process) and real
 rclpy in this process."""
 
 from __future__ import annotations
@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from xrflab.channels import create_for_test, shm_path
+from xrf_testing.testloop import LoopSide, create_for_test
+from xrflab.channels import shm_path
 
 pytestmark = pytest.mark.ros
 
@@ -20,7 +21,7 @@ XENO2ROS = "int64 seq\nfloat64[2] pos\nbool ok\nint16 pwm\nuint32 count"
 @pytest.fixture
 def loop_side(shm_name: str, tmp_path: Path):
     ch = create_for_test(shm_name, ros2xeno_schema=ROS2XENO, xeno2ros_schema=XENO2ROS)
-    yield ch, ch.loop_side()
+    yield ch, LoopSide(ch)
     ch.close()
     try:
         shm_path(shm_name).unlink()

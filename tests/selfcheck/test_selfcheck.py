@@ -173,7 +173,7 @@ def test_motor_declared_on_empty_channel(checker_exe, tmp_path):
 
 
 def test_abort_while_pulsing_leaves_pwm_zero(checker_exe, shm_name):
-    from xrflab.channels import create_for_test
+    from xrf_testing.testloop import create_for_test
 
     ch = create_for_test(shm_name)
     try:
@@ -199,7 +199,7 @@ def test_checker_sigint_directly(checker_exe, shm_name):
     """The native tool on its own: SIGINT mid-pulse -> end event aborted, exit 2, PWM 0."""
     import signal
 
-    from xrflab.channels import create_for_test
+    from xrf_testing.testloop import create_for_test
 
     ch = create_for_test(shm_name)
     try:

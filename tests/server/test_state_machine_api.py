@@ -4,7 +4,7 @@ machine says what channels.c does when a loop handles that command (issue 20).""
 from __future__ import annotations
 
 from xrf_testing.harness import Server
-from xrflab import channels
+from xrf_testing.testloop import LoopSide, create_for_test
 
 
 def test_served_machine_is_what_the_c_table_does(server: Server, shm_name: str) -> None:
@@ -31,8 +31,8 @@ def test_served_machine_is_what_the_c_table_does(server: Server, shm_name: str) 
 
     # Every pair through the command ring and the loop side's C table (LoopSide applies
     # xrf_cmd_transition as the loop does): accepted exactly where the served machine has an edge.
-    with channels.create_for_test(shm_name) as ch:
-        loop = ch.loop_side()
+    with create_for_test(shm_name) as ch:
+        loop = LoopSide(ch)
         for state, s in states.items():
             for cmd, c in commands.items():
                 loop.set_state(s)

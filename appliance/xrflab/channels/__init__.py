@@ -11,8 +11,10 @@ One ``Channels`` object maps one run's segment. A module per job:
 - ``status``: the status block as ``Status`` and the stages' ``Histogram``;
 - ``commands``: a command in, its ``CommandResult`` out;
 - ``rings``: telemetry and monitor readers, each with its own cursor;
-- ``host``: ``Channels``, the object callers hold, over the modules above;
-- ``testloop``: ``create_for_test`` and ``LoopSide``, the loop's part played from Python (tests).
+- ``host``: ``Channels``, the object callers hold, over the modules above.
+
+The loop's part played from Python (``create_for_test``, ``LoopSide``) is test scaffolding and lives
+with the tests, in ``tests/xrf_testing/testloop.py``.
 
 Callers import from the package (``from xrflab.channels import Channels``); the names below are
 its public face.
@@ -37,7 +39,6 @@ from .names import (
 from .rings import MonitorLine, MonitorReader, Telemetry, TelemetryReader
 from .segment import SHM_DIR, SHM_SIZE, remove_if_owned, shm_path
 from .status import Histogram, Status
-from .testloop import LoopSide, create_for_test
 
 __all__ = [
     "COMMAND_NUMBERS",
@@ -53,7 +54,6 @@ __all__ = [
     "CommandRingFull",
     "CommandTimeout",
     "Histogram",
-    "LoopSide",
     "MonitorLine",
     "MonitorReader",
     "Status",
@@ -62,7 +62,6 @@ __all__ = [
     "allowed_commands",
     "command_name",
     "command_number",
-    "create_for_test",
     "ffi",
     "lib",
     "remove_if_owned",

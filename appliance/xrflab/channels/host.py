@@ -12,7 +12,7 @@ from __future__ import annotations
 import mmap
 import os
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from ..msgdef import Codec, MsgError
 from . import commands, segment
@@ -23,9 +23,6 @@ from .names import HOST_LOST_ACTIONS, STAGE_NAMES
 from .rings import MonitorReader, TelemetryReader
 from .segment import Identity, shm_path
 from .status import Histogram, Status, histogram_from_struct, read_status, status_from_struct
-
-if TYPE_CHECKING:
-    from .testloop import LoopSide
 
 
 def _char_array_fields(ctype: CData) -> set[str]:
@@ -207,12 +204,6 @@ class Channels:
     def force_sim_outputs_off(self) -> None:
         """The simulated counterpart of an FPGA RESET after the loop died: the plant ignores PWM."""
         lib.xrfpy_store_u32(ffi.addressof(self.shm.sim, "forced_off"), 1)
-
-    def loop_side(self) -> LoopSide:
-        """The loop's half of these channels, driven from Python (tests only)."""
-        from .testloop import LoopSide  # only tests play the loop
-
-        return LoopSide(self)
 
     # -- which loop -----------------------------------------------------------------------------
 

@@ -10,13 +10,26 @@ copied into our memory whole, and its sizes (``size``, ``len``) are bounded befo
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Generic, TypeVar
+from typing import Any, Generic, Protocol, TypeVar
 
+from ..msgdef import Codec
 from .binding import CData, ffi, lib
 from .errors import ChannelsCorrupt
 
-if TYPE_CHECKING:
-    from .host import Channels
+
+class Mapped(Protocol):
+    """What a reader takes from the ``Channels`` that opens it (host.py): the mapping, the geometry
+    checked at open, the payload codec. A protocol, so the readers need not import ``Channels``
+    (which imports them)."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def shm(self) -> CData: ...
+    @property
+    def geom(self) -> CData: ...
+    @property
+    def xeno2ros_codec(self) -> Codec: ...
 
 
 @dataclass(frozen=True)
@@ -92,7 +105,7 @@ class _BroadcastReader(Generic[Item]):
 
 
 class TelemetryReader(_BroadcastReader[Telemetry]):
-    def __init__(self, channels: Channels, from_start: bool = False) -> None:
+    def __init__(self, channels: Mapped, from_start: bool = False) -> None:
         shm = channels.shm
         super().__init__(
             channels.name,
@@ -120,7 +133,7 @@ class TelemetryReader(_BroadcastReader[Telemetry]):
 
 
 class MonitorReader(_BroadcastReader[MonitorLine]):
-    def __init__(self, channels: Channels, from_start: bool = False) -> None:
+    def __init__(self, channels: Mapped, from_start: bool = False) -> None:
         shm = channels.shm
         super().__init__(
             channels.name,

@@ -14,6 +14,10 @@ finish), ``host_writer`` (ring -> file), ``log_channel`` (the shared memory's lo
 ``rerun_servers`` (rerun's child processes).
 """
 
+# Every format besides xrflog registers itself with open_log when imported (xrf2bin: XRF2's .bin
+# files); importing any module of this package runs this first, so open_log knows them all
+# wherever it is called from.
+from . import xrf2bin  # noqa: F401
 from .convert import FORMATS, convert, iter_csv_chunks
 from .reader import LogFile, LogFormatError, Segment, Variable, open_log
 

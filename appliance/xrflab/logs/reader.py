@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 import mmap
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -125,6 +125,11 @@ class LogFile:
         return self._skipped_bytes
 
     _skipped_bytes: int = 0
+
+    def note_skipped(self, what: str, length: int) -> None:
+        """Bytes the reader of this file's format could not use: said in words, counted."""
+        self.skipped.append(what)
+        self._skipped_bytes += length
 
     @property
     def variables(self) -> tuple[Variable, ...]:
@@ -440,19 +445,16 @@ class _SegmentScanner:
 
 
 def _read_xrflog(path: Path, m: _Mapped, log: LogFile) -> None:
-    skipped_bytes = 0
     pos = m.find(MAGIC, 0)
     if pos > 0:
-        log.skipped.append(f"offset 0: {pos} bytes before the first segment magic skipped")
-        skipped_bytes += pos
+        log.note_skipped(f"offset 0: {pos} bytes before the first segment magic skipped", pos)
     while 0 <= pos < m.size:
         try:
             header, variables, stride, data = _parse_segment_header(path, m, pos)
         except _Damaged as exc:
             nxt = m.find(MAGIC, pos + 1)
             stop = m.size if nxt < 0 else nxt
-            log.skipped.append(f"offset {pos}: damaged segment header ({exc}); {stop - pos} bytes skipped")
-            skipped_bytes += stop - pos
+            log.note_skipped(f"offset {pos}: damaged segment header ({exc}); {stop - pos} bytes skipped", stop - pos)
             pos = nxt
             continue
         # A segment's records run to the next magic: an appending writer starts the next run
@@ -462,8 +464,7 @@ def _read_xrflog(path: Path, m: _Mapped, log: LogFile) -> None:
         dtype = record_dtype(variables, stride)
         runs, bad = _SegmentScanner(m, stride, dtype).scan(min(data, end), end)
         for off, length, why in bad:
-            log.skipped.append(f"offset {off}: {why}, {length} bytes skipped (segment {len(log.segments)})")
-            skipped_bytes += length
+            log.note_skipped(f"offset {off}: {why}, {length} bytes skipped (segment {len(log.segments)})", length)
         views = [np.ndarray((count,), dtype=dtype, buffer=m.buf, offset=off) for off, count in runs]
         if not views:
             records = np.empty(0, dtype=dtype)
@@ -473,24 +474,36 @@ def _read_xrflog(path: Path, m: _Mapped, log: LogFile) -> None:
             records = np.concatenate(views)
         log.segments.append(Segment(len(log.segments), pos, header, variables, records))
         pos = nxt
-    log._skipped_bytes = skipped_bytes
+
+
+# A log format besides xrflog: (path, the mapped file, its size) -> its LogFile, or None when the
+# file does not start like one of its kind.
+FormatReader = Callable[[Path, Any, int], "LogFile | None"]
+_other_formats: list[FormatReader] = []
+
+
+def register_format(read: FormatReader) -> None:
+    """Add a format open_log recognises by content. A format's module registers itself when it is
+    imported (xrf2bin.py), and the package imports every format (logs/__init__.py), so the reader
+    needs to know none of them."""
+    if read not in _other_formats:
+        _other_formats.append(read)
 
 
 def open_log(path: str | Path, fd: int | None = None) -> LogFile:
-    """Open an xrflog file or an XRF2 `.bin` file (recognised by content, not by name). `fd`: read
-    that open file instead (`path` then only names it in the LogFile and in messages); the
-    mapping stays valid after the caller closes it."""
-    from . import xrf2bin
-
+    """Open an xrflog file or a file of a registered format, e.g. XRF2's `.bin` (recognised by
+    content, not by name). `fd`: read that open file instead (`path` then only names it in the
+    LogFile and in messages); the mapping stays valid after the caller closes it."""
     path = Path(path)
     m = _Mapped(path, fd)
     if m.size >= len(MAGIC) and bytes(m.buf[: len(MAGIC)]) == MAGIC:
         log = LogFile(path, "xrflog", size=m.size)
         _read_xrflog(path, m, log)
         return log
-    xrf2 = xrf2bin.try_read(path, m.buf, m.size)
-    if xrf2 is not None:
-        return xrf2
+    for read in _other_formats:
+        other = read(path, m.buf, m.size)
+        if other is not None:
+            return other
     if m.size and m.find(MAGIC, 0) >= 0:  # damaged start, but segments further on
         log = LogFile(path, "xrflog", size=m.size)
         _read_xrflog(path, m, log)

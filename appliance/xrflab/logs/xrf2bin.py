@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from .reader import LogFile, LogFormatError, Segment, make_variables, record_dtype
+from .reader import LogFile, LogFormatError, Segment, make_variables, record_dtype, register_format
 
 # Both header lines fit in this many bytes (100 variables of 31-character names is ~3.2 KB).
 MAX_HEADER_SCAN = 64 * 1024
@@ -61,6 +61,8 @@ def try_read(path: Path, buf: Any, size: int) -> LogFile | None:
     log.segments.append(Segment(0, 0, header, variables, records, kind="xrf2"))
     rest = size - data - n * stride
     if rest:
-        log.skipped.append(f"offset {data + n * stride}: truncated last record, {rest} bytes skipped")
-        log._skipped_bytes = rest
+        log.note_skipped(f"offset {data + n * stride}: truncated last record, {rest} bytes skipped", rest)
     return log
+
+
+register_format(try_read)  # open_log tries it on a file without the xrflog magic

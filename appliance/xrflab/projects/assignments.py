@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from . import archive
-from .versions import sha256_file
+from .digest import sha256_file
 
 ID_RE = re.compile(r"^[a-z0-9][a-z0-9-]{0,39}$")
 ORIGIN_PREFIX = "assignment:"

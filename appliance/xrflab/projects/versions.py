@@ -23,7 +23,6 @@ student wrote on top of what they started from) are computed here with difflib.
 from __future__ import annotations
 
 import difflib
-import hashlib
 import os
 import secrets
 import shutil
@@ -34,6 +33,7 @@ from typing import Any
 
 from . import archive
 from .build_key import source_hash
+from .digest import sha256_file
 from .store import ProjectRow, ProjectStore, VersionRow
 
 # Larger files are not diffed line by line (their change is still listed).
@@ -52,15 +52,6 @@ def file_hashes(tree: Path) -> dict[str, str]:
                 continue
             out[p.relative_to(tree).as_posix()] = sha256_file(p)
     return out
-
-
-def sha256_file(p: Path) -> str:
-    """The SHA-256 of a file's contents, read in chunks (versions, assignment archives)."""
-    h = hashlib.sha256()
-    with open(p, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 16), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 class Versions:

@@ -29,7 +29,7 @@ from typing import Any
 
 from ..projects import archive
 from ..projects.assignments import LIMITS
-from ..projects.versions import sha256_file
+from ..projects.digest import sha256_file
 from .payloads import INLINE_MAX, Assignment
 
 SKIP = set(archive.SKIPPED_DIRS)

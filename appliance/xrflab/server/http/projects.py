@@ -26,6 +26,7 @@ from fastapi import APIRouter, Depends, HTTPException, Request
 from fastapi.responses import PlainTextResponse, Response
 from pydantic import BaseModel, Field
 
+from ...plant_field import PlantName
 from ...projects import archive, source, twentysim
 from ...projects.assignments import ORIGIN_PREFIX
 from ...projects.service import TEMPLATES, ProjectsService, clean_name, file_list, projects_of
@@ -36,7 +37,6 @@ from ..security import audit, ownership
 from ..security import auth as authmod
 from ..security.auth import Perm, requires
 from ..security.body_limit import spool_to_file
-from .plant_field import PlantName
 
 router = APIRouter(prefix="/api", tags=["projects"])
 SOURCE_MAX_BYTES = 1 << 20

@@ -17,6 +17,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 from ... import channels as chmod
 from ... import plants
 from ...errors import Denied, Invalid, Unavailable, XrfError
+from ...plant_field import PlantInfo, PlantName
 from ...projects.service import projects_of
 from ...statemachine import StateMachine, state_machine
 from ..runs import start as run_start
@@ -27,7 +28,6 @@ from ..security.auth import SAFE_COMMANDS, Perm, User, check, client_address, cu
 from ..security.roles import role_has
 from ..ws import messages
 from ..ws.hub import Client
-from .plant_field import PlantInfo, PlantName
 
 router = APIRouter(prefix="/api")
 

@@ -3,6 +3,9 @@
 A ``Literal`` would be a second list of plants; this is a string checked against the table the
 sim board indexes (``xrflab.plants``, read through the cffi binding), whose JSON Schema still
 lists the choices (an ``enum`` in /openapi.json, as the Literal gave).
+
+Beside the plant table, not among the routes that use it (server/http/runs.py, projects.py): a
+route module is imported by the app only (tests/lint/layers.py).
 """
 
 from __future__ import annotations
@@ -11,7 +14,7 @@ from typing import Annotated
 
 from pydantic import AfterValidator, BaseModel, Field, WithJsonSchema
 
-from ... import plants
+from . import plants
 
 PlantName = Annotated[
     str,

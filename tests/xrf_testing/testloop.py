@@ -4,7 +4,9 @@ without a loop process.
 ``create_for_test`` makes a segment as a loop's start does (``xrf_shm_init``, info, ready);
 ``LoopSide`` then does what a cycle does with it — takes commands through the one command table
 in C, publishes telemetry and monitor lines, rings the doorbell — with channels.c's own functions.
-Tests only: never alongside a real loop on the same segment.
+Tests only: never alongside a real loop on the same segment. It lives with the tests, not in
+``xrflab.channels``: the appliance never plays the loop, and ``Channels`` needs nothing from here
+(tests/lint/layers.py keeps the package free of the cycle it once made).
 """
 
 from __future__ import annotations
@@ -15,11 +17,9 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from ..msgdef import Codec
-from .binding import CData, ffi, lib
-from .host import Channels
-from .names import STAGE_NAMES
-from .segment import SHM_SIZE, shm_path
+from xrflab.channels import SHM_SIZE, STAGE_NAMES, Channels, ffi, lib, shm_path
+from xrflab.channels.binding import CData
+from xrflab.msgdef import Codec
 
 
 def create_for_test(
@@ -32,7 +32,7 @@ def create_for_test(
 ) -> Channels:
     """Create /dev/shm/<name> as a loop would (xrf_shm_init, info, ready) and open it.
 
-    For tests only: there is no loop behind it; drive it with ``channels.loop_side()``. The caller
+    For tests only: there is no loop behind it; drive it with ``LoopSide(channels)``. The caller
     unlinks the object (``shm_path(name).unlink()``) when done.
     """
     path = shm_path(name)
