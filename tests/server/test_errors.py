@@ -190,13 +190,8 @@ def test_ws_a_session_gone_is_denied_and_closes() -> None:
 
 # Modules not converted yet, each with a note; the lists only shrink. Everything else raises an
 # xrflab.errors kind (or a service's XrfError) and lets server/http/errors.py answer.
-HTTP_EXCEPTION_OUTSIDE_ROUTES = {
-    "room/service.py",  # the room's routes (its own app): to become kinds
-    "room/commands.py",  # catches what the self-check service raises
-    "server/security/auth.py",  # the permission dependency (401/403 with headers)
-    "server/security/body_limit.py",  # the body limit's 413
-}
-TRANSLATING_ROUTES = {"editor.py", "logs.py", "projects.py", "selfcheck.py"}
+HTTP_EXCEPTION_OUTSIDE_ROUTES: set[str] = set()  # none: every service raises an xrflab.errors kind
+TRANSLATING_ROUTES: set[str] = set()  # none: every route lets the XrfError through
 
 
 def _modules(root: Path) -> list[Path]:

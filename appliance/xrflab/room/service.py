@@ -49,12 +49,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request, WebSocket
+from fastapi import APIRouter, Depends, FastAPI, Query, Request, WebSocket
 from fastapi.responses import FileResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.websockets import WebSocketDisconnect
 
+from ..errors import Busy, Conflict, Denied, Invalid, NotFound, Unavailable
 from ..projects import archive as archive_mod
 from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
 from ..server.http import errors as http_errors
@@ -477,26 +478,26 @@ class Room:
         checked with the public key it gave at enrolment; 403 for anything else, without saying what."""
         enrolled = self.enrolled.get(bench)
         if enrolled is None or not enrolled.bench_key:
-            raise HTTPException(403, "invalid token")
+            raise Denied("invalid token")
         cached = self._verifiers.get((bench, use))
         if cached is None or cached[0] != enrolled.bench_key:
             try:
                 cached = (enrolled.bench_key, sso.Verifier(sso.load_public(enrolled.bench_key), bench, use))
             except ValueError:
-                raise HTTPException(403, "invalid token") from None
+                raise Denied("invalid token") from None
             self._verifiers[(bench, use)] = cached
         try:
             if cached[1].verify(token) != subject:
-                raise HTTPException(403, "invalid token")
+                raise Denied("invalid token")
         except sso.SsoError:
-            raise HTTPException(403, "invalid token") from None
+            raise Denied("invalid token") from None
 
     def collect(self, aid: str, formats: list[str], wait_s: float, by: str) -> Collection:
         meta = self.assignments.index.get(aid)
         if meta is None:
-            raise HTTPException(404, f"no assignment {aid}")
+            raise NotFound(f"no assignment {aid}")
         if self.client is None or not self.state.connected:
-            raise HTTPException(503, "the room is not connected to its broker")
+            raise Unavailable("the room is not connected to its broker")
         cid = secrets.token_hex(8)
         folder = self.config.data_dir / "collections" / cid
         folder.mkdir(parents=True, mode=0o700)
@@ -532,12 +533,12 @@ class Room:
     # -- actions --------------------------------------------------------------------------------
     def command(self, bench: str | None, cmd: str, by: str, **fields: Any) -> dict[str, Any]:
         if bench is not None and bench not in self.state.benches:
-            raise HTTPException(404, f"no bench {bench}")
+            raise NotFound(f"no bench {bench}")
         cid = secrets.token_hex(8)
         t = time.time()
         body = payloads.build_command(cmd, id=cid, by=by, t=t, **fields).wire()
         if self.client is None or not self.state.connected:
-            raise HTTPException(503, "the room is not connected to its broker")
+            raise Unavailable("the room is not connected to its broker")
         self._expect_replies(cid)
         self.client.publish(topics.cmd(bench) if bench else topics.CMD_ALL, body, qos=1)
         return {"id": cid, "t": t, "benches": [bench] if bench else sorted(self.state.benches)}
@@ -578,7 +579,7 @@ class Room:
         """An educator changes where a bench's dashboard is (the bench itself cannot)."""
         enrolled = self.enrolled.get(name)
         if enrolled is None:
-            raise HTTPException(404, f"no bench {name}")
+            raise NotFound(f"no bench {name}")
         enrolled.url = check_url(url)
         self._save_benches()
         b = self.state.bench(name)
@@ -649,20 +650,20 @@ async def enrol(body: EnrolRequest, request: Request) -> dict[str, Any]:
     room = _room(request)
     address = client_address(request)
     if room.enrol_limit.retry_after(address) > 0:
-        raise HTTPException(429, "too many wrong join codes; wait a minute")
+        raise Busy("too many wrong join codes; wait a minute")
     try:  # before the code is used up: a typo in the address does not cost a code
         topics.check_bench_name(body.name)
         check_url(body.url)
         sso.load_public(body.bench_key)
     except ValueError as exc:
-        raise HTTPException(422, str(exc)) from None
+        raise Invalid(str(exc)) from None
     if not room.codes.take(body.code):
         room.enrol_limit.failed(address)
-        raise HTTPException(403, "unknown or expired join code")
+        raise Denied("unknown or expired join code")
     try:
         answer = await asyncio.get_running_loop().run_in_executor(None, room.enrol, body, address)
     except ValueError as exc:
-        raise HTTPException(422, str(exc)) from None
+        raise Invalid(str(exc)) from None
     return answer.model_dump()
 
 
@@ -677,7 +678,7 @@ async def set_bench_address(
     try:
         enrolled = _room(request).set_url(name, body.url)
     except ValueError as exc:
-        raise HTTPException(422, str(exc)) from None
+        raise Invalid(str(exc)) from None
     audit.record(user, "room.bench_address", {"bench": name, "url": enrolled.url}, client_address(request))
     return {"name": name, "url": enrolled.url}
 
@@ -747,7 +748,7 @@ async def publish_archive(
     try:
         meta = await asyncio.to_thread(room.assignments.add, _clean_name(name), path, user.username)
     except archive_mod.ArchiveRejected as exc:
-        raise HTTPException(422, f"archive refused: {exc}") from None
+        raise Invalid(f"archive refused: {exc}") from None
     finally:
         path.unlink(missing_ok=True)
     return _publish(request, user, meta)
@@ -761,7 +762,7 @@ async def assignment_archive(
     room = _room(request)
     room.bench_token(bench, token, "assignment", aid)
     if aid not in room.assignments.index:
-        raise HTTPException(404, f"no assignment {aid}")
+        raise NotFound(f"no assignment {aid}")
     return FileResponse(room.assignments.archive_path(aid), media_type="application/gzip")
 
 
@@ -773,7 +774,7 @@ async def collect(aid: str, body: Collect, request: Request, user: User = Depend
 
     bad = [f for f in body.formats if f not in FORMATS]
     if bad:
-        raise HTTPException(422, f"formats: {', '.join(FORMATS)} (not {', '.join(bad)})")
+        raise Invalid(f"formats: {', '.join(FORMATS)} (not {', '.join(bad)})")
     c = _room(request).collect(aid, sorted(set(body.formats)), body.wait_s, user.username)
     audit.record(user, "room.collect", {"assignment": aid, "collection": c.id}, client_address(request))
     return c.view()
@@ -782,7 +783,7 @@ async def collect(aid: str, body: Collect, request: Request, user: User = Depend
 def _collection(request: Request, cid: str) -> Collection:
     c = _room(request).collections.get(cid)
     if c is None:
-        raise HTTPException(404, f"no collection {cid}")
+        raise NotFound(f"no collection {cid}")
     return c
 
 
@@ -800,7 +801,7 @@ async def collection_upload(
     room.bench_token(bench, token, "collect", cid)
     c = room.collections.get(cid)
     if c is None or c.benches.get(bench) != "waiting":
-        raise HTTPException(409, "this collection does not wait for this bench (too late, or sent already)")
+        raise Conflict("this collection does not wait for this bench (too late, or sent already)")
     path = await spool_to_file(request, c.folder, BENCH_MAX, prefix=".upload-")
     os.replace(path, c.upload_path(bench))
     c.benches[bench] = "collected"
@@ -813,7 +814,7 @@ async def collection_archive(cid: str, request: Request) -> Response:
     answer are listed as missing). 409 while benches are still expected."""
     c = _collection(request, cid)
     if not c.done:
-        raise HTTPException(409, "benches are still sending; see GET /api/room/collections/" + cid)
+        raise Conflict("benches are still sending; see GET /api/room/collections/" + cid)
     if c.archive is None:
         out = c.folder / "collection.zip"
         await asyncio.to_thread(assemble, c, out)
@@ -834,9 +835,9 @@ async def sign_on(name: str, request: Request, user: User = Depends(current_user
     room = _room(request)
     enrolled = room.enrolled.get(name)
     if enrolled is None:
-        raise HTTPException(404, f"no bench {name}")
+        raise NotFound(f"no bench {name}")
     if enrolled.outdated:
-        raise HTTPException(409, f"bench {name} was enrolled before the room signed its tokens; {REENROL}")
+        raise Conflict(f"bench {name} was enrolled before the room signed its tokens; {REENROL}")
     token = sso.mint(room.key, name, user.username)
     return {"url": f"{enrolled.url}/room/sso?token={token}"}
 

@@ -23,9 +23,10 @@ import stat
 from pathlib import Path
 from typing import Any
 
-from fastapi import APIRouter, HTTPException, Request
+from fastapi import APIRouter, Request
 from pydantic import BaseModel, Field
 
+from ...errors import Conflict, NotFound, TooLarge, XrfError
 from ...projects import archive
 from ...projects import versions as versions_mod
 from ...projects.service import TEMPLATES, ProjectsService, projects_of
@@ -119,12 +120,12 @@ def _checked(path: str, svc: ProjectsService) -> str:
     try:
         rel = archive.check_name(path, svc.limits)
     except archive.ArchiveRejected as exc:
-        raise HTTPException(400, f"{path[:200]}: {exc.message}") from None
+        raise XrfError(f"{path[:200]}: {exc.message}", 400) from None
     if rel.split("/", 1)[0] in archive.SKIPPED_DIRS:
-        raise HTTPException(
-            400,
+        raise XrfError(
             f"{rel}: {rel.split('/', 1)[0]}/ is left out of projects (builds and tools "
             "write there); put the file elsewhere",
+            400,
         )
     return rel
 
@@ -169,7 +170,7 @@ def _no_link_below(root: Path, rel: str) -> None:
         except FileNotFoundError:
             return
         if stat.S_ISLNK(st.st_mode):
-            raise HTTPException(404, f"{rel}: no such file in the project")
+            raise NotFound(f"{rel}: no such file in the project")
 
 
 async def _body(request: Request, limit: int, rel: str) -> bytes:
@@ -179,10 +180,9 @@ async def _body(request: Request, limit: int, rel: str) -> bytes:
     async for chunk in request.stream():
         total += len(chunk)
         if total > limit:
-            raise HTTPException(
-                413,
+            raise TooLarge(
                 f"{rel}: over {limit >> 20} MB; files this large are not edited in the "
-                "browser (upload the project instead)",
+                "browser (upload the project instead)"
             )
         chunks.append(chunk)
     return b"".join(chunks)
@@ -194,9 +194,10 @@ def _conflict(svc: ProjectsService, project: ProjectRow, current: VersionRow, ba
         return
     old = svc.store.version(project.id, base)
     if old is None or old.files.get(rel) != current.files.get(rel):
-        raise HTTPException(
-            409,
-            {
+        raise Conflict(
+            f"{rel} changed since version {base} (now version {current.n}): "
+            "reload it, or save again to overwrite it with your text",
+            detail={
                 "error": f"{rel} changed since version {base} (now version {current.n}): "
                 "reload it, or save again to overwrite it with your text",
                 "current_version": current.n,
@@ -210,7 +211,7 @@ def _write_working_copy(src: Path, rel: str, data: bytes | None, limits: archive
     target = src / rel
     if data is None:
         if rel not in current.files:
-            raise HTTPException(404, f"{rel}: no such file in the project")
+            raise NotFound(f"{rel}: no such file in the project")
         os.unlink(target)
         parent = target.parent
         while parent != src and not any(parent.iterdir()):
@@ -218,13 +219,13 @@ def _write_working_copy(src: Path, rel: str, data: bytes | None, limits: archive
             parent = parent.parent
         return
     if target.is_dir():
-        raise HTTPException(409, f"{rel} is a folder")
+        raise Conflict(f"{rel} is a folder")
     if rel not in current.files and len(current.files) + 1 > limits.max_files:
-        raise HTTPException(413, f"the project has {len(current.files)} files, the most a project may have")
+        raise TooLarge(f"the project has {len(current.files)} files, the most a project may have")
     parent = target.parent
     for p in reversed([parent, *parent.parents]):
         if p.is_relative_to(src) and p.exists() and not p.is_dir():
-            raise HTTPException(409, f"{p.relative_to(src).as_posix()} is a file, not a folder")
+            raise Conflict(f"{p.relative_to(src).as_posix()} is a file, not a folder")
     parent.mkdir(parents=True, exist_ok=True)
     tmp = parent / f".{target.name}.xrf-{secrets.token_hex(4)}"
     try:
@@ -263,16 +264,16 @@ def _side(svc: ProjectsService, request: Request, project: ProjectRow, which: st
     if which.startswith("template:"):
         name = which.split(":", 1)[1]
         if name not in TEMPLATES:
-            raise HTTPException(400, f"no template {name!r}; have: {', '.join(TEMPLATES)}")
+            raise XrfError(f"no template {name!r}; have: {', '.join(TEMPLATES)}", 400)
         files, read = versions_mod.template_side(request.app.state.settings.projects_dir / "templates" / name)
         return f"template-{name}", files, read
     try:
         n = int(which)
     except ValueError:
-        raise HTTPException(400, f"{which!r}: a version number or template:<name>") from None
+        raise XrfError(f"{which!r}: a version number or template:<name>", 400) from None
     v = svc.store.version(project.id, n)
     if v is None:
-        raise HTTPException(404, f"no version {n} of project {project.id}")
+        raise NotFound(f"no version {n} of project {project.id}")
     return f"v{n}", v.files, lambda rel: svc.versions.read(project, v, rel)
 
 
@@ -299,10 +300,10 @@ async def read_file(pid: int, path: str, request: Request, version: int | None =
     else:
         found = svc.store.version(project.id, version)
         if found is None:
-            raise HTTPException(404, f"no version {version} of project {pid}")
+            raise NotFound(f"no version {version} of project {pid}")
         v = found
     if rel not in v.files:
-        raise HTTPException(404, f"{rel}: no such file in the project")
+        raise NotFound(f"{rel}: no such file in the project")
     data = await asyncio.to_thread(svc.versions.read, project, v, rel)
     assert data is not None
     size = (svc.versions.tree(project, v) / rel).stat().st_size
@@ -336,7 +337,7 @@ async def save_file(
     data = await _body(request, FILE_MAX_BYTES, rel)
     why = _why_not_text(data, True)
     if why:
-        raise HTTPException(415, f"{rel}: {why}; only text files are saved from the editor")
+        raise XrfError(f"{rel}: {why}; only text files are saved from the editor", 415)
     version, new = await asyncio.to_thread(_change, svc, project, rel, data, base, _author(request))
     _audit(request, "project.edit", {"project": pid, "path": rel, "version": version.n, "bytes": len(data)})
     out: dict[str, Any] = {"version": _version_dict(svc, project, version), "new_version": new, "build": None}

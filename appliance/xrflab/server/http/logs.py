@@ -31,11 +31,12 @@ from collections.abc import Iterator
 from pathlib import Path, PurePosixPath
 from typing import Any, BinaryIO, Literal
 
-from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
 
+from ...errors import Invalid, NotFound
 from ...logs.runlogs import log_files, open_run_log, run_log_files
 from ...logs.timing_series import TIMING_FILE
 from ...runfolder import RunFolder, RunPathError, shown, unshown
@@ -120,7 +121,7 @@ def _file(row: Any, name: str) -> str:
     accepted. Returns the name relative to the run folder (as the file system has it). Blocking."""
     rel = unshown(name)
     if rel not in run_log_files(row.run_dir):
-        raise HTTPException(404, f"run {row.id} has no log file {name!r}")
+        raise NotFound(f"run {row.id} has no log file {name!r}")
     return rel
 
 
@@ -287,9 +288,9 @@ async def download(
             return StreamingResponse(iter_csv_chunks(log.path, log=log), media_type=MEDIA["csv"], headers=headers)
         target = await _cached(row.run_dir, rel, fmt, _cache_dir(request, row))
     except LogFormatError as exc:
-        raise HTTPException(422, _text(str(exc))) from None
+        raise Invalid(_text(str(exc))) from None
     except (OSError, RunPathError):
-        raise HTTPException(404, f"run {row.id} has no log file {name!r}") from None
+        raise NotFound(f"run {row.id} has no log file {name!r}") from None
     return FileResponse(target, media_type=MEDIA[fmt], headers=headers)
 
 
@@ -304,6 +305,6 @@ async def timing(run_id: int, request: Request) -> Response:
     try:
         fd, st = await asyncio.to_thread(_open_file, row.run_dir, TIMING_FILE)
     except (OSError, RunPathError):  # none, or not a plain file of the run (a link, a FIFO, ...)
-        raise HTTPException(404, f"run {run_id} has no timing series") from None
+        raise NotFound(f"run {run_id} has no timing series") from None
     headers = {"Content-Disposition": f'attachment; filename="run{run_id}_timing.jsonl"'}
     return _stream(fd, st.st_size, "application/x-ndjson", headers)

@@ -22,10 +22,11 @@ import zipfile
 from pathlib import Path
 from typing import Any, Literal
 
-from fastapi import APIRouter, Depends, HTTPException, Request
+from fastapi import APIRouter, Depends, Request
 from fastapi.responses import PlainTextResponse, Response
 from pydantic import BaseModel, Field
 
+from ...errors import Conflict, NotFound, TooLarge, XrfError
 from ...plant_field import PlantName
 from ...projects import archive, source, twentysim
 from ...projects.assignments import ORIGIN_PREFIX
@@ -189,13 +190,13 @@ async def _receive_archive(request: Request, svc: ProjectsService) -> tuple[Path
         m = re.search(r"boundary=\"?([^\";]+)\"?", ctype)
         if not m:
             body.unlink()
-            raise HTTPException(400, "multipart upload without a boundary")
+            raise XrfError("multipart upload without a boundary", 400)
         out = body.with_name(body.name + ".archive")
         try:
             filename, fields = await asyncio.to_thread(_multipart, body, m.group(1).encode(), out)
         except ValueError as exc:
             out.unlink(missing_ok=True)
-            raise HTTPException(400, str(exc)) from None
+            raise XrfError(str(exc), 400) from None
         finally:
             body.unlink(missing_ok=True)
         return out, filename, fields
@@ -327,7 +328,7 @@ async def new_from_template(
         aid = body.template[len(ORIGIN_PREFIX) :]
         meta = svc.assignments.get(aid)
         if meta is None:
-            raise HTTPException(404, f"no assignment {aid}")
+            raise NotFound(f"no assignment {aid}")
         src_t, default, origin = svc.assignments.src(aid), clean_name(meta["name"], aid), body.template
     else:
         src_t = request.app.state.settings.projects_dir / "templates" / body.template
@@ -354,7 +355,7 @@ async def get_project(pid: int, request: Request) -> dict[str, Any]:
 async def delete_project(pid: int, request: Request) -> Response:
     svc, project = _project(request, pid)
     if any(b.status in ("queued", "building") for b in svc.store.builds(pid, 5)):
-        raise HTTPException(409, "a build of this project is queued or running; wait for it")
+        raise Conflict("a build of this project is queued or running; wait for it")
     _audit(request, "project.delete", {"project": pid})
     svc.store.delete_project(pid)
     await asyncio.to_thread(shutil.rmtree, svc.folder(project), True)
@@ -378,19 +379,19 @@ async def source_excerpt(
     try:
         rel = archive.check_name(path, svc.limits)
     except archive.ArchiveRejected as exc:
-        raise HTTPException(400, f"{path}: {exc.message}") from None
+        raise XrfError(f"{path}: {exc.message}", 400) from None
     target = src / rel
     try:
         resolved = target.resolve(strict=True)
     except OSError:
-        raise HTTPException(404, f"{rel}: no such file in the project") from None
+        raise NotFound(f"{rel}: no such file in the project") from None
     if not resolved.is_relative_to(src) or target.is_symlink() or not resolved.is_file():
-        raise HTTPException(404, f"{rel}: no such file in the project")
+        raise NotFound(f"{rel}: no such file in the project")
     fd = os.open(resolved, os.O_RDONLY | os.O_NOFOLLOW)
     with os.fdopen(fd, "rb") as f:
         data = f.read(SOURCE_MAX_BYTES + 1)
     if len(data) > SOURCE_MAX_BYTES:
-        raise HTTPException(413, f"{rel}: over 1 MB; open it in your editor")
+        raise TooLarge(f"{rel}: over 1 MB; open it in your editor")
     lines = data.decode("utf-8", "replace").splitlines()
     context = max(0, min(context, 200))
     if line is None:
@@ -439,7 +440,7 @@ async def run_build(pid: int, bid: int, body: RunBuild, request: Request) -> dic
     (``project-<pid>-build-<bid>``) and is linked to it."""
     svc, project, b = _build(request, pid, bid)
     if b.status != "ok" or not b.executable or not Path(b.executable).exists():
-        raise HTTPException(409, f"build {bid} is {b.status}; only a successful build can run")
+        raise Conflict(f"build {bid} is {b.status}; only a successful build can run")
     name = f"project-{pid}-build-{bid}"
     svc.supervisor.catalog.add_external(name, svc.src(project), Path(b.executable), body.sim or svc.settings.sim)
     # The one start-a-run service (server/runs/start.py), as POST /api/runs: the same lease

@@ -30,12 +30,13 @@ import re
 from pathlib import Path
 from typing import Any, Literal
 
-from fastapi import APIRouter, Depends, HTTPException, Request
+from fastapi import APIRouter, Depends, Request
 from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
 from ... import profiles as profmod
 from ... import selfcheck as scmod
+from ...errors import Conflict, Invalid, NotFound, XrfError
 from ...selfcheck_service import StartCheck, field_errors, selfcheck_of
 from ..security import audit
 from ..security.auth import Perm, User, client_address, current_user, requires
@@ -92,17 +93,17 @@ async def selfcheck_abort(request: Request, user: User = Depends(current_user)) 
     svc = selfcheck_of(request)
     active = svc.current
     if not svc.abort():
-        raise HTTPException(409, "no self-check is running")
+        raise Conflict("no self-check is running")
     audit.record(user, "selfcheck.abort", {"check": active.id if active else None}, client_address(request))
     return {"aborting": active.id if active else None}
 
 
 def _report_path(request: Request, name: str) -> Path:
     if not REPORT_NAME_RE.match(name) or ".." in name:
-        raise HTTPException(404, "no such report")
+        raise NotFound("no such report")
     path = scmod.reports_dir(selfcheck_of(request).settings.data_dir) / f"{name}.json"
     if not path.is_file():
-        raise HTTPException(404, "no such report")
+        raise NotFound("no such report")
     return path
 
 
@@ -143,7 +144,7 @@ async def selfcheck_report(name: str, request: Request) -> dict[str, Any]:
     try:
         report = scmod.load_report(path)
     except (OSError, ValueError, TypeError, KeyError) as exc:
-        raise HTTPException(500, f"cannot read the report: {exc}") from None
+        raise XrfError(f"cannot read the report: {exc}", 500) from None
     return {"name": name, **report.as_dict()}
 
 
@@ -161,7 +162,7 @@ async def selfcheck_export(name: str, request: Request, fmt: Literal["json", "ma
     try:
         text = scmod.export_report(scmod.load_report(path), fmt)
     except (OSError, ValueError, TypeError, KeyError) as exc:
-        raise HTTPException(500, f"cannot read the report: {exc}") from None
+        raise XrfError(f"cannot read the report: {exc}", 500) from None
     media, ext = EXPORTS[fmt]
     return Response(
         text, media_type=media, headers={"Content-Disposition": f'attachment; filename="selfcheck-{name}.{ext}"'}
@@ -188,7 +189,7 @@ async def profiles_list(request: Request) -> list[dict[str, Any]]:
 
 def _check_name(name: str) -> None:
     if not profmod.NAME_RE.match(name):
-        raise HTTPException(404, f"no bench profile named {name!r}")
+        raise NotFound(f"no bench profile named {name!r}")
 
 
 @router.get("/api/profiles/{name}", dependencies=[requires(Perm.EDUCATOR)])
@@ -199,9 +200,9 @@ async def profile_get(name: str, request: Request) -> dict[str, Any]:
         path = profmod.find_profile(name, data_dir)
         profile = profmod.load_profile(path)
     except profmod.ProfileNotFound as exc:
-        raise HTTPException(404, str(exc)) from None
+        raise NotFound(str(exc)) from None
     except profmod.ProfileError as exc:
-        raise HTTPException(422, {"message": str(exc), "errors": field_errors(exc.problems)}) from None
+        raise Invalid(str(exc), detail={"message": str(exc), "errors": field_errors(exc.problems)}) from None
     edited = path.parent == profmod.profiles_dir(data_dir)
     return {
         "name": name,
@@ -220,8 +221,12 @@ async def profile_save(name: str, request: Request, user: User = Depends(current
     try:
         body = await request.json()
     except ValueError as exc:
-        raise HTTPException(
-            422, {"message": f"not valid JSON: {exc}", "errors": [{"field": "", "message": f"not valid JSON: {exc}"}]}
+        raise Invalid(
+            f"not valid JSON: {exc}",
+            detail={
+                "message": f"not valid JSON: {exc}",
+                "errors": [{"field": "", "message": f"not valid JSON: {exc}"}],
+            },
         ) from None
     if isinstance(body, dict) and "profile" in body and isinstance(body["profile"], dict) and "channels" not in body:
         body = body["profile"]  # {"profile": {...}} as well as the bare profile
@@ -239,7 +244,10 @@ async def profile_save(name: str, request: Request, user: User = Depends(current
     except profmod.ProfileError as exc:
         problems = exc.problems + problems
     if problems:
-        raise HTTPException(422, {"message": "; ".join(p.message for p in problems), "errors": field_errors(problems)})
+        raise Invalid(
+            "; ".join(p.message for p in problems),
+            detail={"message": "; ".join(p.message for p in problems), "errors": field_errors(problems)},
+        )
     path = await asyncio.to_thread(profmod.save_profile, body, _data_dir(request))
     audit.record(user, "profile.save", {"profile": name}, client_address(request))
     return {"name": name, "source": "edited", "has_default": _has_default(name), "path": str(path), "profile": body}
@@ -252,7 +260,7 @@ async def profile_reset(name: str, request: Request, user: User = Depends(curren
     _check_name(name)
     data_dir = _data_dir(request)
     if not profmod.delete_profile(name, data_dir):
-        raise HTTPException(404, f"{name!r} has no edited copy to remove")
+        raise NotFound(f"{name!r} has no edited copy to remove")
     audit.record(user, "profile.reset", {"profile": name}, client_address(request))
     profile = profmod.load_profile(name, data_dir) if _has_default(name) else None
     return {
