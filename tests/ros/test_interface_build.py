@@ -37,7 +37,10 @@ def test_a_first_build_gives_an_estimate_and_progress_then_is_cached(tmp_path: P
     assert len(progress) >= int(took // interfaces.PROGRESS_EVERY_S) - 3, lines
     gaps = [b - a for a, b in zip(stamped, stamped[1:])]
     assert max(gaps) < interfaces.PROGRESS_EVERY_S + 15, (gaps, lines)
-    assert any("%" in line for line in progress), lines  # CMake's own percentage
+    if took > 4 * interfaces.PROGRESS_EVERY_S:
+        # CMake's own percentage, once the compile step has had a progress line to itself (a build
+        # done in a few seconds, as on an idle machine, may say only its configure step)
+        assert any("%" in line for line in progress), lines
     # The next estimate is this build's time.
     assert abs(interfaces._last_build_seconds(tmp_path / "cache") - took) < 10
     # Cached: the same messages again cost nothing.

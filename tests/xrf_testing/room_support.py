@@ -150,6 +150,7 @@ __all__ = ["Recorder", "broker_files", "start_broker", "room_endpoint", "bench_e
 # ---- a room and its benches -----------------------------------------------------------------------
 
 import os  # noqa: E402
+import re  # noqa: E402
 import shutil  # noqa: E402
 import signal  # noqa: E402
 import subprocess  # noqa: E402
@@ -172,6 +173,12 @@ def netns_possible() -> bool:
     return ok
 
 
+def _used_nets() -> set[int]:
+    """Second octets of the 10.x addresses this host's interfaces have now."""
+    out = subprocess.run(["ip", "-o", "-4", "addr", "show"], capture_output=True, text=True).stdout
+    return {int(m) for m in re.findall(r"inet 10\.(\d+)\.", out)}
+
+
 class Topology:
     """Where benches live. `netns`: bench i is a host of its own (namespace, veth, 10.N.i.2) that
     reaches the broker at 10.N.0.1 (an address of this host); cut = its interface down. Else all on
@@ -180,33 +187,44 @@ class Topology:
     one machine (two checkouts) each get their own network."""
 
     NETS = range(211, 241)
+    _made = 0
 
     def __init__(self, n: int) -> None:
         self.netns = netns_possible()
         self.n = n
-        self.tag = f"{os.getpid() % 100000}"
+        # Names unique per topology, not per session: a namespace lives on (with its veth) until
+        # its last process is gone, which may be after the previous module's topology was closed.
+        Topology._made += 1
+        self.tag = f"{os.getpid() % 10000}{Topology._made % 100}"
         self.created: list[str] = []
         self.net = f"10.{self.NETS[0]}"
         if self.netns:
             run = lambda *a: subprocess.run(a, check=True, capture_output=True)  # noqa: E731
+            used = _used_nets()
             for net in self.NETS:
+                if net in used:
+                    continue  # another session's, or a closed topology's namespace not gone yet
                 self.net = f"10.{net}"
                 add = ["ip", "addr", "add", f"{self.BROKER_ADDR}/32", "dev", "lo"]
                 if subprocess.run(add, capture_output=True).returncode == 0:
                     break
             else:
                 raise RuntimeError(f"every test network 10.{self.NETS[0]}-{self.NETS[-1]}.0.1 is taken on lo")
-            for i in range(1, n + 1):
-                ns, host_if = self.ns(i), f"x{self.tag}h{i}"
-                run("ip", "netns", "add", ns)
-                self.created.append(ns)
-                run("ip", "link", "add", host_if, "type", "veth", "peer", "name", "eth0", "netns", ns)
-                run("ip", "addr", "add", f"{self.net}.{i}.1/30", "dev", host_if)
-                run("ip", "link", "set", host_if, "up")
-                run("ip", "-n", ns, "addr", "add", f"{self.net}.{i}.2/30", "dev", "eth0")
-                run("ip", "-n", ns, "link", "set", "lo", "up")
-                run("ip", "-n", ns, "link", "set", "eth0", "up")
-                run("ip", "-n", ns, "route", "add", "default", "via", f"{self.net}.{i}.1")
+            try:
+                for i in range(1, n + 1):
+                    ns, host_if = self.ns(i), f"x{self.tag}h{i}"
+                    run("ip", "netns", "add", ns)
+                    self.created.append(ns)
+                    run("ip", "link", "add", host_if, "type", "veth", "peer", "name", "eth0", "netns", ns)
+                    run("ip", "addr", "add", f"{self.net}.{i}.1/30", "dev", host_if)
+                    run("ip", "link", "set", host_if, "up")
+                    run("ip", "-n", ns, "addr", "add", f"{self.net}.{i}.2/30", "dev", "eth0")
+                    run("ip", "-n", ns, "link", "set", "lo", "up")
+                    run("ip", "-n", ns, "link", "set", "eth0", "up")
+                    run("ip", "-n", ns, "route", "add", "default", "via", f"{self.net}.{i}.1")
+            except subprocess.CalledProcessError as exc:
+                self.close()  # half made: nothing of it stays on the host
+                raise RuntimeError(f"{' '.join(exc.cmd)}: {exc.stderr.decode(errors='replace').strip()}") from exc
 
     @property
     def BROKER_ADDR(self) -> str:  # noqa: N802 (read like the constant it was)
