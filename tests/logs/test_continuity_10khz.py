@@ -1,5 +1,8 @@
-"""Sequence numbers continuous for a 60 s run at 10 kHz with 32 logged doubles while every core is
-loaded by stress-ng: zero records lost, through the appliance's host log writer. ~70 s."""
+"""Sequence numbers continuous for a run at 10 kHz with 32 logged doubles while every core is
+loaded by stress-ng: zero records lost, through the appliance's host log writer.
+
+In the suite it runs 15 s (the log ring holds ~1.6 s at this rate, so 15 s is nine ring-fulls under
+load); the 60 s soak is `bench/logs/soak.sh` (the same test, XRF_CONTINUITY_SECONDS=60)."""
 
 from __future__ import annotations
 
@@ -15,10 +18,10 @@ from xrf_testing.harness import stop_server
 from xrf_testing.logs_support import COST, start
 from xrflab.logs import open_log
 
-SECONDS = float(os.environ.get("XRF_CONTINUITY_SECONDS", "60"))
+SECONDS = float(os.environ.get("XRF_CONTINUITY_SECONDS", "15"))
 
 
-def test_60s_at_10khz_32_doubles_under_load_loses_nothing(tmp_path: Path) -> None:
+def test_10khz_32_doubles_under_load_loses_nothing(tmp_path: Path) -> None:
     # ./lab installs stress-ng; without the load this test would prove much less, so no skip.
     assert shutil.which("stress-ng"), "stress-ng is missing: apt-get install stress-ng (./lab does)"
     s = start(tmp_path / "data", loop_env={"XRF_FREQ": "10000", "XRF_BENCH_NVARS": "32"})

@@ -223,7 +223,8 @@ def test_disk_full_stops_the_run_and_its_log_stays_whole(tmp_path: Path) -> None
     stood in for a full one) and logging stopped while the run went on."""
     if os.geteuid() != 0:
         pytest.skip("the run's own file system needs root (a non-root appliance uses the root helper)")
-    s = start(tmp_path / "data", run_disk_mb=6, run_files=256)
+    # At 10 kHz the probe fills the run's share in seconds (at its 1 kHz default it took a minute).
+    s = start(tmp_path / "data", run_disk_mb=6, run_files=256, loop_env={"XRF_FREQ": "10000"})
     try:
         with s.ws() as ws:
             ws.send({"type": "subscribe", "topics": ["alarm", "state"]})

@@ -36,7 +36,7 @@ ROS_ENV = isolated_ros_env(1, 100)
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    config.addinivalue_line("markers", "ros: ROS 2 bridge tests (real rclpy; about 1.5 minutes, one of them 60 s)")
+    config.addinivalue_line("markers", "ros: ROS 2 bridge tests (real rclpy; about a minute, one of them a 15 s soak)")
 
 
 @pytest.fixture(scope="session")

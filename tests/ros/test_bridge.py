@@ -7,6 +7,7 @@ ROS_DOMAIN_ID per run); the loops are real controller processes on the simulated
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -122,20 +123,23 @@ def test_first_release_topic_names_command_and_xenomai_state(procs, relbot_exe, 
     assert "XenoCmd 2 (start) accepted: state RUN" in bridge.output, bridge.output
 
 
-# ---- no loss over 60 s --------------------------------------------------------------------------
+# ---- no loss over a soak ------------------------------------------------------------------------
+
+# 15 s in the suite; the 60 s soak is bench/ros/soak.sh (the same test, XRF_ROS_SOAK_SECONDS=60).
+SOAK_SECONDS = int(os.environ.get("XRF_ROS_SOAK_SECONDS", "15"))
 
 
-def test_no_xeno2ros_lost_over_60_s(procs, probe_exe, shm_name):
+def test_no_xeno2ros_lost_over_a_soak(procs, probe_exe, shm_name):
     """1 kHz loop, Xeno2Ros decimated to 100 Hz: a separate node receives every sample; the
-    cycle numbers they carry advance by exactly 10, with no gap, for 60 s."""
+    cycle numbers they carry advance by exactly 10, with no gap, for the whole soak."""
     loop = procs.loop(probe_exe, shm_name)
     assert loop.ch.info["cycle_freq"] == 1000 and loop.ch.info["write_decimator_freq"] == 100
     assert loop.command("initialise").accepted and loop.command("start").accepted
     bridge = procs.bridge(shm_name)
-    rc, out = procs.peer(PROBE / "msg", "seq", "--seconds", "60", timeout=150)
+    rc, out = procs.peer(PROBE / "msg", "seq", "--seconds", str(SOAK_SECONDS), timeout=SOAK_SECONDS + 90)
     result = _result(rc, out)
     assert result["steps"] == {"10": result["count"] - 1}, result  # every step exactly the decimation
-    assert 5900 <= result["count"] <= 6100, result
+    assert abs(result["count"] - 100 * SOAK_SECONDS) <= 100, result  # 100 Hz, give or take a second
     assert bridge.terminate() == 0
     assert ", 0 lost in the ring" in bridge.output, bridge.output
 
