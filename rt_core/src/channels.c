@@ -627,3 +627,24 @@ const char *xrf_transport_name(int32_t transport)
     static const char *const names[] = {XRF_TRANSPORTS(XRF_TRANSPORT_NAME_)};
     return (transport >= 0 && transport < XRF_TRANSPORT_COUNT) ? names[transport] : NULL;
 }
+
+#define XRF_HOST_LOST_ACTION_CASE_(NAME, name, number) \
+    case number:                                       \
+        return name;
+const char *xrf_host_lost_action_name(int32_t action)
+{
+    switch (action) {
+        XRF_HOST_LOST_ACTIONS(XRF_HOST_LOST_ACTION_CASE_)
+    default:
+        return NULL;
+    }
+}
+
+#define XRF_HOST_LOST_ACTION_MATCH_(NAME, name, number) \
+    if (strcmp(text, name) == 0)                        \
+        return number;
+int32_t xrf_host_lost_action_parse(const char *text)
+{
+    XRF_HOST_LOST_ACTIONS(XRF_HOST_LOST_ACTION_MATCH_)
+    return -EINVAL;
+}

@@ -123,14 +123,14 @@ int Options::fromEnvironment()
     }
     v = std::getenv("XRF_HOST_TIMEOUT_ACTION");
     if (v && *v) {
-        if (std::strcmp(v, "pause") == 0)
-            host_timeout_action = XRF_HOST_LOST_PAUSE;
-        else if (std::strcmp(v, "stop") == 0)
-            host_timeout_action = XRF_HOST_LOST_STOP;
-        else if (std::strcmp(v, "ignore") == 0)
-            host_timeout_action = XRF_HOST_LOST_IGNORE;
+        int32_t action = xrf_host_lost_action_parse(v);
+        if (action >= 0)
+            host_timeout_action = (uint32_t)action;
         else {
-            std::fprintf(stderr, "xrf: XRF_HOST_TIMEOUT_ACTION=%s: use pause, stop or ignore\n", v);
+            std::fprintf(stderr, "xrf: XRF_HOST_TIMEOUT_ACTION=%s: use", v);
+            for (int32_t a = 0; a < XRF_HOST_LOST_ACTION_COUNT; a++)
+                std::fprintf(stderr, "%s %s", a ? "," : "", xrf_host_lost_action_name(a));
+            std::fprintf(stderr, "\n");
             ok = false;
         }
     }
@@ -470,7 +470,7 @@ uint32_t Runtime::checkHostHeartbeat(int64_t now_ns)
 {
     uint32_t timeout_ms = __atomic_load_n(&shm_->host_timeout_ms, __ATOMIC_RELAXED);
     if (timeout_ms == 0)
-        return XRF_HOST_LOST_IGNORE;
+        return XRF_HOST_LOST_ACTION_IGNORE;
     int64_t hb = __atomic_load_n(&shm_->host_heartbeat_ns, __ATOMIC_RELAXED);
     // No heartbeat yet: the host has not attached; supervision starts with the first one.
     bool stale = hb != 0 && now_ns - hb > (int64_t)timeout_ms * 1000000LL;
@@ -481,7 +481,7 @@ uint32_t Runtime::checkHostHeartbeat(int64_t now_ns)
     }
     if (!stale)
         host_lost_ = false;
-    return XRF_HOST_LOST_IGNORE;
+    return XRF_HOST_LOST_ACTION_IGNORE;
 }
 
 void Runtime::endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, bool missed,

@@ -109,10 +109,10 @@ void XenoFrtRosIcoCore::applyCommand()
         rt.notifyHost();
     }
     switch (rt.checkHostHeartbeat(rt.cycleStart())) {
-    case XRF_HOST_LOST_PAUSE:
+    case XRF_HOST_LOST_ACTION_PAUSE:
         state_machine.pause();
         break;
-    case XRF_HOST_LOST_STOP:
+    case XRF_HOST_LOST_ACTION_STOP:
         state_machine.stop();
         break;
     default:

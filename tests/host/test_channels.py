@@ -473,7 +473,7 @@ def test_doorbell_wakes_a_waiting_host(shm_name: str) -> None:
 def test_heartbeat_timeout_and_sim_outputs(shm_name: str) -> None:
     with create_for_test(shm_name) as ch:
         ch.configure_host_timeout(250, "stop")
-        assert (ch.shm.host_timeout_ms, ch.shm.host_timeout_action) == (250, lib.XRF_HOST_LOST_STOP)
+        assert (ch.shm.host_timeout_ms, ch.shm.host_timeout_action) == (250, lib.XRF_HOST_LOST_ACTION_STOP)
         first = ch.shm.host_heartbeat_ns
         ch.host_heartbeat()
         assert ch.shm.host_heartbeat_ns >= first > 0
@@ -532,3 +532,13 @@ def test_rings_stress_in_c(repo_root: Path, tmp_path: Path) -> None:
     run = subprocess.run([str(exe)], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stdout + run.stderr
     assert run.stdout.strip().splitlines()[-1].endswith(" passed, 0 failed")
+
+
+def test_host_lost_actions_are_channels_h_list() -> None:
+    """The names the appliance sends (XRF_HOST_TIMEOUT_ACTION) are the ones the runtime parses:
+    both come from channels.h's XRF_HOST_LOST_ACTIONS; the numbers are the segment's."""
+    assert channels.HOST_LOST_ACTIONS == {"ignore": 0, "pause": 1, "stop": 2}
+    for name, number in channels.HOST_LOST_ACTIONS.items():
+        assert lib.xrf_host_lost_action_parse(name.encode()) == number
+    assert lib.xrf_host_lost_action_parse(b"halt") == -errno.EINVAL
+    assert lib.xrf_host_lost_action_name(len(channels.HOST_LOST_ACTIONS)) == ffi.NULL

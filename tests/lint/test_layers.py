@@ -113,3 +113,58 @@ def test_a_module_that_does_not_parse_is_a_problem_not_a_traceback(tree: Path) -
     plant(tree / "appliance" / "xrflab" / "records.py", "<<<<<<< HEAD\n")
     [found] = new_lines(tree, before)
     assert "xrflab.records does not parse" in found
+
+
+# ---- the drawing in docs/developers/architecture.md --------------------------------------------
+
+ARCHITECTURE = REPO / "docs" / "developers" / "architecture.md"
+
+
+def drawn_layers(text: str) -> dict[str, str]:
+    """Every path the "## Layers" drawing names (`server/runs/`, `logs/{live,host_writer}.py`...)
+    mapped to the layer it is drawn in: a line starting with a layer's name opens that layer, the
+    lines below it continue it; words in parentheses are prose, not paths."""
+    import re
+
+    section = text.split("## Layers", 1)[1]
+    drawing = section.split("```", 2)[1]
+    out: dict[str, str] = {}
+    layer = ""
+    for line in drawing.splitlines():
+        head = line.split()[0] if line.split() else ""
+        if head in layers.LAYERS:
+            layer = head
+        line = re.sub(r"\([^)]*\)", "", line)  # "(but roles)", "(start a process, ...)"
+        for token in re.findall(r"[\w/]+(?:\{[\w,]+\})?[\w/]*(?:\.py|/)", line):
+            m = re.fullmatch(r"([\w/]*)\{([\w,]+)\}(\.py|/)?", token)
+            names = [f"{m.group(1)}{n}{m.group(3) or ''}" for n in m.group(2).split(",")] if m else [token]
+            for name in names:
+                out[name] = layer
+    return out
+
+
+def drawing_problems(text: str) -> list[str]:
+    modules = layers.module_names(REPO / "appliance")
+    drawn = drawn_layers(text)
+    assert len(drawn) > 30, drawn  # the parser found the drawing
+    wrong = []
+    for path, layer in drawn.items():
+        module = layers.PACKAGE + "." + path.removesuffix("/").removesuffix(".py").replace("/", ".")
+        if module not in modules:
+            wrong.append(f"{path}: no such module")
+        elif layers.layer_of(module) != layer:
+            wrong.append(f"{path}: drawn in {layer}, LAYER_OF says {layers.layer_of(module)}")
+    return wrong
+
+
+def test_the_drawing_names_real_modules_in_their_layers() -> None:
+    assert drawing_problems(ARCHITECTURE.read_text()) == []
+
+
+def test_the_drawing_check_sees_a_misplaced_module() -> None:
+    text = ARCHITECTURE.read_text()
+    text = text.replace("  domain    errors.py,", "  domain    errors.py, server/app.py, server/nothing.py,", 1)
+    assert sorted(drawing_problems(text)) == [
+        "server/app.py: drawn in domain, LAYER_OF says roots",
+        "server/nothing.py: no such module",
+    ]

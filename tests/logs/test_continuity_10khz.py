@@ -48,7 +48,7 @@ def test_10khz_32_doubles_under_load_loses_nothing(tmp_path: Path) -> None:
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
         )
-        time.sleep(SECONDS)
+        time.sleep(SECONDS)  # the point: the soak's length, under load
         live = next(x for x in s.http.get("/api/logs/runs").json() if x["id"] == run["id"])
         assert live["live"] and live["log_lost"] == 0
         s.stop_run()

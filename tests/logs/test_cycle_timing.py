@@ -142,7 +142,7 @@ def test_a_run_with_timing_lists_it_as_a_log_and_downloads_it(server: Server, tm
     plain = r.json()["id"]
     for cmd in ("initialise", "start"):
         assert server.http.post("/api/runs/current/command", json={"cmd": cmd}).json()["accepted"]
-    time.sleep(0.3)
+    server.wait_cycles(plain, 100)
     server.stop_run()
     names = [f["name"] for f in server.http.get(f"/api/logs/runs/{plain}").json()["files"]]
     assert names and "cycle_timing.xrf" not in names

@@ -200,11 +200,11 @@ def test_lost_records_are_counted_and_shown(tmp_path: Path) -> None:
         run = s.start_run(COST)
         for cmd in ("initialise", "start"):
             assert s.http.post("/api/runs/current/command", json={"cmd": cmd}).json()["accepted"]
-        time.sleep(0.5)
+        s.wait_cycles(run["id"], 2000)
         os.kill(s.proc.pid, signal.SIGSTOP)
         time.sleep(3.0)  # the ring holds ~1.6 s at 10 kHz x 304 bytes
         os.kill(s.proc.pid, signal.SIGCONT)
-        time.sleep(0.5)
+        s.wait_cycles(run["id"], 2000)  # the appliance answers again and the loop went on
         s.stop_run()
         r = next(x for x in s.http.get("/api/logs/runs").json() if x["id"] == run["id"])
         assert r["log_lost"] > 1000 and r["status"] == "ended"

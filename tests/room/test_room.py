@@ -244,7 +244,7 @@ def test_grid_in_chromium(lab: Lab, chromium_path: str) -> None:
             fake.publish(
                 topics.bench("z03", "status"), {"boot": boot - 1, "seq": 10**6, "state": "PAUSED"}, retain=True
             )
-            time.sleep(0.5)
+            time.sleep(0.5)  # the point: within this window the grid must NOT change
             assert page.eval_on_selector("[data-bench=z03] .state", "e => e.textContent") == "RUN"
             # the fakes fall silent: offline within 5 s; the real benches stay online
             beating.clear()

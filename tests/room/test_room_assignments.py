@@ -51,7 +51,7 @@ def student(lab: Lab, i: int, name: str = "s1") -> httpx.Client:
         try:
             return login_client(lab.benches[i - 1].url, name, STUDENTS[name])
         except AssertionError:
-            time.sleep(1.5)
+            time.sleep(1.5)  # the point: spaced, or 5 failures lock the account on that bench
             return None
 
     return wait_for(attempt, 5, f"{name} accepted on b{i}")

@@ -238,7 +238,7 @@ def test_random_fields_at_random_times_while_everything_reads(server: Server, ma
         ]
         for t in readers:
             t.start()
-        time.sleep(2.0)
+        time.sleep(2.0)  # the point: the readers hammer a while before the memory baseline
         rss_before = rss_bytes(pid)
         ws.send({"type": "setpoint", "fields": {"steer_left": float(RANDOM), "steer_right": float(seed)}})
         try:

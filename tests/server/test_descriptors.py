@@ -321,7 +321,7 @@ def test_children_inherit_nothing(tmp_path: Path, ros_env: dict[str, str]) -> No
                 60,
                 "the ROS 2 bridge and the run's rerun proxy",
             )
-            time.sleep(1.0)
+            time.sleep(1.0)  # the point: the sampler watches both helpers at work a while
             server.stop_run()
             assert http.post("/api/ros", json={"enabled": False}).status_code == 200
 

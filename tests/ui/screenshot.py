@@ -47,9 +47,9 @@ def main() -> None:
                 for left, right in ((2, 2), (4, 2.5), (3, 1), (1, 1.5)):
                     page.fill("#sp-range-steer_left", str(left))
                     page.fill("#sp-range-steer_right", str(right))
-                    time.sleep(2.0)
+                    time.sleep(2.0)  # the point: a stretch of driving for the plots to show
                 page.click("#btn-clear")
-                time.sleep(1.5)
+                time.sleep(1.5)  # the point: the plots refill after the clear
                 page.evaluate("window.scrollTo(0, 0)")  # the sticky bar belongs at the top
                 page.screenshot(path=str(out), full_page=True)
                 browser.close()

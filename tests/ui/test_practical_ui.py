@@ -292,7 +292,7 @@ def test_runs_page_keeps_the_users_choice(server: Server, browser) -> None:  # n
     server.stop_run()
     run = server.start_run("relbot")
     to_run(server)
-    time.sleep(0.5)
+    server.wait_cycles(run["id"], 100)
     server.stop_run()
     live = server.start_run("relbot")  # a live run, so "Live plots" has something to show
     page = browser.new_page(viewport={"width": 1280, "height": 800})

@@ -54,7 +54,7 @@ def test_runs_page_lists_runs_and_downloads_a_csv(server: Server, browser, tmp_p
     run = server.start_run(PROBE)
     for cmd in ("initialise", "start"):
         assert server.http.post("/api/runs/current/command", json={"cmd": cmd}).json()["accepted"]
-    time.sleep(0.5)
+    server.wait_cycles(run["id"], 100)
     server.stop_run()
     info = server.http.get(f"/api/logs/runs/{run['id']}").json()
     name = info["files"][0]["name"]
@@ -213,7 +213,7 @@ def test_timing_per_cycle_from_the_bench_page(server: Server, browser) -> None:
         run_id = runs[0]["id"]
         for cmd in ("initialise", "start"):
             assert server.http.post("/api/runs/current/command", json={"cmd": cmd}).json()["accepted"]
-        time.sleep(0.5)
+        server.wait_cycles(run_id, 100)
         server.stop_run()
         files = {f["name"]: f for f in server.http.get(f"/api/logs/runs/{run_id}").json()["files"]}
         assert "cycle_timing.xrf" in files and files["cycle_timing.xrf"]["records"] > 100

@@ -101,6 +101,18 @@ class Server:
         r = self.http.post("/api/runs/current/stop", timeout=30)
         return r.json() if r.status_code == 200 else None
 
+    def cycles(self, run_id: int) -> int:
+        """The run's cycle count as the appliance reports it (live from the loop's status)."""
+        r = self.http.get(f"/api/logs/runs/{run_id}")
+        assert r.status_code == 200, r.text
+        return int(r.json()["run"]["cycles"])
+
+    def wait_cycles(self, run_id: int, n: int, timeout: float = 30.0) -> int:
+        """Wait until the run has cycled `n` more times than now: the loop has done (and logged)
+        that much, which a sleep only hopes for on a loaded machine. Returns the count reached."""
+        c0 = self.cycles(run_id)
+        return int(wait_for(lambda: (c := self.cycles(run_id)) > c0 + n and c, timeout, f"{n} cycles of run {run_id}"))
+
 
 def login_client(url: str, username: str, password: str, timeout: float = 30) -> httpx.Client:
     """An httpx client holding a session cookie and sending the CSRF header and Origin a browser

@@ -18,10 +18,9 @@ STAGE_NAMES: tuple[str, ...] = tuple(
     )
 )
 
-HOST_LOST_ACTIONS = {
-    "ignore": lib.XRF_HOST_LOST_IGNORE,
-    "pause": lib.XRF_HOST_LOST_PAUSE,
-    "stop": lib.XRF_HOST_LOST_STOP,
+# What the loop does when the host's heartbeat goes stale, by name (channels.h's XRF_HOST_LOST_ACTIONS).
+HOST_LOST_ACTIONS: dict[str, int] = {
+    c_str(lib.xrf_host_lost_action_name(a)): a for a in range(lib.XRF_HOST_LOST_ACTION_COUNT)
 }
 
 

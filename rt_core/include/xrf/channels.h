@@ -107,10 +107,13 @@ extern "C" {
 #define XRF_SOURCE_ROS 3
 #define XRF_SOURCE_LOOP 4 /* the loop itself, e.g. host heartbeat lost */
 
-/* What the loop does when the host heartbeat goes stale (xrf_shm.host_timeout_action). */
-#define XRF_HOST_LOST_IGNORE 0
-#define XRF_HOST_LOST_PAUSE 1
-#define XRF_HOST_LOST_STOP 2
+/* What the loop does when the host heartbeat goes stale (xrf_shm.host_timeout_action, set from
+ * XRF_HOST_TIMEOUT_ACTION): X(NAME, "name", number). The runtime parses the variable and Python
+ * (channels/names.py) names the actions from this list; the numbers are the segment's. */
+#define XRF_HOST_LOST_ACTIONS(X) \
+    X(IGNORE, "ignore", 0)       \
+    X(PAUSE, "pause", 1)         \
+    X(STOP, "stop", 2)
 
 /* Why loop() returned (xrf_status.end_reason), written by the runtime as it leaves. A process
  * that ends while this is still XRF_END_NONE never left loop(): the controller called exit()
@@ -320,7 +323,7 @@ struct xrf_shm {
     /* host -> loop */
     int64_t host_heartbeat_ns;    /* CLOCK_MONOTONIC, written by the supervising host */
     uint32_t host_timeout_ms;     /* 0: no host supervision */
-    uint32_t host_timeout_action; /* XRF_HOST_LOST_* */
+    uint32_t host_timeout_action; /* XRF_HOST_LOST_ACTION_* */
 
     /* doorbell (futex word) */
     uint32_t doorbell;
@@ -471,6 +474,10 @@ const char *xrf_cmd_name(int32_t cmd);
 int xrf_cmd_safe(int32_t cmd);
 /* The name of transport XRF_TRANSPORT_<NAME> (0 .. XRF_TRANSPORT_COUNT - 1), else NULL. */
 const char *xrf_transport_name(int32_t transport);
+/* The name of host-lost action XRF_HOST_LOST_ACTION_<NAME>, else NULL; and the action a name
+ * spells, else -EINVAL. */
+const char *xrf_host_lost_action_name(int32_t action);
+int32_t xrf_host_lost_action_parse(const char *name);
 /* cffi-end */
 
 /* The constants of the lists above, for C and C++ (cffi gets the same names from _cffi_build.py,
@@ -482,6 +489,11 @@ enum { XRF_STATES(XRF_STATE_CONST_) XRF_STATE_COUNT = 0 XRF_STATES(XRF_COUNT_ONE
 enum { XRF_CMDS(XRF_CMD_CONST_) XRF_CMD_COUNT = 0 XRF_CMDS(XRF_COUNT_ONE_) };
 #define XRF_TRANSPORT_CONST_(NAME, name) XRF_TRANSPORT_##NAME,
 enum { XRF_TRANSPORTS(XRF_TRANSPORT_CONST_) XRF_TRANSPORT_COUNT };
+#define XRF_HOST_LOST_ACTION_CONST_(NAME, name, number) XRF_HOST_LOST_ACTION_##NAME = number,
+enum {
+    XRF_HOST_LOST_ACTIONS(XRF_HOST_LOST_ACTION_CONST_) XRF_HOST_LOST_ACTION_COUNT =
+        0 XRF_HOST_LOST_ACTIONS(XRF_COUNT_ONE_)
+};
 
 #ifdef __cplusplus
 }

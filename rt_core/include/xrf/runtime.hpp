@@ -55,7 +55,7 @@ struct Options {
     char log_dir[XRF_PATH_MAX] = "";
     int log_writer = XRF_LOG_WRITER_PROCESS;
     uint32_t host_timeout_ms = 0;
-    uint32_t host_timeout_action = XRF_HOST_LOST_STOP;
+    uint32_t host_timeout_action = XRF_HOST_LOST_ACTION_STOP;
     uint64_t max_cycles = 0;
     bool quiet = false;
     bool log_timing = false; // XRF_LOG_TIMING=1: every cycle's stage timing into cycle_timing.xrf
@@ -130,7 +130,7 @@ public:
     // Set by SIGINT/SIGTERM, XRF_MAX_CYCLES, or the host.
     bool stopRequested() const;
     void requestStop() { stop_.store(true, std::memory_order_relaxed); }
-    // The host's heartbeat went stale this cycle (edge-triggered); 0 or an XRF_HOST_LOST_*.
+    // The host's heartbeat went stale this cycle (edge-triggered); 0 or an XRF_HOST_LOST_ACTION_*.
     uint32_t checkHostHeartbeat(int64_t now_ns);
 
     // Monitor text (rate limiting is XenoFrtMonitor's job): never blocks, drops when the host is

@@ -12,7 +12,6 @@ import socket
 import stat
 import tarfile
 import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -230,7 +229,7 @@ def test_data_files_are_never_world_readable(loose_umask_server: Server) -> None
     # refuse on a machine without what it needs; the databases are checked either way)
     r = s.http.post("/api/runs", json={"build": "relbot"}, timeout=300)
     if r.status_code == 201:
-        time.sleep(1.0)
+        s.wait_cycles(r.json()["id"], 100)
         s.stop_run()
     http.close()
     data = s.data_dir

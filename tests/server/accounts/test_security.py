@@ -100,7 +100,7 @@ def test_expired_and_idle_sessions(tmp_path) -> None:
         # Idle: unused for longer than session_idle_s.
         idle = login_client(s.url, "admin", ADMIN_PASSWORD)
         assert idle.get("/api/me").status_code == 200
-        time.sleep(1.5)
+        time.sleep(1.5)  # the point: idle longer than session_idle_s
         assert idle.get("/api/me").status_code == 401
         # Absolute: used all the time, still over after session_max_s.
         busy = login_client(s.url, "admin", ADMIN_PASSWORD)
@@ -399,15 +399,15 @@ def test_login_rate_limit_per_account_and_per_address(tmp_path) -> None:
             r = c.post("/api/auth/login", json={"username": "target", "password": pw})
             assert r.status_code == 429 and int(r.headers["Retry-After"]) >= 1  # even the right password
             assert c.post("/api/auth/token", json={"username": "target", "password": pw}).status_code == 429
-            time.sleep(2.2)
+            time.sleep(2.2)  # the point: the first lock (2 s) runs out
             # Backoff: the next lock of the same account (no success in between) is twice as long.
             for _ in range(5):
                 assert (
                     c.post("/api/auth/login", json={"username": "target", "password": "guess-again"}).status_code == 401
                 )
-            time.sleep(2.2)
+            time.sleep(2.2)  # the point: as long as the first lock, shorter than the second
             assert c.post("/api/auth/login", json={"username": "target", "password": pw}).status_code == 429
-            time.sleep(2.2)
+            time.sleep(2.2)  # the point: now the doubled lock has run out
             assert c.post("/api/auth/login", json={"username": "target", "password": pw}).status_code == 200
             # Per address: many different made-up accounts from one address lock the address.
             codes = [

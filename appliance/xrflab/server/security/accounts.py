@@ -404,7 +404,11 @@ class Accounts:
         return user, revoked
 
     def educators_enabled(self) -> int:
-        return int(self._db.execute("SELECT COUNT(*) FROM users WHERE role='educator' AND disabled=0").fetchone()[0])
+        """Enabled accounts with the educator's powers (whichever roles roles.py gives them)."""
+        powers = [r for r in ROLES if role_has(r, Perm.EDUCATOR)]
+        marks = ",".join("?" * len(powers))
+        row = self._db.execute(f"SELECT COUNT(*) FROM users WHERE role IN ({marks}) AND disabled=0", powers).fetchone()
+        return int(row[0])
 
     # -- sessions ---------------------------------------------------------------------------------
 
