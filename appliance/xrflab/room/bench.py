@@ -37,6 +37,7 @@ from .accounts_sync import BenchAccounts
 from .commands import CommandHandler
 from .enrol import REENROL, Enrolment, EnrolmentError, Outdated, read_enrolment
 from .publisher import BenchPublisher, RoomRunObserver, next_boot
+from .services import BenchServices
 from .sso import SsoError, Verifier
 
 log = logging.getLogger(__name__)
@@ -73,9 +74,9 @@ def system_facts(data_dir: Path) -> dict[str, Any]:
 
 
 class RoomLink:
-    def __init__(self, app: Any) -> None:
-        self.app = app
-        self.settings = app.state.settings
+    def __init__(self, services: BenchServices) -> None:
+        self.services = services
+        self.settings = services.settings
         self.folder = room_folder(self.settings.data_dir)
         self.publisher: BenchPublisher | None = None
         self.run_observer: RoomRunObserver | None = None
@@ -116,10 +117,10 @@ class RoomLink:
         return enrolment is not None
 
     def _start(self, e: Enrolment | Outdated) -> None:
-        app = self.app
+        services = self.services
         b = e.broker
         endpoint = mqtt.Endpoint(b.host, b.port, b.username, b.password, b.ca_pem)
-        security = app.state.security
+        security = services.security
         if isinstance(e, Enrolment):
             room_key, own_key = sso.load_public(e.room_key), sso.load_private(e.bench_key)  # both, or neither
             self.verifier, self.key = Verifier(room_key, e.name, "sso"), own_key
@@ -129,7 +130,7 @@ class RoomLink:
         self.accounts = BenchAccounts(security, self.folder)
         self.name, self.room_url = e.name, e.room_url
         self.ca_pem = b.ca_pem
-        handler = CommandHandler(app, asyncio.get_running_loop())
+        handler = CommandHandler(services, self, asyncio.get_running_loop())
         self.publisher = BenchPublisher(
             e.name,
             endpoint,
@@ -143,8 +144,8 @@ class RoomLink:
         handler.publisher = self.publisher
         self._spawn(self._retry_assignments())
         self.run_observer = RoomRunObserver(self.publisher)
-        app.state.supervisor.lifecycle.register(self.run_observer)
-        app.state.supervisor.hub.listeners.append(self.publisher.on_hub)
+        services.supervisor.lifecycle.register(self.run_observer)
+        services.supervisor.hub.listeners.append(self.publisher.on_hub)
         self.publisher.start()
         log.warning("room: bench %s reports to %s:%s", e.name, b.host, b.port)
 
@@ -258,7 +259,7 @@ class RoomLink:
 
     def facts(self) -> dict[str, Any]:
         """Asked once a second by the publisher: the loop's counters, the lease, the machine."""
-        sup = self.app.state.supervisor
+        sup = self.services.supervisor
         st = sup.state_payload()
         run = sup.current
         last = run.last_status if run is not None else None
@@ -270,7 +271,7 @@ class RoomLink:
             if dt > 0:
                 rate = round(max(0, cycles - self._last_cycles[1]) / dt, 1)
         self._last_cycles = (now, cycles)
-        lease = self.app.state.security.lease
+        lease = self.services.security.lease
         holder = lease.holder.user.username if lease is not None and lease.holder is not None else ""
         row = run.row if run is not None else sup.last_row
         return {
@@ -294,11 +295,11 @@ class RoomLink:
             t.cancel()
         if self.publisher is not None:
             try:
-                self.app.state.supervisor.hub.listeners.remove(self.publisher.on_hub)
+                self.services.supervisor.hub.listeners.remove(self.publisher.on_hub)
             except ValueError:
                 pass
             if self.run_observer is not None:
-                self.app.state.supervisor.lifecycle.unregister(self.run_observer)
+                self.services.supervisor.lifecycle.unregister(self.run_observer)
             await self.publisher.stop()
 
 
@@ -334,9 +335,10 @@ async def room_sso(request: Request, token: str = Query("", max_length=1000)) ->
     return response
 
 
-async def attach(app: Any) -> RoomLink:
-    """From the appliance's lifespan: enrolled now or later, the bench joins its room."""
-    link = RoomLink(app)
+async def attach(app: Any, services: BenchServices) -> RoomLink:
+    """From the appliance's lifespan: enrolled now or later, the bench joins its room. The link is
+    kept in the app's state for the sign-on route above (a route reaches services that way)."""
+    link = RoomLink(services)
     app.state.room = link
     await link.open()
     return link

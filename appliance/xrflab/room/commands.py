@@ -26,7 +26,7 @@ import logging
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from ..errors import XrfError
 from ..server.ws.messages import AlarmMessage
@@ -34,12 +34,26 @@ from . import payloads
 from .payloads import safe_text
 from .publisher import BenchPublisher, Recent
 
+if TYPE_CHECKING:
+    from .services import BenchServices
+
+
+class CollectionTarget(Protocol):
+    """Where a collection's archive goes: the bench's room link (bench.py's RoomLink)."""
+
+    name: str
+    folder: Path
+
+    def upload_collection(self, cid: str, archive: Path) -> None: ...
+
+
 log = logging.getLogger(__name__)
 
 
 class CommandHandler:
-    def __init__(self, app: Any, loop: asyncio.AbstractEventLoop) -> None:
-        self.app = app
+    def __init__(self, services: BenchServices, link: CollectionTarget, loop: asyncio.AbstractEventLoop) -> None:
+        self.services = services
+        self.link = link
         self.loop = loop
         self.publisher: BenchPublisher | None = None
         self._seen = Recent()
@@ -79,7 +93,7 @@ class CommandHandler:
             self.publisher.reply(**reply)
 
     async def _cmd_stop(self, _command: payloads.Stop) -> dict[str, Any]:
-        sup = self.app.state.supervisor
+        sup = self.services.supervisor
         run = sup.current
         if run is None or not run.alive:
             return {"ok": True, "accepted": None, "state": "NO RUN", "note": "no loop running"}
@@ -99,7 +113,7 @@ class CommandHandler:
         by = command.by or "the room"
         # model_validate: the field's JSON name, "from", is a Python keyword (AlarmMessage.from_).
         alarm = AlarmMessage.model_validate({"kind": "room", "message": f"From {by} (the room): {text}", "from": by})
-        self.app.state.supervisor.hub.publish(alarm)
+        self.services.supervisor.hub.publish(alarm)
         if self.publisher is not None:
             self.publisher.status["message"] = text
             self.publisher.status_changed()
@@ -109,14 +123,14 @@ class CommandHandler:
         from ..selfcheck_service import SelfCheckService, StartCheck
         from ..server.security.accounts import User
 
-        sup = self.app.state.supervisor
+        sup = self.services.supervisor
         if sup.current is not None and sup.current.alive:
             why = "a run is active; the self-check runs on idle benches only"
             if self.publisher is not None:  # the tile says so, beside the others' verdicts
                 self.publisher.status["selfcheck"] = {"verdict": "skipped", "t": time.time(), "message": why}
                 self.publisher.status_changed()
             return {"ok": False, "skipped": "busy", "error": why}
-        svc: SelfCheckService = self.app.state.selfcheck  # the appliance's, made at start-up (server/app.py)
+        svc: SelfCheckService = self.services.selfcheck  # the appliance's, made at start-up (server/app.py)
         who = User(id=0, username=f"room:{command.by[:32]}", role="educator")
         try:
             active = await svc.start(StartCheck(profile=command.profile), who, "room")
@@ -129,13 +143,11 @@ class CommandHandler:
         from ..projects.service import ProjectsService
         from .collect import RunToPack, pack_bench
 
-        link = getattr(self.app.state, "room", None)
+        link = self.link
         aid, cid = command.assignment, command.collection
-        if link is None:
-            return {"ok": False, "error": "not a collection of this room"}
         formats: list[str] = sorted(set(command.formats))
-        svc: ProjectsService = self.app.state.projects  # the appliance's, made at start-up (server/app.py)
-        runs_store = self.app.state.supervisor.store
+        svc: ProjectsService = self.services.projects  # the appliance's, made at start-up (server/app.py)
+        runs_store = self.services.supervisor.store
         runs: list[RunToPack] = []
         for p in svc.store.projects_with_origin(origin(aid)):  # every student's copy, on this bench
             for ln in svc.store.runs_of(p.id):

@@ -16,6 +16,7 @@ from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 from ..projects.service import ProjectsService
 from ..room.bench import attach as attach_room
 from ..room.bench import router as room_bench_router
+from ..room.services import BenchServices
 from ..selfcheck_service import SelfCheckService
 from ..viz.scene import VizService
 from .http import errors as http_errors
@@ -85,7 +86,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.ros = ros
         # The lab room (issue 21): one more listener of the hub once this bench is enrolled (it
         # mirrors what the dashboards hear, alarms, lease and state included, to the room)
-        room = await attach_room(app)
+        room = await attach_room(app, BenchServices(settings, supervisor, security, selfcheck, app.state.projects))
         # After every observer (lease, ROS bridge) is wired: they hear of the orphaned runs' end.
         recovering = asyncio.create_task(supervisor.recover_orphans(), name="recover-orphans")
         try:
