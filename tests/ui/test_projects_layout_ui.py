@@ -33,6 +33,12 @@ XRF2_MSGS_PACKAGE = (
     '  <maintainer email="s@example.org">s</maintainer>\n  <license>MIT</license>\n</package>\n'
 )
 VIEWPORT = {"width": 1400, "height": 1000}
+SHOTS = REPO / "test-results"  # screenshots for a person to look at (not compared)
+
+
+def shot(page, name: str) -> None:  # noqa: ANN001
+    SHOTS.mkdir(exist_ok=True)
+    page.screenshot(path=str(SHOTS / name), full_page=True)
 
 
 @pytest.fixture(scope="module")
@@ -130,6 +136,7 @@ def test_a_long_refusal_is_shown_across_the_page_wrapped(server: Server, browser
         "(() => { const s = document.getElementById('proj-side'); return s.scrollWidth - s.clientWidth; })()"
     )
     assert side <= 1, "the project list column overflows"
+    shot(page, "projects-refusal.png")
     assert not errors, errors
     page.close()
 
@@ -157,6 +164,7 @@ def test_a_workspace_is_named_after_its_package_which_the_page_shows(server: Ser
     detail = page.inner_text("#proj-detail")
     assert "relbot_v11" in detail and "controller/" in detail, detail[:500]
     assert "relbot_v11" in page.inner_text("#proj-list")
+    shot(page, "projects-workspace.png")
     assert not errors, errors
     page.close()
 
@@ -205,6 +213,7 @@ def test_a_run_refusal_is_shown_beside_its_run_button(server: Server, browser) -
         # beside the button: the same row, next to it
         assert abs((msg["y"] + msg["height"] / 2) - (btn["y"] + btn["height"] / 2)) < 30, (msg, btn)
         assert -5 <= msg["x"] - (btn["x"] + btn["width"]) < 60, (msg, btn)
+        shot(page, "projects-run-refused.png")
     finally:
         server.stop_run()
     assert not errors, errors

@@ -480,7 +480,7 @@ def _check_project(dest: Path, manifest: Manifest) -> None:
         missing = next((w for w in ("CMakeLists.txt", "msg/Ros2Xeno.msg", "Ros2Xeno.msg") if w in exc.message), "")
         raise ArchiveRejected(
             "this is not a complete project: "
-            + exc.message
+            + exc.message.rstrip(".")
             + (". Top level has: " + ", ".join(has) if has else ". The archive holds no files"),
             missing,
         ) from None
