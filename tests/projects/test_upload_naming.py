@@ -5,12 +5,17 @@
   chosen in the workspace (its package.xml name), and the upload's answer and the project's
   detail say which package that is (not only the build log);
 - a plain project keeps the archive's top folder as its name, and says no package;
+- `xrf upload WORKSPACE` sends no name of its own (it sent the folder's, "ws"), so the same rule
+  names it, and it says which package is built;
 - what an upload may be and hold (formats, layouts, size limits) is served from the check's own
   definitions (projects/archive.py), not a copy in the page."""
 
 from __future__ import annotations
 
 import io
+import os
+import subprocess
+import sys
 import tarfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -127,3 +132,22 @@ def test_the_upload_rules_are_served(server: Server) -> None:
     r = server.http.get("/api/project-upload-rules")
     assert r.status_code == 200, r.text
     assert r.json() == archive.rules(archive.Limits())
+
+
+def test_xrf_upload_of_a_workspace_is_named_after_its_package(server: Server, tmp_path: Path) -> None:
+    ws = tmp_path / "ws"
+    with tarfile.open(fileobj=io.BytesIO(workspace_targz()), mode="r:gz") as t:
+        t.extractall(ws, filter="data")  # ws/src/{controller,my_interfaces,vision_node}
+    pw = server.create_user("naming_cli")
+    tok = server.http.post("/api/auth/token", json={"username": "naming_cli", "password": pw})
+    assert tok.status_code < 300, tok.text
+    env = dict(os.environ, PYTHONPATH=str(REPO / "appliance"), XRF_TOKEN=tok.json()["token"])
+    r = subprocess.run(
+        [sys.executable, "-m", "xrflab.cli", "upload", str(ws), "--url", server.url],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
+    assert r.returncode == 0, (r.stdout, r.stderr)
+    assert "(relbot_v11)" in r.stdout and "package controller/ is built" in r.stdout, r.stdout
