@@ -68,6 +68,8 @@ def test_each_run_row_opens_its_download_links(server: Server, browser) -> None:
     # the files are in view after the click, not somewhere below the fold
     box = page.locator("#panel-run-logs").bounding_box()
     assert box is not None and box["y"] < 700, box
+    (REPO / "test-results").mkdir(exist_ok=True)
+    page.screenshot(path=str(REPO / "test-results" / "runs-downloads.png"))  # for a person to look at
     with page.expect_download() as dl:
         page.click('#rl-files a.dl[data-fmt="csv"]')
     assert dl.value.suggested_filename == f"run{run['id']}_{Path(name).stem}.csv"
