@@ -142,9 +142,11 @@ def run(args: argparse.Namespace) -> int:
     for w in warnings:
         print(f"warning: {w}", file=sys.stderr)
     headers = {"Authorization": f"Bearer {args.token}"} if args.token else {}
-    name = args.name or folder.resolve().name
+    # A name only when one is given: the appliance names a workspace after the controller package
+    # it builds (not "ws" or "src"), anything else after the folder (the archive's name).
+    name = args.name
     with httpx.Client(base_url=args.url, headers=headers, timeout=60) as http:
-        files = {"file": (f"{name}.tar.gz", data, "application/gzip")}
+        files = {"file": (f"{name or folder.resolve().name}.tar.gz", data, "application/gzip")}
         if args.project:
             r = http.put(f"/api/projects/{args.project}/source", files=files)
         else:
@@ -160,6 +162,8 @@ def run(args: argparse.Namespace) -> int:
         up = r.json()
         pid = up["project"]["id"]
         print(f"project {pid} ({up['project']['name']}): {up['files']} files, {len(data)} bytes packed")
+        if up.get("package"):
+            print(f"a ROS 2 workspace: its controller package {up['package']}/ is built")
         if not args.build:
             return 0
         r = http.post(f"/api/projects/{pid}/builds")

@@ -11,6 +11,7 @@
     "mode/xml/xml.js", "mode/markdown/markdown.js", "addon/edit/matchbrackets.js", "addon/selection/active-line.js"];
   const E = {
     pid: null, project: null, files: [], version: null, path: null,
+    want: null,         // a project another page asked to open (Projects page's "Open in editor")
     buffers: {},        // path -> {doc, base, clean (changeGeneration at the last load/save)}
     diags: [],          // the shown build's diagnostics
     build: null,        // the build of the last save: {id, status, result}
@@ -93,7 +94,10 @@
     sel.textContent = "";
     if (!list.length) sel.append(el("option", { value: "", text: "no projects: make one on the Projects page" }));
     for (const p of list) sel.append(el("option", { value: p.id, text: `${p.name} (#${p.id})` + (edu && p.owner !== me.username ? ` · ${p.owner}` : "") }));
-    const want = E.pid != null && list.some((p) => p.id === E.pid) ? E.pid : list.length ? list[0].id : null;
+    // E.want: the project another page asked for ("Open in editor" on the Projects page).
+    const asked = E.want; E.want = null;
+    const want = asked != null && list.some((p) => p.id === asked) ? asked
+      : E.pid != null && list.some((p) => p.id === E.pid) ? E.pid : list.length ? list[0].id : null;
     if (want != null) { sel.value = String(want); if (want !== E.pid) await openProject(want); else await refreshFiles(); }
   }
 

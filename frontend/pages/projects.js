@@ -1,8 +1,11 @@
 // Projects page: upload (drag-and-drop), new from a template, download, build with live output and
-// clickable compiler errors, 20-sim facts, message fields, run a build on the bench.
+// clickable compiler errors, 20-sim facts, message fields, run a build on the bench, open it in the
+// editor. Messages go where there is room: the page's own row above both columns (an upload's
+// refusal names paths that never fit the 320 px list column), an action's refusal next to the
+// button that was clicked ("run 4 is still active" beside that build's Run).
 "use strict";
 (function () {
-  const P = { projects: [], current: null, detail: null, shownBuild: null, logs: {}, templates: [] };
+  const P = { projects: [], current: null, detail: null, shownBuild: null, logs: {}, templates: [], rowMsg: {}, rules: null };
   window.xrfProjects = P;  // test hook
   const el = (tag, attrs, ...kids) => {
     const e = document.createElement(tag);
@@ -28,7 +31,9 @@
       status(text, true);
       throw new Error(text);
     }
-    status(`${file.name}: ${data.files} files, ${(data.bytes / 1024).toFixed(1)} KB` + (data.skipped.length ? ` (left out ${data.skipped.join(", ")})` : "") + " — ready to build");
+    status(`${file.name}: ${data.files} files, ${(data.bytes / 1024).toFixed(1)} KB` + (data.skipped.length ? ` (left out ${data.skipped.join(", ")})` : "")
+      + (data.package ? `; a workspace: its controller package ${data.package}/ is built, the project is named ${data.project.name}` : "")
+      + " — ready to build");
     await loadProjects();
     await select(data.project.id);
     return data;
@@ -38,6 +43,20 @@
     const s = q("proj-status");
     s.textContent = text;
     s.className = "proj-status" + (bad ? " bad" : "");
+  }
+
+  // What an upload may be and hold, from the server's check (projects/archive.py rules()).
+  const mb = (n) => `${Math.round(n / (1 << 20))} MB`;
+  async function loadRules() {
+    const r = P.rules = await xrf.api("GET", "/api/project-upload-rules");
+    const box = q("proj-rules");
+    box.textContent = "";
+    box.append(el("div", { text: `One archive (${r.formats.join(", ")}), at most ${mb(r.max_upload)}` +
+      ` (${mb(r.max_total)} unpacked, ${r.max_files} files), holding one of:` }));
+    const ul = el("ul");
+    for (const l of r.layouts) ul.append(el("li", { text: l }));
+    box.append(ul, el("div", { text: `Left out when unpacking: ${r.left_out.join(" ")}` }));
+    for (const id of ["proj-file", "proj-update-file"]) q(id).setAttribute("accept", r.formats.join(","));
   }
 
   async function loadProjects() {
@@ -56,6 +75,8 @@
       // Another project: nothing of the previous one's build may stay on screen (issue 19: project
       // A showed project B's compile error and source).
       P.shownBuild = null;
+      P.rowMsg = {};
+      actionMsg("");
       q("proj-build-title").textContent = "Build output";
       q("proj-build-title").className = "";
       q("proj-diags").textContent = "";
@@ -71,6 +92,10 @@
     q("proj-detail").classList.remove("hidden");
     q("proj-name").textContent = `${d.name} (#${d.id})`;
     q("proj-download").href = `/api/projects/${pid}/download`;
+    // A workspace: which of its packages is built (the build log says it too, but nobody reads it first).
+    q("proj-package").textContent = d.package
+      ? `A ROS 2 workspace: builds its controller package ${d.package.name} (${d.package.path}/)` : "";
+    q("proj-package").classList.toggle("hidden", !d.package);
     renderTwentySim(d.twenty_sim);
     renderMessages(d.messages);
     renderBuilds(d.builds);
@@ -109,10 +134,11 @@
     for (const b of builds) {
       const run = b.runnable ? el("button", { class: "small", "data-run": b.id, text: "Run", onclick: (e) => { e.stopPropagation(); runBuild(b.id); } }) : null;
       const st = b.status === "queued" && b.position > 0 ? `queued (#${b.position})` : b.status;
+      const msg = P.rowMsg[b.id];
       tb.append(el("tr", { "data-build": b.id, class: (b.id === P.shownBuild ? "current " : "") + "st-" + b.status, onclick: () => showBuild(b.id) },
         el("td", { text: b.id }), el("td", { class: "bstatus", text: st }), el("td", { class: "bresult", text: b.result }),
         el("td", { text: b.duration != null ? b.duration.toFixed(1) + " s" : "" }), el("td", { class: "mono small", text: b.source_hash }),
-        el("td", {}, run)));
+        el("td", { class: "brun" }, run, msg ? el("span", { class: "action-msg" + (msg.bad ? " bad" : ""), role: "status", text: msg.text }) : null)));
     }
   }
 
@@ -174,24 +200,45 @@
     } catch (e) { box.textContent = fmtErr(e); box.classList.remove("hidden"); }
   }
 
+  // The answer to a click in the project's header, beside its buttons.
+  function actionMsg(text, bad) {
+    const s = q("proj-action-msg");
+    s.textContent = text;
+    s.className = "action-msg" + (bad ? " bad" : "");
+  }
+
   async function build() {
     if (P.current == null) return;
     try {
       const b = await xrf.api("POST", `/api/projects/${P.current}/builds`);
       P.logs[b.id] = P.logs[b.id] || [];
-      status(b.reused ? `Unchanged source: build #${b.id} is reused` : `Build #${b.id} queued`);
+      actionMsg(b.reused ? `Unchanged source: build #${b.id} is reused` : `Build #${b.id} queued`);
       await refreshBuilds();
       showBuild(b.id);
-    } catch (e) { status(fmtErr(e), true); }
+    } catch (e) { actionMsg(fmtErr(e), true); }
   }
 
+  // A run's answer goes in its build's row, beside the Run button clicked (kept across the row's
+  // re-renders until the next click).
   async function runBuild(bid) {
-    status(`Starting build #${bid} on the bench…`);
+    const say = (text, bad) => {
+      P.rowMsg = { [bid]: { text, bad } };
+      renderBuilds((P.detail && P.detail.builds) || []);
+    };
+    say(`starting on the bench…`);
     try {
       const r = await xrf.api("POST", `/api/projects/${P.current}/builds/${bid}/run`, {});
-      status(`Run #${r.run.id} started`);
+      say(`run #${r.run.id} started`);
       location.hash = "#bench";
-    } catch (e) { status(fmtErr(e), true); }
+    } catch (e) { say(fmtErr(e), true); }
+  }
+
+  // The Editor page on this project (its current version): the editor opens the project it is
+  // asked for when it is next shown (frontend/pages/editor.js, E.want).
+  function openInEditor(pid) {
+    const E = window.xrfEditor;
+    if (E) E.want = pid;
+    location.hash = "#editor";
   }
 
   async function fromTemplate() {
@@ -214,8 +261,8 @@
       }
     }
     if (m.status && m.project_id === P.current) {
-      if (m.status === "ok" || m.status === "failed") status(`Build #${m.build_id}: ${m.status}` + (m.result ? ` — ${m.result}` : ""), m.status === "failed");
-      else if (m.status === "building") status(`Build #${m.build_id} building…`);
+      if (m.status === "ok" || m.status === "failed") actionMsg(`Build #${m.build_id}: ${m.status}` + (m.result ? ` — ${m.result}` : ""), m.status === "failed");
+      else if (m.status === "building") actionMsg(`Build #${m.build_id} building…`);
       refreshBuilds().then(() => { if (m.build_id === P.shownBuild && (m.status === "ok" || m.status === "failed")) showBuild(m.build_id); }).catch(() => {});
     }
   }
@@ -235,11 +282,13 @@
   function init(root) {
     root.classList.add("projects-page");
     root.innerHTML = `
+      <div id="proj-status" class="proj-status" role="status"></div>
       <section class="panel" id="proj-side">
         <h2>Projects</h2>
         <div id="proj-drop" class="dropzone" tabindex="0">
           Drop a project (<b>.zip</b> / <b>.tar.gz</b>) here<br><span class="muted small">or</span>
-          <label class="filebtn">choose a file<input type="file" id="proj-file" accept=".zip,.tar.gz,.tgz,.tar" hidden></label>
+          <label class="filebtn">choose a file<input type="file" id="proj-file" hidden></label>
+          <div id="proj-rules" class="proj-rules muted small"></div>
         </div>
         <div class="row newrow">
           <select id="proj-template"><option value="base">base template</option><option value="20sim">20-sim template</option></select>
@@ -247,16 +296,18 @@
           <button id="proj-new">New project</button>
         </div>
         <div class="muted small">Edit locally: <a id="proj-tpl-download" href="/api/project-templates/base/download">download the template (zip)</a></div>
-        <div id="proj-status" class="proj-status" role="status"></div>
         <ul id="proj-list" class="proj-list"></ul>
       </section>
       <section class="panel hidden" id="proj-detail">
         <h2><span id="proj-name"></span>
           <button id="proj-build">Build</button>
+          <button id="proj-edit" class="secondary small">Open in editor</button>
           <a id="proj-download" class="button secondary small" href="#">Download (zip)</a>
-          <label class="filebtn secondary small">new version…<input type="file" id="proj-update-file" accept=".zip,.tar.gz,.tgz,.tar" hidden></label>
+          <label class="filebtn secondary small">new version…<input type="file" id="proj-update-file" hidden></label>
           <button id="proj-delete" class="secondary small">Delete</button>
+          <span id="proj-action-msg" class="action-msg" role="status"></span>
         </h2>
+        <div id="proj-package" class="proj-package hidden"></div>
         <div class="proj-cols">
           <div><h3>20-sim</h3><div id="proj-20sim"></div></div>
           <div><h3>Messages</h3><div id="proj-msgs"></div></div>
@@ -281,9 +332,11 @@
       for (const t of ts) if (t.assignment) q("proj-template").append(el("option", { value: t.name, text: "assignment: " + t.title }));
     }).catch(() => {});
     q("proj-build").addEventListener("click", build);
+    q("proj-edit").addEventListener("click", () => openInEditor(P.current));
+    loadRules().catch((e) => status(fmtErr(e), true));
     q("proj-delete").addEventListener("click", async () => {
       if (!confirm("Delete this project and its builds?")) return;
-      try { await xrf.api("DELETE", `/api/projects/${P.current}`); } catch (e) { status(fmtErr(e), true); return; }
+      try { await xrf.api("DELETE", `/api/projects/${P.current}`); } catch (e) { actionMsg(fmtErr(e), true); return; }
       P.current = null; q("proj-detail").classList.add("hidden"); loadProjects();
     });
     dropZone(q("proj-drop"), () => null);

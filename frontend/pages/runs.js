@@ -7,6 +7,10 @@
 // own (noopener: its own renderer process), never in this page: embedded, its drawing froze the
 // dashboard's main thread for minutes on a software GPU, and with it the WebSocket and Esc
 // (issue 19 item 9). Esc in the viewer's tab still stops the run (frontend/rerun-tab.js).
+// Which log files a run has is known only from its own record (/api/logs/runs/{id}: the listing
+// does not walk 200 run folders every 2 s), so each row has a "log files" button that opens them
+// below, as a click on the row does, and the heading says so: the formats are not shown as if they
+// were links (issue 31).
 "use strict";
 (function () {
   const REFRESH_MS = 2000;
@@ -28,11 +32,12 @@
   function html(el) {
     el.innerHTML = `
       <section class="panel wide" id="panel-runs">
-        <h2>Runs <span class="muted small">logs: raw · CSV · MAT · Parquet · rerun</span></h2>
+        <h2>Runs <span class="muted small" id="runs-hint">click a run (or its <b>log files</b>) for its downloads:
+          raw, CSV, MAT, Parquet, rerun .rrd</span></h2>
         <div class="runs-scroll">
           <table class="runs runs-table" id="runs-table">
             <thead><tr><th>#</th><th>who</th><th>when</th><th>build</th><th>duration</th><th>status</th>
-              <th>cycles</th><th>misses</th><th>records</th><th>lost</th></tr></thead>
+              <th>cycles</th><th>misses</th><th>records</th><th>lost</th><th>logs</th></tr></thead>
             <tbody id="runs-list"></tbody>
           </table>
         </div>
@@ -81,7 +86,7 @@
       const status = r.status + xrf.endReason(r) + (r.live ? " · live" : "");
       const cells = [r.id, r.owner || "–", when(r.started), r.build, dur(r.duration_s), status,
         num(r.cycles), num(r.misses), num(r.log_records)];
-      while (tr.children.length < cells.length + 1) tr.appendChild(document.createElement("td"));
+      while (tr.children.length < cells.length + 2) tr.appendChild(document.createElement("td"));
       cells.forEach((c, i) => {
         const td = tr.children[i];
         if (td.textContent !== String(c)) td.textContent = c;
@@ -100,6 +105,17 @@
           td.appendChild(w);
         }
       }
+      const logs = tr.children[cells.length + 1];
+      if (!logs.firstChild) {
+        // A real button (not text that looks like links): it opens the run's files below, where
+        // each format is a download link (the same routes and permissions as everywhere).
+        const b = document.createElement("button");
+        b.className = "secondary small open-logs";
+        b.textContent = "log files ▾";
+        b.title = "show this run's log files, each downloadable as raw, CSV, MAT, Parquet or rerun .rrd";
+        b.addEventListener("click", (ev) => { ev.stopPropagation(); select(el, r.id, true); });
+        logs.appendChild(b);
+      }
       tr.title = r.log_note || r.message;
       if (!tr.dataset.wired) { tr.dataset.wired = "1"; tr.addEventListener("click", () => select(el, r.id)); }
       if (body.children[k] !== tr) body.insertBefore(tr, body.children[k] || null);
@@ -107,7 +123,7 @@
     for (const tr of old.values()) tr.remove();
   }
 
-  async function select(el, id) {
+  async function select(el, id, reveal) {
     selected = id;
     el.querySelectorAll("#runs-list tr").forEach((tr) => tr.classList.toggle("selected", tr.id === "runs-row-" + id));
     let d;
@@ -151,6 +167,7 @@
       t.innerHTML = `<a href="/api/logs/runs/${r.id}/timing" download>framework timing per second (JSON lines)</a>`;
       box.appendChild(t);
     }
+    if (reveal) $("panel-run-logs").scrollIntoView({ block: "nearest" });
   }
 
   async function rerunInfo(el) {

@@ -62,7 +62,7 @@ ROUTE_EXTRAS = {
     "Version": {"files", "build"},
     "ProjectRun": set(),
 }
-DETAIL_EXTRAS = ["twenty_sim", "messages", "file_list", "builds", "runs"]
+DETAIL_EXTRAS = ["twenty_sim", "messages", "package", "file_list", "builds", "runs"]
 
 
 def _served(record: Any) -> list[str]:

@@ -17,7 +17,8 @@ What makes it a project is decided after unpacking, by build.locate_project boun
 unpacked folder (the same rules as `xrf build`): a project with CMakeLists.txt and msg/, an XRF2
 controller package with its XRF2 framework folder or xrf2_msgs package, a whole ROS 2 workspace.
 An archive that is not one is refused naming what is missing and where it looked, and the
-unpacked folder is removed again.
+unpacked folder is removed again. What an upload may hold is said once, in ``rules()``: the
+Projects page shows it before an upload (GET /api/project-upload-rules), the refusals say it after.
 """
 
 from __future__ import annotations
@@ -39,6 +40,19 @@ from ..errors import Invalid
 CHUNK = 1 << 16
 # Folders a project never needs from the student's machine; skipped when unpacking (still counted).
 SKIPPED_DIRS = {"build", "install", "log", ".git", "__pycache__", ".vscode", ".idea"}
+
+
+# File names the upload form offers (what detect_format reads is the content, not the name).
+SUFFIXES = (".zip", ".tar.gz", ".tgz", ".tar")
+# The layouts _check_project accepts (build.locate_project's rules), as a student reads them.
+LAYOUTS = (
+    "an XRF Lab project folder: CMakeLists.txt, src/, msg/Ros2Xeno.msg and msg/Xeno2Ros.msg "
+    "(what the templates and `xrf new` make)",
+    "an XRF2 controller package together with the XRF2 framework folder its CMakeLists.txt names "
+    "(../XRF2, ../ros2-xenomai4-framework) or its xrf2_msgs package, which hold the messages",
+    "a whole ROS 2 (colcon) workspace, src/ with XRF2 and exactly one XRF2 controller package "
+    "(other ROS 2 nodes may be there): that package is built, and the project is named after it",
+)
 
 
 @dataclass(frozen=True)
@@ -82,6 +96,25 @@ class Manifest:
     total: int = 0
     prefix: str = ""  # the single top-level folder stripped from every name, if any
     skipped: list[str] = field(default_factory=list)
+    # A workspace upload: the controller package chosen in it, relative to the unpacked folder
+    # ("src/my_controller"), and its name (package.xml's, else the folder's). '' when the archive
+    # is the project itself.
+    package: str = ""
+    package_name: str = ""
+
+
+def rules(limits: Limits) -> dict[str, Any]:
+    """What an upload may be and hold, from the definitions the check uses (the Projects page
+    shows it before an upload; nothing is copied into the page)."""
+    return {
+        "formats": list(SUFFIXES),
+        "layouts": list(LAYOUTS),
+        "max_upload": limits.max_upload,
+        "max_total": limits.max_total,
+        "max_file": limits.max_file,
+        "max_files": limits.max_files,
+        "left_out": sorted(d + "/" for d in SKIPPED_DIRS),
+    }
 
 
 def _mb(n: float) -> str:
@@ -432,18 +465,22 @@ def check(path: Path | str, limits: Limits = Limits()) -> Manifest:
 
 def _check_project(dest: Path, manifest: Manifest) -> None:
     """The unpacked folder builds a controller and has its messages (build.locate_project, within
-    the folder), or ArchiveRejected with its reason and the top level's names."""
+    the folder), or ArchiveRejected with its reason and the top level's names. A workspace's
+    chosen controller package is noted in the manifest (the project is named after it: the
+    archive's top folder of a workspace is "src" or "ws" for everyone)."""
     from .. import build
+    from .source import package_of
 
     try:
-        build.locate_project(dest, within=dest)
+        located = build.locate_project(dest, within=dest)
+        manifest.package, manifest.package_name = package_of(located)
     except build.BuildError as exc:
         files = {_relative(n, manifest.prefix) for n in manifest.files}
         has = sorted({n.split("/", 1)[0] + ("/" if "/" in n else "") for n in files if n})[:12]
         missing = next((w for w in ("CMakeLists.txt", "msg/Ros2Xeno.msg", "Ros2Xeno.msg") if w in exc.message), "")
         raise ArchiveRejected(
             "this is not a complete project: "
-            + exc.message
+            + exc.message.rstrip(".")
             + (". Top level has: " + ", ".join(has) if has else ". The archive holds no files"),
             missing,
         ) from None

@@ -8,6 +8,7 @@ outside the upload."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,23 @@ def locate(src: Path) -> build.ProjectSource | None:
         return build.locate_project(src, within=src)
     except (build.BuildError, OSError):
         return None
+
+
+def package_of(located: build.ProjectSource) -> tuple[str, str]:
+    """(path relative to the source folder, name) of the controller package a workspace builds,
+    ("", "") when the folder is the project itself. The name is the one its package.xml gives
+    (what colcon and ROS 2 call it), else the folder's."""
+    folder, project = located.folder.resolve(), located.project.resolve()
+    if project == folder:
+        return "", ""
+    name = project.name
+    try:
+        m = re.search(r"<name>\s*([^<\s]+)\s*</name>", (project / "package.xml").read_text(errors="replace"))
+        if m:
+            name = m.group(1)
+    except OSError:
+        pass
+    return project.relative_to(folder).as_posix(), name
 
 
 def message_fields(src: Path, located: build.ProjectSource | None = None) -> dict[str, Any]:

@@ -89,6 +89,10 @@ ProjectDetail = ProjectRow.api_model(
         Field(description="step size, integration method, inputs/outputs from the tokens"),
     ),
     messages=(dict[str, Any], Field(description="Ros2Xeno / Xeno2Ros fields from msg/")),
+    package=(
+        dict[str, str] | None,
+        Field(description="a workspace: the controller package it builds ({path, name}); else null"),
+    ),
     file_list=(list[str], ...),
     builds=(list_of(Build), Field(description="the newest 20 builds")),
     runs=(list_of(ProjectRun), ...),
@@ -102,6 +106,19 @@ class UploadResult(BaseModel):
     bytes: int
     stripped_folder: str
     skipped: list[str]
+    package: str = Field(description="a workspace: the controller package chosen in it (its path); else ''")
+
+
+class UploadRules(BaseModel):
+    """What an upload may be and hold (projects/archive.py rules(): the check's own definitions)."""
+
+    formats: list[str]
+    layouts: list[str]
+    max_upload: int = Field(description="bytes of the archive")
+    max_total: int = Field(description="bytes of all files, unpacked")
+    max_file: int = Field(description="bytes of one file, unpacked")
+    max_files: int = Field(description="files and folders")
+    left_out: list[str] = Field(description="folders never unpacked (build output, version control)")
 
 
 class FromTemplate(BaseModel):
@@ -133,9 +150,11 @@ def _described(src: Path) -> dict[str, Any]:
     """The 20-sim model and the message fields of the controller the source builds (for an XRF2
     workspace: its controller package, the messages from its XRF2 folder or xrf2_msgs package)."""
     located = source.locate(src)
+    path, name = source.package_of(located) if located else ("", "")
     return {
         "twenty_sim": twentysim.describe(located.project if located else src),
         "messages": source.message_fields(src, located),
+        "package": {"path": path, "name": name} if path else None,
     }
 
 
@@ -244,14 +263,16 @@ async def upload_project(
     ``name``) or the archive as the raw body. Checked completely before anything is unpacked;
     a refusal (422) names the offending entry."""
     archive_path, filename, fields = await _receive_archive(request, svc)
-    base = re.sub(r"(\.tar\.gz|\.tgz|\.zip|\.tar)$", "", Path(filename).name) if filename else ""
+    base = Path(filename).name if filename else ""
+    base = next((base[: -len(x)] for x in archive.SUFFIXES if base.endswith(x)), base)
     token, folder = svc.new_folder()
     try:
         manifest = await svc.unpack_into(archive_path, folder)
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
         raise
-    pname = clean_name(name or fields.get("name", "") or manifest.prefix or base)
+    # A workspace is named after the controller package chosen in it, not its top folder ("src").
+    pname = clean_name(name or fields.get("name", "") or manifest.package_name or manifest.prefix or base)
     project = svc.store.create_project(_owner_name(_user(request)), pname, token, "upload")
     project = svc.store.update_project(project.id, files=len(manifest.files), bytes=manifest.total)
     await svc.record(
@@ -270,6 +291,7 @@ def _upload_result(project: ProjectRow, manifest: archive.Manifest) -> dict[str,
         "bytes": manifest.total,
         "stripped_folder": manifest.prefix,
         "skipped": manifest.skipped,
+        "package": manifest.package,
     }
 
 
@@ -290,6 +312,12 @@ async def replace_source(pid: int, request: Request) -> dict[str, Any]:
         )
     _audit(request, "project.upload", {"project": project.id, "name": project.name, "files": len(manifest.files)})
     return _upload_result(project, manifest)
+
+
+@router.get("/project-upload-rules", response_model=UploadRules, dependencies=[requires(Perm.PROJECTS)])
+async def upload_rules(svc: ProjectsService = Depends(projects_of)) -> dict[str, Any]:
+    """What an upload may be and hold: the Projects page says it before an upload."""
+    return archive.rules(svc.limits)
 
 
 @router.get("/project-templates", dependencies=[requires(Perm.PROJECTS)])
