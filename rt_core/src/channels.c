@@ -9,6 +9,7 @@
 #define _GNU_SOURCE
 #include "xrf/channels.h"
 #include "xrf/logformat.h" /* the type codes of the timing records */
+#include "hist_inline.h"   /* the histogram update, shared with the runtime */
 
 #include <errno.h>
 #include <limits.h>
@@ -98,17 +99,9 @@ void xrf_timing_meta_init(struct xrf_log_meta *m, uint32_t writer, const char *p
 
 /* ---- histograms ---------------------------------------------------------------------------- */
 
-#define XRF_HIST_SUB (1 << XRF_HIST_SUB_BITS)
-#define XRF_HIST_LINEAR (2 * XRF_HIST_SUB) /* below this, one bucket per nanosecond */
-
 int xrf_hist_bucket(uint64_t ns)
 {
-    if (ns < XRF_HIST_LINEAR)
-        return (int)ns;
-    int e = 63 - __builtin_clzll(ns); /* >= XRF_HIST_SUB_BITS + 1 */
-    int sub = (int)((ns >> (e - XRF_HIST_SUB_BITS)) & (XRF_HIST_SUB - 1));
-    int b = XRF_HIST_LINEAR + (e - XRF_HIST_SUB_BITS - 1) * XRF_HIST_SUB + sub;
-    return b < XRF_HIST_BUCKETS ? b : XRF_HIST_BUCKETS - 1;
+    return xrf_hist_bucket_inline(ns);
 }
 
 uint64_t xrf_hist_bucket_low(int bucket)
@@ -122,13 +115,7 @@ uint64_t xrf_hist_bucket_low(int bucket)
 
 void xrf_hist_add(struct xrf_hist *h, uint64_t ns)
 {
-    h->count++;
-    h->sum_ns += ns;
-    if (ns < h->min_ns)
-        h->min_ns = ns;
-    if (ns > h->max_ns)
-        h->max_ns = ns;
-    h->buckets[xrf_hist_bucket(ns)]++;
+    xrf_hist_add_inline(h, ns);
 }
 
 /* ---- status seqlock ------------------------------------------------------------------------ */

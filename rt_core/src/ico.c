@@ -8,10 +8,6 @@
 
 #include "xrf/ico.h"
 
-#define WORD_MAG_MASK 0x3FFFu
-#define WORD_DIR_BIT 0x4000u
-#define WORD_DOUT_BIT 0x8000u
-
 /* The TEST payload (bytes 1..11). Walking ones catch a stuck or swapped data line and a
  * one-bit shift of the frame; 0x35/0xCA are complementary and not bit-palindromes, so a
  * transport that forgets the LSB-first reversal cannot pass; 0x0F catches nibble swaps. */
@@ -35,23 +31,6 @@ void xrf_ico_frame_op(uint8_t op, uint8_t frame[XRF_ICO_FRAME])
     frame[0] = op;
 }
 
-static uint16_t out_word(int16_t pwm, uint8_t dout, int16_t pwm_max)
-{
-    /* int32 so that |-32768| does not overflow. */
-    int32_t mag = pwm < 0 ? -(int32_t)pwm : pwm;
-    int32_t lim = pwm_max < 0 ? 0 : pwm_max;
-    if (lim > (int32_t)WORD_MAG_MASK)
-        lim = WORD_MAG_MASK;
-    if (mag > lim)
-        mag = lim;
-    uint16_t w = (uint16_t)mag;
-    if (pwm >= 0)
-        w |= WORD_DIR_BIT;
-    if (dout)
-        w |= WORD_DOUT_BIT;
-    return w;
-}
-
 static void put_le16(uint8_t *p, uint16_t w)
 {
     p[0] = (uint8_t)(w & 0xFF);
@@ -66,19 +45,13 @@ static uint16_t get_le16(const uint8_t *p)
 void xrf_ico_encode_all(const struct xrf_ico_out *out, int16_t pwm_max,
                         uint8_t frame[XRF_ICO_FRAME])
 {
-    xrf_ico_frame_op(XRF_ICO_ALL, frame);
-    for (int ch = 0; ch < 4; ch++)
-        put_le16(&frame[2 + 2 * ch], out_word(out->pwm[ch], out->dout[ch], pwm_max));
+    int16_t sent[4];
+    xrf_ico_encode_all_inline(out, xrf_ico_mag_limit(pwm_max), frame, sent);
 }
 
 void xrf_ico_decode_all(const uint8_t reply[XRF_ICO_FRAME], struct xrf_ico_in *in)
 {
-    for (int ch = 0; ch < 4; ch++) {
-        uint16_t w = get_le16(&reply[1 + 2 * ch]);
-        in->enc[ch] = (int32_t)(w & WORD_MAG_MASK);
-        in->din[2 * ch] = (w & WORD_DIR_BIT) ? 1 : 0;
-        in->din[2 * ch + 1] = (w & WORD_DOUT_BIT) ? 1 : 0;
-    }
+    xrf_ico_decode_all_inline(reply, in);
 }
 
 void xrf_ico_encode_pwm(int channel, int16_t pwm, int16_t pwm_max, uint8_t frame[XRF_ICO_FRAME])
@@ -92,12 +65,12 @@ void xrf_ico_encode_pwm(int channel, int16_t pwm, int16_t pwm_max, uint8_t frame
     /* The word is the channel's whole ALL word, digital output included; this builder has no
      * output argument, so bit 15 goes out as 0 (off) and a caller that wants the output on
      * sets it in byte 3 (0x80), as IcoIo::setOutput does. */
-    put_le16(&frame[2], out_word(pwm, 0, pwm_max));
+    put_le16(&frame[2], xrf_ico_out_word(pwm, 0, xrf_ico_mag_limit(pwm_max)));
 }
 
 int32_t xrf_ico_decode_enc(const uint8_t reply[XRF_ICO_FRAME])
 {
-    return (int32_t)(get_le16(&reply[1]) & WORD_MAG_MASK);
+    return (int32_t)(get_le16(&reply[1]) & XRF_ICO_WORD_MAG_MASK);
 }
 
 void xrf_ico_test_pattern(uint8_t frame[XRF_ICO_FRAME])

@@ -13,6 +13,7 @@
 #include <time.h>
 #include <unistd.h>
 
+#include "hist_inline.h"
 #include "logfile.h"
 #include "unprivileged.h"
 #include "xrf/plants.h"
@@ -145,9 +146,13 @@ int Options::fromEnvironment()
     return ok ? 0 : -EINVAL;
 }
 
-Runtime &Runtime::instance()
+Runtime *Runtime::self_ = nullptr;
+
+Runtime &Runtime::create()
 {
+    // Made on first use, whichever static constructor (a student's global loop) asks first.
     static Runtime rt;
+    self_ = &rt;
     return rt;
 }
 
@@ -182,11 +187,6 @@ unsigned Runtime::effectiveFrequency(unsigned requested)
 void Runtime::setProgramName(const char *name)
 {
     copyString(program_, sizeof program_, name);
-}
-
-int16_t Runtime::pwmMax()
-{
-    return xrf_ico_pwm_max(options().pwm_limit);
 }
 
 xrf_ico_transport *Runtime::transport()
@@ -319,6 +319,7 @@ int Runtime::enter(unsigned cycle_freq)
 {
     const Options &o = options();
     backend_ = xrf_backend_by_name(o.backend);
+    posix_ = backend_ != nullptr && backend_ == xrf_backend_by_name("posix");
     if (backend_ == nullptr) {
         std::fprintf(stderr, "xrf: XRF_BACKEND=%s is not available in this build (have: posix%s)\n",
                      o.backend, xrf_backend_evl() ? ", evl" : "");
@@ -487,60 +488,66 @@ uint32_t Runtime::checkHostHeartbeat(int64_t now_ns)
 void Runtime::endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, bool missed,
                        int64_t idle_ns)
 {
-    cycles_++;
-    if (missed)
-        missed_++;
+    const uint64_t cycles = ++cycles_;
+    missed_ += missed ? 1u : 0u;
     if (idle_ns > 0)
         idle_total_ += (uint64_t)idle_ns;
+    const int64_t jitter = wake_ns - deadline_ns;
+    if (timing_on_)
+        recordTiming(jitter, end_ns - wake_ns, missed);
     xrf_status *s = &shm_->status;
     xrf_status_write_begin(s);
     s->state = report_.state;
     s->last_error = report_.last_error;
-    s->last_cmd = report_.last_cmd;
-    s->last_rejected_cmd = report_.last_rejected_cmd;
-    s->reject_code = report_.reject_code;
-    s->rejected_count = report_.rejected_count;
-    s->cmd_done = report_.cmd_done;
-    s->cmd_rejected = report_.cmd_rejected;
-    if (report_.reason_changed) {
-        std::memcpy(s->reject_reason, report_.reject_reason, sizeof s->reject_reason);
-        report_.reason_changed = false;
-    }
+    // The command fields change only in a cycle that handled a command (applyCommand sets
+    // result_slot with them): copied then, not every cycle.
     if (report_.result_slot >= 0) {
+        s->last_cmd = report_.last_cmd;
+        s->last_rejected_cmd = report_.last_rejected_cmd;
+        s->reject_code = report_.reject_code;
+        s->rejected_count = report_.rejected_count;
+        s->cmd_done = report_.cmd_done;
+        s->cmd_rejected = report_.cmd_rejected;
+        if (report_.reason_changed) {
+            std::memcpy(s->reject_reason, report_.reject_reason, sizeof s->reject_reason);
+            report_.reason_changed = false;
+        }
         s->cmd_results[report_.result_slot] = report_.result;
         if (report_.result & 1u)
             std::memcpy(s->cmd_reasons[report_.result_slot], report_.reject_reason,
                         sizeof s->cmd_reasons[0]);
         report_.result_slot = -1;
     }
-    s->cycles = cycles_;
+    s->cycles = cycles;
     s->missed = missed_;
-    if (cycles_ == 1)
+    if (cycles == 1)
         s->t_start_ns = deadline_ns;
     s->heartbeat_ns = wake_ns;
     s->idle_ns = idle_total_;
-    s->demotions = backend_->demotions();
-    s->doorbell_dropped = backend_->doorbell_dropped ? backend_->doorbell_dropped() : 0;
+    if (!posix_) // posix: no out-of-band stage to be demoted from, always 0
+        s->demotions = backend_->demotions();
+    if (backend_->doorbell_dropped)
+        s->doorbell_dropped = backend_->doorbell_dropped();
     s->log_written = shm_->log_ring.head;
     s->log_lost = shm_->log_ring.dropped;
     s->telem_published = shm_->telem_ring.head;
     s->host_lost = host_lost_count_;
     s->monitor_dropped = monitor_truncated_;
-    int64_t jitter = wake_ns - deadline_ns;
-    if (timing_on_)
-        recordTiming(jitter, end_ns - wake_ns, missed);
-    xrf_hist_add(&s->hist[XRF_STAGE_WAKEUP], (uint64_t)(jitter > 0 ? jitter : 0));
-    xrf_hist_add(&s->hist[XRF_STAGE_CYCLE], (uint64_t)(end_ns - wake_ns));
+    xrf_hist_add_inline(&s->hist[XRF_STAGE_WAKEUP], (uint64_t)(jitter > 0 ? jitter : 0));
+    xrf_hist_add_inline(&s->hist[XRF_STAGE_CYCLE], (uint64_t)(end_ns - wake_ns));
+    // The stages step() timed this cycle; unrolled, so each histogram's address is a constant.
+    const uint32_t mask = report_.stage_mask;
+#pragma GCC unroll 8
     for (int i = XRF_STAGE_FPGA; i <= XRF_STAGE_LOGGER; i++) {
-        if (report_.stage_set[i]) {
-            int64_t d = report_.stage_ns[i];
-            xrf_hist_add(&s->hist[i], (uint64_t)(d > 0 ? d : 0));
-            report_.stage_set[i] = false;
+        if (mask & (1u << i)) {
+            const int64_t d = report_.stage_ns[i];
+            xrf_hist_add_inline(&s->hist[i], (uint64_t)(d > 0 ? d : 0));
         }
     }
+    report_.stage_mask = 0;
     xrf_status_write_end(s);
 
-    if (pending_doorbell_ && cycles_ % doorbell_period_ == 0) {
+    if (pending_doorbell_ && cycles % doorbell_period_ == 0) {
         pending_doorbell_ = false;
         if (xrf_doorbell_should_ring(shm_))
             backend_->ring_doorbell(shm_);
@@ -555,7 +562,7 @@ void Runtime::recordTiming(int64_t jitter_ns, int64_t cycle_ns, bool missed)
     auto *t = static_cast<xrf_timing_record *>(xrf_spsc_begin(&shm_->timing_ring, shm_->timing));
     if (t == nullptr)
         return;
-    auto stage = [this](int i) { return report_.stage_set[i] ? report_.stage_ns[i] : (int64_t)-1; };
+    auto stage = [this](int i) { return report_.staged(i) ? report_.stage_ns[i] : (int64_t)-1; };
     t->hdr.seq = seq;
     t->hdr.cycle = cycles_ - 1; // the cycle index the logger stamped during this cycle
     t->hdr.t_ns = cycle_start_ns_;

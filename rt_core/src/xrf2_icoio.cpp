@@ -2,16 +2,32 @@
 #include "IcoIo.hpp"
 
 #include <cerrno>
+#include <cstddef>
 #include <cstring>
 
 #include "xrf/ico.h"
 #include "xrf/runtime.hpp"
 
+// IcoRead is XRF2's layout of the ALL reply; it is xrf_ico_in's too, so the decoded reply is
+// copied whole instead of field by field (checked here, where both are known).
+static_assert(sizeof(IcoIo::IcoRead) == sizeof(xrf_ico_in) &&
+                  offsetof(IcoIo::IcoRead, channel1) == offsetof(xrf_ico_in, enc) &&
+                  offsetof(IcoIo::IcoRead, channel4) == offsetof(xrf_ico_in, enc[3]) &&
+                  offsetof(IcoIo::IcoRead, channel1_1) == offsetof(xrf_ico_in, din) &&
+                  offsetof(IcoIo::IcoRead, channel4_2) == offsetof(xrf_ico_in, din[7]) &&
+                  sizeof(bool) == sizeof(uint8_t),
+              "IcoIo::IcoRead must have xrf_ico_in's layout");
+
 int IcoIo::xfer(const uint8_t *tx, uint8_t *rx)
 {
-    xrf_ico_transport *t = xrf::Runtime::instance().transport();
-    if (t == nullptr)
-        return -ENODEV;
+    xrf_ico_transport *t = transport_;
+    if (t == nullptr) {
+        // Until the runtime has one (it reports a failed open once and keeps returning NULL).
+        t = xrf::Runtime::instance().transport();
+        if (t == nullptr)
+            return -ENODEV;
+        transport_ = t;
+    }
     return t->xfer(t, tx, rx);
 }
 
@@ -49,7 +65,9 @@ int IcoIo::setOutput(int channel, int16_t value, bool pin)
         return -EINVAL;
     uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
     const int16_t v = outputs_enabled_ ? value : 0;
-    xrf_ico_encode_pwm(channel, v, xrf::Runtime::instance().pwmMax(), tx);
+    if (pwm_max_ < 0)
+        pwm_max_ = xrf::Runtime::instance().pwmMax();
+    xrf_ico_encode_pwm(channel, v, pwm_max_, tx);
     // The digital output shares the channel's word (bit 15), as in the ALL frame.
     if (outputs_enabled_ && pin)
         tx[3] |= 0x80;
@@ -77,38 +95,30 @@ IcoIo::ReadValue IcoIo::getInput(int channel)
 
 int IcoIo::update_io(const IcoWrite &w, IcoRead *rd)
 {
-    xrf_ico_out out;
-    if (outputs_enabled_) {
-        out = {{w.pwm1, w.pwm2, w.pwm3, w.pwm4}, {w.val1, w.val2, w.val3, w.val4}};
-    } else {
-        std::memset(&out, 0, sizeof out);
-    }
-    const int16_t max = xrf::Runtime::instance().pwmMax();
-    for (int i = 0; i < 4; i++) {
-        int16_t p = out.pwm[i];
-        last_pwm_[i] = p > max ? max : (p < -max ? (int16_t)-max : p);
-        last_dout_[i] = out.dout[i] ? 1 : 0;
-    }
+    if (pwm_max_ < 0)
+        pwm_max_ = xrf::Runtime::instance().pwmMax();
     uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
-    xrf_ico_encode_all(&out, max, tx);
+    // last_pwm_: what the frame carries, the limit applied (pwm_max_ is 0..2047, its own
+    // magnitude limit). Two calls rather than one on a chosen struct: inlined, each reads its
+    // operands directly.
+    const int32_t lim = xrf_ico_mag_limit(pwm_max_);
+    if (outputs_enabled_) {
+        const xrf_ico_out out = {{w.pwm1, w.pwm2, w.pwm3, w.pwm4},
+                                 {w.val1, w.val2, w.val3, w.val4}};
+        xrf_ico_encode_all_inline(&out, lim, tx, last_pwm_);
+        std::memcpy(last_dout_, out.dout, sizeof last_dout_);
+    } else {
+        static const xrf_ico_out off = {{0, 0, 0, 0}, {0, 0, 0, 0}};
+        xrf_ico_encode_all_inline(&off, lim, tx, last_pwm_);
+        std::memset(last_dout_, 0, sizeof last_dout_);
+    }
     int r = xfer(tx, rx);
     if (r != 0)
         return r;
     if (rd != nullptr) {
         xrf_ico_in in;
-        xrf_ico_decode_all(rx, &in);
-        rd->channel1 = in.enc[0];
-        rd->channel2 = in.enc[1];
-        rd->channel3 = in.enc[2];
-        rd->channel4 = in.enc[3];
-        rd->channel1_1 = in.din[0];
-        rd->channel1_2 = in.din[1];
-        rd->channel2_1 = in.din[2];
-        rd->channel2_2 = in.din[3];
-        rd->channel3_1 = in.din[4];
-        rd->channel3_2 = in.din[5];
-        rd->channel4_1 = in.din[6];
-        rd->channel4_2 = in.din[7];
+        xrf_ico_decode_all_inline(rx, &in);
+        std::memcpy(static_cast<void *>(rd), &in, sizeof in);
     }
     return 0;
 }

@@ -15,8 +15,10 @@ XenoFrtMonitor::XenoFrtMonitor(unsigned cycle_freq, unsigned monitor_freq)
 
 void XenoFrtMonitor::update()
 {
-    due_ = divider_ != 0 && counter_ % divider_ == 0;
-    counter_++;
+    // Due on cycles 0, divider_, 2 divider_, ...: a count-down instead of a modulo per cycle.
+    due_ = divider_ != 0 && phase_ == 0;
+    if (++phase_ >= divider_)
+        phase_ = 0;
 }
 
 void XenoFrtMonitor::printf(const char *fmt, ...)

@@ -53,9 +53,8 @@ void XenoFrtRosIcoCore::xrfMessages(void *ros_msg, uint32_t ros_size, const char
                                       monitor_freq_, ros_schema, ros_size, xeno_schema, xeno_size);
 }
 
-void XenoFrtRosIcoCore::publishTelemetry(int state)
+void XenoFrtRosIcoCore::publishTelemetry(xrf::Runtime &rt, int state)
 {
-    xrf::Runtime &rt = xrf::Runtime::instance();
     xrf_shm *shm = rt.shm();
     auto *t = static_cast<xrf_telemetry *>(xrf_bcast_begin(&shm->telem_ring, shm->telem));
     t->hdr.cycle = rt.cycle();
@@ -82,9 +81,8 @@ void XenoFrtRosIcoCore::publishTelemetry(int state)
     rt.notifyHost();
 }
 
-void XenoFrtRosIcoCore::applyCommand()
+void XenoFrtRosIcoCore::applyCommand(xrf::Runtime &rt)
 {
-    xrf::Runtime &rt = xrf::Runtime::instance();
     xrf_shm *shm = rt.shm();
     xrf::CycleReport &rep = rt.report();
     xrf_cmd_slot c;
@@ -136,30 +134,30 @@ int XenoFrtRosIcoCore::step()
         state_machine.fail(-EIO);
     const int64_t s1 = rt.now();
     rt.stage(XRF_STAGE_FPGA, s1 - s0);
-    t2 = xrf2::toTimespec(s1);
+    t2 = xrf2::toTimespecAfter(t1, s0, s1);
 
     // 2. Data channel: the newest Ros2Xeno (a torn or absent one keeps the last), Xeno2Ros out.
     xrf_data_in_try_read(&shm->ros2xeno, &ros_seq_, ros_msg_, ros_size_, &ros_t_sent_);
     if (decimator_ && ++decimator_count_ >= decimator_) {
         decimator_count_ = 0;
-        publishTelemetry(state_machine.getState());
+        publishTelemetry(rt, state_machine.getState());
     }
     const int64_t s2 = rt.now();
     rt.stage(XRF_STAGE_DATA, s2 - s1);
-    t3 = xrf2::toTimespec(s2);
+    t3 = xrf2::toTimespecAfter(t1, s0, s2);
 
     // 3. Command channel.
-    applyCommand();
+    applyCommand(rt);
     rep.state = state_machine.getState();
     const int64_t s3 = rt.now();
     rt.stage(XRF_STAGE_CMD, s3 - s2);
-    t4 = xrf2::toTimespec(s3);
+    t4 = xrf2::toTimespecAfter(t1, s0, s3);
 
     // 4. Monitor.
     monitor.update();
     const int64_t s4 = rt.now();
     rt.stage(XRF_STAGE_MONITOR, s4 - s3);
-    t5 = xrf2::toTimespec(s4);
+    t5 = xrf2::toTimespecAfter(t1, s0, s4);
 
     // 5. The current state's hook.
     const int quit = state_machine.step();
@@ -167,13 +165,13 @@ int XenoFrtRosIcoCore::step()
         state_machine.fail(-ENODEV);
     const int64_t s5 = rt.now();
     rt.stage(XRF_STAGE_HOOK, s5 - s4);
-    t6 = xrf2::toTimespec(s5);
+    t6 = xrf2::toTimespecAfter(t1, s0, s5);
 
     // 6. Logger.
     logger.log();
     const int64_t s6 = rt.now();
     rt.stage(XRF_STAGE_LOGGER, s6 - s5);
-    t7 = xrf2::toTimespec(s6);
+    t7 = xrf2::toTimespecAfter(t1, s0, s6);
 
     rep.state = state_machine.getState();
     rep.last_error = state_machine.getError();

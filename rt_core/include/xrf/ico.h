@@ -58,6 +58,63 @@ void xrf_ico_test_pattern(uint8_t frame[XRF_ICO_FRAME]);
 int xrf_ico_test_bit_errors(const uint8_t reply[XRF_ICO_FRAME]);
 uint8_t xrf_ico_bitrev8(uint8_t b);
 
+/* The ALL frame's words, defined once here and inline: IcoIo::update_io builds and parses an
+ * ALL frame every cycle (as calls these were a quarter of the loop's framework instructions,
+ * issue 30); xrf_ico_encode_all/xrf_ico_decode_all are the same code for everyone else. A
+ * channel's word: bits 0-13 magnitude, bit 14 direction (1 = pwm >= 0), bit 15 digital output;
+ * on the reply bits 0-13 are the encoder, 14 and 15 the channel's two input pins. */
+#define XRF_ICO_WORD_MAG_MASK 0x3FFFu
+#define XRF_ICO_WORD_DIR_BIT 0x4000u
+#define XRF_ICO_WORD_DOUT_BIT 0x8000u
+
+/* The largest magnitude a word may carry for a pwm_max (clamped to 0..XRF_ICO_WORD_MAG_MASK). */
+static inline int32_t xrf_ico_mag_limit(int16_t pwm_max)
+{
+    int32_t lim = pwm_max < 0 ? 0 : pwm_max;
+    return lim > (int32_t)XRF_ICO_WORD_MAG_MASK ? (int32_t)XRF_ICO_WORD_MAG_MASK : lim;
+}
+
+static inline uint16_t xrf_ico_out_word(int16_t pwm, uint8_t dout, int32_t lim)
+{
+    /* int32 so that |-32768| does not overflow. */
+    int32_t mag = pwm < 0 ? -(int32_t)pwm : pwm;
+    if (mag > lim)
+        mag = lim;
+    return (uint16_t)((uint32_t)mag | (pwm >= 0 ? XRF_ICO_WORD_DIR_BIT : 0u) |
+                      (dout ? XRF_ICO_WORD_DOUT_BIT : 0u));
+}
+
+/* The ALL frame for out (lim from xrf_ico_mag_limit); sent_pwm gets the signed duty each word
+ * carries, the limit applied. Every byte of the frame is written once, no memset. */
+static inline void xrf_ico_encode_all_inline(const struct xrf_ico_out *out, int32_t lim,
+                                             uint8_t frame[XRF_ICO_FRAME], int16_t sent_pwm[4])
+{
+    frame[0] = XRF_ICO_ALL;
+    frame[1] = 0;
+#pragma GCC unroll 4
+    for (int ch = 0; ch < 4; ch++) {
+        const uint16_t w = xrf_ico_out_word(out->pwm[ch], out->dout[ch], lim);
+        frame[2 + 2 * ch] = (uint8_t)(w & 0xFF);
+        frame[3 + 2 * ch] = (uint8_t)(w >> 8);
+        const int16_t mag = (int16_t)(w & XRF_ICO_WORD_MAG_MASK);
+        sent_pwm[ch] = (w & XRF_ICO_WORD_DIR_BIT) ? mag : (int16_t)-mag;
+    }
+    frame[10] = 0;
+    frame[11] = 0;
+}
+
+static inline void xrf_ico_decode_all_inline(const uint8_t reply[XRF_ICO_FRAME],
+                                             struct xrf_ico_in *in)
+{
+#pragma GCC unroll 4
+    for (int ch = 0; ch < 4; ch++) {
+        const uint32_t w = (uint32_t)reply[1 + 2 * ch] | ((uint32_t)reply[2 + 2 * ch] << 8);
+        in->enc[ch] = (int32_t)(w & XRF_ICO_WORD_MAG_MASK);
+        in->din[2 * ch] = (uint8_t)((w >> 14) & 1u);
+        in->din[2 * ch + 1] = (uint8_t)((w >> 15) & 1u);
+    }
+}
+
 /* A way to exchange one frame with a board. xfer is called from the real-time thread: it must
  * not allocate or block beyond the transfer itself. Returns 0 or -errno. */
 struct xrf_ico_transport {

@@ -9,6 +9,7 @@
 #include <atomic>
 #include <cstdarg>
 #include <cstdint>
+#include <ctime>
 #include <pthread.h>
 #include <signal.h>
 
@@ -79,13 +80,16 @@ struct CycleReport {
     uint64_t result = 0;
     char reject_reason[XRF_REASON_MAX] = "";
     int64_t stage_ns[XRF_STAGE_COUNT] = {};
-    bool stage_set[XRF_STAGE_COUNT] = {};
+    uint32_t stage_mask = 0; // bit i: stage_ns[i] was set this cycle
+    bool staged(int i) const { return (stage_mask >> i) & 1u; }
 };
 
 class Runtime
 {
 public:
-    static Runtime &instance();
+    // Inline: the loop asks for it several times a cycle. self_ is constant-initialised (null
+    // before any constructor runs), so a static constructor that asks first still gets it made.
+    static Runtime &instance() { return self_ != nullptr ? *self_ : create(); }
 
     // --- before the loop (constructors, in-band) ---
     const Options &options();
@@ -96,7 +100,13 @@ public:
     // The ico-board transport chosen by XRF_TRANSPORT; opened on first use. NULL on failure
     // (reason printed once).
     xrf_ico_transport *transport();
-    int16_t pwmMax();
+    // XRF_PWM_LIMIT as a PWM magnitude; computed once (the options do not change in a run).
+    int16_t pwmMax()
+    {
+        if (pwm_max_ < 0)
+            pwm_max_ = xrf_ico_pwm_max(options().pwm_limit);
+        return pwm_max_;
+    }
     void setProgramName(const char *name);
 
     // --- loop lifecycle (loop thread) ---
@@ -105,7 +115,16 @@ public:
     bool active() const { return shm_ != nullptr; }
 
     // --- per cycle (loop thread, real-time) ---
-    int64_t now() const { return backend_->now_ns(); }
+    // The posix backend's clock read inline (what its now_ns does): six of them a cycle.
+    int64_t now() const
+    {
+        if (posix_) {
+            struct timespec ts;
+            clock_gettime(CLOCK_MONOTONIC, &ts); /* vDSO: no system call */
+            return (int64_t)ts.tv_sec * 1000000000LL + ts.tv_nsec;
+        }
+        return backend_->now_ns();
+    }
     int sleepUntil(int64_t t) const { return backend_->sleep_until(t); }
     xrf_shm *shm() { return shm_; }
     uint64_t cycle() const { return cycles_; }
@@ -121,7 +140,7 @@ public:
     void stage(int idx, int64_t ns)
     {
         report_.stage_ns[idx] = ns;
-        report_.stage_set[idx] = true;
+        report_.stage_mask |= 1u << idx;
     }
     void notifyHost() { pending_doorbell_ = true; }
     // Publishes status and histograms for the cycle that just ended; rings the doorbell.
@@ -139,6 +158,8 @@ public:
 
 private:
     Runtime() = default;
+    static Runtime &create();
+    static Runtime *self_;
     int createShm();
     int mapShm(int fd, const char *what, bool keep_fd); // maps, zeroes, xrf_shm_init
     void startHelper();
@@ -164,6 +185,8 @@ private:
     CycleReport report_;
     uint64_t cycles_ = 0, missed_ = 0, idle_total_ = 0;
     uint32_t doorbell_period_ = 1;
+    int16_t pwm_max_ = -1; // pwmMax() once computed
+    bool posix_ = false;   // backend_ is the posix one: its clock is read inline, no demotions
     bool pending_doorbell_ = false;
     bool host_lost_ = false;
     uint64_t host_lost_count_ = 0;

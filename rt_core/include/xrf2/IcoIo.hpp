@@ -21,6 +21,8 @@
 #include "ICommunicationFullDuplex.h"
 #include "configuration.h"
 
+struct xrf_ico_transport;
+
 // XRF2's macros, same values. (XRF2 took ENABLE_OUTPUT_LIMIT from configuration.h only when
 // XenoFrtRosIco.hpp had included it first; here IcoIo.hpp includes it itself, so MAX_PWM_VALUE
 // is the same in every file.)
@@ -84,6 +86,10 @@ public:
 
 private:
     int xfer(const uint8_t *tx, uint8_t *rx);
+    // Looked up once, not per cycle: the runtime opens one transport for the run and its PWM
+    // limit comes from the environment at start.
+    struct xrf_ico_transport *transport_ = nullptr;
+    int16_t pwm_max_ = -1;
     bool missing_ = false;
     bool outputs_enabled_ = true;
     int16_t last_pwm_[4] = {0, 0, 0, 0};

@@ -24,6 +24,6 @@ public:
 
 private:
     unsigned divider_;
-    unsigned long counter_ = 0;
+    unsigned phase_ = 0; // cycles since the last due one, 0..divider_-1 (no division per cycle)
     bool due_ = false;
 };

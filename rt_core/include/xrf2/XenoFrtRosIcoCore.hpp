@@ -18,6 +18,11 @@
 #include "XenoSpiControllerHandler.hpp"
 #include "configuration.h"
 
+namespace xrf
+{
+class Runtime;
+}
+
 class XenoFrtRosIcoCore : public XenoFrtLoop
 {
 public:
@@ -62,8 +67,8 @@ protected:
     }, t2{}, t3{}, t4{}, t5{}, t6{}, t7{};
 
 private:
-    void publishTelemetry(int state);
-    void applyCommand();
+    void publishTelemetry(xrf::Runtime &rt, int state);
+    void applyCommand(xrf::Runtime &rt);
     void *ros_msg_ = nullptr;
     const void *xeno_msg_ = nullptr;
     uint32_t ros_size_ = 0, xeno_size_ = 0;

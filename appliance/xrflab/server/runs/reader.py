@@ -57,42 +57,48 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub)
     period_ns = int(1e9 / telemetry_hz) if telemetry_hz > 0 else 0
     next_due_ns = 0
     run_id = run.row.id
+    t0 = 0  # the loop's first deadline (status t_start_ns): set once by cycle 1, read once here
     while True:
         await run.wake.wait()
         run.wake.clear()
         run.wake_pending = False
         samples = telemetry.read()
         if samples:
-            lifecycle.samples(run, samples)
-        t0 = ch.status().t_start_ns if samples else 0
-        for sample in samples:
-            # Credit-based decimation: the average rate is telemetry_hz exactly even when the
-            # loop's own rate is not a multiple of it (100 Hz -> 30 Hz sends 3 of every 10).
-            if period_ns:
-                if sample.t_ns < next_due_ns:
-                    continue
-                next_due_ns = max(next_due_ns + period_ns, sample.t_ns - period_ns)
-            run.telemetry_sent += 1
-            # Validated like every message: at telemetry_hz (30 Hz) building and checking the
-            # model costs a few microseconds, and model_construct() is no cheaper in pydantic 2.
-            hub.publish(
-                TelemetryMessage(
-                    run_id=run_id,
-                    cycle=sample.cycle,
-                    t_ns=sample.t_ns,
-                    t=(sample.t_ns - t0) / 1e9 if t0 else sample.t_ns / 1e9,
-                    state=sample.state,
-                    enc=sample.enc,
-                    din=sample.din,
-                    pwm=sample.pwm,
-                    dout=sample.dout,
-                    xeno2ros=sample.xeno2ros,
-                    ros2xeno_t_sent_ns=sample.ros2xeno_t_sent_ns,
-                    lost=telemetry.lost,
+            lifecycle.samples(run, samples)  # the run observers (3D view, ...) take every sample
+        # Dashboards' streams: built only when a client (or a hub listener) takes them. The rings
+        # are read either way, so a client that connects gets new samples and lines, not a
+        # backlog, and the `lost` counters keep meaning the loop's losses.
+        if samples and hub.wants("telemetry"):
+            if not t0:
+                t0 = ch.status().t_start_ns
+            for sample in samples:
+                # Credit-based decimation: the average rate is telemetry_hz exactly even when the
+                # loop's own rate is not a multiple of it (100 Hz -> 30 Hz sends 3 of every 10).
+                if period_ns:
+                    if sample.t_ns < next_due_ns:
+                        continue
+                    next_due_ns = max(next_due_ns + period_ns, sample.t_ns - period_ns)
+                run.telemetry_sent += 1
+                # Validated like every message: at telemetry_hz (30 Hz) building and checking the
+                # model costs a few microseconds, and model_construct() is no cheaper in pydantic 2.
+                hub.publish(
+                    TelemetryMessage(
+                        run_id=run_id,
+                        cycle=sample.cycle,
+                        t_ns=sample.t_ns,
+                        t=(sample.t_ns - t0) / 1e9 if t0 else sample.t_ns / 1e9,
+                        state=sample.state,
+                        enc=sample.enc,
+                        din=sample.din,
+                        pwm=sample.pwm,
+                        dout=sample.dout,
+                        xeno2ros=sample.xeno2ros,
+                        ros2xeno_t_sent_ns=sample.ros2xeno_t_sent_ns,
+                        lost=telemetry.lost,
+                    )
                 )
-            )
         lines = monitor.read()
-        if lines:
+        if lines and hub.wants("monitor"):
             hub.publish(
                 MonitorMessage(
                     run_id=run_id,

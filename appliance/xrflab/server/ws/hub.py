@@ -188,6 +188,16 @@ class Hub:
     def clients(self) -> int:
         return len(self._clients)
 
+    def wants(self, topic: str) -> bool:
+        """Whether a message of `topic` would reach anyone now: a client subscribed to it, or a
+        listener (listeners hear everything). The producers of the costly periodic streams
+        (telemetry, monitor lines, timing) ask first and build nothing nobody receives: with
+        no dashboard open they cost next to nothing, and they resume at the next publication
+        after a client connects (issue 30: the appliance's idle footprint)."""
+        if self.listeners:
+            return True
+        return any(topic in client.topics for client in self._clients)
+
     def add_snapshot(self, source: Callable[[], Iterable[ServerMessage]]) -> None:
         """`source()`: the messages a client connecting now receives first; sources are asked in
         the order they were added."""
