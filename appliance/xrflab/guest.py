@@ -171,7 +171,7 @@ class GuestError(Exception):
 # that mount is shared (systemd makes / shared) the bind would propagate into the host's
 # namespace, one more stacked mount per run. Whoever made the chroot can do it once, safely.
 ROOT_NOT_A_MOUNT = (
-    "/ is not a mount point (the appliance runs in a chroot), so the run sandbox can neither make "
+    "/ is not a mount point (the appliance runs in a chroot), so the sandbox can neither make "
     "its mounts private nor pivot_root away from it. Bind the chroot's folder onto itself before "
     "entering it: mount --bind DIR DIR && mount --make-rprivate DIR (a container's root is such a "
     "mount already)"

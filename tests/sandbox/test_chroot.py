@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import pwd
 import re
 import shutil
 import subprocess
@@ -25,6 +26,9 @@ from test_launcher import PROBE, assert_confined
 
 REPO = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent
+# The system's python3 runs the probe and the build sandbox, as in test_launcher.py for another user
+# (the venv's interpreter may live outside the chroot).
+PYTHON = shutil.which("python3", path="/usr/bin:/bin") or "/usr/bin/python3"
 
 # $1: the chroot's folder; $2: "bind" to bind it onto itself first (what the refusal asks for);
 # the rest: the command run in the chroot.
@@ -50,26 +54,52 @@ exec chroot "$root" "$@"
 """
 
 
-def probe_in_chroot(how: str) -> dict[str, Any]:
-    tmp = Path(tempfile.mkdtemp(prefix="xrf-chroot-probe-"))
+def in_chroot(how: str, cmd: list[str], env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    """Run ``cmd`` in a fresh chroot (its folder bound onto itself first when ``how`` is "bind")."""
     # the chroot's own folder: not a mount, and not below the /tmp bound into it
     root = Path(tempfile.mkdtemp(prefix="xrf-chroot-", dir="/var/tmp"))
+    os.chmod(root, 0o755)  # it is /: every user passes through it (mkdtemp made it 0700)
+    try:
+        full = ["unshare", "--mount", "--propagation", "private", "sh", "-c", MAKE_CHROOT, "make-chroot"]
+        return subprocess.run(
+            [*full, str(root), how, *cmd],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            cwd="/",
+            env=dict(os.environ, REPO=str(REPO), **(env or {})),
+        )
+    finally:
+        subprocess.run(["rm", "-rf", "--one-file-system", str(root)], check=False)
+
+
+def probe_in_chroot(how: str) -> dict[str, Any]:
+    tmp = Path(tempfile.mkdtemp(prefix="xrf-chroot-probe-"))
     try:
         os.chmod(tmp, 0o755)
         script = tmp / "probe.sh"
         script.write_text(PROBE)
         script.chmod(0o755)
-        env = dict(os.environ, REPO=str(REPO))
-        python = shutil.which("python3", path="/usr/bin:/bin") or "/usr/bin/python3"
-        cmd = ["unshare", "--mount", "--propagation", "private", "sh", "-c", MAKE_CHROOT, "make-chroot"]
-        cmd += [str(root), how, python, str(HERE / "guest_probe.py"), str(REPO / "appliance"), str(script), "0"]
-        r = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd="/", env=env)
+        r = in_chroot(how, [PYTHON, str(HERE / "guest_probe.py"), str(REPO / "appliance"), str(script), "0"])
         assert r.returncode == 0 and r.stdout.strip(), r.stderr
         data = json.loads(r.stdout.strip().splitlines()[-1])
         data["seen"] = dict(re.findall(r"^(\w+)=(.*)$", data["output"], re.M))
         return data
     finally:
-        subprocess.run(["rm", "-rf", "--one-file-system", str(tmp), str(root)], check=False)
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def build_in_chroot(how: str) -> subprocess.CompletedProcess[str]:
+    """The build sandbox (python -m xrflab.projects.builder --sandbox, as the builder starts it)
+    running `echo built` as nobody."""
+    from xrflab.projects.sandbox_config import SandboxConfig, SandboxSpec
+
+    nobody = pwd.getpwnam("nobody")
+    spec = SandboxSpec(
+        limits=SandboxConfig(rt_cpu=None), uid=nobody.pw_uid, gid=nobody.pw_gid, env={"PATH": "/usr/bin:/bin"}
+    )
+    cmd = [PYTHON, "-m", "xrflab.projects.builder", "--sandbox", spec.to_json(), "--", "/bin/echo", "built"]
+    return in_chroot(how, cmd, env={"PYTHONPATH": str(REPO / "appliance")})
 
 
 def need_root() -> None:
@@ -93,3 +123,19 @@ def test_starts_and_confines_once_the_root_is_bound_onto_itself() -> None:
     data = probe_in_chroot("bind")
     assert data["report"]["mode"] == "root", data
     assert_confined(data)
+
+
+def test_build_sandbox_says_why_where_root_is_not_a_mount() -> None:
+    """The build sandbox goes on without its private folders there (as it does wherever mounts are
+    refused), and its log says exactly why instead of a bare errno."""
+    need_root()
+    r = build_in_chroot("plain")
+    assert r.returncode == 0 and "built" in r.stdout, r.stdout + r.stderr
+    assert "/ is not a mount point" in r.stdout and "mount --bind DIR DIR" in r.stdout, r.stdout
+
+
+def test_build_sandbox_private_once_the_root_is_bound_onto_itself() -> None:
+    need_root()
+    r = build_in_chroot("bind")
+    assert r.returncode == 0 and "built" in r.stdout, r.stdout + r.stderr
+    assert "WARNING: no private" not in r.stdout and "sandbox: private /tmp" in r.stdout, r.stdout
