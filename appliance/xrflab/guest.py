@@ -164,6 +164,30 @@ class GuestError(Exception):
     pass
 
 
+# Why the sandbox refuses to start where / is not a mount point (issue 30: an appliance in a
+# chroot, e.g. an arm64 Debian root under qemu-user). Binding / onto itself from in here would
+# make it one, but the bind lands on the mount that holds the chroot's folder: a mount this
+# process cannot name (it is outside its root) and so cannot make private first, and wherever
+# that mount is shared (systemd makes / shared) the bind would propagate into the host's
+# namespace, one more stacked mount per run. Whoever made the chroot can do it once, safely.
+ROOT_NOT_A_MOUNT = (
+    "/ is not a mount point (the appliance runs in a chroot), so the sandbox can neither make "
+    "its mounts private nor pivot_root away from it. Bind the chroot's folder onto itself before "
+    "entering it: mount --bind DIR DIR && mount --make-rprivate DIR (a container's root is such a "
+    "mount already)"
+)
+
+
+def root_is_a_mount() -> bool:
+    """Whether / is the root of a mount. In a chroot, mountinfo lists only the mounts below the
+    process's root: the one holding its folder is not among them, so no line says "/"."""
+    try:
+        with open("/proc/self/mountinfo") as f:
+            return any(line.split()[4] == "/" for line in f if len(line.split()) > 4)
+    except OSError:
+        return True  # no /proc: say nothing we cannot know; the mount error stands
+
+
 _libc = ctypes.CDLL(None, use_errno=True)
 
 
@@ -394,7 +418,12 @@ class _Launch:
     def build_root(self) -> str:
         """A read-only tmpfs root holding only the allow-list; returns its path (not yet pivoted)."""
         cfg = self.cfg
-        mount(None, "/", None, MS_REC | MS_PRIVATE)
+        try:
+            mount(None, "/", None, MS_REC | MS_PRIVATE)
+        except OSError as exc:
+            if exc.errno == errno.EINVAL and not root_is_a_mount():
+                raise GuestError(ROOT_NOT_A_MOUNT) from exc
+            raise
         # Staging: our own tmpfs on /tmp (this namespace only); the sources are held as fds.
         mount("tmpfs", "/tmp", "tmpfs", MS_NOSUID | MS_NODEV, "size=1m,mode=0700")
         root = "/tmp/root"

@@ -20,10 +20,63 @@
 #include <time.h>
 #include <unistd.h>
 
+/*
+ * Memory ordering (issue 30: a Pi's Cortex-A72 reorders what x86 does not). Every word two sides
+ * share is read and written through the __atomic builtins below, never by a plain access: a plain
+ * load of an index may be torn, hoisted out of a loop or reordered around the data it guards.
+ * The rule for each handoff, with its reasoning, is next to its code; docs/rt_core/memory-order.md
+ * has the table, and tests/rt_core/test_tsan.py runs the two-thread stress test of every handoff
+ * under ThreadSanitizer.
+ *  - publish (head, ready, seq even): the data is written first, the word last with RELEASE; the
+ *    reader loads the word with ACQUIRE before touching the data it covers.
+ *  - own words (the producer's head, the consumer's tail, read back by their only writer):
+ *    RELAXED loads; no other thread writes them, the atomic only keeps the access whole.
+ *  - seqlock payloads: copied with RELAXED atomic word loads (xrf_seq_copy), validated by the
+ *    sequence word after an ACQUIRE fence -- the C11 seqlock (Boehm, "Can seqlocks get along with
+ *    programming language memory models?", 2012). A torn copy is thrown away, never used.
+ *  - doorbell: SEQ_CST on both sides (a store then a load of the other word, which acquire/release
+ *    does not order).
+ */
 #define LOAD_ACQ(p) __atomic_load_n((p), __ATOMIC_ACQUIRE)
 #define LOAD_RLX(p) __atomic_load_n((p), __ATOMIC_RELAXED)
 #define STORE_REL(p, v) __atomic_store_n((p), (v), __ATOMIC_RELEASE)
 #define STORE_RLX(p, v) __atomic_store_n((p), (v), __ATOMIC_RELAXED)
+
+/* A seqlock reader's copy of `n` bytes its writer may be changing: relaxed atomic loads, word by
+ * word where both pointers allow it (every payload here is 8-byte aligned), so the racing access
+ * is defined behaviour in C11 (a memcpy racing with a store is not) and ThreadSanitizer sees an
+ * atomic read. On arm64 and x86 a relaxed 8-byte load is the plain `ldr`/`mov` memcpy would use:
+ * the copy costs no barrier; the caller's acquire fence orders it before the re-check. */
+static void xrf_seq_copy(void *dst, const void *src, size_t n)
+{
+    uint8_t *d = dst;
+    const uint8_t *s = src;
+    if ((((uintptr_t)d | (uintptr_t)s) & 7u) == 0) {
+        for (; n >= 8; n -= 8, d += 8, s += 8) {
+            uint64_t w = __atomic_load_n((const uint64_t *)(const void *)s, __ATOMIC_RELAXED);
+            memcpy(d, &w, 8);
+        }
+    }
+    for (; n > 0; n--)
+        *d++ = __atomic_load_n(s++, __ATOMIC_RELAXED);
+}
+
+/* The writer's half, for a writer in this file (the Ros2Xeno buffer): relaxed atomic stores
+ * between the odd and the even sequence word. */
+static void xrf_seq_store(void *dst, const void *src, size_t n)
+{
+    uint8_t *d = dst;
+    const uint8_t *s = src;
+    if ((((uintptr_t)d | (uintptr_t)s) & 7u) == 0) {
+        for (; n >= 8; n -= 8, d += 8, s += 8) {
+            uint64_t w;
+            memcpy(&w, s, 8);
+            __atomic_store_n((uint64_t *)(void *)d, w, __ATOMIC_RELAXED);
+        }
+    }
+    for (; n > 0; n--)
+        __atomic_store_n(d++, *s++, __ATOMIC_RELAXED);
+}
 
 /* How often a reader retries a slot that a (possibly dead) writer holds before giving up. */
 #define XRF_SPIN_LIMIT 100000
@@ -120,24 +173,30 @@ void xrf_hist_add(struct xrf_hist *h, uint64_t ns)
 
 /* ---- status seqlock ------------------------------------------------------------------------ */
 
+/* Writer (the loop only, so its own seq is read back RELAXED): odd, then a RELEASE fence so no
+ * store of the block becomes visible before the odd value (a reader seeing a new field then sees
+ * seq changed); even with RELEASE after the last store of the block. */
 void xrf_status_write_begin(struct xrf_status *s)
 {
-    STORE_RLX(&s->seq, s->seq + 1);
+    STORE_RLX(&s->seq, LOAD_RLX(&s->seq) + 1);
     __atomic_thread_fence(__ATOMIC_RELEASE); /* odd seq visible before any data store */
 }
 
 void xrf_status_write_end(struct xrf_status *s)
 {
-    STORE_REL(&s->seq, s->seq + 1);
+    STORE_REL(&s->seq, LOAD_RLX(&s->seq) + 1);
 }
 
 int xrf_status_read(const struct xrf_status *s, struct xrf_status *out)
 {
     for (int tries = 0; tries < XRF_STATUS_TRIES; tries++) {
+        /* ACQUIRE: the block's stores of the write that made s1 are visible to the copy. The
+         * ACQUIRE fence keeps the copy's loads before the second seq load: if any of them saw a
+         * later write's store, that write's odd seq is seen here and the copy is retried. */
         uint32_t s1 = LOAD_ACQ(&s->seq);
         if (s1 & 1u)
             continue;
-        memcpy(out, s, sizeof *out);
+        xrf_seq_copy(out, s, sizeof *out);
         __atomic_thread_fence(__ATOMIC_ACQUIRE);
         if (LOAD_RLX(&s->seq) == s1)
             return 0;
@@ -171,6 +230,9 @@ int64_t xrf_cmd_send(struct xrf_cmd_ring *r, int32_t cmd, int32_t source, int64_
             pos = LOAD_RLX(&r->head);
         }
     }
+    /* The slot is this sender's alone from the CAS on (its seq said free for `pos`, which no
+     * other sender can claim now); the ACQUIRE load of that seq ordered the consumer's last read
+     * of the slot before these stores. The fields go plain, the slot's seq last with RELEASE. */
     slot->ticket = pos + 1;
     slot->cmd = cmd;
     slot->source = source;
@@ -181,7 +243,10 @@ int64_t xrf_cmd_send(struct xrf_cmd_ring *r, int32_t cmd, int32_t source, int64_
 
 int xrf_cmd_poll(struct xrf_cmd_ring *r, struct xrf_cmd_slot *out)
 {
-    uint64_t pos = r->tail;
+    /* tail: the loop's own word (RELAXED). The slot's seq with ACQUIRE: pos + 1 means a sender's
+     * RELEASE published its fields, which the copy then reads. Handing the slot back is a RELEASE
+     * of seq after the copy, so a sender that sees it free cannot overwrite what is being read. */
+    uint64_t pos = LOAD_RLX(&r->tail);
     struct xrf_cmd_slot *slot = &r->slot[pos & (XRF_CMD_SLOTS - 1)];
     if (LOAD_ACQ(&slot->seq) != pos + 1)
         return 0;
@@ -208,11 +273,15 @@ int xrf_data_in_write(struct xrf_data_in *d, const void *data, uint32_t size, in
         if (__atomic_compare_exchange_n(&d->seq, &s, s + 1, 0, __ATOMIC_ACQUIRE, __ATOMIC_RELAXED))
             break;
     }
+    /* The CAS made seq odd (this writer's lock; ACQUIRE: the previous writer's stores are
+     * before ours). The RELEASE fence keeps every store below after the odd value, as in the
+     * status seqlock; the even value is the RELEASE that publishes them. The loop reads these
+     * words while they change: atomic stores, never a plain memcpy. */
     __atomic_thread_fence(__ATOMIC_RELEASE);
-    memcpy(d->data, data, size);
-    d->size = size;
-    d->t_sent_ns = t_sent_ns;
-    d->writes++;
+    xrf_seq_store(d->data, data, size);
+    STORE_RLX(&d->size, size);
+    STORE_RLX(&d->t_sent_ns, t_sent_ns);
+    STORE_RLX(&d->writes, LOAD_RLX(&d->writes) + 1);
     STORE_REL(&d->seq, s + 2);
     return 0;
 }
@@ -226,8 +295,9 @@ int xrf_data_in_try_read(struct xrf_data_in *d, uint32_t *last_seq, void *out, u
         return 0;
     if (size > XRF_MSG_MAX)
         size = XRF_MSG_MAX;
-    memcpy(staging, d->data, size);
-    int64_t t = d->t_sent_ns;
+    /* The seqlock reader (see xrf_status_read): relaxed copies, ACQUIRE fence, re-check. */
+    xrf_seq_copy(staging, d->data, size);
+    int64_t t = LOAD_RLX(&d->t_sent_ns);
     __atomic_thread_fence(__ATOMIC_ACQUIRE);
     if (LOAD_RLX(&d->seq) != s1)
         return 0; /* torn: keep last cycle's message, take the new one next cycle */
@@ -240,23 +310,31 @@ int xrf_data_in_try_read(struct xrf_data_in *d, uint32_t *last_seq, void *out, u
 
 /* ---- rings of fixed-size slots ------------------------------------------------------------- */
 
+/* The producer's view of its own ring: geometry it set itself (RELAXED: readers only compare it). */
 static inline struct xrf_slot_hdr *slot_at(const struct xrf_ring *r, const void *slots, uint64_t n)
 {
-    return (struct xrf_slot_hdr *)((uint8_t *)slots + (size_t)(n & (r->slots - 1)) * r->slot_size);
+    return (struct xrf_slot_hdr *)((uint8_t *)slots + (size_t)(n & (LOAD_RLX(&r->slots) - 1)) *
+                                                          LOAD_RLX(&r->slot_size));
 }
 
+/* Before any reader attaches (xrf_shm_init) or while none reads (a logger's initialise(), whose
+ * meta is not ready): the words are set RELAXED, `slots` last with RELEASE. */
 void xrf_ring_init(struct xrf_ring *r, uint32_t slots, uint32_t slot_size)
 {
-    r->head = 0;
-    r->tail = 0;
-    r->dropped = 0;
-    r->slot_size = slot_size;
+    STORE_RLX(&r->head, 0);
+    STORE_RLX(&r->tail, 0);
+    STORE_RLX(&r->dropped, 0);
+    STORE_RLX(&r->slot_size, slot_size);
     STORE_REL(&r->slots, slots);
 }
 
+/* Broadcast: a seqlock per slot. seq = 2n+1 (RELAXED) then a RELEASE fence: no store of the
+ * payload becomes visible before it. The producer fills the slot; commit stores 2n+2 with
+ * RELEASE (the payload is before it), then head with RELEASE (the slot is before it). A reader
+ * loads head ACQUIRE, the slot's seq ACQUIRE, copies (xrf_seq_copy), fence ACQUIRE, seq again. */
 void *xrf_bcast_begin(struct xrf_ring *r, void *slots)
 {
-    uint64_t n = r->head;
+    uint64_t n = LOAD_RLX(&r->head); /* the producer's own word */
     struct xrf_slot_hdr *slot = slot_at(r, slots, n);
     STORE_RLX(&slot->seq, 2 * n + 1);
     __atomic_thread_fence(__ATOMIC_RELEASE);
@@ -265,16 +343,19 @@ void *xrf_bcast_begin(struct xrf_ring *r, void *slots)
 
 void xrf_bcast_commit(struct xrf_ring *r, void *slot)
 {
-    uint64_t n = r->head;
+    uint64_t n = LOAD_RLX(&r->head);
     STORE_REL(&((struct xrf_slot_hdr *)slot)->seq, 2 * n + 2);
     STORE_REL(&r->head, n + 1);
 }
 
+/* SPSC (the log): tail ACQUIRE -- the consumer's RELEASE of tail came after it finished reading
+ * the slots it gave back, so the producer's next stores into them cannot reach the consumer's
+ * reads. head: the producer's own word, RELAXED; published with RELEASE after the record. */
 void *xrf_spsc_begin(struct xrf_ring *r, void *slots)
 {
-    uint64_t head = r->head;
-    if (head - LOAD_ACQ(&r->tail) >= r->slots) {
-        STORE_RLX(&r->dropped, r->dropped + 1);
+    uint64_t head = LOAD_RLX(&r->head);
+    if (head - LOAD_ACQ(&r->tail) >= LOAD_RLX(&r->slots)) {
+        STORE_RLX(&r->dropped, LOAD_RLX(&r->dropped) + 1);
         return NULL;
     }
     return slot_at(r, slots, head);
@@ -283,7 +364,7 @@ void *xrf_spsc_begin(struct xrf_ring *r, void *slots)
 void xrf_spsc_commit(struct xrf_ring *r, void *slot)
 {
     (void)slot;
-    STORE_REL(&r->head, r->head + 1);
+    STORE_REL(&r->head, LOAD_RLX(&r->head) + 1);
 }
 
 uint32_t xrf_log_slots_for(uint32_t record_size, uint32_t ring_bytes, uint32_t *slot_size)
@@ -414,7 +495,7 @@ int xrf_bcast_read_g(const struct xrf_ring *r, const struct xrf_ring_geom *g, co
                                           (size_t)(c & (nslots - 1)) * g->slot_size);
         uint64_t s1 = LOAD_ACQ(&slot->seq);
         if (s1 == 2 * c + 2) {
-            memcpy(out, slot, g->slot_size);
+            xrf_seq_copy(out, slot, g->slot_size);
             __atomic_thread_fence(__ATOMIC_ACQUIRE);
             if (LOAD_RLX(&slot->seq) == s1) {
                 *cursor = c + 1;
@@ -456,10 +537,19 @@ void xrf_spsc_release_g(struct xrf_ring *r, uint64_t *tail, uint32_t n)
 
 /* ---- doorbell ------------------------------------------------------------------------------ */
 
+/* The doorbell is a store-then-load on each side (Dekker): the loop bumps `doorbell` then reads
+ * `doorbell_waiters`; a host bumps `doorbell_waiters` then reads `doorbell` before it sleeps.
+ * With RELEASE/ACQUIRE (what this was) each side's load may be satisfied before its own store
+ * is visible to the other -- allowed by C11 and done by an Arm core's store buffer (and its
+ * RCpc LDAPR) -- so both could miss each other: the loop sees no waiter and does not wake, the
+ * host sees the old doorbell and sleeps through a publication until its timeout. SEQ_CST on all
+ * four accesses forbids that outcome (one total order: at least one side sees the other's
+ * store). The bump also RELEASEs what the loop published before it. On arm64 this is LDADDAL and
+ * LDAR, once a doorbell period. */
 int xrf_doorbell_should_ring(struct xrf_shm *shm)
 {
-    __atomic_add_fetch(&shm->doorbell, 1u, __ATOMIC_RELEASE);
-    return LOAD_ACQ(&shm->doorbell_waiters) != 0;
+    __atomic_add_fetch(&shm->doorbell, 1u, __ATOMIC_SEQ_CST);
+    return __atomic_load_n(&shm->doorbell_waiters, __ATOMIC_SEQ_CST) != 0;
 }
 
 int xrf_doorbell_wake(struct xrf_shm *shm)
@@ -470,8 +560,10 @@ int xrf_doorbell_wake(struct xrf_shm *shm)
 
 uint32_t xrf_doorbell_wait(struct xrf_shm *shm, uint32_t seen, int timeout_ms)
 {
-    __atomic_add_fetch(&shm->doorbell_waiters, 1u, __ATOMIC_ACQ_REL);
-    if (LOAD_ACQ(&shm->doorbell) == seen) {
+    /* SEQ_CST: the host's half of the Dekker pair above. If the loop's bump comes after this
+     * load, the loop sees this waiter and wakes it; FUTEX_WAIT itself compares the word again. */
+    __atomic_add_fetch(&shm->doorbell_waiters, 1u, __ATOMIC_SEQ_CST);
+    if (__atomic_load_n(&shm->doorbell, __ATOMIC_SEQ_CST) == seen) {
         struct timespec ts = {timeout_ms / 1000, (long)(timeout_ms % 1000) * 1000000L};
         syscall(SYS_futex, &shm->doorbell, FUTEX_WAIT, seen, timeout_ms >= 0 ? &ts : NULL, NULL, 0);
     }

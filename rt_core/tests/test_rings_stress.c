@@ -414,6 +414,69 @@ static void test_data_in_and_status(void)
     free(f.shm);
 }
 
+/* ---- doorbell ------------------------------------------------------------------------------ */
+
+/* The loop's side (xrf_doorbell_should_ring, then a wake when someone waits) against a host that
+ * waits for each new value. A wake lost between the two (the store-then-load race the SEQ_CST
+ * accesses exclude) leaves the host asleep for its whole timeout while the bell moved: counted,
+ * and none may happen. The timeout is a bound on failure: the bell rings far more often. x86
+ * rarely shows the lost wake at run time; under ThreadSanitizer (test_tsan.py) the accesses'
+ * orderings are what is checked. */
+#define BELLS 20000u
+#define BELL_WAIT_MS 5000
+
+struct bell_fixture {
+    struct xrf_shm *shm;
+    uint64_t woken; /* wakes sent (should_ring said someone waits) */
+};
+
+static void *bell_ringer(void *p)
+{
+    struct bell_fixture *f = p;
+    for (uint32_t i = 0; i < BELLS; i++) {
+        if (xrf_doorbell_should_ring(f->shm)) {
+            xrf_doorbell_wake(f->shm);
+            f->woken++;
+        }
+        for (volatile int spin = 0; spin < (int)(i & 1023); spin++)
+            ;
+    }
+    return NULL;
+}
+
+static void test_doorbell(void)
+{
+    struct bell_fixture f = {0};
+    f.shm = calloc(1, sizeof *f.shm);
+    if (!f.shm)
+        abort();
+    xrf_shm_init(f.shm);
+    pthread_t ringer;
+    uint32_t seen = xrf_doorbell_wait(f.shm, UINT32_MAX, 0); /* the current value, no sleep */
+    pthread_create(&ringer, NULL, bell_ringer, &f);
+    uint64_t waits = 0, slept_through = 0;
+    while (seen != BELLS) {
+        double t0 = now_s();
+        uint32_t now = xrf_doorbell_wait(f.shm, seen, BELL_WAIT_MS);
+        waits++;
+        /* A lost wake: the bell moved while this host slept (FUTEX_WAIT compares the word, so
+         * the move came after it fell asleep) and nobody woke it: it sleeps the whole timeout
+         * and returns the new value. The ringer rings every few microseconds, so a full
+         * timeout that ends on a changed bell is the lost wake, not a quiet ringer. */
+        if (now != seen && now_s() - t0 >= BELL_WAIT_MS * 1e-3 * 0.9)
+            slept_through++;
+        seen = now;
+    }
+    pthread_join(ringer, NULL);
+    CHECK(seen == BELLS, "doorbell: ended at %u of %u", seen, BELLS);
+    CHECK(slept_through == 0, "doorbell: %" PRIu64 " waits slept through a ring", slept_through);
+    CHECK(__atomic_load_n(&f.shm->doorbell_waiters, __ATOMIC_SEQ_CST) == 0,
+          "doorbell: waiters count left at %u", f.shm->doorbell_waiters);
+    printf("doorbell: %u rings, %" PRIu64 " waits, %" PRIu64 " wakes sent\n", BELLS, waits,
+           f.woken);
+    free(f.shm);
+}
+
 int main(void)
 {
     test_broadcast();
@@ -421,6 +484,7 @@ int main(void)
     test_spsc(0);
     test_commands();
     test_data_in_and_status();
+    test_doorbell();
     printf("%d passed, %d failed\n", passed, failed);
     return failed ? 1 : 0;
 }

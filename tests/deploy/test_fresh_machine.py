@@ -139,6 +139,10 @@ def test_setup_makes_the_venv_with_the_systems_python(fresh: Fresh) -> None:
     fresh.skip_unless_venv()
     out = fresh.lab_test.stderr
     assert "lab: installing the project into" in out, _tail(out)
+    # apt's and pip's own output goes to the install log, not the terminal (issue 31: pip's warnings
+    # buried the one-time password); pip runs without -q there, so its summary line is in the log.
+    log = fresh.machine.tree / fresh.machine.checkout.lstrip("/") / ".cache/lab-install.log"
+    assert "Successfully installed" not in out and "Successfully installed" in log.read_text(), _tail(out)
     venv = fresh.machine.tree / fresh.machine.checkout.lstrip("/") / ".venv"
     assert (venv / ".lab-stamp").exists(), _tail(out)
     assert "home = /usr/bin" in (venv / "pyvenv.cfg").read_text()

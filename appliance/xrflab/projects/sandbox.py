@@ -28,6 +28,7 @@ Everything it says goes to the build's log as ``sandbox: ...`` lines.
 
 from __future__ import annotations
 
+import errno
 import os
 import pwd
 import select
@@ -51,9 +52,11 @@ from ..guest import (
     MS_REMOUNT,
     PR_SET_NO_NEW_PRIVS,
     PR_SET_PDEATHSIG,
+    ROOT_NOT_A_MOUNT,
     bind_fd,
     mount,
     prctl,
+    root_is_a_mount,
     unshare,
 )
 from .sandbox_config import SandboxSpec
@@ -184,7 +187,9 @@ def _confined_exec(
             say(f"sees of {spec.hide} only its source (read-only), its build folder and rt_core (read-only)")
         say(f"private {', '.join(private)}")
     except OSError as exc:
-        say(f"WARNING: no private {', '.join(PRIVATE_TMP)} and data folder ({exc})")
+        # In a chroot the bare errno ("mount /: Invalid argument") said nothing: say why and the fix.
+        why = ROOT_NOT_A_MOUNT if exc.errno == errno.EINVAL and not root_is_a_mount() else str(exc)
+        say(f"WARNING: no private {', '.join(PRIVATE_TMP)} and data folder ({why})")
     if pid_ns:
         proc_note = ""
         try:  # a /proc of its own namespace: the build sees its own processes only

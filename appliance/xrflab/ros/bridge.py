@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import platform
 import signal
 import sys
 import tempfile
@@ -521,10 +522,7 @@ def run(args: argparse.Namespace, command_gate: CommandGate = allow_all) -> int:
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
     except ImportError as exc:
-        say(
-            f"rclpy is not available ({exc}): pip install ros-rclpy ros-std-msgs ros-rmw-fastrtps-cpp, "
-            "or source /opt/ros/<distro>/setup.bash"
-        )
+        say(f"rclpy is not available ({exc}): {rclpy_missing_hint(platform.machine())}")
         return 1
 
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
@@ -564,6 +562,21 @@ def run(args: argparse.Namespace, command_gate: CommandGate = allow_all) -> int:
         rclpy.try_shutdown()
         watchdog.cancel()
     return 1 if bridge.loop_gone else 0
+
+
+def rclpy_missing_hint(machine: str) -> str:
+    """How to get rclpy on this machine. PyPI's ROS 2 wheels are x86_64 only (pyproject.toml's `ros`
+    extra leaves them out elsewhere): a Pi uses the system's ROS 2, from apt."""
+    if machine == "x86_64":
+        return (
+            "install the `ros` extra into the appliance's venv (./lab does: pip install -e '.[ros]'), "
+            "or source /opt/ros/<distro>/setup.bash before starting the appliance"
+        )
+    return (
+        f"PyPI has no ROS 2 wheels for {machine}: install ROS 2 from apt (Ubuntu 24.04: "
+        "ros-jazzy-ros-base, docs/install/pi.md) and source /opt/ros/jazzy/setup.bash before starting "
+        "the appliance (its venv then finds the system's rclpy)"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

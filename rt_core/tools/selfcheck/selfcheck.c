@@ -774,6 +774,9 @@ static int step_motor(struct sc *s, int ch)
 /* -- digital output loopback -- */
 static int wait_pin(struct sc *s, int ch, int dout, int want, int frames, int *seen_after)
 {
+    /* Written on every path: frame_all's error is any non-zero int, so a caller testing for 1
+     * could read it unset (aarch64's gcc says so at -O2, x86's does not). */
+    *seen_after = 0;
     struct xrf_ico_out out = zero_out;
     out.dout[ch] = (uint8_t)dout;
     for (int i = 0; i < frames; i++) {
