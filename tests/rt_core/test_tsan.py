@@ -25,7 +25,9 @@ FLAGS = ["-O1", "-g", "-fsanitize=thread", "-Wall", "-Wextra", "-Werror", "-Wno-
 
 def build(tmp: Path, channels: Path) -> Path:
     exe = tmp / "test_rings_stress_tsan"
-    cmd = ["clang", *FLAGS, "-I", str(RT / "include"), str(RT / "tests/test_rings_stress.c"), str(channels)]
+    # rt_core/src for channels.c's private headers (hist_inline.h) when the file is a planted copy
+    cmd = ["clang", *FLAGS, "-I", str(RT / "include"), "-I", str(RT / "src")]
+    cmd += [str(RT / "tests/test_rings_stress.c"), str(channels)]
     cmd += [str(RT / "src/logformat.c"), "-o", str(exe), "-lpthread"]
     r = subprocess.run(cmd, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
