@@ -258,8 +258,10 @@ def _zero_setpoints_after_reset(sup: Supervisor, name: str, accepted: bool) -> N
     run = sup.current
     if run is None or not run.setpoint:
         return
-    zeros = {
-        k: (False if isinstance(v, bool) else [0 for _ in v] if isinstance(v, list) else 0)
+    zeros = {  # a bounded string (header.frame_id) starts over empty: 0 would not encode
+        k: (
+            False if isinstance(v, bool) else [0 for _ in v] if isinstance(v, list) else "" if isinstance(v, str) else 0
+        )
         for k, v in run.setpoint.items()
     }
     with contextlib.suppress(SupervisorError, ValueError, chmod.ChannelsError):
