@@ -121,3 +121,33 @@ def test_a_clean_stop_leaves_no_sqlite_wal_or_shm(tmp_path: Path) -> None:
         stop_server(server)
     left = sorted(p.name for p in data.iterdir() if p.name.endswith(("-wal", "-shm")))
     assert left == [], left
+
+
+def test_reset_zeroes_a_bounded_string_setpoint_too() -> None:
+    """With a std_msgs/Header in Ros2Xeno the setpoints hold a string (header.frame_id): reset's
+    zeros must encode, or none of the setpoints start over."""
+    from types import SimpleNamespace
+
+    from xrflab.msgdef import Codec
+    from xrflab.server.http.runs import _zero_setpoints_after_reset
+
+    codec = Codec("std_msgs/Header header\nfloat64 speed\nint32[2] pair\nbool on")
+    written: list[bytes] = []
+    run = SimpleNamespace(
+        setpoint={"header.frame_id": "base", "header.stamp.sec": 4, "speed": 1.5, "pair": [1, 2], "on": True}
+    )
+
+    class Sup:
+        current = run
+
+        def setpoint(self, fields: dict[str, Any]) -> dict[str, Any]:
+            written.append(codec.encode({**run.setpoint, **fields}))  # as control.setpoint: ValueError if bad
+            run.setpoint = {**run.setpoint, **fields}
+            return run.setpoint
+
+    _zero_setpoints_after_reset(Sup(), "reset", True)  # type: ignore[arg-type]
+    assert written and codec.decode(written[-1]) == {
+        **codec.decode(codec.encode({})),
+        "header.frame_id": "",
+    }
+    assert run.setpoint == {"header.frame_id": "", "header.stamp.sec": 0, "speed": 0, "pair": [0, 0], "on": False}
