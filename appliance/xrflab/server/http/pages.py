@@ -21,7 +21,6 @@ import struct
 
 from fastapi import FastAPI, Request
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
-from starlette.exceptions import HTTPException as StarletteHTTPException
 
 # Paths that belong to programs: never redirected, whatever the Accept header says.
 _MACHINE_PREFIXES = ("/api/", "/api", "/static/", "/ws", "/rerun", "/viser", "/room/")
@@ -85,18 +84,21 @@ _NOT_FOUND_PAGE = """<!doctype html>
 
 
 async def _not_found(request: Request, exc: Exception) -> Response:
-    assert isinstance(exc, StarletteHTTPException)
+    """Starlette's 404 for a path no route matches (registered by status code: services' own
+    NotFound is an XrfError, answered by http/errors.py, never here)."""
     path = request.url.path
-    if exc.status_code == 404 and _is_navigation(request) and not path.startswith(_MACHINE_PREFIXES):
+    if _is_navigation(request) and not path.startswith(_MACHINE_PREFIXES):
         m = _PAGE_RE.match(path)
         if m:
             return RedirectResponse(f"/#{m[1]}", status_code=303)
         page = _NOT_FOUND_PAGE.format(path=html.escape(path), host=html.escape(request.url.netloc))
         return HTMLResponse(page, status_code=404)
     # Everything else as FastAPI answers it by default.
-    return JSONResponse({"detail": exc.detail}, status_code=exc.status_code, headers=getattr(exc, "headers", None))
+    detail = getattr(exc, "detail", "Not Found")
+    return JSONResponse({"detail": detail}, status_code=404, headers=getattr(exc, "headers", None))
 
 
 def install(app: FastAPI) -> None:
-    """The icon route (public: a logged-out login page shows it too) and the page fallback."""
-    app.add_exception_handler(StarletteHTTPException, _not_found)
+    """The page fallback for a browser's 404 (the icon's route is app.py's: it needs the
+    permission dependency every route carries)."""
+    app.add_exception_handler(404, _not_found)
