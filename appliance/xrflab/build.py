@@ -90,6 +90,34 @@ class BuildResult:
 # running commands
 
 
+_CMAKE_ERROR_RE = re.compile(r"^CMake Error(?: \(dev\))?(?: at [^:]+:\d+(?: \([^)]*\))?)?:\s*(?P<inline>.*)$")
+CMAKE_MESSAGE_MAX = 600
+
+
+def cmake_message(lines: list[str], at: int) -> str:
+    """The text of the CMake error or warning whose head line is ``lines[at]``: CMake prints
+    ``CMake Error at file:line (message):`` and then the message itself indented by two spaces,
+    in paragraphs, until ``Call Stack`` or the next unindented line. One line, whitespace folded
+    (CMake wraps at 80 columns), at most CMAKE_MESSAGE_MAX characters."""
+    m = _CMAKE_ERROR_RE.match(lines[at].replace("CMake Warning", "CMake Error", 1))
+    parts = [m["inline"].strip()] if m and m["inline"].strip() else []
+    for line in lines[at + 1 :]:
+        if line.startswith("Call Stack") or (line.strip() and not line.startswith((" ", "\t"))):
+            break
+        if line.strip():
+            parts.append(line.strip())
+    text = " ".join(" ".join(parts).split())
+    return text if len(text) <= CMAKE_MESSAGE_MAX else text[: CMAKE_MESSAGE_MAX - 1] + "…"
+
+
+def first_cmake_error(lines: list[str]) -> str:
+    """The message of the first ``CMake Error`` in a configure's output, "" when there is none."""
+    for i, line in enumerate(lines):
+        if _CMAKE_ERROR_RE.match(line):
+            return cmake_message(lines, i)
+    return ""
+
+
 def _run(cmd: list[str], log: Log, cwd: Path | None = None, what: str = "") -> list[str]:
     """Run ``cmd``, passing each output line to ``log`` as it arrives; return all lines.
 
@@ -125,7 +153,11 @@ def _run(cmd: list[str], log: Log, cwd: Path | None = None, what: str = "") -> l
         log(line)
     rc = proc.wait()
     if rc != 0:
-        raise BuildError(f"{what or ' '.join(cmd)} failed (exit {rc})", "\n".join(tail))
+        # The one-line reason names CMake's own message, not only its "CMake Error at f:93 (message):".
+        reason = first_cmake_error(lines)
+        raise BuildError(
+            f"{what or ' '.join(cmd)} failed (exit {rc})" + (f": {reason}" if reason else ""), "\n".join(tail)
+        )
     return lines
 
 
@@ -250,10 +282,71 @@ def ensure_rt_core(log: Log = print, source_root: Path | None = None) -> Path:
 # project layouts
 
 
+# The framework before XRF2: a loop class deriving from NativeBase (or Native20Sim for 20-sim
+# code, preProc()/postProc() hooks) and messages in a ROS package custom_msgs. Its CMake stops at
+# find_package(custom_msgs), which says nothing useful: recognised before CMake runs.
+_PRE_XRF2_CLASS_RE = re.compile(r"(?::|,)\s*(?:public|protected|private)?\s*(Native20Sim|NativeBase)\b")
+_PRE_XRF2_INCLUDE_RE = re.compile(r"#\s*include\s*[\"<](Native20Sim|NativeBase)\.h(?:pp)?[\">]")
+_XRF2_CLASS_RE = re.compile(r"\bXenoFrt(?:Loop|RosIco|20Sim)\b")
+_CUSTOM_MSGS_RE = re.compile(r"find_package\s*\(\s*custom_msgs\b")
+_SOURCE_SCAN_LIMIT = 512 * 1024  # bytes read per file: generated 20-sim code can be large
+
+
+def pre_xrf2_evidence(project_dir: Path) -> list[str]:
+    """Where a project shows it is written for the framework before XRF2 ([] when it is not):
+    ``src/MyApp.h: class ... : public Native20Sim``, ``CMakeLists.txt: find_package(custom_msgs)``.
+    A project that also uses XRF2's classes is XRF2 (it may keep an old file around)."""
+    found: list[str] = []
+    custom_msgs = False
+    for path in _walk(project_dir):
+        if path.suffix.lower() in (".h", ".hpp", ".hh", ".cpp", ".cc", ".cxx"):
+            try:
+                with open(path, "rb") as f:
+                    text = f.read(_SOURCE_SCAN_LIMIT).decode("utf-8", "replace")
+            except OSError:  # a dangling link, an unreadable file: not evidence either way
+                continue
+            if _XRF2_CLASS_RE.search(text):
+                return []
+            m = _PRE_XRF2_CLASS_RE.search(text) or _PRE_XRF2_INCLUDE_RE.search(text)
+            if m and len(found) < 3:
+                line = text.count("\n", 0, m.start()) + 1
+                what = f"derives from {m[1]}" if m.re is _PRE_XRF2_CLASS_RE else f"includes {m[1]}.h"
+                found.append(f"{_rel(path, project_dir)}:{line} {what}")
+        elif path.name == "CMakeLists.txt":
+            try:
+                text = _strip_cmake_comments(path.read_text(errors="replace"))
+            except OSError:
+                continue
+            custom_msgs = custom_msgs or bool(_CUSTOM_MSGS_RE.search(text))
+    if found and custom_msgs:
+        found.append("CMakeLists.txt: find_package(custom_msgs)")
+    return found
+
+
+def pre_xrf2_message(project_dir: Path, evidence: list[str]) -> str:
+    return (
+        f"{project_dir.name}: this project is written for the framework before XRF2 ("
+        + "; ".join(evidence)
+        + "). XRF Lab builds XRF2 projects; that older framework (NativeBase / Native20Sim with "
+        "preProc() and postProc(), messages in a custom_msgs package) is not supported. To bring "
+        "it over: start from an XRF2 template (xrf new, or New project on the Projects page); "
+        "derive your class from XenoFrt20Sim instead of Native20Sim (a 20-sim controller) or "
+        "from XenoFrtRosIco instead of NativeBase; move the code of preProc() and postProc() "
+        "into the state hooks (run() runs every cycle in RUN; initialising(), initialised(), "
+        "stopping(), stopped(), paused() the others); and put the fields your custom_msgs "
+        "messages carried into msg/Ros2Xeno.msg (host to loop, read as ros_msg) and "
+        "msg/Xeno2Ros.msg (loop to host, written to xeno_msg). See docs/students/projects.md, "
+        '"Projects of the framework before XRF2".'
+    )
+
+
 def detect_layout(project_dir: Path) -> Literal["xrf", "xrf2"]:
     cml = project_dir / "CMakeLists.txt"
     if not cml.exists():
         raise BuildError(f"{cml}: not found (a project needs a CMakeLists.txt)")
+    evidence = pre_xrf2_evidence(project_dir)
+    if evidence:
+        raise BuildError(pre_xrf2_message(project_dir, evidence))
     text = _strip_cmake_comments(cml.read_text(errors="replace"))
     if "xrf_add_controller" in text or re.search(r"find_package\s*\(\s*XrfRt", text):
         return "xrf"
@@ -845,6 +938,11 @@ def controller_folder(folder: Path | str, log: Log | None = None) -> Path:
             + "); build (or upload) the folder of the one you mean"
         )
     if not controllers:
+        for cml in sorted(folder.glob("*/CMakeLists.txt")) + sorted(folder.glob("*/*/CMakeLists.txt")):
+            # A workspace of the framework before XRF2: say that, not "no controller".
+            evidence = pre_xrf2_evidence(cml.parent)
+            if evidence:
+                raise BuildError(pre_xrf2_message(cml.parent, evidence))
         raise BuildError(
             "missing CMakeLists.txt: none at the top of the folder and no XRF2 controller "
             "package (a folder with a CMakeLists.txt whose code uses XenoFrtLoop / "

@@ -407,7 +407,8 @@
     try {
       const d = await xrf.api("GET", `/api/projects/${E.pid}/diff?a=${encodeURIComponent(a)}&b=${encodeURIComponent(b)}`);
       out.textContent = "";
-      out.append(el("div", { class: "ed-diff-sum", text: `${d.a} → ${d.b}: ${d.files.length} files changed, +${d.added} −${d.removed}` }));
+      const n = d.files.length;  // "1 file changed", "2 files changed", "0 files changed"
+      out.append(el("div", { class: "ed-diff-sum", text: `${d.a} → ${d.b}: ${n} file${n === 1 ? "" : "s"} changed, +${d.added} −${d.removed}` }));
       for (const f of d.files) {
         const box = el("div", { class: "ed-diff-file", "data-path": f.path },
           el("div", { class: "ed-diff-head", text: `${f.path} — ${f.status}` + (f.diff != null ? ` (+${f.added} −${f.removed})` : " (binary or large: not shown)") }));

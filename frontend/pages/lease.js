@@ -89,7 +89,8 @@
     const meId = xrf.me && xrf.me.id;
     if (!meId || !before) return;
     const prev = m.previous && m.previous.id === meId;
-    if (m.event === "takeover" && prev) say(`${m.holder.username} (educator) took over the bench; you are watching now.`);
+    if (m.event === "takeover" && prev) say(`${m.holder.username} (educator) took over the bench; you are watching now` + (queued() ? ", first in the queue: it comes back to you when they release it." : "."));
+    else if (m.event === "intervention" && mine() && m.by && m.by.id !== meId) say(`${m.by.username} ${m.command === "pause" ? "paused" : "stopped"} your run (anyone at the bench may pause or stop it).`, 10000);
     else if (m.event === "handover" && m.holder && m.holder.id === meId) say("The bench is yours now: you can drive.", 8000);
     else if (m.event === "released" && prev && m.reason === "idle") say("The bench was released: nothing was driven for a while.", 10000);
     else if ((m.event === "released" || m.event === "handover") && prev && m.by && m.by.id !== meId) say(`${m.by.username} released the bench.`, 8000);

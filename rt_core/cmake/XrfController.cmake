@@ -84,7 +84,8 @@ function(xrf_add_controller target)
   # One generated-header folder per target, so two controllers with different messages can
   # live in one build tree.
   set(gen_dir "${CMAKE_CURRENT_BINARY_DIR}/${target}_xrf2_msgs")
-  set(gen_headers "${gen_dir}/xrf2_msgs/msg/ros2_xeno.hpp" "${gen_dir}/xrf2_msgs/msg/xeno2_ros.hpp")
+  set(gen_headers "${gen_dir}/xrf2_msgs/msg/ros2_xeno.hpp" "${gen_dir}/xrf2_msgs/msg/xeno2_ros.hpp"
+                  "${gen_dir}/xrf2_msgs/msg/standard_types.hpp")
   set(gen_cmd "${Python3_EXECUTABLE}" "${XRF_RT_MSGDEF}" --msg-dir "${msg_dir}" --out "${gen_dir}")
   execute_process(COMMAND ${gen_cmd}
                   RESULT_VARIABLE rc OUTPUT_VARIABLE out ERROR_VARIABLE err)

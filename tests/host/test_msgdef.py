@@ -40,6 +40,19 @@ bool[2] pair
 float64[4] quad
 """
 
+# A real project's start (issue 31): standard types, with a bounded string and the leaves' offsets
+# that only a packed nested layout gives.
+STANDARD = """std_msgs/Header header
+uint8 flag
+geometry_msgs/Pose pose
+geometry_msgs/Twist twist
+builtin_interfaces/Duration age
+geometry_msgs/Point32 p32
+string<=5 tag
+geometry_msgs/TransformStamped tf
+float64 pos_left
+"""
+
 
 def write_project_msgs(msg_dir: Path, ros2xeno: str = ROS2XENO, xeno2ros: str = XENO2ROS) -> Path:
     msg_dir.mkdir(parents=True, exist_ok=True)
@@ -62,16 +75,21 @@ def test_parse_comments_blank_lines_and_missing_newline() -> None:
 @pytest.mark.parametrize(
     "line, message",
     [
-        ("string name", "unsupported type 'string' (supported: bool, byte, char, int8"),
-        ("wstring name", "unsupported type 'wstring'"),
-        ("float64[] values", "only fixed-size arrays"),
-        ("float64[<=4] values", "only fixed-size arrays"),
+        ("string name", "an unbounded string cannot be carried by the loop's fixed-size messages; use a bounded one"),
+        ("wstring name", "wstring is not supported"),
+        ("string<=0 name", "the bound must be at least 1"),
+        ("float64[] values", "'float64[]' is a sequence (variable length)"),
+        ("float64[<=4] values", "'float64[<=4]' is a sequence"),
+        ("int32 nums[3]", "bad field name 'nums[3]'"),
         ("float64[0] values", "at least 1"),
         ("int32 X=1", "constants are not supported"),
         ("int32 LIMIT = 10", "constants are not supported"),
         ("float64 gain 1.5", "default values are not supported"),
-        ("geometry_msgs/Twist cmd", "nested message type 'geometry_msgs/Twist'"),
-        ("Header header", "nested message type 'Header'"),
+        ("sensor_msgs/JointState joints", "nested message type 'sensor_msgs/JointState' is not supported"),
+        ("Header header", "nested message type 'Header' is not supported (write std_msgs/Header)"),
+        ("geometry_msgs/Point[3] points", "arrays of message types are not supported"),
+        ("std_msgs/Header[] headers", "is a sequence"),
+        ("std_msgs/Header steer_left", "duplicate field 'steer_left' (first on line 2)"),
         ("float64 Steer", "bad field name 'Steer'"),
         ("float64 2fast", "bad field name '2fast'"),
         ("float64 a__b", "bad field name 'a__b'"),
@@ -95,7 +113,7 @@ def test_bad_input_names_file_and_line(tmp_path: Path, line: str, message: str) 
 def test_error_format_matches_the_documented_example() -> None:
     with pytest.raises(MsgError) as err:
         msgdef.parse_msg_text("float64 a\nfloat64 b\nstring name", "msg/Ros2Xeno.msg")
-    assert str(err.value).startswith("msg/Ros2Xeno.msg:3: unsupported type 'string' (supported: ")
+    assert str(err.value).startswith("msg/Ros2Xeno.msg:3: 'string name': an unbounded string cannot be carried")
 
 
 def test_too_large_message_is_rejected() -> None:
@@ -204,7 +222,7 @@ def test_script_mode(tmp_path: Path) -> None:
     (msg_dir / "Xeno2Ros.msg").write_text("float64 a\nstring name\n")
     bad = _run_script("--msg-dir", str(msg_dir), "--out", str(tmp_path / "gen"))
     assert bad.returncode == 1
-    assert bad.stderr.strip().startswith(f"{msg_dir / 'Xeno2Ros.msg'}:2: unsupported type 'string'")
+    assert bad.stderr.strip().startswith(f"{msg_dir / 'Xeno2Ros.msg'}:2: 'string name': an unbounded string")
     missing = _run_script("--msg-dir", str(tmp_path / "absent"), "--out", str(tmp_path / "gen"))
     assert missing.returncode == 1 and "absent" in missing.stderr and "not found" in missing.stderr
 
@@ -236,12 +254,13 @@ def _offset_prints(struct: str, fields: list[Field]) -> str:
     return "\n    ".join(parts)
 
 
-def test_generated_header_layout_matches_codec(tmp_path: Path) -> None:
+@pytest.mark.parametrize("xeno2ros", [XENO2ROS, STANDARD], ids=["primitives", "standard-types"])
+def test_generated_header_layout_matches_codec(tmp_path: Path, xeno2ros: str) -> None:
     compiler = shutil.which("g++")
     assert compiler, "g++ is needed (build-essential)"
     ros_fields = msgdef.parse_msg_text(ALL_TYPES)
-    xeno_fields = msgdef.parse_msg_text(XENO2ROS)
-    msg_dir = write_project_msgs(tmp_path / "msg", ALL_TYPES, XENO2ROS)
+    xeno_fields = msgdef.parse_msg_text(xeno2ros)
+    msg_dir = write_project_msgs(tmp_path / "msg", ALL_TYPES, xeno2ros)
     msgdef.generate_project_headers(msg_dir, tmp_path / "gen")
     source = tmp_path / "layout.cpp"
     source.write_text(
@@ -283,6 +302,8 @@ def test_oversized_struct_fails_to_compile(tmp_path: Path) -> None:
     assert compiler
     header = msgdef.generate_header("Big", [Field("float64", "v", 65)])
     (tmp_path / "big.hpp").write_text(header)
+    (tmp_path / msgdef.STANDARD_HEADER).parent.mkdir(parents=True)
+    (tmp_path / msgdef.STANDARD_HEADER).write_text(msgdef.generate_standard_header())
     (tmp_path / "main.cpp").write_text('#include "big.hpp"\nint main() { return 0; }\n')
     build = subprocess.run(
         [compiler, "-std=c++17", "-fsyntax-only", "-I", str(tmp_path), str(tmp_path / "main.cpp")],
@@ -290,3 +311,72 @@ def test_oversized_struct_fails_to_compile(tmp_path: Path) -> None:
         text=True,
     )
     assert build.returncode != 0 and "larger than the 512 bytes" in build.stderr
+
+
+def test_standard_types_are_leaves_named_by_their_path() -> None:
+    fields = msgdef.parse_msg_text("std_msgs/Header header\ngeometry_msgs/Quaternion q\nstring<=4 tag")
+    assert [(f.type, f.name, f.count) for f in fields] == [
+        ("int32", "header.stamp.sec", None),
+        ("uint32", "header.stamp.nanosec", None),
+        ("string", "header.frame_id", msgdef.FRAME_ID_MAX),
+        ("float64", "q.x", None),
+        ("float64", "q.y", None),
+        ("float64", "q.z", None),
+        ("float64", "q.w", None),
+        ("string", "tag", 4),
+    ]
+    # The schema keeps the .msg's own lines (what the loop publishes, what ROS builds from).
+    assert msgdef.schema_text(fields) == "std_msgs/Header header\ngeometry_msgs/Quaternion q\nstring<=4 tag"
+    codec = Codec(msgdef.schema_text(fields))
+    assert codec.size == 4 + 4 + 32 + 4 * 8 + 5
+    values = codec.decode(codec.encode({"header.frame_id": "base", "header.stamp.sec": 7, "tag": "abcd"}))
+    assert values["header.frame_id"] == "base" and values["tag"] == "abcd" and values["header.stamp.sec"] == 7
+    assert values["q.w"] == 1.0  # ROS's default for Quaternion.w, not 0
+    with pytest.raises(ValueError, match=r"field header\.frame_id: .* is 32 bytes; the loop's layout holds at most 31"):
+        codec.encode({"header.frame_id": "x" * 32})
+    with pytest.raises(ValueError, match="expected text"):
+        codec.encode({"tag": 5})
+    assert codec.parse_value("tag", "ab") == "ab"
+
+
+def test_standard_types_cpp_names_and_bounded_string(tmp_path: Path) -> None:
+    """The loop's C++ uses ROS's type and field names; a frame name is assigned from text and
+    cut at the bound (assign() says so): nothing allocates."""
+    compiler = shutil.which("g++")
+    assert compiler
+    msg_dir = write_project_msgs(tmp_path / "msg", "std_msgs/Header header\ngeometry_msgs/Twist cmd\n", STANDARD)
+    msgdef.generate_project_headers(msg_dir, tmp_path / "gen")
+    (tmp_path / "main.cpp").write_text(
+        '#include <cstdio>\n#include <std_msgs/msg/header.hpp>\n#include "xrf2_msgs/msg/ros2_xeno.hpp"\n'
+        "int main() { xrf2_msgs::msg::Ros2Xeno m{}; m.header.stamp.sec = 5; m.cmd.linear.x = 1.5;\n"
+        '  std_msgs::msg::Header h = m.header; bool fit = h.frame_id.assign("base_link");\n'
+        '  bool cut = h.frame_id.assign("0123456789012345678901234567890123456789");\n'
+        '  std::printf("%d %g %d %d %zu %s\\n", h.stamp.sec, m.cmd.linear.x, fit, cut, h.frame_id.size(),'
+        ' h.frame_id == "0123456789012345678901234567890" ? "eq" : "ne"); }\n'
+    )
+    exe = tmp_path / "main"
+    build = subprocess.run(
+        [
+            compiler,
+            "-std=c++17",
+            "-Wall",
+            "-Wextra",
+            "-Werror",
+            "-I",
+            str(tmp_path / "gen"),
+            str(tmp_path / "main.cpp"),
+            "-o",
+            str(exe),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert build.returncode == 0, build.stderr
+    assert subprocess.run([str(exe)], capture_output=True, text=True).stdout.split() == [
+        "5",
+        "1.5",
+        "1",
+        "0",
+        "31",
+        "eq",
+    ]

@@ -18,13 +18,24 @@ import subprocess
 import sys
 from pathlib import Path
 
+# The description (passwd's comment field) of the two users the appliance creates: what `getent
+# passwd` and user lists show an administrator, so each says what it is for.
+BUILD_USER_COMMENT = "XRF Lab student builds"
+RUN_USER_COMMENT = "XRF Lab student controllers (runs)"
+_OUR_COMMENTS = (BUILD_USER_COMMENT, RUN_USER_COMMENT)
 
-def ensure_build_user(name: str) -> tuple[int, int, str]:
-    """(uid, gid, note). As root: the dedicated user, created if missing. Else: ourselves."""
+
+def ensure_build_user(name: str, comment: str = BUILD_USER_COMMENT) -> tuple[int, int, str]:
+    """(uid, gid, note). As root: the dedicated user, created if missing (with `comment` as its
+    description). Else: ourselves."""
     if os.geteuid() != 0:
         return os.getuid(), os.getgid(), f"not root: builds run as the appliance's own user (uid {os.getuid()})"
     try:
         pw = pwd.getpwnam(name)
+        if pw.pw_gecos != comment and pw.pw_gecos in _OUR_COMMENTS:
+            # Made by an earlier appliance with the other user's description (xrf-run was created
+            # as "XRF Lab student builds"): corrected. An administrator's own text is left alone.
+            subprocess.run(["usermod", "--comment", comment, name], capture_output=True, text=True)
     except KeyError:
         nologin = "/usr/sbin/nologin" if os.path.exists("/usr/sbin/nologin") else "/bin/false"
         r = subprocess.run(
@@ -38,7 +49,7 @@ def ensure_build_user(name: str) -> tuple[int, int, str]:
                 "--shell",
                 nologin,
                 "--comment",
-                "XRF Lab student builds",
+                comment,
                 name,
             ],
             capture_output=True,

@@ -96,9 +96,13 @@ class Builder:
     def toolchain_id(self) -> str:
         return toolchain_id()
 
-    def stop(self) -> None:
+    def stop(self, timeout: float = 10.0) -> None:
+        """End the worker: queued builds are dropped, running ones killed; waits up to `timeout`
+        for it to have written its last record (the store is closed next)."""
         self._queue.put(None)
         self._running.kill_all()  # this builder's builds only: another appliance's go on
+        if self._thread is not None:
+            self._thread.join(timeout)
 
     # -- worker ---------------------------------------------------------------------------------
 

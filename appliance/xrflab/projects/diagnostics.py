@@ -15,6 +15,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import TypedDict
 
+from ..build import cmake_message
 from .sandbox_config import SandboxConfig
 
 
@@ -76,7 +77,7 @@ def parse_diagnostics(lines: list[str], src: Path, build_dir: Path) -> list[Diag
             }
         elif m := _CMAKE_RE.match(line):
             f, inside = rel(m.group("file"))
-            msg = next((x.strip() for x in lines[i + 1 : i + 6] if x.strip()), "")
+            msg = cmake_message(lines, i)  # the whole indented message, not its first line
             d = {
                 "file": f,
                 "line": int(m.group("line")),

@@ -107,6 +107,13 @@ class ProjectsService:
         self.assignments = Assignments(settings.data_dir / "assignments")
         self.assignment_lock = asyncio.Lock()
 
+    def close(self) -> None:
+        """At the appliance's stop: the builder's worker ends, then the database is closed (the
+        last connection's close checkpoints it and removes projects.sqlite3-wal and -shm, which
+        a clean stop used to leave behind)."""
+        self.builder.stop()
+        self.store.close()
+
     def folder(self, project: ProjectRow) -> Path:
         return self.root / project.folder
 

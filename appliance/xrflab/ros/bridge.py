@@ -214,32 +214,45 @@ class RosMessageType(Protocol):
 
 
 class MessageMap:
-    """Field-by-field mapping between a ROS message class and the loop's Codec (by field name)."""
+    """Field-by-field mapping between a ROS message class and the loop's Codec (by field name).
+
+    The codec's leaves of a standard type are dotted paths (``header.stamp.sec``): they are
+    reached through the ROS message's own nested objects (``msg.header.stamp.sec``), so the bridge
+    publishes and receives real std_msgs/Header, geometry_msgs/Pose, ... fields."""
 
     def __init__(self, codec: Any, msg_type: type[RosMessageType]) -> None:
         ros_fields = set(msg_type.get_fields_and_field_types())
-        missing = [n for n in codec.field_names if n not in ros_fields]
-        if missing or len(ros_fields) != len(codec.field_names):
+        tops = list(dict.fromkeys(n.split(".", 1)[0] for n in codec.field_names))
+        missing = [n for n in tops if n not in ros_fields]
+        if missing or len(ros_fields) != len(tops):
             raise RuntimeError(
                 f"{msg_type.__name__}: the ROS type's fields {sorted(ros_fields)} differ from the loop's "
-                f"{codec.field_names} (was xrf2_msgs built from another project's msg/?)"
+                f"{tops} (was xrf2_msgs built from another project's msg/?)"
             )
         self.msg_type = msg_type
-        self._to = [(f.name, _to_ros(f.type), f.count is not None) for f in codec.fields]
-        self._from = [(f.name, _from_ros(f.type), f.count is not None) for f in codec.fields]
+        self._to = [(f.name.split("."), _to_ros(f.type), f.count is not None and not f.is_string) for f in codec.fields]
+        self._from = [
+            (f.name.split("."), _from_ros(f.type), f.count is not None and not f.is_string) for f in codec.fields
+        ]
 
     def to_msg(self, values: dict[str, Any]) -> Any:
         msg = self.msg_type()
-        for name, conv, _array in self._to:
+        for path, conv, _array in self._to:
+            name = ".".join(path)
             if name in values:
-                setattr(msg, name, conv(values[name]))
+                parent = msg
+                for part in path[:-1]:
+                    parent = getattr(parent, part)
+                setattr(parent, path[-1], conv(values[name]))
         return msg
 
     def from_msg(self, msg: Any) -> dict[str, Any]:
         out = {}
-        for name, conv, array in self._from:
-            v = getattr(msg, name)
-            out[name] = conv(list(v) if array else v)
+        for path, conv, array in self._from:
+            v = msg
+            for part in path:
+                v = getattr(v, part)
+            out[".".join(path)] = conv(list(v) if array else v)
         return out
 
 

@@ -20,6 +20,7 @@ from ..room.services import BenchServices
 from ..selfcheck_service import SelfCheckService
 from ..viz.scene import VizService
 from .http import errors as http_errors
+from .http import pages as http_pages
 from .http.accounts import router as accounts_router
 from .http.editor import CODEMIRROR_DIR
 from .http.editor import router as editor_router
@@ -99,6 +100,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             await ros.close()
             security.close()
             await supervisor.shutdown()
+            # After the supervisor: a run's end may still record against a build.
+            await asyncio.to_thread(app.state.projects.close)
             await viz.stop()
             from ..logs import rerun_servers  # its rerun child processes (127.0.0.1 servers)
 
@@ -126,7 +129,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # Only then is X-Forwarded-For believed, and only from these peers (serve() turns
         # uvicorn's own handling off: it trusted 127.0.0.1, i.e. any local process).
         app.add_middleware(ProxyHeadersMiddleware, trusted_hosts=list(settings.trusted_proxies))
+    http_pages.install(app)  # a browser's /users: the dashboard's #users, not the API's JSON 404
     app.include_router(accounts_router)
+
+    # Drawn locally (http/pages.py): a browser asks for it on every page, logged in or not.
+    @app.get("/favicon.ico", include_in_schema=False, dependencies=[requires(Perm.PUBLIC)])
+    async def favicon() -> Response:
+        return http_pages.favicon_response()
 
     @app.get("/openapi.json", include_in_schema=False, dependencies=[requires(Perm.WATCH)])
     async def openapi_schema() -> JSONResponse:

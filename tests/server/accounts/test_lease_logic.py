@@ -80,14 +80,15 @@ def test_an_educator_takes_over_and_the_previous_holder_is_named() -> None:
     b.lease.take(ANN)
     b.lease.enqueue(EVE)
     b.lease.take(EVE)
-    assert b.holder() == "eve" and b.lease.queue == []  # out of the queue once holding
+    # eve is out of the queue once holding; ann, taken over from, is first in it (issue 31)
+    assert b.holder() == "eve" and [u.username for u in b.lease.queue] == ["ann"]
     msg = b.messages[-1]
     assert msg.event == "takeover" and msg.previous is not None and msg.previous.username == "ann"
     assert msg.by is not None and msg.by.username == "eve"
-    # an educator may release anyone's lease
+    # an educator may release anyone's lease; the bench goes back to ann
     b.lease.take(EVE)
     b.lease.release(EVE)
-    assert b.holder() is None
+    assert b.holder() == "ann"
 
 
 def test_idle_holder_is_released_and_the_queue_moves_on() -> None:

@@ -69,7 +69,16 @@ def test_api_routes_are_not_public_except_the_login_ones(tmp_path) -> None:
     }
     # /room/sso is a sign-in route too: a bench enrolled in a lab room takes the room's signed,
     # short-lived token as the credential (room/sso.py); without a valid one it answers 403/404.
-    assert public == {"/", "/login", "/api/health", "/api/auth/login", "/api/auth/token", "/room/sso"}, public
+    # /favicon.ico: a locally drawn icon, no data (the login page shows it too).
+    assert public == {
+        "/",
+        "/login",
+        "/favicon.ico",
+        "/api/health",
+        "/api/auth/login",
+        "/api/auth/token",
+        "/room/sso",
+    }, public
 
 
 def test_websocket_message_table() -> None:

@@ -232,6 +232,7 @@ async def command(body: CommandRequest, request: Request, user: User = Depends(c
         raise Unavailable(str(exc)) from None
     audit.record(user, "command", {"cmd": name, "accepted": result.accepted, "via": "http"}, client_address(request))
     _zero_setpoints_after_reset(_supervisor(request), name, result.accepted)
+    _tell_holder(request.app.state.security, user, name, result.accepted)
     return {
         "ticket": result.ticket,
         "accepted": result.accepted,
@@ -239,6 +240,13 @@ async def command(body: CommandRequest, request: Request, user: User = Depends(c
         "state_name": result.state_name,
         "reason": result.reason,
     }
+
+
+def _tell_holder(security: Any, user: User, name: str, accepted: bool) -> None:
+    """A pause or stop by someone who does not hold the bench (the STOP rule allows it): the
+    holder hears who (security/lease.py, event `intervention`)."""
+    if accepted and name in SAFE_COMMANDS and security.lease is not None:
+        security.lease.intervened(user, name)
 
 
 def _zero_setpoints_after_reset(sup: Supervisor, name: str, accepted: bool) -> None:
@@ -250,8 +258,10 @@ def _zero_setpoints_after_reset(sup: Supervisor, name: str, accepted: bool) -> N
     run = sup.current
     if run is None or not run.setpoint:
         return
-    zeros = {
-        k: (False if isinstance(v, bool) else [0 for _ in v] if isinstance(v, list) else 0)
+    zeros = {  # a bounded string (header.frame_id) starts over empty: 0 would not encode
+        k: (
+            False if isinstance(v, bool) else [0 for _ in v] if isinstance(v, list) else "" if isinstance(v, str) else 0
+        )
         for k, v in run.setpoint.items()
     }
     with contextlib.suppress(SupervisorError, ValueError, chmod.ChannelsError):
@@ -390,6 +400,7 @@ async def _handle(text: str, client: Client, sup: Supervisor) -> None:
                 user, "command", {"cmd": name, "accepted": result.accepted, "via": "ws"}, client_address(client.ws)
             )
             _zero_setpoints_after_reset(sup, name, result.accepted)
+            _tell_holder(client.ws.app.state.security, user, name, result.accepted)
             client.reply(
                 messages.AckMessage(
                     id=ref,

@@ -111,9 +111,9 @@ class Identity:
 
 def identity(run_user: str = RUN_USER) -> Identity:
     if os.geteuid() == 0:
-        from ...projects.build_user import ensure_build_user
+        from ...projects.build_user import RUN_USER_COMMENT, ensure_build_user
 
-        uid, gid, _ = ensure_build_user(run_user)
+        uid, gid, _ = ensure_build_user(run_user, RUN_USER_COMMENT)
         return Identity("root", uid, gid, f"controllers run as {run_user} (uid {uid})")
     me = pwd.getpwuid(os.getuid())
     su, sg = _sub_range("/etc/subuid", me), _sub_range("/etc/subgid", me)

@@ -8,7 +8,12 @@ everyone else watches.
   edits and runs again, and losing the bench at every run end (and having to take it again, or
   finding someone else took it) was the most frequent interruption (issue 19).
 - An educator takes it over at any time; the previous holder is told (the `lease` message names
-  them in `previous` with event `takeover`).
+  them in `previous` with event `takeover`). A student taken over from is put at the head of the
+  queue (the message's `reason` says so): the bench comes back to them when the educator
+  releases it, instead of to whoever queued behind them.
+- Stopping is always safe (the STOP rule): anyone but an observer may pause or stop a running
+  controller. When someone who does not hold the bench does, the holder is told who (event
+  `intervention`, `by` that user, `command` pause or stop).
 - Educators drive without holding it (they can take it over anyway; see docs/developers/security.md).
 
 Every change is published as a `lease` WebSocket message and recorded in the audit trail.
@@ -113,7 +118,18 @@ class Lease(RunObserver):
         previous = self.holder.user
         self._drop_from_queue(user)
         self.holder = Holder(user, time.time(), time.monotonic())
-        self._changed("takeover", user, previous=_who(previous))
+        if previous.is_educator:  # educators do not queue (they take over whenever they need to)
+            self._changed("takeover", user, previous=_who(previous))
+        else:
+            # First in the queue: the educator's release hands the bench straight back.
+            self._drop_from_queue(previous)
+            self.queue.insert(0, previous)
+            self._changed(
+                "takeover",
+                user,
+                previous=_who(previous),
+                reason=f"{previous.username} is first in the queue and gets the bench back when {user.username} releases it",
+            )
         return self.payload()
 
     def release(self, user: User, reason: str = "release") -> dict[str, Any]:
@@ -146,6 +162,15 @@ class Lease(RunObserver):
             self._changed("unqueue", None, reason=reason)
         if self.holder is not None and self.holder.user.id == user_id:
             self._free(reason, None)
+
+    def intervened(self, user: User, command: str) -> None:
+        """`user` paused or stopped the controller (the STOP rule lets anyone but an observer):
+        when the bench is someone else's, its holder is told who did it. Not a change of the
+        lease: published, not audited here (the command itself is audited by the route)."""
+        h = self.holder
+        if h is None or h.user.id == user.id:
+            return
+        self._publish(LeaseMessage.model_validate(self.payload("intervention", by=_who(user), command=command)))
 
     def started_run(self, user: User, run_id: int) -> None:
         if self.holds(user):

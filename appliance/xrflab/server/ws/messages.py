@@ -258,7 +258,8 @@ class LeaseMessage(_Out):
 
     type: Literal["lease"] = "lease"
     event: str = Field(
-        description="current | take | takeover | released | handover | queue | unqueue (server/security/lease.py)"
+        description="current | take | takeover | released | handover | queue | unqueue | intervention "
+        "(server/security/lease.py)"
     )
     holder: LeaseHolder | None
     queue: list[Who]
@@ -267,6 +268,9 @@ class LeaseMessage(_Out):
     by: Who | None = Field(default=None, description="who made the change (null: the appliance)")
     previous: Who | None = None
     reason: str | None = None
+    command: str | None = Field(
+        default=None, description="event intervention: the command (pause | stop) `by` sent to the holder's run"
+    )
 
 
 class SelfcheckMessage(BaseModel):
