@@ -163,12 +163,7 @@ function applyState(s) {
   document.querySelectorAll("#state-machine .edge").forEach((e) => {
     e.classList.toggle("enabled", e.dataset.from === s.name && allowed.has(e.dataset.cmd));
   });
-  document.querySelectorAll("#commands button").forEach((b) => {
-    const why = !s.active ? "no live run" : !allowed.has(b.dataset.cmd) ? `not accepted in ${s.name} (the state machine above)`
-      : blockOf(b.dataset.safe !== undefined);
-    b.disabled = !!why;
-    b.title = why;
-  });
+  updateCommandButtons();
   const rej = $("rejected");
   if (s.rejected && s.rejected.ticket !== xrf.dismissedReject) {
     rej.textContent = `Rejected: ${s.rejected.name} (${s.rejected.cmd}) — ${s.rejected.reason}`;
@@ -181,16 +176,29 @@ function applyState(s) {
 }
 
 // Why the user may not use a command button now, "" when they may: pages/lease.js's one rule
-// (permissions from /api/me and the bench lease). `safe`: stop and pause.
-function blockOf(safe) { return xrf.commandBlock ? xrf.commandBlock(safe) : "…"; }
+// (permissions from /api/me and the bench lease). `safe`: stop and pause, never held back
+// before that rule has loaded.
+function blockOf(safe) { return xrf.commandBlock ? xrf.commandBlock(safe) : safe ? "" : "…"; }
+
+// A command is usable when the state machine accepts it now and the user may send it; a button
+// that is not says why on hover.
+function updateCommandButtons() {
+  const s = xrf.state, allowed = new Set(s.active ? s.allowed : []);
+  document.querySelectorAll("#commands button").forEach((b) => {
+    const why = !s.active ? "no live run" : !allowed.has(b.dataset.cmd) ? `not accepted in ${s.name} (the state machine above)`
+      : blockOf(b.dataset.safe !== undefined);
+    b.disabled = !!why;
+    b.title = why;
+  });
+}
 
 // Every button whose use depends on who the user is and who holds the bench, again: called by
 // pages/lease.js when the lease or the user changes.
 xrf.permsChanged = function () {
   if (!xrf.started) return;  // init() draws them all once
-  applyState(xrf.state);
+  updateCommandButtons();
+  updateRunSummary();
   updateSetpointsEnabled();
-  renderNav();
 };
 
 // The status strip's state badge (index.html, #strip-state): on every page, never scrolled away.

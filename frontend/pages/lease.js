@@ -75,7 +75,8 @@
     return l && l.holder ? `${l.holder.username} holds the bench: queue for it to drive` : "take the bench to drive";
   };
   xrf.commandBlock = function (safe) {
-    if (!xrf.me) return "…";
+    // Stopping is never held back while the user is still unknown (the first moments of the page).
+    if (!xrf.me) return safe ? "" : "…";
     if (safe) return xrf.may("stop") ? "" : WATCH_ONLY;
     return xrf.driveBlock();
   };
