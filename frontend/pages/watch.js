@@ -188,12 +188,16 @@
   }
 
   // setData(…, false) leaves every scale as it was: each y scale is fitted to what it shows now,
-  // with a margin, and a flat signal gets a range around its value instead of none.
+  // with a margin, and a flat signal gets a range around its value instead of none. A range that
+  // still holds the data and is not more than four times too wide is kept: a scale that moved
+  // every frame would re-measure and re-lay its axis every frame.
   function autoscale(name, cols) {
     let lo = Infinity, hi = -Infinity;
     for (const c of cols) for (const v of c) if (v != null) { if (v < lo) lo = v; if (v > hi) hi = v; }
     if (lo > hi) return;
     const pad = hi > lo ? (hi - lo) * 0.08 : Math.max(Math.abs(hi) * 0.1, 0.5);
+    const cur = W.plot.scales[name];
+    if (cur && cur.min != null && cur.min <= lo && hi <= cur.max && cur.max - cur.min <= 4 * (hi - lo + 2 * pad)) return;
     W.plot.setScale(name, { min: lo - pad, max: hi + pad });
   }
 
