@@ -33,3 +33,19 @@ def test_a_write_in_progress_reads_as_none_not_as_a_torn_message(shm_name: str) 
         finally:
             lib.xrfpy_store_u32(seq, held)
         assert ch.read_ros2xeno() == {"steer_left": 3.0, "steer_right": 0.0}
+
+
+def test_the_appliance_merges_a_setpoint_into_what_the_loop_has(shm_name: str) -> None:
+    """A field written by another writer (the ROS 2 bridge maps the segment itself) is kept when
+    the dashboard changes another one: it was put back to the appliance's last value."""
+    from types import SimpleNamespace
+
+    from xrflab.server.runs import control
+
+    with create_for_test(shm_name) as ch:
+        run = SimpleNamespace(channels=ch, setpoint={})
+        assert control.setpoint(run, {"steer_left": 1.0}) == {"steer_left": 1.0, "steer_right": 0.0}
+        ch.write_ros2xeno({"steer_left": 1.0, "steer_right": 4.0})  # the bridge, behind our back
+        merged = control.setpoint(run, {"steer_left": 2.0})
+        assert merged == {"steer_left": 2.0, "steer_right": 4.0}
+        assert ch.read_ros2xeno() == merged and run.setpoint == merged
