@@ -12,7 +12,7 @@ const $ = (id) => document.getElementById(id);
 
 const xrf = {                // also the test hook: tests read window.xrf
   ws: null,
-  pages: {},                 // id -> {id, title, order, el, init, show}: see addPage()
+  pages: {},                 // id -> {id, title, order, perm, el, init, show}: see addPage()
   listeners: {},             // message type -> [fn]: see on()
   state: { state: 0, name: "NO RUN", allowed: [], active: false },
   run: null,
@@ -163,7 +163,7 @@ function applyState(s) {
   document.querySelectorAll("#state-machine .edge").forEach((e) => {
     e.classList.toggle("enabled", e.dataset.from === s.name && allowed.has(e.dataset.cmd));
   });
-  document.querySelectorAll("#commands button").forEach((b) => { b.disabled = !allowed.has(b.dataset.cmd); });
+  updateCommandButtons();
   const rej = $("rejected");
   if (s.rejected && s.rejected.ticket !== xrf.dismissedReject) {
     rej.textContent = `Rejected: ${s.rejected.name} (${s.rejected.cmd}) — ${s.rejected.reason}`;
@@ -174,6 +174,32 @@ function applyState(s) {
   if (s.last_error) $("run-detail").dataset.error = s.last_error;
   updateRunSummary();
 }
+
+// Why the user may not use a command button now, "" when they may: pages/lease.js's one rule
+// (permissions from /api/me and the bench lease). `safe`: stop and pause, never held back
+// before that rule has loaded.
+function blockOf(safe) { return xrf.commandBlock ? xrf.commandBlock(safe) : safe ? "" : "…"; }
+
+// A command is usable when the state machine accepts it now and the user may send it; a button
+// that is not says why on hover.
+function updateCommandButtons() {
+  const s = xrf.state, allowed = new Set(s.active ? s.allowed : []);
+  document.querySelectorAll("#commands button").forEach((b) => {
+    const why = !s.active ? "no live run" : !allowed.has(b.dataset.cmd) ? `not accepted in ${s.name} (the state machine above)`
+      : blockOf(b.dataset.safe !== undefined);
+    b.disabled = !!why;
+    b.title = why;
+  });
+}
+
+// Every button whose use depends on who the user is and who holds the bench, again: called by
+// pages/lease.js when the lease or the user changes.
+xrf.permsChanged = function () {
+  if (!xrf.started) return;  // init() draws them all once
+  updateCommandButtons();
+  updateRunSummary();
+  updateSetpointsEnabled();
+};
 
 // The status strip's state badge (index.html, #strip-state): on every page, never scrolled away.
 function stripState(text, kind) {
@@ -282,6 +308,7 @@ async function loadBuilds() {
 async function startRun() {
   const btn = $("btn-start-run");
   btn.disabled = true;
+  startRun.busy = true;
   $("run-detail").textContent = `Building and starting ${$("build-select").value}…`;
   try {
     const opt = $("build-select").selectedOptions[0];
@@ -299,7 +326,8 @@ async function startRun() {
     // alarm bar shows (HANDLERS.alarm).
     $("run-detail").textContent = "Could not start: " + e.message;
   } finally {
-    btn.disabled = false;
+    startRun.busy = false;
+    updateRunSummary();
     loadBuilds().catch(() => {});
   }
 }
@@ -354,7 +382,8 @@ function applyRun(m) {
     wantBuild = r.build;
     loadBuilds().catch(() => {});
   }
-  if (m.event === "started") $("alarm").classList.add("hidden");  // the last run's alarm is history now
+  if (m.event === "started") clearAlarm();  // the last run's alarm is history now
+  else if (m.event === "ended") clearAlarm("deadline_miss");  // its misses end with it; a crash stays up
   // The header's plant badge follows the run (a Jiwy run on a bench whose default is RELbot).
   showPlant();
   if (m.setpoint && !m.redacted) xrf.appliedSetpoint = { ...m.setpoint };
@@ -401,15 +430,31 @@ function updateRunSummary() {
   const r = xrf.run && xrf.run.run;
   const build = xrf.run && xrf.run.redacted ? "(not yours)" : r && r.build;
   $("run-summary").textContent = xrf.run && xrf.run.active && r ? `#${r.id} ${build} · ${xrf.state.name}` : "no active run";
-  $("btn-end-run").disabled = !(xrf.run && xrf.run.active);
+  const drive = blockOf(false);
+  const end = !(xrf.run && xrf.run.active) ? "no live run" : drive;
+  $("btn-end-run").disabled = !!end;
+  $("btn-end-run").title = end;
+  const start = startRun.busy ? "starting…" : drive;
+  $("btn-start-run").disabled = !!start;
+  $("btn-start-run").title = start;
+  // STOP is reachable, on every page, for everyone who may stop (safety): only a user who may
+  // not stop anything (an observer) sees it off, with why. Esc still answers them (lease.js).
+  const stop = blockOf(true);
+  $("btn-estop").disabled = !!stop;
+  $("btn-estop").title = stop || "Stop (Esc): RUN/PAUSED → stop; otherwise end the run";
 }
 
 // ---- setpoints ------------------------------------------------------------------------------
 
 let pendingSetpoint = {}, setpointTimer = null;
+const editedAt = {};  // field -> performance.now() of the user's last change here
+// How long a field the user just changed is left alone by followLoop: the change's way to the
+// loop and back in telemetry (1/SETPOINT_HZ, a cycle, 1/telemetry_hz) with room for a busy bench.
+const EDIT_HOLD_MS = 1500;
 
 function queueSetpoint(name, value) {
   pendingSetpoint[name] = value;
+  editedAt[name] = performance.now();
   if (setpointTimer) return;
   setpointTimer = setTimeout(() => {
     setpointTimer = null;
@@ -438,6 +483,25 @@ function showSetpoints(values) {
     if (range) range.value = v;
   }
   xrf.appliedSetpoint = { ...xrf.appliedSetpoint, ...values };
+}
+
+// The controls follow the Ros2Xeno the loop has (telemetry's `ros2xeno`: written from this page,
+// another tab, the ROS 2 bridge or the CLI), except a field the user is changing: the one with
+// the focus (a number being typed, a slider held) or changed here in the last EDIT_HOLD_MS.
+function followLoop(values) {
+  const now = performance.now(), focused = document.activeElement;
+  const fresh = {};
+  for (const [k, raw] of Object.entries(values)) {
+    if (Array.isArray(raw) || k in pendingSetpoint || now - (editedAt[k] || -Infinity) < EDIT_HOLD_MS) continue;
+    const num = $("sp-" + k), range = $("sp-range-" + k);
+    if (!num || num === focused || range === focused) continue;
+    // A float32 field comes back as the nearest float32 (0.1 -> 0.10000000149): 7 digits of it.
+    const f32 = (xrf.schema.ros2xeno.find((f) => f.name === k) || {}).type === "float32";
+    const v = f32 && typeof raw === "number" ? Number(raw.toPrecision(7)) : raw;
+    const shown = num.type === "checkbox" ? num.checked : Number(num.value);
+    if (shown !== v) fresh[k] = v;
+  }
+  if (Object.keys(fresh).length) showSetpoints(fresh);
 }
 
 // Without the bench (a student who does not hold it, an observer) the controls are disabled: a
@@ -508,6 +572,17 @@ function buildSetpoints(fields, current) {
 
 const COLORS = ["#1f6feb", "#d73a49", "#28a745", "#f6a01a", "#6f42c1", "#17a2b8", "#e83e8c", "#6c757d"];
 
+// A series' legend value (uPlot's `value`): at the cursor while hovered, else the newest sample;
+// uPlot alone shows "--" until the plot is hovered. Watch's scope uses it too.
+xrf.legendValue = (fmt) => (u, v, si, idx) => {
+  if (idx == null) {
+    const d = u.data[si] || [];
+    for (let i = d.length - 1; i >= 0; i--) if (d[i] != null) { v = d[i]; break; }
+  }
+  return v == null ? "--" : fmt(v);
+};
+const plotNumber = (v) => (Number.isInteger(v) ? String(v) : v.toFixed(3));
+
 function makePlot(id, names) {
   const el = $(id);
   el.innerHTML = "";
@@ -518,7 +593,7 @@ function makePlot(id, names) {
     cursor: { drag: { x: false, y: false } },
     scales: { x: { time: false } },
     axes: [{ label: "", size: 30 }, { size: 62 }],
-    series: [{ label: "t (s)" }, ...names.map((n, i) => ({ label: n, stroke: COLORS[i % COLORS.length], width: 1.5 }))],
+    series: [{ label: "t (s)" }, ...names.map((n, i) => ({ label: n, stroke: COLORS[i % COLORS.length], width: 1.5, value: xrf.legendValue(plotNumber) }))],
   };
   const data = [[], ...names.map(() => [])];
   const plot = new uPlot(opts, data, el);
@@ -548,12 +623,17 @@ function applyTelemetry(m) {
   if (p) pushSample(p, m.t, p.names.map((n) => m.xeno2ros[n]));
   pushSample(xrf.plots.enc, m.t, m.enc);
   pushSample(xrf.plots.pwm, m.t, m.pwm);
+  if (m.ros2xeno && Object.keys(m.ros2xeno).length && !(xrf.run && xrf.run.redacted)) followLoop(m.ros2xeno);
 }
 
 // Redraw at most once per animation frame, however fast samples arrive.
 function redraw() {
   for (const p of Object.values(xrf.plots)) {
-    if (p && p.dirty) { p.plot.setData(p.data); p.dirty = false; }
+    if (p && p.dirty) {
+      p.plot.setData(p.data);
+      p.dirty = false;
+      if (p.plot.cursor.idx == null) p.plot.setLegend();  // the newest values, not "--"
+    }
   }
   const m = xrf.lastTelemetry;
   if (m) {
@@ -650,6 +730,9 @@ function appendMonitor(lines, source) {
 // count until dismissed or the next run starts, instead of coming and going every few seconds.
 function showAlarm(m) {
   const box = $("alarm");
+  // A late one of a run that is over (its timing task's last second): not news for anyone.
+  const live = xrf.run && xrf.run.active && xrf.run.run;
+  if (m.kind === "deadline_miss" && m.run_id != null && !(live && live.id === m.run_id)) return;
   const serious = ["crash", "hang", "confinement", "log", "memory", "pids", "disk", "cpu"];
   if (m.kind === "deadline_miss" && !box.classList.contains("hidden") && serious.includes(box.dataset.kind)) return;
   box.classList.toggle("warn", m.kind === "deadline_miss");
@@ -667,9 +750,18 @@ function showAlarm(m) {
   box.classList.remove("hidden");
 }
 
+// Take the alarm down: any (a new run, a new holder of the bench), or only one of `kind`.
+function clearAlarm(kind) {
+  const box = $("alarm");
+  if (kind && box.dataset.kind !== kind) return;
+  box.classList.add("hidden");
+  showAlarm.misses = 0;
+}
+xrf.clearAlarm = clearAlarm;
+
 // ---- pages ----------------------------------------------------------------------------------
 // The bench page is index.html's <main id="page-bench">. Every other page is a module in
-// frontend/pages/ that calls xrf.addPage({id, title, order, init(el), show(el)}); its element is
+// frontend/pages/ that calls xrf.addPage({id, title, order, perm, init(el), show(el)}); its element is
 // made here. The header (state, STOP) and the Esc key stay on every page.
 
 xrf.addPage = function (page) {
@@ -684,6 +776,10 @@ xrf.addPage = function (page) {
   if (xrf.started) { renderNav(); route(); }  // before the page has started, init() does both
 };
 
+// A page may name the permission it needs (`perm`, one of /api/me's perms): without it, no tab,
+// and its address shows the Bench (a tab that can only refuse is no use).
+const usable = (p) => !p.perm || xrf.may(p.perm);
+
 // Subscribe to a WebSocket message type ("*" for every message).
 xrf.on = function (type, fn) { (xrf.listeners[type] = xrf.listeners[type] || []).push(fn); };
 xrf.send = function (msg) { if (xrf.ws && xrf.ws.readyState === 1) xrf.ws.send(JSON.stringify(msg)); };
@@ -692,7 +788,7 @@ xrf.api = (method, path, body) => api(method, path, body);
 function renderNav() {
   const nav = $("nav");
   nav.textContent = "";
-  Object.values(xrf.pages).sort((a, b) => a.order - b.order).forEach((p) => {
+  Object.values(xrf.pages).filter(usable).sort((a, b) => a.order - b.order).forEach((p) => {
     const a = document.createElement("a");
     a.href = "#" + p.id;
     a.textContent = p.title;
@@ -709,7 +805,7 @@ function highlightNav() {
 
 function route() {
   const id = (location.hash || "#bench").slice(1);
-  const target = xrf.pages[id] ? id : "bench";
+  const target = xrf.pages[id] && usable(xrf.pages[id]) ? id : "bench";
   for (const p of Object.values(xrf.pages)) {
     const on = p.id === target;
     p.el.classList.toggle("hidden", !on);
@@ -797,7 +893,8 @@ function onKey(ev) {
   const typing = ["INPUT", "SELECT", "TEXTAREA"].includes(document.activeElement && document.activeElement.tagName);
   if (typing || ev.ctrlKey || ev.metaKey || ev.altKey) return;
   const cmd = { p: "pause", s: "start", i: "initialise" }[ev.key.toLowerCase()];
-  if (cmd && xrf.state.allowed.includes(cmd)) sendCommand(cmd);
+  const button = cmd && document.querySelector(`#commands button[data-cmd="${cmd}"]`);
+  if (button && !button.disabled) sendCommand(cmd);  // the button's own rule (applyState)
 }
 
 // Esc inside an embedded frame (the 3D view, the rerun viewer: same origin, through the
@@ -842,6 +939,7 @@ function init() {
   renderNav();
   window.addEventListener("hashchange", route);
   route();
+  xrf.meReady.then(() => { renderNav(); route(); });  // the tabs this user may use
   applyState(xrf.state);
   xrf.machineReady = fetch("/api/state-machine").then((r) => r.json()).then((machine) => {
     xrf.machine = machine;
@@ -855,7 +953,15 @@ function init() {
   $("btn-clear").addEventListener("click", () => { $("monitor").textContent = ""; monitorFollow = true; });
   $("monitor").addEventListener("scroll", monitorScrolled);
   watchFrames();
-  xrf.on("lease", () => setTimeout(updateSetpointsEnabled));  // after lease.js has the new holder
+  let holder;  // the bench's holder's id as last seen (undefined: not seen yet)
+  xrf.on("lease", (m) => {
+    setTimeout(updateSetpointsEnabled);  // after lease.js has the new holder
+    // A new holder (a take-over, a hand-over, a release) starts afresh: the timing alarm was the
+    // previous holder's. A crash or a sandbox alarm stays: it is about the bench itself.
+    const now = m.holder ? m.holder.id : null;
+    if (holder !== undefined && now !== holder) clearAlarm("deadline_miss");
+    holder = now;
+  });
   $("alarm-close").addEventListener("click", () => $("alarm").classList.add("hidden"));
   $("rejected").addEventListener("click", () => { xrf.dismissedReject = xrf.state.rejected && xrf.state.rejected.ticket; $("rejected").classList.add("hidden"); });
   document.addEventListener("keydown", onKey, true);

@@ -486,5 +486,5 @@
 
   E.open = async (pid, path, line) => { await E.ready; location.hash = "#editor"; await openProject(pid); if (path) await openFile(path, line); };
   E.save = save; E.buildAndRun = buildAndRun; E.openFile = openFile; E.diff = diff;
-  xrf.addPage({ id: "editor", title: "Editor", order: 15, init, show });
+  xrf.addPage({ id: "editor", title: "Editor", order: 15, perm: "projects", init, show });
 })();

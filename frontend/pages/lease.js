@@ -61,6 +61,26 @@
   xrf.holdsBench = mine;
   xrf.mayDrive = () => xrf.may("educator") || (xrf.may("drive") && mine());
 
+  // Why this user cannot use a command button now ("" when they can): the one rule every button
+  // of the dashboard asks (the Bench's commands, Start/End run, STOP), the same as the appliance's
+  // own check (server/http/runs.py): a safe command (stop, pause: the state machine's `safe`)
+  // needs the "stop" permission, everything else "drive" with the bench lease (educators always).
+  // Permissions are /api/me's `perms` (server/security/roles.py), never a role's name.
+  const WATCH_ONLY = "you may watch only: ask the student at the bench or an educator";
+  xrf.driveBlock = function () {
+    if (!xrf.me) return "…";
+    if (xrf.mayDrive()) return "";
+    if (!xrf.may("drive")) return WATCH_ONLY;
+    const l = L.lease;
+    return l && l.holder ? `${l.holder.username} holds the bench: queue for it to drive` : "take the bench to drive";
+  };
+  xrf.commandBlock = function (safe) {
+    // Stopping is never held back while the user is still unknown (the first moments of the page).
+    if (!xrf.me) return safe ? "" : "…";
+    if (safe) return xrf.may("stop") ? "" : WATCH_ONLY;
+    return xrf.driveBlock();
+  };
+
   function render() {
     const l = L.lease;
     const m = xrf.me;
@@ -80,6 +100,7 @@
     };
     Object.entries(buttons).forEach(([k, b]) => b.classList.toggle("hidden", !show[k]));
     document.body.dataset.drive = xrf.mayDrive() ? "yes" : "no";
+    if (xrf.permsChanged) xrf.permsChanged();  // every button's enabled state and reason (app.js)
   }
 
   function onLease(m) {

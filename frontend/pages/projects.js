@@ -347,5 +347,5 @@
   function show() { loadProjects().then(() => { if (P.current != null) select(P.current); }).catch((e) => status(fmtErr(e), true)); }
 
   P.upload = uploadFile; P.select = select; P.build = build; P.showSource = showSource;
-  xrf.addPage({ id: "projects", title: "Projects", order: 10, init, show });
+  xrf.addPage({ id: "projects", title: "Projects", order: 10, perm: "projects", init, show });
 })();

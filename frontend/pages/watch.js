@@ -1,8 +1,9 @@
 // Watch page: every signal of the running controller with its current value (OpenPLC's monitor):
 // Xeno2Ros and Ros2Xeno fields, encoders, PWM, digital inputs and outputs; and a scope of any of
 // them: a time window to choose, freeze, and a trigger on a signal crossing a level.
-// Data: the dashboard's WebSocket (telemetry at the appliance's telemetry rate; Ros2Xeno as last
-// written through the appliance). Docs: docs/students/dashboard.md ("Watch").
+// Data: the dashboard's WebSocket (telemetry at the appliance's telemetry rate, Ros2Xeno included:
+// the values the loop has, read from its shared memory, whoever wrote them: this tab, another, the
+// ROS 2 bridge, the CLI). Docs: docs/students/dashboard.md ("Watch").
 "use strict";
 (function () {
   const BUFFER_S = 120;        // history kept for the scope, whatever window is shown
@@ -53,9 +54,9 @@
     if (keys === JSON.stringify(W.signals.map((s) => s.key))) return;
     W.signals = signalList(schema);
     W.values = {}; W.stats = {}; W.samples = []; W.triggered = null;
-    // Until something is written, the controller's Ros2Xeno is all zeros.
+    // Until the loop's first telemetry says otherwise, the controller's Ros2Xeno is all zeros.
     for (const f of schema.ros2xeno || []) if (!f.count) W.values["r." + f.name] = f.type === "bool" ? false : 0;
-    for (const [k, x] of Object.entries(W.setpoint || {})) W.values["r." + k] = x;
+    for (const [k, x] of Object.entries(W.loop || {})) W.values["r." + k] = x;
     // The default choice follows the run's fields until the student picks their own.
     if (!W.picked || ![...W.plotted].some((k) => W.signals.some((s) => s.key === k))) {
       W.plotted = new Set(W.signals.filter((s) => s.group === "Xeno2Ros" && !s.array).slice(0, 4).map((s) => s.key));
@@ -73,6 +74,11 @@
     (m.din || []).forEach((x, i) => { v["din" + (i + 1)] = x; });
     (m.dout || []).forEach((x, i) => { v["dout" + (i + 1)] = x; });
     for (const [k, x] of Object.entries(m.xeno2ros || {})) v["x." + k] = x;
+    // Ros2Xeno as the loop has it ({} for someone else's run): never what this page last sent.
+    if (m.ros2xeno && Object.keys(m.ros2xeno).length) {
+      W.loop = m.ros2xeno;
+      for (const [k, x] of Object.entries(m.ros2xeno)) v["r." + k] = x;
+    }
     W.cycle = m.cycle; W.t = m.t;
     const sample = { t: m.t, v: {} };
     for (const [k, x] of Object.entries(v)) {
@@ -84,18 +90,11 @@
       if (n < s.min) s.min = n;
       if (n > s.max) s.max = n;
     }
-    for (const [k, x] of Object.entries(W.setpoint || {})) { const n = numeric(x); if (n !== null) sample.v["r." + k] = n; }
     const prev = W.samples[W.samples.length - 1];
     if (prev && m.t < prev.t) { W.samples = []; W.triggered = null; }  // a new run: its own time axis
     W.samples.push(sample);
     while (W.samples.length && W.samples[0].t < m.t - BUFFER_S) W.samples.shift();
     checkTrigger(prev, sample);
-    W.dirty = true;
-  }
-
-  function onSetpoint(sp) {
-    W.setpoint = { ...(W.setpoint || {}), ...sp };
-    for (const [k, x] of Object.entries(sp)) W.values["r." + k] = x;
     W.dirty = true;
   }
 
@@ -150,19 +149,56 @@
 
   function windowS() { return Number(q("watch-window").value) || 5; }
 
+  // The scope's y scales: one per unit where the unit is known (encoder counts, PWM, bits), else
+  // one per signal (a message field's unit is the student's), each autoscaled: a 0-2 rad position
+  // is not flattened by 0-16000 counts beside it. Axes beyond MAX_AXES are not drawn (room for
+  // the plot); their signals still scale on their own, and the legend shows their values.
+  const MAX_AXES = 4;
+  function scaleOf(key) {
+    if (/^enc\d/.test(key)) return "counts";
+    if (/^pwm\d/.test(key)) return "PWM";
+    if (/^d(in|out)\d/.test(key)) return "bit";
+    return key.replace(/^[xr]\./, "");
+  }
+
   function buildPlot() {
     const host = q("watch-plot");
     host.textContent = "";
     const keys = [...W.plotted].filter((k) => W.signals.some((s) => s.key === k && !s.array));
     W.plotKeys = keys;
-    const width = plotWidth();
-    W.plot = new uPlot({
-      width, height: 260, legend: { show: true }, cursor: { drag: { x: false, y: false } },
-      scales: { x: { time: false } }, axes: [{ size: 30 }, { size: 62 }],
-      series: [{ label: "t (s)" }, ...keys.map((k, i) => ({ label: k.replace(/^[xr]\./, ""), stroke: COLORS[i % COLORS.length], width: 1.5 }))],
-    }, [[], ...keys.map(() => [])], host);
+    const scales = [];  // in the order of the first signal on each
+    keys.forEach((k, i) => { const sc = scaleOf(k); if (!scales.some((x) => x.name === sc)) scales.push({ name: sc, color: COLORS[i % COLORS.length] }); });
+    W.scales = scales.map((x) => x.name);
+    const axes = scales.slice(0, MAX_AXES).map((sc, i) => ({
+      scale: sc.name, side: i % 2 ? 1 : 3, stroke: sc.color, label: sc.name, labelSize: 16,
+      grid: { show: i === 0 }, size: xrf.axisWidth,
+    }));
+    const opts = {
+      width: plotWidth(), height: 260, legend: { show: true }, cursor: { drag: { x: false, y: false } },
+      scales: { x: { time: false }, ...Object.fromEntries(scales.map((sc) => [sc.name, { auto: true }])) },
+      axes: [{ size: 30 }, ...(axes.length ? axes : [{ size: 62 }])],
+      series: [{ label: "t (s)" }, ...keys.map((k, i) => ({
+        label: k.replace(/^[xr]\./, ""), scale: scaleOf(k), stroke: COLORS[i % COLORS.length], width: 1.5,
+        value: xrf.legendValue(fmt),
+      }))],
+    };
+    W.plot = new uPlot(opts, [[], ...keys.map(() => [])], host);
     W.dirty = true;
     renderPlot(true);
+  }
+
+  // setData(…, false) leaves every scale as it was: each y scale is fitted to what it shows now,
+  // with a margin, and a flat signal gets a range around its value instead of none. A range that
+  // still holds the data and is not more than four times too wide is kept: a scale that moved
+  // every frame would re-measure and re-lay its axis every frame.
+  function autoscale(name, cols) {
+    let lo = Infinity, hi = -Infinity;
+    for (const c of cols) for (const v of c) if (v != null) { if (v < lo) lo = v; if (v > hi) hi = v; }
+    if (lo > hi) return;
+    const pad = hi > lo ? (hi - lo) * 0.08 : Math.max(Math.abs(hi) * 0.1, 0.5);
+    const cur = W.plot.scales[name];
+    if (cur && cur.min != null && cur.min <= lo && hi <= cur.max && cur.max - cur.min <= 4 * (hi - lo + 2 * pad)) return;
+    W.plot.setScale(name, { min: lo - pad, max: hi + pad });
   }
 
   function plotWidth() {
@@ -190,6 +226,8 @@
     }
     W.plot.setData([xs, ...cols], false);
     W.plot.setScale("x", { min: t0 - zero, max: t1 - zero });
+    for (const sc of W.scales) autoscale(sc, cols.filter((c, i) => scaleOf(W.plotKeys[i]) === sc));
+    if (W.plot.cursor.idx == null) W.plot.setLegend();  // newest values, not "--", when not hovered
     W.shown = { t0, t1, zero, points: xs.length };
   }
 
@@ -260,7 +298,7 @@
     root.innerHTML = `
       <section class="panel" id="watch-table-panel">
         <h2>Watch <span class="muted small" id="watch-cycle">no data yet</span></h2>
-        <div class="muted small" id="watch-note">Ros2Xeno: the values last written through the appliance.</div>
+        <div class="muted small" id="watch-note">Ros2Xeno: the values the loop has, whoever wrote them (any tab, ROS 2, the CLI).</div>
         <table class="watch-table"><thead><tr><th title="plot">⧉</th><th>signal</th><th>type</th><th>value</th><th>min</th><th>max</th></tr></thead>
           <tbody id="watch-body"></tbody></table>
       </section>
@@ -287,7 +325,6 @@
     q("watch-window").addEventListener("change", () => { W.dirty = true; renderPlot(true); });
     setSchema(xrf.schema || {});
     buildTable(); buildTriggerSelect(); buildPlot();
-    if (xrf.run && xrf.run.setpoint) onSetpoint(xrf.run.setpoint);
     window.addEventListener("resize", () => { if (W.plot && visible()) W.plot.setSize({ width: plotWidth(), height: 260 }); });
     requestAnimationFrame(frame);
   }
@@ -300,10 +337,11 @@
 
   xrf.on("telemetry", onTelemetry);
   xrf.on("run", (m) => {
-    if (m.ros2xeno && (m.event === "started" || m.event === "current")) setSchema({ ros2xeno: m.ros2xeno, xeno2ros: m.xeno2ros });
-    if (m.setpoint) onSetpoint(m.setpoint);
+    if (m.ros2xeno && (m.event === "started" || m.event === "current")) {
+      W.loop = null;  // a new run's loop starts from zero
+      setSchema({ ros2xeno: m.ros2xeno, xeno2ros: m.xeno2ros });
+    }
   });
-  xrf.on("ack", (m) => { if (m.setpoint) onSetpoint(m.setpoint); });
   W.arm = arm; W.setFrozen = setFrozen;
   xrf.addPage({ id: "watch", title: "Watch", order: 5, init, show });
 })();

@@ -173,6 +173,20 @@ class Channels:
             raise ChannelsError(f"{self.name}: writing Ros2Xeno failed: {os.strerror(-rc)}")
         return payload
 
+    def read_ros2xeno(self) -> dict[str, Any] | None:
+        """The Ros2Xeno the loop takes at its next cycle: the latest complete write by anyone
+        (the appliance, the ROS 2 bridge, a CLI), decoded; all zero before the first write (the
+        loop's own starts at zero); None while a writer is in the middle of one (ask again)."""
+        codec = self.ros2xeno_codec
+        data_in = ffi.addressof(self.shm, "ros2xeno")
+        if lib.xrfpy_load_u32(ffi.addressof(data_in, "seq")) == 0:
+            return codec.decode(bytes(codec.size))
+        out = ffi.new("uint8_t[]", max(codec.size, 1))
+        last_seq = ffi.new("uint32_t *", 0)  # "newer than nothing": any complete message
+        if lib.xrf_data_in_try_read(data_in, last_seq, out, codec.size, ffi.NULL) != 1:
+            return None
+        return codec.decode(bytes(ffi.buffer(out, codec.size)))
+
     # -- data out -----------------------------------------------------------------------------
 
     def telemetry_reader(self, from_start: bool = False) -> TelemetryReader:

@@ -145,9 +145,11 @@ def test_first_login_forces_a_password_change(server: Server, browser) -> None:
     page.wait_for_function(
         "document.getElementById('me-name') && document.getElementById('me-name').textContent === 'carol · observer'"
     )
-    # Observers watch: no lease buttons, and STOP explains.
+    # Observers watch: no lease buttons; STOP is off and says why, and Esc explains.
     assert not page.is_visible("#btn-lease-take")
-    page.click("#btn-estop")
+    page.wait_for_function("document.getElementById('btn-estop').disabled")
+    assert "watch only" in page.get_attribute("#btn-estop", "title")
+    page.keyboard.press("Escape")
     notice_says(page, "Observers watch only")
     page.click("#btn-logout")
     page.wait_for_selector("#login-user")

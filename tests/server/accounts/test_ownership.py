@@ -443,7 +443,7 @@ def test_watchers_see_state_and_motion_but_not_the_owners_output(server: Server,
     assert not [m for m in watched if m.get("type") == "monitor"], "monitor lines reached a watcher"
     for m in watched:
         if m.get("type") == "telemetry":
-            assert m["xeno2ros"] == {}, m
+            assert m["xeno2ros"] == {} and m["ros2xeno"] == {}, m  # the setpoints are the owner's too
         if m.get("type") == "run":
             assert m["redacted"] and m["run"]["build"] == "" and m["run"]["owner"] == "" and m["run"]["run_dir"] == ""
         text = json.dumps(m)

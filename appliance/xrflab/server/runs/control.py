@@ -67,10 +67,12 @@ async def command(run: Run, number: int, hub: Hub) -> chmod.CommandResult:
 
 
 def setpoint(run: Run, fields: dict[str, Any]) -> dict[str, Any]:
-    """Merge into the run's Ros2Xeno (latest wins, so the whole message is written)."""
+    """Merge into the run's Ros2Xeno (latest wins, so the whole message is written). Merged into
+    what the loop has, not what this appliance last wrote: a field the ROS 2 bridge or another
+    writer set since is kept, not taken back to an old value."""
     ch = run.channels
     assert ch is not None
-    merged = {**run.setpoint, **fields}
+    merged = {**(ch.read_ros2xeno() or run.setpoint), **fields}
     ch.write_ros2xeno(merged)  # ValueError on unknown fields or bad values
     run.setpoint = merged
     return merged

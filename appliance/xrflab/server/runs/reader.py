@@ -17,7 +17,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Awaitable, Callable
-from typing import Literal
+from typing import Any, Literal
 
 from ...channels import ChannelsCorrupt
 from ..ws.hub import Hub
@@ -58,6 +58,9 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub)
     next_due_ns = 0
     run_id = run.row.id
     t0 = 0  # the loop's first deadline (status t_start_ns): set once by cycle 1, read once here
+    # The Ros2Xeno the loop has, read from its shared memory once per batch that sends telemetry:
+    # whoever wrote it (this appliance, the ROS 2 bridge, a CLI), the Watch page shows the loop's.
+    ros2xeno: dict[str, Any] = {}
     while True:
         await run.wake.wait()
         run.wake.clear()
@@ -71,6 +74,7 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub)
         if samples and hub.wants("telemetry"):
             if not t0:
                 t0 = ch.status().t_start_ns
+            ros2xeno = ch.read_ros2xeno() or ros2xeno  # None: a write in progress, keep the last
             for sample in samples:
                 # Credit-based decimation: the average rate is telemetry_hz exactly even when the
                 # loop's own rate is not a multiple of it (100 Hz -> 30 Hz sends 3 of every 10).
@@ -93,6 +97,7 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub)
                         pwm=sample.pwm,
                         dout=sample.dout,
                         xeno2ros=sample.xeno2ros,
+                        ros2xeno=ros2xeno,
                         ros2xeno_t_sent_ns=sample.ros2xeno_t_sent_ns,
                         lost=telemetry.lost,
                     )

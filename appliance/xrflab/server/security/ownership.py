@@ -168,7 +168,7 @@ def scope(topic: str, payload: dict[str, Any], owner_of_run: Callable[[Any], str
     if topic == "telemetry":
         return Scoped(
             owner_of_run(payload.get("run_id")),
-            {k: v for k, v in payload.items() if k in PUBLIC_TELEMETRY} | {"xeno2ros": {}},
+            {k: v for k, v in payload.items() if k in PUBLIC_TELEMETRY} | {"xeno2ros": {}, "ros2xeno": {}},
         )
     if topic == "monitor":
         return Scoped(owner_of_run(payload.get("run_id")), None)

@@ -139,6 +139,10 @@ class TelemetryMessage(_Out):
     pwm: list[int]
     dout: list[int]
     xeno2ros: dict[str, Any] = Field(description="the controller's outputs ({} for someone else's run)")
+    ros2xeno: dict[str, Any] = Field(
+        default_factory=dict,
+        description="the Ros2Xeno the loop has now, whoever wrote it ({} for someone else's run)",
+    )
     ros2xeno_t_sent_ns: int
     lost: int = Field(description="samples this reader lost to the ring so far")
 
