@@ -282,9 +282,11 @@ async def _viewer_cache(request: Request) -> Path:
         )
         try:
             _, err = await asyncio.wait_for(proc.communicate(), PREPARE_TIMEOUT_S)
-        except (TimeoutError, asyncio.CancelledError):
+        except (TimeoutError, asyncio.CancelledError) as exc:
             proc.kill()  # its rerun child gets SIGTERM with it (tied.popen_tied)
             await proc.wait()
+            if isinstance(exc, TimeoutError):
+                raise Unavailable(f"the rerun viewer was not prepared within {PREPARE_TIMEOUT_S} s") from None
             raise
         if proc.returncode != 0 or not (cache / "ready").is_file():
             last = (err or b"").decode(errors="replace").strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
