@@ -5,7 +5,11 @@
 // dashboard's key handler is not there, so this page keeps the promise "Esc stops from anywhere"
 // itself (issue 19 item 1), with the dashboard's rule, over HTTP with the session cookie and the
 // CSRF header: RUN or PAUSED -> the `stop` command; any other state of a live run -> end the run.
-// It also follows the live stream to the next run, as the embedded viewer did.
+// It also follows the live stream to the next run, as the embedded viewer did, and offers the
+// run's replay from its start: the live stream keeps only a short window and sends it newest
+// first, so a viewer opened mid-run starts at the live edge (issue 31 bug 6, logs/rerun_servers.py
+// LiveProxy); the whole run so far is its log, opened as .rrd in another viewer tab.
+// The 3D view's tab (viser's page, server/http/viser.py) loads this script too, for Esc.
 "use strict";
 (function () {
   const FOLLOW_MS = 3000;
@@ -69,8 +73,33 @@
   // the previous run's stream ends, and this tab reloads onto the new one.
   const url = new URLSearchParams(location.search).get("url") || "";
   const live = /^rerun\+https?:\/\/[^/]+\/proxy$/.test(url);
+  // "Replay from start": a link in a corner (the viewer's canvas covers the page), to the live
+  // run's first log file as .rrd (converted up to now: a run still logging gives what it has).
+  async function offerReplay(run) {
+    let a = document.getElementById("xrf-replay");
+    try {
+      const r = await fetch(`/api/logs/runs/${run}`, { credentials: "same-origin" });
+      const files = r.ok ? (await r.json()).files : [];
+      if (!files.length) { if (a) a.remove(); return; }
+      const path = `/api/logs/runs/${run}/files/${files[0].name.split("/").map(encodeURIComponent).join("/")}?fmt=rrd`;
+      if (!a) {
+        a = document.createElement("a");
+        a.id = "xrf-replay";
+        a.target = "_blank";
+        a.rel = "noopener";
+        Object.assign(a.style, { position: "fixed", right: "12px", bottom: "40px", zIndex: "2147483647",
+          padding: "4px 10px", borderRadius: "6px", font: "13px system-ui, sans-serif", color: "#fff",
+          background: "rgba(30,64,175,.85)", textDecoration: "none" });
+        document.body.appendChild(a);
+      }
+      a.textContent = `Replay run ${run} from its start`;
+      a.title = "This live view shows the last seconds; the whole run so far is its log, opened here as .rrd in a new tab";
+      a.href = "/rerun/?url=" + encodeURIComponent(location.origin + path);
+    } catch (e) { /* the appliance restarts: the next poll tries again */ }
+  }
+
   if (live) {
-    let shown;
+    let shown, offered;
     const follow = async () => {
       try {
         const r = await fetch("/api/logs/rerun", { credentials: "same-origin" });
@@ -79,6 +108,7 @@
           if (shown === undefined) shown = info.live_run;
           else if (info.live_run != null && info.live_run !== shown) { location.reload(); return; }
           if (info.live_run != null) document.title = `rerun · live run ${info.live_run}` + (info.live_running ? "" : " (ended)");
+          if (info.live_run != null && offered !== info.live_run) { offered = info.live_run; offerReplay(info.live_run); }
         }
       } catch (e) { /* the appliance restarts: try again */ }
       setTimeout(follow, FOLLOW_MS);

@@ -1,18 +1,26 @@
 #!/usr/bin/env python3
 """Live rerun lag: how far behind the loop a viewer of the live rerun stream is.
 
-A real appliance on the simulated bench runs a loop at 1 kHz (the RELbot example unless --build);
-headless viewers read the run's live stream as the web viewer does, by gRPC-web through the
-appliance's route (login cookie, same Origin), each in a process of its own (one per browser).
-Each data frame is decoded as far as its chunk's ``time`` index (tests/xrf_testing/rerun_stream.py:
-protobuf by hand, LZ4 block, Arrow IPC): the newest sample it carries, in wall-clock ns (the
-loop's sample time + the run's wall offset, logs/rerun_live.py). lag = the frame's arrival wall time -
-that sample's wall time, over every frame that carries one.
+A real appliance on the simulated bench runs a loop at 1 kHz (the RELbot example unless --build).
 
+``browser`` (what a person sees, issue 31 bug 6): Debian's chromium (Playwright, the system
+browser) opens the live viewer tab --late s into a run, as the Runs page's "Live plots" does, and
+samples the viewer's own state every 250 ms (``window._handle.viewer_state()``: the newest sample of
+the run it holds, where its following plots end; tests/xrf_testing/rerun_stream.py
+``viewer_newest_ns``). Reported: the app's start, when it first held a sample of the run and how
+old that sample was at the opening, how far behind live it was 5/10/20/30 s after it started, and
+when it was first within --edge s of live. (The viewer files are prepared and cached before.)
+
+Headless cases (at the wire, not what a person sees): headless viewers read the run's live stream
+as the web viewer does, by gRPC-web through the appliance's route (login cookie, same Origin), each
+in a process of its own. Each data frame is decoded as far as its chunk's ``time`` index
+(tests/xrf_testing/rerun_stream.py: protobuf by hand, LZ4 block, Arrow IPC): the newest sample it
+carries, in wall-clock ns (the loop's sample time + the run's wall offset, logs/rerun_live.py). lag =
+the frame's arrival wall time - that sample's wall time, over every frame that carries one.
 Cases (each a fresh run): 1 viewer, N viewers (--viewers, default 5), 1 viewer with the other core
 loaded (``stress-ng --cpu 1`` pinned to the CPU the loop is not on). In each, after the live
 window a late viewer connects: its catch-up time is from connecting until the first frame within
---edge s of the loop (the proxy replays the run's buffer first). Not a timed test; prints figures.
+--edge s of the loop. Not a timed test; prints figures.
 """
 
 from __future__ import annotations
@@ -116,6 +124,141 @@ def start_loop(server, build: str) -> dict:
     return run
 
 
+# ---- the footprint case -------------------------------------------------------------------------
+
+
+def _rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def _rerun_children(root: int) -> dict[str, tuple[int, float]]:
+    """The appliance's rerun processes below `root` (any depth): {"serve-web"|"serve-grpc": (pid, MB)}."""
+    out: dict[str, tuple[int, float]] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            argv = open(f"/proc/{entry}/cmdline", "rb").read().split(b"\0")
+            ppid, pid = int(open(f"/proc/{entry}/stat").read().rsplit(")", 1)[1].split()[1]), int(entry)
+            while ppid not in (0, 1, root):  # a descendant of the appliance?
+                ppid = int(open(f"/proc/{ppid}/stat").read().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == root and argv and argv[0].endswith(b"rerun"):
+            for mode in ("serve-web", "serve-grpc"):
+                if f"--{mode}".encode() in argv:
+                    out[mode] = (pid, _rss_mb(pid))
+    return out
+
+
+def footprint_case(server, build: str, watch_s: float) -> list[tuple[str, float, dict]]:
+    """RSS (MB, /proc/<pid>/status VmRSS) of the appliance and its rerun children: with a run
+    streaming; after a browser opened the viewer once and closed it (60 s later); then the live
+    proxy every minute of --watch."""
+    from playwright.sync_api import sync_playwright
+
+    from xrf_testing.harness import CHROMIUM_ARGS, session_cookies
+
+    rows = []
+    app = server.proc.pid
+
+    def row(what: str) -> None:
+        rows.append((what, _rss_mb(app), _rerun_children(app)))
+
+    start_loop(server, build)
+    time.sleep(30)
+    row("run streaming 30 s, no viewer yet")
+    chromium = os.environ.get("XRF_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
+        ctx = browser.new_context()
+        ctx.add_cookies(session_cookies(server.http, server.url))
+        page = ctx.new_page()
+        page.goto(server.url + "/rerun/index.html", timeout=600_000)
+        page.wait_for_function("() => window._handle !== undefined", timeout=600_000)
+        row("viewer open")
+        browser.close()
+    time.sleep(60)
+    row("viewer closed 60 s ago")
+    for minute in range(1, int(watch_s // 60) + 1):
+        time.sleep(60)
+        row(f"+{minute} min")
+    server.stop_run()
+    return rows
+
+
+# ---- the browser case ---------------------------------------------------------------------------
+
+SAMPLE = """window._xrfSamples = []; setInterval(() => {
+  try { window._xrfSamples.push([Date.now(), Array.from(window._handle.viewer_state())]); } catch (e) {}
+}, 250);"""
+
+
+def browser_case(server, build: str, late_s: float, watch_s: float, edge_s: float) -> dict:
+    import urllib.parse
+
+    from playwright.sync_api import sync_playwright
+
+    from xrf_testing.harness import CHROMIUM_ARGS, session_cookies
+    from xrf_testing.rerun_stream import viewer_newest_ns
+
+    chromium = os.environ.get("XRF_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+    if not chromium:
+        raise SystemExit("the browser case needs Debian's chromium (or XRF_CHROMIUM)")
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
+        try:
+            ctx = browser.new_context(viewport={"width": 1280, "height": 800})
+            ctx.add_cookies(session_cookies(server.http, server.url))
+            warm = ctx.new_page()  # the viewer's files prepared and in the cache: not measured
+            warm.goto(server.url + "/rerun/index.html", timeout=600_000)
+            warm.wait_for_function("() => window._handle !== undefined", timeout=600_000)
+            warm.close()
+            run = start_loop(server, build)
+            started = time.monotonic()
+            while time.monotonic() - started < late_s:
+                time.sleep(0.2)
+            info = server.http.get("/api/logs/rerun").json()
+            page = ctx.new_page()
+            opened_ns = time.time_ns()
+            page.goto(server.url + "/rerun/?url=" + urllib.parse.quote(info["live_url"], safe=""), timeout=120_000)
+            page.wait_for_function("() => window._handle !== undefined", timeout=600_000)
+            app_ns = time.time_ns()
+            page.evaluate(SAMPLE)
+            end = time.monotonic() + watch_s
+            while time.monotonic() < end:
+                time.sleep(0.5)
+            raw = page.evaluate("window._xrfSamples")
+        finally:
+            browser.close()
+            server.stop_run()
+    samples = []  # (s since the app started, s behind live, newest sample's age at the opening)
+    for t_ms, state in raw:
+        newest = viewer_newest_ns(bytes(state), f"run-{run['id']}")
+        if newest is not None:
+            samples.append((t_ms / 1e3 - app_ns / 1e9, t_ms / 1e3 - newest / 1e9, (opened_ns - newest) / 1e9))
+
+    def behind_at(t: float) -> float:
+        after = [b for s, b, _ in samples if s >= t]
+        return after[0] if after else float("nan")
+
+    edge = next((s for s, b, _ in samples if b <= edge_s), float("nan"))
+    return {
+        "run": run["id"],
+        "run_age_s": late_s,
+        "app_start_s": (app_ns - opened_ns) / 1e9,
+        "first_s": samples[0][0] if samples else float("nan"),
+        "first_age_s": samples[0][2] if samples else float("nan"),
+        "behind": {t: behind_at(t) for t in (0, 5, 10, 20, 30)},
+        "edge_s": edge,
+        "samples": len(raw),
+    }
+
+
 def run_case(server, build: str, viewers: int, seconds: float, edge_s: float, stress_cpu: int | None) -> dict:
     stress = None
     if stress_cpu is not None:
@@ -162,12 +305,19 @@ def main() -> None:
     ap.add_argument("--cpu", type=int, default=1, help="CPU of the loop; stress-ng loads another")
     ap.add_argument("--prio", type=int, default=80)
     ap.add_argument("--edge", type=float, default=1.0, help="a viewer is at the live edge within this lag (s)")
-    ap.add_argument("--cases", default="1,n,stress", help="which of 1, n, stress")
+    ap.add_argument(
+        "--cases", default="browser,1,n,stress", help="which of browser, 1, n, stress, footprint (RSS; --watch s)"
+    )
+    ap.add_argument("--late", type=float, default=60.0, help="browser case: run age when the viewer opens (s)")
+    ap.add_argument("--watch", type=float, default=40.0, help="browser case: how long the viewer is sampled (s)")
     args = ap.parse_args()
 
     other = next((c for c in range(os.cpu_count() or 1) if c != args.cpu), None)
     cases = []
+    browser = "browser" in args.cases.split(",")
     for name in args.cases.split(","):
+        if name in ("browser", "footprint"):
+            continue
         if name == "1":
             cases.append(("1 viewer", 1, None))
         elif name == "n":
@@ -179,12 +329,35 @@ def main() -> None:
                 print("stress case skipped: needs stress-ng and a second CPU", file=sys.stderr)
     loop_env = {"XRF_PRIO": str(args.prio), "XRF_CPU": str(args.cpu)}
     results = []
+    seen = None
     with appliance(loop_env=loop_env) as server:
+        if "footprint" in args.cases.split(","):
+            print(f"RSS (MB) of the appliance and its rerun children, {args.build} at 1 kHz")
+            for what, app_mb, kids in footprint_case(server, args.build, args.watch):
+                kid = ", ".join(f"rerun --{k} {mb:.0f}" for k, (_, mb) in sorted(kids.items())) or "no rerun child"
+                print(f"  {what:36s} appliance {app_mb:.0f}; {kid}", flush=True)
+        if browser:
+            seen = browser_case(server, args.build, args.late, args.watch, args.edge)
+            print("browser: done", file=sys.stderr)
         for label, n, stress_cpu in cases:
             res = run_case(server, args.build, n, args.seconds, args.edge, stress_cpu)
             results.append((label, res))
             print(f"{label}: done", file=sys.stderr)
 
+    if seen is not None:
+        b = seen["behind"]
+        print(
+            f"chromium's live viewer opened {seen['run_age_s']:g} s into a {args.build} run (what a person sees: "
+            f"the viewer's newest sample, {seen['samples']} samples of its state)"
+        )
+        print(
+            f"  app started {seen['app_start_s']:.1f} s after opening; first held a sample of the run "
+            f"{seen['first_s']:.1f} s later, that sample {seen['first_age_s']:.1f} s older than the opening"
+        )
+        print("  behind live " + ", ".join(f"{t} s after start: {v:.1f} s" for t, v in b.items()))
+        print(f"  within {args.edge:g} s of live {seen['edge_s']:.1f} s after the app started")
+    if not results:
+        return
     print(
         f"live rerun lag (frame arrival - newest sample in it), {args.build} at 1 kHz, "
         f"{args.seconds:g} s per case, through the appliance's gRPC-web route"

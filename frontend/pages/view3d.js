@@ -1,7 +1,11 @@
-// 3D view page: the appliance's viser scene (xrflab.viz) in an iframe, plus live numbers,
-// reset odometry and replay of a finished run. The scene is served by viser on an internal port
-// (127.0.0.1 only); the iframe opens it through the appliance's /viser/ proxy (same origin, behind
-// the login; GET /api/viz gives the path), whose WebSocket viser's client derives from the page URL.
+// 3D view page: the appliance's viser scene (xrflab.viz), live numbers, reset odometry and replay
+// of a finished run. The scene is served by viser on an internal port (127.0.0.1 only) and opened
+// through the appliance's /viser/ proxy (same origin, behind the login; GET /api/viz gives the
+// path), in a TAB OF ITS OWN (noopener: a renderer process of its own), never in an iframe of
+// this page: a same-origin iframe shares this page's main thread, and drawing or tearing down its
+// WebGL scene with a software GPU (a lab PC without a GPU driver, headless chromium) froze the
+// dashboard for 5-8 s when leaving this page (issue 31 bug 7), as the embedded rerun viewer did
+// (issue 19). The scene's tab gets Esc-stops-the-run from frontend/rerun-tab.js (server/http/viser.py).
 "use strict";
 (function () {
   const STATE_HZ = 4;  // numbers under the view; the scene itself updates at 30 Hz inside viser
@@ -18,7 +22,11 @@
           <span id="v3d-values" class="values">–</span>
           <button id="v3d-reset" class="secondary" title="RELbot: put the robot back at the origin, heading +x">Reset odometry</button>
         </div>
-        <iframe id="v3d-frame" title="3D view" style="width:100%;height:62vh;border:1px solid #ccc;border-radius:6px;background:#fff"></iframe>
+        <div class="row">
+          <button id="v3d-open" title="The scene opens in a tab of its own, so drawing it never blocks this page">Open the 3D scene</button>
+          <a id="v3d-link" target="_blank" rel="noopener" href="/viser/">/viser/</a>
+          <span class="muted small">in a tab of its own (Esc there stops the run, as here); the numbers below follow the same scene</span>
+        </div>
         <div class="row">
           <label for="v3d-runs">Replay run</label>
           <select id="v3d-runs"><option value="">–</option></select>
@@ -33,13 +41,13 @@
   async function loadInfo(el) {
     const $ = (id) => el.querySelector("#" + id);
     info = await xrf.api("GET", "/api/viz");
+    $("v3d-open").disabled = !info.available || !info.url;
     if (!info.available || !info.url) {
       $("v3d-message").textContent = info.error || "The 3D view is not available on this appliance.";
       $("v3d-message").classList.remove("hidden");
       return;
     }
-    const src = new URL(info.url, location.href).href;
-    if ($("v3d-frame").getAttribute("src") !== src) $("v3d-frame").setAttribute("src", src);
+    $("v3d-link").setAttribute("href", new URL(info.url, location.href).href);
   }
 
   async function loadRuns(el) {
@@ -85,6 +93,9 @@
 
   function wire(el) {
     const $ = (id) => el.querySelector("#" + id);
+    // Only a click opens the scene's tab (a page switch never does); noopener: the browser gives
+    // it a process of its own (also when the link is opened with the middle button).
+    $("v3d-open").addEventListener("click", () => window.open($("v3d-link").href, "_blank", "noopener"));
     $("v3d-reset").addEventListener("click", () => xrf.api("POST", "/api/viz/reset-odometry").catch(() => {}));
     // A refusal is said on the page (not an alert, not nothing): replay and live switch the scene
     // every viewer sees, so they need the bench, which its holder now keeps after a run (server/security/lease.py).

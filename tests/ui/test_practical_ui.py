@@ -87,13 +87,20 @@ def test_esc_stops_from_inside_the_3d_view_and_the_rerun_viewer(server: Server, 
     page.click("#commands [data-cmd=start]")
     state_is(page, "RUN")
 
-    # Focus inside the 3D view's frame (viser), then Esc.
+    # Focus inside the 3D scene (viser), which opens in a tab of its own (issue 31 bug 7), then Esc:
+    # the scene's page has our tab script (server/http/viser.py), which stops over HTTP.
     page.goto(server.url + "/#view3d")
-    page.wait_for_function("(document.getElementById('v3d-frame').getAttribute('src') || '') !== ''")
-    frame = page.frame_locator("#v3d-frame")
-    frame.locator("body").click(timeout=30_000)
-    assert page.evaluate("document.activeElement.id") == "v3d-frame"
-    page.keyboard.press("Escape")
+    with page.context.expect_page() as opened:
+        page.click("#v3d-open")
+    scene = opened.value
+    scene.wait_for_function("window.xrfRerunTab !== undefined", timeout=60_000)
+    scene.locator("canvas").first.wait_for(state="attached", timeout=60_000)
+    scene.mouse.click(300, 300)
+    with server.ws() as ws:
+        scene.keyboard.press("Escape")
+        ws.wait_for(lambda m: m.get("type") == "state" and m.get("name") in ("STOPPING", "STOPPED"), 15)
+    scene.close()
+    page.bring_to_front()  # the dashboard's tab, in the background since the scene's opened
     state_is(page, "STOPPED")
 
     # Again from inside the rerun viewer, which opens in a tab of its own (no dashboard there:

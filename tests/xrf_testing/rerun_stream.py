@@ -101,3 +101,36 @@ def chunk_of(frame: bytes) -> Chunk | None:
         table.column_names,
         newest,
     )
+
+
+# ---- the web viewer's own state (what a person sees) --------------------------------------------
+# rerun's web viewer answers ``WebHandle.viewer_state()`` (``window._handle`` on its index.html) with
+# an encoded ``GetViewerStateResponse`` (rerun's viewer_control.proto, as of 0.41): recordings = 3,
+# each ``ViewerRecording{store_id = 1, timelines = 2}``, a timeline ``ViewerTimeline{timeline = 1
+# (Timeline{name = 1}), time_range = 3 (TimeRange{start = 1, end = 2})}``. The end of the `time`
+# timeline's range is the newest sample the viewer holds: in its live (following) mode the plots
+# end there, so now - that = how far behind live the person looking at it is.
+
+
+def viewer_newest_ns(state: bytes, recording_id: str) -> int | None:
+    """The newest `time` value of the recording `recording_id` in a viewer_state() answer, or None
+    while the viewer holds none of it."""
+    newest = None
+    for n, rec in fields(state):
+        if n != 3 or not isinstance(rec, bytes):
+            continue
+        store = _field(rec, 1, b"")
+        if not isinstance(store, bytes) or not store.decode(errors="replace").endswith(recording_id):
+            continue
+        for m, tl in fields(rec):
+            if m != 2 or not isinstance(tl, bytes):
+                continue
+            timeline = _field(tl, 1, b"")
+            name = _field(timeline, 1, b"") if isinstance(timeline, bytes) else b""
+            rng = _field(tl, 3)
+            if name != TIME_COLUMN.encode() or not isinstance(rng, bytes):
+                continue
+            end = _field(rng, 2)
+            if isinstance(end, int):
+                newest = end if newest is None else max(newest, end)
+    return newest

@@ -6,7 +6,7 @@ read proxy, server/http/rerun.py). They run below the appliance's priority (``RE
 end with it: by ``stop_rerun_children`` on a normal exit (atexit, and the app's shutdown), by a
 parent-death signal when it is killed (``tied.popen_tied``).
 
-- ``RerunViewer``: one per appliance, started on first use, only for the web viewer's files.
+- ``RerunViewer``: only while the web viewer's files are copied (once per rerun version).
 - ``LiveProxy``: one per run, the message proxy the run's live recording (``rerun_live.py``)
   writes to and viewers read from.
 """
@@ -26,6 +26,12 @@ import time
 from pathlib import Path
 
 RERUN_NICE = 10  # rerun's child processes run below the appliance
+LIVE_WINDOW = "256KiB"  # what a run's live proxy keeps for late viewers (LiveProxy)
+# Ours, added to the page of each viewer that opens in a tab of its own (rerun's, by
+# server/http/rerun.py; viser's 3D scene, by server/http/viser.py): the frontend's shared helpers,
+# then the tab script (Esc stops the run there too, frontend/rerun-tab.js).
+LIB_SCRIPT = "/static/lib.js"
+TAB_SCRIPT = "/static/rerun-tab.js"
 
 
 def _listening(port: int) -> bool:
@@ -103,13 +109,12 @@ class _RerunChild:
 
 
 class RerunViewer(_RerunChild):
-    """One per appliance, started on first use: ``rerun --serve-web``, only for the web viewer's
-    files (they come from the installed rerun-sdk; nothing from the internet). The appliance
-    copies each file once into its data folder and serves it under /rerun/ behind the login.
-    Port from XRF_RERUN_WEB_PORT (default 9090; a taken port falls back to a free one)."""
-
-    _instance: RerunViewer | None = None
-    _lock = threading.Lock()
+    """``rerun --serve-web``, only for the web viewer's files (they come from the installed
+    rerun-sdk; nothing from the internet): started once per rerun version by the child process
+    that copies them into the appliance's data folder (server/http/rerun.py
+    ``prepare_in_this_process``), and stopped by it as soon as the copy is made; the appliance
+    serves the copy under /rerun/ behind the login. Port from XRF_RERUN_WEB_PORT (default 9090;
+    a taken port falls back to a free one)."""
 
     def __init__(self) -> None:
         self.web_port = _free_port(int(os.environ.get("XRF_RERUN_WEB_PORT", "9090")))
@@ -130,13 +135,6 @@ class RerunViewer(_RerunChild):
             "viewer",
         )
 
-    @classmethod
-    def get(cls) -> RerunViewer:
-        with cls._lock:
-            if cls._instance is None or cls._instance.proc.poll() is not None:
-                cls._instance = cls()
-            return cls._instance
-
 
 class LiveProxy(_RerunChild):
     """The live stream of ONE run: a ``rerun --serve-grpc`` message proxy on 127.0.0.1 that the
@@ -145,7 +143,19 @@ class LiveProxy(_RerunChild):
     everything it still buffers to each new viewer: with one shared proxy a student opening the
     live view would receive earlier runs of other students. Opening the next run's proxy stops
     the previous one; the last stays up after its run ends, so its viewers keep their plots.
-    Buffer limit XRF_RERUN_MEMORY (default 256MiB: about 8 minutes of 100 Hz × 64 variables)."""
+
+    A viewer opens at the live edge (issue 31 bug 6): the proxy keeps only a short window
+    (``LIVE_WINDOW``, XRF_RERUN_MEMORY; 256 KiB is a few seconds of the RELbot example, well
+    under a second of 64 variables at 100 Hz) and replays it newest first (``--newest-first``),
+    so a late viewer's first samples are the loop's latest, not cycle 0. Measured in chromium
+    on a loaded 2-core VM, the viewer ingests a replayed window slower than real time while it
+    also draws: with 1 MiB it first held data 13 s behind live and fell to 22 s behind before it
+    caught up, so the window is as short as a late viewer needs (bench/appliance/rerun_lag.py). With 256 MiB replayed oldest first, a
+    browser opened four minutes into a run drew minutes-old samples for two minutes before it
+    reached the live edge, and the proxy grew ~5 MB a minute up to its cap (issue 30 item 4).
+    The whole run is in its log: "replay from start" opens the log's .rrd (frontend/rerun-tab.js).
+    Blueprint and store info are kept whatever the limit (rerun never drops them), and the
+    series names (static) are dropped only after every sample is."""
 
     _current: LiveProxy | None = None
     _lock = threading.Lock()
@@ -162,7 +172,8 @@ class LiveProxy(_RerunChild):
                 "--port",
                 str(self.port),
                 "--server-memory-limit",
-                os.environ.get("XRF_RERUN_MEMORY", "256MiB"),
+                os.environ.get("XRF_RERUN_MEMORY", LIVE_WINDOW),
+                "--newest-first",
             ],
             (self.port,),
             "live proxy",
@@ -194,7 +205,5 @@ class LiveProxy(_RerunChild):
 
 @atexit.register  # the appliance's normal exit (SIGTERM under systemd) ends them
 def stop_rerun_children() -> None:
-    """Stop the live proxy and the viewer's file server (also called by the app's shutdown)."""
+    """Stop the live proxy (also called by the app's shutdown)."""
     LiveProxy.stop_all()
-    if RerunViewer._instance is not None:
-        RerunViewer._instance.stop()

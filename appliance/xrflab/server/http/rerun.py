@@ -1,7 +1,8 @@
 """The rerun viewer and the live stream, behind the login, on the appliance's own origin.
 
 - ``GET /rerun/<file>``: the rerun web viewer (from the installed rerun-sdk, no CDN), copied once
-  from rerun's internal file server (``logs.rerun_servers.RerunViewer``, 127.0.0.1) into the data folder.
+  from rerun's internal file server (``logs.rerun_servers.RerunViewer``, 127.0.0.1) into the data
+  folder, by a child process that stops that server when the copy is made (``prepare_in_this_process``).
   Same origin as the dashboard, so the viewer fetches a finished run's ``.rrd`` from the API with
   the session cookie. **Offline** (issue 19): as shipped, the viewer fetches Google Fonts, sends
   analytics to tel.rerun.io, asks GitHub for the latest release and app.rerun.io for its examples,
@@ -43,6 +44,7 @@ from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
 
 from ...errors import NotFound, Unavailable
+from ...logs.rerun_servers import LIB_SCRIPT, TAB_SCRIPT
 from ..security import ownership
 from ..security.auth import Perm, requires, requires_grpc_web
 
@@ -156,10 +158,8 @@ VIEWER_CSP = (
     "connect-src 'self'; worker-src 'self' blob:; media-src 'self' blob:; frame-ancestors 'self'; "
     "form-action 'none'; base-uri 'self'"
 )
-# Ours, served from the dashboard's static files (same origin: the CSP's script-src 'self' allows it).
-TAB_SCRIPT = "/static/rerun-tab.js"
-# ...after the frontend's shared helpers (escaping, the CSRF header, requests) it uses.
-LIB_SCRIPT = "/static/lib.js"
+# Ours (logs.rerun_servers TAB_SCRIPT after LIB_SCRIPT), served from the dashboard's static files
+# (same origin: the CSP's script-src 'self' allows it).
 # Part of the prepared copy's folder name: a change to what prepare_viewer does to rerun's files
 # (here: LIB_SCRIPT and TAB_SCRIPT added to index.html) makes appliances prepare their copy again.
 PREPARED_AS = "offline-tab-lib"
@@ -230,33 +230,67 @@ def prepare_viewer(cache: Path, fetch: Any) -> None:
     os.replace(tmp, cache)
 
 
-async def _viewer_cache(request: Request) -> Path:
+def prepare_in_this_process(cache: Path) -> None:
+    """Start rerun's file server, prepare the copy from it, stop it. Run in a child process of
+    the appliance (``python -c``, ``_viewer_cache``), never in the appliance itself: the 43 MB
+    wasm read, rewritten and gzipped left the appliance ~90 MB larger for good (the allocator
+    keeps what a worker thread touched), and the ``rerun --serve-web`` child (78 MB) ran until
+    the appliance stopped, although nothing uses it once the copy is on disk (issue 30 item 4)."""
     import httpx
-    import rerun
 
     from ...logs.rerun_servers import RerunViewer
 
-    settings = request.app.state.settings
-    cache = Path(settings.data_dir) / "rerun-viewer" / f"{rerun.__version__}-{PREPARED_AS}"
-    if (cache / "ready").is_file():
-        return cache
-    async with _prepare_lock:
-        if (cache / "ready").is_file():
-            return cache
-        try:
-            viewer = await asyncio.to_thread(RerunViewer.get)
-        except OSError as exc:
-            raise Unavailable(f"the rerun viewer is not available: {exc}") from None
+    viewer = RerunViewer()
+    try:
 
         def fetch(name: str) -> bytes:
             r = httpx.get(f"http://127.0.0.1:{viewer.web_port}/{name}", timeout=120)
             r.raise_for_status()
             return r.content
 
+        prepare_viewer(cache, fetch)
+    finally:
+        viewer.stop()
+
+
+PREPARE_TIMEOUT_S = 300  # a Pi 4 gzips the 43 MB wasm in well under a minute
+
+
+async def _viewer_cache(request: Request) -> Path:
+    import importlib.metadata
+    import sys
+
+    settings = request.app.state.settings
+    # The version from the package's metadata: importing rerun only for it costs the appliance
+    # tens of MB when no run has imported it yet.
+    version = importlib.metadata.version("rerun-sdk")
+    cache = Path(settings.data_dir) / "rerun-viewer" / f"{version}-{PREPARED_AS}"
+    if (cache / "ready").is_file():
+        return cache
+    async with _prepare_lock:
+        if (cache / "ready").is_file():
+            return cache
+        code = "import sys; from xrflab.server.http.rerun import prepare_in_this_process as p; p(__import__('pathlib').Path(sys.argv[1]))"
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable,
+            "-c",
+            code,
+            str(cache),
+            stdin=asyncio.subprocess.DEVNULL,
+            stdout=asyncio.subprocess.DEVNULL,
+            stderr=asyncio.subprocess.PIPE,
+        )
         try:
-            await asyncio.to_thread(prepare_viewer, cache, fetch)
-        except (OSError, httpx.HTTPError) as exc:
-            raise Unavailable(f"the rerun viewer could not be prepared: {exc}") from None
+            _, err = await asyncio.wait_for(proc.communicate(), PREPARE_TIMEOUT_S)
+        except (TimeoutError, asyncio.CancelledError) as exc:
+            proc.kill()  # its rerun child gets SIGTERM with it (tied.popen_tied)
+            await proc.wait()
+            if isinstance(exc, TimeoutError):
+                raise Unavailable(f"the rerun viewer was not prepared within {PREPARE_TIMEOUT_S} s") from None
+            raise
+        if proc.returncode != 0 or not (cache / "ready").is_file():
+            last = (err or b"").decode(errors="replace").strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
+            raise Unavailable(f"the rerun viewer could not be prepared: {last[0]}")
     return cache
 
 

@@ -3,7 +3,8 @@
 viser (xrflab.viz.scene) listens on 127.0.0.1 only (an internal port); browsers reach it through
 the appliance, with the same session and permission (``Perm.WATCH``) as the rest of the dashboard:
 
-- ``GET /viser/<path>``: viser's client files, streamed from its internal HTTP server (httpx).
+- ``GET /viser/<path>``: viser's client files, streamed from its internal HTTP server (httpx);
+  its index.html with our tab script added (``_index``: the scene opens in a tab of its own).
 - WebSocket ``/viser`` (and ``/viser/<path>``): viser's client opens its WebSocket at the page's
   own URL without the query and the trailing slash (``getDefaultServerFromUrl`` in viser's
   ``client/src/App.tsx``), so a page at ``/viser/`` connects to ``ws(s)://<host>/viser``. The
@@ -26,6 +27,7 @@ from starlette.background import BackgroundTask
 from starlette.websockets import WebSocketDisconnect
 
 from ...errors import Unavailable, XrfError
+from ...logs.rerun_servers import LIB_SCRIPT, TAB_SCRIPT
 from ..security.auth import Perm, may, requires
 
 router = APIRouter(include_in_schema=False)
@@ -34,6 +36,9 @@ router = APIRouter(include_in_schema=False)
 _PASS_HEADERS = ("content-type", "content-length", "content-encoding", "cache-control", "last-modified", "etag")
 SESSION_RECHECK_S = 5.0
 MAX_MESSAGE = 50 * 1024 * 1024  # viser's own limit
+# Added to viser's page: the frontend's shared helpers, then the viewer tabs' Esc-stops script
+# (the same ones rerun's page gets).
+TAB_SCRIPTS = (LIB_SCRIPT, TAB_SCRIPT)
 
 
 def _viser_port(app: Any) -> int | None:
@@ -56,6 +61,8 @@ async def viser_http(path: str, request: Request) -> Response:
     if port is None:
         raise Unavailable("the 3D view is not running")
     url = f"http://127.0.0.1:{port}/{path}"
+    if path in ("", "index.html"):
+        return await _index(url, request)
     headers = {"accept-encoding": request.headers.get("accept-encoding", "identity")}
     client = httpx.AsyncClient(timeout=httpx.Timeout(30.0))
     try:
@@ -76,6 +83,23 @@ async def viser_http(path: str, request: Request) -> Response:
     return StreamingResponse(
         upstream.aiter_raw(), status_code=upstream.status_code, headers=out, background=BackgroundTask(close)
     )
+
+
+async def _index(url: str, request: Request) -> Response:
+    """viser's page with ours added at the end of its head (``TAB_SCRIPTS``): the scene opens in a
+    tab of its own (frontend/pages/view3d.js, issue 31 bug 7), where the dashboard's key handler
+    is not, so that script keeps "Esc stops the run from anywhere" (issue 19) as in rerun's tab."""
+    import httpx
+
+    async with httpx.AsyncClient(timeout=httpx.Timeout(30.0)) as client:
+        try:
+            r = await client.get(url, params=request.query_params, headers={"accept-encoding": "identity"})
+        except httpx.HTTPError as exc:
+            raise XrfError(f"the 3D view does not answer: {exc}", 502) from None  # bad gateway
+    text = r.text
+    tags = "".join(f'<script src="{src}"></script>\n' for src in TAB_SCRIPTS)
+    text = text.replace("</head>", tags + "</head>", 1) if "</head>" in text else tags + text
+    return Response(text, status_code=r.status_code, media_type="text/html", headers={"cache-control": "no-cache"})
 
 
 @router.websocket("/viser", dependencies=[requires(Perm.WATCH)])
