@@ -124,6 +124,13 @@ public:
         report_.stage_set[idx] = true;
     }
     void notifyHost() { pending_doorbell_ = true; }
+    // A cycle boundary, before the controller computes: takes the host's pending parameter set,
+    // if any (xrf/params.h). Idle, this is one acquire load and a compare.
+    void takeParams()
+    {
+        if (__atomic_load_n(&shm_->params.req_seq, __ATOMIC_ACQUIRE) != params_seen_)
+            applyParams();
+    }
     // Publishes status and histograms for the cycle that just ended; rings the doorbell.
     void endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, bool missed,
                   int64_t idle_ns);
@@ -145,6 +152,7 @@ private:
     static void *helperMain(void *self);
     void helperDrain(bool final);
     void recordTiming(int64_t jitter_ns, int64_t cycle_ns, bool missed);
+    void applyParams();
 
     Options options_;
     bool options_loaded_ = false;
@@ -164,6 +172,7 @@ private:
     CycleReport report_;
     uint64_t cycles_ = 0, missed_ = 0, idle_total_ = 0;
     uint32_t doorbell_period_ = 1;
+    uint32_t params_seen_ = 0; // req_seq of the last parameter set taken (xrf/params.h)
     bool pending_doorbell_ = false;
     bool host_lost_ = false;
     uint64_t host_lost_count_ = 0;
