@@ -162,7 +162,7 @@ class ParamsService(RunObserver):
             raise Unavailable("no run is active; start one first")
         i = rp.by_name.get(name)
         if i is None:
-            raise NotFound(f"the controller has no parameter {name!r}{self._known(rp)}")
+            raise NotFound(f"the controller has no parameter '{name}'{self._known(rp)}")
         return rp.describe()[i]
 
     @staticmethod
@@ -185,7 +185,7 @@ class ParamsService(RunObserver):
         for name, span in (ranges or {}).items():
             i = rp.by_name.get(name)
             if i is None:
-                raise Invalid(f"unknown parameter {name!r}{self._known(rp)}")
+                raise Invalid(f"unknown parameter '{name}'{self._known(rp)}")
             if rp.table.params[i].has_range:
                 raise Invalid(
                     f"parameter {name}: its range is the controller's ({rp.ranges[i][0]:g} .. {rp.ranges[i][1]:g})"
@@ -200,7 +200,7 @@ class ParamsService(RunObserver):
         for name, value in values.items():
             i = rp.by_name.get(name)
             if i is None:
-                raise Invalid(f"unknown parameter {name!r}{self._known(rp)}")
+                raise Invalid(f"unknown parameter '{name}'{self._known(rp)}")
             v = _number(name, value)
             lo, hi = new_ranges.get(i, rp.ranges[i])
             if not lo <= v <= hi:
