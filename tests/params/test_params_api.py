@@ -109,3 +109,51 @@ def test_tune_20sim_template_while_it_runs(server: Server) -> None:
     wait_for(lambda: server.http.get("/api/params").json()["run_id"] is None, 10, "the run's table dropped")
     r = server.http.post("/api/params", json={"values": {KP: 1.0}})
     assert r.status_code == 503 and "no loop is running" in r.json()["detail"], r.text
+
+
+def test_declared_tunable_of_the_base_template(server: Server) -> None:
+    """xrf::Tunable (xrf/tunable.hpp) in the base template: its declared range is the one
+    enforced, and the value reaches the controller (Xeno2Ros echoes the setpoint times the gain)."""
+    server.stop_run()
+    with server.ws() as ws:
+        ws.send({"type": "subscribe", "topics": ["state", "telemetry"]})
+        assert ws.wait_type("ack")["topics"]
+        server.start_run("template-base")
+        listing = server.http.get("/api/params").json()
+        assert listing["origin"] == "none"
+        assert listing["params"] == [
+            {
+                "name": "echo.gain",
+                "unit": "-",
+                "default": 1.0,
+                "min": -10.0,
+                "max": 10.0,
+                "has_range": True,
+                "value": 1.0,
+                "source": "declared",
+            }
+        ]
+        assert ws.command("initialise")["accepted"] and ws.wait_state("INITIALISED", 10)
+        assert ws.command("start")["accepted"] and ws.wait_state("RUN", 10)
+        ws.send({"type": "setpoint", "fields": {"steer_left": 0.5}})
+        ws.wait_for(lambda m: m.get("type") == "telemetry" and m["xeno2ros"].get("pos_left") == 0.5, 10)
+        r = server.http.post("/api/params", json={"values": {"echo.gain": 10.5}})
+        assert r.status_code == 422 and "out of range -10 .. 10" in r.json()["detail"], r.text
+        r = server.http.post("/api/params", json={"values": {"echo.gain": 3.0}, "ranges": {"echo.gain": [-20, 20]}})
+        assert r.status_code == 422 and "its range is the controller's" in r.json()["detail"], r.text
+        r = server.http.post("/api/params", json={"values": {"echo.gain": -4.0}})
+        assert r.status_code == 200, r.text
+        cycle = r.json()["cycle"]
+        late = ws.wait_for(lambda m: m.get("type") == "telemetry" and m["cycle"] > cycle, 10)
+        assert late["xeno2ros"]["pos_left"] == -2.0
+    server.stop_run()
+
+
+def test_a_controller_without_parameters_says_why(server: Server) -> None:
+    server.stop_run()
+    server.start_run("relbot")
+    listing = server.http.get("/api/params").json()
+    assert listing["params"] == [] and "declares no tunable parameters" in listing["note"]
+    r = server.http.post("/api/params", json={"values": {"kp": 1.0}})
+    assert r.status_code == 422 and "declares no tunable parameters" in r.json()["detail"], r.text
+    server.stop_run()
