@@ -101,7 +101,6 @@ class ParamsService(RunObserver):
         self.hub = hub
         self.folder = settings.data_dir / "params"
         self.current: RunParams | None = None
-        self.last_applied_ms: float | None = None
 
     # ---- run observer ----------------------------------------------------------------------
 
@@ -231,9 +230,10 @@ class ParamsService(RunObserver):
                 except BlockingIOError:
                     raise Conflict("the loop's parameter block is held; try again") from None
                 answer = chparams.wait_answer(ch.shm, seq, ANSWER_TIMEOUT_S)
-                self.last_applied_ms = (time.monotonic() - t0) * 1000.0
+                confirm_ms[0] = (time.monotonic() - t0) * 1000.0
                 return answer
 
+        confirm_ms = [0.0]
         answer = await asyncio.to_thread(write_and_wait)
         if answer is None:
             raise Unavailable(f"the loop did not take the set within {ANSWER_TIMEOUT_S:g} s (is it cycling?)")
@@ -247,7 +247,12 @@ class ParamsService(RunObserver):
         rp.changes += len(changes)
         await asyncio.to_thread(self._log, rp, answer.cycle, who, changes)
         self.hub.publish(self._message(rp, "applied", cycle=answer.cycle, who=who, changes=changes))
-        return {"cycle": answer.cycle, "changes": [c.model_dump() for c in changes], "params": rp.describe()}
+        return {
+            "cycle": answer.cycle,
+            "confirm_ms": round(confirm_ms[0], 3),  # the set written -> the loop's answer read
+            "changes": [c.model_dump() for c in changes],
+            "params": rp.describe(),
+        }
 
     # ---- the change log ---------------------------------------------------------------------
 
