@@ -20,11 +20,13 @@
       <div class="row">
         <button class="params-apply">Apply</button>
         <button class="params-revert secondary">Revert to defaults</button>
+        <button class="params-save secondary" title="a new version of the project holding these values (xrf_params.json); its next run starts with them">Save as the project's parameters</button>
         <span class="params-status small" role="status"></span>
       </div>`;
     if (where) container.insertBefore(section, where.nextSibling); else container.append(section);
     section.querySelector(".params-apply").addEventListener("click", () => apply(section, false));
     section.querySelector(".params-revert").addEventListener("click", () => apply(section, true));
+    section.querySelector(".params-save").addEventListener("click", save);
     P.panels.push(section);
     render(section);
     return section;
@@ -57,12 +59,37 @@
     const live = !!(m && m.run_id && params.length);
     const may = xrf.mayDrive ? xrf.mayDrive() : false;
     section.querySelectorAll("button, input").forEach((b) => { b.disabled = !live || !may; });
+    section.querySelector(".params-save").disabled = !live || !may || projectOf() === null;
     const st = section.querySelector(".params-status");
     st.textContent = P.status;
     st.className = "params-status small" + (P.bad ? " bad" : "");
   }
 
   function renderAll() { P.panels.forEach(render); }
+
+  // The uploaded project the current run was built from (the run's build is named
+  // project-<pid>-build-<bid>), else null: a bundled example has no versions to save into.
+  function projectOf() {
+    const b = xrf.run && xrf.run.run && xrf.run.run.build;
+    const m = /^project-(\d+)-build-\d+$/.exec(b || "");
+    return m ? Number(m[1]) : null;
+  }
+
+  // Through the editor's API: a new version (shown in the editor and the version diff), no build.
+  async function save() {
+    const pid = projectOf();
+    try {
+      const f = await xrf.api("GET", "/api/params-file");
+      const res = await fetch(`/api/projects/${pid}/files/${f.path}?build=false`, {
+        method: "PUT", body: f.content, headers: { ...xrf.csrfHeaders(), "Content-Type": "text/plain" },
+      });
+      const data = await res.json().catch(() => ({}));
+      if (!res.ok) throw new Error(data.detail || res.statusText);
+      P.status = `saved as version ${data.version.n} of the project: its next run starts with these values`;
+      P.bad = false;
+    } catch (e) { P.status = "not saved: " + e.message; P.bad = true; }
+    renderAll();
+  }
 
   async function apply(section, revert) {
     const params = (P.msg && P.msg.params) || [];

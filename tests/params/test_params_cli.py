@@ -95,4 +95,35 @@ def test_xrf_param_on_a_20sim_export(server: Server) -> None:
         listing = json.loads(xrf(server, token, "--json", "list").stdout)
         values = {p["name"]: p["value"] for p in listing["params"]}
         assert values["PID_Left\\Kp"] == 2.5 and values["PID_Right\\Kd"] == 0.1 and values["PID_Left\\Ki"] == 0.0
+
+        # Keep what worked: every gain 0 (the PIDs then steer nothing), saved as the project's
+        # next version (the panel's button does these two requests), and the next run of the
+        # same build starts with it, through 20-sim's Initialize() which writes the defaults.
+        zero = [f"{n}=0" for n in NAMES]
+        assert xrf(server, token, "set", *zero).returncode == 0
+        f = server.http.get("/api/params-file").json()
+        assert f["path"] == "xrf_params.json" and json.loads(f["content"])["parameters"]["PID_Left\\Kp"] == 0.0
+        r = server.http.put(f"/api/projects/{pid}/files/{f['path']}", params={"build": "false"}, content=f["content"])
+        assert r.status_code == 200 and r.json()["new_version"], r.text
+        shown = server.http.get(f"/api/projects/{pid}/files/xrf_params.json").json()  # in the editor
+        assert shown["content"] == f["content"] and shown["version"] == r.json()["version"]["n"]
+        server.stop_run()
+
+        ws.messages.clear()
+        ws.send({"type": "subscribe", "topics": ["state", "telemetry", "params"]})
+        ws.wait_type("ack")
+        r = server.http.post(f"/api/projects/{pid}/builds/{bid}/run", json={}, timeout=60)
+        assert r.status_code == 201, r.text
+        run2 = r.json()["run"]
+        saved = ws.wait_for(lambda m: m.get("type") == "params" and m.get("who") == "saved parameters", 10)
+        assert saved["run_id"] == run2["id"] and {c["name"] for c in saved["changes"]} == set(NAMES)
+        ws.wait_state("IDLE", timeout=20)
+        assert ws.command("initialise")["accepted"]
+        ws.wait_state("INITIALISED", 10)
+        assert ws.command("start")["accepted"]
+        ws.wait_state("RUN", 10)
+        ws.send({"type": "setpoint", "fields": {"steer_left": 5.0, "steer_right": 5.0}})
+        after = [ws.wait_for(lambda m: m.get("type") == "telemetry" and m["state"] == 4, 10) for _ in range(30)]
+        assert all(m["pwm"][0] == 0 and m["pwm"][1] == 0 for m in after), [m["pwm"] for m in after]
+        assert server.http.get("/api/params/PID_Left\\Kp").json()["value"] == 0.0
     server.stop_run()

@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import math
 import os
+import stat
 import threading
 import time
 from dataclasses import dataclass, field
@@ -26,7 +28,7 @@ from starlette.requests import HTTPConnection
 
 from ..channels import ChannelsCorrupt
 from ..channels import params as chparams
-from ..errors import Conflict, Invalid, NotFound, Unavailable
+from ..errors import Conflict, Invalid, NotFound, Unavailable, XrfError
 from ..server.runs.lifecycle import RunObserver
 from ..server.ws.messages import ParamChange, ParamsMessage
 
@@ -37,12 +39,19 @@ if TYPE_CHECKING:
     from ..server.settings import Settings
     from ..server.ws.hub import Hub
 
+log = logging.getLogger("xrflab.params")
+
 # How long a set waits for the loop's confirmation: a loop takes it at its next cycle (1 ms at
 # 1 kHz); a loop that does not in this time is not cycling (stopped in a debugger, starved).
 ANSWER_TIMEOUT_S = 1.0
 # A parameter without a declared range gets one around its default (a user may widen it).
 PROPOSED_SPAN = 10.0
-CHANGES_MAX = 100_000  # changes one run keeps in its log (a script setting at 1 kHz stops there)
+CHANGES_MAX = 100_000
+# "Save as the project's parameters" (docs/students/tuning.md): a small file beside the project,
+# saved as a new version through the editor's API; a run of the project starts with its values.
+SAVED_FILE = "xrf_params.json"
+SAVED_MAX_BYTES = 64 * 1024
+SAVED_BY = "saved parameters"  # changes one run keeps in its log (a script setting at 1 kHz stops there)
 
 NO_PARAMS_NOTE = {
     "none": "this controller declares no tunable parameters (xrf/tunable.hpp; docs/students/tuning.md)",
@@ -101,6 +110,7 @@ class ParamsService(RunObserver):
         self.hub = hub
         self.folder = settings.data_dir / "params"
         self.current: RunParams | None = None
+        self._tasks: set[asyncio.Task[None]] = set()
 
     # ---- run observer ----------------------------------------------------------------------
 
@@ -125,6 +135,73 @@ class ParamsService(RunObserver):
             by_name={p.name: p.index for p in table.params},
         )
         self.hub.publish(self._message(self.current, "table"))
+        self._apply_saved(run, self.current)
+
+    # ---- saved parameters ----------------------------------------------------------------------
+
+    def saved_values(self, folder: Path) -> dict[str, Any]:
+        """The values of a project's saved-parameters file ({} when it has none). Bounded read,
+        no link followed: the project folder holds what its owner uploaded."""
+        try:
+            fd = os.open(folder / SAVED_FILE, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK)
+        except OSError:
+            return {}
+        with open(fd, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                return {}
+            data = f.read(SAVED_MAX_BYTES + 1)
+        if len(data) > SAVED_MAX_BYTES:
+            log.warning("%s: over %d bytes; not applied", SAVED_FILE, SAVED_MAX_BYTES)
+            return {}
+        try:
+            doc = json.loads(data)
+        except ValueError as exc:
+            log.warning("%s: not JSON (%s); not applied", SAVED_FILE, exc)
+            return {}
+        values = doc.get("parameters") if isinstance(doc, dict) else None
+        return values if isinstance(values, dict) else {}
+
+    def _apply_saved(self, run: Run, rp: RunParams) -> None:
+        """A run of a project with saved parameters starts with them: written now, before any
+        command, so the loop takes them in IDLE, before INITIALISING (and, for 20-sim, again after
+        its Initialize()). Names or values the controller no longer takes are left out, logged."""
+        ch = run.channels
+        saved = self.saved_values(Path(run.build.path)) if ch is not None and rp.table.params else {}
+        entries: list[tuple[int, float]] = []
+        for name, value in saved.items():
+            try:
+                one, _ = self._checked(rp, {name: value}, {})
+            except XrfError as exc:
+                log.warning("%s: %s; left out", SAVED_FILE, exc)
+                continue
+            entries += one
+        if not entries or ch is None:
+            return
+        with rp.lock:
+            seq = chparams.send_set(ch.shm, entries[: chparams.SET_MAX])
+
+        async def confirm() -> None:
+            answer = await asyncio.to_thread(chparams.wait_answer, ch.shm, seq, ANSWER_TIMEOUT_S * 5)
+            if answer is None or not answer.applied:
+                log.warning("run %s: the loop did not take the saved parameters", rp.run_id)
+                return
+            await self._applied(rp, entries, answer.cycle, SAVED_BY)
+
+        task = asyncio.get_running_loop().create_task(confirm(), name="params-saved")
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _applied(
+        self, rp: RunParams, entries: list[tuple[int, float]], cycle: int, who: str
+    ) -> list[ParamChange]:
+        changes = []
+        for i, v in entries:
+            changes.append(ParamChange(name=rp.table.params[i].name, old=rp.values[i], new=v))
+            rp.values[i] = v
+        rp.changes += len(changes)
+        await asyncio.to_thread(self._log, rp, cycle, who, changes)
+        self.hub.publish(self._message(rp, "applied", cycle=cycle, who=who, changes=changes))
+        return changes
 
     async def on_ended(self, row: RunRow, run: Run | None) -> None:
         if self.current is not None and self.current.run_id == row.id:
@@ -147,6 +224,20 @@ class ParamsService(RunObserver):
             note=note,
             **extra,
         )
+
+    def saved_file(self) -> dict[str, Any]:
+        """The current values as the saved-parameters file's text (for "save as the project's
+        parameters": the client saves it as the project's next version through the editor)."""
+        rp = self.current
+        if rp is None:
+            raise Unavailable("no run is active; start one first")
+        if not rp.table.params:
+            raise Conflict(NO_PARAMS_NOTE[rp.table.origin])
+        doc = {
+            "about": "tunable parameters a run of this project starts with (docs/students/tuning.md)",
+            "parameters": {p.name: rp.values[p.index] for p in rp.table.params},
+        }
+        return {"path": SAVED_FILE, "content": json.dumps(doc, indent=2) + "\n"}
 
     def snapshot(self) -> list[ParamsMessage]:
         """For a browser that connects: the current table (the hub's snapshot source)."""
@@ -240,13 +331,7 @@ class ParamsService(RunObserver):
         if not answer.applied:
             raise Conflict("the loop refused the set (it does not know one of the parameters); nothing applied")
         rp.ranges = [new_ranges.get(i, r) for i, r in enumerate(rp.ranges)]
-        changes = []
-        for i, v in entries:
-            changes.append(ParamChange(name=rp.table.params[i].name, old=rp.values[i], new=v))
-            rp.values[i] = v
-        rp.changes += len(changes)
-        await asyncio.to_thread(self._log, rp, answer.cycle, who, changes)
-        self.hub.publish(self._message(rp, "applied", cycle=answer.cycle, who=who, changes=changes))
+        changes = await self._applied(rp, entries, answer.cycle, who)
         return {
             "cycle": answer.cycle,
             "confirm_ms": round(confirm_ms[0], 3),  # the set written -> the loop's answer read

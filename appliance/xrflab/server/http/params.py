@@ -6,6 +6,9 @@
 - ``POST /api/params``: ``{"values": {name: number, ...}, "ranges": {name: [min, max]}}`` applied
   as one set at one cycle boundary; the answer names that cycle. The bench holder only
   (``Perm.DRIVE``: educators always); a refusal applies nothing.
+- ``GET /api/params-file``: the current values as the project's saved-parameters file
+  (``xrf_params.json``); saved as a version through the editor's API, a run of the project starts
+  with them.
 - ``GET /api/logs/runs/{id}/param-changes?fmt=json|csv``: the run's change table (cycle, time,
   name, old, new, who), beside its log files.
 """
@@ -40,6 +43,13 @@ class ParamSet(BaseModel):
 @router.get("/api/params", dependencies=[requires(Perm.WATCH)])
 async def list_params(svc: ParamsService = Depends(params_of)) -> dict[str, Any]:
     return svc.listing()
+
+
+@router.get("/api/params-file", dependencies=[requires(Perm.WATCH)])
+async def params_file(svc: ParamsService = Depends(params_of)) -> dict[str, Any]:
+    """The current values as the project's saved-parameters file (path and text), to save as the
+    project's next version with PUT /api/projects/{pid}/files/{path}?build=false."""
+    return svc.saved_file()
 
 
 @router.get("/api/params/{name:path}", dependencies=[requires(Perm.WATCH)])
