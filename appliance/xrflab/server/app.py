@@ -89,6 +89,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # Registers itself last: one bridge per run, started and stopped with it.
         ros = RosBridgeSupervisor(settings, supervisor, hub, security)
         hub.add_snapshot(ros.snapshot)
+        ros.params = params  # `ros2 param set` on the bridge: the same sets, checks and log
         await ros.open()
         app.state.ros = ros
         # The lab room (issue 21): one more listener of the hub once this bench is enrolled (it
