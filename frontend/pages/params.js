@@ -123,8 +123,41 @@
     renderAll();
   }
 
+  // Markers on the Bench page's live plots (xrf.plots: uPlot instances made per run by app.js):
+  // a dashed line at each applied set, at its cycle's time on the plots' axis (seconds since the
+  // loop's first deadline = cycle / frequency), so the response before and after is visible.
+  P.markers = [];
+  P.markersRun = null;
+  function drawMarkers(u) {
+    if (!P.markers.length) return;
+    const ctx = u.ctx, { top, height } = u.bbox;
+    ctx.save();
+    ctx.strokeStyle = "#e36209";
+    ctx.lineWidth = 1.5 * devicePixelRatio;
+    ctx.setLineDash([4 * devicePixelRatio, 3 * devicePixelRatio]);
+    for (const mk of P.markers) {
+      const x = u.valToPos(mk.t, "x", true);
+      if (!(x >= u.bbox.left && x <= u.bbox.left + u.bbox.width)) continue;
+      ctx.beginPath(); ctx.moveTo(x, top); ctx.lineTo(x, top + height); ctx.stroke();
+    }
+    ctx.restore();
+  }
+  function hookPlots() {
+    for (const p of Object.values(xrf.plots || {})) {
+      const u = p && p.plot;
+      if (!u || !u.hooks || u._paramsMarkers) continue;
+      u.hooks.draw = (u.hooks.draw || []).concat(drawMarkers);
+      u._paramsMarkers = true;
+    }
+  }
+  xrf.paramMarkers = () => P.markers.slice();  // for tests and other pages (the scope)
+
   xrf.handlers.params = (m) => {
     P.msg = m;
+    if (m.run_id !== P.markersRun) { P.markers = []; P.markersRun = m.run_id; }
+    const freq = xrf.run && xrf.run.run && xrf.run.run.cycle_freq;
+    if (m.event === "applied" && freq) P.markers.push({ t: m.cycle / freq, cycle: m.cycle, changes: m.changes });
+    hookPlots();
     if (m.event === "applied" && m.changes) {
       P.status = `applied at cycle ${m.cycle} by ${m.who}: ` + m.changes.map((c) => `${c.name} ${fmt(c.old)} → ${fmt(c.new)}`).join(", ");
       P.bad = false;

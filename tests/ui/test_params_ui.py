@@ -68,6 +68,11 @@ def test_tune_the_pid_from_the_panel(server: Server, browser) -> None:
         assert all(0 < abs(s["pwm"][0]) <= 205 for s in after), [s["pwm"][0] for s in after]
         assert _speed(after) < 0.8 * _speed(before), (_speed(before), _speed(after))
 
+        # A marker on the live plots at the confirmed cycle's time.
+        markers = page.evaluate("xrf.paramMarkers()")
+        assert [mk["cycle"] for mk in markers] == [cycle], markers
+        assert abs(markers[0]["t"] - cycle / run["cycle_freq"]) < 1e-9
+
         csv = server.http.get(f"/api/logs/runs/{run['id']}/param-changes", params={"fmt": "csv"}).text
         assert f"{run['id']},{cycle}," in csv and "PID\\limit,1.0,0.1,admin" in csv
 
