@@ -102,7 +102,7 @@ def _number(name: str, value: Any) -> float:
 
 
 class ParamsService(RunObserver):
-    name = "params"
+    name = "live tuning"
 
     def __init__(self, settings: Settings, supervisor: Supervisor, hub: Hub) -> None:
         self.settings = settings
