@@ -76,11 +76,18 @@ def test_tune_the_pid_from_the_panel(server: Server, browser) -> None:
         csv = server.http.get(f"/api/logs/runs/{run['id']}/param-changes", params={"fmt": "csv"}).text
         assert f"{run['id']},{cycle}," in csv and "PID\\limit,1.0,0.1,admin" in csv
 
+        # Revert: every parameter back to its default, as one set.
+        panel.locator(".params-revert").click()
+        page.wait_for_function(
+            "document.querySelector('#page-bench .params-status').textContent.includes('PID\\\\limit 0.1 → 1')"
+        )
+        assert row.locator(".params-value").inner_text() == "1"
+
         # The Watch page shows the same panel and values.
         page.goto(server.url + "/#watch")
         watch_row = page.locator(".watch-page .params-panel tr", has_text=LIMIT)
         watch_row.wait_for()
-        assert watch_row.locator(".params-value").inner_text() == "0.1"
+        assert watch_row.locator(".params-value").inner_text() == "1"
         assert not errors, errors
         page.close()
     server.stop_run()
