@@ -58,6 +58,8 @@ def rt_core_dir() -> Path:
     return Path(__file__).resolve().parents[2] / "rt_core"
 
 
+# params.h/params.c: the parameter block (live tuning); first, because channels.h's struct xrf_shm
+# holds one.
 # logformat.c: the log file's segment header, which the host log writer writes and the reader
 # reads with the loop's own definition (logformat.h comes after channels.h: it names
 # struct xrf_log_meta).
@@ -66,8 +68,8 @@ def rt_core_dir() -> Path:
 # plants.c: the plant table, whose rows are in the plant files (PLANT_SOURCES, found by name so a
 # new plant needs no edit here). The plant code is pure arithmetic: nothing of it runs in Python
 # but the table's names and sizes.
-HEADERS = ("channels.h", "logformat.h", "watch.h", "plants.h")
-SOURCES = ("channels.c", "logformat.c", "watch.c", "ico.c", "spidev.c", "plants.c")
+HEADERS = ("params.h", "channels.h", "logformat.h", "watch.h", "plants.h")
+SOURCES = ("params.c", "channels.c", "logformat.c", "watch.c", "ico.c", "spidev.c", "plants.c")
 PLANT_SOURCES = "plant_*.c"
 
 

@@ -229,7 +229,9 @@ def ensure_rt_core(log: Log = print, source_root: Path | None = None) -> Path:
     root = Path(source_root) if source_root else REPO_ROOT
     rt_core = root / "rt_core"
     msgdef = root / "appliance" / "xrflab" / "msgdef.py"
-    for p in (rt_core / "CMakeLists.txt", msgdef):
+    # Installed beside msgdef.py: the 20-sim parameter table generator (live tuning).
+    twentysim_params = root / "appliance" / "xrflab" / "twentysim_params.py"
+    for p in (rt_core / "CMakeLists.txt", msgdef, twentysim_params):
         if not p.exists():
             raise BuildError(f"{p}: not found (cannot build rt_core)")
     # The installed libevl is part of what gets built (the evl backend exists only with it):
@@ -238,7 +240,7 @@ def ensure_rt_core(log: Log = print, source_root: Path | None = None) -> Path:
     evl_prefix = Path(os.environ.get("XRF_EVL_PREFIX") or "/usr/evl")
     evl = evl_prefix / "lib" / "libevl.so"
     evl_tag = f"evl:{evl_prefix}:{evl.stat().st_mtime_ns}" if evl.exists() else "evl:none"
-    digest = hashlib.sha256((_content_hash([rt_core, msgdef]) + evl_tag).encode()).hexdigest()[:16]
+    digest = hashlib.sha256((_content_hash([rt_core, msgdef, twentysim_params]) + evl_tag).encode()).hexdigest()[:16]
     cache = _cache_root() / "rt_core"
     prefix = cache / digest
     done = prefix / ".xrf-complete"

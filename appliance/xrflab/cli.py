@@ -62,6 +62,7 @@ EXTERNAL_SUBCOMMANDS: dict[str, str] = {
     "upload": "xrflab.projects_cli",
     "new": "xrflab.projects.cli_new",
     "room": "xrflab.room.cli",
+    "param": "xrflab.params.cli",
     "run-disk-helper": "xrflab.server.runs.disk_helper",
 }
 

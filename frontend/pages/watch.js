@@ -322,6 +322,7 @@
       </section>`;
     q("watch-freeze").addEventListener("click", () => { setFrozen(!W.frozen); if (!W.frozen) { W.armed = null; setFrozen(false); } });
     q("watch-arm").addEventListener("click", arm);
+    if (xrf.paramsPanel) xrf.paramsPanel(root);  // the Parameters panel beside the scope (pages/params.js)
     q("watch-window").addEventListener("change", () => { W.dirty = true; renderPlot(true); });
     setSchema(xrf.schema || {});
     buildTable(); buildTriggerSelect(); buildPlot();

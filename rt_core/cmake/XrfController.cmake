@@ -123,6 +123,8 @@ function(xrf_add_controller target)
   set(left_out "")
   set(ts_json "null")
   set(defs "")
+  set(generated_sources "")
+  set(link_opts "")
 
   # ---- 20-sim --------------------------------------------------------------------------
   if(XAC_TWENTY_SIM)
@@ -187,19 +189,41 @@ function(xrf_add_controller target)
     endif()
     list(APPEND defs "TIME_STEP_SIZE=${step}" "XRF_20SIM_SUBMODEL=${submodel}"
                      "XRF_20SIM_HEADER=\"${submodel}.h\"")
+    # Live tuning (docs/students/tuning.md): the parameters named in the tokens file, as a
+    # translation unit that registers them and interposes the submodel base class's constructor
+    # (--wrap below), so the runtime finds m_P[] with the student's and 20-sim's files unchanged.
+    get_filename_component(tools_dir "${XRF_RT_MSGDEF}" DIRECTORY)
+    set(params_cpp "${gen_dir}/xrf_20sim_params.cpp")
+    execute_process(COMMAND "${Python3_EXECUTABLE}" "${tools_dir}/twentysim_params.py"
+                            --tokens "${tokens_files}" --out "${params_cpp}" --header "${submodel}.h"
+                    RESULT_VARIABLE rc OUTPUT_VARIABLE out ERROR_VARIABLE err
+                    OUTPUT_STRIP_TRAILING_WHITESPACE)
+    if(NOT rc EQUAL 0)
+      message(FATAL_ERROR "${err}\nxrf_add_controller(${target}): cannot read the parameters of ${tokens_files}")
+    endif()
+    if(err)
+      message(WARNING "${err}")
+    endif()
+    list(APPEND generated_sources "${params_cpp}")
+    list(APPEND link_opts "-Wl,--wrap=_ZN13Submodel20simC1Ev" "-Wl,--wrap=_ZN13Submodel20simC2Ev")
+    set_property(DIRECTORY APPEND PROPERTY CMAKE_CONFIGURE_DEPENDS "${tokens_files}")
+    message(STATUS "xrf_add_controller(${target}): 20-sim submodel ${submodel}, ${out}")
     message(STATUS "xrf_add_controller(${target}): 20-sim submodel ${submodel}, "
                    "TIME_STEP_SIZE ${step} s -> cycle frequency ${freq} Hz (from ${tokens_files})")
     set(ts_json "{\"folder\": \"${ts_dir}\", \"tokens_file\": \"${tokens_files}\", \"submodel\": \"${submodel}\", \"time_step_size\": \"${step}\", \"frequency_hz\": ${freq}}")
   endif()
 
   # ---- the target ----------------------------------------------------------------------
-  add_executable(${target} ${sources} ${gen_headers} "${gen_stamp}")
+  add_executable(${target} ${sources} ${generated_sources} ${gen_headers} "${gen_stamp}")
   set_source_files_properties(${gen_headers} PROPERTIES GENERATED TRUE HEADER_FILE_ONLY TRUE)
   target_include_directories(${target} PRIVATE ${include_dirs} "${gen_dir}")
   target_compile_definitions(${target} PRIVATE ${defs})
   target_compile_features(${target} PRIVATE cxx_std_17)
   target_compile_options(${target} PRIVATE -O2)
   target_link_libraries(${target} PRIVATE XrfRt::xrf_rt)
+  if(link_opts)
+    target_link_options(${target} PRIVATE ${link_opts})
+  endif()
 
   # ---- record for build.py -------------------------------------------------------------
   # JSON written by hand: string(JSON) needs CMake 3.19 and this package supports 3.16.

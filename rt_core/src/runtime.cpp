@@ -15,6 +15,7 @@
 
 #include "hist_inline.h"
 #include "logfile.h"
+#include "params_registry.h"
 #include "unprivileged.h"
 #include "xrf/plants.h"
 #include "xrf/sim.h"
@@ -414,6 +415,9 @@ int Runtime::enter(unsigned cycle_freq)
         }
     }
 
+    // The parameter table, before ready: a host reads it once it sees the loop ready.
+    params::publish(&shm_->params, o.quiet);
+
     xrf_rt_config cfg;
     cfg.cpu = o.cpu;
     cfg.priority = o.priority;
@@ -483,6 +487,11 @@ uint32_t Runtime::checkHostHeartbeat(int64_t now_ns)
     if (!stale)
         host_lost_ = false;
     return XRF_HOST_LOST_ACTION_IGNORE;
+}
+
+void Runtime::applyParams()
+{
+    params::take(&shm_->params, &params_seen_, cycles_);
 }
 
 void Runtime::endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, bool missed,

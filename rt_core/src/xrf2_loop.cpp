@@ -49,6 +49,7 @@ int XenoFrtLoop::loop()
         const int64_t wake = rt.now();
         wakeup_time = xrf2::toTimespec(deadline);
         rt.beginCycle(wake);
+        rt.takeParams(); // a pending parameter set lands here, before the controller computes
         const int ret = step();
         const int64_t end = rt.now();
         idle_time = xrf2::toTimespec(end);

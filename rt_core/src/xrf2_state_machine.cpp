@@ -3,6 +3,7 @@
 
 #include <utility>
 
+#include "params_registry.h"
 #include "xrf/channels.h"
 
 FullStateMachine::FullStateMachine(Hook initialising, Hook initialised, Hook run, Hook stopping,
@@ -41,6 +42,10 @@ int FullStateMachine::step()
         return 0;
     }
     if (r == 1) {
+        // 20-sim's Initialize() (in initialising()) wrote the generated defaults into m_P[]:
+        // the values tuned so far, or saved with the project, hold again from here.
+        if (state_ == INITIALISING_STATE)
+            xrf::params::afterInitialise();
         // The completion table of channels.h, which the dashboard draws too.
         const int32_t next = xrf_state_complete(state_);
         if (next > 0)

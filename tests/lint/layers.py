@@ -58,6 +58,9 @@ LAYER_OF: dict[str, str] = {
     "xrflab.viz": "services",  # the 3D view: viser scene, per-run recordings
     "xrflab.viz.kinematics": "domain",  # forward kinematics: pure maths over a URDF
     "xrflab.ros": "services",  # the ROS 2 bridge node
+    "xrflab.params.cli": "roots",  # `xrf param`: a command (through the API), imported by nobody
+    "xrflab.params": "services",  # live tuning: the current run's parameters, sets, change log (a run observer)
+    "xrflab.twentysim_params": "domain",  # a 20-sim export's parameters from its tokens file (stdlib, installed for builds)
     "xrflab.selfcheck": "services",  # the self-check driver: runs xrf-selfcheck, keeps its reports
     "xrflab.selfcheck_service": "services",  # one self-check at a time over the bench, made by the app
     "xrflab.logs.live": "services",  # a run's logging from start to finish

@@ -121,7 +121,7 @@ def test_a_recovered_run_ends_without_a_run_object(tmp_path: Path) -> None:
 
 def test_the_app_registers_its_observers_in_the_documented_order(tmp_path: Path) -> None:
     """Host logging first (the ended run's record then has its log counts), then the 3D view,
-    the lease, the ROS bridge (docs/developers/adding-a-run-observer.md). Nobody else reacts to a
+    the lease, live tuning, the ROS bridge (docs/developers/adding-a-run-observer.md). Nobody else reacts to a
     run's end by reading the hub's messages: the hub's only listener left is the room's."""
     from xrflab.server.app import create_app
     from xrflab.server.settings import Settings
@@ -135,7 +135,7 @@ def test_the_app_registers_its_observers_in_the_documented_order(tmp_path: Path)
             return [o.name for o in sup.lifecycle.observers], len(sup.hub.listeners)
 
     names, listeners = asyncio.run(main())
-    assert names == ["host logging", "3D view", "bench lease", "ROS 2 bridge"]
+    assert names == ["host logging", "3D view", "bench lease", "live tuning", "ROS 2 bridge"]
     assert listeners == 0  # this bench is not enrolled in a room
     with sqlite3.connect(settings.runs_db) as db:  # the lifespan really ran against this folder
         assert db.execute("select count(*) from runs").fetchone() == (0,)

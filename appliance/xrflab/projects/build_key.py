@@ -37,7 +37,13 @@ def toolchain() -> str:
 def toolchain_id() -> str:
     from .. import build
 
-    digest = build._content_hash([build.REPO_ROOT / "rt_core", build.REPO_ROOT / "appliance/xrflab/msgdef.py"])
+    digest = build._content_hash(
+        [
+            build.REPO_ROOT / "rt_core",
+            build.REPO_ROOT / "appliance/xrflab/msgdef.py",
+            build.REPO_ROOT / "appliance/xrflab/twentysim_params.py",
+        ]
+    )
     return f"{toolchain()}; rt_core {digest}"
 
 

@@ -16,10 +16,10 @@ import re
 from pathlib import Path
 from typing import Any
 
+# The one reading of a tokens file (installed for builds too: the parameter table).
+from ..twentysim_params import parameters, parse_tokens
+
 MAX_BYTES = 1 << 20
-_TOKEN_RE = re.compile(
-    r"<token\s+name\s*=\s*\"([A-Za-z0-9_]+)\"\s*>\s*(?:<!\[CDATA\[(.*?)\]\]>|([^<]*))\s*</token>", re.S
-)
 _SECTION_RE = re.compile(r"^\s*(Inputs|Outputs)\b[^\n]*:\s*$", re.M | re.I)
 _ROW_RE = re.compile(r"^\s*(\d+)\s+([A-Za-z_][\w.\[\]]*)\s*(.*?)\s*$")
 
@@ -28,13 +28,6 @@ def _read(path: Path) -> str:
     if not path.is_file() or path.is_symlink() or path.stat().st_size > MAX_BYTES:
         return ""
     return path.read_text(errors="replace")
-
-
-def parse_tokens(text: str) -> dict[str, str]:
-    return {
-        m.group(1): (m.group(2) if m.group(2) is not None else (m.group(3) or "")).strip()
-        for m in _TOKEN_RE.finditer(text)
-    }
 
 
 def parse_info(text: str) -> dict[str, list[dict[str, str]]]:
@@ -87,6 +80,7 @@ def describe(project: Path) -> dict[str, Any] | None:
         step, freq = None, None
     inputs = [r["name"] for r in info["inputs"]] or _names(tokens, "INPUT_NAMES", "INPUT_VARIABLE_NAMES")
     outputs = [r["name"] for r in info["outputs"]] or _names(tokens, "OUTPUT_NAMES", "OUTPUT_VARIABLE_NAMES")
+    params, param_problems = parameters(tokens)
     problems = []
     if step is None:
         problems.append(f"{tokens_file.name}: no usable TIME_STEP_SIZE ({step_raw or 'missing'})")
@@ -107,5 +101,6 @@ def describe(project: Path) -> dict[str, Any] | None:
         "output_units": {r["name"]: r["unit"] for r in info["outputs"]},
         "number_inputs": tokens.get("NUMBER_INPUTS", ""),
         "number_outputs": tokens.get("NUMBER_OUTPUTS", ""),
-        "problems": problems,
+        "parameters": [{"index": p.index, "name": p.name, "default": p.default, "unit": p.unit} for p in params],
+        "problems": problems + param_problems,
     }

@@ -27,9 +27,12 @@ server/runs/ros_bridge.py). Without it every command goes through.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
+import re
 import signal
+import socket
 import sys
 import tempfile
 import threading
@@ -65,6 +68,71 @@ def allow_all(user: str, cmd: int) -> tuple[bool, str]:
 
 GATE_TOKEN_ENV = "XRF_ROS_GATE_TOKEN"
 GATE_TIMEOUT_S = 2.0
+
+# Live tuning (docs/students/tuning.md): a set of the controller's parameters from ROS 2
+# (`ros2 param set`), by our names -> (applied, reason). Started by the appliance, the set goes to
+# its parameter service through the gate (checked whole, the bench holder only, logged); a bridge
+# of its own (`xrf ros-bridge` by hand) writes it to the segment and waits for the loop's answer.
+ParamSetter = Callable[[str, "dict[str, float]"], "tuple[bool, str]"]
+
+
+def params_gate_client(url: str, token: str) -> ParamSetter:
+    """Parameter sets through the appliance's gate socket (one connection per set: they are rare)."""
+    if not url.startswith("unix:"):
+        raise ValueError(f"--gate-url {url!r}: only unix:<socket path> is supported")
+    path = url[len("unix:") :]
+
+    def setter(user: str, values: dict[str, float]) -> tuple[bool, str]:
+        line = (json.dumps({"token": token, "user": user, "params": values}) + "\n").encode()
+        try:
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+                s.settimeout(GATE_TIMEOUT_S)
+                s.connect(path)
+                s.sendall(line)
+                reply = s.makefile("rb").readline()
+            answer = json.loads(reply)
+        except (OSError, ValueError) as exc:
+            return False, f"the appliance's gate is unreachable ({exc})"
+        return bool(answer.get("allowed")), str(answer.get("reason", ""))
+
+    return setter
+
+
+def params_direct(channels: Any) -> ParamSetter:
+    """Parameter sets written to the segment (a bridge without the appliance: no lease, no log)."""
+    from ..channels import params as chparams
+
+    table = chparams.read_table(channels.shm, channels.name)
+    index = {p.name: p for p in table.params}
+
+    def setter(user: str, values: dict[str, float]) -> tuple[bool, str]:
+        entries = []
+        for name, v in values.items():
+            p = index.get(name)
+            if p is None:
+                return False, f"unknown parameter '{name}'"
+            if p.has_range and not p.min <= v <= p.max:
+                return False, f"parameter {name}: {v:g} is out of range {p.min:g} .. {p.max:g}"
+            entries.append((p.index, v))
+        try:
+            seq = chparams.send_set(channels.shm, entries)
+        except (ValueError, BlockingIOError) as exc:
+            return False, str(exc)
+        answer = chparams.wait_answer(channels.shm, seq, 1.0)
+        if answer is None or not answer.applied:
+            return False, "the loop did not take the set"
+        return True, f"applied at cycle {answer.cycle}"
+
+    return setter
+
+
+def ros_param_name(name: str) -> str | None:
+    """A controller parameter's ROS 2 name: 20-sim's path separator `\\` becomes `.`; a name ROS
+    would refuse (anything but letters, digits, `_` and `.` between words) is not offered."""
+    out = name.replace("\\", ".")
+    return out if re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*(\.[A-Za-z][A-Za-z0-9_]*)*", out) else None
+
+
 # Stopping is always safe (the appliance's STOP rule): with the appliance unreachable the commands
 # channels.h marks safe (names.SAFE_COMMANDS) still go through; every other command is refused.
 
@@ -281,6 +349,7 @@ class Bridge:
         *,
         user: str = "",
         command_gate: CommandGate = allow_all,
+        param_setter: ParamSetter | None = None,
         depth: int = DEFAULT_DEPTH,
         state_period: float = DEFAULT_STATE_PERIOD_S,
         node_name: str = NODE_NAME,
@@ -324,6 +393,66 @@ class Bridge:
         self.commands_sent = 0
         self.ros2xeno_written = 0
         self.last_state: int | None = None
+        self.param_setter = param_setter
+        self._ros_params: dict[str, str] = {}  # ROS 2 name -> the controller's name
+        self._declare_parameters()
+
+    # -- parameters (live tuning) ---------------------------------------------------------------
+
+    def _declare_parameters(self) -> None:
+        """The controller's tunable parameters as this node's ROS 2 parameters, with descriptors
+        carrying the unit and, where the controller declared one, the range (ROS 2 refuses a
+        value outside it before asking us)."""
+        if self.param_setter is None:
+            return
+        from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType, SetParametersResult
+
+        from ..channels import ChannelsCorrupt
+        from ..channels import params as chparams
+
+        self._SetParametersResult = SetParametersResult
+        try:
+            table = chparams.read_table(self.ch.shm, self.ch.name)
+            values = chparams.read_values(self.ch.shm, table)
+        except ChannelsCorrupt as exc:
+            self.log.error(f"no parameters: {exc}")
+            return
+        for p in table.params:
+            ros_name = ros_param_name(p.name)
+            if ros_name is None:
+                self.log.warning(f"parameter '{p.name}' has no ROS 2 name; not offered")
+                continue
+            d = ParameterDescriptor(
+                name=ros_name,
+                type=ParameterType.PARAMETER_DOUBLE,
+                description=f"{p.name} [{p.unit}] (default {p.default:g})",
+            )
+            if p.has_range:
+                d.floating_point_range = [FloatingPointRange(from_value=p.min, to_value=p.max, step=0.0)]
+            self.node.declare_parameter(ros_name, float(values[p.index]), d)
+            self._ros_params[ros_name] = p.name
+        self.node.add_on_set_parameters_callback(self._on_set_parameters)
+
+    def _on_set_parameters(self, params: list[Any]) -> Any:
+        """`ros2 param set`: the parameters as one set, applied whole or refused whole."""
+        from rclpy.parameter import Parameter
+
+        values: dict[str, float] = {}
+        for prm in params:
+            name = self._ros_params.get(prm.name)
+            if name is None:
+                return self._SetParametersResult(successful=False, reason=f"no parameter {prm.name}")
+            if prm.type_ not in (Parameter.Type.DOUBLE, Parameter.Type.INTEGER):
+                return self._SetParametersResult(successful=False, reason=f"{prm.name}: not a number")
+            values[name] = float(prm.value)
+        assert self.param_setter is not None
+        ok, reason = self.param_setter(self.user, values)
+        # Two call sites: rclpy refuses one call site logging at two severities.
+        if ok:
+            self.log.info(f"parameters {values}: {reason}")
+        else:
+            self.log.warning(f"parameters {values} refused: {reason}")
+        return self._SetParametersResult(successful=ok, reason=reason)
 
     # -- ROS -> loop --------------------------------------------------------------------------
 
@@ -484,6 +613,16 @@ def prepare_messages(
     return Ros2Xeno, Xeno2Ros
 
 
+def _setter_or_none(make: Callable[[Any], ParamSetter], ch: Any, say: Callable[[str], None]) -> ParamSetter | None:
+    from ..channels import ChannelsCorrupt
+
+    try:
+        return make(ch)
+    except ChannelsCorrupt as exc:
+        say(f"no parameters offered: {exc}")
+        return None
+
+
 def run(args: argparse.Namespace, command_gate: CommandGate = allow_all) -> int:
     from ..channels import Channels, ChannelsError
 
@@ -509,6 +648,10 @@ def run(args: argparse.Namespace, command_gate: CommandGate = allow_all) -> int:
             say(str(exc))
             return 2
         say(f"XenoCmd obey the appliance's lease gate ({gate_url}) for user '{args.user}'")
+    param_setter_of: Callable[[Any], ParamSetter] = params_direct
+    if gate_url:
+        token = os.environ.get(GATE_TOKEN_ENV, "")
+        param_setter_of = lambda _ch: params_gate_client(gate_url, token)  # noqa: E731
 
     prio = getattr(args, "priority", 0)
     if prio:
@@ -545,6 +688,7 @@ def run(args: argparse.Namespace, command_gate: CommandGate = allow_all) -> int:
         xeno2ros_type,
         user=args.user,
         command_gate=command_gate,
+        param_setter=_setter_or_none(param_setter_of, ch, say),
         depth=args.depth,
         state_period=args.state_period,
     )

@@ -13,6 +13,7 @@ from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Redirect
 from fastapi.staticfiles import StaticFiles
 from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
+from ..params.service import ParamsService
 from ..projects.service import ProjectsService
 from ..room.bench import attach as attach_room
 from ..room.bench import router as room_bench_router
@@ -25,6 +26,7 @@ from .http.accounts import router as accounts_router
 from .http.editor import CODEMIRROR_DIR
 from .http.editor import router as editor_router
 from .http.logs import router as logs_router
+from .http.params import router as params_router
 from .http.projects import router as projects_router
 from .http.rerun import router as rerun_router
 from .http.ros import router as ros_router
@@ -79,10 +81,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         await viz.start()
         app.state.viz = viz
         supervisor.lifecycle.register(lease)  # a run's end is the holder's activity
+        # Live tuning (issue 28): the run's parameter table when it starts, sets, the change log;
+        # every watcher gets the table on connecting and each applied set.
+        params = ParamsService(settings, supervisor, hub)
+        supervisor.lifecycle.register(params)
+        hub.add_snapshot(params.snapshot)
+        app.state.params = params
         # ROS 2 bridge per run when enabled (server/runs/ros_bridge.py); its lease gate asks `security`.
         # Registers itself last: one bridge per run, started and stopped with it.
         ros = RosBridgeSupervisor(settings, supervisor, hub, security)
         hub.add_snapshot(ros.snapshot)
+        ros.params = params  # `ros2 param set` on the bridge: the same sets, checks and log
         await ros.open()
         app.state.ros = ros
         # The lab room (issue 21): one more listener of the hub once this bench is enrolled (it
@@ -152,6 +161,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(viz_router)
     app.include_router(viser_router)
     app.include_router(logs_router)
+    app.include_router(params_router)
     app.include_router(rerun_router)
     app.include_router(selfcheck_router)
     app.include_router(system_router)

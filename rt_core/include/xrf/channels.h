@@ -17,6 +17,8 @@
  *              its own cursor and learns exactly how many publications it lost.
  *  - log:      lossless single-producer/single-consumer ring; when full the loop drops the record
  *              and counts it (the loop never blocks), sequence numbers make the gap visible.
+ *  - params:   a table of the controller's parameters (loop, before ready) and one pending set
+ *              (host seqlock) the loop takes at a cycle boundary and answers (xrf/params.h).
  *  - doorbell: a futex word; the loop bumps it after publishing and wakes waiters only when some
  *              host announced it is waiting, at most once per doorbell period.
  */
@@ -26,13 +28,15 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "params.h" /* struct xrf_params: the parameter block, a channel of its own */
+
 #ifdef __cplusplus
 extern "C" {
 #endif
 
 /* cffi-begin */
 #define XRF_SHM_MAGIC 827740760 /* "XRF1" read as a little-endian uint32 */
-#define XRF_SHM_VERSION 4
+#define XRF_SHM_VERSION 5       /* 5: the parameter block (params.h) */
 
 #define XRF_NAME_MAX 64
 #define XRF_REASON_MAX 128
@@ -347,6 +351,9 @@ struct xrf_shm {
     struct xrf_log_meta timing_meta;
     struct xrf_ring timing_ring;
     struct xrf_timing_record timing[XRF_TIMING_SLOTS];
+
+    /* live parameter tuning (xrf/params.h): table by the loop, sets by the host */
+    struct xrf_params params;
 };
 
 /* Layout and lifecycle (loop side). */

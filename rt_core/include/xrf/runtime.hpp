@@ -143,6 +143,13 @@ public:
         report_.stage_mask |= 1u << idx;
     }
     void notifyHost() { pending_doorbell_ = true; }
+    // A cycle boundary, before the controller computes: takes the host's pending parameter set,
+    // if any (xrf/params.h). Idle, this is one acquire load and a compare.
+    void takeParams()
+    {
+        if (__atomic_load_n(&shm_->params.req_seq, __ATOMIC_ACQUIRE) != params_seen_)
+            applyParams();
+    }
     // Publishes status and histograms for the cycle that just ended; rings the doorbell.
     void endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, bool missed,
                   int64_t idle_ns);
@@ -166,6 +173,7 @@ private:
     static void *helperMain(void *self);
     void helperDrain(bool final);
     void recordTiming(int64_t jitter_ns, int64_t cycle_ns, bool missed);
+    void applyParams();
 
     Options options_;
     bool options_loaded_ = false;
@@ -187,6 +195,7 @@ private:
     uint32_t doorbell_period_ = 1;
     int16_t pwm_max_ = -1; // pwmMax() once computed
     bool posix_ = false;   // backend_ is the posix one: its clock is read inline, no demotions
+    uint32_t params_seen_ = 0; // req_seq of the last parameter set taken (xrf/params.h)
     bool pending_doorbell_ = false;
     bool host_lost_ = false;
     uint64_t host_lost_count_ = 0;

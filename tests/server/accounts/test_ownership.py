@@ -50,6 +50,7 @@ OWNED: dict[tuple[str, str], str] = {
     ("GET", "/api/logs/runs/{run_id}"): "run_id",
     ("GET", "/api/logs/runs/{run_id}/files/{name:path}"): "run_id",
     ("GET", "/api/logs/runs/{run_id}/timing"): "run_id",
+    ("GET", "/api/logs/runs/{run_id}/param-changes"): "run_id",
     ("GET", "/api/projects/{pid}"): "pid",
     ("DELETE", "/api/projects/{pid}"): "pid",
     ("GET", "/api/projects/{pid}/download"): "pid",
@@ -71,6 +72,7 @@ OWNED: dict[tuple[str, str], str] = {
 SHARED: dict[tuple[str, str], str] = {
     ("GET", "/api/project-templates/{template}/download"): "the bundled templates, everyone's",
     ("GET", "/rerun/{asset:path}"): "the rerun viewer's program files",
+    ("GET", "/api/params/{name:path}"): "the current run's parameter by name, every watcher's (issue 28)",
     ("GET", "/viser/{path:path}"): "the 3D view's client files (one scene for the room)",
     ("WS", "/viser/{path:path}"): "the 3D view's scene (one for the room: the robot's motion)",
     ("POST", f"/{SERVICE}/{{method}}"): "{method} is a gRPC method; the run is the live one: "

@@ -13,7 +13,8 @@ order, which is the order they are told:
    (a browser polling the run, every later observer, the "run ended" message) sees the counts;
 2. the 3D view (viz/scene.py): follows the telemetry, closes its recording at the end;
 3. the bench lease (server/security/lease.py): the end counts as the holder's activity;
-4. the ROS 2 bridge (server/runs/ros_bridge.py): one bridge per run, started and stopped with it.
+4. live tuning (params/service.py): the run's parameter table at its start, saved parameters set;
+5. the ROS 2 bridge (server/runs/ros_bridge.py): one bridge per run, started and stopped with it.
 
 The supervisor announces the run to the browsers (the hub's ``run`` message) itself, after
 every observer has been told: the message is for people, not a signal for code.

@@ -121,6 +121,9 @@ class RosBridgeSupervisor(RunObserver):
         self._loop: asyncio.AbstractEventLoop | None = None
         self._lock = asyncio.Lock()
         self._pending: set[asyncio.Task[None]] = set()
+        # Live tuning's service (xrflab/params/service.py), handed over by server/app.py: a bridge's
+        # `ros2 param set` comes through the gate and is set there, as the dashboard's is.
+        self.params: Any = None
         supervisor.lifecycle.register(self)  # one bridge per run: started and stopped with it
 
     def _priority(self) -> tuple[int, str]:
@@ -364,9 +367,14 @@ class RosBridgeSupervisor(RunObserver):
                     break
                 try:
                     req = json.loads(line)
-                    allowed, reason = self.decide(
-                        str(req.get("token", "")), str(req.get("user", "")), int(req.get("cmd"))
-                    )
+                    if isinstance(req, dict) and "params" in req:
+                        allowed, reason = await self.decide_params(
+                            str(req.get("token", "")), str(req.get("user", "")), req["params"]
+                        )
+                    else:
+                        allowed, reason = self.decide(
+                            str(req.get("token", "")), str(req.get("user", "")), int(req.get("cmd"))
+                        )
                 except (ValueError, TypeError, AttributeError) as exc:
                     allowed, reason = False, f"bad gate request: {exc}"
                 writer.write(json.dumps({"allowed": allowed, "reason": reason}).encode() + b"\n")
@@ -391,6 +399,31 @@ class RosBridgeSupervisor(RunObserver):
             user, "command", {"cmd": name, "via": "ros", "allowed": allowed, "reason": reason, "run": bp.run.row.id}
         )
         return allowed, reason
+
+    async def decide_params(self, token: str, user_name: str, values: Any) -> tuple[bool, str]:
+        """A parameter set from the bridge holding `token` (`ros2 param set`): the bench holder's
+        only (the rule of a non-safe command), then the parameter service's checks, all or nothing."""
+        from ...errors import XrfError
+        from ..security.auth import SAFE_COMMANDS, Perm, may
+
+        bp = self._current
+        if bp is None or not bp.token or not hmac.compare_digest(token.encode(), bp.token.encode()):
+            return False, "unknown bridge (token not valid for the current run)"
+        if user_name != bp.user:
+            return False, f"this bridge acts for '{bp.user}', not '{user_name}'"
+        if self.params is None:
+            return False, "live tuning is not available"
+        allowed, reason, user = self._rule(bp.user, 0, "param", SAFE_COMMANDS, Perm, may)
+        audit.record(user, "params", {"via": "ros", "allowed": allowed, "reason": reason, "run": bp.run.row.id})
+        if not allowed:
+            return False, reason
+        if not isinstance(values, dict):
+            return False, "bad gate request: params is not an object"
+        try:
+            answer = await self.params.set(values, f"{bp.user} (ROS 2)")
+        except XrfError as exc:
+            return False, str(exc)
+        return True, f"applied at cycle {answer['cycle']}"
 
     def _rule(self, user_name: str, cmd: int, name: str, safe: Any, perm: Any, may: Any) -> tuple[bool, str, Any]:
         accounts = self.security.accounts

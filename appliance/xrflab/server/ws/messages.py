@@ -307,6 +307,28 @@ class RosMessage(_Out):
     configured_user: str
 
 
+class ParamChange(_Out):
+    name: str
+    old: float
+    new: float
+
+
+class ParamsMessage(_Out):
+    """The current run's tunable parameters (xrflab/params/service.py): the whole table when a
+    run starts or a set lands (``event`` "table" / "applied"), with the changes of an applied set
+    and the cycle the loop applied them at. The bench's: every watcher sees it."""
+
+    type: Literal["params"] = "params"
+    event: Literal["table", "applied"]
+    run_id: int | None
+    params: list[dict[str, Any]] = Field(description="name, unit, default, min, max, has_range, value, source")
+    origin: str = Field(description="none | 20sim: what the table was made from")
+    note: str = ""
+    cycle: int | None = None
+    who: str = ""
+    changes: list[ParamChange] = Field(default_factory=list)
+
+
 class AckMessage(_Out):
     """To the asking client: a command's outcome, the setpoint applied, the topics subscribed."""
 
@@ -352,6 +374,7 @@ ServerMessage = (
     | LeaseMessage
     | SelfcheckMessage
     | RosMessage
+    | ParamsMessage
     | AckMessage
     | PongMessage
     | ErrorMessage

@@ -1,5 +1,13 @@
 #include "Template.hpp"
 
+#include <xrf/tunable.hpp>
+
+namespace {
+// A value the dashboard, `xrf param set` and ROS 2 can change while the controller runs
+// (docs/students/tuning.md): name, default, min, max, unit. Read it like a double.
+xrf::Tunable echo_gain{"echo.gain", 1.0, -10.0, 10.0, "-"};
+}
+
 Template::Template(unsigned cycle_freq, unsigned write_decimator_freq, unsigned monitor_freq)
     : XenoFrtRosIco(cycle_freq, write_decimator_freq, monitor_freq, file, &log_data),
       file(true, "logs/template", "bin")
@@ -39,9 +47,11 @@ int Template::run()
     log_data.steer_left = ros_msg.steer_left;
     log_data.steer_right = ros_msg.steer_right;
 
-    // Placeholder: echo the setpoints back and drive no motor. Replace with your controller.
+    // Placeholder: echo the setpoints back (times a tunable gain) and drive no motor. Replace with your controller.
     xeno_msg.pos_left = ros_msg.steer_left;
     xeno_msg.pos_right = ros_msg.steer_right;
+    xeno_msg.pos_left *= echo_gain;
+    xeno_msg.pos_right *= echo_gain;
     actuate_data.pwm1 = 0;
     actuate_data.pwm2 = 0;
 

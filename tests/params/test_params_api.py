@@ -1,0 +1,159 @@
+"""Live tuning through the appliance (issue 28): the 20-sim template's parameters, found by the
+build in its tokens file, listed, set atomically while it runs, confirmed with the cycle the loop
+applied them at, refused whole when bad, logged as the run's change table, seen by watchers.
+
+Real appliance, real build of the template (its sources unchanged), real loop on the simulated
+RELbot: the PID's output limit set to 0 stops the motors from the confirmed cycle on.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server, wait_for
+
+KP = "PID1\\Kp"
+LIMIT = "PID\\limit"
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    s = start_server(tmp_path_factory.mktemp("data"), shared_builds_root())
+    yield s
+    stop_server(s)
+
+
+def _param(listing: dict[str, Any], name: str) -> dict[str, Any]:
+    return next(p for p in listing["params"] if p["name"] == name)
+
+
+def test_tune_20sim_template_while_it_runs(server: Server) -> None:
+    server.stop_run()
+    assert server.http.get("/api/params").json()["note"] == "no run is active"
+    with server.ws() as ws:
+        ws.send({"type": "subscribe", "topics": ["state", "params", "telemetry"]})
+        assert ws.wait_type("ack")["topics"]
+        run = server.start_run("template-20sim")
+        listing = server.http.get("/api/params").json()
+        assert listing["origin"] == "20sim" and listing["run_id"] == run["id"]
+        names = [p["name"] for p in listing["params"]]
+        assert names == [KP, "PID1\\Ki", "PID1\\Kd", "PID2\\Kp", "PID2\\Ki", "PID2\\Kd", "PID\\tau_d", LIMIT]
+        kp = _param(listing, KP)
+        assert kp["value"] == 1.0 and kp["default"] == 1.0 and kp["unit"] == "-/rad" and not kp["has_range"]
+        assert kp["min"] < 1.0 < kp["max"]
+        assert server.http.get("/api/params/" + KP).json()["value"] == 1.0
+
+        # A set before INITIALISING survives 20-sim's Initialize() (which writes the defaults).
+        r = server.http.post("/api/params", json={"values": {KP: 2.0}})
+        assert r.status_code == 200, r.text
+        assert ws.command("initialise")["accepted"] and ws.wait_state("INITIALISED", 10)
+        assert ws.command("start")["accepted"] and ws.wait_state("RUN", 5)
+        ws.send({"type": "setpoint", "fields": {"steer_left": 1.0}})
+        ws.wait_for(lambda m: m.get("type") == "telemetry" and m["pwm"][0] != 0, 10)
+
+        r = server.http.post("/api/params", json={"values": {LIMIT: 0.0, KP: 3.0}})
+        assert r.status_code == 200, r.text
+        body = r.json()
+        cycle = body["cycle"]
+        assert cycle > 0
+        assert {(c["name"], c["old"], c["new"]) for c in body["changes"]} == {(LIMIT, 1.0, 0.0), (KP, 2.0, 3.0)}
+        applied = ws.wait_for(
+            lambda m: m.get("type") == "params" and m.get("event") == "applied" and m["cycle"] == cycle
+        )
+        assert applied["who"] == "admin"
+        # From the confirmed cycle on the controller's output is limited to 0: no PWM.
+        late = [ws.wait_for(lambda m: m.get("type") == "telemetry" and m["cycle"] > cycle, 10) for _ in range(5)]
+        assert all(m["pwm"][0] == 0 and m["pwm"][1] == 0 for m in late), late
+
+        # Refused whole: nothing of a bad set lands.
+        for bad, word in (
+            ({KP: 4.0, "PID1\\\\nope": 1.0}, "unknown parameter"),
+            ({KP: "4"}, "not a number"),
+            ({KP: True}, "not a number"),
+            ({KP: 1e9}, "out of range"),
+            ({KP: math.inf}, "finite"),
+            ({KP: math.nan}, "finite"),
+        ):
+            # json.dumps writes Infinity/NaN as a browser's JSON.parse would refuse, a script would not
+            text = json.dumps({"values": bad})
+            r = server.http.post("/api/params", content=text, headers={"Content-Type": "application/json"})
+            assert r.status_code == 422, (bad, r.text)
+            assert word in r.json()["detail"], (bad, r.json())
+        assert server.http.get("/api/params/" + KP).json()["value"] == 3.0
+        # A range the controller did not declare may be widened.
+        r = server.http.post("/api/params", json={"values": {KP: 1e9}, "ranges": {KP: [0, 2e9]}})
+        assert r.status_code == 200, r.text
+
+        # Only the bench holder sets; a watcher sees.
+        pw = server.create_user("watcher1", "student")
+        other, _ = server.login("watcher1", pw)
+        try:
+            assert other.get("/api/params").json()["run_id"] == run["id"]
+            r = other.post("/api/params", json={"values": {KP: 1.0}})
+            assert r.status_code == 403, r.text
+        finally:
+            other.close()
+
+        csv = server.http.get(f"/api/logs/runs/{run['id']}/param-changes", params={"fmt": "csv"}).text
+        lines = csv.strip().splitlines()
+        assert lines[0] == "run,cycle,t,name,old,new,who"
+        assert any(f",{cycle}," in line and "PID\\limit,1.0,0.0,admin" in line for line in lines), csv
+        assert len(lines) == 1 + 4  # KP before INITIALISING, LIMIT + KP, KP widened
+
+    server.stop_run()
+    wait_for(lambda: server.http.get("/api/params").json()["run_id"] is None, 10, "the run's table dropped")
+    r = server.http.post("/api/params", json={"values": {KP: 1.0}})
+    assert r.status_code == 503 and "no loop is running" in r.json()["detail"], r.text
+
+
+def test_declared_tunable_of_the_base_template(server: Server) -> None:
+    """xrf::Tunable (xrf/tunable.hpp) in the base template: its declared range is the one
+    enforced, and the value reaches the controller (Xeno2Ros echoes the setpoint times the gain)."""
+    server.stop_run()
+    with server.ws() as ws:
+        ws.send({"type": "subscribe", "topics": ["state", "telemetry"]})
+        assert ws.wait_type("ack")["topics"]
+        server.start_run("template-base")
+        listing = server.http.get("/api/params").json()
+        assert listing["origin"] == "none"
+        assert listing["params"] == [
+            {
+                "name": "echo.gain",
+                "unit": "-",
+                "default": 1.0,
+                "min": -10.0,
+                "max": 10.0,
+                "has_range": True,
+                "value": 1.0,
+                "source": "declared",
+            }
+        ]
+        assert ws.command("initialise")["accepted"] and ws.wait_state("INITIALISED", 10)
+        assert ws.command("start")["accepted"] and ws.wait_state("RUN", 10)
+        ws.send({"type": "setpoint", "fields": {"steer_left": 0.5}})
+        ws.wait_for(lambda m: m.get("type") == "telemetry" and m["xeno2ros"].get("pos_left") == 0.5, 10)
+        r = server.http.post("/api/params", json={"values": {"echo.gain": 10.5}})
+        assert r.status_code == 422 and "out of range -10 .. 10" in r.json()["detail"], r.text
+        r = server.http.post("/api/params", json={"values": {"echo.gain": 3.0}, "ranges": {"echo.gain": [-20, 20]}})
+        assert r.status_code == 422 and "its range is the controller's" in r.json()["detail"], r.text
+        r = server.http.post("/api/params", json={"values": {"echo.gain": -4.0}})
+        assert r.status_code == 200, r.text
+        cycle = r.json()["cycle"]
+        late = ws.wait_for(lambda m: m.get("type") == "telemetry" and m["cycle"] > cycle, 10)
+        assert late["xeno2ros"]["pos_left"] == -2.0
+    server.stop_run()
+
+
+def test_a_controller_without_parameters_says_why(server: Server) -> None:
+    server.stop_run()
+    server.start_run("relbot")
+    listing = server.http.get("/api/params").json()
+    assert listing["params"] == [] and "declares no tunable parameters" in listing["note"]
+    r = server.http.post("/api/params", json={"values": {"kp": 1.0}})
+    assert r.status_code == 422 and "declares no tunable parameters" in r.json()["detail"], r.text
+    server.stop_run()

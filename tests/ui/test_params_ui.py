@@ -1,0 +1,93 @@
+"""The Parameters panel (issue 28): a student tunes the 20-sim template's PID while it runs.
+
+The panel on the Bench page lists the template's parameters (from its tokens file); Apply sends a
+set and the panel shows the cycle the loop applied it at; the response changes from that cycle
+on (the output limit lowered: the PWM drops below the framework's clamp and the encoder slows);
+the change is in the run's change table; the Watch page's panel shows the same values.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+from xrf_testing.harness import Server
+
+LIMIT = "PID\\limit"
+CLAMP = 409  # the framework's 20 % PWM limit of 2047 (XRF_PWM_LIMIT)
+
+
+def _speed(samples: list[dict[str, Any]]) -> float:
+    """Encoder 1 counts per second over the samples (the sim's 14-bit counter unwrapped)."""
+    total = 0
+    for a, b in zip(samples, samples[1:], strict=False):
+        d = (b["enc"][0] - a["enc"][0]) % 16384
+        total += d - 16384 if d > 8192 else d
+    return abs(total) / max(1e-9, samples[-1]["t"] - samples[0]["t"])
+
+
+def test_tune_the_pid_from_the_panel(server: Server, browser) -> None:
+    server.stop_run()
+    with server.ws() as ws:
+        ws.send({"type": "subscribe", "topics": ["state", "telemetry"]})
+        assert ws.wait_type("ack")["topics"]
+        run = server.start_run("template-20sim")
+        assert ws.command("initialise")["accepted"] and ws.wait_state("INITIALISED", 10)
+        assert ws.command("start")["accepted"] and ws.wait_state("RUN", 10)
+        ws.send({"type": "setpoint", "fields": {"steer_left": 1000.0}})  # far away: the output saturates
+        ws.wait_for(lambda m: m.get("type") == "telemetry" and abs(m["pwm"][0]) == CLAMP, 10)
+
+        page = browser.new_page(viewport={"width": 1400, "height": 1400})
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(server.url + "/#bench")
+        panel = page.locator("#page-bench .params-panel")
+        row = panel.locator("tr", has_text=LIMIT)
+        row.wait_for()
+        assert panel.locator("tbody tr").count() == 8
+        assert row.locator(".params-value").inner_text() == "1"
+
+        before = [ws.wait_for(lambda m: m.get("type") == "telemetry", 5) for _ in range(30)]
+        row.locator(".params-new").fill("0.1")
+        panel.locator(".params-apply").click()
+        status = panel.locator(".params-status")
+        page.wait_for_function(
+            "document.querySelector('#page-bench .params-status').textContent.startsWith('applied at cycle')"
+        )
+        text = status.inner_text()
+        found = re.search(r"applied at cycle (\d+)", text)
+        assert found, text
+        cycle = int(found.group(1))
+        assert f"{LIMIT} 1 → 0.1" in text
+        assert row.locator(".params-value").inner_text() == "0.1"
+
+        # From the confirmed cycle on: the output is the new limit, under the framework's clamp.
+        after = [ws.wait_for(lambda m: m.get("type") == "telemetry" and m["cycle"] > cycle + 200, 10)]
+        after += [ws.wait_for(lambda m: m.get("type") == "telemetry", 5) for _ in range(29)]
+        assert all(abs(s["pwm"][0]) == CLAMP for s in before if s["cycle"] < cycle)
+        assert all(0 < abs(s["pwm"][0]) <= 205 for s in after), [s["pwm"][0] for s in after]
+        assert _speed(after) < 0.8 * _speed(before), (_speed(before), _speed(after))
+
+        # A marker on the live plots at the confirmed cycle's time.
+        markers = page.evaluate("xrf.paramMarkers()")
+        assert [mk["cycle"] for mk in markers] == [cycle], markers
+        assert abs(markers[0]["t"] - cycle / run["cycle_freq"]) < 1e-9
+
+        csv = server.http.get(f"/api/logs/runs/{run['id']}/param-changes", params={"fmt": "csv"}).text
+        assert f"{run['id']},{cycle}," in csv and "PID\\limit,1.0,0.1,admin" in csv
+
+        # Revert: every parameter back to its default, as one set.
+        panel.locator(".params-revert").click()
+        page.wait_for_function(
+            "document.querySelector('#page-bench .params-status').textContent.includes('PID\\\\limit 0.1 → 1')"
+        )
+        assert row.locator(".params-value").inner_text() == "1"
+
+        # The Watch page shows the same panel and values.
+        page.goto(server.url + "/#watch")
+        watch_row = page.locator(".watch-page .params-panel tr", has_text=LIMIT)
+        watch_row.wait_for()
+        assert watch_row.locator(".params-value").inner_text() == "1"
+        assert not errors, errors
+        page.close()
+    server.stop_run()
