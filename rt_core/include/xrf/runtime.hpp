@@ -193,8 +193,8 @@ private:
     CycleReport report_;
     uint64_t cycles_ = 0, missed_ = 0, idle_total_ = 0;
     uint32_t doorbell_period_ = 1;
-    int16_t pwm_max_ = -1; // pwmMax() once computed
-    bool posix_ = false;   // backend_ is the posix one: its clock is read inline, no demotions
+    int16_t pwm_max_ = -1;     // pwmMax() once computed
+    bool posix_ = false;       // backend_ is the posix one: its clock is read inline, no demotions
     uint32_t params_seen_ = 0; // req_seq of the last parameter set taken (xrf/params.h)
     bool pending_doorbell_ = false;
     bool host_lost_ = false;
