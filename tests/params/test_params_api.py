@@ -108,7 +108,7 @@ def test_tune_20sim_template_while_it_runs(server: Server) -> None:
     server.stop_run()
     wait_for(lambda: server.http.get("/api/params").json()["run_id"] is None, 10, "the run's table dropped")
     r = server.http.post("/api/params", json={"values": {KP: 1.0}})
-    assert r.status_code == 503 and "no loop is running" in r.json()["detail"], r.text
+    assert r.status_code == 409 and "no loop is running" in r.json()["detail"], r.text
 
 
 def test_declared_tunable_of_the_base_template(server: Server) -> None:

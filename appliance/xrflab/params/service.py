@@ -230,7 +230,7 @@ class ParamsService(RunObserver):
         parameters": the client saves it as the project's next version through the editor)."""
         rp = self.current
         if rp is None:
-            raise Unavailable("no run is active; start one first")
+            raise Conflict("no run is active; start one first")
         if not rp.table.params:
             raise Conflict(NO_PARAMS_NOTE[rp.table.origin])
         doc = {
@@ -249,7 +249,7 @@ class ParamsService(RunObserver):
     def get(self, name: str) -> dict[str, Any]:
         rp = self.current
         if rp is None:
-            raise Unavailable("no run is active; start one first")
+            raise Conflict("no run is active; start one first")
         i = rp.by_name.get(name)
         if i is None:
             raise NotFound(f"the controller has no parameter '{name}'{self._known(rp)}")
@@ -305,7 +305,7 @@ class ParamsService(RunObserver):
         run = self.supervisor.current
         rp = self.current
         if run is None or rp is None or rp.run_id != run.row.id or run.ended.is_set() or not run.alive:
-            raise Unavailable("no loop is running: parameters are set on a running controller")
+            raise Conflict("no loop is running: parameters are set on a running controller")
         ch = run.channels
         if ch is None:
             raise Unavailable("the run is still starting")
