@@ -13,16 +13,14 @@ the upload friction):
 from __future__ import annotations
 
 import base64
-import io
 import shutil
-import tarfile
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server
-from xrf_testing.projects_support import reachable_tmp
+from xrf_testing.projects_support import reachable_tmp, targz
 
 REPO = Path(__file__).resolve().parents[2]
 BASE = REPO / "student_projects/templates/base"
@@ -49,16 +47,6 @@ def server() -> Iterator[Server]:
     yield s
     stop_server(s)
     shutil.rmtree(data, ignore_errors=True)
-
-
-def targz(files: dict[str, bytes], top: str) -> bytes:
-    buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w:gz") as t:
-        for name, data in files.items():
-            info = tarfile.TarInfo(f"{top}/{name}")
-            info.size = len(data)
-            t.addfile(info, io.BytesIO(data))
-    return buf.getvalue()
 
 
 def base_files() -> dict[str, bytes]:

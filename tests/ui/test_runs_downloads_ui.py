@@ -11,24 +11,12 @@ from pathlib import Path
 import pytest
 
 from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server, wait_for
-
-REPO = Path(__file__).resolve().parents[2]
-PROBE = "logs-probe"
-
-
-def _projects() -> Path:
-    """A projects folder whose examples/ holds the loop probe (a controller that logs)."""
-    root = REPO / ".cache" / "logs-appliance-projects" / "examples"
-    root.mkdir(parents=True, exist_ok=True)
-    link = root / PROBE
-    if not link.is_symlink():
-        link.symlink_to(REPO / "tests/fixtures/loop_probe")
-    return root.parent
+from xrf_testing.logs_support import PROBE, REPO, projects_dir
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
-    s = start_server(tmp_path_factory.mktemp("data"), shared_builds_root(), projects_dir=str(_projects()))
+    s = start_server(tmp_path_factory.mktemp("data"), shared_builds_root(), projects_dir=str(projects_dir()))
     yield s
     stop_server(s)
 
