@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -32,7 +33,7 @@ def _param(listing: dict[str, Any], name: str) -> dict[str, Any]:
     return next(p for p in listing["params"] if p["name"] == name)
 
 
-def test_tune_20sim_template_while_it_runs(server: Server) -> None:
+def test_tune_20sim_template_while_it_runs(server: Server, tmp_path: Path) -> None:
     server.stop_run()
     assert server.http.get("/api/params").json()["note"] == "no run is active"
     with server.ws() as ws:
@@ -104,11 +105,58 @@ def test_tune_20sim_template_while_it_runs(server: Server) -> None:
         assert lines[0] == "run,cycle,t,name,old,new,who"
         assert any(f",{cycle}," in line and "PID\\limit,1.0,0.0,admin" in line for line in lines), csv
         assert len(lines) == 1 + 4  # KP before INITIALISING, LIMIT + KP, KP widened
+        _changes_in_every_download(server, run["id"], cycle, tmp_path)
 
     server.stop_run()
     wait_for(lambda: server.http.get("/api/params").json()["run_id"] is None, 10, "the run's table dropped")
     r = server.http.post("/api/params", json={"values": {KP: 1.0}})
     assert r.status_code == 409 and "no loop is running" in r.json()["detail"], r.text
+
+
+def _changes_in_every_download(server: Server, run_id: int, cycle: int, tmp: Path) -> None:
+    """The change table inside each download of the run's log (docs/logging/decoding.md)."""
+    import io
+    import zipfile
+
+    import pyarrow.parquet as pq
+    from scipy.io import loadmat
+
+    files = wait_for(lambda: server.http.get(f"/api/logs/runs/{run_id}").json()["files"], 10, "the run's log")
+    url = f"/api/logs/runs/{run_id}/files/{files[0]['name']}"
+    r = server.http.get(url, params={"fmt": "csv"})
+    assert r.status_code == 200 and r.headers["content-type"] == "application/zip", r.headers
+    assert r.headers["x-param-changes"] == "4" and ".zip" in r.headers["content-disposition"]
+    with zipfile.ZipFile(io.BytesIO(r.content)) as z:
+        samples, changes = z.namelist()
+        assert z.read(samples).startswith(b"seq,cycle,t_ns,t_s,")
+        table = z.read(changes).decode()
+        assert f"{run_id},{cycle}," in table and "PID\\limit,1.0,0.0,admin" in table
+    for fmt in ("mat", "parquet", "rrd"):
+        r = server.http.get(url, params={"fmt": fmt})
+        assert r.status_code == 200, (fmt, r.text)
+        data = io.BytesIO(r.content)
+        if fmt == "mat":
+            pc = loadmat(data, simplify_cells=True)["param_changes"]
+            assert list(pc["name"]).count(LIMIT) == 1 and cycle in list(pc["cycle"])
+        elif fmt == "parquet":
+            meta = json.loads(pq.read_schema(data).metadata[b"xrf.param_changes"])
+            assert [(c["cycle"], c["new"]) for c in meta if c["name"] == LIMIT] == [(cycle, 0.0)]
+        else:
+            assert f"PID\\limit: 1 -> 0 at cycle {cycle} (admin)" in _rrd_texts(r.content, tmp)
+
+
+def _rrd_texts(content: bytes, tmp: Path) -> list[str]:
+    """The text log entries of an .rrd, read back with rerun's own reader."""
+    from rerun.chunk import RrdReader
+
+    path = tmp / "download.rrd"
+    path.write_bytes(content)
+    out = []
+    for chunk in RrdReader(path).stream():
+        batch = chunk.to_record_batch()
+        if "TextLog:text" in batch.schema.names:
+            out += [t[0] for t in batch.column("TextLog:text").to_pylist()]
+    return out
 
 
 def test_declared_tunable_of_the_base_template(server: Server) -> None:
