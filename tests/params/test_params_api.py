@@ -106,6 +106,7 @@ def test_tune_20sim_template_while_it_runs(server: Server, tmp_path: Path) -> No
         assert any(f",{cycle}," in line and "PID\\limit,1.0,0.0,admin" in line for line in lines), csv
         assert len(lines) == 1 + 4  # KP before INITIALISING, LIMIT + KP, KP widened
         _changes_in_every_download(server, run["id"], cycle, tmp_path)
+        _changes_in_the_live_rerun_stream(server, run["id"])
 
     server.stop_run()
     wait_for(lambda: server.http.get("/api/params").json()["run_id"] is None, 10, "the run's table dropped")
@@ -143,6 +144,35 @@ def _changes_in_every_download(server: Server, run_id: int, cycle: int, tmp: Pat
             assert [(c["cycle"], c["new"]) for c in meta if c["name"] == LIMIT] == [(cycle, 0.0)]
         else:
             assert f"PID\\limit: 1 -> 0 at cycle {cycle} (admin)" in _rrd_texts(r.content, tmp)
+
+
+def _changes_in_the_live_rerun_stream(server: Server, run_id: int) -> None:
+    """A viewer of the run's live rerun recording gets an applied set as text log entries
+    (params/changes) while connected (the proxy keeps only the recent past for late viewers)."""
+    import threading
+
+    from xrf_testing.grpcweb import READ_MESSAGES, read_messages
+    from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of
+
+    wait_for(lambda: server.http.get("/api/logs/rerun").json()["live_run"] == run_id, 20, "the run's live proxy")
+    texts: list[Any] = []
+    answers: list[Any] = []
+    setter = threading.Thread(  # once the viewer is connected (its first message)
+        target=lambda: answers.append(server.http.post("/api/params", json={"values": {KP: 1.5, LIMIT: 0.5}}))
+    )
+
+    def on_message(payload: bytes) -> None:
+        if not setter.ident:  # not started yet
+            setter.start()
+        chunk = chunk_of(payload)
+        if chunk is not None and chunk.store_kind == STORE_RECORDING and chunk.entity == "/params/changes":
+            texts.append(chunk)
+
+    got = read_messages(server.http, READ_MESSAGES, on_message=on_message, timeout=30, until=lambda _: bool(texts))
+    setter.join()
+    assert answers[0].status_code == 200, answers[0].text
+    assert got.ended_by == "until", (got.ended_by, len(texts))
+    assert "TextLog:text" in texts[0].columns and texts[0].newest_time_ns, texts
 
 
 def _rrd_texts(content: bytes, tmp: Path) -> list[str]:
