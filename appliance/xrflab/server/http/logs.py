@@ -216,7 +216,8 @@ async def _cached(run_dir: str | Path, rel: str, fmt: str, cache: Path, changes:
             for old in cache.glob(f"{key}.*.{fmt}"):  # superseded conversions of a grown file
                 old.unlink(missing_ok=True)
             log = await asyncio.to_thread(_open_log_in, run_dir, rel)
-            await asyncio.to_thread(convert, log.path, fmt, target, log=log, changes=changes)
+            # An untuned run's download is byte for byte what `xrf decode` writes (no empty table).
+            await asyncio.to_thread(convert, log.path, fmt, target, log=log, changes=changes or None)
     return target
 
 
