@@ -79,7 +79,14 @@ def test_rrd_has_a_text_log_entry_per_change(edge_file: Path) -> None:
 
     out = convert(edge_file, "rrd", changes=CHANGES)
     entries = []
-    for chunk in RrdReader(out).stream():
+    reader = RrdReader(out)
+    views = [
+        b.column("ViewBlueprint:class_identifier").to_pylist()
+        for b in (c.to_record_batch() for c in reader.stream(store=reader.blueprints()[0]))
+        if "ViewBlueprint:class_identifier" in b.schema.names
+    ]
+    assert [["TextLog"]] in views, views  # a text log view of the changes in the file's blueprint
+    for chunk in reader.stream():
         batch = chunk.to_record_batch()
         entity = batch.schema.metadata[b"rerun:entity_path"].decode()
         if entity != "/" + CHANGES_ENTITY:

@@ -367,13 +367,16 @@ def entity_paths(names: list[str]) -> dict[str, str]:
     return {n: f"log/{rr.escape_entity_path_part(groups[n])}/{rr.escape_entity_path_part(n)}" for n in names}
 
 
-def rrd_blueprint(names: list[str]):
-    """One TimeSeriesView per variable group, in a grid."""
+def rrd_blueprint(names: list[str], tuned: bool = False):
+    """One TimeSeriesView per variable group, in a grid; a run with parameter changes gets a
+    text log view of them too (the changes' entries are on the same time lines)."""
     import rerun as rr
     import rerun.blueprint as rrb
 
     groups = sorted(set(variable_groups(names).values()))
     views = [rrb.TimeSeriesView(origin=f"/log/{rr.escape_entity_path_part(g)}", name=g) for g in groups]
+    if tuned:
+        views.append(rrb.TextLogView(origin="/" + CHANGES_ENTITY, name="parameter changes"))
     return rrb.Blueprint(rrb.Grid(*views), collapse_panels=False)
 
 
@@ -386,7 +389,7 @@ def _to_rrd(log: LogFile, out: Path, chunk_rows: int, changes: list[dict[str, An
     names = [v.field for v in log.variables]
     paths = entity_paths(names)
     rec = rr.RecordingStream("xrflab", recording_id=str(log.path.name))
-    rec.save(out, default_blueprint=rrd_blueprint(names))
+    rec.save(out, default_blueprint=rrd_blueprint(names, tuned=bool(changes)))
     try:
         for seg, cols in log.iter_chunks(chunk_rows):
             cycle = cols.get("cycle", cols["seq"]).astype(np.int64)
