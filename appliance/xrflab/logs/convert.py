@@ -374,7 +374,7 @@ def rrd_blueprint(names: list[str], tuned: bool = False):
     import rerun.blueprint as rrb
 
     groups = sorted(set(variable_groups(names).values()))
-    views = [rrb.TimeSeriesView(origin=f"/log/{rr.escape_entity_path_part(g)}", name=g) for g in groups]
+    views: list[Any] = [rrb.TimeSeriesView(origin=f"/log/{rr.escape_entity_path_part(g)}", name=g) for g in groups]
     if tuned:
         views.append(rrb.TextLogView(origin="/" + CHANGES_ENTITY, name="parameter changes"))
     return rrb.Blueprint(rrb.Grid(*views), collapse_panels=False)
