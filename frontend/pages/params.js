@@ -129,13 +129,14 @@
   P.markers = [];
   P.markersRun = null;
   function drawMarkers(u) {
-    if (!P.markers.length) return;
+    const marks = xrf.paramMarkers();
+    if (!marks.length) return;
     const ctx = u.ctx, { top, height } = u.bbox;
     ctx.save();
     ctx.strokeStyle = "#e36209";
     ctx.lineWidth = 1.5 * devicePixelRatio;
     ctx.setLineDash([4 * devicePixelRatio, 3 * devicePixelRatio]);
-    for (const mk of P.markers) {
+    for (const mk of marks) {
       const x = u.valToPos(mk.t, "x", true);
       if (!(x >= u.bbox.left && x <= u.bbox.left + u.bbox.width)) continue;
       ctx.beginPath(); ctx.moveTo(x, top); ctx.lineTo(x, top + height); ctx.stroke();
@@ -150,13 +151,38 @@
       u._paramsMarkers = true;
     }
   }
-  xrf.paramMarkers = () => P.markers.slice();  // for tests and other pages (the scope)
+  // {cycle, t, changes} of each applied set of the current run, t in seconds on the plots' axis
+  // (the run's frequency is known from its `run` message): for the scope (pages/watch.js), tests.
+  xrf.paramMarkers = () => {
+    const freq = xrf.run && xrf.run.run && xrf.run.run.cycle_freq;
+    return freq ? P.markers.map((mk) => ({ ...mk, t: mk.cycle / freq })) : [];
+  };
+
+  // A page opened (or reloaded) during a run gets the sets applied before it from the run's
+  // change table, so its plots and scope mark them too; later ones come as `applied` messages.
+  function addMarker(cycle, changes) {
+    if (P.markers.some((mk) => mk.cycle === cycle)) return;
+    P.markers.push({ cycle, changes });
+    P.markers.sort((a, b) => a.cycle - b.cycle);
+  }
+  async function seedMarkers(runId) {
+    try {
+      const r = await xrf.api("GET", `/api/logs/runs/${runId}/param-changes`);
+      if (P.markersRun !== runId) return;
+      for (const c of r.changes) {
+        const mk = P.markers.find((x) => x.cycle === c.cycle);
+        if (mk) { if (!mk.changes.some((d) => d.name === c.name)) mk.changes.push(c); } else addMarker(c.cycle, [c]);
+      }
+    } catch (e) { /* someone else's run or none: no markers to add */ }
+  }
 
   xrf.handlers.params = (m) => {
     P.msg = m;
-    if (m.run_id !== P.markersRun) { P.markers = []; P.markersRun = m.run_id; }
-    const freq = xrf.run && xrf.run.run && xrf.run.run.cycle_freq;
-    if (m.event === "applied" && freq) P.markers.push({ t: m.cycle / freq, cycle: m.cycle, changes: m.changes });
+    if (m.run_id !== P.markersRun) {
+      P.markers = []; P.markersRun = m.run_id;
+      if (m.run_id) seedMarkers(m.run_id);
+    }
+    if (m.event === "applied") addMarker(m.cycle, m.changes);
     hookPlots();
     if (m.event === "applied" && m.changes) {
       P.status = `applied at cycle ${m.cycle} by ${m.who}: ` + m.changes.map((c) => `${c.name} ${fmt(c.old)} → ${fmt(c.new)}`).join(", ");
@@ -165,6 +191,17 @@
     renderAll();
   };
   xrf.on("lease", () => setTimeout(renderAll));
+  // Who may edit is known only once /api/me has answered and the lease is known, in either order
+  // and possibly after the last params/lease message (a slow /api/me left the inputs disabled:
+  // the flaky browser test). lease.js calls xrf.permsChanged whenever the user or the lease
+  // changes: the panel's flags follow it too.
+  const permsChanged = xrf.permsChanged;
+  xrf.permsChanged = function () {
+    if (permsChanged) permsChanged.apply(this, arguments);
+    renderAll();
+  };
+  xrf.meReady.then(() => setTimeout(renderAll));
+  xrf.on("run", () => setTimeout(renderAll));  // "Save" needs the run's project (projectOf)
   // The Watch page mounts one beside its scope (pages/watch.js); the Bench page's is here.
   xrf.paramsPanel = (container) => mount(container, null);
   const bench = document.getElementById("page-bench");

@@ -182,9 +182,31 @@
         value: xrf.legendValue(fmt),
       }))],
     };
+    opts.hooks = { draw: [drawParamMarkers] };
     W.plot = new uPlot(opts, [[], ...keys.map(() => [])], host);
     W.dirty = true;
     renderPlot(true);
+  }
+
+  // Applied parameter sets (pages/params.js keeps them: xrf.paramMarkers(), t = cycle / frequency,
+  // the same clock as the telemetry's t) as dashed lines across the scope, so the response before
+  // and after a change is told apart; W.markersShown says which cycles were drawn (the tests').
+  function drawParamMarkers(u) {
+    const marks = xrf.paramMarkers ? xrf.paramMarkers() : [];
+    const zero = W.shown ? W.shown.zero : 0, { left, top, width, height } = u.bbox;
+    const shown = [];
+    u.ctx.save();
+    u.ctx.strokeStyle = "#e36209";
+    u.ctx.lineWidth = 1.5 * devicePixelRatio;
+    u.ctx.setLineDash([4 * devicePixelRatio, 3 * devicePixelRatio]);
+    for (const mk of marks) {
+      const x = u.valToPos(mk.t - zero, "x", true);
+      if (!(x >= left && x <= left + width)) continue;
+      u.ctx.beginPath(); u.ctx.moveTo(x, top); u.ctx.lineTo(x, top + height); u.ctx.stroke();
+      shown.push(mk.cycle);
+    }
+    u.ctx.restore();
+    W.markersShown = shown;
   }
 
   // setData(…, false) leaves every scale as it was: each y scale is fitted to what it shows now,

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -32,7 +33,7 @@ def _param(listing: dict[str, Any], name: str) -> dict[str, Any]:
     return next(p for p in listing["params"] if p["name"] == name)
 
 
-def test_tune_20sim_template_while_it_runs(server: Server) -> None:
+def test_tune_20sim_template_while_it_runs(server: Server, tmp_path: Path) -> None:
     server.stop_run()
     assert server.http.get("/api/params").json()["note"] == "no run is active"
     with server.ws() as ws:
@@ -104,11 +105,88 @@ def test_tune_20sim_template_while_it_runs(server: Server) -> None:
         assert lines[0] == "run,cycle,t,name,old,new,who"
         assert any(f",{cycle}," in line and "PID\\limit,1.0,0.0,admin" in line for line in lines), csv
         assert len(lines) == 1 + 4  # KP before INITIALISING, LIMIT + KP, KP widened
+        _changes_in_every_download(server, run["id"], cycle, tmp_path)
+        _changes_in_the_live_rerun_stream(server, run["id"])
 
     server.stop_run()
     wait_for(lambda: server.http.get("/api/params").json()["run_id"] is None, 10, "the run's table dropped")
     r = server.http.post("/api/params", json={"values": {KP: 1.0}})
     assert r.status_code == 409 and "no loop is running" in r.json()["detail"], r.text
+
+
+def _changes_in_every_download(server: Server, run_id: int, cycle: int, tmp: Path) -> None:
+    """The change table inside each download of the run's log (docs/logging/decoding.md)."""
+    import io
+    import zipfile
+
+    import pyarrow.parquet as pq
+    from scipy.io import loadmat
+
+    files = wait_for(lambda: server.http.get(f"/api/logs/runs/{run_id}").json()["files"], 10, "the run's log")
+    url = f"/api/logs/runs/{run_id}/files/{files[0]['name']}"
+    r = server.http.get(url, params={"fmt": "csv"})
+    assert r.status_code == 200 and r.headers["content-type"] == "application/zip", r.headers
+    assert r.headers["x-param-changes"] == "4" and ".zip" in r.headers["content-disposition"]
+    with zipfile.ZipFile(io.BytesIO(r.content)) as z:
+        samples, changes = z.namelist()
+        assert z.read(samples).startswith(b"seq,cycle,t_ns,t_s,")
+        table = z.read(changes).decode()
+        assert f"{run_id},{cycle}," in table and "PID\\limit,1.0,0.0,admin" in table
+    for fmt in ("mat", "parquet", "rrd"):
+        r = server.http.get(url, params={"fmt": fmt})
+        assert r.status_code == 200, (fmt, r.text)
+        data = io.BytesIO(r.content)
+        if fmt == "mat":
+            pc = loadmat(data, simplify_cells=True)["param_changes"]
+            assert list(pc["name"]).count(LIMIT) == 1 and cycle in list(pc["cycle"])
+        elif fmt == "parquet":
+            meta = json.loads(pq.read_schema(data).metadata[b"xrf.param_changes"])
+            assert [(c["cycle"], c["new"]) for c in meta if c["name"] == LIMIT] == [(cycle, 0.0)]
+        else:
+            assert f"PID\\limit: 1 -> 0 at cycle {cycle} (admin)" in _rrd_texts(r.content, tmp)
+
+
+def _changes_in_the_live_rerun_stream(server: Server, run_id: int) -> None:
+    """A viewer of the run's live rerun recording gets an applied set as text log entries
+    (params/changes) while connected (the proxy keeps only the recent past for late viewers)."""
+    import threading
+
+    from xrf_testing.grpcweb import READ_MESSAGES, read_messages
+    from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of
+
+    wait_for(lambda: server.http.get("/api/logs/rerun").json()["live_run"] == run_id, 20, "the run's live proxy")
+    texts: list[Any] = []
+    answers: list[Any] = []
+    setter = threading.Thread(  # once the viewer is connected (its first message)
+        target=lambda: answers.append(server.http.post("/api/params", json={"values": {KP: 1.5, LIMIT: 0.5}}))
+    )
+
+    def on_message(payload: bytes) -> None:
+        if not setter.ident:  # not started yet
+            setter.start()
+        chunk = chunk_of(payload)
+        if chunk is not None and chunk.store_kind == STORE_RECORDING and chunk.entity == "/params/changes":
+            texts.append(chunk)
+
+    got = read_messages(server.http, READ_MESSAGES, on_message=on_message, timeout=30, until=lambda _: bool(texts))
+    setter.join()
+    assert answers[0].status_code == 200, answers[0].text
+    assert got.ended_by == "until", (got.ended_by, len(texts))
+    assert "TextLog:text" in texts[0].columns and texts[0].newest_time_ns, texts
+
+
+def _rrd_texts(content: bytes, tmp: Path) -> list[str]:
+    """The text log entries of an .rrd, read back with rerun's own reader."""
+    from rerun.chunk import RrdReader
+
+    path = tmp / "download.rrd"
+    path.write_bytes(content)
+    out = []
+    for chunk in RrdReader(path).stream():
+        batch = chunk.to_record_batch()
+        if "TextLog:text" in batch.schema.names:
+            out += [t[0] for t in batch.column("TextLog:text").to_pylist()]
+    return out
 
 
 def test_declared_tunable_of_the_base_template(server: Server) -> None:

@@ -67,6 +67,17 @@ def test_ros2_param_set_on_the_bridge(server: Server, ros_domain: dict[str, str]
             ("PID1\\Kp", 2.5, "admin (ROS 2)"),
             ("PID2\\Kd", 0.2, "admin (ROS 2)"),
         }
+
+        # A set from the dashboard (or `xrf param`, the same route): `ros2 param get` follows,
+        # and the bridge does not send it back as a set of its own (no "(ROS 2)" change).
+        r = http.post("/api/params", json={"values": {"PID1\\Kp": 0.75, "PID\\limit": 0.5}})
+        assert r.status_code == 200, r.text
+        deadline = time.monotonic() + 20
+        while (got := params_peer(ros_domain, server=server)["get"])["PID1.Kp"] != 0.75:
+            assert time.monotonic() < deadline, got
+        assert got["PID.limit"] == 0.5 and got["PID2.Kd"] == 0.2
+        changes = http.get(f"/api/logs/runs/{run['id']}/param-changes").json()["changes"]
+        assert [c["who"] for c in changes].count("admin (ROS 2)") == 2 and len(changes) == 4, changes
         # Not the holder: refused (the lease released, the bridge's user holds nothing).
         assert http.post("/api/lease/release").status_code == 200
         got = params_peer(ros_domain, "PID1.Kp=3", "--atomic", server=server)

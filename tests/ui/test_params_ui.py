@@ -3,18 +3,38 @@
 The panel on the Bench page lists the template's parameters (from its tokens file); Apply sends a
 set and the panel shows the cycle the loop applied it at; the response changes from that cycle
 on (the output limit lowered: the PWM drops below the framework's clamp and the encoder slows);
-the change is in the run's change table; the Watch page's panel shows the same values.
+the change is in the run's change table; the Watch page's panel shows the same values and its
+scope marks the applied sets. "Save as the project's parameters" makes a new project version whose
+next run starts with the values.
 """
 
 from __future__ import annotations
 
+import json
 import re
+import shutil
+from collections.abc import Iterator
 from typing import Any
 
-from xrf_testing.harness import Server
+import pytest
+
+from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server
+from xrf_testing.projects_support import build_and_wait, reachable_tmp
 
 LIMIT = "PID\\limit"
 CLAMP = 409  # the framework's 20 % PWM limit of 2047 (XRF_PWM_LIMIT)
+# The panel's inputs are usable once the page knows the user may drive (/api/me and the lease,
+# in either order): what the test waits on, not the panel's first appearance.
+EDITABLE = "(p) => { const i = document.querySelector(p + ' .params-panel .params-new'); return i && !i.disabled; }"
+
+
+@pytest.fixture(scope="module")
+def server() -> Iterator[Server]:
+    data = reachable_tmp("ui-params")  # the build user must reach the projects folder (Save)
+    s = start_server(data, shared_builds_root())
+    yield s
+    stop_server(s)
+    shutil.rmtree(data, ignore_errors=True)
 
 
 def _speed(samples: list[dict[str, Any]]) -> float:
@@ -46,6 +66,7 @@ def test_tune_the_pid_from_the_panel(server: Server, browser) -> None:
         row.wait_for()
         assert panel.locator("tbody tr").count() == 8
         assert row.locator(".params-value").inner_text() == "1"
+        page.wait_for_function(EDITABLE, arg="#page-bench")
 
         before = [ws.wait_for(lambda m: m.get("type") == "telemetry", 5) for _ in range(30)]
         row.locator(".params-new").fill("0.1")
@@ -82,12 +103,75 @@ def test_tune_the_pid_from_the_panel(server: Server, browser) -> None:
             "document.querySelector('#page-bench .params-status').textContent.includes('PID\\\\limit 0.1 → 1')"
         )
         assert row.locator(".params-value").inner_text() == "1"
+        revert = int(re.search(r"applied at cycle (\d+)", status.inner_text()).group(1))
 
-        # The Watch page shows the same panel and values.
+        # The Watch page shows the same panel and values, and its scope marks both sets: a page
+        # opened later (a reload) gets the earlier ones from the run's change table.
         page.goto(server.url + "/#watch")
+        page.reload()
         watch_row = page.locator(".watch-page .params-panel tr", has_text=LIMIT)
         watch_row.wait_for()
         assert watch_row.locator(".params-value").inner_text() == "1"
+        page.wait_for_function(EDITABLE, arg=".watch-page")
+        page.select_option("#watch-window", "60")
+        page.locator("#watch-body input[data-key=enc1]").check()  # plotted by default: stays so
+        page.wait_for_function(f"(window.xrfWatch.markersShown || []).join() === '{cycle},{revert}'")
         assert not errors, errors
         page.close()
+    server.stop_run()
+
+
+def test_save_as_the_projects_parameters(server: Server, browser) -> None:
+    """The panel's Save button: a new version of the project holding the values (in the editor's
+    files), and the project's next run starts with them (applied before INITIALISING)."""
+    r = server.http.post("/api/projects/from-template", json={"template": "20sim", "name": "tuned"})
+    assert r.status_code == 201, r.text
+    pid = r.json()["id"]
+    b = build_and_wait(server.http, pid)
+    assert b["status"] == "ok", b
+    server.stop_run()
+    r = server.http.post(f"/api/projects/{pid}/builds/{b['id']}/run", json={}, timeout=60)
+    assert r.status_code == 201, r.text
+
+    page = browser.new_page(viewport={"width": 1400, "height": 1400})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    # /api/me answers only after the panel has its table (the order that left the inputs disabled
+    # in full CI): the panel follows when the user becomes known.
+    held: list[Any] = []
+    page.route("**/api/me", lambda route: held.append(route))
+    page.goto(server.url + "/#bench")
+    panel = page.locator("#page-bench .params-panel")
+    row = panel.locator("tr", has_text=LIMIT)
+    row.wait_for()
+    assert row.locator(".params-new").is_disabled()  # who the user is: not known yet
+    assert held, "the page asked /api/me (app.js asks it first thing)"
+    held[0].continue_()
+    page.wait_for_function(EDITABLE, arg="#page-bench")
+    row.locator(".params-new").fill("0.25")
+    panel.locator(".params-apply").click()
+    page.wait_for_function(
+        "document.querySelector('#page-bench .params-status').textContent.startsWith('applied at cycle')"
+    )
+    page.wait_for_function("!document.querySelector('#page-bench .params-save').disabled")
+    panel.locator(".params-save").click()
+    page.wait_for_function(
+        "document.querySelector('#page-bench .params-status').textContent.startsWith('saved as version')"
+    )
+    n = int(re.search(r"saved as version (\d+)", panel.locator(".params-status").inner_text()).group(1))
+    shown = server.http.get(f"/api/projects/{pid}/files/xrf_params.json").json()  # the editor's view
+    assert shown["version"] == n
+    assert json.loads(shown["content"])["parameters"][LIMIT] == 0.25
+
+    # The next run of the project starts with the saved value; the panel shows it.
+    server.stop_run()
+    r = server.http.post(f"/api/projects/{pid}/builds/{b['id']}/run", json={}, timeout=60)
+    assert r.status_code == 201, r.text
+    page.wait_for_function(
+        "document.querySelector('#page-bench .params-status').textContent.includes('by saved parameters')"
+    )
+    assert row.locator(".params-value").inner_text() == "0.25"
+    assert server.http.get("/api/params/" + LIMIT).json()["value"] == 0.25
+    assert not errors, errors
+    page.close()
     server.stop_run()

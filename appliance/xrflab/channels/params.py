@@ -85,6 +85,12 @@ def read_values(shm: CData, table: ParamTable) -> list[float]:
     return [float(out[i]) for i in range(len(table.params))]
 
 
+def last_answer(shm: CData) -> int:
+    """The seq of the set the loop answered last (0: none yet): a reader that remembers it knows
+    cheaply when the values may have changed (the ROS 2 bridge follows the appliance's sets)."""
+    return int(_block(shm).ack_seq)
+
+
 def send_set(shm: CData, entries: list[tuple[int, float]]) -> int:
     """Writes one pending set (indices from our table, finite values); returns its seq.
     ValueError for an empty/oversized set or a non-finite value; BlockingIOError when a writer

@@ -13,6 +13,14 @@ The tabular formats (CSV, MAT, Parquet) of an xrflog file add one derived column
 ``t_s`` (float64), seconds from the run's start (``t_ns - start_mono_ns`` of the record's segment
 header), so a plot or a spreadsheet needs no arithmetic on 19-digit nanoseconds. t_ns stays the
 exact value; rerun has its own time axes.
+
+The run's parameter changes (live tuning, docs/students/tuning.md: cycle, t, name, old, new, who;
+the appliance's own log, not the loop's) travel inside each download when the caller passes them
+(``changes``): CSV becomes a zip of two CSV files (the samples, unchanged, and the change table:
+a spreadsheet or pandas opens each as the one table it is), MAT gets a struct variable
+``param_changes``, Parquet the JSON table as the file's key-value metadata ``xrf.param_changes``,
+and .rrd a text log entry per change at ``params/changes`` on both time lines. ``cycle`` is the
+key to the samples: the first cycle that ran with the new value.
 """
 
 from __future__ import annotations
@@ -32,6 +40,11 @@ import numpy as np
 from .reader import SECONDS_COLUMN, LogFile, Segment, open_log
 
 FORMATS = ("csv", "mat", "parquet", "rrd")
+# One row of a run's parameter change table (xrflab/params/service.py writes them; the downloads
+# and GET /api/logs/runs/{id}/param-changes show them): t is the wall clock (Unix seconds).
+CHANGE_COLUMNS = ("run", "cycle", "t", "name", "old", "new", "who")
+CHANGES_META = "xrf.param_changes"  # Parquet key-value metadata
+CHANGES_MAT = "param_changes"  # MAT struct variable
 SUFFIX = {"csv": ".csv", "mat": ".mat", "parquet": ".parquet", "rrd": ".rrd"}
 CHUNK_ROWS = 1 << 17
 
@@ -118,9 +131,69 @@ def iter_csv_chunks(path: str | Path, chunk_rows: int = CHUNK_ROWS, log: LogFile
             yield rest
 
 
-def _to_csv(log: LogFile, out: Path, chunk_rows: int) -> None:
+def changes_csv(changes: list[dict[str, Any]]) -> str:
+    """The change table as CSV text (header row first)."""
+    out = io.StringIO()
+    w = csv.DictWriter(out, fieldnames=CHANGE_COLUMNS, extrasaction="ignore", lineterminator="\n")
+    w.writeheader()
+    w.writerows(changes)
+    return out.getvalue()
+
+
+class _Drain(io.RawIOBase):
+    """A write-only, unseekable sink whose bytes are taken out between writes: zipfile then
+    writes a streamed archive (data descriptors after each member), chunk by chunk."""
+
+    def __init__(self) -> None:
+        self.parts: list[bytes] = []
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, b: Any) -> int:
+        self.parts.append(bytes(b))
+        return len(b)
+
+    def take(self) -> bytes:
+        out, self.parts = b"".join(self.parts), []
+        return out
+
+
+def csv_zip_names(stem: str, run: int | str) -> tuple[str, str]:
+    """The two members of a CSV download with parameter changes: the samples, the changes."""
+    return f"{stem}.csv", f"run{run}_param_changes.csv"
+
+
+def iter_csv_zip_chunks(
+    path: str | Path,
+    changes: list[dict[str, Any]],
+    names: tuple[str, str],
+    chunk_rows: int = CHUNK_ROWS,
+    log: LogFile | None = None,
+) -> Iterator[bytes]:
+    """A zip of the samples' CSV (`iter_csv_chunks`, streamed: memory bounded by one chunk) and
+    the change table's CSV, as byte chunks."""
+    import zipfile
+
+    sink = _Drain()
+    with zipfile.ZipFile(sink, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+        with zf.open(names[0], "w", force_zip64=True) as member:
+            for chunk in iter_csv_chunks(path, chunk_rows, log=log):
+                member.write(chunk)
+                yield sink.take()
+        zf.writestr(names[1], changes_csv(changes))
+        yield sink.take()
+    yield sink.take()
+
+
+def _to_csv(log: LogFile, out: Path, chunk_rows: int, changes: list[dict[str, Any]] | None) -> None:
+    if changes:
+        run = changes[0].get("run", "")
+        chunks = iter_csv_zip_chunks(log.path, changes, csv_zip_names(log.path.stem, run), chunk_rows, log=log)
+    else:
+        chunks = iter_csv_chunks(log.path, chunk_rows, log=log)
     with open(out, "wb") as f:
-        for chunk in iter_csv_chunks(log.path, chunk_rows, log=log):
+        for chunk in chunks:
             f.write(chunk)
 
 
@@ -183,17 +256,44 @@ def _column(log: LogFile, name: str) -> np.ndarray:
     return np.ascontiguousarray(parts[0]) if len(parts) == 1 else np.concatenate(parts)
 
 
-def _to_mat(log: LogFile, out: Path, chunk_rows: int) -> None:
+def _changes_struct(changes: list[dict[str, Any]]) -> dict[str, np.ndarray]:
+    """The change table as a MATLAB struct of columns (numbers as columns, text as cell arrays):
+    `param_changes.name{k}` changed from `old(k)` to `new(k)` at cycle `cycle(k)`."""
+
+    def text(key: str) -> np.ndarray:
+        out = np.empty((len(changes), 1), dtype=object)
+        for k, c in enumerate(changes):
+            out[k, 0] = str(c.get(key, ""))
+        return out
+
+    def nums(key: str, dtype: Any) -> np.ndarray:
+        return np.array([c.get(key, 0) for c in changes], dtype=dtype).reshape(-1, 1)
+
+    return {
+        "cycle": nums("cycle", np.uint64),
+        "t": nums("t", np.float64),
+        "name": text("name"),
+        "old": nums("old", np.float64),
+        "new": nums("new", np.float64),
+        "who": text("who"),
+    }
+
+
+def _to_mat(log: LogFile, out: Path, chunk_rows: int, changes: list[dict[str, Any]] | None) -> None:
     from scipy.io import savemat
 
     log.check_uniform()
     columns = table_columns(log)
     header_names = columns[: len(columns) - len(log.variables)]
-    var_names = matlab_names([v.field for v in log.variables], reserved=tuple(header_names) + ("log_header",))
+    var_names = matlab_names(
+        [v.field for v in log.variables], reserved=tuple(header_names) + ("log_header", CHANGES_MAT)
+    )
     items: list[tuple[str, Callable[[], Any]]] = [(n, functools.partial(_column, log, n)) for n in header_names]
     items += [(mname, functools.partial(_column, log, v.field)) for mname, v in zip(var_names, log.variables)]
     # The headers (cycle frequency, start time, identity; original names) as one JSON string.
     items.append(("log_header", lambda: json.dumps([s.header for s in log.segments])))
+    if changes is not None:
+        items.append((CHANGES_MAT, functools.partial(_changes_struct, changes)))
     with open(out, "wb") as f:
         savemat(f, _LazyColumns(items), format="5", oned_as="column", long_field_names=True, do_compression=False)
 
@@ -201,7 +301,7 @@ def _to_mat(log: LogFile, out: Path, chunk_rows: int) -> None:
 # ---- Parquet --------------------------------------------------------------------------------
 
 
-def _to_parquet(log: LogFile, out: Path, chunk_rows: int) -> None:
+def _to_parquet(log: LogFile, out: Path, chunk_rows: int, changes: list[dict[str, Any]] | None) -> None:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -217,6 +317,8 @@ def _to_parquet(log: LogFile, out: Path, chunk_rows: int) -> None:
                     for n, a in zip(cols, arrays)
                 ]
                 meta = {"xrflog.headers": json.dumps([s.header for s in log.segments])}
+                if changes is not None:
+                    meta[CHANGES_META] = json.dumps(changes)
                 schema = pa.schema(fields, metadata=meta)
                 writer = pq.ParquetWriter(out, schema)
             # One row group per chunk: readers can stream the file back in the same steps.
@@ -227,13 +329,23 @@ def _to_parquet(log: LogFile, out: Path, chunk_rows: int) -> None:
                 for c in table_columns(log)
             }
             empty.update({v.field: _plain(np.empty(0, dtype=v.dtype)) for v in log.variables})
-            pq.write_table(pa.table(empty), out)
+            table = pa.table(empty)
+            if changes is not None:
+                table = table.replace_schema_metadata({CHANGES_META: json.dumps(changes)})
+            pq.write_table(table, out)
     finally:
         if writer is not None:
             writer.close()
 
 
 # ---- rerun ----------------------------------------------------------------------------------
+
+CHANGES_ENTITY = "params/changes"  # the text log of applied parameter sets (.rrd and the live stream)
+
+
+def change_text(c: dict[str, Any]) -> str:
+    """One change as the rerun text log shows it."""
+    return f"{c['name']}: {c['old']:g} -> {c['new']:g} at cycle {c['cycle']} ({c.get('who', '')})"
 
 
 def variable_groups(names: list[str]) -> dict[str, str]:
@@ -255,17 +367,20 @@ def entity_paths(names: list[str]) -> dict[str, str]:
     return {n: f"log/{rr.escape_entity_path_part(groups[n])}/{rr.escape_entity_path_part(n)}" for n in names}
 
 
-def rrd_blueprint(names: list[str]):
-    """One TimeSeriesView per variable group, in a grid."""
+def rrd_blueprint(names: list[str], tuned: bool = False):
+    """One TimeSeriesView per variable group, in a grid; a run with parameter changes gets a
+    text log view of them too (the changes' entries are on the same time lines)."""
     import rerun as rr
     import rerun.blueprint as rrb
 
     groups = sorted(set(variable_groups(names).values()))
-    views = [rrb.TimeSeriesView(origin=f"/log/{rr.escape_entity_path_part(g)}", name=g) for g in groups]
+    views: list[Any] = [rrb.TimeSeriesView(origin=f"/log/{rr.escape_entity_path_part(g)}", name=g) for g in groups]
+    if tuned:
+        views.append(rrb.TextLogView(origin="/" + CHANGES_ENTITY, name="parameter changes"))
     return rrb.Blueprint(rrb.Grid(*views), collapse_panels=False)
 
 
-def _to_rrd(log: LogFile, out: Path, chunk_rows: int) -> None:
+def _to_rrd(log: LogFile, out: Path, chunk_rows: int, changes: list[dict[str, Any]] | None) -> None:
     """Timelines `cycle` (sequence; the record index for XRF2 files) and `time` (wall clock from
     t_ns; absent for XRF2 files). rerun's Scalars are float64: int64 values beyond 2**53 are
     rounded, every other type is exact."""
@@ -274,7 +389,7 @@ def _to_rrd(log: LogFile, out: Path, chunk_rows: int) -> None:
     names = [v.field for v in log.variables]
     paths = entity_paths(names)
     rec = rr.RecordingStream("xrflab", recording_id=str(log.path.name))
-    rec.save(out, default_blueprint=rrd_blueprint(names))
+    rec.save(out, default_blueprint=rrd_blueprint(names, tuned=bool(changes)))
     try:
         for seg, cols in log.iter_chunks(chunk_rows):
             cycle = cols.get("cycle", cols["seq"]).astype(np.int64)
@@ -284,6 +399,10 @@ def _to_rrd(log: LogFile, out: Path, chunk_rows: int) -> None:
             for name in names:
                 values = _plain(cols[name]).astype(np.float64)
                 rec.send_columns(paths[name], indexes=indexes, columns=rr.Scalars.columns(scalars=values))
+        for c in changes or ():
+            rec.set_time("cycle", sequence=int(c["cycle"]))
+            rec.set_time("time", timestamp=float(c["t"]))
+            rec.log(CHANGES_ENTITY, rr.TextLog(change_text(c), level="INFO"))
     finally:
         rec.flush()
         rec.disconnect()
@@ -291,7 +410,7 @@ def _to_rrd(log: LogFile, out: Path, chunk_rows: int) -> None:
 
 # ---- entry point ----------------------------------------------------------------------------
 
-_WRITERS: dict[str, Callable[[LogFile, Path, int], None]] = {
+_WRITERS: dict[str, Callable[[LogFile, Path, int, list[dict[str, Any]] | None], None]] = {
     "csv": _to_csv,
     "mat": _to_mat,
     "parquet": _to_parquet,
@@ -306,16 +425,20 @@ def convert(
     *,
     chunk_rows: int = CHUNK_ROWS,
     log: LogFile | None = None,
+    changes: list[dict[str, Any]] | None = None,
 ) -> Path:
     """Write `path` (xrflog or XRF2 .bin) as `fmt` to `out` (default: beside it, with the
-    format's suffix); returns the written path. Raises LogFormatError for undecodable input."""
+    format's suffix: `.zip` for CSV with parameter changes); returns the written path. `changes`:
+    the run's parameter change table (rows of CHANGE_COLUMNS) to put inside. Raises
+    LogFormatError for undecodable input."""
     if fmt not in _WRITERS:
         raise ValueError(f"unknown format {fmt!r}; formats: {', '.join(FORMATS)}")
     log = log if log is not None else open_log(path)  # not `or`: a LogFile of no records is falsy
-    target = Path(out) if out is not None else Path(path).with_suffix(SUFFIX[fmt])
+    suffix = ".zip" if fmt == "csv" and changes else SUFFIX[fmt]
+    target = Path(out) if out is not None else Path(path).with_suffix(suffix)
     tmp = target.with_name(f".{target.name}.{os.getpid()}.part")
     try:
-        _WRITERS[fmt](log, tmp, chunk_rows)
+        _WRITERS[fmt](log, tmp, chunk_rows, changes)
         os.replace(tmp, target)
     finally:
         if tmp.exists():

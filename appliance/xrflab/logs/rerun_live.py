@@ -72,6 +72,7 @@ class LiveRerun:
         self.rec = rr.RecordingStream("xrflab", recording_id=f"run-{run_id}")
         self.rec.connect_grpc(proxy.local_url)
         self._telemetry_reader: TelemetryReader | None = ch.telemetry_reader()
+        self._texts: queue.SimpleQueue[dict[str, Any]] = queue.SimpleQueue()  # parameter changes
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._main, name=f"xrf-rerun-{run_id}", daemon=True)
         self._thread.start()
@@ -87,6 +88,29 @@ class LiveRerun:
             self._q.put_nowait(keep)
         except queue.Full:
             self.dropped += len(keep)
+
+    def param_changes(self, changes: list[dict[str, Any]]) -> None:
+        """Applied parameter changes (live tuning; rows as in the run's change table), shown as
+        text log entries at params/changes, as in the downloaded .rrd. Queued: sent by the
+        sending thread with its next batch (the caller is the appliance's event loop)."""
+        for c in changes:
+            self._texts.put(c)
+
+    def _send_texts(self) -> None:
+        from .convert import CHANGES_ENTITY, change_text
+
+        rows = []
+        while not self._texts.empty():
+            rows.append(self._texts.get_nowait())
+        if not rows:
+            return
+        rr = self._rr
+        idx = [
+            rr.TimeColumn("cycle", sequence=np.array([int(c["cycle"]) for c in rows], dtype=np.int64)),
+            rr.TimeColumn("time", timestamp=np.array([float(c["t"]) for c in rows], dtype=np.float64)),
+        ]
+        cols = rr.TextLog.columns(text=[change_text(c) for c in rows], level=["INFO"] * len(rows))
+        self.rec.send_columns(CHANGES_ENTITY, indexes=idx, columns=cols)
 
     def close(self) -> None:
         """Stop feeding; flushing to the proxy happens in the background: a slow viewer can hold
@@ -212,6 +236,7 @@ class LiveRerun:
                 if done or now - last_telemetry >= SEND_PERIOD_S:
                     last_telemetry = now
                     self._send_telemetry()
+                    self._send_texts()
             except Exception:
                 pending.clear()
                 log.exception("live rerun")

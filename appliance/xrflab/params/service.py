@@ -199,7 +199,12 @@ class ParamsService(RunObserver):
             changes.append(ParamChange(name=rp.table.params[i].name, old=rp.values[i], new=v))
             rp.values[i] = v
         rp.changes += len(changes)
-        await asyncio.to_thread(self._log, rp, cycle, who, changes)
+        rows = await asyncio.to_thread(self._log, rp, cycle, who, changes)
+        # The run's live rerun recording shows them as text log entries (logs/rerun_live.py).
+        run = self.supervisor.current
+        live = run.logging.live if run is not None and run.row.id == rp.run_id and run.logging else None
+        if live is not None:
+            live.param_changes(rows)
         self.hub.publish(self._message(rp, "applied", cycle=cycle, who=who, changes=changes))
         return changes
 
@@ -344,26 +349,19 @@ class ParamsService(RunObserver):
     def changes_file(self, run_id: int) -> Path:
         return self.folder / f"run-{int(run_id)}.jsonl"
 
-    def _log(self, rp: RunParams, cycle: int, who: str, changes: list[ParamChange]) -> None:
+    def _log(self, rp: RunParams, cycle: int, who: str, changes: list[ParamChange]) -> list[dict[str, Any]]:
+        """Appends the changes to the run's change log; returns them as its rows."""
         self.folder.mkdir(parents=True, exist_ok=True, mode=0o700)
         t = time.time()
+        rows = [
+            {"run": rp.run_id, "cycle": cycle, "t": t, "name": c.name, "old": c.old, "new": c.new, "who": who}
+            for c in changes
+        ]
         fd = os.open(self.changes_file(rp.run_id), os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_CLOEXEC, 0o600)
         with open(fd, "a", encoding="utf-8") as f:
-            for c in changes:
-                f.write(
-                    json.dumps(
-                        {
-                            "run": rp.run_id,
-                            "cycle": cycle,
-                            "t": t,
-                            "name": c.name,
-                            "old": c.old,
-                            "new": c.new,
-                            "who": who,
-                        }
-                    )
-                    + "\n"
-                )
+            for row in rows:
+                f.write(json.dumps(row) + "\n")
+        return rows
 
     def changes(self, run_id: int) -> list[dict[str, Any]]:
         """Every logged change of a run (empty: none)."""

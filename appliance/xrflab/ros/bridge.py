@@ -395,6 +395,10 @@ class Bridge:
         self.last_state: int | None = None
         self.param_setter = param_setter
         self._ros_params: dict[str, str] = {}  # ROS 2 name -> the controller's name
+        self._param_index: dict[str, int] = {}  # ROS 2 name -> index in the loop's table
+        self._param_table: Any = None
+        self._param_seen = -1  # the loop's last answered set when the node's values were taken
+        self._echo = threading.local()  # set in the thread that copies the loop's values in
         self._declare_parameters()
 
     # -- parameters (live tuning) ---------------------------------------------------------------
@@ -413,6 +417,7 @@ class Bridge:
         self._SetParametersResult = SetParametersResult
         try:
             table = chparams.read_table(self.ch.shm, self.ch.name)
+            self._param_seen = chparams.last_answer(self.ch.shm)
             values = chparams.read_values(self.ch.shm, table)
         except ChannelsCorrupt as exc:
             self.log.error(f"no parameters: {exc}")
@@ -431,12 +436,47 @@ class Bridge:
                 d.floating_point_range = [FloatingPointRange(from_value=p.min, to_value=p.max, step=0.0)]
             self.node.declare_parameter(ros_name, float(values[p.index]), d)
             self._ros_params[ros_name] = p.name
+            self._param_index[ros_name] = p.index
+        self._param_table = table
         self.node.add_on_set_parameters_callback(self._on_set_parameters)
+
+    def _follow_parameters(self, force: bool = False) -> None:
+        """The node's parameters follow the loop's values: a set applied from the dashboard or
+        the CLI (or saved parameters, or 20-sim's Initialize) is what `ros2 param get` answers
+        next. Checked when the loop has answered a new set (one shared-memory read per pass of
+        the reader), and every state period (`force`) for values changed without a set."""
+        if not self._param_index:
+            return
+        from rclpy.parameter import Parameter
+
+        from ..channels import params as chparams
+
+        seen = chparams.last_answer(self.ch.shm)
+        if seen == self._param_seen and not force:
+            return
+        self._param_seen = seen
+        values = chparams.read_values(self.ch.shm, self._param_table)
+        changed = [
+            Parameter(ros_name, Parameter.Type.DOUBLE, values[i])
+            for ros_name, i in self._param_index.items()
+            if self.node.get_parameter(ros_name).value != values[i]
+        ]
+        if not changed:
+            return
+        self._echo.on = True  # the loop's own values: taken as they are, not sent back as a set
+        try:
+            for r in self.node.set_parameters(changed):
+                if not r.successful:  # e.g. outside a descriptor's range: say so, keep bridging
+                    self.log.warning(f"parameter not followed: {r.reason}")
+        finally:
+            self._echo.on = False
 
     def _on_set_parameters(self, params: list[Any]) -> Any:
         """`ros2 param set`: the parameters as one set, applied whole or refused whole."""
         from rclpy.parameter import Parameter
 
+        if getattr(self._echo, "on", False):
+            return self._SetParametersResult(successful=True, reason="the loop's value")
         values: dict[str, float] = {}
         for prm in params:
             name = self._ros_params.get(prm.name)
@@ -528,7 +568,9 @@ class Bridge:
                 self.lost = reader.lost
             state = self.ch.status().state
             now = time.monotonic()
-            if state != self.last_state or now - last_periodic >= self.state_period:
+            periodic = now - last_periodic >= self.state_period
+            self._follow_parameters(force=periodic)
+            if state != self.last_state or periodic:
                 self._publish_state(state)
                 last_periodic = now
                 if loop_pid and not _alive(loop_pid):

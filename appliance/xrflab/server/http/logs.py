@@ -8,6 +8,12 @@ converted once, off the event loop, into `<data>/log-cache/<run>/` (keyed by the
 size and mtime, so a file that grew is converted again) and then served as files. Every output
 is what `xrf decode` writes for the same file: the same code (`xrflab.logs.convert`).
 
+Each download carries the run's parameter changes (live tuning; the appliance's own log,
+params/service.py): a run with changes downloads as CSV in a zip (the samples' CSV and the
+change table's; `run<id>_<log>.zip`), MAT/Parquet/.rrd with the table inside
+(docs/logging/decoding.md). The conversion cache's key includes a digest of the table, so a set
+applied after a download is in the next one.
+
 A run folder's contents are the loop's to make (its log files in nested folders, like
 ``home/x/logs/log_…xrf``, but also symlinks, FIFOs, hard links or names that are not UTF-8 if it
 wants): every listing, open and stat here goes through ``runfolder.py`` (openat2 with
@@ -24,6 +30,7 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+import json
 import os
 import re
 import time
@@ -185,7 +192,13 @@ def _open_log_in(run_dir: str | Path, rel: str) -> Any:
         return open_run_log(rf, rel)
 
 
-async def _cached(run_dir: str | Path, rel: str, fmt: str, cache: Path) -> Path:
+def _changes(request: Request, run_id: int) -> list[dict[str, Any]]:
+    """The run's parameter change table ([] when none, or an app without live tuning)."""
+    svc = getattr(request.app.state, "params", None)
+    return svc.changes(run_id) if svc is not None else []
+
+
+async def _cached(run_dir: str | Path, rel: str, fmt: str, cache: Path, changes: list[dict[str, Any]]) -> Path:
     from ...logs import convert
 
     fd, st = await asyncio.to_thread(_open_file, run_dir, rel)
@@ -194,7 +207,8 @@ async def _cached(run_dir: str | Path, rel: str, fmt: str, cache: Path) -> Path:
     # that differ only where they are not plain ASCII do not share a conversion).
     digest = hashlib.sha256(os.fsencode(rel)).hexdigest()[:10]
     key = re.sub(r"[^A-Za-z0-9._-]", "_", rel)[:100] + "-" + digest
-    target = cache / f"{key}.{st.st_size}-{st.st_mtime_ns}.{fmt}"
+    tuned = hashlib.sha256(json.dumps(changes).encode()).hexdigest()[:10] if changes else "0"
+    target = cache / f"{key}.{st.st_size}-{st.st_mtime_ns}-{tuned}.{fmt}"
     lock = _convert_locks.setdefault(str(target), asyncio.Lock())
     async with lock:
         if not target.exists():
@@ -202,7 +216,8 @@ async def _cached(run_dir: str | Path, rel: str, fmt: str, cache: Path) -> Path:
             for old in cache.glob(f"{key}.*.{fmt}"):  # superseded conversions of a grown file
                 old.unlink(missing_ok=True)
             log = await asyncio.to_thread(_open_log_in, run_dir, rel)
-            await asyncio.to_thread(convert, log.path, fmt, target, log=log)
+            # An untuned run's download is byte for byte what `xrf decode` writes (no empty table).
+            await asyncio.to_thread(convert, log.path, fmt, target, log=log, changes=changes or None)
     return target
 
 
@@ -270,10 +285,12 @@ async def download(
     run_id: int, name: str, request: Request, fmt: Literal["raw", "csv", "mat", "parquet", "rrd"] = "raw"
 ) -> Response:
     from ...logs import LogFormatError, iter_csv_chunks
+    from ...logs.convert import csv_zip_names, iter_csv_zip_chunks
 
     row = _row(request, run_id)
     rel = await asyncio.to_thread(_file, row, name)
     headers = {"Content-Disposition": f'attachment; filename="{_download_name(row, rel, fmt)}"'}
+    changes = await asyncio.to_thread(_changes, request, row.id) if fmt != "raw" else []
     try:
         if fmt == "raw":
             # Read through the descriptor that was checked, not by name: the loop may swap the
@@ -285,8 +302,15 @@ async def download(
             log.check_uniform()
             headers["X-Log-Skipped"] = str(len(log.skipped))
             headers["X-Log-Lost"] = str(log.lost)
+            headers["X-Param-Changes"] = str(len(changes))
+            if changes:  # the samples' CSV and the change table's, as one zip
+                zipped = _download_name(row, rel, "zip")
+                headers["Content-Disposition"] = f'attachment; filename="{zipped}"'
+                names = csv_zip_names(PurePosixPath(zipped).stem, row.id)
+                chunks = iter_csv_zip_chunks(log.path, changes, names, log=log)
+                return StreamingResponse(chunks, media_type="application/zip", headers=headers)
             return StreamingResponse(iter_csv_chunks(log.path, log=log), media_type=MEDIA["csv"], headers=headers)
-        target = await _cached(row.run_dir, rel, fmt, _cache_dir(request, row))
+        target = await _cached(row.run_dir, rel, fmt, _cache_dir(request, row), changes)
     except LogFormatError as exc:
         raise Invalid(_text(str(exc))) from None
     except (OSError, RunPathError):

@@ -15,21 +15,18 @@
 
 from __future__ import annotations
 
-import csv
-import io
 from typing import Any, Literal
 
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
+from ...logs.convert import changes_csv
 from ...params.service import ParamsService, params_of
 from ..security import ownership
 from ..security.auth import Perm, User, current_user, requires
 
 router = APIRouter(tags=["parameters"])
-
-CHANGE_COLUMNS = ("run", "cycle", "t", "name", "old", "new", "who")
 
 
 class ParamSet(BaseModel):
@@ -72,9 +69,5 @@ async def param_changes(
     rows = svc.changes(run_id)
     if fmt == "json":
         return {"run": run_id, "changes": rows}
-    out = io.StringIO()
-    w = csv.DictWriter(out, fieldnames=CHANGE_COLUMNS, extrasaction="ignore", lineterminator="\n")
-    w.writeheader()
-    w.writerows(rows)
     headers = {"Content-Disposition": f'attachment; filename="run{run_id}_param_changes.csv"'}
-    return Response(out.getvalue(), media_type="text/csv", headers=headers)
+    return Response(changes_csv(rows), media_type="text/csv", headers=headers)
