@@ -102,6 +102,19 @@ def xmacro_constants(match: re.Match[str]) -> str:
     return "".join(f"#define {prefix}_{name} ...\n" for name in [*names, "COUNT"])
 
 
+XMACRO_NAMED_RE = re.compile(r'\bX\(\s*([A-Z][A-Z0-9_]*)\s*,\s*"([^"]*)"\s*,\s*(-?\d+)\s*\)')
+
+
+def xmacro_named(header: str, list_name: str) -> dict[str, int]:
+    """An X(NAME, "name", number) list of a header of rt_core as {name: number}, read from its
+    text: for what needs the list without the compiled binding (validating a bench profile)."""
+    text = (rt_core_dir() / "include" / "xrf" / header).read_text()
+    for match in XMACRO_RE.finditer(text):
+        if match.group(1) + "S" == list_name:
+            return {name: int(number) for _, name, number in XMACRO_NAMED_RE.findall(match.group(2))}
+    raise ValueError(f"{header} defines no {list_name}(X) list")
+
+
 def extract_cdef(header_text: str) -> str:
     """The part of a header meant for cffi, its X-macro lists turned into constants."""
     start = header_text.find(CDEF_BEGIN)

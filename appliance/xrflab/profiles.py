@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ._cffi_build import xmacro_named
 from .errors import Invalid
 from .selfcheck_limits import hard_limits
 
@@ -230,6 +231,8 @@ def validate_profile(profile: Any, source: str = "") -> dict[str, Any]:
             continue
         _check_channel(c, i, ch, seen, pwm_limit)
 
+    _check_safety(c, c.section(profile, "safety"), chans)
+
     mech = c.section(profile, "mechanics")
     if mech:
         _check_mechanics(c, mech)
@@ -295,6 +298,58 @@ def _check_channel(c: _Checker, i: int, ch: dict, seen: set[int], pwm_limit: flo
         c.string(pin, w, "name")
         if pin.get("idle") not in (None, 0, 1) or isinstance(pin.get("idle"), bool):
             c.err(f"{w}.idle", f"{where}.inputs pin {pin.get('pin')}: idle must be 0, 1 or null (not checked)")
+
+
+def _safe_reactions() -> dict[str, int]:
+    # watch.h's XRF_SAFE_REACTIONS, read from the header's text: validating a profile needs no
+    # compiled binding (channels.SAFE_REACTIONS is the same list through it).
+    return xmacro_named("watch.h", "XRF_SAFE_REACTIONS")
+
+
+def _check_safety(c: _Checker, safety: dict, chans: list) -> None:
+    """safety.reaction: what the safety watcher does to the outputs when the loop dies or hangs
+    (docs/developers/safety.md); `brake` needs the channel whose digital output engages it."""
+    if not safety:
+        return
+    reaction = c.string(safety, "safety", "reaction")
+    known = _safe_reactions()
+    if reaction is not None and reaction not in known:
+        c.err("safety.reaction", f"safety.reaction {reaction!r} is not one of {', '.join(known)}")
+        return
+    brake = c.num(safety, "safety", "brake_channel", 1, 4, integer=True, required=reaction == "brake")
+    if brake is not None and reaction != "brake":
+        c.err("safety.brake_channel", "safety.brake_channel only means something with safety.reaction 'brake'")
+    if brake is not None and any(
+        isinstance(ch, dict) and ch.get("channel") == brake and ch.get("motor") for ch in chans
+    ):
+        c.err(
+            "safety.brake_channel",
+            f"safety.brake_channel {brake} is a motor's channel: its digital output is the motor's",
+        )
+
+
+@dataclass(frozen=True)
+class SafeReaction:
+    """What the safety watcher does for a bench (the profile's safety section): the number of
+    watch.h's XRF_SAFE_REACTIONS and, for `brake`, its channel (1..4; 0 otherwise)."""
+
+    name: str
+    number: int
+    brake_channel: int
+
+
+def safe_reaction(profile: dict[str, Any] | None) -> SafeReaction:
+    """A validated profile's safe reaction; `zero` where it names none (or there is no profile)."""
+    safety = (profile or {}).get("safety") or {}
+    name = safety.get("reaction") or "zero"
+    number = _safe_reactions()[name] if safety else 0  # zero is 0: the header says so too
+    return SafeReaction(name, number, int(safety.get("brake_channel") or 0))
+
+
+def bench_profile_name(plant: str, real_bench: bool) -> str:
+    """The bench profile in force: on a real bench the one the appliance was started with
+    (XRF_BENCH_PROFILE; "" when none), on a simulated one the plant's own."""
+    return os.environ.get("XRF_BENCH_PROFILE", "") if real_bench else plant
 
 
 def _check_mechanics(c: _Checker, mech: dict) -> None:

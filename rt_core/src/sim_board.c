@@ -98,6 +98,15 @@ static uint16_t encoder(const struct sim_board *s, int ch)
     return (uint16_t)w;
 }
 
+/* Digital output ch as the pins see it: while forced off, what the watcher left there (the
+ * brake's output for the safe reaction `brake`), else the last frame's. */
+static int dout_now(const struct sim_board *s, int ch)
+{
+    if (forced_off(s))
+        return __atomic_load_n(&s->outputs->forced_dout[ch], __ATOMIC_RELAXED) != 0;
+    return s->dout[ch] != 0;
+}
+
 /* Input pin k (0..7 in xrf_ico_in.din order). Nothing is wired to the pins unless a fault or
  * the loopback plug says so. */
 static int input_pin(const struct sim_board *s, int k)
@@ -106,7 +115,7 @@ static int input_pin(const struct sim_board *s, int k)
         return (s->faults.stuck_value >> k) & 1u;
     int ch = k / 2;
     if ((k & 1) == 0 && (s->faults.loopback & (1u << ch)))
-        return s->dout[ch] && !forced_off(s);
+        return dout_now(s, ch);
     return 0;
 }
 
@@ -150,7 +159,7 @@ static void mirror(struct sim_board *s)
     int off = forced_off(s);
     for (int ch = 0; ch < 4; ch++) {
         o->pwm[ch] = off ? 0 : s->pwm[ch];
-        o->dout[ch] = off ? 0 : s->dout[ch];
+        o->dout[ch] = (uint8_t)dout_now(s, ch);
     }
     s->ops->state(s->plant, o->plant, (int)(sizeof o->plant / sizeof o->plant[0]));
     __atomic_store_n(&o->active, 1u, __ATOMIC_RELEASE);

@@ -63,20 +63,74 @@ int xrf_fpga_reset(const char *device, uint32_t speed_hz)
     return r;
 }
 
-/* Outputs safe: the simulated board's outputs zeroed and ignored from now on, the FPGA reset. */
+int xrf_fpga_brake(const char *device, uint32_t speed_hz, int brake_channel)
+{
+    if (brake_channel < 1 || brake_channel > 4)
+        return -EINVAL;
+    struct xrf_ico_transport *t = NULL;
+    int r = xrf_spidev_open(device, speed_hz, &t);
+    if (r < 0)
+        return r;
+    struct xrf_ico_out out = {{0}, {0}};
+    out.dout[brake_channel - 1] = 1;
+    uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
+    xrf_ico_encode_all(&out, 0, tx);
+    r = t->xfer(t, tx, rx);
+    t->close(t);
+    return r;
+}
+
+#define XRF_SAFE_REACTION_CASE_(NAME, name, number) \
+    case number:                                    \
+        return name;
+const char *xrf_safe_reaction_name(int32_t reaction)
+{
+    switch (reaction) {
+        XRF_SAFE_REACTIONS(XRF_SAFE_REACTION_CASE_)
+    default:
+        return NULL;
+    }
+}
+
+#define XRF_SAFE_REACTION_MATCH_(NAME, name, number) \
+    if (strcmp(text, name) == 0)                     \
+        return number;
+int32_t xrf_safe_reaction_parse(const char *text)
+{
+    if (text == NULL)
+        return -EINVAL;
+    XRF_SAFE_REACTIONS(XRF_SAFE_REACTION_MATCH_)
+    return -EINVAL;
+}
+
+/* The board's outputs as the safe reaction leaves them: over spidev, and the same on the
+ * simulated board. */
+static int send_safe_frame(const struct xrf_watch *w)
+{
+    if (w->cfg.safe_reaction == XRF_SAFE_REACTION_BRAKE)
+        return xrf_fpga_brake(w->cfg.spi_device, w->cfg.spi_speed_hz, w->cfg.brake_channel);
+    return xrf_fpga_reset(w->cfg.spi_device, w->cfg.spi_speed_hz);
+}
+
+/* Outputs safe: the simulated board's outputs zeroed (but the brake's) and ignored from now on,
+ * the FPGA's likewise. */
 static void make_safe(struct xrf_watch *w)
 {
+    int brake = w->cfg.safe_reaction == XRF_SAFE_REACTION_BRAKE ? w->cfg.brake_channel - 1 : -1;
     if (w->cfg.force_sim && w->shm != NULL) {
         struct xrf_sim_outputs *o = &w->shm->sim;
+        /* What the pins show once forced, written before forced_off is published. */
+        for (int i = 0; i < 4; i++)
+            __atomic_store_n(&o->forced_dout[i], (uint8_t)(i == brake), __ATOMIC_RELAXED);
         __atomic_store_n(&o->forced_off, 1u, __ATOMIC_RELEASE);
         for (int i = 0; i < 4; i++) {
             __atomic_store_n(&o->pwm[i], (int16_t)0, __ATOMIC_RELAXED);
-            __atomic_store_n(&o->dout[i], (uint8_t)0, __ATOMIC_RELAXED);
+            __atomic_store_n(&o->dout[i], (uint8_t)(i == brake), __ATOMIC_RELAXED);
         }
         w->result.sim_forced = 1;
     }
     if (w->cfg.spi_device[0] != '\0')
-        w->result.reset_status = xrf_fpga_reset(w->cfg.spi_device, w->cfg.spi_speed_hz);
+        w->result.reset_status = send_safe_frame(w);
 }
 
 static void finish(struct xrf_watch *w, int reason, int64_t event_ns)
@@ -100,7 +154,7 @@ static void finish(struct xrf_watch *w, int reason, int64_t event_ns)
          * process is really gone (at most 100 ms), reset again. */
         struct pollfd p = {.fd = w->pidfd, .events = POLLIN};
         if (poll(&p, 1, 100) == 1)
-            w->result.reset_status = xrf_fpga_reset(w->cfg.spi_device, w->cfg.spi_speed_hz);
+            w->result.reset_status = send_safe_frame(w);
     }
     __atomic_store_n(&w->done, 1u, __ATOMIC_RELEASE);
     if (w->cfg.notify_fd >= 0) {
@@ -170,6 +224,12 @@ static void *watch_thread(void *arg)
 int xrf_watch_start(struct xrf_shm *shm, const struct xrf_watch_config *cfg, struct xrf_watch **out)
 {
     if (cfg == NULL || out == NULL || cfg->pid <= 0)
+        return -EINVAL;
+    /* Refused here, not found out at the moment the outputs must be made safe. */
+    if (xrf_safe_reaction_name(cfg->safe_reaction) == NULL)
+        return -EINVAL;
+    if (cfg->safe_reaction == XRF_SAFE_REACTION_BRAKE &&
+        (cfg->brake_channel < 1 || cfg->brake_channel > 4))
         return -EINVAL;
     *out = NULL;
     struct xrf_watch *w = calloc(1, sizeof *w);

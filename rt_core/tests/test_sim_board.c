@@ -376,6 +376,11 @@ static void test_outputs(void)
     double x = st(t, 0);
     run(t, 300, -300, 200);
     CHECK(st(t, 0) == x);
+    /* The safe reaction `brake` leaves the brake's output on while forced: the pins show
+     * forced_dout, whatever the frames ask. */
+    o.forced_dout[2] = 1;
+    all(t, 300, -300, d, &in);
+    CHECK(o.dout[2] == 1 && o.dout[0] == 0 && o.dout[3] == 0 && o.pwm[0] == 0);
     t->close(t);
     CHECK(o.active == 0);
 

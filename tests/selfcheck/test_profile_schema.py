@@ -229,3 +229,41 @@ def test_every_shipped_profile_validates() -> None:
         p = prof.validate_profile(json.loads(f.read_text()), str(f))
         assert p["name"] == f.stem, f
     assert {i.name for i in prof.list_profiles(data_dir=Path("/nonexistent"))} == {f.stem for f in files}
+
+
+# The safety section (safety.reaction: what the safety watcher does on an exit or a hang).
+BAD_SAFETY: list[tuple[str, dict[str, Any], str]] = [
+    ("a reaction the watcher does not know", {"reaction": "drop"}, "safety.reaction"),
+    ("a reaction that is not text", {"reaction": 1}, "safety.reaction"),
+    ("brake without its channel", {"reaction": "brake"}, "safety.brake_channel"),
+    ("a brake channel beyond the board", {"reaction": "brake", "brake_channel": 5}, "safety.brake_channel"),
+    ("a brake channel with reaction zero", {"reaction": "zero", "brake_channel": 3}, "safety.brake_channel"),
+    ("a brake on a motor's channel", {"reaction": "brake", "brake_channel": 1}, "safety.brake_channel"),
+]
+
+
+@pytest.mark.parametrize("safety,field", [(s, f) for _, s, f in BAD_SAFETY], ids=[w for w, _, _ in BAD_SAFETY])
+def test_a_safe_reaction_the_watcher_cannot_carry_out_is_refused_with_its_field(safety: dict, field: str) -> None:
+    p = relbot()
+    p["safety"] = safety
+    with pytest.raises(prof.ProfileError) as info:
+        prof.validate_profile(p)
+    assert [e for e in info.value.problems if e.field == field], info.value.problems
+
+
+def test_the_safe_reaction_defaults_to_zero_and_brake_carries_its_channel() -> None:
+    p = relbot()
+    assert "safety" not in p
+    assert prof.safe_reaction(p) == prof.SafeReaction("zero", 0, 0)
+    p["safety"] = {"reaction": "brake", "brake_channel": 3}  # channel 3: RELbot's spare
+    prof.validate_profile(p)
+    assert prof.safe_reaction(p) == prof.SafeReaction("brake", 1, 3)
+
+
+def test_the_reactions_a_profile_may_name_are_the_headers() -> None:
+    """The validator reads watch.h's XRF_SAFE_REACTIONS from its text (no compiled binding
+    needed); the binding's SAFE_REACTIONS is the same list."""
+    from xrflab.channels import SAFE_REACTIONS
+
+    assert prof._safe_reactions() == SAFE_REACTIONS
+    assert prof.safe_reaction(None).number == SAFE_REACTIONS["zero"]

@@ -243,3 +243,35 @@ def _alive(pid: int) -> bool:
             return f.read().rsplit(")", 1)[1].split()[0] != "Z"
     except FileNotFoundError:
         return False
+
+
+def test_a_brake_profile_leaves_the_brake_on_when_the_loop_dies(server: Server) -> None:
+    """The bench profile's safe reaction reaches the watcher of a real run: an educator's edited
+    RELbot profile says `brake` on channel 3; a kill -9 in RUN leaves every PWM zero and channel
+    3's digital output on, within the bound, and the alarm says so."""
+    from xrflab import profiles as prof
+
+    edited = prof.load_profile("relbot")
+    edited["safety"] = {"reaction": "brake", "brake_channel": 3}
+    saved = prof.save_profile(edited, server.data_dir)
+    try:
+        server.stop_run()
+        run = server.start_run("relbot")
+        ch = Channels.open(run["shm"], wait_s=5)
+        try:
+            with server.ws() as ws:
+                drive_motors(ws)
+                t_kill = time.monotonic()
+                os.kill(run["pid"], signal.SIGKILL)
+                safe_after = wait_forced_off(ch, t_kill)
+                assert safe_after < 0.100, f"outputs safe only {safe_after * 1000:.1f} ms after the kill"
+                alarm = ws.wait_type("alarm", kind="crash", timeout=5)
+                assert alarm["safe_state"] == "sim outputs forced off but the brake on channel 3"
+            sim = ch.shm.sim
+            assert list(sim.pwm) == [0, 0, 0, 0] and list(sim.dout) == [0, 0, 1, 0]
+            assert list(sim.forced_dout) == [0, 0, 1, 0]
+        finally:
+            ch.close()
+    finally:
+        saved.unlink()
+        server.stop_run()

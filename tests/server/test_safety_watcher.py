@@ -6,6 +6,7 @@ process and to that memory, and that it does it while this Python process is bus
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import signal
@@ -142,3 +143,121 @@ def test_a_process_already_gone_is_refused_at_start() -> None:
     proc.wait()
     with pytest.raises(ProcessLookupError):
         SafetyWatcher(proc.pid, None, hang_timeout_ms=0, check_ms=50, force_sim=False)
+
+
+def test_the_brake_reaction_leaves_the_brake_output_on_and_every_pwm_zero(child) -> None:
+    """safe reaction `brake` (watch.h's XRF_SAFE_REACTIONS): PWM zero like `zero`, but the brake's
+    digital output is forced on (forced_dout, which the simulated board's pins show from then on)
+    and every other output off, within the same bound."""
+    ch = _FakeChannels()
+    ch.shm.sim.active = 1
+    ch.shm.sim.pwm[1] = -300
+    ch.shm.sim.dout[0] = 1  # a student's output on channel 1: must go off
+    ch.shm.sim.forced_dout[3] = 1  # the loop can write this too: the watcher rewrites all of it
+    w = SafetyWatcher(
+        child.pid,
+        ch,  # type: ignore[arg-type]
+        hang_timeout_ms=200,
+        check_ms=20,
+        force_sim=True,
+        safe_reaction="brake",
+        brake_channel=3,
+    )
+    try:
+        t_kill = time.monotonic_ns()
+        child.kill()
+        r = _wait_result(w)
+        assert r.reason == "exit" and r.sim_forced and r.brake_channel == 3
+        sim = ch.shm.sim
+        assert sim.forced_off == 1
+        assert list(sim.forced_dout) == [0, 0, 1, 0] and list(sim.dout) == [0, 0, 1, 0]
+        assert list(sim.pwm) == [0, 0, 0, 0]
+        assert r.safe_ns - t_kill < 100_000_000, f"safe {(r.safe_ns - t_kill) / 1e6:.1f} ms after the kill"
+        assert r.describe() == "sim outputs forced off but the brake on channel 3"
+    finally:
+        w.stop()
+
+
+def test_the_zero_reaction_forces_every_digital_output_off(child) -> None:
+    ch = _FakeChannels()
+    ch.shm.sim.forced_dout[1] = 1  # left there by the loop: zero means zero
+    w = SafetyWatcher(child.pid, ch, hang_timeout_ms=0, check_ms=50, force_sim=True)  # type: ignore[arg-type]
+    child.kill()
+    r = _wait_result(w)
+    w.stop()
+    assert r.brake_channel == 0 and list(ch.shm.sim.forced_dout) == [0, 0, 0, 0]
+
+
+def test_a_brake_frame_is_sent_over_spidev_as_an_all_frame(child) -> None:
+    """On a real bench `brake` sends an ALL frame (not RESET, which would switch the brake's
+    output off); a device that cannot take it is reported like a failed RESET."""
+    w = SafetyWatcher(
+        child.pid,
+        None,
+        hang_timeout_ms=0,
+        check_ms=50,
+        force_sim=False,
+        spi_device="/dev/null",
+        safe_reaction="brake",
+        brake_channel=2,
+    )
+    child.kill()
+    r = _wait_result(w)
+    w.stop()
+    assert r.reset_status == -errno.ENOTTY
+    assert lib.xrf_fpga_brake(b"/dev/null", 1_000_000, 5) == -errno.EINVAL
+
+
+@pytest.mark.parametrize(
+    ("reaction", "brake_channel", "message"),
+    [
+        ("drop", 0, "unknown safe reaction 'drop'"),
+        ("brake", 0, "needs a brake channel 1..4"),
+        ("brake", 5, "needs a brake channel"),
+    ],
+)
+def test_a_reaction_the_watcher_cannot_carry_out_is_refused_at_start(child, reaction, brake_channel, message) -> None:
+    with pytest.raises(ValueError, match=message):
+        SafetyWatcher(
+            child.pid,
+            None,
+            hang_timeout_ms=0,
+            check_ms=50,
+            force_sim=False,
+            safe_reaction=reaction,
+            brake_channel=brake_channel,
+        )
+
+
+def test_the_reactions_are_named_from_the_c_list() -> None:
+    from xrflab.channels import SAFE_REACTIONS
+
+    assert SAFE_REACTIONS == {"zero": lib.XRF_SAFE_REACTION_ZERO, "brake": lib.XRF_SAFE_REACTION_BRAKE}
+    for name, number in SAFE_REACTIONS.items():
+        assert ffi.string(lib.xrf_safe_reaction_name(number)).decode() == name
+        assert lib.xrf_safe_reaction_parse(name.encode()) == number
+    assert lib.xrf_safe_reaction_name(lib.XRF_SAFE_REACTION_COUNT) == ffi.NULL
+    assert lib.xrf_safe_reaction_parse(b"Zero") == -errno.EINVAL
+
+
+def test_the_runs_plant_profile_names_the_reaction(tmp_path, monkeypatch, caplog) -> None:
+    """server/runs/watch.py passes the bench profile's reaction to the watcher: the run's plant's
+    profile (an educator's edited copy first) on the simulated bench, XRF_BENCH_PROFILE's on a real
+    one; none, or one that does not load, is `zero` (said in the log)."""
+    from xrflab import profiles as prof
+    from xrflab.server.runs.watch import run_safe_reaction
+    from xrflab.server.settings import Settings
+
+    settings = Settings(data_dir=tmp_path)
+    assert run_safe_reaction("stage", False, settings) == prof.SafeReaction("zero", 0, 0)
+    edited = prof.load_profile("stage")
+    edited["safety"] = {"reaction": "brake", "brake_channel": 2}
+    prof.save_profile(edited, tmp_path)
+    assert run_safe_reaction("stage", False, settings) == prof.SafeReaction("brake", 1, 2)
+    monkeypatch.delenv("XRF_BENCH_PROFILE", raising=False)
+    assert run_safe_reaction("stage", True, settings).name == "zero"  # a real bench names its own
+    monkeypatch.setenv("XRF_BENCH_PROFILE", "stage")
+    assert run_safe_reaction("relbot", True, settings).name == "brake"
+    (prof.profiles_dir(tmp_path) / "stage.json").write_text('{"name": "stage", "safety": {"reaction": "hover"}}')
+    assert run_safe_reaction("stage", False, settings).name == "zero"
+    assert "unusable" in caplog.text and "hover" in caplog.text

@@ -29,6 +29,7 @@ from .host import Channels
 from .names import (
     COMMAND_NUMBERS,
     HOST_LOST_ACTIONS,
+    SAFE_REACTIONS,
     STAGE_NAMES,
     STATE_NUMBERS,
     allowed_commands,
@@ -43,6 +44,7 @@ from .status import Histogram, Status
 __all__ = [
     "COMMAND_NUMBERS",
     "HOST_LOST_ACTIONS",
+    "SAFE_REACTIONS",
     "SHM_DIR",
     "SHM_SIZE",
     "STAGE_NAMES",

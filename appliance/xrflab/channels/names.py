@@ -23,6 +23,10 @@ HOST_LOST_ACTIONS: dict[str, int] = {
     c_str(lib.xrf_host_lost_action_name(a)): a for a in range(lib.XRF_HOST_LOST_ACTION_COUNT)
 }
 
+# What the safety watcher does to the outputs on an exit or hang, by name (watch.h's
+# XRF_SAFE_REACTIONS): a bench profile's safety.reaction.
+SAFE_REACTIONS: dict[str, int] = {c_str(lib.xrf_safe_reaction_name(r)): r for r in range(lib.XRF_SAFE_REACTION_COUNT)}
+
 
 # The board transports of channels.h's XRF_TRANSPORTS (XRF_TRANSPORT / xrf_info.transport values).
 TRANSPORTS: tuple[str, ...] = tuple(c_str(lib.xrf_transport_name(t)) for t in range(lib.XRF_TRANSPORT_COUNT))

@@ -30,7 +30,6 @@ import asyncio
 import bisect
 import logging
 import math
-import os
 import threading
 import time
 from dataclasses import dataclass, field
@@ -87,7 +86,7 @@ def stage_setpoint(fields: dict[str, Any]) -> float | None:
 
 def resolve_profile(plant: str, real_bench: bool, data_dir: Path | None) -> tuple[dict | None, str, str]:
     """(profile, name, message): profile None with a message when there is none to use."""
-    name = os.environ.get("XRF_BENCH_PROFILE", "") if real_bench else plant
+    name = profmod.bench_profile_name(plant, real_bench)
     if not name:
         return (
             None,

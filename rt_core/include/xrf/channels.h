@@ -313,7 +313,9 @@ struct xrf_sim_outputs {
     uint32_t forced_off; /* set by the host: the plant ignores pwm from now on */
     int16_t pwm[4];
     uint8_t dout[4];
-    uint32_t pad;
+    /* The digital outputs while forced_off, set before it by the safety watcher: all zero, or
+     * the brake's on for the safe reaction `brake` (xrf/watch.h). Was padding: same layout. */
+    uint8_t forced_dout[4];
     double plant[8]; /* plant state for viewers: jiwy pan, tilt (rad); relbot x, y, theta */
 };
 

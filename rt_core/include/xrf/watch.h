@@ -7,8 +7,10 @@
  * readable when the loop process exits), checks the loop's heartbeat in the shared memory on a
  * short timer, and runs at a real-time priority above any the run may take, off the run's CPUs,
  * when it may. On exit or hang it
- *   1. forces the outputs safe: the simulated board's forced_off flag and/or an FPGA RESET frame
- *      over spidev (xrf_ico_frame_op + the spidev transport: the one C implementation),
+ *   1. forces the outputs safe, as the bench's safe reaction says (XRF_SAFE_REACTIONS, from the
+ *      bench profile): the simulated board's forced_off flag and/or a frame over spidev (an FPGA
+ *      RESET, or for `brake` an ALL frame with the brake output on: xrf/ico.h's frame builders +
+ *      the spidev transport, the one C implementation of each),
  *   2. on a hang, kills the loop (pidfd_send_signal, so no pid can be reused under it),
  *   3. only then writes the notify descriptor (an eventfd the host's event loop reads).
  * Nothing in the host (a busy asyncio loop, a garbage-collection pause, the GIL) sits between the
@@ -35,6 +37,18 @@ extern "C" {
 
 #define XRF_WATCH_RESET_NOT_TRIED 1 /* reset_status: no spidev configured */
 
+/* What "safe" is for a bench (its profile's safety.reaction), done by the watcher on an exit or
+ * a hang: X(NAME, "name", number). Hosts name them from here (xrf_safe_reaction_name/parse,
+ * Python's channels.SAFE_REACTIONS, the profile's validation); the numbers are the config's.
+ *  zero:  every PWM and digital output zero (an FPGA RESET): right for a robot that stays where
+ *         it is unpowered (RELbot, Jiwy, a lead-screw stage).
+ *  brake: every PWM zero and the brake's digital output (brake_channel) on, and kept on: a
+ *         robot whose brake holds it once engaged. The output is never switched off by the
+ *         watcher, so a brake wired either way (energise-to-engage) stays engaged. */
+#define XRF_SAFE_REACTIONS(X) \
+    X(ZERO, "zero", 0)        \
+    X(BRAKE, "brake", 1)
+
 struct xrf_watch_config {
     int pid;                 /* the loop process, as this process sees it */
     int64_t hang_timeout_ns; /* no new heartbeat for this long while running = hung; 0: off */
@@ -47,6 +61,8 @@ struct xrf_watch_config {
     /* CPUs (bit n = CPU n, n < 64) the watcher keeps off: the run's own, where its threads may
      * spin at a real-time priority. Ignored when no other CPU is allowed to the watcher. */
     uint64_t avoid_cpus;
+    int32_t safe_reaction; /* XRF_SAFE_REACTION_* (0: zero) */
+    int32_t brake_channel; /* brake: the channel (1..4) whose digital output engages the brake */
 };
 
 struct xrf_watch_result {
@@ -74,7 +90,21 @@ int xrf_watch_result(struct xrf_watch *w, struct xrf_watch_result *out);
 int xrf_watch_stop(struct xrf_watch *w, struct xrf_watch_result *out);
 /* Send the FPGA RESET frame once over spidev `device` (also what the watcher does). */
 int xrf_fpga_reset(const char *device, uint32_t speed_hz);
+/* Send one ALL frame with every PWM zero and only channel `brake_channel`'s (1..4) digital
+ * output on (what the watcher does for `brake`). 0 or -errno (-EINVAL: no such channel). */
+int xrf_fpga_brake(const char *device, uint32_t speed_hz, int brake_channel);
+/* The name of safe reaction XRF_SAFE_REACTION_<NAME>, else NULL; the reaction a name spells,
+ * else -EINVAL. */
+const char *xrf_safe_reaction_name(int32_t reaction);
+int32_t xrf_safe_reaction_parse(const char *name);
 /* cffi-end */
+
+/* The constants of XRF_SAFE_REACTIONS for C (cffi gets the same names from _cffi_build.py). */
+#define XRF_SAFE_REACTION_CONST_(NAME, name, number) XRF_SAFE_REACTION_##NAME = number,
+enum {
+    XRF_SAFE_REACTIONS(XRF_SAFE_REACTION_CONST_) XRF_SAFE_REACTION_COUNT =
+        0 XRF_SAFE_REACTIONS(XRF_COUNT_ONE_)
+};
 
 #ifdef __cplusplus
 }

@@ -15,7 +15,7 @@ import os
 from dataclasses import dataclass
 from typing import Any
 
-from ...channels import Channels, ffi, lib
+from ...channels import SAFE_REACTIONS, Channels, ffi, lib
 
 SPI_SPEED_HZ = 31_000_000  # XRF2's ico-board clock
 _REASONS = {
@@ -30,6 +30,7 @@ _REASONS = {
 class WatchResult:
     reason: str  # watching | exit | hang | cancelled
     sim_forced: bool
+    brake_channel: int  # the brake's channel the outputs were left with on (safe reaction brake); 0: none
     reset_status: int  # 0 sent, -errno failed, XRF_WATCH_RESET_NOT_TRIED
     rt_status: int  # 0: the watcher ran at SCHED_FIFO; -errno: refused (it ran SCHED_OTHER)
     kill_status: int
@@ -48,10 +49,13 @@ class WatchResult:
     def describe(self) -> str:
         """What was done to the outputs, for the run record and the alarm."""
         parts = []
+        brake = f" but the brake on channel {self.brake_channel}" if self.brake_channel else ""
         if self.sim_forced:
-            parts.append("sim outputs forced off")
+            parts.append(f"sim outputs forced off{brake}")
         if self.reset_status == 0:
-            parts.append("FPGA RESET sent")
+            parts.append(
+                f"brake frame sent (PWM zero, brake on channel {self.brake_channel})" if brake else "FPGA RESET sent"
+            )
         elif self.reset_status != lib.XRF_WATCH_RESET_NOT_TRIED:
             parts.append(reset_message(self.reset_status))
         return "; ".join(parts) or "simulated board ended with the process"
@@ -70,11 +74,13 @@ def fpga_reset(device: str) -> str:
     return reset_message(lib.xrf_fpga_reset(device.encode(), SPI_SPEED_HZ))
 
 
-def _result(r: Any) -> WatchResult:
-    """From a ``struct xrf_watch_result *``."""
+def _result(r: Any, brake_channel: int) -> WatchResult:
+    """From a ``struct xrf_watch_result *``; brake_channel: the watcher's (0 unless it brakes)."""
+    acted = r.reason in (lib.XRF_WATCH_EXIT, lib.XRF_WATCH_HANG)
     return WatchResult(
         reason=_REASONS.get(r.reason, str(r.reason)),
         sim_forced=bool(r.sim_forced),
+        brake_channel=brake_channel if acted else 0,
         reset_status=r.reset_status,
         rt_status=r.rt_status,
         kill_status=r.kill_status,
@@ -101,7 +107,11 @@ class SafetyWatcher:
         spi_device: str = "",
         rt_priority: int = 0,
         avoid_cpus: frozenset[int] | set[int] = frozenset(),
+        safe_reaction: str = "zero",
+        brake_channel: int = 0,
     ) -> None:
+        if safe_reaction not in SAFE_REACTIONS:
+            raise ValueError(f"unknown safe reaction {safe_reaction!r} (known: {', '.join(SAFE_REACTIONS)})")
         self._channels = channels  # kept referenced: the mapping must outlive the thread
         self._efd = os.eventfd(0, os.EFD_CLOEXEC | os.EFD_NONBLOCK)
         cfg = ffi.new("struct xrf_watch_config *")
@@ -117,14 +127,24 @@ class SafetyWatcher:
         cfg.spi_speed_hz = SPI_SPEED_HZ
         cfg.notify_fd = self._efd
         cfg.avoid_cpus = sum(1 << c for c in avoid_cpus if 0 <= c < 64)
+        cfg.safe_reaction = SAFE_REACTIONS[safe_reaction]
+        cfg.brake_channel = brake_channel
+        self.safe_reaction = safe_reaction
+        self.brake_channel = brake_channel
         out = ffi.new("struct xrf_watch **")
         shm = channels.shm if channels is not None else ffi.NULL
         r = lib.xrf_watch_start(shm, cfg, out)
+        if r == -errno.EINVAL and safe_reaction == "brake":
+            os.close(self._efd)
+            raise ValueError(f"safe reaction 'brake' needs a brake channel 1..4 (got {brake_channel})")
         if r < 0:
             os.close(self._efd)
             raise OSError(-r, f"safety watcher for pid {pid}: {os.strerror(-r)}")
         self._w = out[0]
         self._final: WatchResult | None = None
+
+    def _brake(self) -> int:
+        return self.brake_channel if self.safe_reaction == "brake" else 0
 
     def fileno(self) -> int:
         return self._efd
@@ -136,7 +156,7 @@ class SafetyWatcher:
         c = ffi.new("struct xrf_watch_result *")
         if lib.xrf_watch_result(self._w, c) == lib.XRF_WATCH_WATCHING:
             return None
-        return _result(c)
+        return _result(c, self._brake())
 
     def stop(self) -> WatchResult:
         """End the watcher (joins its thread: call off the event loop). A loop that has already
@@ -144,7 +164,7 @@ class SafetyWatcher:
         if self._final is None:
             c = ffi.new("struct xrf_watch_result *")
             lib.xrf_watch_stop(self._w, c)
-            self._final = _result(c)
+            self._final = _result(c, self._brake())
             os.close(self._efd)
             self._channels = None
         return self._final

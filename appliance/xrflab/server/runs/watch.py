@@ -24,6 +24,7 @@ import signal
 import time
 
 from ...channels import ChannelsError
+from ...profiles import ProfileError, SafeReaction, bench_profile_name, load_profile, safe_reaction
 from ..settings import Settings
 from ..ws.hub import Hub
 from ..ws.messages import AlarmMessage
@@ -54,6 +55,7 @@ def start_watcher(run: Run, settings: Settings) -> None:
     lim = run.limits
     avoid = lim.cpus if lim is not None and not lim.layers.get("cpu") else set()
     real = settings.bench_is_real()
+    reaction = run_safe_reaction(run.row.sim, real, settings)
     try:
         w = SafetyWatcher(
             run.row.pid or run.proc.pid,
@@ -64,12 +66,29 @@ def start_watcher(run: Run, settings: Settings) -> None:
             spi_device=settings.spi_device if real else "",
             rt_priority=max(0, prio),
             avoid_cpus=avoid,
+            safe_reaction=reaction.name,
+            brake_channel=reaction.brake_channel,
         )
     except (OSError, ValueError) as exc:  # ESRCH: the loop is already gone; wait_for_exit handles it
         log.warning("run %s: no safety watcher (%s); the event loop watches instead", run.row.id, exc)
         return
     run.watcher = w
     asyncio.get_running_loop().add_reader(w.fileno(), on_watch, run)
+
+
+def run_safe_reaction(plant: str, real: bool, settings: Settings) -> SafeReaction:
+    """The bench profile's safe reaction (profiles.safe_reaction): the plant's profile on a
+    simulated board (the run's plant as the appliance chose it, never the segment's own
+    xrf_info.sim: the loop writes that), XRF_BENCH_PROFILE's on a real one. A bench with no
+    usable profile gets `zero`, today's reaction, said in the log."""
+    name = bench_profile_name(plant or settings.sim, real)
+    if not name:
+        return safe_reaction(None)
+    try:
+        return safe_reaction(load_profile(name, settings.data_dir))
+    except ProfileError as exc:
+        log.warning("bench profile %r unusable (%s): the safety watcher zeroes the outputs", name, exc)
+        return safe_reaction(None)
 
 
 def on_watch(run: Run) -> None:
