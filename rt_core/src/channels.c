@@ -8,8 +8,9 @@
  */
 #define _GNU_SOURCE
 #include "xrf/channels.h"
-#include "xrf/logformat.h" /* the type codes of the timing records */
-#include "hist_inline.h"   /* the histogram update, shared with the runtime */
+#include "xrf/logformat.h"   /* the type codes of the timing records */
+#include "hist_inline.h"     /* the histogram update, shared with the runtime */
+#include "channels_inline.h" /* the loop's side of the per-cycle handoffs, shared likewise */
 
 #include <errno.h>
 #include <limits.h>
@@ -37,10 +38,10 @@
  *  - doorbell: SEQ_CST on both sides (a store then a load of the other word, which acquire/release
  *    does not order).
  */
-#define LOAD_ACQ(p) __atomic_load_n((p), __ATOMIC_ACQUIRE)
-#define LOAD_RLX(p) __atomic_load_n((p), __ATOMIC_RELAXED)
-#define STORE_REL(p, v) __atomic_store_n((p), (v), __ATOMIC_RELEASE)
-#define STORE_RLX(p, v) __atomic_store_n((p), (v), __ATOMIC_RELAXED)
+#define LOAD_ACQ(p) XRF_LOAD_ACQ(p) /* channels_inline.h */
+#define LOAD_RLX(p) XRF_LOAD_RLX(p)
+#define STORE_REL(p, v) XRF_STORE_REL(p, v)
+#define STORE_RLX(p, v) XRF_STORE_RLX(p, v)
 
 /* A seqlock reader's copy of `n` bytes its writer may be changing: relaxed atomic loads, word by
  * word where both pointers allow it (every payload here is 8-byte aligned), so the racing access
@@ -173,18 +174,15 @@ void xrf_hist_add(struct xrf_hist *h, uint64_t ns)
 
 /* ---- status seqlock ------------------------------------------------------------------------ */
 
-/* Writer (the loop only, so its own seq is read back RELAXED): odd, then a RELEASE fence so no
- * store of the block becomes visible before the odd value (a reader seeing a new field then sees
- * seq changed); even with RELEASE after the last store of the block. */
+/* The writer (the loop): channels_inline.h, where the orderings are stated. */
 void xrf_status_write_begin(struct xrf_status *s)
 {
-    STORE_RLX(&s->seq, LOAD_RLX(&s->seq) + 1);
-    __atomic_thread_fence(__ATOMIC_RELEASE); /* odd seq visible before any data store */
+    xrf_status_write_begin_inline(s);
 }
 
 void xrf_status_write_end(struct xrf_status *s)
 {
-    STORE_REL(&s->seq, LOAD_RLX(&s->seq) + 1);
+    xrf_status_write_end_inline(s);
 }
 
 int xrf_status_read(const struct xrf_status *s, struct xrf_status *out)
@@ -241,19 +239,10 @@ int64_t xrf_cmd_send(struct xrf_cmd_ring *r, int32_t cmd, int32_t source, int64_
     return (int64_t)(pos + 1);
 }
 
+/* The consumer (the loop): channels_inline.h, where the orderings are stated. */
 int xrf_cmd_poll(struct xrf_cmd_ring *r, struct xrf_cmd_slot *out)
 {
-    /* tail: the loop's own word (RELAXED). The slot's seq with ACQUIRE: pos + 1 means a sender's
-     * RELEASE published its fields, which the copy then reads. Handing the slot back is a RELEASE
-     * of seq after the copy, so a sender that sees it free cannot overwrite what is being read. */
-    uint64_t pos = LOAD_RLX(&r->tail);
-    struct xrf_cmd_slot *slot = &r->slot[pos & (XRF_CMD_SLOTS - 1)];
-    if (LOAD_ACQ(&slot->seq) != pos + 1)
-        return 0;
-    *out = *slot;
-    STORE_REL(&slot->seq, pos + XRF_CMD_SLOTS);
-    STORE_REL(&r->tail, pos + 1);
-    return 1;
+    return xrf_cmd_poll_inline(r, out);
 }
 
 /* ---- Ros2Xeno: latest-wins seqlock buffer -------------------------------------------------- */
@@ -310,13 +299,6 @@ int xrf_data_in_try_read(struct xrf_data_in *d, uint32_t *last_seq, void *out, u
 
 /* ---- rings of fixed-size slots ------------------------------------------------------------- */
 
-/* The producer's view of its own ring: geometry it set itself (RELAXED: readers only compare it). */
-static inline struct xrf_slot_hdr *slot_at(const struct xrf_ring *r, const void *slots, uint64_t n)
-{
-    return (struct xrf_slot_hdr *)((uint8_t *)slots + (size_t)(n & (LOAD_RLX(&r->slots) - 1)) *
-                                                          LOAD_RLX(&r->slot_size));
-}
-
 /* Before any reader attaches (xrf_shm_init) or while none reads (a logger's initialise(), whose
  * meta is not ready): the words are set RELAXED, `slots` last with RELEASE. */
 void xrf_ring_init(struct xrf_ring *r, uint32_t slots, uint32_t slot_size)
@@ -328,43 +310,25 @@ void xrf_ring_init(struct xrf_ring *r, uint32_t slots, uint32_t slot_size)
     STORE_REL(&r->slots, slots);
 }
 
-/* Broadcast: a seqlock per slot. seq = 2n+1 (RELAXED) then a RELEASE fence: no store of the
- * payload becomes visible before it. The producer fills the slot; commit stores 2n+2 with
- * RELEASE (the payload is before it), then head with RELEASE (the slot is before it). A reader
- * loads head ACQUIRE, the slot's seq ACQUIRE, copies (xrf_seq_copy), fence ACQUIRE, seq again. */
+/* The producers (the loop): channels_inline.h, where the orderings are stated. */
 void *xrf_bcast_begin(struct xrf_ring *r, void *slots)
 {
-    uint64_t n = LOAD_RLX(&r->head); /* the producer's own word */
-    struct xrf_slot_hdr *slot = slot_at(r, slots, n);
-    STORE_RLX(&slot->seq, 2 * n + 1);
-    __atomic_thread_fence(__ATOMIC_RELEASE);
-    return slot;
+    return xrf_bcast_begin_inline(r, slots);
 }
 
 void xrf_bcast_commit(struct xrf_ring *r, void *slot)
 {
-    uint64_t n = LOAD_RLX(&r->head);
-    STORE_REL(&((struct xrf_slot_hdr *)slot)->seq, 2 * n + 2);
-    STORE_REL(&r->head, n + 1);
+    xrf_bcast_commit_inline(r, slot);
 }
 
-/* SPSC (the log): tail ACQUIRE -- the consumer's RELEASE of tail came after it finished reading
- * the slots it gave back, so the producer's next stores into them cannot reach the consumer's
- * reads. head: the producer's own word, RELAXED; published with RELEASE after the record. */
 void *xrf_spsc_begin(struct xrf_ring *r, void *slots)
 {
-    uint64_t head = LOAD_RLX(&r->head);
-    if (head - LOAD_ACQ(&r->tail) >= LOAD_RLX(&r->slots)) {
-        STORE_RLX(&r->dropped, LOAD_RLX(&r->dropped) + 1);
-        return NULL;
-    }
-    return slot_at(r, slots, head);
+    return xrf_spsc_begin_inline(r, slots);
 }
 
 void xrf_spsc_commit(struct xrf_ring *r, void *slot)
 {
-    (void)slot;
-    STORE_REL(&r->head, LOAD_RLX(&r->head) + 1);
+    xrf_spsc_commit_inline(r, slot);
 }
 
 uint32_t xrf_log_slots_for(uint32_t record_size, uint32_t ring_bytes, uint32_t *slot_size)

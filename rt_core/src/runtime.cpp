@@ -13,6 +13,7 @@
 #include <time.h>
 #include <unistd.h>
 
+#include "channels_inline.h" // the per-cycle handoffs, inlined (issue 30 item 5)
 #include "hist_inline.h"
 #include "logfile.h"
 #include "params_registry.h"
@@ -453,11 +454,11 @@ int Runtime::enter(unsigned cycle_freq)
     info.rt_sched = rt_sched_;
     info.priority = !rt_sched_ ? 0 : (cfg.priority > 0 ? cfg.priority : sp.sched_priority);
 
-    xrf_status_write_begin(&shm_->status);
+    xrf_status_write_begin_inline(&shm_->status);
     shm_->status.running = 1;
     shm_->status.end_reason = XRF_END_NONE;
     shm_->status.state = report_.state;
-    xrf_status_write_end(&shm_->status);
+    xrf_status_write_end_inline(&shm_->status);
     xrf_shm_publish_ready(shm_);
     return 0;
 }
@@ -505,7 +506,7 @@ void Runtime::endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, boo
     if (timing_on_)
         recordTiming(jitter, end_ns - wake_ns, missed);
     xrf_status *s = &shm_->status;
-    xrf_status_write_begin(s);
+    xrf_status_write_begin_inline(s);
     s->state = report_.state;
     s->last_error = report_.last_error;
     // The command fields change only in a cycle that handled a command (applyCommand sets
@@ -554,7 +555,7 @@ void Runtime::endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, boo
         }
     }
     report_.stage_mask = 0;
-    xrf_status_write_end(s);
+    xrf_status_write_end_inline(s);
 
     if (pending_doorbell_ && cycles % doorbell_period_ == 0) {
         pending_doorbell_ = false;
@@ -568,7 +569,8 @@ void Runtime::endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, boo
 void Runtime::recordTiming(int64_t jitter_ns, int64_t cycle_ns, bool missed)
 {
     const uint64_t seq = timing_seq_++;
-    auto *t = static_cast<xrf_timing_record *>(xrf_spsc_begin(&shm_->timing_ring, shm_->timing));
+    auto *t =
+        static_cast<xrf_timing_record *>(xrf_spsc_begin_inline(&shm_->timing_ring, shm_->timing));
     if (t == nullptr)
         return;
     auto stage = [this](int i) { return report_.staged(i) ? report_.stage_ns[i] : (int64_t)-1; };
@@ -584,7 +586,7 @@ void Runtime::recordTiming(int64_t jitter_ns, int64_t cycle_ns, bool missed)
     t->logger_ns = stage(XRF_STAGE_LOGGER);
     t->cycle_ns = cycle_ns;
     t->missed = missed ? 1 : 0;
-    xrf_spsc_commit(&shm_->timing_ring, t);
+    xrf_spsc_commit_inline(&shm_->timing_ring, t);
 }
 
 void Runtime::monitorWrite(const char *fmt, va_list ap)
@@ -595,7 +597,7 @@ void Runtime::monitorWrite(const char *fmt, va_list ap)
         return;
     }
     auto *line =
-        static_cast<xrf_monitor_line *>(xrf_bcast_begin(&shm_->monitor_ring, shm_->monitor));
+        static_cast<xrf_monitor_line *>(xrf_bcast_begin_inline(&shm_->monitor_ring, shm_->monitor));
     int n = std::vsnprintf(line->text, sizeof line->text, fmt, ap);
     if (n < 0)
         n = 0;
@@ -606,7 +608,7 @@ void Runtime::monitorWrite(const char *fmt, va_list ap)
     line->len = (uint32_t)n;
     line->hdr.cycle = cycles_;
     line->hdr.t_ns = now();
-    xrf_bcast_commit(&shm_->monitor_ring, line);
+    xrf_bcast_commit_inline(&shm_->monitor_ring, line);
     pending_doorbell_ = true;
 }
 
@@ -716,10 +718,10 @@ void Runtime::leave()
         why = XRF_END_QUIT;
     else if (options_.max_cycles && cycles_ >= options_.max_cycles)
         why = XRF_END_CYCLE_LIMIT;
-    xrf_status_write_begin(&shm_->status);
+    xrf_status_write_begin_inline(&shm_->status);
     shm_->status.running = 0;
     shm_->status.end_reason = why;
-    xrf_status_write_end(&shm_->status);
+    xrf_status_write_end_inline(&shm_->status);
     if (backend_ != nullptr)
         backend_->thread_teardown();
     if (helper_started_) {

@@ -48,11 +48,16 @@ def test_every_handoff_is_race_free_under_tsan(tmp_path: Path) -> None:
 
 
 def test_tsan_sees_a_missing_release(tmp_path: Path) -> None:
-    source = (RT / "src/channels.c").read_text()
-    publish = "STORE_REL(&r->head, LOAD_RLX(&r->head) + 1);"  # xrf_spsc_commit
+    # The producer's side lives in channels_inline.h (channels.c includes it with quotes, so a
+    # planted copy next to a copy of channels.c is the one compiled).
+    source = (RT / "src/channels_inline.h").read_text()
+    publish = "XRF_STORE_REL(&r->head, XRF_LOAD_RLX(&r->head) + 1);"  # xrf_spsc_commit_inline
     assert source.count(publish) == 1
+    (tmp_path / "channels_inline.h").write_text(
+        source.replace(publish, "XRF_STORE_RLX(&r->head, XRF_LOAD_RLX(&r->head) + 1);")
+    )
     planted = tmp_path / "channels.c"
-    planted.write_text(source.replace(publish, "STORE_RLX(&r->head, LOAD_RLX(&r->head) + 1);"))
+    planted.write_text((RT / "src/channels.c").read_text())
     r = run(build(tmp_path, planted))
     assert r.returncode == 66, r.stdout + r.stderr[-3000:]
     assert "WARNING: ThreadSanitizer: data race" in r.stderr and "test_spsc" in r.stderr, r.stderr[-3000:]

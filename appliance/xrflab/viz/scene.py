@@ -44,6 +44,12 @@ from .recorder import Recorder, has_recording, load_recording, recording_size
 log = logging.getLogger("xrflab.viz")
 URDF_JIWY = Path(__file__).resolve().parent / "urdf" / "jiwy.urdf"
 UPDATE_HZ = 30.0
+# The scene is updated only while someone watches it (issue 30 item 4: at idle the 30 Hz thread
+# was a sizeable share of the appliance's CPU, for nobody): a browser connected through the
+# /viser/ proxy (or a viser client on 127.0.0.1), or a GET
+# /api/viz/state within this many seconds (the 3D page polls it; an API user polling the state
+# expects it to move). Otherwise the thread sleeps until one of them wakes it.
+STATE_WATCH_S = 5.0
 TRAIL_SEND_HZ = 5.0
 TRAIL_MAX = 400
 BACKGROUND = (1.0, 1.0, 1.0)
@@ -197,6 +203,9 @@ class VizService(RunObserver):
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self._wake = threading.Event()  # a watcher came (viser client, state request) or stop
+        self._state_asked = -1e9  # time.monotonic() of the last GET /api/viz/state
+        self._viewers = 0  # browsers connected through the appliance's /viser/ proxy
         # live
         self.mode = "idle"  # idle | live | replay
         self.run_id: int | None = None
@@ -266,9 +275,11 @@ class VizService(RunObserver):
 
         self.server.scene.set_up_direction("+z")
         self._build_gui()
+        self.server.on_client_connect(lambda _client: self._wake.set())
 
     async def stop(self) -> None:
         self._stop.set()
+        self._wake.set()
         if self._thread is not None:
             await asyncio.to_thread(self._thread.join, 2.0)
         with self._lock:
@@ -284,6 +295,8 @@ class VizService(RunObserver):
             "port": self.port,
             "error": self.error,
             "update_hz": UPDATE_HZ,
+            "watched": self.watched(),
+            "frames": self.frames,
         }
 
     # -- telemetry in (supervisor hook, event loop) ---------------------------------------------
@@ -430,11 +443,38 @@ class VizService(RunObserver):
 
     # -- the 30 Hz update -------------------------------------------------------------------------
 
+    def state_asked(self) -> None:
+        """GET /api/viz/state: someone watches the scene through the API (see STATE_WATCH_S)."""
+        self._state_asked = time.monotonic()
+        self._wake.set()
+
+    def viewer_joined(self) -> None:
+        """A browser's WebSocket through the /viser/ proxy opened (server/http/viser.py)."""
+        with self._lock:
+            self._viewers += 1
+        self._wake.set()
+
+    def viewer_left(self) -> None:
+        with self._lock:
+            self._viewers -= 1
+
+    def watched(self) -> bool:
+        if self._viewers > 0 or time.monotonic() - self._state_asked < STATE_WATCH_S:
+            return True
+        return self.server is not None and len(self.server.get_clients()) > 0
+
     def run(self) -> None:
-        """The 30 Hz updater (own thread)."""
+        """The 30 Hz updater (own thread); asleep while nobody watches (watched())."""
         period = 1.0 / UPDATE_HZ
         next_t = time.monotonic()
         while not self._stop.is_set():
+            if not self.watched():
+                # Cleared before the re-check: a watcher arriving in between sets it again.
+                self._wake.clear()
+                if not self.watched():
+                    self._wake.wait()  # a viewer, a viser client, a state request or stop() sets it
+                    next_t = time.monotonic()
+                    continue
             try:
                 self.tick()
             except Exception:  # a scene problem must not end the updates

@@ -134,8 +134,12 @@ async def _proxy_ws(ws: WebSocket) -> None:
     except Exception:
         await ws.close(code=1011, reason="the 3D view does not answer")
         return
+    viz = ws.app.state.viz
     async with upstream:
         await ws.accept(subprotocol=upstream.subprotocol)
+        # Browsers reach viser only through here: the scene updates while one is connected
+        # (viz/scene.py watched(); issue 30 item 4).
+        viz.viewer_joined()
 
         async def browser_to_viser() -> None:
             while True:
@@ -165,6 +169,7 @@ async def _proxy_ws(ws: WebSocket) -> None:
         try:
             done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         finally:
+            viz.viewer_left()
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)

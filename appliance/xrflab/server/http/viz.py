@@ -26,6 +26,8 @@ class VizInfo(BaseModel):
     )
     error: str
     update_hz: float
+    watched: bool = Field(description="someone watches (a viser client, or the state polled): the scene updates")
+    frames: int = Field(description="scene updates sent so far (none while nobody watches)")
 
 
 class ReplayRequest(BaseModel):
@@ -53,6 +55,7 @@ async def viz_state(request: Request) -> dict[str, Any]:
     """What the scene shows now: mode (idle/live/replay), robot kind, joint angles (rad) or
     pose (m, rad), the setpoint ghost, and a message when there is no usable profile."""
     viz = _viz(request)
+    viz.state_asked()  # keeps the scene updating while the state is polled (viz/scene.py)
     shown = dict(viz.shown)
     # The pose and the ghost are the robot's motion (everyone's); the raw Ros2Xeno setpoint
     # (the student's field names and values) only for the run's owner (server/security/ownership.py).
