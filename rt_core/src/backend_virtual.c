@@ -1,10 +1,10 @@
 /*
  * virtual backend: simulated time (XRF_VIRTUAL_TIME, simulated board only; see
- * docs/rt_core/runtime.md "Simulated time"). The loop never sleeps: the clock it reads is
- * CLOCK_MONOTONIC plus an offset, and "sleeping until the next deadline" moves the offset so the
- * clock reads exactly that deadline. The time a cycle computes passes at the real rate (cycle
- * times, overruns and missed deadlines are the real ones); only the idle rest of each period is
- * skipped. The simulated board reads the same clock (xrf_sim_set_clock), so the plant advances
+ * docs/rt_core/runtime.md "Simulated time"). The loop never sleeps: the clock it reads is the
+ * loop thread's CPU time plus an offset, and "sleeping until the next deadline" moves the offset
+ * so the clock reads exactly that deadline. The time a cycle computes passes as it costs (cycle
+ * times and overruns are the controller's own; time the machine gave to others is not counted);
+ * only the idle rest of each period is skipped. The simulated board reads the same clock (xrf_sim_set_clock), so the plant advances
  * by the same dt as in real time.
  *
  * It waits only for its consumers: while the host holds it (xrf_vtime.run_until) or while the
@@ -34,9 +34,19 @@ int64_t xrf_virtual_real_ns(void)
     return (int64_t)ts.tv_sec * 1000000000LL + ts.tv_nsec;
 }
 
+/* The loop thread's CPU time: what its own computing took, not what a busy machine made it
+ * wait (a preempted cycle must not look late in a simulation). A system call, unlike
+ * CLOCK_MONOTONIC; simulated time is not the firm real-time path. */
+static int64_t cpu_ns(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+    return (int64_t)ts.tv_sec * 1000000000LL + ts.tv_nsec;
+}
+
 static int64_t virtual_now_ns(void)
 {
-    return xrf_virtual_real_ns() + vt_offset_ns;
+    return cpu_ns() + vt_offset_ns;
 }
 
 int64_t xrf_virtual_now_ns(void)
@@ -67,11 +77,13 @@ static int virtual_sleep_until(int64_t abs_ns)
 {
     struct xrf_shm *shm = vt_shm;
     if (shm != NULL) {
-        const int64_t before = xrf_virtual_real_ns();
-        int64_t real = before;
+        int64_t real = xrf_virtual_real_ns();
+        int64_t waited_from = 0;
         while (must_wait(shm) && !(vt_stop && *vt_stop) && !host_gone(shm, real)) {
             /* The watchdog compares the heartbeat with its own real clock: a held loop is alive. */
             __atomic_store_n(&shm->status.heartbeat_ns, real, __ATOMIC_RELAXED);
+            if (waited_from == 0)
+                waited_from = cpu_ns();
             struct timespec nap = {0, 100 * 1000};
             nanosleep(&nap, NULL);
             real = xrf_virtual_real_ns();
@@ -80,8 +92,10 @@ static int virtual_sleep_until(int64_t abs_ns)
          * real time there, or the watchdog would see a hung loop as alive until real time caught
          * up. A single aligned store beside the seqlock: a reader gets either value. */
         __atomic_store_n(&shm->status.heartbeat_ns, real, __ATOMIC_RELAXED);
-        /* Waiting for the host or the log writer takes no simulated time. */
-        vt_offset_ns -= real - before;
+        /* Waiting for the host or the log writer is not the controller's time (the naps' own
+         * system calls cost CPU time). */
+        if (waited_from != 0)
+            vt_offset_ns -= cpu_ns() - waited_from;
     }
     const int64_t now = virtual_now_ns();
     if (abs_ns > now)
@@ -118,7 +132,7 @@ static int virtual_thread_setup(const struct xrf_rt_config *cfg, int *rt_sched)
     }
     if (cfg->lock_memory)
         mlockall(MCL_CURRENT | MCL_FUTURE); /* page faults cost time, not correctness, here */
-    vt_offset_ns = 0;
+    vt_offset_ns = xrf_virtual_real_ns() - cpu_ns(); /* starts at the real time, then its own */
     return 0;
 }
 

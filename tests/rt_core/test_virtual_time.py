@@ -62,7 +62,7 @@ def _log(folder: Path) -> np.ndarray:
     return open_log(files[0]).records
 
 
-def _real_run(exe: Path, plant: str, shm: str, cwd: Path, setpoint: dict) -> tuple[np.ndarray, np.ndarray]:
+def _real_run(exe: Path, plant: str, shm: str, cwd: Path, setpoint: dict) -> tuple[np.ndarray, np.ndarray, int]:
     lp = LoopProcess(exe, shm, cwd, XRF_TRANSPORT="sim", XRF_SIM=plant, XRF_LOG_DIR=str(cwd), XRF_LOG_TIMING="1")
     try:
         lp.command("initialise", "INITIALISED")
@@ -75,13 +75,16 @@ def _real_run(exe: Path, plant: str, shm: str, cwd: Path, setpoint: dict) -> tup
         code, out = lp.finish()
         assert code == 0, out
         assert lp.ch.status().log_lost == 0
+        missed = lp.ch.status().missed
     finally:
         lp.stop()
     timing = open_log(cwd / "cycle_timing.xrf").records
-    return _log(cwd), timing
+    return _log(cwd), timing, missed
 
 
-def _virtual_run(exe: Path, plant: str, shm: str, cwd: Path, setpoint: dict, step_at: int) -> tuple[np.ndarray, float]:
+def _virtual_run(
+    exe: Path, plant: str, shm: str, cwd: Path, setpoint: dict, step_at: int
+) -> tuple[np.ndarray, float, int]:
     lp = LoopProcess(exe, shm, cwd, XRF_TRANSPORT="sim", XRF_SIM=plant, XRF_LOG_DIR=str(cwd), XRF_VIRTUAL_TIME="hold")
     ch = lp.ch
     try:
@@ -113,9 +116,10 @@ def _virtual_run(exe: Path, plant: str, shm: str, cwd: Path, setpoint: dict, ste
         code, out = lp.finish()
         assert code == 0, out
         assert ch.status().log_lost == 0
+        missed = ch.status().missed
     finally:
         lp.stop()
-    return _log(cwd), elapsed / (RECORDS + 50 - step_at)
+    return _log(cwd), elapsed / (RECORDS + 50 - step_at), missed
 
 
 @pytest.mark.parametrize("name", list(CASES))
@@ -126,11 +130,11 @@ def test_simulated_time_gives_the_real_time_log(
     real_dir, virt_dir = tmp_path / "real", tmp_path / "virtual"
     real_dir.mkdir()
     virt_dir.mkdir()
-    real, timing = _real_run(examples[name], name, shm_name, real_dir, setpoint)
+    real, timing, real_missed = _real_run(examples[name], name, shm_name, real_dir, setpoint)
     first_col = next(iter(c for c in real.dtype.names if c.endswith("setpoint") or c.startswith("setpoint")))
     step_at = int(np.argmax(real[first_col] != 0))
     assert step_at > 0, "the real run's setpoint never arrived"
-    virt, per_cycle_s = _virtual_run(examples[name], name, shm_name, virt_dir, setpoint, step_at)
+    virt, per_cycle_s, virt_missed = _virtual_run(examples[name], name, shm_name, virt_dir, setpoint, step_at)
 
     n = RECORDS
     assert len(real) >= n and len(virt) >= n
@@ -138,8 +142,9 @@ def test_simulated_time_gives_the_real_time_log(
     # The same grid: consecutive cycles, one period apart (a timestamp is the cycle's wake-up: in
     # simulated time its deadline plus the nanoseconds before the clock read; more if preempted).
     assert np.all(np.diff(virt["cycle"]) == 1) and np.all(np.diff(real["cycle"]) == 1)
-    late = (virt["t_ns"] - virt["t_ns"][0]) - np.arange(n) * PERIOD_NS
-    assert np.median(np.abs(late)) < 20_000, late
+    # The first RUN cycle opens the log file and may itself be late: the grid is the median.
+    late = virt["t_ns"] - np.arange(n) * PERIOD_NS
+    assert np.median(np.abs(late - np.median(late))) < 20_000, late - np.median(late)
     assert np.array_equal(real[first_col], virt[first_col])  # the step lands on the same record
 
     # Tolerance. In real time the board advances the plant over the measured time between two
@@ -163,6 +168,9 @@ def test_simulated_time_gives_the_real_time_log(
         # place (2 % of the step, for the friction's stick-slip, plus two counts).
         end = float(np.max(np.abs(a[-50:] - b[-50:])))
         assert end <= 0.02 * float(np.ptp(b)) + 2 * QUANTUM[col], f"{name}.{col}: settled values differ by {end:.3g}"
+    # The loop's clock counts its own CPU time: a busy machine adds no missed deadlines, only the
+    # controller's own costly cycles (the first initialising ones) count, as in real time.
+    assert virt_missed <= real_missed, (virt_missed, real_missed)
     # Much faster: a simulated cycle costs its computing only (microseconds), not the period.
     assert per_cycle_s < 0.25 * PERIOD_NS * 1e-9, f"{per_cycle_s * 1e6:.0f} us per simulated cycle"
 
