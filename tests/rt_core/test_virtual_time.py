@@ -196,3 +196,19 @@ def test_a_bad_simulated_time_value_is_refused(examples: dict[str, Path], shm_na
     )
     assert proc.returncode != 0
     assert "XRF_VIRTUAL_TIME=fast: use 0, 1 or hold" in proc.stderr + proc.stdout
+
+
+def test_a_hung_loop_in_simulated_time_goes_quiet_in_real_time(run_loop, probe_exe: Path) -> None:
+    # The watchdog compares the status heartbeat with its own real clock. The loop's clock runs
+    # far ahead of it in simulated time: the heartbeat must still be real, or a hang would look
+    # alive until real time caught up.
+    lp = run_loop(probe_exe, XRF_TRANSPORT="sim", XRF_VIRTUAL_TIME="1")
+    lp.command("initialise", "INITIALISED")
+    lp.command("start", "RUN")
+    t0, c0 = time.monotonic(), lp.ch.status().cycles
+    lp.wait_cycles(3000)
+    st = lp.ch.status()
+    assert st.cycles - c0 > 2 * (time.monotonic() - t0) * 1000  # the loop's clock is ahead
+    assert abs(time.monotonic_ns() - st.heartbeat_ns) < 500_000_000
+    lp.ch.write_ros2xeno({"hang": True})
+    _wait(lambda: time.monotonic_ns() - lp.ch.status().heartbeat_ns > 200_000_000, "a stale heartbeat", timeout=3)
