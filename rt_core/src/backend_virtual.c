@@ -65,7 +65,10 @@ static int host_gone(const struct xrf_shm *shm, int64_t real_ns)
 static int must_wait(const struct xrf_shm *shm)
 {
     const uint64_t until = __atomic_load_n(&shm->vtime.run_until, __ATOMIC_ACQUIRE);
-    if (shm->status.cycles >= until) /* status.cycles: this thread's own counter */
+    /* A command sent to a held loop is taken at once: one more cycle per command (the host's
+     * wait for its answer needs no step of its own, and the cycle it lands in is still exact). */
+    const int command_waiting = __atomic_load_n(&shm->cmd.head, __ATOMIC_ACQUIRE) != shm->cmd.tail;
+    if (shm->status.cycles >= until && !command_waiting) /* status.cycles: this thread's own */
         return 1;
     const uint32_t slots = shm->log_ring.slots; /* set by this process's logger */
     const uint64_t head = shm->log_ring.head;

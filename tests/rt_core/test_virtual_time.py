@@ -212,3 +212,18 @@ def test_a_hung_loop_in_simulated_time_goes_quiet_in_real_time(run_loop, probe_e
     assert abs(time.monotonic_ns() - st.heartbeat_ns) < 500_000_000
     lp.ch.write_ros2xeno({"hang": True})
     _wait(lambda: time.monotonic_ns() - lp.ch.status().heartbeat_ns > 200_000_000, "a stale heartbeat", timeout=3)
+
+
+def test_a_held_loop_takes_each_command_in_exactly_one_cycle(run_loop, probe_exe: Path) -> None:
+    lp = run_loop(probe_exe, XRF_TRANSPORT="sim", XRF_VIRTUAL_TIME="hold")
+    ch = lp.ch
+    _wait(lambda: ch.status().cycles >= 1, "the first cycle")
+    ch.run_until(10)
+    _wait(lambda: ch.status().cycles >= 10, "ten cycles")
+    for cmd, state in (("initialise", "INITIALISED"), ("start", "RUN")):
+        before = ch.status().cycles
+        assert ch.wait_command(ch.send_command(cmd), timeout=3).accepted  # no step needed
+        assert ch.status().cycles == before + 1, cmd
+        _wait(lambda state=state: ch.status().state_name == state, state)
+    time.sleep(0.05)  # the point: a held loop stays where it is while real time passes
+    assert ch.status().cycles == 12

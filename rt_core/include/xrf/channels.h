@@ -320,7 +320,7 @@ struct xrf_sim_outputs {
 /* Simulated time (XRF_VIRTUAL_TIME, docs/rt_core/runtime.md "Simulated time"): the loop on the
  * simulated board does not sleep, its clock skips each cycle's idle time. A host that feeds
  * inputs at exact loop times holds the loop: no cycle whose index (status.cycles) is >= run_until
- * starts until the host raises it. */
+ * starts until the host raises it (a command in the ring lets one cycle run, to take it). */
 struct xrf_vtime {
     uint32_t active; /* loop: 1 when this run is in simulated time (set before ready) */
     uint32_t pad;
