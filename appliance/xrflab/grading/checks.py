@@ -35,16 +35,20 @@ def evaluate(scenario: Scenario, data: RunData) -> list[CheckResult]:
 def evaluate_one(check: Check, scenario: Scenario, data: RunData) -> CheckResult:
     res = CheckResult(check.id, check.kind, check.points, 0.0, False, message=check.message, line=check.line)
     t1, t2 = check.window(scenario.duration)
-    if not data.complete and (t2 > data.reached + 1e-9 or check.kind in ("no_deadline_misses", "no_alarms")):
+    early = not data.complete and (t2 > data.reached + 1e-9 or check.kind in ("no_deadline_misses", "no_alarms"))
+    # "By a time" checks met before the run ended early are met: later samples cannot undo them.
+    if not early or check.kind in ("state", "reach"):
+        try:
+            _KINDS[check.kind](check, data, res, t1, t2)
+        except (expr.ExprError, _NoData) as exc:
+            res.passed = False
+            res.reason = str(exc)
+    if early and not res.passed:
+        res.plot = None
         res.reason = (
             f"not evaluated: {data.reason or 'the run ended early'} (at t = {data.reached:.3f} s, before {t2:g} s)"
         )
         return res
-    try:
-        _KINDS[check.kind](check, data, res, t1, t2)
-    except (expr.ExprError, _NoData) as exc:
-        res.passed = False
-        res.reason = str(exc)
     if res.passed:
         res.earned = check.points
         res.reason = ""
