@@ -28,6 +28,8 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
+    if hasattr(session.config, "workerinput"):
+        return  # an xdist worker: the controller runs the check in the background (fresh_background.py)
     fresh = [i for i in session.items if _is_fresh(i)]
     if not fresh or len(fresh) == len(session.items) or os.geteuid() != 0:
         return  # alone, the check runs in its fixture as it always did; not root, it skips

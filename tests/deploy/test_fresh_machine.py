@@ -34,7 +34,7 @@ from pathlib import Path
 
 import pytest
 
-from xrf_testing.fresh_background import BACKGROUND, Run
+from xrf_testing.fresh_background import BACKGROUND, Attached, Run
 from xrf_testing.fresh_machine import Machine
 from xrf_testing.fresh_run import CMAKE_TEST, JUNIT, UI_TEST, apt_packages
 from xrf_testing.fresh_run import tail as _tail
@@ -77,6 +77,8 @@ def fresh(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFacto
             pytest.skip(f"the fresh-machine check needs {tool} (util-linux)")
     background = request.config.stash.get(BACKGROUND, None)
     run = background.claim() if background else None
+    if run is None and hasattr(request.config, "workerinput"):  # an xdist worker: the controller's run
+        run = Attached.from_env()
     how = f"in the background since {run.seconds()} s" if run else "alone"
     if run is None:  # the check alone (or nothing else of the session got to run): as it always was
         run = Run(tmp_path_factory.mktemp("fresh-machine"), low_priority=False)

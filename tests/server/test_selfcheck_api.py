@@ -42,7 +42,11 @@ def test_check_on_the_simulated_relbot_events_report_saved_and_listed(server: Se
     report = final["report"]
     assert report["verdict"] == "pass" and report["outputs_zeroed"] is True
     assert report["transport"] == "sim" and report["sim"] == "relbot" and report["bench"] == "relbot"
-    assert all(s["status"] in ("pass", "skipped") for s in report["steps"])
+    # The link's timing step measures this machine's load: under a loaded (parallel) suite its
+    # median may cross the warn line, a verdict the check gives for exactly that. Every other step
+    # must pass.
+    bad = [s for s in report["steps"] if s["status"] not in ("pass", "skipped")]
+    assert all(s["id"] == "timing" and s["status"] == "warn" for s in bad), bad
     name = final["name"]
     listed = server.http.get("/api/selfcheck/reports").json()
     assert listed[0]["name"] == name and listed[0]["verdict"] == "pass" and listed[0]["bench"] == "relbot"

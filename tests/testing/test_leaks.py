@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import sys
 import uuid
 from pathlib import Path
 
@@ -50,3 +51,47 @@ def test_it_finds_the_sessions_processes_and_shm_and_only_those(tmp_path: Path) 
             p.wait()
         os.kill(stranger, 9)
         shm.unlink(missing_ok=True)
+
+
+PLANTED = """
+import os, time
+from pathlib import Path
+
+
+def test_one_worker_leaves_a_segment():
+    Path("/dev/shm/{name}").write_bytes(b"x")
+
+
+def test_the_other_worker_uses_one_and_cleans_up():
+    p = Path("/dev/shm/{name}-used")
+    p.write_bytes(b"x")
+    p.unlink()
+"""
+
+
+def test_with_xdist_workers_the_controller_checks_once_at_the_end() -> None:
+    """`./lab test` runs the suite in xdist workers; the leak check is then the controller's
+    (tests/conftest.py): a real session with two workers whose test leaves a segment fails, names
+    it, and removes it."""
+    repo = Path(__file__).resolve().parents[2]
+    name = f"xrf-leak-xdist-{uuid.uuid4().hex[:8]}"
+    # in the checkout's tests/ so that its conftest applies; written before the session starts,
+    # so it is not the session's leftover, and removed before ours ends
+    planted = repo / "tests" / "testing" / f"test_planted_{name[-8:]}.py"
+    planted.write_text(PLANTED.format(name=name))
+    env = {k: v for k, v in os.environ.items() if k not in (MARKER, "PYTEST_XDIST_WORKER")}
+    try:
+        out = subprocess.run(
+            [sys.executable, "-m", "pytest", "-n", "2", "--dist", "load", "-p", "no:cacheprovider", str(planted)],
+            cwd=repo,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    finally:
+        planted.unlink()
+    assert out.returncode == 1, out.stdout + out.stderr
+    assert "2 passed" in out.stdout, out.stdout
+    assert f"the test session left behind:\n  /dev/shm/{name}\n" in out.stderr, out.stderr
+    assert not (SHM / name).exists()

@@ -28,6 +28,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -45,6 +46,32 @@ def _gone(pid: int) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
     except (OSError, IndexError):
         return True
+
+
+def _hurry(tree_pids: Callable[[], set[int]]) -> None:
+    for _ in range(2):  # a process forked while the first pass ran is met by the second
+        tids = []
+        for pid in tree_pids():
+            with contextlib.suppress(OSError):
+                tids += [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+        for tid in tids:
+            with contextlib.suppress(OSError):
+                os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, 0))  # pytest's
+        if tids:
+            subprocess.run(
+                ["ionice", "-c", "2", "-n", "4", "-p", *map(str, tids)],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+
+
+def _record(result: Path, log_path: Path, ended: str) -> dict:
+    """The record fresh_run.py wrote (its log's tail as the error if none)."""
+    try:
+        return json.loads(result.read_text())
+    except (OSError, ValueError):
+        log = log_path.read_text(errors="replace")[-4000:] if log_path.exists() else ""
+        return {"error": f"fresh_run.py ended {ended} and no record:\n{log}"}
 
 
 class Run:
@@ -78,29 +105,12 @@ class Run:
         if not self.low:
             return
         self.low = False
-        for _ in range(2):  # a process forked while the first pass ran is met by the second
-            tids = []
-            for pid in self.tree_pids():
-                with contextlib.suppress(OSError):
-                    tids += [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-            for tid in tids:
-                with contextlib.suppress(OSError):
-                    os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, 0))  # pytest's
-            if tids:
-                subprocess.run(
-                    ["ionice", "-c", "2", "-n", "4", "-p", *map(str, tids)],
-                    stdout=subprocess.DEVNULL,
-                    stderr=subprocess.DEVNULL,
-                )
+        _hurry(self.tree_pids)
 
     def wait(self) -> dict:
         """The record fresh_run.py wrote, once it has ended (its log's tail as the error if none)."""
         self.proc.wait()
-        try:
-            return json.loads(self.result.read_text())
-        except (OSError, ValueError):
-            log = self.log_path.read_text(errors="replace")[-4000:] if self.log_path.exists() else ""
-            return {"error": f"fresh_run.py ended with {self.proc.returncode} and no record:\n{log}"}
+        return _record(self.result, self.log_path, f"with {self.proc.returncode}")
 
     def seconds(self) -> float:
         return round(time.monotonic() - self.started, 1)
@@ -167,3 +177,73 @@ class Background:
 
 
 BACKGROUND = pytest.StashKey[Background]()
+
+
+# With xdist workers (`./lab test`, the whole suite) no worker knows, when the session starts, which
+# of them will get the check's tests, and a worker that started the run could end (and kill it)
+# before the check's tests are reached elsewhere. So the controller, which runs no test and
+# outlives every worker, starts the run with the session and closes it at its end (tests/conftest.py);
+# the worker that reaches the check's tests attaches to it by the folder named in SHARED_ENV.
+SHARED_ENV = "XRF_FRESH_SHARED"
+FRESH_MODULE = Path(__file__).resolve().parents[1] / "deploy" / "test_fresh_machine.py"
+
+
+def selected(config: pytest.Config) -> bool:
+    """Whether the session's arguments take in the check (the controller collects nothing, so it
+    reads them); a -k or -m that then leaves the check out only costs its cancelled run."""
+    if os.geteuid() != 0 or not all(shutil.which(t) for t in ("unshare", "pivot_root", "nice", "ionice")):
+        return False  # the check's fixture skips and says why
+    args = [a.split("::", 1)[0] for a in config.args] or [str(config.rootpath)]
+    for arg in args:
+        path = Path(config.invocation_params.dir, arg).resolve()
+        if path == FRESH_MODULE:
+            return False  # the check alone: it runs in its fixture at normal priority, as always
+        if FRESH_MODULE.is_relative_to(path):
+            return True
+    return False
+
+
+def start_shared(config: pytest.Config) -> Run | None:
+    """The controller's part: the run at low priority, its folder named for the workers."""
+    if not selected(config):
+        return None
+    run = Run(config._tmp_path_factory.getbasetemp() / "fresh-machine", low_priority=True)
+    (run.dest / "pid").write_text(f"{run.proc.pid} {run.started}")
+    os.environ[SHARED_ENV] = str(run.dest)  # set before xdist starts its workers, who inherit it
+    return run
+
+
+class Attached:
+    """The controller's run as the worker that reaches the check's tests sees it: it can raise its
+    priority and wait for its record; the controller closes it."""
+
+    def __init__(self, dest: Path) -> None:
+        self.dest = dest
+        pid, started = (dest / "pid").read_text().split()
+        self.pid, self.started = int(pid), float(started)
+        self.result, self.log_path = dest / "result.json", dest / "runner.log"
+        self.low = True
+
+    @classmethod
+    def from_env(cls) -> Attached | None:
+        dest = os.environ.get(SHARED_ENV)
+        return cls(Path(dest)) if dest and Path(dest, "pid").exists() else None
+
+    def tree_pids(self) -> set[int]:
+        return set() if _gone(self.pid) else {self.pid, *descendants(self.pid)}
+
+    def hurry(self) -> None:
+        if self.low:
+            self.low = False
+            _hurry(self.tree_pids)
+
+    def wait(self) -> dict:
+        while not _gone(self.pid):  # the controller's child: gone is exited (a zombie until it reaps)
+            time.sleep(1)  # polling: another process's child cannot be waited for
+        return _record(self.result, self.log_path, "(its status is the controller's)")
+
+    def seconds(self) -> float:
+        return round(time.monotonic() - self.started, 1)
+
+    def close(self) -> None:
+        """Nothing: the run is the controller's, closed when its session ends."""

@@ -37,8 +37,10 @@ CHROMIUM_ARGS = [
 
 def shared_builds_root() -> Path:
     """Builds shared by every server of every session (the ignored .cache/ folder): the bundled
-    examples compile once, later servers and sessions only re-check them (incremental CMake)."""
-    path = REPO_ROOT / ".cache" / "test-builds"
+    examples compile once, later servers and sessions only re-check them (incremental CMake).
+    One folder per xdist worker: two servers building the same example into one folder at once
+    break each other's build (a half-written binary, CMake's cache mid-write)."""
+    path = REPO_ROOT / ".cache" / "test-builds" / os.environ.get("PYTEST_XDIST_WORKER", "main")
     path.mkdir(parents=True, exist_ok=True)
     return path
 
