@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import math
 import os
 import resource
 import signal
@@ -132,8 +133,23 @@ def loop_env(scenario: Scenario, run_dir: Path, shm_name: str, shm_fd: int, virt
     if scenario.faults:
         env["XRF_SIM_FAULTS"] = scenario.faults
     if virtual_time:
-        env[VIRTUAL_TIME_ENV] = "1"
+        # Held between the scenario's events (_drive raises the limit): commands and setpoints
+        # land on the same cycles as in real time (docs/rt_core/runtime.md "Simulated time").
+        env[VIRTUAL_TIME_ENV] = "hold"
     return env
+
+
+def _next_stop(scenario: Scenario, commands: list, cycles: int, freq: float) -> int:
+    """Simulated time: the cycle count the loop may run to before the host acts again (the next
+    command, the next setpoint change, the end); a ramp or table changes every cycle."""
+    due = [c.at for c in commands] + [scenario.duration]
+    for s in scenario.setpoints:
+        end = s.end if s.kind == "ramp" else (s.points[-1][0] if s.kind == "table" else s.start)
+        if s.start * freq <= cycles < end * freq:
+            return cycles + 1
+        due.append(s.start)
+    later = [math.ceil(x * freq - 1e-9) for x in due if math.ceil(x * freq - 1e-9) > cycles]
+    return min(later) if later else cycles + 1
 
 
 def grade_executable(
@@ -264,6 +280,8 @@ def _drive(
                 ch.write_ros2xeno(want)
                 written = want
             ch.host_heartbeat()
+            if result.virtual_time:
+                ch.run_until(_next_stop(scenario, commands, ch.status().cycles, freq))
             # A wait on the loop's doorbell (each cycle rings it), bounded: the poll of this loop.
             seen = ch.wait_doorbell(seen, 20)
     except (ChannelsError, ValueError) as exc:
