@@ -103,7 +103,7 @@ def test_an_unknown_signal_in_an_expression_is_refused_with_its_line() -> None:
     s = load(text, "s.toml")
     with pytest.raises(ScenarioError) as info:
         check_signals(s, {"position_setpoint"}, {"position", "position_setpoint", "pwm"}, "s.toml")
-    assert info.value.line == HEAD.count("\n") + 2 and "'positon'" in info.value.reason
+    assert info.value.line == HEAD.count("\n") + 4 and "'positon'" in info.value.reason
 
 
 def test_expressions_compute_over_arrays_and_never_run_python() -> None:

@@ -45,6 +45,7 @@ class GradeResult:
     points: float = 0.0  # the scenario's maximum
     checks: list[CheckResult] = field(default_factory=list)
     build: str = ""  # which build ran (catalog name or executable)
+    run: int | None = None  # the appliance's run record (its log and output: /api/logs/runs/{run})
     reached_run_s: float | None = None  # loop time the controller entered RUN
     loop_time_s: float = 0.0  # how far the loop got
     wall_s: float = 0.0  # how long grading took

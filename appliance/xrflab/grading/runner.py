@@ -64,11 +64,25 @@ class LoopProcess(Protocol):
     def wait(self, timeout: float) -> int | None: ...
 
 
-class Launcher(Protocol):
-    """Starts a controller: `exe` with `env` (XRF_SHM_FD names `shm_fd`, to be passed on), its
-    working folder and log folder `run_dir`, its output into `output` (a file)."""
+@dataclass
+class Started:
+    """A controller a launcher started: its process, its segment (a sealed memfd the runner reads
+    and closes), and what to do once it has ended (the sandbox's file system and cgroup)."""
 
-    def __call__(self, exe: Path, env: dict[str, str], run_dir: Path, shm_fd: int, output: int) -> LoopProcess: ...
+    proc: LoopProcess
+    shm_fd: int
+    shm_name: str
+    release: Callable[[], None] = lambda: None
+    run_dir: Path | None = None  # where its output and log are, when the launcher chose (a run folder)
+    run_id: int | None = None  # its run record, when it has one (the appliance's)
+
+
+class Launcher(Protocol):
+    """Starts a controller: `exe` with `env` (the XRF_* options), working and log folder
+    `run_dir`, its output into run_dir/output.txt. Raises OSError/RuntimeError/ValueError when it
+    cannot; a refused start is a result (start_failed), not an error of the grader."""
+
+    def __call__(self, exe: Path, env: dict[str, str], run_dir: Path) -> Started: ...
 
 
 class _Local:
@@ -97,27 +111,46 @@ def _local_limits() -> None:
     resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
 
 
-def local_launcher(exe: Path, env: dict[str, str], run_dir: Path, shm_fd: int, output: int) -> LoopProcess:
+def local_launcher(exe: Path, env: dict[str, str], run_dir: Path) -> Started:
     """`xrf grade` on a TA's laptop or a course's CI: the controller as a child of ours (as `xrf run`
-    starts one), in its own session (killed as a group), with rlimits; not the appliance's sandbox."""
-    proc = subprocess.Popen(
-        [str(exe)],
-        env={"PATH": "/usr/local/bin:/usr/bin:/bin", "LANG": "C.UTF-8", "HOME": str(run_dir), **env},
-        cwd=run_dir,
-        stdin=subprocess.DEVNULL,
-        stdout=output,
-        stderr=subprocess.STDOUT,
-        pass_fds=(shm_fd,),
-        start_new_session=True,
-        preexec_fn=_local_limits,  # noqa: PLW1509 (no threads of ours touch the child before exec)
-    )
-    return _Local(proc)
+    starts one), in its own session (killed as a group), with rlimits; not the appliance's sandbox
+    (the appliance's launcher is grading/sandbox.py)."""
+    from ..channels import segment
+
+    name = f"xrf-grade-{os.getpid()}-{next(_counter)}"
+    shm_fd = segment.create_sealed(name)
+    try:
+        out_fd = os.open(run_dir / "output.txt", os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o640)
+        try:
+            proc = subprocess.Popen(
+                [str(exe)],
+                env={
+                    "PATH": "/usr/local/bin:/usr/bin:/bin",
+                    "LANG": "C.UTF-8",
+                    "HOME": str(run_dir),
+                    **env,
+                    "XRF_SHM": name,
+                    "XRF_SHM_FD": str(shm_fd),
+                },
+                cwd=run_dir,
+                stdin=subprocess.DEVNULL,
+                stdout=out_fd,
+                stderr=subprocess.STDOUT,
+                pass_fds=(shm_fd,),
+                start_new_session=True,
+                preexec_fn=_local_limits,  # noqa: PLW1509 (no threads of ours touch the child before exec)
+            )
+        finally:
+            os.close(out_fd)
+    except BaseException:
+        os.close(shm_fd)
+        raise
+    return Started(_Local(proc), shm_fd, name)
 
 
-def loop_env(scenario: Scenario, run_dir: Path, shm_name: str, shm_fd: int, virtual_time: bool) -> dict[str, str]:
+def loop_env(scenario: Scenario, run_dir: Path, virtual_time: bool) -> dict[str, str]:
+    """The XRF_* options of a graded loop (docs/developers/architecture.md lists them)."""
     env = {
-        "XRF_SHM": shm_name,
-        "XRF_SHM_FD": str(shm_fd),
         "XRF_SIM": scenario.robot,
         "XRF_TRANSPORT": "sim",
         "XRF_BACKEND": "posix",
@@ -163,28 +196,25 @@ def grade_executable(
 ) -> GradeResult:
     """Run `exe` through `scenario` with its log and output in `run_dir` (made; kept), grade it.
     Never raises for what the controller does; `virtual_time` None: $XRF_VIRTUAL_TIME decides."""
-    from ..channels import Channels, ChannelsError, segment
+    from ..channels import Channels, ChannelsError
 
     wall0 = time.monotonic()
     if virtual_time is None:
         virtual_time = os.environ.get(VIRTUAL_TIME_ENV, "") == "1"
     result = GradeResult(scenario.name, "error", build=build or str(exe), virtual_time=virtual_time)
     run_dir.mkdir(parents=True, exist_ok=True)
-    shm_name = f"xrf-grade-{os.getpid()}-{next(_counter)}"
-    shm_fd = segment.create_sealed(shm_name)
-    out_path = run_dir / "output.txt"
-    proc: LoopProcess | None = None
+    started: Started | None = None
     ch: Channels | None = None
     data = chk.RunData(columns={})
     try:
-        out_fd = os.open(out_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o640)
         try:
-            proc = launcher(exe, loop_env(scenario, run_dir, shm_name, shm_fd, virtual_time), run_dir, shm_fd, out_fd)
+            started = launcher(exe, loop_env(scenario, run_dir, virtual_time), run_dir)
         except (OSError, ValueError, RuntimeError) as exc:
             result.status, result.reason = "start_failed", f"the controller could not be started: {exc}"
             return _finish(result, scenario, data, run_dir, wall0)
-        finally:
-            os.close(out_fd)
+        proc, shm_fd, shm_name = started.proc, started.shm_fd, started.shm_name
+        run_dir = started.run_dir or run_dir
+        result.run = started.run_id
         deadline = time.monotonic() + limits.start_s
         while ch is None:
             try:
@@ -203,14 +233,15 @@ def grade_executable(
         if ch is not None:
             _drive(scenario, ch, proc, limits, result, data)
     finally:
-        if proc is not None:
-            _stop(ch, proc, limits)
+        if started is not None:
+            _stop(ch, started.proc, limits)
         if ch is not None:
             with contextlib.suppress(Exception):
-                st = ch.status()
-                result.missed = int(st.missed)
+                result.missed = int(ch.status().missed)
             ch.close()
-        os.close(shm_fd)
+        if started is not None:
+            os.close(started.shm_fd)
+            started.release()
     return _finish(result, scenario, data, run_dir, wall0)
 
 

@@ -109,6 +109,7 @@ class Check:
     signal: str = ""
     params: dict[str, Any] = field(default_factory=dict)
     line: int = 0
+    signal_line: int = 0  # the line naming what it reads (signal = / expr =)
 
     def window(self, duration: float) -> tuple[float, float]:
         """The span of loop time the check looks at (its plot's span too)."""
@@ -151,7 +152,7 @@ class Scenario:
                 names += sorted(expr.names(c.params["expr"]))
             for n in names:
                 if n and n not in expr.RESERVED:
-                    out.setdefault(n, c.line)
+                    out.setdefault(n, c.signal_line or c.line)
         return out
 
     def setpoints_at(self, t: float) -> dict[str, float]:
@@ -491,4 +492,13 @@ def _check(r: _Reader, d: dict[str, Any], i: int, duration: float) -> Check:
             raise r.fail("require: always, sometime or final", t, i, "require")
         if "during" not in p:
             p["during"] = (0.0, duration)
-    return Check(cid, kind, points, message, signal, p, r.lines.of(t, i))
+    return Check(
+        cid,
+        kind,
+        points,
+        message,
+        signal,
+        p,
+        r.lines.of(t, i),
+        r.lines.of(t, i, "expr" if kind == "expression" else "signal"),
+    )
