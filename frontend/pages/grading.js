@@ -117,16 +117,15 @@
 
   function say(text, kind) { const m = q("gr-msg"); if (m) { m.textContent = text; m.className = "small " + (kind || ""); } }
 
-  async function follow(pid, job) {
+  async function follow(pid) {
     for (;;) {
       const r = await xrfLib.send("GET", `/api/projects/${pid}/grade`);
       if (S.pid !== pid) return;
       if (!r.ok) { say(detail(r), "bad"); return; }
       const j = r.data.job || {};
-      if (j.id != null && job != null && j.id !== job) { say("a newer check started"); }
-      const done = !j.state || ["done", "failed", "finished", "completed"].includes(j.state);
+      const done = !j.status || j.status === "done";  // queued, running, done (grading/queue.py)
       if (done && r.data.result) { renderResult(q("gr-result"), r.data.result); say(""); return; }
-      say(`checking… ${j.state || ""}`);
+      say(`checking… ${j.status || ""}`);
       await sleep(POLL_MS);
     }
   }
@@ -144,7 +143,7 @@
       }
       if (!r.ok) { say(detail(r), "bad"); return; }
       say("checking…");
-      await follow(pid, r.data.job && r.data.job.id != null ? r.data.job.id : r.data.job);
+      await follow(pid);
     } finally { S.busy = false; q("gr-check").disabled = false; }
   }
 
