@@ -63,6 +63,7 @@ EXTERNAL_SUBCOMMANDS: dict[str, str] = {
     "new": "xrflab.projects.cli_new",
     "room": "xrflab.room.cli",
     "param": "xrflab.params.cli",
+    "grade": "xrflab.grading.cli",
     "run-disk-helper": "xrflab.server.runs.disk_helper",
 }
 

@@ -113,6 +113,8 @@
     q("ed-diags").textContent = "";
     q("ed-diff-out").textContent = "";
     E.project = await xrf.api("GET", `/api/projects/${pid}`);
+    // Panels of other modules that follow the open project (pages/grading.js: Check my project).
+    document.dispatchEvent(new CustomEvent("xrf-editor-project", { detail: pid }));
     await refreshFiles();
     const pick = E.files.find((f) => f.editable && /^src\/.*\.(cpp|cc)$/.test(f.path) && !/main\.cpp$/.test(f.path))
       || E.files.find((f) => f.editable);

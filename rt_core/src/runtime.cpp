@@ -137,6 +137,17 @@ int Options::fromEnvironment()
             ok = false;
         }
     }
+    v = std::getenv("XRF_VIRTUAL_TIME");
+    if (v && *v && std::strcmp(v, "0") != 0) {
+        if (std::strcmp(v, "1") == 0)
+            virtual_time = 1;
+        else if (std::strcmp(v, "hold") == 0)
+            virtual_time = 2;
+        else {
+            std::fprintf(stderr, "xrf: XRF_VIRTUAL_TIME=%s: use 0, 1 or hold\n", v);
+            ok = false;
+        }
+    }
     v = std::getenv("XRF_QUIET");
     quiet = v && *v && std::strcmp(v, "0") != 0;
     v = std::getenv("XRF_LOG_TIMING");
@@ -320,8 +331,9 @@ int Runtime::createShm()
 int Runtime::enter(unsigned cycle_freq)
 {
     const Options &o = options();
-    backend_ = xrf_backend_by_name(o.backend);
+    backend_ = o.virtual_time ? xrf_backend_virtual() : xrf_backend_by_name(o.backend);
     posix_ = backend_ != nullptr && backend_ == xrf_backend_by_name("posix");
+    virtual_ = o.virtual_time != 0;
     if (backend_ == nullptr) {
         std::fprintf(stderr, "xrf: XRF_BACKEND=%s is not available in this build (have: posix%s)\n",
                      o.backend, xrf_backend_evl() ? ", evl" : "");
@@ -343,6 +355,21 @@ int Runtime::enter(unsigned cycle_freq)
     // that called ico_io.init()) keeps working, without the simulator's shared-memory mirror.
     if (transport_ == nullptr && !transport_failed_)
         transport();
+    if (virtual_) {
+        // A real robot moves in real time: simulated time exists only on the simulated board.
+        if (transport_ == nullptr || std::strcmp(transport_name_, "sim") != 0) {
+            std::fprintf(
+                stderr,
+                "xrf: XRF_VIRTUAL_TIME runs only on the simulated board (XRF_TRANSPORT=sim), "
+                "not on %s\n",
+                transport_name_[0] ? transport_name_ : "no board");
+            return -EINVAL;
+        }
+        xrf_sim_set_clock(transport_, xrf_virtual_now_ns);
+        shm_->vtime.active = 1;
+        shm_->vtime.run_until = options_.virtual_time == 2 ? 1 : UINT64_MAX;
+        xrf_backend_virtual_bind(shm_, &g_signal_stop);
+    }
 
     shm_->host_timeout_ms = o.host_timeout_ms;
     shm_->host_timeout_action = o.host_timeout_action;
@@ -479,6 +506,8 @@ uint32_t Runtime::checkHostHeartbeat(int64_t now_ns)
         return XRF_HOST_LOST_ACTION_IGNORE;
     int64_t hb = __atomic_load_n(&shm_->host_heartbeat_ns, __ATOMIC_RELAXED);
     // No heartbeat yet: the host has not attached; supervision starts with the first one.
+    if (virtual_)
+        now_ns = xrf_virtual_real_ns(); // the host beats in real time; the loop's clock runs ahead
     bool stale = hb != 0 && now_ns - hb > (int64_t)timeout_ms * 1000000LL;
     if (stale && !host_lost_) {
         host_lost_ = true;

@@ -32,6 +32,7 @@ struct sim_board {
     struct xrf_sim_faults faults;
     double fixed_dt;
     struct xrf_sim_outputs *outputs;
+    int64_t (*clock)(void); /* simulated time: the loop's clock (xrf_sim_set_clock); NULL: real */
 
     /* The board's registers. */
     int16_t pwm[4]; /* signed duty as decoded, magnitude up to 14 bits */
@@ -180,7 +181,13 @@ static int sim_xfer(struct xrf_ico_transport *t, const uint8_t tx[XRF_ICO_FRAME]
 {
     struct sim_board *s = (struct sim_board *)t;
     struct timespec now;
-    clock_gettime(CLOCK_MONOTONIC, &now);
+    if (s->clock) {
+        const int64_t ns = s->clock();
+        now.tv_sec = (time_t)(ns / 1000000000LL);
+        now.tv_nsec = (long)(ns % 1000000000LL);
+    } else {
+        clock_gettime(CLOCK_MONOTONIC, &now);
+    }
 
     /* The outputs set by the previous frame acted until now; this frame's take over after. */
     double dt;
@@ -254,8 +261,13 @@ static int sim_xfer(struct xrf_ico_transport *t, const uint8_t tx[XRF_ICO_FRAME]
     }
 
     mirror(s);
-    if (s->faults.slow_link_us)
-        busy_wait_until(&now, s->faults.slow_link_us);
+    if (s->faults.slow_link_us) {
+        /* The wire is slow in real time (in simulated time the loop's clock runs on with it). */
+        struct timespec start = now;
+        if (s->clock)
+            clock_gettime(CLOCK_MONOTONIC, &start);
+        busy_wait_until(&start, s->faults.slow_link_us);
+    }
     return 0;
 }
 
@@ -293,6 +305,14 @@ int xrf_sim_open(int robot, const struct xrf_sim_faults *faults, double fixed_dt
     s->t.close = sim_close;
     mirror(s);
     *out = &s->t;
+    return 0;
+}
+
+int xrf_sim_set_clock(struct xrf_ico_transport *t, int64_t (*now_ns)(void))
+{
+    if (!t || t->xfer != sim_xfer)
+        return -EINVAL;
+    ((struct sim_board *)t)->clock = now_ns;
     return 0;
 }
 

@@ -60,7 +60,8 @@ int XenoFrtLoop::loop()
         if (ret != 0 || rt.stopRequested())
             break;
         // An overrun starts the next cycle at once; the grid itself never moves.
-        if (!missed)
+        // In simulated time the backend's wait also holds the loop for its host: never skipped.
+        if (!missed || rt.virtualTime())
             rt.sleepUntil(next);
     }
     xrfAfterLastCycle();

@@ -59,6 +59,7 @@ LAYER_OF: dict[str, str] = {
     "xrflab.viz.kinematics": "domain",  # forward kinematics: pure maths over a URDF
     "xrflab.ros": "services",  # the ROS 2 bridge node
     "xrflab.params.cli": "roots",  # `xrf param`: a command (through the API), imported by nobody
+    "xrflab.grading.cli": "roots",  # `xrf grade`: a scenario on a project, here
     "xrflab.params": "services",  # live tuning: the current run's parameters, sets, change log (a run observer)
     "xrflab.twentysim_params": "domain",  # a 20-sim export's parameters from its tokens file (stdlib, installed for builds)
     "xrflab.selfcheck": "services",  # the self-check driver: runs xrf-selfcheck, keeps its reports
@@ -80,6 +81,7 @@ LAYER_OF: dict[str, str] = {
     "xrflab.projects.sandbox": "services",  # the build sandbox process
     "xrflab.projects.sandbox_launch": "services",  # starts the build sandbox (what it is given, its wall time)
     "xrflab.guest": "services",  # the run sandbox's launcher (a process of its own, under a run)
+    "xrflab.grading": "services",  # grading (issue 32): the runner of a scenario, the queue, the results' store
     "xrflab.credentials": "services",  # the saved login of `xrf login`, read by the command-line tools
     # ---- domain: data, formats and rules; no appliance state
     "xrflab$": "domain",  # xrflab/__init__.py: the package's version, nothing wired
@@ -100,6 +102,10 @@ LAYER_OF: dict[str, str] = {
     "xrflab.runfolder": "domain",  # how a guest-writable folder is read: a rule, no state
     "xrflab.private_files": "domain",  # files created private
     "xrflab.errors": "domain",  # XrfError and its kinds: imported by every layer
+    "xrflab.grading.scenario": "domain",  # the scenario file: its format and its checks (TOML, lines)
+    "xrflab.grading.expr": "domain",  # custom checks' expressions: parsed with ast, evaluated over arrays
+    "xrflab.grading.checks": "domain",  # evaluating checks over a log's columns
+    "xrflab.grading.results": "domain",  # the result types the API serves
     "xrflab.logs": "domain",  # log formats: logformat, reader, converters, XRF2 .bin, record files
     # ---- bindings: the cffi binding of rt_core's headers and the host side of a segment
     "xrflab.channels": "bindings",  # a loop's segment through the cffi binding of channels.h

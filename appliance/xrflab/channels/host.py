@@ -203,6 +203,20 @@ class Channels:
         """Block (GIL released) until the doorbell differs from `seen` or timeout_ms passes."""
         return int(lib.xrf_doorbell_wait(self.shm, seen, timeout_ms))
 
+    # -- simulated time (XRF_VIRTUAL_TIME, docs/rt_core/runtime.md "Simulated time") -----------
+
+    @property
+    def virtual_time(self) -> bool:
+        """The loop runs in simulated time (its clock skips idle time; it may be held)."""
+        return bool(lib.xrfpy_load_u32(ffi.addressof(self.shm.vtime, "active")))
+
+    def run_until(self, cycles: int | None) -> None:
+        """Simulated time: let the loop run until status.cycles reaches `cycles`, then hold it
+        there; None lets it run free. A host feeding inputs at exact loop times writes them while
+        the loop is held, then raises the limit."""
+        value = -1 if cycles is None else int(cycles)  # -1: all ones, the loop's UINT64_MAX
+        lib.xrfpy_store_i64(ffi.cast("int64_t *", ffi.addressof(self.shm.vtime, "run_until")), value)
+
     # -- supervision --------------------------------------------------------------------------
 
     def host_heartbeat(self) -> None:

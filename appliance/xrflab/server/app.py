@@ -13,6 +13,7 @@ from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Redirect
 from fastapi.staticfiles import StaticFiles
 from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
+from ..grading.service import GradingService
 from ..params.service import ParamsService
 from ..projects.service import ProjectsService
 from ..room.bench import attach as attach_room
@@ -25,6 +26,7 @@ from .http import pages as http_pages
 from .http.accounts import router as accounts_router
 from .http.editor import CODEMIRROR_DIR
 from .http.editor import router as editor_router
+from .http.grading import router as grading_router
 from .http.logs import router as logs_router
 from .http.params import router as params_router
 from .http.projects import router as projects_router
@@ -69,6 +71,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # app.state and the routes' dependencies: projects_of, selfcheck_of): made here, once,
         # never on first use inside a route module.
         app.state.projects = await asyncio.to_thread(ProjectsService, settings, supervisor, asyncio.get_running_loop())
+        # Grading (issue 32): assignments' scenarios run on students' builds in the run sandbox,
+        # beside the bench (no lease), a bounded queue of them.
+        app.state.grading = GradingService(settings, app.state.projects, store, asyncio.get_running_loop())
         selfcheck = SelfCheckService(settings, supervisor)
         app.state.selfcheck = selfcheck
         # The run observers, in the order they are told of a run's start, samples and end
@@ -106,6 +111,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 await recovering
             await room.close()
             selfcheck.close()
+            await asyncio.to_thread(app.state.grading.close)
             await ros.close()
             security.close()
             await supervisor.shutdown()
@@ -162,6 +168,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(viser_router)
     app.include_router(logs_router)
     app.include_router(params_router)
+    app.include_router(grading_router)
     app.include_router(rerun_router)
     app.include_router(selfcheck_router)
     app.include_router(system_router)

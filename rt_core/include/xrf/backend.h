@@ -6,6 +6,7 @@
 #ifndef XRF_BACKEND_H
 #define XRF_BACKEND_H
 
+#include <signal.h>
 #include <stdint.h>
 
 #include "xrf/channels.h"
@@ -42,6 +43,14 @@ struct xrf_backend {
 const struct xrf_backend *xrf_backend_posix(void);
 /* NULL in builds without libevl. */
 const struct xrf_backend *xrf_backend_evl(void);
+/* Simulated time (docs/rt_core/runtime.md): never sleeps, skips each cycle's idle time. Chosen by
+ * the runtime for XRF_VIRTUAL_TIME on the simulated board only; bind gives it the run's channels
+ * (the host's hold, the log ring's fill, the heartbeat) and the stop flag, before the loop. */
+const struct xrf_backend *xrf_backend_virtual(void);
+void xrf_backend_virtual_bind(struct xrf_shm *shm, volatile sig_atomic_t *stop);
+int64_t xrf_virtual_now_ns(void);  /* the loop's clock in simulated time */
+int64_t xrf_virtual_real_ns(void); /* CLOCK_MONOTONIC */
+
 /* "posix", "evl" or "auto" (evl when built with it and /dev/evl exists). NULL if unknown. */
 const struct xrf_backend *xrf_backend_by_name(const char *name);
 

@@ -36,7 +36,7 @@ extern "C" {
 
 /* cffi-begin */
 #define XRF_SHM_MAGIC 827740760 /* "XRF1" read as a little-endian uint32 */
-#define XRF_SHM_VERSION 5       /* 5: the parameter block (params.h) */
+#define XRF_SHM_VERSION 6       /* 6: simulated time (struct xrf_vtime) */
 
 #define XRF_NAME_MAX 64
 #define XRF_REASON_MAX 128
@@ -319,6 +319,16 @@ struct xrf_sim_outputs {
     double plant[8]; /* plant state for viewers: jiwy pan, tilt (rad); relbot x, y, theta */
 };
 
+/* Simulated time (XRF_VIRTUAL_TIME, docs/rt_core/runtime.md "Simulated time"): the loop on the
+ * simulated board does not sleep, its clock skips each cycle's idle time. A host that feeds
+ * inputs at exact loop times holds the loop: no cycle whose index (status.cycles) is >= run_until
+ * starts until the host raises it (a command in the ring lets one cycle run, to take it). */
+struct xrf_vtime {
+    uint32_t active; /* loop: 1 when this run is in simulated time (set before ready) */
+    uint32_t pad;
+    uint64_t run_until; /* host: cycles the loop may run; UINT64_MAX: free-running */
+};
+
 struct xrf_shm {
     uint32_t magic;
     uint32_t version;
@@ -356,6 +366,7 @@ struct xrf_shm {
 
     /* live parameter tuning (xrf/params.h): table by the loop, sets by the host */
     struct xrf_params params;
+    struct xrf_vtime vtime;
 };
 
 /* Layout and lifecycle (loop side). */

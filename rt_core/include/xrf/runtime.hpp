@@ -60,6 +60,9 @@ struct Options {
     uint64_t max_cycles = 0;
     bool quiet = false;
     bool log_timing = false; // XRF_LOG_TIMING=1: every cycle's stage timing into cycle_timing.xrf
+    // XRF_VIRTUAL_TIME: 0 real time; 1 simulated time, free-running; 2 ("hold") simulated time,
+    // held after the first cycle until the host raises xrf_vtime.run_until.
+    int virtual_time = 0;
 
     // Reads XRF_* (docs/developers/architecture.md). Returns 0 or -EINVAL after printing why.
     int fromEnvironment();
@@ -126,6 +129,7 @@ public:
         return backend_->now_ns();
     }
     int sleepUntil(int64_t t) const { return backend_->sleep_until(t); }
+    bool virtualTime() const { return virtual_; }
     xrf_shm *shm() { return shm_; }
     uint64_t cycle() const { return cycles_; }
     void beginCycle(int64_t wake_ns) { cycle_start_ns_ = wake_ns; }
@@ -216,6 +220,7 @@ private:
     int dma_latency_fd_ = -1;
     bool timing_on_ = false;
     uint64_t timing_seq_ = 0; // counts dropped records too: gaps stay visible in the file
+    bool virtual_ = false;    // simulated time (backend_virtual.c): the loop's clock is not real
 };
 
 } // namespace xrf

@@ -45,6 +45,11 @@ int xrf_sim_open(int robot, const struct xrf_sim_faults *faults, double fixed_dt
 /* A plant's id by name ("relbot", "jiwy", ...: xrf_plant_id), else -EINVAL. */
 int xrf_sim_robot_from_name(const char *name);
 
+/* Simulated time: the board reads `now_ns` (the loop's virtual CLOCK_MONOTONIC, ns) instead of
+ * CLOCK_MONOTONIC to know how far to advance the plant, so the plant moves on the loop's clock.
+ * NULL: back to CLOCK_MONOTONIC. -EINVAL if `t` is not a simulated board. */
+int xrf_sim_set_clock(struct xrf_ico_transport *t, int64_t (*now_ns)(void));
+
 /* Plant state for tests and viewers, as the plant's table row names it (xrf_plant_info.state):
  * e.g. jiwy {pan, tilt, pan_rate, tilt_rate} (rad, rad/s at the camera), relbot {x, y, theta,
  * wheel_left, wheel_right} (m, rad, wheel rad/s). */
