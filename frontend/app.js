@@ -583,25 +583,78 @@ xrf.legendValue = (fmt) => (u, v, si, idx) => {
 };
 const plotNumber = (v) => (Number.isInteger(v) ? String(v) : v.toFixed(3));
 
-function makePlot(id, names) {
+// ---- y axes per unit: the Bench page's plots and Watch's scope (pages/watch.js) --------------
+// One y scale per unit where the unit is known (encoder counts, PWM, bits), else one per signal
+// (a message field's unit is the student's), each autoscaled: a 0-2 rad position is not
+// flattened by 0-16000 counts beside it (issue 31). Axes beyond MAX_AXES are not drawn (room for
+// the plot); their signals still scale on their own, and the legend shows their values.
+// A signal's key: "enc1", "pwm2", "din1", "dout1", "x.<Xeno2Ros field>", "r.<Ros2Xeno field>".
+const MAX_AXES = 4;
+xrf.scaleOf = (key) => {
+  if (/^enc\d/.test(key)) return "counts";
+  if (/^pwm\d/.test(key)) return "PWM";
+  if (/^d(in|out)\d/.test(key)) return "bit";
+  return key.replace(/^[xr]\./, "");
+};
+
+// uPlot options for these keys: scales (in the order of each one's first signal), their axes
+// (left, right, left, ...; coloured as their first signal) and one series per key.
+xrf.unitPlotOpts = (keys, valueFmt) => {
+  const scales = [];
+  keys.forEach((k, i) => { const sc = xrf.scaleOf(k); if (!scales.some((x) => x.name === sc)) scales.push({ name: sc, color: COLORS[i % COLORS.length] }); });
+  const axes = scales.slice(0, MAX_AXES).map((sc, i) => ({
+    scale: sc.name, side: i % 2 ? 1 : 3, stroke: sc.color, label: sc.name, labelSize: 16,
+    grid: { show: i === 0 }, size: xrf.axisWidth,
+  }));
+  return {
+    scaleNames: scales.map((x) => x.name),
+    scales: { x: { time: false }, ...Object.fromEntries(scales.map((sc) => [sc.name, { auto: true }])) },
+    axes: [{ size: 30 }, ...(axes.length ? axes : [{ size: 62 }])],
+    series: [{ label: "t (s)" }, ...keys.map((k, i) => ({
+      label: k.replace(/^[xr]\./, ""), scale: xrf.scaleOf(k), stroke: COLORS[i % COLORS.length], width: 1.5,
+      value: xrf.legendValue(valueFmt),
+    }))],
+  };
+};
+
+// After setData(…, false), which leaves every scale as it was: each y scale is fitted to what it
+// shows now, with a margin, and a flat signal gets a range around its value instead of none. A
+// range that still holds the data and is not more than four times too wide is kept: a scale that
+// moved every frame would re-measure and re-lay its axis every frame.
+xrf.fitScales = (plot, scaleNames, keys, cols) => {
+  for (const name of scaleNames) {
+    let lo = Infinity, hi = -Infinity;
+    cols.forEach((c, i) => {
+      if (xrf.scaleOf(keys[i]) !== name) return;
+      for (const v of c) if (v != null) { if (v < lo) lo = v; if (v > hi) hi = v; }
+    });
+    if (lo > hi) continue;
+    const pad = hi > lo ? (hi - lo) * 0.08 : Math.max(Math.abs(hi) * 0.1, 0.5);
+    const cur = plot.scales[name];
+    if (cur && cur.min != null && cur.min <= lo && hi <= cur.max && cur.max - cur.min <= 4 * (hi - lo + 2 * pad)) continue;
+    plot.setScale(name, { min: lo - pad, max: hi + pad });
+  }
+};
+
+// A Bench page plot of these signals (keys as above), the last WINDOW_S seconds.
+function makePlot(id, keys) {
   const el = $(id);
   el.innerHTML = "";
   const width = Math.max(200, el.clientWidth || el.parentElement.clientWidth || 300);
+  const unit = xrf.unitPlotOpts(keys, plotNumber);
   const opts = {
     width, height: 180,
     legend: { show: true },
     cursor: { drag: { x: false, y: false } },
-    scales: { x: { time: false } },
-    axes: [{ label: "", size: 30 }, { size: 62 }],
-    series: [{ label: "t (s)" }, ...names.map((n, i) => ({ label: n, stroke: COLORS[i % COLORS.length], width: 1.5, value: xrf.legendValue(plotNumber) }))],
+    scales: unit.scales, axes: unit.axes, series: unit.series,
   };
-  const data = [[], ...names.map(() => [])];
+  const data = [[], ...keys.map(() => [])];
   const plot = new uPlot(opts, data, el);
-  return { plot, data, names, dirty: false };
+  return { plot, data, keys, names: keys.map((k) => k.replace(/^[xr]\./, "")), scaleNames: unit.scaleNames, dirty: false };
 }
 
 function buildPlots(xeno2ros) {
-  const scalar = xeno2ros.filter((f) => !f.count).map((f) => f.name);
+  const scalar = xeno2ros.filter((f) => !f.count).map((f) => "x." + f.name);
   xrf.plots.xeno2ros = makePlot("plot-xeno2ros", scalar);
   xrf.plots.enc = makePlot("plot-enc", ["enc1", "enc2", "enc3", "enc4"]);
   xrf.plots.pwm = makePlot("plot-pwm", ["pwm1", "pwm2", "pwm3", "pwm4"]);
@@ -630,7 +683,14 @@ function applyTelemetry(m) {
 function redraw() {
   for (const p of Object.values(xrf.plots)) {
     if (p && p.dirty) {
-      p.plot.setData(p.data);
+      if (p.scaleNames) {  // a plot of signals: x follows the data, each y scale fits its own
+        p.plot.setData(p.data, false);
+        const xs = p.data[0];
+        if (xs.length) p.plot.setScale("x", { min: xs[0], max: Math.max(xs[xs.length - 1], xs[0] + 1e-3) });
+        xrf.fitScales(p.plot, p.scaleNames, p.keys, p.data.slice(1));
+      } else {
+        p.plot.setData(p.data);
+      }
       p.dirty = false;
       if (p.plot.cursor.idx == null) p.plot.setLegend();  // the newest values, not "--"
     }

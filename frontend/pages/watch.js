@@ -9,7 +9,6 @@
   const BUFFER_S = 120;        // history kept for the scope, whatever window is shown
   const TABLE_HZ = 10;         // the table is redrawn at most this often (values still all counted)
   const PRE = 0.25;            // a triggered capture shows this fraction of its window before the trigger
-  const COLORS = ["#1f6feb", "#d73a49", "#28a745", "#f6a01a", "#6f42c1", "#17a2b8", "#e83e8c", "#6c757d"];
   const W = {
     signals: [],               // [{key, group, name, type}]
     values: {},                // key -> latest value
@@ -149,38 +148,17 @@
 
   function windowS() { return Number(q("watch-window").value) || 5; }
 
-  // The scope's y scales: one per unit where the unit is known (encoder counts, PWM, bits), else
-  // one per signal (a message field's unit is the student's), each autoscaled: a 0-2 rad position
-  // is not flattened by 0-16000 counts beside it. Axes beyond MAX_AXES are not drawn (room for
-  // the plot); their signals still scale on their own, and the legend shows their values.
-  const MAX_AXES = 4;
-  function scaleOf(key) {
-    if (/^enc\d/.test(key)) return "counts";
-    if (/^pwm\d/.test(key)) return "PWM";
-    if (/^d(in|out)\d/.test(key)) return "bit";
-    return key.replace(/^[xr]\./, "");
-  }
-
+  // The scope's y axes: one per unit, as the Bench page's plots (app.js xrf.unitPlotOpts).
   function buildPlot() {
     const host = q("watch-plot");
     host.textContent = "";
     const keys = [...W.plotted].filter((k) => W.signals.some((s) => s.key === k && !s.array));
     W.plotKeys = keys;
-    const scales = [];  // in the order of the first signal on each
-    keys.forEach((k, i) => { const sc = scaleOf(k); if (!scales.some((x) => x.name === sc)) scales.push({ name: sc, color: COLORS[i % COLORS.length] }); });
-    W.scales = scales.map((x) => x.name);
-    const axes = scales.slice(0, MAX_AXES).map((sc, i) => ({
-      scale: sc.name, side: i % 2 ? 1 : 3, stroke: sc.color, label: sc.name, labelSize: 16,
-      grid: { show: i === 0 }, size: xrf.axisWidth,
-    }));
+    const unit = xrf.unitPlotOpts(keys, fmt);
+    W.scales = unit.scaleNames;
     const opts = {
       width: plotWidth(), height: 260, legend: { show: true }, cursor: { drag: { x: false, y: false } },
-      scales: { x: { time: false }, ...Object.fromEntries(scales.map((sc) => [sc.name, { auto: true }])) },
-      axes: [{ size: 30 }, ...(axes.length ? axes : [{ size: 62 }])],
-      series: [{ label: "t (s)" }, ...keys.map((k, i) => ({
-        label: k.replace(/^[xr]\./, ""), scale: scaleOf(k), stroke: COLORS[i % COLORS.length], width: 1.5,
-        value: xrf.legendValue(fmt),
-      }))],
+      scales: unit.scales, axes: unit.axes, series: unit.series,
     };
     opts.hooks = { draw: [drawParamMarkers] };
     W.plot = new uPlot(opts, [[], ...keys.map(() => [])], host);
@@ -209,20 +187,6 @@
     W.markersShown = shown;
   }
 
-  // setData(…, false) leaves every scale as it was: each y scale is fitted to what it shows now,
-  // with a margin, and a flat signal gets a range around its value instead of none. A range that
-  // still holds the data and is not more than four times too wide is kept: a scale that moved
-  // every frame would re-measure and re-lay its axis every frame.
-  function autoscale(name, cols) {
-    let lo = Infinity, hi = -Infinity;
-    for (const c of cols) for (const v of c) if (v != null) { if (v < lo) lo = v; if (v > hi) hi = v; }
-    if (lo > hi) return;
-    const pad = hi > lo ? (hi - lo) * 0.08 : Math.max(Math.abs(hi) * 0.1, 0.5);
-    const cur = W.plot.scales[name];
-    if (cur && cur.min != null && cur.min <= lo && hi <= cur.max && cur.max - cur.min <= 4 * (hi - lo + 2 * pad)) return;
-    W.plot.setScale(name, { min: lo - pad, max: hi + pad });
-  }
-
   function plotWidth() {
     const panel = q("watch-scope-panel");
     return Math.max(280, (panel && panel.clientWidth ? panel.clientWidth - 28 : 600));
@@ -248,7 +212,7 @@
     }
     W.plot.setData([xs, ...cols], false);
     W.plot.setScale("x", { min: t0 - zero, max: t1 - zero });
-    for (const sc of W.scales) autoscale(sc, cols.filter((c, i) => scaleOf(W.plotKeys[i]) === sc));
+    xrf.fitScales(W.plot, W.scales, W.plotKeys, cols);  // app.js
     if (W.plot.cursor.idx == null) W.plot.setLegend();  // newest values, not "--", when not hovered
     W.shown = { t0, t1, zero, points: xs.length };
   }

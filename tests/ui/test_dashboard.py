@@ -53,6 +53,24 @@ def test_dashboard_drives_a_relbot_run(server: Server, browser) -> None:
         " && Math.abs(window.xrf.lastTelemetry.xeno2ros.pos_right + 2) < 0.1",
         timeout=15_000,
     )
+    # The Xeno2Ros plot has a y axis per field (its unit is the student's; issue 31), each fitted to
+    # its own values: pos_left (near 3) and pos_right (near -2) are not drawn on one shared axis.
+    page.wait_for_function(
+        """(() => { const p = window.xrf.plots.xeno2ros.plot, s = p.scales;
+        return s.pos_left && s.pos_right && s.pos_left.max >= 2.9 && s.pos_right.min <= -1.9; })()"""
+    )
+    axes = page.evaluate(
+        """(() => { const p = window.xrf.plots.xeno2ros.plot;
+        return { series: p.series.slice(1).map((s) => [s.label, s.scale]),
+                 axes: p.axes.slice(1).map((a) => a.scale),
+                 left: [p.scales.pos_left.min, p.scales.pos_left.max],
+                 right: [p.scales.pos_right.min, p.scales.pos_right.max] }; })()"""
+    )
+    assert all(label == scale for label, scale in axes["series"]), axes
+    assert {"pos_left", "pos_right"} <= set(axes["axes"]), axes
+    assert axes["left"][0] > -1.9 and axes["right"][1] < 2.9, axes  # each scale its own range
+    # The encoders share one axis: one unit.
+    assert page.evaluate("window.xrf.plots.enc.plot.series.slice(1).every((s) => s.scale === 'counts')")
     page.wait_for_function("document.getElementById('t-cycles').textContent !== '–'")
     SHOTS.mkdir(exist_ok=True)
     page.screenshot(path=str(SHOTS / "dashboard.png"), full_page=True)

@@ -12,18 +12,20 @@ from xrf_testing.harness import Server
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SHOTS = REPO_ROOT / "test-results"
-# The dashboard's longest pause while the scene's tab is busy for BUSY_MS and the user leaves the
-# 3D page: generous for a loaded 2-core machine (its timers run late by a few hundred ms), far
-# below the 5-8 s freeze of the embedded scene, and below BUSY_MS (a shared main thread waits
-# for the whole busy stretch).
+# The scene's tab is kept busy for BUSY_MS while the user leaves the 3D page. If the scene shared
+# the dashboard's main thread (the embedded scene did: leaving it froze the dashboard for 5-8 s),
+# no dashboard timer could run inside that stretch. So the test asks that the dashboard's 20 ms
+# timer ran in each of its SLICES parts: a bound on the pause (3 s) flaked on a loaded 2-core
+# machine, where the other tab's busy loop and the load starve the dashboard's renderer for
+# seconds (it runs late, not never); a shared thread runs it never.
 BUSY_MS = 6000
-MAX_PAUSE_MS = 3000
+SLICES = 3
 
-# In the dashboard: a 20 ms timer that records its longest pause until window._stopTicks().
-TICKS = """(() => { window._maxPause = 0; let last = performance.now(), on = true;
-  window._stopTicks = () => { on = false; return window._maxPause; };
-  (function tick() { const n = performance.now(); window._maxPause = Math.max(window._maxPause, n - last);
-    last = n; if (on) setTimeout(tick, 20); })(); })()"""
+# In the dashboard: a 20 ms timer that records when it ran (wall clock, as the scene's tab's) until
+# window._stopTicks().
+TICKS = """(() => { window._ticks = []; let on = true;
+  window._stopTicks = () => { on = false; return window._ticks; };
+  (function tick() { window._ticks.push(Date.now()); if (on) setTimeout(tick, 20); })(); })()"""
 
 
 def test_view3d_loads_and_follows_a_jiwy_setpoint(server: Server, browser) -> None:
@@ -93,12 +95,14 @@ def test_view3d_loads_and_follows_a_jiwy_setpoint(server: Server, browser) -> No
     page.click("#nav a[data-page=bench]")
     page.wait_for_function("document.getElementById('page-view3d').classList.contains('hidden')")
     # Returns when the scene's tab has run its loop to the end; the dashboard's timer ran meanwhile.
-    busy = scene.evaluate(
-        f"(() => {{ const t = performance.now(); while (performance.now() - t < {BUSY_MS}); return performance.now() - t; }})()"
+    busy_from, busy_to = scene.evaluate(
+        f"(() => {{ const t = Date.now(); while (Date.now() - t < {BUSY_MS}); return [t, Date.now()]; }})()"
     )
-    pause = page.evaluate("window._stopTicks()")
-    assert busy >= BUSY_MS
-    assert pause < MAX_PAUSE_MS, f"the dashboard paused {pause:.0f} ms (the scene's tab was busy {busy:.0f} ms)"
+    ticks = page.evaluate("window._stopTicks()")
+    assert busy_to - busy_from >= BUSY_MS
+    step = (busy_to - busy_from) / SLICES
+    ran = [sum(busy_from + i * step <= t < busy_from + (i + 1) * step for t in ticks) for i in range(SLICES)]
+    assert all(ran), f"the dashboard's timer ran {ran} times in the {SLICES} parts of the scene's busy {BUSY_MS} ms"
     server.stop_run()
 
     # Offline: every request of the page and of the scene's tab went to the appliance's host.
