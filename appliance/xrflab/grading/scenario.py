@@ -18,6 +18,7 @@ from typing import Any
 
 import tomllib
 
+from ..channels.names import COMMAND_NUMBERS
 from ..errors import Invalid
 from . import expr
 
@@ -25,7 +26,8 @@ MAX_BYTES = 64 << 10  # a scenario is a page of text, not data
 MAX_DURATION_S = 300.0  # what one student's run may cost the queue
 MAX_ITEMS = 200  # commands, setpoint segments, checks: each
 MAX_TABLE_POINTS = 10_000
-COMMANDS = ("initialise", "start", "pause", "continue", "stop", "reset", "quit")
+# The loop's commands: channels.h's XRF_CMDS, through the binding (one definition).
+COMMANDS = tuple(COMMAND_NUMBERS)
 CHECK_KINDS = (
     "rise_time",
     "overshoot",

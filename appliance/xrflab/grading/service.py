@@ -162,6 +162,10 @@ class GradingService:
         _write(folder / f"{int(pid)}.json", json.dumps(data).encode())
 
     def result(self, project: Any) -> dict[str, Any]:
+        """The latest job and result; a project not made from an assignment has none (not an error:
+        the page asks for every project it shows)."""
+        if not str(project.origin or "").startswith(assignment_ids.ORIGIN_PREFIX):
+            return {"job": None, "result": None}
         aid = self.assignment_of(project)
         job = self.queue.jobs.get(f"{aid}/{project.id}")
         return {"job": None if job is None else job.as_dict(), "result": self._stored(aid, project.id)}

@@ -67,9 +67,16 @@ OWNED: dict[tuple[str, str], str] = {
     ("DELETE", "/api/projects/{pid}/files/{path:path}"): "pid",
     ("GET", "/api/projects/{pid}/versions"): "pid",
     ("GET", "/api/projects/{pid}/diff"): "pid",
+    ("GET", "/api/projects/{pid}/grade"): "pid",
+    ("POST", "/api/projects/{pid}/grade"): "pid",
 }
 # By-id routes whose ids are not a user's resource, and why.
 SHARED: dict[tuple[str, str], str] = {
+    ("GET", "/api/assignments/{aid}/scenario"): "an assignment's scenario: the same for every student of it",
+    ("PUT", "/api/assignments/{aid}/scenario"): "educators only",
+    ("GET", "/api/assignments/{aid}/grades"): "educators only",
+    ("POST", "/api/assignments/{aid}/grades/rerun"): "educators only",
+    ("GET", "/api/assignments/{aid}/grades.csv"): "educators only",
     ("GET", "/api/project-templates/{template}/download"): "the bundled templates, everyone's",
     ("GET", "/rerun/{asset:path}"): "the rerun viewer's program files",
     ("GET", "/api/params/{name:path}"): "the current run's parameter by name, every watcher's (issue 28)",

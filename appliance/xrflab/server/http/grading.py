@@ -55,7 +55,7 @@ async def grade_project(pid: int, request: Request, svc: GradingService = Depend
     project = projects_of(request).project_for(user, pid)  # another's: 404, like a missing one
     svc.assignment_of(project)
     svc.scenario(svc.assignment_of(project))
-    if user is not None and user.role != "educator":
+    if user is not None and not authmod.may(user, Perm.EDUCATOR):
         svc.check_rate(user.username)
     job = svc.grade(project)
     return JSONResponse({"job": job.as_dict()}, status_code=202)
