@@ -122,6 +122,7 @@ ENV_ALLOWED = frozenset(
         "XRF_SPI_DEVICE",
         "XRF_SPI_SPEED",
         "XRF_TRANSPORT",
+        "XRF_VIRTUAL_TIME",  # a graded run's simulated time (rt_core refuses it on a real board)
     }
 )
 SHM_NAME = "xrf"  # the channel segment's name inside the sandbox (/dev/shm/xrf)

@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 
 from xrf_testing.fresh_background import Run
+from xrf_testing.leaks import NESTED_ENV
 
 REPO = Path(__file__).resolve().parents[2]
 FIRST = "tests/doctor/test_doctor.py::test_evl_ok"  # a quick test to be the session's first
@@ -160,6 +161,7 @@ def test_nothing_is_left_when_the_session_stops_early(tmp_path: Path, how: str) 
     # A session of its own: its own leak-check marker (not this session's, whose processes it
     # would otherwise count as its own), its own temporary folder.
     env = {k: v for k, v in os.environ.items() if k != "XRF_TEST_SESSION"}
+    env[NESTED_ENV] = "xrf-fresh-nested-"  # beside this session's other workers: none of theirs (leaks.py)
     env.update(PYTHONPATH=str(tmp_path / "plugin"), XRF_TEST_HOW=how, XRF_TEST_PIDS=str(pids))
     proc = subprocess.run(
         [

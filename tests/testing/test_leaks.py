@@ -9,7 +9,7 @@ import uuid
 from pathlib import Path
 
 from xrf_testing.harness import wait_for
-from xrf_testing.leaks import MARKER, SHM, Snapshot
+from xrf_testing.leaks import MARKER, NESTED_ENV, SHM, Snapshot
 
 
 def test_it_finds_the_sessions_processes_and_shm_and_only_those(tmp_path: Path) -> None:
@@ -80,6 +80,7 @@ def test_with_xdist_workers_the_controller_checks_once_at_the_end() -> None:
     planted = repo / "tests" / "testing" / f"test_planted_{name[-8:]}.py"
     planted.write_text(PLANTED.format(name=name))
     env = {k: v for k, v in os.environ.items() if k not in (MARKER, "PYTEST_XDIST_WORKER")}
+    env[NESTED_ENV] = "xrf-leak-xdist-"  # beside this session's other workers (leaks.py)
     try:
         out = subprocess.run(
             [sys.executable, "-m", "pytest", "-n", "2", "--dist", "load", "-p", "no:cacheprovider", str(planted)],

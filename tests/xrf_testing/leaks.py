@@ -24,6 +24,12 @@ SHM = Path("/dev/shm")
 # Objects of ours in /dev/shm: run segments and their folders, test segments, Fast DDS's
 # shared-memory transport (the ROS tests), cyclictest's.
 SHM_PREFIXES = ("xrf", "fastdds", "sem.fastdds", "fast_datasharing", "cyclictest")
+# A session a test starts (tests/testing/test_leaks.py, tests/deploy/test_fresh_background.py) runs
+# beside the parent session's other xdist workers, whose appliances make run cgroups and segments
+# that may be empty or unmapped for a moment: the nested session would take them for its own
+# leftovers and remove them under a running test. With this set it checks its own processes and
+# files as always, /dev/shm objects with this prefix only, and no run cgroup.
+NESTED_ENV = "XRF_LEAK_NESTED_SHM"
 # Ignored paths of the checkout that tests may fill (caches, the venv, and test-results/: the UI
 # tests' screenshots, the suite's one declared output folder, git-ignored).
 IGNORED = (".venv/", ".cache/", ".pytest_cache/", ".hypothesis/", "__pycache__/", ".egg-info/", "test-results/")
@@ -132,7 +138,9 @@ class Snapshot:
     def cgroups_left(self) -> set[str]:
         """Run cgroups (server/runs/cgroups.py) made during the session and left empty: a run cgroup
         with processes in it is a live run of another session's appliance."""
-        left = set()
+        left: set[str] = set()
+        if os.environ.get(NESTED_ENV):
+            return left
         for path in _run_cgroups() - self.cgroups:
             with contextlib.suppress(OSError):
                 if not Path(path, "cgroup.procs").read_text().strip():
@@ -162,7 +170,8 @@ class Snapshot:
 
     def shm_objects(self) -> set[str]:
         now = set(os.listdir(SHM)) if SHM.is_dir() else set()
-        new = {n for n in now - self.shm if n.startswith(SHM_PREFIXES)}
+        nested = os.environ.get(NESTED_ENV)
+        new = {n for n in now - self.shm if n.startswith((nested,) if nested else SHM_PREFIXES)}
         return new - self._in_use_by_others(new) - self._others_by_name_or_owner(new)
 
     def _others_by_name_or_owner(self, names: set[str]) -> set[str]:

@@ -138,7 +138,11 @@ class GradingService:
         launcher = sandbox_launcher(self.settings, self.runs_store, self.loop, project.owner, build, scenario.robot)
         return self.queue.submit(
             key,
-            lambda: grade_executable(scenario, exe, self.settings.runs_dir, launcher, self.limits, build=build),
+            # simulated time: a graded run is always on the simulated plant (issue 32: seconds, not
+            # the scenario's duration); rt_core refuses it on a real board
+            lambda: grade_executable(
+                scenario, exe, self.settings.runs_dir, launcher, self.limits, virtual_time=True, build=build
+            ),
         )
 
     @staticmethod
