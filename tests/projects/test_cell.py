@@ -162,3 +162,26 @@ def test_homed_cell_reaches_its_setpoints(cell) -> None:
         time.sleep(0.05)  # polling the plant until the loop brings it there
     assert c.xeno2ros()["homed"] is True
     assert c.send("stop").accepted
+
+
+def test_template_homes_and_leaves_run_to_the_student(cell, tmp_path: Path) -> None:
+    """The cell template (student_projects/templates/cell): the same homing, RUN refused until
+    homed, and its run() as given keeps every axis still."""
+    template = build_project(REPO / "student_projects/templates/cell", tmp_path / "b", log=lambda _l: None).executable
+    c = Cell(template, random.randrange(1, 2**31))
+    try:
+        home(c)
+        assert c.send("start").accepted
+        # An axis homed last may still coast onto its switch at zero duty: wait until all rest.
+        deadline = time.monotonic() + 2.0
+        while any(v != 0.0 for v in c.ch.shm.sim.plant[3:6]):
+            assert time.monotonic() < deadline, list(c.ch.shm.sim.plant[0:6])
+            time.sleep(0.02)  # polling until the coasting ends
+        p0 = c.plant()
+        c.ch.write_ros2xeno({"table_setpoint": 2.0, "press_setpoint": 0.1, "feeder_setpoint": 0.1})
+        deadline = time.monotonic() + 0.5
+        while time.monotonic() < deadline:
+            time.sleep(0.05)  # time passing: the template must not move in it
+        assert c.state() == "RUN" and c.plant() == p0
+    finally:
+        c.stop()

@@ -7,8 +7,8 @@
 
 #pragma pack(push, 1)
 struct CellLog {
-  double table_setpoint = 0.0, press_setpoint = 0.0, feeder_setpoint = 0.0;
-  double table = 0.0, press = 0.0, feeder = 0.0;
+    double table_setpoint = 0.0, press_setpoint = 0.0, feeder_setpoint = 0.0;
+    double table = 0.0, press = 0.0, feeder = 0.0;
 };
 #pragma pack(pop)
 
@@ -18,45 +18,45 @@ struct CellLog {
 // homes every axis on its switch (input pin 1 of its channel) and zeroes its
 // encoder there; initialising() completes only when all three are homed, so the
 // framework refuses `start` until then (START is not allowed in INITIALISING).
-class CellController : public XenoFrtRosIco {
+class CellController : public XenoFrtRosIco
+{
 public:
-  CellController(unsigned cycle_freq, unsigned write_decimator_freq,
-                 unsigned monitor_freq);
+    CellController(unsigned cycle_freq, unsigned write_decimator_freq, unsigned monitor_freq);
 
 protected:
-  int initialising() override;
-  int initialised() override;
-  int run() override;
-  int stopping() override;
-  int stopped() override;
-  int pausing() override;
-  int paused() override;
-  int error() override;
+    int initialising() override;
+    int initialised() override;
+    int run() override;
+    int stopping() override;
+    int stopped() override;
+    int pausing() override;
+    int paused() override;
+    int error() override;
 
 private:
-  static constexpr int axes = 3;
-  enum class Homing { leave_switch, seek_switch, homed };
+    static constexpr int axes = 3;
+    enum class Homing { leave_switch, seek_switch, homed };
 
-  struct Axis {
-    Encoder encoder;
-    Homing phase = Homing::leave_switch;
-    double position = 0.0; // rad or m from the switch edge
-  };
+    struct Axis {
+        Encoder encoder;
+        Homing phase = Homing::leave_switch;
+        double position = 0.0; // rad or m from the switch edge
+    };
 
-  int raw(int i) const;
-  bool home_switch(int i) const;
-  void measure();
-  void setPwm(int i, double pwm);
-  void setpoints(double set[axes]) const;
+    int raw(int i) const;
+    bool home_switch(int i) const;
+    void measure();
+    void setPwm(int i, double pwm);
+    void setpoints(double set[axes]) const;
 
-  XenoFileHandler file;
-  CellLog log_data;
+    XenoFileHandler file;
+    CellLog log_data;
 
-  Axis axis[axes];
-  Pid pid[axes];
-  bool homed = false;
-  bool board_initialised = false;
-  unsigned homing_cycles = 0;
+    Axis axis[axes];
+    Pid pid[axes];
+    bool homed = false;
+    bool board_initialised = false;
+    unsigned homing_cycles = 0;
 };
 
 #endif // CELLCONTROLLER_HPP
