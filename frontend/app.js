@@ -679,6 +679,18 @@ function applyTelemetry(m) {
   if (m.ros2xeno && Object.keys(m.ros2xeno).length && !(xrf.run && xrf.run.redacted)) followLoop(m.ros2xeno);
 }
 
+// A controller that must home before RUN (the cell example) says so in a bool Xeno2Ros field
+// `homed`; a project without the field shows no badge.
+function showReadiness(m) {
+  const el = $("homed-badge");
+  const homed = m && m.xeno2ros ? m.xeno2ros.homed : undefined;
+  el.classList.toggle("hidden", typeof homed !== "boolean");
+  if (typeof homed !== "boolean") return;
+  el.textContent = homed ? "homed" : "not homed";
+  el.classList.toggle("ok", homed);
+  el.classList.toggle("bad", !homed);
+}
+
 // Redraw at most once per animation frame, however fast samples arrive.
 function redraw() {
   for (const p of Object.values(xrf.plots)) {
@@ -696,6 +708,7 @@ function redraw() {
     }
   }
   const m = xrf.lastTelemetry;
+  showReadiness(m);
   if (m) {
     $("xeno2ros-values").textContent = Object.entries(m.xeno2ros)
       .map(([k, v]) => `${k}=${typeof v === "number" ? v.toFixed(3) : v}`).join("  ");

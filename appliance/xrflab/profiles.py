@@ -390,8 +390,41 @@ def _check_mechanics(c: _Checker, mech: dict) -> None:
             isinstance(lim, list) and len(lim) == 2 and all(_is_num(x) for x in lim) and lim[0] < lim[1]
         ):
             c.err("mechanics.limits_m", "mechanics.limits_m must be [low, high] in m")
+    elif kind == "cell":
+        _check_cell_axes(c, mech.get("axes"))
     elif kind is not None:
-        c.err("mechanics.kind", f"mechanics.kind {kind!r} is not known (differential_drive, pan_tilt or linear_stage)")
+        c.err(
+            "mechanics.kind",
+            f"mechanics.kind {kind!r} is not known (differential_drive, pan_tilt, linear_stage or cell)",
+        )
+
+
+def _check_cell_axes(c: _Checker, axes: Any) -> None:
+    """A production cell's axes: each a motor channel driving a revolute (rad) or prismatic (m)
+    joint, `per_motor_rev` load units per motor revolution (the gear or screw lead folded in),
+    the travel from the home switch's edge, and the input pin of its home switch."""
+    if not isinstance(axes, list) or not 1 <= len(axes) <= 4:
+        c.err("mechanics.axes", "mechanics.axes must be a list of 1 to 4 axes")
+        return
+    channels: set[int] = set()
+    for i, ax in enumerate(axes):
+        w = f"mechanics.axes[{i}]"
+        if not isinstance(ax, dict):
+            c.err(w, f"{w} must be an object")
+            continue
+        ch = c.num(ax, w, "channel", 1, 4, required=True, integer=True)
+        if ch is not None and int(ch) in channels:
+            c.err(f"{w}.channel", f"{w}: channel {int(ch)} is used by another axis")
+        if ch is not None:
+            channels.add(int(ch))
+        c.string(ax, w, "name")
+        if ax.get("joint") not in ("revolute", "prismatic"):
+            c.err(f"{w}.joint", f"{w}.joint must be revolute or prismatic")
+        c.num(ax, w, "per_motor_rev", 0, 10.0, required=True, lo_open=True)
+        c.num(ax, w, "home_pin", 1, 2, required=True, integer=True)
+        lim = ax.get("limits")
+        if not (isinstance(lim, list) and len(lim) == 2 and all(_is_num(x) for x in lim) and lim[0] < lim[1]):
+            c.err(f"{w}.limits", f"{w}.limits must be [low, high] (rad or m from the home switch)")
 
 
 # ---- finding, loading, saving -------------------------------------------------------------------

@@ -77,6 +77,9 @@
       if (s.ghost) v += ` · setpoint (green) ${Object.entries(s.ghost).map(([k, x]) => k + " " + deg(x)).join(", ")}`;
     } else if (s.pose) {
       v = `x ${s.pose.x.toFixed(3)} m · y ${s.pose.y.toFixed(3)} m · θ ${deg(s.pose.theta)}`;
+    } else if (s.axes) {  // the cell: homed on its switches from the live pins (a replay has none)
+      v = `table ${deg(s.axes[0])} · press ${(1000 * s.axes[1]).toFixed(1)} mm · feeder ${(1000 * s.axes[2]).toFixed(1)} mm`;
+      if (s.homed) v += s.homed.every((h) => h) ? " · homed" : " · not homed";
     }
     $("v3d-values").textContent = v;
     $("v3d-reset").disabled = s.kind !== "differential_drive" || s.mode === "replay";

@@ -10,6 +10,7 @@
 
 #include <math.h>
 #include <stddef.h>
+#include <stdint.h>
 
 #define XRF_PLANT_SUPPLY_V 12.0 /* default supply the PWM duty scales */
 
@@ -67,6 +68,13 @@ struct xrf_plant_ops {
     double (*motor_angle)(const void *plant, int ch);
     /* Up to n state values into state; returns how many. */
     int (*state)(const void *plant, double *state, int n);
+    /* Optional (NULL: nothing wired). The plant's switches on the board's input pins: bit k =
+     * pin k (0..7 in xrf_ico_in.din order: pin 1 of channel 1, pin 2 of channel 1, ...). */
+    unsigned (*inputs)(const void *plant);
+    /* Optional (NULL: the plant always starts from init's pose). Called after init when the
+     * fault spec says `start=<seed>` (seed > 0): a start pose drawn from the seed, for plants a
+     * controller must home (it starts from any pose; the same seed, the same pose). */
+    void (*start)(void *plant, uint32_t seed);
 };
 
 /* The plant table (plants.c): row `id` (from 1), or NULL. */

@@ -17,7 +17,8 @@
 #define XRF_PLANT_TABLE(ROW) \
     ROW(relbot)              \
     ROW(jiwy)                \
-    ROW(stage)
+    ROW(stage)               \
+    ROW(cell)
 
 #define XRF_PLANT_DECLARE(n) extern const struct xrf_plant_ops xrf_plant_##n;
 XRF_PLANT_TABLE(XRF_PLANT_DECLARE)

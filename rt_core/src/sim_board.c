@@ -108,8 +108,8 @@ static int dout_now(const struct sim_board *s, int ch)
     return s->dout[ch] != 0;
 }
 
-/* Input pin k (0..7 in xrf_ico_in.din order). Nothing is wired to the pins unless a fault or
- * the loopback plug says so. */
+/* Input pin k (0..7 in xrf_ico_in.din order): a stuck fault, else the loopback plug, else the
+ * plant's own switches (plants with an `inputs` op; nothing is wired on the others). */
 static int input_pin(const struct sim_board *s, int k)
 {
     if (s->faults.stuck_input & (1u << k))
@@ -117,6 +117,8 @@ static int input_pin(const struct sim_board *s, int k)
     int ch = k / 2;
     if ((k & 1) == 0 && (s->faults.loopback & (1u << ch)))
         return dout_now(s, ch);
+    if (s->ops->inputs)
+        return (s->ops->inputs(s->plant) >> k) & 1u;
     return 0;
 }
 
@@ -297,6 +299,8 @@ int xrf_sim_open(int robot, const struct xrf_sim_faults *faults, double fixed_dt
     ops->init(s->plant);
     if (faults)
         s->faults = *faults;
+    if (s->faults.start_seed && ops->start)
+        ops->start(s->plant, s->faults.start_seed);
     s->fixed_dt = fixed_dt_s > 0.0 ? fixed_dt_s : 0.0;
     s->outputs = outputs;
     reset_board(s);
@@ -403,6 +407,12 @@ static int parse_item(const char *p, const char *end, struct xrf_sim_faults *f)
             f->stuck_value |= bit;
         else
             f->stuck_value &= (uint8_t)~bit;
+        return 0;
+    }
+    if (key_is(k, klen, "start")) {
+        if (parse_uint(v, end, 1, 4294967295ul, &x))
+            return -EINVAL;
+        f->start_seed = (uint32_t)x;
         return 0;
     }
     if (key_is(k, klen, "slow_link_us")) {

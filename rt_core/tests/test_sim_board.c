@@ -258,6 +258,8 @@ static void test_parse(void)
     CHECK(f.slow_link_us == 200 && f.loopback == 1);
     CHECK(xrf_sim_parse_faults(" dead_encoder=1 , dead_encoder=4 ,", &f) == 0);
     CHECK(f.dead_encoder == 9);
+    CHECK(xrf_sim_parse_faults("start=4294967295", &f) == 0 && f.start_seed == 4294967295u);
+    CHECK(xrf_sim_parse_faults("start=0", &f) == -EINVAL && f.start_seed == 0);
     CHECK(xrf_sim_parse_faults("", &f) == 0 && f.dead_encoder == 0);
     CHECK(xrf_sim_parse_faults(NULL, &f) == 0);
     CHECK(xrf_sim_parse_faults("dead_encoder=5", &f) == -EINVAL);
@@ -444,6 +446,67 @@ static void test_plant_table(void)
     CHECK(xrf_plant_names(tiny, sizeof tiny) == len && strcmp(tiny, "rel") == 0);
 }
 
+/* The production cell: `start=<seed>` draws poses over the whole travel; the home switch (pin 1
+ * of each channel) reads closed exactly where the plant's position (from the switch edge) is
+ * <= 0, the far-end switch near the high stop; driving every axis down closes every home switch,
+ * and the switches stop a plant that starts on none of them. */
+static void test_cell(void)
+{
+    int id = xrf_plant_id("cell");
+    CHECK(id > 0);
+    char spec[32];
+    double lo[3] = {1e9, 1e9, 1e9}, hi[3] = {-1e9, -1e9, -1e9};
+    int started_on_switch = 0;
+    for (unsigned seed = 1; seed <= 200; seed++) {
+        snprintf(spec, sizeof spec, "start=%u", seed);
+        struct xrf_ico_transport *t = open_sim(id, spec, NULL);
+        struct xrf_ico_in in;
+        all(t, 0, 0, NULL, &in);
+        double s[6];
+        CHECK(xrf_sim_plant_state(t, s, 6) == 6);
+        for (int a = 0; a < 3; a++) {
+            lo[a] = s[a] < lo[a] ? s[a] : lo[a];
+            hi[a] = s[a] > hi[a] ? s[a] : hi[a];
+            CHECK(in.din[2 * a] == (s[a] <= 0.0));
+            started_on_switch += in.din[2 * a];
+        }
+        t->close(t);
+    }
+    /* Table: switch edge 0.10 rad above the low stop, travel 4.71 rad; press/feeder 5 mm zones. */
+    CHECK(lo[0] < -0.05 && hi[0] > 4.4 && lo[0] >= -0.1 - 1e-9 && hi[0] <= 1.5 * M_PI - 0.1);
+    CHECK(lo[1] < 0.0 && hi[1] > 0.13 && hi[2] > 0.18);
+    CHECK(started_on_switch > 0);
+    /* The same seed, the same pose; another seed, another. */
+    struct xrf_ico_transport *a = open_sim(id, "start=77", NULL);
+    struct xrf_ico_transport *b = open_sim(id, "start=77", NULL);
+    struct xrf_ico_transport *c = open_sim(id, "start=78", NULL);
+    double sa[6], sb[6], sc[6];
+    xrf_sim_plant_state(a, sa, 6);
+    xrf_sim_plant_state(b, sb, 6);
+    xrf_sim_plant_state(c, sc, 6);
+    CHECK(memcmp(sa, sb, sizeof sa) == 0 && sa[0] != sc[0]);
+    b->close(b);
+    c->close(c);
+    /* Drive all three axes down at 15 % for 8 s: every home switch closes, no far switch. */
+    struct xrf_ico_in in;
+    for (int i = 0; i < 8000; i++) {
+        struct xrf_ico_out out = {.pwm = {-300, -300, -300, 0}};
+        uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
+        xrf_ico_encode_all(&out, LIMIT, tx);
+        MUST(a->xfer(a, tx, rx) == 0);
+        xrf_ico_decode_all(rx, &in);
+    }
+    CHECK(in.din[0] && in.din[2] && in.din[4] && !in.din[1] && !in.din[3] && !in.din[5]);
+    CHECK(!in.din[6] && !in.din[7]);
+    a->close(a);
+    /* Other plants wire nothing to the pins. */
+    struct xrf_ico_transport *j = open_sim(XRF_SIM_JIWY, "start=5", NULL);
+    all(j, 0, 0, NULL, &in);
+    for (int k = 0; k < 8; k++)
+        CHECK(in.din[k] == 0);
+    j->close(j);
+}
+
 int main(void)
 {
     test_plant_table();
@@ -454,6 +517,7 @@ int main(void)
     test_jiwy_physics();
     test_outputs();
     test_real_clock();
+    test_cell();
     printf("test_sim_board: %d passed, %d failed\n", passed, failed);
     return failed ? 1 : 0;
 }

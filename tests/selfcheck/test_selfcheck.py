@@ -95,6 +95,24 @@ def test_stage_profile_passes_on_the_simulated_stage(checker_exe):
     assert "encoder 1 does not count" in bad.step("motor.1").message
 
 
+def test_cell_profile_passes_on_the_simulated_cell(checker_exe):
+    """The production cell (issue 29): three motors, their end switches on the input pins (open
+    at the plant's default mid-travel pose, as the profile's idle says); a home switch stuck
+    closed is found on its channel's pins."""
+    r = check("cell", exe=checker_exe)
+    assert [s.id for s in r.steps] == EXPECTED_IDS
+    st = statuses(r)
+    assert r.verdict == "pass" and r.exit_code == 0, r.to_text()
+    assert st["motor.1"] == st["motor.2"] == st["motor.3"] == "pass" and st["motor.4"] == "skipped"
+    assert st["din.1"] == st["din.2"] == st["din.3"] == "pass"
+    assert r.bench == r.sim == "cell" and r.outputs_zeroed
+    for ch in (1, 2, 3):
+        m = r.step(f"motor.{ch}").data
+        assert m["max_counts"] >= m["counts_plus"] >= m["min_counts"] and m["counts_minus"] <= -m["min_counts"]
+    bad = check("cell", faults="stuck_input=3:1", exe=checker_exe)
+    assert bad.verdict == "fail" and statuses(bad)["din.2"] == "fail", bad.to_text()
+
+
 FAULTS = [
     # fault spec, failing step, channel, words the diagnosis must contain
     ("dead_encoder=2", "motor.2", 2, ["encoder 2 does not count", "PMOD 2"]),

@@ -254,3 +254,23 @@ def test_replay_of_a_recorded_circle_and_jiwy(tmp_path: Path) -> None:
     write_recording(tmp_path / "3", {"profile": None, "message": "no profile"}, samples)
     r = build_replay(3, tmp_path / "3")
     assert r.kind == "" and "no profile" in r.message
+
+
+def test_cell_homes_on_the_switch_edge() -> None:
+    """The production cell's view: positions from each axis's home-switch edge once the switch
+    closed, hand-computed (table 2π/50 rad, press 4 mm per motor revolution of 4096 counts)."""
+    m = kin.from_profile(load_profile("cell"))
+    assert m.kind == "cell" and m.names == ["table", "press", "feeder"]
+    din = [0] * 8
+    m.update([100, 200, 300, 0], din)
+    assert m.homed == [False, False, False]
+    # The table moves down 50 counts onto its switch (channel 1, pin 1 = din[0]).
+    m.update([50, 200, 300, 0], [1, 0, 0, 0, 0, 0, 0, 0])
+    assert m.homed == [True, False, False] and m.positions[0] == 0.0
+    # It moves up 4096 counts (one motor revolution); the unhomed press is drawn from the
+    # counter's zero (the board's RESET), as the other kinds are.
+    pos = m.update([50 + 4096, 200 + 4096, 300, 0], din)
+    assert pos[0] == pytest.approx(2 * math.pi / 50)
+    assert pos[1] == pytest.approx((200 + 4096) * 0.004 / 4096) and m.homed[1] is False
+    m.reset()
+    assert m.positions == [0.0, 0.0, 0.0] and m.homed == [False, False, False]

@@ -278,12 +278,59 @@ class LinearStage:
         return {"kind": self.kind, "position": self.position, "counts": self.unwrap.count}
 
 
-Kinematics = PanTilt | DiffDrive | LinearStage
+class Cell:
+    """A production cell: axes each a motor with a relative encoder and a home switch. The
+    counters say nothing of where an axis is, so the view homes as the controller does: an axis's
+    zero is the count at which its home switch (``din``, when given) closed; until then it is
+    drawn from where it was at the view's reset, and reported not homed."""
+
+    kind = "cell"
+
+    def __init__(self, profile: dict[str, Any]) -> None:
+        mech = _mechanics(profile)
+        if mech.get("kind") != "cell":
+            raise KinematicsError(f"mechanics.kind is {mech.get('kind')!r}, not cell")
+        cpr = float(mech["counts_per_rev"]) * float(mech["gear_ratio"])
+        self.names = [str(a["name"]) for a in mech["axes"]]
+        self.joints = [str(a["joint"]) for a in mech["axes"]]
+        self.channels = [int(a["channel"]) for a in mech["axes"]]
+        self.per_count = [float(a["per_motor_rev"]) / cpr for a in mech["axes"]]
+        # din index of each axis's home switch: pins are channel1_1, channel1_2, ... (ico.h)
+        self.home_din = [2 * (int(a["channel"]) - 1) + int(a["home_pin"]) - 1 for a in mech["axes"]]
+        self.limits = [(float(a["limits"][0]), float(a["limits"][1])) for a in mech["axes"]]
+        self.reset()
+
+    def update(self, enc: Sequence[int], din: Sequence[int] | None = None) -> list[float]:
+        """One sample of raw counts (enc[0] = channel 1) and, if known, the input pins; returns
+        each axis's position (rad or m) from its switch edge once homed."""
+        for i, ch in enumerate(self.channels):
+            count = self.unwrap[i].update(enc[ch - 1])
+            closed = bool(din[self.home_din[i]]) if din is not None and len(din) > self.home_din[i] else False
+            if closed and not self._was_closed[i]:
+                self.zero[i] = count  # the switch's edge: this axis's zero
+                self.homed[i] = True
+            self._was_closed[i] = closed
+            self.positions[i] = (count - self.zero[i]) * self.per_count[i]
+        return self.positions
+
+    def reset(self) -> None:
+        self.unwrap = [Unwrapper() for _ in self.channels]
+        self.zero = [0] * len(self.channels)
+        self.homed = [False] * len(self.channels)
+        self._was_closed = [False] * len(self.channels)
+        self.positions = [0.0] * len(self.channels)
+
+    def state(self) -> dict[str, Any]:
+        return {"kind": self.kind, "positions": list(self.positions), "homed": list(self.homed)}
+
+
+Kinematics = PanTilt | DiffDrive | LinearStage | Cell
 # mechanics.kind -> its model: the 3D view draws a profile whose kind is here.
-KINDS: dict[str, type[PanTilt] | type[DiffDrive] | type[LinearStage]] = {
+KINDS: dict[str, type[PanTilt] | type[DiffDrive] | type[LinearStage] | type[Cell]] = {
     PanTilt.kind: PanTilt,
     DiffDrive.kind: DiffDrive,
     LinearStage.kind: LinearStage,
+    Cell.kind: Cell,
 }
 
 

@@ -29,10 +29,12 @@ struct xrf_sim_faults {
     int corrupt_echo;       /* TEST replies with flipped bits */
     uint32_t slow_link_us;  /* each transfer takes at least this long */
     uint8_t loopback;       /* bit n-1: digital output n is wired back to input pin 1 of n */
+    uint32_t start_seed;    /* > 0: the plant starts from the pose this seed draws (if it can) */
 };
 
 /* Parses "dead_encoder=2,reversed_motor=1,no_init,corrupt_echo,stuck_input=3:1,slow_link_us=200,
- * loopback=1" (channels 1-based, stuck_input=<pin 1..8>:<value>). Returns 0 or -EINVAL. */
+ * loopback=1,start=7" (channels 1-based, stuck_input=<pin 1..8>:<value>, start=<seed 1..2^32-1>:
+ * the plant's start pose, for plants that start anywhere). Returns 0 or -EINVAL. */
 int xrf_sim_parse_faults(const char *spec, struct xrf_sim_faults *faults);
 
 /* Opens a simulated board with the given plant (an id of the plant table). The plant advances
