@@ -50,7 +50,12 @@ def copy_tree(dst: Path) -> Path:
 def test_arm64_tier_passes(tmp_path: Path) -> None:
     r = run_tier(REPO, tmp_path / "work")
     assert r.returncode == 0, r.stderr[-6000:]
-    assert "passed: rt_core, its unit tests under qemu-aarch64 and 5 student projects" in r.stderr, r.stderr
+    # every example and template (a folder with a CMakeLists.txt), as the tier finds them
+    projects = [d for d in (REPO / "student_projects").glob("*/*") if (d / "CMakeLists.txt").is_file()]
+    assert len(projects) >= 7, projects  # relbot, jiwy, stage, cell examples; base, 20-sim, cell templates at least
+    assert f"passed: rt_core, its unit tests under qemu-aarch64 and {len(projects)} student projects" in r.stderr, (
+        r.stderr
+    )
     # the step times, for the docs (docs/developers/testing.md, the arm64 tier)
     print(r.stderr)
 
