@@ -561,7 +561,10 @@ void Runtime::endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, boo
     s->missed = missed_;
     if (cycles == 1)
         s->t_start_ns = deadline_ns;
-    s->heartbeat_ns = wake_ns;
+    // Simulated time: the loop's clock runs ahead of the real one, and the watchdog and every
+    // reader compare the heartbeat with real time (backend_virtual.c stamps it again before it
+    // naps; this keeps the window between publish and nap real too).
+    s->heartbeat_ns = virtual_ ? xrf_virtual_real_ns() : wake_ns;
     s->idle_ns = idle_total_;
     if (!posix_) // posix: no out-of-band stage to be demoted from, always 0
         s->demotions = backend_->demotions();

@@ -229,7 +229,11 @@ def test_watch_values_freeze_and_trigger(server: Server, browser) -> None:  # no
     # nothing written yet: the controller's Ros2Xeno is zeros
     assert page.text_content("#watch-row-r-steer_left td.val") == "0"
     # the page fits the laptop's width (the scope sized from its column)
-    assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
+    wide = page.evaluate(
+        "[...document.querySelectorAll('body *')].filter(e => e.getBoundingClientRect().right > window.innerWidth)"
+        ".slice(0, 8).map(e => `${e.tagName}#${e.id}.${e.className} ${Math.round(e.getBoundingClientRect().right)}`)"
+    )
+    assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth"), wide
     first = page.evaluate(val)
     # plotted by default: the run's Xeno2Ros fields
     assert page.evaluate("xrfWatch.plotKeys") == ["x.pos_left", "x.pos_right"]
