@@ -350,7 +350,9 @@ def test_a_killed_appliance_leaves_nothing_after_its_restart(hostile: Any) -> No
         pid, bid = upload_and_build(http, archive(), "limits.tar.gz")
         assert http.post("/api/lease/take").status_code == 200
         first = run_hostile(s, (http, pid, bid), DISK, 5)  # 5 MB written, then an ordinary loop
-        wait_for(lambda: "LIMITS disk wrote 5 MB" in output(s, first["id"]), 20, "the first run's files")
+        # a bound on failure, not a delay: a guest's 5 MB on its own file system took over 20 s
+        # once in a parallel CI run (two workers, each with an appliance and a build)
+        wait_for(lambda: "LIMITS disk wrote 5 MB" in output(s, first["id"]), 60, "the first run's files")
         os.kill(s.proc.pid, signal.SIGKILL)
         s.proc.wait()
         run_dir = d / "runs" / str(first["id"])
