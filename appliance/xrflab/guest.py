@@ -192,6 +192,14 @@ def root_is_a_mount() -> bool:
 _libc = ctypes.CDLL(None, use_errno=True)
 
 
+def _thread_count() -> int:
+    """This process's threads (0 when /proc cannot say)."""
+    try:
+        return len(os.listdir("/proc/self/task"))
+    except OSError:
+        return 0
+
+
 def _check(rc: int, what: str) -> None:
     if rc != 0:
         e = ctypes.get_errno()
@@ -394,7 +402,17 @@ class _Launch:
             if helper:
                 os.close(helper[1])
                 os.waitpid(helper[0], 0)
-            raise GuestError(f"no user namespace ({exc.strerror}): the loop cannot be confined without root") from exc
+            why = exc.strerror
+            threads = _thread_count()
+            if exc.errno == errno.EINVAL and threads > 1:
+                # The kernel's rule, not a missing feature: what runs us added a thread before
+                # the unshare (qemu-user always does: it has its own helper thread).
+                why = (
+                    f"{why}: this process has {threads} threads and the kernel gives a new user "
+                    "namespace only to a single-threaded one; an emulator such as qemu-user adds a "
+                    "thread of its own"
+                )
+            raise GuestError(f"no user namespace ({why}): the loop cannot be confined without root") from exc
         if helper:
             os.write(helper[1], b"x")
             os.close(helper[1])

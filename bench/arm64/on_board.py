@@ -5,6 +5,11 @@ API - log in with the first-start password, upload and build the base template, 
 a self-check, a log download - each timed. One JSON line on stdout; exit 0 when every step
 passed.
 
+`--service-user root`: the service runs as root instead of xrf, the run sandbox in its setuid mode.
+The rehearsal needs it because under qemu-user every process has a second thread (qemu's own),
+and the kernel gives a new user namespace only to a single-threaded process (unshare(2): EINVAL),
+so the unprivileged sandbox of user xrf cannot start there; on a Pi it does.
+
 A program, not a test: it runs where only the installed venv is (httpx is one of its
 dependencies).
 """
@@ -49,7 +54,7 @@ def _until(what: str, timeout: float, probe):
         time.sleep(0.5)  # polling interval
 
 
-def rehearse(port: int, template: Path, out: dict) -> None:
+def rehearse(port: int, template: Path, service_user: str, out: dict) -> None:
     seconds: dict[str, float] = out["seconds"]
     lines: list[str] = out["lines"]
 
@@ -58,7 +63,8 @@ def rehearse(port: int, template: Path, out: dict) -> None:
         print(f"on_board: {name}: {seconds[name]} s", file=sys.stderr, flush=True)
 
     t0 = time.monotonic()
-    cmd = ["runuser", "-u", "xrf", "--", "env", *(f"{k}={v}" for k, v in SERVICE_ENV.items())]
+    cmd = [] if service_user == "root" else ["runuser", "-u", service_user, "--"]
+    cmd += ["env", *(f"{k}={v}" for k, v in SERVICE_ENV.items())]
     cmd += ["/opt/xrf-lab/venv/bin/xrf", "serve", "--port", str(port), "--data", "/var/lib/xrf-lab"]
     proc = subprocess.Popen(
         cmd, cwd="/var/lib/xrf-lab", stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
@@ -156,10 +162,11 @@ def main() -> int:
     p = argparse.ArgumentParser()
     p.add_argument("--port", type=int, required=True)
     p.add_argument("--template", type=Path, required=True)
+    p.add_argument("--service-user", default="xrf", help="who runs xrf serve (xrf as on a Pi, or root)")
     a = p.parse_args()
-    out: dict = {"ok": False, "seconds": {}, "lines": []}
+    out: dict = {"ok": False, "service_user": a.service_user, "seconds": {}, "lines": []}
     try:
-        rehearse(a.port, a.template, out)
+        rehearse(a.port, a.template, a.service_user, out)
     except Exception as exc:  # reported in the JSON, with the appliance's output
         out["error"] = f"{type(exc).__name__}: {exc}"
     finally:

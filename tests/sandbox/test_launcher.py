@@ -245,3 +245,26 @@ def test_launcher_left_nothing(tmp_path: Path) -> None:
     left = [p for p in Path("/dev/shm").iterdir() if p.name.startswith("xrf-guest-test-")]
     assert not left, left
     assert stat.S_ISDIR(os.stat(tmp_path).st_mode)
+
+
+# A launcher with a second thread, as every process under qemu-user has (the arm64 rehearsal).
+THREADED_LAUNCHER = r"""
+import threading
+from xrflab import guest
+stop = threading.Event()
+threading.Thread(target=stop.wait, daemon=True).start()
+launch = guest._Launch.__new__(guest._Launch)
+launch.cfg = {}
+try:
+    launch._enter_userns(0)
+    print("entered")
+except guest.GuestError as exc:
+    print(exc)
+"""
+
+
+def test_a_multithreaded_launcher_is_told_why_it_gets_no_user_namespace() -> None:
+    out = subprocess.run([sys.executable, "-c", THREADED_LAUNCHER], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert "this process has 2 threads" in out.stdout, out.stdout
+    assert "single-threaded" in out.stdout and "qemu-user" in out.stdout, out.stdout
