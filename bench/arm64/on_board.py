@@ -8,7 +8,9 @@ passed.
 `--service-user root`: the service runs as root instead of xrf, the run sandbox in its setuid mode.
 The rehearsal needs it because under qemu-user every process has a second thread (qemu's own),
 and the kernel gives a new user namespace only to a single-threaded process (unshare(2): EINVAL),
-so the unprivileged sandbox of user xrf cannot start there; on a Pi it does.
+so the unprivileged sandbox of user xrf cannot start there; on a Pi it does. Root's data folder is
+then /var/lib/xrf-lab-as-root (0755): the service's own /var/lib/xrf-lab is xrf's (0750), which
+root's build user (xrf-build) may not pass.
 
 A program, not a test: it runs where only the installed venv is (httpx is one of its
 dependencies).
@@ -63,11 +65,15 @@ def rehearse(port: int, template: Path, service_user: str, out: dict) -> None:
         print(f"on_board: {name}: {seconds[name]} s", file=sys.stderr, flush=True)
 
     t0 = time.monotonic()
+    data = "/var/lib/xrf-lab"
+    if service_user == "root":
+        data = "/var/lib/xrf-lab-as-root"
+        os.makedirs(data, mode=0o755, exist_ok=True)
     cmd = [] if service_user == "root" else ["runuser", "-u", service_user, "--"]
-    cmd += ["env", *(f"{k}={v}" for k, v in SERVICE_ENV.items())]
-    cmd += ["/opt/xrf-lab/venv/bin/xrf", "serve", "--port", str(port), "--data", "/var/lib/xrf-lab"]
+    cmd += ["env", *(f"{k}={v}" for k, v in {**SERVICE_ENV, "HOME": data}.items())]
+    cmd += ["/opt/xrf-lab/venv/bin/xrf", "serve", "--port", str(port), "--data", data]
     proc = subprocess.Popen(
-        cmd, cwd="/var/lib/xrf-lab", stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
+        cmd, cwd=data, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
     )
     out["_proc"] = proc
     threading.Thread(target=lambda: [lines.append(x.rstrip("\n")) for x in proc.stdout], daemon=True).start()
