@@ -15,6 +15,19 @@
   const FOLLOW_MS = 3000;
   let busy = false, noteTimer = null;
 
+  // The rerun viewer's tab (not viser's): console.debug does nothing here. When the first plot is
+  // drawn, the viewer's shader compiler (naga, logging at debug level in rerun's web build, with
+  // no switch) writes ~9000 console.debug lines; each is a message to DevTools when a debugger
+  // is attached and a message to the browser process in any case. Measured in chromium on the
+  // CPU-only VM: it froze the tab 5-8 s on its first data, muted 2-3 s (issue 31 bug 6,
+  // bench/appliance/rerun_lag.py). Runs before re_viewer.js (server/http/rerun.py puts this
+  // script first), whose bindings look console.debug up at each call. The viewer's info,
+  // warnings and errors still reach the console; the original is kept for whoever debugs.
+  const rerunPage = location.pathname.startsWith("/rerun/");
+  const consoleDebug = console.debug;
+  let debugMuted = 0;
+  if (rerunPage) console.debug = () => { debugMuted += 1; };
+
   async function post(path, body) {
     const { data, res } = await xrfLib.send("POST", path, body || {});  // frontend/lib.js, loaded before this
     const detail = typeof data.detail === "string" ? data.detail : data.detail ? JSON.stringify(data.detail) : res.statusText;
@@ -118,5 +131,6 @@
     const m = url.match(/\/api\/logs\/runs\/(\d+)\//);
     if (m) document.title = `rerun · run ${m[1]}`;
   }
-  window.xrfRerunTab = { stop, live };  // test hook
+  // test hook; debugMuted(): console.debug lines muted so far (see above)
+  window.xrfRerunTab = { stop, live, consoleDebug, debugMuted: () => debugMuted };
 })();

@@ -9,7 +9,11 @@ samples the viewer's own state every 250 ms (``window._handle.viewer_state()``: 
 the run it holds, where its following plots end; tests/xrf_testing/rerun_stream.py
 ``viewer_newest_ns``). Reported: the app's start, when it first held a sample of the run and how
 old that sample was at the opening, how far behind live it was 5/10/20/30 s after it started, and
-when it was first within --edge s of live. (The viewer files are prepared and cached before.)
+when it was first within --edge s of live; the viewer thread's longest stalls and its frame rate,
+and the console.debug lines that reached the console. Before the run, the same for an empty viewer
+(no stream): its own start-up. (The viewer files are prepared and cached before.) To vary one
+thing at a time: XRF_RERUN_MEMORY (the live proxy's window, in the appliance's environment),
+--viewport (pixels: chromium without a GPU rasterises them on the CPU), --late.
 
 Headless cases (at the wire, not what a person sees): headless viewers read the run's live stream
 as the web viewer does, by gRPC-web through the appliance's route (login cookie, same Origin), each
@@ -196,9 +200,46 @@ def footprint_case(server, build: str, watch_s: float) -> list[tuple[str, float,
 SAMPLE = """window._xrfSamples = []; setInterval(() => {
   try { window._xrfSamples.push([Date.now(), Array.from(window._handle.viewer_state())]); } catch (e) {}
 }, 250);"""
+# Before the page's own scripts: a 100 ms timer and an animation-frame counter on the viewer's main
+# thread, from the opening on. A gap between two timer runs is a stretch the thread was busy (the
+# viewer neither ingests nor draws then); frames counted per second are the browser's, which
+# while the viewer follows live data are the viewer's own.
+TICKS = """window._xrfTicks = []; window._xrfFrames = [];
+setInterval(() => window._xrfTicks.push(Date.now()), 100);
+(function frame() { window._xrfFrames.push(Date.now()); requestAnimationFrame(frame); })();"""
 
 
-def browser_case(server, build: str, late_s: float, watch_s: float, edge_s: float) -> dict:
+def _thread(page, opened_ns: int, app_ns: int) -> dict:
+    """The viewer thread's longest stalls after its app started (s, and when: s after the opening)
+    and its median frame rate over the sampled seconds."""
+    ticks, frames = page.evaluate("[window._xrfTicks, window._xrfFrames]")
+    app = (app_ns - opened_ns) / 1e9
+    ticks = [t / 1e3 - opened_ns / 1e9 for t in ticks]
+    gaps = sorted(((b - a, a) for a, b in zip(ticks, ticks[1:]) if b > app), reverse=True)
+    frames = [t / 1e3 - opened_ns / 1e9 for t in frames]
+    per_s = sorted(
+        sum(1 for f in frames if s <= f < s + 1) for s in range(int(app) + 1, int(ticks[-1]) if ticks else 0)
+    )
+    return {"stalls": gaps[:3], "fps_median": per_s[len(per_s) // 2] if per_s else float("nan")}
+
+
+def empty_viewer(ctx, url: str, watch_s: float) -> dict:
+    """The viewer's own start-up, no stream: app start and its thread after it (no data to draw)."""
+    page = ctx.new_page()
+    page.add_init_script(TICKS)
+    opened_ns = time.time_ns()
+    page.goto(url + "/rerun/index.html", timeout=120_000)
+    page.wait_for_function("() => window._handle !== undefined", timeout=600_000)
+    app_ns = time.time_ns()
+    end = time.monotonic() + watch_s
+    while time.monotonic() < end:
+        time.sleep(0.5)  # time passing: the viewer idles
+    thread = _thread(page, opened_ns, app_ns)
+    page.close()
+    return {"app_start_s": (app_ns - opened_ns) / 1e9, **thread}
+
+
+def browser_case(server, build: str, late_s: float, watch_s: float, edge_s: float, viewport: dict) -> dict:
     import urllib.parse
 
     from playwright.sync_api import sync_playwright
@@ -212,18 +253,22 @@ def browser_case(server, build: str, late_s: float, watch_s: float, edge_s: floa
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
         try:
-            ctx = browser.new_context(viewport={"width": 1280, "height": 800})
+            ctx = browser.new_context(viewport=viewport)
             ctx.add_cookies(session_cookies(server.http, server.url))
             warm = ctx.new_page()  # the viewer's files prepared and in the cache: not measured
             warm.goto(server.url + "/rerun/index.html", timeout=600_000)
             warm.wait_for_function("() => window._handle !== undefined", timeout=600_000)
             warm.close()
+            empty = empty_viewer(ctx, server.url, min(watch_s, 15.0))
             run = start_loop(server, build)
             started = time.monotonic()
             while time.monotonic() - started < late_s:
                 time.sleep(0.2)
             info = server.http.get("/api/logs/rerun").json()
             page = ctx.new_page()
+            page.add_init_script(TICKS)
+            debug_lines = [0]
+            page.on("console", lambda m: m.type == "debug" and debug_lines.__setitem__(0, debug_lines[0] + 1))
             opened_ns = time.time_ns()
             page.goto(server.url + "/rerun/?url=" + urllib.parse.quote(info["live_url"], safe=""), timeout=120_000)
             page.wait_for_function("() => window._handle !== undefined", timeout=600_000)
@@ -231,8 +276,9 @@ def browser_case(server, build: str, late_s: float, watch_s: float, edge_s: floa
             page.evaluate(SAMPLE)
             end = time.monotonic() + watch_s
             while time.monotonic() < end:
-                time.sleep(0.5)
+                time.sleep(0.5)  # time passing: the viewer follows the run
             raw = page.evaluate("window._xrfSamples")
+            thread = _thread(page, opened_ns, app_ns)
         finally:
             browser.close()
             server.stop_run()
@@ -256,6 +302,9 @@ def browser_case(server, build: str, late_s: float, watch_s: float, edge_s: floa
         "behind": {t: behind_at(t) for t in (0, 5, 10, 20, 30)},
         "edge_s": edge,
         "samples": len(raw),
+        "thread": thread,
+        "debug_lines": debug_lines[0],
+        "empty": empty,
     }
 
 
@@ -310,6 +359,7 @@ def main() -> None:
     )
     ap.add_argument("--late", type=float, default=60.0, help="browser case: run age when the viewer opens (s)")
     ap.add_argument("--watch", type=float, default=40.0, help="browser case: how long the viewer is sampled (s)")
+    ap.add_argument("--viewport", default="1280x800", help="browser case: the viewer's page size, WxH (CSS px)")
     args = ap.parse_args()
 
     other = next((c for c in range(os.cpu_count() or 1) if c != args.cpu), None)
@@ -337,7 +387,8 @@ def main() -> None:
                 kid = ", ".join(f"rerun --{k} {mb:.0f}" for k, (_, mb) in sorted(kids.items())) or "no rerun child"
                 print(f"  {what:36s} appliance {app_mb:.0f}; {kid}", flush=True)
         if browser:
-            seen = browser_case(server, args.build, args.late, args.watch, args.edge)
+            w, h = (int(x) for x in args.viewport.lower().split("x"))
+            seen = browser_case(server, args.build, args.late, args.watch, args.edge, {"width": w, "height": h})
             print("browser: done", file=sys.stderr)
         for label, n, stress_cpu in cases:
             res = run_case(server, args.build, n, args.seconds, args.edge, stress_cpu)
@@ -345,10 +396,24 @@ def main() -> None:
             print(f"{label}: done", file=sys.stderr)
 
     if seen is not None:
-        b = seen["behind"]
+        b, e, th = seen["behind"], seen["empty"], seen["thread"]
+
+        def stalls(d: dict) -> str:
+            return ", ".join(f"{g:.1f} s at {a:.1f} s" for g, a in d["stalls"]) or "none"
+
+        window = os.environ.get("XRF_RERUN_MEMORY", "the default")
+        print(f"chromium's rerun viewer, {args.viewport} px, the live proxy's window {window}")
         print(
-            f"chromium's live viewer opened {seen['run_age_s']:g} s into a {args.build} run (what a person sees: "
+            f"  empty viewer (no stream): app started {e['app_start_s']:.1f} s after opening; longest stalls "
+            f"of its thread after that: {stalls(e)}; {e['fps_median']} frames/s (median)"
+        )
+        print(
+            f"live viewer opened {seen['run_age_s']:g} s into a {args.build} run (what a person sees: "
             f"the viewer's newest sample, {seen['samples']} samples of its state)"
+        )
+        print(
+            f"  its thread's longest stalls after the app started: {stalls(th)} (s after opening); "
+            f"{th['fps_median']} frames/s (median); {seen['debug_lines']} console.debug lines reached the console"
         )
         print(
             f"  app started {seen['app_start_s']:.1f} s after opening; first held a sample of the run "

@@ -71,6 +71,11 @@ def test_dashboard_drives_a_relbot_run(server: Server, browser) -> None:
     assert axes["left"][0] > -1.9 and axes["right"][1] < 2.9, axes  # each scale its own range
     # The encoders share one axis: one unit.
     assert page.evaluate("window.xrf.plots.enc.plot.series.slice(1).every((s) => s.scale === 'counts')")
+    # Its legend shows each field's newest value without hovering (uPlot alone shows "--").
+    page.wait_for_function(
+        "(els => els.length >= 2 && els.every((e) => e.textContent !== '--' && e.textContent !== ''))"
+        "([...document.querySelectorAll('#plot-xeno2ros .u-legend .u-series:not(:first-child) .u-value')])"
+    )
     page.wait_for_function("document.getElementById('t-cycles').textContent !== '–'")
     SHOTS.mkdir(exist_ok=True)
     page.screenshot(path=str(SHOTS / "dashboard.png"), full_page=True)

@@ -31,6 +31,10 @@ EDGE_S = 2.0
 # ...and how long after the viewer's app started it may take to hold any sample of the run.
 FIRST_S = 60.0
 
+# console.debug lines the viewer's tab may print while it starts and draws its first plots: rerun's
+# web build logs its shader compiler (naga) at debug level, ~9000 lines at the first plot.
+MAX_DEBUG_LINES = 20
+
 # In the viewer's tab: its state every 250 ms, with the browser's wall clock (same machine).
 SAMPLE = """window._xrfSamples = []; setInterval(() => {
   try { window._xrfSamples.push([Date.now(), Array.from(window._handle.viewer_state())]); } catch (e) {}
@@ -60,6 +64,8 @@ def test_a_late_viewer_opens_at_the_live_edge(server: Server, browser) -> None: 
     wait_for(lambda: time.monotonic() - started >= LATE_S, LATE_S + 5, "the run's age")  # the run's age, on purpose
 
     viewer = browser.new_page(viewport={"width": 1280, "height": 800})
+    debug_lines: list[str] = []
+    viewer.on("console", lambda m: m.type == "debug" and debug_lines.append(m.text))
     opened_ns = time.time_ns()
     viewer.goto(server.url + "/rerun/?url=" + urllib.parse.quote(info["live_url"], safe=""), timeout=120_000)
     viewer.wait_for_function("() => window._handle !== undefined", timeout=300_000)
@@ -79,6 +85,10 @@ def test_a_late_viewer_opens_at_the_live_edge(server: Server, browser) -> None: 
         f"the viewer's first samples were {older:.1f} s older than its opening (the run was {LATE_S:.0f} s old); "
         f"{seen_s - newest / 1e9:.1f} s behind live when its thread showed them"
     )
+
+    # Its first plots drew without the shader compiler's ~9000 console.debug lines, which froze the
+    # tab for seconds (the tab script mutes console.debug there; ours, frontend/rerun-tab.js).
+    assert len(debug_lines) <= MAX_DEBUG_LINES, (len(debug_lines), debug_lines[:5])
 
     # The run's replay from its start is one click away, as its log's .rrd.
     viewer.wait_for_function("document.getElementById('xrf-replay') !== null", timeout=30_000)

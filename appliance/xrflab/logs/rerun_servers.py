@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 RERUN_NICE = 10  # rerun's child processes run below the appliance
-LIVE_WINDOW = "256KiB"  # what a run's live proxy keeps for late viewers (LiveProxy)
+LIVE_WINDOW = "48KiB"  # what a run's live proxy keeps for late viewers: ~2 s of RELbot (LiveProxy)
 # Ours, added to the page of each viewer that opens in a tab of its own (rerun's, by
 # server/http/rerun.py; viser's 3D scene, by server/http/viser.py): the frontend's shared helpers,
 # then the tab script (Esc stops the run there too, frontend/rerun-tab.js).
@@ -145,12 +145,14 @@ class LiveProxy(_RerunChild):
     the previous one; the last stays up after its run ends, so its viewers keep their plots.
 
     A viewer opens at the live edge (issue 31 bug 6): the proxy keeps only a short window
-    (``LIVE_WINDOW``, XRF_RERUN_MEMORY; 256 KiB is a few seconds of the RELbot example, well
-    under a second of 64 variables at 100 Hz) and replays it newest first (``--newest-first``),
-    so a late viewer's first samples are the loop's latest, not cycle 0. Measured in chromium
-    on a loaded 2-core VM, the viewer ingests a replayed window slower than real time while it
-    also draws: with 1 MiB it first held data 13 s behind live and fell to 22 s behind before it
-    caught up, so the window is as short as a late viewer needs (bench/appliance/rerun_lag.py). With 256 MiB replayed oldest first, a
+    (``LIVE_WINDOW``, XRF_RERUN_MEMORY; 48 KiB is ~2 s of the RELbot example, which streams
+    ~24 KB/s in 12 messages of ~2 KB, and under a second of 64 variables at 100 Hz) and replays
+    it newest first (``--newest-first``), so a late viewer's first samples are the loop's latest,
+    not cycle 0. The viewer ingests at most 10 ms of messages per frame, and a frame takes ~1 s
+    in chromium without a GPU: what it is handed on connect delays the live samples behind it.
+    Measured there (bench/appliance/rerun_lag.py, issue 31 bug 6): 1 MiB, first data 2.1 s behind
+    live, then 6.5 s behind before it caught up 8 s later; 256 KiB, 2.1 s; 48 KiB, 0.8 s and
+    0.7-1.5 s from then on; 16 KiB, 0.7 s. With 256 MiB replayed oldest first, a
     browser opened four minutes into a run drew minutes-old samples for two minutes before it
     reached the live edge, and the proxy grew ~5 MB a minute up to its cap (issue 30 item 4).
     The whole run is in its log: "replay from start" opens the log's .rrd (frontend/rerun-tab.js).
