@@ -5,7 +5,8 @@ launcher), with a RELbot run in RUN at 1 kHz, in five cases that add up:
 
     idle       nothing connected (no browser, no WebSocket)
     dash       + one dashboard: a real chromium page (Debian's, via Playwright) on /#watch
-    view3d     + the 3D view: a second page on /#view3d (viser through the /viser/ proxy)
+    view3d     + the 3D view: the dashboard's 3D page (/#view3d) and the scene's own tab (/viser/,
+               viser through the appliance's proxy)
     rerun      + the live rerun viewer: a third page on /rerun/?url=... (its wasm viewer)
     dash30     + 30 dashboards as WebSocket clients (a separate process; the stand-in for 30
                browsers that clients30.py uses)
@@ -315,13 +316,21 @@ def main() -> int:
                     pg.wait_for_function("document.getElementById('conn').textContent === 'connected'")
                     pages.append(pg)
                 elif case == "view3d":
+                    # The 3D page (its numbers poll /api/viz/state) and the scene, which opens in a
+                    # tab of its own on /viser/ (frontend/pages/view3d.js: never in an iframe).
                     pg = ctx.new_page()
                     pg.goto(server.url + "/#view3d")
-                    pg.frame_locator("#v3d-frame").locator("canvas").first.wait_for(state="attached", timeout=60_000)
+                    pg.wait_for_function("() => window.xrf && window.xrf.view3d", timeout=60_000)
+                    pages.append(pg)
+                    pg = ctx.new_page()
+                    pg.goto(server.url + "/viser/")
+                    pg.locator("canvas").first.wait_for(state="attached", timeout=60_000)
                     pages.append(pg)
                 elif case == "rerun":
                     pg = ctx.new_page()
-                    pg.goto(server.url + "/rerun/?url=" + quote(f"rerun+{server.url}/proxy", safe=""))
+                    # The first open prepares the viewer's files (a rerun child, once per version)
+                    # and loads ~30 MB of wasm: slow on a busy machine.
+                    pg.goto(server.url + "/rerun/?url=" + quote(f"rerun+{server.url}/proxy", safe=""), timeout=240_000)
                     pg.wait_for_function("() => window._handle !== undefined", timeout=240_000)
                     pages.append(pg)
                 elif case == "dash30":

@@ -129,6 +129,7 @@ def test_live_rerun_stream_takes_records_and_telemetry(loop, tmp_path: Path, cap
     proxy = LiveProxy.open_for_run(42, "alice")
     try:
         assert proxy.local_url == f"rerun+http://127.0.0.1:{proxy.port}/proxy" and LiveProxy.current() is proxy
+        proxy.readers = 1  # a viewer reads it (the appliance's read route counts them)
         stream = LiveRerun(proxy, lp.ch, run_id=42)
         w = HostLogWriter(lp.ch, {}, tmp_path, on_records=stream.feed, timing=False)
         w.start()
@@ -152,6 +153,36 @@ def test_live_rerun_stream_takes_records_and_telemetry(loop, tmp_path: Path, cap
     finally:
         LiveProxy.stop_all()
     assert LiveProxy.current() is None
+
+
+def test_live_rerun_stream_sends_nothing_without_a_viewer(loop, tmp_path: Path) -> None:
+    """With no viewer on the run's proxy the live stream neither connects nor sends (issue 30
+    item 4: work and the rerun SDK's memory for nobody); the log file still gets every record."""
+    import httpx
+
+    from xrf_testing.grpcweb import READ_MESSAGES, read_messages
+    from xrflab.logs.rerun_live import LiveRerun
+    from xrflab.logs.rerun_servers import LiveProxy
+
+    lp = loop(tmp_path)
+    proxy = LiveProxy.open_for_run(44, "alice")
+    try:
+        assert proxy.readers == 0
+        stream = LiveRerun(proxy, lp.ch, run_id=44)
+        w = HostLogWriter(lp.ch, {}, tmp_path, on_records=stream.feed, timing=False)
+        w.start()
+        _run_then_kill(lp, 1000)
+        stats = w.finish()
+        stream.close()
+        stream._thread.join(10)
+        assert stats.records >= 1000, stats
+        assert stream.rec is None and stream._names is None and stream.dropped == 0
+        # a reader straight on the proxy (not counted: not through the appliance) finds no recording
+        with httpx.Client(base_url=proxy.read_url) as client:
+            got = read_messages(client, READ_MESSAGES, until=lambda d: b"run-44" in d, timeout=3, quiet=2)
+        assert b"run-44" not in got.data
+    finally:
+        LiveProxy.stop_all()
 
 
 def _whole_header(path: Path) -> bytes | None:

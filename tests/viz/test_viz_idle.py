@@ -28,6 +28,16 @@ def frames_stay(server: Server) -> int:
     return before
 
 
+def test_viser_starts_at_the_first_watcher(server: Server) -> None:
+    """viser (its import and server: ~25 MB RSS and threads in the appliance) is not started with
+    the appliance but by the first request through the /viser/ proxy."""
+    before = info(server)
+    assert before["available"] and not before["started"] and before["port"] is None, before
+    assert server.http.get("/viser/").status_code == 200
+    after = info(server)
+    assert after["started"] and after["port"], after
+
+
 def test_the_scene_sleeps_with_no_viewer_and_wakes_for_one(server: Server) -> None:
     assert info(server)["available"], info(server)
     idle = frames_stay(server)

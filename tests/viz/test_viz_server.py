@@ -71,6 +71,7 @@ def listening_addresses(port: int) -> set[str]:
 def test_viser_listens_on_loopback_only(server: Server) -> None:
     """The appliance listens on every interface here (--host 0.0.0.0, as on a Pi); viser, which has
     no login of its own, only on 127.0.0.1."""
+    assert server.http.get("/viser/").status_code == 200  # the first watcher starts viser
     info = server.http.get("/api/viz").json()
     assert info["available"], info
     app_port = urllib.parse.urlsplit(server.url).port

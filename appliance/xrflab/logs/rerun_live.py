@@ -8,6 +8,14 @@ variable group plus encoders, PWM and Xeno2Ros, each view one entity (a series p
 batch is one message per view, whatever the number of variables (rerun's viewer pays per
 message). Sending happens on a thread of its own: the writer's thread only queues (and drops,
 counted, when the queue is full). See docs/logging/appliance.md.
+
+Nothing is sent while no viewer reads the run's proxy (``LiveProxy.readers``, counted by the
+appliance's read route): the proxy keeps only a few seconds for a late viewer anyway (its window,
+rerun_servers.LIVE_WINDOW), and the whole run is in its log, so a stream for nobody was work and
+memory for nobody (issue 30 item 4: ~16 % of the idle appliance's Python time, and the rerun SDK,
+~65 MB RSS, imported at every run's start). The recording connects (and rerun is imported) at the
+first viewer; from then on each batch is the last ``SEND_PERIOD_S`` of records and telemetry, so
+a viewer that opens gets the live edge within one batch.
 """
 
 from __future__ import annotations
@@ -57,9 +65,9 @@ class LiveRerun:
     """One run's live recording: log records (decimated) and telemetry, off the writer's thread."""
 
     def __init__(self, proxy: LiveProxy, ch: Channels, run_id: int) -> None:
-        import rerun as rr
-
-        self._rr = rr
+        self._rr: Any = None  # the rerun module, imported at the first viewer (_connect)
+        self._proxy = proxy
+        self._run_id = run_id
         self._ch = ch
         self._freq = max(1, int(ch.info.get("cycle_freq", 1000)))
         self._every = max(1, int(round(self._freq / LIVE_HZ)))
@@ -69,17 +77,28 @@ class LiveRerun:
         self._names: list[str] | None = None
         self._groups: dict[str, list[str]] = {}  # log entity -> its variables (record fields)
         self._series: dict[str, list[str]] = {}  # entity -> the series names logged for it
-        self.rec = rr.RecordingStream("xrflab", recording_id=f"run-{run_id}")
-        self.rec.connect_grpc(proxy.local_url)
-        self._telemetry_reader: TelemetryReader | None = ch.telemetry_reader()
+        self.rec: Any = None  # the run's RecordingStream, from the first viewer on
+        self._telemetry_reader: TelemetryReader | None = None  # while watched: from the newest sample
+        self._telemetry_broken = False  # the segment was found corrupt: no more telemetry
         self._texts: queue.SimpleQueue[dict[str, Any]] = queue.SimpleQueue()  # parameter changes
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._main, name=f"xrf-rerun-{run_id}", daemon=True)
         self._thread.start()
 
+    def watched(self) -> bool:
+        return self._proxy.readers > 0
+
+    def _connect(self) -> None:
+        import rerun as rr
+
+        self._rr = rr
+        self.rec = rr.RecordingStream("xrflab", recording_id=f"run-{self._run_id}")
+        self.rec.connect_grpc(self._proxy.local_url)
+
     def feed(self, records: np.ndarray) -> None:
-        """From the writer thread: keep every k-th record (by cycle) and queue it; never blocks."""
-        if "cycle" not in (records.dtype.names or ()):
+        """From the writer thread: keep every k-th record (by cycle) and queue it; never blocks.
+        Nothing while no viewer reads the stream."""
+        if not self.watched() or "cycle" not in (records.dtype.names or ()):
             return
         keep = records[records["cycle"] % self._every == 0]
         if len(keep) == 0:
@@ -123,6 +142,8 @@ class LiveRerun:
 
         def done() -> None:
             self._thread.join()
+            if self.rec is None:  # never watched: never connected
+                return
             try:
                 self.rec.flush()
                 self.rec.disconnect()
@@ -182,6 +203,7 @@ class LiveRerun:
             # The supervisor's own reader sees the same and stops the run (corrupt_channel);
             # this stream just stops reading the segment.
             self._telemetry_reader = None
+            self._telemetry_broken = True
             return
         if not samples:
             return
@@ -226,7 +248,25 @@ class LiveRerun:
             if isinstance(item, np.ndarray):
                 pending.append(item)
             done = item is None or (self._stop.is_set() and self._q.empty())
+            if not self.watched():
+                # Nobody reads: drop what came (records queued before the last viewer left, the
+                # parameter changes) and the telemetry reader; a next viewer starts from then.
+                pending.clear()
+                while not self._texts.empty():
+                    self._texts.get_nowait()
+                self._telemetry_reader = None
+                if done:
+                    return
+                continue
+            if self.rec is None:
+                try:
+                    self._connect()
+                except Exception:
+                    log.exception("live rerun unavailable")
+                    return
             try:
+                if self._telemetry_reader is None and not self._telemetry_broken:
+                    self._telemetry_reader = self._ch.telemetry_reader()
                 now = time.monotonic()
                 if pending and (done or now - last_records >= SEND_PERIOD_S):
                     last_records = now

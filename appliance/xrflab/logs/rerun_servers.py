@@ -181,6 +181,9 @@ class LiveProxy(_RerunChild):
             "live proxy",
         )
         self.local_url = f"rerun+http://127.0.0.1:{self.port}/proxy"
+        # Viewers reading this proxy through the appliance (server/http/rerun.py counts them in and
+        # out, on the event loop): the run's recording sends only while there is one (LiveRerun).
+        self.readers = 0
         self.read_url = f"http://127.0.0.1:{self.port}"  # where the appliance forwards gRPC-web reads
 
     @classmethod

@@ -206,6 +206,7 @@ class VizService(RunObserver):
         self.error = ""  # viser could not start: the page shows this
         self.port: int | None = None
         self._lock = threading.Lock()
+        self._start_lock = threading.Lock()  # viser starts once, at the first watcher (ensure_server)
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._wake = threading.Event()  # a watcher came (viser client, state request) or stop
@@ -252,12 +253,14 @@ class VizService(RunObserver):
             return False
 
     async def start(self) -> None:
-        """Start viser (own thread, 127.0.0.1 only, own port: the appliance's port + 1; viser moves up
-        to the next free port if that one is taken) and the 30 Hz task."""
-        try:
-            await asyncio.to_thread(self._start_viser)
-        except Exception as exc:  # missing package, no port: the appliance runs without 3D
-            self.error = f"3D view unavailable: {exc}"
+        """The robot's model and the 30 Hz thread (asleep until someone watches). viser itself
+        starts at the first watcher (ensure_server): importing it and running its server cost the
+        appliance ~25 MB RSS and two threads from start-up on, for a view few sessions open
+        (issue 30 item 4)."""
+        import importlib.util
+
+        if importlib.util.find_spec("viser") is None:  # without importing it
+            self.error = "3D view unavailable: the viser package is not installed"
             log.warning("%s", self.error)
             return
         plant = self.settings.sim
@@ -267,6 +270,19 @@ class VizService(RunObserver):
         # delay the supervisor's heartbeat if it ran in the event loop.
         self._thread = threading.Thread(target=self.run, name="viz-30hz", daemon=True)
         self._thread.start()
+
+    def ensure_server(self) -> int | None:
+        """viser's port, starting it first if this is the first watcher (the /viser/ proxy, the
+        scene's thread on a state request); None if it cannot start (the reason in .error).
+        Blocking (the import and the server's start): not on the event loop."""
+        with self._start_lock:
+            if self.server is None and not self.error and not self._stop.is_set():
+                try:
+                    self._start_viser()
+                except Exception as exc:  # no port, a broken install: the appliance runs without 3D
+                    self.error = f"3D view unavailable: {exc}"
+                    log.warning("%s", self.error)
+            return self.port if self.server is not None else None
 
     def _start_viser(self) -> None:
         import viser
@@ -290,12 +306,15 @@ class VizService(RunObserver):
         with self._lock:
             if self.recorder is not None:
                 self.recorder.close()
-        if self.server is not None:
-            await asyncio.to_thread(self.server.stop)
+        with self._start_lock:  # not while it starts (ensure_server): then it would outlive us
+            server = self.server
+        if server is not None:
+            await asyncio.to_thread(server.stop)
 
     def info(self) -> dict[str, Any]:
         return {
-            "available": self.server is not None,
+            "available": not self.error,  # viser starts at the first watcher (ensure_server)
+            "started": self.server is not None,
             "url": "/viser/",
             "port": self.port,
             "error": self.error,
@@ -547,7 +566,7 @@ class VizService(RunObserver):
         with self._lock:
             f = self.frame()
             trail_dirty = self._trail_dirty
-        if self.server is None:
+        if self.server is None and self.ensure_server() is None:
             return
         self._ensure_scene(f["kind"])
         n = self._nodes

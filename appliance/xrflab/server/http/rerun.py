@@ -377,6 +377,8 @@ async def live_stream(method: str, request: Request) -> Response:
         await client.aclose()
         return grpc_error(502, UNAVAILABLE, f"the live stream of run {proxy.run_id} does not answer: {exc}")
     _open_streams += 1
+    watched = proxy  # (narrowed: not None) the run's recording sends while it has readers (logs/rerun_live.py)
+    watched.readers += 1
     closed = False
 
     async def close() -> None:
@@ -385,6 +387,7 @@ async def live_stream(method: str, request: Request) -> Response:
         if not closed:
             closed = True
             _open_streams -= 1
+            watched.readers -= 1
             await upstream.aclose()
             await client.aclose()
 

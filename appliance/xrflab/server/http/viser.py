@@ -41,11 +41,15 @@ MAX_MESSAGE = 50 * 1024 * 1024  # viser's own limit
 TAB_SCRIPTS = (LIB_SCRIPT, TAB_SCRIPT)
 
 
-def _viser_port(app: Any) -> int | None:
+async def _viser_port(app: Any) -> int | None:
+    """viser's port; the first request starts it (viz/scene.py ensure_server: it is not started
+    with the appliance)."""
     viz = getattr(app.state, "viz", None)
-    if viz is None or getattr(viz, "server", None) is None or not viz.port:
+    if viz is None:
         return None
-    return int(viz.port)
+    if viz.server is None:
+        return await asyncio.to_thread(viz.ensure_server)
+    return int(viz.port) if viz.port else None
 
 
 @router.get("/viser", dependencies=[requires(Perm.WATCH)])
@@ -57,7 +61,7 @@ async def viser_root() -> RedirectResponse:
 async def viser_http(path: str, request: Request) -> Response:
     import httpx
 
-    port = _viser_port(request.app)
+    port = await _viser_port(request.app)
     if port is None:
         raise Unavailable("the 3D view is not running")
     url = f"http://127.0.0.1:{port}/{path}"
@@ -117,7 +121,7 @@ async def _proxy_ws(ws: WebSocket) -> None:
     from websockets.exceptions import ConnectionClosed
     from websockets.typing import Subprotocol
 
-    port = _viser_port(ws.app)
+    port = await _viser_port(ws.app)
     if port is None:
         await ws.close(code=1011, reason="the 3D view is not running")
         return

@@ -20,6 +20,7 @@ router = APIRouter(prefix="/api/viz", tags=["3d view"])
 
 class VizInfo(BaseModel):
     available: bool = Field(description="false when viser could not start; `error` says why")
+    started: bool = Field(description="viser is running: it starts at the first watcher, not with the appliance")
     url: str = Field(description="where browsers open the scene: the appliance's /viser/ proxy (login required)")
     port: int | None = Field(
         description="internal port of the viser server (127.0.0.1 only, not reachable from the LAN)"

@@ -251,19 +251,15 @@ class RunCgroup:
 
     def events(self) -> dict[str, int]:
         """``oom_kill``: processes the kernel killed for the memory limit; ``pids_max``: forks
-        refused for the process limit; ``memory_peak``: bytes at most (where the kernel says)."""
+        refused for the process limit. Read four times a second per run (watch.limits_guard): two
+        small files, nothing else (the memory peak it also read was used by nobody)."""
         mem, pids = self.folder("memory"), self.folder("pids")
         if self.places["memory"].version == 1:
             oom = _counters(mem / "memory.oom_control").get("oom_kill", 0)
-            peak_file = mem / "memory.max_usage_in_bytes"
         else:
             ev = _counters(mem / "memory.events")
             oom = max(ev.get("oom_kill", 0), ev.get("oom", 0), ev.get("oom_group_kill", 0))
-            peak_file = mem / "memory.peak"
-        peak = 0
-        with contextlib.suppress(OSError, ValueError):
-            peak = int(_read(peak_file))
-        return {"oom_kill": oom, "pids_max": _counters(pids / "pids.events").get("max", 0), "memory_peak": peak}
+        return {"oom_kill": oom, "pids_max": _counters(pids / "pids.events").get("max", 0)}
 
     def pids(self) -> list[int]:
         out: set[int] = set()
