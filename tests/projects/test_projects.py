@@ -195,6 +195,25 @@ def test_editing_a_msg_regenerates_on_rebuild(tmp_path: Path) -> None:
     assert headers and "extra_counter" in headers[0].read_text()
 
 
+def test_a_reused_build_folder_generates_with_this_rt_cores_generator(tmp_path: Path) -> None:
+    """A build folder configured against an older rt_core once cached that install's msgdef.py
+    (its headers would not match this runtime's layout); the next build must use this one's."""
+    project = tmp_path / "base"
+    shutil.copytree(PROJECTS["base"], project)
+    build_project(project, tmp_path / "build", log=_quiet)
+    stale = tmp_path / "old_msgdef.py"
+    stale.write_text("# an older rt_core's generator: writes nothing\n")
+    cache = tmp_path / "build" / "CMakeCache.txt"
+    text = cache.read_text()
+    assert "XRF_RT_MSGDEF:FILEPATH" not in text  # no longer cached
+    cache.write_text(text + f"XRF_RT_MSGDEF:FILEPATH={stale}\n")  # as an older XrfRt left it
+    with open(project / "msg/Xeno2Ros.msg", "a") as f:
+        f.write("int32 extra_counter\n")
+    build_project(project, tmp_path / "build", log=_quiet)
+    headers = list((tmp_path / "build").rglob("xeno2_ros.hpp"))
+    assert headers and "extra_counter" in headers[0].read_text()
+
+
 # ---------------------------------------------------------------------------------------
 # XRF2 layout
 
