@@ -148,7 +148,7 @@ def test_the_room_table_across_two_benches(lab: Lab, graded: dict[str, Any]) -> 
         assert r["plots"] == f"{bench.url}/#grades"
         assert r["log"] == f"{bench.url}/api/logs/runs/{r['run']}"
         log = bench.http.get(f"/api/logs/runs/{r['run']}")
-        assert log.status_code == 200 and log.json()["owner"] == name, log.text[:300]
+        assert log.status_code == 200 and log.json()["run"]["owner"] == name and log.json()["files"], log.text[:300]
     # the other student's copy on each bench has no build there: a row saying so, 0 points
     for r in t["rows"]:
         if (r["owner"], r["bench"]) not in rows:
