@@ -159,7 +159,7 @@ from dataclasses import dataclass  # noqa: E402
 
 import httpx  # noqa: E402
 
-from xrf_testing.harness import ADMIN_PASSWORD, REPO_ROOT, Server, login_client  # noqa: E402
+from xrf_testing.harness import ADMIN_PASSWORD, REPO_ROOT, UNCONFINED_UNLESS_ROOT, Server, login_client  # noqa: E402
 from xrf_testing.harness import HERE as APPLIANCE_TESTS  # noqa: E402
 
 
@@ -282,6 +282,7 @@ def start_bench(topo: Topology, i: int, data_dir: Path, builds_root: Path) -> Se
         "port": port,
         "host": host,
         "real_bench": False,
+        "allow_unconfined": UNCONFINED_UNLESS_ROOT,  # harness.py says why
     }
     env = dict(
         os.environ,
