@@ -84,6 +84,9 @@
         $("room-broker").classList.toggle("bad", !m.connected);
       } else if (m.type === "bench") {
         benches.set(m.bench.name, m.bench);
+      } else if (m.type === "grades") {
+        if (grading.aid === m.assignment) loadGrades();  // a bench sent a newer table
+        return;
       }
       schedule();
     };
@@ -117,6 +120,9 @@
       const collect = el("button", "collect", "Collect runs");
       collect.addEventListener("click", () => startCollect(a));
       li.append(collect);
+      const gradesBtn = el("button", "grades", "Grades");
+      gradesBtn.addEventListener("click", () => openGrades(a));
+      li.append(gradesBtn);
       const c = collecting.get(a.id);
       if (c && c.done) {
         const link = el("a", "download", "Download (" + Object.values(c.benches).filter((s) => s === "collected").length + " collected, "
@@ -148,6 +154,84 @@
       loadAssignments();
     } catch (e) { note(e.message); }
   }
+
+  // ---- grades: one table per assignment across every bench (each bench grades its own students) ----
+  const grading = { aid: null, name: "", loading: false, again: false };
+  const esc = xrfLib.esc;  // frontend/lib.js
+  // a link only to a bench's own web address (from its enrolment, given by the room)
+  const safeUrl = (u) => (/^https?:\/\//.test(u || "") ? u : "");
+
+  async function openGrades(a) {
+    grading.aid = a.id; grading.name = a.name;
+    $("room-grades").hidden = false;
+    $("room-grades-title").textContent = "Grades: " + a.name;
+    $("room-grades-csv").href = "/api/room/assignments/" + encodeURIComponent(a.id) + "/grades.csv";
+    $("room-grades-table").textContent = "asking the benches…";
+    await askGrades(false);
+  }
+
+  async function askGrades(rerun) {
+    try {
+      const r = await post("/api/room/assignments/" + encodeURIComponent(grading.aid) + "/grades", { rerun });
+      note((rerun ? "re-run asked of " : "tables asked of ") + (r.benches.join(", ") || "no bench online")
+        + (r.offline.length ? " (offline: " + r.offline.join(", ") + ")" : ""));
+    } catch (e) { note(e.message); }
+    await loadGrades();
+  }
+
+  async function loadGrades() {
+    if (!grading.aid) return;
+    if (grading.loading) { grading.again = true; return; }
+    grading.loading = true;
+    try {
+      const res = await fetch("/api/room/assignments/" + encodeURIComponent(grading.aid) + "/grades");
+      const t = await res.json();
+      if (!res.ok) { $("room-grades-table").textContent = typeof t.detail === "string" ? t.detail : res.statusText; return; }
+      renderGrades(t);
+    } finally {
+      grading.loading = false;
+      if (grading.again) { grading.again = false; loadGrades(); }
+    }
+  }
+
+  function renderGrades(t) {
+    const checks = t.checks || [];
+    const rows = t.rows.map((r) => {
+      const cells = checks.map((c) => {
+        const x = (r.checks || {})[c.id];
+        return x ? `<td class="${x.passed ? "pass" : "fail"}" title="${esc(x.value != null ? "measured " + x.value : "")}">${esc(x.earned)}</td>` : `<td class="muted">—</td>`;
+      }).join("");
+      const status = r.status === "completed" ? "" : ` <span class="bad" title="${esc(r.reason)}">${esc(r.status)}</span>`;
+      const plots = safeUrl(r.plots), log = safeUrl(r.log);
+      return `<tr data-bench="${esc(r.bench)}" data-owner="${esc(r.owner)}"><td>${esc(r.owner)}</td><td>${esc(r.bench)}</td><td>${esc(r.name)}</td>
+        <td class="mono">${esc(r.build || "—")}</td>${cells}<td class="total"><b>${esc(r.earned)}</b> / ${esc(r.points)}${status}${r.job && r.job !== "done" ? " (" + esc(r.job) + ")" : ""}</td>
+        <td>${plots ? `<a href="${esc(plots)}" target="_blank" rel="noopener">plots</a>` : ""} ${log ? `<a href="${esc(log)}" target="_blank" rel="noopener">log</a>` : ""}</td></tr>`;
+    }).join("");
+    $("room-grades-table").innerHTML = `<table><thead><tr><th>student</th><th>bench</th><th>project</th><th>build</th>
+      ${checks.map((c) => `<th title="${esc(c.kind)}">${esc(c.id)}<br><span class="muted small">${esc(c.points)} pt</span></th>`).join("")}
+      <th>total</th><th></th></tr></thead><tbody>${rows || `<tr><td colspan="${checks.length + 6}" class="muted">No graded project yet${t.scenario ? "" : " (this assignment has no scenario in the room: choose one above)"}.</td></tr>`}</tbody></table>`;
+    const benchLines = Object.entries(t.benches).map(([name, b]) => {
+      const p = b.progress;
+      const what = b.error ? `<span class="bad">${esc(b.error)}</span>` : !b.online ? "offline" : p ? `${esc(b.rows)} rows${p.total ? `, ${esc(p.done)}/${esc(p.total)} graded` : ""}${b.left_out ? `, ${esc(b.left_out)} left out` : ""}${b.same_checks === false ? ", <span class=\"bad\">other checks</span>" : ""}` : b.asked ? "waiting" : "not asked";
+      return `<span data-bench="${esc(name)}">${esc(name)}: ${what}</span>`;
+    });
+    $("room-grades-benches").innerHTML = benchLines.join(" · ");
+    const p = t.progress;
+    $("room-grades-progress").innerHTML = p.total ? `<progress max="${esc(p.total)}" value="${esc(p.done)}"></progress> ${esc(p.done)} / ${esc(p.total)} graded across the room${p.running ? ", " + esc(p.running) + " running" : ""}` : "";
+  }
+
+  $("room-grades-rerun").addEventListener("click", () => askGrades(true));
+  $("room-grades-refresh").addEventListener("click", () => askGrades(false));
+  $("room-grades-close").addEventListener("click", () => { grading.aid = null; $("room-grades").hidden = true; });
+  $("room-grades-scenario").addEventListener("change", async () => {
+    const file = $("room-grades-scenario").files[0];
+    if (!file || !grading.aid) return;
+    const r = await xrfLib.send("PUT", "/api/room/assignments/" + encodeURIComponent(grading.aid) + "/scenario", await file.text(), { "Content-Type": "text/plain" });
+    const d = r.data && r.data.detail;
+    note(r.ok ? "scenario " + r.data.name + " kept: " + r.data.checks.length + " checks; it goes to every bench with the next re-run"
+      : "scenario refused: " + (d && d.error ? (d.line ? "line " + d.line + ": " : "") + d.error : (typeof d === "string" ? d : r.res.statusText)));
+    $("room-grades-scenario").value = "";
+  });
 
   $("room-assign-template").addEventListener("change", () => {
     $("room-assign-file").hidden = $("room-assign-template").value !== "upload";

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from xrf_testing.harness import Server, shared_builds_root, start_server, stop_server
+from xrf_testing.harness import UNCONFINED_UNLESS_ROOT, Server, shared_builds_root, start_server, stop_server
 from xrf_testing.projects_support import build_and_wait, reachable_tmp, targz
 from xrflab.projects.assignments import Assignments
 
@@ -39,7 +39,7 @@ def server() -> Iterator[Server]:
     data = reachable_tmp("grading")  # the build user must reach the projects
     try:
         _install_assignment(data)
-        srv = start_server(data, shared_builds_root())
+        srv = start_server(data, shared_builds_root(), allow_unconfined=UNCONFINED_UNLESS_ROOT)
         try:
             yield srv
         finally:

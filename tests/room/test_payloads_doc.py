@@ -19,10 +19,16 @@ MODELS: dict[str, type[BaseModel]] = {
         payloads.Status,
         *payloads.EventModels,
         payloads.Reply,
+        payloads.Grades,
+        payloads.GradeRow,
+        payloads.GradeCheck,
+        payloads.GradeCell,
+        payloads.GradeProgress,
         payloads.Stop,
         payloads.Message,
         payloads.Selfcheck,
         payloads.Collect,
+        payloads.Grade,
         payloads.ClassList,
         payloads.Account,
         payloads.Assignment,
@@ -55,6 +61,13 @@ def test_every_payload_is_documented_with_its_fields() -> None:
 
 def test_no_bench_payload_carries_an_address() -> None:
     """Where a bench is comes from its enrolment only (issue 26, hole 9)."""
-    bench_models = [payloads.Online, payloads.Status, *payloads.EventModels, payloads.Reply]
+    bench_models = [
+        payloads.Online,
+        payloads.Status,
+        *payloads.EventModels,
+        payloads.Reply,
+        payloads.Grades,
+        payloads.GradeRow,
+    ]
     for model in bench_models:
         assert not {"url", "address", "host", "dashboard_url"} & set(model.model_fields), model.__name__

@@ -36,14 +36,17 @@ from xrf_testing.room_support import (
     TEACHER,
     Lab,
     Recorder,
+    as_bench,
     broker_files,
+    held,
     join,
     room_endpoint,
     room_lab,
+    sent,
     start_broker,
     start_room,
 )
-from xrflab.room import mqtt, topics
+from xrflab.room import topics
 
 N = 2
 EVIL = "https://evil.example"
@@ -54,28 +57,6 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
     with room_lab(tmp_path_factory.mktemp("room-sec"), N) as lab:
         wait_for(lambda: {"b1", "b2"} <= lab.online(), 30, "b1 and b2 online")
         yield lab
-
-
-def held(lab: Lab, i: int) -> dict[str, Any]:
-    """Everything the bench keeps of its room, as a student who read its enrolment file has it."""
-    return json.loads((lab.benches[i].data_dir / "room" / "enrolment.json").read_text())
-
-
-def as_bench(lab: Lab, i: int) -> Recorder:
-    """An MQTT client elsewhere with bench i's stolen login (another client id: the real bench stays on)."""
-    b = held(lab, i)["broker"]
-    rec = Recorder(
-        mqtt.Endpoint(b["host"], int(b["port"]), b["username"], b["password"], b.get("ca_pem", "")),
-        f"stolen-{b['username']}-{secrets.token_hex(3)}",
-    )
-    assert rec.wait_connected(), "the bench's own login is refused by the broker"
-    return rec
-
-
-def sent(rec: Recorder, topic: str, payload: Any, retain: bool = False) -> None:
-    """Published and taken by the broker (the bench's login may write its own topics)."""
-    mid = rec.publish(topic, payload, retain=retain)
-    assert mqtt.reason_ok(rec.wait_ack(mid))
 
 
 def b64(data: bytes) -> str:

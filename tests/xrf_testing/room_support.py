@@ -159,7 +159,7 @@ from dataclasses import dataclass  # noqa: E402
 
 import httpx  # noqa: E402
 
-from xrf_testing.harness import ADMIN_PASSWORD, REPO_ROOT, Server, login_client  # noqa: E402
+from xrf_testing.harness import ADMIN_PASSWORD, REPO_ROOT, UNCONFINED_UNLESS_ROOT, Server, login_client  # noqa: E402
 from xrf_testing.harness import HERE as APPLIANCE_TESTS  # noqa: E402
 
 
@@ -282,6 +282,7 @@ def start_bench(topo: Topology, i: int, data_dir: Path, builds_root: Path) -> Se
         "port": port,
         "host": host,
         "real_bench": False,
+        "allow_unconfined": UNCONFINED_UNLESS_ROOT,  # harness.py says why
     }
     env = dict(
         os.environ,
@@ -473,3 +474,27 @@ def room_lab(base: Path, n: int, bench_root: Path | None = None) -> Iterator[Lab
         if broker is not None:
             broker.stop()
         topo.close()
+
+
+def held(lab: Lab, i: int) -> dict[str, Any]:
+    """Everything bench i keeps of its room, as a student who read its enrolment file has it."""
+    return json.loads((lab.benches[i].data_dir / "room" / "enrolment.json").read_text())
+
+
+def as_bench(lab: Lab, i: int) -> Recorder:
+    """An MQTT client elsewhere with bench i's stolen login (another client id: the real bench stays on)."""
+    import secrets
+
+    b = held(lab, i)["broker"]
+    rec = Recorder(
+        mqtt.Endpoint(b["host"], int(b["port"]), b["username"], b["password"], b.get("ca_pem", "")),
+        f"stolen-{b['username']}-{secrets.token_hex(3)}",
+    )
+    assert rec.wait_connected(), "the bench's own login is refused by the broker"
+    return rec
+
+
+def sent(rec: Recorder, topic: str, payload: Any, retain: bool = False) -> None:
+    """Published and taken by the broker (the bench's login may write its own topics)."""
+    mid = rec.publish(topic, payload, retain=retain)
+    assert mqtt.reason_ok(rec.wait_ack(mid))

@@ -238,13 +238,13 @@ class GradingService:
         for r in t["rows"]:
             w.writerow(
                 [
-                    _cell(r["owner"]),
+                    csv_cell(r["owner"]),
                     r["project"],
                     r["status"],
                     *[r["checks"].get(i, {}).get("earned", "") for i in ids],
                     r["earned"],
                     r["points"],
-                    _cell(r["build"] or ""),
+                    csv_cell(r["build"] or ""),
                     r["graded_at"] or "",
                 ]
             )
@@ -260,7 +260,7 @@ def _write(path: Path, data: bytes) -> None:
     os.replace(tmp, path)
 
 
-def _cell(text: str) -> str:
+def csv_cell(text: str) -> str:
     """A spreadsheet does not run what a cell says (a name starting with = + - @)."""
     return "'" + text if text[:1] in ("=", "+", "-", "@") else text
 

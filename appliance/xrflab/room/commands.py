@@ -17,12 +17,19 @@ is what the room and the benchmark measure.
   with a run going answers ``skipped: busy`` and shows the verdict ``skipped`` in its status.
 - ``collect``: the runs of the projects made from ``assignment`` packed and uploaded to the room
   (collect.py); the reply says how many runs and bytes.
+- ``grades``: the bench's grading table of ``assignment`` (its own students' latest results, its
+  own grading service: grading/service.py) sent on ``xrf/bench/<name>/grades``; with ``scenario``
+  it keeps that scenario first, with ``rerun`` it grades every student's latest build (its queue,
+  bounded parallel) and sends the table every ``GRADES_EVERY_S`` until the queue is through. The
+  reply says how many rows, or why none (no scenario, not this bench's assignment, a scenario
+  refused with its line).
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import tempfile
 import time
 from pathlib import Path
@@ -49,6 +56,64 @@ class CollectionTarget(Protocol):
 
 log = logging.getLogger(__name__)
 
+GRADES_EVERY_S = 1.0  # the table while a re-run goes on (the room page's progress)
+GRADES_WATCH_MAX_S = 3600.0  # a re-run watched longer than this: the room asks again when it wants
+
+
+def grades_fields(grading: Any, aid: str) -> dict[str, Any]:
+    """The bench's table of `aid` as payloads.Grades' fields: text cut to its bounds, numbers the
+    model refuses (NaN, infinity) left out, rows cut to fit ``GRADES_MAX_BYTES`` (``left_out``
+    says how many did not). Blocking (the results are files)."""
+    try:
+        t = grading.table(aid)
+    except XrfError as exc:  # no scenario, no such assignment here
+        return {"assignment": aid, "error": safe_text(exc, 300)}
+    checks = [payloads.GradeCheck.make(id=c["id"], kind=c["kind"], points=c["points"]) for c in t["checks"]]
+    rows: list[payloads.GradeRow] = []
+    left_out = 0
+    for r in t["rows"]:
+        try:
+            rows.append(
+                payloads.GradeRow.make(
+                    project=r["project"],
+                    owner=r["owner"],
+                    name=safe_text(r["name"], 128),
+                    job=r["job"],
+                    build=safe_text(r["build"] or "", 128),
+                    status=r["status"],
+                    reason=safe_text(r["reason"] or "", 300),
+                    earned=r["earned"] or 0.0,
+                    points=r["points"] or 0.0,
+                    graded_at=r["graded_at"],
+                    run=r["run"],
+                    checks={
+                        cid: {
+                            "earned": c["earned"],
+                            "passed": bool(c["passed"]),
+                            "value": c["value"]
+                            if isinstance(c["value"], int | float) and math.isfinite(c["value"])
+                            else None,
+                        }
+                        for cid, c in r["checks"].items()
+                    },
+                )
+            )
+        except (TypeError, ValueError, KeyError):  # a result file out of step with the model: said, not sent
+            log.exception("room grades %s: project %s", aid, r.get("project"))
+            left_out += 1
+    p = t["progress"]
+    progress = payloads.GradeProgress.make(**{k: p[k] for k in ("parallel", "total", "queued", "running", "done")})
+    room = payloads.GRADES_MAX_BYTES - 4096  # the envelope's share
+    kept: list[payloads.GradeRow] = []
+    size = sum(len(c.wire()) + 1 for c in checks)
+    for row in rows[: payloads.MAX_GRADE_ROWS]:
+        size += len(row.wire()) + 1
+        if size > room:
+            break
+        kept.append(row)
+    left_out += len(rows) - len(kept)
+    return {"assignment": aid, "checks": checks, "rows": kept, "left_out": left_out, "progress": progress}
+
 
 class CommandHandler:
     def __init__(self, services: BenchServices, link: CollectionTarget, loop: asyncio.AbstractEventLoop) -> None:
@@ -58,6 +123,7 @@ class CommandHandler:
         self.publisher: BenchPublisher | None = None
         self._seen = Recent()
         self._tasks: set[asyncio.Task[Any]] = set()
+        self._watching: dict[str, asyncio.Task[Any]] = {}  # assignment -> its re-run's table sender
 
     def __call__(self, command: payloads.Command | payloads.CommandHead, t_recv: float) -> None:
         """paho's thread: hand over to the event loop without waiting for anything else."""
@@ -164,3 +230,40 @@ class CommandHandler:
             size = out.stat().st_size
             await asyncio.to_thread(link.upload_collection, cid, out)
         return {"ok": True, "runs": len(manifest["runs"]), "bytes": size, "left_out": len(manifest["left_out"])}
+
+    async def _cmd_grades(self, command: payloads.Grade) -> dict[str, Any]:
+        grading = self.services.grading
+        aid = command.assignment
+        try:
+            if command.scenario is not None:  # a ScenarioError (with its line) is the reply's error
+                grading.set_scenario(aid, command.scenario)
+            if command.rerun:
+                grading.rerun_all(aid)
+        except XrfError as exc:  # refused, as the bench's own route would: said, not logged as a fault
+            fields = {"assignment": aid, "error": safe_text(exc, 300)}
+            if self.publisher is not None:
+                self.publisher.grades(**fields)
+            return {"ok": False, "error": fields["error"]}
+        fields = await asyncio.to_thread(grades_fields, grading, aid)
+        if self.publisher is not None:
+            self.publisher.grades(**fields)
+        if command.rerun and aid not in self._watching:
+            task = self.loop.create_task(self._send_while_grading(aid))
+            self._watching[aid] = task
+            task.add_done_callback(lambda _t: self._watching.pop(aid, None))
+        if fields.get("error"):
+            return {"ok": False, "error": fields["error"]}
+        return {"ok": True, "graded": len(fields["rows"])}
+
+    async def _send_while_grading(self, aid: str) -> None:
+        """The table every GRADES_EVERY_S while this assignment's jobs are queued or running, and
+        once more when they are through (the room's progress bar and final rows)."""
+        deadline = time.monotonic() + GRADES_WATCH_MAX_S
+        while time.monotonic() < deadline:
+            await asyncio.sleep(GRADES_EVERY_S)
+            fields = await asyncio.to_thread(grades_fields, self.services.grading, aid)
+            if self.publisher is not None:
+                self.publisher.grades(**fields)
+            p = fields.get("progress")
+            if p is None or (p.queued == 0 and p.running == 0):
+                return

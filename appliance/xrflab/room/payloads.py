@@ -28,6 +28,9 @@ from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
+from ..grading.results import STATUSES as GRADE_STATUSES
+from ..grading.scenario import MAX_BYTES as SCENARIO_MAX_BYTES
+from ..grading.scenario import MAX_ITEMS as SCENARIO_MAX_ITEMS
 from ..projects.assignments import ID_RE as ASSIGNMENT_ID_RE
 from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
 from ..server.security.roles import USERNAME_RE, Role
@@ -37,6 +40,8 @@ from .topics import NAME_RE
 log = logging.getLogger(__name__)
 
 BENCH_MAX_BYTES = 64 << 10  # a bench's status, event, reply or online message
+GRADES_MAX_BYTES = 512 << 10  # a bench's grading table of one assignment (xrf/bench/<name>/grades)
+MAX_GRADE_ROWS = 1000  # projects in one bench's grading table (the rest: `left_out`)
 ROOM_MAX_BYTES = 8 << 20  # the room's class list and assignments (the largest: the class list)
 # mosquitto disconnects a client that sends a larger packet (broker.py: max_packet_size)
 BROKER_MAX_PACKET = ROOM_MAX_BYTES + (64 << 10)
@@ -251,6 +256,67 @@ class Reply(_Payload):
     runs: Count | None = None
     bytes: Count | None = None
     left_out: Count | None = None
+    # grades
+    graded: Count | None = None
+
+
+class GradeProgress(_Payload):
+    parallel: Count = 0
+    total: Count = 0
+    queued: Count = 0
+    running: Count = 0
+    done: Count = 0
+
+
+# a scenario's check id (grading/scenario.py: letters, digits, _ and -)
+CheckId = Annotated[str, Field(pattern=r"^[A-Za-z_][A-Za-z0-9_-]{0,63}$")]
+Points = Annotated[float, Field(ge=0, le=1e6, allow_inf_nan=False)]
+
+
+class GradeCheck(_Payload):
+    id: CheckId
+    kind: Kind
+    points: Points
+
+
+class GradeCell(_Payload):
+    earned: Points
+    passed: bool
+    value: Annotated[float, Field(ge=-1e300, le=1e300, allow_inf_nan=False)] | None = None
+
+
+class GradeRow(_Payload):
+    """One project's latest result on the bench that sent it (grading/service.py's table row)."""
+
+    project: Count
+    owner: Annotated[str, Field(pattern=USERNAME_RE.pattern)]
+    name: Text128 = ""
+    job: Literal["queued", "running", "done"] | None = None
+    build: Text128 = ""
+    status: Literal[GRADE_STATUSES + ("not graded",)]  # type: ignore[valid-type]
+    reason: Text300 = ""
+    earned: Points = 0.0
+    points: Points = 0.0
+    graded_at: Clock | None = None
+    run: Count | None = None
+    checks: Annotated[dict[CheckId, GradeCell], Field(max_length=SCENARIO_MAX_ITEMS)] = {}
+
+
+class Grades(_Payload):
+    """``xrf/bench/<name>/grades`` (QoS 1): the bench's grading table of one assignment, sent when
+    the room asks (a ``grades`` command) and every second while its re-run goes on. The room
+    keeps the newest (boot, seq) per (assignment, bench): the topic names the bench, so its rows
+    can only ever be its own. `error`: why there is no table (no scenario, no such assignment)."""
+
+    boot: Boot
+    seq: Count
+    t: Clock
+    assignment: AssignmentId
+    checks: Annotated[list[GradeCheck], Field(max_length=SCENARIO_MAX_ITEMS)] = []
+    rows: Annotated[list[GradeRow], Field(max_length=MAX_GRADE_ROWS)] = []
+    left_out: Count = 0  # rows that did not fit into GRADES_MAX_BYTES
+    progress: GradeProgress = GradeProgress()
+    error: Text300 = ""
 
 
 # ---- room -> benches ------------------------------------------------------------------------
@@ -283,7 +349,19 @@ class Collect(_Command):
     formats: Annotated[list[Literal["csv", "mat", "parquet"]], Field(max_length=3)] = []
 
 
-Command = Annotated[Stop | Message | Selfcheck | Collect, Field(discriminator="cmd")]
+class Grade(_Command):
+    """The bench sends its grading table of `assignment` (``xrf/bench/<name>/grades``); with
+    `scenario`, it keeps that scenario first (checked against the assignment's sources there: a
+    refusal is the reply's error, with its line); with `rerun`, it grades every student's latest
+    build (its own queue: bounded parallel) and sends the table every second until done."""
+
+    cmd: Literal["grades"] = "grades"
+    assignment: AssignmentId
+    rerun: bool = False
+    scenario: Annotated[str, Field(min_length=1, max_length=SCENARIO_MAX_BYTES)] | None = None
+
+
+Command = Annotated[Stop | Message | Selfcheck | Collect | Grade, Field(discriminator="cmd")]
 """``xrf/cmd/<name>`` and ``xrf/cmd/all`` (QoS 1): only the room may publish there (the ACL)."""
 
 
@@ -357,7 +435,17 @@ CLASS_LIST = TypeAdapter(ClassList)
 ASSIGNMENT = TypeAdapter(Assignment)
 ROOM_ONLINE = TypeAdapter(RoomOnline)
 
-BENCH_LEAVES: dict[str, TypeAdapter[Any]] = {"online": ONLINE, "status": STATUS, "event": EVENT, "reply": REPLY}
+GRADES = TypeAdapter(Grades)
+
+BENCH_LEAVES: dict[str, TypeAdapter[Any]] = {
+    "online": ONLINE,
+    "status": STATUS,
+    "event": EVENT,
+    "reply": REPLY,
+    "grades": GRADES,
+}
+# a leaf's size limit, when not BENCH_MAX_BYTES
+LEAF_MAX_BYTES: dict[str, int] = {"grades": GRADES_MAX_BYTES}
 
 
 def build_event(kind: str, **fields: Any) -> Any:
@@ -369,7 +457,7 @@ def build_event(kind: str, **fields: Any) -> Any:
 
 
 def build_command(cmd: str, **fields: Any) -> Any:
-    for model in (Stop, Message, Selfcheck, Collect):
+    for model in (Stop, Message, Selfcheck, Collect, Grade):
         if model.model_fields["cmd"].default == cmd:
             return model.make(cmd=cmd, **fields)
     raise TypeError(f"no command {cmd!r} (payloads.py)")

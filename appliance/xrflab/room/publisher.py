@@ -363,6 +363,22 @@ class BenchPublisher:
         if self.connected:
             self._client.publish(topics.bench(self.name, "reply"), data, qos=1)
 
+    def grades(self, **fields: Any) -> bool:
+        """A grading table (payloads.Grades) to the room, if connected now: not queued, the room
+        asks again (its page's refresh) and the newest table is all it wants."""
+        try:
+            data = payloads.Grades.make(**fields, boot=self.boot, seq=self._next_seq(), t=time.time()).wire()
+        except (TypeError, ValueError):
+            log.exception("room grades %s", fields.get("assignment"))
+            return False
+        if len(data) > payloads.GRADES_MAX_BYTES:  # commands.grades_fields cuts rows to fit: a bug if not
+            log.error("room grades %s: %d bytes, not sent", fields.get("assignment"), len(data))
+            return False
+        if not self.connected:
+            return False
+        self._client.publish(topics.bench(self.name, "grades"), data, qos=1)
+        return True
+
 
 class Recent(OrderedDict[Any, None]):
     """The last `size` keys seen, oldest out first: a bounded memory of ids (commands.py) and of

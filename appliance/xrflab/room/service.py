@@ -35,6 +35,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import csv
+import io
 import json
 import logging
 import os
@@ -55,7 +57,12 @@ from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.websockets import WebSocketDisconnect
 
-from ..errors import Busy, Conflict, Denied, Invalid, NotFound, Unavailable
+from .. import plants
+from ..errors import Busy, Conflict, Denied, Invalid, NotFound, TooLarge, Unavailable
+from ..grading.scenario import MAX_BYTES as SCENARIO_MAX_BYTES
+from ..grading.scenario import Scenario
+from ..grading.scenario import load as load_scenario
+from ..grading.service import csv_cell
 from ..projects import archive as archive_mod
 from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
 from ..server.http import errors as http_errors
@@ -189,6 +196,10 @@ class RoomState:
         self.drops = payloads.Drops("room")
         self._was_online: dict[str, bool] = {}
         self.on_reply: Any = None  # the Room's: a bench's answer to a collection
+        # assignment -> bench -> its newest grading table (payloads.Grades); only the room's own
+        # assignments are kept (`known_assignment`), and a bench's table only under its own name
+        self.grades: dict[str, dict[str, payloads.Grades]] = {}
+        self.known_assignment: Callable[[str], bool] = lambda _aid: True
 
     def bench(self, name: str) -> Bench:
         b = self.benches.get(name)
@@ -213,7 +224,7 @@ class RoomState:
         try:
             if adapter is None:
                 raise payloads.Malformed(f"no such topic {leaf!r}")
-            msg = payloads.parse(adapter, payload, payloads.BENCH_MAX_BYTES)
+            msg = payloads.parse(adapter, payload, payloads.LEAF_MAX_BYTES.get(leaf, payloads.BENCH_MAX_BYTES))
             changed = self._apply(b, msg, retained)
         except payloads.Malformed as exc:
             b.dropped += 1
@@ -258,6 +269,19 @@ class RoomState:
             if self.on_reply is not None:
                 self.on_reply(b.name, msg)
             return False
+        if isinstance(msg, payloads.Grades):
+            if not self.known_assignment(msg.assignment):
+                raise payloads.Malformed(f"grades of {msg.assignment}, which the room did not publish")
+            tables = self.grades.setdefault(msg.assignment, {})
+            old = tables.get(b.name)
+            # A duplicate (QoS 1) or one overtaken within the same boot is dropped; another boot
+            # replaces it either way (the broker keeps one connection's order), so a table sent
+            # with the bench's stolen login and a boot far ahead lasts until the bench's next one.
+            if old is not None and msg.boot == old.boot and msg.seq <= old.seq:
+                return False
+            tables[b.name] = msg
+            self.push_grades(msg.assignment, b.name)
+            return False  # the tile has not changed
         # an event
         if b.event_keys.seen((msg.boot, msg.seq)):
             return False  # resent after an outage, seen already
@@ -268,6 +292,13 @@ class RoomState:
         b = self.benches[name]
         self._was_online[name] = b.online
         text = json.dumps({"type": "bench", "bench": b.view()}, default=str)
+        for q in list(self.listeners):
+            if q.qsize() < 1000:
+                q.put_nowait(text)
+
+    def push_grades(self, aid: str, name: str) -> None:
+        """Tell the pages a bench's table of `aid` changed (they fetch the merged table)."""
+        text = json.dumps({"type": "grades", "assignment": aid, "bench": name})
         for q in list(self.listeners):
             if q.qsize() < 1000:
                 q.put_nowait(text)
@@ -309,6 +340,8 @@ class Room:
         self.assignments = RoomAssignments(config.data_dir / "assignments")
         self.collections: dict[str, Collection] = {}
         self.state.on_reply = self._on_reply
+        self.state.known_assignment = lambda aid: aid in self.assignments.index
+        self.grading_asked: dict[str, dict[str, Any]] = {}  # assignment -> the last grades command
         self._key: sso.Ed25519PrivateKey | None = None
         self._verifiers: dict[tuple[str, str], tuple[str, sso.Verifier]] = {}
         self._tasks: list[asyncio.Task[Any]] = []
@@ -529,6 +562,126 @@ class Room:
         self.state.replies[cid] = []
         while len(self.state.replies) > MAX_REPLIES:
             self.state.replies.pop(next(iter(self.state.replies)))
+
+    # -- grading across the benches ---------------------------------------------------------------
+    def scenario_path(self, aid: str) -> Path:
+        if aid not in self.assignments.index:
+            raise NotFound(f"no assignment {aid}")
+        return self.config.data_dir / "grading" / aid / "scenario.toml"
+
+    def set_scenario(self, aid: str, text: str) -> Scenario:
+        """The room's scenario of `aid`: checked here as far as the room can (syntax, robot, checks;
+        the signals against the sources on each bench, which says so in its reply) and sent with
+        every grades command, so every bench grades with the same one."""
+        path = self.scenario_path(aid)
+        scenario = load_scenario(text, f"{aid}.toml", tuple(plants.names()))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        private_write(path, text)
+        return scenario
+
+    def scenario_text(self, aid: str) -> str | None:
+        try:
+            return self.scenario_path(aid).read_text()
+        except FileNotFoundError:
+            return None
+
+    def ask_grades(self, aid: str, rerun: bool, by: str) -> dict[str, Any]:
+        """Every online enrolled bench sends its table of `aid` (with `rerun`: after grading its own
+        students' latest builds, every second while it does); each bench is one command."""
+        scenario = self.scenario_text(aid)
+        if self.client is None or not self.state.connected:
+            raise Unavailable("the room is not connected to its broker")
+        online = sorted(n for n in self.enrolled if (b := self.state.benches.get(n)) is not None and b.online)
+        cid = secrets.token_hex(8)
+        body = payloads.Grade.make(id=cid, by=by, t=time.time(), assignment=aid, rerun=rerun, scenario=scenario)
+        self._expect_replies(cid)
+        for name in online:
+            self.client.publish(topics.cmd(name), body.wire(), qos=1)
+        offline = sorted(set(self.enrolled) - set(online))
+        self.grading_asked[aid] = {"id": cid, "t": body.t, "rerun": rerun, "benches": online, "offline": offline}
+        return {"id": cid, "benches": online, "offline": offline, "scenario": scenario is not None}
+
+    def grades_table(self, aid: str) -> dict[str, Any]:
+        """One table of `aid` across the benches: every row of every bench's newest table, with the
+        bench it came from and links to that bench's plots and log (its enrolled address, never one a
+        message names). A bench that has not sent one, or could not, says why."""
+        meta = self.assignments.index.get(aid)
+        if meta is None:
+            raise NotFound(f"no assignment {aid}")
+        tables = self.state.grades.get(aid, {})
+        asked = self.grading_asked.get(aid)
+        replies = {r["bench"]: r for r in self.state.replies.get(asked["id"], [])} if asked else {}
+        checks: list[dict[str, Any]] = []
+        ids: list[str] = []
+        benches: dict[str, dict[str, Any]] = {}
+        rows: list[dict[str, Any]] = []
+        total = {"total": 0, "queued": 0, "running": 0, "done": 0}
+        for name in sorted(self.enrolled):
+            b = self.state.benches.get(name)
+            url = self.enrolled[name].url
+            reply = replies.get(name)
+            entry: dict[str, Any] = {
+                "online": bool(b and b.online),
+                "url": url,
+                "asked": bool(asked and name in asked["benches"]),
+                "answered": reply is not None,
+                "error": "" if reply is None or reply.get("ok") else str(reply.get("error", "")),
+            }
+            g = tables.get(name)
+            benches[name] = entry
+            if g is None:
+                continue
+            progress = g.progress.model_dump()
+            entry.update(t=g.t, progress=progress, rows=len(g.rows), left_out=g.left_out)
+            entry["error"] = g.error or entry["error"]
+            for k in total:
+                total[k] += progress[k]
+            mine = [c.id for c in g.checks]
+            if not ids:
+                ids, checks = mine, [c.model_dump() for c in g.checks]
+            entry["same_checks"] = mine == ids or not mine
+            for r in g.rows:
+                rows.append(
+                    {
+                        **r.model_dump(),
+                        "bench": name,
+                        "plots": f"{url}/#grades" if url else "",
+                        "log": f"{url}/api/logs/runs/{r.run}" if url and r.run is not None else "",
+                    }
+                )
+        rows.sort(key=lambda r: (r["owner"], r["bench"], r["project"]))
+        return {
+            "assignment": aid,
+            "name": meta["name"],
+            "scenario": self.scenario_text(aid) is not None,
+            "asked": asked,
+            "checks": checks,
+            "benches": benches,
+            "rows": rows,
+            "progress": total,
+        }
+
+    def grades_csv(self, aid: str) -> str:
+        t = self.grades_table(aid)
+        out = io.StringIO()
+        w = csv.writer(out)
+        ids = [c["id"] for c in t["checks"]]
+        w.writerow(["owner", "bench", "project", "status", *ids, "total", "max", "build", "graded_at"])
+        for r in t["rows"]:
+            w.writerow(
+                [
+                    csv_cell(r["owner"]),
+                    r["bench"],
+                    r["project"],
+                    r["status"],
+                    *[r["checks"].get(i, {}).get("earned", "") for i in ids],
+                    r["earned"],
+                    r["points"],
+                    csv_cell(r["build"] or ""),
+                    r["graded_at"] or "",
+                ]
+            )
+        return out.getvalue()
 
     # -- actions --------------------------------------------------------------------------------
     def command(self, bench: str | None, cmd: str, by: str, **fields: Any) -> dict[str, Any]:
@@ -821,6 +974,66 @@ async def collection_archive(cid: str, request: Request) -> Response:
         c.archive = out
     name = re.sub(r"[^A-Za-z0-9_.-]", "_", c.assignment["name"]) or "assignment"
     return FileResponse(c.archive, media_type="application/zip", filename=f"{name}-runs-{cid[:6]}.zip")
+
+
+@router.put("/assignments/{aid}/scenario", dependencies=[requires(Perm.EDUCATOR)])
+async def put_scenario(aid: str, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
+    """The scenario every bench grades `aid` with (docs/educators/grading.md); a refused one is 422
+    with its line, as on a bench."""
+    from ..server.security import audit
+
+    body = b""
+    async for chunk in request.stream():
+        body += chunk
+        if len(body) > SCENARIO_MAX_BYTES:
+            raise TooLarge(f"a scenario is at most {SCENARIO_MAX_BYTES >> 10} KiB")
+    s = _room(request).set_scenario(aid, body.decode("utf-8", "replace"))
+    audit.record(user, "room.scenario", {"assignment": aid}, client_address(request))
+    return {"name": s.name, "robot": s.robot, "points": s.max_points, "checks": [c.id for c in s.checks]}
+
+
+@router.get("/assignments/{aid}/scenario", dependencies=[requires(Perm.EDUCATOR)])
+async def get_scenario(aid: str, request: Request) -> Response:
+    text = _room(request).scenario_text(aid)
+    if text is None:
+        raise NotFound(f"assignment {aid} has no scenario in the room")
+    return Response(text, media_type="text/plain; charset=utf-8")
+
+
+class AskGrades(BaseModel):
+    rerun: bool = Field(default=False, description="grade every student's latest build first, on every bench")
+
+
+@router.post("/assignments/{aid}/grades", status_code=202, dependencies=[requires(Perm.EDUCATOR)])
+async def ask_grades(aid: str, body: AskGrades, request: Request, user: User = Depends(current_user)) -> dict[str, Any]:
+    """Every online bench sends its table of `aid` (with the room's scenario, if it has one); with
+    `rerun`, each grades its own students first (its own queue, bounded parallel). Follow
+    ``GET .../grades`` (or the page's WebSocket, ``{"type": "grades"}``) for progress."""
+    from ..server.security import audit
+
+    room = _room(request)
+    if aid not in room.assignments.index:
+        raise NotFound(f"no assignment {aid}")
+    asked = room.ask_grades(aid, body.rerun, user.username)
+    if body.rerun:
+        audit.record(
+            user, "room.grades_rerun", {"assignment": aid, "benches": asked["benches"]}, client_address(request)
+        )
+    return asked
+
+
+@router.get("/assignments/{aid}/grades", dependencies=[requires(Perm.EDUCATOR)])
+async def grades(aid: str, request: Request) -> dict[str, Any]:
+    return _room(request).grades_table(aid)
+
+
+@router.get("/assignments/{aid}/grades.csv", dependencies=[requires(Perm.EDUCATOR)])
+async def grades_csv(aid: str, request: Request) -> Response:
+    return Response(
+        _room(request).grades_csv(aid),
+        media_type="text/csv",
+        headers={"Content-Disposition": f'attachment; filename="room-grades-{aid}.csv"'},
+    )
 
 
 @router.get("/commands/{cid}", dependencies=[requires(Perm.EDUCATOR)])

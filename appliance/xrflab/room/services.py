@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from ..grading.service import GradingService
     from ..projects.service import ProjectsService
     from ..selfcheck_service import SelfCheckService
     from ..server.runs.supervisor import Supervisor
@@ -23,3 +24,4 @@ class BenchServices:
     security: Security
     selfcheck: SelfCheckService
     projects: ProjectsService
+    grading: GradingService

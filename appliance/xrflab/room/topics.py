@@ -4,6 +4,7 @@
     xrf/bench/<name>/status   retained  payloads.Status     the tile: every change (<= 20 Hz), every second
     xrf/bench/<name>/event    QoS 1     payloads.Event      alarms, runs started/ended, self-checks, assignments
     xrf/bench/<name>/reply    QoS 1     payloads.Reply      answers to commands
+    xrf/bench/<name>/grades   QoS 1     payloads.Grades     its grading table of one assignment (asked for)
     xrf/cmd/<name>            QoS 1     payloads.Command    the room's commands to one bench
     xrf/cmd/all               QoS 1     payloads.Command    the same, for every bench
     xrf/accounts              retained  payloads.ClassList  the class list (accounts_sync.py)

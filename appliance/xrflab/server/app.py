@@ -101,7 +101,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.ros = ros
         # The lab room (issue 21): one more listener of the hub once this bench is enrolled (it
         # mirrors what the dashboards hear, alarms, lease and state included, to the room)
-        room = await attach_room(app, BenchServices(settings, supervisor, security, selfcheck, app.state.projects))
+        room = await attach_room(
+            app, BenchServices(settings, supervisor, security, selfcheck, app.state.projects, app.state.grading)
+        )
         # After every observer (lease, ROS bridge) is wired: they hear of the orphaned runs' end.
         recovering = asyncio.create_task(supervisor.recover_orphans(), name="recover-orphans")
         try:
