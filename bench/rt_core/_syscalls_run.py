@@ -9,6 +9,8 @@ CYCLES (cycles in the window), TELEMETRY/MONITOR/WAKEUPS (read by the host), STA
 from __future__ import annotations
 
 import os
+import shutil
+import signal
 import sys
 import time
 from pathlib import Path
@@ -36,6 +38,7 @@ def main() -> int:
     prefix = ["strace", "-f", "-ttt", "-qq", "-o", trace]
     loop = C.start_loop(Path(exe), env, shm, cmd_prefix=prefix, wait_s=30)
     host = None
+    pid = 0
     try:
         C.go_to_run(loop, timeout=30)
         host = C.HostReader(loop.ch)
@@ -53,7 +56,15 @@ def main() -> int:
     finally:
         if host:
             host.stop()
+        # The controller itself first: a SIGTERM to strace (loop.stop) detaches it and leaves the
+        # controller running, reparented, with /dev/cpu_dma_latency held (seen 2026-11-27).
+        if pid:
+            try:
+                os.kill(pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
         loop.stop(timeout=30)
+        shutil.rmtree(log_dir, ignore_errors=True)
     print(f"PID={pid}")
     print(f"LOOP_TID={tids[0] if len(tids) == 1 else ','.join(map(str, tids))}")
     print(f"T_STEADY={t0:.6f}")

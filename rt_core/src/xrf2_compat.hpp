@@ -16,19 +16,17 @@ inline struct timespec toTimespec(int64_t ns)
     return ts;
 }
 
-// A later timestamp s of the same cycle as base (base_ns as a timespec): base plus the offset, an
-// add and a carry instead of a division for each of step()'s t2..t7.
-inline struct timespec toTimespecAfter(const struct timespec &base, int64_t base_ns, int64_t s)
+// A timestamp of the same cycle, d ns after base (base_ns as a timespec): base's nanoseconds plus
+// the offset, an add and one unsigned compare instead of a division for each of step()'s t2..t7.
+// Exact either way: when the sum leaves base's second (a carry, rare) the division does it.
+inline struct timespec toTimespecAfter(const struct timespec &base, int64_t base_ns, int64_t d)
 {
-    const int64_t d = s - base_ns;
-    if (d < 0 || d >= 1000000000LL)
-        return toTimespec(s);
-    struct timespec ts = base;
-    ts.tv_nsec += (long)d;
-    if (ts.tv_nsec >= 1000000000L) {
-        ts.tv_nsec -= 1000000000L;
-        ts.tv_sec++;
-    }
+    const int64_t ns = (int64_t)base.tv_nsec + d;
+    if ((uint64_t)ns >= 1000000000ULL)
+        return toTimespec(base_ns + d);
+    struct timespec ts;
+    ts.tv_sec = base.tv_sec;
+    ts.tv_nsec = (long)ns;
     return ts;
 }
 

@@ -112,7 +112,9 @@ int IcoIo::update_io(const IcoWrite &w, IcoRead *rd)
         xrf_ico_encode_all_inline(&off, lim, tx, last_pwm_);
         std::memset(last_dout_, 0, sizeof last_dout_);
     }
-    int r = xfer(tx, rx);
+    // The transport's call directly once it is known (every cycle but the first): no second call.
+    xrf_ico_transport *t = transport_;
+    int r = t != nullptr ? t->xfer(t, tx, rx) : xfer(tx, rx);
     if (r != 0)
         return r;
     if (rd != nullptr) {

@@ -13,14 +13,6 @@ XenoFrtMonitor::XenoFrtMonitor(unsigned cycle_freq, unsigned monitor_freq)
         divider_ = 1;
 }
 
-void XenoFrtMonitor::update()
-{
-    // Due on cycles 0, divider_, 2 divider_, ...: a count-down instead of a modulo per cycle.
-    due_ = divider_ != 0 && phase_ == 0;
-    if (++phase_ >= divider_)
-        phase_ = 0;
-}
-
 void XenoFrtMonitor::printf(const char *fmt, ...)
 {
     if (!due_)

@@ -4,6 +4,7 @@
 
 #include <cerrno>
 #include <cstring>
+#include <type_traits>
 
 #include "xrf/runtime.hpp"
 #include "xrf2_compat.hpp"
@@ -82,31 +83,38 @@ void XenoFrtRosIcoCore::publishTelemetry(xrf::Runtime &rt, int state)
     rt.notifyHost();
 }
 
-void XenoFrtRosIcoCore::applyCommand(xrf::Runtime &rt)
+// A command taken from the ring, judged by the state machine. Out of line: a cycle with a command
+// is rare, and without this the poll of every cycle paid this function's register saves.
+__attribute__((noinline)) static void judgeCommand(FullStateMachine &sm, xrf::Runtime &rt,
+                                                   const xrf_cmd_slot &c)
 {
-    xrf_shm *shm = rt.shm();
     xrf::CycleReport &rep = rt.report();
+    const int before = sm.getState();
+    const bool accepted = sm.command(c.cmd) == 0;
+    rep.result_slot = (int)(c.ticket % XRF_CMD_RESULTS);
+    rep.result = (c.ticket << 1) | (accepted ? 0u : 1u);
+    if (accepted) {
+        rep.last_cmd = c.cmd;
+    } else {
+        rep.last_rejected_cmd = c.cmd;
+        rep.reject_code = -xrf_cmd_transition(before, c.cmd);
+        rep.rejected_count++;
+        rep.cmd_rejected = c.ticket;
+        xrf_cmd_reject_reason(before, c.cmd, rep.reject_reason, sizeof rep.reject_reason);
+        rep.reason_changed = true;
+    }
+    rep.cmd_done = c.ticket;
+    rt.notifyHost();
+}
+
+// inline: called only by step(), below (its definition is this file's alone).
+inline void XenoFrtRosIcoCore::applyCommand(xrf::Runtime &rt)
+{
     xrf_cmd_slot c;
     // One command per cycle: the hook of the new state runs before the next command is judged,
     // so "initialise, start" sent back to back works as a student expects.
-    if (xrf_cmd_poll_inline(&shm->cmd, &c)) {
-        const int before = state_machine.getState();
-        const bool accepted = state_machine.command(c.cmd) == 0;
-        rep.result_slot = (int)(c.ticket % XRF_CMD_RESULTS);
-        rep.result = (c.ticket << 1) | (accepted ? 0u : 1u);
-        if (accepted) {
-            rep.last_cmd = c.cmd;
-        } else {
-            rep.last_rejected_cmd = c.cmd;
-            rep.reject_code = -xrf_cmd_transition(before, c.cmd);
-            rep.rejected_count++;
-            rep.cmd_rejected = c.ticket;
-            xrf_cmd_reject_reason(before, c.cmd, rep.reject_reason, sizeof rep.reject_reason);
-            rep.reason_changed = true;
-        }
-        rep.cmd_done = c.ticket;
-        rt.notifyHost();
-    }
+    if (xrf_cmd_poll_inline(&rt.shm()->cmd, &c))
+        judgeCommand(state_machine, rt, c);
     switch (rt.checkHostHeartbeat(rt.cycleStart())) {
     case XRF_HOST_LOST_ACTION_PAUSE:
         state_machine.pause();
@@ -125,54 +133,66 @@ int XenoFrtRosIcoCore::step()
     xrf_shm *shm = rt.shm();
     xrf::CycleReport &rep = rt.report();
 
-    // 1. FPGA exchange: last cycle's actuate_data out, this cycle's sample_data in.
-    // The stage boundaries s0..s6 also become XRF2's t1..t7 (converted, no extra clock read).
-    const int64_t s0 = rt.cycleStart();
-    t1 = xrf2::toTimespec(s0);
-    ico_io.setOutputsEnabled(outputsAllowed(state_machine.getState()));
-    if (ico_io.update_io(actuate_data, &sample_data) != 0 &&
-        state_machine.getState() != ERROR_STATE)
-        state_machine.fail(-EIO);
-    const int64_t s1 = rt.now();
-    rt.stage(XRF_STAGE_FPGA, s1 - s0);
-    t2 = xrf2::toTimespecAfter(t1, s0, s1);
+    // The cycle, in two copies: whether stage times come from the CPU's counter is fixed for the
+    // run (Runtime::enter), so it is decided once here, not at each of the six stage boundaries.
+    auto cycle = [&](auto counter) -> int {
+        constexpr bool kCounter = decltype(counter)::value;
+        // 1. FPGA exchange: last cycle's actuate_data out, this cycle's sample_data in.
+        // The stage boundaries e1..e6 (ns since the cycle's start, Runtime::sinceCycleStart)
+        // also become XRF2's t2..t7 as offsets from t1 (no extra clock read, no division).
+        const int64_t s0 = rt.cycleStart();
+        const struct timespec base = xrf2::toTimespec(s0); // kept in registers across the calls
+        t1 = base;
+        ico_io.setOutputsEnabled(outputsAllowed(state_machine.getState()));
+        if (ico_io.update_io(actuate_data, &sample_data) != 0 &&
+            state_machine.getState() != ERROR_STATE)
+            state_machine.fail(-EIO);
+        const int64_t e1 = rt.sinceCycleStart<kCounter>();
+        rt.stageNs(XRF_STAGE_FPGA, e1);
+        t2 = xrf2::toTimespecAfter(base, s0, e1);
 
-    // 2. Data channel: the newest Ros2Xeno (a torn or absent one keeps the last), Xeno2Ros out.
-    xrf_data_in_try_read(&shm->ros2xeno, &ros_seq_, ros_msg_, ros_size_, &ros_t_sent_);
-    if (decimator_ && ++decimator_count_ >= decimator_) {
-        decimator_count_ = 0;
-        publishTelemetry(rt, state_machine.getState());
-    }
-    const int64_t s2 = rt.now();
-    rt.stage(XRF_STAGE_DATA, s2 - s1);
-    t3 = xrf2::toTimespecAfter(t1, s0, s2);
+        // 2. Data channel: the newest Ros2Xeno (a torn or absent one keeps the last), Xeno2Ros out.
+        xrf_data_in_try_read(&shm->ros2xeno, &ros_seq_, ros_msg_, ros_size_, &ros_t_sent_);
+        if (decimator_ && ++decimator_count_ >= decimator_) {
+            decimator_count_ = 0;
+            publishTelemetry(rt, state_machine.getState());
+        }
+        const int64_t e2 = rt.sinceCycleStart<kCounter>();
+        rt.stageNs(XRF_STAGE_DATA, e2 - e1);
+        t3 = xrf2::toTimespecAfter(base, s0, e2);
 
-    // 3. Command channel.
-    applyCommand(rt);
-    rep.state = state_machine.getState();
-    const int64_t s3 = rt.now();
-    rt.stage(XRF_STAGE_CMD, s3 - s2);
-    t4 = xrf2::toTimespecAfter(t1, s0, s3);
+        // 3. Command channel.
+        applyCommand(rt);
+        rep.state = state_machine.getState();
+        const int64_t e3 = rt.sinceCycleStart<kCounter>();
+        rt.stageNs(XRF_STAGE_CMD, e3 - e2);
+        t4 = xrf2::toTimespecAfter(base, s0, e3);
 
-    // 4. Monitor.
-    monitor.update();
-    const int64_t s4 = rt.now();
-    rt.stage(XRF_STAGE_MONITOR, s4 - s3);
-    t5 = xrf2::toTimespecAfter(t1, s0, s4);
+        // 4. Monitor.
+        monitor.update();
+        const int64_t e4 = rt.sinceCycleStart<kCounter>();
+        rt.stageNs(XRF_STAGE_MONITOR, e4 - e3);
+        t5 = xrf2::toTimespecAfter(base, s0, e4);
 
-    // 5. The current state's hook.
-    const int quit = state_machine.step();
-    if (ico_io.boardMissing() && state_machine.getState() != ERROR_STATE)
-        state_machine.fail(-ENODEV);
-    const int64_t s5 = rt.now();
-    rt.stage(XRF_STAGE_HOOK, s5 - s4);
-    t6 = xrf2::toTimespecAfter(t1, s0, s5);
+        // 5. The current state's hook.
+        const int quit = state_machine.step();
+        if (ico_io.boardMissing() && state_machine.getState() != ERROR_STATE)
+            state_machine.fail(-ENODEV);
+        const int64_t e5 = rt.sinceCycleStart<kCounter>();
+        rt.stageNs(XRF_STAGE_HOOK, e5 - e4);
+        t6 = xrf2::toTimespecAfter(base, s0, e5);
 
-    // 6. Logger.
-    logger.log();
-    const int64_t s6 = rt.now();
-    rt.stage(XRF_STAGE_LOGGER, s6 - s5);
-    t7 = xrf2::toTimespecAfter(t1, s0, s6);
+        // 6. Logger.
+        logger.log();
+        const int64_t e6 = rt.sinceCycleStart<kCounter>();
+        rt.stageNs(XRF_STAGE_LOGGER, e6 - e5);
+        t7 = xrf2::toTimespecAfter(base, s0, e6);
+        return quit;
+    };
+    const int quit =
+        rt.stageCounterMult() != 0 ? cycle(std::true_type{}) : cycle(std::false_type{});
+    rt.markStaged(1u << XRF_STAGE_FPGA | 1u << XRF_STAGE_DATA | 1u << XRF_STAGE_CMD |
+                  1u << XRF_STAGE_MONITOR | 1u << XRF_STAGE_HOOK | 1u << XRF_STAGE_LOGGER);
 
     rep.state = state_machine.getState();
     rep.last_error = state_machine.getError();

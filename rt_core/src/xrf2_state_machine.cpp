@@ -29,17 +29,11 @@ void FullStateMachine::fail(int error)
     state_ = ERROR_STATE;
 }
 
-int FullStateMachine::step()
+void FullStateMachine::settle(int r)
 {
-    if (state_ == QUIT_STATE)
-        return 1;
-    if (state_ == IDLE_STATE)
-        return 0;
-    Hook &hook = hooks_[state_ - INITIALISING_STATE];
-    const int r = hook ? hook() : 0;
     if (r < 0) {
         fail(r);
-        return 0;
+        return;
     }
     if (r == 1) {
         // 20-sim's Initialize() (in initialising()) wrote the generated defaults into m_P[]:
@@ -51,5 +45,4 @@ int FullStateMachine::step()
         if (next > 0)
             state_ = next;
     }
-    return 0;
 }

@@ -318,6 +318,15 @@ def test_histogram_bucket_edges_are_strictly_monotonic() -> None:
     assert all(lib.xrf_hist_bucket(edge) == b for b, edge in enumerate(edges))
 
 
+def test_bucket_at_the_edges_of_the_one_compare_path() -> None:
+    # hist_inline.h: one compare for 32 <= ns < 2^35 (the last whole octave ends in the last
+    # bucket), the linear buckets and the clamp apart.
+    assert [lib.xrf_hist_bucket(ns) for ns in (0, 31, 32, 33, 34)] == [0, 31, 32, 32, 33]
+    assert lib.xrf_hist_bucket(2**34 - 1) == LAST_BUCKET - 16
+    assert lib.xrf_hist_bucket(2**34) == LAST_BUCKET - 15
+    assert [lib.xrf_hist_bucket(ns) for ns in (2**35 - 1, 2**35, 2**64 - 1)] == [LAST_BUCKET] * 3
+
+
 @given(st.one_of(st.integers(0, 10_000), st.integers(0, 2**40), st.integers(0, 2**64 - 1)))
 def test_value_falls_in_its_bucket_with_6_percent_resolution(ns: int) -> None:
     b = lib.xrf_hist_bucket(ns)

@@ -79,6 +79,14 @@ def test_standalone_loop_logs_every_cycle_and_matches_its_histograms(
         assert int(np.clip(rec["wakeup_ns"], 0, None).sum()) == sum_ns and count == n
         assert int(rec["missed"].sum()) == status.missed
         assert hists["hook"][0] == n  # the controller ran in every cycle
+        # The stages are timed with the CPU's counter, the cycle with the loop's clock
+        # (xrf/cycle_counter.h, its rate measured against the clock before the loop runs). The
+        # six stages are consecutive spans inside the cycle, so a wrong rate shows: too high and
+        # they outgrow the cycle, too low and they shrink away from it.
+        stages = sum(rec[v].astype(np.int64) for v in TIMING_VARS[1:7])
+        cycle = rec["cycle_ns"].astype(np.int64)
+        assert np.all(stages <= cycle + cycle // 1000 + 100), np.max(stages - cycle)
+        assert np.median(stages / cycle) > 0.8, np.median(stages / cycle)
     finally:
         lp.stop()
 

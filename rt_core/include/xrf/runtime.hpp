@@ -15,6 +15,7 @@
 
 #include "xrf/backend.h"
 #include "xrf/channels.h"
+#include "xrf/cycle_counter.h"
 #include "xrf/ico.h"
 #include "xrf/logformat.h"
 
@@ -132,8 +133,29 @@ public:
     bool virtualTime() const { return virtual_; }
     xrf_shm *shm() { return shm_; }
     uint64_t cycle() const { return cycles_; }
-    void beginCycle(int64_t wake_ns) { cycle_start_ns_ = wake_ns; }
+    void beginCycle(int64_t wake_ns)
+    {
+        cycle_start_ns_ = wake_ns;
+        if (counter_mult_ != 0)
+            counter_start_ = xrf_cycle_counter();
+    }
     int64_t cycleStart() const { return cycle_start_ns_; }
+    // Nanoseconds since beginCycle(): a stage boundary inside the cycle. From the CPU's counter
+    // when enter() found a usable one (xrf/cycle_counter.h), else from now(). Durations only:
+    // wake-up, end, deadlines and every timestamp a host sees come from now().
+    int64_t sinceCycleStart() const
+    {
+        return counter_mult_ != 0 ? sinceCycleStart<true>() : sinceCycleStart<false>();
+    }
+    // The same with the choice made by the caller (stageCounterMult() != 0), once per cycle.
+    template <bool kCounter> int64_t sinceCycleStart() const
+    {
+        if (kCounter)
+            return xrf_cycle_counter_ns(xrf_cycle_counter() - counter_start_, counter_mult_);
+        return now() - cycle_start_ns_;
+    }
+    // Whether stage times come from the CPU's counter (0: from the clock); ns per tick, 32.32.
+    uint64_t stageCounterMult() const { return counter_mult_; }
     uint64_t missed() const { return missed_; }
     uint64_t idleNs() const { return idle_total_; }
     bool onLoopThread() const
@@ -146,6 +168,9 @@ public:
         report_.stage_ns[idx] = ns;
         report_.stage_mask |= 1u << idx;
     }
+    // step()'s form: the durations stored one by one, the mask of all of them set once.
+    void stageNs(int idx, int64_t ns) { report_.stage_ns[idx] = ns; }
+    void markStaged(uint32_t mask) { report_.stage_mask |= mask; }
     void notifyHost() { pending_doorbell_ = true; }
     // A cycle boundary, before the controller computes: takes the host's pending parameter set,
     // if any (xrf/params.h). Idle, this is one acquire load and a compare.
@@ -161,7 +186,20 @@ public:
     bool stopRequested() const;
     void requestStop() { stop_.store(true, std::memory_order_relaxed); }
     // The host's heartbeat went stale this cycle (edge-triggered); 0 or an XRF_HOST_LOST_ACTION_*.
-    uint32_t checkHostHeartbeat(int64_t now_ns);
+    // Inline: every cycle asks, and the answer is almost always "nothing changed".
+    uint32_t checkHostHeartbeat(int64_t now_ns)
+    {
+        const uint32_t timeout_ms = __atomic_load_n(&shm_->host_timeout_ms, __ATOMIC_RELAXED);
+        if (timeout_ms == 0)
+            return XRF_HOST_LOST_ACTION_IGNORE;
+        const int64_t hb = __atomic_load_n(&shm_->host_heartbeat_ns, __ATOMIC_RELAXED);
+        if (virtual_)
+            now_ns =
+                xrf_virtual_real_ns(); // the host beats in real time; the loop's clock runs ahead
+        // No heartbeat yet: the host has not attached; supervision starts with the first one.
+        const bool stale = hb != 0 && now_ns - hb > (int64_t)timeout_ms * 1000000LL;
+        return stale == host_lost_ ? (uint32_t)XRF_HOST_LOST_ACTION_IGNORE : hostLostEdge(stale);
+    }
 
     // Monitor text (rate limiting is XenoFrtMonitor's job): never blocks, drops when the host is
     // far behind (counted).
@@ -178,6 +216,8 @@ private:
     void helperDrain(bool final);
     void recordTiming(int64_t jitter_ns, int64_t cycle_ns, bool missed);
     void applyParams();
+    void calibrateStageCounter(uint64_t c0, int64_t t0);
+    uint32_t hostLostEdge(bool stale); // the heartbeat's state changed: count, say what to do
 
     Options options_;
     bool options_loaded_ = false;
@@ -206,6 +246,8 @@ private:
     uint64_t monitor_truncated_ = 0;
     int rt_sched_ = 0;
     int64_t cycle_start_ns_ = 0;
+    uint64_t counter_start_ = 0; // the CPU's counter at beginCycle()
+    uint64_t counter_mult_ = 0;  // its ns per tick in 32.32 fixed point; 0: not used
     pthread_t loop_thread_{};
 
     std::atomic<bool> stop_{false};

@@ -23,8 +23,20 @@ public:
                      Hook pausing, Hook paused, Hook error);
 
     // Runs the current state's hook: 0 stays, 1 completes the state, < 0 goes to ERROR.
-    // Returns 1 only in QUIT.
-    int step();
+    // Returns 1 only in QUIT. Inline, the usual "stay" answer without a further call (the loop
+    // runs it every cycle); what a hook's other answers do is settle() (xrf2_state_machine.cpp).
+    int step()
+    {
+        if (state_ == QUIT_STATE)
+            return 1;
+        if (state_ == IDLE_STATE)
+            return 0;
+        Hook &hook = hooks_[state_ - INITIALISING_STATE];
+        const int r = hook ? hook() : 0;
+        if (r != 0)
+            settle(r);
+        return 0;
+    }
 
     // Commands return 0 when accepted, or -1 (unknown) / -2 (not allowed in this state).
     int initialise() { return command(INITIALISE_CMD); }
@@ -41,6 +53,8 @@ public:
     int getError() const { return error_; }
 
 private:
+    void settle(int r); // a hook's answer other than 0
+
     Hook hooks_[8];
     int state_ = IDLE_STATE;
     int error_ = 0;
