@@ -34,10 +34,12 @@ struct sim_board {
     struct xrf_sim_outputs *outputs;
     int64_t (*clock)(void); /* simulated time: the loop's clock (xrf_sim_set_clock); NULL: real */
 
-    /* The board's registers. */
-    int16_t pwm[4]; /* signed duty as decoded, magnitude up to 14 bits */
-    uint8_t dout[4];
-    double enc_zero[4]; /* motor angle at the last RESET (the counters' zero) */
+    int channels; /* the bench's count, the plant row's (1..XRF_MAX_CHANNELS) */
+
+    /* The board's registers, channels 1..channels (the rest stay zero). */
+    int16_t pwm[XRF_MAX_CHANNELS]; /* signed duty as decoded, magnitude up to 14 bits */
+    uint8_t dout[XRF_MAX_CHANNELS];
+    double enc_zero[XRF_MAX_CHANNELS]; /* motor angle at the last RESET (the counters' zero) */
 
     struct timespec last;
     int have_last;
@@ -64,9 +66,9 @@ static void advance(struct sim_board *s, double dt)
 {
     if (!(dt > 0.0))
         return;
-    double duty[4] = {0, 0, 0, 0};
+    double duty[XRF_MAX_CHANNELS] = {0};
     if (!forced_off(s)) {
-        for (int ch = 0; ch < 4; ch++) {
+        for (int ch = 0; ch < s->channels; ch++) {
             double d = s->pwm[ch] / (double)XRF_ICO_PWM_FULL;
             /* The 14-bit field can hold more than full scale; the PWM saturates at 100 %. */
             if (d > 1.0)
@@ -146,7 +148,7 @@ static int16_t word_pwm(uint16_t w)
 
 static void reset_board(struct sim_board *s)
 {
-    for (int ch = 0; ch < 4; ch++) {
+    for (int ch = 0; ch < s->channels; ch++) {
         s->pwm[ch] = 0;
         s->dout[ch] = 0;
         double a = motor_angle(s, ch);
@@ -160,7 +162,7 @@ static void mirror(struct sim_board *s)
     if (!o)
         return;
     int off = forced_off(s);
-    for (int ch = 0; ch < 4; ch++) {
+    for (int ch = 0; ch < s->channels; ch++) {
         o->pwm[ch] = off ? 0 : s->pwm[ch];
         o->dout[ch] = (uint8_t)dout_now(s, ch);
     }
@@ -296,6 +298,7 @@ int xrf_sim_open(int robot, const struct xrf_sim_faults *faults, double fixed_dt
     if (!s)
         return -ENOMEM;
     s->ops = ops;
+    s->channels = xrf_plant_channels(robot);
     ops->init(s->plant);
     if (faults)
         s->faults = *faults;
