@@ -224,8 +224,16 @@ xrf_ico_transport *Runtime::transport()
             if (r != 0)
                 std::fprintf(stderr, "xrf: XRF_SIM_FAULTS=%s is not a valid fault list\n",
                              o.sim_faults);
-            else
-                r = xrf_sim_open(robot, &faults, 0.0, shm_ ? &shm_->sim : nullptr, &transport_);
+            else {
+                // On the host's bench when it has room for the plant (setChannels refuses it
+                // otherwise), else on the plant row's own.
+                const uint32_t need = (uint32_t)xrf_plant_channels(robot);
+                const int bench = host_channels_ >= need && host_channels_ <= XRF_MAX_CHANNELS
+                                      ? (int)host_channels_
+                                      : 0;
+                r = xrf_sim_open_bench(robot, bench, &faults, 0.0, shm_ ? &shm_->sim : nullptr,
+                                       &transport_);
+            }
         }
     } else if (std::strcmp(want, "spidev") == 0) {
         r = xrf_spidev_open(o.spi_device, o.spi_speed, &transport_);
