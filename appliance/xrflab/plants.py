@@ -40,9 +40,17 @@ class Plant:
     title: str
     axes: int  # motor channels wired, 1..axes
     state: tuple[str, ...]  # the plant state's values as "name unit", in mirror order
+    channels: int = 4  # the bench it stands on (its row in plants.c), axes..XRF_MAX_CHANNELS
 
     def as_dict(self) -> dict[str, object]:
-        return {"id": self.id, "name": self.name, "title": self.title, "axes": self.axes, "state": list(self.state)}
+        return {
+            "id": self.id,
+            "name": self.name,
+            "title": self.title,
+            "axes": self.axes,
+            "state": list(self.state),
+            "channels": self.channels,
+        }
 
 
 @lru_cache(maxsize=1)
@@ -62,6 +70,7 @@ def plants() -> tuple[Plant, ...]:
                 name=_ffi.string(info.name).decode(),
                 title=_ffi.string(info.title).decode(),
                 axes=int(info.axes),
+                channels=int(info.channels),
                 state=tuple(s.strip() for s in state.split(",") if s.strip()),
             )
         )

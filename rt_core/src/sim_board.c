@@ -34,10 +34,12 @@ struct sim_board {
     struct xrf_sim_outputs *outputs;
     int64_t (*clock)(void); /* simulated time: the loop's clock (xrf_sim_set_clock); NULL: real */
 
-    /* The board's registers. */
-    int16_t pwm[4]; /* signed duty as decoded, magnitude up to 14 bits */
-    uint8_t dout[4];
-    double enc_zero[4]; /* motor angle at the last RESET (the counters' zero) */
+    int channels; /* the bench's count, the plant row's (1..XRF_MAX_CHANNELS) */
+
+    /* The board's registers, channels 1..channels (the rest stay zero). */
+    int16_t pwm[XRF_MAX_CHANNELS]; /* signed duty as decoded, magnitude up to 14 bits */
+    uint8_t dout[XRF_MAX_CHANNELS];
+    double enc_zero[XRF_MAX_CHANNELS]; /* motor angle at the last RESET (the counters' zero) */
 
     struct timespec last;
     int have_last;
@@ -64,9 +66,9 @@ static void advance(struct sim_board *s, double dt)
 {
     if (!(dt > 0.0))
         return;
-    double duty[4] = {0, 0, 0, 0};
+    double duty[XRF_MAX_CHANNELS] = {0};
     if (!forced_off(s)) {
-        for (int ch = 0; ch < 4; ch++) {
+        for (int ch = 0; ch < s->channels; ch++) {
             double d = s->pwm[ch] / (double)XRF_ICO_PWM_FULL;
             /* The 14-bit field can hold more than full scale; the PWM saturates at 100 %. */
             if (d > 1.0)
@@ -86,6 +88,8 @@ static void advance(struct sim_board *s, double dt)
 
 static uint16_t encoder(const struct sim_board *s, int ch)
 {
+    if (ch >= s->channels)
+        return 0;
     if (s->faults.dead_encoder & (1u << ch))
         return 0;
     double a = motor_angle(s, ch);
@@ -124,6 +128,8 @@ static int input_pin(const struct sim_board *s, int k)
 
 static uint16_t in_word(const struct sim_board *s, int ch)
 {
+    if (ch >= s->channels) /* a channel the bench does not have: nothing is wired there */
+        return 0;
     uint16_t w = encoder(s, ch);
     if (input_pin(s, 2 * ch))
         w |= 0x4000u;
@@ -144,9 +150,10 @@ static int16_t word_pwm(uint16_t w)
     return (w & 0x4000u) ? mag : (int16_t)-mag;
 }
 
-static void reset_board(struct sim_board *s)
+/* RESET of the board whose channels start at base. */
+static void reset_board(struct sim_board *s, int base)
 {
-    for (int ch = 0; ch < 4; ch++) {
+    for (int ch = base; ch < base + XRF_ICO_CHANNELS && ch < s->channels; ch++) {
         s->pwm[ch] = 0;
         s->dout[ch] = 0;
         double a = motor_angle(s, ch);
@@ -160,7 +167,7 @@ static void mirror(struct sim_board *s)
     if (!o)
         return;
     int off = forced_off(s);
-    for (int ch = 0; ch < 4; ch++) {
+    for (int ch = 0; ch < s->channels; ch++) {
         o->pwm[ch] = off ? 0 : s->pwm[ch];
         o->dout[ch] = (uint8_t)dout_now(s, ch);
     }
@@ -178,10 +185,12 @@ static void busy_wait_until(const struct timespec *start, uint32_t us)
     while (ts_diff(&now, start) * 1e6 < (double)us);
 }
 
-static int sim_xfer(struct xrf_ico_transport *t, const uint8_t tx[XRF_ICO_FRAME],
-                    uint8_t rx[XRF_ICO_FRAME])
+/* One frame with board `board` (its channels base .. base + 3). Only board 0's transfer moves the
+ * plant on: a cycle that exchanges frames with several boards advances it once. */
+static inline int sim_xfer_on(struct sim_board *s, int board, const uint8_t tx[XRF_ICO_FRAME],
+                              uint8_t rx[XRF_ICO_FRAME])
 {
-    struct sim_board *s = (struct sim_board *)t;
+    const int base = board * XRF_ICO_CHANNELS;
     struct timespec now;
     if (s->clock) {
         const int64_t ns = s->clock();
@@ -200,9 +209,11 @@ static int sim_xfer(struct xrf_ico_transport *t, const uint8_t tx[XRF_ICO_FRAME]
         if (dt > SIM_MAX_GAP_S)
             dt = SIM_MAX_GAP_S;
     }
-    s->last = now;
-    s->have_last = 1;
-    advance(s, dt);
+    if (board == 0) {
+        s->last = now;
+        s->have_last = 1;
+        advance(s, dt);
+    }
 
     /* Copy first: tx and rx may be the same buffer. */
     uint8_t in[XRF_ICO_FRAME];
@@ -216,17 +227,17 @@ static int sim_xfer(struct xrf_ico_transport *t, const uint8_t tx[XRF_ICO_FRAME]
             rx[XRF_ICO_INIT_REPLY_BYTE] = XRF_ICO_INIT_REPLY;
         break;
     case XRF_ICO_RESET:
-        reset_board(s);
+        reset_board(s, base);
         break;
     case XRF_ICO_ALL:
         /* Inputs are latched before the new outputs apply, so a loopback shows last frame's
          * output, as on the FPGA where the reply is shifted out while the frame comes in. */
-        for (int ch = 0; ch < 4; ch++)
-            put_le16(&rx[1 + 2 * ch], in_word(s, ch));
-        for (int ch = 0; ch < 4; ch++) {
+        for (int ch = 0; ch < XRF_ICO_CHANNELS; ch++)
+            put_le16(&rx[1 + 2 * ch], in_word(s, base + ch));
+        for (int ch = 0; ch < XRF_ICO_CHANNELS; ch++) {
             uint16_t w = (uint16_t)(in[2 + 2 * ch] | (in[3 + 2 * ch] << 8));
-            s->pwm[ch] = word_pwm(w);
-            s->dout[ch] = (w & 0x8000u) ? 1 : 0;
+            s->pwm[base + ch] = word_pwm(w);
+            s->dout[base + ch] = (w & 0x8000u) ? 1 : 0;
         }
         break;
     case XRF_ICO_PWM_1:
@@ -235,15 +246,15 @@ static int sim_xfer(struct xrf_ico_transport *t, const uint8_t tx[XRF_ICO_FRAME]
     case XRF_ICO_PWM_1 + 3: {
         /* The same word as in ALL: duty, direction and the channel's digital output. */
         uint16_t w = (uint16_t)(in[2] | (in[3] << 8));
-        s->pwm[op - XRF_ICO_PWM_1] = word_pwm(w);
-        s->dout[op - XRF_ICO_PWM_1] = (w & 0x8000u) ? 1 : 0;
+        s->pwm[base + op - XRF_ICO_PWM_1] = word_pwm(w);
+        s->dout[base + op - XRF_ICO_PWM_1] = (w & 0x8000u) ? 1 : 0;
         break;
     }
     case XRF_ICO_ENC_1:
     case XRF_ICO_ENC_1 + 1:
     case XRF_ICO_ENC_1 + 2:
     case XRF_ICO_ENC_1 + 3:
-        put_le16(&rx[1], encoder(s, op - XRF_ICO_ENC_1));
+        put_le16(&rx[1], encoder(s, base + op - XRF_ICO_ENC_1));
         break;
     case XRF_ICO_TEST: {
         uint8_t pattern[XRF_ICO_FRAME];
@@ -273,6 +284,20 @@ static int sim_xfer(struct xrf_ico_transport *t, const uint8_t tx[XRF_ICO_FRAME]
     return 0;
 }
 
+static int sim_xfer(struct xrf_ico_transport *t, const uint8_t tx[XRF_ICO_FRAME],
+                    uint8_t rx[XRF_ICO_FRAME])
+{
+    return sim_xfer_on((struct sim_board *)t, 0, tx, rx);
+}
+
+static int sim_xfer_board(struct xrf_ico_transport *t, int board, const uint8_t tx[XRF_ICO_FRAME],
+                          uint8_t rx[XRF_ICO_FRAME])
+{
+    if (board < 0 || board >= t->boards)
+        return -EINVAL;
+    return sim_xfer_on((struct sim_board *)t, board, tx, rx);
+}
+
 static void sim_close(struct xrf_ico_transport *t)
 {
     struct sim_board *s = (struct sim_board *)t;
@@ -286,16 +311,25 @@ static void sim_close(struct xrf_ico_transport *t)
 int xrf_sim_open(int robot, const struct xrf_sim_faults *faults, double fixed_dt_s,
                  struct xrf_sim_outputs *outputs, struct xrf_ico_transport **out)
 {
+    return xrf_sim_open_bench(robot, 0, faults, fixed_dt_s, outputs, out);
+}
+
+int xrf_sim_open_bench(int robot, int channels, const struct xrf_sim_faults *faults,
+                       double fixed_dt_s, struct xrf_sim_outputs *outputs,
+                       struct xrf_ico_transport **out)
+{
     if (!out)
         return -EINVAL;
     *out = NULL;
     const struct xrf_plant_ops *ops = xrf_plant_ops(robot);
-    if (!ops)
+    const int need = xrf_plant_channels(robot);
+    if (!ops || channels < 0 || channels > XRF_MAX_CHANNELS || (channels && channels < need))
         return -EINVAL;
     struct sim_board *s = calloc(1, sizeof *s + ops->size);
     if (!s)
         return -ENOMEM;
     s->ops = ops;
+    s->channels = channels ? channels : need;
     ops->init(s->plant);
     if (faults)
         s->faults = *faults;
@@ -303,9 +337,12 @@ int xrf_sim_open(int robot, const struct xrf_sim_faults *faults, double fixed_dt
         ops->start(s->plant, s->faults.start_seed);
     s->fixed_dt = fixed_dt_s > 0.0 ? fixed_dt_s : 0.0;
     s->outputs = outputs;
-    reset_board(s);
+    for (int b = 0; b * XRF_ICO_CHANNELS < s->channels; b++)
+        reset_board(s, b * XRF_ICO_CHANNELS);
     s->t.name = "sim";
     s->t.xfer = sim_xfer;
+    s->t.boards = (s->channels + XRF_ICO_CHANNELS - 1) / XRF_ICO_CHANNELS;
+    s->t.xfer_board = sim_xfer_board;
     s->t.close = sim_close;
     mirror(s);
     *out = &s->t;

@@ -120,10 +120,10 @@ static void make_safe(struct xrf_watch *w)
     if (w->cfg.force_sim && w->shm != NULL) {
         struct xrf_sim_outputs *o = &w->shm->sim;
         /* What the pins show once forced, written before forced_off is published. */
-        for (int i = 0; i < 4; i++)
+        for (int i = 0; i < XRF_MAX_CHANNELS; i++) /* every channel any bench can have */
             __atomic_store_n(&o->forced_dout[i], (uint8_t)(i == brake), __ATOMIC_RELAXED);
         __atomic_store_n(&o->forced_off, 1u, __ATOMIC_RELEASE);
-        for (int i = 0; i < 4; i++) {
+        for (int i = 0; i < XRF_MAX_CHANNELS; i++) {
             __atomic_store_n(&o->pwm[i], (int16_t)0, __ATOMIC_RELAXED);
             __atomic_store_n(&o->dout[i], (uint8_t)(i == brake), __ATOMIC_RELAXED);
         }

@@ -9,6 +9,7 @@
 #include <string.h>
 #include <time.h>
 
+#include "xrf/channels.h"
 #include "xrf/plants.h"
 #include "xrf/sim.h"
 
@@ -394,6 +395,89 @@ static void test_outputs(void)
     t->close(t);
 }
 
+/* A bench wider than one board (issue 29 item 2): board b answers for channels 4b+1 .. 4b+4, only
+ * board 0's transfer moves the plant, channels beyond the bench read 0 and drive nothing. */
+static void board_all(struct xrf_ico_transport *t, int board, int16_t p1, struct xrf_ico_in *in)
+{
+    struct xrf_ico_out out = {.pwm = {p1, 0, 0, 0}, .dout = {1, 0, 0, 0}};
+    uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
+    xrf_ico_encode_all(&out, LIMIT, tx);
+    MUST(t->xfer_board(t, board, tx, rx) == 0);
+    xrf_ico_decode_all(rx, in);
+}
+
+static void test_bench_channels(void)
+{
+    struct xrf_ico_transport *t = NULL;
+    CHECK(xrf_sim_open_bench(XRF_SIM_RELBOT, XRF_MAX_CHANNELS + 1, NULL, DT, NULL, &t) == -EINVAL);
+    CHECK(xrf_sim_open_bench(XRF_SIM_RELBOT, 3, NULL, DT, NULL, &t) == -EINVAL && t == NULL);
+    CHECK(xrf_sim_open_bench(XRF_SIM_RELBOT, -1, NULL, DT, NULL, &t) == -EINVAL);
+    /* One board for a 4-channel row; a frame to a board that is not there is refused. */
+    t = open_sim(XRF_SIM_RELBOT, NULL, NULL);
+    CHECK(t->boards == 1);
+    uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
+    xrf_ico_frame_op(XRF_ICO_NOOP, tx);
+    CHECK(t->xfer_board(t, 1, tx, rx) == -EINVAL && t->xfer_board(t, -1, tx, rx) == -EINVAL);
+    t->close(t);
+
+    struct xrf_sim_outputs o;
+    memset(&o, 0, sizeof o);
+    MUST(xrf_sim_open_bench(XRF_SIM_RELBOT, XRF_MAX_CHANNELS, NULL, DT, &o, &t) == 0);
+    CHECK(t->boards == XRF_MAX_BOARDS);
+    CHECK(t->xfer_board(t, XRF_MAX_BOARDS, tx, rx) == -EINVAL);
+    struct xrf_ico_in in;
+    run(t, 300, -300, 200); /* RELbot's wheels face each other: this is forward */
+    const double x = st(t, 0);
+    CHECK(x > 0.0);
+    /* Board 2's frames: its channel 1 is the bench's channel 9, mirrored there; the plant waits
+     * for board 0's next transfer. */
+    for (int i = 0; i < 200; i++)
+        board_all(t, 2, -250, &in);
+    CHECK(st(t, 0) == x);
+    CHECK(o.pwm[8] == -250 && o.dout[8] == 1 && o.pwm[0] == 300 && o.pwm[4] == 0);
+    CHECK(in.enc[0] == 0 && in.enc[3] == 0); /* nothing wired on channels 9..12 */
+    all(t, 300, -300, NULL, &in);
+    CHECK(st(t, 0) > x);
+    /* The safety watcher forces every channel of the bench off. */
+    o.forced_off = 1;
+    board_all(t, 2, -250, &in);
+    CHECK(o.pwm[8] == 0 && o.dout[8] == 0);
+    t->close(t);
+
+    /* A 9-channel bench: board 2 carries channel 9 only; 10..12 are not the bench's. */
+    memset(&o, 0, sizeof o);
+    MUST(xrf_sim_open_bench(XRF_SIM_RELBOT, 9, NULL, DT, &o, &t) == 0);
+    CHECK(t->boards == 3);
+    struct xrf_ico_out out = {.pwm = {100, 200, 300, 400}, .dout = {1, 1, 1, 1}};
+    xrf_ico_encode_all(&out, LIMIT, tx);
+    MUST(t->xfer_board(t, 2, tx, rx) == 0);
+    CHECK(o.pwm[8] == 100 && o.pwm[9] == 0 && o.pwm[11] == 0 && o.dout[9] == 0);
+    t->close(t);
+}
+
+/* The channel count in a segment is the loop's to rewrite: a reader takes it bounded. */
+static void test_hostile_channel_count(void)
+{
+    struct xrf_shm *shm = calloc(1, sizeof *shm);
+    MUST(shm != NULL);
+    xrf_shm_init(shm);
+    struct xrf_shm_geom g;
+    CHECK(xrf_shm_check(shm, sizeof *shm, &g) == 0 && g.channels == XRF_ICO_CHANNELS);
+    shm->channels = XRF_MAX_CHANNELS;
+    CHECK(xrf_shm_check(shm, sizeof *shm, &g) == 0 && g.channels == XRF_MAX_CHANNELS);
+    static const uint32_t hostile[] = {0, XRF_MAX_CHANNELS + 1, 1000, 0xFFFFFFFFu};
+    for (size_t i = 0; i < sizeof hostile / sizeof hostile[0]; i++) {
+        shm->channels = hostile[i];
+        g.channels = 77;
+        CHECK(xrf_shm_check(shm, sizeof *shm, &g) == -EPROTO && g.channels == 77);
+        uint32_t n = xrf_shm_channels(shm);
+        CHECK(n >= 1 && n <= XRF_MAX_CHANNELS);
+    }
+    shm->channels = 9;
+    CHECK(xrf_shm_channels(shm) == 9);
+    free(shm);
+}
+
 static void test_real_clock(void)
 {
     /* Without fixed_dt the plant follows CLOCK_MONOTONIC. */
@@ -518,6 +602,8 @@ int main(void)
     test_outputs();
     test_real_clock();
     test_cell();
+    test_bench_channels();
+    test_hostile_channel_count();
     printf("test_sim_board: %d passed, %d failed\n", passed, failed);
     return failed ? 1 : 0;
 }

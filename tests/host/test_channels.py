@@ -466,6 +466,37 @@ def test_telemetry_and_monitor_readers(shm_name: str) -> None:
         assert lines[1].cycle == 8 and lines[1].text.startswith("éé")
 
 
+def test_telemetry_follows_the_benchs_channel_count(shm_name: str) -> None:
+    """A bench of more than one board (the youBot's 9 channels): telemetry carries them all, and
+    only them; a count the loop wrote out of range is refused at open (issue 29 item 2)."""
+    nine = 9
+    assert lib.XRF_ICO_CHANNELS < nine <= lib.XRF_MAX_CHANNELS
+    with create_for_test(shm_name, channels=nine) as ch:
+        assert ch.geom.channels == nine
+        loop = LoopSide(ch)
+        reader = ch.telemetry_reader()
+        loop.publish_telemetry(
+            1,
+            enc=list(range(1, lib.XRF_MAX_CHANNELS + 1)),
+            din=[1] * (2 * lib.XRF_MAX_CHANNELS),
+            pwm=[-100 * k for k in range(lib.XRF_MAX_CHANNELS)],
+            dout=[1] * lib.XRF_MAX_CHANNELS,
+        )
+        [t] = reader.read()
+        assert t.enc == list(range(1, nine + 1)) and t.pwm == [-100 * k for k in range(nine)]
+        assert t.din == [1] * (2 * nine) and t.dout == [1] * nine
+        # The loop rewriting the count after open changes nothing for this reader.
+        ch.shm.channels = 1000
+        loop.publish_telemetry(2, enc=[7] * lib.XRF_MAX_CHANNELS)
+        [t] = reader.read()
+        assert t.enc == [7] * nine
+    (Path("/dev/shm") / shm_name).unlink()
+    for hostile in (0, lib.XRF_MAX_CHANNELS + 1, 2**32 - 1):
+        with pytest.raises(channels.ChannelsCorrupt):
+            create_for_test(shm_name, channels=hostile)
+        (Path("/dev/shm") / shm_name).unlink()
+
+
 def test_doorbell_wakes_a_waiting_host(shm_name: str) -> None:
     with create_for_test(shm_name) as ch:
         loop = LoopSide(ch)

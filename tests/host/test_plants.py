@@ -19,12 +19,16 @@ from xrflab.viz import kinematics
 RT_SRC = Path(__file__).resolve().parents[2] / "rt_core" / "src"
 
 
-def table_rows() -> list[str]:
-    """The rows of XRF_PLANT_TABLE in plants.c, read from the source itself."""
+def table_channels() -> dict[str, int]:
+    """The rows of XRF_PLANT_TABLE in plants.c, read from the source itself: ROW(name, channels)."""
     text = (RT_SRC / "plants.c").read_text()
     block = re.search(r"#define XRF_PLANT_TABLE\(ROW\)(.*?)\n\n", text, re.S)
     assert block, "plants.c has no XRF_PLANT_TABLE"
-    return re.findall(r"ROW\((\w+)\)", block.group(1))
+    return {name: int(n) for name, n in re.findall(r"ROW\((\w+),\s*(\d+)\)", block.group(1))}
+
+
+def table_rows() -> list[str]:
+    return list(table_channels())
 
 
 def test_python_reads_the_c_table_in_order() -> None:
@@ -32,6 +36,8 @@ def test_python_reads_the_c_table_in_order() -> None:
     assert rows[:2] == ["relbot", "jiwy"]  # ids 1 and 2 are XRF_SIM_RELBOT, XRF_SIM_JIWY
     assert list(plants.names()) == rows
     assert [p.id for p in plants.plants()] == list(range(1, len(rows) + 1))
+    # Each row's channel count (issue 29 item 2), as the binding gives it.
+    assert {p.name: p.channels for p in plants.plants()} == table_channels()
 
 
 def test_every_plant_file_is_a_row_and_every_row_has_its_file() -> None:
@@ -49,7 +55,7 @@ def test_rows_describe_their_plant() -> None:
     assert relbot.axes == 2 and relbot.state[:3] == ("x m", "y m", "theta rad")
     assert jiwy.axes == 2 and jiwy.state[:2] == ("pan rad", "tilt rad")
     for p in plants.plants():
-        assert p.title and 1 <= p.axes <= 4 and 1 <= len(p.state) <= 8
+        assert p.title and 1 <= p.axes <= p.channels <= lib.XRF_MAX_CHANNELS and 1 <= len(p.state) <= 8
     with pytest.raises(KeyError, match="have: relbot, jiwy"):
         plants.get("youbot")
 

@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 
 from xrflab.build import BuildError, BuildResult, build_project
+from xrflab.channels import lib
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -141,7 +142,7 @@ def test_project_runs_cycles_in_simulation(name: str, build_root: Path, tmp_path
             proc.send_signal(2)
             out = proc.communicate(timeout=10)[0]
             assert proc.returncode == 0, out
-            assert list(ch.shm.sim.pwm) == [0, 0, 0, 0]
+            assert list(ch.shm.sim.pwm) == [0] * lib.XRF_MAX_CHANNELS
             ch.close()
         finally:
             if proc.poll() is None:

@@ -8,6 +8,7 @@ import statistics
 import struct
 import time
 
+from xrflab.channels import lib
 from xrflab.logs.logformat import MAGIC
 
 
@@ -17,7 +18,7 @@ def test_state_visible_from_first_cycle_and_no_motion_before_initialise(run_loop
     st = lp.ch.status()
     assert st.state_name == "IDLE" and st.running
     # The probe asks for PWM 300 from its constructor on; nothing moves before initialise.
-    assert list(lp.ch.shm.sim.pwm) == [0, 0, 0, 0]
+    assert list(lp.ch.shm.sim.pwm) == [0] * lib.XRF_MAX_CHANNELS
     # Xeno2Ros is published from the first cycle, without any Ros2Xeno having arrived.
     reader = lp.ch.telemetry_reader(from_start=True)
     first = reader.read()
@@ -79,7 +80,7 @@ def test_walk_through_the_states_and_quit(run_loop, probe_exe):
     assert code == 0
     assert "missed" in out and "cycles" in out
     assert lp.ch.status().state_name == "QUIT" and not lp.ch.status().running
-    assert list(lp.ch.shm.sim.pwm) == [0, 0, 0, 0]
+    assert list(lp.ch.shm.sim.pwm) == [0] * lib.XRF_MAX_CHANNELS
 
 
 def test_hook_error_goes_to_error_with_the_value(run_loop, probe_exe):
@@ -154,7 +155,7 @@ def test_sigint_is_a_safe_stop(run_loop, probe_exe):
     lp.proc.send_signal(signal.SIGINT)
     code, out = lp.finish()
     assert code == 0 and "cycles" in out
-    assert list(lp.ch.shm.sim.pwm) == [0, 0, 0, 0]
+    assert list(lp.ch.shm.sim.pwm) == [0] * lib.XRF_MAX_CHANNELS
     assert not lp.ch.status().running
 
 

@@ -11,7 +11,12 @@ from typing import Any
 
 from xrf_testing.harness import Server, WsClient, wait_for
 from xrf_testing.leaks import descendants
-from xrflab.channels import Channels
+from xrflab.channels import Channels, lib
+
+
+def _brake_only(channel: int) -> list[int]:
+    """Every channel any bench can have off, but the brake's (1-based)."""
+    return [int(i == channel - 1) for i in range(lib.XRF_MAX_CHANNELS)]
 
 
 def drive_motors(ws: WsClient) -> None:
@@ -268,8 +273,8 @@ def test_a_brake_profile_leaves_the_brake_on_when_the_loop_dies(server: Server) 
                 alarm = ws.wait_type("alarm", kind="crash", timeout=5)
                 assert alarm["safe_state"] == "sim outputs forced off but the brake on channel 3"
             sim = ch.shm.sim
-            assert list(sim.pwm) == [0, 0, 0, 0] and list(sim.dout) == [0, 0, 1, 0]
-            assert list(sim.forced_dout) == [0, 0, 1, 0]
+            assert list(sim.pwm) == [0] * lib.XRF_MAX_CHANNELS and list(sim.dout) == _brake_only(3)
+            assert list(sim.forced_dout) == _brake_only(3)
         finally:
             ch.close()
     finally:

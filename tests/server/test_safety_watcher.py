@@ -154,6 +154,8 @@ def test_the_brake_reaction_leaves_the_brake_output_on_and_every_pwm_zero(child)
     ch.shm.sim.pwm[1] = -300
     ch.shm.sim.dout[0] = 1  # a student's output on channel 1: must go off
     ch.shm.sim.forced_dout[3] = 1  # the loop can write this too: the watcher rewrites all of it
+    ch.shm.sim.forced_dout[lib.XRF_MAX_CHANNELS - 1] = 1  # beyond one board's channels too
+    ch.shm.sim.pwm[lib.XRF_MAX_CHANNELS - 1] = 250
     w = SafetyWatcher(
         child.pid,
         ch,  # type: ignore[arg-type]
@@ -170,8 +172,10 @@ def test_the_brake_reaction_leaves_the_brake_output_on_and_every_pwm_zero(child)
         assert r.reason == "exit" and r.sim_forced and r.brake_channel == 3
         sim = ch.shm.sim
         assert sim.forced_off == 1
-        assert list(sim.forced_dout) == [0, 0, 1, 0] and list(sim.dout) == [0, 0, 1, 0]
-        assert list(sim.pwm) == [0, 0, 0, 0]
+        # Every channel any bench can have (XRF_MAX_CHANNELS), the brake's alone on.
+        brake_only = [int(i == 2) for i in range(lib.XRF_MAX_CHANNELS)]
+        assert list(sim.forced_dout) == brake_only and list(sim.dout) == brake_only
+        assert list(sim.pwm) == [0] * lib.XRF_MAX_CHANNELS
         assert r.safe_ns - t_kill < 100_000_000, f"safe {(r.safe_ns - t_kill) / 1e6:.1f} ms after the kill"
         assert r.describe() == "sim outputs forced off but the brake on channel 3"
     finally:
@@ -185,7 +189,7 @@ def test_the_zero_reaction_forces_every_digital_output_off(child) -> None:
     child.kill()
     r = _wait_result(w)
     w.stop()
-    assert r.brake_channel == 0 and list(ch.shm.sim.forced_dout) == [0, 0, 0, 0]
+    assert r.brake_channel == 0 and list(ch.shm.sim.forced_dout) == [0] * lib.XRF_MAX_CHANNELS
 
 
 def test_a_brake_frame_is_sent_over_spidev_as_an_all_frame(child) -> None:

@@ -29,6 +29,7 @@ def create_for_test(
     xeno2ros_schema: str = "float64 pos_left\nfloat64 pos_right",
     cycle_freq: int = 1000,
     program: str = "python-test",
+    channels: int | None = None,
 ) -> Channels:
     """Create /dev/shm/<name> as a loop would (xrf_shm_init, info, ready) and open it.
 
@@ -45,6 +46,8 @@ def create_for_test(
         os.close(fd)
     shm = ffi.from_buffer("struct xrf_shm *", mapping)
     lib.xrf_shm_init(shm)
+    if channels is not None:  # the bench's count, as the host writes it (any value: hostile tests)
+        shm.channels = channels
     info = shm.info
     info.pid = os.getpid()
     info.cycle_freq = cycle_freq
@@ -184,10 +187,12 @@ class LoopSide:
         slot.hdr.cycle = cycle
         slot.hdr.t_ns = time.monotonic_ns() if t_ns is None else t_ns
         slot.state = self._shm.status.state if state is None else state
-        slot.enc = enc or [0] * 4
-        slot.din = din or [0] * 8
-        slot.pwm = pwm or [0] * 4
-        slot.dout = dout or [0] * 4
+        # Whole arrays (a reused slot keeps the old values of channels not given).
+        n = lib.XRF_MAX_CHANNELS
+        slot.enc = (enc or []) + [0] * (n - len(enc or []))
+        slot.din = (din or []) + [0] * (2 * n - len(din or []))
+        slot.pwm = (pwm or []) + [0] * (n - len(pwm or []))
+        slot.dout = (dout or []) + [0] * (n - len(dout or []))
         slot.size = len(payload)
         slot.ros2xeno_t_sent_ns = ros2xeno_t_sent_ns
         ffi.memmove(slot.data, payload, len(payload))

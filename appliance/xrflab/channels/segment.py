@@ -13,6 +13,7 @@ import fcntl
 import mmap
 import os
 import stat
+import sys
 import time
 from pathlib import Path
 
@@ -109,9 +110,10 @@ def take_geometry(where: str | Path, shm: CData, mapped: int) -> CData:
             for name in ("telem_ring", "monitor_ring")
         )
         raise ChannelsCorrupt(
-            f"{where}: the segment's header or ring geometry is not this layout's ({rings}; the layout has "
+            f"{where}: the segment's header or ring geometry is not this layout's ({rings}, "
+            f"{int(shm.channels)} channels; the layout has "
             f"{lib.XRF_TELEM_SLOTS} x {ffi.sizeof('struct xrf_telemetry')} and "
-            f"{lib.XRF_MONITOR_SLOTS} x {ffi.sizeof('struct xrf_monitor_line')})"
+            f"{lib.XRF_MONITOR_SLOTS} x {ffi.sizeof('struct xrf_monitor_line')}, 1..{lib.XRF_MAX_CHANNELS} channels)"
         )
     return geom
 
@@ -120,15 +122,22 @@ def take_geometry(where: str | Path, shm: CData, mapped: int) -> CData:
 SEALS = fcntl.F_SEAL_SHRINK | fcntl.F_SEAL_GROW | fcntl.F_SEAL_SEAL
 
 
-def create_sealed(label: str) -> int:
+def create_sealed(label: str, channels: int | None = None) -> int:
     """A new segment for a loop the appliance starts: a memfd of the layout's size whose size is
     sealed (no shrink, no growth, no further seals), so the loop -- which maps it read-write --
     cannot truncate it under the appliance's mapping (SIGBUS on the next read). The loop gets
     the descriptor (XRF_SHM_FD) instead of creating /dev/shm/<name> itself. Close-on-exec: pass
-    it on explicitly. `label`: its name in /proc/<pid>/fd (memfd:<label>)."""
+    it on explicitly. `label`: its name in /proc/<pid>/fd (memfd:<label>). `channels`: the
+    bench's channel count, written into the header (xrf_shm.channels), which the loop keeps;
+    None leaves it to the loop (its plant's count)."""
+    if channels is not None and not 1 <= channels <= lib.XRF_MAX_CHANNELS:
+        raise ChannelsError(f"a bench has 1..{lib.XRF_MAX_CHANNELS} channels, not {channels}")
     fd = os.memfd_create(label, os.MFD_CLOEXEC | os.MFD_ALLOW_SEALING)
     try:
         os.ftruncate(fd, SHM_SIZE)
+        if channels is not None:
+            offset = ffi.offsetof("struct xrf_shm", "channels")
+            os.pwrite(fd, int(channels).to_bytes(4, sys.byteorder), offset)
         fcntl.fcntl(fd, fcntl.F_ADD_SEALS, SEALS)
     except BaseException:
         os.close(fd)

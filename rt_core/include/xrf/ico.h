@@ -122,6 +122,13 @@ struct xrf_ico_transport {
     int (*xfer)(struct xrf_ico_transport *t, const uint8_t tx[XRF_ICO_FRAME],
                 uint8_t rx[XRF_ICO_FRAME]);
     void (*close)(struct xrf_ico_transport *t); /* also frees t */
+    /* A bench of several boards (channels.h: board b carries channels 4b+1 .. 4b+4): `boards`
+     * of them, 1 .. XRF_MAX_BOARDS (0 reads as 1), and xfer_board exchanges the same 12-byte
+     * frame with board b (0 .. boards - 1; -EINVAL beyond). xfer is board 0's exchange, which is
+     * all XRF2's IcoIo uses. NULL xfer_board: one board. Same rules as xfer (real-time thread). */
+    int boards;
+    int (*xfer_board)(struct xrf_ico_transport *t, int board, const uint8_t tx[XRF_ICO_FRAME],
+                      uint8_t rx[XRF_ICO_FRAME]);
 };
 
 /* Linux spidev: mode 0, 8 bits, speed_hz (XRF2: 31 MHz); bytes bit-reversed on the wire. */

@@ -44,6 +44,14 @@ int xrf_sim_parse_faults(const char *spec, struct xrf_sim_faults *faults);
  * shared memory and lets the host force the outputs off. */
 int xrf_sim_open(int robot, const struct xrf_sim_faults *faults, double fixed_dt_s,
                  struct xrf_sim_outputs *outputs, struct xrf_ico_transport **out);
+/* The same on a bench of `channels` channels (0: the plant row's count; else at least that and at
+ * most XRF_MAX_CHANNELS, -EINVAL otherwise): the board answers as ceil(channels / 4) ico boards
+ * (xrf_ico_transport.boards, xfer_board), channels beyond the bench's count read 0 and drive
+ * nothing. The plant advances at board 0's transfers (every loop exchanges a frame with board 0
+ * each cycle: IcoIo::update_io), the other boards' transfers only read and set registers. */
+int xrf_sim_open_bench(int robot, int channels, const struct xrf_sim_faults *faults,
+                       double fixed_dt_s, struct xrf_sim_outputs *outputs,
+                       struct xrf_ico_transport **out);
 /* A plant's id by name ("relbot", "jiwy", ...: xrf_plant_id), else -EINVAL. */
 int xrf_sim_robot_from_name(const char *name);
 

@@ -151,7 +151,7 @@ def test_stop_signal_is_taken_in_band_and_stops_cleanly(evl_builds, sig, shm_nam
         lp.stop()
     assert code == 0, out
     assert not st.running and st.end_reason == lib.XRF_END_SIGNAL
-    assert pwm == [0, 0, 0, 0]
+    assert pwm == [0] * lib.XRF_MAX_CHANNELS
     # A handler run on the loop thread would have demoted it (fault 3).
     assert st.demotions == 0 and SWITCH not in out, out
 

@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 from typing import BinaryIO
 
-from ... import guest
+from ... import guest, plants
 from ...channels import Channels, ChannelsCorrupt, segment
 from ...logs import live as loglive
 from ...runfolder import open_in
@@ -110,7 +110,10 @@ async def spawn(
     shm_dir = guests.shm_dir_for(f"xrf-lab-{os.getpid()}-{row.id}")  # the loop's /dev/shm
     # The run's segment is ours (a sealed memfd: the loop cannot resize it under our mapping);
     # its name is a link beside the loop's folder, out of the loop's reach (segment_link).
-    shm_fd = segment.create_sealed(f"xrf-run-{row.id}")
+    # The bench's channel count goes into the segment's header: the loop keeps it, and every
+    # reader takes it from there, bounded (the simulated plant's row; a real bench is one board).
+    channels = plants.get(plant).channels if not settings.bench_is_real() else None
+    shm_fd = segment.create_sealed(f"xrf-run-{row.id}", channels)
     shm = segment_link(shm_dir, shm_fd)
     run_dir = settings.runs_dir / str(row.id)
     run_dir.mkdir(parents=True, exist_ok=True)
