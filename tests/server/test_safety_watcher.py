@@ -232,7 +232,11 @@ def test_a_reaction_the_watcher_cannot_carry_out_is_refused_at_start(child, reac
 def test_the_reactions_are_named_from_the_c_list() -> None:
     from xrflab.channels import SAFE_REACTIONS
 
-    assert SAFE_REACTIONS == {"zero": lib.XRF_SAFE_REACTION_ZERO, "brake": lib.XRF_SAFE_REACTION_BRAKE}
+    assert SAFE_REACTIONS == {
+        "zero": lib.XRF_SAFE_REACTION_ZERO,
+        "brake": lib.XRF_SAFE_REACTION_BRAKE,
+        "hold": lib.XRF_SAFE_REACTION_HOLD,
+    }
     for name, number in SAFE_REACTIONS.items():
         assert ffi.string(lib.xrf_safe_reaction_name(number)).decode() == name
         assert lib.xrf_safe_reaction_parse(name.encode()) == number

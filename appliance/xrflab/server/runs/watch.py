@@ -23,6 +23,7 @@ import logging
 import signal
 import time
 
+from ... import plants
 from ...channels import ChannelsError
 from ...profiles import ProfileError, SafeReaction, bench_profile_name, load_profile, safe_reaction
 from ..settings import Settings
@@ -68,12 +69,22 @@ def start_watcher(run: Run, settings: Settings) -> None:
             avoid_cpus=avoid,
             safe_reaction=reaction.name,
             brake_channel=reaction.brake_channel,
+            plant=hold_plant(run.row.sim or settings.sim) if reaction.name == "hold" else 0,
         )
     except (OSError, ValueError) as exc:  # ESRCH: the loop is already gone; wait_for_exit handles it
         log.warning("run %s: no safety watcher (%s); the event loop watches instead", run.row.id, exc)
         return
     run.watcher = w
     asyncio.get_running_loop().add_reader(w.fileno(), on_watch, run)
+
+
+def hold_plant(name: str) -> int:
+    """The plant table's id of the simulated arm `hold` steps on (0: none, which the watcher
+    refuses: the run is then watched by the event loop, said in the log)."""
+    try:
+        return plants.get(name).id
+    except KeyError:
+        return 0
 
 
 def run_safe_reaction(plant: str, real: bool, settings: Settings) -> SafeReaction:

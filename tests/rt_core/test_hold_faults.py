@@ -1,0 +1,135 @@
+"""The `hold` safe reaction on the youBot-like arm, with real processes: a controller
+(tests/fixtures/arm_faults) raises the arm on the simulated board and holds it up; a fault takes
+it away (segfault, hang, exit(0) in RUN, a STOPPING that never returns); the safety watcher (the
+C thread of rt_core/src/watch.c, as the appliance starts it through server/runs/safety.py) holds
+the arm, lowers it to its rest pose and zeroes the outputs.
+
+Measured independently of the watcher's own account, from the plant state it mirrors into the
+shared memory: while held, no joint leaves the pose it had at the fault by more than DROP_BOUND;
+while lowered, no joint leaves the span from that pose to its rest pose by more than DROP_BOUND
+(a joint that "drops" would leave it the way gravity pulls); at the end every pitch joint is on
+its rest stop. DROP_BOUND = 2°: 17 mm at the youBot's 0.5 m reach, where `zero` lets the shoulder
+fall ~10° in the first second (test_hold.c prints it) and on to its stop; the law's own drop on
+this model is ~1° (the gear's friction against its stiffness), so 2° fails a law that sags, not
+one that is only slower on a loaded machine (docs/developers/safety.md)."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import time
+from pathlib import Path
+
+import pytest
+
+from xrf_testing.loops import LoopProcess
+from xrflab import plants
+from xrflab.build import build_project
+from xrflab.server.runs.safety import SafetyWatcher
+
+REPO = Path(__file__).resolve().parents[2]
+ARM_FAULTS = REPO / "tests/fixtures/arm_faults"
+DROP_BOUND = math.radians(2.0)
+# The plant's rest pose (plant_youbot.c): J2 back on its stop, J3 forward on its, J4 back on its.
+REST = {1: math.radians(-65.0), 2: math.radians(151.0), 3: math.radians(-102.5)}
+# The fixture's working pose (tests/fixtures/arm_faults/src/main.cpp).
+WORK = [math.radians(d) for d in (10.0, -20.0, 100.0, -60.0)]
+HOLD_S = 0.5  # the law's hold phase before it lowers (plant_youbot.c's arm)
+
+
+@pytest.fixture(scope="module")
+def arm_exe(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return build_project(ARM_FAULTS, build_dir=tmp_path_factory.mktemp("arm-build"), log=lambda line: None).executable
+
+
+def _raise_arm(lp: LoopProcess) -> None:
+    lp.command("initialise", "INITIALISED")
+    lp.command("start", "RUN")
+    deadline = time.monotonic() + 15
+    while any(abs(q - w) > math.radians(2.0) for q, w in zip(_pose(lp.ch)[1:4], WORK[1:4], strict=True)):
+        assert time.monotonic() < deadline, f"the arm never reached its working pose: {_pose(lp.ch)}"
+        time.sleep(0.02)  # polling the plant; the arm moves at 20 °/s
+
+
+def _pose(ch) -> list[float]:
+    return [float(ch.shm.sim.plant[i]) for i in range(5)]
+
+
+def _follow(w: SafetyWatcher, ch, held: list[float], t_fault: float) -> tuple[float, dict]:
+    """Sample the mirrored pose until the watcher says the arm is at rest; the largest excursion
+    (rad) outside what the reaction may do (see the module's doc)."""
+    worst = 0.0
+    deadline = time.monotonic() + 30
+    while True:
+        r = w.result()
+        q = _pose(ch)
+        t = time.monotonic() - t_fault
+        for j, rest in REST.items():
+            if t < HOLD_S:
+                worst = max(worst, abs(q[j] - held[j]))
+            lo, hi = min(rest, held[j]), max(rest, held[j])
+            worst = max(worst, lo - q[j], q[j] - hi)
+        if r is not None and r.rest_ns:
+            return worst, {"result": r, "pose": q}
+        assert time.monotonic() < deadline, "the arm never came to rest"
+        time.sleep(0.002)  # sampling the arm's motion: finer than its 20 °/s could hide a drop
+
+
+def _watch(lp: LoopProcess) -> SafetyWatcher:
+    return SafetyWatcher(
+        lp.proc.pid,
+        lp.ch,
+        hang_timeout_ms=60,
+        check_ms=5,
+        force_sim=True,
+        safe_reaction="hold",
+        plant=plants.get("youbot").id,
+    )
+
+
+def _fault(lp: LoopProcess, fault: str) -> float:
+    """Inject `fault`; the monotonic time it took effect."""
+    if fault == "stopping_never_returns":
+        lp.ch.write_ros2xeno({"stop_hang": True})
+        lp.command("stop", "STOPPING")
+        # The appliance's stop gives STOPPING its time, then terminate(): SIGINT first (the
+        # runtime's safe stop), as server/runs/control.py does.
+        time.sleep(0.3)  # the time STOPPING is given before the host gives up on it
+        assert lp.ch.status().state_name == "STOPPING"
+        t = time.monotonic()
+        os.kill(lp.proc.pid, signal.SIGINT)
+        return t
+    t = time.monotonic()
+    lp.ch.write_ros2xeno({{"segfault": "crash", "hang": "hang", "exit0": "exit0"}[fault]: True})
+    return t
+
+
+@pytest.mark.parametrize("fault", ["segfault", "hang", "exit0", "stopping_never_returns"])
+def test_a_fault_leaves_the_arm_at_rest_never_dropped(run_loop, arm_exe, fault) -> None:
+    lp = run_loop(arm_exe, XRF_TRANSPORT="sim", XRF_SIM="youbot")
+    _raise_arm(lp)
+    w = _watch(lp)
+    try:
+        held = _pose(lp.ch)
+        assert held[1] > REST[1] + math.radians(30)  # really up: the shoulder off its stop
+        t_fault = _fault(lp, fault)
+        worst, end = _follow(w, lp.ch, held, t_fault)
+        r = end["result"]
+    finally:
+        final = w.stop()
+    assert r.reason == ("hang" if fault == "hang" else "exit")
+    assert r.safe_ns - r.event_ns < 100_000_000
+    assert r.hold_phase == 3 and final.rest_ns == r.rest_ns
+    rest_s = (r.rest_ns - r.event_ns) / 1e9
+    print(
+        f"{fault}: largest drop {math.degrees(worst):.2f}° (watcher: {r.drop_urad / 1e6 * 180 / math.pi:.2f}°), "
+        f"at rest {rest_s:.2f} s after the fault"
+    )
+    assert worst < DROP_BOUND, f"{fault}: a joint dropped {math.degrees(worst):.2f}°"
+    assert r.drop_urad < DROP_BOUND * 1e6
+    for j, rest in REST.items():
+        assert abs(end["pose"][j] - rest) < math.radians(1.0), (j, end["pose"])
+    # At rest the outputs are zero and the arm stays (it leans on its stops).
+    assert list(lp.ch.shm.sim.pwm) == [0, 0, 0, 0]
+    assert lp.proc.wait(timeout=5) is not None
