@@ -40,6 +40,7 @@ struct xrf_watch {
     struct xrf_watch_config cfg;
     int pidfd;
     int cancel_fd;
+    int host_fd; /* -1, or the host's pidfd (xrf_watch_config.host_pid) */
     /* Written by the watcher thread only, read by the host after `done` (acquire/release). */
     struct xrf_watch_result result;
     uint32_t done;
@@ -240,20 +241,21 @@ static void finish(struct xrf_watch *w, int reason, int64_t event_ns)
         w->result.heartbeat_ns = __atomic_load_n(&w->shm->status.heartbeat_ns, __ATOMIC_RELAXED);
     w->result.reason = reason;
     w->result.event_ns = event_ns;
-    if (reason == XRF_WATCH_HANG) {
+    if (reason == XRF_WATCH_HANG || reason == XRF_WATCH_HOST_GONE) {
         /* Stop it from driving the outputs again before resetting them: a SIGKILLed process
          * runs no more user code. Through the pidfd, so a recycled pid cannot be hit. */
         w->result.kill_status =
             syscall(SYS_pidfd_send_signal, w->pidfd, SIGKILL, NULL, 0) == 0 ? 0 : -errno;
     }
-    if (reason == XRF_WATCH_EXIT || reason == XRF_WATCH_HANG) {
+    if (reason == XRF_WATCH_EXIT || reason == XRF_WATCH_HANG || reason == XRF_WATCH_HOST_GONE) {
         make_safe(w); /* the board's own outputs off: from here the watcher drives the plant */
         holding = w->plant != NULL && w->shm != NULL && w->cfg.force_sim;
         if (holding)
             hold_begin(w, duty);
         w->result.safe_ns = now_ns();
     }
-    if (reason == XRF_WATCH_HANG && w->cfg.spi_device[0] != '\0') {
+    if ((reason == XRF_WATCH_HANG || reason == XRF_WATCH_HOST_GONE) &&
+        w->cfg.spi_device[0] != '\0') {
         /* A transfer the killed loop had in flight may complete after our RESET: once the
          * process is really gone (at most 100 ms), reset again. */
         struct pollfd p = {.fd = w->pidfd, .events = POLLIN};
@@ -302,20 +304,25 @@ static void *watch_thread(void *arg)
         timeout_ms = 1;
     const struct xrf_status *st = w->shm ? &w->shm->status : NULL;
     for (;;) {
-        struct pollfd fds[2] = {{.fd = w->pidfd, .events = POLLIN},
-                                {.fd = w->cancel_fd, .events = POLLIN}};
-        int n = poll(fds, 2, timeout_ms);
+        struct pollfd fds[3] = {{.fd = w->pidfd, .events = POLLIN},
+                                {.fd = w->cancel_fd, .events = POLLIN},
+                                {.fd = w->host_fd, .events = POLLIN}};
+        int n = poll(fds, w->host_fd >= 0 ? 3 : 2, timeout_ms);
         int64_t t = now_ns();
         /* The exit comes first: a cancel that races with it still gets the outputs made safe. */
         if (n > 0 && (fds[0].revents & (POLLIN | POLLHUP | POLLERR))) {
-            finish(w, XRF_WATCH_EXIT, t);
+            finish(w, w->cfg.host_only ? XRF_WATCH_LOOP_ENDED : XRF_WATCH_EXIT, t);
+            return NULL;
+        }
+        if (n > 0 && w->host_fd >= 0 && (fds[2].revents & (POLLIN | POLLHUP | POLLERR))) {
+            finish(w, XRF_WATCH_HOST_GONE, t);
             return NULL;
         }
         if (n > 0 && (fds[1].revents & POLLIN)) {
             finish(w, XRF_WATCH_CANCELLED, t);
             return NULL;
         }
-        if (st != NULL && w->cfg.hang_timeout_ns > 0) {
+        if (st != NULL && w->cfg.hang_timeout_ns > 0 && !w->cfg.host_only) {
             /* Single aligned words, read without the seqlock: a loop stopped mid-write must
              * not look alive (the seqlock would make it unreadable, never stale). */
             int32_t running = __atomic_load_n(&st->running, __ATOMIC_RELAXED);
@@ -378,9 +385,23 @@ int xrf_watch_start(struct xrf_shm *shm, const struct xrf_watch_config *cfg, str
     }
     /* pidfd_open gives no O_CLOEXEC flag of its own on older kernels; no child may keep it. */
     fcntl(w->pidfd, F_SETFD, FD_CLOEXEC);
+    w->host_fd = -1;
+    if (cfg->host_pid > 0) {
+        w->host_fd = (int)syscall(SYS_pidfd_open, cfg->host_pid, 0);
+        if (w->host_fd < 0) {
+            int err = -errno;
+            close(w->pidfd);
+            free(w->plant);
+            free(w);
+            return err;
+        }
+        fcntl(w->host_fd, F_SETFD, FD_CLOEXEC);
+    }
     w->cancel_fd = eventfd(0, EFD_CLOEXEC);
     if (w->cancel_fd < 0) {
         int err = -errno;
+        if (w->host_fd >= 0)
+            close(w->host_fd);
         close(w->pidfd);
         free(w->plant);
         free(w);
@@ -394,6 +415,8 @@ int xrf_watch_start(struct xrf_shm *shm, const struct xrf_watch_config *cfg, str
     pthread_attr_destroy(&attr);
     if (r != 0) {
         close(w->cancel_fd);
+        if (w->host_fd >= 0)
+            close(w->host_fd);
         close(w->pidfd);
         free(w->plant);
         free(w);
@@ -416,20 +439,34 @@ int xrf_watch_result(struct xrf_watch *w, struct xrf_watch_result *out)
     return out->reason;
 }
 
-int xrf_watch_stop(struct xrf_watch *w, struct xrf_watch_result *out)
+static int watch_end(struct xrf_watch *w, struct xrf_watch_result *out, int cancel)
 {
     if (w == NULL)
         return -EINVAL;
-    uint64_t one = 1;
-    ssize_t n = write(w->cancel_fd, &one, sizeof one);
-    (void)n;
+    if (cancel) {
+        uint64_t one = 1;
+        ssize_t n = write(w->cancel_fd, &one, sizeof one);
+        (void)n;
+    }
     pthread_join(w->thread, NULL);
     if (out != NULL)
         *out = w->result;
     int reason = w->result.reason;
     close(w->cancel_fd);
+    if (w->host_fd >= 0)
+        close(w->host_fd);
     close(w->pidfd);
     free(w->plant);
     free(w);
     return reason;
+}
+
+int xrf_watch_stop(struct xrf_watch *w, struct xrf_watch_result *out)
+{
+    return watch_end(w, out, 1);
+}
+
+int xrf_watch_wait(struct xrf_watch *w, struct xrf_watch_result *out)
+{
+    return watch_end(w, out, 0);
 }

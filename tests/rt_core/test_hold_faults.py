@@ -15,9 +15,12 @@ one that is only slower on a loaded machine (docs/developers/safety.md)."""
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -26,6 +29,7 @@ import pytest
 from xrf_testing.loops import LoopProcess
 from xrflab import plants
 from xrflab.build import build_project
+from xrflab.channels import lib
 from xrflab.server.runs.safety import SafetyWatcher
 
 REPO = Path(__file__).resolve().parents[2]
@@ -133,3 +137,93 @@ def test_a_fault_leaves_the_arm_at_rest_never_dropped(run_loop, arm_exe, fault) 
     # At rest the outputs are zero and the arm stays (it leans on its stops).
     assert list(lp.ch.shm.sim.pwm) == [0, 0, 0, 0]
     assert lp.proc.wait(timeout=5) is not None
+
+
+# The appliance's part, in a process of its own that the test kills: it maps the run's segment,
+# starts the watcher thread as server/runs/watch.py does, and the per-run xrf-watch process
+# beside it (in its own session: not tied to the appliance's life).
+HOST = """
+import os, subprocess, sys, time
+from xrflab.channels import Channels
+from xrflab.server.runs.safety import SafetyWatcher
+shm, path, loop, plant, exe, out = sys.argv[1:7]
+ch = Channels.open(shm, wait_s=5)
+w = SafetyWatcher(int(loop), ch, hang_timeout_ms=60, check_ms=5, force_sim=True, safe_reaction="hold", plant=int(plant))
+backup = subprocess.Popen([exe, "--shm", path, "--loop", loop, "--host", str(os.getpid()), "--reaction", "hold",
+                           "--plant", "youbot"], stdout=open(out, "w"), start_new_session=True)
+while "watching" not in open(out).read():
+    time.sleep(0.005)  # polling for the backup's ready line
+print(backup.pid, flush=True)
+while True:
+    time.sleep(3600)  # the appliance idles: the test kills it
+"""
+
+
+def test_the_appliance_killed_leaves_the_arm_at_rest(run_loop, arm_exe, tmp_path) -> None:
+    from xrflab.build import ensure_rt_core
+    from xrflab.channels import shm_path
+
+    watch_exe = Path(ensure_rt_core(log=lambda line: None)) / "bin" / "xrf-watch"
+    lp = run_loop(arm_exe, XRF_TRANSPORT="sim", XRF_SIM="youbot")
+    _raise_arm(lp)
+    host = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            HOST,
+            lp.shm,
+            str(shm_path(lp.shm)),
+            str(lp.proc.pid),
+            str(plants.get("youbot").id),
+            str(watch_exe),
+            str(tmp_path / "backup.out"),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    backup_pid = 0
+    try:
+        backup_pid = int(host.stdout.readline())  # once the host has its backup watching
+        held = _pose(lp.ch)
+        t_fault = time.monotonic()
+        host.kill()
+        host.wait(timeout=5)
+        # The loop is killed by the backup, the arm held and lowered: followed from the segment.
+        worst = 0.0
+        deadline = time.monotonic() + 30
+        while not _gone(backup_pid):
+            q = _pose(lp.ch)
+            t = time.monotonic() - t_fault
+            for j, rest in REST.items():
+                if t < HOLD_S:
+                    worst = max(worst, abs(q[j] - held[j]))
+                lo, hi = min(rest, held[j]), max(rest, held[j])
+                worst = max(worst, lo - q[j], q[j] - hi)
+            assert time.monotonic() < deadline, "the backup watcher never finished"
+            time.sleep(0.002)  # sampling the arm's motion, as _follow
+    finally:
+        if host.poll() is None:
+            host.kill()
+            host.wait()
+        if backup_pid and not _gone(backup_pid):
+            os.kill(backup_pid, signal.SIGKILL)
+    assert lp.proc.wait(timeout=5) == -signal.SIGKILL  # the backup killed the orphaned loop
+    q = _pose(lp.ch)
+    for j, rest in REST.items():
+        assert abs(q[j] - rest) < math.radians(1.0), (j, q)
+    assert list(lp.ch.shm.sim.pwm) == [0, 0, 0, 0]
+    report = json.loads((tmp_path / "backup.out").read_text().splitlines()[-1])
+    assert report["reason"] == lib.XRF_WATCH_HOST_GONE and report["hold_phase"] == 3  # at rest
+    assert report["safe_ns"] - report["event_ns"] < 100_000_000
+    rest_s = (report["rest_ns"] - report["event_ns"]) / 1e9
+    print(f"appliance kill -9: largest drop {math.degrees(worst):.2f}°, at rest {rest_s:.2f} s after")
+    assert worst < DROP_BOUND, f"a joint dropped {math.degrees(worst):.2f}°"
+
+
+def _gone(pid: int) -> bool:
+    """The backup watcher (not our child: its parent was the killed host) has exited."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True

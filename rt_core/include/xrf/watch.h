@@ -30,10 +30,12 @@ extern "C" {
 #endif
 
 /* cffi-begin */
-#define XRF_WATCH_WATCHING 0  /* nothing happened yet */
-#define XRF_WATCH_EXIT 1      /* the loop process ended */
-#define XRF_WATCH_HANG 2      /* alive but no cycle for longer than hang_timeout_ns: killed */
-#define XRF_WATCH_CANCELLED 3 /* xrf_watch_stop() before anything happened */
+#define XRF_WATCH_WATCHING 0   /* nothing happened yet */
+#define XRF_WATCH_EXIT 1       /* the loop process ended */
+#define XRF_WATCH_HANG 2       /* alive but no cycle for longer than hang_timeout_ns: killed */
+#define XRF_WATCH_CANCELLED 3  /* xrf_watch_stop() before anything happened */
+#define XRF_WATCH_HOST_GONE 4  /* the host (host_pid) died first: the loop was killed, made safe */
+#define XRF_WATCH_LOOP_ENDED 5 /* host_only: the loop ended first, left to the host's watcher */
 
 #define XRF_WATCH_RESET_NOT_TRIED 1 /* reset_status: no spidev configured */
 
@@ -70,6 +72,13 @@ struct xrf_watch_config {
     int32_t safe_reaction; /* XRF_SAFE_REACTION_* (0: zero) */
     int32_t brake_channel; /* brake: the channel (1..4) whose digital output engages the brake */
     int32_t plant;         /* hold: the plant table's id (xrf/plants.h) of the simulated arm */
+    /* > 0: also watch this process (the appliance that supervises the run). If it dies first,
+     * the loop is killed (it would run on unsupervised) and the outputs made safe as on an exit:
+     * for `hold`, the arm is held and lowered. */
+    int32_t host_pid;
+    /* 1: act only on the host's death; a loop that ends first is the host's own watcher's to
+     * handle (XRF_WATCH_LOOP_ENDED, nothing done). The per-run `xrf-watch` process runs so. */
+    int32_t host_only;
     int32_t pad;
 };
 
@@ -106,6 +115,9 @@ int xrf_watch_result(struct xrf_watch *w, struct xrf_watch_result *out);
  * safe) before the thread ends, so the final result never misses an exit; a `hold` under way
  * is finished first (the arm at rest: at most the law's max_s, 20 s for the youBot). */
 int xrf_watch_stop(struct xrf_watch *w, struct xrf_watch_result *out);
+/* Wait until the watcher has finished (acted, and for `hold` the arm is at rest), then free it
+ * like xrf_watch_stop; nothing is cancelled. */
+int xrf_watch_wait(struct xrf_watch *w, struct xrf_watch_result *out);
 /* Send the FPGA RESET frame once over spidev `device` (also what the watcher does). */
 int xrf_fpga_reset(const char *device, uint32_t speed_hz);
 /* Send one ALL frame with every PWM zero and only channel `brake_channel`'s (1..4) digital

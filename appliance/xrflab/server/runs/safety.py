@@ -23,6 +23,8 @@ _REASONS = {
     lib.XRF_WATCH_EXIT: "exit",
     lib.XRF_WATCH_HANG: "hang",
     lib.XRF_WATCH_CANCELLED: "cancelled",
+    lib.XRF_WATCH_HOST_GONE: "host_gone",
+    lib.XRF_WATCH_LOOP_ENDED: "loop_ended",
 }
 
 
