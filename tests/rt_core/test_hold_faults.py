@@ -149,8 +149,9 @@ from xrflab.server.runs.safety import SafetyWatcher
 shm, path, loop, plant, exe, out = sys.argv[1:7]
 ch = Channels.open(shm, wait_s=5)
 w = SafetyWatcher(int(loop), ch, hang_timeout_ms=60, check_ms=5, force_sim=True, safe_reaction="hold", plant=int(plant))
-backup = subprocess.Popen([exe, "--shm", path, "--loop", loop, "--host", str(os.getpid()), "--reaction", "hold",
-                           "--plant", "youbot"], stdout=open(out, "w"), start_new_session=True)
+fd = os.open(path, os.O_RDWR)  # the appliance hands its descriptor of the segment over, as watch.py
+backup = subprocess.Popen([exe, "--shm-fd", str(fd), "--loop", loop, "--host", str(os.getpid()), "--reaction", "hold",
+                           "--plant", "youbot"], stdout=open(out, "w"), pass_fds=(fd,), start_new_session=True)
 while "watching" not in open(out).read():
     time.sleep(0.005)  # polling for the backup's ready line
 print(backup.pid, flush=True)

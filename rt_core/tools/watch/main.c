@@ -10,7 +10,7 @@
  * reaction (`hold`: the arm held, lowered to its rest pose, then zero); when the loop ends first
  * it leaves, the appliance's own watcher having handled it. One JSON line on stdout at the end.
  *
- *   xrf-watch --shm PATH --loop PID --host PID [--reaction zero|brake|hold] [--plant NAME]
+ *   xrf-watch --shm PATH|--shm-fd FD --loop PID --host PID [--reaction zero|brake|hold] [--plant NAME]
  *             [--brake-channel N] [--spi DEVICE] [--rt-priority N]
  */
 #define _GNU_SOURCE
@@ -51,6 +51,7 @@ static int parse_int(const char *s, long lo, long hi, long *out)
 
 int main(int argc, char **argv)
 {
+    long shm_fd = -1;
     const char *shm_path = NULL, *reaction = "zero", *plant = NULL, *spi = "";
     long loop = 0, host = 0, brake = 0, prio = 0;
     for (int i = 1; i < argc; i++) {
@@ -61,6 +62,8 @@ int main(int argc, char **argv)
         i++;
         if (strcmp(a, "--shm") == 0)
             shm_path = v;
+        else if (strcmp(a, "--shm-fd") == 0 && parse_int(v, 0, 0x7fffffff, &shm_fd) == 0)
+            continue;
         else if (strcmp(a, "--loop") == 0 && parse_int(v, 1, 0x7fffffff, &loop) == 0)
             continue;
         else if (strcmp(a, "--host") == 0 && parse_int(v, 1, 0x7fffffff, &host) == 0)
@@ -80,8 +83,8 @@ int main(int argc, char **argv)
     }
     /* Our stdout may be a pipe to the host that is gone: the report must not kill us. */
     signal(SIGPIPE, SIG_IGN);
-    if (shm_path == NULL || loop == 0 || host == 0)
-        return usage("--shm, --loop and --host are needed");
+    if ((shm_path == NULL) == (shm_fd < 0) || loop == 0 || host == 0)
+        return usage("--shm or --shm-fd, --loop and --host are needed");
     struct xrf_watch_config cfg;
     memset(&cfg, 0, sizeof cfg);
     cfg.pid = (int)loop;
@@ -106,7 +109,11 @@ int main(int argc, char **argv)
     }
 
     /* The segment as the appliance opened it: checked like any reader does (the loop wrote it). */
-    int fd = open(shm_path, O_RDWR | O_CLOEXEC | O_NOFOLLOW);
+    /* The appliance hands over its own descriptor of the run's segment (a sealed memfd): a
+     * path in the run's /dev/shm folder is the loop's to replace. */
+    int fd = shm_fd >= 0 ? (int)shm_fd : open(shm_path, O_RDWR | O_CLOEXEC | O_NOFOLLOW);
+    if (shm_path == NULL)
+        shm_path = "--shm-fd";
     if (fd < 0) {
         fprintf(stderr, "xrf-watch: %s: %s\n", shm_path, strerror(errno));
         return 1;
