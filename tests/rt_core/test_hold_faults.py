@@ -26,99 +26,26 @@ from pathlib import Path
 
 import pytest
 
-from xrf_testing.loops import LoopProcess
+from xrf_testing.arm import DROP_BOUND, FAULTS, HOLD_S, REST, build_arm, follow, inject, pose, raise_arm, watch
 from xrflab import plants
-from xrflab.build import build_project
 from xrflab.channels import lib
-from xrflab.server.runs.safety import SafetyWatcher
-
-REPO = Path(__file__).resolve().parents[2]
-ARM_FAULTS = REPO / "tests/fixtures/arm_faults"
-DROP_BOUND = math.radians(2.0)
-# The plant's rest pose (plant_youbot.c): J2 back on its stop, J3 forward on its, J4 back on its.
-REST = {1: math.radians(-65.0), 2: math.radians(151.0), 3: math.radians(-102.5)}
-# The fixture's working pose (tests/fixtures/arm_faults/src/main.cpp).
-WORK = [math.radians(d) for d in (10.0, -20.0, 100.0, -60.0)]
-HOLD_S = 0.5  # the law's hold phase before it lowers (plant_youbot.c's arm)
 
 
 @pytest.fixture(scope="module")
 def arm_exe(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return build_project(ARM_FAULTS, build_dir=tmp_path_factory.mktemp("arm-build"), log=lambda line: None).executable
+    return build_arm(tmp_path_factory.mktemp("arm-build"))
 
 
-def _raise_arm(lp: LoopProcess) -> None:
-    lp.command("initialise", "INITIALISED")
-    lp.command("start", "RUN")
-    deadline = time.monotonic() + 15
-    while any(abs(q - w) > math.radians(2.0) for q, w in zip(_pose(lp.ch)[1:4], WORK[1:4], strict=True)):
-        assert time.monotonic() < deadline, f"the arm never reached its working pose: {_pose(lp.ch)}"
-        time.sleep(0.02)  # polling the plant; the arm moves at 20 °/s
-
-
-def _pose(ch) -> list[float]:
-    return [float(ch.shm.sim.plant[i]) for i in range(5)]
-
-
-def _follow(w: SafetyWatcher, ch, held: list[float], t_fault: float) -> tuple[float, dict]:
-    """Sample the mirrored pose until the watcher says the arm is at rest; the largest excursion
-    (rad) outside what the reaction may do (see the module's doc)."""
-    worst = 0.0
-    deadline = time.monotonic() + 30
-    while True:
-        r = w.result()
-        q = _pose(ch)
-        t = time.monotonic() - t_fault
-        for j, rest in REST.items():
-            if t < HOLD_S:
-                worst = max(worst, abs(q[j] - held[j]))
-            lo, hi = min(rest, held[j]), max(rest, held[j])
-            worst = max(worst, lo - q[j], q[j] - hi)
-        if r is not None and r.rest_ns:
-            return worst, {"result": r, "pose": q}
-        assert time.monotonic() < deadline, "the arm never came to rest"
-        time.sleep(0.002)  # sampling the arm's motion: finer than its 20 °/s could hide a drop
-
-
-def _watch(lp: LoopProcess) -> SafetyWatcher:
-    return SafetyWatcher(
-        lp.proc.pid,
-        lp.ch,
-        hang_timeout_ms=60,
-        check_ms=5,
-        force_sim=True,
-        safe_reaction="hold",
-        plant=plants.get("youbot").id,
-    )
-
-
-def _fault(lp: LoopProcess, fault: str) -> float:
-    """Inject `fault`; the monotonic time it took effect."""
-    if fault == "stopping_never_returns":
-        lp.ch.write_ros2xeno({"stop_hang": True})
-        lp.command("stop", "STOPPING")
-        # The appliance's stop gives STOPPING its time, then terminate(): SIGINT first (the
-        # runtime's safe stop), as server/runs/control.py does.
-        time.sleep(0.3)  # the time STOPPING is given before the host gives up on it
-        assert lp.ch.status().state_name == "STOPPING"
-        t = time.monotonic()
-        os.kill(lp.proc.pid, signal.SIGINT)
-        return t
-    t = time.monotonic()
-    lp.ch.write_ros2xeno({{"segfault": "crash", "hang": "hang", "exit0": "exit0"}[fault]: True})
-    return t
-
-
-@pytest.mark.parametrize("fault", ["segfault", "hang", "exit0", "stopping_never_returns"])
+@pytest.mark.parametrize("fault", FAULTS)
 def test_a_fault_leaves_the_arm_at_rest_never_dropped(run_loop, arm_exe, fault) -> None:
     lp = run_loop(arm_exe, XRF_TRANSPORT="sim", XRF_SIM="youbot")
-    _raise_arm(lp)
-    w = _watch(lp)
+    raise_arm(lp)
+    w = watch(lp)
     try:
-        held = _pose(lp.ch)
+        held = pose(lp.ch)
         assert held[1] > REST[1] + math.radians(30)  # really up: the shoulder off its stop
-        t_fault = _fault(lp, fault)
-        worst, end = _follow(w, lp.ch, held, t_fault)
+        t_fault = inject(lp, fault)
+        worst, end = follow(w, lp.ch, held, t_fault)
         r = end["result"]
     finally:
         final = w.stop()
@@ -166,7 +93,7 @@ def test_the_appliance_killed_leaves_the_arm_at_rest(run_loop, arm_exe, tmp_path
 
     watch_exe = Path(ensure_rt_core(log=lambda line: None)) / "bin" / "xrf-watch"
     lp = run_loop(arm_exe, XRF_TRANSPORT="sim", XRF_SIM="youbot")
-    _raise_arm(lp)
+    raise_arm(lp)
     host = subprocess.Popen(
         [
             sys.executable,
@@ -185,7 +112,7 @@ def test_the_appliance_killed_leaves_the_arm_at_rest(run_loop, arm_exe, tmp_path
     backup_pid = 0
     try:
         backup_pid = int(host.stdout.readline())  # once the host has its backup watching
-        held = _pose(lp.ch)
+        held = pose(lp.ch)
         t_fault = time.monotonic()
         host.kill()
         host.wait(timeout=5)
@@ -193,7 +120,7 @@ def test_the_appliance_killed_leaves_the_arm_at_rest(run_loop, arm_exe, tmp_path
         worst = 0.0
         deadline = time.monotonic() + 30
         while not _gone(backup_pid):
-            q = _pose(lp.ch)
+            q = pose(lp.ch)
             t = time.monotonic() - t_fault
             for j, rest in REST.items():
                 if t < HOLD_S:
@@ -209,7 +136,7 @@ def test_the_appliance_killed_leaves_the_arm_at_rest(run_loop, arm_exe, tmp_path
         if backup_pid and not _gone(backup_pid):
             os.kill(backup_pid, signal.SIGKILL)
     assert lp.proc.wait(timeout=5) == -signal.SIGKILL  # the backup killed the orphaned loop
-    q = _pose(lp.ch)
+    q = pose(lp.ch)
     for j, rest in REST.items():
         assert abs(q[j] - rest) < math.radians(1.0), (j, q)
     assert list(lp.ch.shm.sim.pwm) == [0, 0, 0, 0]
