@@ -49,7 +49,19 @@ struct xrf_watch {
     const struct xrf_plant_ops *plant_ops;
     void *plant;
     struct xrf_hold hold;
+    /* The closing sequence's progress, written by the watcher thread after `done` (atomics: the
+     * host reads them meanwhile); copied into every result handed out. */
+    int32_t drop_urad;
+    int32_t hold_phase;
+    int64_t rest_ns;
 };
+
+static void hold_progress(struct xrf_watch *w, struct xrf_watch_result *out)
+{
+    out->drop_urad = __atomic_load_n(&w->drop_urad, __ATOMIC_RELAXED);
+    out->hold_phase = __atomic_load_n(&w->hold_phase, __ATOMIC_RELAXED);
+    out->rest_ns = __atomic_load_n(&w->rest_ns, __ATOMIC_ACQUIRE);
+}
 
 static int64_t now_ns(void)
 {
@@ -175,7 +187,8 @@ static void hold_begin(struct xrf_watch *w, double *duty)
     hold_take_plant(w);
     hold_angles(w, q);
     xrf_hold_begin(&w->hold, w->plant_ops->arm, q);
-    w->result.hold_phase = xrf_hold_step(&w->hold, q, HOLD_TICK_NS * 1e-9, duty);
+    __atomic_store_n(&w->hold_phase, xrf_hold_step(&w->hold, q, HOLD_TICK_NS * 1e-9, duty),
+                     __ATOMIC_RELAXED);
     hold_mirror(w, duty);
 }
 
@@ -186,7 +199,7 @@ static void hold_run(struct xrf_watch *w, double *duty)
     struct timespec next;
     clock_gettime(CLOCK_MONOTONIC, &next);
     int64_t last = now_ns();
-    while (w->result.hold_phase != XRF_HOLD_PHASE_REST) {
+    while (__atomic_load_n(&w->hold_phase, __ATOMIC_RELAXED) != XRF_HOLD_PHASE_REST) {
         next.tv_nsec += HOLD_TICK_NS;
         if (next.tv_nsec >= 1000000000L) {
             next.tv_nsec -= 1000000000L;
@@ -204,12 +217,11 @@ static void hold_run(struct xrf_watch *w, double *duty)
         double q[XRF_HOLD_JOINTS_MAX];
         hold_angles(w, q);
         int phase = xrf_hold_step(&w->hold, q, dt, duty);
-        __atomic_store_n(&w->result.drop_urad, (int32_t)lrint(w->hold.drop_max * 1e6),
-                         __ATOMIC_RELAXED);
-        __atomic_store_n(&w->result.hold_phase, phase, __ATOMIC_RELAXED);
+        __atomic_store_n(&w->drop_urad, (int32_t)lrint(w->hold.drop_max * 1e6), __ATOMIC_RELAXED);
+        __atomic_store_n(&w->hold_phase, phase, __ATOMIC_RELAXED);
         hold_mirror(w, duty);
     }
-    __atomic_store_n(&w->result.rest_ns, now_ns(), __ATOMIC_RELEASE);
+    __atomic_store_n(&w->rest_ns, now_ns(), __ATOMIC_RELEASE);
 }
 
 /* Outputs safe: the simulated board's outputs zeroed (but the brake's) and ignored from now on,
@@ -436,6 +448,7 @@ int xrf_watch_result(struct xrf_watch *w, struct xrf_watch_result *out)
         return XRF_WATCH_WATCHING;
     }
     *out = w->result;
+    hold_progress(w, out);
     return out->reason;
 }
 
@@ -449,8 +462,10 @@ static int watch_end(struct xrf_watch *w, struct xrf_watch_result *out, int canc
         (void)n;
     }
     pthread_join(w->thread, NULL);
-    if (out != NULL)
+    if (out != NULL) {
         *out = w->result;
+        hold_progress(w, out);
+    }
     int reason = w->result.reason;
     close(w->cancel_fd);
     if (w->host_fd >= 0)
