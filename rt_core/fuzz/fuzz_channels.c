@@ -85,6 +85,7 @@ static const struct field fields[] = {
     F(version),
     F(size),
     F(ready),
+    F(channels),
     F(info.pid),
     F(info.cycle_freq),
     F(info.ros2xeno_size),

@@ -99,12 +99,18 @@ _Static_assert(offsetof(struct xrf_shm, log_data) % 8 == 0, "log data must be 8-
 _Static_assert(sizeof(struct xrf_timing_record) % 8 == 0, "timing slot must keep 8-byte alignment");
 _Static_assert((XRF_TIMING_SLOTS & (XRF_TIMING_SLOTS - 1)) == 0, "timing slots: power of two");
 
+_Static_assert(XRF_MAX_CHANNELS == XRF_MAX_BOARDS * XRF_ICO_CHANNELS,
+               "a bench's channels are whole ico boards");
+
 void xrf_shm_init(struct xrf_shm *shm)
 {
     /* The caller hands over zeroed memory (a fresh ftruncate'd object). */
     shm->magic = XRF_SHM_MAGIC;
     shm->version = XRF_SHM_VERSION;
     shm->size = (uint32_t)sizeof(struct xrf_shm);
+    /* One board until whoever knows the bench says otherwise (the runtime, from the host's
+     * count or its plant's). */
+    shm->channels = XRF_ICO_CHANNELS;
     shm->status.state = XRF_STATE_IDLE;
     for (int i = 0; i < XRF_STAGE_COUNT; i++)
         shm->status.hist[i].min_ns = UINT64_MAX;
@@ -376,7 +382,22 @@ int xrf_shm_check(const struct xrf_shm *shm, uint64_t mapped, struct xrf_shm_geo
     if (rc == 0)
         rc = xrf_ring_geom_check(&shm->monitor_ring, XRF_MONITOR_SLOTS,
                                  sizeof(struct xrf_monitor_line), sizeof shm->monitor, &g->monitor);
+    if (rc == 0) {
+        uint32_t n = LOAD_RLX(&shm->channels);
+        if (n < 1 || n > XRF_MAX_CHANNELS)
+            return -EPROTO;
+        g->channels = n;
+        g->pad = 0;
+    }
     return rc;
+}
+
+uint32_t xrf_shm_channels(const struct xrf_shm *shm)
+{
+    uint32_t n = LOAD_RLX(&shm->channels);
+    if (n < 1)
+        return 1;
+    return n > XRF_MAX_CHANNELS ? XRF_MAX_CHANNELS : n;
 }
 
 /* A char array the loop filled holds a C string: a NUL within it. */

@@ -12,6 +12,7 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "xrf/channels.h" /* XRF_MAX_CHANNELS */
 #include "xrf/hold.h"
 
 #define XRF_PLANT_SUPPLY_V 12.0 /* default supply the PWM duty scales */
@@ -58,20 +59,23 @@ static inline void xrf_dc_motor_step(const struct xrf_dc_motor_params *p, struct
 struct xrf_plant_ops {
     const char *name;  /* XRF_SIM=<name>, the bench profile and example of the same name */
     const char *title; /* for people */
-    int axes;          /* motor channels wired, 1..axes: PWM n drives the motor behind encoder n */
-    int state_len;     /* values state() gives (<= 8, the shared-memory mirror's size) */
+    int axes;      /* motor channels wired, 1..axes: PWM n drives the motor behind encoder n (the
+               * bench's channel count, in the plant's row of plants.c, may be larger) */
+    int state_len; /* values state() gives (<= 8, the shared-memory mirror's size) */
     const char *state_names; /* "name unit, ..." in state() order */
     size_t size;             /* of the plant's struct */
     void (*init)(void *plant);
-    /* duty[ch] in [-1, 1] for channels 1..4 (index 0..3); channels beyond `axes` are ignored. */
-    void (*step)(void *plant, const double duty[4], double dt);
+    /* duty[ch] in [-1, 1] for channel ch + 1; the bench's channels beyond `axes` and the rest
+     * up to XRF_MAX_CHANNELS are 0 and ignored. */
+    void (*step)(void *plant, const double duty[XRF_MAX_CHANNELS], double dt);
     /* Motor shaft angle (rad) behind encoder channel ch (0-based), or NAN when nothing is
      * connected: the encoder wiring. */
     double (*motor_angle)(const void *plant, int ch);
     /* Up to n state values into state; returns how many. */
     int (*state)(const void *plant, double *state, int n);
     /* Optional (NULL: nothing wired). The plant's switches on the board's input pins: bit k =
-     * pin k (0..7 in xrf_ico_in.din order: pin 1 of channel 1, pin 2 of channel 1, ...). */
+     * pin k (0 .. 2 * channels - 1 in xrf_telemetry.din order: pin 1 of channel 1, pin 2 of
+     * channel 1, ...). */
     unsigned (*inputs)(const void *plant);
     /* Optional (NULL: the plant always starts from init's pose). Called after init when the
      * fault spec says `start=<seed>` (seed > 0): a start pose drawn from the seed, for plants a

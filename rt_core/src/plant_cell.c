@@ -100,7 +100,7 @@ static void cell_start(void *plant, uint32_t seed)
     }
 }
 
-static void cell_step(void *plant, const double duty[4], double dt)
+static void cell_step(void *plant, const double duty[XRF_MAX_CHANNELS], double dt)
 {
     struct cell *c = plant;
     for (int i = 0; i < CELL_AXES; i++) {

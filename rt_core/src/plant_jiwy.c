@@ -72,7 +72,7 @@ static void jiwy_init(void *plant)
     j->supply_v = XRF_PLANT_SUPPLY_V;
 }
 
-static void jiwy_step(void *plant, const double duty[4], double dt)
+static void jiwy_step(void *plant, const double duty[XRF_MAX_CHANNELS], double dt)
 {
     struct xrf_jiwy *j = plant;
     for (int a = 0; a < 2; a++) {

@@ -61,7 +61,7 @@ static double wheel_right(const struct xrf_relbot *r)
     return -r->m[1].speed / r->gear;
 }
 
-static void relbot_step(void *plant, const double duty[4], double dt)
+static void relbot_step(void *plant, const double duty[XRF_MAX_CHANNELS], double dt)
 {
     struct xrf_relbot *r = plant;
     for (int i = 0; i < 2; i++)

@@ -43,7 +43,7 @@ static void stage_init(void *plant)
     s->m.speed = 0.0;
 }
 
-static void stage_step(void *plant, const double duty[4], double dt)
+static void stage_step(void *plant, const double duty[XRF_MAX_CHANNELS], double dt)
 {
     struct stage *s = plant;
     xrf_dc_motor_step(&s->p, &s->m, duty[0] * s->supply_v, dt);

@@ -14,24 +14,40 @@
 #include "plant.h"
 #include "xrf/plants.h"
 
+/* ROW(name, channels): `channels` is the bench the plant stands on, 1..XRF_MAX_CHANNELS (whole
+ * ico boards of XRF_ICO_CHANNELS on real hardware; the simulated board answers for as many
+ * boards as it takes). RELbot, Jiwy, the stage and the cell each stand on one ico board, as the
+ * real RELbot and Jiwy do: 4 channels, of which they wire 2, 2, 1 and 3 motors (the cell's end
+ * switches are on the input pins of its 3 motor channels). */
 #define XRF_PLANT_TABLE(ROW) \
-    ROW(relbot)              \
-    ROW(jiwy)                \
-    ROW(stage)               \
-    ROW(cell)                \
-    ROW(youbot)
+    ROW(relbot, 4)           \
+    ROW(jiwy, 4)             \
+    ROW(stage, 4)            \
+    ROW(cell, 4)             \
+    ROW(youbot, 9)
 
-#define XRF_PLANT_DECLARE(n) extern const struct xrf_plant_ops xrf_plant_##n;
+#define XRF_PLANT_DECLARE(n, channels) extern const struct xrf_plant_ops xrf_plant_##n;
 XRF_PLANT_TABLE(XRF_PLANT_DECLARE)
 
-#define XRF_PLANT_ROW(n) &xrf_plant_##n,
+#define XRF_PLANT_ROW(n, channels) &xrf_plant_##n,
 static const struct xrf_plant_ops *const table[] = {XRF_PLANT_TABLE(XRF_PLANT_ROW)};
+#define XRF_PLANT_CHANNELS_ROW(n, channels) channels,
+static const int table_channels[] = {XRF_PLANT_TABLE(XRF_PLANT_CHANNELS_ROW)};
+#define XRF_PLANT_CHANNELS_CHECK(n, channels)                         \
+    _Static_assert((channels) >= 1 && (channels) <= XRF_MAX_CHANNELS, \
+                   #n ": a plant's channel count is 1..XRF_MAX_CHANNELS");
+XRF_PLANT_TABLE(XRF_PLANT_CHANNELS_CHECK)
 
 #define XRF_PLANT_N ((int)(sizeof table / sizeof table[0]))
 
 const struct xrf_plant_ops *xrf_plant_ops(int id)
 {
     return (id >= 1 && id <= XRF_PLANT_N) ? table[id - 1] : NULL;
+}
+
+int xrf_plant_channels(int id)
+{
+    return (id >= 1 && id <= XRF_PLANT_N) ? table_channels[id - 1] : 0;
 }
 
 int xrf_plant_count(void)
@@ -52,6 +68,7 @@ int xrf_plant_describe(int id, struct xrf_plant_info *out)
     memset(out, 0, sizeof *out);
     out->id = id;
     out->axes = p->axes;
+    out->channels = xrf_plant_channels(id);
     out->state_len = p->state_len;
     copy_text(out->name, sizeof out->name, p->name);
     copy_text(out->title, sizeof out->title, p->title);

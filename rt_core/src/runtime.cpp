@@ -262,6 +262,9 @@ int Runtime::mapShm(int fd, const char *what, bool keep_fd)
         std::fprintf(stderr, "xrf: cannot map shared memory %s: %s\n", what, std::strerror(e));
         return -e;
     }
+    // The host that made the segment wrote the bench's channel count into it: kept across the
+    // initialisation below (a count outside 1..XRF_MAX_CHANNELS is refused at enter()).
+    host_channels_ = keep_fd ? static_cast<const xrf_shm *>(p)->channels : 0;
     // Touch every page now: the loop must not take a page fault on its first telemetry slot.
     std::memset(p, 0, shm_size_);
     shm_ = static_cast<xrf_shm *>(p);
@@ -330,6 +333,34 @@ int Runtime::createShm()
     return mapShm(fd, path, false);
 }
 
+// The bench's channel count into the segment: the host's, else the simulated plant's (its row in
+// plants.c), else one ico board. A simulated plant that needs more channels than the host's
+// bench has is refused: its motors beyond the bench would be driven by nobody.
+int Runtime::setChannels()
+{
+    const Options &o = options();
+    const bool sim = transport_ != nullptr && std::strcmp(transport_name_, "sim") == 0;
+    const int plant = sim ? xrf_plant_channels(xrf_sim_robot_from_name(o.sim)) : 0;
+    uint32_t n = XRF_ICO_CHANNELS;
+    if (host_channels_ != 0) {
+        if (host_channels_ > XRF_MAX_CHANNELS) {
+            std::fprintf(stderr, "xrf: the host's segment says %u channels, at most %d exist\n",
+                         host_channels_, XRF_MAX_CHANNELS);
+            return -EINVAL;
+        }
+        n = host_channels_;
+        if (plant > 0 && (uint32_t)plant > n) {
+            std::fprintf(stderr, "xrf: XRF_SIM=%s needs %d channels, the bench has %u\n", o.sim,
+                         plant, n);
+            return -EINVAL;
+        }
+    } else if (plant > 0) {
+        n = (uint32_t)plant;
+    }
+    shm_->channels = n;
+    return 0;
+}
+
 int Runtime::enter(unsigned cycle_freq)
 {
     const Options &o = options();
@@ -372,6 +403,10 @@ int Runtime::enter(unsigned cycle_freq)
         shm_->vtime.run_until = options_.virtual_time == 2 ? 1 : UINT64_MAX;
         xrf_backend_virtual_bind(shm_, &g_signal_stop);
     }
+
+    r = setChannels();
+    if (r != 0)
+        return r;
 
     shm_->host_timeout_ms = o.host_timeout_ms;
     shm_->host_timeout_action = o.host_timeout_action;

@@ -25,7 +25,6 @@
 #define SIM_COUNTS_PER_REV 4096.0 /* 1024-line encoder, quadrature */
 #define SIM_MAX_SUBSTEP_S 100e-6
 #define SIM_MAX_GAP_S 0.050 /* a stalled caller must not make the plant jump */
-#define XRF_SIM_DUTY_LEN 12 /* three ico boards' channels */
 
 struct sim_board {
     struct xrf_ico_transport t;      /* first, so the transport pointer is the object pointer */
@@ -36,10 +35,12 @@ struct sim_board {
     struct xrf_sim_snapshot *snapshot; /* NULL, or where the plant's snapshot goes each transfer */
     int64_t (*clock)(void); /* simulated time: the loop's clock (xrf_sim_set_clock); NULL: real */
 
-    /* The board's registers. */
-    int16_t pwm[4]; /* signed duty as decoded, magnitude up to 14 bits */
-    uint8_t dout[4];
-    double enc_zero[4]; /* motor angle at the last RESET (the counters' zero) */
+    int channels; /* the bench's count, the plant row's (1..XRF_MAX_CHANNELS) */
+
+    /* The board's registers, channels 1..channels (the rest stay zero). */
+    int16_t pwm[XRF_MAX_CHANNELS]; /* signed duty as decoded, magnitude up to 14 bits */
+    uint8_t dout[XRF_MAX_CHANNELS];
+    double enc_zero[XRF_MAX_CHANNELS]; /* motor angle at the last RESET (the counters' zero) */
 
     struct timespec last;
     int have_last;
@@ -66,11 +67,9 @@ static void advance(struct sim_board *s, double dt)
 {
     if (!(dt > 0.0))
         return;
-    /* As wide as a plant may read (the youBot's 9 channels); those the board has no PWM for
-     * stay zero. */
-    double duty[XRF_SIM_DUTY_LEN] = {0};
+    double duty[XRF_MAX_CHANNELS] = {0};
     if (!forced_off(s)) {
-        for (int ch = 0; ch < 4; ch++) {
+        for (int ch = 0; ch < s->channels; ch++) {
             double d = s->pwm[ch] / (double)XRF_ICO_PWM_FULL;
             /* The 14-bit field can hold more than full scale; the PWM saturates at 100 %. */
             if (d > 1.0)
@@ -150,7 +149,7 @@ static int16_t word_pwm(uint16_t w)
 
 static void reset_board(struct sim_board *s)
 {
-    for (int ch = 0; ch < 4; ch++) {
+    for (int ch = 0; ch < s->channels; ch++) {
         s->pwm[ch] = 0;
         s->dout[ch] = 0;
         double a = motor_angle(s, ch);
@@ -164,7 +163,7 @@ static void mirror(struct sim_board *s)
     if (!o)
         return;
     int off = forced_off(s);
-    for (int ch = 0; ch < 4; ch++) {
+    for (int ch = 0; ch < s->channels; ch++) {
         o->pwm[ch] = off ? 0 : s->pwm[ch];
         o->dout[ch] = (uint8_t)dout_now(s, ch);
     }
@@ -310,6 +309,7 @@ int xrf_sim_open(int robot, const struct xrf_sim_faults *faults, double fixed_dt
     if (!s)
         return -ENOMEM;
     s->ops = ops;
+    s->channels = xrf_plant_channels(robot);
     ops->init(s->plant);
     if (faults)
         s->faults = *faults;

@@ -170,7 +170,7 @@ static void hold_take_plant(struct xrf_watch *w)
 static void hold_mirror(struct xrf_watch *w, const double *duty)
 {
     struct xrf_sim_outputs *o = &w->shm->sim;
-    for (int ch = 0; ch < 4; ch++)
+    for (int ch = 0; ch < XRF_MAX_CHANNELS; ch++)
         __atomic_store_n(&o->pwm[ch], (int16_t)lrint(duty[ch] * XRF_ICO_PWM_FULL),
                          __ATOMIC_RELAXED);
     double st[8];
@@ -232,10 +232,10 @@ static void make_safe(struct xrf_watch *w)
     if (w->cfg.force_sim && w->shm != NULL) {
         struct xrf_sim_outputs *o = &w->shm->sim;
         /* What the pins show once forced, written before forced_off is published. */
-        for (int i = 0; i < 4; i++)
+        for (int i = 0; i < XRF_MAX_CHANNELS; i++) /* every channel any bench can have */
             __atomic_store_n(&o->forced_dout[i], (uint8_t)(i == brake), __ATOMIC_RELAXED);
         __atomic_store_n(&o->forced_off, 1u, __ATOMIC_RELEASE);
-        for (int i = 0; i < 4; i++) {
+        for (int i = 0; i < XRF_MAX_CHANNELS; i++) {
             __atomic_store_n(&o->pwm[i], (int16_t)0, __ATOMIC_RELAXED);
             __atomic_store_n(&o->dout[i], (uint8_t)(i == brake), __ATOMIC_RELAXED);
         }
@@ -247,7 +247,7 @@ static void make_safe(struct xrf_watch *w)
 
 static void finish(struct xrf_watch *w, int reason, int64_t event_ns)
 {
-    double duty[XRF_SIM_SNAPSHOT_MAX] = {0};
+    double duty[XRF_MAX_CHANNELS] = {0};
     int holding = 0;
     if (w->shm != NULL) /* the last cycle's start: the loop ended (or hung) after it */
         w->result.heartbeat_ns = __atomic_load_n(&w->shm->status.heartbeat_ns, __ATOMIC_RELAXED);

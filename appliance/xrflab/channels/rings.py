@@ -116,17 +116,21 @@ class TelemetryReader(_BroadcastReader[Telemetry]):
             from_start,
         )
         self._codec = channels.xeno2ros_codec
+        # The bench's channel count as xrf_shm_check took it at open (1..XRF_MAX_CHANNELS), never
+        # the segment's word now: the loop may rewrite that.
+        self._n = int(channels.geom.channels)
 
     def _convert(self, t: CData) -> Telemetry:
         payload = bytes(ffi.buffer(t.data, min(t.size, lib.XRF_MSG_MAX)))
+        n = self._n
         return Telemetry(
             cycle=t.hdr.cycle,
             t_ns=t.hdr.t_ns,
             state=t.state,
-            enc=list(t.enc),
-            din=list(t.din),
-            pwm=list(t.pwm),
-            dout=list(t.dout),
+            enc=list(t.enc)[:n],
+            din=list(t.din)[: 2 * n],
+            pwm=list(t.pwm)[:n],
+            dout=list(t.dout)[:n],
             xeno2ros=self._codec.decode(payload) if len(payload) >= self._codec.size else {},
             ros2xeno_t_sent_ns=t.ros2xeno_t_sent_ns,
         )

@@ -36,7 +36,20 @@ extern "C" {
 
 /* cffi-begin */
 #define XRF_SHM_MAGIC 827740760 /* "XRF1" read as a little-endian uint32 */
-#define XRF_SHM_VERSION 7       /* 7: the simulated plant's snapshot (xrf_sim_snapshot) */
+#define XRF_SHM_VERSION \
+    8 /* 7: the bench's channel count (xrf_shm.channels); 8: the simulated
+                            * plant's snapshot (xrf_sim_snapshot) */
+
+/* Board I/O channels (motor PWM + digital output, encoder + two input pins each). One ico board
+ * has XRF_ICO_CHANNELS; a bench has up to XRF_MAX_BOARDS of them (several SPI devices, or a
+ * simulated board that answers for several), so up to XRF_MAX_CHANNELS channels, numbered from
+ * 1 across the boards (board b carries channels 4b+1 .. 4b+4). The bench's own count is
+ * xrf_shm.channels; every array indexed by channel is XRF_MAX_CHANNELS long, so a loop over a
+ * count (bounded by XRF_MAX_CHANNELS) never needs a second size. Python reads these through
+ * cffi: no other file repeats 4 or 12. */
+#define XRF_ICO_CHANNELS 4
+#define XRF_MAX_BOARDS 3
+#define XRF_MAX_CHANNELS 12 /* XRF_MAX_BOARDS * XRF_ICO_CHANNELS (checked in channels.c) */
 
 #define XRF_NAME_MAX 64
 #define XRF_REASON_MAX 128
@@ -253,11 +266,13 @@ struct xrf_slot_hdr {
 struct xrf_telemetry {
     struct xrf_slot_hdr hdr;
     int32_t state;
-    int32_t enc[4];
-    uint8_t din[8]; /* channel1_1, channel1_2, ..., channel4_2 */
-    int16_t pwm[4];
-    uint8_t dout[4];
-    uint32_t size;              /* bytes of xeno2ros in data */
+    /* Per channel, the bench's count (xrf_shm.channels) used, the rest zero. */
+    int32_t enc[XRF_MAX_CHANNELS];
+    uint8_t din[2 * XRF_MAX_CHANNELS]; /* channel1_1, channel1_2, channel2_1, ... */
+    int16_t pwm[XRF_MAX_CHANNELS];
+    uint8_t dout[XRF_MAX_CHANNELS];
+    uint32_t size; /* bytes of xeno2ros in data */
+    uint32_t pad;
     int64_t ros2xeno_t_sent_ns; /* t_sent_ns of the Ros2Xeno in use, for latency measurement */
     uint8_t data[XRF_MSG_MAX];
 };
@@ -311,11 +326,11 @@ struct xrf_timing_record {
 struct xrf_sim_outputs {
     uint32_t active;     /* 1 while a simulated board is in use */
     uint32_t forced_off; /* set by the host: the plant ignores pwm from now on */
-    int16_t pwm[4];
-    uint8_t dout[4];
+    int16_t pwm[XRF_MAX_CHANNELS];
+    uint8_t dout[XRF_MAX_CHANNELS];
     /* The digital outputs while forced_off, set before it by the safety watcher: all zero, or
-     * the brake's on for the safe reaction `brake` (xrf/watch.h). Was padding: same layout. */
-    uint8_t forced_dout[4];
+     * the brake's on for the safe reaction `brake` (xrf/watch.h). */
+    uint8_t forced_dout[XRF_MAX_CHANNELS];
     double plant[8]; /* plant state for viewers: jiwy pan, tilt (rad); relbot x, y, theta */
 };
 
@@ -347,6 +362,13 @@ struct xrf_shm {
     uint32_t version;
     uint32_t size;  /* sizeof(struct xrf_shm), checked by every reader */
     uint32_t ready; /* stored last by the loop once info is complete */
+    /* The bench's channel count, 1..XRF_MAX_CHANNELS: written by the host that creates the
+     * segment (the appliance, from the bench profile), else by the loop at start (its plant's
+     * count on the simulated board, else XRF_ICO_CHANNELS). The loop can rewrite it at any
+     * time: a reader takes it once at attach (xrf_shm_check, into xrf_shm_geom.channels) or
+     * bounds it (xrf_shm_channels), never uses it as it is. */
+    uint32_t channels;
+    uint32_t pad_channels;
     struct xrf_info info;
 
     /* host -> loop */
@@ -449,6 +471,8 @@ struct xrf_ring_geom {
 struct xrf_shm_geom {
     struct xrf_ring_geom telem;
     struct xrf_ring_geom monitor;
+    uint32_t channels; /* the bench's channel count, 1..XRF_MAX_CHANNELS, as it was at attach */
+    uint32_t pad;
 };
 
 /* Checks that (slots, slot_size) is a ring whose slots fit `capacity` bytes (-EINVAL if not),
@@ -457,8 +481,12 @@ int xrf_ring_geom_check(const struct xrf_ring *r, uint32_t slots, uint32_t slot_
                         uint64_t capacity, struct xrf_ring_geom *g);
 /* At attach: `mapped` bytes are mapped at shm (-EINVAL when fewer than sizeof(struct xrf_shm):
  * the caller must not read it); magic, version and size are this layout's and the telemetry
- * and monitor rings are as xrf_shm_init made them (-EPROTO otherwise); fills *g. */
+ * and monitor rings are as xrf_shm_init made them and the channel count is 1..XRF_MAX_CHANNELS
+ * (-EPROTO otherwise); fills *g. */
 int xrf_shm_check(const struct xrf_shm *shm, uint64_t mapped, struct xrf_shm_geom *g);
+/* The segment's channel count read now, clamped into 1..XRF_MAX_CHANNELS, so it can index no
+ * array past its end. For a reader that did not keep xrf_shm_geom.channels. */
+uint32_t xrf_shm_channels(const struct xrf_shm *shm);
 /* A log channel's layout, once `m` is ready: copies *m once into *out and checks the copy --
  * writer known, nvars <= XRF_LOG_VARS_MAX, every variable of a known type and inside
  * record_size, names and path NUL-terminated, record_size fits a slot of a ring of

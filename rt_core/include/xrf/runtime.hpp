@@ -173,6 +173,7 @@ private:
     static Runtime *self_;
     int createShm();
     int mapShm(int fd, const char *what, bool keep_fd); // maps, zeroes, xrf_shm_init
+    int setChannels(); // the bench's channel count into the segment (after the board opens)
     void startHelper();
     static void *helperMain(void *self);
     void helperDrain(bool final);
@@ -183,6 +184,7 @@ private:
     bool options_loaded_ = false;
     xrf_shm *shm_ = nullptr;
     size_t shm_size_ = 0;
+    uint32_t host_channels_ = 0; // the channel count the host wrote into its segment, 0: none
     const xrf_backend *backend_ = nullptr;
     xrf_ico_transport *transport_ = nullptr;
     bool transport_failed_ = false;
