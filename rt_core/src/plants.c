@@ -23,7 +23,8 @@
     ROW(relbot, 4)           \
     ROW(jiwy, 4)             \
     ROW(stage, 4)            \
-    ROW(cell, 4)
+    ROW(cell, 4)             \
+    ROW(youbot, 9)
 
 #define XRF_PLANT_DECLARE(n, channels) extern const struct xrf_plant_ops xrf_plant_##n;
 XRF_PLANT_TABLE(XRF_PLANT_DECLARE)

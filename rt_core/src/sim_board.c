@@ -32,6 +32,7 @@ struct sim_board {
     struct xrf_sim_faults faults;
     double fixed_dt;
     struct xrf_sim_outputs *outputs;
+    struct xrf_sim_snapshot *snapshot; /* NULL, or where the plant's snapshot goes each transfer */
     int64_t (*clock)(void); /* simulated time: the loop's clock (xrf_sim_set_clock); NULL: real */
 
     int channels; /* the bench's count, the plant row's (1..XRF_MAX_CHANNELS) */
@@ -173,6 +174,16 @@ static void mirror(struct sim_board *s)
     }
     s->ops->state(s->plant, o->plant, (int)(sizeof o->plant / sizeof o->plant[0]));
     __atomic_store_n(&o->active, 1u, __ATOMIC_RELEASE);
+    if (s->snapshot && s->ops->save) {
+        /* For the safety watcher's `hold` (plant.h): what it steps on from if the loop dies. */
+        struct xrf_sim_snapshot *sn = s->snapshot;
+        uint32_t seq = __atomic_load_n(&sn->seq, __ATOMIC_RELAXED);
+        __atomic_store_n(&sn->seq, seq | 1u, __ATOMIC_RELAXED);
+        __atomic_thread_fence(__ATOMIC_RELEASE);
+        int n = s->ops->save(s->plant, sn->v, XRF_SIM_SNAPSHOT_MAX);
+        sn->n = (uint32_t)n;
+        __atomic_store_n(&sn->seq, (seq | 1u) + 1u, __ATOMIC_RELEASE);
+    }
 }
 
 static void busy_wait_until(const struct timespec *start, uint32_t us)
@@ -354,6 +365,16 @@ int xrf_sim_set_clock(struct xrf_ico_transport *t, int64_t (*now_ns)(void))
     if (!t || t->xfer != sim_xfer)
         return -EINVAL;
     ((struct sim_board *)t)->clock = now_ns;
+    return 0;
+}
+
+int xrf_sim_set_snapshot(struct xrf_ico_transport *t, struct xrf_sim_snapshot *snapshot)
+{
+    if (!t || t->xfer != sim_xfer)
+        return -EINVAL;
+    struct sim_board *s = (struct sim_board *)t;
+    s->snapshot = snapshot;
+    mirror(s);
     return 0;
 }
 
