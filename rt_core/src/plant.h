@@ -12,6 +12,8 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "xrf/hold.h"
+
 #define XRF_PLANT_SUPPLY_V 12.0 /* default supply the PWM duty scales */
 
 struct xrf_dc_motor_params {
@@ -75,6 +77,17 @@ struct xrf_plant_ops {
      * fault spec says `start=<seed>` (seed > 0): a start pose drawn from the seed, for plants a
      * controller must home (it starts from any pose; the same seed, the same pose). */
     void (*start)(void *plant, uint32_t seed);
+    /* Optional (0/NULL: the plant has no `hold` safe reaction). The watcher keeps stepping the
+     * plant once the loop process is gone (xrf/watch.h): the board writes the plant's dynamic
+     * state (save: up to n values, returns how many; snapshot_len of them) to the shared
+     * memory each transfer, the watcher loads it into its own copy of the plant. `load` reads
+     * values the student's program could have written: it keeps every one finite and inside
+     * the plant's physics (joint limits, bounded speeds), whatever it is given. `arm` is the
+     * model the hold law (xrf/hold.h) drives. */
+    int snapshot_len;
+    int (*save)(const void *plant, double *out, int n);
+    void (*load)(void *plant, const double *in, int n);
+    const struct xrf_hold_arm *arm;
 };
 
 /* The plant table (plants.c): row `id` (from 1), or NULL. */

@@ -18,7 +18,8 @@
     ROW(relbot)              \
     ROW(jiwy)                \
     ROW(stage)               \
-    ROW(cell)
+    ROW(cell)                \
+    ROW(youbot)
 
 #define XRF_PLANT_DECLARE(n) extern const struct xrf_plant_ops xrf_plant_##n;
 XRF_PLANT_TABLE(XRF_PLANT_DECLARE)

@@ -226,6 +226,8 @@ xrf_ico_transport *Runtime::transport()
                              o.sim_faults);
             else
                 r = xrf_sim_open(robot, &faults, 0.0, shm_ ? &shm_->sim : nullptr, &transport_);
+            if (r == 0 && shm_) /* the watcher's `hold` steps the plant on from there */
+                xrf_sim_set_snapshot(transport_, &shm_->sim_snapshot);
         }
     } else if (std::strcmp(want, "spidev") == 0) {
         r = xrf_spidev_open(o.spi_device, o.spi_speed, &transport_);

@@ -25,6 +25,7 @@
 #define SIM_COUNTS_PER_REV 4096.0 /* 1024-line encoder, quadrature */
 #define SIM_MAX_SUBSTEP_S 100e-6
 #define SIM_MAX_GAP_S 0.050 /* a stalled caller must not make the plant jump */
+#define XRF_SIM_DUTY_LEN 12 /* three ico boards' channels */
 
 struct sim_board {
     struct xrf_ico_transport t;      /* first, so the transport pointer is the object pointer */
@@ -32,6 +33,7 @@ struct sim_board {
     struct xrf_sim_faults faults;
     double fixed_dt;
     struct xrf_sim_outputs *outputs;
+    struct xrf_sim_snapshot *snapshot; /* NULL, or where the plant's snapshot goes each transfer */
     int64_t (*clock)(void); /* simulated time: the loop's clock (xrf_sim_set_clock); NULL: real */
 
     /* The board's registers. */
@@ -64,7 +66,9 @@ static void advance(struct sim_board *s, double dt)
 {
     if (!(dt > 0.0))
         return;
-    double duty[4] = {0, 0, 0, 0};
+    /* As wide as a plant may read (the youBot's 9 channels); those the board has no PWM for
+     * stay zero. */
+    double duty[XRF_SIM_DUTY_LEN] = {0};
     if (!forced_off(s)) {
         for (int ch = 0; ch < 4; ch++) {
             double d = s->pwm[ch] / (double)XRF_ICO_PWM_FULL;
@@ -166,6 +170,16 @@ static void mirror(struct sim_board *s)
     }
     s->ops->state(s->plant, o->plant, (int)(sizeof o->plant / sizeof o->plant[0]));
     __atomic_store_n(&o->active, 1u, __ATOMIC_RELEASE);
+    if (s->snapshot && s->ops->save) {
+        /* For the safety watcher's `hold` (plant.h): what it steps on from if the loop dies. */
+        struct xrf_sim_snapshot *sn = s->snapshot;
+        uint32_t seq = __atomic_load_n(&sn->seq, __ATOMIC_RELAXED);
+        __atomic_store_n(&sn->seq, seq | 1u, __ATOMIC_RELAXED);
+        __atomic_thread_fence(__ATOMIC_RELEASE);
+        int n = s->ops->save(s->plant, sn->v, XRF_SIM_SNAPSHOT_MAX);
+        sn->n = (uint32_t)n;
+        __atomic_store_n(&sn->seq, (seq | 1u) + 1u, __ATOMIC_RELEASE);
+    }
 }
 
 static void busy_wait_until(const struct timespec *start, uint32_t us)
@@ -317,6 +331,16 @@ int xrf_sim_set_clock(struct xrf_ico_transport *t, int64_t (*now_ns)(void))
     if (!t || t->xfer != sim_xfer)
         return -EINVAL;
     ((struct sim_board *)t)->clock = now_ns;
+    return 0;
+}
+
+int xrf_sim_set_snapshot(struct xrf_ico_transport *t, struct xrf_sim_snapshot *snapshot)
+{
+    if (!t || t->xfer != sim_xfer)
+        return -EINVAL;
+    struct sim_board *s = (struct sim_board *)t;
+    s->snapshot = snapshot;
+    mirror(s);
     return 0;
 }
 

@@ -271,7 +271,7 @@ static void test_parse(void)
     CHECK(xrf_sim_parse_faults("warp_drive", &f) == -EINVAL);
     CHECK(xrf_sim_robot_from_name("relbot") == XRF_SIM_RELBOT);
     CHECK(xrf_sim_robot_from_name("jiwy") == XRF_SIM_JIWY);
-    CHECK(xrf_sim_robot_from_name("youbot") == -EINVAL);
+    CHECK(xrf_sim_robot_from_name("warthog") == -EINVAL);
     struct xrf_ico_transport *t = NULL;
     CHECK(xrf_sim_open(7, NULL, DT, NULL, &t) == -EINVAL && t == NULL);
 }
@@ -430,7 +430,7 @@ static void test_plant_table(void)
     CHECK(xrf_plant_describe(XRF_SIM_JIWY, &info) == 0 && strcmp(info.name, "jiwy") == 0);
     for (int id = 1; id <= n; id++) {
         CHECK(xrf_plant_describe(id, &info) == 0 && info.id == id);
-        CHECK(info.axes >= 1 && info.axes <= 4 && info.state_len >= 1 && info.state_len <= 8);
+        CHECK(info.axes >= 1 && info.axes <= 12 && info.state_len >= 1 && info.state_len <= 8);
         CHECK(xrf_plant_id(info.name) == id && xrf_sim_robot_from_name(info.name) == id);
         struct xrf_ico_transport *t = open_sim(id, NULL, NULL);
         double s[8];

@@ -49,9 +49,9 @@ def test_rows_describe_their_plant() -> None:
     assert relbot.axes == 2 and relbot.state[:3] == ("x m", "y m", "theta rad")
     assert jiwy.axes == 2 and jiwy.state[:2] == ("pan rad", "tilt rad")
     for p in plants.plants():
-        assert p.title and 1 <= p.axes <= 4 and 1 <= len(p.state) <= 8
+        assert p.title and 1 <= p.axes <= 12 and 1 <= len(p.state) <= 8
     with pytest.raises(KeyError, match="have: relbot, jiwy"):
-        plants.get("youbot")
+        plants.get("warthog")
 
 
 def test_cli_sim_takes_the_table() -> None:
@@ -59,7 +59,7 @@ def test_cli_sim_takes_the_table() -> None:
     for name in plants.names():
         assert parser.parse_args(["run", "build/x", "--sim", name]).sim == name
     with pytest.raises(SystemExit) as exc:
-        parser.parse_args(["run", "build/x", "--sim", "youbot"])
+        parser.parse_args(["run", "build/x", "--sim", "warthog"])
     assert exc.value.code == 2
 
 
@@ -68,8 +68,8 @@ def test_run_requests_take_the_table(model) -> None:
     kw = {"build": "x"} if model is StartRun else {}
     for name in plants.names():
         assert model(sim=name, **kw).sim == name
-    with pytest.raises(ValidationError, match="unknown simulated plant 'youbot'"):
-        model(sim="youbot", **kw)
+    with pytest.raises(ValidationError, match="unknown simulated plant 'warthog'"):
+        model(sim="warthog", **kw)
     schema = model.model_json_schema()["properties"]["sim"]
     enums = [s.get("enum") for s in schema.get("anyOf", [schema]) if s.get("enum")]
     assert enums == [list(plants.names())]

@@ -543,13 +543,13 @@ def test_the_tool_alone_checks_the_plant_its_profile_names(checker_exe, plant):
 
 def test_an_unknown_simulated_robot_names_the_table(checker_exe):
     proc = subprocess.run(
-        [str(checker_exe), "--transport", "sim", "--sim", "youbot", "--profile", "-"],
+        [str(checker_exe), "--transport", "sim", "--sim", "warthog", "--profile", "-"],
         input=flat_form(load_profile("relbot")),
         capture_output=True,
         text=True,
         timeout=300,
     )
     assert proc.returncode != 0
-    assert "unknown simulated robot 'youbot'" in proc.stdout + proc.stderr
+    assert "unknown simulated robot 'warthog'" in proc.stdout + proc.stderr
     for name in plants.names():
         assert name in proc.stdout + proc.stderr

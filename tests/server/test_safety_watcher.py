@@ -7,6 +7,7 @@ process and to that memory, and that it does it while this Python process is bus
 from __future__ import annotations
 
 import errno
+import math
 import os
 import re
 import signal
@@ -232,7 +233,11 @@ def test_a_reaction_the_watcher_cannot_carry_out_is_refused_at_start(child, reac
 def test_the_reactions_are_named_from_the_c_list() -> None:
     from xrflab.channels import SAFE_REACTIONS
 
-    assert SAFE_REACTIONS == {"zero": lib.XRF_SAFE_REACTION_ZERO, "brake": lib.XRF_SAFE_REACTION_BRAKE}
+    assert SAFE_REACTIONS == {
+        "zero": lib.XRF_SAFE_REACTION_ZERO,
+        "brake": lib.XRF_SAFE_REACTION_BRAKE,
+        "hold": lib.XRF_SAFE_REACTION_HOLD,
+    }
     for name, number in SAFE_REACTIONS.items():
         assert ffi.string(lib.xrf_safe_reaction_name(number)).decode() == name
         assert lib.xrf_safe_reaction_parse(name.encode()) == number
@@ -261,3 +266,51 @@ def test_the_runs_plant_profile_names_the_reaction(tmp_path, monkeypatch, caplog
     (prof.profiles_dir(tmp_path) / "stage.json").write_text('{"name": "stage", "safety": {"reaction": "hover"}}')
     assert run_safe_reaction("stage", False, settings).name == "zero"
     assert "unusable" in caplog.text and "hover" in caplog.text
+
+
+def test_hold_needs_a_plant_with_an_arm(child) -> None:
+    """`hold` on the simulated board steps the run's plant: one without an arm model is refused
+    at start (RELbot), never found out when the outputs must be made safe."""
+    from xrflab import plants
+
+    ch = _FakeChannels()
+    for plant in (0, plants.get("relbot").id, 999):
+        with pytest.raises(ValueError, match="needs a simulated plant with an arm model"):
+            SafetyWatcher(
+                child.pid, ch, hang_timeout_ms=0, check_ms=20, force_sim=True, safe_reaction="hold", plant=plant
+            )  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("poison", ["nan", "huge", "odd_seq"])
+def test_hold_takes_a_hostile_snapshot_and_still_puts_the_arm_down(child, poison) -> None:
+    """The snapshot the watcher steps the arm on from is in memory the loop (the student's
+    program) writes: NaN, absurd values, a seqlock left odd for ever. The watcher neither crashes
+    nor hangs on it; the arm it simulates ends at its rest pose within the law's bound."""
+    from xrflab import plants
+
+    ch = _FakeChannels()
+    snap = ch.shm.sim_snapshot
+    values = {"nan": float("nan"), "huge": 1e308, "odd_seq": 0.0}[poison]
+    for i in range(lib.XRF_SIM_SNAPSHOT_MAX):
+        snap.v[i] = -values if i % 2 else values
+    snap.seq = 7 if poison == "odd_seq" else 2
+    snap.n = 0xFFFFFFFF
+    w = SafetyWatcher(
+        child.pid,
+        ch,
+        hang_timeout_ms=0,
+        check_ms=20,
+        force_sim=True,
+        safe_reaction="hold",
+        plant=plants.get("youbot").id,
+    )  # type: ignore[arg-type]
+    child.kill()
+    _wait_result(w)  # the exit seen (a stop() before it would cancel the watch)
+    r = w.stop()  # waits for the closing sequence: bounded by the law's max_s (20 s)
+    assert r.reason == "exit" and r.hold_phase == 3 and r.rest_ns >= r.safe_ns > 0
+    assert r.safe_ns - r.event_ns < 100_000_000
+    pose = [ch.shm.sim.plant[i] for i in range(8)]
+    assert all(math.isfinite(v) for v in pose), pose
+    rest = [math.radians(d) for d in (-65.0, 151.0, -102.5)]
+    assert all(abs(q - want) < math.radians(1.0) for q, want in zip(pose[1:4], rest, strict=True)), pose
+    assert list(ch.shm.sim.pwm) == [0, 0, 0, 0]

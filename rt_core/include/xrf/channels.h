@@ -36,7 +36,7 @@ extern "C" {
 
 /* cffi-begin */
 #define XRF_SHM_MAGIC 827740760 /* "XRF1" read as a little-endian uint32 */
-#define XRF_SHM_VERSION 6       /* 6: simulated time (struct xrf_vtime) */
+#define XRF_SHM_VERSION 7       /* 7: the simulated plant's snapshot (xrf_sim_snapshot) */
 
 #define XRF_NAME_MAX 64
 #define XRF_REASON_MAX 128
@@ -329,6 +329,19 @@ struct xrf_vtime {
     uint64_t run_until; /* host: cycles the loop may run; UINT64_MAX: free-running */
 };
 
+/* The simulated plant's dynamic state (its `save` op, rt_core/src/plant.h), written by the board
+ * at each transfer under the seqlock `seq` (odd while it writes), for the safety watcher: once
+ * the loop process is gone nothing else steps the plant, so for the safe reaction `hold` the
+ * watcher loads this into its own copy of the plant and steps it on (xrf/watch.h). The loop
+ * (student code) can write anything here: the watcher takes only the number of values its own
+ * plant row says, and the plant's `load` keeps every value finite and physical. */
+#define XRF_SIM_SNAPSHOT_MAX 32
+struct xrf_sim_snapshot {
+    uint32_t seq;
+    uint32_t n; /* values in v (informational: readers use their own plant's count) */
+    double v[XRF_SIM_SNAPSHOT_MAX];
+};
+
 struct xrf_shm {
     uint32_t magic;
     uint32_t version;
@@ -367,6 +380,7 @@ struct xrf_shm {
     /* live parameter tuning (xrf/params.h): table by the loop, sets by the host */
     struct xrf_params params;
     struct xrf_vtime vtime;
+    struct xrf_sim_snapshot sim_snapshot;
 };
 
 /* Layout and lifecycle (loop side). */

@@ -52,6 +52,11 @@ int xrf_sim_robot_from_name(const char *name);
  * NULL: back to CLOCK_MONOTONIC. -EINVAL if `t` is not a simulated board. */
 int xrf_sim_set_clock(struct xrf_ico_transport *t, int64_t (*now_ns)(void));
 
+/* The plant's snapshot (struct xrf_sim_snapshot, for the safety watcher's `hold`) goes to
+ * `snapshot` at each transfer from now on (NULL: nowhere). -EINVAL if `t` is not a simulated
+ * board. */
+int xrf_sim_set_snapshot(struct xrf_ico_transport *t, struct xrf_sim_snapshot *snapshot);
+
 /* Plant state for tests and viewers, as the plant's table row names it (xrf_plant_info.state):
  * e.g. jiwy {pan, tilt, pan_rate, tilt_rate} (rad, rad/s at the camera), relbot {x, y, theta,
  * wheel_left, wheel_right} (m, rad, wheel rad/s). */

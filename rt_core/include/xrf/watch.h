@@ -30,10 +30,12 @@ extern "C" {
 #endif
 
 /* cffi-begin */
-#define XRF_WATCH_WATCHING 0  /* nothing happened yet */
-#define XRF_WATCH_EXIT 1      /* the loop process ended */
-#define XRF_WATCH_HANG 2      /* alive but no cycle for longer than hang_timeout_ns: killed */
-#define XRF_WATCH_CANCELLED 3 /* xrf_watch_stop() before anything happened */
+#define XRF_WATCH_WATCHING 0   /* nothing happened yet */
+#define XRF_WATCH_EXIT 1       /* the loop process ended */
+#define XRF_WATCH_HANG 2       /* alive but no cycle for longer than hang_timeout_ns: killed */
+#define XRF_WATCH_CANCELLED 3  /* xrf_watch_stop() before anything happened */
+#define XRF_WATCH_HOST_GONE 4  /* the host (host_pid) died first: the loop was killed, made safe */
+#define XRF_WATCH_LOOP_ENDED 5 /* host_only: the loop ended first, left to the host's watcher */
 
 #define XRF_WATCH_RESET_NOT_TRIED 1 /* reset_status: no spidev configured */
 
@@ -44,10 +46,16 @@ extern "C" {
  *         it is unpowered (RELbot, Jiwy, a lead-screw stage).
  *  brake: every PWM zero and the brake's digital output (brake_channel) on, and kept on: a
  *         robot whose brake holds it once engaged. The output is never switched off by the
- *         watcher, so a brake wired either way (energise-to-engage) stays engaged. */
+ *         watcher, so a brake wired either way (energise-to-engage) stays engaged.
+ *  hold:  a gravity-loaded arm (the youBot): the watcher runs a fallback law (xrf/hold.h) that
+ *         holds the pose measured at the fault with gravity compensation and damping, then
+ *         lowers the arm at a bounded speed to its rest pose on its hard stops, then zero. On the
+ *         simulated board the watcher steps the plant itself from the board's snapshot in the
+ *         shared memory (nothing else does once the loop is gone): `plant` names it. */
 #define XRF_SAFE_REACTIONS(X) \
     X(ZERO, "zero", 0)        \
-    X(BRAKE, "brake", 1)
+    X(BRAKE, "brake", 1)      \
+    X(HOLD, "hold", 2)
 
 struct xrf_watch_config {
     int pid;                 /* the loop process, as this process sees it */
@@ -63,6 +71,15 @@ struct xrf_watch_config {
     uint64_t avoid_cpus;
     int32_t safe_reaction; /* XRF_SAFE_REACTION_* (0: zero) */
     int32_t brake_channel; /* brake: the channel (1..4) whose digital output engages the brake */
+    int32_t plant;         /* hold: the plant table's id (xrf/plants.h) of the simulated arm */
+    /* > 0: also watch this process (the appliance that supervises the run). If it dies first,
+     * the loop is killed (it would run on unsupervised) and the outputs made safe as on an exit:
+     * for `hold`, the arm is held and lowered. */
+    int32_t host_pid;
+    /* 1: act only on the host's death; a loop that ends first is the host's own watcher's to
+     * handle (XRF_WATCH_LOOP_ENDED, nothing done). The per-run `xrf-watch` process runs so. */
+    int32_t host_only;
+    int32_t pad;
 };
 
 struct xrf_watch_result {
@@ -75,6 +92,15 @@ struct xrf_watch_result {
     int64_t event_ns;     /* CLOCK_MONOTONIC when the exit or hang was seen */
     int64_t safe_ns;      /* CLOCK_MONOTONIC when the outputs were safe */
     int64_t heartbeat_ns; /* the loop's last heartbeat (start of its last cycle) */
+    /* hold: CLOCK_MONOTONIC when the arm was at rest and the outputs zero (0: not yet), the
+     * largest distance of a joint from the law's reference until then (µrad), the law's phase
+     * (XRF_HOLD_PHASE_*, 0 before it started), and 0 or -errno (-EOPNOTSUPP: a real board,
+     * where the watcher zeroed the outputs instead). */
+    int64_t rest_ns;
+    int32_t drop_urad;
+    int32_t hold_phase;
+    int32_t hold_status;
+    int32_t pad2;
 };
 
 struct xrf_watch;
@@ -86,8 +112,12 @@ int xrf_watch_start(struct xrf_shm *shm, const struct xrf_watch_config *cfg,
 /* Copy the result so far; returns its reason (XRF_WATCH_WATCHING while still watching). */
 int xrf_watch_result(struct xrf_watch *w, struct xrf_watch_result *out);
 /* End the watcher and free it. A loop that has already exited is still handled (outputs made
- * safe) before the thread ends, so the final result never misses an exit. */
+ * safe) before the thread ends, so the final result never misses an exit; a `hold` under way
+ * is finished first (the arm at rest: at most the law's max_s, 20 s for the youBot). */
 int xrf_watch_stop(struct xrf_watch *w, struct xrf_watch_result *out);
+/* Wait until the watcher has finished (acted, and for `hold` the arm is at rest), then free it
+ * like xrf_watch_stop; nothing is cancelled. */
+int xrf_watch_wait(struct xrf_watch *w, struct xrf_watch_result *out);
 /* Send the FPGA RESET frame once over spidev `device` (also what the watcher does). */
 int xrf_fpga_reset(const char *device, uint32_t speed_hz);
 /* Send one ALL frame with every PWM zero and only channel `brake_channel`'s (1..4) digital

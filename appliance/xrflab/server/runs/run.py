@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import subprocess
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -75,6 +76,7 @@ class Run:
     guest: GuestReport | None = None  # which protection layers of the run sandbox hold
     watcher: SafetyWatcher | None = None  # the C thread that makes the outputs safe (server/runs/safety.py)
     watch: WatchResult | None = None  # what it did, once it acted
+    backup: subprocess.Popen | None = None  # xrf-watch: the reaction if the appliance dies (watch.py)
     end_reason: str = ""  # set by whoever ends the run on purpose (runs.END_REASONS)
     limits: RunLimits | None = None  # its cgroup and file system (server/runs/limits.py)
     limit_alarm: str = ""  # the kind of the limit alarm already published ("memory", ...)

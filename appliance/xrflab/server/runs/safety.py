@@ -23,6 +23,8 @@ _REASONS = {
     lib.XRF_WATCH_EXIT: "exit",
     lib.XRF_WATCH_HANG: "hang",
     lib.XRF_WATCH_CANCELLED: "cancelled",
+    lib.XRF_WATCH_HOST_GONE: "host_gone",
+    lib.XRF_WATCH_LOOP_ENDED: "loop_ended",
 }
 
 
@@ -37,6 +39,13 @@ class WatchResult:
     event_ns: int  # CLOCK_MONOTONIC, the clock of time.monotonic_ns()
     safe_ns: int
     heartbeat_ns: int
+    # hold (xrf/hold.h): when the arm was at rest with the outputs zero (0: not yet or not
+    # holding), the largest joint drop until then (µrad), the law's phase (0: none), and 0 or
+    # -errno (-EOPNOTSUPP: a real board, whose outputs were zeroed instead).
+    rest_ns: int = 0
+    drop_urad: int = 0
+    hold_phase: int = 0
+    hold_status: int = 0
 
     @property
     def acted(self) -> bool:
@@ -50,8 +59,12 @@ class WatchResult:
         """What was done to the outputs, for the run record and the alarm."""
         parts = []
         brake = f" but the brake on channel {self.brake_channel}" if self.brake_channel else ""
-        if self.sim_forced:
+        if self.sim_forced and self.hold_phase:
+            parts.append("arm held by the safety watcher, lowered to its rest pose")
+        elif self.sim_forced:
             parts.append(f"sim outputs forced off{brake}")
+        if self.hold_status == -errno.EOPNOTSUPP:
+            parts.append("hold not done on a real board yet: outputs zeroed")
         if self.reset_status == 0:
             parts.append(
                 f"brake frame sent (PWM zero, brake on channel {self.brake_channel})" if brake else "FPGA RESET sent"
@@ -87,6 +100,10 @@ def _result(r: Any, brake_channel: int) -> WatchResult:
         event_ns=r.event_ns,
         safe_ns=r.safe_ns,
         heartbeat_ns=r.heartbeat_ns,
+        rest_ns=r.rest_ns,
+        drop_urad=r.drop_urad,
+        hold_phase=r.hold_phase,
+        hold_status=r.hold_status,
     )
 
 
@@ -109,6 +126,7 @@ class SafetyWatcher:
         avoid_cpus: frozenset[int] | set[int] = frozenset(),
         safe_reaction: str = "zero",
         brake_channel: int = 0,
+        plant: int = 0,
     ) -> None:
         if safe_reaction not in SAFE_REACTIONS:
             raise ValueError(f"unknown safe reaction {safe_reaction!r} (known: {', '.join(SAFE_REACTIONS)})")
@@ -129,6 +147,7 @@ class SafetyWatcher:
         cfg.avoid_cpus = sum(1 << c for c in avoid_cpus if 0 <= c < 64)
         cfg.safe_reaction = SAFE_REACTIONS[safe_reaction]
         cfg.brake_channel = brake_channel
+        cfg.plant = plant
         self.safe_reaction = safe_reaction
         self.brake_channel = brake_channel
         out = ffi.new("struct xrf_watch **")
@@ -137,6 +156,9 @@ class SafetyWatcher:
         if r == -errno.EINVAL and safe_reaction == "brake":
             os.close(self._efd)
             raise ValueError(f"safe reaction 'brake' needs a brake channel 1..4 (got {brake_channel})")
+        if r == -errno.EINVAL and safe_reaction == "hold":
+            os.close(self._efd)
+            raise ValueError(f"safe reaction 'hold' needs a simulated plant with an arm model (plant id {plant})")
         if r < 0:
             os.close(self._efd)
             raise OSError(-r, f"safety watcher for pid {pid}: {os.strerror(-r)}")
@@ -160,7 +182,8 @@ class SafetyWatcher:
 
     def stop(self) -> WatchResult:
         """End the watcher (joins its thread: call off the event loop). A loop that has already
-        exited is still made safe first. Idempotent."""
+        exited is still made safe first, and a `hold` under way is carried out to the arm's rest
+        pose (seconds: the law bounds it). Idempotent."""
         if self._final is None:
             c = ffi.new("struct xrf_watch_result *")
             lib.xrf_watch_stop(self._w, c)

@@ -19,10 +19,15 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
+import os
 import signal
+import subprocess
 import time
+from pathlib import Path
 
+from ... import build, plants
 from ...channels import ChannelsError
 from ...profiles import ProfileError, SafeReaction, bench_profile_name, load_profile, safe_reaction
 from ..settings import Settings
@@ -68,12 +73,54 @@ def start_watcher(run: Run, settings: Settings) -> None:
             avoid_cpus=avoid,
             safe_reaction=reaction.name,
             brake_channel=reaction.brake_channel,
+            plant=hold_plant(run.row.sim or settings.sim) if reaction.name == "hold" else 0,
         )
     except (OSError, ValueError) as exc:  # ESRCH: the loop is already gone; wait_for_exit handles it
         log.warning("run %s: no safety watcher (%s); the event loop watches instead", run.row.id, exc)
         return
     run.watcher = w
     asyncio.get_running_loop().add_reader(w.fileno(), on_watch, run)
+    if reaction.name == "hold":
+        start_backup(run, reaction, settings)
+
+
+@functools.cache
+def _watch_exe() -> Path:
+    """rt_core's xrf-watch, from the install every run's build links (built once per content)."""
+    return Path(build.ensure_rt_core(log=lambda line: None)) / "bin" / "xrf-watch"
+
+
+def start_backup(run: Run, reaction: SafeReaction, settings: Settings) -> None:
+    """xrf-watch beside the thread (docs/developers/safety.md "When the appliance dies"): if this
+    process dies first, it kills the loop and holds and lowers the arm. In a session of its own
+    (not tied to us), handed our descriptor of the segment; it leaves by itself when the loop
+    ends first, and wait_for_exit reaps it."""
+    if run.shm_fd < 0:
+        log.warning("run %s: no segment descriptor: no backup watcher for the arm", run.row.id)
+        return
+    try:
+        exe = _watch_exe()
+        run.backup = subprocess.Popen(
+            [str(exe), "--shm-fd", str(run.shm_fd), "--loop", str(run.row.pid or run.proc.pid)]
+            + ["--host", str(os.getpid()), "--reaction", reaction.name]
+            + (["--spi", settings.spi_device] if settings.bench_is_real() else ["--plant", run.row.sim or settings.sim])
+            + ["--rt-priority", str(max(0, settings.watch_priority))],
+            pass_fds=(run.shm_fd,),
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+    except (OSError, build.BuildError) as exc:
+        log.warning("run %s: no backup watcher for the arm (%s)", run.row.id, exc)
+
+
+def hold_plant(name: str) -> int:
+    """The plant table's id of the simulated arm `hold` steps on (0: none, which the watcher
+    refuses: the run is then watched by the event loop, said in the log)."""
+    try:
+        return plants.get(name).id
+    except KeyError:
+        return 0
 
 
 def run_safe_reaction(plant: str, real: bool, settings: Settings) -> SafeReaction:
@@ -143,6 +190,12 @@ async def wait_for_exit(run: Run, settings: Settings) -> int:
             asyncio.get_running_loop().remove_reader(w.fileno())
         # The exit has happened: stop() lets the thread handle it first if it has not yet.
         take_watch(run, await asyncio.to_thread(w.stop))
+    if run.backup is not None:  # it saw the loop end first and leaves by itself
+        try:
+            await asyncio.to_thread(run.backup.wait, 10)
+        except subprocess.TimeoutExpired:
+            run.backup.kill()
+            await asyncio.to_thread(run.backup.wait)
     if not run.exited_at:
         run.exited_at = time.monotonic()
     safe_state(run, settings)
