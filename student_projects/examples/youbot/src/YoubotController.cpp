@@ -232,7 +232,9 @@ int YoubotController::initialising()
 {
     if (!board_initialised) {
         ico_io.init();
-        logger.initialise();
+        if (!logger.isInitialised())
+            logger.initialise();
+        logger.start(); // from the first move on: the log holds the rise and the closing sequence
         board_initialised = true;
         if (!encoders_zeroed) {
             // Power-up: the arm is parked at rest, where the counters read zero.
@@ -267,7 +269,7 @@ int YoubotController::initialising()
 int YoubotController::initialised()
 {
     measure();
-    holdArm(); // the arm would fall: it is held in every state but STOPPED
+    holdArm();            // the arm would fall: it is held in every state but STOPPED
     base_refused = false; // the arm is ready: RUN will take base commands
     stillBase();
     return 0;
@@ -275,7 +277,6 @@ int YoubotController::initialised()
 
 int YoubotController::run()
 {
-    logger.start();
     measure();
     holdArm();
     bool off = false, on = true;
@@ -321,10 +322,7 @@ int YoubotController::stopping()
         return -1; // error() keeps lowering it
     }
     restArm(rest_pose);
-    if (!at_rest)
-        return 0;
-    logger.stop();
-    return 1;
+    return at_rest ? 1 : 0;
 }
 
 int YoubotController::stopped()

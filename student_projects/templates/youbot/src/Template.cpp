@@ -216,7 +216,9 @@ int Template::initialising()
 {
     if (!board_initialised) {
         ico_io.init();
-        logger.initialise();
+        if (!logger.isInitialised())
+            logger.initialise();
+        logger.start(); // from the first move on: the log holds the rise and the closing sequence
         board_initialised = true;
         if (!encoders_zeroed) {
             // Power-up: the arm is parked at rest, where the counters read zero.
@@ -251,7 +253,7 @@ int Template::initialising()
 int Template::initialised()
 {
     measure();
-    holdArm(); // the arm would fall: it is held in every state but STOPPED
+    holdArm();            // the arm would fall: it is held in every state but STOPPED
     base_refused = false; // the arm is ready: RUN will take base commands
     stillBase();
     return 0;
@@ -259,7 +261,6 @@ int Template::initialised()
 
 int Template::run()
 {
-    logger.start();
     measure();
     holdArm();
     bool off = false, on = true;
@@ -305,10 +306,7 @@ int Template::stopping()
         return -1; // error() keeps lowering it
     }
     restArm(rest_pose);
-    if (!at_rest)
-        return 0;
-    logger.stop();
-    return 1;
+    return at_rest ? 1 : 0;
 }
 
 int Template::stopped()
