@@ -679,16 +679,26 @@ function applyTelemetry(m) {
   if (m.ros2xeno && Object.keys(m.ros2xeno).length && !(xrf.run && xrf.run.redacted)) followLoop(m.ros2xeno);
 }
 
-// A controller that must home before RUN (the cell example) says so in a bool Xeno2Ros field
-// `homed`; a project without the field shows no badge.
+// A controller that must get ready before it may move says so in a bool Xeno2Ros field: the
+// cell example's `homed` (every axis found its home switch; RUN is refused until then), the
+// youBot example's `arm_ready` (the arm reached its ready pose; base motion is refused until
+// then). A project with neither field shows no badge. [field, text when true, when false, title]
+const READINESS = [
+  ["homed", "homed", "not homed", "Xeno2Ros homed: every axis found its home switch; RUN is refused until then"],
+  ["arm_ready", "arm ready", "arm not ready",
+    "Xeno2Ros arm_ready: the arm reached its ready pose; the base refuses motion until then"],
+];
 function showReadiness(m) {
   const el = $("homed-badge");
-  const homed = m && m.xeno2ros ? m.xeno2ros.homed : undefined;
-  el.classList.toggle("hidden", typeof homed !== "boolean");
-  if (typeof homed !== "boolean") return;
-  el.textContent = homed ? "homed" : "not homed";
-  el.classList.toggle("ok", homed);
-  el.classList.toggle("bad", !homed);
+  const x = m && m.xeno2ros ? m.xeno2ros : {};
+  const r = READINESS.find(([field]) => typeof x[field] === "boolean");
+  el.classList.toggle("hidden", !r);
+  if (!r) return;
+  const ok = x[r[0]];
+  el.textContent = ok ? r[1] : r[2];
+  el.title = r[3];
+  el.classList.toggle("ok", ok);
+  el.classList.toggle("bad", !ok);
 }
 
 // Redraw at most once per animation frame, however fast samples arrive.

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ._cffi_build import xmacro_named
+from ._cffi_build import rt_core_dir, xmacro_named
 from .errors import Invalid
 from .selfcheck_limits import hard_limits
 
@@ -243,7 +243,7 @@ def validate_profile(profile: Any, source: str = "") -> dict[str, Any]:
 
 def _check_channel(c: _Checker, i: int, ch: dict, seen: set[int], pwm_limit: float) -> None:
     lim = hard_limits()
-    n = c.num(ch, f"channels[{i}]", "channel", 1, 4, required=True, integer=True)
+    n = c.num(ch, f"channels[{i}]", "channel", 1, max_channels(), required=True, integer=True)
     where = f"channel {int(n)}" if n is not None else f"channels[{i}]"
     if n is not None:
         if n in seen:
@@ -298,6 +298,15 @@ def _check_channel(c: _Checker, i: int, ch: dict, seen: set[int], pwm_limit: flo
         c.string(pin, w, "name")
         if pin.get("idle") not in (None, 0, 1) or isinstance(pin.get("idle"), bool):
             c.err(f"{w}.idle", f"{where}.inputs pin {pin.get('pin')}: idle must be 0, 1 or null (not checked)")
+
+
+def max_channels() -> int:
+    """The most channels a bench has (XRF_MAX_CHANNELS of xrf/channels.h, read from its text as
+    the safe reactions are). Until that header defines it (issue 29 item 2, helper "channels"),
+    the agreed value, 12 (three ico boards): the youBot's profile names channels 1..9."""
+    text = (rt_core_dir() / "include" / "xrf" / "channels.h").read_text()
+    m = re.search(r"^#define XRF_MAX_CHANNELS\s+(\d+)", text, re.MULTILINE)
+    return int(m.group(1)) if m else 12
 
 
 def _safe_reactions() -> dict[str, int]:
@@ -392,10 +401,12 @@ def _check_mechanics(c: _Checker, mech: dict) -> None:
             c.err("mechanics.limits_m", "mechanics.limits_m must be [low, high] in m")
     elif kind == "cell":
         _check_cell_axes(c, mech.get("axes"))
+    elif kind == "youbot":
+        _check_youbot(c, mech)
     elif kind is not None:
         c.err(
             "mechanics.kind",
-            f"mechanics.kind {kind!r} is not known (differential_drive, pan_tilt, linear_stage or cell)",
+            f"mechanics.kind {kind!r} is not known (differential_drive, pan_tilt, linear_stage, cell or youbot)",
         )
 
 
@@ -425,6 +436,56 @@ def _check_cell_axes(c: _Checker, axes: Any) -> None:
         lim = ax.get("limits")
         if not (isinstance(lim, list) and len(lim) == 2 and all(_is_num(x) for x in lim) and lim[0] < lim[1]):
             c.err(f"{w}.limits", f"{w}.limits must be [low, high] (rad or m from the home switch)")
+
+
+def _check_youbot(c: _Checker, mech: dict) -> None:
+    """A mobile manipulator (viz/kinematics.py, Youbot): five arm joints, each a motor channel
+    with its gear and the angle its counter's 0 stands for (the rest pose it was parked in), and
+    a base on four mecanum wheels (front-left, front-right, rear-left, rear-right)."""
+    top = max_channels()
+    used: set[int] = set()
+
+    def channel(d: dict, w: str) -> None:
+        ch = c.num(d, w, "channel", 1, top, required=True, integer=True)
+        if ch is not None and int(ch) in used:
+            c.err(f"{w}.channel", f"{w}: channel {int(ch)} is used twice")
+        if ch is not None:
+            used.add(int(ch))
+
+    joints = mech.get("joints")
+    if not isinstance(joints, list) or len(joints) != 5:
+        c.err("mechanics.joints", "mechanics.joints must list the arm's 5 joints (J1 .. J5)")
+    if not isinstance(joints, list):
+        joints = []
+    for i, j in enumerate(joints):
+        w = f"mechanics.joints[{i}]"
+        if not isinstance(j, dict):
+            c.err(w, f"{w} must be an object")
+            continue
+        channel(j, w)
+        c.string(j, w, "name")
+        c.num(j, w, "gear_ratio", 0, 1e4, required=True, lo_open=True)
+        c.num(j, w, "zero_deg", -360, 360)
+        c.boolean(j, w, "inverted")
+        lim = j.get("limits_deg")
+        if lim is not None and not (
+            isinstance(lim, list) and len(lim) == 2 and all(_is_num(x) for x in lim) and lim[0] < lim[1]
+        ):
+            c.err(f"{w}.limits_deg", f"{w}.limits_deg must be [low, high] in degrees")
+    base = mech.get("base")
+    if not isinstance(base, dict):
+        c.err("mechanics.base", "mechanics.base must describe the mecanum base (wheel_channels, ...)")
+        return
+    wheels = base.get("wheel_channels")
+    if not isinstance(wheels, list) or len(wheels) != 4:
+        c.err("mechanics.base.wheel_channels", "mechanics.base.wheel_channels must be 4 channels (FL, FR, RL, RR)")
+    else:
+        for k, ch in enumerate(wheels):
+            channel({"channel": ch}, f"mechanics.base.wheel_channels[{k}]")
+    c.num(base, "mechanics.base", "gear_ratio", 0, 1e4, required=True, lo_open=True)
+    c.num(base, "mechanics.base", "wheel_diameter", 0, 2.0, required=True, lo_open=True)
+    c.num(base, "mechanics.base", "half_wheel_base", 0, 5.0, required=True, lo_open=True)
+    c.num(base, "mechanics.base", "half_track", 0, 5.0, required=True, lo_open=True)
 
 
 # ---- finding, loading, saving -------------------------------------------------------------------

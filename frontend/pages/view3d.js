@@ -75,6 +75,9 @@
     if (s.joints) {
       v = `pan ${deg(s.joints.pan)} · tilt ${deg(s.joints.tilt)}`;
       if (s.ghost) v += ` · setpoint (green) ${Object.entries(s.ghost).map(([k, x]) => k + " " + deg(x)).join(", ")}`;
+    } else if (s.arm) {  // the youBot: the arm's joints, then its base's odometry
+      v = s.arm.map((a, k) => `J${k + 1} ${deg(a)}`).join(" · ") +
+        ` · base x ${s.pose.x.toFixed(3)} m, y ${s.pose.y.toFixed(3)} m, θ ${deg(s.pose.theta)}`;
     } else if (s.pose) {
       v = `x ${s.pose.x.toFixed(3)} m · y ${s.pose.y.toFixed(3)} m · θ ${deg(s.pose.theta)}`;
     } else if (s.axes) {  // the cell: homed on its switches from the live pins (a replay has none)

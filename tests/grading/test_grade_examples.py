@@ -209,3 +209,15 @@ def test_the_queue_grades_in_bounded_parallel_and_a_failing_job_does_not_stop_it
         assert q.jobs["broken"].result.status == "error" and "no such build" in q.jobs["broken"].result.reason
     finally:
         q.close()
+
+
+def test_the_youbot_example_passes_its_scenario(tmp_path: Path) -> None:
+    """All four states graded (student_projects/scenarios/youbot.toml): ready by 8 s, held in RUN,
+    at rest on its stops after STOPPING; in simulated time (20 s of loop time in a few seconds)."""
+    exe = _built("youbot", EXAMPLES / "youbot")
+    s = scenario("youbot")
+    result = grade_executable(s, exe, tmp_path / "run", limits=QUICK, virtual_time=True)
+    assert result.status == "completed", (result.reason, result.output_tail)
+    failed = [(c.id, c.reason, c.value) for c in result.checks if not c.passed]
+    assert not failed
+    assert result.earned == result.points == s.max_points > 0

@@ -5,9 +5,9 @@
 - the appliance's defaults (the default plant/profile `relbot`, the SPI device, the dashboard's port
   8000, the room's MQTT ports 1883/8883): only in `Settings` (server/settings.py) and, for the room's
   broker, `room/topics.py`; code elsewhere reads them from there (`Settings.sim`, ...);
-- the bundled examples' `Encoder.hpp` and `Pid.hpp`: each example is a self-contained project a
-  student copies, zips and uploads, so each keeps its own copy; relbot's is the source and the
-  others must be byte-identical to it.
+- the bundled examples' and templates' `Encoder.hpp` and `Pid.hpp`: each example or template is a
+  self-contained project a student copies, zips and uploads, so each keeps its own copy; relbot's
+  is the source and the others must be byte-identical to it.
 
 Each check is a function of a tree, run on the checkout (nothing found) and on a copy with a
 planted second copy (found, naming the file). docs/ and tests/ may mention the values freely.
@@ -145,15 +145,18 @@ SOURCE_EXAMPLE = "relbot"
 
 def example_headers(root: Path) -> list[str]:
     examples = root / "student_projects" / "examples"
+    # The templates are projects a student starts from and zips whole too (the cell's and the
+    # youBot's carry the headers): their copies are checked as the examples' are.
+    projects = [*examples.iterdir(), *(root / "student_projects" / "templates").iterdir()]
     found = []
     for name in SHARED_HEADERS:
         source = examples / SOURCE_EXAMPLE / "include" / name
-        for example in sorted(p for p in examples.iterdir() if (p / "include" / name).is_file()):
+        for example in sorted(p for p in projects if (p / "include" / name).is_file()):
             copy = example / "include" / name
             if copy != source and copy.read_bytes() != source.read_bytes():
                 found.append(
                     f"{copy.relative_to(root)} differs from {source.relative_to(root)} (the source): "
-                    f"change relbot's and copy it to every example"
+                    f"change relbot's and copy it to every example and template that has it"
                 )
     return found
 
@@ -174,7 +177,7 @@ def tree(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """What the checks read, copied once; each test plants its copy in one file and takes it out."""
     root = tmp_path_factory.mktemp("written-once")
     ignore = shutil.ignore_patterns("__pycache__", "*.egg-info", "build", "vendor")
-    for name in ("frontend", "deploy", "student_projects/examples"):
+    for name in ("frontend", "deploy", "student_projects/examples", "student_projects/templates"):
         shutil.copytree(REPO / name, root / name, ignore=ignore)
     shutil.copy2(REPO / "lab", root / "lab")
     return root
@@ -245,3 +248,9 @@ def test_a_drifted_example_header_is_found(tree: Path) -> None:
     with planted(tree, "student_projects/examples/stage/include/Pid.hpp", "// drifted\n"):
         found = example_headers(tree)
     assert [f for f in found if "stage/include/Pid.hpp" in f], found
+
+
+def test_a_drifted_template_header_is_found(tree: Path) -> None:
+    with planted(tree, "student_projects/templates/youbot/include/Encoder.hpp", "// drifted\n"):
+        found = example_headers(tree)
+    assert [f for f in found if "templates/youbot/include/Encoder.hpp" in f], found

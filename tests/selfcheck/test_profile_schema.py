@@ -90,7 +90,12 @@ REJECTED_BY_THE_OLD_C_PARSER: list[tuple[str, Mutation, str]] = [
     ("a channels entry not an object", setting("channels", 1, value=[2]), "channels[1]"),
     ("a channels entry without channel", dropping("channels", 1, "channel"), "channels[1].channel"),
     ("channel 0", setting("channels", 1, "channel", value=0), "channels[1].channel"),
-    ("channel 5", setting("channels", 1, "channel", value=5), "channels[1].channel"),
+    # (the old parser's bound was one board's 4; a bench has up to XRF_MAX_CHANNELS now)
+    (
+        "channel past the most a bench has",
+        setting("channels", 1, "channel", value=prof.max_channels() + 1),
+        "channels[1].channel",
+    ),
     ("channel not whole", setting("channels", 1, "channel", value=1.5), "channels[1].channel"),
     ("channel not a number", setting("channels", 1, "channel", value="2"), "channels[1].channel"),
     ("channel name not a string", setting("channels", 0, "name", value=1), "channel 1.name"),
@@ -198,6 +203,8 @@ def test_hard_limits_come_from_the_c_header(tmp_path: Path) -> None:
     other = tmp_path / "rt_core" / "include" / "xrf"
     other.mkdir(parents=True)
     (other / "selfcheck_limits.h").write_text(header.replace("MAX_PULSE_MS 200", "MAX_PULSE_MS 150"))
+    # the channel bound comes from this header (profiles.max_channels)
+    (other / "channels.h").write_text((REPO / "rt_core/include/xrf/channels.h").read_text())
     script = """
 import copy, json, sys
 from xrflab import profiles as prof
@@ -267,3 +274,47 @@ def test_the_reactions_a_profile_may_name_are_the_headers() -> None:
 
     assert prof._safe_reactions() == SAFE_REACTIONS
     assert prof.safe_reaction(None).number == SAFE_REACTIONS["zero"]
+
+
+def _youbot_mechanics() -> dict[str, Any]:
+    return {
+        "kind": "youbot",
+        "counts_per_rev": 4096,
+        "gear_ratio": 1,
+        "joints": [{"channel": k, "name": f"J{k}", "gear_ratio": 100, "zero_deg": 0} for k in range(1, 6)],
+        "base": {
+            "wheel_channels": [6, 7, 8, 9],
+            "gear_ratio": 26,
+            "wheel_diameter": 0.1,
+            "half_wheel_base": 0.236,
+            "half_track": 0.15,
+        },
+    }
+
+
+def _mechanics_problems(mech: dict[str, Any]) -> set[str]:
+    c = prof._Checker()
+    prof._check_mechanics(c, mech)
+    return {e.field for e in c.problems}
+
+
+def test_youbot_mechanics_fields(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The youBot's mechanics (viz/kinematics.py Youbot): five joints and a four-wheel base on
+    channels the bench has (XRF_MAX_CHANNELS of channels.h), each channel once."""
+    monkeypatch.setattr(prof, "max_channels", lambda: 4)  # one ico board: no channel 5..9
+    assert {"mechanics.joints[4].channel", "mechanics.base.wheel_channels[0].channel"} <= _mechanics_problems(
+        _youbot_mechanics()
+    )
+    monkeypatch.setattr(prof, "max_channels", lambda: 12)  # three boards
+    assert _mechanics_problems(_youbot_mechanics()) == set()
+    bad = _youbot_mechanics()
+    del bad["joints"][4]
+    bad["base"]["wheel_channels"] = [6, 7, 8, 1]
+    bad["base"]["half_track"] = 0
+    assert _mechanics_problems(bad) == {
+        "mechanics.joints",
+        "mechanics.base.wheel_channels[3].channel",
+        "mechanics.base.half_track",
+    }
+    del bad["base"]
+    assert "mechanics.base" in _mechanics_problems(bad)

@@ -274,3 +274,65 @@ def test_cell_homes_on_the_switch_edge() -> None:
     assert pos[1] == pytest.approx((200 + 4096) * 0.004 / 4096) and m.homed[1] is False
     m.reset()
     assert m.positions == [0.0, 0.0, 0.0] and m.homed == [False, False, False]
+
+
+def _youbot_profile() -> dict:
+    # The figures of deploy/profiles/youbot.json (the simulated plant's), written out here so
+    # the hand computation below reads them.
+    joints = [("J1", 156, 0.0), ("J2", 156, -65.0), ("J3", 100, 151.0), ("J4", 71, -102.5), ("J5", 71, 0.0)]
+    return {
+        "name": "youbot",
+        "mechanics": {
+            "kind": "youbot",
+            "counts_per_rev": 4096,
+            "gear_ratio": 1,
+            "joints": [
+                {"channel": k + 1, "name": n, "gear_ratio": g, "zero_deg": z} for k, (n, g, z) in enumerate(joints)
+            ],
+            "base": {
+                "wheel_channels": [6, 7, 8, 9],
+                "gear_ratio": 26,
+                "wheel_diameter": 0.1,
+                "half_wheel_base": 0.236,
+                "half_track": 0.15,
+            },
+        },
+    }
+
+
+def _counts(*c: int) -> list[int]:
+    return [x % kin.COUNTER_RANGE for x in c]
+
+
+def test_youbot_arm_from_its_rest_pose_and_mecanum_odometry() -> None:
+    """The youBot's view, hand-computed: a joint is its rest-pose angle (the counters read 0
+    where the arm was parked) plus counts · 2π / 4096 / gear; the base's pose integrates the
+    mecanum kinematics (wheel radius 0.05 m, 26:1, lx + ly = 0.386 m)."""
+    m = kin.from_profile(_youbot_profile())
+    assert m.kind == "youbot" and [j.name for j in m.joints] == ["J1", "J2", "J3", "J4", "J5"]
+    rest = [0.0, math.radians(-65), math.radians(151), math.radians(-102.5), 0.0]
+    assert m.update([0] * 9) == pytest.approx(rest)
+    # J2 (gear 156) up three motor revolutions, J5 (gear 71) back one, in steps the unwrapping
+    # follows (less than half the counter range each).
+    m.update(_counts(0, 6144, 0, 0, -2048, 0, 0, 0, 0))
+    q = m.update(_counts(0, 12288, 0, 0, -4096, 0, 0, 0, 0))
+    assert q[1] == pytest.approx(math.radians(-65) + 3 * 2 * math.pi / 156)
+    assert q[4] == pytest.approx(-2 * math.pi / 71) and q[0] == 0.0
+    dphi = 2 * math.pi / 26  # one motor revolution at the wheel
+    # All four wheels forward one motor revolution: straight ahead by r·dphi.
+    m.update(_counts(0, 12288, 0, 0, -4096, 4096, 4096, 4096, 4096))
+    assert (m.pose.x, m.pose.y, m.pose.theta) == pytest.approx((0.05 * dphi, 0.0, 0.0))
+    # -FL +FR +RL -RR: sideways to the left (+y) by r·dphi, no turn.
+    m.update(_counts(0, 12288, 0, 0, -4096, 0, 8192, 8192, 0))
+    assert (m.pose.x, m.pose.y, m.pose.theta) == pytest.approx((0.05 * dphi, 0.05 * dphi, 0.0))
+    # -FL +FR -RL +RR: turning on the spot, counter-clockwise by r·dphi / (lx + ly).
+    m.update(_counts(0, 12288, 0, 0, -4096, -4096, 12288, 4096, 4096))
+    assert m.pose.theta == pytest.approx(0.05 * dphi / 0.386)
+    assert (m.pose.x, m.pose.y) == pytest.approx((0.05 * dphi, 0.05 * dphi))
+    # A 4-channel sample (a bench without the wheels' channels) moves J1..J4 only.
+    pose = (m.pose.x, m.pose.y, m.pose.theta)
+    q = m.update(_counts(4096, 12288, 0, 0))
+    assert q[0] == pytest.approx(2 * math.pi / 156) and q[4] == pytest.approx(-2 * math.pi / 71)
+    assert (m.pose.x, m.pose.y, m.pose.theta) == pose
+    m.reset()
+    assert m.angles == pytest.approx(rest) and (m.pose.x, m.pose.y) == (0.0, 0.0)

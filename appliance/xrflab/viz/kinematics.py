@@ -1,5 +1,6 @@
-"""Encoder counts -> joint angles (Jiwy), a floor pose (RELbot) or a carriage position (linear
-stage), from a bench profile.
+"""Encoder counts -> joint angles (Jiwy), a floor pose (RELbot), a carriage position (linear
+stage), axes homed on their switches (production cell) or an arm's joints and its mecanum base's
+pose (youBot), from a bench profile.
 
 Pure Python, no numpy (the counter range comes from rt_core's ico.h through the cffi binding):
 the same code runs live (fed by the appliance's telemetry) and in replay
@@ -21,7 +22,12 @@ Profile fields used (``mechanics`` of deploy/profiles/*.json):
   ``left_encoder_inverted``, ``right_encoder_inverted`` (true: the counter counts down when the
   wheel rolls forward, the RELbot's mirrored right motor);
 - linear_stage: ``channel``, ``lead_m`` (carriage travel per screw turn), ``encoder_inverted``,
-  ``limits_m`` ([low, high], m).
+  ``limits_m`` ([low, high], m);
+- cell: ``axes`` (each ``channel``, ``joint``, ``per_motor_rev``, ``limits``, ``home_pin``);
+- youbot: ``joints`` (each ``channel``, ``name``, ``gear_ratio``, ``zero_deg`` (the angle at
+  count 0, the rest pose), ``limits_deg``, ``inverted``), ``base`` (``wheel_channels`` FL, FR,
+  RL, RR, ``gear_ratio``, ``wheel_diameter``, ``half_wheel_base``, ``half_track``), ``links``
+  (m, for drawing).
 """
 
 from __future__ import annotations
@@ -324,13 +330,117 @@ class Cell:
         return {"kind": self.kind, "positions": list(self.positions), "homed": list(self.homed)}
 
 
-Kinematics = PanTilt | DiffDrive | LinearStage | Cell
+# ---- youBot: a 5-joint arm on a mecanum base ---------------------------------------------------
+
+
+@dataclass
+class ArmJoint:
+    name: str
+    channel: int  # 1..9
+    rad_per_count: float  # joint rad per motor count, sign included
+    zero: float  # joint angle (rad) where the counter read 0: the pose the arm was parked in
+    limits: tuple[float, float]
+    unwrap: Unwrapper = field(default_factory=Unwrapper)
+
+
+class Youbot:
+    """A youBot-like mobile manipulator: five arm joints (J1 base yaw, J2..J4 pitch, J5 wrist
+    roll), each angle = ``zero_deg`` + count · 2π / cpr / gear (the counters are relative: they
+    read 0 where the arm was parked at power-up, its rest pose), and a base on four mecanum
+    wheels (front-left, front-right, rear-left, rear-right) whose odometry integrates the mecanum
+    forward kinematics with the midpoint heading:
+
+        vx = r/4 · (φFL + φFR + φRL + φRR),  vy = r/4 · (−φFL + φFR + φRL − φRR),
+        ω  = r / (4 (lx + ly)) · (−φFL + φFR − φRL + φRR)
+
+    (φ wheel travel in rad, + = rolling forward; rollers in the usual X layout; lx, ly half the
+    wheel base and half the track), the same as the simulated plant (plant_youbot.c).
+
+    A sample shorter than the highest channel (telemetry of a 4-channel bench) moves what it has
+    and leaves the rest where it was: the view never reads past what it was sent.
+    """
+
+    kind = "youbot"
+
+    def __init__(self, profile: dict[str, Any]) -> None:
+        mech = _mechanics(profile)
+        if mech.get("kind") != "youbot":
+            raise KinematicsError(f"mechanics.kind is {mech.get('kind')!r}, not youbot")
+        cpr = float(mech["counts_per_rev"])
+        self.joints = []
+        for j in mech["joints"]:
+            sign = -1.0 if j.get("inverted") else 1.0
+            lim = j.get("limits_deg") or (-180.0, 180.0)
+            self.joints.append(
+                ArmJoint(
+                    name=str(j["name"]),
+                    channel=int(j["channel"]),
+                    rad_per_count=sign * 2 * math.pi / cpr / float(j["gear_ratio"]),
+                    zero=math.radians(float(j.get("zero_deg") or 0.0)),
+                    limits=(math.radians(lim[0]), math.radians(lim[1])),
+                )
+            )
+        base = mech["base"]
+        self.wheel_channels = [int(c) for c in base["wheel_channels"]]
+        self.wheel_rad_per_count = 2 * math.pi / cpr / float(base["gear_ratio"])
+        self.wheel_radius = float(base["wheel_diameter"]) / 2
+        self.lx = float(base["half_wheel_base"])
+        self.ly = float(base["half_track"])
+        self.links = {k: float(v) for k, v in (mech.get("links") or {}).items()}
+        self._last_wheels: list[int] | None = None
+        self.reset()
+
+    def update(self, enc: Sequence[int]) -> list[float]:
+        """One sample of raw counts (enc[0] = channel 1); returns the five joint angles (rad)."""
+        n = len(enc)
+        for i, j in enumerate(self.joints):
+            if j.channel <= n:
+                self.angles[i] = j.zero + j.unwrap.update(enc[j.channel - 1]) * j.rad_per_count
+        if all(ch <= n for ch in self.wheel_channels):
+            counts = [u.update(enc[ch - 1]) for u, ch in zip(self.wheel_unwrap, self.wheel_channels)]
+            if self._last_wheels is not None:
+                self.step([(c - o) * self.wheel_rad_per_count for c, o in zip(counts, self._last_wheels)])
+            self._last_wheels = counts
+        return self.angles
+
+    def step(self, dphi: Sequence[float]) -> None:
+        """Integrate the wheels' turns dphi (rad at each wheel, + = forward; FL, FR, RL, RR)."""
+        fl, fr, rl, rr = dphi
+        r = self.wheel_radius
+        dx = r / 4 * (fl + fr + rl + rr)
+        dy = r / 4 * (-fl + fr + rl - rr)
+        dth = r / (4 * (self.lx + self.ly)) * (-fl + fr - rl + rr)
+        p = self.pose
+        mid = p.theta + dth / 2
+        p.x += dx * math.cos(mid) - dy * math.sin(mid)
+        p.y += dx * math.sin(mid) + dy * math.cos(mid)
+        p.theta += dth
+
+    def reset(self) -> None:
+        for j in self.joints:
+            j.unwrap.reset()
+        self.angles = [j.zero for j in self.joints]
+        self.wheel_unwrap = [Unwrapper() for _ in self.wheel_channels]
+        self._last_wheels = None
+        self.pose = Pose()
+
+    def state(self) -> dict[str, Any]:
+        p = self.pose
+        return {
+            "kind": self.kind,
+            "joints": dict(zip((j.name for j in self.joints), self.angles)),
+            "pose": {"x": p.x, "y": p.y, "theta": p.theta},
+        }
+
+
+Kinematics = PanTilt | DiffDrive | LinearStage | Cell | Youbot
 # mechanics.kind -> its model: the 3D view draws a profile whose kind is here.
-KINDS: dict[str, type[PanTilt] | type[DiffDrive] | type[LinearStage] | type[Cell]] = {
+KINDS: dict[str, type[PanTilt] | type[DiffDrive] | type[LinearStage] | type[Cell] | type[Youbot]] = {
     PanTilt.kind: PanTilt,
     DiffDrive.kind: DiffDrive,
     LinearStage.kind: LinearStage,
     Cell.kind: Cell,
+    Youbot.kind: Youbot,
 }
 
 

@@ -44,6 +44,7 @@ from .recorder import Recorder, has_recording, load_recording, recording_size
 log = logging.getLogger("xrflab.viz")
 URDF_JIWY = Path(__file__).resolve().parent / "urdf" / "jiwy.urdf"
 URDF_CELL = Path(__file__).resolve().parent / "urdf" / "cell.urdf"
+URDF_YOUBOT = Path(__file__).resolve().parent / "urdf" / "youbot.urdf"
 UPDATE_HZ = 30.0
 # The scene is updated only while someone watches it (issue 30 item 4: at idle the 30 Hz thread
 # was a sizeable share of the appliance's CPU, for nobody): a browser connected through the
@@ -131,6 +132,7 @@ class Replay:
     trail: list[tuple[float, float]] = field(default_factory=list)
     positions: list[float] = field(default_factory=list)  # linear_stage, m
     axes: list[list[float]] = field(default_factory=list)  # cell: each axis, rad or m
+    arm: list[list[float]] = field(default_factory=list)  # youbot: the five joints, rad
     setpoint_t: list[float] = field(default_factory=list)
     setpoints: list[dict[str, Any]] = field(default_factory=list)
 
@@ -192,6 +194,11 @@ def build_replay(run_id: int, run_dir: Path, data_dir: Path | None = None) -> Re
     elif isinstance(model, kin.Cell):
         # The recording keeps no input pins: a replayed cell is drawn from where it started.
         r.axes = [list(model.update(enc)) for enc in rec.enc]
+    elif isinstance(model, kin.Youbot):
+        for enc in rec.enc:
+            r.arm.append(list(model.update(enc)))
+            p = model.pose
+            r.poses.append((p.x, p.y, p.theta))
     return r
 
 
@@ -537,6 +544,9 @@ class VizService(RunObserver):
             elif r.kind == "cell" and r.axes:
                 f["axes"] = r.axes[i]
                 f["homed"] = None
+            elif r.kind == "youbot" and r.arm:
+                f["arm"] = r.arm[i]
+                f["pose"] = dict(zip(("x", "y", "theta"), r.poses[i]))
             return f
         m = self.model
         f = {
@@ -560,6 +570,10 @@ class VizService(RunObserver):
         elif isinstance(m, kin.Cell):
             f["axes"] = list(m.positions)
             f["homed"] = list(m.homed)
+        elif isinstance(m, kin.Youbot):
+            f["arm"] = list(m.angles)
+            p = m.pose
+            f["pose"] = {"x": p.x, "y": p.y, "theta": p.theta}
         return f
 
     def tick(self) -> None:
@@ -595,6 +609,14 @@ class VizService(RunObserver):
             import numpy as np
 
             n["urdf"].update_cfg(np.array(f.get("axes") or [0.0, 0.0, 0.0]))
+        elif f["kind"] == "youbot":
+            import numpy as np
+
+            # The base's frame moves on the floor (odometry); the arm's joints within it.
+            p = f.get("pose") or {"x": 0.0, "y": 0.0, "theta": 0.0}
+            n["robot"].position = (p["x"], p["y"], 0.0)
+            n["robot"].wxyz = wxyz_z(p["theta"])
+            n["urdf"].update_cfg(np.array(f.get("arm") or [0.0] * 5))
         elif f["kind"] == "linear_stage":
             carriage_x = f.get("position") or 0.0
             n["carriage"].position = (carriage_x, 0.0, 0.0)
@@ -669,6 +691,15 @@ class VizService(RunObserver):
             self._nodes["urdf"] = ViserUrdf(self.server, URDF_CELL, root_node_name="/cell")
             self.server.initial_camera.position = (0.2, -0.8, 0.6)
             self.server.initial_camera.look_at = (0.0, 0.0, 0.1)
+        elif kind == "youbot":
+            from viser.extras import ViserUrdf
+
+            self._nodes["grid"] = scene.add_grid("/floor", width=4.0, height=4.0, cell_size=0.1, section_size=1.0)
+            # The URDF under a frame of its own, so the base's odometry moves the whole robot.
+            self._nodes["robot"] = scene.add_frame("/youbot", show_axes=False)
+            self._nodes["urdf"] = ViserUrdf(self.server, URDF_YOUBOT, root_node_name="/youbot/robot")
+            self.server.initial_camera.position = (0.9, -1.2, 0.9)
+            self.server.initial_camera.look_at = (0.1, 0.0, 0.25)
         elif kind == "linear_stage":
             lo, hi = getattr(self.model, "limits", (-0.1, 0.1))
             length = hi - lo + 0.06  # the rail reaches past the end stops to the end blocks
@@ -783,6 +814,8 @@ class VizService(RunObserver):
                     if all(h)
                     else "not homed: " + ", ".join(nm for nm, ok in zip(("table", "press", "feeder"), h) if not ok)
                 )
+        if "arm" in f:
+            lines.append("arm " + ", ".join(f"J{k + 1} {math.degrees(a):.1f}°" for k, a in enumerate(f["arm"])))
         if "pose" in f:
             p = f["pose"]
             lines.append(f"x {p['x']:.3f} m, y {p['y']:.3f} m, θ {math.degrees(p['theta']):.1f}°")
