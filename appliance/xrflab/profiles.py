@@ -301,12 +301,13 @@ def _check_channel(c: _Checker, i: int, ch: dict, seen: set[int], pwm_limit: flo
 
 
 def max_channels() -> int:
-    """The most channels a bench has (XRF_MAX_CHANNELS of xrf/channels.h, read from its text as
-    the safe reactions are). Until that header defines it (issue 29 item 2, helper "channels"),
-    the agreed value, 12 (three ico boards): the youBot's profile names channels 1..9."""
+    """The most channels a bench has: XRF_MAX_CHANNELS of xrf/channels.h, read from its text as
+    the safe reactions are (validating a profile needs no compiled binding)."""
     text = (rt_core_dir() / "include" / "xrf" / "channels.h").read_text()
     m = re.search(r"^#define XRF_MAX_CHANNELS\s+(\d+)", text, re.MULTILINE)
-    return int(m.group(1)) if m else 12
+    if not m:
+        raise RuntimeError("xrf/channels.h defines no XRF_MAX_CHANNELS")
+    return int(m.group(1))
 
 
 def _safe_reactions() -> dict[str, int]:
