@@ -28,7 +28,11 @@ int IcoIo::xfer(const uint8_t *tx, uint8_t *rx)
             return -ENODEV;
         transport_ = t;
     }
-    return t->xfer(t, tx, rx);
+    if (board_ == 0)
+        return t->xfer(t, tx, rx);
+    // Another board of the bench: only a transport that has it (-ENODEV otherwise: a bench of
+    // one board reads as a missing board, as XRF2's IcoIo would see no answer).
+    return t->xfer_board != nullptr ? t->xfer_board(t, board_, tx, rx) : -ENODEV;
 }
 
 int IcoIo::init()
@@ -114,7 +118,7 @@ int IcoIo::update_io(const IcoWrite &w, IcoRead *rd)
     }
     // The transport's call directly once it is known (every cycle but the first): no second call.
     xrf_ico_transport *t = transport_;
-    int r = t != nullptr ? t->xfer(t, tx, rx) : xfer(tx, rx);
+    int r = t != nullptr && board_ == 0 ? t->xfer(t, tx, rx) : xfer(tx, rx);
     if (r != 0)
         return r;
     if (rd != nullptr) {

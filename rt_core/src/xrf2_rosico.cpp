@@ -6,6 +6,7 @@
 #include <cstring>
 #include <type_traits>
 
+#include "xrf/ico.h"
 #include "xrf/runtime.hpp"
 #include "xrf2_compat.hpp"
 #include "channels_inline.h" // the per-cycle handoffs, inlined (issue 30 item 5)
@@ -74,8 +75,21 @@ void XenoFrtRosIcoCore::publishTelemetry(xrf::Runtime &rt, int state)
     t->din[5] = sample_data.channel3_2;
     t->din[6] = sample_data.channel4_1;
     t->din[7] = sample_data.channel4_2;
-    std::memcpy(t->pwm, ico_io.lastPwm(), sizeof t->pwm);
-    std::memcpy(t->dout, ico_io.lastDout(), sizeof t->dout);
+    // Board 0's four channels, then the bench's other boards'. A board the bench lacks is never
+    // written: its fields stay as the host created the ring, zero (the count is fixed for the run).
+    std::memcpy(t->pwm, ico_io.lastPwm(), XRF_ICO_CHANNELS * sizeof t->pwm[0]);
+    std::memcpy(t->dout, ico_io.lastDout(), XRF_ICO_CHANNELS * sizeof t->dout[0]);
+    for (int b = 1; b <= extra_boards_; b++) {
+        const int c = b * XRF_ICO_CHANNELS;
+        const IcoIo::IcoRead &in = sample_more[b - 1];
+        t->enc[c] = in.channel1;
+        t->enc[c + 1] = in.channel2;
+        t->enc[c + 2] = in.channel3;
+        t->enc[c + 3] = in.channel4;
+        std::memcpy(&t->din[2 * c], &in.channel1_1, 2 * XRF_ICO_CHANNELS);
+        std::memcpy(&t->pwm[c], ico_more[b - 1].lastPwm(), XRF_ICO_CHANNELS * sizeof t->pwm[0]);
+        std::memcpy(&t->dout[c], ico_more[b - 1].lastDout(), XRF_ICO_CHANNELS);
+    }
     t->size = xeno_size_;
     t->ros2xeno_t_sent_ns = ros_t_sent_;
     std::memcpy(t->data, xeno_msg_, xeno_size_);
@@ -143,7 +157,18 @@ int XenoFrtRosIcoCore::step()
         const int64_t s0 = rt.cycleStart();
         const struct timespec base = xrf2::toTimespec(s0); // kept in registers across the calls
         t1 = base;
-        ico_io.setOutputsEnabled(outputsAllowed(state_machine.getState()));
+        const bool allowed = outputsAllowed(state_machine.getState());
+        // The other boards first, board 0 last: the simulated board steps its plant on board
+        // 0's exchange, so every board's outputs of this cycle take effect in the same step.
+        if (extra_boards_ != 0 && extraBoards(rt) > 0) {
+            for (int b = 0; b < extra_boards_; b++) {
+                ico_more[b].setOutputsEnabled(allowed);
+                if (ico_more[b].update_io(actuate_more[b], &sample_more[b]) != 0 &&
+                    state_machine.getState() != ERROR_STATE)
+                    state_machine.fail(-EIO);
+            }
+        }
+        ico_io.setOutputsEnabled(allowed);
         if (ico_io.update_io(actuate_data, &sample_data) != 0 &&
             state_machine.getState() != ERROR_STATE)
             state_machine.fail(-EIO);
@@ -203,10 +228,24 @@ int XenoFrtRosIcoCore::step()
     return quit;
 }
 
+int XenoFrtRosIcoCore::extraBoards(xrf::Runtime &rt)
+{
+    if (extra_boards_ < 0) {
+        const xrf_ico_transport *t = rt.transport();
+        const int boards = t == nullptr || t->xfer_board == nullptr ? 1 : t->boards;
+        extra_boards_ = boards <= 1 ? 0 : (boards > XRF_MAX_BOARDS ? XRF_MAX_BOARDS : boards) - 1;
+    }
+    return extra_boards_;
+}
+
 void XenoFrtRosIcoCore::xrfAfterLastCycle()
 {
     // Whatever ended the loop (QUIT, a signal, XRF_MAX_CYCLES), the motors end at PWM 0.
-    ico_io.setOutputsEnabled(false);
     IcoIo::IcoWrite zero{};
+    for (int b = 0; b < extra_boards_; b++) {
+        ico_more[b].setOutputsEnabled(false);
+        ico_more[b].update_io(zero, &sample_more[b]);
+    }
+    ico_io.setOutputsEnabled(false);
     ico_io.update_io(zero, &sample_data);
 }

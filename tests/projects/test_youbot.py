@@ -3,8 +3,8 @@ four states. INITIALISING raises the arm from its rest pose to the ready pose an
 refused until it is there; a base command before then is refused (`base_refused`, the base does
 not move); STOPPING lowers the arm onto its rest stops at a bounded speed and only then ends.
 
-The bench has the XRF2 ico board's four channels so far: J1..J4 are driven, J5 and the wheels
-(channels 5..9) are not wired to an XRF2 project yet (docs/developers/adding-a-robot.md)."""
+In RUN, once ready, the base drives: its wheels are channels 6..9, on the bench's second and third
+ico boards (sample_more / actuate_more), so the base moving is the framework exchanging them."""
 
 from __future__ import annotations
 
@@ -61,8 +61,11 @@ def xeno2ros(lp: LoopProcess, reader, last: dict) -> dict:
     return last
 
 
-def test_ready_pose_before_run_base_refused_and_closing_sequence(youbot: LoopProcess) -> None:
+def test_ready_pose_before_run_base_refused_and_closing_sequence(
+    youbot: LoopProcess, request: pytest.FixtureRequest
+) -> None:
     lp = youbot
+    drives_base = request.node.callspec.params["exe"] == "example"  # the template leaves it to the student
     reader, seen = lp.ch.telemetry_reader(), {}
     assert joints(lp) == pytest.approx(REST, abs=0.5 * DEG)  # parked at rest at power-up
     lp.command("initialise", "INITIALISING")
@@ -88,6 +91,15 @@ def test_ready_pose_before_run_base_refused_and_closing_sequence(youbot: LoopPro
         assert time.monotonic() < deadline, f"arm_ready never reported: {seen}"
         time.sleep(0.02)  # polling the telemetry for the flag
     lp.command("start", "RUN")
+    if drives_base:
+        # Ready: the base command is taken; the wheels (boards 1 and 2) move it forward.
+        lp.ch.write_ros2xeno({"base_vx": 0.1, "base_wz": 0.0})
+        deadline = time.monotonic() + 10.0
+        while base(lp)[0] < 0.05:
+            assert time.monotonic() < deadline, f"the base did not drive: {base(lp)}"
+            time.sleep(0.05)  # polling the plant's odometry
+        wheel_pwm = [t.pwm[5:9] for t in reader.read()]
+        assert wheel_pwm and any(any(p) for p in wheel_pwm), "no wheel PWM in the telemetry (channels 6..9)"
     lp.ch.write_ros2xeno({"base_vx": 0.0, "base_wz": 0.0})
     lp.wait_cycles(300)
     assert joints(lp) == pytest.approx(READY, abs=2.5 * DEG)  # held up in RUN

@@ -63,6 +63,10 @@ public:
     };
 
     IcoIo() = default;
+    // XRF Lab: board b of a bench with several (channels 4b+1 .. 4b+4; xrf/ico.h's xfer_board).
+    // XRF2 had one board, IcoIo() is board 0; the framework exchanges boards 1.. itself
+    // (XenoFrtRosIcoCore's actuate_more / sample_more), so student code rarely builds one.
+    explicit IcoIo(int board) : board_(board) {}
     // XRF2 built IcoIo on its SPI handler; here the runtime's transport is always used.
     explicit IcoIo(ICommunicationFullDuplex &) {}
     // INIT: 0 when the board answers (reply byte 4 == 11), else -ENODEV; a missing board puts
@@ -90,6 +94,7 @@ private:
     // limit comes from the environment at start.
     struct xrf_ico_transport *transport_ = nullptr;
     int16_t pwm_max_ = -1;
+    int board_ = 0;
     bool missing_ = false;
     bool outputs_enabled_ = true;
     int16_t last_pwm_[4] = {0, 0, 0, 0};

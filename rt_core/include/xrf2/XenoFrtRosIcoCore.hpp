@@ -17,6 +17,7 @@
 #include "XenoRosDataBridge.hpp"
 #include "XenoSpiControllerHandler.hpp"
 #include "configuration.h"
+#include "xrf/channels.h"
 
 namespace xrf
 {
@@ -50,6 +51,14 @@ protected:
     XenoFrtMonitor monitor;
     XenoFrtLogger logger;
     IcoIo ico_io;
+    // XRF Lab: a bench of several ico boards (the youBot's 9 channels). Board b (1, 2) is
+    // actuate_more[b - 1] / sample_more[b - 1], channels 4b+1 .. 4b+4 as pwm1..4 / channel1..4,
+    // exchanged by the framework every cycle like actuate_data / sample_data, and only on a
+    // bench that has the board (ico_more[b - 1]). XRF2 projects never see them.
+    IcoIo::IcoWrite actuate_more[XRF_MAX_BOARDS - 1]{};
+    IcoIo::IcoRead sample_more[XRF_MAX_BOARDS - 1]{};
+    static_assert(XRF_MAX_BOARDS == 3, "ico_more names each board beyond board 0");
+    IcoIo ico_more[XRF_MAX_BOARDS - 1]{IcoIo(1), IcoIo(2)};
     FullStateMachine state_machine;
 
     // XRF2's other protected members, for the student code that reads them.
@@ -76,4 +85,7 @@ private:
     int64_t ros_t_sent_ = 0;
     unsigned decimator_ = 0, decimator_count_ = 0, monitor_freq_ = 0;
     int published_state_ = 0;
+    // Boards beyond board 0 on this bench (the transport's), looked up at the first cycle.
+    int extra_boards_ = -1;
+    int extraBoards(xrf::Runtime &rt);
 };

@@ -22,7 +22,8 @@ constexpr double ready_pose[5] = {0.0, 10.0 * deg, 60.0 * deg, 40.0 * deg, 0.0};
 constexpr double ready_speed = 30.0 * deg;
 constexpr double closing_speed = 20.0 * deg;
 // "There": every joint within 2° of its target for 0.2 s. Readiness is lost in
-// RUN when a joint is pushed 10° off (then the base stops) and regained within 2°.
+// RUN when a joint is pushed 10° off (then the base stops) and regained within
+// 2°.
 constexpr double at_target = 2.0 * deg;
 constexpr double lost_ready = 10.0 * deg;
 constexpr unsigned settle_cycles_needed = 200; // at 1 kHz
@@ -78,42 +79,41 @@ YoubotController::YoubotController(unsigned cycle_freq, unsigned write_decimator
     logger.addVariable("arm_ready", integer);
 }
 
-// Channel ch + 1's encoder and PWM. The XRF2 ico board (IcoIo) carries channels
-// 1-4; channels 5-9 (J5 and the wheels) are on the bench's further boards, which
-// this XRF2 project cannot reach yet: they read 0 and take no PWM here.
+// Channel ch + 1's encoder and PWM. An ico board carries four channels: board 0
+// (channels 1-4) is XRF2's sample_data / actuate_data, the bench's further
+// boards (channels 5-8, 9-12) are XRF Lab's sample_more[b - 1] / actuate_more[b
+// - 1].
 int YoubotController::raw(int ch) const
 {
-    switch (ch) {
+    const IcoIo::IcoRead &in = ch < 4 ? sample_data : sample_more[ch / 4 - 1];
+    switch (ch % 4) {
     case 0:
-        return sample_data.channel1;
+        return in.channel1;
     case 1:
-        return sample_data.channel2;
+        return in.channel2;
     case 2:
-        return sample_data.channel3;
-    case 3:
-        return sample_data.channel4;
+        return in.channel3;
     default:
-        return 0;
+        return in.channel4;
     }
 }
 
 void YoubotController::setPwm(int ch, double pwm)
 {
     int16_t v = static_cast<int16_t>(std::lround(clamp(pwm, -pwm_limit, pwm_limit)));
-    switch (ch) {
+    IcoIo::IcoWrite &out = ch < 4 ? actuate_data : actuate_more[ch / 4 - 1];
+    switch (ch % 4) {
     case 0:
-        actuate_data.pwm1 = v;
+        out.pwm1 = v;
         break;
     case 1:
-        actuate_data.pwm2 = v;
+        out.pwm2 = v;
         break;
     case 2:
-        actuate_data.pwm3 = v;
-        break;
-    case 3:
-        actuate_data.pwm4 = v;
+        out.pwm3 = v;
         break;
     default:
+        out.pwm4 = v;
         break;
     }
 }
@@ -150,8 +150,8 @@ void YoubotController::holdArm()
         setPwm(j, joint_pid[j].update(reference[j] - q[j]));
 }
 
-// Move the held reference towards `target` at `speed` (rad/s per joint) and hold
-// the arm on it; true once the arm has been at the target for settle time.
+// Move the held reference towards `target` at `speed` (rad/s per joint) and
+// hold the arm on it; true once the arm has been at the target for settle time.
 bool YoubotController::moveArm(const double target[joints], double speed)
 {
     bool there = true;
@@ -234,7 +234,8 @@ int YoubotController::initialising()
         ico_io.init();
         if (!logger.isInitialised())
             logger.initialise();
-        logger.start(); // from the first move on: the log holds the rise and the closing sequence
+        logger.start(); // from the first move on: the log holds the rise and the
+                        // closing sequence
         board_initialised = true;
         if (!encoders_zeroed) {
             // Power-up: the arm is parked at rest, where the counters read zero.
