@@ -656,8 +656,14 @@ function makePlot(id, keys) {
 function buildPlots(xeno2ros) {
   const scalar = xeno2ros.filter((f) => !f.count).map((f) => "x." + f.name);
   xrf.plots.xeno2ros = makePlot("plot-xeno2ros", scalar);
-  xrf.plots.enc = makePlot("plot-enc", ["enc1", "enc2", "enc3", "enc4"]);
-  xrf.plots.pwm = makePlot("plot-pwm", ["pwm1", "pwm2", "pwm3", "pwm4"]);
+  channelPlots(4);
+}
+
+// One line per channel of the bench (the telemetry carries the bench's count: 4 per ico board).
+function channelPlots(n) {
+  const keys = (prefix) => Array.from({ length: n }, (_, i) => prefix + (i + 1));
+  xrf.plots.enc = makePlot("plot-enc", keys("enc"));
+  xrf.plots.pwm = makePlot("plot-pwm", keys("pwm"));
 }
 
 function pushSample(p, t, values) {
@@ -674,6 +680,7 @@ function applyTelemetry(m) {
   xrf.lastTelemetry = m;
   const p = xrf.plots.xeno2ros;
   if (p) pushSample(p, m.t, p.names.map((n) => m.xeno2ros[n]));
+  if (xrf.plots.enc && m.enc && m.enc.length !== xrf.plots.enc.keys.length) channelPlots(m.enc.length);
   pushSample(xrf.plots.enc, m.t, m.enc);
   pushSample(xrf.plots.pwm, m.t, m.pwm);
   if (m.ros2xeno && Object.keys(m.ros2xeno).length && !(xrf.run && xrf.run.redacted)) followLoop(m.ros2xeno);

@@ -31,3 +31,4 @@ class PlantInfo(BaseModel):
     title: str
     axes: int = Field(description="motor channels wired, 1..axes")
     state: list[str] = Field(description="the simulated plant's state values as 'name unit'")
+    channels: int = Field(description="the bench's channel count, 1..XRF_MAX_CHANNELS (ico boards of four)")

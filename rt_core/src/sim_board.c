@@ -168,7 +168,9 @@ static void mirror(struct sim_board *s)
     if (!o)
         return;
     int off = forced_off(s);
-    for (int ch = 0; ch < s->channels; ch++) {
+    /* Bounded by the arrays too: the count is checked at open, but the compiler cannot see it. */
+    const int n = s->channels < XRF_MAX_CHANNELS ? s->channels : XRF_MAX_CHANNELS;
+    for (int ch = 0; ch < n; ch++) {
         o->pwm[ch] = off ? 0 : s->pwm[ch];
         o->dout[ch] = (uint8_t)dout_now(s, ch);
     }

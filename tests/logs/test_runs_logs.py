@@ -180,6 +180,8 @@ def test_rerun_viewer_is_served_behind_the_login(server: Server) -> None:
     assert server.http.get("/rerun/..%2Fruns.sqlite3").status_code == 404
     # the live URL names the host the browser used (the live stream: test_live_stream.py)
     _run_probe(server, cycles=50)
+    # The run's live proxy starts beside the run, not before it (logs/live.py): waited for.
+    wait_for(lambda: server.http.get("/api/logs/rerun").json()["live_url"], timeout=60, what="the live proxy")
     info = server.http.get("/api/logs/rerun", headers={"Host": "192.168.7.2:8000"}).json()
     assert info["available"] and info["live_url"] == "rerun+http://192.168.7.2:8000/proxy", info
     info = server.http.get("/api/logs/rerun", headers={"Host": "xrf-bench-3.local"}).json()
