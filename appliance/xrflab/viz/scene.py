@@ -205,6 +205,13 @@ def build_replay(run_id: int, run_dir: Path, data_dir: Path | None = None) -> Re
 # ---- the service ----------------------------------------------------------------------------
 
 
+def _bench_channels(run: Any) -> int:
+    """The run's channel count as its telemetry reader took it from the shared-memory header
+    (bounded there: 1..XRF_MAX_CHANNELS); 4, one ico board, for a run without one."""
+    ch = getattr(run, "channels", None)
+    return int(ch.geom.channels) if ch is not None else 4
+
+
 class VizService(RunObserver):
     def __init__(self, settings: Any, supervisor: Any = None) -> None:
         self.settings = settings
@@ -392,7 +399,7 @@ class VizService(RunObserver):
             "real_bench": self._real_bench(),
         }
         try:
-            self.recorder = Recorder(run.run_dir, meta)
+            self.recorder = Recorder(run.run_dir, meta, _bench_channels(run))
         except OSError as exc:
             log.warning("run %s: no 3D recording: %s", row.id, exc)
             self.recorder = None
