@@ -298,6 +298,11 @@ def test_recording_formats_and_a_meta_the_loop_rewrote(tmp_path: Path) -> None:
             load_recording(tmp_path / "old")
     with pytest.raises(ValueError):
         Recorder(tmp_path / "b", {}, channels=13)
+    # A count within bounds but below what the recorded profile draws (Jiwy's tilt is channel 2):
+    # a clear refusal, not an index error.
+    write_recording(tmp_path / "c", {"profile": JIWY}, [(0, (1,))], channels=1)
+    with pytest.raises(ValueError, match="1 channels, fewer than its profile draws"):
+        build_replay(3, tmp_path / "c")
 
 
 def test_cell_homes_on_the_switch_edge() -> None:
