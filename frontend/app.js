@@ -359,9 +359,9 @@ function applyRun(m) {
   xrf.run = m;
   const r = m.run;
   if (m.ros2xeno && (m.event === "started" || m.event === "current")) {
-    xrf.schema = { ros2xeno: m.ros2xeno, xeno2ros: m.xeno2ros };
+    xrf.schema = { ros2xeno: m.ros2xeno, xeno2ros: m.xeno2ros, channels: m.channels };
     buildSetpoints(m.ros2xeno, m.setpoint || {});
-    buildPlots(m.xeno2ros);
+    buildPlots(m.xeno2ros, m.channels);
     if (m.redacted) $("setpoints").innerHTML = '<div class="muted">Setpoints and signals are the run owner\'s.</div>';
   }
   if (r) {
@@ -653,17 +653,19 @@ function makePlot(id, keys) {
   return { plot, data, keys, names: keys.map((k) => k.replace(/^[xr]\./, "")), scaleNames: unit.scaleNames, dirty: false };
 }
 
-function buildPlots(xeno2ros) {
-  const scalar = xeno2ros.filter((f) => !f.count).map((f) => "x." + f.name);
-  xrf.plots.xeno2ros = makePlot("plot-xeno2ros", scalar);
-  channelPlots(4);
+// One key per channel of the bench: `channels` is the run's count (the run message's, from the
+// run's shared-memory header: 4 on one ico board, 9 on the youBot); 4 before any run.
+xrf.channelKeys = (prefix, channels) => Array.from({ length: channels || 4 }, (_, i) => prefix + (i + 1));
+
+function buildChannelPlots(channels) {
+  xrf.plots.enc = makePlot("plot-enc", xrf.channelKeys("enc", channels));
+  xrf.plots.pwm = makePlot("plot-pwm", xrf.channelKeys("pwm", channels));
 }
 
-// One line per channel of the bench (the telemetry carries the bench's count: 4 per ico board).
-function channelPlots(n) {
-  const keys = (prefix) => Array.from({ length: n }, (_, i) => prefix + (i + 1));
-  xrf.plots.enc = makePlot("plot-enc", keys("enc"));
-  xrf.plots.pwm = makePlot("plot-pwm", keys("pwm"));
+function buildPlots(xeno2ros, channels) {
+  const scalar = xeno2ros.filter((f) => !f.count).map((f) => "x." + f.name);
+  xrf.plots.xeno2ros = makePlot("plot-xeno2ros", scalar);
+  buildChannelPlots(channels);
 }
 
 function pushSample(p, t, values) {
@@ -680,7 +682,9 @@ function applyTelemetry(m) {
   xrf.lastTelemetry = m;
   const p = xrf.plots.xeno2ros;
   if (p) pushSample(p, m.t, p.names.map((n) => m.xeno2ros[n]));
-  if (xrf.plots.enc && m.enc && m.enc.length !== xrf.plots.enc.keys.length) channelPlots(m.enc.length);
+  // The run message names the count; should a sample's differ (a run message missed), the
+  // plots follow the sample rather than drop or invent channels.
+  if (xrf.plots.enc && m.enc.length !== xrf.plots.enc.keys.length) buildChannelPlots(m.enc.length);
   pushSample(xrf.plots.enc, m.t, m.enc);
   pushSample(xrf.plots.pwm, m.t, m.pwm);
   if (m.ros2xeno && Object.keys(m.ros2xeno).length && !(xrf.run && xrf.run.redacted)) followLoop(m.ros2xeno);

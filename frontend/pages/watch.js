@@ -41,10 +41,13 @@
     for (const f of schema.ros2xeno || []) {
       out.push({ key: "r." + f.name, group: "Ros2Xeno", name: f.name, type: f.count ? `${f.type}[${f.count}]` : f.type, array: !!f.count });
     }
-    for (let i = 1; i <= 4; i++) out.push({ key: "enc" + i, group: "Encoders", name: "enc" + i, type: "14-bit count" });
-    for (let i = 1; i <= 4; i++) out.push({ key: "pwm" + i, group: "PWM", name: "pwm" + i, type: "±2047" });
-    for (let i = 1; i <= 8; i++) out.push({ key: "din" + i, group: "Digital in", name: "din" + i, type: "bit" });
-    for (let i = 1; i <= 4; i++) out.push({ key: "dout" + i, group: "Digital out", name: "dout" + i, type: "bit" });
+    // The bench's channels (the run message's count; 4 before any run): an encoder, a PWM and a
+    // digital output per channel, two digital inputs per channel.
+    const n = schema.channels || 4;
+    for (let i = 1; i <= n; i++) out.push({ key: "enc" + i, group: "Encoders", name: "enc" + i, type: "14-bit count" });
+    for (let i = 1; i <= n; i++) out.push({ key: "pwm" + i, group: "PWM", name: "pwm" + i, type: "±2047" });
+    for (let i = 1; i <= 2 * n; i++) out.push({ key: "din" + i, group: "Digital in", name: "din" + i, type: "bit" });
+    for (let i = 1; i <= n; i++) out.push({ key: "dout" + i, group: "Digital out", name: "dout" + i, type: "bit" });
     return out;
   }
 
@@ -326,7 +329,7 @@
   xrf.on("run", (m) => {
     if (m.ros2xeno && (m.event === "started" || m.event === "current")) {
       W.loop = null;  // a new run's loop starts from zero
-      setSchema({ ros2xeno: m.ros2xeno, xeno2ros: m.xeno2ros });
+      setSchema({ ros2xeno: m.ros2xeno, xeno2ros: m.xeno2ros, channels: m.channels });
     }
   });
   W.arm = arm; W.setFrozen = setFrozen;

@@ -8,7 +8,11 @@ ico boards (sample_more / actuate_more), so the base moving is the framework exc
 
 from __future__ import annotations
 
+import json
 import math
+import os
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -118,3 +122,18 @@ def test_ready_pose_before_run_base_refused_and_closing_sequence(
     assert fastest < CLOSING_MAX, f"lowered at {fastest / DEG:.1f} °/s"
     lp.wait_cycles(300)  # unpowered at rest: it stays there
     assert joints(lp) == pytest.approx(REST, abs=1.0 * DEG)
+
+
+def test_xrf_echo_sample_has_every_channel_of_the_bench(youbot: LoopProcess, shm_name: str) -> None:
+    """`xrf echo sample` (the CLI's io fields) prints the bench's nine channels: an encoder, a PWM
+    and a digital output each, two digital inputs each, read through the count in the header."""
+    r = subprocess.run(
+        [sys.executable, "-m", "xrflab.cli", "echo", "sample", "--count", "1", "--shm", shm_name, "--timeout", "5"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=dict(os.environ, PYTHONPATH=str(REPO / "appliance")),
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    sample = json.loads(r.stdout.splitlines()[0])
+    assert [len(sample[k]) for k in ("enc", "pwm", "dout", "din")] == [9, 9, 9, 18], sample

@@ -4,7 +4,9 @@ round trip and the replay built from it. No server, no viser: fast."""
 from __future__ import annotations
 
 import copy
+import json
 import math
+import struct
 from pathlib import Path
 
 import pytest
@@ -254,6 +256,53 @@ def test_replay_of_a_recorded_circle_and_jiwy(tmp_path: Path) -> None:
     write_recording(tmp_path / "3", {"profile": None, "message": "no profile"}, samples)
     r = build_replay(3, tmp_path / "3")
     assert r.kind == "" and "no profile" in r.message
+
+
+def test_a_nine_channel_recording_replays_j5_and_the_wheels(tmp_path: Path) -> None:
+    """A youBot run records the bench's 9 encoders (format 2, 30-byte records), so its replay
+    turns J5 (channel 5) and drives the base (wheels on channels 6-9), hand-computed as above."""
+    samples = [
+        (0, _counts(0, 0, 0, 0, 0, 0, 0, 0, 0)),
+        (5_000_000, _counts(0, 0, 0, 0, -2048, 2048, 2048, 2048, 2048)),
+        (10_000_000, _counts(0, 0, 0, 0, -4096, 4096, 4096, 4096, 4096)),
+    ]
+    write_recording(tmp_path / "1", {"profile": _youbot_profile(), "profile_name": "youbot"}, samples, channels=9)
+    rec = load_recording(tmp_path / "1")
+    assert rec.meta["format"] == 2 and rec.meta["channels"] == 9 and rec.meta["record"] == "<qI9H"
+    assert (tmp_path / "1" / "viz" / "telemetry.bin").stat().st_size == 3 * 30
+    assert rec.enc[-1] == tuple(_counts(0, 0, 0, 0, -4096, 4096, 4096, 4096, 4096))
+    r = build_replay(1, tmp_path / "1")
+    assert r.kind == "youbot"
+    assert r.arm[-1][4] == pytest.approx(-2 * math.pi / 71)
+    assert r.poses[-1] == pytest.approx((0.05 * 2 * math.pi / 26, 0.0, 0.0))
+
+
+def test_recording_formats_and_a_meta_the_loop_rewrote(tmp_path: Path) -> None:
+    """A format-1 recording (before the channel count) still reads as 4 encoders; a meta.json
+    whose channel count is outside 1..XRF_MAX_CHANNELS (the run folder is the loop's to write)
+    is refused, never used to size a record; a short sample is padded, a long one cut."""
+    rec = Recorder(tmp_path / "a", {"plant": "jiwy"}, channels=3)
+    rec.add(0, 0, [1, 2])
+    rec.add(10_000_000, 1, [1, 2, 3, 4, 5])
+    rec.close()
+    assert load_recording(tmp_path / "a").enc == [(1, 2, 0), (1, 2, 3)]
+    old = tmp_path / "old" / "viz"
+    old.mkdir(parents=True)
+    (old / "meta.json").write_text('{"format": 1, "record": "<qI4H"}')
+    (old / "telemetry.bin").write_bytes(struct.pack("<qI4H", 7, 1, 10, 20, 30, 40))
+    r = load_recording(tmp_path / "old")
+    assert r.t_ns == [7] and r.enc == [(10, 20, 30, 40)]
+    for bad in (0, 13, 100000, "9", True, None):
+        (old / "meta.json").write_text(json.dumps({"format": 2, "channels": bad, "record": "<qI100000H"}))
+        with pytest.raises(ValueError, match="channels"):
+            load_recording(tmp_path / "old")
+    with pytest.raises(ValueError):
+        Recorder(tmp_path / "b", {}, channels=13)
+    # A count within bounds but below what the recorded profile draws (Jiwy's tilt is channel 2):
+    # a clear refusal, not an index error.
+    write_recording(tmp_path / "c", {"profile": JIWY}, [(0, (1,))], channels=1)
+    with pytest.raises(ValueError, match="1 channels, fewer than its profile draws"):
+        build_replay(3, tmp_path / "c")
 
 
 def test_cell_homes_on_the_switch_edge() -> None:

@@ -4,8 +4,13 @@ The loop's own log (xrflab.logs) holds the variables a program logs, not the enc
 the appliance keeps its own compact recording of every run, written from the telemetry the
 supervisor's reader already takes (nothing is added to the loop):
 
-    <run_dir>/viz/meta.json        {"format": 1, "record": "<qI4H", "plant", "robot", "profile", ...}
-    <run_dir>/viz/telemetry.bin    fixed 20-byte records: t_ns (int64), cycle (uint32), enc[4] (uint16)
+    <run_dir>/viz/meta.json        {"format": 2, "channels": n, "record": "<qI{n}H", "plant", "profile", ...}
+    <run_dir>/viz/telemetry.bin    fixed records: t_ns (int64), cycle (uint32), enc[n] (uint16)
+
+n is the bench's channel count (the run's shared-memory header: 4 on one ico board, 9 on the
+youBot), so the replay moves every joint and wheel the run drove. Format 1 (before benches had a
+count) is "<qI4H" and still reads. The loop can rewrite meta.json: its `channels` is bounded
+(1..XRF_MAX_CHANNELS) and the record layout is derived from it, never taken from "record".
     <run_dir>/viz/events.jsonl     {"t_ns": .., "setpoint": {...}} / {"t_ns": .., "reset_odometry": true}
 
 The run folder is the loop's to write too (it can rename viz/, put a link or a FIFO in its place):
@@ -13,7 +18,7 @@ every file here is opened, written and read through the run folder's helper
 (``runfolder.py``): nothing is followed, meta.json is rewritten as a new file renamed over
 the old name (never written through what the loop put there), reads are bounded.
 
-At most one sample per ``min_period_s`` (5 ms: 200 Hz, 4 kB/s) is kept; a slower loop has every
+At most one sample per ``min_period_s`` (5 ms: 200 Hz, 4 kB/s on 4 channels, 6 kB/s on 9) is kept; a slower loop has every
 sample kept. That is fast enough to unwrap the 14-bit counters (a shaft would have to turn two
 motor revolutions in 5 ms to be misread) and small enough to keep for every run. The raw counts
 are recorded, not angles: a corrected profile replays an old run correctly.
@@ -31,13 +36,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..profiles import max_channels
 from ..runfolder import RunFolder, RunPathError
 
-RECORD = struct.Struct("<qI4H")
-FORMAT = 1
+FORMAT = 2
+FORMAT_4CH = 1  # a recording from before the channel count: always 4 encoders
 SUBDIR = "viz"
 META, TELEMETRY, EVENTS = f"{SUBDIR}/meta.json", f"{SUBDIR}/telemetry.bin", f"{SUBDIR}/events.jsonl"
-# What a replay reads at most (200 samples/s of 20 bytes is 14 MB an hour: 256 MB is 18 hours).
+# What a replay reads at most (200 samples/s of 20 bytes is 14 MB an hour: 256 MB is 18 hours;
+# 9 channels, 30 bytes: 12 hours).
 MAX_META = 1 << 20
 MAX_TELEMETRY = 256 << 20
 MAX_EVENTS = 64 << 20
@@ -48,23 +55,40 @@ def recording_dir(run_dir: Path | str) -> Path:
     return Path(run_dir) / SUBDIR
 
 
+def record_struct(channels: int) -> struct.Struct:
+    """One sample's record on a bench of `channels` encoders (ValueError outside 1..XRF_MAX_CHANNELS)."""
+    if isinstance(channels, bool) or not isinstance(channels, int) or not 1 <= channels <= max_channels():
+        raise ValueError(f"a recording has 1..{max_channels()} channels, not {channels!r}")
+    return struct.Struct(f"<qI{channels}H")
+
+
 class Recorder:
     """Writes one run's recording. Not thread-safe: called from the appliance's event loop only."""
 
     def __init__(
-        self, run_dir: Path | str, meta: dict[str, Any], min_period_s: float = 0.005, flush_period_s: float = 1.0
+        self,
+        run_dir: Path | str,
+        meta: dict[str, Any],
+        channels: int = 4,
+        min_period_s: float = 0.005,
+        flush_period_s: float = 1.0,
     ) -> None:
+        """`channels`: the bench's count (the run's shared-memory header); a sample with fewer
+        encoders is padded with 0, extra ones are not recorded."""
+        self.record = record_struct(channels)
+        self.channels = channels
         self.dir = recording_dir(run_dir)
         Path(run_dir).mkdir(parents=True, exist_ok=True)  # the appliance's path (tests: a fresh one)
         self._folder = RunFolder(run_dir)
         self.min_period_ns = int(min_period_s * 1e9)
         self.flush_period_s = flush_period_s
         self.meta = {
+            **meta,
             "format": FORMAT,
-            "record": RECORD.format,
+            "channels": channels,
+            "record": self.record.format,
             "min_period_s": min_period_s,
             "created": time.time(),
-            **meta,
         }
         try:
             self._folder.replace(META, self._meta_bytes())
@@ -97,7 +121,9 @@ class Recorder:
         return True
 
     def _write(self, t_ns: int, cycle: int, enc: Sequence[int]) -> None:
-        self._bin.write(RECORD.pack(t_ns, cycle & 0xFFFFFFFF, *(int(e) & 0xFFFF for e in enc[:4])))
+        n = self.channels
+        counts = [int(e) & 0xFFFF for e in enc[:n]]
+        self._bin.write(self.record.pack(t_ns, cycle & 0xFFFFFFFF, *counts, *([0] * (n - len(counts)))))
         self._last_kept_ns = t_ns
         self._pending = None
         self.samples += 1
@@ -141,7 +167,7 @@ class Recording:
     meta: dict[str, Any]
     t_ns: list[int]
     cycle: list[int]
-    enc: list[tuple[int, int, int, int]]
+    enc: list[tuple[int, ...]]  # the bench's channel count per sample (meta["channels"])
     events: list[dict[str, Any]] = field(default_factory=list)
 
     @property
@@ -178,23 +204,26 @@ def load_recording(run_dir: Path | str) -> Recording:
             meta = json.loads(rf.read_bytes(META, MAX_META))
         except RecursionError:  # a meta.json the loop wrote: 1 MB of '['
             raise ValueError(f"{d}: meta.json is nested too deep") from None
-        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-            raise ValueError(
-                f"{d}: recording format {meta.get('format') if isinstance(meta, dict) else meta!r} is not known"
-            )
+        fmt = meta.get("format") if isinstance(meta, dict) else meta
+        if fmt == FORMAT_4CH:
+            record = record_struct(4)
+        elif fmt == FORMAT:
+            record = record_struct(meta.get("channels"))  # ValueError: not 1..XRF_MAX_CHANNELS
+        else:
+            raise ValueError(f"{d}: recording format {fmt!r} is not known")
         data = rf.read_bytes(TELEMETRY, MAX_TELEMETRY)
         try:
             event_bytes = rf.read_bytes(EVENTS, MAX_EVENTS)
         except FileNotFoundError:
             event_bytes = b""
-    n = len(data) // RECORD.size
+    n = len(data) // record.size
     t_ns: list[int] = []
     cycle: list[int] = []
-    enc: list[tuple[int, int, int, int]] = []
-    for t, c, e1, e2, e3, e4 in RECORD.iter_unpack(data[: n * RECORD.size]):
+    enc: list[tuple[int, ...]] = []
+    for t, c, *e in record.iter_unpack(data[: n * record.size]):
         t_ns.append(t)
         cycle.append(c)
-        enc.append((e1, e2, e3, e4))
+        enc.append(tuple(e))
     events: list[dict[str, Any]] = []
     for line in event_bytes.decode("utf-8", "replace").splitlines():
         try:
@@ -212,9 +241,10 @@ def write_recording(
     meta: dict[str, Any],
     samples: Iterable[tuple[int, Sequence[int]]],
     events: Iterable[dict[str, Any]] = (),
+    channels: int = 4,
 ) -> Path:
     """A recording from (t_ns, enc) pairs, every sample kept (tests, converted data)."""
-    rec = Recorder(run_dir, meta, min_period_s=0.0)
+    rec = Recorder(run_dir, meta, channels, min_period_s=0.0)
     for i, (t, enc) in enumerate(samples):
         rec.add(t, i, enc)
     for ev in events:

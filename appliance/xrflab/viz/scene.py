@@ -148,6 +148,38 @@ class Replay:
         return self.setpoints[i] if i >= 0 else {}
 
 
+def _replay_model(r: Replay, model: Any, encs: list[tuple[int, ...]], times: list[float], resets: list[float]) -> None:
+    """The recorded counts through the model, into the replay's series (IndexError: a sample
+    has fewer channels than the model reads)."""
+    if isinstance(model, kin.PanTilt):
+        for enc in encs:
+            a = model.update(enc)
+            r.joints.append((a["pan"], a["tilt"]))
+    elif isinstance(model, kin.DiffDrive):
+        lo, ri = 0, 0
+        for ti, enc in zip(times, encs):
+            while ri < len(resets) and resets[ri] <= ti:
+                model.reset_pose()
+                lo = len(r.trail)  # the trail restarts at a reset, as it does live
+                ri += 1
+            p = model.update(enc)
+            r.poses.append((p.x, p.y, p.theta))
+            if len(r.trail) == lo or math.hypot(p.x - r.trail[-1][0], p.y - r.trail[-1][1]) >= model.trail_step_m:
+                r.trail.append((p.x, p.y))
+            r.trail_lo.append(lo)
+            r.trail_n.append(len(r.trail))
+    elif isinstance(model, kin.LinearStage):
+        r.positions = [model.update(enc) for enc in encs]
+    elif isinstance(model, kin.Cell):
+        # The recording keeps no input pins: a replayed cell is drawn from where it started.
+        r.axes = [list(model.update(enc)) for enc in encs]
+    elif isinstance(model, kin.Youbot):
+        for enc in encs:
+            r.arm.append(list(model.update(enc)))
+            p = model.pose
+            r.poses.append((p.x, p.y, p.theta))
+
+
 def build_replay(run_id: int, run_dir: Path, data_dir: Path | None = None) -> Replay:
     """Run a recording through the same kinematics as the live view (in a worker thread)."""
     rec = load_recording(run_dir)
@@ -172,37 +204,23 @@ def build_replay(run_id: int, run_dir: Path, data_dir: Path | None = None) -> Re
             r.setpoint_t.append(te)
             r.setpoints.append(dict(current))
     resets = [te for te, e in events if e.get("reset_odometry")]
-    if isinstance(model, kin.PanTilt):
-        for enc in rec.enc:
-            a = model.update(enc)
-            r.joints.append((a["pan"], a["tilt"]))
-    elif isinstance(model, kin.DiffDrive):
-        lo, ri = 0, 0
-        for ti, enc in zip(times, rec.enc):
-            while ri < len(resets) and resets[ri] <= ti:
-                model.reset_pose()
-                lo = len(r.trail)  # the trail restarts at a reset, as it does live
-                ri += 1
-            p = model.update(enc)
-            r.poses.append((p.x, p.y, p.theta))
-            if len(r.trail) == lo or math.hypot(p.x - r.trail[-1][0], p.y - r.trail[-1][1]) >= model.trail_step_m:
-                r.trail.append((p.x, p.y))
-            r.trail_lo.append(lo)
-            r.trail_n.append(len(r.trail))
-    elif isinstance(model, kin.LinearStage):
-        r.positions = [model.update(enc) for enc in rec.enc]
-    elif isinstance(model, kin.Cell):
-        # The recording keeps no input pins: a replayed cell is drawn from where it started.
-        r.axes = [list(model.update(enc)) for enc in rec.enc]
-    elif isinstance(model, kin.Youbot):
-        for enc in rec.enc:
-            r.arm.append(list(model.update(enc)))
-            p = model.pose
-            r.poses.append((p.x, p.y, p.theta))
+    try:
+        _replay_model(r, model, rec.enc, times, resets)
+    except IndexError:
+        # meta.json is the loop's to rewrite: a channel count below what the profile draws
+        n = len(rec.enc[0]) if rec.enc else 0
+        raise ValueError(f"run {run_id}: its recording has {n} channels, fewer than its profile draws") from None
     return r
 
 
 # ---- the service ----------------------------------------------------------------------------
+
+
+def _bench_channels(run: Any) -> int:
+    """The run's channel count as its telemetry reader took it from the shared-memory header
+    (bounded there: 1..XRF_MAX_CHANNELS); 4, one ico board, for a run without one."""
+    ch = getattr(run, "channels", None)
+    return int(ch.geom.channels) if ch is not None else 4
 
 
 class VizService(RunObserver):
@@ -392,7 +410,7 @@ class VizService(RunObserver):
             "real_bench": self._real_bench(),
         }
         try:
-            self.recorder = Recorder(run.run_dir, meta)
+            self.recorder = Recorder(run.run_dir, meta, _bench_channels(run))
         except OSError as exc:
             log.warning("run %s: no 3D recording: %s", row.id, exc)
             self.recorder = None

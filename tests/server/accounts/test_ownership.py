@@ -438,6 +438,7 @@ def test_watchers_see_state_and_motion_but_not_the_owners_output(server: Server,
                 snap = late.wait_type("run", seen=True)
                 assert snap["run"]["id"] == run_id and snap["redacted"] and snap["run"]["build"] == ""
                 assert snap["ros2xeno"] == [] and snap["xeno2ros"] == [] and snap["setpoint"] == {}
+                assert snap["channels"] == 4  # the bench's, like the telemetry it sizes: everyone's
                 assert late.wait_type("state", seen=True)["name"] == "RUN"
                 _collect(late, 1.0)
                 watched = [*late.messages]

@@ -42,6 +42,7 @@ def run_message(run: Run | None, last_row: RunRow | None, event: RunEvent = "cur
             cycle_freq=info["cycle_freq"],
             backend=info["backend"],
             transport=info["transport"],
+            channels=int(run.channels.geom.channels),  # bounded when the segment was opened
             ros2xeno=schema_fields(info["ros2xeno_schema"]),
             xeno2ros=schema_fields(info["xeno2ros_schema"]),
             setpoint=run.setpoint,

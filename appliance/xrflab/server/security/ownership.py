@@ -155,7 +155,7 @@ PUBLIC_RUN = frozenset(
 )
 # confinement: which protection layers of the run sandbox hold is the bench's, for everyone in
 # the room (the dashboard's "runs WITHOUT" banner); it names layers, nothing of the student's.
-PUBLIC_RUN_MESSAGE = frozenset({"event", "active", "cycle_freq", "backend", "transport", "confinement"})
+PUBLIC_RUN_MESSAGE = frozenset({"event", "active", "cycle_freq", "backend", "transport", "channels", "confinement"})
 
 
 def public_run_row(row: dict[str, Any]) -> dict[str, Any]:

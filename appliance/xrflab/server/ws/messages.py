@@ -119,6 +119,11 @@ class RunMessage(_Out):
     cycle_freq: int | None = None
     backend: str | None = None
     transport: str | None = None
+    channels: int | None = Field(
+        default=None,
+        description="the bench's channel count (the run's shared-memory header, 1..XRF_MAX_CHANNELS): "
+        "telemetry's enc, pwm, dout have this many values, din twice as many",
+    )
     ros2xeno: list[MsgField] | None = Field(default=None, description="setpoint fields (Ros2Xeno)")
     xeno2ros: list[MsgField] | None = Field(default=None, description="output fields (Xeno2Ros)")
     setpoint: dict[str, Any] | None = Field(default=None, description="the Ros2Xeno values applied now")
