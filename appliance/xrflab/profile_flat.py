@@ -29,6 +29,7 @@ CHANNEL_KEYS = (
     "connector",
     "motor",
     "direction",
+    "first_pulse",
     "duty",
     "duration_ms",
     "min_counts",

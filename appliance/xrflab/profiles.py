@@ -255,6 +255,12 @@ def _check_channel(c: _Checker, i: int, ch: dict, seen: set[int], pwm_limit: flo
     c.boolean(ch, where, "loopback")
     if "direction" in ch and ch["direction"] not in (1, -1) or isinstance(ch.get("direction"), bool):
         c.err(f"{where}.direction", f"{where}.direction must be 1 (positive PWM counts up) or -1 (counts down)")
+    if "first_pulse" in ch and ch["first_pulse"] not in (1, -1) or isinstance(ch.get("first_pulse"), bool):
+        c.err(
+            f"{where}.first_pulse",
+            f"{where}.first_pulse must be 1 (positive pulse first) or -1 (negative first: an axis parked "
+            "on the stop positive PWM drives into)",
+        )
     if motor:
         for key in ("duty", "duration_ms", "min_counts"):
             if key not in ch:

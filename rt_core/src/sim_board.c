@@ -232,6 +232,8 @@ static inline int sim_xfer_on(struct sim_board *s, int board, const uint8_t tx[X
     uint8_t in[XRF_ICO_FRAME];
     memcpy(in, tx, XRF_ICO_FRAME);
     memset(rx, 0, XRF_ICO_FRAME);
+    if (board > 0 && (s->faults.absent_board >> board) & 1u)
+        return 0; /* nothing there: MISO reads zeros, no register takes the frame */
 
     uint8_t op = in[0];
     switch (op) {
@@ -455,6 +457,13 @@ static int parse_item(const char *p, const char *end, struct xrf_sim_faults *f)
             f->reversed_motor |= bit;
         else
             f->loopback |= bit;
+        return 0;
+    }
+    if (key_is(k, klen, "absent_board")) {
+        /* board 1 carries every loop's IcoIo: only a further board can be missing */
+        if (parse_uint(v, end, 2, XRF_MAX_BOARDS, &x))
+            return -EINVAL;
+        f->absent_board |= (uint8_t)(1u << (x - 1));
         return 0;
     }
     if (key_is(k, klen, "stuck_input")) {

@@ -318,3 +318,16 @@ def test_youbot_mechanics_fields(monkeypatch: pytest.MonkeyPatch) -> None:
     }
     del bad["base"]
     assert "mechanics.base" in _mechanics_problems(bad)
+
+
+@pytest.mark.parametrize("value", [0, 2, -2, True, 0.5, "back"])
+def test_first_pulse_is_a_sign(value: Any) -> None:
+    """first_pulse (the sign of a motor check's first pulse) is 1 or -1; anything else is named."""
+    p = copy.deepcopy(prof.load_profile("relbot"))
+    p["channels"][0]["first_pulse"] = value
+    with pytest.raises(prof.ProfileError) as info:
+        prof.validate_profile(p)
+    named = [e for e in info.value.problems if e.field == "channel 1.first_pulse"]
+    assert named and "must be 1" in named[0].message, info.value.problems
+    p["channels"][0]["first_pulse"] = -1
+    assert prof.validate_profile(p)["channels"][0]["first_pulse"] == -1

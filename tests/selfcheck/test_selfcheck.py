@@ -402,7 +402,11 @@ def test_native_checker_reads_only_the_validated_flat_form(checker_exe, tmp_path
     for text, words in (
         (None, "not key=value"),
         ("name=relbot\nchannel.1.dutty=0.1\n", "unknown key 'channel.1.dutty'"),
-        ("channel.5.duty=0.1\n", "unknown key 'channel.5.duty'"),
+        ("channel.13.duty=0.1\n", "'channel.13.duty' names a channel no bench has (channels are 1 to 12"),
+        ("channel.0.duty=0.1\n", "'channel.0.duty' names a channel no bench has"),
+        ("channel.01.duty=0.1\n", "'channel.01.duty' names a channel no bench has"),
+        ("channel.99999999999999999999.duty=0.1\n", "names a channel no bench has"),
+        ("channel.-1.duty=0.1\n", "unknown key 'channel.-1.duty'"),
         ("name=relbot\nchannel.1.duty=lots\n", "line 2: malformed value for 'channel.1.duty'"),
         ("pulse.period_us=1000.5\n", "malformed value for 'pulse.period_us'"),
     ):
@@ -553,3 +557,79 @@ def test_an_unknown_simulated_robot_names_the_table(checker_exe):
     assert "unknown simulated robot 'warthog'" in proc.stdout + proc.stderr
     for name in plants.names():
         assert name in proc.stdout + proc.stderr
+
+
+def test_youbot_checks_its_nine_channels_on_three_boards(checker_exe):
+    """Issue 29: the self-check follows the bench's channel count. The simulated youBot has nine
+    channels on three ico boards: each further board answers INIT (board.2, board.3), and every
+    motor of the profile's channels 1-9 is pulsed and passes. J3 is parked on its upper stop: its
+    profile pulses negative first (away from the stop); the positive-first order of a one-board
+    profile fails it, which is what the profile's first_pulse fixes."""
+    r = check("youbot", exe=checker_exe)
+    ids = [s.id for s in r.steps]
+    assert ids[:5] == ["spi", "init", "board.2", "board.3", "echo"], ids
+    assert [i for i in ids if i.startswith("motor.")] == [f"motor.{n}" for n in range(1, 10)]
+    assert r.verdict == "pass" and r.exit_code == 0, r.to_text()
+    st = statuses(r)
+    for n in range(1, 10):
+        assert st[f"motor.{n}"] == "pass", (n, r.to_text())
+        data = r.step(f"motor.{n}").data
+        assert data["counts_plus"] >= data["min_counts"] and data["counts_minus"] <= -data["min_counts"]
+        assert len(data["all_plus"]) == len(data["all_minus"]) == 9
+    assert r.step("motor.3").data["first_pulse"] == -1 and r.step("motor.1").data["first_pulse"] == 1
+    assert len(r.step("reset").data["after_reset"]) == 9 and r.outputs_zeroed
+    # The same arm pulsed positive first: J3 cannot move into its stop, and only J3 fails.
+    p = copy.deepcopy(prof.load_profile("youbot"))
+    p["name"] = "youbot-positive-first"
+    p["channels"][2]["first_pulse"] = 1
+    bad = check(p, exe=checker_exe)
+    assert [s.id for s in bad.failed()] == ["motor.3"], bad.to_text()
+    assert "moves only one way" in bad.step("motor.3").message
+
+
+@pytest.mark.parametrize(
+    ("plant", "channel", "words"),
+    [
+        ("relbot", 5, "lists channel 5 (extra), but this bench has 4 channels (1 ico board of 4)"),
+        ("youbot", 10, "lists channel 10 (extra), but this bench has 9 channels (3 ico boards of 4)"),
+        ("youbot", 12, "lists channel 12 (extra), but this bench has 9 channels"),
+    ],
+)
+def test_a_profile_channel_beyond_the_bench_is_refused(checker_exe, plant, channel, words):
+    """A channel the schema allows (up to XRF_MAX_CHANNELS) but this bench does not have is
+    refused before anything moves, naming the channel and the bench; nothing is pulsed."""
+    p = copy.deepcopy(prof.load_profile(plant))
+    p["channels"].append(
+        {"channel": channel, "name": "extra", "motor": True, "duty": 0.1, "duration_ms": 50, "min_counts": 100}
+    )
+    proc = subprocess.run(
+        [str(checker_exe), "--transport", "sim", "--sim", plant, "--profile", "-"],
+        input=flat_form(prof.validate_profile(p)),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    events = [json.loads(line) for line in proc.stdout.splitlines()]
+    assert proc.returncode == 2, proc.stdout
+    errors = [e for e in events if e["event"] == "error"]
+    assert errors and words in errors[0]["message"], proc.stdout
+    assert not [e for e in events if e["event"] == "step" and e["id"] != "spi"], proc.stdout
+    assert events[-1]["event"] == "end" and events[-1]["verdict"] == "error" and events[-1]["outputs_zeroed"]
+
+
+def test_a_board_that_does_not_answer_is_reported_and_the_others_checked(checker_exe):
+    """The youBot's second board missing (fault absent_board=2: its replies are zeros): board.2
+    fails naming its channels, every step of channels 5-8 is skipped with that reason, and
+    boards 1 and 3 (channels 1-4, 9) are still checked and pass."""
+    r = check("youbot", faults="absent_board=2", exe=checker_exe)
+    assert r.verdict == "fail" and r.exit_code == 1
+    assert [s.id for s in r.failed()] == ["board.2"], r.to_text()
+    assert "ico board 2 (channels 5-8) did not answer INIT" in r.step("board.2").message
+    st = statuses(r)
+    for n in (5, 6, 7, 8):
+        for kind in ("motor", "din"):
+            step = r.step(f"{kind}.{n}")
+            assert step.status == "skipped" and "ico board 2" in step.message, step
+    for n in (1, 2, 3, 4, 9):
+        assert st[f"motor.{n}"] == "pass", (n, r.to_text())
+    assert st["board.3"] == "pass" and r.outputs_zeroed

@@ -30,6 +30,7 @@
 
 #include "xrf/channels.h"
 #include "xrf/plants.h"
+#include "xrf/sim.h"
 #include "selfcheck.h"
 
 static volatile sig_atomic_t stop_flag;
@@ -125,6 +126,25 @@ static struct xrf_shm *map_shm(const char *name, char *err, size_t errlen)
         return NULL;
     }
     return (struct xrf_shm *)m;
+}
+
+/* The bench's channel count into prof->channels: the simulated plant's row says it; a real
+ * bench has every channel of the boards its transport reaches. Then every channel the profile
+ * lists must be one of them (0), else err says which is not (-ERANGE). */
+static int bench_fits(const struct xrf_selfcheck_target *tg, const struct xrf_ico_transport *t,
+                      struct xrf_selfcheck_profile *prof, char *err, size_t errlen)
+{
+    int n = (t->xfer_board && t->boards > 1 ? t->boards : 1) * XRF_ICO_CHANNELS;
+    if (strcmp(tg->transport, "sim") == 0) {
+        int robot = xrf_sim_robot_from_name(tg->sim ? tg->sim : "relbot");
+        int plant = robot >= 0 ? xrf_plant_channels(robot) : 0;
+        if (plant > 0 && plant < n)
+            n = plant;
+    }
+    if (n > XRF_MAX_CHANNELS)
+        n = XRF_MAX_CHANNELS;
+    prof->channels = n;
+    return xrf_selfcheck_profile_fits(prof, n, err, errlen);
 }
 
 int main(int argc, char **argv)
@@ -252,6 +272,13 @@ int main(int argc, char **argv)
             verdict = "fail";
             exit_code = 1;
         }
+    } else if (bench_fits(&tg, t, &prof, err, sizeof err) != 0) {
+        /* A channel the bench does not have: refused before anything moves. */
+        print_error(err);
+        verdict = "error";
+        exit_code = 2;
+        sum.outputs_zeroed = xrf_selfcheck_zero_outputs(t) == 0;
+        t->close(t);
     } else {
         struct xrf_selfcheck_hooks hooks = {on_progress, on_result, NULL, &stop_flag};
         rc = xrf_selfcheck_run(t, &prof, &hooks, &sum);

@@ -63,6 +63,7 @@ static const struct key channel_keys[] = {
     C_FIELD("connector", K_TEXT, connector),
     C_FIELD("motor", K_INT, motor),
     C_FIELD("direction", K_INT, direction),
+    C_FIELD("first_pulse", K_INT, first_pulse),
     C_FIELD("duty", K_REAL, duty),
     C_FIELD("duration_ms", K_INT, duration_ms),
     C_FIELD("min_counts", K_INT, min_counts),
@@ -130,13 +131,26 @@ static const struct key *find(const struct key *keys, size_t n, const char *name
     return NULL;
 }
 
-/* "channel.N.rest" with N in 1..4: the channel index and rest, or -1. */
+/* "channel.N.rest": the channel index N - 1 and rest; -ENOENT when the key is no channel key,
+ * -ERANGE when N is not 1..XRF_MAX_CHANNELS (digits only, no sign, no leading zero: the writer
+ * writes plain numbers, and anything else must not alias another channel). */
 static int channel_of(const char *key, const char **rest)
 {
-    if (strncmp(key, "channel.", 8) != 0 || key[8] < '1' || key[8] > '4' || key[9] != '.')
-        return -1;
-    *rest = key + 10;
-    return key[8] - '1';
+    if (strncmp(key, "channel.", 8) != 0)
+        return -ENOENT;
+    const char *d = key + 8;
+    int n = 0, len = 0;
+    while (d[len] >= '0' && d[len] <= '9') {
+        if (len < 6)
+            n = n * 10 + (d[len] - '0');
+        len++;
+    }
+    if (len == 0 || d[len] != '.')
+        return -ENOENT;
+    if (len > 2 || d[0] == '0' || n < 1 || n > XRF_MAX_CHANNELS)
+        return -ERANGE;
+    *rest = d + len + 1;
+    return n - 1;
 }
 
 static int apply(struct xrf_selfcheck_profile *p, const char *key, const char *value)
@@ -147,8 +161,9 @@ static int apply(struct xrf_selfcheck_profile *p, const char *key, const char *v
     const char *rest;
     int ch = channel_of(key, &rest);
     if (ch < 0)
-        return -ENOENT;
+        return ch;
     struct xrf_sc_channel *c = &p->ch[ch];
+    c->listed = 1;
     k = find(channel_keys, sizeof channel_keys / sizeof *channel_keys, rest);
     if (k)
         return store(k, c, value);
@@ -193,13 +208,37 @@ int xrf_selfcheck_profile_read(FILE *in, struct xrf_selfcheck_profile *p, char *
         }
         *eq = 0;
         int r = apply(p, line, eq + 1);
-        if (r && err && errlen)
+        if (r == -ERANGE && err && errlen)
+            snprintf(err, errlen,
+                     "profile line %d: '%.64s' names a channel no bench has (channels are 1 "
+                     "to %d: %d ico boards of %d)",
+                     lineno, line, XRF_MAX_CHANNELS, XRF_MAX_BOARDS, XRF_ICO_CHANNELS);
+        else if (r && err && errlen)
             snprintf(err, errlen, "profile line %d: %s '%.64s'", lineno,
                      r == -ENOENT ? "unknown key" : "malformed value for", line);
         rc = r ? -EINVAL : 0;
     }
     free(line);
     return rc;
+}
+
+int xrf_selfcheck_profile_fits(const struct xrf_selfcheck_profile *p, int channels, char *err,
+                               size_t errlen)
+{
+    for (int i = 0; i < XRF_MAX_CHANNELS; i++) {
+        if (!p->ch[i].listed || i < channels)
+            continue;
+        if (err && errlen)
+            snprintf(err, errlen,
+                     "the profile lists channel %d (%s), but this bench has %d channel%s (%d ico "
+                     "board%s of %d): remove the channel from the profile or check it on the "
+                     "bench it belongs to",
+                     i + 1, p->ch[i].name, channels, channels == 1 ? "" : "s",
+                     (channels + XRF_ICO_CHANNELS - 1) / XRF_ICO_CHANNELS,
+                     channels > XRF_ICO_CHANNELS ? "s" : "", XRF_ICO_CHANNELS);
+        return -ERANGE;
+    }
+    return 0;
 }
 
 void xrf_selfcheck_profile_dump(FILE *out, const struct xrf_selfcheck_profile *p)
@@ -213,17 +252,22 @@ void xrf_selfcheck_profile_dump(FILE *out, const struct xrf_selfcheck_profile *p
         "\"warn_median_us\":%.17g,\"fail_median_us\":%.17g,\"warn_max_us\":%.17g,\"channels\":[",
         p->settle_ms, p->reset_tolerance, p->echo_frames, p->timing_frames, p->warn_median_us,
         p->fail_median_us, p->warn_max_us);
-    for (int i = 0; i < 4; i++) {
+    /* The first four always (the one-board form the tests know), further ones when listed. */
+    for (int i = 0; i < XRF_MAX_CHANNELS; i++) {
         const struct xrf_sc_channel *c = &p->ch[i];
+        if (i >= XRF_ICO_CHANNELS && !c->listed)
+            continue;
         char conn[128], pin0[128], pin1[128];
         fprintf(out,
-                "%s{\"name\":%s,\"connector\":%s,\"motor\":%d,\"direction\":%d,\"duty\":%.17g,"
+                "%s{\"channel\":%d,\"name\":%s,\"connector\":%s,\"motor\":%d,\"direction\":%d,"
+                "\"first_pulse\":%d,\"duty\":%.17g,"
                 "\"duration_ms\":%d,\"min_counts\":%d,\"max_counts\":%d,\"loopback\":%d,"
                 "\"din_idle\":[%d,%d],\"pin_name\":[%s,%s]}",
-                i ? "," : "", xrf_selfcheck_json_string(c->name, buf, sizeof buf),
+                i ? "," : "", i + 1, xrf_selfcheck_json_string(c->name, buf, sizeof buf),
                 xrf_selfcheck_json_string(c->connector, conn, sizeof conn), c->motor, c->direction,
-                c->duty, c->duration_ms, c->min_counts, c->max_counts, c->loopback, c->din_idle[0],
-                c->din_idle[1], xrf_selfcheck_json_string(c->pin_name[0], pin0, sizeof pin0),
+                c->first_pulse, c->duty, c->duration_ms, c->min_counts, c->max_counts, c->loopback,
+                c->din_idle[0], c->din_idle[1],
+                xrf_selfcheck_json_string(c->pin_name[0], pin0, sizeof pin0),
                 xrf_selfcheck_json_string(c->pin_name[1], pin1, sizeof pin1));
     }
     fprintf(out, "]}\n");

@@ -124,11 +124,16 @@ void xrf_selfcheck_profile_defaults(struct xrf_selfcheck_profile *p)
     p->warn_median_us = 60.0;
     p->fail_median_us = 150.0;
     p->warn_max_us = 500.0;
-    for (int i = 0; i < 4; i++) {
+    for (int i = 0; i < XRF_MAX_CHANNELS; i++) {
         struct xrf_sc_channel *c = &p->ch[i];
         SETF(c->name, "channel %d", i + 1);
-        SETF(c->connector, "PMOD %d", i + 1);
+        if (i < XRF_ICO_CHANNELS)
+            SETF(c->connector, "PMOD %d", i + 1);
+        else
+            SETF(c->connector, "board %d PMOD %d", i / XRF_ICO_CHANNELS + 1,
+                 i % XRF_ICO_CHANNELS + 1);
         c->direction = 1;
+        c->first_pulse = 1;
         c->duty = 0.1;
         c->duration_ms = 100;
         c->min_counts = 50;
@@ -234,24 +239,58 @@ struct sc {
     struct xrf_selfcheck_summary *sum;
     int16_t pwm_max;
     struct timespec next;
-    int32_t raw[4];
-    int64_t pos[4];
+    int nch;                           /* the bench's channels checked: 1..XRF_MAX_CHANNELS */
+    int boards;                        /* ico boards carrying them */
+    int board_ok[XRF_MAX_BOARDS];      /* 1: answered INIT (board 0: the "init" step) */
+    int32_t raw[XRF_MAX_CHANNELS];     /* counter of the latest reply per channel */
+    int32_t last[XRF_MAX_CHANNELS];    /* the one before, for unwrapping */
+    int64_t pos[XRF_MAX_CHANNELS];     /* unwrapped */
+    uint8_t din[2 * XRF_MAX_CHANNELS]; /* channel c pin k at 2c + k, as in xrf_ico_in */
     int have_raw;
-    struct xrf_ico_in in;
     int xfer_err;
-    unsigned done; /* bit i: planned step i reported */
+    unsigned char done[64]; /* planned step i reported */
 };
 
-/* The steps after "spi", in the order they run. */
-static const char *const planned[] = {
-    "init",   "echo",   "reset",  "motor.1", "motor.2", "motor.3", "motor.4", "dout.1",
-    "dout.2", "dout.3", "dout.4", "din.1",   "din.2",   "din.3",   "din.4",   "timing"};
-#define N_PLANNED ((int)(sizeof planned / sizeof planned[0]))
-
-static void planned_title(const struct sc *s, int i, char *buf, size_t len)
+/* The steps after "spi", in the order they run: "init", "board.B" for B = 2..boards, "echo",
+ * "reset", "motor.N", "dout.N", "din.N" for N = 1..nch, "timing" (ids built, not a table: the
+ * count follows the bench). Returns the number of planned steps; writes step i's id. */
+static int planned_id(const struct sc *s, int i, char *id, size_t len)
 {
-    const char *id = planned[i];
-    int ch = id[strlen(id) - 1] - '0';
+    int nb = s->boards - 1, n = s->nch;
+    int total = 4 + nb + 3 * n;
+    if (i < 0 || i >= total)
+        return total;
+    if (i == 0)
+        snprintf(id, len, "init");
+    else if (i <= nb)
+        snprintf(id, len, "board.%d", i + 1);
+    else if (i == nb + 1)
+        snprintf(id, len, "echo");
+    else if (i == nb + 2)
+        snprintf(id, len, "reset");
+    else if (i < nb + 3 + n)
+        snprintf(id, len, "motor.%d", i - nb - 2);
+    else if (i < nb + 3 + 2 * n)
+        snprintf(id, len, "dout.%d", i - nb - 2 - n);
+    else if (i < nb + 3 + 3 * n)
+        snprintf(id, len, "din.%d", i - nb - 2 - 2 * n);
+    else
+        snprintf(id, len, "timing");
+    return total;
+}
+
+/* The channel of an id "motor.N" / "dout.N" / "din.N" (N >= 1), else 0. */
+static int id_channel(const char *id)
+{
+    if (strncmp(id, "board.", 6) == 0)
+        return 0;
+    const char *dot = strchr(id, '.');
+    return dot ? atoi(dot + 1) : 0;
+}
+
+static void planned_title(const struct sc *s, const char *id, char *buf, size_t len)
+{
+    int ch = id_channel(id);
     if (strncmp(id, "motor.", 6) == 0)
         snprintf(buf, len, "channel %d (%s): motor and encoder", ch, s->p->ch[ch - 1].name);
     else if (strncmp(id, "dout.", 5) == 0)
@@ -264,6 +303,8 @@ static void planned_title(const struct sc *s, int i, char *buf, size_t len)
         snprintf(buf, len, "RESET: encoders read zero, outputs off");
     else if (strcmp(id, "timing") == 0)
         snprintf(buf, len, "SPI link timing");
+    else if (strncmp(id, "board.", 6) == 0)
+        snprintf(buf, len, "ico board %d present (INIT answered)", atoi(id + 6));
     else
         snprintf(buf, len, "ico board present (INIT answered)");
 }
@@ -288,9 +329,13 @@ static void emit(struct sc *s, const struct xrf_selfcheck_result *r)
     default:
         s->sum->skipped++;
     }
-    for (int i = 0; i < N_PLANNED; i++)
-        if (strcmp(planned[i], r->id) == 0)
-            s->done |= 1u << i;
+    int total = planned_id(s, -1, NULL, 0);
+    for (int i = 0; i < total && i < (int)sizeof s->done; i++) {
+        char id[24];
+        planned_id(s, i, id, sizeof id);
+        if (strcmp(id, r->id) == 0)
+            s->done[i] = 1;
+    }
     if (s->h && s->h->result)
         s->h->result(s->h->user, r);
 }
@@ -316,12 +361,25 @@ static void skip(struct sc *s, const char *id, int ch, const char *title, const 
     emit(s, &r);
 }
 
-static int xfer(struct sc *s, const uint8_t tx[XRF_ICO_FRAME], uint8_t rx[XRF_ICO_FRAME])
+static int xfer_b(struct sc *s, int board, const uint8_t tx[XRF_ICO_FRAME],
+                  uint8_t rx[XRF_ICO_FRAME])
 {
-    int rc = s->t->xfer(s->t, tx, rx);
+    int rc = board == 0 ? s->t->xfer(s->t, tx, rx) : s->t->xfer_board(s->t, board, tx, rx);
     if (rc && !s->xfer_err)
         s->xfer_err = rc;
     return rc;
+}
+
+static int xfer(struct sc *s, const uint8_t tx[XRF_ICO_FRAME], uint8_t rx[XRF_ICO_FRAME])
+{
+    return xfer_b(s, 0, tx, rx);
+}
+
+static int op_b(struct sc *s, int board, uint8_t opcode, uint8_t rx[XRF_ICO_FRAME])
+{
+    uint8_t tx[XRF_ICO_FRAME];
+    xrf_ico_frame_op(opcode, tx);
+    return xfer_b(s, board, tx, rx);
 }
 
 static int op(struct sc *s, uint8_t opcode, uint8_t rx[XRF_ICO_FRAME])
@@ -359,47 +417,86 @@ static int tick(struct sc *s)
     return aborted(s);
 }
 
-/* One ALL frame; the reply's counters are unwrapped into s->pos. */
-static int frame_all(struct sc *s, const struct xrf_ico_out *out)
+/* The outputs of every channel of the bench for one frame. */
+struct sc_out {
+    int16_t pwm[XRF_MAX_CHANNELS];
+    uint8_t dout[XRF_MAX_CHANNELS];
+};
+
+/* One ALL frame with every board that answered, the others first and board 0 last, as the loop
+ * does (XRF2's further boards): a simulated plant steps once, at board 0's transfer, with all
+ * outputs set. The replies' counters are unwrapped into s->pos, the inputs copied to s->din. */
+static int frame_all(struct sc *s, const struct sc_out *o)
 {
-    uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
-    xrf_ico_encode_all(out, s->pwm_max, tx);
-    int rc = xfer(s, tx, rx);
-    if (rc)
-        return rc;
-    xrf_ico_decode_all(rx, &s->in);
-    for (int i = 0; i < 4; i++) {
-        int32_t v = s->in.enc[i];
+    for (int b = s->boards - 1; b >= 0; b--) {
+        if (!s->board_ok[b])
+            continue;
+        uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
+        struct xrf_ico_out out;
+        struct xrf_ico_in in;
+        memcpy(out.pwm, &o->pwm[b * XRF_ICO_CHANNELS], sizeof out.pwm);
+        memcpy(out.dout, &o->dout[b * XRF_ICO_CHANNELS], sizeof out.dout);
+        xrf_ico_encode_all(&out, s->pwm_max, tx);
+        int rc = xfer_b(s, b, tx, rx);
+        if (rc)
+            return rc;
+        xrf_ico_decode_all(rx, &in);
+        for (int k = 0; k < XRF_ICO_CHANNELS; k++) {
+            s->raw[b * XRF_ICO_CHANNELS + k] = in.enc[k];
+            s->din[2 * (b * XRF_ICO_CHANNELS + k)] = in.din[2 * k];
+            s->din[2 * (b * XRF_ICO_CHANNELS + k) + 1] = in.din[2 * k + 1];
+        }
+    }
+    for (int i = 0; i < s->nch; i++) {
+        int32_t v = s->raw[i];
         if (s->have_raw) {
-            int32_t d = (v - s->raw[i]) & (XRF_ICO_ENC_MODULO - 1);
+            int32_t d = (v - s->last[i]) & (XRF_ICO_ENC_MODULO - 1);
             if (d >= XRF_ICO_ENC_MODULO / 2)
                 d -= XRF_ICO_ENC_MODULO;
             s->pos[i] += d;
         } else {
             s->pos[i] = v >= XRF_ICO_ENC_MODULO / 2 ? v - XRF_ICO_ENC_MODULO : v;
         }
-        s->raw[i] = v;
+        s->last[i] = v;
     }
     s->have_raw = 1;
     return 0;
 }
 
-static const struct xrf_ico_out zero_out;
+static const struct sc_out zero_out;
+
+/* One board's RESET + zero ALL (twice). */
+static int zero_board(struct xrf_ico_transport *t, int b)
+{
+    uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
+    static const struct xrf_ico_out zero;
+    int first = 0, rc;
+    xrf_ico_frame_op(XRF_ICO_RESET, tx);
+    for (int i = 0; i < 3; i++) {
+        rc = b == 0 ? t->xfer(t, tx, rx) : t->xfer_board(t, b, tx, rx);
+        if (!first)
+            first = rc;
+        /* Twice zero ALL: a board that answers one frame late has certainly taken the zeros. */
+        xrf_ico_encode_all(&zero, 0, tx);
+    }
+    return first;
+}
 
 int xrf_selfcheck_zero_outputs(struct xrf_ico_transport *t)
 {
     if (!t)
         return -EINVAL;
-    uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
-    xrf_ico_frame_op(XRF_ICO_RESET, tx);
-    int first = t->xfer(t, tx, rx);
-    xrf_ico_encode_all(&zero_out, 0, tx);
-    int rc = t->xfer(t, tx, rx);
-    if (!first)
-        first = rc;
-    /* Once more: a board that answers one frame late has certainly taken the zeros now. */
-    rc = t->xfer(t, tx, rx);
-    return first ? first : rc;
+    /* Every board, whether it answered INIT or not: zeros are safe to send anywhere. */
+    int boards = t->xfer_board && t->boards > 1 ? t->boards : 1;
+    if (boards > XRF_MAX_BOARDS)
+        boards = XRF_MAX_BOARDS;
+    int first = 0;
+    for (int b = boards - 1; b >= 0; b--) {
+        int rc = zero_board(t, b);
+        if (!first)
+            first = rc;
+    }
+    return first;
 }
 
 static void link_broken(struct sc *s, struct xrf_selfcheck_result *r)
@@ -443,6 +540,83 @@ static int step_init(struct sc *s)
     }
     emit(s, &r);
     return ok ? 0 : -1;
+}
+
+/* -- the further boards of a bench (2, 3): INIT each. One that does not answer fails its own
+ * step, its channels are skipped with the reason, and the others are checked. -- */
+static int step_boards(struct sc *s)
+{
+    for (int b = 1; b < s->boards; b++) {
+        struct xrf_selfcheck_result r;
+        char id[24], title[96];
+        int lo = b * XRF_ICO_CHANNELS + 1;
+        int hi = lo + XRF_ICO_CHANNELS - 1 < s->nch ? lo + XRF_ICO_CHANNELS - 1 : s->nch;
+        char span[32]; /* "channels 5-8", or "channel 9" alone */
+        if (hi > lo)
+            snprintf(span, sizeof span, "channels %d-%d", lo, hi);
+        else
+            snprintf(span, sizeof span, "channel %d", lo);
+        snprintf(id, sizeof id, "board.%d", b + 1);
+        snprintf(title, sizeof title, "ico board %d present (INIT answered)", b + 1);
+        result_init(&r, id, 0, title);
+        progress(s, id, 0, 0.0, "asking ico board %d (%s) to identify itself", b + 1, span);
+        uint8_t rx[XRF_ICO_FRAME];
+        int got = -1, ok = 0;
+        for (int i = 0; i < 3 && !ok; i++) {
+            if (op_b(s, b, XRF_ICO_INIT, rx)) {
+                link_broken(s, &r);
+                emit(s, &r);
+                return -1;
+            }
+            got = rx[XRF_ICO_INIT_REPLY_BYTE];
+            ok = got == XRF_ICO_INIT_REPLY;
+        }
+        s->board_ok[b] = ok;
+        SETF(r.data, "{\"board\":%d,\"channels\":[%d,%d],\"reply_byte4\":%d,\"expected\":%d}",
+             b + 1, lo, hi, got, XRF_ICO_INIT_REPLY);
+        if (ok) {
+            r.status = XRF_SC_PASS;
+            SETF(r.message, "ico board %d (%s) answered INIT with %d: it is there", b + 1, span,
+                 XRF_ICO_INIT_REPLY);
+            zero_board(s->t, b);
+        } else {
+            r.status = XRF_SC_FAIL;
+            SETF(r.message,
+                 "ico board %d (%s) did not answer INIT (byte 4 of the reply is %d, "
+                 "expected %d): it is not there, has no power, or its FPGA is not programmed; "
+                 "its channels are not checked",
+                 b + 1, span, got, XRF_ICO_INIT_REPLY);
+            SETF(r.action,
+                 "check that ico board %d is stacked and powered (LED on) and its FPGA image is "
+                 "loaded; then run the check again",
+                 b + 1);
+        }
+        emit(s, &r);
+    }
+    return 0;
+}
+
+/* A channel on a board that did not answer: its steps are skipped with that reason. */
+static int board_missing(struct sc *s, const char *id, int ch, const char *title)
+{
+    int b = ch / XRF_ICO_CHANNELS;
+    if (s->board_ok[b])
+        return 0;
+    char why[128];
+    snprintf(why, sizeof why,
+             "not run: ico board %d, which carries channel %d, did not answer INIT", b + 1, ch + 1);
+    skip(s, id, ch + 1, title, why);
+    return 1;
+}
+
+/* A JSON array of the first n values. */
+static void json_ints(char *buf, size_t len, const int64_t *v, int n)
+{
+    size_t o = 0;
+    buf[0] = 0;
+    for (int i = 0; i < n && o + 24 < len; i++)
+        o += (size_t)snprintf(buf + o, len - o, "%s%lld", i ? "," : "[", (long long)v[i]);
+    snprintf(buf + o, len - o, "%s]", n ? "" : "[");
 }
 
 /* -- TEST echo -- */
@@ -532,11 +706,14 @@ static int step_reset(struct sc *s)
     result_init(&r, "reset", 0, "RESET: encoders read zero, outputs off");
     progress(s, "reset", 0, 0.0, "RESET, then reading every encoder");
     uint8_t rx[XRF_ICO_FRAME];
-    int32_t enc_after[4];
-    if (op(s, XRF_ICO_RESET, rx))
-        goto broken;
-    for (int ch = 0; ch < 4; ch++) {
-        if (op(s, (uint8_t)(XRF_ICO_ENC_1 + ch), rx))
+    int64_t enc_after[XRF_MAX_CHANNELS] = {0};
+    for (int b = 0; b < s->boards; b++)
+        if (s->board_ok[b] && op_b(s, b, XRF_ICO_RESET, rx))
+            goto broken;
+    for (int ch = 0; ch < s->nch; ch++) {
+        if (!s->board_ok[ch / XRF_ICO_CHANNELS])
+            continue;
+        if (op_b(s, ch / XRF_ICO_CHANNELS, (uint8_t)(XRF_ICO_ENC_1 + ch % XRF_ICO_CHANNELS), rx))
             goto broken;
         int32_t v = xrf_ico_decode_enc(rx);
         enc_after[ch] = v >= XRF_ICO_ENC_MODULO / 2 ? v - XRF_ICO_ENC_MODULO : v;
@@ -546,7 +723,7 @@ static int step_reset(struct sc *s)
     clock_start(s);
     if (frame_all(s, &zero_out))
         goto broken;
-    int64_t start[4];
+    int64_t start[XRF_MAX_CHANNELS];
     memcpy(start, s->pos, sizeof start);
     int frames = 50000 / s->p->period_us + 1;
     for (int i = 0; i < frames; i++) {
@@ -557,26 +734,26 @@ static int step_reset(struct sc *s)
     }
     int tol = s->p->reset_tolerance;
     int not_zero = 0, moving = 0;
-    int64_t drift[4];
-    for (int ch = 0; ch < 4; ch++) {
+    int64_t drift[XRF_MAX_CHANNELS] = {0};
+    for (int ch = 0; ch < s->nch; ch++) {
         drift[ch] = s->pos[ch] - start[ch];
-        if (abs(enc_after[ch]) > tol && !not_zero)
+        if (llabs(enc_after[ch]) > tol && !not_zero)
             not_zero = ch + 1;
         if (llabs(drift[ch]) > tol && !moving)
             moving = ch + 1;
     }
-    SETF(r.data,
-         "{\"after_reset\":[%d,%d,%d,%d],\"drift_with_outputs_off\":[%lld,%lld,%lld,%lld],"
-         "\"tolerance\":%d}",
-         enc_after[0], enc_after[1], enc_after[2], enc_after[3], (long long)drift[0],
-         (long long)drift[1], (long long)drift[2], (long long)drift[3], tol);
+    char after[XRF_MAX_CHANNELS * 24], moved[XRF_MAX_CHANNELS * 24];
+    json_ints(after, sizeof after, enc_after, s->nch);
+    json_ints(moved, sizeof moved, drift, s->nch);
+    SETF(r.data, "{\"after_reset\":%s,\"drift_with_outputs_off\":%s,\"tolerance\":%d}", after,
+         moved, tol);
     if (not_zero) {
         r.channel = not_zero;
         r.status = XRF_SC_FAIL;
         SETF(r.message,
-             "encoder %d reads %d right after RESET (expected 0): the board did not "
+             "encoder %d reads %lld right after RESET (expected 0): the board did not "
              "reset its counters",
-             not_zero, enc_after[not_zero - 1]);
+             not_zero, (long long)enc_after[not_zero - 1]);
         SETF(r.action, "power-cycle the ico board and run the check again; if it stays, the FPGA "
                        "image on the board is wrong");
     } else if (moving) {
@@ -592,7 +769,12 @@ static int step_reset(struct sc *s)
              s->p->ch[moving - 1].connector);
     } else {
         r.status = XRF_SC_PASS;
-        SETF(r.message, "after RESET all four encoders read 0 and stay there with the outputs off");
+        if (s->nch == 4)
+            SETF(r.message,
+                 "after RESET all four encoders read 0 and stay there with the outputs off");
+        else
+            SETF(r.message,
+                 "after RESET all %d encoders read 0 and stay there with the outputs off", s->nch);
     }
     emit(s, &r);
     return 0;
@@ -605,10 +787,11 @@ broken:
 /* -- motor pulses -- */
 enum { P_OK, P_WEAK, P_NONE, P_WRONG, P_HIGH };
 
-static int pulse(struct sc *s, int ch, int16_t pwm, int ms, int64_t delta[4], const char *what)
+static int pulse(struct sc *s, int ch, int16_t pwm, int ms, int64_t delta[XRF_MAX_CHANNELS],
+                 const char *what)
 {
-    struct xrf_ico_out out = zero_out;
-    int64_t start[4];
+    struct sc_out out = zero_out;
+    int64_t start[XRF_MAX_CHANNELS];
     memcpy(start, s->pos, sizeof start);
     int on = ms * 1000 / s->p->period_us;
     int settle = s->p->settle_ms * 1000 / s->p->period_us;
@@ -623,8 +806,8 @@ static int pulse(struct sc *s, int ch, int16_t pwm, int ms, int64_t delta[4], co
         if (rc)
             return rc;
     }
-    for (int k = 0; k < 4; k++)
-        delta[k] = s->pos[k] - start[k];
+    for (int k = 0; k < XRF_MAX_CHANNELS; k++)
+        delta[k] = k < s->nch ? s->pos[k] - start[k] : 0;
     return 0;
 }
 
@@ -652,6 +835,8 @@ static int step_motor(struct sc *s, int ch)
         skip(s, id, ch + 1, title, "no motor on this channel in the bench profile");
         return 0;
     }
+    if (board_missing(s, id, ch, title))
+        return 0;
     struct xrf_selfcheck_result r;
     result_init(&r, id, ch + 1, title);
     double duty = c->duty;
@@ -665,19 +850,20 @@ static int step_motor(struct sc *s, int ch)
     if (pwm > s->pwm_max)
         pwm = s->pwm_max;
     int ms = c->duration_ms > XRF_SC_MAX_PULSE_MS ? XRF_SC_MAX_PULSE_MS : c->duration_ms;
-    int64_t dp[4], dm[4];
+    int64_t dp[XRF_MAX_CHANNELS], dm[XRF_MAX_CHANNELS];
     char what[128];
     s->have_raw = 0;
     clock_start(s);
     int rc = frame_all(s, &zero_out);
-    snprintf(what, sizeof what, "channel %d (%s): PWM +%.0f %% for %d ms", ch + 1, c->name,
-             duty * 100, ms);
-    if (!rc)
-        rc = pulse(s, ch, pwm, ms, dp, what);
-    snprintf(what, sizeof what, "channel %d (%s): PWM -%.0f %% for %d ms", ch + 1, c->name,
-             duty * 100, ms);
-    if (!rc)
-        rc = pulse(s, ch, (int16_t)-pwm, ms, dm, what);
+    /* The profile's first direction first (an axis parked on a stop pulses away from it, then
+     * back); dp is the positive pulse's movement and dm the negative one's either way. */
+    int first = c->first_pulse < 0 ? -1 : 1;
+    for (int k = 0; k < 2 && !rc; k++) {
+        int sign = k == 0 ? first : -first;
+        snprintf(what, sizeof what, "channel %d (%s): PWM %c%.0f %% for %d ms", ch + 1, c->name,
+                 sign > 0 ? '+' : '-', duty * 100, ms);
+        rc = pulse(s, ch, (int16_t)(sign * pwm), ms, sign > 0 ? dp : dm, what);
+    }
     if (rc == -EINTR)
         return rc;
     if (rc) {
@@ -689,16 +875,18 @@ static int step_motor(struct sc *s, int ch)
     int sm = classify(dm[ch], -c->direction, c);
     /* Another encoder that followed both pulses while this one did not: crossed cables. */
     int other = 0;
-    for (int k = 0; k < 4; k++)
+    for (int k = 0; k < s->nch; k++)
         if (k != ch && llabs(dp[k]) >= c->min_counts && llabs(dm[k]) >= c->min_counts)
             other = k + 1;
+    char all_p[XRF_MAX_CHANNELS * 24], all_m[XRF_MAX_CHANNELS * 24];
+    json_ints(all_p, sizeof all_p, dp, s->nch);
+    json_ints(all_m, sizeof all_m, dm, s->nch);
     SETF(r.data,
          "{\"pwm\":%d,\"duty\":%.3f,\"duration_ms\":%d,\"direction\":%d,\"counts_plus\":%lld,"
          "\"counts_minus\":%lld,\"min_counts\":%d,\"max_counts\":%d,"
-         "\"all_plus\":[%lld,%lld,%lld,%lld],\"all_minus\":[%lld,%lld,%lld,%lld]}",
+         "\"all_plus\":%s,\"all_minus\":%s,\"first_pulse\":%d}",
          pwm, duty, ms, c->direction, (long long)dp[ch], (long long)dm[ch], c->min_counts,
-         c->max_counts, (long long)dp[0], (long long)dp[1], (long long)dp[2], (long long)dp[3],
-         (long long)dm[0], (long long)dm[1], (long long)dm[2], (long long)dm[3]);
+         c->max_counts, all_p, all_m, first);
     const char *conn = c->connector;
     r.status = XRF_SC_FAIL;
     if (sp == P_OK && sm == P_OK) {
@@ -777,7 +965,7 @@ static int wait_pin(struct sc *s, int ch, int dout, int want, int frames, int *s
     /* Written on every path: frame_all's error is any non-zero int, so a caller testing for 1
      * could read it unset (aarch64's gcc says so at -O2, x86's does not). */
     *seen_after = 0;
-    struct xrf_ico_out out = zero_out;
+    struct sc_out out = zero_out;
     out.dout[ch] = (uint8_t)dout;
     for (int i = 0; i < frames; i++) {
         if (tick(s))
@@ -785,7 +973,7 @@ static int wait_pin(struct sc *s, int ch, int dout, int want, int frames, int *s
         int rc = frame_all(s, &out);
         if (rc)
             return rc;
-        if (s->in.din[2 * ch] == want) {
+        if (s->din[2 * ch] == want) {
             *seen_after = i + 1;
             return 1;
         }
@@ -805,6 +993,8 @@ static int step_dout(struct sc *s, int ch)
              "toggled, nothing could read it back");
         return 0;
     }
+    if (board_missing(s, id, ch, title))
+        return 0;
     struct xrf_selfcheck_result r;
     result_init(&r, id, ch + 1, title);
     progress(s, id, ch + 1, 0.0, "toggling digital output %d, reading input %d pin 1", ch + 1,
@@ -877,6 +1067,8 @@ static int step_din(struct sc *s, int ch)
     char id[24], title[160]; /* ids: "motor." + any int; titles: the longest channel name */
     snprintf(id, sizeof id, "din.%d", ch + 1);
     snprintf(title, sizeof title, "channel %d: digital inputs", ch + 1);
+    if (board_missing(s, id, ch, title))
+        return 0;
     struct xrf_selfcheck_result r;
     result_init(&r, id, ch + 1, title);
     progress(s, id, ch + 1, 0.0, "reading input pins of channel %d with the outputs off", ch + 1);
@@ -894,7 +1086,7 @@ static int step_din(struct sc *s, int ch)
         }
         if (i >= 2)
             for (int k = 0; k < 2; k++)
-                ones[k] += s->in.din[2 * ch + k];
+                ones[k] += s->din[2 * ch + k];
     }
     int level[2];
     const char *desc[2];
@@ -962,7 +1154,8 @@ static int step_timing(struct sc *s)
         return -1;
     }
     uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
-    xrf_ico_encode_all(&zero_out, 0, tx);
+    static const struct xrf_ico_out zero;
+    xrf_ico_encode_all(&zero, 0, tx);
     double sum = 0;
     for (int i = 0; i < n; i++) {
         if (aborted(s)) {
@@ -1048,6 +1241,15 @@ int xrf_selfcheck_run(struct xrf_ico_transport *t, const struct xrf_selfcheck_pr
     if (limit < 0.0)
         limit = 0.0;
     struct sc s = {.t = t, .p = &prof, .h = hooks, .sum = sum};
+    /* The bench: the boards the transport has, and of their channels the bench's count. */
+    int boards = t->xfer_board && t->boards > 1 ? t->boards : 1;
+    if (boards > XRF_MAX_BOARDS)
+        boards = XRF_MAX_BOARDS;
+    s.nch = prof.channels > 0 && prof.channels < boards * XRF_ICO_CHANNELS
+                ? prof.channels
+                : boards * XRF_ICO_CHANNELS;
+    s.boards = (s.nch + XRF_ICO_CHANNELS - 1) / XRF_ICO_CHANNELS;
+    s.board_ok[0] = 1;
     /* The frame builder clamps to this whatever a step asks for: never beyond 20 %. */
     s.pwm_max = xrf_ico_pwm_max(limit);
 
@@ -1055,14 +1257,16 @@ int xrf_selfcheck_run(struct xrf_ico_transport *t, const struct xrf_selfcheck_pr
     if (rc == 0)
         xrf_selfcheck_zero_outputs(t);
     if (rc == 0 && !aborted(&s))
+        rc = step_boards(&s);
+    if (rc == 0 && !aborted(&s))
         rc = step_echo(&s);
     if (rc == 0 && !aborted(&s))
         rc = step_reset(&s);
-    for (int ch = 0; ch < 4 && rc == 0 && !aborted(&s); ch++)
+    for (int ch = 0; ch < s.nch && rc == 0 && !aborted(&s); ch++)
         rc = step_motor(&s, ch);
-    for (int ch = 0; ch < 4 && rc == 0 && !aborted(&s); ch++)
+    for (int ch = 0; ch < s.nch && rc == 0 && !aborted(&s); ch++)
         rc = step_dout(&s, ch);
-    for (int ch = 0; ch < 4 && rc == 0 && !aborted(&s); ch++)
+    for (int ch = 0; ch < s.nch && rc == 0 && !aborted(&s); ch++)
         rc = step_din(&s, ch);
     if (rc == 0 && !aborted(&s))
         rc = step_timing(&s);
@@ -1073,14 +1277,14 @@ int xrf_selfcheck_run(struct xrf_ico_transport *t, const struct xrf_selfcheck_pr
         /* Board absent or link broken: every step not yet reported is skipped with the reason. */
         const char *why = s.xfer_err ? "not run: an SPI transfer failed earlier"
                                      : "not run: the ico board did not answer INIT";
-        for (int i = 0; i < N_PLANNED; i++) {
-            if (s.done & (1u << i))
+        int total = planned_id(&s, -1, NULL, 0);
+        for (int i = 0; i < total && i < (int)sizeof s.done; i++) {
+            if (s.done[i])
                 continue;
-            char title[96];
-            planned_title(&s, i, title, sizeof title);
-            const char *id = planned[i];
-            int ch = strchr(id, '.') ? id[strlen(id) - 1] - '0' : 0;
-            skip(&s, id, ch, title, why);
+            char id[24], title[96];
+            planned_id(&s, i, id, sizeof id);
+            planned_title(&s, id, title, sizeof title);
+            skip(&s, id, id_channel(id), title, why);
         }
     }
     sum->outputs_zeroed = xrf_selfcheck_zero_outputs(t) == 0;

@@ -41,6 +41,9 @@ struct xrf_sc_channel {
     char connector[32]; /* "PMOD 1": where the educator finds the cable */
     int motor;          /* 1: a motor + encoder is wired to this channel */
     int direction;      /* +1: positive PWM counts the encoder up; -1: down */
+    int first_pulse;    /* sign of the first pulse's PWM (+1 default, -1: negative first): an
+                         * axis parked on a stop pulses away from it first (docs/educators/
+                         * selfcheck.md), then back */
     double duty;        /* pulse duty as a fraction of full scale (<= XRF_SC_MAX_DUTY) */
     int duration_ms;    /* pulse length each way (<= XRF_SC_MAX_PULSE_MS) */
     int min_counts;     /* |counts| a pulse must at least move the encoder */
@@ -48,6 +51,7 @@ struct xrf_sc_channel {
     int loopback;       /* 1: digital output wired back to input pin 1 of this channel */
     int din_idle[2];    /* expected level of pin 1/2 with outputs off; -1 = not checked */
     char pin_name[2][64];
+    int listed; /* 1: the profile has a key of this channel (xrf_selfcheck_profile_fits) */
 };
 
 struct xrf_selfcheck_profile {
@@ -61,11 +65,16 @@ struct xrf_selfcheck_profile {
     double warn_median_us; /* link timing: warn above this median */
     double fail_median_us; /* link timing: fail above this median */
     double warn_max_us;    /* link timing: warn above this maximum */
-    struct xrf_sc_channel ch[4];
+    /* The bench's channel count, 1..XRF_MAX_CHANNELS: channels 1..channels on ceil(channels / 4)
+     * ico boards are checked. 0: every channel of the boards the transport has. Set by the
+     * tool from the bench (the simulated plant's row), not from the profile. */
+    int channels;
+    struct xrf_sc_channel ch[XRF_MAX_CHANNELS];
 };
 
-/* One finished step. id: "spi", "init", "echo", "reset", "motor.N", "dout.N", "din.N",
- * "timing". channel: 1..4 for per-channel steps, 0 otherwise. data: a JSON object text with the
+/* One finished step. id: "spi", "init", "board.B" (ico board B = 2, 3 of a bench of several
+ * boards), "echo", "reset", "motor.N", "dout.N", "din.N", "timing". channel: 1..the bench's
+ * count for per-channel steps, 0 otherwise. data: a JSON object text with the
  * measured values ("{}" when none). */
 struct xrf_selfcheck_result {
     char id[16];
@@ -110,6 +119,10 @@ void xrf_selfcheck_profile_defaults(struct xrf_selfcheck_profile *p);
  * form is checked here, no ranges (xrf_selfcheck_run clamps to the hard limits). Returns 0, or
  * -EINVAL for an unknown key or a malformed line/value, with the line number and key in err. */
 int xrf_selfcheck_profile_read(FILE *in, struct xrf_selfcheck_profile *p, char *err, size_t errlen);
+/* 0 when every channel the profile lists (channel.N keys) is one of the bench's `channels`;
+ * else -ERANGE with a plain-language sentence in err naming the channel and the bench. */
+int xrf_selfcheck_profile_fits(const struct xrf_selfcheck_profile *p, int channels, char *err,
+                               size_t errlen);
 /* Writes *p as one JSON object line {"event":"profile",...} (xrf-selfcheck --dump-profile):
  * what the checker will use, for tests that the flat form reaches every field. */
 void xrf_selfcheck_profile_dump(FILE *out, const struct xrf_selfcheck_profile *p);
