@@ -832,7 +832,7 @@ function showAlarm(m) {
   box.classList.toggle("warn", m.kind === "deadline_miss");
   const prefix = { crash: "Loop crashed: ", hang: "Loop hung: ", log: "Logging stopped: ", deadline_miss: "Timing: ",
     confinement: "Run sandbox: ", memory: "Run stopped, memory: ", pids: "Run stopped, processes: ",
-    disk: "Run stopped, disk: ", cpu: "Run stopped, CPU: " };
+    disk: "Run stopped, disk: ", cpu: "Run stopped, CPU: ", host_lost: "Supervision: " };
   let text = (prefix[m.kind] || "") + m.message;
   if (m.kind === "deadline_miss") {
     showAlarm.misses = (box.dataset.kind === "deadline_miss" && !box.classList.contains("hidden") ? showAlarm.misses || 0 : 0) + 1;

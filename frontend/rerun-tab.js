@@ -8,7 +8,10 @@
 // It also follows the live stream to the next run, as the embedded viewer did, and offers the
 // run's replay from its start: the live stream keeps only a short window and sends it newest
 // first, so a viewer opened mid-run starts at the live edge (issue 31 bug 6, logs/rerun_servers.py
-// LiveProxy); the whole run so far is its log, opened as .rrd in another viewer tab.
+// LiveProxy); the whole run so far is its log, opened as .rrd in another viewer tab. From the
+// page's load on (issue 31 bug 6): the viewer's wasm is compiled from its fetch, the live stream
+// is asked for at once and handed to the viewer when it asks, and a line says what the tab is
+// doing until the first data is drawn (each below).
 // The 3D view's tab (viser's page, server/http/viser.py) loads this script too, for Esc.
 "use strict";
 (function () {
@@ -28,24 +31,44 @@
   let debugMuted = 0;
   if (rerunPage) console.debug = () => { debugMuted += 1; };
 
+  // The viewer's wasm (43 MB), compiled from its fetch while the page still loads (issue 31 bug 6).
+  // rerun's index.html read it through a stream of its own (for a percentage), deleted
+  // WebAssembly.instantiateStreaming and compiled the whole array buffer after the download, at
+  // every opening: chromium keeps a compiled module only for one compiled from the fetched
+  // response (its code cache, beside the HTTP cache's copy: a second opening skips compiling).
+  // The prepared index.html hands this promise to the viewer's loader (server/http/rerun.py
+  // _LOADER_OURS); if streaming fails (an odd proxy's content type), the loader gets the fetch
+  // itself and compiles the old way. Measured: bench/appliance/rerun_lag.py "where the time went".
+  const WASM = "/rerun/re_viewer_bg.wasm";
+  const wasm = rerunPage && typeof WebAssembly.compileStreaming === "function"
+    ? WebAssembly.compileStreaming(fetch(WASM, { credentials: "same-origin" })).catch(() => fetch(WASM, { credentials: "same-origin" }))
+    : null;
+
   async function post(path, body) {
     const { data, res } = await xrfLib.send("POST", path, body || {});  // frontend/lib.js, loaded before this
     const detail = typeof data.detail === "string" ? data.detail : data.detail ? JSON.stringify(data.detail) : res.statusText;
     return { ok: res.ok, status: res.status, data, detail };
   }
 
-  // A short note over the viewer: the canvas covers the whole page, so it floats above it.
-  function note(text, bad) {
-    let n = document.getElementById("xrf-stop-note");
-    if (!n) {
-      n = document.createElement("div");
-      n.id = "xrf-stop-note";
-      n.setAttribute("role", "status");
-      Object.assign(n.style, { position: "fixed", top: "12px", left: "50%", transform: "translateX(-50%)",
-        zIndex: "2147483647", padding: "8px 16px", borderRadius: "6px", font: "600 15px system-ui, sans-serif",
-        color: "#fff", boxShadow: "0 2px 8px rgba(0,0,0,.4)", pointerEvents: "none" });
-      document.body.appendChild(n);
+  // A status line of ours over the viewer (the canvas covers the whole page, so it floats above
+  // it): element `id`, made with `style` the first time.
+  function floating(id, style) {
+    let box = document.getElementById(id);
+    if (!box) {
+      box = document.createElement("div");
+      box.id = id;
+      box.setAttribute("role", "status");
+      Object.assign(box.style, { position: "fixed", borderRadius: "6px", pointerEvents: "none" }, style);
+      document.body.appendChild(box);
     }
+    return box;
+  }
+
+  // A short note over the viewer.
+  function note(text, bad) {
+    const n = floating("xrf-stop-note", { top: "12px", left: "50%", transform: "translateX(-50%)",
+      zIndex: "2147483647", padding: "8px 16px", font: "600 15px system-ui, sans-serif",
+      color: "#fff", boxShadow: "0 2px 8px rgba(0,0,0,.4)" });
     n.textContent = text;
     n.dataset.kind = bad ? "refused" : "sent";
     n.style.background = bad ? "#b91c1c" : "#15803d";
@@ -86,27 +109,276 @@
   // the previous run's stream ends, and this tab reloads onto the new one.
   const url = new URLSearchParams(location.search).get("url") || "";
   const live = /^rerun\+https?:\/\/[^/]+\/proxy$/.test(url);
+
+  // The live view's canvas is smaller than the tab by default: chromium without a GPU driver
+  // rasterises every pixel of the canvas on the CPU each frame, and while it follows live data
+  // the viewer redraws every frame, so the frame time (and with it how far behind live the plots
+  // are) follows the pixel count (issue 31 bug 6, bench/appliance/README.md). The viewer sizes its
+  // canvas's pixels from the canvas's CSS box, so a smaller box is fewer pixels (not a scaled
+  // image: its mouse input stays right). "Full size" is one click away, remembered per browser.
+  const LIVE_CANVAS = { width: 800, height: 500 };  // CSS px
+  const FULL_KEY = "xrf-rerun-live-full";
+  let full = false;
+  try { full = localStorage.getItem(FULL_KEY) === "1"; } catch (e) { /* storage off: the default */ }
+  const fullSize = () => full;
+  function sizeCanvas() {
+    let st = document.getElementById("xrf-canvas-size");
+    if (!st) {
+      st = document.createElement("style");
+      st.id = "xrf-canvas-size";
+      document.head.appendChild(st);
+    }
+    st.textContent = fullSize() ? "" : `#the_canvas_id { width: min(100%, ${LIVE_CANVAS.width}px) !important; `
+      + `height: min(100%, ${LIVE_CANVAS.height}px) !important; }`;
+    const b = document.getElementById("xrf-canvas-toggle");
+    if (b) b.textContent = fullSize() ? "Smaller view (faster without a GPU)" : "Full-size view";
+  }
+  if (live) sizeCanvas();
+
+  // for the test and the benchmark: frames drawn and asked for by the viewer, reads of the live
+  // stream with data; when the stream was asked for (by this script, see below), when the viewer
+  // asked for it, when its first data was read
+  const frames = { drawn: 0, asked: 0, data: 0, held: 0, streamAt: null, viewerAskedAt: null, answeredAt: null, firstDataAt: null, early: "none" };
+  const held = new Map();  // our id -> the viewer's callback, waiting for a reason to draw
+  let onData = () => {};  // the frame gate's (below): the stream brought data
+
+  // The live stream, asked for as the page loads (issue 31 bug 6): the viewer asks for it only
+  // once its app has started (wasm compiled and started: 1.5-3 s on a 2-core machine without a
+  // GPU, more under load), and the stream's first bytes came 0.7-1.5 s after that (the
+  // appliance's route and the run's proxy). So this script sends the very request the viewer
+  // sends (ReadMessages, an empty request, gRPC-web) at once, and when the viewer asks, it gets
+  // this response: what the proxy sent meanwhile (its window, newest first, then each batch) is
+  // waiting in the response's body, and the viewer's first frames ingest it at once. Only the
+  // first identical request, on this origin; anything else goes to the network as asked. Not
+  // claimed within EARLY_MAX_MS (the app did not start): closed.
+  const STREAM_PATH = "/rerun.sdk_comms.v1alpha1.MessageProxyService/ReadMessages";
+  const EMPTY_READ = new Uint8Array(5);  // one gRPC-web data frame holding an empty ReadMessagesRequest
+  const EARLY_MAX_MS = 120000;
+  const nativeFetch = window.fetch.bind(window);
+  let early = null;
+  if (live && url.replace(/^rerun\+/, "").replace(/\/proxy$/, "") === location.origin) {
+    const ctl = new AbortController();
+    const response = nativeFetch(STREAM_PATH, {
+      method: "POST", credentials: "same-origin", cache: "no-store", signal: ctl.signal, body: EMPTY_READ,
+      headers: { "content-type": "application/grpc-web+proto", "x-grpc-web": "1" },
+    });
+    response.catch(() => {});  // the viewer reports a failed stream when it reads it
+    early = { ctl, response, timer: setTimeout(() => { if (early) { early.ctl.abort(); early = null; frames.early = "closed"; } }, EARLY_MAX_MS) };
+    frames.streamAt = Date.now();
+    frames.early = "asked";
+  }
+  async function bodyOf(args) {  // the request body of a fetch(...) call, or null
+    try {
+      if (args[0] instanceof Request) return new Uint8Array(await args[0].clone().arrayBuffer());
+      const b = args[1] && args[1].body;
+      if (b instanceof ArrayBuffer || ArrayBuffer.isView(b)) return new Uint8Array(b.buffer || b, b.byteOffset || 0, b.byteLength);
+    } catch (e) { /* not readable: not ours */ }
+    return null;
+  }
+  async function streamFetch(args) {
+    const body = early ? await bodyOf(args) : null;
+    const method = (args[0] instanceof Request ? args[0].method : (args[1] && args[1].method) || "GET").toUpperCase();
+    if (early && method === "POST" && body && body.length === EMPTY_READ.length && body.every((b) => b === 0)) {
+      const { ctl, response, timer } = early;
+      early = null;
+      clearTimeout(timer);
+      frames.early = "used";
+      const signal = args[0] instanceof Request ? args[0].signal : args[1] && args[1].signal;
+      if (signal) signal.addEventListener("abort", () => ctl.abort(), { once: true });
+      return response;
+    }
+    if (early) { early.ctl.abort(); clearTimeout(early.timer); early = null; frames.early = "not used"; }
+    return nativeFetch(...args);
+  }
+
+  if (live) {
+    // The live stream's reads only (not the page's download of the viewer's wasm, read the same way).
+    const streams = new WeakSet(), readers = new WeakSet();
+    window.fetch = (...args) => {
+      const url = String(args[0] instanceof Request ? args[0].url : args[0]);
+      if (!url.endsWith(STREAM_PATH)) return nativeFetch(...args);
+      frames.viewerAskedAt ??= Date.now();
+      frames.streamAt ??= frames.viewerAskedAt;
+      return streamFetch(args).then((res) => {
+        frames.answeredAt ??= Date.now();
+        if (res.body) streams.add(res.body);
+        return res;
+      });
+    };
+    const nativeGetReader = ReadableStream.prototype.getReader;
+    ReadableStream.prototype.getReader = function (...args) {
+      const reader = nativeGetReader.apply(this, args);
+      if (streams.has(this)) readers.add(reader);
+      return reader;
+    };
+    const nativeRead = ReadableStreamDefaultReader.prototype.read;
+    ReadableStreamDefaultReader.prototype.read = function (...args) {
+      const got = nativeRead.apply(this, args);
+      if (!readers.has(this)) return got;
+      return got.then((r) => {
+        if (!r.done) {
+          frames.data += 1;
+          const first = frames.firstDataAt === null;
+          if (first) frames.firstDataAt = Date.now();
+          onData(first);
+        }
+        return r;
+      });
+    };
+  }
+
+  // Frames when there is something new to show (issue 31 bug 6). While it follows live data the
+  // viewer asks for a frame every frame, and without a GPU driver each frame of the live canvas
+  // costs chromium's GPU process ~0.3 CPU-seconds (SwiftShader): measured 3-4.5 frames/s using 1.5
+  // of this 2-core machine, for a stream that changes twice a second (logs/rerun_live.py
+  // SEND_PERIOD_S). So in the live tab a frame the viewer asks for is drawn at once when the
+  // stream brought data since the last frame (a little later, so one frame takes a whole batch),
+  // when the person uses mouse or keyboard (for FREE_MS after), in the stream's first FREE_MS
+  // (the replayed window: the viewer ingests ~10 ms of messages per frame), and otherwise
+  // IDLE_FRAME_MS after the last one began (a frame slower than that is followed at once: on a
+  // loaded machine the viewer gets every frame it can, as without this). The viewer ingests data only in a frame, so this is also what
+  // keeps it at the live edge: a frame follows each batch. rerun's web viewer has no frame-rate
+  // setting; it asks for frames with window.requestAnimationFrame and reads the stream with
+  // ReadableStreamDefaultReader.read, looked up at each call, so both are wrapped before it loads.
+  const IDLE_FRAME_MS = 500, FREE_MS = 3000, SETTLE_MS = 40;
+  // Every frame the viewer asks for, as before (to compare: bench/appliance/rerun_lag.py --all-frames).
+  let allFrames = false;
+  try { allFrames = localStorage.getItem("xrf-rerun-live-frames") === "all"; } catch (e) { /* storage off */ }
+  if (live && !allFrames) {
+    const nativeRaf = window.requestAnimationFrame.bind(window);
+    const nativeCancel = window.cancelAnimationFrame.bind(window);
+    const passed = new Map();  // our id -> chromium's id, once asked for
+    let nextId = 1, lastFrame = 0, fresh = false, freeUntil = 0, timer = null;
+    const draw = (id, cb) => {
+      passed.set(id, nativeRaf((t) => {
+        passed.delete(id);
+        lastFrame = performance.now();
+        fresh = false;
+        frames.drawn += 1;
+        cb(t);
+      }));
+    };
+    const releaseAll = () => {
+      clearTimeout(timer);
+      timer = null;
+      for (const [id, cb] of held) { held.delete(id); draw(id, cb); }
+    };
+    // a slow frame (a loaded machine: frames seconds apart) is followed at once, never held
+    const due = () => fresh || performance.now() < freeUntil || performance.now() - lastFrame >= IDLE_FRAME_MS;
+    const schedule = () => {  // held callbacks drawn after IDLE_FRAME_MS at the latest
+      if (timer !== null || !held.size) return;
+      timer = setTimeout(releaseAll, Math.max(0, lastFrame + IDLE_FRAME_MS - performance.now()));
+    };
+    window.requestAnimationFrame = (cb) => {
+      const id = nextId++;
+      frames.asked += 1;
+      if (due()) draw(id, cb);
+      else { held.set(id, cb); schedule(); }
+      return id;
+    };
+    window.cancelAnimationFrame = (id) => {
+      held.delete(id);
+      if (passed.has(id)) { nativeCancel(passed.get(id)); passed.delete(id); }
+    };
+    const wake = (ms) => {
+      freeUntil = Math.max(freeUntil, performance.now() + ms);
+      releaseAll();
+    };
+    onData = (first) => {
+      if (first) wake(FREE_MS);
+      else if (!fresh) { fresh = true; clearTimeout(timer); timer = setTimeout(releaseAll, SETTLE_MS); }
+    };
+    for (const ev of ["pointerdown", "pointermove", "pointerup", "wheel", "keydown", "keyup", "resize", "focus"]) {
+      window.addEventListener(ev, () => wake(FREE_MS), { capture: true, passive: true });
+    }
+  }
+  if (live) {
+    // rerun's welcome screen (its examples) is drawn until a recording arrives: not for a live view.
+    const q = new URLSearchParams(location.search);
+    if (!q.has("hide_welcome_screen")) {
+      q.set("hide_welcome_screen", "");
+      history.replaceState(history.state, "", location.pathname + "?" + q.toString() + location.hash);
+    }
+  }
+  // What the live tab shows before its first plot (issue 31 bug 6): the viewer's canvas is empty
+  // until its app has started and drawn the stream's first data, seconds on a machine without a
+  // GPU; empty plots looked like a run with no data. A line over the canvas says which step it is
+  // at, and goes once the viewer has drawn a frame after the stream's first data.
+  let liveRun = null, statusTimer = null;
+  function liveStatus() {
+    const box = floating("xrf-live-status", { top: "40px", left: "16px", zIndex: "2147483646",
+      padding: "6px 12px", font: "14px system-ui, sans-serif", color: "#e5e7eb",
+      background: "rgba(17,24,39,.9)" });
+    const what = liveRun === null ? "Live plots" : `Live plots of run ${liveRun}`;
+    let step;
+    if (window._handle === undefined) { step = "loading"; box.textContent = `${what}: starting the viewer…`; }
+    else if (frames.firstDataAt === null && frames.answeredAt === null) { step = "connecting"; box.textContent = `${what}: connecting to the live stream…`; }
+    else if (frames.firstDataAt === null) { step = "waiting"; box.textContent = `${what}: waiting for the run's data…`; }
+    else {
+      // the next frame ingests what was read, the one after it has drawn it
+      step = "drawing";
+      clearInterval(statusTimer);
+      window.requestAnimationFrame(() => window.requestAnimationFrame(() => {
+        box.style.display = "none";
+        box.dataset.step = "shown";
+      }));
+    }
+    box.dataset.step = step;
+  }
+  if (live) {
+    const start = () => { liveStatus(); statusTimer = setInterval(liveStatus, 250); };
+    if (document.body) start(); else document.addEventListener("DOMContentLoaded", start, { once: true });
+  }
+
+  // The live view is a display, not the data (logs/rerun_live.py, figures from /api/logs/rerun):
+  // each plot shows its last seconds, each logged variable at most so many points per second
+  // (each bucket's min and max: spikes stay visible). Every sample is in the run's log: the replay
+  // below and the Runs page's downloads. Said on the page, beside the replay link.
+  const liveNote = (info) => `Live view: the last ${info.live_span_s} s of each plot, at most `
+    + `${info.live_points_per_s} points/s per signal (each interval's min and max kept). Every sample is `
+    + "in the run's log: the replay below, or the Runs page's downloads.";
+
   // "Replay from start": a link in a corner (the viewer's canvas covers the page), to the live
   // run's first log file as .rrd (converted up to now: a run still logging gives what it has).
-  async function offerReplay(run) {
+  async function offerReplay(run, info) {
     let a = document.getElementById("xrf-replay");
     try {
       const r = await fetch(`/api/logs/runs/${run}`, { credentials: "same-origin" });
       const files = r.ok ? (await r.json()).files : [];
-      if (!files.length) { if (a) a.remove(); return; }
+      if (!files.length) { const box = document.getElementById("xrf-live-note"); if (box) box.remove(); return; }
       const path = `/api/logs/runs/${run}/files/${files[0].name.split("/").map(encodeURIComponent).join("/")}?fmt=rrd`;
       if (!a) {
+        const box = document.createElement("div");
+        box.id = "xrf-live-note";
+        Object.assign(box.style, { position: "fixed", right: "12px", bottom: "40px", zIndex: "2147483647",
+          maxWidth: "300px", padding: "6px 10px", borderRadius: "6px", font: "12px system-ui, sans-serif",
+          color: "#e5e7eb", background: "rgba(17,24,39,.9)" });
+        const p = document.createElement("p");
+        p.style.margin = "0 0 6px";
+        p.id = "xrf-live-text";
         a = document.createElement("a");
         a.id = "xrf-replay";
         a.target = "_blank";
         a.rel = "noopener";
-        Object.assign(a.style, { position: "fixed", right: "12px", bottom: "40px", zIndex: "2147483647",
-          padding: "4px 10px", borderRadius: "6px", font: "13px system-ui, sans-serif", color: "#fff",
-          background: "rgba(30,64,175,.85)", textDecoration: "none" });
-        document.body.appendChild(a);
+        Object.assign(a.style, { display: "inline-block", padding: "4px 10px", borderRadius: "6px", color: "#fff",
+          background: "rgba(30,64,175,.95)", textDecoration: "none", font: "13px system-ui, sans-serif" });
+        const toggle = document.createElement("button");
+        toggle.id = "xrf-canvas-toggle";
+        toggle.type = "button";
+        Object.assign(toggle.style, { marginLeft: "8px", padding: "4px 8px", borderRadius: "6px", border: "0",
+          font: "12px system-ui, sans-serif", cursor: "pointer" });
+        toggle.addEventListener("click", () => {
+          full = !full;
+          try { localStorage.setItem(FULL_KEY, full ? "1" : "0"); } catch (e) { /* storage off: this tab only */ }
+          sizeCanvas();
+        });
+        box.append(p, a, toggle);
+        document.body.appendChild(box);
       }
+      document.getElementById("xrf-live-text").textContent = liveNote(info);
+      sizeCanvas();
       a.textContent = `Replay run ${run} from its start`;
-      a.title = "This live view shows the last seconds; the whole run so far is its log, opened here as .rrd in a new tab";
+      a.title = "The whole run so far, every sample: its log, opened here as .rrd in a new tab";
       a.href = "/rerun/?url=" + encodeURIComponent(location.origin + path);
     } catch (e) { /* the appliance restarts: the next poll tries again */ }
   }
@@ -118,10 +390,10 @@
         const r = await fetch("/api/logs/rerun", { credentials: "same-origin" });
         if (r.ok) {
           const info = await r.json();
-          if (shown === undefined) shown = info.live_run;
+          if (shown === undefined) shown = liveRun = info.live_run;
           else if (info.live_run != null && info.live_run !== shown) { location.reload(); return; }
           if (info.live_run != null) document.title = `rerun · live run ${info.live_run}` + (info.live_running ? "" : " (ended)");
-          if (info.live_run != null && offered !== info.live_run) { offered = info.live_run; offerReplay(info.live_run); }
+          if (info.live_run != null && offered !== info.live_run) { offered = info.live_run; offerReplay(info.live_run, info); }
         }
       } catch (e) { /* the appliance restarts: try again */ }
       setTimeout(follow, FOLLOW_MS);
@@ -131,6 +403,8 @@
     const m = url.match(/\/api\/logs\/runs\/(\d+)\//);
     if (m) document.title = `rerun · run ${m[1]}`;
   }
-  // test hook; debugMuted(): console.debug lines muted so far (see above)
-  window.xrfRerunTab = { stop, live, consoleDebug, debugMuted: () => debugMuted };
+  // test hook; debugMuted(): console.debug lines muted so far (see above);
+  // frames(): frames drawn, asked for by the viewer, and reads of the live stream with data (see above)
+  // wasm: the viewer's module being compiled (its loader in index.html takes it, see above)
+  window.xrfRerunTab = { stop, live, wasm, consoleDebug, debugMuted: () => debugMuted, frames: () => ({ ...frames, held: held.size }) };
 })();

@@ -39,8 +39,12 @@ void xrfpy_store_i64(int64_t *p, int64_t v);
 """
 # ico.h's protocol constants Python needs, by name only: "..." makes cffi take each value from the
 # compiled header (ico.h has no cffi markers; if it gains them, drop the line from here).
+# hold.h's phases likewise (server/runs/watch_record.py names them in xrf-watch's record).
 CONSTANTS_CDEF = """
 #define XRF_ICO_ENC_MODULO ...
+#define XRF_HOLD_PHASE_HOLD ...
+#define XRF_HOLD_PHASE_CLOSING ...
+#define XRF_HOLD_PHASE_REST ...
 """
 HELPERS_SOURCE = """
 uint32_t xrfpy_load_u32(const uint32_t *p) { return __atomic_load_n(p, __ATOMIC_ACQUIRE); }
@@ -68,8 +72,20 @@ def rt_core_dir() -> Path:
 # plants.c: the plant table, whose rows are in the plant files (PLANT_SOURCES, found by name so a
 # new plant needs no edit here). The plant code is pure arithmetic: nothing of it runs in Python
 # but the table's names and sizes.
-HEADERS = ("params.h", "channels.h", "logformat.h", "watch.h", "plants.h")
-SOURCES = ("params.c", "channels.c", "logformat.c", "watch.c", "hold.c", "ico.c", "spidev.c", "plants.c")
+# sim.h/sim_board.c: the simulated board as a transport the watcher's real-bench path can be
+# given (xrf_watch_start_on), so that path is tested frame by frame without hardware.
+HEADERS = ("params.h", "channels.h", "logformat.h", "watch.h", "plants.h", "sim.h")
+SOURCES = (
+    "params.c",
+    "channels.c",
+    "logformat.c",
+    "watch.c",
+    "hold.c",
+    "ico.c",
+    "spidev.c",
+    "plants.c",
+    "sim_board.c",
+)
 PLANT_SOURCES = "plant_*.c"
 
 
@@ -152,7 +168,9 @@ def _compile_into(target: Path) -> None:
     ffi.cdef(CONSTANTS_CDEF)
     ffi.set_source(
         MODULE_NAME,
-        "".join(f'#include "xrf/{h.name}"\n' for h in headers) + '#include "xrf/ico.h"\n' + HELPERS_SOURCE,
+        "".join(f'#include "xrf/{h.name}"\n' for h in headers)
+        + '#include "xrf/ico.h"\n#include "xrf/hold.h"\n'
+        + HELPERS_SOURCE,
         sources=[str(s) for s in sources],
         include_dirs=[str(headers[0].parent.parent)],
         extra_compile_args=["-O2", "-std=gnu11"],

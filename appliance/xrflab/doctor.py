@@ -45,7 +45,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .server.settings import SYSTEM_DATA_DIR, Settings
+from .server.settings import SYSTEM_DATA_DIR, Settings, spi_devices_from_env
 
 HELP = (
     "check this machine for real-time readiness (EVL, isolated CPU, governor, throttling, SPI, clock, disk, "
@@ -123,6 +123,9 @@ class Context:
     data_dir: str = DEFAULT_DATA_DIR
     loop_user: str = DEFAULT_LOOP_USER
     spi_device: str = SPI_DEVICE
+    # A bench of several ico boards: every board's device, board 1 first ($XRF_SPI_DEVICES); ()
+    # = one board, spi_device.
+    spi_devices: tuple[str, ...] = field(default_factory=spi_devices_from_env)
     live: bool = True  # talk to the FPGA (only when SPI is there)
     now: Callable[[], float] = time.time
     disk_usage: Callable[[Path], tuple[int, int, int]] = shutil.disk_usage
@@ -462,29 +465,37 @@ def check_throttling(ctx: Context) -> CheckResult:
 
 
 def check_spi(ctx: Context) -> CheckResult:
-    cid, title = "spi", f"SPI device {ctx.spi_device}"
-    dev = ctx.path(ctx.spi_device)
-    if not dev.exists():
-        return CheckResult(
-            cid,
-            title,
-            FAILURE if ctx.is_pi() else WARNING,
-            f"{ctx.spi_device} does not exist"
-            + ("" if ctx.is_pi() else " (not a Raspberry Pi: the bench is simulated)"),
-            "add dtparam=spi=on to /boot/firmware/config.txt (deploy/boot/config.txt.snippet); reboot",
-        )
-    ok, how = can_rw(ctx, dev, ctx.loop_user)
-    if not ok:
-        return CheckResult(
-            cid,
-            title,
-            FAILURE,
-            f"{ctx.spi_device} ({how}) is not read/writable by {ctx.loop_user}",
-            "install deploy/udev/60-xrf-lab.rules (deploy/install does), then "
-            "`sudo udevadm control --reload-rules && sudo udevadm trigger`; "
-            f"check `id {ctx.loop_user}` lists group spi",
-        )
-    return CheckResult(cid, title, OK, f"{ctx.spi_device} present, read/writable by {ctx.loop_user} ({how})")
+    """Every board's SPI device (one per ico board, board 1 first): there and usable by the loop."""
+    devices = ctx.spi_devices or (ctx.spi_device,)
+    cid, title = "spi", f"SPI device{'s' if len(devices) > 1 else ''} {', '.join(devices)}"
+    named = [f"board {b + 1}: {d}" if len(devices) > 1 else d for b, d in enumerate(devices)]
+    hows = []
+    for device, name in zip(devices, named, strict=True):
+        dev = ctx.path(device)
+        if not dev.exists():
+            return CheckResult(
+                cid,
+                title,
+                FAILURE if ctx.is_pi() else WARNING,
+                f"{name} does not exist" + ("" if ctx.is_pi() else " (not a Raspberry Pi: the bench is simulated)"),
+                "add dtparam=spi=on to /boot/firmware/config.txt (deploy/boot/config.txt.snippet); reboot"
+                + ("; each further board needs its chip select (docs/install/pi.md)" if len(devices) > 1 else ""),
+            )
+        ok, how = can_rw(ctx, dev, ctx.loop_user)
+        if not ok:
+            return CheckResult(
+                cid,
+                title,
+                FAILURE,
+                f"{name} ({how}) is not read/writable by {ctx.loop_user}",
+                "install deploy/udev/60-xrf-lab.rules (deploy/install does), then "
+                "`sudo udevadm control --reload-rules && sudo udevadm trigger`; "
+                f"check `id {ctx.loop_user}` lists group spi",
+            )
+        hows.append(how)
+    return CheckResult(
+        cid, title, OK, f"{', '.join(named)} present, read/writable by {ctx.loop_user} ({', '.join(sorted(set(hows)))})"
+    )
 
 
 def find_selfcheck(ctx: Context) -> str | None:
@@ -670,7 +681,7 @@ def probe_confinement(ctx: Context) -> ConfinementProbe:
 
     settings = ctx.settings
     if settings is None:
-        kw: dict = {"data_dir": Path(ctx.data_dir), "spi_device": ctx.spi_device}
+        kw: dict = {"data_dir": Path(ctx.data_dir), "spi_device": ctx.spi_device, "spi_devices": ctx.spi_devices}
         if ctx.allow_unconfined is not None:
             kw["allow_unconfined"] = ctx.allow_unconfined
         settings = Settings(**kw)

@@ -21,7 +21,7 @@ import os
 import re
 import tempfile
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -352,6 +352,15 @@ class SafeReaction:
     name: str
     number: int
     brake_channel: int
+    # `hold` on a real bench (docs/developers/safety.md): the robot whose plant row's arm model
+    # the watcher drives, the encoders' counts per motor turn (mechanics.counts_per_rev: the
+    # same scale the 3D view uses) and the wiring, bit n for channel n + 1: encoder.inverted,
+    # and direction -1 (a positive PWM counts down).
+    # (Not part of what the reaction is: equal reactions compare equal whatever the wiring.)
+    robot: str = field(default="", compare=False)
+    counts_per_rev: int = field(default=0, compare=False)
+    enc_inverted: int = field(default=0, compare=False)
+    pwm_reversed: int = field(default=0, compare=False)
 
 
 def safe_reaction(profile: dict[str, Any] | None) -> SafeReaction:
@@ -359,7 +368,20 @@ def safe_reaction(profile: dict[str, Any] | None) -> SafeReaction:
     safety = (profile or {}).get("safety") or {}
     name = safety.get("reaction") or "zero"
     number = _safe_reactions()[name] if safety else 0  # zero is 0: the header says so too
-    return SafeReaction(name, number, int(safety.get("brake_channel") or 0))
+    inverted = reversed_ = 0
+    for ch in (profile or {}).get("channels") or []:
+        bit = 1 << (int(ch["channel"]) - 1)
+        inverted |= bit if (ch.get("encoder") or {}).get("inverted") else 0
+        reversed_ |= bit if ch.get("direction") == -1 else 0
+    return SafeReaction(
+        name,
+        number,
+        int(safety.get("brake_channel") or 0),
+        robot=str((profile or {}).get("robot") or ""),
+        counts_per_rev=int(((profile or {}).get("mechanics") or {}).get("counts_per_rev") or 0),
+        enc_inverted=inverted,
+        pwm_reversed=reversed_,
+    )
 
 
 def bench_profile_name(plant: str, real_bench: bool) -> str:

@@ -13,7 +13,22 @@ when it was first within --edge s of live; the viewer thread's longest stalls an
 and the console.debug lines that reached the console. Before the run, the same for an empty viewer
 (no stream): its own start-up. (The viewer files are prepared and cached before.) To vary one
 thing at a time: XRF_RERUN_MEMORY (the live proxy's window, in the appliance's environment),
---viewport (pixels: chromium without a GPU rasterises them on the CPU), --late.
+--viewport (pixels: chromium without a GPU rasterises them on the CPU), --full-size (the live
+view's canvas as large as the tab, not the tab script's smaller default), --late. Also when the
+page asked for the stream and when its first bytes came (DevTools network events), the time from
+the opening to the first sample within --edge s of live, and the tab script's frame gate (frames
+drawn / asked for, frontend/rerun-tab.js). The load average
+is printed before and after (the machine may be shared: compare runs made back to back).
+Where the time before the first drawn sample goes (issue 31 bug 6, ``PHASES``, s after the
+opening): the wasm's fetch (resource timing), its compile and instantiation (WebAssembly's entry
+points), the app's start, the live stream asked for (by the tab script at the page's load, or by
+the viewer) and its first data, and the first of the viewer's frames that holds a sample of the
+run (its state at the end of each frame callback) with how far behind live that sample was then,
+and when the next frame ended (its pixels are on screen by then). The browser has a profile on
+disk, as a person's has (its HTTP cache keeps the wasm, its code cache the compiled module):
+``--fresh-profile`` for Playwright's off-the-record context instead. ``--reopen S``: the opening
+measured is a second one (the live viewer opened before until it drew data, closed, S s without
+a viewer).
 
 Headless cases (at the wire, not what a person sees): headless viewers read the run's live stream
 as the web viewer does, by gRPC-web through the appliance's route (login cookie, same Origin), each
@@ -209,6 +224,78 @@ setInterval(() => window._xrfTicks.push(Date.now()), 100);
 (function frame() { window._xrfFrames.push(Date.now()); requestAnimationFrame(frame); })();"""
 
 
+# Before the page's own scripts too: where the time before the first drawn sample goes, as wall
+# times (ms, performance.timeOrigin + now()): the wasm's fetch (resource timing, read at the end),
+# its compile and instantiation (WebAssembly's entry points wrapped: index.html's loader calls
+# them), the app's start (index.html sets window._handle when WebHandle.start() resolved), and
+# each of the viewer's frames until it held a sample of the run: the viewer's state at the end of
+# every frame callback (the frame that ingests a sample also draws it; its pixels are rasterised
+# by the GPU process right after), kept when it changed, decoded here.
+PHASES = """(() => {
+  const now = () => performance.timeOrigin + performance.now();
+  const m = window._xrfMarks = {}, mark = (k) => { if (!(k in m)) m[k] = now(); };
+  for (const name of ["compile", "compileStreaming", "instantiate", "instantiateStreaming"]) {
+    const f = WebAssembly[name];
+    if (typeof f !== "function") continue;
+    WebAssembly[name] = function (...a) {
+      mark("wasm_" + name + "_start");
+      return f.apply(this, a).then((r) => { mark("wasm_" + name + "_end"); return r; });
+    };
+  }
+  let handle;
+  Object.defineProperty(window, "_handle", { configurable: true, get: () => handle,
+    set: (v) => { handle = v; mark("app_started"); } });
+  window._xrfFrameStates = [];
+  let last = "", frames = 0, lastT = null;
+  const raf = window.requestAnimationFrame.bind(window);
+  window.requestAnimationFrame = (cb) => raf((t) => {
+    cb(t);
+    if (!handle || window._xrfFrameStates.length > 400) return;
+    if (t !== lastT) { lastT = t; frames += 1; }  // one frame, however many callbacks it runs
+    let st;
+    try { st = Array.from(handle.viewer_state()); } catch (e) { return; }
+    const key = st.join(",");
+    if (key !== last) { last = key; window._xrfFrameStates.push([now(), frames, st]); }
+    else if (window._xrfFrameStates.length) window._xrfFrameStates.push([now(), frames, null]);
+  });
+})();"""
+MARKS = """(() => {
+  const r = performance.getEntriesByType("resource").find((e) => e.name.endsWith("re_viewer_bg.wasm"));
+  const o = performance.timeOrigin, f = window.xrfRerunTab && xrfRerunTab.frames ? xrfRerunTab.frames() : {};
+  return { ...window._xrfMarks, nav_start: o,
+    wasm_fetch_start: r && o + r.fetchStart, wasm_response_start: r && o + r.responseStart,
+    wasm_response_end: r && o + r.responseEnd, wasm_transfer_bytes: r && r.transferSize,
+    stream_asked: f.streamAt, viewer_asked: f.viewerAskedAt, stream_answered_js: f.answeredAt,
+    stream_first_data: f.firstDataAt, early: f.early, states: window._xrfFrameStates };
+})()"""
+
+
+def phases(page, opened_ns: int, recording: str) -> dict[str, float]:
+    """The PHASES marks as s after the opening, and the first frame that held a sample of the run:
+    when it ended, how many frames the viewer had drawn by then, and how far behind live it was."""
+    from xrf_testing.rerun_stream import viewer_newest_ns
+
+    raw = page.evaluate(MARKS)
+    out = {k: v / 1e3 - opened_ns / 1e9 for k, v in raw.items() if isinstance(v, int | float) and v > 1e12}
+    out["wasm_transfer_MB"] = (raw.get("wasm_transfer_bytes") or 0) / 1e6
+    out["early"] = raw.get("early") or "-"  # the tab script's stream asked for at the page's load
+    states = raw.get("states") or []
+    for i, (t_ms, n, state) in enumerate(states):
+        newest = viewer_newest_ns(bytes(state), recording) if state is not None else None
+        if newest is not None:
+            out["first_drawn"] = t_ms / 1e3 - opened_ns / 1e9
+            out["first_drawn_behind"] = t_ms / 1e3 - newest / 1e9
+            out["first_drawn_frame"] = n
+            # the frame after it: what the first frame drew is on screen when this one ended at the
+            # latest (the first plots' shaders may be compiled in either)
+            later = next((t for t, m, _ in states[i + 1 :] if m > n), None)
+            if later is not None:
+                out["next_frame_end"] = later / 1e3 - opened_ns / 1e9
+                out["next_frame_end_behind"] = later / 1e3 - newest / 1e9
+            break
+    return out
+
+
 def _thread(page, opened_ns: int, app_ns: int) -> dict:
     """The viewer thread's longest stalls after its app started (s, and when: s after the opening)
     and its median frame rate over the sampled seconds."""
@@ -221,6 +308,35 @@ def _thread(page, opened_ns: int, app_ns: int) -> dict:
         sum(1 for f in frames if s <= f < s + 1) for s in range(int(app) + 1, int(ticks[-1]) if ticks else 0)
     )
     return {"stalls": gaps[:3], "fps_median": per_s[len(per_s) // 2] if per_s else float("nan")}
+
+
+def chromium_cpu_s() -> dict[str, float]:
+    """CPU seconds (user + system) of this script's chromium (its descendants: the machine may run
+    other browsers), by process type (--type=renderer, gpu-process, ...; the browser process has
+    none). The GPU process is where software WebGL (SwiftShader) rasterises the viewer's frames."""
+    import re
+
+    out: dict[str, float] = {}
+    tick = os.sysconf("SC_CLK_TCK")
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            raw = open(f"/proc/{entry}/cmdline", "rb").read().replace(b"\0", b" ")
+            if b"chromium" not in raw.split(b" ", 1)[0]:
+                continue
+            stat = open(f"/proc/{entry}/stat").read().rsplit(")", 1)[1].split()
+            ppid = int(stat[1])
+            while ppid not in (0, 1, os.getpid()):
+                ppid = int(open(f"/proc/{ppid}/stat").read().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError):
+            continue
+        if ppid != os.getpid():
+            continue
+        m = re.search(rb"--type=([a-z-]+)", raw)
+        kind = m.group(1).decode() if m else "browser"
+        out[kind] = out.get(kind, 0.0) + (int(stat[11]) + int(stat[12])) / tick
+    return out
 
 
 def empty_viewer(ctx, url: str, watch_s: float) -> dict:
@@ -239,7 +355,60 @@ def empty_viewer(ctx, url: str, watch_s: float) -> dict:
     return {"app_start_s": (app_ns - opened_ns) / 1e9, **thread}
 
 
-def browser_case(server, build: str, late_s: float, watch_s: float, edge_s: float, viewport: dict) -> dict:
+def _stream_timing(ctx, page) -> dict[str, int]:
+    """When the page asked for the live stream and when its first bytes came (wall ns), from the
+    DevTools protocol's network events (their own timestamps: Playwright's sync API dispatches
+    events late, while the script sleeps)."""
+    cdp = ctx.new_cdp_session(page)
+    cdp.send("Network.enable")
+    out: dict[str, int] = {}
+    req: dict[str, tuple[float, float]] = {}  # requestId -> (monotonic s, wall s)
+
+    def sent(e: dict) -> None:
+        if e["request"]["url"].endswith("/ReadMessages") and not req:
+            req[e["requestId"]] = (e["timestamp"], e["wallTime"])
+            out["stream_requested"] = int(e["wallTime"] * 1e9)
+
+    def wall(e: dict) -> int | None:
+        t0 = req.get(e["requestId"])
+        return None if t0 is None else int((t0[1] + e["timestamp"] - t0[0]) * 1e9)
+
+    def answered(e: dict) -> None:
+        if (t := wall(e)) is not None:
+            out.setdefault("stream_answered", t)
+
+    def data(e: dict) -> None:
+        if (t := wall(e)) is not None and e.get("dataLength", 0) > 0:
+            out.setdefault("stream_first_bytes", t)
+
+    cdp.on("Network.requestWillBeSent", sent)
+    cdp.on("Network.responseReceived", answered)
+    cdp.on("Network.dataReceived", data)
+    return out
+
+
+# The tab script's "Full-size view" choice (frontend/rerun-tab.js FULL_KEY), set before the page loads.
+FULL_SIZE = "try { localStorage.setItem('xrf-rerun-live-full', '1'); } catch (e) {}"
+# ...and its "every frame the viewer asks for" switch (frontend/rerun-tab.js: frames on demand otherwise).
+ALL_FRAMES = "try { localStorage.setItem('xrf-rerun-live-frames', 'all'); } catch (e) {}"
+
+
+_NOT_TIMES = ("first_drawn_behind", "next_frame_end_behind", "first_drawn_frame", "wasm_transfer_MB", "early")
+
+
+def browser_case(
+    server,
+    build: str,
+    late_s: float,
+    watch_s: float,
+    edge_s: float,
+    viewport: dict,
+    full_size: bool = False,
+    all_frames: bool = False,
+    fresh_profile: bool = False,
+    reopen_s: float = 0.0,
+) -> dict:
+    import tempfile
     import urllib.parse
 
     from playwright.sync_api import sync_playwright
@@ -251,9 +420,19 @@ def browser_case(server, build: str, late_s: float, watch_s: float, edge_s: floa
     if not chromium:
         raise SystemExit("the browser case needs Debian's chromium (or XRF_CHROMIUM)")
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
-        try:
+        # A browser profile on disk, as a person's chromium has (a temporary one, removed after):
+        # Playwright's default context is off the record, whose in-memory HTTP cache does not keep
+        # the viewer's 14 MB wasm (it was fetched again at every opening) and which keeps no
+        # compiled wasm code. --fresh-profile: that default context, to compare.
+        profile = None if fresh_profile else tempfile.mkdtemp(prefix="xrf-rerun-lag-profile-")
+        if profile is None:
+            browser = p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
             ctx = browser.new_context(viewport=viewport)
+        else:
+            browser = ctx = p.chromium.launch_persistent_context(
+                profile, executable_path=chromium, args=CHROMIUM_ARGS, viewport=viewport
+            )
+        try:
             ctx.add_cookies(session_cookies(server.http, server.url))
             warm = ctx.new_page()  # the viewer's files prepared and in the cache: not measured
             warm.goto(server.url + "/rerun/index.html", timeout=600_000)
@@ -265,22 +444,50 @@ def browser_case(server, build: str, late_s: float, watch_s: float, edge_s: floa
             while time.monotonic() - started < late_s:
                 time.sleep(0.2)
             info = server.http.get("/api/logs/rerun").json()
+            live = server.url + "/rerun/?url=" + urllib.parse.quote(info["live_url"], safe="")
+            if reopen_s:
+                # A person's second opening: the same viewer opened on the run before, until it drew
+                # data and a few seconds more, then closed; nobody watches for --reopen s.
+                first = ctx.new_page()
+                first.goto(live, timeout=120_000)
+                first.wait_for_function("() => window._handle !== undefined", timeout=600_000)
+                end = time.monotonic() + 60
+                while not first.evaluate("xrfRerunTab.frames().firstDataAt !== null") and time.monotonic() < end:
+                    time.sleep(0.5)  # polling: the first opening's data
+                time.sleep(5)  # time passing: it draws its first plots (shaders compiled, cached)
+                first.close()
+                time.sleep(reopen_s)  # time passing: nobody watches
             page = ctx.new_page()
             page.add_init_script(TICKS)
+            page.add_init_script(PHASES)
+            if full_size:
+                page.add_init_script(FULL_SIZE)
+            if all_frames:
+                page.add_init_script(ALL_FRAMES)
+            wire = _stream_timing(ctx, page)
             debug_lines = [0]
             page.on("console", lambda m: m.type == "debug" and debug_lines.__setitem__(0, debug_lines[0] + 1))
             opened_ns = time.time_ns()
-            page.goto(server.url + "/rerun/?url=" + urllib.parse.quote(info["live_url"], safe=""), timeout=120_000)
+            page.goto(live, timeout=120_000)
             page.wait_for_function("() => window._handle !== undefined", timeout=600_000)
             app_ns = time.time_ns()
             page.evaluate(SAMPLE)
+            cpu0, frames0, t0 = chromium_cpu_s(), page.evaluate("window._xrfFrames.length"), time.monotonic()
             end = time.monotonic() + watch_s
             while time.monotonic() < end:
                 time.sleep(0.5)  # time passing: the viewer follows the run
+            cpu1, frames1, t1 = chromium_cpu_s(), page.evaluate("window._xrfFrames.length"), time.monotonic()
             raw = page.evaluate("window._xrfSamples")
+            marks = phases(page, opened_ns, f"run-{run['id']}")
             thread = _thread(page, opened_ns, app_ns)
+            gate = page.evaluate("window.xrfRerunTab && xrfRerunTab.frames ? xrfRerunTab.frames() : null")
+            canvas = page.evaluate(
+                "(() => { const c = document.getElementById('the_canvas_id'); return [c.width, c.height]; })()"
+            )
         finally:
             browser.close()
+            if profile is not None:
+                shutil.rmtree(profile, ignore_errors=True)
             server.stop_run()
     samples = []  # (s since the app started, s behind live, newest sample's age at the opening)
     for t_ms, state in raw:
@@ -293,6 +500,7 @@ def browser_case(server, build: str, late_s: float, watch_s: float, edge_s: floa
         return after[0] if after else float("nan")
 
     edge = next((s for s, b, _ in samples if b <= edge_s), float("nan"))
+    app_s = (app_ns - opened_ns) / 1e9
     return {
         "run": run["id"],
         "run_age_s": late_s,
@@ -301,10 +509,22 @@ def browser_case(server, build: str, late_s: float, watch_s: float, edge_s: floa
         "first_age_s": samples[0][2] if samples else float("nan"),
         "behind": {t: behind_at(t) for t in (0, 5, 10, 20, 30)},
         "edge_s": edge,
+        "edge_from_open_s": edge + app_s,
+        # stayed within edge_s of live from then on (every later sample of its state)
+        "kept_s": next(
+            (s for i, (s, _, _) in enumerate(samples) if all(b <= edge_s for _, b, _ in samples[i:])), float("nan")
+        ),
+        "worst_after": {t: max((b for s, b, _ in samples if s >= t), default=float("nan")) for t in (1, 5)},
+        "wire": {k: (v - opened_ns) / 1e9 for k, v in wire.items()},
         "samples": len(raw),
         "thread": thread,
         "debug_lines": debug_lines[0],
         "empty": empty,
+        "canvas": canvas,
+        "gate": gate,
+        "phases": marks,
+        "frames_per_s": (frames1 - frames0) / (t1 - t0),
+        "cpu_per_s": {k: (cpu1[k] - cpu0.get(k, 0.0)) / (t1 - t0) for k in cpu1},
     }
 
 
@@ -360,6 +580,23 @@ def main() -> None:
     ap.add_argument("--late", type=float, default=60.0, help="browser case: run age when the viewer opens (s)")
     ap.add_argument("--watch", type=float, default=40.0, help="browser case: how long the viewer is sampled (s)")
     ap.add_argument("--viewport", default="1280x800", help="browser case: the viewer's page size, WxH (CSS px)")
+    ap.add_argument("--full-size", action="store_true", help="browser case: the live view's canvas as large as the tab")
+    ap.add_argument(
+        "--all-frames", action="store_true", help="browser case: every frame the viewer asks for (no frames on demand)"
+    )
+    ap.add_argument(
+        "--fresh-profile",
+        action="store_true",
+        help="browser case: Playwright's off-the-record context (no disk cache) instead of a profile on disk",
+    )
+    ap.add_argument(
+        "--reopen",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="browser case: measure a second opening: the live viewer opened once before (until it drew data), "
+        "closed, and nobody watching for S s",
+    )
     args = ap.parse_args()
 
     other = next((c for c in range(os.cpu_count() or 1) if c != args.cpu), None)
@@ -380,6 +617,7 @@ def main() -> None:
     loop_env = {"XRF_PRIO": str(args.prio), "XRF_CPU": str(args.cpu)}
     results = []
     seen = None
+    load_before = os.getloadavg()
     with appliance(loop_env=loop_env) as server:
         if "footprint" in args.cases.split(","):
             print(f"RSS (MB) of the appliance and its rerun children, {args.build} at 1 kHz")
@@ -388,13 +626,26 @@ def main() -> None:
                 print(f"  {what:36s} appliance {app_mb:.0f}; {kid}", flush=True)
         if browser:
             w, h = (int(x) for x in args.viewport.lower().split("x"))
-            seen = browser_case(server, args.build, args.late, args.watch, args.edge, {"width": w, "height": h})
+            seen = browser_case(
+                server,
+                args.build,
+                args.late,
+                args.watch,
+                args.edge,
+                {"width": w, "height": h},
+                args.full_size,
+                args.all_frames,
+                args.fresh_profile,
+                args.reopen,
+            )
             print("browser: done", file=sys.stderr)
         for label, n, stress_cpu in cases:
             res = run_case(server, args.build, n, args.seconds, args.edge, stress_cpu)
             results.append((label, res))
             print(f"{label}: done", file=sys.stderr)
 
+    load_after = os.getloadavg()
+    print(f"load average (1, 5, 15 min) before: {load_before}, after: {load_after}")
     if seen is not None:
         b, e, th = seen["behind"], seen["empty"], seen["thread"]
 
@@ -402,13 +653,18 @@ def main() -> None:
             return ", ".join(f"{g:.1f} s at {a:.1f} s" for g, a in d["stalls"]) or "none"
 
         window = os.environ.get("XRF_RERUN_MEMORY", "the default")
-        print(f"chromium's rerun viewer, {args.viewport} px, the live proxy's window {window}")
+        print(
+            f"chromium's rerun viewer, {args.viewport} px, its live canvas {seen['canvas'][0]}x{seen['canvas'][1]} "
+            f"px, the live proxy's window {window}"
+        )
         print(
             f"  empty viewer (no stream): app started {e['app_start_s']:.1f} s after opening; longest stalls "
             f"of its thread after that: {stalls(e)}; {e['fps_median']} frames/s (median)"
         )
         print(
-            f"live viewer opened {seen['run_age_s']:g} s into a {args.build} run (what a person sees: "
+            f"live viewer opened {seen['run_age_s']:g} s into a {args.build} run"
+            + (f", a second time ({args.reopen:g} s after the first closed)" if args.reopen else "")
+            + " (what a person sees: "
             f"the viewer's newest sample, {seen['samples']} samples of its state)"
         )
         print(
@@ -419,8 +675,49 @@ def main() -> None:
             f"  app started {seen['app_start_s']:.1f} s after opening; first held a sample of the run "
             f"{seen['first_s']:.1f} s later, that sample {seen['first_age_s']:.1f} s older than the opening"
         )
+        wire = seen["wire"]
+        print(
+            "  the stream, s after opening: "
+            + ", ".join(
+                f"{k.removeprefix('stream_').replace('_', ' ')} {v:.1f}"
+                for k, v in sorted(wire.items(), key=lambda i: i[1])
+            )
+        )
+        ph = seen["phases"]
+        print(
+            "  where the time went, s after opening: "
+            + ", ".join(
+                f"{k} {v:.2f}" for k, v in sorted((i for i in ph.items() if i[0] not in _NOT_TIMES), key=lambda i: i[1])
+            )
+        )
+        if "first_drawn" in ph:
+            print(
+                f"  first frame holding a sample of the run: {ph['first_drawn']:.2f} s after opening (frame "
+                f"{ph['first_drawn_frame']:.0f} of the app), {ph['first_drawn_behind']:.2f} s behind live; the frame "
+                f"after it ended {ph.get('next_frame_end', float('nan')):.2f} s after opening, "
+                f"{ph.get('next_frame_end_behind', float('nan')):.2f} s behind that sample's time; "
+                f"wasm transferred {ph['wasm_transfer_MB']:.1f} MB (0: from the cache); the stream asked for at "
+                f"the page's load: {ph['early']}"
+            )
         print("  behind live " + ", ".join(f"{t} s after start: {v:.1f} s" for t, v in b.items()))
-        print(f"  within {args.edge:g} s of live {seen['edge_s']:.1f} s after the app started")
+        print(
+            f"  within {args.edge:g} s of live {seen['edge_s']:.1f} s after the app started "
+            f"({seen['edge_from_open_s']:.1f} s after opening); within it from then on from "
+            f"{seen['kept_s']:.1f} s after the app started; worst from 1 s / 5 s after the app started: "
+            f"{seen['worst_after'][1]:.1f} / {seen['worst_after'][5]:.1f} s behind"
+        )
+        fps, cpu = seen["frames_per_s"], seen["cpu_per_s"]
+        print(
+            f"  while sampled: {fps:.2f} frames/s; CPU (share of one core) gpu-process {cpu.get('gpu-process', 0):.2f}, "
+            f"renderers {cpu.get('renderer', 0):.2f}; GPU-process CPU per frame "
+            f"{cpu.get('gpu-process', 0) / fps if fps else float('nan'):.2f} s"
+        )
+        if seen["gate"]:  # frontend/rerun-tab.js: frames on demand in the live tab
+            g = seen["gate"]
+            print(
+                f"  the tab's frame gate over the whole view: {g['drawn']} frames drawn of {g['asked']} the viewer "
+                f"asked for; {g['data']} reads of the stream brought data"
+            )
     if not results:
         return
     print(

@@ -58,7 +58,7 @@ FUNCS = {
     "step": "XenoFrtRosIcoCore::step()",
     "hook": HOOK,
     "sim_xfer": "sim_xfer",
-    "endCycle": "xrf::Runtime::endCycle(long, long, long, bool, long)",
+    "endCycle": "xrf::Runtime::endCycle(long, long, long, unsigned long, long)",
     "monitor_print": "XenoFrtMonitor::printf(char const*, ...)",
     "monitorWrite": "xrf::Runtime::monitorWrite(char const*, __va_list_tag*)",
     "update_io": "IcoIo::update_io(IcoIo::IcoWrite const&, IcoIo::IcoRead*)",
@@ -67,7 +67,7 @@ FUNCS = {
     "logger": "XenoFrtLogger::log()",
     "state_machine": "FullStateMachine::step()",
     "doorbell_wake": "xrf_doorbell_wake",
-    "recordTiming": "xrf::Runtime::recordTiming(long, long, bool)",
+    "recordTiming": "xrf::Runtime::recordTiming(long, long, unsigned long)",
 }
 
 

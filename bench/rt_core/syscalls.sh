@@ -6,8 +6,8 @@
 # 16-double logger) runs under `strace -f -ttt` from its first instruction, SCHED_FIFO and pinned.
 # A host drives it to RUN (initialise, start) and follows it like the appliance does (futex wait
 # on the doorbell, reads telemetry and monitor lines), so the doorbell really rings. After 1 s in
-# RUN the host notes the time (steady state begins), waits SECONDS (default 12 s = 12 000 cycles at
-# 1 kHz), notes the time again and stops the loop. The trace is split by the -ttt timestamps:
+# RUN the host notes the time (steady state begins), waits until SECONDS x FREQ cycles have run
+# (default 12 000; at most 3 x SECONDS), notes the time again and stops the loop. The trace is split by the -ttt timestamps:
 # set-up (before steady state), steady state (the window), teardown (after; not shown). Each part
 # is a per-thread histogram of system calls; the loop thread is the SCHED_FIFO one (read from
 # /proc/PID/task/*/stat, it is the main thread: loop() runs on the thread that calls it).

@@ -13,13 +13,20 @@ Reports: log records lost (sum over runs), deadline misses of the loop vs. cycli
 later than one period, appliance RSS at start and end, the crash reactions (p50/p99/max), and the
 appliance's descriptors and processes at the end vs. the start.
 
+--arm: the controller is the youBot example on the simulated youBot (safe reaction `hold`), its
+arm raised to the ready pose in RUN before each crash; each crash is then also measured by what
+the safety watcher did for the arm (the run record's safe_outcome: the largest joint drop and the
+time to rest, docs/developers/safety.md), against the 2° bound.
+
     .venv/bin/python bench/safety/soak.py --minutes 60      # the full soak (an hour)
     .venv/bin/python bench/safety/soak.py --minutes 3 --crashes 6   # a quick look
+    .venv/bin/python bench/safety/soak.py --minutes 20 --crashes 20 --arm   # the arm under every load
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import re
 import shutil
@@ -39,7 +46,16 @@ sys.path.insert(0, str(REPO_ROOT / "tests"))
 
 from _common import pct  # noqa: E402
 
-from xrf_testing.harness import Server, WsClient, stop_server, ws_connect  # noqa: E402
+from xrf_testing.arm import DROP_BOUND, raise_example  # noqa: E402
+from xrf_testing.harness import (  # noqa: E402
+    Server,
+    WsClient,
+    shared_builds_root,
+    start_server,
+    stop_server,
+    wait_for,
+    ws_connect,
+)
 from xrf_testing.leaks import descendants  # noqa: E402
 from xrf_testing.logs_support import COST, start  # noqa: E402
 
@@ -53,7 +69,11 @@ def fds(pid: int) -> int:
     return len(os.listdir(f"/proc/{pid}/fd"))
 
 
-def drive(server: Server, ws: WsClient) -> dict[str, Any]:
+def drive(server: Server, ws: WsClient, arm: bool = False) -> dict[str, Any]:
+    if arm:  # the youBot example, its arm raised to the ready pose in RUN
+        run, ch = raise_example(server)
+        ch.close()
+        return run
     run = server.start_run(COST)
     assert ws.command("initialise", timeout=20)["accepted"]
     ws.wait_state("INITIALISED", timeout=20)
@@ -134,15 +154,20 @@ def main() -> None:
     ap.add_argument("--clients", type=int, default=30)
     ap.add_argument("--build-every", type=float, default=300.0)
     ap.add_argument("--prio", type=int, default=80)
+    ap.add_argument(
+        "--arm", action="store_true", help="the youBot example (hold) instead of the logger-cost controller"
+    )
     args = ap.parse_args()
     seconds = args.minutes * 60
     cpus = os.cpu_count() or 2
     loop_cpu, other_cpu = (1, 0) if cpus > 1 else (0, 0)
 
     with tempfile.TemporaryDirectory(prefix="xrf-soak-") as tmp:
-        server = start(
-            Path(tmp) / "data", loop_env={"XRF_CPU": str(loop_cpu), "XRF_PRIO": str(args.prio), "XRF_BENCH_NVARS": "32"}
-        )
+        loop_env = {"XRF_CPU": str(loop_cpu), "XRF_PRIO": str(args.prio), "XRF_BENCH_NVARS": "32"}
+        if args.arm:  # the bundled examples (the youBot's), not the logging benchmark's projects
+            server = start_server(Path(tmp) / "data", shared_builds_root(), loop_env=loop_env)
+        else:
+            server = start(Path(tmp) / "data", loop_env=loop_env)
         stress = subprocess.Popen(
             ["stress-ng", "--cpu", str(cpus), "--timeout", f"{int(seconds) + 120}s", "--quiet"],
             stdout=subprocess.DEVNULL,
@@ -153,11 +178,12 @@ def main() -> None:
         shutil.copytree(REPO_ROOT / "student_projects/examples/jiwy", project, ignore=shutil.ignore_patterns("build"))
         builds: list[float] = []
         reactions: list[int] = []
+        holds: list[dict[str, Any]] = []  # --arm: each crash's safe_outcome
         runs: list[int] = []
         drainers = None
         try:
             with server.ws() as ws:
-                run = drive(server, ws)
+                run = drive(server, ws, args.arm)
             runs.append(run["id"])
             if True:  # (the block keeps the structure of the steps below readable)
                 drainers = Drainers(server, args.clients)
@@ -194,7 +220,17 @@ def main() -> None:
                                 timeout=30,
                             )
                             reactions.append(alarm["safe_ns"] - t_kill)
-                            run = drive(server, ws)
+                            if args.arm:  # the run record, once the arm is at rest
+                                rid = run["id"]
+                                row = wait_for(
+                                    lambda rid=rid: (
+                                        (r := server.http.get(f"/api/runs/{rid}").json())["end_reason"] and r
+                                    ),
+                                    30,
+                                    "the arm at rest",
+                                )
+                                holds.append(row.get("safe_outcome") or {})
+                            run = drive(server, ws, args.arm)
                         runs.append(run["id"])
                         continue
                     time.sleep(0.2)
@@ -217,8 +253,9 @@ def main() -> None:
             stop_server(server)
 
     print(
-        f"soak: {args.minutes:g} min, loop 1 kHz SCHED_FIFO {args.prio} on CPU {loop_cpu}, 32 doubles logged per "
-        f"cycle, live rerun, {args.clients} WebSocket clients + 3D view ({'connected' if drainers and drainers.viser else 'NOT connected'}), "
+        f"soak: {args.minutes:g} min, loop 1 kHz SCHED_FIFO {args.prio} on CPU {loop_cpu}, "
+        f"{'the youBot example (hold)' if args.arm else '32 doubles logged per cycle'}, live rerun, "
+        f"{args.clients} WebSocket clients + 3D view ({'connected' if drainers and drainers.viser else 'NOT connected'}), "
         f"stress-ng on {cpus} CPUs, a build every {args.build_every:g} s ({len(builds)} builds, "
         f"{pct(builds, 50):.1f} s each)"
     )
@@ -240,6 +277,14 @@ def main() -> None:
         print(
             f"safety reaction, kill -9 -> outputs safe ({len(ms)} crashes): p50 {pct(ms, 50):.2f} ms, "
             f"p99 {pct(ms, 99):.2f} ms, max {max(ms):.2f} ms"
+        )
+    if args.arm:
+        drops = [h["drop_deg"] for h in holds if h.get("phase") == "rest"]
+        rests = [h["rest_s"] for h in holds if h.get("phase") == "rest" and h.get("rest_s") is not None]
+        print(
+            f"arm (hold): {len(drops)} of {len(holds)} crashes ended at rest; largest joint drop p50 "
+            f"{pct(drops, 50):.2f}°, max {max(drops, default=float('nan')):.2f}° (bound {math.degrees(DROP_BOUND):.1f}°); "
+            f"time to rest p50 {pct(rests, 50):.2f} s, max {max(rests, default=float('nan')):.2f} s"
         )
     print(
         f"appliance descriptors: {start_fds} at start, {end_fds} at end; processes below it: "

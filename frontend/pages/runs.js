@@ -45,6 +45,7 @@
       <section class="panel wide hidden" id="panel-run-logs">
         <h2>Run <span id="rl-title"></span></h2>
         <div class="rejected hidden" id="rl-note" role="status"></div>
+        <div class="hidden" id="rl-safe" role="status"></div>
         <div id="rl-files"></div>
       </section>
       <section class="panel wide" id="panel-rerun">
@@ -123,6 +124,19 @@
     for (const tr of old.values()) tr.remove();
   }
 
+  function safeOutcome(o) {
+    const who = o.by === "xrf-watch"
+      ? "The appliance died during this run. Its safety watcher (xrf-watch)"
+      : `The controller failed (${o.reason}). The safety watcher`;
+    let t = `${who} ${o.loop_killed ? "killed the loop and " : ""}made the outputs safe ${o.safe_ms.toFixed(2)} ms after`;
+    if (o.phase !== "none") {
+      t += `; it held the arm (largest joint drop ${o.drop_deg.toFixed(2)}°)`;
+      t += o.rest_s !== null ? ` and lowered it onto its rest stops: at rest ${o.rest_s.toFixed(1)} s after` : `, not at rest when last recorded`;
+      t += ` (final phase: ${o.phase})`;
+    }
+    return t + ".";
+  }
+
   async function select(el, id, reveal) {
     selected = id;
     el.querySelectorAll("#runs-list tr").forEach((tr) => tr.classList.toggle("selected", tr.id === "runs-row-" + id));
@@ -136,6 +150,11 @@
     $("rl-title").textContent = `#${r.id} · ${r.build} · ${r.status}${r.live ? " (live)" : ""}`;
     $("rl-note").textContent = r.log_note ? "Logging stopped: " + r.log_note : "";
     $("rl-note").classList.toggle("hidden", !r.log_note);
+    // What a safety watcher did for a `hold` run: the appliance's own when the loop failed, the
+    // run's xrf-watch while the appliance was gone (its record, read at the restart).
+    const o = r.safe_outcome;
+    $("rl-safe").textContent = o ? safeOutcome(o) : "";
+    $("rl-safe").classList.toggle("hidden", !o);
     const box = $("rl-files");
     box.textContent = "";
     if (!d.files.length) {

@@ -190,9 +190,15 @@
     W.markersShown = shown;
   }
 
+  // From its panel, and never past the window's right edge: the panel's width can follow its
+  // content (the plot itself among it), so a plot built while the panel was wide kept it wide
+  // (CI: a 1782 px scope in a 1280 px window).
   function plotWidth() {
     const panel = q("watch-scope-panel");
-    return Math.max(280, (panel && panel.clientWidth ? panel.clientWidth - 28 : 600));
+    const fromPanel = panel && panel.clientWidth ? panel.clientWidth - 28 : 600;
+    const left = panel ? Math.max(0, panel.getBoundingClientRect().left) : 0;
+    const room = document.documentElement.clientWidth - left - 28;
+    return Math.max(280, Math.min(fromPanel, room));
   }
 
   // What the scope shows: the last window (running), or the window around the trigger.

@@ -13,6 +13,7 @@
 #include <stdio.h>
 #include <string.h>
 #include <sys/mman.h>
+#include <sys/prctl.h>
 #include <sys/stat.h>
 #include <time.h>
 #include <unistd.h>
@@ -80,6 +81,13 @@ static int posix_thread_setup(const struct xrf_rt_config *cfg, int *rt_sched)
         fprintf(stderr, "xrf: WARNING: the loop thread has no real-time scheduling (policy "
                         "SCHED_OTHER): it runs, but without timing guarantees. Set XRF_PRIO or "
                         "start it from a main that creates a SCHED_FIFO thread.\n");
+
+    /* Timer slack: Linux may end a SCHED_OTHER thread's sleep up to 50 us late (by default) to
+     * merge wake-ups. Current kernels give a SCHED_FIFO thread none; a loop whose SCHED_FIFO was
+     * refused (a laptop, CI) would have it, so the thread asks for 1 ns whatever its policy.
+     * Once, in set-up: no call in the cycle. */
+    if (prctl(PR_SET_TIMERSLACK, 1UL, 0UL, 0UL, 0UL) != 0)
+        fprintf(stderr, "xrf: warning: cannot lower the timer slack: %s\n", strerror(errno));
 
     /* Touch the stack now so that a first deep call in a hook does not page-fault mid-cycle. */
     if (cfg->stack_prefault > 0) {

@@ -138,7 +138,7 @@ void xrf_timing_meta_init(struct xrf_log_meta *m, uint32_t writer, const char *p
         XRF_TIMING_VAR(data_ns, XRF_LOG_LONG_INT),    XRF_TIMING_VAR(cmd_ns, XRF_LOG_LONG_INT),
         XRF_TIMING_VAR(monitor_ns, XRF_LOG_LONG_INT), XRF_TIMING_VAR(hook_ns, XRF_LOG_LONG_INT),
         XRF_TIMING_VAR(logger_ns, XRF_LOG_LONG_INT),  XRF_TIMING_VAR(cycle_ns, XRF_LOG_LONG_INT),
-        XRF_TIMING_VAR(missed, XRF_LOG_BOOL),
+        XRF_TIMING_VAR(missed, XRF_LOG_INT),
 #undef XRF_TIMING_VAR
     };
     const size_t n = sizeof vars / sizeof vars[0];
@@ -149,7 +149,8 @@ void xrf_timing_meta_init(struct xrf_log_meta *m, uint32_t writer, const char *p
         m->vars[i].offset = (int32_t)(vars[i].offset - payload);
     }
     m->nvars = (uint32_t)n;
-    m->record_size = (uint32_t)(offsetof(struct xrf_timing_record, missed) + 1 - payload);
+    m->record_size =
+        (uint32_t)(offsetof(struct xrf_timing_record, missed) + sizeof(int32_t) - payload);
     m->writer = writer;
     m->file_mode = 0640;
     strncpy(m->path, path, XRF_PATH_MAX - 1);

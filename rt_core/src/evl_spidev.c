@@ -73,6 +73,10 @@ static void evl_spidev_close(struct xrf_ico_transport *t)
 
 int xrf_evl_spidev_open(const char *device, uint32_t speed_hz, struct xrf_ico_transport **out)
 {
+    /* One board: the out-of-band transport has no per-board devices yet (a list is refused
+     * rather than opened as one odd path). */
+    if (device != NULL && strchr(device, ',') != NULL)
+        return -EOPNOTSUPP;
     if (!device || !out || speed_hz == 0)
         return -EINVAL;
     *out = NULL;

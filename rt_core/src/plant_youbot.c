@@ -107,17 +107,21 @@ static const struct xrf_dc_motor_params YB_MOTOR = {
  * rest pose; the hold law's gains (assumed, tuned on this model: with J2's reflected inertia,
  * ~0.5 kg·m² at the joint, kp 60 gives ~11 rad/s and the back-EMF, k²·n²/R ≈ 22 N·m·s/rad at
  * J2, with kd damps it well; the other joints scale with their inertia and load).
- * X(index, gear, lo °, hi °, link J kg·m², rest rad, kp N·m/rad, kd N·m·s/rad) */
-#define YB_JOINT_TABLE(X)                                    \
-    X(0, 156.0, -169.0, 169.0, 0.20, NAN, 20.0, 2.0)         \
-    X(1, 156.0, -65.0, 90.0, 0.20, YB_REST_J2, 60.0, 4.0)    \
-    X(2, 100.0, -146.0, 151.0, 0.055, YB_REST_J3, 30.0, 2.0) \
-    X(3, 71.0, -102.5, 102.5, 0.010, YB_REST_J4, 20.0, 0.5)  \
-    X(4, 71.0, -167.5, 167.5, 0.001, NAN, 2.0, 0.1)
+ * The power-up pose (`zero`: where the arm is parked and its counters read 0, the rest pose with
+ * J1 and J5 at 0) is the plant's start and the zero a real bench's pose is counted from (the
+ * bench profile's mechanics.joints zero_deg say the same).
+ * X(index, gear, lo °, hi °, link J kg·m², rest rad, zero rad, kp N·m/rad, kd N·m·s/rad) */
+#define YB_JOINT_TABLE(X)                                                \
+    X(0, 156.0, -169.0, 169.0, 0.20, NAN, 0.0, 20.0, 2.0)                \
+    X(1, 156.0, -65.0, 90.0, 0.20, YB_REST_J2, YB_REST_J2, 60.0, 4.0)    \
+    X(2, 100.0, -146.0, 151.0, 0.055, YB_REST_J3, YB_REST_J3, 30.0, 2.0) \
+    X(3, 71.0, -102.5, 102.5, 0.010, YB_REST_J4, YB_REST_J4, 20.0, 0.5)  \
+    X(4, 71.0, -167.5, 167.5, 0.001, NAN, 0.0, 2.0, 0.1)
 
-#define YB_JOINT_ROW(i, gear_, lo_, hi_, link_j_, rest_, kp_, kd_) {gear_, lo_, hi_, link_j_},
+#define YB_JOINT_ROW(i, gear_, lo_, hi_, link_j_, rest_, zero_, kp_, kd_) \
+    {gear_, lo_, hi_, link_j_, zero_},
 static const struct {
-    double gear, lo_deg, hi_deg, link_j;
+    double gear, lo_deg, hi_deg, link_j, zero;
 } YB_JOINT[YB_JOINTS] = {YB_JOINT_TABLE(YB_JOINT_ROW)};
 
 static void youbot_init(void *plant)
@@ -133,9 +137,8 @@ static void youbot_init(void *plant)
         j->hi = YB_JOINT[i].hi_deg * DEG;
     }
     /* Power-up: the rest pose, where the arm is parked (and its encoders are zeroed). */
-    double q0[YB_JOINTS] = {0.0, YB_REST_J2, YB_REST_J3, YB_REST_J4, 0.0};
     for (int i = 0; i < YB_JOINTS; i++) {
-        y->j[i].m.angle = q0[i] * y->j[i].gear;
+        y->j[i].m.angle = YB_JOINT[i].zero * y->j[i].gear;
         y->j[i].m.speed = 0.0;
     }
     y->wp = YB_MOTOR;
@@ -276,16 +279,17 @@ static void youbot_load(void *plant, const double *in, int n)
 /* The hold law's view of the arm (xrf/hold.h): the same joints, motor and gravity model. The
  * closing sequence moves at 20 °/s (a person sees it coming) after 0.5 s of holding; at rest
  * within 1° and still. */
-#define YB_HOLD_JOINT(i, gear_, lo_, hi_, link_j_, rest_, kp_, kd_) \
-    {.channel = i,                                                  \
-     .gear = gear_,                                                 \
-     .k = YB_MOTOR_K,                                               \
-     .r = YB_MOTOR_R,                                               \
-     .lo = (lo_)*DEG,                                               \
-     .hi = (hi_)*DEG,                                               \
-     .rest = rest_,                                                 \
-     .kp = kp_,                                                     \
-     .kd = kd_,                                                     \
+#define YB_HOLD_JOINT(i, gear_, lo_, hi_, link_j_, rest_, zero_, kp_, kd_) \
+    {.channel = i,                                                         \
+     .gear = gear_,                                                        \
+     .k = YB_MOTOR_K,                                                      \
+     .r = YB_MOTOR_R,                                                      \
+     .lo = (lo_)*DEG,                                                      \
+     .hi = (hi_)*DEG,                                                      \
+     .rest = rest_,                                                        \
+     .zero = zero_,                                                        \
+     .kp = kp_,                                                            \
+     .kd = kd_,                                                            \
      .max_duty = 1.0},
 
 static const struct xrf_hold_arm youbot_arm = {
@@ -298,6 +302,11 @@ static const struct xrf_hold_arm youbot_arm = {
     .rest_tol = 1.0 * DEG,
     .still = 0.02,
     .max_s = 20.0,
+    /* Assumed: above any speed a joint reaches, driven (the youBot's manual: ~90 °/s) or falling
+     * unpowered (this model's elbow: ~3 rad/s), so a real motion is never taken for a jump; at
+     * J2's 156:1 and 4096 counts the 14-bit counter is then unambiguous between samples up to
+     * ~30 ms apart (watch.c samples every 2 ms). */
+    .max_speed = 5.0,
     .gravity = youbot_gravity,
 };
 

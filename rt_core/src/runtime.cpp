@@ -226,8 +226,15 @@ xrf_ico_transport *Runtime::transport()
         return transport_;
     const Options &o = options();
     const char *want = o.transport;
-    if (std::strcmp(want, "auto") == 0)
-        want = access(o.spi_device, F_OK) == 0 ? "spidev" : "sim";
+    if (std::strcmp(want, "auto") == 0) {
+        // The first board's device decides (XRF_SPI_DEVICE may list one per board).
+        char first[XRF_SPI_PATH_MAX];
+        const size_t n = std::strcspn(o.spi_device, ",");
+        copyString(first, sizeof first, o.spi_device);
+        if (n < sizeof first)
+            first[n] = '\0';
+        want = access(first, F_OK) == 0 ? "spidev" : "sim";
+    }
     int r = -EINVAL;
     if (std::strcmp(want, "sim") == 0) {
         int robot = xrf_sim_robot_from_name(o.sim);
@@ -610,16 +617,16 @@ void Runtime::applyParams()
     params::take(&shm_->params, &params_seen_, cycles_);
 }
 
-void Runtime::endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, bool missed,
+void Runtime::endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, uint64_t skipped,
                        int64_t idle_ns)
 {
     const uint64_t cycles = ++cycles_;
-    missed_ += missed ? 1u : 0u;
+    missed_ += skipped;
     if (idle_ns > 0)
         idle_total_ += (uint64_t)idle_ns;
     const int64_t jitter = wake_ns - deadline_ns;
     if (timing_on_)
-        recordTiming(jitter, end_ns - wake_ns, missed);
+        recordTiming(jitter, end_ns - wake_ns, skipped);
     xrf_status *s = &shm_->status;
     xrf_status_write_begin_inline(s);
     s->state = report_.state;
@@ -694,7 +701,7 @@ void Runtime::endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, boo
 
 // One timing record into its ring (stages not run this cycle: -1). A full ring drops the
 // record, counted in timing_ring.dropped and visible as a gap in seq; the loop never waits.
-void Runtime::recordTiming(int64_t jitter_ns, int64_t cycle_ns, bool missed)
+void Runtime::recordTiming(int64_t jitter_ns, int64_t cycle_ns, uint64_t skipped)
 {
     const uint64_t seq = timing_seq_++;
     auto *t =
@@ -713,7 +720,7 @@ void Runtime::recordTiming(int64_t jitter_ns, int64_t cycle_ns, bool missed)
     t->hook_ns = stage(XRF_STAGE_HOOK);
     t->logger_ns = stage(XRF_STAGE_LOGGER);
     t->cycle_ns = cycle_ns;
-    t->missed = missed ? 1 : 0;
+    t->missed = skipped < (uint64_t)INT32_MAX ? (int32_t)skipped : INT32_MAX;
     xrf_spsc_commit_inline(&shm_->timing_ring, t);
 }
 

@@ -16,6 +16,7 @@
 #include <pthread.h>
 #include <sched.h>
 #include <signal.h>
+#include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 #include <sys/eventfd.h>
@@ -54,13 +55,62 @@ struct xrf_watch {
     int32_t drop_urad;
     int32_t hold_phase;
     int64_t rest_ns;
+
+    /* The bench's boards, opened at start (spi_device) or given (xrf_watch_start_on): the safe
+     * frames and a real bench's `hold` go there without opening anything once the loop is gone.
+     * NULL: none (simulated bench), or the open failed (then tried again when needed). */
+    struct xrf_ico_transport *bench;
+    /* hold on a real bench: the arm (its plant row's model) and the counts followed since start.
+     * Written by the watcher thread only; track_status/track_channel also read by the host
+     * (atomics, xrf_watch_hold_ready). */
+    const struct xrf_hold_arm *arm;
+    double counts_per_rad[XRF_HOLD_JOINTS_MAX]; /* counts per joint radian, signed (inverted) */
+    double pwm_sign[XRF_HOLD_JOINTS_MAX];       /* duty -> PWM word sign (direction, inverted) */
+    int32_t enc_last[XRF_HOLD_JOINTS_MAX];      /* the last raw 14-bit count */
+    int64_t enc_sum[XRF_HOLD_JOINTS_MAX];       /* counts since start, wraps followed */
+    int64_t enc_t;                              /* when they were read */
+    int32_t track_status;                       /* 0, or what hold_status will say */
+    int32_t track_channel;
+    int32_t track_gap_us; /* the failed check's sample gap (xrf_watch_result.hold_gap_us) */
+    /* What the closing sequence ended with when it was given up or finished after `done`
+     * (hold_status, hold_channel, reset_status), published by late_set: overlaid on results. */
+    int32_t late_hold_status;
+    int32_t late_hold_channel;
+    int32_t late_reset_status;
+    /* The host's event loop last said it was alive (xrf_watch_host_alive; atomics: the host
+     * writes, the watcher thread reads), and when the watcher last beat for it. */
+    int64_t host_alive_ns;
+    int64_t host_beat_t;
+    uint32_t late_set;
+    int hang_is_exit; /* the late heartbeat's process was exiting (pid_exiting): told as an exit */
 };
+
+static int64_t now_ns(void);
+
+#define HOLD_TICK_NS 1000000LL /* the law at 1 kHz */
+#define HOLD_SUBSTEP_S 100e-6  /* the plant in the board's own sub-steps */
+#define HOLD_SEQ_TRIES 1000
 
 static void hold_progress(struct xrf_watch *w, struct xrf_watch_result *out)
 {
     out->drop_urad = __atomic_load_n(&w->drop_urad, __ATOMIC_RELAXED);
     out->hold_phase = __atomic_load_n(&w->hold_phase, __ATOMIC_RELAXED);
     out->rest_ns = __atomic_load_n(&w->rest_ns, __ATOMIC_ACQUIRE);
+    out->hold_gap_us = __atomic_load_n(&w->track_gap_us, __ATOMIC_RELAXED);
+    if (__atomic_load_n(&w->late_set, __ATOMIC_ACQUIRE)) {
+        out->hold_status = w->late_hold_status;
+        out->hold_channel = w->late_hold_channel;
+        out->reset_status = w->late_reset_status;
+    }
+}
+
+/* The closing sequence's end, told to the host however late (results overlay it). */
+static void hold_end(struct xrf_watch *w, int32_t status, int32_t channel, int32_t reset)
+{
+    w->late_hold_status = status;
+    w->late_hold_channel = channel;
+    w->late_reset_status = reset;
+    __atomic_store_n(&w->late_set, 1u, __ATOMIC_RELEASE);
 }
 
 static int64_t now_ns(void)
@@ -70,34 +120,82 @@ static int64_t now_ns(void)
     return (int64_t)ts.tv_sec * 1000000000LL + ts.tv_nsec;
 }
 
-int xrf_fpga_reset(const char *device, uint32_t speed_hz)
+/* One frame with board b (0-based) of a bench. */
+static int xfer_on(struct xrf_ico_transport *t, int b, const uint8_t tx[XRF_ICO_FRAME],
+                   uint8_t rx[XRF_ICO_FRAME])
+{
+    if (b == 0)
+        return t->xfer(t, tx, rx);
+    return t->xfer_board != NULL ? t->xfer_board(t, b, tx, rx) : -ENODEV;
+}
+
+static int bench_boards(const struct xrf_ico_transport *t)
+{
+    return t->boards >= 1 && t->boards <= XRF_MAX_BOARDS ? t->boards : 1;
+}
+
+/* The safe frame to every board of the bench: a RESET (outputs zero), or for `brake` (brake
+ * channel 1..4, on board 1) an ALL frame with only the brake's output on there. The first
+ * error is returned, but every board is tried: one board that does not answer must not leave
+ * the others driving. */
+static int bench_safe_frames(struct xrf_ico_transport *t, int brake_channel)
+{
+    int first = 0;
+    for (int b = 0; b < bench_boards(t); b++) {
+        uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
+        if (b == 0 && brake_channel >= 1 && brake_channel <= XRF_ICO_CHANNELS) {
+            struct xrf_ico_out out = {{0}, {0}};
+            out.dout[brake_channel - 1] = 1;
+            xrf_ico_encode_all(&out, 0, tx);
+        } else {
+            xrf_ico_frame_op(XRF_ICO_RESET, tx);
+        }
+        int r = xfer_on(t, b, tx, rx);
+        if (r < 0 && first == 0)
+            first = r;
+    }
+    return first;
+}
+
+static int fpga_safe(const char *device, uint32_t speed_hz, int brake_channel)
 {
     struct xrf_ico_transport *t = NULL;
     int r = xrf_spidev_open(device, speed_hz, &t);
     if (r < 0)
         return r;
-    uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
-    xrf_ico_frame_op(XRF_ICO_RESET, tx);
-    r = t->xfer(t, tx, rx);
+    r = bench_safe_frames(t, brake_channel);
     t->close(t);
     return r;
 }
 
+int xrf_fpga_reset(const char *device, uint32_t speed_hz)
+{
+    return fpga_safe(device, speed_hz, 0);
+}
+
 int xrf_fpga_brake(const char *device, uint32_t speed_hz, int brake_channel)
 {
-    if (brake_channel < 1 || brake_channel > 4)
+    if (brake_channel < 1 || brake_channel > XRF_ICO_CHANNELS)
         return -EINVAL;
+    return fpga_safe(device, speed_hz, brake_channel);
+}
+
+int xrf_spi_probe(const char *devices, uint32_t speed_hz, int32_t *failed)
+{
     struct xrf_ico_transport *t = NULL;
-    int r = xrf_spidev_open(device, speed_hz, &t);
-    if (r < 0)
-        return r;
-    struct xrf_ico_out out = {{0}, {0}};
-    out.dout[brake_channel - 1] = 1;
-    uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
-    xrf_ico_encode_all(&out, 0, tx);
-    r = t->xfer(t, tx, rx);
-    t->close(t);
+    int bad = -1;
+    int r = xrf_spidev_open_bench(devices, speed_hz, &t, &bad);
+    if (failed != NULL)
+        *failed = bad;
+    if (r == 0)
+        t->close(t);
     return r;
+}
+
+void xrf_ico_close(struct xrf_ico_transport *t)
+{
+    if (t != NULL && t->close != NULL)
+        t->close(t);
 }
 
 #define XRF_SAFE_REACTION_CASE_(NAME, name, number) \
@@ -127,16 +225,187 @@ int32_t xrf_safe_reaction_parse(const char *text)
  * simulated board. */
 static int send_safe_frame(const struct xrf_watch *w)
 {
-    if (w->cfg.safe_reaction == XRF_SAFE_REACTION_BRAKE)
-        return xrf_fpga_brake(w->cfg.spi_device, w->cfg.spi_speed_hz, w->cfg.brake_channel);
-    return xrf_fpga_reset(w->cfg.spi_device, w->cfg.spi_speed_hz);
+    int brake = w->cfg.safe_reaction == XRF_SAFE_REACTION_BRAKE ? w->cfg.brake_channel : 0;
+    if (w->bench != NULL)
+        return bench_safe_frames(w->bench, brake);
+    /* The boards did not open at start: try once more now (this allocates, the one case). */
+    return fpga_safe(w->cfg.spi_device, w->cfg.spi_speed_hz, brake);
+}
+
+/* --- hold on a real bench ----------------------------------------------------------------- */
+
+#define ENC_HALF (XRF_ICO_ENC_MODULO / 2)
+
+/* gap_s: the time between the samples a failed count check compared, < 0 for other failures. */
+static void track_fail(struct xrf_watch *w, int status, int joint, double gap_s)
+{
+    if (__atomic_load_n(&w->track_status, __ATOMIC_RELAXED) != 0)
+        return; /* the first reason is the one that matters */
+    if (gap_s >= 0.0)
+        __atomic_store_n(&w->track_gap_us, gap_s < 2000.0 ? (int32_t)lrint(gap_s * 1e6) : INT32_MAX,
+                         __ATOMIC_RELAXED);
+    __atomic_store_n(&w->track_channel, w->arm->joint[joint].channel + 1, __ATOMIC_RELAXED);
+    __atomic_store_n(&w->track_status, status, __ATOMIC_RELEASE);
+}
+
+/* New raw counts of every joint, read at t: each wrap of the 14-bit counter followed. The
+ * motion since the last count is the one candidate (the difference, +- a wrap) within what the
+ * joint can move in the time between (max_speed). None: the count is no motion of the arm (a
+ * RESET someone sent, garbage on the wire), -EPROTO; more than one: the samples were too far
+ * apart to tell a wrap from a motion, -ETIME. Either way the pose is unknown from then on. */
+static int track(struct xrf_watch *w, const int32_t *counts, int64_t t)
+{
+    const struct xrf_hold_arm *arm = w->arm;
+    double dt = (double)(t - w->enc_t) * 1e-9;
+    if (dt < 0.0)
+        dt = 0.0;
+    for (int i = 0; i < arm->joints; i++) {
+        int32_t d = (counts[i] - w->enc_last[i]) & (XRF_ICO_ENC_MODULO - 1);
+        if (d >= ENC_HALF)
+            d -= XRF_ICO_ENC_MODULO;
+        /* +4 counts: quantisation and the counter's own edge jitter at standstill. */
+        double bound = arm->max_speed * fabs(w->counts_per_rad[i]) * dt + 4.0;
+        if (fabs((double)d) > bound) {
+            track_fail(w, -EPROTO, i, dt);
+            return -EPROTO;
+        }
+        if (XRF_ICO_ENC_MODULO - fabs((double)d) <= bound) {
+            track_fail(w, -ETIME, i, dt);
+            return -ETIME;
+        }
+        w->enc_sum[i] += d;
+        w->enc_last[i] = counts[i];
+    }
+    w->enc_t = t;
+    return 0;
+}
+
+/* Every joint's raw count with read-only frames (ENC_n): nothing the loop set is changed. */
+static int read_counts(struct xrf_watch *w, int32_t *counts)
+{
+    const struct xrf_hold_arm *arm = w->arm;
+    for (int i = 0; i < arm->joints; i++) {
+        int ch = arm->joint[i].channel;
+        uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
+        xrf_ico_frame_op((uint8_t)(XRF_ICO_ENC_1 + ch % XRF_ICO_CHANNELS), tx);
+        int r = xfer_on(w->bench, ch / XRF_ICO_CHANNELS, tx, rx);
+        if (r < 0)
+            return r;
+        counts[i] = xrf_ico_decode_enc(rx) & (XRF_ICO_ENC_MODULO - 1);
+    }
+    return 0;
+}
+
+/* The pose from the counts followed since start: zero pose + counts / scale, believed only
+ * inside each joint's limits plus XRF_WATCH_POSE_MARGIN_DEG (-ERANGE otherwise). */
+static int board_pose(struct xrf_watch *w, double *q)
+{
+    const struct xrf_hold_arm *arm = w->arm;
+    const double margin = XRF_WATCH_POSE_MARGIN_DEG * (M_PI / 180.0);
+    for (int i = 0; i < arm->joints; i++) {
+        const struct xrf_hold_joint *j = &arm->joint[i];
+        q[i] = j->zero + (double)w->enc_sum[i] / w->counts_per_rad[i];
+        if (!isfinite(q[i]) || q[i] < j->lo - margin || q[i] > j->hi + margin) {
+            track_fail(w, -ERANGE, i, -1.0);
+            return -ERANGE;
+        }
+    }
+    return 0;
+}
+
+/* One sample while watching (or the first, at start: the reference). */
+static void board_sample(struct xrf_watch *w, int first)
+{
+    if (__atomic_load_n(&w->track_status, __ATOMIC_RELAXED) != 0)
+        return;
+    int32_t counts[XRF_HOLD_JOINTS_MAX];
+    int64_t t = now_ns();
+    int r = read_counts(w, counts);
+    if (r < 0) {
+        track_fail(w, r, 0, -1.0);
+        return;
+    }
+    if (first) {
+        for (int i = 0; i < w->arm->joints; i++) {
+            w->enc_last[i] = counts[i];
+            w->enc_sum[i] = 0;
+        }
+        w->enc_t = t;
+        return;
+    }
+    /* The pose is checked while watching too: a wrong reference is known (and the host told,
+     * xrf_watch_hold_ready) before a fault needs it. */
+    double q[XRF_HOLD_JOINTS_MAX];
+    if (track(w, counts, t) == 0)
+        board_pose(w, q);
+}
+
+/* The law's duties out as one ALL frame per board (channels the arm does not drive: zero, the
+ * wheels stop), each reply's counts (latched before the new outputs) into counts. */
+static int board_out(struct xrf_watch *w, const double *duty, int32_t *counts)
+{
+    const struct xrf_hold_arm *arm = w->arm;
+    for (int b = 0; b < bench_boards(w->bench); b++) {
+        struct xrf_ico_out out = {{0}, {0}};
+        for (int i = 0; i < arm->joints; i++) {
+            int ch = arm->joint[i].channel;
+            if (ch / XRF_ICO_CHANNELS == b)
+                out.pwm[ch % XRF_ICO_CHANNELS] =
+                    (int16_t)lrint(duty[ch] * w->pwm_sign[i] * XRF_ICO_PWM_FULL);
+        }
+        uint8_t tx[XRF_ICO_FRAME], rx[XRF_ICO_FRAME];
+        xrf_ico_encode_all(&out, XRF_ICO_PWM_FULL, tx);
+        int r = xfer_on(w->bench, b, tx, rx);
+        if (r < 0)
+            return r;
+        struct xrf_ico_in in;
+        xrf_ico_decode_all(rx, &in);
+        for (int i = 0; i < arm->joints; i++) {
+            int ch = arm->joint[i].channel;
+            if (ch / XRF_ICO_CHANNELS == b)
+                counts[i] = in.enc[ch % XRF_ICO_CHANNELS];
+        }
+    }
+    return 0;
+}
+
+/* Give up holding: every board's outputs safe (RESET), the reason kept. */
+static void board_give_up(struct xrf_watch *w, int status)
+{
+    track_fail(w, status, 0, -1.0);
+    int reset = send_safe_frame(w);
+    hold_end(w, __atomic_load_n(&w->track_status, __ATOMIC_RELAXED),
+             __atomic_load_n(&w->track_channel, __ATOMIC_RELAXED), reset);
+}
+
+/* The first hold output on a real bench: the last counts read, the pose checked, the law's
+ * first duties out. 1 holding; 0 the pose is not believed (outputs zeroed, hold_status why). */
+static int board_hold_begin(struct xrf_watch *w, double *duty)
+{
+    board_sample(w, 0);
+    double q[XRF_HOLD_JOINTS_MAX];
+    int r = __atomic_load_n(&w->track_status, __ATOMIC_RELAXED);
+    if (r == 0)
+        r = board_pose(w, q);
+    if (r != 0) {
+        board_give_up(w, r);
+        return 0;
+    }
+    xrf_hold_begin(&w->hold, w->arm, q);
+    __atomic_store_n(&w->hold_phase, xrf_hold_step(&w->hold, q, HOLD_TICK_NS * 1e-9, duty),
+                     __ATOMIC_RELAXED);
+    int32_t counts[XRF_HOLD_JOINTS_MAX];
+    r = board_out(w, duty, counts);
+    if (r == 0)
+        r = track(w, counts, now_ns());
+    if (r != 0) {
+        board_give_up(w, r);
+        return 0;
+    }
+    return 1;
 }
 
 /* --- hold on the simulated board ---------------------------------------------------------- */
-
-#define HOLD_TICK_NS 1000000LL /* the law at 1 kHz */
-#define HOLD_SUBSTEP_S 100e-6  /* the plant in the board's own sub-steps */
-#define HOLD_SEQ_TRIES 1000
 
 static void hold_angles(const struct xrf_watch *w, double *q)
 {
@@ -224,6 +493,49 @@ static void hold_run(struct xrf_watch *w, double *duty)
     __atomic_store_n(&w->rest_ns, now_ns(), __ATOMIC_RELEASE);
 }
 
+static void next_tick(struct timespec *next)
+{
+    next->tv_nsec += HOLD_TICK_NS;
+    if (next->tv_nsec >= 1000000000L) {
+        next->tv_nsec -= 1000000000L;
+        next->tv_sec++;
+    }
+    clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, next, NULL);
+}
+
+/* The closing sequence on a real bench, at 1 kHz: each tick one ALL frame per board carries the
+ * duties and brings the counts back; the counts are followed and checked as while watching (a
+ * RESET or garbage now ends the hold with zero outputs: a pose not believed is not held). At
+ * REST every board gets its safe frame. */
+static void board_hold_run(struct xrf_watch *w, double *duty)
+{
+    struct timespec next;
+    clock_gettime(CLOCK_MONOTONIC, &next);
+    int64_t last = now_ns();
+    while (__atomic_load_n(&w->hold_phase, __ATOMIC_RELAXED) != XRF_HOLD_PHASE_REST) {
+        next_tick(&next);
+        int64_t t = now_ns();
+        double dt = (double)(t - last) * 1e-9;
+        last = t;
+        int32_t counts[XRF_HOLD_JOINTS_MAX];
+        double q[XRF_HOLD_JOINTS_MAX];
+        int r = board_out(w, duty, counts);
+        if (r == 0)
+            r = track(w, counts, t);
+        if (r == 0)
+            r = board_pose(w, q);
+        if (r != 0) {
+            board_give_up(w, r);
+            return;
+        }
+        int phase = xrf_hold_step(&w->hold, q, dt, duty);
+        __atomic_store_n(&w->drop_urad, (int32_t)lrint(w->hold.drop_max * 1e6), __ATOMIC_RELAXED);
+        __atomic_store_n(&w->hold_phase, phase, __ATOMIC_RELAXED);
+    }
+    hold_end(w, 0, 0, send_safe_frame(w));
+    __atomic_store_n(&w->rest_ns, now_ns(), __ATOMIC_RELEASE);
+}
+
 /* Outputs safe: the simulated board's outputs zeroed (but the brake's) and ignored from now on,
  * the FPGA's likewise. */
 static void make_safe(struct xrf_watch *w)
@@ -241,7 +553,7 @@ static void make_safe(struct xrf_watch *w)
         }
         w->result.sim_forced = 1;
     }
-    if (w->cfg.spi_device[0] != '\0')
+    if (w->bench != NULL || w->cfg.spi_device[0] != '\0')
         w->result.reset_status = send_safe_frame(w);
 }
 
@@ -251,7 +563,9 @@ static void finish(struct xrf_watch *w, int reason, int64_t event_ns)
     int holding = 0;
     if (w->shm != NULL) /* the last cycle's start: the loop ended (or hung) after it */
         w->result.heartbeat_ns = __atomic_load_n(&w->shm->status.heartbeat_ns, __ATOMIC_RELAXED);
-    w->result.reason = reason;
+    /* A hang of a process already exiting is told as its exit; it is handled as a hang all the
+     * same (killed, reset again once gone): a thread of it may still be driving the outputs. */
+    w->result.reason = reason == XRF_WATCH_HANG && w->hang_is_exit ? XRF_WATCH_EXIT : reason;
     w->result.event_ns = event_ns;
     if (reason == XRF_WATCH_HANG || reason == XRF_WATCH_HOST_GONE) {
         /* Stop it from driving the outputs again before resetting them: a SIGKILLed process
@@ -259,15 +573,22 @@ static void finish(struct xrf_watch *w, int reason, int64_t event_ns)
         w->result.kill_status =
             syscall(SYS_pidfd_send_signal, w->pidfd, SIGKILL, NULL, 0) == 0 ? 0 : -errno;
     }
+    int board_holding = 0;
     if (reason == XRF_WATCH_EXIT || reason == XRF_WATCH_HANG || reason == XRF_WATCH_HOST_GONE) {
-        make_safe(w); /* the board's own outputs off: from here the watcher drives the plant */
-        holding = w->plant != NULL && w->shm != NULL && w->cfg.force_sim;
-        if (holding)
-            hold_begin(w, duty);
+        if (w->arm != NULL) {
+            /* A real bench's arm: driven by the watcher's frames from here, never RESET first
+             * (that would drop it); a pose it cannot believe gets the RESET instead. */
+            board_holding = board_hold_begin(w, duty);
+        } else {
+            make_safe(w); /* the board's own outputs off: from here the watcher drives the plant */
+            holding = w->plant != NULL && w->shm != NULL && w->cfg.force_sim;
+            if (holding)
+                hold_begin(w, duty);
+        }
         w->result.safe_ns = now_ns();
     }
-    if ((reason == XRF_WATCH_HANG || reason == XRF_WATCH_HOST_GONE) &&
-        w->cfg.spi_device[0] != '\0') {
+    if ((reason == XRF_WATCH_HANG || reason == XRF_WATCH_HOST_GONE) && !board_holding &&
+        (w->bench != NULL || w->cfg.spi_device[0] != '\0')) {
         /* A transfer the killed loop had in flight may complete after our RESET: once the
          * process is really gone (at most 100 ms), reset again. */
         struct pollfd p = {.fd = w->pidfd, .events = POLLIN};
@@ -284,6 +605,8 @@ static void finish(struct xrf_watch *w, int reason, int64_t event_ns)
      * whatever the host does (xrf_watch_stop waits for it). */
     if (holding)
         hold_run(w, duty);
+    if (board_holding)
+        board_hold_run(w, duty);
 }
 
 /* Keep the watcher off the run's CPUs: a controller's spinning SCHED_FIFO threads there
@@ -303,6 +626,34 @@ static void avoid_cpus(uint64_t avoid)
         (void)sched_setaffinity(0, sizeof set, &set);
 }
 
+/* PF_EXITING (the kernel's linux/sched.h): the task is in do_exit. */
+#define XRF_PF_EXITING 0x00000004UL
+
+/* Whether process `pid` is on its way out. Its pidfd turns readable only once the exit is done,
+ * after its memory is torn down; a loop that crashed or exited with a large locked mapping on a
+ * loaded machine can take longer than the hang timeout to get there (CI: a segfault reported as a
+ * hang): a late heartbeat is then an exit, not a hang. The flags of /proc/PID/stat (field 9),
+ * read into a stack buffer when a hang is due: no allocation, and never on the loop's side. */
+static int pid_exiting(pid_t pid)
+{
+    char path[40], buf[512];
+    snprintf(path, sizeof path, "/proc/%d/stat", (int)pid);
+    int fd = open(path, O_RDONLY | O_CLOEXEC);
+    if (fd < 0)
+        return errno == ENOENT; /* reaped meanwhile: it exited */
+    ssize_t n = read(fd, buf, sizeof buf - 1);
+    close(fd);
+    if (n <= 0)
+        return 0;
+    buf[n] = '\0';
+    const char *p = strrchr(buf, ')'); /* the name may hold spaces and parentheses */
+    unsigned long flags = 0;
+    /* After the name: state ppid pgrp session tty_nr tpgid flags. */
+    if (p == NULL || sscanf(p + 1, " %*c %*d %*d %*d %*d %*d %lu", &flags) != 1)
+        return 0;
+    return (flags & XRF_PF_EXITING) != 0;
+}
+
 static void *watch_thread(void *arg)
 {
     struct xrf_watch *w = arg;
@@ -314,12 +665,38 @@ static void *watch_thread(void *arg)
     int timeout_ms = (int)(w->cfg.check_ns / 1000000);
     if (timeout_ms < 1)
         timeout_ms = 1;
+    /* A real bench's arm: its counters are followed between the checks too (their wraps). */
+    if (w->arm != NULL && timeout_ms > XRF_WATCH_SAMPLE_NS / 1000000)
+        timeout_ms = XRF_WATCH_SAMPLE_NS / 1000000;
     const struct xrf_status *st = w->shm ? &w->shm->status : NULL;
+    const int hang_checked = st != NULL && w->cfg.hang_timeout_ns > 0 && !w->cfg.host_only;
+    /* The host heartbeat on the event loop's behalf (xrf_watch_config.host_beat_ns): a word
+     * the loop only reads, one relaxed store, as the host's own beat is. */
+    const int beats = st != NULL && w->cfg.host_beat_ns > 0 && !w->cfg.host_only;
     for (;;) {
         struct pollfd fds[3] = {{.fd = w->pidfd, .events = POLLIN},
                                 {.fd = w->cancel_fd, .events = POLLIN},
                                 {.fd = w->host_fd, .events = POLLIN}};
-        int n = poll(fds, w->host_fd >= 0 ? 3 : 2, timeout_ms);
+        /* A running loop's hang cannot be due before its last heartbeat plus the timeout: sleep
+         * until then (+1 ms, poll's rounding), not a check period at a time. The same detection
+         * time, with ~5 wake-ups a second instead of 50 for a 200 ms timeout: an idle appliance
+         * pays for each. A real bench's arm keeps its 2 ms count samples (the wraps). */
+        int wait_ms = timeout_ms;
+        if (hang_checked && w->arm == NULL && __atomic_load_n(&st->running, __ATOMIC_RELAXED)) {
+            int64_t hb = __atomic_load_n(&st->heartbeat_ns, __ATOMIC_RELAXED);
+            int64_t left = hb + w->cfg.hang_timeout_ns - now_ns();
+            if (hb > 0 && left > (int64_t)timeout_ms * 1000000)
+                wait_ms = left > w->cfg.hang_timeout_ns
+                              ? (int)(w->cfg.hang_timeout_ns / 1000000) + 1
+                              : (int)(left / 1000000) + 1;
+        }
+        if (beats && st != NULL) {
+            int64_t left = w->host_beat_t + w->cfg.host_beat_ns - now_ns();
+            int beat_ms = left > 0 ? (int)(left / 1000000) + 1 : 0;
+            if (beat_ms < wait_ms)
+                wait_ms = beat_ms;
+        }
+        int n = poll(fds, w->host_fd >= 0 ? 3 : 2, wait_ms);
         int64_t t = now_ns();
         /* The exit comes first: a cancel that races with it still gets the outputs made safe. */
         if (n > 0 && (fds[0].revents & (POLLIN | POLLHUP | POLLERR))) {
@@ -334,13 +711,22 @@ static void *watch_thread(void *arg)
             finish(w, XRF_WATCH_CANCELLED, t);
             return NULL;
         }
-        if (st != NULL && w->cfg.hang_timeout_ns > 0 && !w->cfg.host_only) {
+        if (w->arm != NULL)
+            board_sample(w, 0);
+        if (beats && t - w->host_beat_t >= w->cfg.host_beat_ns) {
+            w->host_beat_t = t;
+            int64_t alive = __atomic_load_n(&w->host_alive_ns, __ATOMIC_RELAXED);
+            if (t - alive < w->cfg.host_grace_ns)
+                __atomic_store_n(&w->shm->host_heartbeat_ns, t, __ATOMIC_RELAXED);
+        }
+        if (hang_checked) {
             /* Single aligned words, read without the seqlock: a loop stopped mid-write must
              * not look alive (the seqlock would make it unreadable, never stale). */
             int32_t running = __atomic_load_n(&st->running, __ATOMIC_RELAXED);
             int64_t hb = __atomic_load_n(&st->heartbeat_ns, __ATOMIC_RELAXED);
             w->result.heartbeat_ns = hb;
             if (running && hb > 0 && t - hb > w->cfg.hang_timeout_ns) {
+                w->hang_is_exit = pid_exiting(w->cfg.pid);
                 finish(w, XRF_WATCH_HANG, t);
                 return NULL;
             }
@@ -348,7 +734,46 @@ static void *watch_thread(void *arg)
     }
 }
 
+/* hold on a real bench: the arm and the counts' scale, the reference counts read now (the
+ * bench guarantees the arm parked at its zero pose when the run starts). */
+static int board_hold_setup(struct xrf_watch *w, const struct xrf_plant_ops *ops)
+{
+    const struct xrf_hold_arm *arm = ops->arm;
+    const struct xrf_watch_config *cfg = &w->cfg;
+    if (cfg->enc_counts_per_rev <= 0 || !(arm->max_speed > 0.0))
+        return -EINVAL;
+    for (int i = 0; i < arm->joints; i++) {
+        const struct xrf_hold_joint *j = &arm->joint[i];
+        if (j->channel < 0 || j->channel >= XRF_ICO_CHANNELS * bench_boards(w->bench))
+            return -EINVAL; /* a joint on a board the bench does not reach */
+        uint32_t bit = 1u << j->channel;
+        double enc = (cfg->enc_inverted & bit) ? -1.0 : 1.0;
+        double pwm = (cfg->pwm_reversed & bit) ? -1.0 : 1.0;
+        w->counts_per_rad[i] = enc * cfg->enc_counts_per_rev * j->gear / (2.0 * M_PI);
+        /* A positive duty turns the joint positive: its counts go the way `direction` says,
+         * and the joint the way the encoder's sign says of those counts. */
+        w->pwm_sign[i] = pwm * enc;
+    }
+    w->arm = arm;
+    board_sample(w, 1);
+    return 0;
+}
+
+static void watch_free(struct xrf_watch *w)
+{
+    if (w->bench != NULL)
+        w->bench->close(w->bench);
+    free(w->plant);
+    free(w);
+}
+
 int xrf_watch_start(struct xrf_shm *shm, const struct xrf_watch_config *cfg, struct xrf_watch **out)
+{
+    return xrf_watch_start_on(shm, cfg, NULL, out);
+}
+
+int xrf_watch_start_on(struct xrf_shm *shm, const struct xrf_watch_config *cfg,
+                       struct xrf_ico_transport *bench, struct xrf_watch **out)
 {
     if (cfg == NULL || out == NULL || cfg->pid <= 0)
         return -EINVAL;
@@ -359,18 +784,28 @@ int xrf_watch_start(struct xrf_shm *shm, const struct xrf_watch_config *cfg, str
         (cfg->brake_channel < 1 || cfg->brake_channel > 4))
         return -EINVAL;
     const struct xrf_plant_ops *ops = NULL;
-    if (cfg->safe_reaction == XRF_SAFE_REACTION_HOLD && cfg->force_sim) {
-        /* A plant the law can hold: one with an arm model and a snapshot that fits. */
+    const int real = bench != NULL || cfg->spi_device[0] != '\0';
+    if (cfg->safe_reaction == XRF_SAFE_REACTION_HOLD && (cfg->force_sim || (real && cfg->plant))) {
+        /* A plant the law can hold: one with an arm model (and on the simulated bench a
+         * snapshot that fits). */
         ops = xrf_plant_ops(cfg->plant);
-        if (ops == NULL || ops->arm == NULL || ops->load == NULL || ops->snapshot_len <= 0 ||
-            ops->snapshot_len > XRF_SIM_SNAPSHOT_MAX || ops->arm->joints > XRF_HOLD_JOINTS_MAX)
+        if (ops == NULL || ops->arm == NULL || ops->arm->joints > XRF_HOLD_JOINTS_MAX)
+            return -EINVAL;
+        if (cfg->force_sim && (ops->load == NULL || ops->snapshot_len <= 0 ||
+                               ops->snapshot_len > XRF_SIM_SNAPSHOT_MAX))
             return -EINVAL;
     }
     *out = NULL;
     struct xrf_watch *w = calloc(1, sizeof *w);
     if (w == NULL)
         return -ENOMEM;
-    if (ops != NULL && shm != NULL) {
+    w->shm = shm;
+    w->cfg = *cfg;
+    w->cfg.spi_device[sizeof w->cfg.spi_device - 1] = '\0';
+    w->result.reset_status = XRF_WATCH_RESET_NOT_TRIED;
+    w->result.kill_status = -ENOENT;
+    w->host_alive_ns = now_ns(); /* starting the watcher is a sign of life */
+    if (ops != NULL && shm != NULL && cfg->force_sim) {
         w->plant_ops = ops;
         w->plant = calloc(1, ops->size);
         if (w->plant == NULL) {
@@ -379,20 +814,35 @@ int xrf_watch_start(struct xrf_shm *shm, const struct xrf_watch_config *cfg, str
         }
         ops->init(w->plant); /* touched now: no page fault waiting in the closing sequence */
     }
-    w->shm = shm;
-    w->cfg = *cfg;
-    w->cfg.spi_device[sizeof w->cfg.spi_device - 1] = '\0';
-    w->result.reset_status = XRF_WATCH_RESET_NOT_TRIED;
-    w->result.kill_status = -ENOENT;
-    /* hold on a real board: the law needs the arm's absolute pose, which the watcher cannot
-     * read from relative encoders yet; it zeroes the outputs (RESET) and says so. */
+    /* The boards are opened now, once: nothing is opened (allocated) when the loop is gone. A
+     * bench that does not open is tried again when the safe frame is due. */
+    int bench_status = 0;
+    if (bench != NULL)
+        w->bench = bench;
+    else if (w->cfg.spi_device[0] != '\0')
+        bench_status = xrf_spidev_open(w->cfg.spi_device, w->cfg.spi_speed_hz, &w->bench);
+    if (ops != NULL && !cfg->force_sim) {
+        int r = w->bench != NULL ? board_hold_setup(w, ops) : bench_status;
+        if (r == -EINVAL) {
+            w->bench = bench == NULL ? w->bench : NULL; /* the caller's on failure */
+            watch_free(w);
+            return r;
+        }
+        if (r < 0) /* the boards did not open: a fault gets the RESET and this reason */
+            w->track_status = r;
+    }
+    /* hold on a bench whose arm the watcher has no model of: it zeroes the outputs (RESET) and
+     * says so. */
     w->result.hold_status =
-        (cfg->safe_reaction == XRF_SAFE_REACTION_HOLD && w->plant == NULL) ? -EOPNOTSUPP : 0;
+        (cfg->safe_reaction == XRF_SAFE_REACTION_HOLD && w->plant == NULL && w->arm == NULL)
+            ? (w->track_status != 0 ? w->track_status : -EOPNOTSUPP)
+            : 0;
     w->pidfd = (int)syscall(SYS_pidfd_open, cfg->pid, 0);
     if (w->pidfd < 0) {
         int err = -errno;
-        free(w->plant);
-        free(w);
+        if (bench != NULL)
+            w->bench = NULL;
+        watch_free(w);
         return err; /* -ESRCH: already gone and reaped; the caller handles the exit itself */
     }
     /* pidfd_open gives no O_CLOEXEC flag of its own on older kernels; no child may keep it. */
@@ -403,8 +853,9 @@ int xrf_watch_start(struct xrf_shm *shm, const struct xrf_watch_config *cfg, str
         if (w->host_fd < 0) {
             int err = -errno;
             close(w->pidfd);
-            free(w->plant);
-            free(w);
+            if (bench != NULL)
+                w->bench = NULL;
+            watch_free(w);
             return err;
         }
         fcntl(w->host_fd, F_SETFD, FD_CLOEXEC);
@@ -415,8 +866,9 @@ int xrf_watch_start(struct xrf_shm *shm, const struct xrf_watch_config *cfg, str
         if (w->host_fd >= 0)
             close(w->host_fd);
         close(w->pidfd);
-        free(w->plant);
-        free(w);
+        if (bench != NULL)
+            w->bench = NULL;
+        watch_free(w);
         return err;
     }
     pthread_attr_t attr;
@@ -430,12 +882,35 @@ int xrf_watch_start(struct xrf_shm *shm, const struct xrf_watch_config *cfg, str
         if (w->host_fd >= 0)
             close(w->host_fd);
         close(w->pidfd);
-        free(w->plant);
-        free(w);
+        if (bench != NULL)
+            w->bench = NULL;
+        watch_free(w);
         return -r;
     }
     *out = w;
     return 0;
+}
+
+void xrf_watch_host_alive(struct xrf_watch *w, int64_t now)
+{
+    if (w != NULL)
+        __atomic_store_n(&w->host_alive_ns, now, __ATOMIC_RELAXED);
+}
+
+int xrf_watch_hold_ready(struct xrf_watch *w, int32_t *channel)
+{
+    if (w == NULL)
+        return -EINVAL;
+    if (channel != NULL)
+        *channel = 0;
+    if (w->arm == NULL)
+        return w->cfg.safe_reaction == XRF_SAFE_REACTION_HOLD && w->track_status != 0
+                   ? w->track_status
+                   : -ENOENT;
+    int r = __atomic_load_n(&w->track_status, __ATOMIC_ACQUIRE);
+    if (r != 0 && channel != NULL)
+        *channel = __atomic_load_n(&w->track_channel, __ATOMIC_RELAXED);
+    return r;
 }
 
 int xrf_watch_result(struct xrf_watch *w, struct xrf_watch_result *out)
@@ -471,8 +946,7 @@ static int watch_end(struct xrf_watch *w, struct xrf_watch_result *out, int canc
     if (w->host_fd >= 0)
         close(w->host_fd);
     close(w->pidfd);
-    free(w->plant);
-    free(w);
+    watch_free(w);
     return reason;
 }
 

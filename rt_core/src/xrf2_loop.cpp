@@ -15,6 +15,19 @@ inline int64_t gridTime(int64_t t0, uint64_t k, unsigned freq)
     return t0 + (int64_t)(k / freq) * 1000000000LL + (int64_t)((k % freq) * 1000000000ULL / freq);
 }
 
+// The first deadline after t (t >= t0): where the loop goes on after an overrun. Called only
+// then, so its divisions cost nothing in a cycle on time. The estimate from whole seconds and the
+// remainder never lies after t (both round down as gridTime does); the while steps on to the
+// first deadline after t, against gridTime itself, in a step or two.
+inline uint64_t firstDeadlineAfter(int64_t t0, int64_t t, unsigned freq)
+{
+    const uint64_t d = (uint64_t)(t - t0);
+    uint64_t k = (d / 1000000000ULL) * freq + (d % 1000000000ULL) * freq / 1000000000ULL;
+    while (gridTime(t0, k, freq) <= t)
+        k++;
+    return k;
+}
+
 } // namespace
 
 XenoFrtLoop::XenoFrtLoop(unsigned cycle_time_freq)
@@ -43,9 +56,9 @@ int XenoFrtLoop::loop()
 
     const int64_t t0 = rt.now();
     start_time = xrf2::toTimespec(t0);
-    uint64_t k = 0;
+    uint64_t k = 0; // the period this cycle belongs to: it slept until gridTime(t0, k)
+    int64_t deadline = t0;
     for (;;) {
-        const int64_t deadline = gridTime(t0, k, freq);
         const int64_t wake = rt.now();
         wakeup_time = xrf2::toTimespec(deadline);
         rt.beginCycle(wake);
@@ -53,16 +66,25 @@ int XenoFrtLoop::loop()
         const int ret = step();
         const int64_t end = rt.now();
         idle_time = xrf2::toTimespec(end);
-        const int64_t next = gridTime(t0, k + 1, freq);
-        const bool missed = end > next;
-        rt.endCycle(wake, deadline, end, missed, missed ? 0 : next - end);
-        k++;
+        // Firm deadlines (docs/rt_core/runtime.md, "After an overrun"): a cycle that woke or
+        // ended after the next period had begun has lost that period and every other one that
+        // began meanwhile. They are not run late, back to back: the next cycle starts at the
+        // first period boundary still ahead, on the same grid, and the periods passed over are
+        // counted as missed (status, timing log, summary line). The controller sees the real
+        // step in wakeup_time (a whole number of periods).
+        uint64_t k_next = k + 1;
+        int64_t next = gridTime(t0, k_next, freq);
+        if (end > next) {
+            k_next = firstDeadlineAfter(t0, end, freq);
+            next = gridTime(t0, k_next, freq);
+        }
+        rt.endCycle(wake, deadline, end, k_next - k - 1, next - end);
         if (ret != 0 || rt.stopRequested())
             break;
-        // An overrun starts the next cycle at once; the grid itself never moves.
-        // In simulated time the backend's wait also holds the loop for its host: never skipped.
-        if (!missed || rt.virtualTime())
-            rt.sleepUntil(next);
+        // In simulated time the backend's wait also holds the loop for its host.
+        rt.sleepUntil(next);
+        k = k_next;
+        deadline = next;
     }
     xrfAfterLastCycle();
     const int64_t stop = rt.now();

@@ -14,24 +14,13 @@
 #include "xrf/channels.h"
 #include "xrf/plants.h"
 
+#define CHECK_NAME "test_hold"
+#include "check.h"
+
 #ifndef M_PI
 #define M_PI 3.14159265358979323846
 #endif
 #define DEG (M_PI / 180.0)
-
-static int passed, failed;
-
-#define CHECK(cond)                                                                  \
-    do {                                                                             \
-        if (cond) {                                                                  \
-            passed++;                                                                \
-        } else {                                                                     \
-            failed++;                                                                \
-            fprintf(stderr, "%s:%d: check failed: %s\n", __FILE__, __LINE__, #cond); \
-            printf("test_hold: %d passed, %d failed\n", passed, failed);             \
-            exit(1);                                                                 \
-        }                                                                            \
-    } while (0)
 
 /* The largest joint drop the fault tests allow (docs/developers/safety.md says why 2°). */
 #define DROP_BOUND (2.0 * DEG)
@@ -257,6 +246,5 @@ int main(void)
     test_hold_takes_hostile_measurements();
     test_hostile_snapshot_loads_physical();
     test_mecanum_odometry();
-    printf("test_hold: %d passed, %d failed\n", passed, failed);
-    return failed != 0;
+    return check_summary();
 }

@@ -3,23 +3,12 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <unistd.h>
 
 #include "xrf/ico.h"
 
-static int passed, failed;
-
-/* Stops at the first failure: later checks often build on earlier ones. */
-#define CHECK(cond)                                                                  \
-    do {                                                                             \
-        if (cond) {                                                                  \
-            passed++;                                                                \
-        } else {                                                                     \
-            failed++;                                                                \
-            fprintf(stderr, "%s:%d: check failed: %s\n", __FILE__, __LINE__, #cond); \
-            printf("test_ico_frames: %d passed, %d failed\n", passed, failed);       \
-            exit(1);                                                                 \
-        }                                                                            \
-    } while (0)
+#define CHECK_NAME "test_ico_frames"
+#include "check.h"
 
 static int same(const uint8_t *a, const uint8_t *b)
 {
@@ -161,6 +150,37 @@ static void test_transport_open_errors(void)
 #endif
 }
 
+/* A bench of several boards: one device per board, each opened and checked; the failing one
+ * is named (its index), whatever comes before it is closed again. */
+static void test_bench_open_errors(void)
+{
+    char file[] = "/tmp/xrf-spidev-test-XXXXXX";
+    int fd = mkstemp(file);
+    CHECK(fd >= 0);
+    close(fd);
+    char dir[] = "/tmp/xrf-spidev-dir-XXXXXX";
+    CHECK(mkdtemp(dir) != NULL);
+    struct xrf_ico_transport *t = NULL;
+    int failed = 99;
+    char list[256];
+    /* A regular file is no device: refused before any ioctl is tried on it. */
+    CHECK(xrf_spidev_open_bench(file, 31000000, &t, &failed) == -ENOTTY && failed == 0 && !t);
+    CHECK(xrf_spidev_open_bench(dir, 31000000, &t, &failed) == -EISDIR && failed == 0);
+    /* A character device that is not an SPI device: its ioctl says so. */
+    CHECK(xrf_spidev_open_bench("/dev/null", 31000000, &t, &failed) == -ENOTTY && failed == 0);
+    /* The second board's device missing: the first is not the one named. */
+    snprintf(list, sizeof list, "%s,/nonexistent/spidev0.1", "/dev/null");
+    CHECK(xrf_spidev_open_bench(list, 31000000, &t, &failed) == -ENOTTY && failed == 0);
+    CHECK(xrf_spidev_open_bench("/nonexistent/spidev0.0", 31000000, &t, &failed) == -ENOENT &&
+          failed == 0);
+    /* The list itself: an empty name. */
+    CHECK(xrf_spidev_open_bench("", 31000000, &t, &failed) == -EINVAL && failed == 0);
+    CHECK(xrf_spidev_open_bench("/dev/null,,/dev/null", 31000000, &t, &failed) == -ENOTTY);
+    CHECK(xrf_spidev_open_bench("/dev/null", 0, &t, &failed) == -EINVAL && failed == -1);
+    unlink(file);
+    rmdir(dir);
+}
+
 int main(void)
 {
     test_pwm_max();
@@ -170,6 +190,6 @@ int main(void)
     test_test_pattern();
     test_bitrev();
     test_transport_open_errors();
-    printf("test_ico_frames: %d passed, %d failed\n", passed, failed);
-    return failed ? 1 : 0;
+    test_bench_open_errors();
+    return check_summary();
 }

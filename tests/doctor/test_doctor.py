@@ -237,6 +237,21 @@ def test_spi_not_accessible_fails(tmp_path):
     assert doctor.check_spi(ctx(tmp_path)).status == FAILURE
 
 
+def test_spi_lists_every_board_and_names_the_missing_one(tmp_path):
+    """A bench of three ico boards: one device per board ($XRF_SPI_DEVICES); each is checked."""
+    users(pi(tmp_path))
+    devices = ("/dev/spidev0.0", "/dev/spidev0.1", "/dev/spidev1.0")
+    for dev in devices[:2]:
+        write(tmp_path, dev, "", 0o660)
+    r = doctor.check_spi(ctx(tmp_path, spi_devices=devices))
+    assert r.status == FAILURE and r.detail == "board 3: /dev/spidev1.0 does not exist"
+    assert "chip select" in r.fix and r.title == "SPI devices " + ", ".join(devices)
+    write(tmp_path, devices[2], "", 0o660)
+    r = doctor.check_spi(ctx(tmp_path, spi_devices=devices))
+    assert r.status == OK
+    assert r.detail.startswith("board 1: /dev/spidev0.0, board 2: /dev/spidev0.1, board 3: /dev/spidev1.0 present")
+
+
 def test_spi_missing(tmp_path):
     r = doctor.check_spi(ctx(pi(tmp_path)))
     assert r.status == FAILURE and "dtparam=spi=on" in r.fix

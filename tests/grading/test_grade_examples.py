@@ -221,3 +221,7 @@ def test_the_youbot_example_passes_its_scenario(tmp_path: Path) -> None:
     failed = [(c.id, c.reason, c.value) for c in result.checks if not c.passed]
     assert not failed
     assert result.earned == result.points == s.max_points > 0
+    # Simulated time: the loop is held a cycle after each command, so the state it leads to is
+    # seen at its own loop time (RUN was once seen only at 8.55 s for a start at 8.0: a check
+    # failed that the controller met).
+    assert result.reached_run_s is not None and result.reached_run_s <= 8.0 + 0.005, result.reached_run_s

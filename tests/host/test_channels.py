@@ -466,6 +466,78 @@ def test_telemetry_and_monitor_readers(shm_name: str) -> None:
         assert lines[1].cycle == 8 and lines[1].text.startswith("éé")
 
 
+def test_telemetry_batch_columns_are_its_samples(shm_name: str) -> None:
+    """read_batch (the reader's: numpy converts the slots, a sample is made whole only when
+    asked for): its columns are exactly the samples' fields, across more slots than one numpy
+    chunk, and a payload size the loop wrote beyond the slot is bounded as read() bounds it."""
+    from xrflab.channels.rings import BATCH_SLOTS
+
+    with create_for_test(shm_name) as ch:
+        loop = LoopSide(ch)
+        reader = ch.telemetry_reader()
+        check = ch.telemetry_reader()
+        n = BATCH_SLOTS * 2 + 3
+        for cycle in range(n):
+            loop.publish_telemetry(
+                cycle,
+                t_ns=1000 + cycle,
+                enc=[cycle, -cycle, 3, 4],
+                din=[cycle & 1, 0] * 4,
+                xeno2ros={"pos_left": cycle / 2},
+                ring=False,
+            )
+        batch = reader.read_batch()
+        whole = check.read()
+        assert len(batch) == n == len(whole)
+        assert batch.t_ns == [t.t_ns for t in whole] and batch.cycle == [t.cycle for t in whole]
+        assert batch.enc == [t.enc for t in whole] and batch.din == [t.din for t in whole]
+        assert list(batch) == whole and batch[-1] == whole[-1] and batch[1:3] == whole[1:3]
+        assert batch[n - 1].xeno2ros == {"pos_left": (n - 1) / 2, "pos_right": 0.0}
+        with pytest.raises(IndexError):
+            batch[n]
+        assert len(reader.read_batch()) == 0
+        loop.publish_telemetry(n, ring=False)
+        slot = ch.shm.telem[n % lib.XRF_TELEM_SLOTS]
+        slot.size = 2**32 - 1  # the loop's word: read as at most XRF_MSG_MAX bytes
+        [t] = reader.read_batch()
+        assert t.cycle == n and t == check.read()[0]
+
+
+def test_telemetry_sample_is_its_slot_field_by_field(shm_name: str) -> None:
+    """A sample read_batch makes (one struct unpack of the slot's bytes, its layout taken from
+    cffi's) is the slot as cffi reads it field by field: every channel of every array, values
+    at both ends of their types, the payload cut at the size the loop wrote."""
+    with create_for_test(shm_name, channels=lib.XRF_MAX_CHANNELS) as ch:
+        loop = LoopSide(ch)
+        reader = ch.telemetry_reader()
+        m = lib.XRF_MAX_CHANNELS
+        loop.publish_telemetry(
+            2**40 + 3,
+            t_ns=2**63 - 5,
+            enc=[-(2**31)] + [2**31 - 1 - k for k in range(m - 1)],
+            din=[255, 0] * m,
+            pwm=[(-1) ** k * (100 + k) for k in range(m)],
+            dout=[k & 1 for k in range(m)],
+            xeno2ros={"pos_left": -1.5, "pos_right": 2.25},
+            state=3,
+            ros2xeno_t_sent_ns=2**62 + 1,
+        )
+        slot = ch.shm.telem[0]  # the ring's first publication
+        [t] = reader.read_batch()
+        assert (t.cycle, t.t_ns, t.state) == (slot.hdr.cycle, slot.hdr.t_ns, slot.state) == (2**40 + 3, 2**63 - 5, 3)
+        assert t.enc == list(slot.enc)[:m] and t.enc[0] == -(2**31)
+        assert t.din == list(slot.din)[: 2 * m] and t.din[0] == 255
+        assert t.pwm == list(slot.pwm)[:m] and t.pwm[1] == -101
+        assert t.dout == list(slot.dout)[:m]
+        assert t.ros2xeno_t_sent_ns == slot.ros2xeno_t_sent_ns == 2**62 + 1
+        assert t.xeno2ros == {"pos_left": -1.5, "pos_right": 2.25}
+        # A payload shorter than the message (the loop's size word): not decoded, nothing made up.
+        loop.publish_telemetry(2**40 + 4, xeno2ros={"pos_left": 1.0})
+        ch.shm.telem[1].size = 3
+        [t] = reader.read_batch()
+        assert t.cycle == 2**40 + 4 and t.xeno2ros == {}
+
+
 def test_telemetry_follows_the_benchs_channel_count(shm_name: str) -> None:
     """A bench of more than one board (the youBot's 9 channels): telemetry carries them all, and
     only them; a count the loop wrote out of range is refused at open (issue 29 item 2)."""

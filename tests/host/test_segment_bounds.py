@@ -11,7 +11,6 @@ from __future__ import annotations
 import errno
 import os
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -36,14 +35,6 @@ def fresh_shm():  # noqa: ANN201 - cdata
     shm = ffi.new("struct xrf_shm *")
     lib.xrf_shm_init(shm)
     return shm
-
-
-@pytest.fixture
-def ch(shm_name: str) -> Iterator[Channels]:
-    c = create_for_test(shm_name)
-    yield c
-    c.close()
-    channels.shm_path(shm_name).unlink(missing_ok=True)
 
 
 # ---- geometry at attach ---------------------------------------------------------------------------
@@ -411,10 +402,10 @@ def test_commands_on_a_scribbled_ring_are_corrupt_and_a_locked_status_gives_up_q
         ch.shm.cmd.slot[i].seq = 1 << 40
     with pytest.raises(ChannelsCorrupt, match="command ring"):
         ch.send_command("start")
+    before = ch.status()
     ch.shm.status.seq = 1  # a writer that never finishes
     t0 = time.monotonic()
-    with pytest.raises(ChannelsError, match="locked"):
-        ch.status()
+    assert ch.status() == before  # not now: the last copy (tests/host/test_status_lock.py)
     assert time.monotonic() - t0 < 2.0
 
 

@@ -7,7 +7,10 @@
   broker, `room/topics.py`; code elsewhere reads them from there (`Settings.sim`, ...);
 - the bundled examples' and templates' `Encoder.hpp` and `Pid.hpp`: each example or template is a
   self-contained project a student copies, zips and uploads, so each keeps its own copy; relbot's
-  is the source and the others must be byte-identical to it.
+  is the source and the others must be byte-identical to it;
+- a template made from an example (the cell's, the youBot's: the homing, the arm and the closing
+  sequence done, the control law left to the student) is its example outside the parts marked
+  `>>> student part` ... `<<< student part`: a fix to the example's homing or arm reaches the template.
 
 Each check is a function of a tree, run on the checkout (nothing found) and on a copy with a
 planted second copy (found, naming the file). docs/ and tests/ may mention the values freely.
@@ -161,7 +164,49 @@ def example_headers(root: Path) -> list[str]:
     return found
 
 
-CHECKS = (frontend_copies, python_defaults, script_defaults, example_headers)
+# ---- templates made from an example -----------------------------------------------------------
+
+STUDENT_PART = re.compile(r"^[ \t]*// >>> student part.*?^[ \t]*// <<< student part[^\n]*\n", re.M | re.S)
+
+
+def _code(text: str, name: str) -> str:
+    """The code a template shares with its example: the student's parts, comments, the class's name,
+    the log's file name and layout taken out (clang-format wraps a longer name differently)."""
+    text = STUDENT_PART.sub("", text)
+    text = re.sub(r"//[^\n]*", "", text)
+    text = re.sub(r"\bTemplate\b", name, text).replace("TEMPLATE", name.upper())
+    text = text.replace('"logs/template_', '"logs/')
+    flat = " ".join(text.split())
+    # A member initialiser list whose last entry was the student's ends one comma earlier.
+    return re.sub(r",\s*\{", " {", flat)
+
+
+def templates_from_examples(root: Path) -> list[str]:
+    found = []
+    for template in sorted((root / "student_projects" / "templates").iterdir()):
+        example = root / "student_projects" / "examples" / template.name
+        ours = template / "src" / "Template.cpp"
+        if not (example.is_dir() and ours.is_file()):
+            continue  # a template of its own (base, 20sim): nothing to follow
+        names = [p.stem for p in (example / "src").glob("*.cpp") if p.name != "main.cpp"]
+        if len(names) != 1:
+            found.append(f"{example.relative_to(root)}: expected one controller source beside main.cpp, got {names}")
+            continue
+        name = names[0]
+        for mine, theirs in (
+            (ours, example / "src" / f"{name}.cpp"),
+            (template / "include" / "Template.hpp", example / "include" / f"{name}.hpp"),
+            (template / "src" / "main.cpp", example / "src" / "main.cpp"),
+        ):
+            if _code(mine.read_text(), name) != _code(theirs.read_text(), name):
+                found.append(
+                    f"{mine.relative_to(root)} differs from {theirs.relative_to(root)} outside the student's "
+                    f"parts: make the change in both (or mark it `>>> student part` ... `<<< student part`)"
+                )
+    return found
+
+
+CHECKS = (frontend_copies, python_defaults, script_defaults, example_headers, templates_from_examples)
 
 
 @pytest.mark.parametrize("check", CHECKS, ids=lambda c: c.__name__)
@@ -254,3 +299,27 @@ def test_a_drifted_template_header_is_found(tree: Path) -> None:
     with planted(tree, "student_projects/templates/youbot/include/Encoder.hpp", "// drifted\n"):
         found = example_headers(tree)
     assert [f for f in found if "templates/youbot/include/Encoder.hpp" in f], found
+
+
+@pytest.mark.parametrize(
+    ("rel", "old", "new"),
+    [
+        # a homing constant changed in the example only
+        ("student_projects/examples/cell/src/CellController.cpp", "homing_timeout_s = 20", "homing_timeout_s = 30"),
+        # the arm's closing speed changed in the template only
+        ("student_projects/templates/youbot/src/Template.cpp", "closing_speed = 20.0", "closing_speed = 40.0"),
+        # a member dropped from the template's header
+        ("student_projects/templates/youbot/include/Template.hpp", "    bool at_rest = false;\n", ""),
+    ],
+)
+def test_a_template_drifted_from_its_example_is_found(tree: Path, rel: str, old: str, new: str) -> None:
+    path = tree / rel
+    before = path.read_text()
+    assert old in before
+    path.write_text(before.replace(old, new))
+    try:
+        found = templates_from_examples(tree)
+    finally:
+        path.write_text(before)
+    assert [f for f in found if f.startswith(rel)] or [f for f in found if rel.split("/")[2] in f], found
+    assert templates_from_examples(tree) == []

@@ -260,3 +260,30 @@ def test_a_log_of_no_records_is_converted_from_itself_not_reopened_by_path(tmp_p
     assert b"x" in b"".join(iter_csv_chunks(gone, log=log))
     for fmt in ("csv", "parquet", "mat"):
         convert(gone, fmt, tmp_path / f"o.{fmt}", log=log)
+
+
+def test_the_appliances_conversion_child(edge_file: Path, tmp_path: Path) -> None:
+    """convert_in_child (the appliance's downloads) writes what convert() writes, reading only the
+    descriptor it is handed; an unreadable log is LogFormatError, any other failure says why."""
+    import os
+
+    from xrflab.logs.convert_child import ConversionFailed, convert_in_child
+    from xrflab.logs.reader import LogFormatError
+
+    fd = os.open(edge_file, os.O_RDONLY)
+    try:
+        out = convert_in_child(fd, "/nowhere/shown.xrflog", "parquet", tmp_path / "child.parquet", None)
+        want = convert(edge_file, "parquet", tmp_path / "here.parquet")
+        assert out.read_bytes() == want.read_bytes()
+        with pytest.raises(ConversionFailed, match="to mat failed: .*No such file or directory"):
+            convert_in_child(fd, "shown.xrflog", "mat", tmp_path / "no-such-folder" / "x.mat", None)
+    finally:
+        os.close(fd)
+    junk = tmp_path / "junk.bin"
+    junk.write_bytes(b"not a log at all" * 10)
+    fd = os.open(junk, os.O_RDONLY)
+    try:
+        with pytest.raises(LogFormatError):
+            convert_in_child(fd, "junk.bin", "rrd", tmp_path / "junk.rrd", None)
+    finally:
+        os.close(fd)

@@ -1,5 +1,5 @@
 """Per-cycle framework timing (issue 4 item 2, XRF_LOG_TIMING=1): every cycle's wake-up jitter,
-stage durations and miss flag as a log file of its own (cycle_timing.xrf), written by the loop's
+stage durations and missed periods as a log file of its own (cycle_timing.xrf), written by the loop's
 helper thread (standalone) or by the appliance (its runs). Checked exactly against the status
 histograms the loop keeps for the same cycles: same counts, sums and maxima."""
 
@@ -53,7 +53,7 @@ def test_standalone_loop_logs_every_cycle_and_matches_its_histograms(
         log = open_log(tmp_path / "cycle_timing.xrf")
         assert log.skipped == [] and log.lost == 0
         assert [v.name for v in log.variables] == TIMING_VARS
-        assert [v.code for v in log.variables] == [6] * 8 + [1]  # XRF2 codes: long int, bool
+        assert [v.code for v in log.variables] == [6] * 8 + [3]  # XRF2 codes: long int, int (periods)
         rec = log.records
         n = int(status.cycles)
         assert len(rec) == n == 3000

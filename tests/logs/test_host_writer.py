@@ -16,7 +16,7 @@ import pytest
 from xrf_testing.harness import wait_for
 from xrf_testing.loops import LoopProcess
 from xrflab.logs import open_log
-from xrflab.logs.host_writer import HostLogWriter
+from xrflab.logs.host_writer import MAX_PERIOD_S, WAIT_MS, HostLogWriter, drain_period
 
 
 @pytest.fixture
@@ -76,6 +76,41 @@ def test_kill_9_loses_nothing_that_reached_the_ring(loop, tmp_path: Path) -> Non
     _probe_ok(log.records)
 
 
+def test_the_drain_period_follows_the_ring_capacity() -> None:
+    # A quarter of the time a ring takes to fill at one record a cycle, within [WAIT_MS, MAX_PERIOD_S].
+    assert drain_period(65536, 1000) == MAX_PERIOD_S  # RELbot: 65 536 slots of 88 bytes, 65 s
+    assert drain_period(16384, 10000) == pytest.approx(16384 / 10000 / 4)  # 10 kHz, 32 doubles: 1.6 s
+    assert drain_period(100, 10000) == WAIT_MS / 1000  # a tiny ring: as often as before
+    assert drain_period(0, 1000) == WAIT_MS / 1000  # no layout yet
+
+
+def test_records_are_drained_in_batches_and_none_is_lost(loop, tmp_path: Path) -> None:
+    """Issue 30 item 4: the writer wakes a drain period apart, not on every doorbell (the loop
+    rings it for telemetry many times a second), and every record still reaches the file."""
+    lp = loop(tmp_path)
+    w = HostLogWriter(lp.ch, {"run": "8"}, tmp_path, timing=False)
+    w.start()
+    lp.command("initialise", "INITIALISED")
+    lp.command("start", "RUN")
+    t0 = time.monotonic()
+    lp.wait_cycles(3000)
+    period = w.period()
+    elapsed = time.monotonic() - t0
+    os.kill(lp.proc.pid, signal.SIGKILL)  # the counts then stand still (the mapping is ours)
+    lp.proc.wait(5)
+    stats = w.finish()
+    status = lp.ch.status()
+    assert period == drain_period(w._chan.slots(), int(lp.ch.info["cycle_freq"])) and period >= 0.5
+    # drains that found records: one per period, the final one, and one at RUN's first records
+    assert w.drains <= elapsed / period + 3, (w.drains, elapsed, period)
+    assert stats.failed == "" and stats.lost == 0 and stats.unwritten == 0
+    assert stats.records == status.log_written >= 3000
+    log = open_log(Path(stats.files[0]))
+    assert log.skipped == [] and log.lost == 0 and len(log) == stats.records
+    assert np.array_equal(log.records["seq"], np.arange(len(log), dtype=np.uint64))
+    _probe_ok(log.records)
+
+
 def test_disk_full_stops_logging_cleanly_and_the_loop_goes_on(loop, tmp_path: Path) -> None:
     if os.geteuid() != 0:
         pytest.skip("needs root to mount a tiny tmpfs")
@@ -129,9 +164,11 @@ def test_live_rerun_stream_takes_records_and_telemetry(loop, tmp_path: Path, cap
     proxy = LiveProxy.open_for_run(42, "alice")
     try:
         assert proxy.local_url == f"rerun+http://127.0.0.1:{proxy.port}/proxy" and LiveProxy.current() is proxy
-        proxy.readers = 1  # a viewer reads it (the appliance's read route counts them)
+        assert proxy.ensure_running()  # a viewer reads it (the appliance's read route starts it and counts it)
+        proxy.readers = 1
         stream = LiveRerun(proxy, lp.ch, run_id=42)
-        w = HostLogWriter(lp.ch, {}, tmp_path, on_records=stream.feed, timing=False)
+        # as logs/live.py wires it: drained every 20 ms while a viewer watches
+        w = HostLogWriter(lp.ch, {}, tmp_path, on_records=stream.feed, timing=False, fast=stream.watched)
         w.start()
         _run_then_kill(lp, 1000)
         w.finish()
@@ -169,6 +206,18 @@ def test_live_rerun_stream_sends_nothing_without_a_viewer(loop, tmp_path: Path) 
     try:
         assert proxy.readers == 0
         stream = LiveRerun(proxy, lp.ch, run_id=44)
+        # Its sending thread only looks for a viewer once a second (on the whole second): counted
+        # as the thread's voluntary context switches (it woke twice a second before: 8-9 in 4 s).
+        status = Path(f"/proc/self/task/{stream._thread.native_id}/status")
+
+        def woke() -> int:
+            line = next(ln for ln in status.read_text().splitlines() if ln.startswith("voluntary_ctxt_switches:"))
+            return int(line.split()[1])
+
+        first = woke()
+        time.sleep(4)  # the point: a window of no viewer whose wake-ups are counted
+        got = woke() - first
+        assert got <= 6, got
         w = HostLogWriter(lp.ch, {}, tmp_path, on_records=stream.feed, timing=False)
         w.start()
         _run_then_kill(lp, 1000)
@@ -178,6 +227,8 @@ def test_live_rerun_stream_sends_nothing_without_a_viewer(loop, tmp_path: Path) 
         assert stats.records >= 1000, stats
         assert stream.rec is None and stream._names is None and stream.dropped == 0
         # a reader straight on the proxy (not counted: not through the appliance) finds no recording
+        assert not proxy.running()  # nobody watched: its process never started
+        assert proxy.ensure_running()
         with httpx.Client(base_url=proxy.read_url) as client:
             got = read_messages(client, READ_MESSAGES, until=lambda d: b"run-44" in d, timeout=3, quiet=2)
         assert b"run-44" not in got.data

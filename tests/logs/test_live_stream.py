@@ -174,7 +174,6 @@ def test_a_new_run_has_its_own_stream_and_ends_the_old_one(lan) -> None:
     http = login_client(url, ADMIN_USER, ADMIN_PASSWORD)
     try:
         first = run_probe(server, http)
-        old_proxies = live_proxies(server)
         # a viewer of the first run stays connected while the second starts
         ended: dict[str, object] = {}
 
@@ -185,6 +184,8 @@ def test_a_new_run_has_its_own_stream_and_ends_the_old_one(lan) -> None:
         viewer = threading.Thread(target=watch)
         viewer.start()
         wait_for(lambda: http.get("/api/logs/rerun").json()["live_viewers"] >= 1, timeout=20, what="the viewer")
+        old_proxies = live_proxies(server)  # started for that viewer
+        assert old_proxies
         second = run_probe(server, http)
         viewer.join(30)
         assert not viewer.is_alive(), "the first run's stream did not end when the next run started"
@@ -272,3 +273,75 @@ def test_no_live_stream_before_the_first_run(tmp_path: Path) -> None:
         assert not live_proxies(s)
     finally:
         stop_server(s)
+
+
+def _rerun_threads(pid: int) -> int:
+    """The rerun SDK's recording threads in process `pid` (RecordingStream, ChunkBatcher::...)."""
+    n = 0
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            n += (task / "comm").read_text().startswith(("RecordingStream", "ChunkBatcher"))
+        except OSError:
+            continue
+    return n
+
+
+def test_runs_watched_live_leave_no_recording_behind(lan) -> None:
+    """Each run watched live has a recording of its own and a blueprint; the rerun SDK keeps
+    every recording made from Python until swept, and every blueprint it sends (two threads and
+    their memory each, for the appliance's lifetime: bench/appliance/practical.py). The same
+    program watched in three runs: after the first, the appliance's rerun threads stay as many."""
+    server, _ = lan
+    counts = []
+    for _ in range(3):
+        run_id = run_probe(server)
+        got = read_messages(server.http, READ_MESSAGES, until=lambda d: f"run-{run_id}".encode() in d and b"ratio" in d)  # noqa: B023
+        assert b"ratio" in got.data
+        server.stop_run()
+        # the run's recording is flushed and swept in the background after the run's end
+        wait_for(lambda: _rerun_threads(server.proc.pid) <= 2, timeout=20, what="the run's recording swept")
+        counts.append(_rerun_threads(server.proc.pid))
+    assert counts[1] == counts[2] == counts[0], counts
+
+
+def test_an_ended_runs_proxy_runs_only_while_watched(lan) -> None:
+    """Issue 30 item 4: the live proxy (a rerun process of ~33 MB) ran from each run's start,
+    watched or not, and was kept after its run ended until the next run. Now it starts at the
+    run's first viewer, stays while a viewer reads the ended run, stops when the last leaves,
+    and a viewer of the ended run starts it again (an empty stream: the run's data is in its log)."""
+    server, url = lan
+    http = login_client(url, ADMIN_USER, ADMIN_PASSWORD)
+    try:
+        # no viewer: no proxy process, during the run or after it
+        server.wait_cycles(run_probe(server, http), 200)
+        assert not live_proxies(server), "a live proxy runs for a run nobody watches"
+        server.stop_run()
+        assert not live_proxies(server)
+
+        # a viewer connected across the run's end keeps it until it leaves
+        run_id = run_probe(server, http)
+        got: dict[str, object] = {}
+
+        def watch() -> None:
+            got["stream"] = read_messages(http, READ_MESSAGES, timeout=120, quiet=15)
+
+        viewer = threading.Thread(target=watch)
+        viewer.start()
+        wait_for(lambda: http.get("/api/logs/rerun").json()["live_viewers"] >= 1, timeout=20, what="the viewer")
+        server.stop_run()
+        wait_for(lambda: not http.get("/api/logs/rerun").json()["live_running"], timeout=30, what="the run's end")
+        procs = live_proxies(server)
+        if viewer.is_alive():  # (it leaves 15 s after the stream went quiet)
+            assert procs, "the ended run's proxy stopped while a viewer read it"
+        viewer.join(60)
+        assert got["stream"].ended_by == "quiet"  # type: ignore[attr-defined]
+        wait_for(lambda: not live_proxies(server), timeout=20, what="the proxy to stop after its last viewer")
+        info = http.get("/api/logs/rerun").json()
+        assert info["live_run"] == run_id and not info["live_running"] and info["live_url"]
+
+        # a viewer of the ended run: the proxy starts again, answers, and stops after it
+        again = read_messages(http, READ_MESSAGES, timeout=10, quiet=2)
+        assert again.status == 200 and again.ended_by == "quiet", again.headers
+        wait_for(lambda: not live_proxies(server), timeout=20, what="the restarted proxy to stop")
+    finally:
+        http.close()

@@ -3,6 +3,7 @@ against `xrf decode`, kill -9, the lost badge, disk full, damaged files, the rer
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 import signal
@@ -104,6 +105,61 @@ def test_round_trip_every_format_matches_xrf_decode(server: Server, tmp_path: Pa
     # The per-second framework timing series is kept beside the log.
     t = server.http.get(f"/api/logs/runs/{run['id']}/timing")
     assert t.status_code == 200 and b'"wakeup"' in t.content
+
+
+def _rerun_threads(pid: int) -> int:
+    """The rerun SDK's recording threads in process `pid` (RecordingStream, ChunkBatcher::...):
+    two per recording, kept for the process's lifetime (rerun-io/rerun#2116)."""
+    n = 0
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        with contextlib.suppress(OSError):
+            n += Path(f"/proc/{pid}/task/{tid}/comm").read_text().startswith(("RecordingStream", "ChunkBatcher"))
+    return n
+
+
+def _libraries(pid: int, *names: str) -> set[str]:
+    """The shared libraries of process `pid` whose file name contains one of `names`."""
+    found = set()
+    for line in Path(f"/proc/{pid}/maps").read_text().splitlines():
+        path = line.split(None, 5)[5] if len(line.split(None, 5)) > 5 else ""
+        if any(n in Path(path).name for n in names):
+            found.add(Path(path).name)
+    return found
+
+
+def _malloc_heaps(pid: int) -> int:
+    """glibc's malloc arenas besides the main one in process `pid`: each is a heap at a 64 MiB
+    boundary (HEAP_MAX_SIZE), anonymous and read-write from its start."""
+    n = 0
+    for line in Path(f"/proc/{pid}/maps").read_text().splitlines():
+        f = line.split()
+        if len(f) == 5 and f[1] == "rw-p" and int(f[0].split("-")[0], 16) % (64 << 20) == 0:
+            n += 1
+    return n
+
+
+def test_conversions_leave_nothing_in_the_appliance(server: Server) -> None:
+    """MAT, Parquet and .rrd are converted in a child process that ends with the conversion, and
+    CSV is written by one as it streams: the appliance gains no rerun recording (each .rrd made
+    in it kept two recordings' threads and ~2.6 MB for good: bench/appliance/practical.py) and
+    loads neither Arrow's libraries nor rerun's (~24 MB each for good, issue 30 item 4) for a
+    run nobody watched live and its downloads."""
+    pid = server.proc.pid
+    before = _rerun_threads(pid)
+    for _ in range(3):
+        run = _run_probe(server, cycles=200)
+        server.stop_run()
+        f = _logs(server, run["id"])["files"][0]
+        url = f"/api/logs/runs/{run['id']}/files/{f['name']}"
+        for fmt in ("rrd", "mat", "parquet", "csv"):
+            got = server.http.get(url, params={"fmt": fmt}, timeout=120)
+            assert got.status_code == 200 and len(got.content) > 0, (fmt, got.text)
+    assert _rerun_threads(pid) == before, "a conversion left rerun recording threads in the appliance"
+    assert not _libraries(pid, "libarrow", "libparquet", "rerun_bindings"), "Arrow or rerun loaded in the appliance"
+    # Its threads share a bounded number of malloc arenas (server/cli/serve.py limit_malloc_arenas:
+    # with glibc's default, 12-15 in an appliance after some runs, each keeping what was freed in it).
+    if os.environ.get("MALLOC_ARENA_MAX", "2") == "2":
+        assert _malloc_heaps(pid) <= 2, f"{_malloc_heaps(pid)} malloc arenas besides the main one"
 
 
 def _rrd_values(data: bytes, path: Path) -> dict[str, list[tuple[list[int], list[float]]]]:

@@ -138,6 +138,7 @@ def test_simulated_time_gives_the_real_time_log(
 
     n = RECORDS
     assert len(real) >= n and len(virt) >= n
+    virt_all = virt
     real, virt = real[:n], virt[:n]
     # The same grid: consecutive cycles, one period apart (a timestamp is the cycle's wake-up: in
     # simulated time its deadline plus the nanoseconds before the clock read; more if preempted).
@@ -147,21 +148,38 @@ def test_simulated_time_gives_the_real_time_log(
     assert np.median(np.abs(late - np.median(late))) < 20_000, late - np.median(late)
     assert np.array_equal(real[first_col], virt[first_col])  # the step lands on the same record
 
+    # Periods, not cycles. After an overrun the real loop skips to the next period boundary (the
+    # periods passed over counted missed: docs/rt_core/runtime.md "After an overrun") while the
+    # board moves the plant on over them, as a real one (simulator.md "Time"): real record k is the
+    # plant k + M_k periods after the step, M_k the periods missed since it (cycle_timing.xrf's
+    # `missed`, the periods passed over after each cycle). Compared by cycle, every skip left a
+    # lasting offset of rate * T per period on a moving output (relbot's wheel positions: CI,
+    # 0.107 rad against 0.0965). The simulated loop skips none in RUN: its record k + M_k.
+    at = np.searchsorted(timing["cycle"], real["cycle"])
+    assert np.all(at < len(timing)) and np.array_equal(timing["cycle"][at], real["cycle"]), "timing records lost"
+    missed_before = np.concatenate([[0], np.cumsum(timing["missed"].astype(np.int64))])[at]
+    k = np.arange(n)
+    since_step = np.where(k >= step_at, missed_before - missed_before[step_at], 0)
+    kv = k + since_step
+    same = kv < len(virt_all)
+    assert np.count_nonzero(same) >= n - 100, f"{int(since_step[-1])} periods missed in the real run"
+
     # Tolerance. In real time the board advances the plant over the measured time between two
-    # transfers, so sample k is the plant at kT + j_k, j_k the cycle's wake-up lateness (from
-    # cycle_timing.xrf); in simulated time j_k = 0. The totals telescope (the plant never loses
-    # time), so the difference stays a time shift: |dx| <= max|dx/dt| * 2 * max j, plus one
+    # transfers, so sample k is the plant at (k + M_k)T + j_k, j_k the cycle's wake-up lateness
+    # (from cycle_timing.xrf); in simulated time j_k = 0. The totals telescope (the plant never
+    # loses time), so the difference stays a time shift: |dx| <= max|dx/dt| * 2 * max j, plus one
     # encoder count each side, doubled for the closed loop that feeds the shift back once.
     jitter_s = max(float(np.max(np.abs(timing["wakeup_ns"]))), 50_000.0) * 1e-9
     for col in columns:
-        a, b = real[col].astype(float), virt[col].astype(float)
+        a, b = real[col][same].astype(float), virt_all[col][kv[same]].astype(float)
         if col.startswith("pwm"):
             continue  # compared through the positions they produce (a PWM step has no slope)
-        rate = float(np.max(np.abs(np.diff(b)))) / (PERIOD_NS * 1e-9)
+        rate = float(np.max(np.abs(np.diff(virt[col].astype(float))))) / (PERIOD_NS * 1e-9)
         tol = 2 * (rate * 2 * jitter_s + 2 * QUANTUM[col])
         worst = float(np.max(np.abs(a - b)))
         assert worst <= tol, (
-            f"{name}.{col}: real and simulated differ by {worst:.3g} > {tol:.3g} (jitter {jitter_s * 1e6:.0f} us)"
+            f"{name}.{col}: real and simulated differ by {worst:.3g} > {tol:.3g} (jitter {jitter_s * 1e6:.0f} us, "
+            f"{int(since_step[-1])} periods missed since the step)"
         )
         assert float(np.ptp(b)) > 100 * QUANTUM[col], f"{name}.{col} barely moved: the comparison would prove nothing"
         # Where the response has settled, jitter no longer matters: the two runs end in the same
@@ -229,6 +247,29 @@ def test_a_held_loop_takes_each_command_in_exactly_one_cycle(run_loop, probe_exe
     assert ch.status().cycles == 12
 
 
+def _largest_stall_ms(run_dir: Path, horizon_s: float) -> float:
+    """The longest a graded real-time run's loop was held beyond its period (ms) in the transient:
+    from the setpoints' change for horizon_s, from the log's wake-up times."""
+    records = _log(run_dir)
+    setpoints = [c for c in records.dtype.names if c.endswith("setpoint")]
+    changed = np.flatnonzero(np.any([records[c] != records[c][0] for c in setpoints], axis=0))
+    assert changed.size, "the setpoints never changed"
+    t = records["t_ns"][int(changed[0]) :].astype(np.int64)
+    t = t[t - t[0] <= horizon_s * 1e9]
+    return max(float(np.max(np.diff(t), initial=PERIOD_NS) - PERIOD_NS), 0.0) / 1e6
+
+
+# A real-time run whose loop was held longer than this in the transient is not the one to compare:
+# the plant lived through the stall on the last outputs (as a real one would) and the response
+# is another (CI: a stage run settled in 1.03 s against 0.455 s; here a 37 ms stall at the
+# approach made a 0.525 s settling). The grading loop runs without real-time priority
+# (grading/runner.py), so a busy host can hold it. Measured beside stress-ng --cpu 3 on two
+# cores: 12 stage runs, the longest stall in each transient 0.6..9.3 ms, settling within
+# 0.017 s of the simulated run's in all.
+MAX_STALL_MS = 10.0
+REAL_ATTEMPTS = 5  # each a few seconds; the first one passes on a CI host, under stress more
+
+
 @pytest.mark.parametrize("name", ["stage", "jiwy"])
 def test_a_scenario_grades_the_same_in_simulated_and_real_time(
     name: str, examples: dict[str, Path], tmp_path: Path
@@ -239,14 +280,24 @@ def test_a_scenario_grades_the_same_in_simulated_and_real_time(
 
     path = REPO / "student_projects/scenarios" / f"{name}.toml"
     scenario = load(path.read_text(), path.name)
-    real = grade_executable(scenario, examples[name], tmp_path / "real", virtual_time=False)
     virt = grade_executable(scenario, examples[name], tmp_path / "virtual", virtual_time=True)
-    assert real.status == virt.status == "completed", (real.reason, virt.reason)
+    assert virt.status == "completed", virt.reason
+    transient = max(c.value for c in virt.checks if c.kind in ("rise_time", "settling_time") and c.value is not None)
+    stalls: list[float] = []
+    for attempt in range(REAL_ATTEMPTS):
+        run_dir = tmp_path / f"real{attempt}"
+        real = grade_executable(scenario, examples[name], run_dir, virtual_time=False)
+        assert real.status == "completed", real.reason
+        stalls.append(_largest_stall_ms(run_dir, transient + 0.1))
+        if stalls[-1] <= MAX_STALL_MS:
+            break
+    else:
+        pytest.fail(f"every real-time run was held in its transient (longest stalls {stalls} ms): the host is too busy")
     assert virt.virtual_time and not real.virtual_time
     assert [(c.id, c.passed, c.earned) for c in virt.checks] == [(c.id, c.passed, c.earned) for c in real.checks]
     for r, v in zip(real.checks, virt.checks, strict=True):
         if r.kind in ("rise_time", "settling_time") and r.value is not None:
             # Times from the same grid: the real host's command lag (a few cycles) is all that moves them.
-            assert abs(r.value - v.value) <= 0.02, (r.id, r.value, v.value)
+            assert abs(r.value - v.value) <= 0.02, (r.id, r.value, v.value, f"stalls {stalls} ms")
     # The loop part only (the build and start are the same): simulated time is much faster.
     assert virt.wall_s < real.wall_s

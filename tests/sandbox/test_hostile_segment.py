@@ -34,7 +34,7 @@ REPO = Path(__file__).resolve().parents[2]
 HOSTILE = REPO / "tests" / "fixtures" / "hostile_segment"
 BASE = REPO / "student_projects" / "templates" / "base"
 
-LOG_LAYOUT, MONITOR, TRUNCATE, RANDOM, LOG_HEAD = 1, 2, 3, 4, 5
+LOG_LAYOUT, MONITOR, TRUNCATE, RANDOM, LOG_HEAD, STATUS_LOCK = 1, 2, 3, 4, 5, 6
 
 
 @dataclass
@@ -56,9 +56,13 @@ def mallory(server: Server) -> Iterator[Student]:
     http.close()
 
 
-def start_and_attack(server: Server, student: Student, ws: WsClient, mode: int, seed: int = 0) -> dict[str, Any]:
+def start_and_attack(
+    server: Server, student: Student, ws: WsClient, mode: int, seed: int = 0, logged_first: bool = False
+) -> dict[str, Any]:
     """Start a run of the hostile build, drive it to RUN (its logger logs there), then order the
-    attack. The run's record."""
+    attack. The run's record. `logged_first`: order it only once the host's log writer has put
+    records in the file (it drains the ring a quarter of its fill time apart, up to 1 s: an attack
+    before the first drain leaves no record of the real layout to check)."""
     server.stop_run()
     r = student.http.post(f"/api/projects/{student.project}/builds/{student.build}/run", json={}, timeout=60)
     assert r.status_code == 201, r.text
@@ -68,8 +72,22 @@ def start_and_attack(server: Server, student: Student, ws: WsClient, mode: int, 
         assert ws.command(cmd)["accepted"], cmd
         ws.wait_state(state, timeout=10)
     ws.wait_type("telemetry", timeout=10)
+    if logged_first:
+        run_dir = server.data_dir / "runs" / str(run["id"])
+        wait_for(lambda: logged_records(run_dir) > 0, 20, "the first records in the run's log file")
     ws.send({"type": "setpoint", "fields": {"steer_left": float(mode), "steer_right": float(seed)}})
     return run
+
+
+def logged_records(run_dir: Path) -> int:
+    """Records in the run's log files so far (a file still being written may end mid-record)."""
+    n = 0
+    for path in log_files(run_dir):
+        try:
+            n += len(open_log(path).records)
+        except Exception:  # noqa: BLE001 - a header not yet complete: nothing to count yet
+            continue
+    return n
 
 
 def output_of(server: Server, run: dict[str, Any]) -> str:
@@ -149,7 +167,7 @@ def test_log_layout_and_ring_rewritten_stop_the_run_and_reach_no_file(server: Se
     corrupt_channel, the log file ends at its last whole record of the real layout."""
     for mode in (LOG_LAYOUT, LOG_HEAD):
         with mallory.ws() as ws:
-            run = start_and_attack(server, mallory, ws, mode)
+            run = start_and_attack(server, mallory, ws, mode, logged_first=True)
             wait_for(lambda: "HOSTILE log_" in output_of(server, run), 20, "the attack")  # noqa: B023
             row = ended_corrupt(server, ws, run)
         assert "log" in row["message"], row["message"]
@@ -165,6 +183,19 @@ def test_monitor_ring_of_2_31_slots_of_4_gib_stops_the_run(server: Server, mallo
         row = ended_corrupt(server, ws, run)
     assert "monitor" in output_of(server, run)
     assert row["log_records"] > 0, row  # its log up to the violation is kept
+    answers(server, mallory)
+
+
+def test_a_status_block_kept_locked_while_the_loop_runs_stops_the_run(server: Server, mallory: Student) -> None:
+    """The status seqlock inverted (seq odd between the loop's writes): a read never holds the
+    appliance (the last good status meanwhile), and once the block has stayed locked for
+    LOCKED_LIMIT_S the run ends with corrupt_channel (channels/status.py). Before, each read spun
+    20 ms on the event loop and the appliance swallowed the error: the run went on unjudged."""
+    with mallory.ws() as ws:
+        run = start_and_attack(server, mallory, ws, STATUS_LOCK)
+        wait_for(lambda: "HOSTILE status_lock" in output_of(server, run), 20, "the attack")
+        row = ended_corrupt(server, ws, run)
+    assert "status block stays locked" in row["message"], row["message"]
     answers(server, mallory)
 
 

@@ -41,6 +41,14 @@ def statuses(report: Report) -> dict[str, str]:
     return {s.id: s.status for s in report.steps}
 
 
+def plausible(m: dict) -> bool:
+    """A motor step's counts within its profile's range, the upper bound stretched by how long each
+    pulse was really on (a loaded machine stretches the frame grid, and the motor turns meanwhile)."""
+    top_p = m["max_counts"] * max(1.0, m["on_ms_plus"] / m["duration_ms"])
+    top_m = m["max_counts"] * max(1.0, m["on_ms_minus"] / m["duration_ms"])
+    return top_p >= m["counts_plus"] >= m["min_counts"] and -top_m <= m["counts_minus"] <= -m["min_counts"]
+
+
 EXPECTED_IDS = [
     "spi",
     "init",
@@ -89,7 +97,7 @@ def test_stage_profile_passes_on_the_simulated_stage(checker_exe):
     assert st["motor.1"] == "pass" and st["motor.2"] == st["motor.3"] == st["motor.4"] == "skipped"
     assert r.bench == r.sim == "stage" and r.outputs_zeroed
     m1 = r.step("motor.1").data
-    assert m1["max_counts"] >= m1["counts_plus"] >= m1["min_counts"] and m1["counts_minus"] <= -m1["min_counts"]
+    assert plausible(m1), m1
     bad = check("stage", faults="dead_encoder=1", exe=checker_exe)
     assert bad.verdict == "fail" and statuses(bad)["motor.1"] == "fail", bad.to_text()
     assert "encoder 1 does not count" in bad.step("motor.1").message
@@ -108,7 +116,7 @@ def test_cell_profile_passes_on_the_simulated_cell(checker_exe):
     assert r.bench == r.sim == "cell" and r.outputs_zeroed
     for ch in (1, 2, 3):
         m = r.step(f"motor.{ch}").data
-        assert m["max_counts"] >= m["counts_plus"] >= m["min_counts"] and m["counts_minus"] <= -m["min_counts"]
+        assert plausible(m), m
     bad = check("cell", faults="stuck_input=3:1", exe=checker_exe)
     assert bad.verdict == "fail" and statuses(bad)["din.2"] == "fail", bad.to_text()
 
@@ -511,6 +519,24 @@ def test_native_checker_clamps_to_the_hard_limits(checker_exe):
     assert m1["data"]["duty"] == lim.max_duty and m1["data"]["duration_ms"] == lim.max_pulse_ms
     assert abs(m1["data"]["pwm"]) <= 409
     assert events[-1]["event"] == "end" and events[-1]["outputs_zeroed"] is True
+
+
+def test_more_counts_than_plausible_is_diagnosed_with_the_pulse_measured(checker_exe):
+    """A motor that turns far more than its profile allows (a wrong gear or encoder fitted) fails
+    with the counts and how long each pulse was really on; the bound only stretches with that time."""
+    p = copy.deepcopy(prof.load_profile("relbot"))
+    p["name"] = "relbot-small-gear"
+    first = next(c for c in p["channels"] if c["motor"])
+    ok = check(p, exe=checker_exe).step(f"motor.{first['channel']}").data
+    # Measured between the frames that switch it (a frame's own timing aside, it is never short).
+    assert min(ok["on_ms_plus"], ok["on_ms_minus"]) >= 0.95 * ok["duration_ms"], ok
+    low = max(first.get("min_counts", 1), 1)
+    first["max_counts"] = low  # what the simulated motor really does is many times this
+    first["min_counts"] = low
+    r = check(p, exe=checker_exe)
+    step = r.step(f"motor.{first['channel']}")
+    assert step.status == "fail" and "more than the plausible" in step.message, r.to_text()
+    assert " ms on)" in step.message and step.data["counts_plus"] > low * 5
 
 
 def test_edited_profile_overrides_default(checker_exe, tmp_path):

@@ -9,6 +9,7 @@ import signal
 import time
 from typing import Any
 
+from xrf_testing.grpcweb import watch_live
 from xrf_testing.harness import Server, WsClient, wait_for
 from xrf_testing.leaks import descendants
 from xrflab.channels import Channels, lib
@@ -145,6 +146,30 @@ def test_loop_exit_on_its_own_is_not_a_crash(server: Server) -> None:
     assert row["status"] == "ended" and row["end_reason"] == "cycle_limit"
 
 
+def test_a_stopped_appliance_pauses_the_loop_and_then_says_why(server: Server, running: dict[str, Any]) -> None:
+    """The whole appliance stopped (SIGSTOP: its event loop and its watcher thread) for longer
+    than host_timeout_ms: the loop pauses itself, and once the appliance runs again every
+    dashboard is told why the run is PAUSED (the `host_lost` alarm), not left to guess."""
+    with server.ws() as ws:
+        assert ws.command("initialise")["accepted"]
+        ws.wait_state("INITIALISED")
+        assert ws.command("start")["accepted"]
+        ws.wait_state("RUN")
+        os.kill(server.proc.pid, signal.SIGSTOP)
+        try:
+            time.sleep(1.6)  # time passing: longer than host_timeout_ms (1 s) without a heartbeat
+        finally:
+            os.kill(server.proc.pid, signal.SIGCONT)
+        alarm = ws.wait_type("alarm", kind="host_lost", timeout=10)
+        assert alarm["run_id"] == running["id"] and "went to PAUSED by itself" in alarm["message"], alarm
+        assert "did not answer" in alarm["message"]
+    ch = Channels.open(running["shm"], wait_s=5)
+    try:
+        assert ch.status().state_name == "PAUSED" and ch.status().host_lost == 1
+    finally:
+        ch.close()
+
+
 def test_appliance_death_pauses_the_loop_and_restart_closes_the_run(tmp_path) -> None:
     """kill -9 of the appliance mid-run: the loop pauses itself (host_timeout_action) and keeps
     cycling; nothing else the appliance started runs on; a restart on the same port and data
@@ -167,6 +192,7 @@ def test_appliance_death_pauses_the_loop_and_restart_closes_the_run(tmp_path) ->
             ws.wait_state("RUN")
             assert s.http.post("/api/lease/take").status_code == 200  # a holder, to be freed
             ws.wait_for(lambda m: m["type"] == "telemetry" and m["cycle"] > 300, timeout=10)
+        assert watch_live(s.http).status == 200  # its live rerun proxy: started at a first viewer
         launcher = _parent_of(_parent_of(run["pid"]))  # controller <- the sandbox's init <- launcher
         children = descendants(s.proc.pid)
         # The loop's own processes (launcher, the sandbox's init, the controller) must live on.

@@ -28,6 +28,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from xrf_testing.grpcweb import watch_live
 from xrf_testing.harness import (
     ADMIN_PASSWORD,
     ADMIN_USER,
@@ -316,6 +317,7 @@ def test_children_inherit_nothing(tmp_path: Path, ros_env: dict[str, str]) -> No
             for cmd, state in (("initialise", "INITIALISED"), ("start", "RUN")):
                 assert ws.command(cmd)["accepted"], cmd
                 ws.wait_state(state, timeout=10)
+            assert watch_live(http).status == 200  # the proxy starts at the run's first viewer
             wait_for(
                 lambda: sampler.matching("ros-bridge") and sampler.matching("serve-grpc"),
                 60,
@@ -389,7 +391,8 @@ def test_port_free_again_after_kill_9_with_a_run_active(tmp_path: Path) -> None:
         def proxies() -> list[int]:
             return [p for p in descendants(first.proc.pid) if "--serve-grpc" in cmdline(p)]
 
-        # The run's live rerun proxy starts beside the run, in its own time.
+        # The run's live rerun proxy starts at its first viewer.
+        assert watch_live(first.http).status == 200
         rerun = wait_for(proxies, 30, "the run's live rerun proxy")
         left = descendants(first.proc.pid)
         assert left, "the run's processes"

@@ -113,3 +113,50 @@ def test_a_message_carries_the_fields_its_sender_set() -> None:
         '{"type":"alarm","kind":"room","message":"m","from":"teach"}',
         '{"type":"error","error":"malformed JSON"}',
     ]
+
+
+def _telemetry_fields(run_id: int = 7) -> dict[str, object]:
+    return {
+        "run_id": run_id,
+        "cycle": 3,
+        "t_ns": 5,
+        "t": 0.5,
+        "state": 4,
+        "enc": [1, 2],
+        "din": [0, 1, 0, 0],
+        "pwm": [10, -10],
+        "dout": [0, 1],
+        "xeno2ros": {"u": 1.5},
+        "ros2xeno": {"r": 2.0},
+        "ros2xeno_t_sent_ns": 0,
+        "lost": 0,
+    }
+
+
+def test_telemetry_by_its_fields_goes_out_as_its_model_would() -> None:
+    """Hub.publish_fields (the reader's telemetry, no model per message): the same text and the
+    same per-audience rule as the model through publish; a listener still gets a model, checked;
+    a kind the protocol does not have is refused."""
+    from xrflab.server.ws.messages import TelemetryMessage
+
+    hub, clients = _hub()
+    hub.scope = lambda kind, payload: ownership.scope(kind, payload, lambda run_id: "alice")
+    for c in clients.values():
+        _queued(c)  # the snapshot
+    fields = _telemetry_fields()
+    hub.publish(TelemetryMessage(**fields))  # type: ignore[arg-type]
+    by_model = {name: _texts(c) for name, c in clients.items()}
+    hub.publish_fields("telemetry", fields)
+    by_fields = {name: _texts(c) for name, c in clients.items()}
+    assert by_fields == by_model
+    assert json.loads(by_fields["alice"][0])["xeno2ros"] == {"u": 1.5}  # the owner's part to its owner
+    assert json.loads(by_fields["bob"][0])["xeno2ros"] == {}  # the public part to the rest
+
+    heard: list[object] = []
+    hub.listeners.append(heard.append)
+    hub.publish_fields("telemetry", fields)
+    assert [type(m) for m in heard] == [TelemetryMessage]
+    with pytest.raises(ValueError):  # pydantic's ValidationError: checked where listeners hear it
+        hub.publish_fields("telemetry", {**fields, "enc": "not a list"})
+    with pytest.raises(TypeError, match="not a server message kind"):
+        hub.publish_fields("no-such-kind", fields)

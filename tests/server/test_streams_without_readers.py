@@ -38,10 +38,7 @@ def test_no_telemetry_built_without_a_client_and_it_resumes_for_one(server: Serv
     ch = Channels.open(run["shm"], wait_s=10)
     try:
         with server.ws() as ws:
-            assert ws.command("initialise")["accepted"]
-            ws.wait_state("INITIALISED")
-            assert ws.command("start")["accepted"]
-            ws.wait_state("RUN")
+            ws.to_run()
             ws.wait_type("telemetry")  # the stream runs while a client is connected
             before = ws.wait_type("timing", 5)["telemetry_sent"]
         # Nobody connected for 6 s of the loop's time: at 30 Hz a stream built for nobody would
@@ -69,3 +66,72 @@ def wait_clients_gone(server: Server, timeout: float = 10.0) -> None:
     while server.http.get("/api/status").json()["clients"] != 0:
         assert time.monotonic() < deadline, "the closed WebSocket stayed registered"
         time.sleep(0.05)
+
+
+def test_nobody_connected_no_host_waits_on_the_doorbell_and_no_sample_is_lost(server: Server) -> None:
+    """With no client the appliance reads the run's rings on a timer a quarter of their fill time
+    apart (server/runs/reader.py) and drains the log ring likewise (logs/host_writer.py): no
+    thread of it waits on the doorbell, so the loop rings it for nobody (no system call), and
+    still every telemetry sample reaches the 3D view's recording and every record the log."""
+    from xrflab.channels.binding import ffi, lib
+    from xrflab.viz.recorder import load_recording
+
+    wait_clients_gone(server)
+    run = server.start_run("relbot")
+    ch = Channels.open(run["shm"], wait_s=10)
+    try:
+        for cmd in ("initialise", "start"):
+            assert server.http.post("/api/runs/current/command", json={"cmd": cmd}).json()["accepted"]
+        wait_cycles(ch, 1500)  # the reader has seen the telemetry's rate and slowed down
+        waiting = []
+        for _ in range(100):
+            waiting.append(lib.xrfpy_load_u32(ffi.addressof(ch.shm, "doorbell_waiters")))
+            time.sleep(0.01)  # sampling the word over a second: time passing is the point
+        # Before: the doorbell thread and the log writer sat in the futex nearly all the time.
+        assert sum(1 for w in waiting if w) <= 5, waiting
+        wait_cycles(ch, 3000)
+        freq = ch.info["cycle_freq"]
+    finally:
+        ch.close()
+        server.stop_run()
+    row = server.http.get(f"/api/runs/{run['id']}").json()
+    assert row["log_lost"] == 0 and row["log_records"] >= 4000
+    rec = load_recording(Path(row["run_dir"]))
+    steps = {b - a for a, b in zip(rec.cycle, rec.cycle[1:])}
+    # RELbot publishes telemetry every 20th cycle (50 Hz at 1 kHz): the recording has each one,
+    # no gap (a sample overwritten unread would show as a step of 40 or more).
+    assert freq == 1000 and steps == {20}, sorted(steps)[:10]
+    assert len(rec) >= 4500 / 20
+
+
+def test_with_a_dashboard_the_reader_wakes_itself_for_the_samples_sent(server: Server) -> None:
+    """With a client taking telemetry the reader wakes on its own clock just after the loop
+    publishes the next sample due (server/runs/reader.py, `next_publication`): no thread of the
+    appliance sits in the doorbell's futex for the samples the decimation skips (before: the
+    doorbell thread waited there all the time and woke for all 50 a second), and the client still
+    gets a steady 30 Hz, every message the sample due (steps of 33.3 ms on the loop's clock,
+    within the loop's publication spacing of 20 ms)."""
+    from xrflab.channels.binding import ffi, lib
+
+    wait_clients_gone(server)
+    run = server.start_run("relbot")
+    ch = Channels.open(run["shm"], wait_s=10)
+    try:
+        with server.ws() as ws:
+            ws.to_run()
+            ws.wait_type("telemetry")
+            waiting = []
+            got = []
+            t_end = time.monotonic() + 2.0
+            while time.monotonic() < t_end:
+                waiting.append(lib.xrfpy_load_u32(ffi.addressof(ch.shm, "doorbell_waiters")))
+                got.append(ws.wait_type("telemetry", 5)["t_ns"])
+        # The doorbell is the fallback for a late sample only (a busy core): rarely waited on.
+        assert sum(1 for w in waiting if w) <= len(waiting) // 4, waiting
+        rate = len(got) / ((got[-1] - got[0]) / 1e9)
+        assert 25 <= rate <= 35, rate
+        steps = [b - a for a, b in zip(got, got[1:])]
+        assert max(steps) <= 60_000_000, steps  # no sample due skipped (one would leave a 53 ms+ step)
+    finally:
+        ch.close()
+        server.stop_run()

@@ -6,16 +6,11 @@ homed on its switches from the live input pins."""
 from __future__ import annotations
 
 from xrf_testing.harness import Server
+from xrf_testing.pages import dashboard_page
 
 
 def test_bench_shows_the_cell_homing_and_the_3d_view_draws_it(server: Server, browser) -> None:  # noqa: ANN001
-    server.stop_run()
-    page = browser.new_page(viewport={"width": 1400, "height": 1000})
-    errors: list[str] = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    try:
-        page.goto(server.url + "/")
-        page.wait_for_function("document.getElementById('conn').textContent === 'connected'")
+    with dashboard_page(server, browser) as page:
         # A project without `homed` shows no badge.
         assert page.is_hidden("#homed-badge")
         server.start_run("cell")
@@ -39,7 +34,3 @@ def test_bench_shows_the_cell_homing_and_the_3d_view_draws_it(server: Server, br
         # At the switch edges: each axis within a little travel of its zero.
         assert abs(state["axes"][0]) < 0.1 and abs(state["axes"][1]) < 0.005 and abs(state["axes"][2]) < 0.005, state
         page.wait_for_function("document.getElementById('v3d-values').textContent.includes('homed')")
-        assert not errors, errors
-    finally:
-        page.context.close()
-        server.stop_run()

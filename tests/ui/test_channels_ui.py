@@ -7,19 +7,14 @@ encoders, so its replay moves the base. Then a RELbot run (one ico board) shows 
 from __future__ import annotations
 
 from xrf_testing.harness import Server, wait_for
+from xrf_testing.pages import dashboard_page
 
 # The Watch page's table: every signal's name cell (pages/watch.js buildTable).
 WATCH_NAMES = "[...document.querySelectorAll('#page-watch td')].map((td) => td.textContent)"
 
 
 def test_a_youbot_run_shows_its_nine_channels_then_relbot_four(server: Server, browser) -> None:  # noqa: ANN001
-    server.stop_run()
-    page = browser.new_page(viewport={"width": 1400, "height": 1000})
-    errors: list[str] = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    try:
-        page.goto(server.url + "/")
-        page.wait_for_function("document.getElementById('conn').textContent === 'connected'")
+    with dashboard_page(server, browser) as page:
         run = server.start_run("youbot")
         with server.ws() as ws:
             ws.wait_state("IDLE", 30)
@@ -69,7 +64,3 @@ def test_a_youbot_run_shows_its_nine_channels_then_relbot_four(server: Server, b
         page.goto(server.url + "/#watch")
         page.wait_for_function(f"{WATCH_NAMES}.includes('enc4') && !{WATCH_NAMES}.includes('enc5')", timeout=10_000)
         assert "din8" in page.evaluate(WATCH_NAMES) and "din9" not in page.evaluate(WATCH_NAMES)
-        assert not errors, errors
-    finally:
-        page.context.close()
-        server.stop_run()

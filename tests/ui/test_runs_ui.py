@@ -11,7 +11,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from urllib.parse import quote
+from urllib.parse import parse_qs, urlsplit
 
 import pytest
 
@@ -29,6 +29,14 @@ from xrf_testing.net import lan_address
 
 REPO = Path(__file__).resolve().parents[2]
 PROBE = "logs-probe"
+
+
+def live_viewer_url(opened: str) -> tuple[str, str]:
+    """(origin, the stream URL it was given) of a live viewer tab's URL: /rerun/?url=...; the live
+    tab's script may add hide_welcome_screen to the query (frontend/rerun-tab.js)."""
+    parts = urlsplit(opened)
+    assert parts.path == "/rerun/", opened
+    return f"{parts.scheme}://{parts.netloc}", parse_qs(parts.query)["url"][0]
 
 
 def _projects() -> Path:
@@ -108,9 +116,7 @@ def test_runs_page_lists_runs_and_downloads_a_csv(server: Server, browser, tmp_p
     viewer = opened.value
     viewer.wait_for_url("**/rerun/**", wait_until="commit", timeout=300_000)
     port = server.url.rsplit(":", 1)[1]
-    assert viewer.url == server.url + "/rerun/?url=" + quote(f"rerun+http://127.0.0.1:{port}/proxy", safe=""), (
-        viewer.url
-    )
+    assert live_viewer_url(viewer.url) == (server.url, f"rerun+http://127.0.0.1:{port}/proxy"), viewer.url
     assert viewer.evaluate("window.opener") is None
     viewer.close()
     with page.context.expect_page() as opened:
@@ -168,9 +174,12 @@ def test_live_plots_from_the_lan_address(server: Server, raw_browser) -> None:
             page.click("#rr-live")
         viewer = opened.value
         viewer.wait_for_url("**/rerun/**", wait_until="commit", timeout=300_000)
-        assert viewer.url == url + "/rerun/?url=" + quote(f"rerun+{url}/proxy", safe="")
+        assert live_viewer_url(viewer.url) == (url, f"rerun+{url}/proxy"), viewer.url
         assert f"live: run {run['id']}" in page.locator("#rr-what").inner_text()
         cdp = cdps[0]
+        # The tab script asks for the live stream as the page loads (frontend/rerun-tab.js), maybe
+        # before the session above was listening: loaded again with it listening.
+        viewer.reload(wait_until="commit", timeout=120_000)
         # the viewer (a 40 MB wasm) starts and opens the live stream: seconds on a slow machine
         deadline = time.monotonic() + 120
         while stream["id"] is None:

@@ -23,7 +23,11 @@ def test_educator_runs_the_selfcheck_and_sees_the_report(server: Server, browser
     statuses = rows.evaluate_all("rs => rs.map(r => [r.dataset.step, r.dataset.status])")
     ids = [s for s, _ in statuses]
     assert ids[:4] == ["spi", "init", "echo", "reset"] and "motor.1" in ids and "timing" in ids
-    assert all(st in ("pass", "skipped") for _, st in statuses), statuses
+    # The link's timing is this machine's (a loaded CI host may be slower than the warning level);
+    # every other step passes or is skipped on the simulated RELbot.
+    assert all(st in ("pass", "skipped") or (step == "timing" and st == "warn") for step, st in statuses), [
+        s for s in statuses if s[1] != "pass"
+    ]
     assert all(
         st == "pass" for s, st in statuses if s in ("spi", "init", "echo", "reset", "motor.1", "motor.2", "timing")
     )

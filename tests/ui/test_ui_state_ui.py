@@ -34,7 +34,11 @@ def server() -> Iterator[Server]:
 
 
 def state_is(page, name: str, timeout: float = 15_000) -> None:  # noqa: ANN001
-    page.wait_for_function(f"document.getElementById('state-name').textContent === {name!r}", timeout=timeout)
+    try:
+        page.wait_for_function(f"document.getElementById('state-name').textContent === {name!r}", timeout=timeout)
+    except Exception as exc:
+        shown = page.evaluate("(document.getElementById('state-name') || {}).textContent")
+        raise AssertionError(f"the page shows state {shown!r}, not {name!r}, at {page.url}") from exc
 
 
 def command(http, cmd: str) -> None:  # noqa: ANN001

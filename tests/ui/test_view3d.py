@@ -83,6 +83,10 @@ def test_view3d_loads_and_follows_a_jiwy_setpoint(server: Server, browser) -> No
     assert abs(state["joints"]["pan"] - 0.5) < 0.03 and state["ghost"]["pan"] == 0.5
     page.wait_for_function("document.getElementById('v3d-values').textContent.includes('setpoint')")
     assert "pan 2" in page.inner_text("#v3d-values")  # 0.5 rad = 28.6°
+    # Drawn by viz/urdf_view.py, not viser's ViserUrdf: the appliance has not loaded the trimesh
+    # stack's native libraries (shapely's GEOS, embree), 77 MB resident with ViserUrdf.
+    maps = Path(f"/proc/{server.proc.pid}/maps").read_text()
+    assert "shapely" not in maps and "embree" not in maps, "the appliance loaded shapely/embree for the 3D view"
 
     SHOTS.mkdir(exist_ok=True)
     page.screenshot(path=str(SHOTS / "view3d.png"), full_page=True)

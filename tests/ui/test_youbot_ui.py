@@ -8,16 +8,11 @@ from __future__ import annotations
 import math
 
 from xrf_testing.harness import Server
+from xrf_testing.pages import dashboard_page
 
 
 def test_bench_shows_the_arm_ready_and_the_3d_view_draws_the_arm(server: Server, browser) -> None:  # noqa: ANN001
-    server.stop_run()
-    page = browser.new_page(viewport={"width": 1400, "height": 1000})
-    errors: list[str] = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    try:
-        page.goto(server.url + "/")
-        page.wait_for_function("document.getElementById('conn').textContent === 'connected'")
+    with dashboard_page(server, browser) as page:
         assert page.is_hidden("#homed-badge")  # no run: no readiness field
         server.start_run("youbot")
         with server.ws() as ws:
@@ -43,7 +38,3 @@ def test_bench_shows_the_arm_ready_and_the_3d_view_draws_the_arm(server: Server,
         ready = [0.0, math.radians(10), math.radians(60), math.radians(40)]
         assert all(abs(a - r) < math.radians(3) for a, r in zip(state["arm"], ready, strict=False)), state["arm"]
         page.wait_for_function("document.getElementById('v3d-values').textContent.includes('J3 ')")
-        assert not errors, errors
-    finally:
-        page.context.close()
-        server.stop_run()

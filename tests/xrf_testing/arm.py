@@ -13,8 +13,10 @@ from pathlib import Path
 
 from xrflab import plants
 from xrflab.build import build_project
+from xrflab.channels import Channels
 from xrflab.server.runs.safety import SafetyWatcher
 
+from .harness import Server
 from .loops import LoopProcess
 
 FAULTS = ("segfault", "hang", "exit0", "stopping_never_returns")
@@ -38,7 +40,10 @@ def raise_arm(lp: LoopProcess) -> None:
 
 
 def pose(ch) -> list[float]:
-    return [float(ch.shm.sim.plant[i]) for i in range(5)]
+    """The joint angles a simulated board mirrors: a run's (its Channels) or a test's own board's
+    (a ``struct xrf_sim_outputs``: the watcher's real-bench path, tests/rt_core/test_hold_board.py)."""
+    sim = ch.shm.sim if hasattr(ch, "shm") else ch
+    return [float(sim.plant[i]) for i in range(5)]
 
 
 def follow(w: SafetyWatcher, ch, held: list[float], t_fault: float) -> tuple[float, dict]:
@@ -55,10 +60,31 @@ def follow(w: SafetyWatcher, ch, held: list[float], t_fault: float) -> tuple[flo
                 worst = max(worst, abs(q[j] - held[j]))
             lo, hi = min(rest, held[j]), max(rest, held[j])
             worst = max(worst, lo - q[j], q[j] - hi)
-        if r is not None and r.rest_ns:
+        if r is not None and (r.rest_ns or r.hold_status):  # at rest, or the hold given up
             return worst, {"result": r, "pose": q}
-        assert time.monotonic() < deadline, "the arm never came to rest"
+        assert time.monotonic() < deadline, (
+            f"the arm never came to rest: {'still watching' if r is None else r.describe()}"
+            f" (reason {None if r is None else r.reason}, hold_status {None if r is None else r.hold_status},"
+            f" phase {None if r is None else r.hold_phase}); pose {q}"
+        )
         time.sleep(0.002)  # sampling the arm's motion: finer than its 20 °/s could hide a drop
+
+
+def assert_held_to_rest(label: str, worst: float, r, end: dict) -> None:  # noqa: ANN001
+    """A fault's `hold` as every fault test checks it: the first safe output within 100 ms, the
+    largest excursion `worst` (rad, the test's own sampling of the arm) and the watcher's own drop
+    under DROP_BOUND, and the arm on its rest stops at the end (end["pose"], follow's). Prints the
+    figures (the safety bench quotes them)."""
+    assert r.safe_ns - r.event_ns < 100_000_000
+    rest_s = (r.rest_ns - r.event_ns) / 1e9
+    print(
+        f"{label}: largest drop {math.degrees(worst):.2f}° (watcher: {math.degrees(r.drop_urad / 1e6):.2f}°), "
+        f"at rest {rest_s:.2f} s after the fault"
+    )
+    assert worst < DROP_BOUND, f"{label}: a joint dropped {math.degrees(worst):.2f}°"
+    assert r.drop_urad < DROP_BOUND * 1e6
+    for j, rest in REST.items():
+        assert abs(end["pose"][j] - rest) < math.radians(1.0), (j, end["pose"])
 
 
 def watch(lp: LoopProcess) -> SafetyWatcher:
@@ -92,3 +118,59 @@ def inject(lp: LoopProcess, fault: str) -> float:
 
 def build_arm(out: Path) -> Path:
     return build_project(ARM_FAULTS, build_dir=out, log=lambda line: None).executable
+
+
+# ---- the whole appliance killed (tests/server/test_appliance_kill_hold.py, bench/safety/arm.py) ----
+
+# The youBot example's ready pose (student_projects/examples/youbot): J2..J4, where INITIALISING
+# raises the arm and RUN holds it.
+EXAMPLE_READY = {1: math.radians(10.0), 2: math.radians(60.0), 3: math.radians(40.0)}
+
+
+def ended(pid: int) -> bool:
+    """The process has ended (gone, or a zombie nobody reaped: its parent was the appliance)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except (OSError, IndexError):
+        return True
+
+
+def comm(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/comm").read_text().strip()
+    except OSError:
+        return ""
+
+
+def raise_example(server: Server) -> tuple[dict, Channels]:
+    """A youBot example run on `server`, in RUN with the arm at its ready pose; its segment mapped
+    by us (the plant stays observable once the appliance is gone: nothing else names the memfd)."""
+    run = server.start_run("youbot")
+    assert run["sim"] == "youbot", run
+    ch = Channels.open(run["shm"], wait_s=5)
+    with server.ws() as ws:
+        assert ws.command("initialise")["accepted"]
+        ws.wait_state("INITIALISED", 30)  # the example raises the arm to its ready pose first
+        assert ws.command("start")["accepted"]
+        ws.wait_state("RUN", 10)
+    q = pose(ch)
+    for j, up in EXAMPLE_READY.items():
+        assert abs(q[j] - up) < math.radians(3.0), ("the arm is not up", q)
+    return run, ch
+
+
+def follow_until_ended(ch: Channels, held: list[float], t_fault: float, pid: int, timeout: float = 30) -> float:
+    """Sample the arm until process `pid` (the run's xrf-watch) has ended: the largest excursion
+    (rad) outside what `hold` may do (the pose at the fault for HOLD_S, then the span from there
+    to the rest pose)."""
+    worst, deadline = 0.0, t_fault + timeout
+    while not ended(pid):
+        q, t = pose(ch), time.monotonic() - t_fault
+        for j, rest in REST.items():
+            if t < HOLD_S:
+                worst = max(worst, abs(q[j] - held[j]))
+            lo, hi = min(rest, held[j]), max(rest, held[j])
+            worst = max(worst, lo - q[j], q[j] - hi)
+        assert time.monotonic() < deadline, f"xrf-watch never finished; pose {q}"
+        time.sleep(0.002)  # sampling the lowering arm: finer than 20 °/s could hide a drop
+    return worst

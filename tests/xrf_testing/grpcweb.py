@@ -97,3 +97,13 @@ def read_messages(
                 out.ended_by = "until"
                 break
         return out
+
+
+def watch_live(client: httpx.Client) -> Stream:
+    """A viewer reading the current run's live stream for a moment (its first message, or a few
+    quiet seconds): the run's proxy process starts at its first viewer (LiveProxy.ensure_running)
+    and, while the run goes on, stays after the viewer left. For tests that need the run's
+    helpers running as a watched run has them."""
+    # quiet 12 s: the read route answers once the recording has sent again (up to 10 s,
+    # server/http/rerun.py _live_edge), and rerun's import in the appliance comes first.
+    return read_messages(client, READ_MESSAGES, until=lambda data: len(data) > 0, timeout=20, quiet=12)

@@ -210,6 +210,15 @@ class WsClient:
         self.send({"type": "command", "cmd": cmd})
         return self.wait_for(lambda m: m.get("type") in ("ack", "error"), timeout)
 
+    def to_run(self, idle_timeout: float = 60.0) -> None:
+        """A run just started, from IDLE to RUN as a student does it: initialise, then start,
+        each accepted and its state reached."""
+        self.wait_state("IDLE", idle_timeout)
+        assert self.command("initialise")["accepted"]
+        self.wait_state("INITIALISED")
+        assert self.command("start")["accepted"]
+        self.wait_state("RUN")
+
     def close(self) -> None:
         self.conn.close()
 

@@ -112,10 +112,11 @@ def chunk_of(frame: bytes) -> Chunk | None:
 # end there, so now - that = how far behind live the person looking at it is.
 
 
-def viewer_newest_ns(state: bytes, recording_id: str) -> int | None:
-    """The newest `time` value of the recording `recording_id` in a viewer_state() answer, or None
-    while the viewer holds none of it."""
-    newest = None
+def viewer_time_range(state: bytes, recording_id: str) -> tuple[int | None, int | None]:
+    """The oldest and newest `time` values of the recording `recording_id` in a viewer_state()
+    answer (its `time` timeline's range), each None while the viewer holds none of it."""
+    oldest: int | None = None
+    newest: int | None = None
     for n, rec in fields(state):
         if n != 3 or not isinstance(rec, bytes):
             continue
@@ -130,7 +131,19 @@ def viewer_newest_ns(state: bytes, recording_id: str) -> int | None:
             rng = _field(tl, 3)
             if name != TIME_COLUMN.encode() or not isinstance(rng, bytes):
                 continue
-            end = _field(rng, 2)
+            start, end = _field(rng, 1), _field(rng, 2)
+            if isinstance(start, int):
+                oldest = start if oldest is None else min(oldest, start)
             if isinstance(end, int):
                 newest = end if newest is None else max(newest, end)
-    return newest
+    return oldest, newest
+
+
+def viewer_newest_ns(state: bytes, recording_id: str) -> int | None:
+    """The newest sample the viewer holds (how far behind live it is: now minus that)."""
+    return viewer_time_range(state, recording_id)[1]
+
+
+def viewer_oldest_ns(state: bytes, recording_id: str) -> int | None:
+    """The oldest sample the viewer holds (a replay from cycle 0 would make it the run's start)."""
+    return viewer_time_range(state, recording_id)[0]

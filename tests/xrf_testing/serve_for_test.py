@@ -4,12 +4,18 @@ to get a real server in its own process (its own event loop, child watcher and s
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 
-from xrflab.server.app import create_app
-from xrflab.server.cli.serve import serve
-from xrflab.server.settings import Settings
+if os.environ.get("XRF_TRACEMALLOC"):  # a benchmark looking for growth: snapshots on SIGUSR2
+    from memtrace import install  # this script's own folder (tests/xrf_testing) is on sys.path
+
+    install(Path(os.environ["XRF_TRACEMALLOC"]))
+
+from xrflab.server.app import create_app  # noqa: E402
+from xrflab.server.cli.serve import serve  # noqa: E402
+from xrflab.server.settings import Settings  # noqa: E402
 
 PATH_FIELDS = {"data_dir", "frontend_dir", "projects_dir", "builds_root"}
 

@@ -52,6 +52,7 @@ STARTERS = frozenset(
         "run_selfcheck",  # xrflab.selfcheck: the xrf-selfcheck tool
         "SelfCheck",
         "build_interface_package",  # xrflab.ros.interfaces: colcon
+        "convert_in_child",  # xrflab.logs.convert_child: a download's conversion
     }
 )
 

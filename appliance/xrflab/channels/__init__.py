@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from .binding import ffi, lib
 from .commands import CommandResult
-from .errors import ChannelsCorrupt, ChannelsError, CommandRingFull, CommandTimeout
+from .errors import ChannelsCorrupt, ChannelsError, CommandRingFull, CommandTimeout, StatusBusy
 from .host import Channels
 from .names import (
     COMMAND_NUMBERS,
@@ -59,6 +59,7 @@ __all__ = [
     "MonitorLine",
     "MonitorReader",
     "Status",
+    "StatusBusy",
     "Telemetry",
     "TelemetryReader",
     "allowed_commands",

@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import errno
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from .binding import CData, c_str, ffi, lib
-from .errors import ChannelsCorrupt, ChannelsError, CommandRingFull, CommandTimeout
+from .errors import ChannelsCorrupt, ChannelsError, CommandRingFull, CommandTimeout, StatusBusy
 from .names import command_number, state_name
-from .status import read_status, status_from_struct
+from .status import status_from_struct
 
 
 @dataclass(frozen=True)
@@ -45,14 +46,18 @@ def send(shm: CData, name: str, cmd: str | int, source: int) -> int:
     return int(ticket)
 
 
-def wait(shm: CData, name: str, ticket: int, timeout: float) -> CommandResult:
+def wait(read_status: Callable[[], CData], name: str, ticket: int, timeout: float) -> CommandResult:
     """The outcome of command ``ticket``, once the loop has handled it (CommandTimeout if it does
-    not within ``timeout`` seconds)."""
+    not within ``timeout`` seconds). ``read_status``: the mapping's StatusReader.read (a copy that
+    may be the last good one while the loop writes the block: polled again)."""
     deadline = time.monotonic() + timeout
     slot = ticket % lib.XRF_CMD_RESULTS
     while True:
-        s = read_status(shm, name)
-        if s.cmd_done >= ticket:
+        try:
+            s = read_status()
+        except StatusBusy:
+            s = None
+        if s is not None and s.cmd_done >= ticket:
             result = int(s.cmd_results[slot])
             if result >> 1 == ticket:
                 accepted = not (result & 1)
@@ -68,9 +73,9 @@ def wait(shm: CData, name: str, ticket: int, timeout: float) -> CommandResult:
                 reason=reason,
             )
         if time.monotonic() >= deadline:
-            st = status_from_struct(s)
-            raise CommandTimeout(
-                f"{name}: command #{ticket} not handled within {timeout:g} s "
-                f"(state {st.state_name}, loop {'running' if st.running else 'not running'})"
-            )
-        time.sleep(0.001)
+            where = "status unknown"
+            if s is not None:
+                st = status_from_struct(s)
+                where = f"state {st.state_name}, loop {'running' if st.running else 'not running'}"
+            raise CommandTimeout(f"{name}: command #{ticket} not handled within {timeout:g} s ({where})")
+        time.sleep(0.001)  # polling the loop's status

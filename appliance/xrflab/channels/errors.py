@@ -19,6 +19,11 @@ class ChannelsCorrupt(ChannelsError):
     stops the run (alarm and end reason ``corrupt_channel``). The message says what was wrong."""
 
 
+class StatusBusy(ChannelsError):
+    """The status block is being written and no earlier copy of it was read yet: ask again (a
+    reader that had one gets that instead, channels/status.py)."""
+
+
 class CommandRingFull(ChannelsError):
     """The loop is not taking commands (stopped cycling, or far behind)."""
 

@@ -9,6 +9,7 @@ does the job (segment, status, commands, rings); this class only holds the mappi
 
 from __future__ import annotations
 
+import contextlib
 import mmap
 import os
 import time
@@ -18,11 +19,11 @@ from ..msgdef import Codec, MsgError
 from . import commands, segment
 from .binding import CData, c_str, ffi, lib
 from .commands import CommandResult
-from .errors import ChannelsCorrupt, ChannelsError
+from .errors import ChannelsCorrupt, ChannelsError, StatusBusy
 from .names import HOST_LOST_ACTIONS, STAGE_NAMES
 from .rings import MonitorReader, TelemetryReader
 from .segment import Identity, shm_path
-from .status import Histogram, Status, histogram_from_struct, read_status, status_from_struct
+from .status import Histogram, Status, StatusReader, histogram_from_struct, status_from_struct
 
 
 def _char_array_fields(ctype: CData) -> set[str]:
@@ -81,6 +82,7 @@ class Channels:
         # runtime.cpp unlinks and re-creates) or its removal is seen by comparing (replaced()).
         self.identity = identity
         self.shm = ffi.from_buffer("struct xrf_shm *", mapping)
+        self._status = StatusReader(self.shm, name)
         try:
             self.geom: CData = segment.take_geometry(name, self.shm, len(mapping))
             self._info = take_info(name, self.shm)
@@ -89,6 +91,9 @@ class Channels:
         except ChannelsError:
             self.close()
             raise
+        # A first copy now, so that a read that later finds the loop mid-write has one to give.
+        with contextlib.suppress(StatusBusy):
+            self._status.read()
 
     # -- opening ------------------------------------------------------------------------------
 
@@ -144,10 +149,33 @@ class Channels:
     # -- status -------------------------------------------------------------------------------
 
     def _status_struct(self) -> CData:
-        return read_status(self.shm, self.name)
+        return self._status.read()
 
     def status(self) -> Status:
+        """The status block as of the loop's last complete write; while the loop is in the middle
+        of one, the last copy read (ask again for a newer). StatusBusy when none was read yet,
+        ChannelsCorrupt when the block is kept locked on purpose (channels/status.py)."""
         return status_from_struct(self._status_struct())
+
+    def fresh_status(self) -> Status | None:
+        """The status as of now, or None while the loop is in the middle of writing it (ask
+        again): for a caller that acts on where the loop is, where an older copy would mislead."""
+        s = self._status.read_fresh()
+        return None if s is None else status_from_struct(s)
+
+    def state_key(self) -> tuple[int, int, bool, int]:
+        """(state, cmd_rejected, running, last_error) from one consistent copy of the status
+        block, without converting the rest of it (status() converts ~25 fields through cffi: the
+        reader checks this after every batch, 50 times a second with a dashboard open)."""
+        s = self._status_struct()
+        return int(s.state), int(s.cmd_rejected), bool(s.running), int(s.last_error)
+
+    def alarm_counts(self) -> tuple[int, int]:
+        """(status.missed, status.host_lost) from one consistent copy of the status block, without
+        converting the rest (the timing task checks them once a second for its alarms, with nobody
+        taking the timing message)."""
+        s = self._status_struct()
+        return int(s.missed), int(s.host_lost)
 
     def histograms(self) -> dict[str, Histogram]:
         s = self._status_struct()
@@ -161,7 +189,7 @@ class Channels:
         return commands.send(self.shm, self.name, cmd, source)
 
     def wait_command(self, ticket: int, timeout: float = 2.0) -> CommandResult:
-        return commands.wait(self.shm, self.name, ticket, timeout)
+        return commands.wait(self._status.read, self.name, ticket, timeout)
 
     # -- data in ------------------------------------------------------------------------------
 
@@ -172,6 +200,12 @@ class Channels:
         if rc != 0:
             raise ChannelsError(f"{self.name}: writing Ros2Xeno failed: {os.strerror(-rc)}")
         return payload
+
+    @property
+    def ros2xeno_seq(self) -> int:
+        """The Ros2Xeno's write sequence (it moves with every write, odd while one is under way):
+        a reader that saw the same number has the same message already."""
+        return int(lib.xrfpy_load_u32(ffi.addressof(ffi.addressof(self.shm, "ros2xeno"), "seq")))
 
     def read_ros2xeno(self) -> dict[str, Any] | None:
         """The Ros2Xeno the loop takes at its next cycle: the latest complete write by anyone

@@ -8,6 +8,8 @@ import, so a state or command added in C appears here without an edit.
 
 from __future__ import annotations
 
+import functools
+
 from .binding import c_str, lib
 
 # Stage names in the order of the XRF_STAGE_* indices; the numbers themselves come from the header.
@@ -32,6 +34,7 @@ SAFE_REACTIONS: dict[str, int] = {c_str(lib.xrf_safe_reaction_name(r)): r for r 
 TRANSPORTS: tuple[str, ...] = tuple(c_str(lib.xrf_transport_name(t)) for t in range(lib.XRF_TRANSPORT_COUNT))
 
 
+@functools.lru_cache(maxsize=64)  # bounded: the number comes from the loop's status block
 def state_name(state: int) -> str:
     return c_str(lib.xrf_state_name(state))
 

@@ -172,9 +172,22 @@ def loop_env(scenario: Scenario, run_dir: Path, virtual_time: bool) -> dict[str,
     return env
 
 
-def _next_stop(scenario: Scenario, commands: list, cycles: int, freq: float) -> int:
+def _next_stop(scenario: Scenario, commands: list, cycles: int, freq: float, acted: int | None = None) -> int:
     """Simulated time: the cycle count the loop may run to before the host acts again (the next
-    command, the next setpoint change, the end); a ramp or table changes every cycle."""
+    command, the next setpoint change, the end); a ramp or table changes every cycle. `acted`:
+    the count the host decided the due events on; when the loop has gone past it (it ran on to
+    its hold between the host's two looks) and an event fell due in between, it stays where it
+    is (`cycles`), so the next look acts on it (without, the event passed unacted and the loop ran
+    on to the one after: a step due at cycle 200 landed at 2274)."""
+    if acted is not None and acted < cycles:
+        passed = [c.at for c in commands]
+        for s in scenario.setpoints:
+            end = s.end if s.kind == "ramp" else (s.points[-1][0] if s.kind == "table" else s.start)
+            if end > s.start and s.start * freq <= cycles and acted < end * freq:
+                return cycles  # a ramp or table changing in between
+            passed.append(s.start)
+        if any(acted < math.ceil(x * freq - 1e-9) <= cycles for x in passed):
+            return cycles
     due = [c.at for c in commands] + [scenario.duration]
     for s in scenario.setpoints:
         end = s.end if s.kind == "ramp" else (s.points[-1][0] if s.kind == "table" else s.start)
@@ -206,12 +219,13 @@ def grade_executable(
     started: Started | None = None
     ch: Channels | None = None
     data = chk.RunData(columns={})
+    t_start_ns = 0  # the run's first deadline (status), the origin of the log's time
     try:
         try:
             started = launcher(exe, loop_env(scenario, run_dir, virtual_time), run_dir)
         except (OSError, ValueError, RuntimeError) as exc:
             result.status, result.reason = "start_failed", f"the controller could not be started: {exc}"
-            return _finish(result, scenario, data, run_dir, wall0)
+            return _finish(result, scenario, data, run_dir, wall0, t_start_ns)
         proc, shm_fd, shm_name = started.proc, started.shm_fd, started.shm_name
         run_dir = started.run_dir or run_dir
         result.run = started.run_id
@@ -238,6 +252,7 @@ def grade_executable(
         if ch is not None:
             with contextlib.suppress(Exception):
                 result.missed = int(ch.status().missed)
+                t_start_ns = int(ch.status().t_start_ns)
             with contextlib.suppress(Exception):
                 # what the loop says it ran on, not what was asked: a launcher that dropped the
                 # variable shows here (the sandbox's environment is an allow-list, guest.py)
@@ -246,7 +261,7 @@ def grade_executable(
         if started is not None:
             os.close(started.shm_fd)
             started.release()
-    return _finish(result, scenario, data, run_dir, wall0)
+    return _finish(result, scenario, data, run_dir, wall0, t_start_ns)
 
 
 def _drive(
@@ -265,10 +280,22 @@ def _drive(
     last_cycles, last_move = -1, time.monotonic()
     seen = ch.doorbell
     state = ""
+    hold_next = False  # simulated time: hold the loop one cycle after a command (below)
     try:
         while True:
-            st = ch.status()
-            t = st.cycles / freq
+            # The status as it is now: its loop time decides which events are due, and an older
+            # copy would let an event pass (in simulated time the loop then runs on to the next
+            # one). None while the loop writes it (simulated time: while it runs flat out between
+            # two holds): the next doorbell, the process and the wall clock still watched.
+            st = ch.fresh_status()
+            if st is None:
+                if proc.poll() is None and time.monotonic() <= wall_end:
+                    seen = ch.wait_doorbell(seen, 20)
+                    continue
+                st = ch.status()  # the last copy, for the reason given below
+            # Loop time is the grid's: periods since the first, those the loop missed included
+            # (after an overrun it skips to the next boundary: docs/rt_core/runtime.md).
+            t = (st.cycles + st.missed) / freq
             if st.state_name != state:
                 state = st.state_name
                 data.states.append((t, state))
@@ -305,6 +332,7 @@ def _drive(
                 return
             while commands and commands[0].at <= t:
                 c = commands.pop(0)
+                hold_next = True
                 answer = ch.wait_command(ch.send_command(c.cmd), timeout=limits.command_s)
                 if not answer.accepted:
                     data.alarms.append(
@@ -316,7 +344,19 @@ def _drive(
                 written = want
             ch.host_heartbeat()
             if result.virtual_time:
-                ch.run_until(_next_stop(scenario, commands, ch.status().cycles, freq))
+                # run_until counts cycles run; the scenario's events are due in periods.
+                now_st = ch.fresh_status()
+                if now_st is not None:  # else the hold stays where it is: the next round sets it
+                    periods = now_st.cycles + now_st.missed
+                    acted = st.cycles + st.missed
+                    stop = _next_stop(scenario, commands, periods, freq, acted)
+                    if hold_next:
+                        # A command takes effect in the loop's next cycle: held right after it,
+                        # the loop shows its new state at that cycle's time. Let run to the next
+                        # event at once, it was seen only when a copy of the status happened to
+                        # complete while the loop ran flat out (RUN at 8.55 s for a start at 8.0).
+                        stop, hold_next = min(stop, periods + 1), False
+                    ch.run_until(stop - now_st.missed)
             # A wait on the loop's doorbell (each cycle rings it), bounded: the poll of this loop.
             seen = ch.wait_doorbell(seen, 20)
     except (ChannelsError, ValueError) as exc:
@@ -348,14 +388,16 @@ def _exit_words(code: int) -> str:
     return f"exit code {code}"
 
 
-def _finish(result: GradeResult, scenario: Scenario, data: chk.RunData, run_dir: Path, wall0: float) -> GradeResult:
+def _finish(
+    result: GradeResult, scenario: Scenario, data: chk.RunData, run_dir: Path, wall0: float, t_start_ns: int = 0
+) -> GradeResult:
     result.output_tail = _tail(run_dir / "output.txt")
     result.loop_time_s = round(data.reached, 6)
     log_path = find_log(run_dir, scenario.log)
     if log_path is not None:
         result.log = str(log_path)
         try:
-            data.columns = read_columns(log_path)
+            data.columns = read_columns(log_path, t_start_ns)
         except (OSError, ValueError) as exc:
             data.alarms.append(f"the log could not be read: {exc}")
     data.columns.setdefault("t", np.empty(0))
@@ -407,8 +449,12 @@ def find_log(run_dir: Path, stem: str = "") -> Path | None:
     return max(found)[1] if found else None
 
 
-def read_columns(path: Path) -> dict[str, np.ndarray]:
-    """The log's variables as float arrays and `t` (s of loop time: cycle / cycle_freq)."""
+def read_columns(path: Path, t_start_ns: int = 0) -> dict[str, np.ndarray]:
+    """The log's variables as float arrays and `t` (s of loop time). With the run's first deadline
+    (`t_start_ns`, the status's) `t` is each record's period on the grid: the whole periods from
+    it to the cycle's start, so periods the loop missed leave gaps, as they did in the run (the
+    start lies less than a period after its deadline unless the wake-up itself was that late).
+    Without it: cycle / cycle_freq."""
     from ..logs.reader import open_log
 
     fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
@@ -423,7 +469,13 @@ def read_columns(path: Path) -> dict[str, np.ndarray]:
     freq = float(log.segments[0].header.get("cycle_freq") or 0) or 1000.0
     cols: dict[str, np.ndarray] = {}
     names = rec.dtype.names or ()
-    cols["t"] = rec["cycle"].astype(np.float64) / freq if "cycle" in names else np.arange(len(rec)) / freq
+    if t_start_ns > 0 and "t_ns" in names:
+        periods = ((rec["t_ns"].astype(np.int64) - t_start_ns) * int(freq)) // 1_000_000_000
+        cols["t"] = np.maximum(periods, 0).astype(np.float64) / freq
+    elif "cycle" in names:
+        cols["t"] = rec["cycle"].astype(np.float64) / freq
+    else:
+        cols["t"] = np.arange(len(rec)) / freq
     for v in log.variables:
         if rec[v.field].ndim == 1:
             cols[v.field] = rec[v.field].astype(np.float64)

@@ -58,7 +58,7 @@ class ScenarioError(Invalid):
 
 @dataclass(frozen=True)
 class Command:
-    at: float  # seconds of loop time (cycles / cycle frequency) from the loop's first cycle
+    at: float  # seconds of loop time (periods of the grid: cycles run + missed) from the first cycle
     cmd: str
     line: int = 0
 

@@ -230,25 +230,7 @@ class GradingService:
         return {"assignment": aid, "checks": checks, "rows": rows, "progress": self.progress(aid)}
 
     def csv(self, aid: str) -> str:
-        t = self.table(aid)
-        out = io.StringIO()
-        w = csv.writer(out)
-        ids = [c["id"] for c in t["checks"]]
-        w.writerow(["owner", "project", "status", *ids, "total", "max", "build", "graded_at"])
-        for r in t["rows"]:
-            w.writerow(
-                [
-                    csv_cell(r["owner"]),
-                    r["project"],
-                    r["status"],
-                    *[r["checks"].get(i, {}).get("earned", "") for i in ids],
-                    r["earned"],
-                    r["points"],
-                    csv_cell(r["build"] or ""),
-                    r["graded_at"] or "",
-                ]
-            )
-        return out.getvalue()
+        return grades_csv(self.table(aid))
 
 
 def _write(path: Path, data: bytes) -> None:
@@ -261,8 +243,40 @@ def _write(path: Path, data: bytes) -> None:
 
 
 def csv_cell(text: str) -> str:
-    """A spreadsheet does not run what a cell says (a name starting with = + - @)."""
-    return "'" + text if text[:1] in ("=", "+", "-", "@") else text
+    """A spreadsheet does not run what a cell says: a cell starting with = + - @, a tab or a carriage
+    return is a formula to Excel/LibreOffice (OWASP's list), so it gets a leading quote."""
+    return "'" + text if text[:1] in ("=", "+", "-", "@", "\t", "\r") else text
+
+
+def grades_csv(table: dict[str, Any], extra: tuple[str, ...] = ()) -> str:
+    """One grades table as CSV, for this appliance's table and the room's (``extra`` columns such as
+    ``bench`` follow the owner). Every text cell passes csv_cell: project names are a student's
+    upload names and a room's rows are a bench's own message, so none of it is trusted."""
+    out = io.StringIO()
+    w = csv.writer(out)
+    ids = [str(c["id"]) for c in table["checks"]]
+    w.writerow(["owner", *extra, "project", "status", *ids, "total", "max", "build", "graded_at"])
+
+    def text(value: Any) -> str:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return str(value)  # a number is no formula, and -0.5 points stays a number
+        return csv_cell("" if value is None else str(value))
+
+    for r in table["rows"]:
+        w.writerow(
+            [
+                text(r["owner"]),
+                *[text(r.get(k)) for k in extra],
+                text(r["project"]),
+                text(r["status"]),
+                *[text(r["checks"].get(i, {}).get("earned", "")) for i in ids],
+                text(r["earned"]),
+                text(r["points"]),
+                text(r["build"]),
+                text(r["graded_at"]),
+            ]
+        )
+    return out.getvalue()
 
 
 def grading_of(conn: HTTPConnection) -> GradingService:

@@ -6,8 +6,14 @@ lossless log ring (``log_channel.py``: the longest run of ready slots that is co
 docs/logging/file-format.md; each segment header comes from rt_core's ``xrf_logfile_header``
 (logformat.h, through cffi: the function the loop's own writer calls, so the bytes are the same
 whichever side writes). A new layout (the channel's generation) starts a new segment, appended
-to the file the loop names then. It wakes on the loop's doorbell (futex, no polling; at most
-``WAIT_MS`` between drains). Because the appliance keeps the run's shared memory mapped after the
+to the file the loop names then. It drains in batches, a period apart (``drain_period``): the
+ring holds ``slots`` records and the loop adds at most one a cycle, so a drain every
+``slots / cycle_freq / RING_MARGIN`` seconds (at most ``MAX_PERIOD_S``) finds the ring at most a
+quarter full and nothing is lost to waiting; a drain that finds it fuller than that halves the
+period from then on. Each contiguous run of records is one ``write()`` of the ring's bytes, with no
+per-record Python work. While a live rerun viewer reads the run (``fast()``), it drains every
+``WAIT_MS`` instead so the viewer stays near the live edge. (It used to wake on every doorbell,
+~50-80 times a second for a RELbot, to write ~20 records each time: issue 30 item 4.) Because the appliance keeps the run's shared memory mapped after the
 loop process is gone, a crashed or killed loop loses nothing that reached the ring: ``finish()``
 drains the rest.
 
@@ -53,7 +59,18 @@ if TYPE_CHECKING:
 # One logger for a run's host logging, whichever module of it speaks (as before the split).
 log = logging.getLogger("xrflab.logs.live")
 
-WAIT_MS = 20  # longest time between two drains when no doorbell rings
+WAIT_MS = 20  # between two drains while someone watches the records live (fast())
+MAX_PERIOD_S = 1.0  # between two drains otherwise: how stale the file on disk may be
+RING_MARGIN = 4  # a drain is due when the ring could be a quarter full at one record a cycle
+
+
+def drain_period(slots: int, cycle_freq: int) -> float:
+    """Seconds between two drains of a ring of `slots` records filled at most once a cycle at
+    `cycle_freq` Hz: a quarter of the time the ring takes to fill, at most MAX_PERIOD_S, at least
+    WAIT_MS (a tiny ring at a high rate is drained as often as before)."""
+    if slots <= 0 or cycle_freq <= 0:
+        return WAIT_MS / 1000
+    return min(MAX_PERIOD_S, max(WAIT_MS / 1000, slots / cycle_freq / RING_MARGIN))
 
 
 @dataclass
@@ -81,8 +98,11 @@ class HostLogWriter:
         source: str = "log",
         on_note: Callable[[str], None] | None = None,
         on_corrupt: Callable[[ChannelsCorrupt], None] | None = None,
+        fast: Callable[[], bool] | None = None,
     ) -> None:
+        """`fast()`: someone takes the records live (on_records): drain every WAIT_MS then."""
         self._ch = ch
+        self._fast = fast
         self._chan = LogChannel(ch, source)
         self._source = source
         self._identity = identity
@@ -100,6 +120,8 @@ class HostLogWriter:
         self._dtype: np.dtype | None = None
         self._stop = threading.Event()
         self._lock = threading.Lock()  # one drain at a time (thread vs finish())
+        self._halved = 0  # times a drain found the ring fuller than planned (the period halves)
+        self.drains = 0  # drains that took records (tests, the footprint benchmark)
         self._thread: threading.Thread | None = None
 
     # -- life cycle -------------------------------------------------------------------------
@@ -132,15 +154,25 @@ class HostLogWriter:
         return self.stats
 
     def _main(self) -> None:
-        seen = self._ch.doorbell
         while not self._stop.is_set():
             try:
-                self.drain()
+                taken = self.drain()
+                if taken > self._chan.slots() // RING_MARGIN > 0:
+                    self._halved += 1  # the loop logs faster than once a cycle: drain more often
                 self._sample_timing()
             except Exception:  # never let a bug end logging silently
                 log.exception("log writer")
                 time.sleep(0.1)
-            seen = self._ch.wait_doorbell(seen, WAIT_MS)
+            # A timed sleep, not the doorbell: the loop rings it for its telemetry (50 Hz and
+            # more), far more often than a ring of seconds of records needs draining.
+            self._stop.wait(self.period())
+
+    def period(self) -> float:
+        """Seconds until the next drain (see the module's docstring)."""
+        if self._fast is not None and self._fast():
+            return WAIT_MS / 1000
+        p = drain_period(self._chan.slots(), int(self._ch.info.get("cycle_freq", 0) or 0))
+        return max(WAIT_MS / 1000, p / (2 ** min(self._halved, 16)))
 
     def skip_through(self, last_seq: int) -> int:
         """Release the ring's records numbered <= `last_seq` without writing them: a dead
@@ -177,9 +209,10 @@ class HostLogWriter:
                 return skipped
         return skipped
 
-    def set_on_records(self, fn: Callable[[np.ndarray], None] | None) -> None:
+    def set_on_records(self, fn: Callable[[np.ndarray], None] | None, fast: Callable[[], bool] | None = None) -> None:
         with self._lock:
             self._on_records = fn
+            self._fast = fast
 
     # -- draining ----------------------------------------------------------------------------
 
@@ -232,6 +265,8 @@ class HostLogWriter:
             self._write(buf, n)
             self._chan.release(n)
             taken += n
+        if taken:
+            self.drains += 1
         return taken
 
     def _open_segment(self, layout: SegmentLayout) -> None:

@@ -1,6 +1,7 @@
 """A run's live rerun recording: its log records and telemetry while it runs.
 
-The records the host writer hands over (decimated to ``LIVE_HZ``) and the loop's telemetry are
+The records the host writer hands over (min/max-decimated to ``LIVE_HZ`` points per second per
+variable: a display rate; every record stays in the run's log) and the loop's telemetry are
 sent, in batches every ``SEND_PERIOD_S``, to the run's recording (``recording_id = run-<id>``) on
 the run's own rerun message proxy (``rerun_servers.LiveProxy``, 127.0.0.1 only); browsers read it
 through the appliance (server/http/rerun.py). A run's blueprint has one time-series view per
@@ -15,22 +16,27 @@ rerun_servers.LIVE_WINDOW), and the whole run is in its log, so a stream for nob
 memory for nobody (issue 30 item 4: ~16 % of the idle appliance's Python time, and the rerun SDK,
 ~65 MB RSS, imported at every run's start). The recording connects (and rerun is imported) at the
 first viewer; from then on each batch is the last ``SEND_PERIOD_S`` of records and telemetry, so
-a viewer that opens gets the live edge within one batch.
+a viewer that opens gets the live edge within one batch. "First viewer" counts from when a live
+viewer's page is served (``LiveProxy.expect_viewer``): its wasm app starts and connects seconds
+later, by when the recording is connected and the proxy holds the live edge (issue 31 bug 6).
 """
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from types import EllipsisType
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..channels.errors import ChannelsCorrupt
+from ..ticks import until_aligned
 from . import logformat
 from .rerun_servers import LiveProxy
 
@@ -40,25 +46,104 @@ if TYPE_CHECKING:
 # One logger for a run's host logging, whichever module of it speaks (as before the split).
 log = logging.getLogger("xrflab.logs.live")
 
-LIVE_HZ = 100.0  # log records per second sent to the live rerun recording
-TELEMETRY_HZ = 50.0  # telemetry samples per second sent to it
+# The live view is for watching, at a display rate: at most LIVE_HZ points per second per logged
+# variable, each bucket of 2 * freq / LIVE_HZ cycles sent as its min and max (``decimate_minmax``:
+# a one-cycle spike stays visible, every sample's extreme survives). Every record is in the run's
+# log, its downloads and its replay (.rrd): the live view says so (frontend/rerun-tab.js). A
+# software-rendered browser pays per point drawn (issue 31 bug 6).
+LIVE_HZ = 100.0
+TELEMETRY_HZ = 50.0  # telemetry samples per second sent to it (the loop publishes at 50 Hz)
+# Each time series of the live blueprint shows the last LIVE_SPAN_S of its data (relative to the
+# time cursor, which follows the newest data): a frame draws a bounded number of points, however
+# long the viewer has watched. The replay of the whole run has no such bound (convert.rrd_blueprint).
+LIVE_SPAN_S = 10.0
+BACKLOG_S = 5.0  # at most this much of the loop's records waits for the sending thread (then dropped, counted)
 # The live recording is sent in batches this far apart. The viewer pays per message and ingests
 # for at most 10 ms a frame: at 0.2 s, chromium drawing without a GPU (frames seconds apart) fell
 # minutes behind; at 0.5 s (2.5x fewer messages, +0.3 s on average at the wire) a viewer opened
 # mid-run reached the live edge in 25 s (bench/appliance/rerun_lag.py, issue 31 bug 6).
 SEND_PERIOD_S = 0.5
+IDLE_LOOK_S = 1.0  # with no viewer: how often the sending thread looks for one (on the whole second)
 
 
-def live_blueprint(names: list[str], telemetry: list[str]):
+def live_blueprint(names: list[str], telemetry: list[str], freq: int = 1000):
     import rerun as rr
     import rerun.blueprint as rrb
 
     from .convert import variable_groups
 
+    # the last LIVE_SPAN_S on either timeline (cycle: at the loop's frequency)
+    span = [
+        rrb.VisibleTimeRange(
+            "cycle",
+            start=rrb.TimeRangeBoundary.cursor_relative(seq=-int(LIVE_SPAN_S * freq)),
+            end=rrb.TimeRangeBoundary.cursor_relative(),
+        ),
+        rrb.VisibleTimeRange(
+            "time",
+            start=rrb.TimeRangeBoundary.cursor_relative(seconds=-LIVE_SPAN_S),
+            end=rrb.TimeRangeBoundary.cursor_relative(),
+        ),
+    ]
     groups = sorted(set(variable_groups(names).values()))
-    views = [rrb.TimeSeriesView(origin=f"/log/{rr.escape_entity_path_part(g)}", name=f"log: {g}") for g in groups]
-    views += [rrb.TimeSeriesView(origin=f"/telemetry/{t}", name=t) for t in telemetry]
+    views = [
+        rrb.TimeSeriesView(origin=f"/log/{rr.escape_entity_path_part(g)}", name=f"log: {g}", time_ranges=span)
+        for g in groups
+    ]
+    views += [rrb.TimeSeriesView(origin=f"/telemetry/{t}", name=t, time_ranges=span) for t in telemetry]
     return rrb.Blueprint(rrb.Grid(*views), rrb.TimePanel(timeline="cycle"), collapse_panels=True)
+
+
+def decimate_minmax(bucket: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Min/max decimation of `values` (rows x series; float) whose rows are grouped by `bucket`
+    (runs of equal ids, e.g. cycle // n). Each run becomes at most two rows: its first and its last
+    row (the index of the output rows, returned as row numbers), carrying in each series the run's
+    minimum and maximum, in the order they occurred (a spike up then down stays up then down).
+    Both extremes of every series in every bucket survive exactly; only their time moves within
+    the bucket. NaN is ignored unless a series is NaN throughout a bucket."""
+    n = len(values)
+    if n == 0:
+        return np.zeros(0, dtype=np.intp), values
+    starts = np.flatnonzero(np.r_[True, bucket[1:] != bucket[:-1]])
+    ends = np.r_[starts[1:], n]
+    counts = ends - starts
+    lo = np.fmin.reduceat(values, starts, axis=0)
+    hi = np.fmax.reduceat(values, starts, axis=0)
+    pos = np.arange(n)[:, None]
+    at_lo = np.minimum.reduceat(np.where(values == np.repeat(lo, counts, axis=0), pos, n), starts, axis=0)
+    at_hi = np.minimum.reduceat(np.where(values == np.repeat(hi, counts, axis=0), pos, n), starts, axis=0)
+    lo_first = at_lo <= at_hi
+    pairs = np.stack([np.where(lo_first, lo, hi), np.where(lo_first, hi, lo)], axis=1)
+    rows = np.stack([starts, ends - 1], axis=1).ravel()
+    keep = np.stack([np.ones(len(starts), dtype=bool), counts > 1], axis=1).ravel()  # one row: once
+    return rows[keep], pairs.reshape(-1, values.shape[1])[keep]
+
+
+# The live blueprints' in-memory recordings, one per variable set (and rate), made once. Each
+# `send_blueprint` of the SDK makes a recording of its own that it never frees, not even in the
+# sweep (rerun-io/rerun#2116; measured with 0.41: two threads and its memory per call): one per run
+# watched live, for the appliance's lifetime. A set seen again (the same program run again, the
+# usual case in a practical) reuses its recording; the cap bounds what many different programs
+# keep, and a set past it costs what every one cost before.
+APP_ID = "xrflab"  # the live recordings' application: the viewer keeps one blueprint per app
+_BLUEPRINTS: dict[tuple[tuple[str, ...], tuple[str, ...], int], Any] = {}
+BLUEPRINTS_KEPT = 32
+_blueprints_lock = threading.Lock()
+
+
+def blueprint_storage(names: tuple[str, ...], telemetry: tuple[str, ...], freq: int) -> Any:
+    """The live blueprint of these variables as the SDK sends it (bindings.send_blueprint)."""
+    from rerun.blueprint.api import create_in_memory_blueprint
+
+    key = (names, telemetry, freq)
+    with _blueprints_lock:
+        storage = _BLUEPRINTS.get(key)
+        if storage is None:
+            blueprint = live_blueprint(list(names), list(telemetry), freq)
+            storage = create_in_memory_blueprint(application_id=APP_ID, blueprint=blueprint).storage
+            if len(_BLUEPRINTS) < BLUEPRINTS_KEPT:
+                _BLUEPRINTS[key] = storage
+        return storage
 
 
 class LiveRerun:
@@ -70,8 +155,14 @@ class LiveRerun:
         self._run_id = run_id
         self._ch = ch
         self._freq = max(1, int(ch.info.get("cycle_freq", 1000)))
-        self._every = max(1, int(round(self._freq / LIVE_HZ)))
-        self._q: queue.Queue[np.ndarray | None] = queue.Queue(maxsize=256)
+        self._bucket = max(1, int(round(2 * self._freq / LIVE_HZ)))  # cycles per min/max pair
+        # Full-rate records wait here for the sending thread (which decimates them): bounded by
+        # records (BACKLOG_S of the loop's), not by batches, since the writer hands over many small ones.
+        # (... wakes the sending thread: a viewer is coming, LiveProxy.expect_viewer)
+        self._q: queue.Queue[np.ndarray | None | EllipsisType] = queue.Queue()
+        self._queued = 0  # records in _q
+        self._queued_lock = threading.Lock()  # held for an addition: the writer thread never waits long
+        self._max_queued = int(BACKLOG_S * self._freq)
         self.dropped = 0
         self._wall_offset = time.time_ns() - time.monotonic_ns()
         self._names: list[str] | None = None
@@ -84,29 +175,31 @@ class LiveRerun:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._main, name=f"xrf-rerun-{run_id}", daemon=True)
         self._thread.start()
+        q = self._q  # (only the queue: the proxy outlives the run, the recording must not)
+        proxy.on_viewer = lambda: q.put_nowait(...)
 
     def watched(self) -> bool:
-        return self._proxy.readers > 0
+        return self._proxy.watched()
 
     def _connect(self) -> None:
         import rerun as rr
 
         self._rr = rr
-        self.rec = rr.RecordingStream("xrflab", recording_id=f"run-{self._run_id}")
+        self.rec = rr.RecordingStream(APP_ID, recording_id=f"run-{self._run_id}")
         self.rec.connect_grpc(self._proxy.local_url)
+        self._proxy.recording_connected = True  # its window may hold data from now on (LiveProxy.fresh)
 
     def feed(self, records: np.ndarray) -> None:
-        """From the writer thread: keep every k-th record (by cycle) and queue it; never blocks.
-        Nothing while no viewer reads the stream."""
-        if not self.watched() or "cycle" not in (records.dtype.names or ()):
+        """From the writer thread: queue the records (the writer's own copy); never blocks. The
+        sending thread decimates them. Nothing while no viewer reads the stream."""
+        if not self.watched() or "cycle" not in (records.dtype.names or ()) or len(records) == 0:
             return
-        keep = records[records["cycle"] % self._every == 0]
-        if len(keep) == 0:
-            return
-        try:
-            self._q.put_nowait(keep)
-        except queue.Full:
-            self.dropped += len(keep)
+        with self._queued_lock:
+            if self._queued + len(records) > self._max_queued:
+                self.dropped += len(records)
+                return
+            self._queued += len(records)
+        self._q.put_nowait(records)
 
     def param_changes(self, changes: list[dict[str, Any]]) -> None:
         """Applied parameter changes (live tuning; rows as in the run's change table), shown as
@@ -131,9 +224,10 @@ class LiveRerun:
         cols = rr.TextLog.columns(text=[change_text(c) for c in rows], level=["INFO"] * len(rows))
         self.rec.send_columns(CHANGES_ENTITY, indexes=idx, columns=cols)
 
-    def close(self) -> None:
+    def close(self, then: Callable[[], None] | None = None) -> None:
         """Stop feeding; flushing to the proxy happens in the background: a slow viewer can hold
-        the proxy's broadcast (rerun blocks its senders then), and a run's end must not wait."""
+        the proxy's broadcast (rerun blocks its senders then), and a run's end must not wait.
+        `then`: called once flushed (logs/live.py: the proxy may stop after it, not before)."""
         self._stop.set()
         try:
             self._q.put_nowait(None)
@@ -141,6 +235,13 @@ class LiveRerun:
             pass
 
         def done() -> None:
+            try:
+                flush()
+            finally:
+                if then is not None:
+                    then()
+
+        def flush() -> None:
             self._thread.join()
             if self.rec is None:  # never watched: never connected
                 return
@@ -149,6 +250,13 @@ class LiveRerun:
                 self.rec.disconnect()
             except Exception:
                 pass
+            # The SDK keeps a recording made from Python until a sweep finds it unreferenced
+            # (rerun-io/rerun#2116): two threads and its memory per run watched live, for the
+            # appliance's lifetime (bench/appliance/practical.py). The blueprint's stream is not
+            # freed by it (measured there): one per run watched remains.
+            self.rec = None
+            with contextlib.suppress(Exception):
+                self._rr.bindings.flush_and_cleanup_orphaned_recordings()
 
         threading.Thread(target=done, name="xrf-rerun-close", daemon=True).start()
 
@@ -182,8 +290,9 @@ class LiveRerun:
             self._groups = {}
             for n, g in variable_groups(names).items():
                 self._groups.setdefault(f"log/{rr.escape_entity_path_part(g)}", []).append(n)
-            self.rec.send_blueprint(live_blueprint(names, ["enc", "pwm", "xeno2ros"]))
-        idx = self._indexes(rec["cycle"], rec["t_ns"])
+            storage = blueprint_storage(tuple(names), ("enc", "pwm", "xeno2ros"), self._freq)
+            rr.bindings.send_blueprint(storage, True, True, recording=self.rec.to_native())
+        bucket = rec["cycle"] // self._bucket
         for entity, members in self._groups.items():
             # an array variable (or a char string) is a series per element
             cols = [_plain(rec[n]).astype(np.float64).reshape(len(rec), -1) for n in members]
@@ -191,7 +300,9 @@ class LiveRerun:
                 entity,
                 [n if c.shape[1] == 1 else f"{n}[{i}]" for n, c in zip(members, cols) for i in range(c.shape[1])],
             )
-            self.rec.send_columns(entity, indexes=idx, columns=rr.Scalars.columns(scalars=np.hstack(cols)))
+            rows, values = decimate_minmax(bucket, np.hstack(cols))  # the same rows for every entity
+            idx = self._indexes(rec["cycle"][rows], rec["t_ns"][rows])
+            self.rec.send_columns(entity, indexes=idx, columns=rr.Scalars.columns(scalars=values))
 
     def _send_telemetry(self) -> None:
         rr = self._rr
@@ -241,11 +352,19 @@ class LiveRerun:
         pending: list[np.ndarray] = []
         while True:
             item: np.ndarray | None | EllipsisType
+            # Unwatched, nothing is queued (feed drops it): the thread only looks whether a
+            # viewer came, on the appliance's whole seconds with its other once-a-second work,
+            # not twice a second on a timer of its own (issue 30 item 4). A viewer's first
+            # records (the writer's next drain) end the wait at once; a viewer of a loop that
+            # logs nothing yet (before RUN) gets its telemetry within a second.
+            wait_s = SEND_PERIOD_S if self.rec is not None and self.watched() else until_aligned(IDLE_LOOK_S)
             try:
-                item = self._q.get(timeout=SEND_PERIOD_S)
+                item = self._q.get(timeout=wait_s)
             except queue.Empty:
                 item = ...  # nothing new: still time to send what is pending
             if isinstance(item, np.ndarray):
+                with self._queued_lock:
+                    self._queued -= len(item)
                 pending.append(item)
             done = item is None or (self._stop.is_set() and self._q.empty())
             if not self.watched():
@@ -270,9 +389,16 @@ class LiveRerun:
                 now = time.monotonic()
                 if pending and (done or now - last_records >= SEND_PERIOD_S):
                     last_records = now
-                    for batch in _same_dtype_runs(pending):
-                        self._send_records(batch)
+                    runs = _same_dtype_runs(pending)
                     pending.clear()
+                    if not done:  # the last bucket may not be complete: it waits for the next batch
+                        runs[-1], tail = _split_last_bucket(runs[-1], self._bucket)
+                        if len(tail):
+                            pending.append(tail)
+                    for batch in runs:
+                        if len(batch):
+                            self._send_records(batch)
+                            self._proxy.sent()  # the proxy's window ends at the live edge now (LiveProxy.fresh)
                 if done or now - last_telemetry >= SEND_PERIOD_S:
                     last_telemetry = now
                     self._send_telemetry()
@@ -282,6 +408,17 @@ class LiveRerun:
                 log.exception("live rerun")
             if done:
                 return
+
+
+def _split_last_bucket(rec: np.ndarray, bucket: int) -> tuple[np.ndarray, np.ndarray]:
+    """`rec` without the rows of its last bucket of cycles, and those rows; a bucket whose last
+    cycle is there is complete and stays."""
+    ids = rec["cycle"] // bucket
+    if rec["cycle"][-1] % bucket == bucket - 1:
+        return rec, rec[:0]
+    earlier = np.flatnonzero(ids != ids[-1])
+    cut = int(earlier[-1]) + 1 if len(earlier) else 0
+    return rec[:cut], rec[cut:]
 
 
 def _same_dtype_runs(arrays: list[np.ndarray]) -> list[np.ndarray]:

@@ -32,6 +32,7 @@ from ..projects.archive import ArchiveRejected
 from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
 from ..projects.assignments import Assignments
 from ..server.security.auth import Perm, client_address, requires, set_session_cookies
+from ..ticks import until_aligned
 from . import mqtt, payloads, sso
 from .accounts_sync import BenchAccounts
 from .commands import CommandHandler
@@ -101,7 +102,8 @@ class RoomLink:
 
     async def _wait_for_enrolment(self) -> None:
         while not self._try_start():
-            await asyncio.sleep(ENROL_POLL_S)
+            # on the appliance's whole seconds, with its other periodic work (issue 30 item 4)
+            await asyncio.sleep(until_aligned(ENROL_POLL_S))
 
     def _try_start(self) -> bool:
         try:

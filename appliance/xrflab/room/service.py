@@ -35,8 +35,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import csv
-import io
 import json
 import logging
 import os
@@ -62,7 +60,7 @@ from ..errors import Busy, Conflict, Denied, Invalid, NotFound, TooLarge, Unavai
 from ..grading.scenario import MAX_BYTES as SCENARIO_MAX_BYTES
 from ..grading.scenario import Scenario
 from ..grading.scenario import load as load_scenario
-from ..grading.service import csv_cell
+from ..grading.service import grades_csv as table_csv
 from ..projects import archive as archive_mod
 from ..projects.assignments import LIMITS as ASSIGNMENT_LIMITS
 from ..server.http import errors as http_errors
@@ -662,26 +660,7 @@ class Room:
         }
 
     def grades_csv(self, aid: str) -> str:
-        t = self.grades_table(aid)
-        out = io.StringIO()
-        w = csv.writer(out)
-        ids = [c["id"] for c in t["checks"]]
-        w.writerow(["owner", "bench", "project", "status", *ids, "total", "max", "build", "graded_at"])
-        for r in t["rows"]:
-            w.writerow(
-                [
-                    csv_cell(r["owner"]),
-                    r["bench"],
-                    r["project"],
-                    r["status"],
-                    *[r["checks"].get(i, {}).get("earned", "") for i in ids],
-                    r["earned"],
-                    r["points"],
-                    csv_cell(r["build"] or ""),
-                    r["graded_at"] or "",
-                ]
-            )
-        return out.getvalue()
+        return table_csv(self.grades_table(aid), extra=("bench",))
 
     # -- actions --------------------------------------------------------------------------------
     def command(self, bench: str | None, cmd: str, by: str, **fields: Any) -> dict[str, Any]:

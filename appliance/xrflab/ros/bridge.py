@@ -550,6 +550,8 @@ class Bridge:
         self.last_state = int(state)
 
     def _reader(self) -> None:
+        from ..channels import StatusBusy
+
         reader = self.ch.telemetry_reader()
         last_periodic = 0.0
         loop_pid = int(self.ch.info.get("pid", 0))
@@ -566,7 +568,11 @@ class Bridge:
                     f"read them ({reader.lost} in total)"
                 )
                 self.lost = reader.lost
-            state = self.ch.status().state
+            try:
+                state = self.ch.status().state
+            except StatusBusy:  # the loop mid-write, no copy read yet: the next round asks again
+                self.ch.wait_doorbell(seen, _WAIT_SLICE_MS)
+                continue
             now = time.monotonic()
             periodic = now - last_periodic >= self.state_period
             self._follow_parameters(force=periodic)

@@ -28,6 +28,12 @@ def default_data_dir() -> Path:
     return Path(base) / "xrf-lab"
 
 
+def spi_devices_from_env() -> tuple[str, ...]:
+    """$XRF_SPI_DEVICES: the SPI devices to the ico boards, comma-separated, board 1 first; () when
+    unset (then just Settings.spi_device)."""
+    return tuple(d.strip() for d in os.environ.get("XRF_SPI_DEVICES", "").split(",") if d.strip())
+
+
 def real_bench_present(spi_device: str | None = None) -> bool:
     """A real bench needs the EVL core and an SPI device to the ico board (default Settings.spi_device);
     else we simulate."""
@@ -51,6 +57,11 @@ class Settings:
     # None = detect (real only with /dev/evl and the spidev present); False forces simulation.
     real_bench: bool | None = None
     spi_device: str = "/dev/spidev0.0"  # the SPI device to the ico board (also `xrf doctor`, `xrf selfcheck`)
+    # A bench of several ico boards (channels.h: board b carries channels 4b+1..4b+4; the youBot's 9
+    # need 3): one SPI device per board, board 1 first ($XRF_SPI_DEVICES, `xrf serve --spi-devices`;
+    # docs/install/pi.md for the chip selects). () = one board, spi_device; given, board 1's is
+    # spi_device too.
+    spi_devices: tuple[str, ...] = field(default_factory=spi_devices_from_env)
 
     frontend_dir: Path = REPO_ROOT / "frontend"
     projects_dir: Path = REPO_ROOT / "student_projects"
@@ -62,9 +73,17 @@ class Settings:
     # Supervision. The loop pauses itself when our heartbeat is older than host_timeout_ms
     # (the appliance died or hangs); we call the loop hung when its heartbeat is older than
     # hang_timeout_ms while the process lives.
-    host_heartbeat_period_s: float = 0.05
+    # How often the host heartbeat is written: by the safety watcher's thread where it runs (it
+    # detects hangs in C; the event loop tells it once a second that it is alive,
+    # server/runs/watch.py), else by the event loop (which then also checks for hangs, 50 ms apart).
+    host_heartbeat_period_s: float = 0.2
     host_timeout_ms: int = 1000
     host_timeout_action: str = "pause"
+    # Where the safety watcher runs, its thread (SCHED_FIFO, in this process) beats the host
+    # heartbeat as long as the event loop was alive within this grace: the loop pauses within
+    # host_timeout_ms of this process dying, and only after this long of an event loop that does
+    # not run (a starved or stuck appliance), not after one busy second (a browser starting).
+    host_stall_grace_ms: int = 5000
     hang_timeout_ms: int = 200
     # SCHED_FIFO priority of the safety watcher thread (server/runs/safety.py): above any priority a guest
     # may take (its RLIMIT_RTPRIO is kept below this one, guest.py), so a controller's own
@@ -141,6 +160,14 @@ class Settings:
     ros_bridge_user: str = ""  # whose bench lease ROS 2 commands obey; "" = the user who started the run
     ros_bridge_priority: int = 10  # SCHED_FIFO, below the loop's; only used when permitted
     ros_bridge_stop_timeout_s: float = 8.0  # SIGTERM -> exit (the bridge's own watchdog is 5 s), then SIGKILL
+
+    def __post_init__(self) -> None:
+        if self.spi_devices:  # board 1's device is the one every single-board path uses
+            object.__setattr__(self, "spi_device", self.spi_devices[0])
+
+    def spi_bench(self) -> tuple[str, ...]:
+        """Every board's SPI device, board 1 first."""
+        return self.spi_devices or (self.spi_device,)
 
     def bench_is_real(self) -> bool:
         return real_bench_present(self.spi_device) if self.real_bench is None else self.real_bench

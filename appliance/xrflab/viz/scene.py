@@ -1,7 +1,7 @@
 """The 3D view: a viser server run by the appliance, showing the bench's robot as its encoders say.
 
-- Jiwy: ``urdf/jiwy.urdf`` loaded with viser's URDF support (``viser.extras.ViserUrdf``, which
-  uses yourdfpy); pan/tilt follow the counts; a translucent green copy (the ghost) shows the
+- Jiwy: ``urdf/jiwy.urdf`` drawn by ``urdf_view.UrdfView`` (viser's boxes and cylinders; not
+  viser's ViserUrdf, whose trimesh stack costs 77 MB); pan/tilt follow the counts; a translucent green copy (the ghost) shows the
   setpoint (Ros2Xeno ``pan_setpoint``/``tilt_setpoint``, the jiwy example's fields).
 - RELbot: a body with two wheels whose pose on the floor is the wheel odometry, with a trail
   that fades with age; "Reset odometry" puts it back at the origin.
@@ -32,6 +32,7 @@ import logging
 import math
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -223,6 +224,21 @@ def _bench_channels(run: Any) -> int:
     return int(ch.geom.channels) if ch is not None else 4
 
 
+def _columns(samples: Any) -> tuple[list[int], list[int], list[Any]]:
+    """(t_ns, cycle, enc) of a batch of samples, as lists: the reader's TelemetryBatch has them
+    (channels/rings.py, made by numpy); any other sequence is taken apart here."""
+    if isinstance(getattr(samples, "t_ns", None), list):
+        return samples.t_ns, samples.cycle, samples.enc
+    return [s.t_ns for s in samples], [s.cycle for s in samples], [s.enc for s in samples]
+
+
+def _dins(samples: Any) -> list[Any]:
+    """Each sample's din (None where a sample has none): the home switches a Cell homes on."""
+    if isinstance(getattr(samples, "t_ns", None), list):
+        return samples.din
+    return [getattr(s, "din", None) for s in samples]
+
+
 class VizService(RunObserver):
     def __init__(self, settings: Any, supervisor: Any = None) -> None:
         self.settings = settings
@@ -317,7 +333,6 @@ class VizService(RunObserver):
         # proxy (server/http/viser.py), behind the login.
         self.server = viser.ViserServer(host="127.0.0.1", port=port, label="XRF Lab 3D", verbose=False)
         self.port = int(self.server.get_port())
-        from viser.extras import ViserUrdf  # noqa: F401  (import cost paid here, not on first draw)
 
         self.server.scene.set_up_direction("+z")
         self._build_gui()
@@ -355,14 +370,21 @@ class VizService(RunObserver):
     name = "3D view"
 
     def on_samples(self, run: Any, samples: Any) -> None:
-        self.on_telemetry(run, list(samples))
+        self.on_telemetry(run, samples)
+
+    def live(self, run: Any) -> bool:
+        # The recording and the model take every sample either way; only a 3D view that is
+        # watched needs them as they come (else the reader hands them over once a second).
+        return self.watched()
 
     async def on_ended(self, row: Any, run: Any) -> None:
         if run is not None:  # a run recovered at start-up was never shown here
             self.on_telemetry(run, None)
 
-    def on_telemetry(self, run: Any, samples: list[Any] | None) -> None:
-        """(run, samples) per reader batch, (run, None) at the end."""
+    def on_telemetry(self, run: Any, samples: Any) -> None:
+        """(run, samples) per reader batch, (run, None) at the end. `samples`: the reader's
+        TelemetryBatch (its columns are lists already: no sample is converted whole here) or
+        any sequence of samples with t_ns, cycle, enc (and din)."""
         with self._lock:
             if samples is None:
                 if run.row.id == self.run_id:
@@ -373,14 +395,17 @@ class VizService(RunObserver):
             if run.row.id != self.run_id:
                 self._new_run(run)
             rec = self.recorder
-            for s in samples:
-                if rec is None or rec.add(s.t_ns, s.cycle, s.enc):
+            t_ns, cycles, encs = _columns(samples)
+            model = self.model
+            dins = _dins(samples) if isinstance(model, kin.Cell) else None
+            for i, t in enumerate(t_ns):
+                if rec is None or rec.add(t, cycles[i], encs[i]):
                     self.samples += 1
-                    self.last_t_ns = s.t_ns
-                    if isinstance(self.model, kin.Cell):
-                        self.model.update(s.enc, getattr(s, "din", None))  # homes on its switches
-                    elif self.model is not None:
-                        self.model.update(s.enc)
+                    self.last_t_ns = t
+                    if dins is not None:
+                        model.update(encs[i], dins[i])  # homes on its switches
+                    elif model is not None:
+                        model.update(encs[i])
                         self._trail_dirty = True
             sp = getattr(run, "setpoint", None) or {}
             if sp != self._setpoint_seen:
@@ -654,20 +679,24 @@ class VizService(RunObserver):
     def _ensure_scene(self, kind: str) -> None:
         if kind == self._scene_kind:
             return
-        for node in self._nodes.values():
-            try:
-                node.remove()
-            except Exception:
-                pass
+        # A URDF's remove() takes its links with it, and some of those links are kept here as
+        # nodes of their own: viser warns once per node removed twice (20 lines per scene change).
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Attempted to remove already removed node")
+            for node in self._nodes.values():
+                try:
+                    node.remove()
+                except Exception:
+                    pass
         self._nodes = {}
         self._scene_kind = kind
         scene = self.server.scene
         if kind == "pan_tilt":
-            from viser.extras import ViserUrdf
+            from .urdf_view import UrdfView
 
             self._nodes["grid"] = scene.add_grid("/floor", width=1.0, height=1.0, cell_size=0.05, section_size=0.25)
-            self._nodes["urdf"] = ViserUrdf(self.server, URDF_JIWY, root_node_name="/jiwy")
-            self._nodes["ghost"] = ViserUrdf(
+            self._nodes["urdf"] = UrdfView(self.server, URDF_JIWY, root_node_name="/jiwy")
+            self._nodes["ghost"] = UrdfView(
                 self.server, URDF_JIWY, root_node_name="/jiwy_setpoint", mesh_color_override=(0.1, 0.8, 0.3, 0.3)
             )
             self.server.initial_camera.position = (0.55, -0.45, 0.45)
@@ -703,19 +732,19 @@ class VizService(RunObserver):
             self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
             self._send_trail([])
         elif kind == "cell":
-            from viser.extras import ViserUrdf
+            from .urdf_view import UrdfView
 
             self._nodes["grid"] = scene.add_grid("/floor", width=1.0, height=1.0, cell_size=0.05, section_size=0.25)
-            self._nodes["urdf"] = ViserUrdf(self.server, URDF_CELL, root_node_name="/cell")
+            self._nodes["urdf"] = UrdfView(self.server, URDF_CELL, root_node_name="/cell")
             self.server.initial_camera.position = (0.2, -0.8, 0.6)
             self.server.initial_camera.look_at = (0.0, 0.0, 0.1)
         elif kind == "youbot":
-            from viser.extras import ViserUrdf
+            from .urdf_view import UrdfView
 
             self._nodes["grid"] = scene.add_grid("/floor", width=4.0, height=4.0, cell_size=0.1, section_size=1.0)
             # The URDF under a frame of its own, so the base's odometry moves the whole robot.
             self._nodes["robot"] = scene.add_frame("/youbot", show_axes=False)
-            self._nodes["urdf"] = ViserUrdf(self.server, URDF_YOUBOT, root_node_name="/youbot/robot")
+            self._nodes["urdf"] = UrdfView(self.server, URDF_YOUBOT, root_node_name="/youbot/robot")
             self.server.initial_camera.position = (0.9, -1.2, 0.9)
             self.server.initial_camera.look_at = (0.1, 0.0, 0.25)
         elif kind == "linear_stage":

@@ -317,8 +317,8 @@ struct xrf_timing_record {
     int64_t hook_ns; /* the student's controller */
     int64_t logger_ns;
     int64_t cycle_ns; /* wake-up to end of work */
-    uint8_t missed;   /* the cycle overran its deadline */
-    uint8_t pad[7];
+    int32_t missed;   /* periods passed over after this cycle (it woke or ended late); 0 on time */
+    uint8_t pad[4];
 };
 
 /* The simulated board's outputs as the plant sees them. The host may force them to zero after

@@ -37,6 +37,8 @@ struct xrf_hold_joint {
     double r;        /* armature resistance, ohm */
     double lo, hi;   /* joint limits, rad (the hard stops) */
     double rest;     /* rest pose, rad; NAN: the joint stays where it was held */
+    double zero;     /* the joint's angle where its counter reads 0: the pose the arm is parked
+                      * in when a run starts (a real bench's pose = zero + counts / scale) */
     double kp, kd;   /* joint-side stiffness N·m/rad and damping N·m·s/rad */
     double max_duty; /* |duty| bound, 0..1 */
 };
@@ -52,6 +54,8 @@ struct xrf_hold_arm {
     double rest_tol;   /* rad: at rest within this of the rest pose ... */
     double still;      /* ... and slower than this, rad/s */
     double max_s;      /* the whole sequence's bound: REST (outputs zero) after this at most */
+    double max_speed;  /* rad/s no joint can exceed: a faster count is not the arm (a reset,
+                        * garbage), and what the encoders must be sampled often enough for */
     /* Joint-side gravity torque at pose q (the torque gravity puts on each joint, positive
      * in the joint's positive direction). */
     void (*gravity)(const double *q, double *tau);

@@ -131,8 +131,17 @@ struct xrf_ico_transport {
                       uint8_t rx[XRF_ICO_FRAME]);
 };
 
-/* Linux spidev: mode 0, 8 bits, speed_hz (XRF2: 31 MHz); bytes bit-reversed on the wire. */
-int xrf_spidev_open(const char *device, uint32_t speed_hz, struct xrf_ico_transport **out);
+/* Linux spidev: mode 0, 8 bits, speed_hz (XRF2: 31 MHz); bytes bit-reversed on the wire.
+ * `devices` is one device per ico board, comma-separated, board 1 first ("/dev/spidev0.0" or
+ * "/dev/spidev0.0,/dev/spidev0.1,/dev/spidev1.0"): the transport's `boards` is their count and
+ * xfer_board(b) goes to the b-th. Each must be a character device (-ENOTTY otherwise, -EISDIR a
+ * folder, -ENOENT missing); -E2BIG more than XRF_MAX_BOARDS, -EINVAL an empty or too long
+ * (XRF_SPI_PATH_MAX) name. _bench also says which device failed (*failed: its 0-based index, -1
+ * when none did). */
+#define XRF_SPI_PATH_MAX 128
+int xrf_spidev_open(const char *devices, uint32_t speed_hz, struct xrf_ico_transport **out);
+int xrf_spidev_open_bench(const char *devices, uint32_t speed_hz, struct xrf_ico_transport **out,
+                          int *failed);
 /* EVL out-of-band spidev (only in builds with XRF_HAVE_EVL; elsewhere returns -ENOSYS). */
 int xrf_evl_spidev_open(const char *device, uint32_t speed_hz, struct xrf_ico_transport **out);
 

@@ -156,7 +156,7 @@ public:
     }
     // Whether stage times come from the CPU's counter (0: from the clock); ns per tick, 32.32.
     uint64_t stageCounterMult() const { return counter_mult_; }
-    uint64_t missed() const { return missed_; }
+    uint64_t missed() const { return missed_; } // periods in which no cycle started
     uint64_t idleNs() const { return idle_total_; }
     bool onLoopThread() const
     {
@@ -180,7 +180,9 @@ public:
             applyParams();
     }
     // Publishes status and histograms for the cycle that just ended; rings the doorbell.
-    void endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, bool missed,
+    // skipped: the periods the loop passes over after this cycle (it woke or ended after the
+    // next one began), added to the missed count; 0 for a cycle on time.
+    void endCycle(int64_t wake_ns, int64_t deadline_ns, int64_t end_ns, uint64_t skipped,
                   int64_t idle_ns);
     // Set by SIGINT/SIGTERM, XRF_MAX_CYCLES, or the host.
     bool stopRequested() const;
@@ -215,7 +217,7 @@ private:
     void startHelper();
     static void *helperMain(void *self);
     void helperDrain(bool final);
-    void recordTiming(int64_t jitter_ns, int64_t cycle_ns, bool missed);
+    void recordTiming(int64_t jitter_ns, int64_t cycle_ns, uint64_t skipped);
     void applyParams();
     void calibrateStageCounter(uint64_t c0, int64_t t0);
     uint32_t hostLostEdge(bool stale); // the heartbeat's state changed: count, say what to do

@@ -20,6 +20,7 @@ extern "C" {
 #define XRF_SIM_RELBOT 1
 #define XRF_SIM_JIWY 2
 
+/* cffi-begin */
 struct xrf_sim_faults {
     int no_init_reply;      /* INIT answers without the 11 in byte 4 */
     uint8_t dead_encoder;   /* bit n-1: encoder n never counts */
@@ -56,6 +57,22 @@ int xrf_sim_open_bench(int robot, int channels, const struct xrf_sim_faults *fau
                        struct xrf_ico_transport **out);
 /* A plant's id by name ("relbot", "jiwy", ...: xrf_plant_id), else -EINVAL. */
 int xrf_sim_robot_from_name(const char *name);
+
+/* The watcher's board path tested without hardware (docs/developers/safety.md, "hold on a real
+ * bench"): this board plays the physical arm a loop process drives through its own simulated
+ * board. Until a frame that sets outputs (ALL, PWM_n, RESET) arrives, each transfer first takes
+ * the plant's state from the loop's snapshot when the loop's board wrote a new one
+ * (loop_shm->sim_snapshot: only this plant's count of values, sanitised by its `load`) with the
+ * loop's outputs (loop_shm->sim.pwm), and in between steps the plant by those outputs (a loop
+ * that missed cycles or is gone: the FPGA keeps driving what it was last told), so read-only
+ * frames (ENC_n) see a continuous arm the loop moves; from that frame on the board steps the
+ * plant by its own registers. -EINVAL if `t` is not a simulated board. */
+int xrf_sim_follow(struct xrf_ico_transport *t, const struct xrf_shm *loop_shm);
+/* A RESET of board `board` (0-based) arrives before the board's next transfer, from another
+ * thread (a student's program resetting the counters mid-run, for tests of the watcher's
+ * checks): an atomic request, safe while another thread exchanges frames. */
+int xrf_sim_inject_reset(struct xrf_ico_transport *t, int board);
+/* cffi-end */
 
 /* Simulated time: the board reads `now_ns` (the loop's virtual CLOCK_MONOTONIC, ns) instead of
  * CLOCK_MONOTONIC to know how far to advance the plant, so the plant moves on the loop's clock.

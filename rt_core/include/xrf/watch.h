@@ -38,6 +38,16 @@ extern "C" {
 #define XRF_WATCH_LOOP_ENDED 5 /* host_only: the loop ended first, left to the host's watcher */
 
 #define XRF_WATCH_RESET_NOT_TRIED 1 /* reset_status: no spidev configured */
+/* spi_device: up to XRF_MAX_BOARDS device paths, comma-separated (xrf_spidev_open). */
+#define XRF_WATCH_SPI_MAX 400
+/* hold on a real bench: how far (rad) past a joint's limit a pose from the counts may read
+ * (a joint pressed on its stop, the stop's give) before it is not believed. */
+#define XRF_WATCH_POSE_MARGIN_DEG 5
+/* hold on a real bench: the encoder sampling period while watching (ns): the counters are
+ * 14 bits, so the watcher follows their wraps from the run's start (xrf/hold.h max_speed). */
+#define XRF_WATCH_SAMPLE_NS 2000000
+
+struct xrf_ico_transport; /* xrf/ico.h */
 
 /* What "safe" is for a bench (its profile's safety.reaction), done by the watcher on an exit or
  * a hang: X(NAME, "name", number). Hosts name them from here (xrf_safe_reaction_name/parse,
@@ -63,7 +73,9 @@ struct xrf_watch_config {
     int64_t check_ns;        /* heartbeat check period */
     int rt_priority;         /* SCHED_FIFO priority for the watcher; 0: leave it SCHED_OTHER */
     int force_sim;           /* set the simulated board's forced_off (and zero its outputs) */
-    char spi_device[64];     /* "" or the spidev the FPGA RESET frame goes to */
+    /* "" or the bench's spidev devices, one per ico board, comma-separated, board 1 first:
+     * where the safe frames (every board's) and a real bench's `hold` go. */
+    char spi_device[XRF_WATCH_SPI_MAX];
     uint32_t spi_speed_hz;
     int notify_fd; /* -1 or an eventfd written once the outputs are safe */
     /* CPUs (bit n = CPU n, n < 64) the watcher keeps off: the run's own, where its threads may
@@ -79,7 +91,24 @@ struct xrf_watch_config {
     /* 1: act only on the host's death; a loop that ends first is the host's own watcher's to
      * handle (XRF_WATCH_LOOP_ENDED, nothing done). The per-run `xrf-watch` process runs so. */
     int32_t host_only;
+    /* hold on a real bench (spi_device or xrf_watch_start_on's transport; force_sim 0): the arm
+     * model is plant's (`arm`, plant.h), its pose counted from the counts read at start, when
+     * the bench guarantees the arm parked at its `zero` pose (docs/developers/safety.md). From
+     * the bench profile: the joints' encoder counts per motor revolution, the channels whose
+     * encoder counts down as the joint turns positive (encoder.inverted) and those a positive
+     * PWM turns the counts down (direction -1): bit n = channel n + 1. */
+    int32_t enc_counts_per_rev;
+    uint32_t enc_inverted;
+    uint32_t pwm_reversed;
     int32_t pad;
+    /* > 0: the watcher also writes the segment's host heartbeat (host_heartbeat_ns) this often,
+     * as long as the host said it was alive (xrf_watch_host_alive) within host_grace_ns. The
+     * loop's host timeout then means "the appliance process is gone" (this thread dies with it),
+     * and a busy machine that starves the appliance's event loop for a second (a browser
+     * starting on a 2-core lab PC) does not pause the run; an event loop stuck for longer than
+     * the grace still does. 0: the host beats alone (the per-run xrf-watch process: host_only). */
+    int64_t host_beat_ns;
+    int64_t host_grace_ns;
 };
 
 struct xrf_watch_result {
@@ -88,19 +117,26 @@ struct xrf_watch_result {
     int32_t reset_status; /* FPGA RESET: 0 sent, -errno failed, XRF_WATCH_RESET_NOT_TRIED */
     int32_t rt_status;    /* 0: running at SCHED_FIFO rt_priority; -errno: it was refused */
     int32_t kill_status;  /* hang: 0 killed, -errno otherwise */
-    int32_t pad;
+    /* A real bench's hold_status -ETIME or -EPROTO: the time between the two count samples the
+     * failed check compared (µs), so a watcher thread kept off the CPU (-ETIME after a long gap)
+     * is told apart from a counter that jumped (-EPROTO after 2 ms). 0: no such failure. */
+    int32_t hold_gap_us;
     int64_t event_ns;     /* CLOCK_MONOTONIC when the exit or hang was seen */
     int64_t safe_ns;      /* CLOCK_MONOTONIC when the outputs were safe */
     int64_t heartbeat_ns; /* the loop's last heartbeat (start of its last cycle) */
     /* hold: CLOCK_MONOTONIC when the arm was at rest and the outputs zero (0: not yet), the
      * largest distance of a joint from the law's reference until then (µrad), the law's phase
-     * (XRF_HOLD_PHASE_*, 0 before it started), and 0 or -errno (-EOPNOTSUPP: a real board,
-     * where the watcher zeroed the outputs instead). */
+     * (XRF_HOLD_PHASE_*, 0 before it started), and 0 or -errno, when the watcher zeroed the
+     * outputs instead of holding (or stopped holding): -EOPNOTSUPP a real bench without an arm
+     * model, -ERANGE the pose from the counts outside a joint's limits (+ the margin), -EPROTO
+     * a count jumped further than the joint can move (a RESET, garbage), -ETIME the encoders
+     * went unsampled too long to follow their wraps, else a transfer's -errno. hold_channel:
+     * the channel (1-based) the check failed on, 0 none. */
     int64_t rest_ns;
     int32_t drop_urad;
     int32_t hold_phase;
     int32_t hold_status;
-    int32_t pad2;
+    int32_t hold_channel;
 };
 
 struct xrf_watch;
@@ -109,6 +145,27 @@ struct xrf_watch;
  * force in memory). The mapping must outlive the watcher (stop it before unmapping). */
 int xrf_watch_start(struct xrf_shm *shm, const struct xrf_watch_config *cfg,
                     struct xrf_watch **out);
+/* The same with the bench's boards reached through `bench` instead of cfg->spi_device (which is
+ * then ignored): a real bench's path without the hardware (tests give a simulated board, see
+ * xrf_sim_follow). On success the watcher owns `bench` and closes it when freed; on failure it
+ * stays the caller's. */
+int xrf_watch_start_on(struct xrf_shm *shm, const struct xrf_watch_config *cfg,
+                       struct xrf_ico_transport *bench, struct xrf_watch **out);
+/* A real bench's `hold`: 0 while the watcher can hold the arm from the counts it follows, else
+ * the hold_status a fault now would get (-EPROTO a count jumped, ...), hold_channel into
+ * *channel (may be NULL). -ENOENT: not a real bench's hold. */
+int xrf_watch_hold_ready(struct xrf_watch *w, int32_t *channel);
+
+/* The host's event loop is alive at `now_ns` (CLOCK_MONOTONIC): the watcher beats the host
+ * heartbeat on its behalf until now_ns + host_grace_ns (xrf_watch_config.host_beat_ns). One
+ * atomic store: callable from any thread, never blocks. */
+void xrf_watch_host_alive(struct xrf_watch *w, int64_t now_ns);
+/* t->close(t) (xrf/ico.h), for a transport a failed xrf_watch_start_on left with the caller. */
+void xrf_ico_close(struct xrf_ico_transport *t);
+/* Every device of a bench's list (spi_device's format) opened and set up as the transports do,
+ * then closed: 0, or the -errno of the first that failed and its index (0-based; -1 for the
+ * list itself) in *failed (may be NULL). */
+int xrf_spi_probe(const char *devices, uint32_t speed_hz, int32_t *failed);
 /* Copy the result so far; returns its reason (XRF_WATCH_WATCHING while still watching). */
 int xrf_watch_result(struct xrf_watch *w, struct xrf_watch_result *out);
 /* End the watcher and free it. A loop that has already exited is still handled (outputs made
@@ -118,10 +175,12 @@ int xrf_watch_stop(struct xrf_watch *w, struct xrf_watch_result *out);
 /* Wait until the watcher has finished (acted, and for `hold` the arm is at rest), then free it
  * like xrf_watch_stop; nothing is cancelled. */
 int xrf_watch_wait(struct xrf_watch *w, struct xrf_watch_result *out);
-/* Send the FPGA RESET frame once over spidev `device` (also what the watcher does). */
+/* Send the FPGA RESET frame once to every board of spidev `device` (a list as spi_device's;
+ * also what the watcher does). */
 int xrf_fpga_reset(const char *device, uint32_t speed_hz);
-/* Send one ALL frame with every PWM zero and only channel `brake_channel`'s (1..4) digital
- * output on (what the watcher does for `brake`). 0 or -errno (-EINVAL: no such channel). */
+/* Send one ALL frame to board 1 with every PWM zero and only channel `brake_channel`'s (1..4)
+ * digital output on, RESET to the other boards (what the watcher does for `brake`). 0 or
+ * -errno (-EINVAL: no such channel). */
 int xrf_fpga_brake(const char *device, uint32_t speed_hz, int brake_channel);
 /* The name of safe reaction XRF_SAFE_REACTION_<NAME>, else NULL; the reaction a name spells,
  * else -EINVAL. */

@@ -1,6 +1,7 @@
-// XenoFrtLoop — XRF2's periodic firm real-time loop. Deadlines lie on a fixed grid t0 + k*T; a
-// cycle that ends after the next deadline counts as missed, the next cycle then starts at once,
-// and the grid never shifts.
+// XenoFrtLoop — XRF2's periodic firm real-time loop. Deadlines lie on a fixed grid t0 + k*T that
+// never shifts. A cycle that wakes or ends after the next period has begun has lost that period
+// (and any other begun meanwhile): the next cycle starts at the first boundary still ahead, and
+// the periods passed over count as missed (docs/rt_core/runtime.md, "After an overrun").
 #pragma once
 
 #include <cstdint>
@@ -29,8 +30,9 @@ public:
     // missed cycles. Returns 0, or a negative errno when the loop could not start.
     int loop();
 
-    // XRF2's types: completed cycles, missed cycles (int), and the time the last idle period
-    // began (the end of the previous cycle's work) on the loop's monotonic clock.
+    // XRF2's types: completed cycles, missed cycles (periods in which no cycle started; int), and
+    // the time the last idle period began (the end of the previous cycle's work) on the loop's
+    // monotonic clock.
     int getCyclesCount() const;
     int getMissedCycles() const;
     struct timespec getIdleTime() const { return idle_time; }

@@ -787,8 +787,18 @@ broken:
 /* -- motor pulses -- */
 enum { P_OK, P_WEAK, P_NONE, P_WRONG, P_HIGH };
 
+static int64_t mono_ns(void)
+{
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    return (int64_t)t.tv_sec * 1000000000LL + t.tv_nsec;
+}
+
+/* One pulse; *on_ms is how long the PWM was really on (first on-frame to first off-frame): a
+ * loaded machine or a slow link stretches the frame grid, and the motor turns for as long as the
+ * board holds the PWM, so the plausible count range follows the measured time, not the asked. */
 static int pulse(struct sc *s, int ch, int16_t pwm, int ms, int64_t delta[XRF_MAX_CHANNELS],
-                 const char *what)
+                 double *on_ms, const char *what)
 {
     struct sc_out out = zero_out;
     int64_t start[XRF_MAX_CHANNELS];
@@ -798,10 +808,16 @@ static int pulse(struct sc *s, int ch, int16_t pwm, int ms, int64_t delta[XRF_MA
     char id[24]; /* "motor." + any int */
     snprintf(id, sizeof id, "motor.%d", ch + 1);
     progress(s, id, ch + 1, 0.0, "%s", what);
+    int64_t t_on = 0;
+    *on_ms = ms;
     for (int i = 0; i < on + settle; i++) {
         if (tick(s))
             return -EINTR;
         out.pwm[ch] = i < on ? pwm : 0;
+        if (i == 0)
+            t_on = mono_ns();
+        else if (i == on)
+            *on_ms = (double)(mono_ns() - t_on) / 1e6;
         int rc = frame_all(s, &out);
         if (rc)
             return rc;
@@ -811,7 +827,7 @@ static int pulse(struct sc *s, int ch, int16_t pwm, int ms, int64_t delta[XRF_MA
     return 0;
 }
 
-static int classify(int64_t d, int expect_sign, const struct xrf_sc_channel *c)
+static int classify(int64_t d, int expect_sign, const struct xrf_sc_channel *c, double stretch)
 {
     int64_t noise = c->min_counts / 10 > 3 ? c->min_counts / 10 : 3;
     if (llabs(d) <= noise)
@@ -820,7 +836,7 @@ static int classify(int64_t d, int expect_sign, const struct xrf_sc_channel *c)
         return P_WRONG;
     if (llabs(d) < c->min_counts)
         return P_WEAK;
-    if (c->max_counts && llabs(d) > c->max_counts)
+    if (c->max_counts && (double)llabs(d) > c->max_counts * stretch)
         return P_HIGH;
     return P_OK;
 }
@@ -851,6 +867,7 @@ static int step_motor(struct sc *s, int ch)
         pwm = s->pwm_max;
     int ms = c->duration_ms > XRF_SC_MAX_PULSE_MS ? XRF_SC_MAX_PULSE_MS : c->duration_ms;
     int64_t dp[XRF_MAX_CHANNELS], dm[XRF_MAX_CHANNELS];
+    double on_ms[2] = {ms, ms};
     char what[128];
     s->have_raw = 0;
     clock_start(s);
@@ -862,7 +879,7 @@ static int step_motor(struct sc *s, int ch)
         int sign = k == 0 ? first : -first;
         snprintf(what, sizeof what, "channel %d (%s): PWM %c%.0f %% for %d ms", ch + 1, c->name,
                  sign > 0 ? '+' : '-', duty * 100, ms);
-        rc = pulse(s, ch, (int16_t)(sign * pwm), ms, sign > 0 ? dp : dm, what);
+        rc = pulse(s, ch, (int16_t)(sign * pwm), ms, sign > 0 ? dp : dm, &on_ms[k], what);
     }
     if (rc == -EINTR)
         return rc;
@@ -871,8 +888,15 @@ static int step_motor(struct sc *s, int ch)
         emit(s, &r);
         return -1;
     }
-    int sp = classify(dp[ch], c->direction, c);
-    int sm = classify(dm[ch], -c->direction, c);
+    /* Each way's own measured length, never below the asked one (a pulse is not cut short), and
+     * bounded: a pulse stretched past 5x its length is a stalled machine, not a plausible count. */
+    double stretch[2];
+    for (int k = 0; k < 2; k++) {
+        stretch[k] = ms > 0 ? on_ms[k] / ms : 1.0;
+        stretch[k] = stretch[k] < 1.0 ? 1.0 : stretch[k] > 5.0 ? 5.0 : stretch[k];
+    }
+    int sp = classify(dp[ch], c->direction, c, first > 0 ? stretch[0] : stretch[1]);
+    int sm = classify(dm[ch], -c->direction, c, first > 0 ? stretch[1] : stretch[0]);
     /* Another encoder that followed both pulses while this one did not: crossed cables. */
     int other = 0;
     for (int k = 0; k < s->nch; k++)
@@ -884,9 +908,11 @@ static int step_motor(struct sc *s, int ch)
     SETF(r.data,
          "{\"pwm\":%d,\"duty\":%.3f,\"duration_ms\":%d,\"direction\":%d,\"counts_plus\":%lld,"
          "\"counts_minus\":%lld,\"min_counts\":%d,\"max_counts\":%d,"
-         "\"all_plus\":%s,\"all_minus\":%s,\"first_pulse\":%d}",
+         "\"all_plus\":%s,\"all_minus\":%s,\"first_pulse\":%d,\"on_ms_plus\":%.1f,"
+         "\"on_ms_minus\":%.1f}",
          pwm, duty, ms, c->direction, (long long)dp[ch], (long long)dm[ch], c->min_counts,
-         c->max_counts, all_p, all_m, first);
+         c->max_counts, all_p, all_m, first, first > 0 ? on_ms[0] : on_ms[1],
+         first > 0 ? on_ms[1] : on_ms[0]);
     const char *conn = c->connector;
     r.status = XRF_SC_FAIL;
     if (sp == P_OK && sm == P_OK) {
@@ -924,8 +950,9 @@ static int step_motor(struct sc *s, int ch)
     } else if (sp == P_HIGH || sm == P_HIGH) {
         SETF(r.message,
              "encoder %d counted %+lld / %+lld, more than the plausible %d counts for "
-             "this pulse",
-             ch + 1, (long long)dp[ch], (long long)dm[ch], c->max_counts);
+             "this pulse (%.0f / %.0f ms on)",
+             ch + 1, (long long)dp[ch], (long long)dm[ch], c->max_counts,
+             first > 0 ? on_ms[0] : on_ms[1], first > 0 ? on_ms[1] : on_ms[0]);
         SETF(r.action, "check that the right motor/encoder is fitted (counts per revolution, "
                        "gear) or raise max_counts in the bench profile");
     } else if ((sp == P_NONE) != (sm == P_NONE) &&

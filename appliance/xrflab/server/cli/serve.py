@@ -269,15 +269,93 @@ def close_inherited_fds() -> None:
 DATA_UMASK = 0o077
 
 
+# glibc's malloc arenas for the appliance (its default: 8 per core). A thread that allocates while
+# another holds an arena gets one of its own, and what was freed in an arena is kept by it, in
+# pieces: with the default, the appliance's RSS grew ~1-2 MB a round of a practical's events with
+# no Python object kept (tracemalloc: ~0.15 MB a round), and settled 15-25 MB higher
+# (bench/README.md, "memory": MALLOC_ARENA_MAX=2 measured against the default). Its threads
+# (uvicorn's loop, the run's reader and writers, the thread pools, viser, rerun's) mostly wait,
+# so two arenas cost them no measurable contention. MALLOC_ARENA_MAX in the environment wins.
+MALLOC_ARENAS = 2
+_M_ARENA_MAX = -8  # mallopt's parameter (malloc.h)
+
+
+def limit_malloc_arenas(arenas: int = MALLOC_ARENAS) -> bool:
+    """glibc's arena limit set for this process (from now on: arenas are made lazily, so early in
+    the process is what counts); False where there is no glibc (musl) or the environment sets it."""
+    import ctypes
+    import os
+
+    if os.environ.get("MALLOC_ARENA_MAX"):
+        return False
+    try:
+        return bool(ctypes.CDLL(None).mallopt(_M_ARENA_MAX, arenas))
+    except (OSError, AttributeError):
+        return False
+
+
 def serve(app: Any, settings: Settings) -> None:
     import os
 
     import uvicorn
 
+    limit_malloc_arenas()  # before the app's threads start (its lifespan, below)
     os.umask(DATA_UMASK)
     # proxy_headers=False: uvicorn would believe X-Forwarded-For from 127.0.0.1, i.e. from any
     # process on this host (a student's controller); create_app() honours it only from
     # settings.trusted_proxies.
-    config = uvicorn.Config(app, log_level="warning", ws_max_size=WS_PROTOCOL_MAX, proxy_headers=False)
+    # ws_per_message_deflate=False: compressing each WebSocket message (browsers ask for it) cost
+    # ~44 us of zlib and websockets' Python per telemetry message, 30 a second per dashboard, and a
+    # compressor's window per connection; a telemetry message is ~300 bytes (9 KB/s at 30 Hz).
+    config = uvicorn.Config(
+        app,
+        log_level="warning",
+        ws_max_size=WS_PROTOCOL_MAX,
+        ws_per_message_deflate=False,
+        proxy_headers=False,
+    )
     close_inherited_fds()
-    uvicorn.Server(config).run(sockets=[listening_socket(settings)])
+    quiet_server(config).run(sockets=[listening_socket(settings)])
+
+
+def quiet_server(config: Any) -> Any:
+    """uvicorn's Server, ticking once a second instead of ten times.
+
+    uvicorn's main loop sleeps 0.1 s at a time to see whether a signal asked it to stop, and
+    refreshes its Date header every tenth tick: 10 wake-ups a second of the event loop, a sixth
+    of an idle appliance's Python time (py-spy, issue 30 item 4). Here the stop request wakes the
+    loop itself (the signal handler sets an event through the loop), so a stop is as quick as
+    before, and the tick only keeps the Date header to the second."""
+    import asyncio
+
+    import uvicorn
+
+    from ...ticks import until_aligned  # with the appliance's other once-a-second work
+
+    class QuietServer(uvicorn.Server):
+        _stop_event: asyncio.Event | None = None
+        _loop: asyncio.AbstractEventLoop | None = None
+
+        async def main_loop(self) -> None:
+            self._loop = asyncio.get_running_loop()
+            self._stop_event = asyncio.Event()
+            counter = 0
+            should_exit = await self.on_tick(counter)
+            while not should_exit:
+                counter = (counter + 10) % 864000  # every tick is on_tick's once-a-second one
+                try:
+                    await asyncio.wait_for(self._stop_event.wait(), until_aligned(1.0))
+                except TimeoutError:
+                    pass
+                should_exit = await self.on_tick(counter)
+
+        def handle_exit(self, sig: int, frame: Any) -> None:
+            super().handle_exit(sig, frame)
+            loop, event = self._loop, self._stop_event
+            if loop is not None and event is not None:
+                try:
+                    loop.call_soon_threadsafe(event.set)
+                except RuntimeError:  # the loop is closed already
+                    pass
+
+    return QuietServer(config)

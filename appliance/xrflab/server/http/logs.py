@@ -2,9 +2,11 @@
 for the rerun viewer among them). Finding and opening a run's logs (also for the room and the 3D
 view: `read_run_log()`) is xrflab/logs/runlogs.py's.
 
-Downloads: `raw` is the file itself (streamed); `csv` streams (`iter_csv_chunks`, iterated
-in Starlette's thread pool, memory bounded by one chunk); `mat`, `parquet` and `rrd` are
-converted once, off the event loop, into `<data>/log-cache/<run>/` (keyed by the source's name,
+Downloads: `raw` is the file itself (streamed); `csv` streams from a child process that writes
+it (logs/convert_child.py `csv_in_child`: Arrow's libraries stay out of the appliance; read in
+Starlette's thread pool, memory bounded by one chunk); `mat`, `parquet` and `rrd` are
+converted once, in a child process (logs/convert_child.py: what a conversion allocates leaves
+with it), into `<data>/log-cache/<run>/` (keyed by the source's name,
 size and mtime, so a file that grew is converted again) and then served as files. Every output
 is what `xrf decode` writes for the same file: the same code (`xrflab.logs.convert`).
 
@@ -43,7 +45,8 @@ from fastapi.responses import FileResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
 
-from ...errors import Invalid, NotFound
+from ...errors import Invalid, NotFound, Unavailable
+from ...logs.convert_child import ConversionFailed
 from ...logs.runlogs import log_files, open_run_log, run_log_files
 from ...logs.timing_series import TIMING_FILE
 from ...runfolder import RunFolder, RunPathError, shown, unshown
@@ -187,20 +190,44 @@ def _open_file(run_dir: str | Path, rel: str) -> tuple[int, os.stat_result]:
     return fd, os.fstat(fd)
 
 
-def _open_log_in(run_dir: str | Path, rel: str) -> Any:
-    with RunFolder(run_dir) as rf:
-        return open_run_log(rf, rel)
-
-
 def _changes(request: Request, run_id: int) -> list[dict[str, Any]]:
     """The run's parameter change table ([] when none, or an app without live tuning)."""
     svc = getattr(request.app.state, "params", None)
     return svc.changes(run_id) if svc is not None else []
 
 
-async def _cached(run_dir: str | Path, rel: str, fmt: str, cache: Path, changes: list[dict[str, Any]]) -> Path:
-    from ...logs import convert
+def _convert_in_child(run_dir: str | Path, rel: str, fmt: str, target: Path, changes: list[dict[str, Any]]) -> None:
+    """The conversion in a process of its own (logs/convert_child.py: the rerun SDK keeps every
+    recording made in this process, and a large conversion's peak would stay here), handed the
+    file as RunFolder opens it."""
+    from ...logs.convert_child import convert_in_child
 
+    with RunFolder(run_dir) as rf:
+        fd = rf.open_mappable(rel)
+        name = rf.path / shown(rel)
+    try:
+        convert_in_child(fd, name, fmt, target, changes or None)
+    finally:
+        os.close(fd)
+
+
+def _csv_in_child(
+    run_dir: str | Path, rel: str, changes: list[dict[str, Any]], names: tuple[str, str]
+) -> tuple[dict[str, int], Iterator[bytes]]:
+    """The CSV written by a child process (logs/convert_child.py: Arrow writes it, and its
+    libraries are not loaded into the appliance), handed the file as RunFolder opens it."""
+    from ...logs.convert_child import csv_in_child
+
+    with RunFolder(run_dir) as rf:
+        fd = rf.open_mappable(rel)
+        name = rf.path / shown(rel)
+    try:
+        return csv_in_child(fd, name, changes or None, names)
+    finally:
+        os.close(fd)
+
+
+async def _cached(run_dir: str | Path, rel: str, fmt: str, cache: Path, changes: list[dict[str, Any]]) -> Path:
     fd, st = await asyncio.to_thread(_open_file, run_dir, rel)
     os.close(fd)
     # One cache name per file: its name made safe, plus a digest of the real name (two names
@@ -215,9 +242,8 @@ async def _cached(run_dir: str | Path, rel: str, fmt: str, cache: Path, changes:
             cache.mkdir(parents=True, exist_ok=True, mode=0o700)
             for old in cache.glob(f"{key}.*.{fmt}"):  # superseded conversions of a grown file
                 old.unlink(missing_ok=True)
-            log = await asyncio.to_thread(_open_log_in, run_dir, rel)
             # An untuned run's download is byte for byte what `xrf decode` writes (no empty table).
-            await asyncio.to_thread(convert, log.path, fmt, target, log=log, changes=changes or None)
+            await asyncio.to_thread(_convert_in_child, run_dir, rel, fmt, target, changes)
     return target
 
 
@@ -284,8 +310,8 @@ async def run_logs(run_id: int, request: Request) -> dict[str, Any]:
 async def download(
     run_id: int, name: str, request: Request, fmt: Literal["raw", "csv", "mat", "parquet", "rrd"] = "raw"
 ) -> Response:
-    from ...logs import LogFormatError, iter_csv_chunks
-    from ...logs.convert import csv_zip_names, iter_csv_zip_chunks
+    from ...logs import LogFormatError
+    from ...logs.convert import csv_zip_names
 
     row = _row(request, run_id)
     rel = await asyncio.to_thread(_file, row, name)
@@ -298,23 +324,23 @@ async def download(
             fd, st = await asyncio.to_thread(_open_file, row.run_dir, rel)
             return _stream(fd, st.st_size, MEDIA["raw"], headers)
         if fmt == "csv":
-            log = await asyncio.to_thread(_open_log_in, row.run_dir, rel)
-            log.check_uniform()
-            headers["X-Log-Skipped"] = str(len(log.skipped))
-            headers["X-Log-Lost"] = str(log.lost)
+            zipped = _download_name(row, rel, "zip")
+            names = csv_zip_names(PurePosixPath(zipped).stem, row.id)
+            counts, chunks = await asyncio.to_thread(_csv_in_child, row.run_dir, rel, changes, names)
+            headers["X-Log-Skipped"] = str(counts["skipped"])
+            headers["X-Log-Lost"] = str(counts["lost"])
             headers["X-Param-Changes"] = str(len(changes))
             if changes:  # the samples' CSV and the change table's, as one zip
-                zipped = _download_name(row, rel, "zip")
                 headers["Content-Disposition"] = f'attachment; filename="{zipped}"'
-                names = csv_zip_names(PurePosixPath(zipped).stem, row.id)
-                chunks = iter_csv_zip_chunks(log.path, changes, names, log=log)
                 return StreamingResponse(chunks, media_type="application/zip", headers=headers)
-            return StreamingResponse(iter_csv_chunks(log.path, log=log), media_type=MEDIA["csv"], headers=headers)
+            return StreamingResponse(chunks, media_type=MEDIA["csv"], headers=headers)
         target = await _cached(row.run_dir, rel, fmt, _cache_dir(request, row), changes)
     except LogFormatError as exc:
         raise Invalid(_text(str(exc))) from None
     except (OSError, RunPathError):
         raise NotFound(f"run {row.id} has no log file {name!r}") from None
+    except ConversionFailed as exc:  # the child's own failure (a full disk, say): said, not a 500
+        raise Unavailable(_text(str(exc))) from None
     return FileResponse(target, media_type=MEDIA[fmt], headers=headers)
 
 

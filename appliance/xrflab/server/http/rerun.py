@@ -84,6 +84,11 @@ class RerunInfo(BaseModel):
     live_allowed: bool = Field(description="this user may watch it (its owner or an educator)")
     live_reason: str = Field(default="", description="why not, or why there is no live stream")
     live_viewers: int = Field(description="live viewers connected to the appliance right now")
+    live_span_s: float = Field(description="each plot of the live view shows its last this many seconds")
+    live_points_per_s: float = Field(
+        description="the live view's display rate: points per second per logged variable (each interval's "
+        "min and max); every sample is in the run's log"
+    )
 
 
 def _origin(request: Request) -> str:
@@ -104,6 +109,7 @@ def _origin(request: Request) -> str:
     summary="where the rerun viewer and the live stream are, for this request's host",
 )
 async def rerun_info(request: Request) -> dict[str, Any]:
+    from ...logs.rerun_live import LIVE_HZ, LIVE_SPAN_S
     from ...logs.rerun_servers import LiveProxy
 
     proxy = LiveProxy.current()
@@ -118,6 +124,8 @@ async def rerun_info(request: Request) -> dict[str, Any]:
         "live_running": False,
         "live_allowed": False,
         "live_viewers": _open_streams,
+        "live_span_s": LIVE_SPAN_S,
+        "live_points_per_s": LIVE_HZ,
     }
     # Someone else's stream answers as no stream at all (server/security/ownership.py): not even its run id.
     if proxy is None or not ownership.may_see(ownership.user_of(request), proxy.owner):
@@ -162,7 +170,7 @@ VIEWER_CSP = (
 # (same origin: the CSP's script-src 'self' allows it).
 # Part of the prepared copy's folder name: a change to what prepare_viewer does to rerun's files
 # (here: LIB_SCRIPT and TAB_SCRIPT added to index.html) makes appliances prepare their copy again.
-PREPARED_AS = "offline-tab-lib"
+PREPARED_AS = "offline-tab-lib-wasm"
 _MEDIA = {
     ".html": "text/html; charset=utf-8",
     ".js": "text/javascript",
@@ -190,8 +198,29 @@ def neutralise_wasm(data: bytes) -> tuple[bytes, list[str]]:
     return data, missing
 
 
+# index.html's loader reads the wasm through a stream of its own (for a percentage) and deletes
+# WebAssembly.instantiateStreaming: the 43 MB were compiled from an array buffer after the whole
+# download, at every opening (a compiled module is cached by the browser only when compiled from
+# the fetched response). Our tab script starts WebAssembly.compileStreaming on the wasm's fetch
+# while the page is still loading (frontend/rerun-tab.js ``wasm``), and the loader takes that
+# module when it is there (issue 31 bug 6: the live viewer's start).
+_LOADER_CALL = "        wasm_with_progress();\n"
+_LOADER_OURS = (
+    "        if (window.xrfRerunTab && xrfRerunTab.wasm) {\n"
+    "          wasm_bindgen({ module_or_path: xrfRerunTab.wasm })\n"
+    "            .then(() => (clearTimeout(timeoutId), on_wasm_loaded()))\n"
+    "            .catch(on_wasm_error);\n"
+    "        } else wasm_with_progress();\n"
+)
+
+
 def neutralise_index(text: str) -> str:
     text = _FONT_LINKS.sub("", text)
+    if _LOADER_CALL not in text:  # a newer rerun: its own loader, as shipped
+        import logging
+
+        logging.getLogger("xrflab.rerun").warning("rerun viewer: index.html's wasm loader not found; left as it is")
+    text = text.replace(_LOADER_CALL, _LOADER_OURS, 1)
     text = _SITE_SCRIPT.sub("", text)
     # No bug-report links to GitHub in the viewer's error page: a student reports to the educator.
     text = text.replace("https://github.com/rerun-io/rerun/issues/new/", "#")
@@ -305,6 +334,16 @@ async def rerun_viewer(asset: str, request: Request) -> Response:
         raise NotFound("no such viewer file", headers={"Content-Security-Policy": VIEWER_CSP})
     cache = await _viewer_cache(request)
     path = cache / asset
+    if asset == "index.html" and request.query_params.get("url", "").endswith("/proxy"):
+        # A live viewer is loading: its run's recording starts streaming now, not when the viewer's
+        # app has started and connected seconds later (LiveProxy.expect_viewer, issue 31 bug 6).
+        # Only for a run this user may watch (as the stream itself).
+        from ...logs.rerun_servers import LiveProxy
+
+        proxy = LiveProxy.current()
+        if proxy is not None and ownership.may_see(ownership.user_of(request), proxy.owner):
+            # the proxy's process may have to start (the run's first viewer): not on the event loop
+            await asyncio.to_thread(proxy.expect_viewer)
     headers = {
         "Cache-Control": "no-cache" if asset == "index.html" else "public, max-age=86400",
         "Content-Security-Policy": VIEWER_CSP,
@@ -345,6 +384,29 @@ async def _read_request(request: Request) -> bytes | None:
     return bytes(body)
 
 
+# A viewer connecting while the run's recording does not send (nobody watched: it sends only while
+# watched) would be handed, newest first, the proxy's window from before the pause, seconds or
+# minutes old, and draw that first (issue 31 bug 6: at the live edge from the first sample). The
+# read is counted in first (the recording resumes), and connected to the proxy once the recording
+# has sent again (LiveProxy.fresh): its newest samples are then replayed first. At most this long
+# (rerun's import at the first viewer, ~1 s; seconds on a loaded machine); not for a run that
+# has ended (its window is its end) nor for a viewer that went away.
+LIVE_EDGE_WAIT_S = 10.0
+LIVE_EDGE_POLL_S = 0.05
+
+
+async def _live_edge(request: Request, proxy: Any) -> None:
+    sup = request.app.state.supervisor
+    deadline = asyncio.get_running_loop().time() + LIVE_EDGE_WAIT_S
+    while not proxy.fresh() and asyncio.get_running_loop().time() < deadline:
+        run = sup.current
+        if run is None or run.row.id != proxy.run_id or not run.alive or run.ended.is_set():
+            return
+        if await request.is_disconnected():
+            return
+        await asyncio.sleep(LIVE_EDGE_POLL_S)  # polling the recording's thread's stamp (LiveProxy.sent)
+
+
 @router.post(f"/{SERVICE}/{{method}}", dependencies=[requires_grpc_web(Perm.WATCH)], include_in_schema=False)
 async def live_stream(method: str, request: Request) -> Response:
     global _open_streams
@@ -363,9 +425,22 @@ async def live_stream(method: str, request: Request) -> Response:
     if _open_streams >= MAX_LIVE_STREAMS:
         return grpc_error(503, RESOURCE_EXHAUSTED, f"{MAX_LIVE_STREAMS} live viewers are open already; close one")
 
+    # The proxy's process runs only while watched (LiveProxy.ensure_running): started here if not.
+    if not proxy.running() and not await asyncio.to_thread(proxy.ensure_running):
+        return grpc_error(404, NOT_FOUND, NO_LIVE_STREAM)
     headers = {"content-type": request.headers.get("content-type", "application/grpc-web+proto"), "x-grpc-web": "1"}
     if "grpc-timeout" in request.headers:
         headers["grpc-timeout"] = request.headers["grpc-timeout"]
+    watched = proxy  # (narrowed: not None) the run's recording sends while it has readers (logs/rerun_live.py)
+    watched.reader_joined()  # from here: the wait below needs the recording to send
+    if watched.readers == 1 and watched.on_viewer is not None:
+        watched.on_viewer()  # the recording starts sending now, not at its next round
+    if method == "ReadMessages" and not watched.fresh():
+        try:
+            await _live_edge(request, watched)
+        except BaseException:  # cancelled (the appliance stops): no reader any more
+            watched.reader_left()
+            raise
     # No read timeout: a live stream is quiet between runs and that is not an error.
     client = httpx.AsyncClient(timeout=httpx.Timeout(10.0, read=None))
     try:
@@ -374,11 +449,10 @@ async def live_stream(method: str, request: Request) -> Response:
             stream=True,
         )
     except httpx.HTTPError as exc:
+        watched.reader_left()
         await client.aclose()
         return grpc_error(502, UNAVAILABLE, f"the live stream of run {proxy.run_id} does not answer: {exc}")
     _open_streams += 1
-    watched = proxy  # (narrowed: not None) the run's recording sends while it has readers (logs/rerun_live.py)
-    watched.readers += 1
     closed = False
 
     async def close() -> None:
@@ -387,7 +461,7 @@ async def live_stream(method: str, request: Request) -> Response:
         if not closed:
             closed = True
             _open_streams -= 1
-            watched.readers -= 1
+            watched.reader_left()  # the last reader of an ended run: its proxy process stops
             await upstream.aclose()
             await client.aclose()
 

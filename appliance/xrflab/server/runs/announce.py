@@ -11,10 +11,11 @@ batch, and a command's answer calls it at once.
 from __future__ import annotations
 
 import contextlib
+import time
 from typing import Any, Literal
 
 from ... import channels as chmod
-from ...channels import ChannelsError
+from ...channels import ChannelsCorrupt, ChannelsError, StatusBusy
 from ..ws.hub import Hub
 from ..ws.messages import Rejected, RunMessage, StateMessage
 from .run import Run
@@ -96,12 +97,35 @@ def ended(run: Run) -> tuple[RunMessage, StateMessage]:
     )
 
 
-def refresh_state(run: Run, hub: Hub) -> None:
-    """Publish `state` when the state, a rejection, or liveness changed."""
+STATUS_REFRESH_S = 0.25  # the longest a reader batch leaves run.last_status unconverted
+
+
+def refresh_state(run: Run, hub: Hub, per_batch: bool = False) -> None:
+    """Publish `state` when the state, a rejection, or liveness changed. `per_batch` (the
+    reader, after every batch): compare the few fields of the key first and convert the whole
+    status only when it changed or STATUS_REFRESH_S passed (run.last_status feeds the `state`
+    snapshot's cycle count and the live log counts: a quarter of a second old at most)."""
     if run.channels is None:
         return
-    with contextlib.suppress(ChannelsError):
-        run.last_status = run.channels.status()
+    now = time.monotonic()
+    try:
+        if per_batch and run.last_status is not None and now - run.last_status_at < STATUS_REFRESH_S:
+            try:
+                key = (*run.channels.state_key(), run.alive)
+            except ChannelsCorrupt:
+                raise
+            except ChannelsError:
+                return
+            if key == run.last_state_key:
+                return
+        with contextlib.suppress(StatusBusy):
+            run.last_status = run.channels.status()  # while the loop writes it: the last good copy
+            run.last_status_at = now
+    except ChannelsCorrupt as exc:
+        # A status block kept locked while the loop runs (channels/status.py): the run is stopped.
+        if run.report_corrupt is not None:
+            run.report_corrupt(exc)
+        return
     s = run.last_status
     if s is None:
         return

@@ -19,7 +19,7 @@ import time
 from typing import Any
 
 from ... import channels as chmod
-from ...channels import ChannelsCorrupt, ChannelsError
+from ...channels import ChannelsCorrupt, ChannelsError, StatusBusy
 from ..settings import Settings
 from ..ws.hub import Hub
 from .announce import refresh_state
@@ -117,8 +117,11 @@ async def settled_state(run: Run, timeout: float, want: set[int] | None = None) 
     assert ch is not None
     deadline = time.monotonic() + timeout
     while True:
-        state = ch.status().state
-        done = state in want if want else state not in SETTLING
+        try:
+            state = ch.status().state
+            done = state in want if want else state not in SETTLING
+        except StatusBusy:  # the loop mid-write and no copy read yet: ask again
+            state, done = -1, False
         if done or time.monotonic() > deadline or not run.alive:
             return state
         await asyncio.sleep(0.005)

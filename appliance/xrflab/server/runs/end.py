@@ -29,6 +29,7 @@ from ...channels import ChannelsError
 from ..settings import Settings
 from ..ws.hub import Hub
 from ..ws.messages import AlarmMessage
+from . import watch_record
 from .announce import ended
 from .lifecycle import RunLifecycle
 from .run import Run, remove_shm
@@ -83,6 +84,7 @@ async def record(run: Run, returncode: int, settings: Settings, store: RunStore,
     unlinked when it returns."""
     # Stop everything that touches the mapping before letting go of it.
     run.thread_stop.set()
+    run.idle_wake.set()
     if run.thread is not None:
         await asyncio.to_thread(run.thread.join, 1.0)
     # Host logging drains the rest of the log ring (even after a crash) and records its counts
@@ -118,6 +120,10 @@ async def record(run: Run, returncode: int, settings: Settings, store: RunStore,
     else:
         message = f"loop process ended with {how} ({END_REASONS[reason]})"
     safe_ms = (run.safe_at - run.exited_at) * 1000 if run.exited_at and run.safe_at >= run.exited_at else 0.0
+    # A `hold` run's arm: what the watcher measured until it was at rest (the largest joint drop,
+    # the time to rest), kept with the run as after an appliance's death (watch_record).
+    outcome = watch_record.of_watch(run.watch_final) if run.watch_final is not None else None
+    held = f"; {watch_record.describe(outcome)}" if outcome is not None else ""
     run.row = store.update(
         run.row.id,
         ended=time.time(),
@@ -130,7 +136,10 @@ async def record(run: Run, returncode: int, settings: Settings, store: RunStore,
         state=last.state_name if last else "",
         cycles=last.cycles if last else 0,
         misses=last.missed if last else 0,
-        message=f"{message}; {run.safe_state}" + (f" {safe_ms:.1f} ms after exit" if crashed and not run.hang else ""),
+        message=f"{message}; {run.safe_state}"
+        + (f" {safe_ms:.1f} ms after exit" if crashed and not run.hang else "")
+        + held,
+        **({"safe_outcome": outcome} if outcome is not None else {}),
     )
     # The record is final: the observers in order (server/runs/lifecycle.py), then the browsers (announce).
     await lifecycle.ended(run.row, run)

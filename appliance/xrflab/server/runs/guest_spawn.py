@@ -156,7 +156,7 @@ class GuestSpawner:
         """What a real bench's controller needs of /dev (EVL core, SPI to the ico board)."""
         out = []
         if self.settings.bench_is_real() or Path("/dev/evl").exists():
-            for dev in ("/dev/evl", self.settings.spi_device):
+            for dev in ("/dev/evl", *self.settings.spi_bench()):
                 if Path(dev).exists():
                     out.append(dev)
         return out

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 from ... import guest, plants
-from ...channels import Channels, ChannelsCorrupt, segment
+from ...channels import Channels, ChannelsCorrupt, StatusBusy, segment
 from ...logs import live as loglive
 from ...runfolder import open_in
 from ..settings import Settings
@@ -87,6 +87,8 @@ def loop_env(
     env.update(loglive.loop_env(run_id, build, log_timing))
     if not settings.bench_is_real():
         env["XRF_TRANSPORT"] = "sim"
+    else:  # every board's device, board 1 first (rt_core's spidev transport opens one per board)
+        env["XRF_SPI_DEVICE"] = ",".join(settings.spi_bench())
     if max_cycles:
         env["XRF_MAX_CYCLES"] = str(max_cycles)
     env.update({k: v for k, v in settings.loop_env.items() if k in guest.ENV_ALLOWED})
@@ -249,7 +251,8 @@ async def open_channels(run: Run, settings: Settings, store: RunStore) -> bool:
             return False
         run.channels = ch
         ch.configure_host_timeout(settings.host_timeout_ms, settings.host_timeout_action)
-        run.last_status = ch.status()
+        with contextlib.suppress(StatusBusy):  # mid-write: refresh_state takes it later
+            run.last_status = ch.status()
         return True
     if opening in done and isinstance(opening.exception(), ChannelsCorrupt) and run.report_corrupt is not None:
         # Ready, but not a segment our runtime writes (a ring's geometry, the info block): the

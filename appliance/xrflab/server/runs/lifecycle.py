@@ -48,8 +48,15 @@ class RunObserver:
         ``running``; the reader has not taken a sample yet."""
 
     def on_samples(self, run: Run, samples: Sequence[Any]) -> None:
-        """A batch of telemetry samples (channels.Telemetry) the reader just took, every
-        one of them (before the dashboards' decimation). Must be quick: it runs per batch."""
+        """A batch of telemetry samples (channels.Telemetry; a channels.TelemetryBatch, whose
+        `t_ns`, `cycle`, `enc`, `din` are columns already), every one of them, in order (before
+        the dashboards' decimation). In bulk, up to a second's worth at a time, unless `live`
+        says the observer shows them now. Must be quick: it runs in the event loop."""
+
+    def live(self, run: Run) -> bool:
+        """Whether this observer needs each sample as soon as it is read (someone watches what
+        it shows); otherwise the reader hands them over in bulk (server/runs/reader.py)."""
+        return False
 
     async def on_exited(self, run: Run) -> None:
         """The loop process is gone (the outputs are safe) and the run's shared memory is still
@@ -103,6 +110,19 @@ class RunLifecycle:
             except Exception:
                 log.exception("run %s: observer %s failed on samples; it gets none any more", run.row.id, obs.name)
                 self._no_samples.add(id(obs))
+
+    def live(self, run: Run) -> bool:
+        """Whether an observer wants the samples as they come (RunObserver.live)."""
+        for obs in self._observers:
+            if id(obs) in self._no_samples:
+                continue
+            try:
+                if obs.live(run):
+                    return True
+            except Exception:
+                log.exception("run %s: observer %s failed on live", run.row.id, obs.name)
+                self._no_samples.add(id(obs))
+        return False
 
     async def exited(self, run: Run) -> None:
         for obs in tuple(self._observers):

@@ -7,7 +7,10 @@ supervisor holds the bench lock meanwhile): it maps the run's shared memory if i
 there, picks up the loop's log ring where the dead appliance left it (the read position lives in
 the shared memory, so a new host writer appends a segment to the same file, skipping what was
 already written), stops the loop through its launcher, and records the run's real counts and
-what happened, with ``end_reason`` ``appliance_restart``.
+what happened, with ``end_reason`` ``appliance_restart``. A `hold` run's xrf-watch outlived the
+dead appliance and already killed the loop and put the arm down: its record in the run folder
+(server/runs/watch_record.py, waited for while the arm is still being lowered) says what it did,
+kept with the run (``safe_outcome``), and the run ends ``appliance_gone``.
 
 The launcher is found from the controller's pid (``row.pid``) and only trusted if its
 environment names this run's folder: a pid may have been reused by anything since.
@@ -30,8 +33,10 @@ from ...logs import live as loglive
 from ..settings import Settings
 from ..ws.hub import Hub
 from ..ws.messages import AlarmMessage, RunMessage
+from . import watch_record
 from .run import remove_shm
 from .store import RunRow, RunStore
+from .watch import run_safe_reaction
 
 log = logging.getLogger("xrflab.supervisor")
 
@@ -149,7 +154,10 @@ async def recover(row: RunRow, settings: Settings, store: RunStore) -> RunRow:
         if last_seq is not None:
             writer.skip_through(last_seq)  # written by the dead appliance, not yet released
         writer.start()
-    before = ch.status() if ch is not None else None
+    before = None
+    if ch is not None:
+        with contextlib.suppress(ChannelsError):  # locked by a loop stopped mid-write: none
+            before = ch.status()
     launcher = launcher_of(row)
     stopped_at = 0.0
     if launcher:
@@ -164,6 +172,7 @@ async def recover(row: RunRow, settings: Settings, store: RunStore) -> RunRow:
                 break
         stopped_at = time.time()
     stats = await asyncio.to_thread(writer.finish) if writer is not None else None
+    watched = await watcher_outcome(row, settings)
     last = before
     if ch is not None:
         with contextlib.suppress(ChannelsError):
@@ -176,6 +185,11 @@ async def recover(row: RunRow, settings: Settings, store: RunStore) -> RunRow:
             with contextlib.suppress(Exception):
                 records += len(open_log(path))
     parts = ["the appliance stopped while this run was live"]
+    gone = watched.outcome is not None and watched.outcome["reason"] == "host_gone"
+    if watched.outcome is not None and gone:
+        parts.append(watch_record.describe(watched.outcome))
+    elif watched.problem:
+        parts.append(watched.problem)
     if ch is not None and last is not None:
         lost_at = ch.shm.host_heartbeat_ns
         if lost_at:
@@ -186,17 +200,18 @@ async def recover(row: RunRow, settings: Settings, store: RunStore) -> RunRow:
                 f"the loop then did what host_timeout_action says "
                 f"({settings.host_timeout_action} after {settings.host_timeout_ms} ms)"
             )
-    if stopped_at:
+    if stopped_at and not gone:
         parts.append(f"the restarted appliance stopped it at {time.strftime('%H:%M:%S', time.localtime(stopped_at))}")
-    elif row.pid and not alive(row.pid):
+    elif row.pid and not alive(row.pid) and not gone:
         parts.append("the loop had already ended")
     values: dict[str, Any] = {
         "status": "crashed",
         "crashed": 1,
         "crash_reason": "appliance",
-        "end_reason": "appliance_restart",
+        "end_reason": "appliance_gone" if gone else "appliance_restart",
         "message": "; ".join(parts),
         "ended": stopped_at or row.ended or time.time(),
+        "safe_outcome": watched.outcome if gone else None,
     }
     if last is not None:
         values.update(state=last.state_name, cycles=last.cycles, misses=last.missed)
@@ -208,7 +223,35 @@ async def recover(row: RunRow, settings: Settings, store: RunStore) -> RunRow:
     return final
 
 
+# How long a restart waits for a run's xrf-watch still lowering the arm: the law's own bound
+# (xrf_hold_arm.max_s, 20 s for the youBot) and some room; then the record is taken as it is.
+WATCHER_WAIT_S = 25.0
+
+
+def is_watcher(pid: int) -> bool:
+    """`pid` is alive and an xrf-watch (the pid came from a file the guest could write)."""
+    try:
+        return alive(pid) and Path(f"/proc/{pid}/comm").read_text().strip() == "xrf-watch"
+    except OSError:
+        return False
+
+
+async def watcher_outcome(row: RunRow, settings: Settings) -> watch_record.Read:
+    """The run's xrf-watch record (server/runs/watch_record.py), once it is done: while it says
+    the arm is still being lowered and its xrf-watch is still there, wait (bounded), so the run
+    is recorded with the arm at rest. Only a `hold` run has an xrf-watch (watch.start_backup): in
+    any other run's folder a file of that name is the guest's, never read."""
+    if not row.run_dir or run_safe_reaction(row.sim, settings.bench_is_real(), settings).name != "hold":
+        return watch_record.Read(None, "")
+    deadline = time.monotonic() + WATCHER_WAIT_S
+    while True:
+        got = await asyncio.to_thread(watch_record.read, row.run_dir)
+        if not got.pid or not is_watcher(got.pid) or time.monotonic() > deadline:
+            return got
+        await asyncio.sleep(0.1)  # polling: xrf-watch is another session's process, no descriptor of ours
+
+
 def announce(row: RunRow, hub: Hub) -> None:
     """Tell the browsers a recovered run ended (after the run observers heard it)."""
-    hub.publish(AlarmMessage(kind="crash", end_reason="appliance_restart", run_id=row.id, message=row.message))
+    hub.publish(AlarmMessage(kind="crash", end_reason=row.end_reason, run_id=row.id, message=row.message))
     hub.publish(RunMessage(event="ended", run=row.as_dict(), active=False))

@@ -2,10 +2,34 @@
 doorbell, the loop's printed output as it grows.
 
 The loop rings a futex doorbell in its shared memory after every cycle it published something
-in. A thread of our own sleeps in that futex (`doorbell_thread`) so the event loop never polls;
-it wakes the reader task, coalescing bursts into one wake-up. The reader hands every sample to
-the run observers (server/runs/lifecycle.py: the 3D view) and sends the dashboards a decimated stream
-(``telemetry_hz``), the monitor ring's lines and, when it changed, the state.
+in. The reader task reads a batch (telemetry, monitor lines, the state) at each of its wake-ups,
+and wakes in one of three ways (issue 30 item 4: how often a Python process wakes is most of
+what it costs on a busy core):
+
+- With nobody taking the run's streams (telemetry, monitor lines, state) it wakes itself on the
+  event loop's clock every `idle_period`, a quarter of the time the telemetry and monitor rings
+  take to fill at the rate it last saw (at most IDLE_PERIOD_S, on the whole seconds of
+  xrflab/ticks.py), so every sample still reaches the run observers (the 3D view's recording)
+  and nothing is overwritten unread; a client that connects wakes it at once
+  (Supervisor._client_connected).
+- With a dashboard taking telemetry it wakes itself just after the loop publishes the next
+  sample due to be sent (`next_publication` + TIMED_MARGIN_NS: the loop publishes at a fixed
+  spacing on our monotonic clock), so it wakes ~30 times a second for a RELbot (dashboards get
+  30 Hz of its 50), each due sample read within about a millisecond of its publication, and
+  neither a thread of ours nor the event loop's self-pipe is woken for the samples the
+  decimation skips. What the loop published before it (samples, monitor lines, a state change)
+  is read in that batch, at most one telemetry period later.
+- Otherwise it follows the doorbell: a thread of our own sleeps in that futex
+  (`doorbell_thread`) and wakes the reader, coalescing bursts into one wake-up. That is where
+  the publications' spacing is not known (the first samples, simulated time, whose clock is not
+  ours), when the sample due came late (the reader woke and it was not there: the next ring
+  brings it), and for a client that takes monitor lines or the state but not telemetry. In the
+  other two cases the thread is parked outside the futex (`Run.reader_timed`): the loop then has
+  no waiter to wake either (no system call in its doorbell path).
+
+The reader hands every sample to the run observers (server/runs/lifecycle.py: the 3D view) and
+sends the dashboards a decimated stream (``telemetry_hz``), the monitor ring's lines and, when it
+changed, the state.
 
 The controller's stdout/stderr go to a file in the run folder (a pipe would SIGPIPE the loop if
 the appliance died); `pipe_output` follows it for the console. `guarded` restarts a reader-type
@@ -15,14 +39,17 @@ task after an unexpected error instead of losing the stream for the rest of the 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import time
 from collections.abc import Awaitable, Callable
 from typing import Any, Literal
 
-from ...channels import ChannelsCorrupt
+from ...channels import ChannelsCorrupt, StatusBusy
+from ...ticks import until_aligned
 from ..ws.hub import Hub
 from ..ws.messages import MonitorLine, MonitorMessage, TelemetryMessage
-from .announce import refresh_state
+from .announce import STATUS_REFRESH_S, refresh_state
 from .launch import open_output
 from .lifecycle import RunLifecycle
 from .output_lines import OutputLines
@@ -30,16 +57,67 @@ from .run import Run
 
 log = logging.getLogger("xrflab.supervisor")
 DOORBELL_WAIT_MS = 50  # also the fallback poll period if a loop never rings
+IDLE_PERIOD_S = 1.0  # longest wait between two reads with nobody taking the streams
+IDLE_MIN_S = DOORBELL_WAIT_MS / 1000
+RING_MARGIN = 4  # the idle wait lets a ring fill to a quarter at most
+LIVE_RECHECK_S = 0.25  # how often the reader asks whether the run observers are watched
+
+
+def idle_period(rates: list[tuple[int, float]]) -> float:
+    """The wait between two reads with nobody connected: for each ring (slots, publications per
+    second seen), a quarter of the time it takes to fill, the shortest of them, within
+    [IDLE_MIN_S, IDLE_PERIOD_S]."""
+    period = IDLE_PERIOD_S
+    for slots, rate in rates:
+        if rate > 0:
+            period = min(period, slots / rate / RING_MARGIN)
+    return max(IDLE_MIN_S, period)
+
+
+OUTPUT_IDLE_S = 1.0  # the output file's poll period with no dashboard connected
+OUTPUT_POLL_S = 0.1  # with one taking monitor lines: at the reader's first wake-up this long apart
 READS_PER_POLL = 64  # 4 MiB of output per poll at most, then the event loop gets its turn
 
 
+# The reader wakes this long after the sample due is expected: the loop's own wake-up jitter (tens
+# of us on a quiet core, a millisecond or more on a busy one) mostly within it; a sample later than
+# that is waited for on the doorbell.
+TIMED_MARGIN_NS = 1_000_000
+
+
+def next_publication(next_due_ns: int, last_t_ns: int, spacing_ns: int, period_ns: int) -> int:
+    """When (the loop's clock, which is time.monotonic_ns() but in simulated time) the loop is
+    expected to publish the telemetry sample due to be sent next, so that the reader wakes for
+    it and not for the ones between, which it would only read and skip (a RELbot publishes 50 a
+    second, dashboards get 30). `last_t_ns`: the last sample read; `spacing_ns`: the loop's
+    spacing of publications (the last two samples'); the sample due is the first published at
+    or after `next_due_ns`. 0 (not known: follow the doorbell) when the spacing is not known or
+    the sample due would come later than one period."""
+    if spacing_ns <= 0 or next_due_ns <= last_t_ns:
+        return 0
+    steps = -(-(next_due_ns - last_t_ns) // spacing_ns)  # publications until the one due
+    expected = last_t_ns + steps * spacing_ns
+    if expected - last_t_ns > max(period_ns, spacing_ns) * 2:
+        return 0
+    return expected
+
+
 def doorbell_thread(run: Run, loop: asyncio.AbstractEventLoop) -> None:
-    """Blocks in the futex wait so the event loop never polls; wakes the reader task."""
+    """Blocks in the futex wait so the event loop never polls; wakes the reader task. Parked
+    while the reader wakes itself (`run.reader_timed`); `run.idle_wake` unparks it."""
     ch = run.channels
     assert ch is not None
     seen = ch.doorbell
     while not run.thread_stop.is_set():
+        if run.reader_timed:
+            # Not in the futex: the loop then has no waiter to wake either (no system call).
+            run.idle_wake.wait()
+            run.idle_wake.clear()
+            seen = ch.doorbell
+            continue
         seen = ch.wait_doorbell(seen, DOORBELL_WAIT_MS)
+        if run.reader_timed:  # the reader went on its own time meanwhile: no wake-up from here
+            continue
         if not run.wake_pending:  # coalesce: one pending wake-up is enough
             run.wake_pending = True
             try:
@@ -48,61 +126,152 @@ def doorbell_thread(run: Run, loop: asyncio.AbstractEventLoop) -> None:
                 return
 
 
+async def wait_wake(run: Run, loop: asyncio.AbstractEventLoop) -> None:
+    """Until the reader's next wake-up: its own time (`run.wake_at_ns`, time.monotonic_ns()) or,
+    with none, the doorbell thread's; `run.wake` set by anyone (a client connecting) ends it
+    early either way."""
+    if run.wake_at_ns and not run.wake.is_set():
+        delay = (run.wake_at_ns - time.monotonic_ns()) / 1e9
+        if delay > 0:
+            timer = loop.call_later(delay, run.wake.set)
+            try:
+                await run.wake.wait()
+            finally:
+                timer.cancel()
+    else:
+        await run.wake.wait()
+    run.wake.clear()
+    run.wake_pending = False
+
+
+def set_timed(run: Run, wake_at_ns: int) -> None:
+    """The reader's next wake-up: at `wake_at_ns` by itself (the doorbell thread parked), or 0:
+    on the doorbell (the thread unparked)."""
+    run.wake_at_ns = wake_at_ns
+    timed = wake_at_ns > 0
+    if timed != run.reader_timed:
+        run.reader_timed = timed
+        if not timed:
+            run.idle_wake.set()
+
+
 async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub) -> None:
     """The reader task: one batch per doorbell wake-up, until cancelled at the run's end."""
     ch = run.channels
     assert ch is not None
+    # Two cursors over the telemetry ring: the dashboards' (read at each wake-up while a client
+    # takes telemetry, from the newest sample when one starts to) and the run observers' (every
+    # sample, in bulk: see below).
     telemetry = ch.telemetry_reader()
+    observed = ch.telemetry_reader()
     monitor = ch.monitor_reader()
     period_ns = int(1e9 / telemetry_hz) if telemetry_hz > 0 else 0
     next_due_ns = 0
     run_id = run.row.id
     t0 = 0  # the loop's first deadline (status t_start_ns): set once by cycle 1, read once here
-    # The Ros2Xeno the loop has, read from its shared memory once per batch that sends telemetry:
-    # whoever wrote it (this appliance, the ROS 2 bridge, a CLI), the Watch page shows the loop's.
+    # The Ros2Xeno the loop has, read from its shared memory when its sequence moved: whoever
+    # wrote it (this appliance, the ROS 2 bridge, a CLI), the Watch page shows the loop's.
     ros2xeno: dict[str, Any] = {}
+    ros2xeno_seq = -1
+    checked = False  # the first telemetry message is checked against its model (Hub.publish_fields)
+    last_t_ns = 0  # the last sample the dashboards' cursor read
+    streaming = False  # the dashboards' cursor is following the ring
+    # Simulated time: the loop's clock runs ahead of ours, so the reader follows the doorbell.
+    virtual = ch.virtual_time
+    last_read = observed_at = time.monotonic()
+    observed_due = 0.0
+    observed_rate = 0.0  # samples a second the observers' cursor last saw
+    loop = asyncio.get_running_loop()
+    live, live_at = False, -LIVE_RECHECK_S  # lifecycle.live(run), asked at live_at
     while True:
-        await run.wake.wait()
-        run.wake.clear()
-        run.wake_pending = False
-        samples = telemetry.read()
+        await wait_wake(run, loop)
+        now = time.monotonic()
+        output_due(run, now)
+        since, last_read = now - last_read, now
+        dashboards = hub.wants("telemetry")
+        # The run observers (the 3D view's recording and model) take every sample, but need them
+        # at once only while someone watches what they show (lifecycle.live): otherwise they get
+        # them in bulk, a quarter of the ring's fill time apart (at most IDLE_PERIOD_S), which
+        # costs one conversion a second instead of one per wake-up (issue 30 item 4).
+        # Whether they are watched is asked LIVE_RECHECK_S apart, not 30 times a second (the 3D
+        # view's answer asks viser for its clients); a view opening gets its samples as they come
+        # from a quarter of a second later.
+        if now >= live_at + LIVE_RECHECK_S:
+            live, live_at = lifecycle.live(run), now
+        if not dashboards or now >= observed_due or live or run.thread_stop.is_set():
+            batch = observed.read_batch()
+            if batch:
+                lifecycle.samples(run, batch)
+            if now > observed_at:
+                observed_rate = len(batch) / (now - observed_at)
+            observed_at = now
+            observed_due = now + idle_period([(observed.slots, observed_rate)])
+        # Dashboards' streams: built only when a client (or a hub listener) takes them; a client
+        # that connects gets new samples, not a backlog (the cursor starts at the newest).
+        if dashboards and not streaming:
+            telemetry.skip()
+        streaming = dashboards
+        samples = telemetry.read_batch() if dashboards else None
+        sent_state = -1  # the loop's state in the last sample sent in this batch
         if samples:
-            lifecycle.samples(run, samples)  # the run observers (3D view, ...) take every sample
-        # Dashboards' streams: built only when a client (or a hub listener) takes them. The rings
-        # are read either way, so a client that connects gets new samples and lines, not a
-        # backlog, and the `lost` counters keep meaning the loop's losses.
-        if samples and hub.wants("telemetry"):
             if not t0:
-                t0 = ch.status().t_start_ns
-            ros2xeno = ch.read_ros2xeno() or ros2xeno  # None: a write in progress, keep the last
-            for sample in samples:
+                with contextlib.suppress(StatusBusy):  # mid-write: the next batch
+                    t0 = ch.status().t_start_ns
+            seq = ch.ros2xeno_seq
+            if seq != ros2xeno_seq:
+                got = ch.read_ros2xeno()  # None: a write in progress, keep the last and ask again
+                if got is not None:
+                    ros2xeno, ros2xeno_seq = got, seq
+            ts = samples.t_ns
+            for i, t_ns in enumerate(ts):
                 # Credit-based decimation: the average rate is telemetry_hz exactly even when the
                 # loop's own rate is not a multiple of it (100 Hz -> 30 Hz sends 3 of every 10).
                 if period_ns:
-                    if sample.t_ns < next_due_ns:
+                    if t_ns < next_due_ns:
                         continue
-                    next_due_ns = max(next_due_ns + period_ns, sample.t_ns - period_ns)
+                    next_due_ns = max(next_due_ns + period_ns, t_ns - period_ns)
+                sample = samples[i]
+                sent_state = sample.state
                 run.telemetry_sent += 1
-                # Validated like every message: at telemetry_hz (30 Hz) building and checking the
-                # model costs a few microseconds, and model_construct() is no cheaper in pydantic 2.
-                hub.publish(
-                    TelemetryMessage(
-                        run_id=run_id,
-                        cycle=sample.cycle,
-                        t_ns=sample.t_ns,
-                        t=(sample.t_ns - t0) / 1e9 if t0 else sample.t_ns / 1e9,
-                        state=sample.state,
-                        enc=sample.enc,
-                        din=sample.din,
-                        pwm=sample.pwm,
-                        dout=sample.dout,
-                        xeno2ros=sample.xeno2ros,
-                        ros2xeno=ros2xeno,
-                        ros2xeno_t_sent_ns=sample.ros2xeno_t_sent_ns,
-                        lost=telemetry.lost,
-                    )
-                )
+                # The wire fields as TelemetryMessage has them, built here rather than through the
+                # model (30 a second: the model cost more than the rest of the fan-out); the
+                # first is checked against the model, the rest are made the same way.
+                fields = {
+                    "run_id": run_id,
+                    "cycle": sample.cycle,
+                    "t_ns": t_ns,
+                    "t": (t_ns - t0) / 1e9 if t0 else t_ns / 1e9,
+                    "state": sample.state,
+                    "enc": sample.enc,
+                    "din": sample.din,
+                    "pwm": sample.pwm,
+                    "dout": sample.dout,
+                    "xeno2ros": sample.xeno2ros,
+                    "ros2xeno": ros2xeno,
+                    "ros2xeno_t_sent_ns": sample.ros2xeno_t_sent_ns,
+                    "lost": telemetry.lost,
+                }
+                if not checked:
+                    TelemetryMessage.model_validate(fields)
+                    checked = True
+                hub.publish_fields("telemetry", fields)
+            prev = ts[-2] if len(ts) > 1 else last_t_ns
+            spacing = ts[-1] - prev if prev else 0
+            last_t_ns = ts[-1]
+        elif not dashboards:
+            last_t_ns = spacing = 0
+        else:
+            spacing = 0  # nothing new: the sample due is late, the doorbell brings it
         lines = monitor.read()
+        wanted = dashboards or hub.wants("monitor") or hub.wants("state")
+        if not wanted:
+            if since > 0:
+                run.idle_period = idle_period([(observed.slots, observed_rate), (monitor.slots, len(lines) / since)])
+            set_timed(run, time.monotonic_ns() + int(until_aligned(run.idle_period) * 1e9))
+        else:
+            expected = 0 if virtual or not period_ns else next_publication(next_due_ns, last_t_ns, spacing, period_ns)
+            wake_at = expected + TIMED_MARGIN_NS if expected else 0
+            set_timed(run, wake_at if wake_at > time.monotonic_ns() else 0)
         if lines and hub.wants("monitor"):
             hub.publish(
                 MonitorMessage(
@@ -112,12 +281,20 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub)
                     lost=monitor.lost,
                 )
             )
-        refresh_state(run, hub)
+        # The state check copies the 33 KB status block; the samples carry the loop's state, so
+        # while the one sent says what was last published, it is made STATUS_REFRESH_S apart,
+        # not at every batch (a rejection or an error without a state change is seen within it).
+        key = run.last_state_key
+        if sent_state < 0 or key is None or sent_state != key[0] or now - run.last_status_at >= STATUS_REFRESH_S:
+            refresh_state(run, hub, per_batch=True)
 
 
 async def pipe_output(run: Run, hub: Hub) -> None:
-    """Follow the loop's stdout/stderr file into the monitor console. Polled every 100 ms:
-    this is for people reading, nothing safety-related waits on it. What the guest printed is
+    """Follow the loop's stdout/stderr file into the monitor console. Polled every 100 ms while a
+    dashboard takes monitor lines (at a wake-up of the reader's: `with_reader`), every
+    OUTPUT_IDLE_S otherwise (the file keeps everything; a
+    console opened later shows lines from then on): this is for people reading, nothing
+    safety-related waits on it. What the guest printed is
     bounded on the way (server/runs/output_lines.py): long lines are cut, floods are counted, not queued."""
     cutter = OutputLines()
 
@@ -149,7 +326,35 @@ async def pipe_output(run: Run, hub: Hub) -> None:
             say_skipped()
             if caught_up and not alive:
                 return
-            await asyncio.sleep(0.1 if caught_up else 0.01)
+            if not caught_up:
+                await asyncio.sleep(0.01)
+            elif hub.wants("monitor"):
+                await with_reader(run, OUTPUT_POLL_S)
+            else:
+                await asyncio.sleep(until_aligned(OUTPUT_IDLE_S))
+
+
+def output_due(run: Run, now: float) -> None:
+    """At each of the reader's wake-ups (time.monotonic() `now`): the console's output poll
+    waiting in `with_reader` is let go once it is due, to run in this same wake-up."""
+    if run.output_due and now >= run.output_due:
+        run.output_poll.set()
+
+
+async def with_reader(run: Run, period_s: float) -> None:
+    """Until about `period_s` from now, at one of the reader's own wake-ups (it sets
+    `run.output_poll` at its first batch past `run.output_due`): the console's poll then costs
+    no wake-up of its own (10 a second, a sixth of the appliance's with one dashboard, issue 30
+    item 4). At most half a period later by a timer of its own, should the reader not wake."""
+    loop = asyncio.get_running_loop()
+    run.output_poll.clear()
+    run.output_due = time.monotonic() + period_s
+    timer = loop.call_later(period_s * 1.5, run.output_poll.set)
+    try:
+        await run.output_poll.wait()
+    finally:
+        timer.cancel()
+        run.output_due = 0.0
 
 
 async def guarded(name: str, body: Callable[[], Awaitable[None]], run: Run, hub: Hub) -> None:

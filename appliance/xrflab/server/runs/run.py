@@ -65,10 +65,22 @@ class Run:
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     wake_pending: bool = False
     thread_stop: threading.Event = field(default_factory=threading.Event)
+    # The reader's next wake-up by its own timer (time.monotonic_ns()), 0: on the doorbell; while
+    # `reader_timed` the doorbell thread is parked and `idle_wake` unparks it (server/runs/reader.py).
+    wake_at_ns: int = 0
+    reader_timed: bool = False
+    idle_period: float = 0.05  # with nobody taking its streams: the reader's period (s)
+    # The console's output poll waits for the reader's first wake-up after output_due
+    # (time.monotonic(); 0: none waits), which sets output_poll (server/runs/reader.py, with_reader).
+    output_due: float = 0.0
+    output_poll: asyncio.Event = field(default_factory=asyncio.Event)
+    idle_wake: threading.Event = field(default_factory=threading.Event)
     thread: threading.Thread | None = None
     last_state_key: tuple[Any, ...] | None = None
     last_status: chmod.Status | None = None
+    last_status_at: float = 0.0  # time.monotonic() of last_status (announce.refresh_state)
     last_missed: int = 0
+    last_host_lost: int = 0  # the loop's host_lost count the host_lost alarm last told
     telemetry_sent: int = 0
     telemetry_lost: int = 0
     logging: loglive.RunLogging | None = None  # host log writer, live rerun (server/runs/log_writer.py sets it)
@@ -76,6 +88,7 @@ class Run:
     guest: GuestReport | None = None  # which protection layers of the run sandbox hold
     watcher: SafetyWatcher | None = None  # the C thread that makes the outputs safe (server/runs/safety.py)
     watch: WatchResult | None = None  # what it did, once it acted
+    watch_final: WatchResult | None = None  # its last result, at the end (a hold's drop, time to rest)
     backup: subprocess.Popen | None = None  # xrf-watch: the reaction if the appliance dies (watch.py)
     end_reason: str = ""  # set by whoever ends the run on purpose (runs.END_REASONS)
     limits: RunLimits | None = None  # its cgroup and file system (server/runs/limits.py)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import errno
 import os
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,11 +42,14 @@ class WatchResult:
     heartbeat_ns: int
     # hold (xrf/hold.h): when the arm was at rest with the outputs zero (0: not yet or not
     # holding), the largest joint drop until then (µrad), the law's phase (0: none), and 0 or
-    # -errno (-EOPNOTSUPP: a real board, whose outputs were zeroed instead).
+    # -errno when the outputs were zeroed instead of holding (hold_message), with the channel
+    # (1-based) a check failed on (0: none).
     rest_ns: int = 0
     drop_urad: int = 0
     hold_phase: int = 0
     hold_status: int = 0
+    hold_channel: int = 0
+    hold_gap_us: int = 0  # -ETIME/-EPROTO: the two count samples' distance in time (µs)
 
     @property
     def acted(self) -> bool:
@@ -59,19 +63,37 @@ class WatchResult:
         """What was done to the outputs, for the run record and the alarm."""
         parts = []
         brake = f" but the brake on channel {self.brake_channel}" if self.brake_channel else ""
-        if self.sim_forced and self.hold_phase:
+        if self.hold_phase and not self.hold_status:
             parts.append("arm held by the safety watcher, lowered to its rest pose")
         elif self.sim_forced:
             parts.append(f"sim outputs forced off{brake}")
-        if self.hold_status == -errno.EOPNOTSUPP:
-            parts.append("hold not done on a real board yet: outputs zeroed")
-        if self.reset_status == 0:
+        if self.hold_status:
+            parts.append(hold_message(self.hold_status, self.hold_channel, self.hold_gap_us))
+        if self.hold_phase and self.reset_status == 0:
+            parts.append("then FPGA RESET sent")
+        elif self.reset_status == 0:
             parts.append(
                 f"brake frame sent (PWM zero, brake on channel {self.brake_channel})" if brake else "FPGA RESET sent"
             )
         elif self.reset_status != lib.XRF_WATCH_RESET_NOT_TRIED:
             parts.append(reset_message(self.reset_status))
         return "; ".join(parts) or "simulated board ended with the process"
+
+
+def hold_message(status: int, channel: int = 0, gap_us: int = 0) -> str:
+    """Why a `hold` zeroed the outputs instead (watch.h's hold_status; the channel a check
+    failed on; the failed count check's samples' distance in time, µs)."""
+    on = f" (channel {channel}, samples {gap_us / 1000:.1f} ms apart)" if channel and gap_us else ""
+    on = on or (f" (channel {channel})" if channel else "")
+    why = {
+        -errno.EOPNOTSUPP: "no arm model for this bench",
+        -errno.ERANGE: f"the pose from the encoder counts is outside the joint's limits{on}: "
+        "the arm was not parked at its rest pose when the run started, or the counts are wrong",
+        -errno.EPROTO: f"an encoder count jumped further than the joint can move{on}: the counters "
+        "were reset or read garbage, so the arm's pose is unknown",
+        -errno.ETIME: f"the encoders{on} went unsampled too long to follow their wraps",
+    }.get(status, f"the boards failed: {os.strerror(-status)}{on}")
+    return f"hold not possible ({why}): outputs zeroed"
 
 
 def reset_message(status: int) -> str:
@@ -104,6 +126,8 @@ def _result(r: Any, brake_channel: int) -> WatchResult:
         drop_urad=r.drop_urad,
         hold_phase=r.hold_phase,
         hold_status=r.hold_status,
+        hold_channel=r.hold_channel,
+        hold_gap_us=r.hold_gap_us,
     )
 
 
@@ -121,13 +145,25 @@ class SafetyWatcher:
         hang_timeout_ms: int,
         check_ms: int,
         force_sim: bool,
-        spi_device: str = "",
+        spi_device: str | tuple[str, ...] = "",
         rt_priority: int = 0,
         avoid_cpus: frozenset[int] | set[int] = frozenset(),
         safe_reaction: str = "zero",
         brake_channel: int = 0,
         plant: int = 0,
+        enc_counts_per_rev: int = 0,
+        enc_inverted: int = 0,
+        pwm_reversed: int = 0,
+        bench: Any = None,
+        host_beat_ms: int = 0,
+        host_grace_ms: int = 0,
     ) -> None:
+        """spi_device: the bench's SPI devices, one per ico board (board 1 first), on a real bench.
+        plant/enc_*/pwm_reversed: the arm `hold` drives (its plant row's model) and, on a real
+        bench, the profile's encoder counts per motor turn and wiring (watch.h). bench: instead of
+        spi_device, a transport the watcher takes over (tests: a simulated board,
+        xrf_sim_follow). host_beat_ms/host_grace_ms: the watcher beats the segment's host heartbeat
+        that often while ``host_alive()`` was called within the grace (watch.h)."""
         if safe_reaction not in SAFE_REACTIONS:
             raise ValueError(f"unknown safe reaction {safe_reaction!r} (known: {', '.join(SAFE_REACTIONS)})")
         self._channels = channels  # kept referenced: the mapping must outlive the thread
@@ -138,7 +174,7 @@ class SafetyWatcher:
         cfg.check_ns = check_ms * 1_000_000
         cfg.rt_priority = rt_priority
         cfg.force_sim = int(force_sim)
-        device = spi_device.encode()
+        device = (spi_device if isinstance(spi_device, str) else ",".join(spi_device)).encode()
         if len(device) >= len(cfg.spi_device):
             raise ValueError(f"spi device path too long: {spi_device!r}")
         cfg.spi_device = device
@@ -148,17 +184,27 @@ class SafetyWatcher:
         cfg.safe_reaction = SAFE_REACTIONS[safe_reaction]
         cfg.brake_channel = brake_channel
         cfg.plant = plant
+        cfg.enc_counts_per_rev = enc_counts_per_rev
+        cfg.enc_inverted = enc_inverted
+        cfg.pwm_reversed = pwm_reversed
+        cfg.host_beat_ns = host_beat_ms * 1_000_000
+        cfg.host_grace_ns = host_grace_ms * 1_000_000
         self.safe_reaction = safe_reaction
         self.brake_channel = brake_channel
         out = ffi.new("struct xrf_watch **")
         shm = channels.shm if channels is not None else ffi.NULL
-        r = lib.xrf_watch_start(shm, cfg, out)
+        r = lib.xrf_watch_start_on(shm, cfg, bench if bench is not None else ffi.NULL, out)
         if r == -errno.EINVAL and safe_reaction == "brake":
             os.close(self._efd)
             raise ValueError(f"safe reaction 'brake' needs a brake channel 1..4 (got {brake_channel})")
         if r == -errno.EINVAL and safe_reaction == "hold":
             os.close(self._efd)
-            raise ValueError(f"safe reaction 'hold' needs a simulated plant with an arm model (plant id {plant})")
+            raise ValueError(
+                f"safe reaction 'hold' needs a simulated plant with an arm model (plant id {plant})"
+                if force_sim
+                else f"safe reaction 'hold' on a real bench needs a plant with an arm model (plant id {plant}), "
+                f"the joints' encoder counts per revolution (got {enc_counts_per_rev}) and boards that reach its joints"
+            )
         if r < 0:
             os.close(self._efd)
             raise OSError(-r, f"safety watcher for pid {pid}: {os.strerror(-r)}")
@@ -170,6 +216,17 @@ class SafetyWatcher:
 
     def fileno(self) -> int:
         return self._efd
+
+    def host_alive(self) -> None:
+        """The event loop is alive now: the watcher keeps the host heartbeat beating for the
+        grace after this (one atomic store)."""
+        lib.xrf_watch_host_alive(self._w, time.monotonic_ns())
+
+    def hold_ready(self) -> tuple[int, int]:
+        """A real bench's `hold`: (0, 0) while the watcher can hold the arm from the counts it
+        follows, else (the hold_status a fault now gets, the channel); -ENOENT: not that case."""
+        channel = ffi.new("int32_t *")
+        return lib.xrf_watch_hold_ready(self._w, channel), channel[0]
 
     def result(self) -> WatchResult | None:
         """The result once the watcher acted (or was stopped); None while it watches."""

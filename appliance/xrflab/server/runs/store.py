@@ -16,7 +16,8 @@ from typing import Any, Literal
 from pydantic import BaseModel
 
 from ...private_files import private_db
-from ...records import add_missing_columns, api_model, column, column_names, create_table, from_sql
+from ...records import add_missing_columns, api_model, column, column_names, create_table, from_sql, to_sql
+from .watch_record import SafeOutcome
 
 # Every way a run can end: the `end_reason` of its record (and of its alarm), one name each.
 END_REASONS: dict[str, str] = {
@@ -30,6 +31,7 @@ END_REASONS: dict[str, str] = {
     "crash": "the process crashed (a signal or a non-zero exit status)",
     "hang": "the loop stopped cycling and was killed",
     "appliance_restart": "the appliance died during the run; its restart ended it",
+    "appliance_gone": "the appliance died during the run; the run's xrf-watch stopped the loop and made it safe",
     "shutdown": "the appliance shut down",
     "disk": "the run folder went over its disk limit",
     "corrupt_channel": "the controller broke the rules of its shared memory (sizes, counters, layout)",
@@ -101,6 +103,15 @@ class RunRow:
         added=True,
         default="",
     )
+    safe_outcome: SafeOutcome | None = _col(
+        "TEXT NOT NULL DEFAULT ''",
+        "a `hold` run that failed: what the safety watcher did (by 'watcher': the appliance's own, when the loop "
+        "failed; by 'xrf-watch': the run's own, while the appliance was gone, from its record in the run folder, "
+        "checked): the largest joint drop, the time to rest; null otherwise",
+        added=True,
+        json_text=True,
+        default=None,
+    )
 
     def as_dict(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -165,6 +176,7 @@ class RunStore:
         unknown = set(values) - set(_COLUMNS)
         if unknown:
             raise KeyError(f"unknown run columns {sorted(unknown)}")
+        values = to_sql(RunRow, values)  # JSON columns (safe_outcome) as text
         if values:
             assignments = ", ".join(f"{k}=?" for k in values)
             self._db.execute(f"UPDATE runs SET {assignments} WHERE id=?", (*values.values(), run_id))

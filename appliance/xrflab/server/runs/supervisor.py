@@ -77,6 +77,14 @@ class Supervisor:
         # Runs a previous appliance process left live (it was killed or died): recover_orphans()
         # closes them once the event loop runs.
         self._orphans = list(store.orphans)
+        hub.on_client.append(self._client_connected)
+
+    def _client_connected(self) -> None:
+        """A dashboard connected: the current run's reader reads now and follows the dashboards'
+        rate from then on, not from its next idle wake-up (server/runs/reader.py)."""
+        run = self.current
+        if run is not None:
+            run.wake.set()
 
     async def recover_orphans(self) -> None:
         """Close the runs a dead appliance left behind (server/runs/orphans.py). Each orphan keeps the bench
@@ -143,6 +151,11 @@ class Supervisor:
         async with self.bench_lock:
             if self.current is not None and not self.current.ended.is_set():
                 raise SupervisorError(f"run {self.current.row.id} is still active; stop it first")
+            # A real bench whose boards cannot all be reached (an SPI device per board) is not
+            # started (nor anything built for it).
+            refusal = run_watch.bench_refusal(self.settings)
+            if refusal:
+                raise SupervisorError(refusal, 409)
             entry = await self.catalog.ensure_built(build)
             assert entry.executable is not None
             plant = sim or entry.sim

@@ -4,7 +4,9 @@ and the deadline-miss alarm.
 The loop keeps a histogram per cycle stage in its shared memory (rt_core's status block); this
 task reads them with the counters and sends one `timing` message: per-stage summaries, the
 wake-up jitter, every stage's histogram (for tools), the telemetry and log counters. New missed
-deadlines since the last period raise a `deadline_miss` alarm that says how many.
+deadlines since the last period raise a `deadline_miss` alarm that says how many; a loop that
+paused or stopped itself because our heartbeat was late (host_lost) raises `host_lost`, so
+nobody is left looking at a run that paused for no reason they can see.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import asyncio
 
 from ...channels import ChannelsError
+from ...ticks import until_aligned
 from ..ws.hub import Hub
 from ..ws.messages import AlarmMessage, Histogram, StageSummary, TimingMessage
 from .run import Run
@@ -21,18 +24,23 @@ async def timing(run: Run, period_s: float, hub: Hub) -> None:
     ch = run.channels
     assert ch is not None
     while True:
-        await asyncio.sleep(period_s)
+        await asyncio.sleep(until_aligned(period_s))  # with the other once-a-second work
         # The histograms (eight of 512 buckets, converted in Python) and the message only for
         # someone who takes `timing`; the deadline-miss alarm below is checked every period.
         wanted = hub.wants("timing")
         try:
+            if not wanted:  # the alarms' fields, not the whole status converted
+                missed, host_lost = ch.alarm_counts()
+                _miss_alarm(run, missed, hub)
+                if host_lost > run.last_host_lost:  # rare: then the state's name too
+                    s = ch.status()
+                    _host_lost_alarm(run, s.host_lost, s.state_name, hub)
+                continue
             s = ch.status()
-            hists = ch.histograms() if wanted else {}
+            hists = ch.histograms()
         except ChannelsError:
             continue
-        if not wanted:
-            _miss_alarm(run, s.missed, hub)
-            continue
+        _host_lost_alarm(run, s.host_lost, s.state_name, hub)
         stages = {
             name: StageSummary(
                 count=h.count,
@@ -76,3 +84,19 @@ def _miss_alarm(run: Run, missed: int, hub: Hub) -> None:
             )
         )
         run.last_missed = missed
+
+
+def _host_lost_alarm(run: Run, lost: int, state: str, hub: Hub) -> None:
+    """`host_lost` when the loop acted on a late host heartbeat since the last period (its
+    host_timeout_action: it paused or stopped itself)."""
+    if lost > run.last_host_lost:
+        run.last_host_lost = lost
+        hub.publish(
+            AlarmMessage(
+                kind="host_lost",
+                run_id=run.row.id,
+                message=f"the controller went to {state} by itself: the appliance did not answer for over a "
+                "second (stuck or starved of CPU). Its outputs are as that state makes them; start it again "
+                "to go on.",
+            )
+        )

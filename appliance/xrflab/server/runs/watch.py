@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import functools
 import logging
 import os
@@ -28,15 +29,18 @@ import time
 from pathlib import Path
 
 from ... import build, plants
-from ...channels import ChannelsError
+from ...channels import ChannelsError, ffi, lib
 from ...profiles import ProfileError, SafeReaction, bench_profile_name, load_profile, safe_reaction
+from ...runfolder import RunFolder
+from ...ticks import until_aligned
 from ..settings import Settings
 from ..ws.hub import Hub
 from ..ws.messages import AlarmMessage
+from . import watch_record
 from .control import terminate
 from .limits import RunLimits
 from .run import Run
-from .safety import SafetyWatcher, WatchResult, fpga_reset
+from .safety import SPI_SPEED_HZ, SafetyWatcher, WatchResult, fpga_reset, hold_message
 from .store import RunStore
 
 log = logging.getLogger("xrflab.supervisor")
@@ -61,6 +65,13 @@ def start_watcher(run: Run, settings: Settings) -> None:
     avoid = lim.cpus if lim is not None and not lim.layers.get("cpu") else set()
     real = settings.bench_is_real()
     reaction = run_safe_reaction(run.row.sim, real, settings)
+    if real and reaction.name == "hold" and os.environ.get("XRF_TRANSPORT") == "evl-spidev":
+        # bench_refusal refuses such a run at start; should one get here all the same: the
+        # watcher follows the arm's counters with in-band transfers while the loop runs, a loop
+        # on EVL's out-of-band SPI holds the bus, and a watcher blocked in a transfer could not
+        # act at all. Zero (the FPGA RESET) is what it can always do.
+        log.warning("run %s: hold needs the in-band spidev transport (XRF_TRANSPORT=evl-spidev): zero", run.row.id)
+        reaction = safe_reaction(None)
     try:
         w = SafetyWatcher(
             run.row.pid or run.proc.pid,
@@ -68,17 +79,23 @@ def start_watcher(run: Run, settings: Settings) -> None:
             hang_timeout_ms=hang_ms,
             check_ms=max(2, min(20, hang_ms // 10)),
             force_sim=info.get("transport", "sim") == "sim",
-            spi_device=settings.spi_device if real else "",
+            spi_device=settings.spi_bench() if real else "",
             rt_priority=max(0, prio),
             avoid_cpus=avoid,
             safe_reaction=reaction.name,
             brake_channel=reaction.brake_channel,
-            plant=hold_plant(run.row.sim or settings.sim) if reaction.name == "hold" else 0,
+            host_beat_ms=int(settings.host_heartbeat_period_s * 1000),
+            host_grace_ms=settings.host_stall_grace_ms,
+            **hold_config(reaction, run.row.sim or settings.sim, real),
         )
     except (OSError, ValueError) as exc:  # ESRCH: the loop is already gone; wait_for_exit handles it
         log.warning("run %s: no safety watcher (%s); the event loop watches instead", run.row.id, exc)
         return
     run.watcher = w
+    if real and reaction.name == "hold":
+        status, channel = w.hold_ready()
+        if status:  # said now, not first found out at a fault
+            log.warning("run %s: %s", run.row.id, hold_message(status, channel))
     asyncio.get_running_loop().add_reader(w.fileno(), on_watch, run)
     if reaction.name == "hold":
         start_backup(run, reaction, settings)
@@ -98,20 +115,117 @@ def start_backup(run: Run, reaction: SafeReaction, settings: Settings) -> None:
     if run.shm_fd < 0:
         log.warning("run %s: no segment descriptor: no backup watcher for the arm", run.row.id)
         return
+    # The run folder as RunFolder opens it (no link followed), handed over: where xrf-watch writes
+    # what it did if we are gone (server/runs/watch_record.py reads it back after a restart).
+    folder: RunFolder | None = None
     try:
         exe = _watch_exe()
+        folder = RunFolder(run.run_dir)
         run.backup = subprocess.Popen(
             [str(exe), "--shm-fd", str(run.shm_fd), "--loop", str(run.row.pid or run.proc.pid)]
             + ["--host", str(os.getpid()), "--reaction", reaction.name]
-            + (["--spi", settings.spi_device] if settings.bench_is_real() else ["--plant", run.row.sim or settings.sim])
-            + ["--rt-priority", str(max(0, settings.watch_priority))],
-            pass_fds=(run.shm_fd,),
+            + (
+                ["--spi", ",".join(settings.spi_bench()), "--plant", reaction.robot, "--counts-per-rev"]
+                + [str(reaction.counts_per_rev), "--enc-inverted", str(reaction.enc_inverted)]
+                + ["--pwm-reversed", str(reaction.pwm_reversed)]
+                if settings.bench_is_real()
+                else ["--plant", run.row.sim or settings.sim]
+            )
+            + ["--rt-priority", str(max(0, settings.watch_priority))]
+            + ["--record-dir-fd", str(folder.fd), "--record", watch_record.RECORD],
+            pass_fds=(run.shm_fd, folder.fd),
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             start_new_session=True,
         )
     except (OSError, build.BuildError) as exc:
         log.warning("run %s: no backup watcher for the arm (%s)", run.row.id, exc)
+    finally:
+        if folder is not None:
+            folder.close()
+
+
+def hold_config(reaction: SafeReaction, plant: str, real: bool) -> dict[str, int]:
+    """The watcher's `hold` settings: the arm's plant row (the run's simulated plant; on a real
+    bench the bench profile's robot) and, on a real bench, the profile's encoder scale and wiring
+    (docs/developers/safety.md, "hold on a real bench"). Empty for the other reactions."""
+    if reaction.name != "hold":
+        return {}
+    if not real:
+        return {"plant": hold_plant(plant)}
+    return {
+        "plant": hold_plant(reaction.robot),
+        "enc_counts_per_rev": reaction.counts_per_rev,
+        "enc_inverted": reaction.enc_inverted,
+        "pwm_reversed": reaction.pwm_reversed,
+    }
+
+
+def bench_refusal(settings: Settings) -> str:
+    """Why a run may not start on this real bench, or "": every ico board its profile's channels
+    need (channels.h: 4 per board) must have its SPI device configured (Settings.spi_devices, one
+    per board) and open as one, or the loop could not reach it and the safety watcher's frames
+    could not make it safe."""
+    if not settings.bench_is_real():
+        return ""
+    name = bench_profile_name("", True)
+    if not name:
+        return ""
+    try:
+        profile = load_profile(name, settings.data_dir)
+    except ProfileError:
+        return ""  # run_safe_reaction says so; the bench is then one board, as without a profile
+    channels = max((int(ch["channel"]) for ch in profile.get("channels") or []), default=1)
+    per_board = int(lib.XRF_ICO_CHANNELS)
+    boards = -(-channels // per_board)
+    if os.environ.get("XRF_TRANSPORT") == "evl-spidev":
+        # The out-of-band transport gives the loop the bus: the watcher's in-band count samples
+        # (hold's) would block behind it, and it reaches one board (evl_spidev.c).
+        if safe_reaction(profile).name == "hold":
+            return (
+                f"bench profile {name!r} needs the safe reaction 'hold' (an arm that falls when its motors are off): "
+                "the safety watcher follows the arm over in-band SPI beside the loop, and XRF_TRANSPORT=evl-spidev "
+                "gives the bus to the loop, so on a fault the watcher could only drop the arm. Use XRF_TRANSPORT=spidev "
+                "(or auto) on this bench (docs/developers/safety.md)"
+            )
+        if boards > 1:
+            return (
+                f"bench profile {name!r} has {channels} channels on {boards} ico boards, and XRF_TRANSPORT=evl-spidev "
+                "drives one board: use XRF_TRANSPORT=spidev (or auto) with one device per board in XRF_SPI_DEVICES "
+                "(docs/install/pi.md)"
+            )
+    devices = settings.spi_bench()
+    if len(devices) < boards:
+        return (
+            f"bench profile {name!r} has {channels} channels on {boards} ico boards, but "
+            f"{len(devices)} SPI device{'s' if len(devices) > 1 else ''} {'are' if len(devices) > 1 else 'is'} "
+            f"configured ({', '.join(devices)}): board {len(devices) + 1}'s device is missing. Set XRF_SPI_DEVICES "
+            f"to one device per board, board 1 first (e.g. {','.join(SPI_EXAMPLE)}; docs/install/pi.md)"
+        )
+    return spi_problem(devices[:boards])
+
+
+# The Pi's chip selects for boards 2 and 3 after board 1's default (docs/install/pi.md).
+SPI_EXAMPLE = (Settings.spi_device, "/dev/spidev0.1", "/dev/spidev1.0")
+
+
+def spi_problem(devices: tuple[str, ...]) -> str:
+    """Nothing ("") when every board's device opens as an SPI device (rt_core's own open: xrf_spi_probe),
+    else which one does not and why."""
+    failed = ffi.new("int32_t *")
+    r = lib.xrf_spi_probe(",".join(devices).encode(), SPI_SPEED_HZ, failed)
+    if r == 0:
+        return ""
+    which = (
+        f"board {failed[0] + 1}'s SPI device {devices[failed[0]]}" if 0 <= failed[0] < len(devices) else "SPI devices"
+    )
+    why = {
+        -errno.ENOENT: "does not exist",
+        -errno.ENOTTY: "is not an SPI device (a regular file or another kind of device)",
+        -errno.EISDIR: "is a folder, not an SPI device",
+        -errno.EACCES: "is not read/writable by the appliance",
+    }.get(r, f"cannot be opened: {os.strerror(-r)}")
+    return f"{which} {why} (errno {-r})"
 
 
 def hold_plant(name: str) -> int:
@@ -174,7 +288,7 @@ def safe_state(run: Run, settings: Settings) -> None:
         run.channels.force_sim_outputs_off()
         run.safe_state = "sim outputs forced off"
     elif settings.bench_is_real():
-        run.safe_state = fpga_reset(settings.spi_device)
+        run.safe_state = fpga_reset(",".join(settings.spi_bench()))
     else:
         # The simulated board lives inside the loop process: with no shm it died with it.
         run.safe_state = "simulated board ended with the process"
@@ -189,7 +303,9 @@ async def wait_for_exit(run: Run, settings: Settings) -> int:
         with contextlib.suppress(ValueError, OSError):
             asyncio.get_running_loop().remove_reader(w.fileno())
         # The exit has happened: stop() lets the thread handle it first if it has not yet.
-        take_watch(run, await asyncio.to_thread(w.stop))
+        final = await asyncio.to_thread(w.stop)  # for `hold`: once the arm is at rest
+        take_watch(run, final)
+        run.watch_final = final
     if run.backup is not None:  # it saw the loop end first and leaves by itself
         try:
             await asyncio.to_thread(run.backup.wait, 10)
@@ -204,15 +320,38 @@ async def wait_for_exit(run: Run, settings: Settings) -> int:
 
 # ---- heartbeats ---------------------------------------------------------------------------------
 
+ALIVE_PERIOD_S = 1.0  # "the event loop is alive" to the safety watcher, on the whole second
+
 
 async def heartbeat(run: Run, settings: Settings) -> None:
-    """Host heartbeat out, loop heartbeat in (hang detection where no watcher runs)."""
+    """Host heartbeat out, loop heartbeat in (hang detection where no watcher runs).
+
+    Where the safety watcher runs (the usual case) it detects a hang itself, every few ms in C,
+    and its thread writes the host heartbeat host_heartbeat_period_s apart for
+    host_stall_grace_ms after this task last said the event loop is alive (watch.h,
+    host_beat_ns): the beat the loop's host timeout counts on is the watcher's, which dies with
+    this process (the loop pauses within host_timeout_ms of the appliance's death, as before).
+    So this task only says "alive" (and beats too, for good measure) once a second, on the
+    whole second with the appliance's other once-a-second work (`until_aligned`), not 5 times
+    a second on a timer of its own (issue 30 item 4: a fifth of the idle appliance's Python
+    time): an event loop that stops running still pauses the run, after the grace less at most
+    ALIVE_PERIOD_S (4-5 s instead of 4.8-5 s). Without a watcher this task is the only beat:
+    host_heartbeat_period_s apart (at most a quarter of host_timeout_ms, so the loop pauses only
+    after three missed beats), and it also reads the loop's heartbeat, a quarter of
+    hang_timeout_ms apart."""
     ch = run.channels
     assert ch is not None
     hang_ns = settings.hang_timeout_ms * 1_000_000
+    beat_s = min(settings.host_heartbeat_period_s, settings.host_timeout_ms / 4000)
+    # A sign of life at least four times per grace: a short grace (tests) keeps its meaning.
+    alive_s = min(ALIVE_PERIOD_S, settings.host_stall_grace_ms / 4000)
     last_good = time.monotonic_ns()
     while run.alive:
         ch.host_heartbeat()
+        if run.watcher is not None:
+            run.watcher.host_alive()  # it beats on our behalf while we were alive within the grace
+            await asyncio.sleep(until_aligned(alive_s))
+            continue
         now = time.monotonic_ns()
         try:
             s = ch.status()
@@ -223,20 +362,22 @@ async def heartbeat(run: Run, settings: Settings) -> None:
             stale = s.running and s.heartbeat_ns > 0 and now - s.heartbeat_ns > hang_ns
             if not stale:
                 last_good = now
-        if run.watcher is None and now - last_good > hang_ns and run.alive:
+        if now - last_good > hang_ns and run.alive:
             run.hang = True
             safe_state(run, settings)
             run.exited_at = time.monotonic()
             with contextlib.suppress(ProcessLookupError):
                 run.proc.send_signal(signal.SIGKILL)
             return
-        await asyncio.sleep(min(settings.host_heartbeat_period_s, settings.hang_timeout_ms / 4000))
+        await asyncio.sleep(min(beat_s, settings.hang_timeout_ms / 4000))
 
 
 # ---- the kernel's limits -------------------------------------------------------------------------
 
-LIMITS_PERIOD_S = 0.25
-WATCHED_DISK_EVERY = 8  # looks (2 s): walking a run folder is not free
+# A guard, not a bound: the kernel has refused the page, the fork or the write already; the guard
+# only ends the run and says why. Once a second (it was four times: issue 30 item 4).
+LIMITS_PERIOD_S = 1.0
+WATCHED_DISK_EVERY = 2  # looks (2 s): walking a run folder is not free
 LIMIT_REASONS = ("memory", "pids", "disk", "cpu")
 
 
@@ -259,11 +400,11 @@ def publish_limit_alarm(run: Run, reason: str, message: str, hub: Hub) -> None:
 async def limits_guard(run: Run, limits: RunLimits, settings: Settings, store: RunStore, hub: Hub) -> None:
     """From the run's start (before its shared memory exists): the kernel already refuses what
     goes over a limit (a page, a fork, a write); once the run did, it is stopped with an alarm of
-    that kind. A few cgroup counters and one statvfs, four times a second: read here, not in a
+    that kind. A few cgroup counters and one statvfs, once a second: read here, not in a
     worker thread (the default executor's few threads may all be waiting on something slow)."""
     looks = 0
     while run.alive and not run.ended.is_set():
-        await asyncio.sleep(LIMITS_PERIOD_S)
+        await asyncio.sleep(until_aligned(LIMITS_PERIOD_S))  # with the other once-a-second work
         looks += 1
         try:
             over = limits.over()

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from ...errors import XrfError
+from ...ticks import until_aligned
 from ..runs.lifecycle import RunObserver
 from ..ws.messages import LeaseMessage
 from .accounts import User
@@ -198,7 +199,8 @@ class Lease(RunObserver):
 
     async def watch_idle(self) -> None:
         while True:
-            await asyncio.sleep(min(1.0, max(0.1, self.idle_s / 10)))
+            # On the whole second with the appliance's other once-a-second work (issue 30 item 4)
+            await asyncio.sleep(until_aligned(min(1.0, max(0.1, self.idle_s / 10))))
             self.check_idle()
 
     def start(self) -> None:

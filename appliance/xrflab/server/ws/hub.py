@@ -13,7 +13,8 @@ Not every message is everyone's: `Hub.scope` (ownership.scope, set by ownership.
 a message's owner and what other clients receive instead; the full text goes to clients whose
 user `Hub.may_see` the owner, the public one (encoded once too) to the rest.
 
-What the hub takes is typed: a model of server/ws/messages.py (`ServerMessage`), never a dict, so a message
+What the hub takes is typed: a model of server/ws/messages.py (`ServerMessage`), never a dict (but
+for telemetry's wire fields, `publish_fields`, whose producer checks them against the model), so a message
 is checked against the protocol where it is built and its sender's name is in the traceback. It
 is turned into its wire fields once (`unpack`: the fields the sender set, as JSON values), which
 the listeners, the scope rule and the encoder share.
@@ -29,9 +30,10 @@ from collections import deque
 from collections.abc import Callable, Iterable
 from typing import Any, NamedTuple
 
+import msgspec
 from starlette.websockets import WebSocket
 
-from .messages import SERVER, TOPICS, ReplyMessage, ServerMessage
+from .messages import SERVER, SERVER_KINDS, TOPICS, ReplyMessage, ServerMessage
 
 __all__ = ["TOPICS", "Client", "ClientQueue", "Hub", "Scoped", "SlowClient", "encode", "unpack"]
 
@@ -49,13 +51,19 @@ def unpack(message: ServerMessage) -> tuple[str, dict[str, Any]]:
     return message.type, message.model_dump(mode="json", by_alias=True, exclude_unset=True, exclude=_NOT_PAYLOAD)
 
 
+# msgspec's encoder (a dependency of viser's too): the same compact JSON as json.dumps with these
+# separators, 5x quicker (3 against 16 us for a telemetry message), and NaN/inf as null, which is
+# what browsers' JSON.parse needs (a controller computing NaN must not break the fan-out).
+_JSON = msgspec.json.Encoder()
+
+
 def encode(message_type: str, payload: dict[str, Any]) -> str:
     message = {"type": message_type, **payload}
     try:
-        return json.dumps(message, separators=(",", ":"), allow_nan=False)
-    except ValueError:
-        # A controller computing NaN/inf must not break the fan-out, and browsers' JSON.parse
-        # rejects those tokens: they go out as null.
+        return _JSON.encode(message).decode()
+    except (TypeError, ValueError, OverflowError):
+        # Something msgspec does not take (a key that is not a string, say): the slow way, with
+        # the same rule for non-finite floats.
         return json.dumps(_finite(message), separators=(",", ":"), allow_nan=False)
 
 
@@ -179,6 +187,9 @@ class Hub:
         # Called with every published message (its typed model) before the fan-out (the room's
         # bench publisher: it hears what the dashboards hear).
         self.listeners: list[Callable[[ServerMessage], None]] = []
+        # Called after a client connected: producers that slow down with nobody connected
+        # (server/runs/reader.py) speed up at once instead of at their next idle wake-up.
+        self.on_client: list[Callable[[], None]] = []
         # Per-client filtering (ownership.attach sets both): whose a message is, and whether a
         # client's user may see what that owner owns. The defaults let everyone see everything.
         self.scope: Callable[[str, dict[str, Any]], Scoped | None] = lambda message_type, payload: None
@@ -214,6 +225,8 @@ class Hub:
             kind, fields = unpack(message)
             self._fan_out(kind, fields, (client,), topics=False)
         self._clients.add(client)
+        for fn in self.on_client:
+            fn()
         return client
 
     def disconnect_user(self, user_id: int, reason: str) -> int:
@@ -245,8 +258,35 @@ class Hub:
         server/ws/messages.py server model."""
         self._publish(message, None)
 
+    def publish_fields(self, message_type: str, fields: dict[str, Any]) -> None:
+        """`publish` for a message given as its wire fields (JSON values, the fields its sender
+        sets), not a model: for the one stream whose model costs more than the rest of its fan-out
+        (the reader's telemetry, 30 messages a second: building and dumping the model ~22 us a
+        message, issue 30 item 4). Its producer checks that its fields fit the model where they
+        could go wrong (its first message, server/runs/reader.py) and builds every later one
+        the same way; tests/server/test_ws_schema.py checks what a session receives. Listeners
+        (which take models) get one, validated, when there are any."""
+        if message_type not in SERVER_KINDS:
+            raise TypeError(f"{message_type!r} is not a server message kind (server/ws/messages.py)")
+        if self.listeners:
+            message = SERVER_KINDS[message_type].model_validate({"type": message_type, **fields})
+            self._publish(message, None)  # type: ignore[arg-type]  # SERVER_KINDS holds server models only
+            return
+        if not self._clients:
+            return
+        self.published += 1
+        self._fan_out(message_type, fields, tuple(self._clients))
+
     def _publish(self, message: ServerMessage, audience: Scoped | None) -> None:
-        kind, fields = unpack(message)  # checked and dumped even with nobody listening: one rule
+        if not self.listeners and not self._clients:
+            # Nobody to tell: not even dumped (a deadline-miss alarm a second on a busy machine,
+            # with no dashboard open: issue 30 item 4); still only a server model is taken.
+            if not isinstance(message, SERVER):
+                raise TypeError(
+                    f"the hub sends server/ws/messages.py models (ServerMessage), not {type(message).__name__}"
+                )
+            return
+        kind, fields = unpack(message)
         for listener in self.listeners:
             try:
                 listener(message)

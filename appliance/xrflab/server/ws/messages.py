@@ -15,6 +15,8 @@ Senders build the model (``StateMessage(run_id=..., ...)``; an outgoing model's 
 kind as default, and stays required in the published schema) and hand it to the hub, which takes
 nothing else (``ServerMessage``, ``ReplyMessage``). The model is validated when it is built, so a
 sender whose message does not fit fails there, with the field named, and never reaches a browser.
+Telemetry (30 a second) is the exception: the reader builds its wire fields and checks the first
+against ``TelemetryMessage`` (``Hub.publish_fields``: the model cost more than the fan-out).
 On the wire a message has the fields its sender set, nothing else: a field left out is absent (not
 null), as app.js and the room's bench publisher read them (``hub.unpack``: exclude_unset).
 
@@ -214,6 +216,7 @@ class AlarmMessage(_Out):
         "memory",
         "pids",
         "cpu",
+        "host_lost",
     ]
     message: str
     run_id: int | None = None

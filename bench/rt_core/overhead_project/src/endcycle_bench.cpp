@@ -27,7 +27,7 @@ int main(int argc, char **argv)
     for (long i = 0; i < n; i++) {
         for (int s = XRF_STAGE_FPGA; s <= XRF_STAGE_LOGGER; s++)
             rt.stage(s, 1000 + (i & 1023));
-        rt.endCycle(t, t - 2000 - (i & 4095), t + 5000, false, 900000);
+        rt.endCycle(t, t - 2000 - (i & 4095), t + 5000, 0, 900000);
         t += 1000000;
     }
     const int64_t t1 = nowNs();

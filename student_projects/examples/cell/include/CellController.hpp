@@ -2,7 +2,9 @@
 #define CELLCONTROLLER_HPP
 
 #include "Encoder.hpp"
+// >>> student part: the template leaves this to the student
 #include "Pid.hpp"
+// <<< student part
 #include "XenoFrtRosIco.hpp"
 
 #pragma pack(push, 1)
@@ -53,7 +55,9 @@ private:
     CellLog log_data;
 
     Axis axis[axes];
+    // >>> student part: the template leaves this to the student
     Pid pid[axes];
+    // <<< student part
     bool homed = false;
     bool board_initialised = false;
     unsigned homing_cycles = 0;

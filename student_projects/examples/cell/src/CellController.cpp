@@ -21,12 +21,14 @@ constexpr double homing_pwm = 300.0;
 // A switch not found in this long is a broken switch or a jammed axis: ERROR,
 // not a run away.
 constexpr unsigned homing_timeout_s = 20;
+// >>> student part: the template leaves this to the student
 // PID gains in PWM counts per load unit of error (per rad for the table, per m
 // otherwise), scaled from the stage example's by each axis's load units per
 // motor radian.
 constexpr double kp[3] = {2500.0, 80000.0, 40000.0};
 constexpr double ki[3] = {5000.0, 160000.0, 80000.0};
 constexpr double kd[3] = {50.0, 1600.0, 800.0};
+// <<< student part
 
 double clamp(double v, double lo, double hi)
 {
@@ -37,9 +39,12 @@ double clamp(double v, double lo, double hi)
 CellController::CellController(unsigned cycle_freq, unsigned write_decimator_freq,
                                unsigned monitor_freq)
     : XenoFrtRosIco(cycle_freq, write_decimator_freq, monitor_freq, file, &log_data),
-      file(true, "logs/cell", "bin"), pid{Pid(kp[0], ki[0], kd[0], pwm_limit, 1.0 / cycle_freq),
-                                          Pid(kp[1], ki[1], kd[1], pwm_limit, 1.0 / cycle_freq),
-                                          Pid(kp[2], ki[2], kd[2], pwm_limit, 1.0 / cycle_freq)}
+      file(true, "logs/cell", "bin"),
+      // >>> student part: the template leaves this to the student
+      pid{Pid(kp[0], ki[0], kd[0], pwm_limit, 1.0 / cycle_freq),
+          Pid(kp[1], ki[1], kd[1], pwm_limit, 1.0 / cycle_freq),
+          Pid(kp[2], ki[2], kd[2], pwm_limit, 1.0 / cycle_freq)}
+// <<< student part
 {
     logger.addVariable("table_setpoint", double_);
     logger.addVariable("press_setpoint", double_);
@@ -156,10 +161,12 @@ int CellController::initialised()
 {
     actuate_data = {};
     measure();
+    // >>> student part: the template leaves this to the student
     double set[axes];
     setpoints(set);
     for (int i = 0; i < axes; i++)
         pid[i].reset(set[i] - axis[i].position);
+    // <<< student part
     return 0;
 }
 
@@ -175,8 +182,10 @@ int CellController::run()
     }
     double set[axes];
     setpoints(set);
+    // >>> student part: the template leaves this to the student
     for (int i = 0; i < axes; i++)
         setPwm(i, pid[i].update(set[i] - axis[i].position));
+    // <<< student part
 
     log_data = {set[0], set[1], set[2], axis[0].position, axis[1].position, axis[2].position};
     monitor.printf("cell: table %.3f rad  press %.4f m  feeder %.4f m\n", axis[0].position,
@@ -208,10 +217,12 @@ int CellController::paused()
 {
     actuate_data = {};
     measure();
+    // >>> student part: the template leaves this to the student
     double set[axes];
     setpoints(set);
     for (int i = 0; i < axes; i++)
         pid[i].reset(set[i] - axis[i].position);
+    // <<< student part
     return 0;
 }
 

@@ -6,8 +6,7 @@
 #include "Pid.hpp"
 
 #pragma pack(push, 1)
-struct JiwyLog
-{
+struct JiwyLog {
     double pan_setpoint = 0.0;
     double pan = 0.0;
     double tilt_setpoint = 0.0;
@@ -43,7 +42,7 @@ private:
 
     Encoder encoder_pan, encoder_tilt;
     Pid pid_pan, pid_tilt;
-    double pan = 0.0, tilt = 0.0;  // rad at the camera
+    double pan = 0.0, tilt = 0.0; // rad at the camera
     bool board_initialised = false;
 };
 

@@ -6,8 +6,7 @@
 #include "Pid.hpp"
 
 #pragma pack(push, 1)
-struct RelbotLog
-{
+struct RelbotLog {
     double setpoint_left = 0.0;
     double pos_left = 0.0;
     double setpoint_right = 0.0;
@@ -44,7 +43,7 @@ private:
 
     Encoder encoder_left, encoder_right;
     Pid pid_left, pid_right;
-    double pos_left = 0.0, pos_right = 0.0;  // rad at the wheel, forward positive
+    double pos_left = 0.0, pos_right = 0.0; // rad at the wheel, forward positive
     bool board_initialised = false;
 };
 

@@ -6,8 +6,7 @@
 #include "Pid.hpp"
 
 #pragma pack(push, 1)
-struct StageLog
-{
+struct StageLog {
     double position_setpoint = 0.0;
     double position = 0.0;
     int pwm = 0;
@@ -39,7 +38,7 @@ private:
 
     Encoder encoder;
     Pid pid;
-    double position = 0.0;  // m
+    double position = 0.0; // m
     bool board_initialised = false;
 };
 

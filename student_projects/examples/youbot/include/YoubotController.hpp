@@ -61,11 +61,15 @@ private:
 
     Encoder encoder[channels];
     Pid joint_pid[joints];
+    // >>> student part: the template leaves this to the student
     Pid wheel_pid[wheels];
+    // <<< student part
     double q[joints] = {};         // measured joint angles, rad
     double reference[joints] = {}; // where the joint PIDs hold the arm, rad
     double wheel[wheels] = {};     // measured wheel angles, rad
+    // >>> student part: the template leaves this to the student
     double wheel_reference[wheels] = {};
+    // <<< student part
     double dt;
 
     bool encoders_zeroed = false;

@@ -41,11 +41,13 @@ constexpr double wheel_radius = 0.05;
 constexpr double half_base_plus_track = 0.236 + 0.150;
 constexpr double max_speed = 0.2; // m/s
 constexpr double max_turn = 0.5;  // rad/s
+// >>> student part: the template leaves this to the student
 // Wheel feed-forward: PWM counts per wheel rad/s (motor constant 0.03 V·s/rad,
 // an assumption as the simulated plant's, 26:1, 24 V = 2047 counts), and a PID
 // on the wheel's angle against its integrated reference.
 constexpr double wheel_ff = 0.03 * wheel_gear / 24.0 * 2047.0;
 constexpr double wheel_kp = 400.0, wheel_ki = 200.0, wheel_kd = 5.0;
+// <<< student part
 
 double clamp(double v, double lo, double hi)
 {
@@ -62,10 +64,12 @@ YoubotController::YoubotController(unsigned cycle_freq, unsigned write_decimator
                 Pid(joint_kp[2], joint_ki[2], joint_kd[2], pwm_limit, 1.0 / cycle_freq),
                 Pid(joint_kp[3], joint_ki[3], joint_kd[3], pwm_limit, 1.0 / cycle_freq),
                 Pid(joint_kp[4], joint_ki[4], joint_kd[4], pwm_limit, 1.0 / cycle_freq)},
+      // >>> student part: the template leaves this to the student
       wheel_pid{Pid(wheel_kp, wheel_ki, wheel_kd, pwm_limit, 1.0 / cycle_freq),
                 Pid(wheel_kp, wheel_ki, wheel_kd, pwm_limit, 1.0 / cycle_freq),
                 Pid(wheel_kp, wheel_ki, wheel_kd, pwm_limit, 1.0 / cycle_freq),
                 Pid(wheel_kp, wheel_ki, wheel_kd, pwm_limit, 1.0 / cycle_freq)},
+      // <<< student part
       dt(1.0 / cycle_freq)
 {
     logger.addVariable("j1", double_);
@@ -195,11 +199,13 @@ bool YoubotController::baseCommanded() const
 
 void YoubotController::stillBase()
 {
+    // >>> student part: the template leaves this to the student
     for (int w = 0; w < wheels; w++) {
         wheel_reference[w] = wheel[w];
         wheel_pid[w].reset(0.0);
         setPwm(joints + w, 0.0);
     }
+    // <<< student part
 }
 
 // A base command while the arm is not ready: the wheels stay still, and the
@@ -216,6 +222,7 @@ void YoubotController::refuseBase()
 // the base's velocity, each wheel's angle following its integrated reference.
 void YoubotController::driveBase()
 {
+    // >>> student part: the template leaves this to the student
     double vx = clamp(ros_msg.base_vx, -max_speed, max_speed);
     double vy = clamp(ros_msg.base_vy, -max_speed, max_speed);
     double wz = clamp(ros_msg.base_wz, -max_turn, max_turn) * half_base_plus_track;
@@ -226,6 +233,7 @@ void YoubotController::driveBase()
         setPwm(joints + w,
                speed[w] * wheel_ff + wheel_pid[w].update(wheel_reference[w] - wheel[w]));
     }
+    // <<< student part
 }
 
 int YoubotController::initialising()

@@ -147,7 +147,9 @@ int Template::initialised()
 {
     actuate_data = {};
     measure();
+    // >>> student part: the template leaves this to the student
     // TODO: reset your controller's state (integrators) to the current error here.
+    // <<< student part
     return 0;
 }
 
@@ -163,10 +165,12 @@ int Template::run()
     }
     double set[axes];
     setpoints(set);
+    // >>> student part: the template leaves this to the student
     // TODO: your control law: one PWM per axis from set[i] and axis[i].position, e.g.
     // setPwm(i, gain * (set[i] - axis[i].position)). setPwm clamps to the 20 % limit.
     for (int i = 0; i < axes; i++)
         setPwm(i, 0.0);
+    // <<< student part
 
     log_data = {set[0], set[1], set[2], axis[0].position, axis[1].position, axis[2].position};
     monitor.printf("cell: table %.3f rad  press %.4f m  feeder %.4f m\n", axis[0].position,
@@ -198,7 +202,9 @@ int Template::paused()
 {
     actuate_data = {};
     measure();
+    // >>> student part: the template leaves this to the student
     // TODO: reset your controller's state (integrators) to the current error here.
+    // <<< student part
     return 0;
 }
 

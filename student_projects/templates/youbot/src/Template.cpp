@@ -185,8 +185,11 @@ bool Template::baseCommanded() const
 
 void Template::stillBase()
 {
+    // >>> student part: the template leaves this to the student
+    // TODO: reset your base controller's state (references, integrators) here.
     for (int w = 0; w < wheels; w++)
         setPwm(joints + w, 0.0);
+    // <<< student part
 }
 
 // A base command while the arm is not ready: the wheels stay still, and the
@@ -208,8 +211,10 @@ void Template::refuseBase()
 // the base stays still.
 void Template::driveBase()
 {
+    // >>> student part: the template leaves this to the student
     for (int w = 0; w < wheels; w++)
         setPwm(joints + w, 0.0);
+    // <<< student part
 }
 
 int Template::initialising()

@@ -31,6 +31,7 @@ public:
     XenoFileHandler file;
     Logged logged{};
     struct timespec last_wakeup{};
+    long long last_missed = 0;
     int cycles_seen = 0;
 
 protected:
@@ -124,11 +125,18 @@ private:
         // t6/t7 are last cycle's logger stage: before this cycle began.
         if (cycles_seen > 0)
             CHECK(ns(t6) <= ns(t7) && ns(t7) <= ns(t1));
-        // The grid: one period (2 ms at 500 Hz) between deadlines; start_time is its origin.
-        if (cycles_seen > 0)
-            CHECK(ns(wakeup_time) - ns(last_wakeup) == 2 * MSEC);
+        // The grid: whole periods (2 ms at 500 Hz) between deadlines, start_time its origin; one
+        // period unless the loop overran, and then every period skipped is counted as missed
+        // (docs/rt_core/runtime.md, "After an overrun").
+        const long long missed = getMissedCycles();
+        if (cycles_seen > 0) {
+            const long long step = ns(wakeup_time) - ns(last_wakeup);
+            CHECK(step >= 2 * MSEC && step % (2 * MSEC) == 0);
+            CHECK(step / (2 * MSEC) - 1 <= missed - last_missed);
+        }
         CHECK((ns(wakeup_time) - ns(start_time)) % (2 * MSEC) == 0);
         last_wakeup = wakeup_time;
+        last_missed = missed;
         // idle_time: when the last cycle's work ended, i.e. before this cycle began.
         struct timespec idle = getIdleTime();
         CHECK(ns(idle) == ns(idle_time));

@@ -1,0 +1,62 @@
+"""When the reader wakes by itself for the next sample due (server/runs/reader.py,
+`next_publication`): with a dashboard taking telemetry it wakes just after the loop publishes the
+sample due to be sent, not for the samples the decimation skips (issue 30 item 4), and follows
+the doorbell where that time is not known."""
+
+from __future__ import annotations
+
+from xrflab.server.runs.reader import next_publication
+
+MS = 1_000_000
+PERIOD_30HZ = 1_000_000_000 // 30
+
+
+def test_the_wake_up_is_at_the_publication_of_the_sample_due() -> None:
+    # A RELbot publishes every 20 ms (50 Hz); dashboards get 30 Hz. Last sample read at 100 ms,
+    # the next one due at 133.3 ms: published at 140 ms (the second after 100 ms).
+    assert next_publication(100 * MS + PERIOD_30HZ, 100 * MS, 20 * MS, PERIOD_30HZ) == 140 * MS
+    # Due exactly at a publication: that one.
+    assert next_publication(140 * MS, 100 * MS, 20 * MS, PERIOD_30HZ) == 140 * MS
+    # A loop publishing slower than the dashboards' rate: the next publication.
+    assert next_publication(100 * MS + PERIOD_30HZ, 100 * MS, 50 * MS, PERIOD_30HZ) == 150 * MS
+
+
+def test_the_doorbell_without_what_it_needs() -> None:
+    assert next_publication(133 * MS, 100 * MS, 0, PERIOD_30HZ) == 0  # spacing unknown (first sample)
+    assert next_publication(100 * MS, 100 * MS, 20 * MS, PERIOD_30HZ) == 0  # the next sample is due already
+    assert next_publication(90 * MS, 100 * MS, 20 * MS, PERIOD_30HZ) == 0
+    # A sample due far beyond a period (a gap in the loop's publications): the doorbell.
+    assert next_publication(100 * MS + 10 * PERIOD_30HZ, 100 * MS, 20 * MS, PERIOD_30HZ) == 0
+
+
+def test_the_console_poll_goes_with_a_reader_wake_up() -> None:
+    """With a dashboard taking monitor lines the output poll (10 a second) waits for the reader's
+    first wake-up past its due time (`with_reader`, `output_due`), so it costs no wake-up of the
+    event loop of its own; not before it is due, and its own timer only if the reader never
+    wakes."""
+    import asyncio
+    import time
+    from types import SimpleNamespace
+
+    from xrflab.server.runs.reader import output_due, with_reader
+
+    async def main() -> None:
+        run = SimpleNamespace(output_due=0.0, output_poll=asyncio.Event())
+        waiting = asyncio.create_task(with_reader(run, 30.0))  # type: ignore[arg-type]  # its own timer: 45 s
+        await asyncio.sleep(0)  # the task registers what it waits for
+        assert run.output_due > time.monotonic() + 29
+        output_due(run, time.monotonic())  # a reader wake-up before it is due: nothing
+        await asyncio.sleep(0)  # one turn of the event loop: had it been let go, it would have run
+        assert not waiting.done()
+        output_due(run, run.output_due)  # the first wake-up at or past it: the poll goes now
+        await asyncio.wait_for(waiting, 1.0)
+        assert run.output_due == 0.0  # nobody waits any more: the reader lets nothing go
+        run.output_poll.clear()
+        output_due(run, time.monotonic())
+        assert not run.output_poll.is_set()
+
+        # The reader does not wake (simulated time paused, a stalled loop): the poll's own timer.
+        late = asyncio.create_task(with_reader(run, 0.02))  # type: ignore[arg-type]
+        await asyncio.wait_for(late, 1.0)
+
+    asyncio.run(main())
