@@ -285,12 +285,14 @@ def test_publish_and_collect_from_the_page(lab: Lab, chromium_path: str) -> None
         page.fill("#room-assign-name", "Page lab")
         page.select_option("#room-assign-template", "20sim")
         page.click("#room-assign-publish")
-        page.wait_for_function("document.getElementById('room-note').textContent.includes('Page lab')")
+        page.wait_for_function("document.getElementById('room-note')?.textContent.includes('Page lab')")
         aid = next(a["id"] for a in lab.teacher.get("/api/room/assignments").json() if a["name"] == "Page lab")
         assert lab.teacher.get("/api/room/assignments").json()[-1]["template"] == "20sim"
         item = f"[data-assignment='{aid}']"
+        # The list is drawn again after the note says "published": the item may not be there yet
+        # at the first evaluation (a predicate that throws ends the wait at once).
         page.wait_for_function(
-            f"document.querySelector(\"{item} .holders\").textContent.startsWith('3 of')", timeout=15000
+            f"document.querySelector(\"{item} .holders\")?.textContent.startsWith('3 of')", timeout=15000
         )
         page.click(f"{item} .collect")
         page.wait_for_selector(f"{item} a.download", timeout=30000)

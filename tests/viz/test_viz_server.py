@@ -20,6 +20,7 @@ from websockets.sync.client import connect
 from websockets.typing import Subprotocol
 
 from xrf_testing.harness import Server, wait_for
+from xrflab.viz.recorder import load_recording
 
 
 def wait_state(server: Server, pred: Callable[[dict[str, Any]], bool], timeout: float = 10.0) -> dict[str, Any]:
@@ -148,6 +149,13 @@ def test_jiwy_joints_follow_the_setpoint_and_replay(server: Server) -> None:
     run_id = s["run_id"]
     time.sleep(1.0)  # hold the setpoint a while: the replay below scrubs a run of known length
     server.stop_run()
+    # The recording reaches the run's end: the reader hands the 3D view its samples in bulk (up
+    # to a second apart with no dashboard), and its last batch comes at the run's end. Without
+    # it the run's last second was lost (CI: a 0.34 s replay of a run 2 s long).
+    final_cycles = server.cycles(run_id)
+    last_recorded = load_recording(server.data_dir / "runs" / str(run_id)).cycle[-1]
+    cycle_freq = server.http.get(f"/api/logs/runs/{run_id}").json()["run"]["cycle_freq"]
+    assert final_cycles - last_recorded <= 0.1 * cycle_freq, (final_cycles, last_recorded, cycle_freq)
     recs = server.http.get("/api/viz/recordings").json()
     assert any(r["run_id"] == run_id and not r["active"] for r in recs), recs
     r = server.http.post("/api/viz/replay", json={"run_id": run_id})

@@ -87,6 +87,12 @@ async def record(run: Run, returncode: int, settings: Settings, store: RunStore,
     run.idle_wake.set()
     if run.thread is not None:
         await asyncio.to_thread(run.thread.join, 1.0)
+    # The reader's last batch (server/runs/reader.py): the observers' samples since its last bulk
+    # hand-over, or the 3D view's recording would lose the run's last second.
+    readers = [t for t in run.tasks if t.get_name().endswith("reader") and not t.done()]
+    if readers:
+        run.wake.set()
+        await asyncio.wait(readers, timeout=1.0)
     # Host logging drains the rest of the log ring (even after a crash) and records its counts
     # before the record says how the run ended (server/runs/lifecycle.py: on_exited).
     await lifecycle.exited(run)

@@ -185,6 +185,10 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub)
     live, live_at = False, -LIVE_RECHECK_S  # lifecycle.live(run), asked at live_at
     while True:
         await wait_wake(run, loop)
+        # The run's end (run_end.record) wakes us once more for the last batch: the observers
+        # get what the loop published since the last bulk hand-over (up to IDLE_PERIOD_S of the
+        # 3D view's recording), then the task returns before the mapping is let go.
+        final = run.thread_stop.is_set()
         now = time.monotonic()
         output_due(run, now)
         since, last_read = now - last_read, now
@@ -198,7 +202,7 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub)
         # from a quarter of a second later.
         if now >= live_at + LIVE_RECHECK_S:
             live, live_at = lifecycle.live(run), now
-        if not dashboards or now >= observed_due or live or run.thread_stop.is_set():
+        if not dashboards or now >= observed_due or live or final:
             batch = observed.read_batch()
             if batch:
                 lifecycle.samples(run, batch)
@@ -206,6 +210,8 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub)
                 observed_rate = len(batch) / (now - observed_at)
             observed_at = now
             observed_due = now + idle_period([(observed.slots, observed_rate)])
+        if final:
+            return
         # Dashboards' streams: built only when a client (or a hub listener) takes them; a client
         # that connects gets new samples, not a backlog (the cursor starts at the newest).
         if dashboards and not streaming:
