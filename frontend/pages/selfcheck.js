@@ -273,11 +273,20 @@
     warnMismatch();
   }
 
+  // The editor's loads may overlap (the page shown and the profile picked at once): only the
+  // latest fills the text, and none once someone typed after it was asked for (their edit would
+  // be replaced by the saved text under their hands; CI: an edit saved as the original).
+  let editorLoads = 0;
+  let edits = 0;
+
   async function loadEditor() {
     const name = $("pf-name").value;
     if (!name) return;
+    const load = ++editorLoads;
+    const editsBefore = edits;
     $("pf-errors").innerHTML = ""; $("pf-result").textContent = "";
     const r = await xrf.api("GET", `/api/profiles/${encodeURIComponent(name)}`);
+    if (load !== editorLoads || edits !== editsBefore) return;
     $("pf-text").value = JSON.stringify(r.profile, null, 2);
     showSource(r);
   }
@@ -338,6 +347,7 @@
         $("sc-profile").addEventListener("change", warnMismatch);
         $("sc-history-refresh").addEventListener("click", () => loadHistory().catch(() => {}));
         $("pf-name").addEventListener("change", () => loadEditor().catch((e) => { $("pf-result").textContent = e.message; }));
+        $("pf-text").addEventListener("input", () => { edits += 1; });
         $("pf-save").addEventListener("click", () => saveProfile().catch((e) => { $("pf-result").textContent = e.message; }));
         $("pf-reset").addEventListener("click", resetProfile);
       },

@@ -68,3 +68,28 @@ def test_selfcheck_refused_while_a_run_is_active(server: Server, browser) -> Non
         page.close()
     finally:
         server.stop_run()
+
+
+def test_a_late_profile_load_never_replaces_the_one_picked_or_an_edit(server: Server, browser) -> None:
+    """The page's first profile (relbot) answers slowly; the educator picks jiwy meanwhile and
+    edits it: the late answer must not put relbot's text under the jiwy name (a save would
+    then write relbot's channels into jiwy's profile) nor undo the edit."""
+    page = browser.new_page()
+    slow: list[str] = []
+
+    def relbot_slowly(route) -> None:  # type: ignore[no-untyped-def]
+        slow.append(route.request.url)
+        page.wait_for_timeout(1500)
+        route.continue_()
+
+    page.route("**/api/profiles/relbot", relbot_slowly)
+    page.goto(server.url + "/#selfcheck")
+    page.wait_for_selector("#pf-name option[value=jiwy]", state="attached", timeout=15000)
+    page.select_option("#pf-name", "jiwy")
+    page.wait_for_function("document.querySelector('#pf-text').value.includes('\"name\": \"jiwy\"')")
+    page.fill("#pf-text", page.input_value("#pf-text").replace('"title": "', '"title": "edited ', 1))
+    page.wait_for_timeout(3000)  # the relbot answer has come by now
+    assert slow, "relbot's profile was never asked for: the test did not set up the race"
+    text = page.input_value("#pf-text")
+    assert '"name": "jiwy"' in text and '"title": "edited ' in text, text[:200]
+    page.close()
