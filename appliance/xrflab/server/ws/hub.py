@@ -300,7 +300,10 @@ class Hub:
         after a client connects (issue 30: the appliance's idle footprint)."""
         if self.listeners:
             return True
-        return any(topic in client.topics for client in self._clients)
+        for client in self._clients:  # a loop, not any(genexpr): asked 2-3 times a reader batch
+            if topic in client.topics:
+                return True
+        return False
 
     def add_snapshot(self, source: Callable[[], Iterable[ServerMessage]]) -> None:
         """`source()`: the messages a client connecting now receives first; sources are asked in
