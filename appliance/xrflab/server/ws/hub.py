@@ -219,6 +219,9 @@ class Client:
                     if waiting_on is None:  # a bare yield: the event loop's next turn
                         await asyncio.sleep(0)
                     else:
+                        # What a task does with a future its coroutine yielded: take it over
+                        # (the flag says "yielded, not yet taken"; awaiting it again refuses it).
+                        waiting_on._asyncio_future_blocking = False
                         await waiting_on
                 except BaseException as exc:  # noqa: BLE001  # handed to the send, as a task would
                     waiting_on = coro.throw(exc)
