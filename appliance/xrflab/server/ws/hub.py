@@ -3,7 +3,10 @@ the others down.
 
 Every message is encoded to JSON once and the same string is queued for each client, so 30
 clients cost 30 queue appends, not 30 encodings. Each client has its own bounded queue and its
-own sender task: a browser that reads slowly only fills its own queue. Telemetry is the only
+own sender task (`Client.pump`): a browser that reads slowly only fills its own queue. A client
+whose queue is empty and whose socket takes a write at once gets a message sent by the publisher
+itself (`Client.deliver`), without a wake-up of its sender task per message; a send that would
+wait (the socket's buffer full) finishes on its own and what follows queues behind it. Telemetry is the only
 topic that is allowed to be lossy (a newer sample supersedes an older one), so a full telemetry
 queue drops its oldest entry and counts it; everything else (state, alarms, run events, errors,
 monitor lines) is kept, and a client whose queue grows past a hard limit, or that has been
