@@ -240,3 +240,31 @@ def test_a_message_goes_out_in_the_publishers_turn_and_in_order_when_a_send_wait
         client.stop()
 
     asyncio.run(main())
+
+
+def test_monitor_lines_by_their_fields_go_out_as_their_model_would() -> None:
+    """The reader's monitor message (reader.monitor_message_fields through Hub.publish_fields):
+    the same text as MonitorMessage through publish, to the owner and educators only."""
+    from xrflab.channels.rings import MonitorLine as RingLine
+    from xrflab.server.runs.reader import monitor_message_fields
+    from xrflab.server.ws.messages import MonitorLine, MonitorMessage
+
+    hub, clients = _hub()
+    hub.scope = lambda kind, payload: ownership.scope(kind, payload, lambda run_id: "alice")
+    for c in clients.values():
+        _queued(c)  # the snapshot
+    lines = [RingLine(cycle=12, t_ns=345, text="x = 1.5"), RingLine(cycle=13, t_ns=346, text='"quoted" \\u00e9')]
+    hub.publish(
+        MonitorMessage(
+            run_id=7,
+            source="monitor",
+            lines=[MonitorLine(cycle=m.cycle, t_ns=m.t_ns, text=m.text) for m in lines],
+            lost=2,
+        )
+    )
+    by_model = {name: _texts(c) for name, c in clients.items()}
+    fields = monitor_message_fields(7, lines, 2)
+    MonitorMessage.model_validate(fields)
+    hub.publish_fields("monitor", fields)
+    assert {name: _texts(c) for name, c in clients.items()} == by_model
+    assert [len(by_model[n]) for n in ("alice", "bob", "teach")] == [1, 0, 1]
