@@ -160,3 +160,111 @@ def test_telemetry_by_its_fields_goes_out_as_its_model_would() -> None:
         hub.publish_fields("telemetry", {**fields, "enc": "not a list"})
     with pytest.raises(TypeError, match="not a server message kind"):
         hub.publish_fields("no-such-kind", fields)
+
+
+def test_the_public_copy_is_made_only_for_a_client_that_needs_it() -> None:
+    """ownership.scope's public part of telemetry is a function (30 messages a second): with only
+    the owner and an educator connected it is never called; with someone else, once a message
+    however many of them there are."""
+    made: list[int] = []
+
+    def scope(kind: str, payload: dict[str, object]) -> object:
+        scoped = ownership.scope(kind, payload, lambda run_id: "alice")
+        assert scoped is not None and callable(scoped.public)
+        public = scoped.public
+
+        def counted() -> dict[str, object]:
+            made.append(1)
+            return public()
+
+        return scoped._replace(public=counted)
+
+    hub = Hub()
+    hub.may_see = ownership.may_see
+    hub.scope = scope  # type: ignore[assignment]
+    owner_and_educator = [hub.new_client(None, u) for u in (ALICE, TEACH)]  # type: ignore[arg-type]
+    hub.publish_fields("telemetry", _telemetry_fields())
+    assert made == [] and all(len(_texts(c)) == 1 for c in owner_and_educator)
+    others = [hub.new_client(None, u) for u in (BOB, User(4, "carol", "observer"))]  # type: ignore[arg-type]
+    hub.publish_fields("telemetry", _telemetry_fields())
+    assert made == [1]
+    assert [json.loads(_texts(c)[0])["xeno2ros"] for c in others] == [{}, {}]
+
+
+class _Socket:
+    """What a client's messages are sent through (starlette's WebSocket.send_text), recording
+    them; while `hold` is set a send waits, as one to a transport that asked to pause writing."""
+
+    def __init__(self) -> None:
+        self.sent: list[str] = []
+        self.hold: asyncio.Event | None = None
+        self.gone = False
+
+    async def send_text(self, text: str) -> None:
+        if self.hold is not None:
+            await self.hold.wait()
+        if self.gone:
+            raise ConnectionResetError("the browser went away")
+        self.sent.append(json.loads(text)["message"])
+
+
+def test_a_message_goes_out_in_the_publishers_turn_and_in_order_when_a_send_waits() -> None:
+    """With the client's pump idle a message is sent by the publisher itself (no wake-up of the
+    pump per message); one that has to wait is finished on its own and what comes meanwhile is
+    queued behind it; a failed send ends the pump with its error."""
+
+    async def main() -> None:
+        hub = Hub()
+        sock = _Socket()
+        client = hub.new_client(sock, TEACH)  # type: ignore[arg-type]
+        pump = asyncio.create_task(client.pump())
+        await asyncio.sleep(0)  # the pump is waiting
+        hub.publish(AlarmMessage(kind="room", message="1"))
+        assert sock.sent == ["1"]  # already sent: nobody else ran
+        sock.hold = asyncio.Event()
+        hub.publish(AlarmMessage(kind="room", message="2"))  # waits in the send
+        hub.publish(AlarmMessage(kind="room", message="3"))  # queued behind it
+        await asyncio.sleep(0)
+        assert sock.sent == ["1"] and len(client.queue) == 1
+        sock.hold.set()
+        for _ in range(10):
+            await asyncio.sleep(0)
+        assert sock.sent == ["1", "2", "3"] and len(client.queue) == 0
+        sock.hold = None
+        hub.publish(AlarmMessage(kind="room", message="4"))
+        assert sock.sent == ["1", "2", "3", "4"]
+        sock.gone = True
+        hub.publish(AlarmMessage(kind="room", message="5"))
+        with pytest.raises(ConnectionResetError):
+            await asyncio.wait_for(pump, 5)
+        client.stop()
+
+    asyncio.run(main())
+
+
+def test_monitor_lines_by_their_fields_go_out_as_their_model_would() -> None:
+    """The reader's monitor message (reader.monitor_message_fields through Hub.publish_fields):
+    the same text as MonitorMessage through publish, to the owner and educators only."""
+    from xrflab.channels.rings import MonitorLine as RingLine
+    from xrflab.server.runs.reader import monitor_message_fields
+    from xrflab.server.ws.messages import MonitorLine, MonitorMessage
+
+    hub, clients = _hub()
+    hub.scope = lambda kind, payload: ownership.scope(kind, payload, lambda run_id: "alice")
+    for c in clients.values():
+        _queued(c)  # the snapshot
+    lines = [RingLine(cycle=12, t_ns=345, text="x = 1.5"), RingLine(cycle=13, t_ns=346, text='"quoted" \\u00e9')]
+    hub.publish(
+        MonitorMessage(
+            run_id=7,
+            source="monitor",
+            lines=[MonitorLine(cycle=m.cycle, t_ns=m.t_ns, text=m.text) for m in lines],
+            lost=2,
+        )
+    )
+    by_model = {name: _texts(c) for name, c in clients.items()}
+    fields = monitor_message_fields(7, lines, 2)
+    MonitorMessage.model_validate(fields)
+    hub.publish_fields("monitor", fields)
+    assert {name: _texts(c) for name, c in clients.items()} == by_model
+    assert [len(by_model[n]) for n in ("alice", "bob", "teach")] == [1, 0, 1]

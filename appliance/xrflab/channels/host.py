@@ -82,6 +82,9 @@ class Channels:
         # runtime.cpp unlinks and re-creates) or its removal is seen by comparing (replaced()).
         self.identity = identity
         self.shm = ffi.from_buffer("struct xrf_shm *", mapping)
+        # The Ros2Xeno's sequence word, asked at every reader batch (30 a second with a dashboard
+        # open): the two cffi lookups once, not per read (issue 30 item 4). Gone with close().
+        self._ros2xeno_seq: CData | None = ffi.addressof(ffi.addressof(self.shm, "ros2xeno"), "seq")
         self._status = StatusReader(self.shm, name)
         try:
             self.geom: CData = segment.take_geometry(name, self.shm, len(mapping))
@@ -118,7 +121,7 @@ class Channels:
 
     def close(self) -> None:
         """Unmap. Objects read from this Channels (readers, cdata) must not be used afterwards."""
-        self.shm = None
+        self.shm = self._ros2xeno_seq = None
         try:
             self._mmap.close()
         except BufferError:
@@ -205,7 +208,9 @@ class Channels:
     def ros2xeno_seq(self) -> int:
         """The Ros2Xeno's write sequence (it moves with every write, odd while one is under way):
         a reader that saw the same number has the same message already."""
-        return int(lib.xrfpy_load_u32(ffi.addressof(ffi.addressof(self.shm, "ros2xeno"), "seq")))
+        if self._ros2xeno_seq is None:
+            raise ChannelsError(f"{self.name}: closed")
+        return int(lib.xrfpy_load_u32(self._ros2xeno_seq))
 
     def read_ros2xeno(self) -> dict[str, Any] | None:
         """The Ros2Xeno the loop takes at its next cycle: the latest complete write by anyone

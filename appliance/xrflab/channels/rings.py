@@ -234,11 +234,27 @@ class TelemetryBatch(Sequence[Telemetry]):
         self._n = channels
         self._codec = codec
         self._items: dict[int, Telemetry] = {}
-        self._rows: np.ndarray = np.frombuffer(raw, dtype=dtype)  # read-only: over immutable bytes
-        self.t_ns: list[int] = self._rows["hdr_t_ns"].tolist()
+        self._dtype = dtype
+        self._rows_made: np.ndarray | None = None
+        # A few slots (the dashboards' batch: 1-2 per wake-up, 30 a second) are unpacked by
+        # struct at once, each needed whole for the sample sent anyway: numpy's start-up per call
+        # cost more than the unpacking (issue 30 item 4); a larger batch gets its columns by numpy.
+        self._values: list[tuple[Any, ...]] | None = None
+        if self._len <= SMALL_BATCH:
+            self._values = [self._struct.unpack_from(raw, i * self._size) for i in range(self._len)]
+            at = self._where["hdr_t_ns"]
+            self.t_ns: list[int] = [v[at] for v in self._values]
+        else:
+            self.t_ns = self._rows["hdr_t_ns"].tolist()
         self._cycle: list[int] | None = None
         self._enc: list[list[int]] | None = None
         self._din: list[list[int]] | None = None
+
+    @property
+    def _rows(self) -> np.ndarray:
+        if self._rows_made is None:
+            self._rows_made = np.frombuffer(self._raw, dtype=self._dtype)  # read-only: over immutable bytes
+        return self._rows_made
 
     @property
     def cycle(self) -> list[int]:
@@ -275,7 +291,8 @@ class TelemetryBatch(Sequence[Telemetry]):
             raise IndexError(i)
         item = self._items.get(i)
         if item is None:
-            v, w, n = self._struct.unpack_from(self._raw, i * self._size), self._where, self._n
+            v = self._values[i] if self._values is not None else self._struct.unpack_from(self._raw, i * self._size)
+            w, n = self._where, self._n
             enc, din, pwm, dout = w["enc"], w["din"], w["pwm"], w["dout"]
             payload = v[w["data"]][: min(v[w["size"]], lib.XRF_MSG_MAX)]
             item = Telemetry(
@@ -294,6 +311,7 @@ class TelemetryBatch(Sequence[Telemetry]):
 
 
 BATCH_SLOTS = 64  # slots copied per C buffer taken as bytes (42 KB of telemetry slots)
+SMALL_BATCH = 4  # up to this many slots a TelemetryBatch unpacks by struct, not numpy
 
 
 class TelemetryReader(_BroadcastReader[Telemetry]):

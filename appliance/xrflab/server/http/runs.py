@@ -335,6 +335,7 @@ async def websocket(ws: WebSocket) -> None:
         await asyncio.wait({pump, receive, kicked}, return_when=asyncio.FIRST_COMPLETED)
     finally:
         sup.hub.remove(client)
+        client.stop()
         for task in (pump, receive, kicked):
             task.cancel()
         if client.kicked.is_set() and ws.client_state == WebSocketState.CONNECTED:

@@ -102,6 +102,17 @@ def next_publication(next_due_ns: int, last_t_ns: int, spacing_ns: int, period_n
     return expected
 
 
+def monitor_message_fields(run_id: int, lines: list[Any], lost: int) -> dict[str, Any]:
+    """The wire fields of the MonitorMessage of the monitor ring's `lines` (channels' MonitorLine:
+    cycle, t_ns, text), as the model dumps them (its fields' order, every field set)."""
+    return {
+        "run_id": run_id,
+        "source": "monitor",
+        "lines": [{"text": m.text, "cycle": m.cycle, "t_ns": m.t_ns} for m in lines],
+        "lost": lost,
+    }
+
+
 def doorbell_thread(run: Run, loop: asyncio.AbstractEventLoop) -> None:
     """Blocks in the futex wait so the event loop never polls; wakes the reader task. Parked
     while the reader wakes itself (`run.reader_timed`); `run.idle_wake` unparks it."""
@@ -174,6 +185,7 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub)
     ros2xeno: dict[str, Any] = {}
     ros2xeno_seq = -1
     checked = False  # the first telemetry message is checked against its model (Hub.publish_fields)
+    monitor_checked = False  # and the first monitor message
     last_t_ns = 0  # the last sample the dashboards' cursor read
     streaming = False  # the dashboards' cursor is following the ring
     # Simulated time: the loop's clock runs ahead of ours, so the reader follows the doorbell.
@@ -279,14 +291,14 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub)
             wake_at = expected + TIMED_MARGIN_NS if expected else 0
             set_timed(run, wake_at if wake_at > time.monotonic_ns() else 0)
         if lines and hub.wants("monitor"):
-            hub.publish(
-                MonitorMessage(
-                    run_id=run_id,
-                    source="monitor",
-                    lines=[MonitorLine(cycle=m.cycle, t_ns=m.t_ns, text=m.text) for m in lines],
-                    lost=monitor.lost,
-                )
-            )
+            # As telemetry: the wire fields built here (monitor_message_fields: MonitorMessage's),
+            # the first message checked against the model; a model per message, each line one
+            # too, was a twentieth of the appliance's Python with a dashboard (issue 30 item 4).
+            monitor_fields = monitor_message_fields(run_id, lines, monitor.lost)
+            if not monitor_checked:
+                MonitorMessage.model_validate(monitor_fields)
+                monitor_checked = True
+            hub.publish_fields("monitor", monitor_fields)
         # The state check copies the 33 KB status block; the samples carry the loop's state, so
         # while the one sent says what was last published, it is made STATUS_REFRESH_S apart,
         # not at every batch (a rejection or an error without a state change is seen within it).

@@ -166,9 +166,11 @@ def scope(topic: str, payload: dict[str, Any], owner_of_run: Callable[[Any], str
     """Whose a published message is and what everyone else receives instead (None: nothing).
     None as the result: the message is the bench's, for everyone who subscribed."""
     if topic == "telemetry":
+        # The public copy is made only if a client that may not see the owner's part takes it
+        # (Hub._fan_out): 30 messages a second, most often watched by their owner or an educator.
         return Scoped(
             owner_of_run(payload.get("run_id")),
-            {k: v for k, v in payload.items() if k in PUBLIC_TELEMETRY} | {"xeno2ros": {}, "ros2xeno": {}},
+            lambda: {k: v for k, v in payload.items() if k in PUBLIC_TELEMETRY} | {"xeno2ros": {}, "ros2xeno": {}},
         )
     if topic == "monitor":
         return Scoped(owner_of_run(payload.get("run_id")), None)

@@ -3,7 +3,10 @@ the others down.
 
 Every message is encoded to JSON once and the same string is queued for each client, so 30
 clients cost 30 queue appends, not 30 encodings. Each client has its own bounded queue and its
-own sender task: a browser that reads slowly only fills its own queue. Telemetry is the only
+own sender task (`Client.pump`): a browser that reads slowly only fills its own queue. A client
+whose queue is empty and whose socket takes a write at once gets a message sent by the publisher
+itself (`Client.deliver`), without a wake-up of its sender task per message; a send that would
+wait (the socket's buffer full) finishes on its own and what follows queues behind it. Telemetry is the only
 topic that is allowed to be lossy (a newer sample supersedes an older one), so a full telemetry
 queue drops its oldest entry and counts it; everything else (state, alarms, run events, errors,
 monitor lines) is kept, and a client whose queue grows past a hard limit, or that has been
@@ -79,10 +82,12 @@ def _finite(value: Any) -> Any:
 
 class Scoped(NamedTuple):
     """A message that belongs to someone: `owner` (a username, None = unknown: educators only)
-    and what everyone else receives in its place (None: nothing)."""
+    and what everyone else receives in its place (None: nothing), or a function that makes it:
+    called only when a client that may not see the owner's part is there (telemetry, 30 a
+    second: with only the owner and educators watching, no public copy is made; issue 30 item 4)."""
 
     owner: str | None
-    public: dict[str, Any] | None
+    public: dict[str, Any] | Callable[[], dict[str, Any]] | None
 
 
 # A bug in the scope function must not hand a message to everyone: it goes to educators only.
@@ -130,6 +135,15 @@ class ClientQueue:
             self._other.append(text)
         self._ready.set()
 
+    def wake(self) -> None:
+        """Ends a `wait` without a message (Client: its own send finished or failed)."""
+        self._ready.set()
+
+    async def wait(self) -> None:
+        """Until the next put or wake (from now: what was put before does not end it)."""
+        self._ready.clear()
+        await self._ready.wait()
+
     async def get(self) -> str:
         while True:
             # Control messages first: a state change must not wait behind a backlog of samples.
@@ -152,9 +166,29 @@ class Client:
         self.kicked = asyncio.Event()
         self.kick_reason = ""
         self.user: Any = None  # the logged-in accounts.User (set by the /ws handler)
+        # The last answer of the ownership rule for this client: (user, owner, may see). The rule
+        # is a function of the two (User is frozen; a new login sets a new object), and the live
+        # run's owner is the same for every message of a run: asked once, not 30 times a second.
+        self._seen: tuple[Any, Any, bool] = (None, None, False)
+        # The pump waits on an empty queue with no send under way: a message can go out at once
+        # (deliver), in the publisher's turn of the event loop, instead of waking the pump for it.
+        self._idle = False
+        self._failed: BaseException | None = None  # a send made by deliver failed: the pump raises it
+        self._finishing: asyncio.Task[None] | None = None  # a send by deliver that had to wait
+
+    def sees(self, owner: str | None, rule: Callable[[Any, str | None], bool]) -> bool:
+        """rule(self.user, owner) (Hub.may_see), remembered for the same user and owner."""
+        user, last_owner, yes = self._seen
+        if user is not self.user or last_owner != owner:
+            yes = rule(self.user, owner)
+            self._seen = (self.user, owner, yes)
+        return yes
 
     def deliver(self, topic: str, text: str) -> None:
-        if self.kicked.is_set():
+        if self.kicked.is_set() or self._failed is not None:
+            return
+        if self._idle and not self.queue and self._finishing is None:
+            self._send_now(text)
             return
         try:
             self.queue.put(topic, text)
@@ -162,14 +196,79 @@ class Client:
             self.kick_reason = str(exc)
             self.kicked.set()
 
+    def _send_now(self, text: str) -> None:
+        """Send `text` now, from the publisher's turn: nothing is queued or being sent, so the
+        order is kept, and the pump is not woken for it (a telemetry message a wake-up of its
+        own: a task switch and a turn of the event loop per message, 30 a second per dashboard,
+        issue 30 item 4). The send (starlette, then uvicorn's protocol: a write to the socket's
+        transport) only waits when the transport asked us to pause writing, its buffer full; then
+        it is finished as a task, and what comes meanwhile is queued behind it."""
+        coro = self.ws.send_text(text)
+        try:
+            waiting_on = coro.send(None)
+        except StopIteration:
+            return
+        except Exception as exc:  # the socket is gone: the pump ends the connection with it
+            self._fail(exc)
+            return
+        self._finishing = asyncio.ensure_future(self._finish(coro, waiting_on))
+
+    async def _finish(self, coro: Any, waiting_on: Any) -> None:
+        """Run a send that `_send_now` started and that stopped at an await to its end, as a task
+        would: wait for what it waits on, then resume it (its result or exception)."""
+        try:
+            while True:
+                try:
+                    if waiting_on is None:  # a bare yield: the event loop's next turn
+                        await asyncio.sleep(0)
+                    else:
+                        # What a task does with a future its coroutine yielded: take it over
+                        # (the flag says "yielded, not yet taken"; awaiting it again refuses it).
+                        waiting_on._asyncio_future_blocking = False
+                        await waiting_on
+                except BaseException as exc:  # noqa: BLE001  # handed to the send, as a task would
+                    waiting_on = coro.throw(exc)
+                else:
+                    waiting_on = coro.send(None)
+        except StopIteration:
+            pass
+        except Exception as exc:
+            self._fail(exc)
+        finally:
+            coro.close()
+            self._finishing = None
+            self.queue.wake()
+
+    def stop(self) -> None:
+        """The connection is over: a send of deliver's still waiting is cancelled."""
+        if self._finishing is not None:
+            self._finishing.cancel()
+
+    def _fail(self, exc: BaseException) -> None:
+        self._failed = exc
+        self.queue.wake()
+
     def reply(self, message: ReplyMessage) -> None:
         """A message for this client only (errors, acks); never dropped as telemetry is."""
         kind, fields = unpack(message)
         self.deliver(kind, encode(kind, fields))
 
     async def pump(self) -> None:
-        """Sender task: the only place that awaits this client's socket."""
+        """Sender task: sends what was queued (deliver sends at once what it can); it ends with
+        the error of a failed send, its own or deliver's."""
         while True:
+            if self._failed is not None:
+                raise self._failed
+            if self._finishing is not None:  # deliver's send still going: it goes first
+                await self.queue.wait()
+                continue
+            if not self.queue:
+                self._idle = True
+                try:
+                    await self.queue.wait()
+                finally:
+                    self._idle = False
+                continue
             text = await self.queue.get()
             await self.ws.send_text(text)
 
@@ -207,7 +306,10 @@ class Hub:
         after a client connects (issue 30: the appliance's idle footprint)."""
         if self.listeners:
             return True
-        return any(topic in client.topics for client in self._clients)
+        for client in self._clients:  # a loop, not any(genexpr): asked 2-3 times a reader batch
+            if topic in client.topics:
+                return True
+        return False
 
     def add_snapshot(self, source: Callable[[], Iterable[ServerMessage]]) -> None:
         """`source()`: the messages a client connecting now receives first; sources are asked in
@@ -324,11 +426,12 @@ class Hub:
         for client in clients:
             if topics and message_type not in client.topics:
                 continue
-            if scoped is None or self.may_see(client.user, scoped.owner):
+            if scoped is None or client.sees(scoped.owner, self.may_see):
                 if text is None:
                     text = encode(message_type, payload)
                 client.deliver(message_type, text)
             elif scoped.public is not None:
                 if public is None:
-                    public = encode(message_type, scoped.public)
+                    shown = scoped.public() if callable(scoped.public) else scoped.public
+                    public = encode(message_type, shown)
                 client.deliver(message_type, public)
