@@ -1,6 +1,7 @@
 """Converting a log file to CSV, MAT v5, Parquet or rerun `.rrd`, in bounded memory.
 
-Every converter walks `LogFile.iter_chunks` (CHUNK_ROWS records at a time), so a file of any
+Every converter walks `LogFile.iter_chunks` (CHUNK_ROWS records and reader.CHUNK_BYTES at a time,
+the file's pages released after each), so a file of any
 length converts with memory proportional to one chunk (MAT: to one column, since a MAT v5
 variable is written whole). Output goes to a temporary file beside the target and is renamed
 into place at the end: a download never sees a half-written file.
@@ -253,7 +254,9 @@ def _column(log: LogFile, name: str) -> np.ndarray:
         parts = [_plain(seg.column(name)) for seg in log.segments]
     if not parts:
         return np.empty(0)
-    return np.ascontiguousarray(parts[0]) if len(parts) == 1 else np.concatenate(parts)
+    col = np.ascontiguousarray(parts[0]) if len(parts) == 1 else np.concatenate(parts)
+    log.release_pages()  # a column is read across the whole file: its pages are done with
+    return col
 
 
 def _changes_struct(changes: list[dict[str, Any]]) -> dict[str, np.ndarray]:
@@ -399,6 +402,9 @@ def _to_rrd(log: LogFile, out: Path, chunk_rows: int, changes: list[dict[str, An
             for name in names:
                 values = _plain(cols[name]).astype(np.float64)
                 rec.send_columns(paths[name], indexes=indexes, columns=rr.Scalars.columns(scalars=values))
+            # Written out chunk by chunk: the SDK's batcher and file writer otherwise held what it
+            # had not written yet, growing with the log (a 200 000-record log: 204 -> 143 MB RSS).
+            rec.flush()
         for c in changes or ():
             rec.set_time("cycle", sequence=int(c["cycle"]))
             rec.set_time("time", timestamp=float(c["t"]))

@@ -46,6 +46,7 @@ from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
 
 from ...errors import NotFound, Unavailable
+from ...logs.convert_child import heavy_turn
 from ...logs.rerun_files import VIEWER_FILES
 from ...logs.rerun_servers import LIB_SCRIPT, TAB_SCRIPT
 from ..security import ownership
@@ -225,7 +226,6 @@ PREPARE_TIMEOUT_S = 300  # a Pi 4 gzips the 43 MB wasm in well under a minute
 
 async def _viewer_cache(request: Request) -> Path:
     import importlib.metadata
-    import sys
 
     settings = request.app.state.settings
     # The version from the package's metadata: importing rerun only for it costs the appliance
@@ -243,34 +243,39 @@ async def _viewer_cache(request: Request) -> Path:
         # for the copy (issue 30 item 4).
         tmp = cache.with_name(f".{cache.name}.{os.getpid()}.part")
         await asyncio.to_thread(shutil.rmtree, tmp, True)
-        proc = await asyncio.create_subprocess_exec(
-            sys.executable,
-            "-m",
-            "xrflab.logs.rerun_files",
-            str(tmp),
-            stdin=asyncio.subprocess.DEVNULL,
-            stdout=asyncio.subprocess.DEVNULL,
-            stderr=asyncio.subprocess.PIPE,
-        )
-        try:
-            _, err = await asyncio.wait_for(proc.communicate(), PREPARE_TIMEOUT_S)
-        except (TimeoutError, asyncio.CancelledError) as exc:
-            proc.kill()  # its rerun child gets SIGTERM with it (tied.popen_tied)
-            await proc.wait()
-            await asyncio.to_thread(shutil.rmtree, tmp, True)
-            if isinstance(exc, TimeoutError):
-                raise Unavailable(f"the rerun viewer was not prepared within {PREPARE_TIMEOUT_S} s") from None
-            raise
-        lines = (err or b"").decode(errors="replace").strip().splitlines()
-        if proc.returncode != 0:
-            await asyncio.to_thread(shutil.rmtree, tmp, True)
-            raise Unavailable(f"the rerun viewer could not be prepared: {(lines or [f'exit {proc.returncode}'])[-1]}")
-        if lines and lines[-1].startswith(
-            "URLs not found"
-        ):  # a newer rerun: URLs not found in its wasm (the CSP still stops them in the browser)
-            logging.getLogger("xrflab.rerun").warning("rerun viewer: %s", lines[-1])
-        await asyncio.to_thread(finish_viewer, tmp, cache)
+        async with heavy_turn():  # not while a download's conversion child runs (logs/convert_child.py)
+            await _prepare_in_child(tmp, cache)
     return cache
+
+
+async def _prepare_in_child(tmp: Path, cache: Path) -> None:
+    import sys
+
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "xrflab.logs.rerun_files",
+        str(tmp),
+        stdin=asyncio.subprocess.DEVNULL,
+        stdout=asyncio.subprocess.DEVNULL,
+        stderr=asyncio.subprocess.PIPE,
+    )
+    try:
+        _, err = await asyncio.wait_for(proc.communicate(), PREPARE_TIMEOUT_S)
+    except (TimeoutError, asyncio.CancelledError) as exc:
+        proc.kill()  # its rerun child gets SIGTERM with it (tied.popen_tied)
+        await proc.wait()
+        await asyncio.to_thread(shutil.rmtree, tmp, True)
+        if isinstance(exc, TimeoutError):
+            raise Unavailable(f"the rerun viewer was not prepared within {PREPARE_TIMEOUT_S} s") from None
+        raise
+    lines = (err or b"").decode(errors="replace").strip().splitlines()
+    if proc.returncode != 0:
+        await asyncio.to_thread(shutil.rmtree, tmp, True)
+        raise Unavailable(f"the rerun viewer could not be prepared: {(lines or [f'exit {proc.returncode}'])[-1]}")
+    if lines and lines[-1].startswith("URLs not found"):  # a newer rerun (the CSP still stops them in the browser)
+        logging.getLogger("xrflab.rerun").warning("rerun viewer: %s", lines[-1])
+    await asyncio.to_thread(finish_viewer, tmp, cache)
 
 
 @router.get("/rerun/{asset:path}", dependencies=[requires(Perm.WATCH)], include_in_schema=False)
