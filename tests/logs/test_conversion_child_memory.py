@@ -1,8 +1,8 @@
 """A download's conversion child does not grow with the log (issue 30 item 4): the log's pages are
-released as they are converted, chunks are bounded in bytes, the .rrd is written out chunk by
-chunk, and Arrow allocates from malloc (logs/convert_child.py, reader.LogFile.release_pages).
-Before: a 600 000-record log's child peaked at 176 (CSV), 212 (Parquet), 354 MB (.rrd), against
-81, 93, 122 MB for 20 000 records (bench/README.md, session 10)."""
+released as they are converted, chunks are bounded in bytes, the .rrd is written out every
+other chunk, and Arrow allocates from malloc (logs/convert_child.py, reader.LogFile.release_pages).
+Before: a 600 000-record log's child peaked at 172 (CSV), 196 (Parquet), 344 MB (.rrd), against
+78, 90, 119 MB for 20 000 records (bench/appliance/conversion_peak.py, bench/README.md session 10)."""
 
 from __future__ import annotations
 

@@ -343,6 +343,7 @@ def _to_parquet(log: LogFile, out: Path, chunk_rows: int, changes: list[dict[str
 
 # ---- rerun ----------------------------------------------------------------------------------
 
+RRD_FLUSH_CHUNKS = 2  # chunks (reader.CHUNK_BYTES of records each) between flushes of an .rrd
 CHANGES_ENTITY = "params/changes"  # the text log of applied parameter sets (.rrd and the live stream)
 
 
@@ -394,7 +395,7 @@ def _to_rrd(log: LogFile, out: Path, chunk_rows: int, changes: list[dict[str, An
     rec = rr.RecordingStream("xrflab", recording_id=str(log.path.name))
     rec.save(out, default_blueprint=rrd_blueprint(names, tuned=bool(changes)))
     try:
-        for seg, cols in log.iter_chunks(chunk_rows):
+        for n, (seg, cols) in enumerate(log.iter_chunks(chunk_rows), 1):
             cycle = cols.get("cycle", cols["seq"]).astype(np.int64)
             indexes = [rr.TimeColumn("cycle", sequence=cycle)]
             if "t_ns" in cols:
@@ -402,9 +403,12 @@ def _to_rrd(log: LogFile, out: Path, chunk_rows: int, changes: list[dict[str, An
             for name in names:
                 values = _plain(cols[name]).astype(np.float64)
                 rec.send_columns(paths[name], indexes=indexes, columns=rr.Scalars.columns(scalars=values))
-            # Written out chunk by chunk: the SDK's batcher and file writer otherwise held what it
-            # had not written yet, growing with the log (a 200 000-record log: 204 -> 143 MB RSS).
-            rec.flush()
+            # Written out every few chunks: the SDK's batcher and file writer otherwise held what
+            # it had not written yet, growing with the log (a 600 000-record log: 344 -> 158 MB
+            # RSS); a flush waits for the writer: after every chunk 145 MB but twice the time, every
+            # 2nd 158 MB and ~1.3x, every 4th 179 MB and no slower (bench/README.md, session 10).
+            if n % RRD_FLUSH_CHUNKS == 0:
+                rec.flush()
         for c in changes or ():
             rec.set_time("cycle", sequence=int(c["cycle"]))
             rec.set_time("time", timestamp=float(c["t"]))
