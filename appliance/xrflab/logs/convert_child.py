@@ -25,13 +25,18 @@ appliance produces no Arrow or Parquet itself."""
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import io
 import json
 import os
 import subprocess
 import sys
 import tempfile
-from collections.abc import Iterator
+import threading
+import time
+import weakref
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO, cast
 
@@ -47,19 +52,61 @@ class ConversionFailed(RuntimeError):
 _STDERR_MAX = 4000  # what a failure's message carries back of the child's stderr
 
 
+# One heavy child of the appliance at a time (issue 30 item 4): a conversion child is 55-150 MB
+# RSS, the rerun viewer's preparation (logs/rerun_files.py and its `rerun --serve-web`) ~160 MB,
+# and a class downloading its logs at once would otherwise start one each, on a Pi with the
+# appliance's 250 MB budget. The next waits (its request is pending: the browser shows the
+# download or the viewer's page as loading), up to HEAVY_WAIT_S: a child held longer (a CSV stream
+# to a client that stopped reading) does not stop everyone else's, the next then starts anyway.
+HEAVY_WAIT_S = 120.0
+HEAVY_POLL_S = 0.25  # how often a waiting request on the event loop looks again
+_heavy = threading.BoundedSemaphore(1)
+
+
+def acquire_heavy(timeout: float = HEAVY_WAIT_S) -> bool:
+    """Blocking (off the event loop): True when this caller holds the turn and must
+    ``release_heavy()``; False when it waited `timeout` and goes ahead anyway."""
+    return _heavy.acquire(timeout=timeout)
+
+
+def release_heavy() -> None:
+    _heavy.release()
+
+
+@contextlib.asynccontextmanager
+async def heavy_turn(timeout: float = HEAVY_WAIT_S) -> AsyncIterator[None]:
+    """``acquire_heavy`` for the event loop: waits without a thread, so a request cancelled while
+    it waits leaves no turn taken behind it."""
+    deadline = time.monotonic() + timeout
+    turn = _heavy.acquire(blocking=False)
+    while not turn and time.monotonic() < deadline:
+        await asyncio.sleep(HEAVY_POLL_S)
+        turn = _heavy.acquire(blocking=False)
+    try:
+        yield
+    finally:
+        if turn:
+            _heavy.release()
+
+
 def convert_in_child(fd: int, shown: str | Path, fmt: str, target: Path, changes: list[dict[str, Any]] | None) -> Path:
     """`convert(shown, fmt, target, log=<the log open as fd>, changes=changes)` in a child process
-    (blocking: call it off the event loop). LogFormatError as convert() raises it;
-    ConversionFailed for a child that failed otherwise."""
+    (blocking, also while another heavy child runs: call it off the event loop). LogFormatError as
+    convert() raises it; ConversionFailed for a child that failed otherwise."""
     env = _child_env()
-    proc = subprocess.run(
-        [sys.executable, "-m", "xrflab.logs.convert_child", str(fd), fmt, str(target), str(shown)],
-        input=json.dumps(changes or []).encode(),
-        pass_fds=(fd,),
-        capture_output=True,
-        env=env,
-        check=False,
-    )
+    turn = acquire_heavy()
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "xrflab.logs.convert_child", str(fd), fmt, str(target), str(shown)],
+            input=json.dumps(changes or []).encode(),
+            pass_fds=(fd,),
+            capture_output=True,
+            env=env,
+            check=False,
+        )
+    finally:
+        if turn:
+            release_heavy()
     err = proc.stderr.decode("utf-8", "replace").strip()[-_STDERR_MAX:]
     if proc.returncode == BAD_LOG:
         raise LogFormatError(err)
@@ -69,8 +116,15 @@ def convert_in_child(fd: int, shown: str | Path, fmt: str, target: Path, changes
     return target
 
 
+# The child's allocators (issue 30 item 4; what the environment sets wins): glibc's malloc with
+# two arenas, as the appliance itself (server/cli/serve.py), and Arrow's buffers from that malloc,
+# not from Arrow's own pool, which kept what a Parquet conversion had freed (a 200 000-record log:
+# 133 -> 99 MB RSS).
+CHILD_ALLOCATORS = {"MALLOC_ARENA_MAX": "2", "ARROW_DEFAULT_MEMORY_POOL": "system"}
+
+
 def _child_env() -> dict[str, str]:
-    return dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
+    return dict(CHILD_ALLOCATORS) | dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
 
 
 STREAM_CHUNK = 1 << 20  # bytes read from the child at a time
@@ -101,18 +155,30 @@ def csv_in_child(
     if changes:
         argv += list(zip_names or ("samples.csv", "param_changes.csv"))
     err = tempfile.TemporaryFile()  # a file, not a pipe: the child never blocks on it
-    proc = subprocess.Popen(
-        argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err, pass_fds=(fd,), env=_child_env()
-    )
+    turn = acquire_heavy()  # held until the stream ends (end)
+    try:
+        proc = subprocess.Popen(
+            argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err, pass_fds=(fd,), env=_child_env()
+        )
+    except BaseException:
+        err.close()
+        if turn:
+            release_heavy()
+        raise
     assert proc.stdin is not None and proc.stdout is not None
     out = cast(io.BufferedReader, proc.stdout)  # what Popen makes of a pipe (bufsize -1)
+    ended = False
 
     def end() -> None:
+        nonlocal ended
         if proc.poll() is None:
             proc.kill()
         proc.wait()
         out.close()
         err.close()
+        if turn and not ended:
+            release_heavy()
+        ended = True
 
     try:
         proc.stdin.write(json.dumps(changes or []).encode())
@@ -135,7 +201,11 @@ def csv_in_child(
         finally:
             end()
 
-    return counts, chunks()
+    stream = chunks()
+    # A stream dropped without being iterated (its response never started) runs no `finally`:
+    # the child and the heavy-child turn are ended when it is collected.
+    weakref.finalize(stream, end)
+    return counts, stream
 
 
 def _stream_csv(shown: str, fd: int, changes: list[dict[str, Any]], zip_names: list[str]) -> None:
@@ -147,6 +217,7 @@ def _stream_csv(shown: str, fd: int, changes: list[dict[str, Any]], zip_names: l
     out = sys.stdout.buffer
     out.write(json.dumps({"skipped": len(log.skipped), "lost": log.lost}).encode() + b"\n")
     out.flush()
+    log.release_pages()  # opening and counting read every page (LogFile.release_pages)
     if changes:
         names = (zip_names[0], zip_names[1])
         chunks = iter_csv_zip_chunks(log.path, changes, names, log=log)
@@ -168,6 +239,7 @@ def main(argv: list[str]) -> int:
             _stream_csv(shown, fd, changes, argv[4:6])
             return 0
         log = open_log(shown, fd=fd)
+        log.release_pages()  # opening read every page (LogFile.release_pages): not kept while converting
         convert(shown, fmt, Path(target), log=log, changes=changes or None)
     except LogFormatError as exc:
         print(exc, file=sys.stderr)

@@ -37,6 +37,10 @@ from .logformat import (
     VAR_TYPES,
 )
 
+# The most record bytes LogFile.iter_chunks hands out at once (a chunk's columns, and what a
+# converter makes of them, are a few times this).
+CHUNK_BYTES = 4 << 20
+
 # The derived column the tabular formats add after t_ns (logs/convert.py: seconds from the run's
 # start); reserved like the header's names so a variable called t_s becomes t_s_2, not a clash.
 SECONDS_COLUMN = "t_s"
@@ -173,11 +177,26 @@ class LogFile:
             return np.concatenate([_repack(s.records, base) for s in self.segments])
         return np.concatenate([s.records for s in self.segments])
 
+    # The file's mapping (open_log), for release_pages.
+    _mapping: Any = None
+
+    def release_pages(self) -> None:
+        """Drop the file's pages read so far from this process's memory (its RSS): they stay in
+        the page cache and are read again from there if touched. A conversion walks the whole
+        file once, and every page it read counted in its RSS to the end: a child converting a
+        70 MB log grew by 70 MB (issue 30 item 4)."""
+        if isinstance(self._mapping, mmap.mmap):
+            self._mapping.madvise(mmap.MADV_DONTNEED)
+
     def iter_chunks(self, rows: int = 65536) -> Iterator[tuple[Segment, dict[str, np.ndarray]]]:
-        """(segment, {column: array}) for at most `rows` records at a time: bounded memory."""
+        """(segment, {column: array}) for at most `rows` records and CHUNK_BYTES of them at a
+        time: bounded memory, whatever the file's length or record size (the pages of each
+        chunk are released once the next is asked for)."""
         self.check_uniform()
         for seg in self.segments:
+            rows = max(1, min(rows, CHUNK_BYTES // max(1, seg.records.dtype.itemsize)))
             for start in range(0, len(seg.records), rows):
+                self.release_pages()
                 part = seg.records[start : start + rows]
                 cols: dict[str, np.ndarray] = {}
                 if self.kind == "xrflog":
@@ -499,14 +518,17 @@ def open_log(path: str | Path, fd: int | None = None) -> LogFile:
     if m.size >= len(MAGIC) and bytes(m.buf[: len(MAGIC)]) == MAGIC:
         log = LogFile(path, "xrflog", size=m.size)
         _read_xrflog(path, m, log)
+        log._mapping = m.buf
         return log
     for read in _other_formats:
         other = read(path, m.buf, m.size)
         if other is not None:
+            other._mapping = m.buf
             return other
     if m.size and m.find(MAGIC, 0) >= 0:  # damaged start, but segments further on
         log = LogFile(path, "xrflog", size=m.size)
         _read_xrflog(path, m, log)
+        log._mapping = m.buf
         return log
     raise LogFormatError(
         f"{path}: neither an xrflog file (no {MAGIC!r} magic) nor an XRF2 .bin file "

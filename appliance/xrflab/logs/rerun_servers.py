@@ -134,7 +134,7 @@ class RerunViewer(_RerunChild):
     """``rerun --serve-web``, only for the web viewer's files (they come from the installed
     rerun-sdk; nothing from the internet): started once per rerun version by the child process
     that copies them into the appliance's data folder (server/http/rerun.py
-    ``prepare_in_this_process``), and stopped by it as soon as the copy is made; the appliance
+    ``rerun_files.py``), and stopped by it as soon as the copy is made; the appliance
     serves the copy under /rerun/ behind the login. Port from XRF_RERUN_WEB_PORT (default 9090;
     a taken port falls back to a free one)."""
 

@@ -2,12 +2,12 @@
 
 - ``GET /rerun/<file>``: the rerun web viewer (from the installed rerun-sdk, no CDN), copied once
   from rerun's internal file server (``logs.rerun_servers.RerunViewer``, 127.0.0.1) into the data
-  folder, by a child process that stops that server when the copy is made (``prepare_in_this_process``).
+  folder, by a child process that stops that server when the copy is made (``logs/rerun_files.py``).
   Same origin as the dashboard, so the viewer fetches a finished run's ``.rrd`` from the API with
   the session cookie. **Offline** (issue 19): as shipped, the viewer fetches Google Fonts, sends
   analytics to tel.rerun.io, asks GitHub for the latest release and app.rerun.io for its examples,
   from every student's browser. Its web build has no switch for any of these, so the copy is
-  neutralised (``prepare_viewer``): the font links leave index.html, and the absolute URLs in the
+  neutralised (``finish_viewer``, ``rerun_files.neutralise_wasm_file``): the font links leave index.html, and the absolute URLs in the
   wasm are overwritten, byte for byte the same length, by paths under ``/rerun/offline/`` on the
   appliance, which answers 404 at once. A Content-Security-Policy (``connect-src 'self'`` and
   friends) on every viewer file stops whatever a later rerun version adds before it leaves the
@@ -31,8 +31,10 @@ docs/logging/appliance.md describes the whole path.
 from __future__ import annotations
 
 import asyncio
+import logging
 import os
 import re
+import shutil
 import urllib.parse
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -44,6 +46,8 @@ from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
 
 from ...errors import NotFound, Unavailable
+from ...logs.convert_child import heavy_turn
+from ...logs.rerun_files import VIEWER_FILES
 from ...logs.rerun_servers import LIB_SCRIPT, TAB_SCRIPT
 from ..security import ownership
 from ..security.auth import Perm, requires, requires_grpc_web
@@ -141,19 +145,8 @@ async def rerun_info(request: Request) -> dict[str, Any]:
     return info
 
 
-# The viewer's files, prepared once per rerun version (prepare_viewer).
-VIEWER_FILES = ("index.html", "re_viewer.js", "re_viewer_bg.wasm", "favicon.ico", "apple-touch-icon.png")
-OFFLINE_PREFIX = "/rerun/offline/"
-# Absolute URLs the viewer fetches by itself (found by recording a browser's requests, rerun 0.41):
-# analytics, the "new version" check, the examples manifest, map tiles; then the bare web-app
-# origin (links into app.rerun.io). Longer ones first: they contain the shorter.
-WASM_URLS = (
-    b"https://tel.rerun.io/api/pog",
-    b"https://api.github.com/repos/rerun-io/rerun/releases/latest",
-    b"https://app.rerun.io/version/",
-    b"https://tile.openstreetmap.org/",
-    b"https://app.rerun.io",
-)
+# The viewer's files (rerun_files.VIEWER_FILES), prepared once per rerun version (_viewer_cache);
+# the wasm's URLs pointed at OFFLINE_PREFIX (rerun_files.WASM_URLS).
 # index.html: Google Fonts (the loading text's font; the viewer draws with its own fonts) and the
 # script app.rerun.io loads for its own site.
 _FONT_LINKS = re.compile(r"<link[^>]*(fonts\.googleapis\.com|fonts\.gstatic\.com)[^>]*>", re.S)
@@ -168,7 +161,7 @@ VIEWER_CSP = (
 )
 # Ours (logs.rerun_servers TAB_SCRIPT after LIB_SCRIPT), served from the dashboard's static files
 # (same origin: the CSP's script-src 'self' allows it).
-# Part of the prepared copy's folder name: a change to what prepare_viewer does to rerun's files
+# Part of the prepared copy's folder name: a change to what the preparation does to rerun's files
 # (here: LIB_SCRIPT and TAB_SCRIPT added to index.html) makes appliances prepare their copy again.
 PREPARED_AS = "offline-tab-lib-wasm"
 _MEDIA = {
@@ -180,22 +173,6 @@ _MEDIA = {
     ".css": "text/css",
 }
 _prepare_lock = asyncio.Lock()
-
-
-def offline_url(url: bytes) -> bytes:
-    """A same-origin path exactly as long as `url` (the wasm's strings keep their lengths)."""
-    path = OFFLINE_PREFIX.encode() + url.split(b"://", 1)[1].replace(b"/", b"_")
-    return (path + b"_" * len(url))[: len(url)]
-
-
-def neutralise_wasm(data: bytes) -> tuple[bytes, list[str]]:
-    """The wasm with WASM_URLS pointed at the appliance; also the URLs not found (a new rerun)."""
-    missing = []
-    for url in WASM_URLS:
-        if url not in data:
-            missing.append(url.decode())
-        data = data.replace(url, offline_url(url))
-    return data, missing
 
 
 # index.html's loader reads the wasm through a stream of its own (for a percentage) and deletes
@@ -217,8 +194,6 @@ _LOADER_OURS = (
 def neutralise_index(text: str) -> str:
     text = _FONT_LINKS.sub("", text)
     if _LOADER_CALL not in text:  # a newer rerun: its own loader, as shipped
-        import logging
-
         logging.getLogger("xrflab.rerun").warning("rerun viewer: index.html's wasm loader not found; left as it is")
     text = text.replace(_LOADER_CALL, _LOADER_OURS, 1)
     text = _SITE_SCRIPT.sub("", text)
@@ -230,56 +205,20 @@ def neutralise_index(text: str) -> str:
     return text.replace("</head>", tag + "</head>", 1) if "</head>" in text else tag + text
 
 
-def prepare_viewer(cache: Path, fetch: Any) -> None:
-    """Fetch the viewer's files (``fetch(name) -> bytes``), neutralise them, write each file and
-    its gzip beside it into `cache` (a folder per rerun version; written to a temporary folder
-    and renamed, so a half-prepared viewer is never served). In a worker thread: the wasm's gzip
-    takes seconds."""
+def finish_viewer(folder: Path, cache: Path) -> None:
+    """The copy made by the preparing child (logs/rerun_files.py: every file, the wasm neutralised, the
+    gzips but index.html's) completed here: index.html rewritten (a few KB) and gzipped, the
+    folder marked ready and renamed to `cache`, so a half-prepared viewer is never served."""
     import gzip
-    import logging
     import shutil
 
-    if (cache / "ready").is_file():
-        return
-    tmp = cache.with_name(f".{cache.name}.{os.getpid()}.part")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    for name in VIEWER_FILES:
-        data = fetch(name)
-        if name == "index.html":
-            data = neutralise_index(data.decode()).encode()
-        elif name.endswith(".wasm"):
-            data, missing = neutralise_wasm(data)
-            if missing:  # a newer rerun: the CSP still stops them in the browser
-                logging.getLogger("xrflab.rerun").warning("rerun viewer: URLs not found to neutralise: %s", missing)
-        (tmp / name).write_bytes(data)
-        (tmp / (name + ".gz")).write_bytes(gzip.compress(data, compresslevel=6, mtime=0))
-    (tmp / "ready").write_text("")
+    index = folder / "index.html"
+    data = neutralise_index(index.read_text()).encode()
+    index.write_bytes(data)
+    (folder / "index.html.gz").write_bytes(gzip.compress(data, compresslevel=6, mtime=0))
+    (folder / "ready").write_text("")
     shutil.rmtree(cache, ignore_errors=True)
-    os.replace(tmp, cache)
-
-
-def prepare_in_this_process(cache: Path) -> None:
-    """Start rerun's file server, prepare the copy from it, stop it. Run in a child process of
-    the appliance (``python -c``, ``_viewer_cache``), never in the appliance itself: the 43 MB
-    wasm read, rewritten and gzipped left the appliance ~90 MB larger for good (the allocator
-    keeps what a worker thread touched), and the ``rerun --serve-web`` child (78 MB) ran until
-    the appliance stopped, although nothing uses it once the copy is on disk (issue 30 item 4)."""
-    import httpx
-
-    from ...logs.rerun_servers import RerunViewer
-
-    viewer = RerunViewer()
-    try:
-
-        def fetch(name: str) -> bytes:
-            r = httpx.get(f"http://127.0.0.1:{viewer.web_port}/{name}", timeout=120)
-            r.raise_for_status()
-            return r.content
-
-        prepare_viewer(cache, fetch)
-    finally:
-        viewer.stop()
+    os.replace(folder, cache)
 
 
 PREPARE_TIMEOUT_S = 300  # a Pi 4 gzips the 43 MB wasm in well under a minute
@@ -287,7 +226,6 @@ PREPARE_TIMEOUT_S = 300  # a Pi 4 gzips the 43 MB wasm in well under a minute
 
 async def _viewer_cache(request: Request) -> Path:
     import importlib.metadata
-    import sys
 
     settings = request.app.state.settings
     # The version from the package's metadata: importing rerun only for it costs the appliance
@@ -299,28 +237,45 @@ async def _viewer_cache(request: Request) -> Path:
     async with _prepare_lock:
         if (cache / "ready").is_file():
             return cache
-        code = "import sys; from xrflab.server.http.rerun import prepare_in_this_process as p; p(__import__('pathlib').Path(sys.argv[1]))"
-        proc = await asyncio.create_subprocess_exec(
-            sys.executable,
-            "-c",
-            code,
-            str(cache),
-            stdin=asyncio.subprocess.DEVNULL,
-            stdout=asyncio.subprocess.DEVNULL,
-            stderr=asyncio.subprocess.PIPE,
-        )
-        try:
-            _, err = await asyncio.wait_for(proc.communicate(), PREPARE_TIMEOUT_S)
-        except (TimeoutError, asyncio.CancelledError) as exc:
-            proc.kill()  # its rerun child gets SIGTERM with it (tied.popen_tied)
-            await proc.wait()
-            if isinstance(exc, TimeoutError):
-                raise Unavailable(f"the rerun viewer was not prepared within {PREPARE_TIMEOUT_S} s") from None
-            raise
-        if proc.returncode != 0 or not (cache / "ready").is_file():
-            last = (err or b"").decode(errors="replace").strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
-            raise Unavailable(f"the rerun viewer could not be prepared: {last[0]}")
+        # In a child (logs/rerun_files.py), never in the appliance: the 43 MB wasm read, rewritten and
+        # gzipped left the appliance ~90 MB larger for good (the allocator keeps what a worker
+        # thread touched), and the ``rerun --serve-web`` it copies from (78 MB) is needed only
+        # for the copy (issue 30 item 4).
+        tmp = cache.with_name(f".{cache.name}.{os.getpid()}.part")
+        await asyncio.to_thread(shutil.rmtree, tmp, True)
+        async with heavy_turn():  # not while a download's conversion child runs (logs/convert_child.py)
+            await _prepare_in_child(tmp, cache)
     return cache
+
+
+async def _prepare_in_child(tmp: Path, cache: Path) -> None:
+    import sys
+
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "xrflab.logs.rerun_files",
+        str(tmp),
+        stdin=asyncio.subprocess.DEVNULL,
+        stdout=asyncio.subprocess.DEVNULL,
+        stderr=asyncio.subprocess.PIPE,
+    )
+    try:
+        _, err = await asyncio.wait_for(proc.communicate(), PREPARE_TIMEOUT_S)
+    except (TimeoutError, asyncio.CancelledError) as exc:
+        proc.kill()  # its rerun child gets SIGTERM with it (tied.popen_tied)
+        await proc.wait()
+        await asyncio.to_thread(shutil.rmtree, tmp, True)
+        if isinstance(exc, TimeoutError):
+            raise Unavailable(f"the rerun viewer was not prepared within {PREPARE_TIMEOUT_S} s") from None
+        raise
+    lines = (err or b"").decode(errors="replace").strip().splitlines()
+    if proc.returncode != 0:
+        await asyncio.to_thread(shutil.rmtree, tmp, True)
+        raise Unavailable(f"the rerun viewer could not be prepared: {(lines or [f'exit {proc.returncode}'])[-1]}")
+    if lines and lines[-1].startswith("URLs not found"):  # a newer rerun (the CSP still stops them in the browser)
+        logging.getLogger("xrflab.rerun").warning("rerun viewer: %s", lines[-1])
+    await asyncio.to_thread(finish_viewer, tmp, cache)
 
 
 @router.get("/rerun/{asset:path}", dependencies=[requires(Perm.WATCH)], include_in_schema=False)
