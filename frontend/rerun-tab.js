@@ -303,8 +303,38 @@
   // What the live tab shows before its first plot (issue 31 bug 6): the viewer's canvas is empty
   // until its app has started and drawn the stream's first data, seconds on a machine without a
   // GPU; empty plots looked like a run with no data. A line over the canvas says which step it is
-  // at, and goes once the viewer has drawn a frame after the stream's first data.
+  // at, and goes once the viewer has drawn a frame holding the run's first sample (holdsSample).
   let liveRun = null, statusTimer = null;
+  // Whether the viewer holds a sample of a run yet (issue 31 bug 6: the line stays until the first
+  // sample is drawn; the stream's first bytes are its store info and blueprint, plots still
+  // empty). From its own state, window._handle.viewer_state(): an encoded GetViewerStateResponse
+  // (rerun's viewer_control.proto, 0.41): recordings = 3, each {store_id = 1, timelines = 2}, a
+  // timeline {timeline = 1, time_range = 3}: a recording's timeline has a range once it holds a
+  // sample (tests/xrf_testing/rerun_stream.py reads the same). A viewer without it: the first data.
+  function protoFields(buf, each) {  // protobuf wire format: each(field, varint or bytes)
+    let i = 0;
+    const varint = () => { let v = 0, m = 1, b; do { b = buf[i++]; v += (b & 0x7f) * m; m *= 128; } while (b & 0x80 && i < buf.length); return v; };
+    while (i < buf.length) {
+      const key = varint(), field = Math.floor(key / 8), wire = key % 8;
+      if (wire === 0) each(field, varint());
+      else if (wire === 2) { const n = varint(); each(field, buf.subarray(i, i + n)); i += n; }
+      else if (wire === 1) i += 8;
+      else if (wire === 5) i += 4;
+      else return;  // not what we read: stop
+    }
+  }
+  function holdsSample() {
+    let state;
+    try { state = window._handle.viewer_state(); } catch (e) { return frames.firstDataAt !== null; }
+    let found = false;
+    protoFields(new Uint8Array(state), (f, rec) => {
+      if (f !== 3 || typeof rec === "number") return;
+      protoFields(rec, (g, tl) => {
+        if (g === 2 && typeof tl !== "number") protoFields(tl, (h) => { if (h === 3) found = true; });
+      });
+    });
+    return found;
+  }
   function liveStatus() {
     const box = floating("xrf-live-status", { top: "40px", left: "16px", zIndex: "2147483646",
       padding: "6px 12px", font: "14px system-ui, sans-serif", color: "#e5e7eb",
@@ -314,8 +344,9 @@
     if (window._handle === undefined) { step = "loading"; box.textContent = `${what}: starting the viewer…`; }
     else if (frames.firstDataAt === null && frames.answeredAt === null) { step = "connecting"; box.textContent = `${what}: connecting to the live stream…`; }
     else if (frames.firstDataAt === null) { step = "waiting"; box.textContent = `${what}: waiting for the run's data…`; }
+    else if (!holdsSample()) { step = "receiving"; box.textContent = `${what}: data arriving, drawing the first plots…`; }
     else {
-      // the next frame ingests what was read, the one after it has drawn it
+      // the frame that ingested the first sample draws it; the one after it is on screen
       step = "drawing";
       clearInterval(statusTimer);
       window.requestAnimationFrame(() => window.requestAnimationFrame(() => {

@@ -36,10 +36,11 @@ from __future__ import annotations
 
 import time
 import urllib.parse
+from pathlib import Path
 
 from xrf_testing.grpcweb import EMPTY_REQUEST, GRPC_WEB, READ_MESSAGES, split_frames
 from xrf_testing.harness import Server, wait_for
-from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of, viewer_newest_ns, viewer_oldest_ns
+from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of, viewer_newest_ns, viewer_oldest_ns, viewer_time_range
 
 # The run streams this long before the viewer opens: the old replay started this far behind. Three
 # times EDGE_S is enough to tell a replay from cycle 0 from the live edge (40 s made this the
@@ -52,6 +53,10 @@ LATE_S = 15.0
 # browser draws: on a loaded machine with a software GPU the viewer's thread stalls for seconds
 # (bench/appliance/README.md).
 WINDOW_S = 2.0
+# The newest sample of the first frame with data is at most this much older than the opening: the
+# recording starts with the viewer's page, so what the proxy hands over first is newer than that,
+# however slowly the browser draws (slowness only makes it newer).
+EDGE_S = 1.0
 # How long after the viewer's app started it may take to hold a sample newer than its opening (a
 # time-out for a wait, generous: the first frame with data takes seconds on a loaded 2-core VM).
 FIRST_S = 60.0
@@ -82,6 +87,122 @@ ASK_FRAME = """(() => {
   if (xrfRerunTab.frames().held === 0) requestAnimationFrame(() => {});
   return xrfRerunTab.frames().held;
 })()"""
+
+
+# In the viewer's tab (not the dashboard's), before its own scripts: the viewer's state at the end of
+# each frame (the frame that ingests a sample draws it) and whether the tab's start-up line was on
+# screen then, kept when either changed.
+FRAME_STATES = """if (location.pathname.startsWith("/rerun/")) (() => {
+  window._xrfFrameStates = [];
+  let handle, last = "";
+  Object.defineProperty(window, "_handle", { configurable: true, get: () => handle, set: (v) => { handle = v; } });
+  const raf = window.requestAnimationFrame.bind(window);
+  window.requestAnimationFrame = (cb) => raf((t) => {
+    cb(t);
+    if (!handle || window._xrfFrameStates.length > 2000) return;
+    let st;
+    try { st = Array.from(handle.viewer_state()); } catch (e) { return; }
+    const line = document.getElementById("xrf-live-status");
+    const shown = !!line && getComputedStyle(line).display !== "none";
+    const key = st.join(",") + shown;
+    if (key !== last) { last = key; window._xrfFrameStates.push([Date.now(), st, shown]); }
+  });
+})();"""
+
+
+def _rerun_loaded(pid: int) -> bool:
+    """rerun's native library is mapped in process `pid` (the SDK was imported)."""
+    return "rerun_bindings" in Path(f"/proc/{pid}/maps").read_text()
+
+
+def test_the_first_viewer_of_a_run_opened_from_the_runs_page_starts_at_the_live_edge(
+    server: Server,
+    browser,  # noqa: ANN001
+) -> None:
+    """As a person opens it: the Runs page during a run nobody has watched, its "Live plots" button,
+    the viewer in a tab of its own. The first frame the viewer draws with the run's data holds only
+    the last seconds before the opening (the live edge, newest first), never the run from cycle 0
+    (it is LATE_S old); until that frame the tab's line says what it is doing (no empty plots
+    without a word); the replay from the run's start is offered beside it, as its log's .rrd in a
+    tab of its own. And the appliance prepared for that first viewer while the Runs page was shown
+    (rerun imported; logs/rerun_live.py prepare_import), not before: an appliance whose run
+    nobody looks at live does not load it. How soon the first sample comes is a figure of
+    bench/appliance/rerun_lag.py --via-runs-page (no timing asserted here)."""
+    server.stop_run()
+    pid = server.proc.pid
+    warm = browser.new_page(viewport={"width": 1280, "height": 800})
+    # The viewer's files are prepared on the first visit (a child process gzips 43 MB of wasm):
+    # not part of what is looked at here.
+    warm.goto(server.url + "/rerun/index.html", timeout=600_000)
+    warm.wait_for_function("() => window._handle !== undefined", timeout=300_000)
+    warm.close()
+    # (this module's first test: nothing in it has watched a run live yet)
+    assert not _rerun_loaded(pid), "rerun was imported in the appliance before any live viewer"
+
+    run = server.start_run("relbot")
+    with server.ws() as ws:
+        ws.to_run()
+    started = time.monotonic()
+    dash = browser.new_page(viewport={"width": 1280, "height": 800})
+    dash.context.add_init_script(FRAME_STATES)
+    dash.goto(server.url + "/#watch")
+    wait_for(lambda: time.monotonic() - started >= LATE_S, LATE_S + 5, "the run's age")  # the run's age, on purpose
+    # A dashboard on another of its pages, the run live all along: rerun stays out of the appliance.
+    assert not _rerun_loaded(pid), "a dashboard's page made the appliance import rerun"
+    dash.goto(server.url + "/#runs")
+    dash.wait_for_selector("#rr-live", state="visible", timeout=60_000)
+    # The Runs page of a live run: a viewer is likely soon, and the appliance imports rerun now.
+    wait_for(lambda: _rerun_loaded(pid), 60, "rerun imported while the Runs page is shown")
+    with dash.context.expect_page(timeout=120_000) as popup:
+        opened_ns = time.time_ns()
+        dash.click("#rr-live")
+    viewer = popup.value
+    viewer.wait_for_function("() => window._handle !== undefined", timeout=300_000)
+    recording = f"run-{run['id']}"
+
+    def first_drawn() -> tuple[int, int, list[bool]] | None:
+        states = viewer.evaluate("window._xrfFrameStates")
+        for i, (_, state, _) in enumerate(states):
+            oldest, newest = viewer_time_range(bytes(state), recording)
+            if newest is not None and oldest is not None:
+                return oldest, newest, [shown for _, _, shown in states[:i]]
+        return None
+
+    oldest, newest, line_before = wait_for(first_drawn, FIRST_S, "the viewer's first frame with the run's samples")
+    # The live edge: the samples of its first frame with data are from the last seconds before the
+    # opening or after it (the recording starts with the viewer's page), not the run from its start.
+    assert (opened_ns - oldest) / 1e9 <= WINDOW_S, (
+        f"the viewer's first frame with data held samples {(opened_ns - oldest) / 1e9:.1f} s older than its "
+        f"opening (the run was {LATE_S:.0f} s old): a replay, not the live edge"
+    )
+    assert (opened_ns - newest) / 1e9 <= EDGE_S, (
+        f"the newest sample of the viewer's first frame with data was {(opened_ns - newest) / 1e9:.1f} s older "
+        "than its opening"
+    )
+    # Until that frame, the tab said what it was doing (its line over the canvas)...
+    assert line_before and all(line_before), line_before
+    # ...and the line goes once the first sample is drawn.
+    wait_for(
+        lambda: viewer.evaluate("document.getElementById('xrf-live-status').dataset.step") == "shown",
+        30,
+        "the start-up line to go once the viewer drew a sample",
+    )
+
+    # The replay from the run's start: separate, a link to the run's log as .rrd in a viewer tab of
+    # its own; this tab stays the live stream.
+    viewer.wait_for_function("document.getElementById('xrf-replay') !== null", timeout=30_000)
+    link = viewer.eval_on_selector("#xrf-replay", "a => [a.href, a.target, a.textContent]")
+    href, target, text = link
+    replay = urllib.parse.parse_qs(urllib.parse.urlsplit(href).query)["url"][0]
+    assert target == "_blank" and f"run {run['id']} from its start" in text, link
+    assert replay.startswith(f"{server.url}/api/logs/runs/{run['id']}/files/") and replay.endswith("?fmt=rrd"), href
+    live = urllib.parse.parse_qs(urllib.parse.urlsplit(viewer.url).query)["url"][0]
+    assert live.endswith("/proxy") and live != replay, viewer.url
+    rrd = server.http.get(replay.removeprefix(server.url))
+    assert rrd.status_code == 200 and rrd.content[:4] == b"RRF2", rrd.content[:8]
+    viewer.close()
+    dash.close()
+    server.stop_run()
 
 
 def test_a_late_viewer_opens_at_the_live_edge(server: Server, browser) -> None:  # noqa: ANN001
