@@ -10,7 +10,7 @@
 // first, so a viewer opened mid-run starts at the live edge (issue 31 bug 6, logs/rerun_servers.py
 // LiveProxy); the whole run so far is its log, opened as .rrd in another viewer tab. From the
 // page's load on (issue 31 bug 6): the viewer's wasm is compiled from its fetch, the live stream
-// is asked for at once and handed to the viewer when it asks, and a line says what the tab is
+// is asked for once the viewer's wasm is compiled and handed to the viewer when it asks, and a line says what the tab is
 // doing until the first data is drawn (each below).
 // The 3D view's tab (viser's page, server/http/viser.py) loads this script too, for Esc.
 "use strict";
@@ -142,21 +142,26 @@
   const held = new Map();  // our id -> the viewer's callback, waiting for a reason to draw
   let onData = () => {};  // the frame gate's (below): the stream brought data
 
-  // The live stream, asked for as the page loads (issue 31 bug 6): the viewer asks for it only
-  // once its app has started (wasm compiled and started: 1.5-3 s on a 2-core machine without a
-  // GPU, more under load), and the stream's first bytes came 0.7-1.5 s after that (the
+  // The live stream, asked for just before the viewer asks (issue 31 bug 6): the viewer asks for
+  // it only once its app has started (wasm compiled and started: 1.5-3 s on a 2-core machine
+  // without a GPU, more under load), and the stream's first bytes came 0.7-1.5 s after that (the
   // appliance's route and the run's proxy). So this script sends the very request the viewer
-  // sends (ReadMessages, an empty request, gRPC-web) at once, and when the viewer asks, it gets
-  // this response: what the proxy sent meanwhile (its window, newest first, then each batch) is
-  // waiting in the response's body, and the viewer's first frames ingest it at once. Only the
-  // first identical request, on this origin; anything else goes to the network as asked. Not
-  // claimed within EARLY_MAX_MS (the app did not start): closed.
+  // sends (ReadMessages, an empty request, gRPC-web) as soon as the viewer's wasm is compiled,
+  // 0.7-0.9 s before the viewer asks, and when the viewer asks it gets this response. Not at the page's load (as at first): what the proxy sends
+  // after the connection waits in the response's body in the order it came, and the viewer ingests
+  // at most 10 ms of messages a frame, so the earlier the connection, the older the samples of the
+  // viewer's first frames (measured with the first viewer of a run: its first frame drew the
+  // recording's first batch, 2.9-3.2 s behind live at load 11, bench/README.md session 10). At the
+  // connection the proxy hands its window newest first, then each batch. Only the first identical
+  // request, on this origin; anything else goes to the network as asked. Not claimed within
+  // EARLY_MAX_MS: closed. (The run's recording starts when this page is served, server-side.)
   const STREAM_PATH = "/rerun.sdk_comms.v1alpha1.MessageProxyService/ReadMessages";
   const EMPTY_READ = new Uint8Array(5);  // one gRPC-web data frame holding an empty ReadMessagesRequest
   const EARLY_MAX_MS = 120000;
   const nativeFetch = window.fetch.bind(window);
   let early = null;
-  if (live && url.replace(/^rerun\+/, "").replace(/\/proxy$/, "") === location.origin) {
+  function askEarly() {
+    if (early || frames.viewerAskedAt !== null || frames.early !== "none") return;  // the viewer asked already
     const ctl = new AbortController();
     const response = nativeFetch(STREAM_PATH, {
       method: "POST", credentials: "same-origin", cache: "no-store", signal: ctl.signal, body: EMPTY_READ,
@@ -166,6 +171,12 @@
     early = { ctl, response, timer: setTimeout(() => { if (early) { early.ctl.abort(); early = null; frames.early = "closed"; } }, EARLY_MAX_MS) };
     frames.streamAt = Date.now();
     frames.early = "asked";
+  }
+  if (live && url.replace(/^rerun\+/, "").replace(/\/proxy$/, "") === location.origin) {
+    // As soon as the module is compiled (the loader instantiates it, the app starts ~0.5 s later and
+    // asks ~0.2-0.6 s after that): ~0.7-0.9 s ahead of the viewer, about what the appliance's route
+    // takes to answer on a loaded 2-core machine. (Without a compiled module: at the page's load.)
+    if (wasm) wasm.then(askEarly, askEarly); else askEarly();
   }
   async function bodyOf(args) {  // the request body of a fetch(...) call, or null
     try {
@@ -303,8 +314,38 @@
   // What the live tab shows before its first plot (issue 31 bug 6): the viewer's canvas is empty
   // until its app has started and drawn the stream's first data, seconds on a machine without a
   // GPU; empty plots looked like a run with no data. A line over the canvas says which step it is
-  // at, and goes once the viewer has drawn a frame after the stream's first data.
+  // at, and goes once the viewer has drawn a frame holding the run's first sample (holdsSample).
   let liveRun = null, statusTimer = null;
+  // Whether the viewer holds a sample of a run yet (issue 31 bug 6: the line stays until the first
+  // sample is drawn; the stream's first bytes are its store info and blueprint, plots still
+  // empty). From its own state, window._handle.viewer_state(): an encoded GetViewerStateResponse
+  // (rerun's viewer_control.proto, 0.41): recordings = 3, each {store_id = 1, timelines = 2}, a
+  // timeline {timeline = 1, time_range = 3}: a recording's timeline has a range once it holds a
+  // sample (tests/xrf_testing/rerun_stream.py reads the same). A viewer without it: the first data.
+  function protoFields(buf, each) {  // protobuf wire format: each(field, varint or bytes)
+    let i = 0;
+    const varint = () => { let v = 0, m = 1, b; do { b = buf[i++]; v += (b & 0x7f) * m; m *= 128; } while (b & 0x80 && i < buf.length); return v; };
+    while (i < buf.length) {
+      const key = varint(), field = Math.floor(key / 8), wire = key % 8;
+      if (wire === 0) each(field, varint());
+      else if (wire === 2) { const n = varint(); each(field, buf.subarray(i, i + n)); i += n; }
+      else if (wire === 1) i += 8;
+      else if (wire === 5) i += 4;
+      else return;  // not what we read: stop
+    }
+  }
+  function holdsSample() {
+    let state;
+    try { state = window._handle.viewer_state(); } catch (e) { return frames.firstDataAt !== null; }
+    let found = false;
+    protoFields(new Uint8Array(state), (f, rec) => {
+      if (f !== 3 || typeof rec === "number") return;
+      protoFields(rec, (g, tl) => {
+        if (g === 2 && typeof tl !== "number") protoFields(tl, (h) => { if (h === 3) found = true; });
+      });
+    });
+    return found;
+  }
   function liveStatus() {
     const box = floating("xrf-live-status", { top: "40px", left: "16px", zIndex: "2147483646",
       padding: "6px 12px", font: "14px system-ui, sans-serif", color: "#e5e7eb",
@@ -314,8 +355,9 @@
     if (window._handle === undefined) { step = "loading"; box.textContent = `${what}: starting the viewer…`; }
     else if (frames.firstDataAt === null && frames.answeredAt === null) { step = "connecting"; box.textContent = `${what}: connecting to the live stream…`; }
     else if (frames.firstDataAt === null) { step = "waiting"; box.textContent = `${what}: waiting for the run's data…`; }
+    else if (!holdsSample()) { step = "receiving"; box.textContent = `${what}: data arriving, drawing the first plots…`; }
     else {
-      // the next frame ingests what was read, the one after it has drawn it
+      // the frame that ingested the first sample draws it; the one after it is on screen
       step = "drawing";
       clearInterval(statusTimer);
       window.requestAnimationFrame(() => window.requestAnimationFrame(() => {

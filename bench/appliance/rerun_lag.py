@@ -407,6 +407,8 @@ def browser_case(
     all_frames: bool = False,
     fresh_profile: bool = False,
     reopen_s: float = 0.0,
+    via_runs_s: float | None = None,
+    stress_workers: int = 0,
 ) -> dict:
     import tempfile
     import urllib.parse
@@ -419,6 +421,7 @@ def browser_case(
     chromium = os.environ.get("XRF_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
     if not chromium:
         raise SystemExit("the browser case needs Debian's chromium (or XRF_CHROMIUM)")
+    stress = None  # --browser-stress: CPU load from the run's start on
     with sync_playwright() as p:
         # A browser profile on disk, as a person's chromium has (a temporary one, removed after):
         # Playwright's default context is off the record, whose in-memory HTTP cache does not keep
@@ -439,6 +442,18 @@ def browser_case(
             warm.wait_for_function("() => window._handle !== undefined", timeout=600_000)
             warm.close()
             empty = empty_viewer(ctx, server.url, min(watch_s, 15.0))
+            if stress_workers:
+                stress = subprocess.Popen(
+                    [
+                        "stress-ng",
+                        "--cpu",
+                        str(stress_workers),
+                        "--timeout",
+                        f"{int(late_s + watch_s + 600)}s",
+                        "--quiet",
+                    ],
+                    stdout=subprocess.DEVNULL,
+                )
             run = start_loop(server, build)
             started = time.monotonic()
             while time.monotonic() - started < late_s:
@@ -457,20 +472,37 @@ def browser_case(
                 time.sleep(5)  # time passing: it draws its first plots (shaders compiled, cached)
                 first.close()
                 time.sleep(reopen_s)  # time passing: nobody watches
-            page = ctx.new_page()
-            page.add_init_script(TICKS)
-            page.add_init_script(PHASES)
-            if full_size:
-                page.add_init_script(FULL_SIZE)
-            if all_frames:
-                page.add_init_script(ALL_FRAMES)
-            wire = _stream_timing(ctx, page)
+            scripts = [TICKS, PHASES] + [FULL_SIZE] * full_size + [ALL_FRAMES] * all_frames
             debug_lines = [0]
-            page.on("console", lambda m: m.type == "debug" and debug_lines.__setitem__(0, debug_lines[0] + 1))
-            opened_ns = time.time_ns()
-            page.goto(live, timeout=120_000)
+            if via_runs_s is None:
+                page = ctx.new_page()
+                for script in scripts:
+                    page.add_init_script(script)
+                wire = _stream_timing(ctx, page)
+                page.on("console", lambda m: m.type == "debug" and debug_lines.__setitem__(0, debug_lines[0] + 1))
+                opened_ns = time.time_ns()
+                page.goto(live, timeout=120_000)
+            else:
+                # As a person opens it: the dashboard's Runs page, --via-runs-page s of looking at
+                # it, then its "Live plots" button, which opens the viewer in a tab of its own
+                # (frontend/pages/runs.js). Measured from the click. The samplers go into every page
+                # of the context (only the viewer's tab runs them); the stream's network events are
+                # not seen in a tab opened by the page (the tab script's own marks are).
+                for script in scripts:
+                    ctx.add_init_script("if (location.pathname.startsWith('/rerun/')) {\n" + script + "\n}")
+                dash = ctx.new_page()
+                dash.goto(server.url + "/#runs", timeout=120_000)
+                dash.wait_for_selector("#rr-live", state="visible", timeout=60_000)
+                time.sleep(via_runs_s)  # time passing: a person reads the page, then clicks
+                wire = {}
+                with ctx.expect_page(timeout=120_000) as popup:
+                    opened_ns = time.time_ns()
+                    dash.click("#rr-live")
+                page = popup.value
+                page.on("console", lambda m: m.type == "debug" and debug_lines.__setitem__(0, debug_lines[0] + 1))
             page.wait_for_function("() => window._handle !== undefined", timeout=600_000)
             app_ns = time.time_ns()
+            load_at_open = os.getloadavg()[0]
             page.evaluate(SAMPLE)
             cpu0, frames0, t0 = chromium_cpu_s(), page.evaluate("window._xrfFrames.length"), time.monotonic()
             end = time.monotonic() + watch_s
@@ -485,6 +517,9 @@ def browser_case(
                 "(() => { const c = document.getElementById('the_canvas_id'); return [c.width, c.height]; })()"
             )
         finally:
+            if stress is not None:
+                stress.terminate()
+                stress.wait()
             browser.close()
             if profile is not None:
                 shutil.rmtree(profile, ignore_errors=True)
@@ -504,6 +539,7 @@ def browser_case(
     return {
         "run": run["id"],
         "run_age_s": late_s,
+        "load_at_open": load_at_open,
         "app_start_s": (app_ns - opened_ns) / 1e9,
         "first_s": samples[0][0] if samples else float("nan"),
         "first_age_s": samples[0][2] if samples else float("nan"),
@@ -590,6 +626,21 @@ def main() -> None:
         help="browser case: Playwright's off-the-record context (no disk cache) instead of a profile on disk",
     )
     ap.add_argument(
+        "--via-runs-page",
+        type=float,
+        default=None,
+        metavar="S",
+        help="browser case: open the viewer as a person does, from the dashboard's Runs page (S s after it was "
+        "shown) with its Live plots button; times from the click",
+    )
+    ap.add_argument(
+        "--browser-stress",
+        type=int,
+        default=0,
+        metavar="N",
+        help="browser case: N stress-ng CPU workers (unpinned) from the run's start to the end (load)",
+    )
+    ap.add_argument(
         "--reopen",
         type=float,
         default=0.0,
@@ -637,6 +688,8 @@ def main() -> None:
                 args.all_frames,
                 args.fresh_profile,
                 args.reopen,
+                args.via_runs_page,
+                args.browser_stress,
             )
             print("browser: done", file=sys.stderr)
         for label, n, stress_cpu in cases:
@@ -664,6 +717,13 @@ def main() -> None:
         print(
             f"live viewer opened {seen['run_age_s']:g} s into a {args.build} run"
             + (f", a second time ({args.reopen:g} s after the first closed)" if args.reopen else "")
+            + (
+                f", from the Runs page's Live plots button ({args.via_runs_page:g} s after the page was shown)"
+                if args.via_runs_page is not None
+                else ""
+            )
+            + (f", {args.browser_stress} stress-ng CPU workers running" if args.browser_stress else "")
+            + f", load average (1 min) {seen['load_at_open']:.1f} at the opening"
             + " (what a person sees: "
             f"the viewer's newest sample, {seen['samples']} samples of its state)"
         )

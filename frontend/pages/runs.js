@@ -189,8 +189,8 @@
     if (reveal) $("panel-run-logs").scrollIntoView({ block: "nearest" });
   }
 
-  async function rerunInfo(el) {
-    try { rerun = await xrf.api("GET", "/api/logs/rerun"); } catch (e) { rerun = { available: false, error: e.message }; }
+  async function rerunInfo(el, soon) {
+    try { rerun = await xrf.api("GET", "/api/logs/rerun" + (soon ? "?soon=true" : "")); } catch (e) { rerun = { available: false, error: e.message }; }
     const msg = el.querySelector("#rr-message");
     msg.textContent = rerun.available ? "" : "The rerun viewer is not available: " + (rerun.error || "?");
     msg.classList.toggle("hidden", !!rerun.available);
@@ -266,6 +266,10 @@
     },
     show(el) {
       loadList(el);
+      // Where the viewer is, and, when a run of this user's is live, a hint to the appliance that
+      // a live viewer is likely soon: it imports rerun now rather than at the viewer's opening
+      // (issue 31 bug 6; server/http/rerun.py rerun_info). Nothing streams before a viewer opens.
+      rerunInfo(el, true);
       if (selected) select(el, selected);
       clearInterval(timer);
       timer = setInterval(() => {

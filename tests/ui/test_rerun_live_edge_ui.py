@@ -23,23 +23,26 @@ twice a second (frontend/rerun-tab.js), not every frame: without a GPU driver ea
 browser's GPU process ~0.3 CPU-seconds.
 
 From the page's load (issue 31 bug 6, continued): the tab script asks for the live stream as the
-page loads and hands that response to the viewer when its app asks (one request), it starts the
-viewer's wasm compiling from its fetch at once, and a line over the canvas says what the tab is
-doing ("starting the viewer…", "connecting to the live stream…") until the viewer drew the
-stream's data. Asserted here with the wasm held back (so without timing): the line and the
-stream's request are there before the viewer's app exists, the viewer reads that one stream, and
-the line goes once it holds the run's samples. How soon (seconds after the opening) is a figure
-of bench/appliance/rerun_lag.py.
+viewer's wasm is compiled (session 10: at the page's load before, which queued the stream's first
+seconds in the response, oldest first) and hands that response to the viewer when its app asks
+(one request), it starts the viewer's wasm compiling from its fetch at once, and a line over the
+canvas says what the tab is doing ("starting the viewer…", "connecting to the live stream…")
+until the viewer holds a sample of the run. Asserted here with the wasm held back (so without
+timing): the line is there before the viewer's app exists and the stream not yet asked for, the
+viewer reads one stream, and the line goes once it holds the run's samples. The first viewer of a
+run opened from the Runs page, as a person does: the first test. How soon (seconds after the
+opening) is a figure of bench/appliance/rerun_lag.py.
 """
 
 from __future__ import annotations
 
 import time
 import urllib.parse
+from pathlib import Path
 
 from xrf_testing.grpcweb import EMPTY_REQUEST, GRPC_WEB, READ_MESSAGES, split_frames
 from xrf_testing.harness import Server, wait_for
-from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of, viewer_newest_ns, viewer_oldest_ns
+from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of, viewer_newest_ns, viewer_oldest_ns, viewer_time_range
 
 # The run streams this long before the viewer opens: the old replay started this far behind. Three
 # times EDGE_S is enough to tell a replay from cycle 0 from the live edge (40 s made this the
@@ -52,6 +55,10 @@ LATE_S = 15.0
 # browser draws: on a loaded machine with a software GPU the viewer's thread stalls for seconds
 # (bench/appliance/README.md).
 WINDOW_S = 2.0
+# The newest sample of the first frame with data is at most this much older than the opening: the
+# recording starts with the viewer's page, so what the proxy hands over first is newer than that,
+# however slowly the browser draws (slowness only makes it newer).
+EDGE_S = 1.0
 # How long after the viewer's app started it may take to hold a sample newer than its opening (a
 # time-out for a wait, generous: the first frame with data takes seconds on a loaded 2-core VM).
 FIRST_S = 60.0
@@ -82,6 +89,122 @@ ASK_FRAME = """(() => {
   if (xrfRerunTab.frames().held === 0) requestAnimationFrame(() => {});
   return xrfRerunTab.frames().held;
 })()"""
+
+
+# In the viewer's tab (not the dashboard's), before its own scripts: the viewer's state at the end of
+# each frame (the frame that ingests a sample draws it) and whether the tab's start-up line was on
+# screen then, kept when either changed.
+FRAME_STATES = """if (location.pathname.startsWith("/rerun/")) (() => {
+  window._xrfFrameStates = [];
+  let handle, last = "";
+  Object.defineProperty(window, "_handle", { configurable: true, get: () => handle, set: (v) => { handle = v; } });
+  const raf = window.requestAnimationFrame.bind(window);
+  window.requestAnimationFrame = (cb) => raf((t) => {
+    cb(t);
+    if (!handle || window._xrfFrameStates.length > 2000) return;
+    let st;
+    try { st = Array.from(handle.viewer_state()); } catch (e) { return; }
+    const line = document.getElementById("xrf-live-status");
+    const shown = !!line && getComputedStyle(line).display !== "none";
+    const key = st.join(",") + shown;
+    if (key !== last) { last = key; window._xrfFrameStates.push([Date.now(), st, shown]); }
+  });
+})();"""
+
+
+def _rerun_loaded(pid: int) -> bool:
+    """rerun's native library is mapped in process `pid` (the SDK was imported)."""
+    return "rerun_bindings" in Path(f"/proc/{pid}/maps").read_text()
+
+
+def test_the_first_viewer_of_a_run_opened_from_the_runs_page_starts_at_the_live_edge(
+    server: Server,
+    browser,  # noqa: ANN001
+) -> None:
+    """As a person opens it: the Runs page during a run nobody has watched, its "Live plots" button,
+    the viewer in a tab of its own. The first frame the viewer draws with the run's data holds only
+    the last seconds before the opening (the live edge, newest first), never the run from cycle 0
+    (it is LATE_S old); until that frame the tab's line says what it is doing (no empty plots
+    without a word); the replay from the run's start is offered beside it, as its log's .rrd in a
+    tab of its own. And the appliance prepared for that first viewer while the Runs page was shown
+    (rerun imported; logs/rerun_live.py prepare_import), not before: an appliance whose run
+    nobody looks at live does not load it. How soon the first sample comes is a figure of
+    bench/appliance/rerun_lag.py --via-runs-page (no timing asserted here)."""
+    server.stop_run()
+    pid = server.proc.pid
+    warm = browser.new_page(viewport={"width": 1280, "height": 800})
+    # The viewer's files are prepared on the first visit (a child process gzips 43 MB of wasm):
+    # not part of what is looked at here.
+    warm.goto(server.url + "/rerun/index.html", timeout=600_000)
+    warm.wait_for_function("() => window._handle !== undefined", timeout=300_000)
+    warm.close()
+    # (this module's first test: nothing in it has watched a run live yet)
+    assert not _rerun_loaded(pid), "rerun was imported in the appliance before any live viewer"
+
+    run = server.start_run("relbot")
+    with server.ws() as ws:
+        ws.to_run()
+    started = time.monotonic()
+    dash = browser.new_page(viewport={"width": 1280, "height": 800})
+    dash.context.add_init_script(FRAME_STATES)
+    dash.goto(server.url + "/#watch")
+    wait_for(lambda: time.monotonic() - started >= LATE_S, LATE_S + 5, "the run's age")  # the run's age, on purpose
+    # A dashboard on another of its pages, the run live all along: rerun stays out of the appliance.
+    assert not _rerun_loaded(pid), "a dashboard's page made the appliance import rerun"
+    dash.goto(server.url + "/#runs")
+    dash.wait_for_selector("#rr-live", state="visible", timeout=60_000)
+    # The Runs page of a live run: a viewer is likely soon, and the appliance imports rerun now.
+    wait_for(lambda: _rerun_loaded(pid), 60, "rerun imported while the Runs page is shown")
+    with dash.context.expect_page(timeout=120_000) as popup:
+        opened_ns = time.time_ns()
+        dash.click("#rr-live")
+    viewer = popup.value
+    viewer.wait_for_function("() => window._handle !== undefined", timeout=300_000)
+    recording = f"run-{run['id']}"
+
+    def first_drawn() -> tuple[int, int, list[bool]] | None:
+        states = viewer.evaluate("window._xrfFrameStates")
+        for i, (_, state, _) in enumerate(states):
+            oldest, newest = viewer_time_range(bytes(state), recording)
+            if newest is not None and oldest is not None:
+                return oldest, newest, [shown for _, _, shown in states[:i]]
+        return None
+
+    oldest, newest, line_before = wait_for(first_drawn, FIRST_S, "the viewer's first frame with the run's samples")
+    # The live edge: the samples of its first frame with data are from the last seconds before the
+    # opening or after it (the recording starts with the viewer's page), not the run from its start.
+    assert (opened_ns - oldest) / 1e9 <= WINDOW_S, (
+        f"the viewer's first frame with data held samples {(opened_ns - oldest) / 1e9:.1f} s older than its "
+        f"opening (the run was {LATE_S:.0f} s old): a replay, not the live edge"
+    )
+    assert (opened_ns - newest) / 1e9 <= EDGE_S, (
+        f"the newest sample of the viewer's first frame with data was {(opened_ns - newest) / 1e9:.1f} s older "
+        "than its opening"
+    )
+    # Until that frame, the tab said what it was doing (its line over the canvas)...
+    assert line_before and all(line_before), line_before
+    # ...and the line goes once the first sample is drawn.
+    wait_for(
+        lambda: viewer.evaluate("document.getElementById('xrf-live-status').dataset.step") == "shown",
+        30,
+        "the start-up line to go once the viewer drew a sample",
+    )
+
+    # The replay from the run's start: separate, a link to the run's log as .rrd in a viewer tab of
+    # its own; this tab stays the live stream.
+    viewer.wait_for_function("document.getElementById('xrf-replay') !== null", timeout=30_000)
+    link = viewer.eval_on_selector("#xrf-replay", "a => [a.href, a.target, a.textContent]")
+    href, target, text = link
+    replay = urllib.parse.parse_qs(urllib.parse.urlsplit(href).query)["url"][0]
+    assert target == "_blank" and f"run {run['id']} from its start" in text, link
+    assert replay.startswith(f"{server.url}/api/logs/runs/{run['id']}/files/") and replay.endswith("?fmt=rrd"), href
+    live = urllib.parse.parse_qs(urllib.parse.urlsplit(viewer.url).query)["url"][0]
+    assert live.endswith("/proxy") and live != replay, viewer.url
+    rrd = server.http.get(replay.removeprefix(server.url))
+    assert rrd.status_code == 200 and rrd.content[:4] == b"RRF2", rrd.content[:8]
+    viewer.close()
+    dash.close()
+    server.stop_run()
 
 
 def test_a_late_viewer_opens_at_the_live_edge(server: Server, browser) -> None:  # noqa: ANN001
@@ -119,9 +242,10 @@ def test_a_late_viewer_opens_at_the_live_edge(server: Server, browser) -> None: 
     wait_for(lambda: time.monotonic() - opened >= PAGE_AHEAD_S, PAGE_AHEAD_S + 5, "the page's head start")  # on purpose
     # (route handlers run inside Playwright calls: the evaluate lets the wasm's request reach the list)
     wait_for(lambda: viewer.evaluate("0") == 0 and wasm_held, 60, "the page to ask for the viewer's wasm")
-    # Before the viewer's app exists, the page says what it is doing (not empty plots), and the tab
-    # script has asked for the live stream already (frontend/rerun-tab.js): the viewer, once started,
-    # reads what the proxy sent meanwhile instead of asking then and waiting for the first bytes.
+    # Before the viewer's app exists, the page says what it is doing (not empty plots), and the
+    # live stream is not asked for yet: the tab script asks once the viewer's wasm is compiled, just
+    # ahead of the viewer (frontend/rerun-tab.js: asked at the page's load, the stream's data queued
+    # in the response in the order it came and the viewer's first frames drew its oldest).
     # (the wasm is asked for by the tab script's first lines; the line is drawn once the body is
     # parsed: on a loaded machine that can come after)
     status = wait_for(
@@ -133,8 +257,8 @@ def test_a_late_viewer_opens_at_the_live_edge(server: Server, browser) -> None: 
     )
     assert status is not None and status[0] == "loading" and "starting the viewer" in status[1], status
     tab = viewer.evaluate("xrfRerunTab.frames()")
-    assert tab["early"] == "asked" and tab["streamAt"] is not None and tab["viewerAskedAt"] is None, tab
-    assert len(stream_requests) == 1, stream_requests
+    assert tab["early"] == "none" and tab["streamAt"] is None and tab["viewerAskedAt"] is None, tab
+    assert not stream_requests, stream_requests
     # While its wasm is held back, the page's load has started the run's stream: a reader that
     # connects now is handed samples from before it connected (the proxy's window, newest first),
     # not only what comes after (as when nothing is sent before a viewer reads).
@@ -182,10 +306,12 @@ def test_a_late_viewer_opens_at_the_live_edge(server: Server, browser) -> None: 
         f"{seen_s - newest / 1e9:.1f} s behind live when its thread showed them"
     )
 
-    # The viewer read the stream the page had asked for (one request: the tab script handed it the
-    # early response), and the line over the canvas went once it drew the stream's data.
+    # The viewer read one stream: the one the tab script asked for once the wasm was compiled, handed
+    # to it ("used"),
+    # and the line over the canvas went once it drew the stream's data.
     tab = viewer.evaluate("xrfRerunTab.frames()")
-    assert tab["early"] == "used" and tab["viewerAskedAt"] is not None and tab["firstDataAt"] is not None, tab
+    assert tab["early"] == "used" and tab["viewerAskedAt"] is not None, tab
+    assert tab["firstDataAt"] is not None, tab
     assert len(stream_requests) == 1, stream_requests
     wait_for(
         lambda: viewer.evaluate("document.getElementById('xrf-live-status').dataset.step") == "shown",

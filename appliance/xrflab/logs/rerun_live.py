@@ -27,6 +27,7 @@ import contextlib
 import itertools
 import logging
 import queue
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -64,6 +65,36 @@ BACKLOG_S = 5.0  # at most this much of the loop's records waits for the sending
 # mid-run reached the live edge in 25 s (bench/appliance/rerun_lag.py, issue 31 bug 6).
 SEND_PERIOD_S = 0.5
 IDLE_LOOK_S = 1.0  # with no viewer: how often the sending thread looks for one (on the whole second)
+
+
+_import_started = False
+_import_lock = threading.Lock()
+
+
+def prepare_import() -> None:
+    """Import the rerun SDK on a thread of its own, once per appliance, when a live viewer is
+    likely soon (server/http/rerun.py: the Runs page, which has the "Live plots" button, looked
+    at a live run its user may watch). The run's first viewer otherwise waited for it: the
+    recording imports rerun when it connects (``LiveRerun._connect``), 0.6 s on an idle 2-core VM
+    and 1.5-5 s under load, on the way to the viewer's first data (issue 31 bug 6). Once imported,
+    rerun stays for the appliance's life, as after any first viewer (~60 MB RSS,
+    bench/README.md): so this is not done while no run is live, nor for a dashboard that never
+    opens the Runs page. The import itself is CPU only; nothing streams before a viewer."""
+    global _import_started
+    with _import_lock:
+        if _import_started or "rerun" in sys.modules:
+            return
+        _import_started = True
+
+    def load() -> None:
+        try:
+            import rerun  # noqa: F401
+            import rerun.blueprint  # noqa: F401  (live_blueprint)
+            from rerun.blueprint.api import create_in_memory_blueprint  # noqa: F401  (blueprint_storage)
+        except Exception:  # the recording's own import reports it at the first viewer
+            log.debug("rerun import in advance failed", exc_info=True)
+
+    threading.Thread(target=load, name="xrf-rerun-import", daemon=True).start()
 
 
 def live_blueprint(names: list[str], telemetry: list[str], freq: int = 1000):

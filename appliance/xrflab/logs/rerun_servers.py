@@ -293,7 +293,12 @@ class LiveProxy(_RerunChild):
         logs nothing (no records) never looks fresh: a viewer reopened then waits the read
         route's LIVE_EDGE_WAIT_S."""
         now = time.monotonic()
-        if self._sent_at is None or now - self._sent_at > STALE_S:
+        if self._sent_at is None:
+            # The recording's first batch: the window holds nothing older to wait out (what it
+            # holds was sent since the recording connected, moments ago), so a waiting viewer is
+            # connected at once, not RESUMED_S later (issue 31 bug 6: the first viewer of a run).
+            self._resumed_at = now - RESUMED_S
+        elif now - self._sent_at > STALE_S:
             self._resumed_at = now
         self._sent_at = now
 
