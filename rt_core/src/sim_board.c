@@ -24,6 +24,7 @@
 
 #define SIM_COUNTS_PER_REV 4096.0 /* 1024-line encoder, quadrature */
 #define SIM_MAX_SUBSTEP_S 100e-6
+#define SIM_STALL_EVERY 100u /* faults.stall_ms: which transfers are held */
 /* In real time the plant moves on over all the time since the previous transfer, as a real one
  * driven by the FPGA's last outputs does: after an overrun the loop skips to the next period
  * boundary and counts the periods passed over as missed (the grading clock is cycles + missed), so
@@ -44,7 +45,8 @@ struct sim_board {
     struct xrf_sim_snapshot *snapshot; /* NULL, or where the plant's snapshot goes each transfer */
     int64_t (*clock)(void); /* simulated time: the loop's clock (xrf_sim_set_clock); NULL: real */
 
-    int channels; /* the bench's count, the plant row's (1..XRF_MAX_CHANNELS) */
+    int channels;       /* the bench's count, the plant row's (1..XRF_MAX_CHANNELS) */
+    uint32_t transfers; /* counted for faults.stall_ms */
 
     /* The board's registers, channels 1..channels (the rest stay zero). */
     int16_t pwm[XRF_MAX_CHANNELS]; /* signed duty as decoded, magnitude up to 14 bits */
@@ -365,6 +367,13 @@ static inline int sim_xfer_on(struct sim_board *s, int board, const uint8_t tx[X
             clock_gettime(CLOCK_MONOTONIC, &start);
         busy_wait_until(&start, s->faults.slow_link_us);
     }
+    if (s->faults.stall_ms && ++s->transfers % SIM_STALL_EVERY == 0) {
+        /* The caller is held as a busy machine holds it; the plant lives through the gap on
+         * the outputs it has (the next transfer's dt), as a real one does. */
+        struct timespec hold = {.tv_sec = s->faults.stall_ms / 1000,
+                                .tv_nsec = (long)(s->faults.stall_ms % 1000) * 1000000L};
+        nanosleep(&hold, NULL);
+    }
     return 0;
 }
 
@@ -567,6 +576,12 @@ static int parse_item(const char *p, const char *end, struct xrf_sim_faults *f)
         if (parse_uint(v, end, 1, 4294967295ul, &x))
             return -EINVAL;
         f->start_seed = (uint32_t)x;
+        return 0;
+    }
+    if (key_is(k, klen, "stall_ms")) {
+        if (parse_uint(v, end, 1, 10000, &x))
+            return -EINVAL;
+        f->stall_ms = (uint32_t)x;
         return 0;
     }
     if (key_is(k, klen, "slow_link_us")) {

@@ -259,6 +259,17 @@ def _largest_stall_ms(run_dir: Path, horizon_s: float) -> float:
     return max(float(np.max(np.diff(t), initial=PERIOD_NS) - PERIOD_NS), 0.0) / 1e6
 
 
+def _setpoint_lag_ms(run_dir: Path, at_s: float) -> float:
+    """How much later than its scheduled time `at_s` (loop time) the first setpoint change reached
+    the loop in a graded real-time run (ms): the grading runner writes it when it sees the loop
+    past `at_s`, and a busy host can take a while to look."""
+    records = _log(run_dir)
+    setpoints = [c for c in records.dtype.names if c.endswith("setpoint")]
+    changed = np.flatnonzero(np.any([records[c] != records[c][0] for c in setpoints], axis=0))
+    assert changed.size, "the setpoints never changed"
+    return max(float(records["cycle"][int(changed[0])]) * PERIOD_NS / 1e6 - at_s * 1e3, 0.0)
+
+
 # A real-time run whose loop was held longer than this in the transient is not the one to compare:
 # the plant lived through the stall on the last outputs (as a real one would) and the response
 # is another (CI: a stage run settled in 1.03 s against 0.455 s; here a 37 ms stall at the
@@ -267,6 +278,10 @@ def _largest_stall_ms(run_dir: Path, horizon_s: float) -> float:
 # cores: 12 stage runs, the longest stall in each transient 0.6..9.3 ms, settling within
 # 0.017 s of the simulated run's in all.
 MAX_STALL_MS = 10.0
+# Nor one whose setpoint reached the loop this much after its time: the checks' times count from
+# the scheduled step, so the lag adds to them (CI, load ~9: a 25 ms later settling with the longest
+# stall 4.6 ms). A quiet host takes it within a few cycles.
+MAX_LAG_MS = 5.0
 REAL_ATTEMPTS = 5  # each a few seconds; the first one passes on a CI host, under stress more
 
 
@@ -283,16 +298,19 @@ def test_a_scenario_grades_the_same_in_simulated_and_real_time(
     virt = grade_executable(scenario, examples[name], tmp_path / "virtual", virtual_time=True)
     assert virt.status == "completed", virt.reason
     transient = max(c.value for c in virt.checks if c.kind in ("rise_time", "settling_time") and c.value is not None)
-    stalls: list[float] = []
+    step_at = min(s.at for s in scenario.setpoints)
+    stalls: list[tuple[float, float]] = []  # (longest stall, setpoint lag) ms per attempt
     for attempt in range(REAL_ATTEMPTS):
         run_dir = tmp_path / f"real{attempt}"
         real = grade_executable(scenario, examples[name], run_dir, virtual_time=False)
         assert real.status == "completed", real.reason
-        stalls.append(_largest_stall_ms(run_dir, transient + 0.1))
-        if stalls[-1] <= MAX_STALL_MS:
+        stalls.append((_largest_stall_ms(run_dir, transient + 0.1), _setpoint_lag_ms(run_dir, step_at)))
+        if stalls[-1][0] <= MAX_STALL_MS and stalls[-1][1] <= MAX_LAG_MS:
             break
     else:
-        pytest.fail(f"every real-time run was held in its transient (longest stalls {stalls} ms): the host is too busy")
+        pytest.fail(
+            f"every real-time run was held or its setpoint late (stall, lag: {stalls} ms): the host is too busy"
+        )
     assert virt.virtual_time and not real.virtual_time
     assert [(c.id, c.passed, c.earned) for c in virt.checks] == [(c.id, c.passed, c.earned) for c in real.checks]
     for r, v in zip(real.checks, virt.checks, strict=True):

@@ -33,10 +33,12 @@ struct xrf_sim_faults {
     uint32_t start_seed;    /* > 0: the plant starts from the pose this seed draws (if it can) */
     uint8_t absent_board;   /* bit b: ico board b + 1 (2, 3) of a bench is not there: every reply
                              * of it is zeros (the self-check's "board.B" step) */
+    uint32_t stall_ms;      /* every SIM_STALL_EVERY-th transfer holds its caller this long (a
+                             * machine that stalls the self-check: its counts may wrap) */
 };
 
 /* Parses "dead_encoder=2,reversed_motor=1,no_init,corrupt_echo,stuck_input=3:1,slow_link_us=200,
- * loopback=1,start=7,absent_board=2" (channels and boards 1-based, stuck_input=<pin 1..8>:<value>, start=<seed 1..2^32-1>:
+ * loopback=1,start=7,absent_board=2,stall_ms=300" (channels and boards 1-based, stuck_input=<pin 1..8>:<value>, start=<seed 1..2^32-1>:
  * the plant's start pose, for plants that start anywhere). Returns 0 or -EINVAL. */
 int xrf_sim_parse_faults(const char *spec, struct xrf_sim_faults *faults);
 
