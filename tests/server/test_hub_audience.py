@@ -224,7 +224,7 @@ def test_a_message_goes_out_in_the_publishers_turn_and_in_order_when_a_send_wait
         sock.hold = asyncio.Event()
         hub.publish(AlarmMessage(kind="room", message="2"))  # waits in the send
         hub.publish(AlarmMessage(kind="room", message="3"))  # queued behind it
-        await asyncio.sleep(0)
+        await asyncio.sleep(0)  # one turn of the event loop: the held send is waiting, nothing more
         assert sock.sent == ["1"] and len(client.queue) == 1
         sock.hold.set()
         for _ in range(10):
