@@ -226,7 +226,19 @@
     W.shown = { t0, t1, zero, points: xs.length };
   }
 
-  function frame() {
+  // The layout can move the scope's panel after the plot was sized (the table beside it filled
+  // in, the page shown at another width) without a resize event (CI: a scope built at the left
+  // edge, then pushed right, 1782 px in a 1280 px window): its width is checked twice a second.
+  let fitAt = 0;
+  function fitPlot(now) {
+    if (!W.plot || now - fitAt < 500) return;
+    fitAt = now;
+    const want = plotWidth();
+    if (Math.abs(want - W.plot.width) > 2) W.plot.setSize({ width: want, height: 260 });
+  }
+
+  function frame(now) {
+    if (visible()) fitPlot(now || 0);
     if (W.dirty && visible()) {
       W.dirty = false;
       renderTable(false);

@@ -234,6 +234,9 @@ def test_watch_values_freeze_and_trigger(server: Server, browser) -> None:  # no
         ".slice(0, 8).map(e => `${e.tagName}#${e.id}.${e.className} ${Math.round(e.getBoundingClientRect().right)}`)"
     )
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth"), wide
+    # A scope left too wide by a layout change (no resize event comes) is fitted again.
+    page.evaluate("xrfWatch.plot.setSize({width: 2000, height: 260})")
+    page.wait_for_function("document.documentElement.scrollWidth <= window.innerWidth", timeout=5000)
     first = page.evaluate(val)
     # plotted by default: the run's Xeno2Ros fields
     assert page.evaluate("xrfWatch.plotKeys") == ["x.pos_left", "x.pos_right"]
