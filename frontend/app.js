@@ -670,9 +670,14 @@ function buildPlots(xeno2ros, channels) {
   buildChannelPlots(channels);
 }
 
+// Samples further apart than this are not joined by a line (a hidden tab took no telemetry).
+const GAP_S = 1;
+
 function pushSample(p, t, values) {
   if (!p) return;
   const d = p.data;
+  const last = d[0].length ? d[0][d[0].length - 1] : null;
+  if (last !== null && t > last + GAP_S) d.forEach((a, i) => a.push(i ? null : last + 1e-3));  // a gap
   d[0].push(t);
   values.forEach((v, i) => d[i + 1].push(typeof v === "boolean" ? Number(v) : v));
   while (d[0].length && d[0][0] < t - WINDOW_S) d.forEach((a) => a.shift());
@@ -1001,10 +1006,33 @@ const HANDLERS = {
 };
 xrf.handlers = HANDLERS;
 
+// A hidden tab (another tab in front, the window minimised) takes no telemetry: nobody sees its
+// plots, and each message costs the appliance a wake-up and a socket write (issue 30 item 4: a
+// lab's background tabs). It keeps every other topic (state, alarms, the lease, the console), and
+// telemetry comes back when it is shown again (the plots then have a gap). A page may keep it
+// while hidden (xrf.keepTelemetry: the Watch page with a trigger armed, which must not miss
+// its crossing). Until a tab is hidden the appliance's default holds: every topic.
+const REPLIES = new Set(["ack", "pong", "error"]);
+xrf.keepTelemetry = [];  // functions: true while a page needs telemetry though the tab is hidden
+xrf.telemetryWanted = true;
+function followVisibility() {
+  const want = document.visibilityState !== "hidden" || xrf.keepTelemetry.some((fn) => fn());
+  if (want === xrf.telemetryWanted) return;
+  xrf.telemetryWanted = want;
+  const topics = Object.keys(HANDLERS).filter((k) => !REPLIES.has(k) && (want || k !== "telemetry"));
+  xrf.send({ type: "subscribe", topics });
+}
+xrf.followVisibility = followVisibility;
+document.addEventListener("visibilitychange", followVisibility);
+
 function connect() {
   const ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws");
   xrf.ws = ws;
-  ws.onopen = () => { $("conn").textContent = "connected"; $("conn").className = "badge ok"; };
+  ws.onopen = () => {
+    $("conn").textContent = "connected"; $("conn").className = "badge ok";
+    xrf.telemetryWanted = true;  // a new connection takes every topic
+    followVisibility();
+  };
   ws.onclose = () => {
     $("conn").textContent = "disconnected — retrying"; $("conn").className = "badge bad";
     // A refused handshake or a session that ended: back to the login page, else retry.

@@ -140,3 +140,35 @@ def test_with_a_dashboard_the_reader_wakes_itself_for_the_samples_sent(server: S
     finally:
         ch.close()
         server.stop_run()
+
+
+def test_a_client_without_telemetry_gets_the_state_on_the_readers_own_clock(server: Server) -> None:
+    """A client taking the state and monitor lines but not telemetry (a hidden dashboard tab,
+    frontend/app.js followVisibility; a tool): the reader wakes on its own clock, 10 times a
+    second (server/runs/reader.py, STREAMS_PERIOD_S), not for every publication of the loop on
+    the doorbell (before: the doorbell thread sat in the futex and woke the reader 50 times a
+    second, more than a visible dashboard's 15), and the state still reaches the client."""
+    from xrflab.channels.binding import ffi, lib
+
+    wait_clients_gone(server)
+    run = server.start_run("relbot")
+    ch = Channels.open(run["shm"], wait_s=10)
+    try:
+        with server.ws() as ws:
+            ws.send({"type": "subscribe", "topics": ["state", "monitor", "run", "alarm", "timing"]})
+            assert "telemetry" not in ws.wait_type("ack")["topics"]
+            ws.to_run()
+            wait_cycles(ch, 500)
+            waiting = []
+            for _ in range(100):
+                waiting.append(lib.xrfpy_load_u32(ffi.addressof(ch.shm, "doorbell_waiters")))
+                time.sleep(0.01)  # sampling the word over a second: time passing is the point
+            assert sum(1 for w in waiting if w) <= len(waiting) // 4, waiting
+            assert ws.command("pause")["accepted"]
+            ws.wait_state("PAUSED")
+            assert ws.command("start")["accepted"]
+            ws.wait_state("RUN")
+            assert not [m for m in ws.messages if m["type"] == "telemetry"]
+    finally:
+        ch.close()
+        server.stop_run()

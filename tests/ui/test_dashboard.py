@@ -124,6 +124,55 @@ def test_dashboard_drives_a_relbot_run(server: Server, browser) -> None:
     page.close()
 
 
+HIDE = """(state) => { Object.defineProperty(document, "visibilityState", {value: state, configurable: true});
+document.dispatchEvent(new Event("visibilitychange")); }"""
+
+
+def test_a_hidden_tab_takes_no_telemetry(server: Server, browser) -> None:
+    """A hidden dashboard tab unsubscribes telemetry and keeps the rest (timing here), takes it
+    again when shown, and keeps it while the Watch page's trigger is armed (frontend/app.js,
+    followVisibility; issue 30 item 4: a lab's background tabs cost the appliance nothing)."""
+    server.stop_run()
+    server.start_run("relbot")
+    page = browser.new_page(viewport={"width": 1400, "height": 1000})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(server.url + "/")
+    page.wait_for_function("document.getElementById('conn').textContent === 'connected'")
+    page.evaluate("""() => { window.timings = 0; window.acks = [];
+        xrf.on("timing", () => { timings += 1; }); xrf.on("ack", (m) => { if (m.topics) acks.push(m.topics); }); }""")
+    with server.ws() as ws:
+        ws.to_run()
+    page.wait_for_function("xrf.telemetryMessages > 5")
+
+    page.evaluate(HIDE, "hidden")
+    page.wait_for_function("acks.length === 1")
+    topics = page.evaluate("acks[0]")
+    assert "telemetry" not in topics and {"state", "timing", "alarm", "lease", "monitor"} <= set(topics), topics
+    page.wait_for_function("timings > 0")
+    seen = page.evaluate("[timings, xrf.telemetryMessages]")  # what was on its way has arrived
+    page.wait_for_function(f"timings >= {seen[0] + 2}", timeout=10_000)  # two more timing messages
+    assert page.evaluate("xrf.telemetryMessages") == seen[1]
+
+    page.evaluate(HIDE, "visible")
+    page.wait_for_function("acks.length === 2 && acks[1].includes('telemetry')")
+    page.wait_for_function(f"xrf.telemetryMessages > {seen[1] + 5}")
+
+    # The Watch page with a trigger armed: hidden, it keeps telemetry (the crossing must not be missed).
+    page.evaluate("location.hash = '#watch'")  # the same page: its listeners stay
+    page.wait_for_selector("#watch-arm")
+    page.fill("#watch-trig-level", "1e9")
+    page.click("#watch-arm")
+    page.evaluate(HIDE, "hidden")
+    assert page.evaluate("xrf.telemetryWanted")
+    n = page.evaluate("xrf.telemetryMessages")
+    page.wait_for_function(f"xrf.telemetryMessages > {n + 5}")
+    assert page.evaluate("acks.length") == 2
+    assert not errors, errors
+    page.close()
+    server.stop_run()
+
+
 def test_dashboard_shows_a_crash(server: Server, browser) -> None:
     import os
     import signal

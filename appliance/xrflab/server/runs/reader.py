@@ -20,13 +20,16 @@ what it costs on a busy core):
   publication, and neither a thread of ours nor the event loop's self-pipe is woken for the
   samples in between. What the loop published before it (samples, monitor lines, a state
   change) is read in that batch, at most one message period (67 ms) later.
+- With clients that take monitor lines or the state but not telemetry (a dashboard tab that is
+  hidden, a tool) it wakes itself every STREAMS_PERIOD_S (10 times a second, sooner should a
+  ring fill faster): the doorbell would wake it for every publication of the loop (50 a second
+  for a RELbot), more often than a visible dashboard does.
 - Otherwise it follows the doorbell: a thread of our own sleeps in that futex
   (`doorbell_thread`) and wakes the reader, coalescing bursts into one wake-up. That is where
   the publications' spacing is not known (the first samples, simulated time, whose clock is not
-  ours), when the sample due came late (the reader woke and it was not there: the next ring
-  brings it), and for a client that takes monitor lines or the state but not telemetry. In the
-  other two cases the thread is parked outside the futex (`Run.reader_timed`): the loop then has
-  no waiter to wake either (no system call in its doorbell path).
+  ours) and when the sample due came late (the reader woke and it was not there: the next ring
+  brings it). In the other cases the thread is parked outside the futex (`Run.reader_timed`):
+  the loop then has no waiter to wake either (no system call in its doorbell path).
 
 The reader hands every sample to the run observers (server/runs/lifecycle.py: the 3D view) and
 sends the dashboards a decimated stream (``telemetry_hz`` samples a second, ``per_message`` of them
@@ -62,6 +65,9 @@ IDLE_PERIOD_S = 1.0  # longest wait between two reads with nobody taking the str
 IDLE_MIN_S = DOORBELL_WAIT_MS / 1000
 RING_MARGIN = 4  # the idle wait lets a ring fill to a quarter at most
 LIVE_RECHECK_S = 0.25  # how often the reader asks whether the run observers are watched
+# The reader's period for clients taking the state or monitor lines but not telemetry: a state
+# change or a console line reaches them within it (people reading; nothing safety-related).
+STREAMS_PERIOD_S = 0.1
 
 
 def idle_period(rates: list[tuple[int, float]]) -> float:
@@ -318,10 +324,12 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub,
             pending = []
         lines = monitor.read()
         wanted = dashboards or hub.wants("monitor") or hub.wants("state")
+        if not dashboards and since > 0:
+            run.idle_period = idle_period([(observed.slots, observed_rate), (monitor.slots, len(lines) / since)])
         if not wanted:
-            if since > 0:
-                run.idle_period = idle_period([(observed.slots, observed_rate), (monitor.slots, len(lines) / since)])
             set_timed(run, time.monotonic_ns() + int(until_aligned(run.idle_period) * 1e9))
+        elif not dashboards:
+            set_timed(run, time.monotonic_ns() + int(min(STREAMS_PERIOD_S, run.idle_period) * 1e9))
         else:
             expected = (
                 0
