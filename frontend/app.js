@@ -17,8 +17,9 @@ const xrf = {                // also the test hook: tests read window.xrf
   state: { state: 0, name: "NO RUN", allowed: [], active: false },
   run: null,
   plots: {},
-  telemetryCount: 0,
-  lastTelemetry: null,
+  telemetryCount: 0,          // samples drawn
+  telemetryMessages: 0,       // telemetry messages received (each carries telemetry_per_message samples)
+  lastTelemetry: null,        // the last sample drawn, with its message's run_id, lost and ros2xeno
   schema: { ros2xeno: [], xeno2ros: [] },
 };
 window.xrf = xrf;
@@ -449,7 +450,8 @@ function updateRunSummary() {
 let pendingSetpoint = {}, setpointTimer = null;
 const editedAt = {};  // field -> performance.now() of the user's last change here
 // How long a field the user just changed is left alone by followLoop: the change's way to the
-// loop and back in telemetry (1/SETPOINT_HZ, a cycle, 1/telemetry_hz) with room for a busy bench.
+// loop and back in telemetry (1/SETPOINT_HZ, a cycle, a telemetry message's period: 2/telemetry_hz,
+// and its play-out, 1/telemetry_hz) with room for a busy bench.
 const EDIT_HOLD_MS = 1500;
 
 function queueSetpoint(name, value) {
@@ -668,13 +670,61 @@ function buildPlots(xeno2ros, channels) {
   buildChannelPlots(channels);
 }
 
+// Samples further apart than this are not joined by a line (a hidden tab took no telemetry).
+const GAP_S = 1;
+
 function pushSample(p, t, values) {
   if (!p) return;
   const d = p.data;
+  const last = d[0].length ? d[0][d[0].length - 1] : null;
+  if (last !== null && t > last + GAP_S) d.forEach((a, i) => a.push(i ? null : last + 1e-3));  // a gap
   d[0].push(t);
   values.forEach((v, i) => d[i + 1].push(typeof v === "boolean" ? Number(v) : v));
   while (d[0].length && d[0][0] < t - WINDOW_S) d.forEach((a) => a.shift());
   p.dirty = true;
+}
+
+// ---- telemetry: samples played out at their own spacing ----------------------------------------
+// A telemetry message carries several samples, oldest first (Settings.telemetry_per_message: 2,
+// 15 messages a second for the 30 samples a second the plots draw: each message costs the
+// appliance a wake-up and a socket write, issue 30 item 4). Drawn all at once the plots would
+// advance in 67 ms steps; so the oldest is drawn on arrival and each later one at its own
+// distance (its t) after the one before: the plots move at 30 steps a second as with one sample a
+// message, each sample shown one sample period (33 ms) after it arrived at the latest. A message
+// arriving while samples of the one before are still waiting draws those at once first: the
+// order is kept and the page never falls behind by more than a message. Every consumer of
+// samples (the Bench page's plots, pages/watch.js's scope) takes them from here: xrf.onSample.
+const PLAYOUT_MAX_MS = 100;  // the longest gap played out between two samples of one message
+const sampleListeners = [];
+let playout = [], playoutTimer = null;
+xrf.onSample = (fn) => sampleListeners.push(fn);
+
+function drawSample(s) {
+  applyTelemetry(s);
+  for (const fn of sampleListeners) {
+    try { fn(s); } catch (e) { console.error(e); }
+  }
+}
+
+function playNext() {
+  playoutTimer = null;
+  const [s, next] = [playout.shift(), playout[0]];
+  drawSample(s);
+  if (next) playoutTimer = setTimeout(playNext, Math.min(PLAYOUT_MAX_MS, Math.max(0, (next.t - s.t) * 1000)));
+}
+
+function playTelemetry(m) {
+  xrf.telemetryMessages += 1;
+  if (playoutTimer) { clearTimeout(playoutTimer); playoutTimer = null; }
+  while (playout.length) drawSample(playout.shift());
+  const samples = m.samples || [];
+  if (!samples.length) return;
+  // The message's Ros2Xeno is the loop's at its newest sample; an older sample whose Ros2Xeno was
+  // another (sent at another time) gets {} (unknown: the controls and the scope keep theirs).
+  const newest = samples[samples.length - 1].ros2xeno_t_sent_ns;
+  playout = samples.map((s) => ({ ...s, run_id: m.run_id, lost: m.lost,
+    ros2xeno: s.ros2xeno_t_sent_ns === newest ? m.ros2xeno : {} }));
+  playNext();
 }
 
 function applyTelemetry(m) {
@@ -924,7 +974,7 @@ function route() {
 const HANDLERS = {
   state: (m) => applyState(m),
   run: (m) => applyRun(m),
-  telemetry: (m) => applyTelemetry(m),
+  telemetry: (m) => playTelemetry(m),
   timing: (m) => applyTiming(m),
   monitor: (m) => appendMonitor(m.lines, m.source),
   alarm: (m) => {
@@ -956,10 +1006,33 @@ const HANDLERS = {
 };
 xrf.handlers = HANDLERS;
 
+// A hidden tab (another tab in front, the window minimised) takes no telemetry: nobody sees its
+// plots, and each message costs the appliance a wake-up and a socket write (issue 30 item 4: a
+// lab's background tabs). It keeps every other topic (state, alarms, the lease, the console), and
+// telemetry comes back when it is shown again (the plots then have a gap). A page may keep it
+// while hidden (xrf.keepTelemetry: the Watch page with a trigger armed, which must not miss
+// its crossing). Until a tab is hidden the appliance's default holds: every topic.
+const REPLIES = new Set(["ack", "pong", "error"]);
+xrf.keepTelemetry = [];  // functions: true while a page needs telemetry though the tab is hidden
+xrf.telemetryWanted = true;
+function followVisibility() {
+  const want = document.visibilityState !== "hidden" || xrf.keepTelemetry.some((fn) => fn());
+  if (want === xrf.telemetryWanted) return;
+  xrf.telemetryWanted = want;
+  const topics = Object.keys(HANDLERS).filter((k) => !REPLIES.has(k) && (want || k !== "telemetry"));
+  xrf.send({ type: "subscribe", topics });
+}
+xrf.followVisibility = followVisibility;
+document.addEventListener("visibilitychange", followVisibility);
+
 function connect() {
   const ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws");
   xrf.ws = ws;
-  ws.onopen = () => { $("conn").textContent = "connected"; $("conn").className = "badge ok"; };
+  ws.onopen = () => {
+    $("conn").textContent = "connected"; $("conn").className = "badge ok";
+    xrf.telemetryWanted = true;  // a new connection takes every topic
+    followVisibility();
+  };
   ws.onclose = () => {
     $("conn").textContent = "disconnected — retrying"; $("conn").className = "badge bad";
     // A refused handshake or a session that ended: back to the login page, else retry.

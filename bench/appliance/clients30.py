@@ -223,7 +223,8 @@ def main() -> None:
         per = row["delivered"] or []
         if per:
             print(
-                f"telemetry per client per s: min {min(per) / row['seconds']:.1f}, max {max(per) / row['seconds']:.1f}"
+                f"telemetry messages per client per s (two samples each since session 11): "
+                f"min {min(per) / row['seconds']:.1f}, max {max(per) / row['seconds']:.1f}"
             )
     if results["cyclictest"] and results["alone"] and results["clients"]:
         ct = agg(results["cyclictest"], "p99")

@@ -1,8 +1,11 @@
 #!/usr/bin/env python3
 """Telemetry latency loop -> browser: the loop's own timestamp in each sample (CLOCK_MONOTONIC
-when it published it) against the time the WebSocket client received it (same clock, same
-machine). RELbot example in RUN at 1 kHz, publishing at its write rate (50 Hz); the appliance
-decimates to the configured browser rate (30 Hz default; --hz 0 = every publication).
+when it published it) against the time the WebSocket client received the message carrying it
+(same clock, same machine). RELbot example in RUN at 1 kHz, publishing at its write rate (50 Hz);
+the appliance decimates to the configured browser rate (30 Hz default; --hz 0 = every
+publication), two samples a message (Settings.telemetry_per_message): the older sample of a
+message waits for the newer, so it is reported apart ("newest": the newest sample of each message,
+what a setpoint change's first sight depends on at best; "every sample": all of them).
 
 Loss is reported two ways: `lost` as counted by the appliance's ring reader (publications the
 loop overwrote before the appliance read them) and gaps between the cycles a client received
@@ -38,6 +41,7 @@ def measure(hz: float, seconds: float) -> None:
             ws.command("start")
             ws.wait_state("RUN")
             lat: list[int] = []
+            newest: list[int] = []
             cycles: list[int] = []
             lost = 0
             end = time.monotonic() + seconds
@@ -47,8 +51,10 @@ def measure(hz: float, seconds: float) -> None:
                 m = json.loads(raw)
                 if m.get("type") != "telemetry":
                     continue
-                lat.append(now - m["t_ns"])
-                cycles.append(m["cycle"])
+                for sample in m["samples"]:
+                    lat.append(now - sample["t_ns"])
+                    cycles.append(sample["cycle"])
+                newest.append(now - m["samples"][-1]["t_ns"])
                 lost = m["lost"]
     freq = run["cycle_freq"]
     source_hz = 50  # RelbotController(1000, 50, 2)
@@ -61,8 +67,12 @@ def measure(hz: float, seconds: float) -> None:
     rate = len(lat) / seconds
     label = f"{hz:g} Hz" if hz else f"every publication ({source_hz} Hz)"
     print(f"telemetry latency, loop sample -> WebSocket client, browser rate {label}, {seconds:g} s:")
-    print(f"  {summary_ms(lat)}")
-    print(f"  received {len(lat)} ({rate:.1f}/s); ring lost at the appliance: {lost}; missing samples: {gaps}")
+    print(f"  every sample: {summary_ms(lat)}")
+    print(f"  newest of each message: {summary_ms(newest)}")
+    print(
+        f"  received {len(lat)} samples ({rate:.1f}/s) in {len(newest)} messages ({len(newest) / seconds:.1f}/s); "
+        f"ring lost at the appliance: {lost}; missing samples: {gaps}"
+    )
 
 
 if __name__ == "__main__":

@@ -1,7 +1,8 @@
 // Watch page: every signal of the running controller with its current value (OpenPLC's monitor):
 // Xeno2Ros and Ros2Xeno fields, encoders, PWM, digital inputs and outputs; and a scope of any of
 // them: a time window to choose, freeze, and a trigger on a signal crossing a level.
-// Data: the dashboard's WebSocket (telemetry at the appliance's telemetry rate, Ros2Xeno included:
+// Data: the dashboard's WebSocket (telemetry samples at the appliance's telemetry rate, each one as
+// app.js plays it out, xrf.onSample; Ros2Xeno included:
 // the values the loop has, read from its shared memory, whoever wrote them: this tab, another, the
 // ROS 2 bridge, the CLI). Docs: docs/students/dashboard.md ("Watch").
 "use strict";
@@ -94,6 +95,8 @@
     }
     const prev = W.samples[W.samples.length - 1];
     if (prev && m.t < prev.t) { W.samples = []; W.triggered = null; }  // a new run: its own time axis
+    // Telemetry stopped meanwhile (the tab was hidden: app.js followVisibility): a gap, not a line.
+    else if (prev && m.t > prev.t + 1) W.samples.push({ t: prev.t + 1e-3, v: {} });
     W.samples.push(sample);
     while (W.samples.length && W.samples[0].t < m.t - BUFFER_S) W.samples.shift();
     checkTrigger(prev, sample);
@@ -343,7 +346,10 @@
     W.dirty = true;
   }
 
-  xrf.on("telemetry", onTelemetry);
+  xrf.onSample(onTelemetry);
+  // An armed trigger, or a capture under way, keeps telemetry coming while the tab is hidden (app.js
+  // followVisibility): the crossing it waits for must not be missed.
+  xrf.keepTelemetry.push(() => !!W.armed || (!!W.triggered && !W.frozen));  // each sample of each telemetry message, played out (app.js)
   xrf.on("run", (m) => {
     if (m.ros2xeno && (m.event === "started" || m.event === "current")) {
       W.loop = null;  // a new run's loop starts from zero

@@ -55,7 +55,7 @@ def test_tune_20sim_template_while_it_runs(server: Server, tmp_path: Path) -> No
         assert ws.command("initialise")["accepted"] and ws.wait_state("INITIALISED", 10)
         assert ws.command("start")["accepted"] and ws.wait_state("RUN", 5)
         ws.send({"type": "setpoint", "fields": {"steer_left": 1.0}})
-        ws.wait_for(lambda m: m.get("type") == "telemetry" and m["pwm"][0] != 0, 10)
+        ws.wait_sample(lambda m: m["pwm"][0] != 0, 10)
 
         r = server.http.post("/api/params", json={"values": {LIMIT: 0.0, KP: 3.0}})
         assert r.status_code == 200, r.text
@@ -68,7 +68,7 @@ def test_tune_20sim_template_while_it_runs(server: Server, tmp_path: Path) -> No
         )
         assert applied["who"] == "admin"
         # From the confirmed cycle on the controller's output is limited to 0: no PWM.
-        late = [ws.wait_for(lambda m: m.get("type") == "telemetry" and m["cycle"] > cycle, 10) for _ in range(5)]
+        late = [ws.wait_sample(lambda m: m["cycle"] > cycle, 10) for _ in range(5)]
         assert all(m["pwm"][0] == 0 and m["pwm"][1] == 0 for m in late), late
 
         # Refused whole: nothing of a bad set lands.
@@ -214,7 +214,7 @@ def test_declared_tunable_of_the_base_template(server: Server) -> None:
         assert ws.command("initialise")["accepted"] and ws.wait_state("INITIALISED", 10)
         assert ws.command("start")["accepted"] and ws.wait_state("RUN", 10)
         ws.send({"type": "setpoint", "fields": {"steer_left": 0.5}})
-        ws.wait_for(lambda m: m.get("type") == "telemetry" and m["xeno2ros"].get("pos_left") == 0.5, 10)
+        ws.wait_sample(lambda m: m["xeno2ros"].get("pos_left") == 0.5, 10)
         r = server.http.post("/api/params", json={"values": {"echo.gain": 10.5}})
         assert r.status_code == 422 and "out of range -10 .. 10" in r.json()["detail"], r.text
         r = server.http.post("/api/params", json={"values": {"echo.gain": 3.0}, "ranges": {"echo.gain": [-20, 20]}})
@@ -222,7 +222,7 @@ def test_declared_tunable_of_the_base_template(server: Server) -> None:
         r = server.http.post("/api/params", json={"values": {"echo.gain": -4.0}})
         assert r.status_code == 200, r.text
         cycle = r.json()["cycle"]
-        late = ws.wait_for(lambda m: m.get("type") == "telemetry" and m["cycle"] > cycle, 10)
+        late = ws.wait_sample(lambda m: m["cycle"] > cycle, 10)
         assert late["xeno2ros"]["pos_left"] == -2.0
     server.stop_run()
 

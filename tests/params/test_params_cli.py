@@ -123,7 +123,7 @@ def test_xrf_param_on_a_20sim_export(server: Server) -> None:
         assert ws.command("start")["accepted"]
         ws.wait_state("RUN", 10)
         ws.send({"type": "setpoint", "fields": {"steer_left": 5.0, "steer_right": 5.0}})
-        after = [ws.wait_for(lambda m: m.get("type") == "telemetry" and m["state"] == 4, 10) for _ in range(30)]
+        after = [ws.wait_sample(lambda m: m["state"] == 4, 10) for _ in range(30)]
         assert all(m["pwm"][0] == 0 and m["pwm"][1] == 0 for m in after), [m["pwm"] for m in after]
         assert server.http.get("/api/params/PID_Left\\Kp").json()["value"] == 0.0
     server.stop_run()

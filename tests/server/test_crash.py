@@ -27,7 +27,7 @@ def drive_motors(ws: WsClient) -> None:
     assert ws.command("start")["accepted"]
     ws.wait_state("RUN")
     ws.send({"type": "setpoint", "fields": {"steer_left": 50.0, "steer_right": 50.0}})
-    ws.wait_for(lambda m: m["type"] == "telemetry" and any(m["pwm"]), timeout=5)
+    ws.wait_sample(lambda s: any(s["pwm"]), timeout=5)
 
 
 def wait_forced_off(ch: Channels, t_event: float, timeout: float = 2.0) -> float:
@@ -191,7 +191,7 @@ def test_appliance_death_pauses_the_loop_and_restart_closes_the_run(tmp_path) ->
             assert ws.command("start")["accepted"]
             ws.wait_state("RUN")
             assert s.http.post("/api/lease/take").status_code == 200  # a holder, to be freed
-            ws.wait_for(lambda m: m["type"] == "telemetry" and m["cycle"] > 300, timeout=10)
+            ws.wait_sample(lambda s: s["cycle"] > 300, timeout=10)
         assert watch_live(s.http).status == 200  # its live rerun proxy: started at a first viewer
         launcher = _parent_of(_parent_of(run["pid"]))  # controller <- the sandbox's init <- launcher
         children = descendants(s.proc.pid)

@@ -116,21 +116,23 @@ def test_a_message_carries_the_fields_its_sender_set() -> None:
 
 
 def _telemetry_fields(run_id: int = 7) -> dict[str, object]:
-    return {
-        "run_id": run_id,
-        "cycle": 3,
-        "t_ns": 5,
-        "t": 0.5,
-        "state": 4,
-        "enc": [1, 2],
-        "din": [0, 1, 0, 0],
-        "pwm": [10, -10],
-        "dout": [0, 1],
-        "xeno2ros": {"u": 1.5},
-        "ros2xeno": {"r": 2.0},
-        "ros2xeno_t_sent_ns": 0,
-        "lost": 0,
-    }
+    """A telemetry message's wire fields as the reader builds them: two samples, oldest first."""
+    samples = [
+        {
+            "cycle": cycle,
+            "t_ns": cycle * 5,
+            "t": cycle * 0.5,
+            "state": 4,
+            "enc": [1, 2],
+            "din": [0, 1, 0, 0],
+            "pwm": [10, -10],
+            "dout": [0, 1],
+            "xeno2ros": {"u": 1.5},
+            "ros2xeno_t_sent_ns": 0,
+        }
+        for cycle in (3, 4)
+    ]
+    return {"run_id": run_id, "samples": samples, "ros2xeno": {"r": 2.0}, "lost": 0}
 
 
 def test_telemetry_by_its_fields_goes_out_as_its_model_would() -> None:
@@ -149,21 +151,25 @@ def test_telemetry_by_its_fields_goes_out_as_its_model_would() -> None:
     hub.publish_fields("telemetry", fields)
     by_fields = {name: _texts(c) for name, c in clients.items()}
     assert by_fields == by_model
-    assert json.loads(by_fields["alice"][0])["xeno2ros"] == {"u": 1.5}  # the owner's part to its owner
-    assert json.loads(by_fields["bob"][0])["xeno2ros"] == {}  # the public part to the rest
+    owners = json.loads(by_fields["alice"][0])
+    assert [x["xeno2ros"] for x in owners["samples"]] == [{"u": 1.5}] * 2  # the owner's part to its owner
+    assert owners["ros2xeno"] == {"r": 2.0}
+    public = json.loads(by_fields["bob"][0])
+    assert [x["xeno2ros"] for x in public["samples"]] == [{}, {}] and public["ros2xeno"] == {}  # the rest
+    assert [x["cycle"] for x in public["samples"]] == [3, 4] and public["samples"][0]["enc"] == [1, 2]
 
     heard: list[object] = []
     hub.listeners.append(heard.append)
     hub.publish_fields("telemetry", fields)
     assert [type(m) for m in heard] == [TelemetryMessage]
     with pytest.raises(ValueError):  # pydantic's ValidationError: checked where listeners hear it
-        hub.publish_fields("telemetry", {**fields, "enc": "not a list"})
+        hub.publish_fields("telemetry", {**fields, "samples": [{"enc": "not a list"}]})
     with pytest.raises(TypeError, match="not a server message kind"):
         hub.publish_fields("no-such-kind", fields)
 
 
 def test_the_public_copy_is_made_only_for_a_client_that_needs_it() -> None:
-    """ownership.scope's public part of telemetry is a function (30 messages a second): with only
+    """ownership.scope's public part of telemetry is a function (15 messages a second): with only
     the owner and an educator connected it is never called; with someone else, once a message
     however many of them there are."""
     made: list[int] = []
@@ -188,7 +194,7 @@ def test_the_public_copy_is_made_only_for_a_client_that_needs_it() -> None:
     others = [hub.new_client(None, u) for u in (BOB, User(4, "carol", "observer"))]  # type: ignore[arg-type]
     hub.publish_fields("telemetry", _telemetry_fields())
     assert made == [1]
-    assert [json.loads(_texts(c)[0])["xeno2ros"] for c in others] == [{}, {}]
+    assert [[x["xeno2ros"] for x in json.loads(_texts(c)[0])["samples"]] for c in others] == [[{}, {}], [{}, {}]]
 
 
 class _Socket:

@@ -21,6 +21,21 @@ def test_the_wake_up_is_at_the_publication_of_the_sample_due() -> None:
     assert next_publication(100 * MS + PERIOD_30HZ, 100 * MS, 50 * MS, PERIOD_30HZ) == 150 * MS
 
 
+def test_the_wake_up_is_at_the_sample_that_completes_a_message() -> None:
+    """Two samples a message (Settings.telemetry_per_message): the reader wakes for the second
+    sample due, not for the first (`message_due_at`), ~15 times a second instead of 30."""
+    from xrflab.server.runs.reader import message_due_at
+
+    # Last sample read (and sent) at 100 ms, the next due at 133.3: the one after it due at 166.7,
+    # published at 180 ms. With one of the two already read: the next due, at 140 ms.
+    assert message_due_at(100 * MS + PERIOD_30HZ, 0, 2, 100 * MS, 20 * MS, PERIOD_30HZ) == 180 * MS
+    assert message_due_at(100 * MS + PERIOD_30HZ, 1, 2, 100 * MS, 20 * MS, PERIOD_30HZ) == 140 * MS
+    # One sample a message: next_publication's answer.
+    assert message_due_at(100 * MS + PERIOD_30HZ, 0, 1, 100 * MS, 20 * MS, PERIOD_30HZ) == 140 * MS
+    # The spacing unknown: the doorbell, as for one sample.
+    assert message_due_at(100 * MS + PERIOD_30HZ, 0, 2, 100 * MS, 0, PERIOD_30HZ) == 0
+
+
 def test_the_doorbell_without_what_it_needs() -> None:
     assert next_publication(133 * MS, 100 * MS, 0, PERIOD_30HZ) == 0  # spacing unknown (first sample)
     assert next_publication(100 * MS, 100 * MS, 20 * MS, PERIOD_30HZ) == 0  # the next sample is due already

@@ -100,7 +100,7 @@ def _drive(server: Server, ws: WsClient) -> dict[str, Any]:
     assert ws.command("start", timeout=10)["accepted"]
     ws.wait_state("RUN", timeout=10)
     # The probe drives channel 1 (PWM 300) in RUN: the motors are moving when the loop goes.
-    ws.wait_for(lambda m: m["type"] == "telemetry" and m["pwm"][0] != 0, timeout=10)
+    ws.wait_sample(lambda s: s["pwm"][0] != 0, timeout=10)
     return run
 
 

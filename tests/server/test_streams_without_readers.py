@@ -109,8 +109,8 @@ def test_with_a_dashboard_the_reader_wakes_itself_for_the_samples_sent(server: S
     publishes the next sample due (server/runs/reader.py, `next_publication`): no thread of the
     appliance sits in the doorbell's futex for the samples the decimation skips (before: the
     doorbell thread waited there all the time and woke for all 50 a second), and the client still
-    gets a steady 30 Hz, every message the sample due (steps of 33.3 ms on the loop's clock,
-    within the loop's publication spacing of 20 ms)."""
+    gets a steady 30 samples a second, every sample due (steps of 33.3 ms on the loop's clock,
+    within the loop's publication spacing of 20 ms), in 15 messages a second of two."""
     from xrflab.channels.binding import ffi, lib
 
     wait_clients_gone(server)
@@ -122,16 +122,53 @@ def test_with_a_dashboard_the_reader_wakes_itself_for_the_samples_sent(server: S
             ws.wait_type("telemetry")
             waiting = []
             got = []
+            newest = []
             t_end = time.monotonic() + 2.0
             while time.monotonic() < t_end:
                 waiting.append(lib.xrfpy_load_u32(ffi.addressof(ch.shm, "doorbell_waiters")))
-                got.append(ws.wait_type("telemetry", 5)["t_ns"])
+                samples = ws.wait_type("telemetry", 5)["samples"]
+                got += [s["t_ns"] for s in samples]
+                newest.append(samples[-1]["t_ns"])
         # The doorbell is the fallback for a late sample only (a busy core): rarely waited on.
         assert sum(1 for w in waiting if w) <= len(waiting) // 4, waiting
-        rate = len(got) / ((got[-1] - got[0]) / 1e9)
+        rate = (len(got) - 1) / ((got[-1] - got[0]) / 1e9)
         assert 25 <= rate <= 35, rate
+        messages = (len(newest) - 1) / ((newest[-1] - newest[0]) / 1e9)
+        assert 12 <= messages <= 18, messages
         steps = [b - a for a, b in zip(got, got[1:])]
         assert max(steps) <= 60_000_000, steps  # no sample due skipped (one would leave a 53 ms+ step)
+    finally:
+        ch.close()
+        server.stop_run()
+
+
+def test_a_client_without_telemetry_gets_the_state_on_the_readers_own_clock(server: Server) -> None:
+    """A client taking the state and monitor lines but not telemetry (a hidden dashboard tab,
+    frontend/app.js followVisibility; a tool): the reader wakes on its own clock, 10 times a
+    second (server/runs/reader.py, STREAMS_PERIOD_S), not for every publication of the loop on
+    the doorbell (before: the doorbell thread sat in the futex and woke the reader 50 times a
+    second, more than a visible dashboard's 15), and the state still reaches the client."""
+    from xrflab.channels.binding import ffi, lib
+
+    wait_clients_gone(server)
+    run = server.start_run("relbot")
+    ch = Channels.open(run["shm"], wait_s=10)
+    try:
+        with server.ws() as ws:
+            ws.send({"type": "subscribe", "topics": ["state", "monitor", "run", "alarm", "timing"]})
+            assert "telemetry" not in ws.wait_type("ack")["topics"]
+            ws.to_run()
+            wait_cycles(ch, 500)
+            waiting = []
+            for _ in range(100):
+                waiting.append(lib.xrfpy_load_u32(ffi.addressof(ch.shm, "doorbell_waiters")))
+                time.sleep(0.01)  # sampling the word over a second: time passing is the point
+            assert sum(1 for w in waiting if w) <= len(waiting) // 4, waiting
+            assert ws.command("pause")["accepted"]
+            ws.wait_state("PAUSED")
+            assert ws.command("start")["accepted"]
+            ws.wait_state("RUN")
+            assert not [m for m in ws.messages if m["type"] == "telemetry"]
     finally:
         ch.close()
         server.stop_run()

@@ -43,6 +43,25 @@ def test_dashboard_drives_a_relbot_run(server: Server, browser) -> None:
     # The plot receives data.
     page.wait_for_function("window.xrf.plots.xeno2ros.data[0].length > 20")
     page.wait_for_function("window.xrf.plots.enc.data[0].length > 20")
+    # Every sample is drawn, in order, though a message carries two (15 messages a second for the
+    # 30 samples a second drawn, issue 30 item 4): the plot's points are the loop's samples due,
+    # 33 ms apart (none skipped: that would leave 53 ms or more), and the second sample of a message
+    # is played out after the first, not drawn with it (the plots would advance in 67 ms steps):
+    # a message drawn on arrival draws one sample (two when the one before had one left waiting).
+    page.evaluate(
+        """(() => { const h = xrf.handlers.telemetry; window.atArrival = [];
+        xrf.handlers.telemetry = (m) => { const n = xrf.telemetryCount; h(m); atArrival.push(xrf.telemetryCount - n); };
+        window.countsFrom = [xrf.telemetryMessages, xrf.telemetryCount]; })()"""
+    )
+    page.wait_for_function("window.atArrival.length >= 30")
+    drawn = page.evaluate(
+        """(() => { const xs = xrf.plots.enc.data[0].slice(-40);
+        return { messages: xrf.telemetryMessages - countsFrom[0], samples: xrf.telemetryCount - countsFrom[1],
+                 atArrival, steps: xs.slice(1).map((x, i) => x - xs[i]) }; })()"""
+    )
+    assert abs(drawn["samples"] - 2 * drawn["messages"]) <= 2, drawn  # two a message, the last maybe waiting
+    assert all(0 < step < 0.055 for step in drawn["steps"]), drawn
+    assert 1 in drawn["atArrival"] and max(drawn["atArrival"]) <= 3, drawn
 
     # Setpoint controls come from Ros2Xeno.msg; moving one makes Xeno2Ros follow.
     assert page.is_visible("#sp-range-steer_left") and page.is_visible("#sp-steer_right")
@@ -103,6 +122,55 @@ def test_dashboard_drives_a_relbot_run(server: Server, browser) -> None:
     assert page.is_disabled("#commands [data-cmd=start]")
     assert not errors, errors
     page.close()
+
+
+HIDE = """(state) => { Object.defineProperty(document, "visibilityState", {value: state, configurable: true});
+document.dispatchEvent(new Event("visibilitychange")); }"""
+
+
+def test_a_hidden_tab_takes_no_telemetry(server: Server, browser) -> None:
+    """A hidden dashboard tab unsubscribes telemetry and keeps the rest (timing here), takes it
+    again when shown, and keeps it while the Watch page's trigger is armed (frontend/app.js,
+    followVisibility; issue 30 item 4: a lab's background tabs cost the appliance nothing)."""
+    server.stop_run()
+    server.start_run("relbot")
+    page = browser.new_page(viewport={"width": 1400, "height": 1000})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(server.url + "/")
+    page.wait_for_function("document.getElementById('conn').textContent === 'connected'")
+    page.evaluate("""() => { window.timings = 0; window.acks = [];
+        xrf.on("timing", () => { timings += 1; }); xrf.on("ack", (m) => { if (m.topics) acks.push(m.topics); }); }""")
+    with server.ws() as ws:
+        ws.to_run()
+    page.wait_for_function("xrf.telemetryMessages > 5")
+
+    page.evaluate(HIDE, "hidden")
+    page.wait_for_function("acks.length === 1")
+    topics = page.evaluate("acks[0]")
+    assert "telemetry" not in topics and {"state", "timing", "alarm", "lease", "monitor"} <= set(topics), topics
+    page.wait_for_function("timings > 0")
+    seen = page.evaluate("[timings, xrf.telemetryMessages]")  # what was on its way has arrived
+    page.wait_for_function(f"timings >= {seen[0] + 2}", timeout=10_000)  # two more timing messages
+    assert page.evaluate("xrf.telemetryMessages") == seen[1]
+
+    page.evaluate(HIDE, "visible")
+    page.wait_for_function("acks.length === 2 && acks[1].includes('telemetry')")
+    page.wait_for_function(f"xrf.telemetryMessages > {seen[1] + 5}")
+
+    # The Watch page with a trigger armed: hidden, it keeps telemetry (the crossing must not be missed).
+    page.evaluate("location.hash = '#watch'")  # the same page: its listeners stay
+    page.wait_for_selector("#watch-arm")
+    page.fill("#watch-trig-level", "1e9")
+    page.click("#watch-arm")
+    page.evaluate(HIDE, "hidden")
+    assert page.evaluate("xrf.telemetryWanted")
+    n = page.evaluate("xrf.telemetryMessages")
+    page.wait_for_function(f"xrf.telemetryMessages > {n + 5}")
+    assert page.evaluate("acks.length") == 2
+    assert not errors, errors
+    page.close()
+    server.stop_run()
 
 
 def test_dashboard_shows_a_crash(server: Server, browser) -> None:

@@ -55,7 +55,7 @@ def test_tune_the_pid_from_the_panel(server: Server, browser) -> None:
         assert ws.command("initialise")["accepted"] and ws.wait_state("INITIALISED", 10)
         assert ws.command("start")["accepted"] and ws.wait_state("RUN", 10)
         ws.send({"type": "setpoint", "fields": {"steer_left": 1000.0}})  # far away: the output saturates
-        ws.wait_for(lambda m: m.get("type") == "telemetry" and abs(m["pwm"][0]) == CLAMP, 10)
+        ws.wait_sample(lambda m: abs(m["pwm"][0]) == CLAMP, 10)
 
         page = browser.new_page(viewport={"width": 1400, "height": 1400})
         errors: list[str] = []
@@ -68,7 +68,7 @@ def test_tune_the_pid_from_the_panel(server: Server, browser) -> None:
         assert row.locator(".params-value").inner_text() == "1"
         page.wait_for_function(EDITABLE, arg="#page-bench")
 
-        before = [ws.wait_for(lambda m: m.get("type") == "telemetry", 5) for _ in range(30)]
+        before = [ws.wait_sample(timeout=5) for _ in range(30)]
         row.locator(".params-new").fill("0.1")
         panel.locator(".params-apply").click()
         status = panel.locator(".params-status")
@@ -83,8 +83,8 @@ def test_tune_the_pid_from_the_panel(server: Server, browser) -> None:
         assert row.locator(".params-value").inner_text() == "0.1"
 
         # From the confirmed cycle on: the output is the new limit, under the framework's clamp.
-        after = [ws.wait_for(lambda m: m.get("type") == "telemetry" and m["cycle"] > cycle + 200, 10)]
-        after += [ws.wait_for(lambda m: m.get("type") == "telemetry", 5) for _ in range(29)]
+        after = [ws.wait_sample(lambda m: m["cycle"] > cycle + 200, 10)]
+        after += [ws.wait_sample(timeout=5) for _ in range(29)]
         assert all(abs(s["pwm"][0]) == CLAMP for s in before if s["cycle"] < cycle)
         assert all(0 < abs(s["pwm"][0]) <= 205 for s in after), [s["pwm"][0] for s in after]
         assert _speed(after) < 0.8 * _speed(before), (_speed(before), _speed(after))

@@ -144,7 +144,7 @@ def test_jiwy_joints_follow_the_setpoint_and_replay(server: Server) -> None:
         s = wait_state(server, lambda s: abs(s["joints"]["pan"] - 0.6) < 0.03 and abs(s["joints"]["tilt"] + 0.3) < 0.03)
         assert s["ghost"] == {"pan": 0.6, "tilt": -0.3}
         # The example's own measurement (Xeno2Ros pan/tilt, from the same counters) agrees.
-        t = ws.wait_for(lambda m: m.get("type") == "telemetry" and abs(m["xeno2ros"]["pan"] - 0.6) < 0.03, 5)
+        t = ws.wait_sample(lambda m: abs(m["xeno2ros"]["pan"] - 0.6) < 0.03, 5)
         assert abs(t["xeno2ros"]["tilt"] - s["joints"]["tilt"]) < 0.03
     run_id = s["run_id"]
     time.sleep(1.0)  # hold the setpoint a while: the replay below scrubs a run of known length
@@ -222,6 +222,6 @@ def test_stage_carriage_follows_the_setpoint(server: Server) -> None:
             time.sleep(0.5)
         assert abs(s["position"] - 0.04) < 0.001, s
         assert s["ghost"] == 0.04
-        t = ws.wait_for(lambda m: m.get("type") == "telemetry" and abs(m["xeno2ros"]["position"] - 0.04) < 0.001, 5)
+        t = ws.wait_sample(lambda m: abs(m["xeno2ros"]["position"] - 0.04) < 0.001, 5)
         assert abs(t["xeno2ros"]["position"] - s["position"]) < 0.001
     server.stop_run()

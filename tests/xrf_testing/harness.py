@@ -163,6 +163,13 @@ def browser_login(page: Any, url: str, username: str, password: str) -> None:
     page.wait_for_function("window.xrf && window.xrf.me && window.xrf.me.username === " + json.dumps(username))
 
 
+def telemetry_samples(message: dict[str, Any]) -> list[dict[str, Any]]:
+    """A telemetry message's samples, oldest first, each with the message's run_id, lost and
+    ros2xeno (the Ros2Xeno the loop had at its newest sample)."""
+    extra = {"run_id": message["run_id"], "lost": message["lost"], "ros2xeno": message.get("ros2xeno", {})}
+    return [{**sample, **extra} for sample in message["samples"]]
+
+
 class WsClient:
     """A WebSocket client that keeps every message, so tests wait for conditions, not sleeps."""
 
@@ -201,6 +208,26 @@ class WsClient:
         return self.wait_for(
             lambda m: m.get("type") == message_type and all(m.get(k) == v for k, v in fields.items()), timeout, seen
         )
+
+    def wait_sample(
+        self, pred: Callable[[dict[str, Any]], bool] = lambda s: True, timeout: float = 5.0, seen: bool = False
+    ) -> dict[str, Any]:
+        """The first telemetry sample matching pred, oldest first, from the next telemetry message
+        that has one (a message carries several: server/ws/messages.py TelemetryMessage): the
+        sample's fields with its message's run_id, lost and ros2xeno."""
+        found: list[dict[str, Any]] = []
+
+        def match(m: dict[str, Any]) -> bool:
+            if m.get("type") != "telemetry":
+                return False
+            for sample in telemetry_samples(m):
+                if pred(sample):
+                    found.append(sample)
+                    return True
+            return False
+
+        self.wait_for(match, timeout, seen)
+        return found[-1]
 
     def wait_state(self, name: str, timeout: float = 5.0) -> dict[str, Any]:
         """State `name` reached: a state message may come before the ack of the command causing it."""

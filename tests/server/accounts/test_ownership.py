@@ -418,7 +418,11 @@ def test_watchers_see_state_and_motion_but_not_the_owners_output(server: Server,
                 )
 
             def named_signals(m: dict[str, Any]) -> bool:
-                return m.get("type") == "telemetry" and m.get("run_id") == run_id and "pos_left" in m["xeno2ros"]
+                return (
+                    m.get("type") == "telemetry"
+                    and m.get("run_id") == run_id
+                    and all("pos_left" in sample["xeno2ros"] for sample in m["samples"])
+                )
 
             for ws in (wa, we):  # the owner and an educator: everything
                 ws.wait_for(monitor, timeout=10, seen=True)
@@ -429,7 +433,9 @@ def test_watchers_see_state_and_motion_but_not_the_owners_output(server: Server,
                 ws.wait_state("RUN", timeout=10)
                 ws.wait_for(
                     lambda m: (
-                        m.get("type") == "telemetry" and m.get("run_id") == run_id and len(m["enc"]) > 0 and "pwm" in m
+                        m.get("type") == "telemetry"
+                        and m.get("run_id") == run_id
+                        and all(len(sample["enc"]) > 0 and "pwm" in sample for sample in m["samples"])
                     ),
                     timeout=10,
                     seen=True,
@@ -453,7 +459,8 @@ def test_watchers_see_state_and_motion_but_not_the_owners_output(server: Server,
     assert not [m for m in watched if m.get("type") == "monitor"], "monitor lines reached a watcher"
     for m in watched:
         if m.get("type") == "telemetry":
-            assert m["xeno2ros"] == {} and m["ros2xeno"] == {}, m  # the setpoints are the owner's too
+            assert m["ros2xeno"] == {}, m  # the setpoints are the owner's too
+            assert m["samples"] and all(sample["xeno2ros"] == {} for sample in m["samples"]), m
         if m.get("type") == "run":
             assert m["redacted"] and m["run"]["build"] == "" and m["run"]["owner"] == "" and m["run"]["run_dir"] == ""
         text = json.dumps(m)

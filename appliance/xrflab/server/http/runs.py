@@ -41,7 +41,8 @@ class BenchInfo(BaseModel):
     profile: str
     evl: bool
     spidev: bool
-    telemetry_hz: float
+    telemetry_hz: float = Field(description="telemetry samples a second to a dashboard")
+    telemetry_per_message: int = Field(description="samples in one telemetry message (oldest first)")
 
 
 class BuildInfo(BaseModel):

@@ -12,24 +12,28 @@ what it costs on a busy core):
   xrflab/ticks.py), so every sample still reaches the run observers (the 3D view's recording)
   and nothing is overwritten unread; a client that connects wakes it at once
   (Supervisor._client_connected).
-- With a dashboard taking telemetry it wakes itself just after the loop publishes the next
-  sample due to be sent (`next_publication` + TIMED_MARGIN_NS: the loop publishes at a fixed
-  spacing on our monotonic clock), so it wakes ~30 times a second for a RELbot (dashboards get
-  30 Hz of its 50), each due sample read within about a millisecond of its publication, and
-  neither a thread of ours nor the event loop's self-pipe is woken for the samples the
-  decimation skips. What the loop published before it (samples, monitor lines, a state change)
-  is read in that batch, at most one telemetry period later.
+- With a dashboard taking telemetry it wakes itself just after the loop publishes the sample
+  that completes the next message (`next_publication` + TIMED_MARGIN_NS: the loop publishes at
+  a fixed spacing on our monotonic clock; a message is `per_message` samples due, 2 by default),
+  so it wakes ~15 times a second for a RELbot (dashboards get 30 samples a second of its 50, two
+  a message), the newest sample of each message read within about a millisecond of its
+  publication, and neither a thread of ours nor the event loop's self-pipe is woken for the
+  samples in between. What the loop published before it (samples, monitor lines, a state
+  change) is read in that batch, at most one message period (67 ms) later.
+- With clients that take monitor lines or the state but not telemetry (a dashboard tab that is
+  hidden, a tool) it wakes itself every STREAMS_PERIOD_S (10 times a second, sooner should a
+  ring fill faster): the doorbell would wake it for every publication of the loop (50 a second
+  for a RELbot), more often than a visible dashboard does.
 - Otherwise it follows the doorbell: a thread of our own sleeps in that futex
   (`doorbell_thread`) and wakes the reader, coalescing bursts into one wake-up. That is where
   the publications' spacing is not known (the first samples, simulated time, whose clock is not
-  ours), when the sample due came late (the reader woke and it was not there: the next ring
-  brings it), and for a client that takes monitor lines or the state but not telemetry. In the
-  other two cases the thread is parked outside the futex (`Run.reader_timed`): the loop then has
-  no waiter to wake either (no system call in its doorbell path).
+  ours) and when the sample due came late (the reader woke and it was not there: the next ring
+  brings it). In the other cases the thread is parked outside the futex (`Run.reader_timed`):
+  the loop then has no waiter to wake either (no system call in its doorbell path).
 
 The reader hands every sample to the run observers (server/runs/lifecycle.py: the 3D view) and
-sends the dashboards a decimated stream (``telemetry_hz``), the monitor ring's lines and, when it
-changed, the state.
+sends the dashboards a decimated stream (``telemetry_hz`` samples a second, ``per_message`` of them
+a message, oldest first), the monitor ring's lines and, when it changed, the state.
 
 The controller's stdout/stderr go to a file in the run folder (a pipe would SIGPIPE the loop if
 the appliance died); `pipe_output` follows it for the console. `guarded` restarts a reader-type
@@ -61,6 +65,9 @@ IDLE_PERIOD_S = 1.0  # longest wait between two reads with nobody taking the str
 IDLE_MIN_S = DOORBELL_WAIT_MS / 1000
 RING_MARGIN = 4  # the idle wait lets a ring fill to a quarter at most
 LIVE_RECHECK_S = 0.25  # how often the reader asks whether the run observers are watched
+# The reader's period for clients taking the state or monitor lines but not telemetry: a state
+# change or a console line reaches them within it (people reading; nothing safety-related).
+STREAMS_PERIOD_S = 0.1
 
 
 def idle_period(rates: list[tuple[int, float]]) -> float:
@@ -100,6 +107,16 @@ def next_publication(next_due_ns: int, last_t_ns: int, spacing_ns: int, period_n
     if expected - last_t_ns > max(period_ns, spacing_ns) * 2:
         return 0
     return expected
+
+
+def message_due_at(
+    next_due_ns: int, pending: int, per_message: int, last_t_ns: int, spacing_ns: int, period_ns: int
+) -> int:
+    """When the loop is expected to publish the sample that completes the next telemetry message
+    (`pending` of its `per_message` samples already read): the (per_message - pending)-th sample
+    due from `next_due_ns` on, one period apart. 0 (follow the doorbell) as next_publication."""
+    need = max(1, per_message - pending)
+    return next_publication(next_due_ns + (need - 1) * period_ns, last_t_ns, spacing_ns, period_ns * need)
 
 
 def monitor_message_fields(run_id: int, lines: list[Any], lost: int) -> dict[str, Any]:
@@ -166,8 +183,9 @@ def set_timed(run: Run, wake_at_ns: int) -> None:
             run.idle_wake.set()
 
 
-async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub) -> None:
-    """The reader task: one batch per doorbell wake-up, until cancelled at the run's end."""
+async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub, per_message: int = 1) -> None:
+    """The reader task: one batch per doorbell wake-up, until cancelled at the run's end.
+    `per_message`: telemetry samples a message (Settings.telemetry_per_message)."""
     ch = run.channels
     assert ch is not None
     # Two cursors over the telemetry ring: the dashboards' (read at each wake-up while a client
@@ -177,6 +195,13 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub)
     observed = ch.telemetry_reader()
     monitor = ch.monitor_reader()
     period_ns = int(1e9 / telemetry_hz) if telemetry_hz > 0 else 0
+    per_message = max(1, per_message)
+    # Samples due but not sent yet (their wire fields, oldest first): a message goes out when it
+    # has per_message of them, or when its oldest has waited `hold_ns` on our clock (a loop that
+    # stopped publishing, or publishes slower than telemetry_hz, still gets its samples shown).
+    pending: list[dict[str, Any]] = []
+    pending_since = 0
+    hold_ns = per_message * (period_ns or DOORBELL_WAIT_MS * 1_000_000) + TIMED_MARGIN_NS
     next_due_ns = 0
     run_id = run.row.id
     t0 = 0  # the loop's first deadline (status t_start_ns): set once by cycle 1, read once here
@@ -195,6 +220,19 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub)
     observed_rate = 0.0  # samples a second the observers' cursor last saw
     loop = asyncio.get_running_loop()
     live, live_at = False, -LIVE_RECHECK_S  # lifecycle.live(run), asked at live_at
+
+    def send(samples: list[dict[str, Any]]) -> None:
+        nonlocal checked
+        # The wire fields as TelemetryMessage has them, built here rather than through the model
+        # (the model cost more than the rest of the fan-out); the first is checked against the
+        # model, the rest are made the same way.
+        fields = {"run_id": run_id, "samples": samples, "ros2xeno": ros2xeno, "lost": telemetry.lost}
+        if not checked:
+            TelemetryMessage.model_validate(fields)
+            checked = True
+        run.telemetry_sent += len(samples)
+        hub.publish_fields("telemetry", fields)
+
     while True:
         await wait_wake(run, loop)
         # The run's end (run_end.record) wakes us once more for the last batch: the observers
@@ -223,12 +261,16 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub)
             observed_at = now
             observed_due = now + idle_period([(observed.slots, observed_rate)])
         if final:
+            if pending and dashboards:  # the last samples due: sent as the run ends
+                send(pending)
             return
         # Dashboards' streams: built only when a client (or a hub listener) takes them; a client
         # that connects gets new samples, not a backlog (the cursor starts at the newest).
         if dashboards and not streaming:
             telemetry.skip()
         streaming = dashboards
+        if not dashboards:
+            pending.clear()
         samples = telemetry.read_batch() if dashboards else None
         sent_state = -1  # the loop's state in the last sample sent in this batch
         if samples:
@@ -250,29 +292,26 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub)
                     next_due_ns = max(next_due_ns + period_ns, t_ns - period_ns)
                 sample = samples[i]
                 sent_state = sample.state
-                run.telemetry_sent += 1
-                # The wire fields as TelemetryMessage has them, built here rather than through the
-                # model (30 a second: the model cost more than the rest of the fan-out); the
-                # first is checked against the model, the rest are made the same way.
-                fields = {
-                    "run_id": run_id,
-                    "cycle": sample.cycle,
-                    "t_ns": t_ns,
-                    "t": (t_ns - t0) / 1e9 if t0 else t_ns / 1e9,
-                    "state": sample.state,
-                    "enc": sample.enc,
-                    "din": sample.din,
-                    "pwm": sample.pwm,
-                    "dout": sample.dout,
-                    "xeno2ros": sample.xeno2ros,
-                    "ros2xeno": ros2xeno,
-                    "ros2xeno_t_sent_ns": sample.ros2xeno_t_sent_ns,
-                    "lost": telemetry.lost,
-                }
-                if not checked:
-                    TelemetryMessage.model_validate(fields)
-                    checked = True
-                hub.publish_fields("telemetry", fields)
+                if not pending:
+                    pending_since = time.monotonic_ns()
+                # TelemetrySample's wire fields, in its order.
+                pending.append(
+                    {
+                        "cycle": sample.cycle,
+                        "t_ns": t_ns,
+                        "t": (t_ns - t0) / 1e9 if t0 else t_ns / 1e9,
+                        "state": sample.state,
+                        "enc": sample.enc,
+                        "din": sample.din,
+                        "pwm": sample.pwm,
+                        "dout": sample.dout,
+                        "xeno2ros": sample.xeno2ros,
+                        "ros2xeno_t_sent_ns": sample.ros2xeno_t_sent_ns,
+                    }
+                )
+                if len(pending) >= per_message:
+                    send(pending)
+                    pending = []
             prev = ts[-2] if len(ts) > 1 else last_t_ns
             spacing = ts[-1] - prev if prev else 0
             last_t_ns = ts[-1]
@@ -280,14 +319,23 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub)
             last_t_ns = spacing = 0
         else:
             spacing = 0  # nothing new: the sample due is late, the doorbell brings it
+        if pending and time.monotonic_ns() - pending_since > hold_ns:
+            send(pending)  # the loop publishes slower than the message needs, or stopped
+            pending = []
         lines = monitor.read()
         wanted = dashboards or hub.wants("monitor") or hub.wants("state")
+        if not dashboards and since > 0:
+            run.idle_period = idle_period([(observed.slots, observed_rate), (monitor.slots, len(lines) / since)])
         if not wanted:
-            if since > 0:
-                run.idle_period = idle_period([(observed.slots, observed_rate), (monitor.slots, len(lines) / since)])
             set_timed(run, time.monotonic_ns() + int(until_aligned(run.idle_period) * 1e9))
+        elif not dashboards:
+            set_timed(run, time.monotonic_ns() + int(min(STREAMS_PERIOD_S, run.idle_period) * 1e9))
         else:
-            expected = 0 if virtual or not period_ns else next_publication(next_due_ns, last_t_ns, spacing, period_ns)
+            expected = (
+                0
+                if virtual or not period_ns
+                else message_due_at(next_due_ns, len(pending), per_message, last_t_ns, spacing, period_ns)
+            )
             wake_at = expected + TIMED_MARGIN_NS if expected else 0
             set_timed(run, wake_at if wake_at > time.monotonic_ns() else 0)
         if lines and hub.wants("monitor"):

@@ -119,6 +119,7 @@ class Supervisor:
             "evl": Path("/dev/evl").exists(),
             "spidev": Path(self.settings.spi_device).exists(),
             "telemetry_hz": self.settings.telemetry_hz,
+            "telemetry_per_message": self.settings.telemetry_per_message,
         }
 
     def run_message(self, run: Run | None = None, event: RunEvent = "current") -> RunMessage:
@@ -204,7 +205,10 @@ class Supervisor:
         run.tasks.append(asyncio.create_task(run_watch.heartbeat(run, settings), name=f"run{rid}-heartbeat"))
         # "_reader"/"_timing": the names the console has always given them when they fail.
         reader = run_reader.guarded(
-            "_reader", lambda: run_reader.read(run, settings.telemetry_hz, self.lifecycle, hub), run, hub
+            "_reader",
+            lambda: run_reader.read(run, settings.telemetry_hz, self.lifecycle, hub, settings.telemetry_per_message),
+            run,
+            hub,
         )
         run.tasks.append(asyncio.create_task(reader, name=f"run{rid}-reader"))
         timer = run_reader.guarded("_timing", lambda: timing(run, settings.timing_period_s, hub), run, hub)

@@ -126,11 +126,34 @@ async def check_startable(conn: HTTPConnection, name: str) -> None:
 
 # ---- what a WebSocket client sees of the live run -------------------------------------------
 
-# Telemetry fields everyone may see: the robot's motion and the loop's clock. xeno2ros (the
-# controller's own outputs, named by the student) is the owner's.
-PUBLIC_TELEMETRY = frozenset(
-    {"run_id", "cycle", "t_ns", "t", "state", "enc", "din", "pwm", "dout", "lost", "ros2xeno_t_sent_ns"}
-)
+# Telemetry everyone may see: the robot's motion and the loop's clock, in each sample (its
+# xeno2ros, the controller's own outputs named by the student, is the owner's: {} for the rest),
+# and the message's run and loss count (its ros2xeno, the owner's: {}).
+PUBLIC_TELEMETRY = frozenset({"run_id", "lost"})
+PUBLIC_TELEMETRY_SAMPLE = frozenset({"cycle", "t_ns", "t", "state", "enc", "din", "pwm", "dout", "ros2xeno_t_sent_ns"})
+
+
+def public_telemetry(payload: dict[str, Any]) -> dict[str, Any]:
+    """What someone who may not see a run's owner's part receives of its telemetry message: the
+    same fields in the same order, the owner's emptied."""
+    out: dict[str, Any] = {}
+    for k, v in payload.items():
+        if k == "samples":
+            out[k] = [
+                {
+                    sk: (sv if sk in PUBLIC_TELEMETRY_SAMPLE else {})
+                    for sk, sv in sample.items()
+                    if sk in PUBLIC_TELEMETRY_SAMPLE or sk == "xeno2ros"
+                }
+                for sample in v
+            ]
+        elif k == "ros2xeno":
+            out[k] = {}
+        elif k in PUBLIC_TELEMETRY:
+            out[k] = v
+    return out
+
+
 # Run record fields everyone may see; the rest (build, program, owner, run_dir, shm, pid,
 # message) are blanked, not removed, so clients read one shape.
 PUBLIC_RUN = frozenset(
@@ -167,10 +190,10 @@ def scope(topic: str, payload: dict[str, Any], owner_of_run: Callable[[Any], str
     None as the result: the message is the bench's, for everyone who subscribed."""
     if topic == "telemetry":
         # The public copy is made only if a client that may not see the owner's part takes it
-        # (Hub._fan_out): 30 messages a second, most often watched by their owner or an educator.
+        # (Hub._fan_out): 15 messages a second, most often watched by their owner or an educator.
         return Scoped(
             owner_of_run(payload.get("run_id")),
-            lambda: {k: v for k, v in payload.items() if k in PUBLIC_TELEMETRY} | {"xeno2ros": {}, "ros2xeno": {}},
+            lambda: public_telemetry(payload),
         )
     if topic == "monitor":
         return Scoped(owner_of_run(payload.get("run_id")), None)

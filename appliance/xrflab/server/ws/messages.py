@@ -15,7 +15,7 @@ Senders build the model (``StateMessage(run_id=..., ...)``; an outgoing model's 
 kind as default, and stays required in the published schema) and hand it to the hub, which takes
 nothing else (``ServerMessage``, ``ReplyMessage``). The model is validated when it is built, so a
 sender whose message does not fit fails there, with the field named, and never reaches a browser.
-Telemetry (30 a second) is the exception: the reader builds its wire fields and checks the first
+Telemetry (15 messages a second of two samples each) is the exception: the reader builds its wire fields and checks the first
 against ``TelemetryMessage`` (``Hub.publish_fields``: the model cost more than the fan-out).
 On the wire a message has the fields its sender set, nothing else: a field left out is absent (not
 null), as app.js and the room's bench publisher read them (``hub.unpack``: exclude_unset).
@@ -132,11 +132,10 @@ class RunMessage(_Out):
     confinement: Confinement | None = None
 
 
-class TelemetryMessage(_Out):
-    """One decimated sample (telemetry_hz); the only topic a slow client loses (oldest first)."""
+class TelemetrySample(_Out):
+    """One sample of the decimated stream (telemetry_hz): the loop's state, channels and outputs
+    at one cycle."""
 
-    type: Literal["telemetry"] = "telemetry"
-    run_id: int
     cycle: int
     t_ns: int
     t: float = Field(description="seconds since the loop's first deadline")
@@ -146,11 +145,24 @@ class TelemetryMessage(_Out):
     pwm: list[int]
     dout: list[int]
     xeno2ros: dict[str, Any] = Field(description="the controller's outputs ({} for someone else's run)")
+    ros2xeno_t_sent_ns: int = Field(description="when the Ros2Xeno the loop had at this cycle was sent")
+
+
+class TelemetryMessage(_Out):
+    """Samples of the decimated stream (telemetry_hz samples a second), telemetry_per_message of
+    them a message, oldest first (fewer messages: each costs the appliance a wake-up and a socket
+    write, issue 30 item 4); the only topic a slow client loses (oldest first)."""
+
+    type: Literal["telemetry"] = "telemetry"
+    run_id: int
+    samples: list[TelemetrySample] = Field(description="oldest first; the page plays them out at their own spacing")
     ros2xeno: dict[str, Any] = Field(
         default_factory=dict,
-        description="the Ros2Xeno the loop has now, whoever wrote it ({} for someone else's run)",
+        description=(
+            "the Ros2Xeno the loop has now (at the newest sample), whoever wrote it ({} for someone else's run); "
+            "a sample whose ros2xeno_t_sent_ns differs from the newest's had an earlier one"
+        ),
     )
-    ros2xeno_t_sent_ns: int
     lost: int = Field(description="samples this reader lost to the ring so far")
 
 
