@@ -147,6 +147,43 @@ class OursSlice:
         self.lost = lost  # timing records the loop could not hand to its writer (ring full)
 
 
+US_WIDTH = lambda e: 1000  # noqa: E731  (cyclictest's buckets, and ours from the timing log)
+LOOP_WIDTH = lambda e: C.bucket_high(e) - e  # noqa: E731  (the loop's WAKEUP histogram's buckets)
+
+
+class OursAcc:
+    """One configuration of our loop over a rate's slices: latency (1 us buckets from every cycle,
+    or the WAKEUP histogram), the same cycles in the loop's 6 % buckets, the cycle's own work."""
+
+    def __init__(self, name: str, env: dict, per_cycle: bool):
+        self.name = name
+        self.env = dict(env)
+        # XRF_LOG_WRITER=host: no helper writes the timing file, so only the histogram is there.
+        self.per_cycle = per_cycle and self.env.get("XRF_LOG_WRITER") != "host"
+        self.lat = Merged(US_WIDTH if self.per_cycle else LOOP_WIDTH)
+        self.lat6 = Merged(LOOP_WIDTH)
+        self.cycle = Merged(LOOP_WIDTH)
+        self.lost = 0
+
+    def add(self, sl: OursSlice) -> Merged:
+        """Adds a slice; returns the slice's own latency figures."""
+        one = Merged(US_WIDTH if self.per_cycle else LOOP_WIDTH)
+        if self.per_cycle:
+            assert sl.wake_ns is not None and sl.deadline_ns is not None
+            lat_ns = sl.wake_ns - sl.deadline_ns
+            mx = float(lat_ns.max()) if len(lat_ns) else 0.0
+            e, c = counts_of(ct_us(sl.wake_ns, sl.deadline_ns) * 1000)
+            self.lat6.add(*counts_of(loop_bucket_low(lat_ns)), mx)
+            self.lost += sl.lost
+        else:
+            e, c, mx = sl.wakeup.edges, sl.wakeup.counts, sl.wakeup.max
+        self.lat.add(e, c, mx)
+        one.add(e, c, mx)
+        self.cycle.add(sl.cycle.edges, sl.cycle.counts, sl.cycle.max)
+        self.lat.missed += sl.missed
+        return one
+
+
 def run_ours(
     exe: Path,
     freq: int,
@@ -277,8 +314,17 @@ def main() -> int:
         metavar="NAME=VALUE",
         help="an extra XRF_* variable for the loop (a diagnosis, e.g. XRF_LOG_WRITER=host: no log file written)",
     )
+    ap.add_argument(
+        "--also-env",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="also run our loop with this XRF_* variable (on top of --loop-env), as a third program in the same"
+        " alternation, reported as rt_core' (a diagnosis beside the verdict, e.g. XRF_LOG_WRITER=host: no log file)",
+    )
     a = ap.parse_args()
     extra_env = dict(kv.split("=", 1) for kv in a.loop_env)
+    also_env = dict(kv.split("=", 1) for kv in a.also_env)
     if shutil.which("cyclictest") is None:
         print("cyclictest not found: apt-get install rt-tests", file=sys.stderr)
         return 2
@@ -296,6 +342,8 @@ def main() -> int:
         print(f"# loop process started with taskset -c {a.helper_cpu}")
     if extra_env:
         print(f"# loop environment also: {' '.join(a.loop_env)}")
+    if also_env:
+        print(f"# rt_core' is the same loop with also: {' '.join(a.also_env)} (a third program in each slice)")
     print(f"# SCHED_FIFO {a.prio}, CPU {a.cpu}, {a.slices} alternating slices x {a.seconds:g} s per program")
     src = (
         "every cycle's wake-up (XRF_LOG_TIMING=1) in cyclictest's 1 us buckets"
@@ -309,40 +357,23 @@ def main() -> int:
     print("# latency = wake-up - the period start it slept until; missed = periods in which no cycle started")
     results = {}
     for freq in [int(x) for x in a.rates.split(",")]:
-        us_width = lambda e: 1000  # noqa: E731
-        loop_width = lambda e: C.bucket_high(e) - e  # noqa: E731
-        ours = Merged(us_width if per_cycle else loop_width)
-        ours_6pct = Merged(loop_width)  # per-cycle mode: the same samples in the loop's own buckets
-        ours_cycle = Merged(loop_width)
-        ct = Merged(us_width)
+        progs: list[OursAcc | str] = [OursAcc("rt_core", extra_env, per_cycle), "ct"]
+        if also_env:
+            progs.append(OursAcc("rt_core'", {**extra_env, **also_env}, per_cycle))
+        ct = Merged(US_WIDTH)
         ct_cmd = ""
-        lost = 0
         for i in range(a.slices):
-            order = ("ours", "ct") if i % 2 == 0 else ("ct", "ours")
+            order = progs if i % 2 == 0 else progs[::-1]
             slice_notes: list[str] = []
             for who in order:
-                if who == "ours":
+                if isinstance(who, OursAcc):
                     sl = run_ours(
-                        exe, freq, a.prio, a.cpu, a.seconds, log_dir, i, a.helper_cpu, extra_env, per_cycle=per_cycle
+                        exe, freq, a.prio, a.cpu, a.seconds, log_dir, i, a.helper_cpu, who.env, per_cycle=who.per_cycle
                     )
-                    one = Merged(us_width if per_cycle else loop_width)
-                    if per_cycle:
-                        assert sl.wake_ns is not None and sl.deadline_ns is not None
-                        lat_ns = sl.wake_ns - sl.deadline_ns
-                        mx = float(lat_ns.max()) if len(lat_ns) else 0.0
-                        e, c = counts_of(ct_us(sl.wake_ns, sl.deadline_ns) * 1000)
-                        e6, c6 = counts_of(loop_bucket_low(lat_ns))
-                        ours_6pct.add(e6, c6, mx)
-                        lost += sl.lost
-                    else:
-                        e, c, mx = sl.wakeup.edges, sl.wakeup.counts, sl.wakeup.max
-                    ours.add(e, c, mx)
-                    one.add(e, c, mx)
-                    ours_cycle.add(sl.cycle.edges, sl.cycle.counts, sl.cycle.max)
-                    ours.missed += sl.missed
+                    one = who.add(sl)
                     slice_notes.append(
-                        f"ours p99 {one.pct(99) / 1000:.1f} p99.9 {one.pct(99.9) / 1000:.1f}"
-                        f" max {mx / 1000:.0f} missed {sl.missed}"
+                        f"{who.name} p99 {one.pct(99) / 1000:.1f} p99.9 {one.pct(99.9) / 1000:.1f}"
+                        f" max {one.max / 1000:.0f} missed {sl.missed}"
                     )
                 else:
                     e, c, mx, ov, miss, ct_cmd = run_cyclictest(freq, a.prio, a.cpu, a.seconds)
@@ -350,7 +381,7 @@ def main() -> int:
                     ct.overflow += ov
                     ct.missed += miss
                     ct.missed_lower_bound |= ov > 0
-                    one = Merged(us_width)
+                    one = Merged(US_WIDTH)
                     one.add(e, c, mx)
                     one.overflow = ov
                     slice_notes.append(
@@ -358,7 +389,7 @@ def main() -> int:
                         f" max {mx / 1000:.0f} missed {miss}"
                     )
             print(f"#   {freq} Hz slice {i + 1}/{a.slices} (us): " + "; ".join(slice_notes), flush=True)
-        results[freq] = (ours, ours_6pct if per_cycle else None, ours_cycle, ct, ct_cmd, lost)
+        results[freq] = ([x for x in progs if isinstance(x, OursAcc)], ct, ct_cmd)
 
     print()
     print(
@@ -366,9 +397,8 @@ def main() -> int:
         f" {'missed':>8}"
     )
     ok = True
-    for freq, (ours, ours_6pct, ours_cycle, ct, ct_cmd, lost) in results.items():
-        rows = [("rt_core", ours), ("cyclictest", ct)]
-        for name, h in rows:
+    for freq, (ours_list, ct, ct_cmd) in results.items():
+        for name, h in [(o.name, o.lat) for o in ours_list] + [("cyclictest", ct)]:
             print(
                 f"{freq:>6}Hz {name:<11} {h.count:>9} "
                 + " ".join(fmt_us(h.pct(p)) for p in PCTS)
@@ -376,27 +406,33 @@ def main() -> int:
                 + fmt_us(h.max)
                 + f" {h.missed_str():>8}"
             )
-        r = {p: ours.pct(p) / ct.pct(p) if ct.pct(p) else float("inf") for p in PCTS}
-        rmax = ours.max / ct.max if ct.max else float("inf")
-        print(f"{freq:>6}Hz {'ratio':<11} {'':>9} " + " ".join(f"{r[p]:9.2f}" for p in PCTS) + f" {rmax:9.2f}")
-        verdicts = []
-        for p, limit in TARGETS.items():
-            good = r[p] <= limit
-            ok &= good
-            verdicts.append(f"p{p:g} {r[p]:.2f} (<= {limit:g}) {'PASS' if good else 'FAIL'}")
-        print(f"{freq:>6}Hz ratio ours/cyclictest: " + "; ".join(verdicts))
-        if ours_6pct is not None:
-            r6 = {p: ours_6pct.pct(p) / ct.pct(p) if ct.pct(p) else float("inf") for p in PCTS}
+        for o in ours_list:
+            ours = o.lat
+            label = "ratio" if o is ours_list[0] else "ratio'"
+            r = {p: ours.pct(p) / ct.pct(p) if ct.pct(p) else float("inf") for p in PCTS}
+            rmax = ours.max / ct.max if ct.max else float("inf")
+            print(f"{freq:>6}Hz {label:<11} {'':>9} " + " ".join(f"{r[p]:9.2f}" for p in PCTS) + f" {rmax:9.2f}")
+            verdicts = []
+            for p, limit in TARGETS.items():
+                good = r[p] <= limit
+                if o is ours_list[0]:  # the verdict is the default configuration's
+                    ok &= good
+                verdicts.append(f"p{p:g} {r[p]:.2f} (<= {limit:g}) {'PASS' if good else 'FAIL'}")
+            print(f"{freq:>6}Hz {o.name} / cyclictest: " + "; ".join(verdicts))
+            if o.per_cycle:
+                r6 = {p: o.lat6.pct(p) / ct.pct(p) if ct.pct(p) else float("inf") for p in PCTS}
+                print(
+                    "         resolution check, the same cycles in the loop's 6 % buckets: "
+                    + " / ".join(f"p{p:g} {o.lat6.pct(p) / 1000:.2f} us (ratio {r6[p]:.2f})" for p in PCTS)
+                )
+            else:
+                print("         (from the loop's WAKEUP histogram, 6 % buckets)")
+            if o.lost:
+                print(f"         ({o.lost} cycles had no timing record: the ring was full; not counted)")
             print(
-                "         resolution check, the same cycles of ours in the loop's 6 % buckets: "
-                + " / ".join(f"p{p:g} {ours_6pct.pct(p) / 1000:.2f} us (ratio {r6[p]:.2f})" for p in PCTS)
+                f"         the loop's own work (CYCLE histogram: wake-up to end of the cycle): p50"
+                f" {o.cycle.pct(50) / 1000:.2f} p99.9 {o.cycle.pct(99.9) / 1000:.2f} max {o.cycle.max / 1000:.1f} us"
             )
-            if lost:
-                print(f"         ({lost} cycles of ours had no timing record: the ring was full; not counted)")
-        print(
-            f"         the loop's own work (CYCLE histogram: wake-up to end of the cycle): p50"
-            f" {ours_cycle.pct(50) / 1000:.2f} p99.9 {ours_cycle.pct(99.9) / 1000:.2f} max {ours_cycle.max / 1000:.1f} us"
-        )
         print(f"         cyclictest command: {ct_cmd}")
     load = " ".join(f"{x:.2f}" for x in os.getloadavg())
     print(f"# both targets at every rate: {'PASS' if ok else 'FAIL'}; load at the end {load}")
