@@ -30,7 +30,9 @@ The same two figures for both programs:
    into the loop's own 6 % buckets to show what the resolution alone does (`ours, 6 % buckets`
    in the output). `--ours-from histogram`: from the loop's shared-memory WAKEUP histogram
    (log-linear buckets: 1 ns below 32 ns, then 16 per octave = 6 % wide: 1.0 us at 16-32 us,
-   2.0 us at 32-64 us), without the timing log (what sessions 7-10 reported).
+   2.0 us at 32-64 us), without the timing log (what sessions 7-10 reported). Both in one run:
+   `--ours-from histogram --also-env XRF_LOG_TIMING=1` (rt_core: the loop as it normally runs,
+   from its histogram; rt_core': with the timing log, from every cycle at 1 us).
  - cyclictest: `cyclictest -m -p P -a CPU -t 1 -i PERIOD_US -D SECONDS -h 20000 -q`. Its
    histogram (`-h US`, documented as "dump latency histogram to stdout after the run; US is the
    max latency time to be tracked in microseconds") has one line "bucket count" per whole us: a
@@ -158,8 +160,11 @@ class OursAcc:
     def __init__(self, name: str, env: dict, per_cycle: bool):
         self.name = name
         self.env = dict(env)
-        # XRF_LOG_WRITER=host: no helper writes the timing file, so only the histogram is there.
-        self.per_cycle = per_cycle and self.env.get("XRF_LOG_WRITER") != "host"
+        # Every cycle when asked for (--ours-from cycles) or when this configuration logs its timing
+        # anyway (--also-env XRF_LOG_TIMING=1); XRF_LOG_WRITER=host: no helper writes the timing
+        # file, so only the histogram is there.
+        wants = per_cycle or self.env.get("XRF_LOG_TIMING") == "1"
+        self.per_cycle = wants and self.env.get("XRF_LOG_WRITER") != "host"
         self.lat = Merged(US_WIDTH if self.per_cycle else LOOP_WIDTH)
         self.lat6 = Merged(LOOP_WIDTH)
         self.cycle = Merged(LOOP_WIDTH)
@@ -320,7 +325,8 @@ def main() -> int:
         default=[],
         metavar="NAME=VALUE",
         help="also run our loop with this XRF_* variable (on top of --loop-env), as a third program in the same"
-        " alternation, reported as rt_core' (a diagnosis beside the verdict, e.g. XRF_LOG_WRITER=host: no log file)",
+        " alternation, reported as rt_core' beside the verdict: e.g. XRF_LOG_WRITER=host (no log file), or, with"
+        " --ours-from histogram, XRF_LOG_TIMING=1 (rt_core' then from every cycle at 1 us)",
     )
     a = ap.parse_args()
     extra_env = dict(kv.split("=", 1) for kv in a.loop_env)
