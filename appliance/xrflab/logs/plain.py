@@ -30,7 +30,6 @@ import os
 import re
 import struct
 import sys
-import zipfile
 from array import array
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -194,12 +193,13 @@ def plan(path: str | Path, fd: int) -> Plan | None:
 def _chained(fd: int, start: int, count: int, stride: int) -> bool:
     """Every record follows the one before it (layout.chain_ok): one run, no damage."""
     hdr = _header_struct(stride)
-    prev: tuple[int, int, int] | None = None
+    last: list[tuple[int, ...]] = []  # the window before's last record
     for window in _windows(fd, start, count, stride):
-        for cur in hdr.iter_unpack(window):
-            if prev is not None and not chain_ok(*prev, *cur):
-                return False
-            prev = cur
+        heads = last + list(hdr.iter_unpack(window))
+        seq, cyc, t = zip(*heads)
+        if not all(map(chain_ok, seq[:-1], cyc[:-1], t[:-1], seq[1:], cyc[1:], t[1:])):
+            return False
+        last = heads[-1:]
     return True
 
 
@@ -233,10 +233,40 @@ def _arrow_style(text: str) -> str:
 
 
 def f64_text(x: float) -> str:
-    r = repr(x)
-    if "e" in r or "n" in r or not -1e10 < x < 1e10:
-        return _arrow_style(r)
-    return r[:-2] if r.endswith(".0") else r
+    """One float64 as Arrow prints it (iter_csv does whole windows at once: arrow_numbers)."""
+    return arrow_numbers(repr(x) + "\n")[:-1]
+
+
+# Python's repr is the shortest round-trip too, in another notation: "1e-05", "1e+16", "100.0",
+# "12345678901.5". Rewritten in CSV text, in C but for the rare exponent and >= 1e10 forms.
+_EXPONENT = re.compile(r"(?<![^,\n])-?\d(?:\.\d+)?e[-+]\d+(?=[,\n])")
+_LARGE = re.compile(r"(?<![^,\n])-?\d{11,}\.\d+(?=[,\n])")
+_INTEGRAL = re.compile(r"\.0(?=[,\n])")
+
+
+def _restyle(m: re.Match[str]) -> str:
+    return _arrow_style(m.group())
+
+
+def arrow_numbers(text: str, large: bool = True) -> str:
+    """CSV text (lines ending in "\\n") whose floats are Python reprs, each in Arrow's notation;
+    integers, "nan", "inf" and text already in Arrow's notation are left as they are. `large`:
+    False when the caller knows no float in it is >= 1e10 in magnitude (that search is the slow one)."""
+    if "e" in text:
+        text = _EXPONENT.sub(_restyle, text)
+    if large:
+        text = _LARGE.sub(_restyle, text)
+    return _INTEGRAL.sub("", text)
+
+
+def _any_large(col: tuple[float, ...]) -> bool:
+    """Whether a float column may have a value Python writes in decimal and Arrow with an exponent
+    (|x| >= 1e10), in C: min and max, unless a NaN (its sum is NaN) makes them unreliable: then
+    the search decides."""
+    if not col:
+        return False
+    total = sum(col)
+    return total != total or max(col) >= 1e10 or min(col) <= -1e10
 
 
 _F32 = struct.Struct("<f")
@@ -260,10 +290,11 @@ def f32_text(x: float) -> str:
 
 
 def _text_of(typestr: str) -> Callable[[Any], str]:
-    kind = typestr[1]
-    if kind == "f":
-        return f64_text if typestr[2:] == "8" else f32_text
-    return str  # ints, and bool and char as their byte's value
+    """A column's values as text: float64 as repr (arrow_numbers restyles the window), float32 by
+    its own shortest digits, ints and bool and char (their byte's value) as str."""
+    if typestr[1] == "f":
+        return repr if typestr[2:] == "8" else f32_text
+    return str
 
 
 def _seconds_of(seg: PlainSegment, fd: int) -> Callable[[int], float]:
@@ -313,11 +344,16 @@ def iter_csv(p: Plan) -> Iterator[bytes]:
         texts = [str] * nhead + [_text_of(vt.typestr) for vt in seg.layout.types]
         seconds = _seconds_of(seg, p.fd)
         t_at = [n for n, _, _ in RECORD_HEADER].index("t_ns")
+        doubles = [
+            len(RECORD_HEADER) + i for i, vt in enumerate(seg.layout.types) if texts[len(RECORD_HEADER) + i] is repr
+        ]
         for window in _windows(p.fd, seg.layout.data, seg.count, seg.layout.stride, CSV_WINDOW_BYTES):
-            cols = [list(map(f, c)) for f, c in zip(texts, zip(*rec.iter_unpack(window)))]
-            t_ns = cols[t_at]
-            cols.insert(t_at + 1, [f64_text(seconds(int(t))) for t in t_ns])
-            yield ("\n".join(map(",".join, zip(*cols))) + "\n").encode()
+            values = list(zip(*rec.iter_unpack(window)))
+            cols = [list(map(f, c)) for f, c in zip(texts, values)]
+            t_s = list(map(seconds, values[t_at]))
+            cols.insert(t_at + 1, list(map(repr, t_s)))
+            large = _any_large(tuple(t_s)) or any(_any_large(values[i]) for i in doubles)
+            yield arrow_numbers("\n".join(map(",".join, zip(*cols))) + "\n", large).encode()
 
 
 def changes_csv(changes: list[dict[str, Any]]) -> str:
@@ -356,6 +392,8 @@ def csv_zip_names(stem: str, run: int | str) -> tuple[str, str]:
 def zip_csv(samples: Iterator[bytes], changes: list[dict[str, Any]], names: tuple[str, str]) -> Iterator[bytes]:
     """A zip of the samples' CSV (streamed: memory bounded by one chunk) and the change table's
     CSV, as byte chunks."""
+    import zipfile  # here: ~1.5 MB the child needs only for a run with parameter changes
+
     sink = _Drain()
     with zipfile.ZipFile(sink, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
         with zf.open(names[0], "w", force_zip64=True) as member:
