@@ -23,7 +23,10 @@ One round:
        tree: RSS (VmRSS) and PSS (smaps_rollup), by role, and the number of processes alive (a
        helper kept after its last viewer left shows here)
 
-A sampler thread reads the tree once a second throughout, for the peak. The loop process is the
+A sampler thread reads the tree once a second throughout, for the peak: the sum of RSS and, beside
+it, the sum of PSS (smaps_rollup: what the machine gives, a page several of them map counted once,
+split between them; a conversion child's interpreter and libraries are partly pages the appliance
+has too, so the PSS peak is lower than the RSS one). The loop process is the
 workload (the student's controller), not the appliance: shown, never added. A build's compilers
 and the self-check's tool are the student's work and the check's, transient: added to a second
 peak ("with tools"), not to the appliance's.
@@ -177,6 +180,11 @@ class Sampler(threading.Thread):
     def reset(self) -> None:
         with self.lock:
             self.peak = 0.0  # appliance + helpers, RSS
+            # The same, PSS (smaps_rollup): the physical memory the machine gives them, a shared
+            # page counted once, split between the processes that map it (a conversion child's
+            # Python and libraries are partly the appliance's own pages). The issue states the goal
+            # in RSS; both are reported.
+            self.peak_pss = 0.0
             self.peak_tools = 0.0  # with the build's compilers and the self-check's tool
             self.peak_roles: dict[str, float] = {}
             self.peak_procs = 0
@@ -195,6 +203,7 @@ class Sampler(threading.Thread):
                 self.steal.append((time.time(), stolen))
                 self.steal_max = [max(a, b) for a, b in zip(self.steal_max, stolen, strict=False)] or stolen
                 self.peak = max(self.peak, s.total())
+                self.peak_pss = max(self.peak_pss, s.total("pss"))
                 self.peak_tools = max(self.peak_tools, s.total(tools=True))
                 self.peak_procs = max(self.peak_procs, s.alive())
                 for k, v in s.rss.items():
@@ -521,6 +530,7 @@ def main() -> int:
                     wait_for(lambda i=i: memtrace.snapshot_path(traces, i - 1).is_file(), 300, "a snapshot")
                 with sampler.lock:
                     peak, peak_tools, peak_procs = sampler.peak, sampler.peak_tools, sampler.peak_procs
+                    peak_pss = sampler.peak_pss
                     peak_roles = dict(sampler.peak_roles)
                     steal = list(sampler.steal_max)
                 rec = {
@@ -542,6 +552,7 @@ def main() -> int:
                     "procs": s.procs,
                     "alive": s.alive(),
                     "peak": peak,
+                    "peak_pss": peak_pss,
                     "peak_tools": peak_tools,
                     "peak_procs": peak_procs,
                     "peak_roles": peak_roles,
@@ -554,7 +565,7 @@ def main() -> int:
                     f"records {row.get('log_records')} lost {row.get('log_lost')}  "
                     f"settled {s.total():6.1f} MB RSS {s.total('pss'):6.1f} PSS (appliance {rec['appliance_rss']:.1f}/"
                     f"{rec['appliance_pss']:.1f}, {rec['appliance_threads']} threads, {rec['appliance_arenas']} arenas)  "
-                    f"procs {s.alive()}  peak {peak:6.1f} (with tools {peak_tools:.1f}, "
+                    f"procs {s.alive()}  peak {peak:6.1f} RSS {peak_pss:6.1f} PSS (with tools {peak_tools:.1f}, "
                     f"procs {peak_procs})  steal max {max(steal, default=0):.0f} ms/s  {'; '.join(notes)}",
                     flush=True,
                 )
@@ -629,6 +640,9 @@ def summarise(
         "slope_roles": {k: slope([r["roles_rss"].get(k, 0.0) for r in half]) for k in roles},
         "slope_threads": slope([r["appliance_threads"] for r in half]),
         "peak": max(r["peak"] for r in rounds),
+        "peak_pss": max(r["peak_pss"] for r in rounds),
+        "peak_later": max((r["peak"] for r in rounds[1:]), default=0.0),
+        "peak_pss_later": max((r["peak_pss"] for r in rounds[1:]), default=0.0),
         "peak_tools": max(r["peak_tools"] for r in rounds),
         "peak_roles": {k: max(r["peak_roles"].get(k, 0.0) for r in rounds) for k in roles},
         "alive_last": rounds[-1]["alive"],
@@ -645,13 +659,13 @@ def summarise(
     )
     print(
         "| round | build | end | settled RSS MB (appliance) | settled PSS MB | appliance threads | processes "
-        "| round peak RSS MB |"
+        "| round peak RSS MB | round peak PSS MB |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rounds:
         print(
             f"| {r['round']} | {r['build']} | {r['end_reason']} | {r['rss']:.1f} ({r['appliance_rss']:.1f}) | "
-            f"{r['pss']:.1f} | {r['appliance_threads']} | {r['alive']} | {r['peak']:.1f} |"
+            f"{r['pss']:.1f} | {r['appliance_threads']} | {r['alive']} | {r['peak']:.1f} | {r['peak_pss']:.1f} |"
         )
     verdict = "FLAT" if abs(out["slope_rss"]) <= a.flat_mb else ("GROWS" if out["slope_rss"] > 0 else "shrinks")
     print(
@@ -670,9 +684,12 @@ def summarise(
         f"({first['pss']:.1f} -> {last['pss']:.1f} PSS)"
     )
     ok = "met" if out["peak"] <= GOAL_MB else "NOT met"
+    ok_pss = "met" if out["peak_pss"] <= GOAL_MB else "NOT met"
     print(
-        f"peak total (appliance + helpers): {out['peak']:.1f} MB RSS against the {GOAL_MB:.0f} MB goal: {ok}; "
-        f"with the build's compilers and the self-check's tool: {out['peak_tools']:.1f} MB"
+        f"peak total (appliance + helpers): {out['peak']:.1f} MB RSS against the {GOAL_MB:.0f} MB goal: {ok} "
+        f"({out['peak_pss']:.1f} MB PSS: {ok_pss}); rounds 2-{rounds[-1]['round']}: {out['peak_later']:.1f} RSS, "
+        f"{out['peak_pss_later']:.1f} PSS; with the build's compilers and the self-check's tool: "
+        f"{out['peak_tools']:.1f} MB RSS"
     )
     print("  peak by role (RSS MB): " + ", ".join(f"{k} {v:.1f}" for k, v in out["peak_roles"].items()))
     print(f"processes of the appliance alive after a round: last {out['alive_last']}, most {out['alive_max']}")
