@@ -169,9 +169,13 @@ def snapshot(root: int, loop_pid: int = 0) -> Snapshot:
 class Sampler(threading.Thread):
     """The tree once a second, for the peaks (reads /proc only: no Playwright from this thread)."""
 
-    def __init__(self, root: int) -> None:
+    def __init__(self, root: int, period: float = 1.0) -> None:
         super().__init__(daemon=True)
         self.root = root
+        self.period = period
+        # What the practical is doing ("download csv", ...; "" between): each sample's totals also
+        # go to its phase's peak, so a download's child is seen apart from the rest of the round.
+        self.phase = ""
         self.loop_pid = 0  # the current run's loop: the workload
         self.halt = threading.Event()
         self.lock = threading.Lock()
@@ -185,6 +189,7 @@ class Sampler(threading.Thread):
             # Python and libraries are partly the appliance's own pages). The issue states the goal
             # in RSS; both are reported.
             self.peak_pss = 0.0
+            self.phase_peaks: dict[str, list[float]] = {}  # phase -> [RSS, PSS, samples]
             self.peak_tools = 0.0  # with the build's compilers and the self-check's tool
             self.peak_roles: dict[str, float] = {}
             self.peak_procs = 0
@@ -204,6 +209,9 @@ class Sampler(threading.Thread):
                 self.steal_max = [max(a, b) for a, b in zip(self.steal_max, stolen, strict=False)] or stolen
                 self.peak = max(self.peak, s.total())
                 self.peak_pss = max(self.peak_pss, s.total("pss"))
+                if self.phase:
+                    pk = self.phase_peaks.setdefault(self.phase, [0.0, 0.0, 0])
+                    pk[0], pk[1], pk[2] = max(pk[0], s.total()), max(pk[1], s.total("pss")), pk[2] + 1
                 self.peak_tools = max(self.peak_tools, s.total(tools=True))
                 self.peak_procs = max(self.peak_procs, s.alive())
                 for k, v in s.rss.items():
@@ -211,7 +219,7 @@ class Sampler(threading.Thread):
                 for p, r in s.pids.items():
                     if r in TOOLS or r.startswith("other"):
                         self.seen.setdefault(r, set()).add(cmdline(p)[:100])
-            self.halt.wait(1.0)  # a sampling period: time passing is the point
+            self.halt.wait(self.period)  # a sampling period: time passing is the point
 
 
 def smaps_by_mapping(pid: int) -> dict[str, float]:
@@ -324,21 +332,26 @@ def command(server: Server, cmd: str, state: str) -> None:
         ws.wait_state(state, timeout=30)
 
 
-def download_logs(server: Server, run_id: int) -> tuple[int, int, list[str]]:
-    """Every log file of the run in every format: (files, bytes, failures)."""
+def download_logs(server: Server, run_id: int, sampler: Sampler) -> tuple[int, int, list[str]]:
+    """Every log file of the run in every format: (files, bytes, failures); the sampler told which
+    format is being downloaded (its phase peaks)."""
     listing = server.http.get(f"/api/logs/runs/{run_id}", timeout=120).json()
     files = [f for f in listing.get("files", []) if f.get("kind") != "unreadable"]
     total, failed = 0, []
-    for f in files:
-        for fmt in FORMATS:
-            with server.http.stream(
-                "GET", f"/api/logs/runs/{run_id}/files/{quote(f['name'])}", params={"fmt": fmt}, timeout=300
-            ) as r:
-                if r.status_code != 200:
-                    failed.append(f"{f['name']} {fmt}: {r.status_code}")
-                    continue
-                for chunk in r.iter_bytes():
-                    total += len(chunk)
+    try:
+        for f in files:
+            for fmt in FORMATS:
+                sampler.phase = f"download {fmt}"
+                with server.http.stream(
+                    "GET", f"/api/logs/runs/{run_id}/files/{quote(f['name'])}", params={"fmt": fmt}, timeout=300
+                ) as r:
+                    if r.status_code != 200:
+                        failed.append(f"{f['name']} {fmt}: {r.status_code}")
+                        continue
+                    for chunk in r.iter_bytes():
+                        total += len(chunk)
+    finally:
+        sampler.phase = ""
     return len(files), total, failed
 
 
@@ -428,6 +441,12 @@ def main() -> int:
         "each round, the lines that grew over the last half printed (slows the appliance and adds to its "
         "RSS: for finding growth, not for the table)",
     )
+    ap.add_argument(
+        "--sample-s",
+        type=float,
+        default=1.0,
+        help="the peak sampler's period (a child living less than it can be missed; 1 s as in earlier figures)",
+    )
     ap.add_argument("--json", help="also write the figures to this file")
     a = ap.parse_args()
     ev = {e for e in a.events.split(",") if e}
@@ -456,7 +475,7 @@ def main() -> int:
         os.environ[memtrace.ENV] = str(traces)  # the harness's appliance inherits our environment
     with appliance(loop_env=loop_env) as server, sync_playwright() as p:
         root = server.proc.pid
-        sampler = Sampler(root)
+        sampler = Sampler(root, a.sample_s)
         sampler.start()
         browser = p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
         base = snapshot(root)
@@ -512,7 +531,7 @@ def main() -> int:
                     print("ABNORMAL " + msg, flush=True)
                     print("    " + why_abnormal(server, row, sampler, cpu), flush=True)
                 if "logs" in ev:
-                    nfiles, nbytes, failed = download_logs(server, run["id"])
+                    nfiles, nbytes, failed = download_logs(server, run["id"], sampler)
                     notes.append(f"logs {nfiles}x{len(FORMATS)} {nbytes / 1e6:.1f} MB")
                     if failed:
                         abnormal.append(f"round {i}: downloads failed: {failed}")
@@ -531,6 +550,7 @@ def main() -> int:
                 with sampler.lock:
                     peak, peak_tools, peak_procs = sampler.peak, sampler.peak_tools, sampler.peak_procs
                     peak_pss = sampler.peak_pss
+                    phase_peaks = {k: list(v) for k, v in sampler.phase_peaks.items()}
                     peak_roles = dict(sampler.peak_roles)
                     steal = list(sampler.steal_max)
                 rec = {
@@ -553,6 +573,7 @@ def main() -> int:
                     "alive": s.alive(),
                     "peak": peak,
                     "peak_pss": peak_pss,
+                    "phase_peaks": phase_peaks,
                     "peak_tools": peak_tools,
                     "peak_procs": peak_procs,
                     "peak_roles": peak_roles,
@@ -569,6 +590,11 @@ def main() -> int:
                     f"procs {peak_procs})  steal max {max(steal, default=0):.0f} ms/s  {'; '.join(notes)}",
                     flush=True,
                 )
+                if phase_peaks:
+                    print(
+                        f"          peaks while downloading (MB RSS/PSS, samples): {fmt_phases(phase_peaks)}",
+                        flush=True,
+                    )
                 if len(s.procs) > 1 or s.alive() > 1:
                     print(f"          alive after the round: {fmt_roles(s)}", flush=True)
         finally:
@@ -595,6 +621,20 @@ def main() -> int:
     if a.json:
         Path(a.json).write_text(json.dumps({"rounds": rounds, "hold": hold, "summary": summary}, indent=1))
     return 0
+
+
+def fmt_phases(peaks: dict[str, list[float]]) -> str:
+    return ", ".join(f"{k.split()[-1]} {v[0]:.1f}/{v[1]:.1f} ({int(v[2])})" for k, v in peaks.items())
+
+
+def phase_maxima(rounds: list[dict]) -> dict[str, list[float]]:
+    """Each phase's peak over the given rounds: [RSS, PSS, samples in all]."""
+    out: dict[str, list[float]] = {}
+    for r in rounds:
+        for k, v in r.get("phase_peaks", {}).items():
+            m = out.setdefault(k, [0.0, 0.0, 0])
+            m[0], m[1], m[2] = max(m[0], v[0]), max(m[1], v[1]), m[2] + v[2]
+    return out
 
 
 def hold_run(a: argparse.Namespace, server: Server, ctx: Any, pages: list[Any], root: int, sampler: Sampler) -> list:
@@ -643,6 +683,7 @@ def summarise(
         "peak_pss": max(r["peak_pss"] for r in rounds),
         "peak_later": max((r["peak"] for r in rounds[1:]), default=0.0),
         "peak_pss_later": max((r["peak_pss"] for r in rounds[1:]), default=0.0),
+        "phase_peaks": phase_maxima(rounds),
         "peak_tools": max(r["peak_tools"] for r in rounds),
         "peak_roles": {k: max(r["peak_roles"].get(k, 0.0) for r in rounds) for k in roles},
         "alive_last": rounds[-1]["alive"],
@@ -691,6 +732,8 @@ def summarise(
         f"{out['peak_pss_later']:.1f} PSS; with the build's compilers and the self-check's tool: "
         f"{out['peak_tools']:.1f} MB RSS"
     )
+    if out["phase_peaks"]:
+        print(f"  peaks while downloading, every round (MB RSS/PSS, samples): {fmt_phases(out['phase_peaks'])}")
     print("  peak by role (RSS MB): " + ", ".join(f"{k} {v:.1f}" for k, v in out["peak_roles"].items()))
     print(f"processes of the appliance alive after a round: last {out['alive_last']}, most {out['alive_max']}")
     if hold:

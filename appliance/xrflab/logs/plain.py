@@ -26,6 +26,7 @@ import io
 import json
 import math
 import mmap
+import operator
 import os
 import re
 import struct
@@ -33,6 +34,7 @@ import sys
 from array import array
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from itertools import compress
 from pathlib import Path
 from typing import Any
 
@@ -269,32 +271,58 @@ def _any_large(col: tuple[float, ...]) -> bool:
     return total != total or max(col) >= 1e10 or min(col) <= -1e10
 
 
-_F32 = struct.Struct("<f")
+def f32_column(col: tuple[float, ...]) -> list[str]:
+    """float32 values (as the Python floats they widen to exactly), each by its own shortest
+    digits that read back to it as float32, written as Python writes that decimal (repr of the
+    double nearest it: the same digits, as it has at most 9), for arrow_numbers to restyle.
+
+    A column at a time, in C but for the loop over precisions: every value starts at 9
+    significant digits (always enough), then one digit fewer while that still reads back (if p
+    digits read back, p + 1 do: the fewest is where it stops). Sensor-like values stop after
+    one or two tries."""
+    out = ["" for _ in col]
+    todo = []
+    for i, v in enumerate(col):
+        if v == v and v not in (0.0, math.inf, -math.inf):
+            todo.append(i)
+        else:
+            out[i] = repr(v)  # NaN, infinities and zeros are written as they are
+    values = [col[i] for i in todo]
+    want = array("f", values)
+    shortest: dict[int, str] = {}
+    for digits in range(8, 0, -1):
+        cands = list(map(f"%.{digits - 1}e".__mod__, values))
+        ok = list(map(operator.eq, array("f", map(float, cands)), want))
+        if digits == 8:  # those 8 digits do not read back take 9, which always do
+            shortest.update((i, f"{v:.8e}") for i, v, good in zip(todo, values, ok) if not good)
+        shortest.update(zip(compress(todo, ok), compress(cands, ok)))
+        todo, values = list(compress(todo, ok)), list(compress(values, ok))
+        if not todo:
+            break
+        want = array("f", values)
+    for i, text in shortest.items():
+        out[i] = repr(float(text))
+    return out
 
 
 def f32_text(x: float) -> str:
-    """A float32 (as the Python float it widens to exactly) by its own shortest digits that read
-    back to it as float32: the fewest significant digits whose correctly rounded value rounds to x."""
-    if math.isnan(x) or math.isinf(x):
-        return _arrow_style(repr(x))
-    if x == 0:
-        return "-0" if math.copysign(1, x) < 0 else "0"
-    lo, hi = 1, 9  # 9 significant digits always read back
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if _F32.unpack(_F32.pack(float(f"{x:.{mid - 1}e}")))[0] == x:
-            hi = mid
-        else:
-            lo = mid + 1
-    return _arrow_style(f"{x:.{lo - 1}e}")
+    """One float32 as Arrow prints it (iter_csv does whole columns: f32_column)."""
+    return arrow_numbers(f32_column((x,))[0] + "\n")[:-1]
 
 
-def _text_of(typestr: str) -> Callable[[Any], str]:
-    """A column's values as text: float64 as repr (arrow_numbers restyles the window), float32 by
-    its own shortest digits, ints and bool and char (their byte's value) as str."""
+def _int_column(col: tuple[Any, ...]) -> list[str]:
+    return list(map(str, col))  # ints, and bool and char as their byte's value
+
+
+def _f64_column(col: tuple[float, ...]) -> list[str]:
+    return list(map(repr, col))  # Python's shortest round-trip: arrow_numbers restyles the window
+
+
+def _text_of(typestr: str) -> Callable[[tuple[Any, ...]], list[str]]:
+    """A column of values as text, in Python's notation for arrow_numbers to restyle."""
     if typestr[1] == "f":
-        return repr if typestr[2:] == "8" else f32_text
-    return str
+        return _f64_column if typestr[2:] == "8" else f32_column
+    return _int_column
 
 
 def _seconds_of(seg: PlainSegment, fd: int) -> Callable[[int], float]:
@@ -341,18 +369,16 @@ def iter_csv(p: Plan) -> Iterator[bytes]:
     nhead = len(RECORD_HEADER)
     for seg in p.segments:
         rec = _record_struct(seg.layout)
-        texts = [str] * nhead + [_text_of(vt.typestr) for vt in seg.layout.types]
+        texts = [_int_column] * nhead + [_text_of(vt.typestr) for vt in seg.layout.types]
         seconds = _seconds_of(seg, p.fd)
         t_at = [n for n, _, _ in RECORD_HEADER].index("t_ns")
-        doubles = [
-            len(RECORD_HEADER) + i for i, vt in enumerate(seg.layout.types) if texts[len(RECORD_HEADER) + i] is repr
-        ]
+        floats = [nhead + i for i, vt in enumerate(seg.layout.types) if vt.typestr[1] == "f"]
         for window in _windows(p.fd, seg.layout.data, seg.count, seg.layout.stride, CSV_WINDOW_BYTES):
             values = list(zip(*rec.iter_unpack(window)))
-            cols = [list(map(f, c)) for f, c in zip(texts, values)]
-            t_s = list(map(seconds, values[t_at]))
-            cols.insert(t_at + 1, list(map(repr, t_s)))
-            large = _any_large(tuple(t_s)) or any(_any_large(values[i]) for i in doubles)
+            cols = [f(c) for f, c in zip(texts, values)]
+            t_s = tuple(map(seconds, values[t_at]))
+            cols.insert(t_at + 1, _f64_column(t_s))
+            large = _any_large(t_s) or any(_any_large(values[i]) for i in floats)
             yield arrow_numbers("\n".join(map(",".join, zip(*cols))) + "\n", large).encode()
 
 
