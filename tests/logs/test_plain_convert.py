@@ -195,10 +195,10 @@ def test_a_csv_zip_with_changes_holds_the_same_members(tmp_path: Path) -> None:
             assert got.read(name) == ref.read(name), name
 
 
-@pytest.mark.parametrize("damage", ["garbage", "xrf2", "other_variables"])
+@pytest.mark.parametrize("damage", ["garbage", "xrf2", "other_variables", "long_stride"])
 def test_what_plain_does_not_read_goes_to_numpy(tmp_path: Path, damage: str) -> None:
-    """Damage inside a segment, an XRF2 .bin, segments that differ: plain.plan says no, and the
-    child converts with the NumPy path, as before (its output and its counts)."""
+    """Damage inside a segment, an XRF2 .bin, segments that differ, records longer than plain.py
+    reads: plain.plan says no, and the child converts with the NumPy path, as before."""
     from xrf_testing.writers import xrf2_bin
 
     rows = edge_rows(40)
@@ -206,6 +206,8 @@ def test_what_plain_does_not_read_goes_to_numpy(tmp_path: Path, damage: str) -> 
     if damage == "garbage":
         seg = xrflog_segment(VARIABLES, rows)
         log.write_bytes(seg[: len(seg) - 20 * 112] + b"\xff" * 37 + seg[len(seg) - 20 * 112 :])
+    elif damage == "long_stride":  # records the writer made 70 KB long: plain.py reads none that long
+        log.write_bytes(xrflog_segment(VARIABLES, rows, stride_pad=70_000))
     elif damage == "xrf2":
         log.write_bytes(xrf2_bin(VARIABLES, rows))
     else:

@@ -46,6 +46,9 @@ from .matfile import MatWriter, cell_column, char_matrix, numeric_matrix, struct
 # in C; CSV makes two Python objects a value (~100 bytes), so its windows are smaller.
 WINDOW_BYTES = 1 << 20
 CSV_WINDOW_BYTES = 128 << 10
+# A record longer than this (the writer chose its stride; real ones are a few hundred bytes) is left
+# to the NumPy reader, which maps the file: here every read is at least one whole record.
+MAX_STRIDE = 64 << 10
 FIND_WINDOW = 1 << 20  # bytes of the mapping searched for the next segment's magic at a time
 
 # One row of a run's parameter change table (xrflab/params/service.py writes them; the downloads
@@ -171,7 +174,7 @@ def plan(path: str | Path, fd: int) -> Plan | None:
                 return None  # damage, or an error the NumPy reader says in its words
             nxt = _find(mm, MAGIC, seg.data)
             end = size if nxt < 0 else nxt
-            if seg.data > end:
+            if seg.data > end or seg.stride > MAX_STRIDE:
                 return None
             count, rest = divmod(end - seg.data, seg.stride)
             if not _chained(fd, seg.data, count, seg.stride):
