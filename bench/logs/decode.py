@@ -20,7 +20,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "appliance"))
 
-from xrflab.logs import convert, open_log  # noqa: E402
+from xrflab.logs import open_log  # noqa: E402
+from xrflab.logs.convert import convert
 from xrflab.logs.logformat import MAGIC  # noqa: E402
 
 NVARS = 16

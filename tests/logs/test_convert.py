@@ -12,8 +12,8 @@ import pytest
 from xrf_testing.log_cases import VARIABLES, columns_of, edge_rows, same_bits
 from xrf_testing.writers import xrf2_bin, xrflog_segment
 from xrflab.cli import main as xrf_main
-from xrflab.logs import convert, iter_csv_chunks, open_log
-from xrflab.logs.convert import matlab_names, variable_groups
+from xrflab.logs import iter_csv_chunks, open_log
+from xrflab.logs.convert import convert, matlab_names, variable_groups
 
 CSV_TYPES = {
     "flag": np.uint8,

@@ -14,8 +14,8 @@ import numpy as np
 
 from xrf_testing.log_cases import VARIABLES
 from xrf_testing.writers import xrflog_segment
-from xrflab.logs import convert, iter_csv_chunks
-from xrflab.logs.convert import CHANGE_COLUMNS, CHANGES_ENTITY, CHANGES_META, iter_csv_zip_chunks
+from xrflab.logs import iter_csv_chunks
+from xrflab.logs.convert import CHANGE_COLUMNS, CHANGES_ENTITY, CHANGES_META, convert, iter_csv_zip_chunks
 
 CHANGES = [
     {"run": 7, "cycle": 20, "t": 1795000000.25, "name": "PID_Left\\Kp", "old": 1.0, "new": 2.5, "who": "ada"},

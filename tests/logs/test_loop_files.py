@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from xrf_testing.loops import LoopProcess, build_probe
-from xrflab.logs import convert, open_log
+from xrflab.logs import open_log
+from xrflab.logs.convert import convert
 
 
 @pytest.fixture(scope="module")

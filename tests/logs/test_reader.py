@@ -206,7 +206,7 @@ def test_a_variable_name_that_is_not_text_is_written_out_and_every_format_takes_
     """Issue 26: a file the loop wrote itself may name a variable with a lone surrogate (JSON
     ``\\udcff``); it becomes the text ``\\udcff``, so the listing's JSON and CSV, Parquet and rrd
     (all UTF-8) never fail on it."""
-    from xrflab.logs import convert
+    from xrflab.logs.convert import convert
 
     path = tmp_path / "s.xrf"
     path.write_bytes(xrflog_segment([("ok", 5), ("bad\udcff", 5)], [(1.0, 2.0), (3.0, 4.0)]))

@@ -162,6 +162,21 @@ def test_conversions_leave_nothing_in_the_appliance(server: Server) -> None:
         assert _malloc_heaps(pid) <= 2, f"{_malloc_heaps(pid)} malloc arenas besides the main one"
 
 
+def test_an_appliance_in_no_room_loads_no_cryptography(server: Server) -> None:
+    """cryptography (its Rust extension, ~6 MB of the appliance's RSS) is the lab room's, for a
+    bench enrolled in one (room/sso.py imports it when a key is first used): an appliance that
+    never joined a room, after runs and downloads, does not map it (issue 30 item 4)."""
+    run = _run_probe(server, cycles=200)
+    server.stop_run()
+    assert _logs(server, run["id"])["files"]
+    mapped = [
+        line.split(None, 5)[5]
+        for line in Path(f"/proc/{server.proc.pid}/maps").read_text().splitlines()
+        if len(line.split(None, 5)) > 5 and "/cryptography/" in line
+    ]
+    assert not mapped, f"cryptography loaded in the appliance: {sorted(set(mapped))[:3]}"
+
+
 def _rrd_values(data: bytes, path: Path) -> dict[str, list[tuple[list[int], list[float]]]]:
     """entity -> [(cycles, values)] read back with rerun's own RRD reader, in file order."""
     from rerun.chunk import RrdReader

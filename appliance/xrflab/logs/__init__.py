@@ -1,24 +1,44 @@
 """Log files: reading xrflog and XRF2 `.bin` files, converting them to CSV, MAT, Parquet, rrd.
 
-    from xrflab.logs import open_log, convert, iter_csv_chunks
+    from xrflab.logs import open_log, iter_csv_chunks
+    from xrflab.logs.convert import convert
     log = open_log("probe_260101_120000.xrf")   # LogFile: .segments, .records, .lost, .skipped
     convert(log.path, "parquet")                # -> Path of the written file
 
-Imported eagerly (NumPy, ~0.1 s): a lazy __getattr__ cannot work here because importing the
-submodule `convert` rebinds the package attribute `convert` to the module. scipy, pyarrow and
-rerun are imported only by the converter that needs them.
+Nothing is imported here until it is asked for (PEP 562): the light conversion child
+(``python -m xrflab.logs.convert_child``, logs/plain.py) runs this file first and must not load
+NumPy (issue 30 item 4: a CSV or MAT child of ~12 MB instead of ~52). ``convert`` the function is
+therefore taken from its module (``xrflab.logs.convert``, which is also the submodule's name: a
+package attribute of that name would be the module once anything imported it). scipy, pyarrow and
+rerun are imported only by the converter that needs them. Every format besides xrflog registers
+itself with open_log when open_log first runs (reader.FORMAT_MODULES).
 
-The appliance's side of a run's logging is not imported here: ``live`` (a run's logging, start to
+The appliance's side of a run's logging is not named here: ``live`` (a run's logging, start to
 finish), ``host_writer`` (ring -> file), ``log_channel`` (the shared memory's log ring and layout),
 ``record_file`` (whole records only), ``timing_series``, ``rerun_live`` (the live recording) and
 ``rerun_servers`` (rerun's child processes).
 """
 
-# Every format besides xrflog registers itself with open_log when imported (xrf2bin: XRF2's .bin
-# files); importing any module of this package runs this first, so open_log knows them all
-# wherever it is called from.
-from . import xrf2bin  # noqa: F401
-from .convert import FORMATS, convert, iter_csv_chunks
-from .reader import LogFile, LogFormatError, Segment, Variable, open_log
+from __future__ import annotations
 
-__all__ = ["FORMATS", "LogFile", "LogFormatError", "Segment", "Variable", "convert", "iter_csv_chunks", "open_log"]
+import importlib
+from typing import Any
+
+_LAZY = {
+    "FORMATS": "convert",
+    "iter_csv_chunks": "convert",
+    "LogFile": "reader",
+    "LogFormatError": "layout",
+    "Segment": "reader",
+    "Variable": "reader",
+    "open_log": "reader",
+}
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f".{module}", __name__), name)

@@ -38,14 +38,20 @@ from typing import Any
 
 import numpy as np
 
+# The change table's columns and text, the CSV zip and MATLAB's names are shared with the light
+# conversion child's CSV and MAT (plain.py, standard library only).
+from .plain import (  # noqa: F401  (CHANGE_COLUMNS, changes_csv, csv_zip_names: this module's API too)
+    CHANGE_COLUMNS,
+    CHANGES_MAT,
+    changes_csv,
+    csv_zip_names,
+    matlab_names,
+    zip_csv,
+)
 from .reader import SECONDS_COLUMN, LogFile, Segment, open_log
 
 FORMATS = ("csv", "mat", "parquet", "rrd")
-# One row of a run's parameter change table (xrflab/params/service.py writes them; the downloads
-# and GET /api/logs/runs/{id}/param-changes show them): t is the wall clock (Unix seconds).
-CHANGE_COLUMNS = ("run", "cycle", "t", "name", "old", "new", "who")
 CHANGES_META = "xrf.param_changes"  # Parquet key-value metadata
-CHANGES_MAT = "param_changes"  # MAT struct variable
 SUFFIX = {"csv": ".csv", "mat": ".mat", "parquet": ".parquet", "rrd": ".rrd"}
 CHUNK_ROWS = 1 << 17
 
@@ -132,39 +138,6 @@ def iter_csv_chunks(path: str | Path, chunk_rows: int = CHUNK_ROWS, log: LogFile
             yield rest
 
 
-def changes_csv(changes: list[dict[str, Any]]) -> str:
-    """The change table as CSV text (header row first)."""
-    out = io.StringIO()
-    w = csv.DictWriter(out, fieldnames=CHANGE_COLUMNS, extrasaction="ignore", lineterminator="\n")
-    w.writeheader()
-    w.writerows(changes)
-    return out.getvalue()
-
-
-class _Drain(io.RawIOBase):
-    """A write-only, unseekable sink whose bytes are taken out between writes: zipfile then
-    writes a streamed archive (data descriptors after each member), chunk by chunk."""
-
-    def __init__(self) -> None:
-        self.parts: list[bytes] = []
-
-    def writable(self) -> bool:
-        return True
-
-    def write(self, b: Any) -> int:
-        self.parts.append(bytes(b))
-        return len(b)
-
-    def take(self) -> bytes:
-        out, self.parts = b"".join(self.parts), []
-        return out
-
-
-def csv_zip_names(stem: str, run: int | str) -> tuple[str, str]:
-    """The two members of a CSV download with parameter changes: the samples, the changes."""
-    return f"{stem}.csv", f"run{run}_param_changes.csv"
-
-
 def iter_csv_zip_chunks(
     path: str | Path,
     changes: list[dict[str, Any]],
@@ -173,18 +146,8 @@ def iter_csv_zip_chunks(
     log: LogFile | None = None,
 ) -> Iterator[bytes]:
     """A zip of the samples' CSV (`iter_csv_chunks`, streamed: memory bounded by one chunk) and
-    the change table's CSV, as byte chunks."""
-    import zipfile
-
-    sink = _Drain()
-    with zipfile.ZipFile(sink, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
-        with zf.open(names[0], "w", force_zip64=True) as member:
-            for chunk in iter_csv_chunks(path, chunk_rows, log=log):
-                member.write(chunk)
-                yield sink.take()
-        zf.writestr(names[1], changes_csv(changes))
-        yield sink.take()
-    yield sink.take()
+    the change table's CSV, as byte chunks (plain.zip_csv)."""
+    return zip_csv(iter_csv_chunks(path, chunk_rows, log=log), changes, names)
 
 
 def _to_csv(log: LogFile, out: Path, chunk_rows: int, changes: list[dict[str, Any]] | None) -> None:
@@ -199,28 +162,6 @@ def _to_csv(log: LogFile, out: Path, chunk_rows: int, changes: list[dict[str, An
 
 
 # ---- MAT ------------------------------------------------------------------------------------
-
-_MATLAB_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,62}$")
-
-
-def matlab_names(names: list[str], reserved: tuple[str, ...] = ()) -> list[str]:
-    """Valid, unique MATLAB identifiers: other characters become `_`, a name that does not start
-    with a letter gets `x` in front, at most 63 characters, clashes get `_2`, `_3`, ..."""
-    taken = set(reserved)
-    out = []
-    for name in names:
-        ident = re.sub(r"[^A-Za-z0-9_]", "_", name)
-        if not ident or not ident[0].isalpha():
-            ident = "x" + ident
-        ident = ident[:63]
-        candidate, k = ident, 2
-        while candidate in taken:
-            suffix = f"_{k}"
-            candidate, k = ident[: 63 - len(suffix)] + suffix, k + 1
-        assert _MATLAB_NAME.match(candidate)
-        taken.add(candidate)
-        out.append(candidate)
-    return out
 
 
 class _LazyColumns(Mapping[str, Any]):

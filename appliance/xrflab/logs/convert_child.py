@@ -25,7 +25,6 @@ appliance produces no Arrow or Parquet itself."""
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import io
 import json
@@ -40,7 +39,7 @@ from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO, cast
 
-from .reader import LogFormatError
+from .layout import LogFormatError  # not .reader: this module is the child's and imports no NumPy
 
 BAD_LOG = 3  # exit status: LogFormatError, message on stderr
 
@@ -77,6 +76,8 @@ def release_heavy() -> None:
 async def heavy_turn(timeout: float = HEAVY_WAIT_S) -> AsyncIterator[None]:
     """``acquire_heavy`` for the event loop: waits without a thread, so a request cancelled while
     it waits leaves no turn taken behind it."""
+    import asyncio  # here, not at the top: the child imports this module too, and asyncio is ~6 MB of it
+
     deadline = time.monotonic() + timeout
     turn = _heavy.acquire(blocking=False)
     while not turn and time.monotonic() < deadline:
@@ -228,13 +229,24 @@ def _stream_csv(shown: str, fd: int, changes: list[dict[str, Any]], zip_names: l
     out.flush()
 
 
-def main(argv: list[str]) -> int:
-    from .convert import convert
-    from .reader import open_log
+# The formats the light child writes with the standard library only (logs/plain.py: no NumPy,
+# pyarrow or scipy in the child, ~12 MB instead of 52-56; issue 30 item 4); logs/convert.py does
+# them when plain.py does not read the log (damage, an XRF2 .bin) and does the others.
+PLAIN_FORMATS = ("csv", "mat")
 
+
+def main(argv: list[str]) -> int:
     fd, fmt, target, shown = int(argv[0]), argv[1], argv[2], argv[3]
     changes = json.loads(sys.stdin.read() or "[]")
     try:
+        if fmt in PLAIN_FORMATS:
+            from . import plain
+
+            if plain.convert(shown, fd, fmt, target, changes, argv[4:6]):
+                return 0
+        from .convert import convert
+        from .reader import open_log
+
         if target == "-" and fmt == "csv":
             _stream_csv(shown, fd, changes, argv[4:6])
             return 0

@@ -7,15 +7,17 @@ nothing of its own, so the host log writer (logs/host_writer.py, through logs/lo
 writes the bytes the loop's own writer (rt_core/src/logfile.cpp) writes, and the reader
 (logs/reader.py) knows the types the writers know.
 A second copy of any of it could silently disagree with the loop (issue 20).
+
+Standard library and cffi only, no NumPy: the light conversion child (logs/plain.py) reads the
+layout from here too, and a NumPy type is made only when the reader asks for one (``VarType.dtype``).
 """
 
 from __future__ import annotations
 
 import os
+import struct
 from dataclasses import dataclass
 from typing import Any
-
-import numpy as np
 
 from .. import _cffi_build
 
@@ -49,7 +51,36 @@ class VarType:
     code: int  # XRF_LOG_* (XRF2's code)
     name: str  # XRF2's C name: "int", "long int", ...
     header_dtype: str  # the segment header's "dtype": "int32", "int64", ...
-    dtype: np.dtype  # the record field (char is one raw byte, S1: logformat.h says why)
+    typestr: str  # the record field as a NumPy type string, "<f8" (char is one raw byte, "|S1": logformat.h says why)
+
+    @property
+    def dtype(self) -> Any:
+        """The record field's NumPy dtype (NumPy imported here, not by the module)."""
+        import numpy as np
+
+        return np.dtype(self.typestr)
+
+    @property
+    def size(self) -> int:
+        return int(self.typestr[2:])
+
+    @property
+    def struct_code(self) -> str:
+        return struct_code(self.typestr)
+
+
+# NumPy's type strings as `struct` format characters (little-endian, standard sizes). char and bool
+# are their unsigned byte, as the converters write them (a bool byte of 2 stays 2).
+_STRUCT_CODES = {"f4": "f", "f8": "d", "i4": "i", "i8": "q", "u8": "Q", "b1": "B", "S1": "B", "u1": "B"}
+
+
+def struct_code(typestr: str) -> str:
+    """`struct`'s character for a field of NumPy type string `typestr` ("<f8" -> "d"). KeyError
+    for a type this table lacks (a type rt_core gains later: the NumPy reader still reads it)."""
+    code = _STRUCT_CODES[typestr[1:]]
+    if struct.calcsize("<" + code) != int(typestr[2:]):
+        raise KeyError(typestr)
+    return code
 
 
 def _text(p: Any) -> str:
@@ -57,8 +88,7 @@ def _text(p: Any) -> str:
 
 
 VAR_TYPES: dict[int, VarType] = {
-    int(t.code): VarType(int(t.code), _text(t.name), _text(t.dtype), np.dtype(_text(t.typestr)))
-    for t in lib.xrf_logfile_types
+    int(t.code): VarType(int(t.code), _text(t.name), _text(t.dtype), _text(t.typestr)) for t in lib.xrf_logfile_types
 }
 
 

@@ -11,7 +11,6 @@ format version or variable type code) raise `LogFormatError` naming the file.
 
 from __future__ import annotations
 
-import json
 import mmap
 import os
 from collections.abc import Callable, Iterator
@@ -21,53 +20,36 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import Invalid
+# A segment's header, column names and the chain rule, without NumPy (logs/plain.py reads them
+# too); LogFormatError and SECONDS_COLUMN are re-exported from here for the callers.
+from .layout import (
+    SECONDS_COLUMN,  # noqa: F401
+    Damaged,
+    LogFormatError,
+    chain_ok,
+    field_names,
+    logged_names,
+    parse_segment_header,
+    var_types,
+)
 
 # The format's magic, prefix layout and type table: rt_core's logformat.h, through cffi.
 # seq, cycle, t_ns: the record header (channels.h struct xrf_slot_hdr) likewise.
-from .logformat import (
-    ALIGN,
-    FORMAT_VERSION,
-    JSON_LEN_OFFSET,
-    MAGIC,
-    PREFIX_SIZE,
-    RECORD_HEADER,
-    RECORD_HEADER_SIZE,
-    STRIDE_OFFSET,
-    VAR_TYPES,
-)
+from .logformat import MAGIC, RECORD_HEADER, RECORD_HEADER_SIZE, VAR_TYPES
 
 # The most record bytes LogFile.iter_chunks hands out at once (a chunk's columns, and what a
 # converter makes of them, are a few times this).
 CHUNK_BYTES = 4 << 20
 
-# The derived column the tabular formats add after t_ns (logs/convert.py: seconds from the run's
-# start); reserved like the header's names so a variable called t_s becomes t_s_2, not a clash.
-SECONDS_COLUMN = "t_s"
-# A JSON header longer than this is taken as damage, not as a header (100 variables need ~8 KB).
-MAX_HEADER_BYTES = 1 << 20
-# Two consecutive good records differ in seq by 1 plus the records lost between them. A
-# bigger jump than this is not loss but bytes that are not a record (random data has a
-# 1 - 2**-24 chance of failing the test).
-MAX_SEQ_JUMP = 1 << 40
 # Resynchronising after damage scans byte offsets in windows of this many bytes, so its cost
 # is proportional to the damage, not to the rest of the file.
 RESYNC_WINDOW = 1 << 20
 
 
-class LogFormatError(Invalid, ValueError):
-    """A file that cannot be decoded at all: not a log file, an unknown version or type code.
-    An XrfError (422): a request for such a file is answered with this message."""
-
-
-class _Damaged(Exception):
-    """A segment header that does not parse: skipped, and said so, rather than raised."""
-
-
 @dataclass(frozen=True)
 class Variable:
     name: str  # as logged (addVariable's name)
-    field: str  # the NumPy field / output column name (unique; see _field_names)
+    field: str  # the NumPy field / output column name (unique; see layout.field_names)
     code: int  # XRF2 type code
     dtype: np.dtype
     offset: int  # from the start of the payload
@@ -238,41 +220,17 @@ def _repack(records: np.ndarray, dtype: np.dtype) -> np.ndarray:
     return out
 
 
-def _field_names(names: list[str], reserved: tuple[str, ...]) -> list[str]:
-    """Unique column names: a variable called like a header field (the loop probe logs
-    `cycle`) or like an earlier variable becomes `<name>_2`, `<name>_3`, ...; the logged
-    name is kept in Variable.name."""
-    taken = set(reserved)
-    out = []
-    for i, name in enumerate(names):
-        base = name or f"var{i}"
-        candidate, k = base, 2
-        while candidate in taken:
-            candidate, k = f"{base}_{k}", k + 1
-        taken.add(candidate)
-        out.append(candidate)
-    return out
-
-
 def make_variables(
     path: Path, names: list[str], codes: list[int], offsets: list[int] | None, reserved: tuple[str, ...]
 ) -> tuple[Variable, ...]:
-    """Validate type codes and build the variables (packed offsets when none are given). A name
-    that is not valid Unicode text (a lone surrogate from a JSON ``\\udcff`` escape: whoever wrote
-    the file chose it) is kept with that character written out (``\\udcff``), so every column
-    name can be encoded: CSV, Parquet, rrd and the JSON listing never fail on it."""
-    names = [n.encode("utf-8", "backslashreplace").decode("utf-8") if isinstance(n, str) else str(n) for n in names]
-    fields = _field_names(names, reserved)
+    """Validate type codes and build the variables (packed offsets when none are given); names
+    as layout.logged_names keeps them."""
+    names = logged_names(names)
+    fields = field_names(names, reserved)
     out, pos = [], 0
-    for i, (name, code) in enumerate(zip(names, codes)):
-        vt = VAR_TYPES.get(code)
-        if vt is None:
-            raise LogFormatError(
-                f"{path}: variable {name!r} has unknown type code {code} "
-                f"(known: {', '.join(f'{c} {t.name}' for c, t in VAR_TYPES.items())})"
-            )
+    for i, (name, vt) in enumerate(zip(names, var_types(path, names, codes))):
         off = offsets[i] if offsets is not None else pos
-        out.append(Variable(name, fields[i], code, vt.dtype, off))
+        out.append(Variable(name, fields[i], vt.code, vt.dtype, off))
         pos = off + vt.dtype.itemsize
     return tuple(out)
 
@@ -321,50 +279,20 @@ class _Mapped:
 
 
 def _parse_segment_header(path: Path, m: _Mapped, pos: int) -> tuple[dict[str, Any], tuple[Variable, ...], int, int]:
-    """(header, variables, stride, data offset) of the segment whose magic is at `pos`."""
-    if pos + PREFIX_SIZE > m.size:
-        raise _Damaged(f"segment header cut short ({m.size - pos} bytes)")
-    jlen = int(np.frombuffer(m.buf, dtype="<u4", count=1, offset=pos + JSON_LEN_OFFSET)[0])
-    stride = int(np.frombuffer(m.buf, dtype="<u4", count=1, offset=pos + STRIDE_OFFSET)[0])
-    if jlen == 0 or jlen > MAX_HEADER_BYTES or pos + PREFIX_SIZE + jlen > m.size:
-        raise _Damaged(f"implausible JSON header length {jlen}")
-    try:
-        header = json.loads(bytes(m.buf[pos + PREFIX_SIZE : pos + PREFIX_SIZE + jlen]).decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise _Damaged(f"JSON header does not parse ({exc})") from None
-    if not isinstance(header, dict) or header.get("format") != "xrflog":
-        raise _Damaged("header is not an xrflog header")
-    # From here on the header is readable: what we do not understand is an error, not damage.
-    if header.get("version") != FORMAT_VERSION:
-        raise LogFormatError(
-            f"{path}: segment at offset {pos} has xrflog version {header.get('version')!r}; "
-            f"this reader knows version {FORMAT_VERSION}"
-        )
-    try:
-        spec = header["variables"]
-        names = [str(v["name"]) for v in spec]
-        codes = [int(v["type"]) for v in spec]
-        offsets = [int(v["offset"]) for v in spec]
-        record_size = int(header["record_size"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise LogFormatError(f"{path}: segment at offset {pos}: header lacks variables/record_size ({exc})") from None
-    variables = make_variables(path, names, codes, offsets, tuple(n for n, _, _ in RECORD_HEADER) + (SECONDS_COLUMN,))
-    end = max((v.offset + v.dtype.itemsize for v in variables), default=0)
-    if end > record_size or RECORD_HEADER_SIZE + record_size > stride:
-        raise LogFormatError(
-            f"{path}: segment at offset {pos}: variables need {end} bytes, record_size is "
-            f"{record_size}, stride {stride}: inconsistent header"
-        )
-    data = pos + (PREFIX_SIZE + jlen + ALIGN - 1) // ALIGN * ALIGN  # counted from the segment's start
-    return header, variables, stride, data
+    """(header, variables, stride, data offset) of the segment whose magic is at `pos`
+    (layout.parse_segment_header: Damaged or LogFormatError)."""
+    seg = parse_segment_header(path, m.buf, m.size, pos)
+    variables = tuple(
+        Variable(name, fld, vt.code, vt.dtype, off)
+        for name, fld, vt, off in zip(seg.names, seg.fields, seg.types, seg.offsets)
+    )
+    return seg.header, variables, seg.stride, seg.data
 
 
 def _chain_ok(seq0, cyc0, t0, seq1, cyc1, t1):
-    """Whether record 1 can follow record 0 (vectorised): seq grows by a plausible step,
-    cycle and time never go back."""
+    """layout.chain_ok, vectorised (an unsigned step below zero wraps: see there)."""
     with np.errstate(over="ignore"):
-        step = seq1 - seq0
-    return (seq1 > seq0) & (step <= MAX_SEQ_JUMP) & (cyc1 >= cyc0) & (t1 >= t0)
+        return chain_ok(seq0, cyc0, t0, seq1, cyc1, t1)
 
 
 class _SegmentScanner:
@@ -470,7 +398,7 @@ def _read_xrflog(path: Path, m: _Mapped, log: LogFile) -> None:
     while 0 <= pos < m.size:
         try:
             header, variables, stride, data = _parse_segment_header(path, m, pos)
-        except _Damaged as exc:
+        except Damaged as exc:
             nxt = m.find(MAGIC, pos + 1)
             stop = m.size if nxt < 0 else nxt
             log.note_skipped(f"offset {pos}: damaged segment header ({exc}); {stop - pos} bytes skipped", stop - pos)
@@ -501,18 +429,32 @@ FormatReader = Callable[[Path, Any, int], "LogFile | None"]
 _other_formats: list[FormatReader] = []
 
 
+# The modules of the other formats (of this package), imported by open_log's first call: each
+# registers itself (register_format) as it is imported. Not by the package's __init__, which imports
+# nothing (the light conversion child, logs/plain.py, must not load NumPy).
+FORMAT_MODULES = ("xrf2bin",)
+
+
 def register_format(read: FormatReader) -> None:
     """Add a format open_log recognises by content. A format's module registers itself when it is
-    imported (xrf2bin.py), and the package imports every format (logs/__init__.py), so the reader
-    needs to know none of them."""
+    imported (xrf2bin.py), and open_log imports FORMAT_MODULES first, so the reader knows none of
+    them but by their module's name."""
     if read not in _other_formats:
         _other_formats.append(read)
+
+
+def _import_formats() -> None:
+    import importlib
+
+    for name in FORMAT_MODULES:
+        importlib.import_module(f".{name}", __package__)
 
 
 def open_log(path: str | Path, fd: int | None = None) -> LogFile:
     """Open an xrflog file or a file of a registered format, e.g. XRF2's `.bin` (recognised by
     content, not by name). `fd`: read that open file instead (`path` then only names it in the
     LogFile and in messages); the mapping stays valid after the caller closes it."""
+    _import_formats()
     path = Path(path)
     m = _Mapped(path, fd)
     if m.size >= len(MAGIC) and bytes(m.buf[: len(MAGIC)]) == MAGIC:

@@ -30,13 +30,25 @@ import secrets
 import time
 from collections import OrderedDict
 from pathlib import Path
-from typing import Annotated, Literal
+from types import ModuleType
+from typing import TYPE_CHECKING, Annotated, Literal
 
-from cryptography.exceptions import InvalidSignature
-from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .topics import NAME_RE
+
+if TYPE_CHECKING:
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
+
+
+def _ed25519() -> ModuleType:
+    """cryptography's Ed25519, imported when a key is first made, read or used: its Rust extension
+    is ~6-10 MB of a process's RSS (issue 30 item 4), and a bench never enrolled in a room (the
+    appliance imports this module at start, room/bench.py) never needs it."""
+    from cryptography.hazmat.primitives.asymmetric import ed25519
+
+    return ed25519
+
 
 TTL_S = 60.0
 SKEW_S = 30.0  # the signer's clock may be this far ahead of the checker's
@@ -56,7 +68,7 @@ def _unb64(text: str) -> bytes:
 
 
 def new_private_key() -> Ed25519PrivateKey:
-    return Ed25519PrivateKey.generate()
+    return _ed25519().Ed25519PrivateKey.generate()
 
 
 def private_text(key: Ed25519PrivateKey) -> str:
@@ -66,9 +78,10 @@ def private_text(key: Ed25519PrivateKey) -> str:
 
 
 def public_text(key: Ed25519PrivateKey | Ed25519PublicKey) -> str:
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey as Private
     from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
 
-    pub = key.public_key() if isinstance(key, Ed25519PrivateKey) else key
+    pub = key.public_key() if isinstance(key, Private) else key
     return _b64(pub.public_bytes(Encoding.Raw, PublicFormat.Raw))
 
 
@@ -83,11 +96,11 @@ def _raw32(text: str) -> bytes:
 
 
 def load_private(text: str) -> Ed25519PrivateKey:
-    return Ed25519PrivateKey.from_private_bytes(_raw32(text))
+    return _ed25519().Ed25519PrivateKey.from_private_bytes(_raw32(text))
 
 
 def load_public(text: str) -> Ed25519PublicKey:
-    return Ed25519PublicKey.from_public_bytes(_raw32(text))
+    return _ed25519().Ed25519PublicKey.from_public_bytes(_raw32(text))
 
 
 def room_key(data_dir: Path) -> Ed25519PrivateKey:
@@ -148,6 +161,8 @@ class Verifier:
     def verify(self, token: str) -> str:
         """The subject a valid token names; SsoError otherwise (one message for every failure but
         expiry and reuse, so a guesser learns nothing)."""
+        from cryptography.exceptions import InvalidSignature
+
         invalid = SsoError("invalid sign-on link")
         if not isinstance(token, str) or not token or len(token) > MAX_TOKEN or token.count(".") != 1:
             raise invalid
