@@ -222,3 +222,23 @@ def test_what_plain_does_not_read_goes_to_numpy(tmp_path: Path, damage: str) -> 
     out, (mapped, _) = _child(log, "csv", "-")
     assert "numpy" in mapped
     assert out.split(b"\n", 1)[1] == b"".join(iter_csv_chunks(log))
+
+
+def test_a_csv_of_many_float32_values_is_left_to_arrow(tmp_path: Path) -> None:
+    """float32 text is a search over precisions here (~20x a double's time): past
+    CSV_MAX_F32_VALUES a CSV goes to the NumPy path (Arrow, in C); MAT, and a small CSV, stay."""
+    variables = [("a", 4), ("b", 4)]
+    for rows, plain_csv in ((1_000, True), (plain.CSV_MAX_F32_VALUES // 2 + 1, False)):
+        log = tmp_path / f"f32_{rows}.xrf"
+        log.write_bytes(xrflog_segment(variables, [(i * 0.1, -i / 3) for i in range(rows)]))
+        fd = os.open(log, os.O_RDONLY)
+        try:
+            p = plain.plan(log.name, fd)
+            assert p is not None and plain.f32_values(p) == 2 * rows
+            assert plain.convert(log.name, fd, "csv", str(tmp_path / "out.csv"), [], []) is plain_csv
+            assert (tmp_path / "out.csv").exists() is plain_csv  # nothing written when it says no
+            assert plain.convert(log.name, fd, "mat", str(tmp_path / "out.mat"), [], []) is True
+        finally:
+            os.close(fd)
+        for out in ("out.csv", "out.mat"):
+            (tmp_path / out).unlink(missing_ok=True)

@@ -50,6 +50,11 @@ CSV_WINDOW_BYTES = 128 << 10
 # to the NumPy reader, which maps the file: here every read is at least one whole record.
 MAX_STRIDE = 64 << 10
 FIND_WINDOW = 1 << 20  # bytes of the mapping searched for the next segment's magic at a time
+# float32 values a CSV may have before it is left to Arrow: each takes a search over precisions
+# here (f32_column), ~20x a double's time (200 000 records of 8 float32s: 8-11 s against Arrow's
+# 0.5 s on this VM, several times that on a Pi). Past this a student would wait longer than the
+# ~60 MB of a NumPy + Arrow child are worth: a slow download is the worse trade (session 11).
+CSV_MAX_F32_VALUES = 200_000
 
 # One row of a run's parameter change table (xrflab/params/service.py writes them; the downloads
 # and GET /api/logs/runs/{id}/param-changes show them): t is the wall clock (Unix seconds).
@@ -352,6 +357,12 @@ def _seconds_of(seg: PlainSegment, fd: int) -> Callable[[int], float]:
     return seconds
 
 
+def f32_values(p: Plan) -> int:
+    """The float32 values in the log's records (what makes this module's CSV slow)."""
+    per_record = sum(1 for vt in p.segments[0].layout.types if vt.typestr[1:] == "f4") if p.segments else 0
+    return per_record * sum(s.count for s in p.segments)
+
+
 def _starts_ok(p: Plan) -> bool:
     try:
         for seg in p.segments:
@@ -551,6 +562,8 @@ def convert(shown: str, fd: int, fmt: str, target: str, changes: list[dict[str, 
     p = plan(shown, fd)
     if p is None or not _starts_ok(p):
         return False
+    if fmt == "csv" and f32_values(p) > CSV_MAX_F32_VALUES:
+        return False  # Arrow formats float32 in C: logs/convert.py (above)
     if target == "-" and fmt == "csv":
         out = sys.stdout.buffer
         out.write(json.dumps({"skipped": p.skipped, "lost": p.lost}).encode() + b"\n")
