@@ -60,21 +60,34 @@ def _build(data_dir: Path, cmakelists: str | None = None, edit: dict[str, str] |
     return b, log, messages, src
 
 
-def _user_processes() -> list[str]:
+def _user_processes(under: Path) -> list[str]:
+    """The build user's live processes working under `under` (this test's data folder): another
+    test's build runs as the same user at the same time (tests/sandbox/test_limits.py), and its
+    processes are not this build's leftovers."""
     try:
         uid = pwd.getpwnam("xrf-build").pw_uid
     except KeyError:
         return []
     # Killed processes whose parent was killed too wait for PID 1 to reap them: dead (Z) is gone.
     r = subprocess.run(["ps", "-u", str(uid), "-o", "stat=,pid=,cmd="], capture_output=True, text=True)
-    return [ln for ln in r.stdout.splitlines() if ln.strip() and not ln.strip().startswith("Z")]
+    found = []
+    for ln in r.stdout.splitlines():
+        if not ln.strip() or ln.strip().startswith("Z"):
+            continue
+        try:  # a build's processes work in its folder (the sandbox keeps the host's paths)
+            cwd = Path(os.readlink(f"/proc/{ln.split()[1]}/cwd"))
+        except OSError:
+            continue  # gone meanwhile
+        if cwd.is_relative_to(under.resolve()):
+            found.append(ln)
+    return found
 
 
-def _no_user_processes_soon() -> None:
-    """The build user's processes are gone: killed with the build, reaped a moment later."""
+def _no_user_processes_soon(under: Path) -> None:
+    """The build's processes are gone: killed with the build, reaped a moment later."""
     with contextlib.suppress(AssertionError):
-        wait_for(lambda: not _user_processes(), 5, "the build user's processes to go")
-    assert not _user_processes(), _user_processes()
+        wait_for(lambda: not _user_processes(under), 5, "the build user's processes to go")
+    assert not _user_processes(under), _user_processes(under)
 
 
 PRELUDE = "cmake_minimum_required(VERSION 3.16)\n"
@@ -156,7 +169,7 @@ def test_build_that_runs_forever_is_stopped(data_dir: Path) -> None:
     assert time.monotonic() - t0 < 30
     assert b.status == "failed"
     assert "longer than 4 s" in b.result
-    _no_user_processes_soon()
+    _no_user_processes_soon(data_dir)
 
 
 @pytest.mark.skipif(not ROOT, reason="RLIMIT_NPROC counts the build user's processes: needs the dedicated user")
@@ -173,7 +186,7 @@ def test_fork_bomb_is_limited(data_dir: Path) -> None:
     b, log, _, _ = _build(data_dir, cml, nproc=64, timeout_s=30)
     assert b.status == "failed"
     assert "too many processes" in b.result, (b.result, log[-1500:])
-    _no_user_processes_soon()
+    _no_user_processes_soon(data_dir)
 
 
 def test_memory_eater_is_limited(data_dir: Path) -> None:
