@@ -375,6 +375,14 @@ class LiveRerun:
                 "telemetry/xeno2ros", indexes=idx, columns=rr.Scalars.columns(scalars=np.column_stack(columns))
             )
 
+    def _take(self, item: np.ndarray | None | EllipsisType, pending: list[np.ndarray]) -> bool:
+        """One item of the queue: records to `pending`; True for the end (close)."""
+        if isinstance(item, np.ndarray):
+            with self._queued_lock:
+                self._queued -= len(item)
+            pending.append(item)
+        return item is None
+
     def _main(self) -> None:
         # Records arrive in small batches (one per writer drain, up to 50 a second); they are
         # sent in one batch per SEND_PERIOD_S: the viewer's cost is per message, and a browser on
@@ -393,11 +401,8 @@ class LiveRerun:
                 item = self._q.get(timeout=wait_s)
             except queue.Empty:
                 item = ...  # nothing new: still time to send what is pending
-            if isinstance(item, np.ndarray):
-                with self._queued_lock:
-                    self._queued -= len(item)
-                pending.append(item)
-            done = item is None or (self._stop.is_set() and self._q.empty())
+            done = self._take(item, pending)
+            done = done or (self._stop.is_set() and self._q.empty())
             if not self.watched():
                 # Nobody reads: drop what came (records queued before the last viewer left, the
                 # parameter changes) and the telemetry reader; a next viewer starts from then.
@@ -414,6 +419,17 @@ class LiveRerun:
                 except Exception:
                     log.exception("live rerun unavailable")
                     return
+            # Everything queued by now goes with this round's batch, not one drain of the writer
+            # a round: a round that took long (the recording's connection at the first viewer,
+            # rerun's import with it: 1-2 s under load) left the drains of that time queued behind
+            # it, and the first batch, sent then, held records that were already 1.4 s old, the
+            # newer ones only 0.5 s later (issue 31 bug 6, session 11).
+            while True:
+                try:
+                    more = self._q.get_nowait()
+                except queue.Empty:
+                    break
+                done = self._take(more, pending) or done
             try:
                 if self._telemetry_reader is None and not self._telemetry_broken:
                     self._telemetry_reader = self._ch.telemetry_reader()
