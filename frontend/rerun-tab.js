@@ -142,7 +142,8 @@
   // for the test and the benchmark: frames drawn and asked for by the viewer, reads of the live
   // stream with data; when the stream was asked for (by this script, see below), when the viewer
   // asked for it, when its first data was read
-  const frames = { drawn: 0, asked: 0, data: 0, held: 0, streamAt: null, viewerAskedAt: null, answeredAt: null, firstDataAt: null, early: "none" };
+  const frames = { drawn: 0, asked: 0, data: 0, held: 0, streamAt: null, viewerAskedAt: null, answeredAt: null, firstDataAt: null, early: "none",
+    heldGroups: 0, heldFrames: 0 };  // (what the early stream brought before the viewer asked, below)
   const held = new Map();  // our id -> the viewer's callback, waiting for a reason to draw
   let onData = () => {};  // the frame gate's (below): the stream brought data
 
@@ -188,9 +189,10 @@
   // connection: a second opening at load 9-10 drew a sample 2.1 s behind live (bench/README.md,
   // session 10). The messages are gRPC-web frames (a flag byte, a 4-byte length, the payload);
   // those that came in one burst (within GROUP_MS: the window, or one batch of the recording) are
-  // a group, kept in its order. Handed over: what is not the run's recorded data first (store
-  // info, the blueprint), then the recording's groups, the latest first, then the trailers if
-  // the stream ended; from then on the bytes go through as they come.
+  // a group. Handed over: what is not the run's recorded data first (store info, the blueprint),
+  // then the recording's data that came after the first group, the latest first, then the first
+  // group (the proxy's window, newest first as the proxy sends it), then the trailers if the
+  // stream ended; from then on the bytes go through as they come.
   const GROUP_MS = 100;
   function recordingChunk(payload) {  // ReadMessagesResponse{log_msg=1: LogMsg{arrow_msg=2: {store_id=1: {kind=1}}}}, kind 1: a recording
     let rec = false;
@@ -237,8 +239,13 @@
       start(sink) {
         const groups = e.groups;
         e.groups = [];
+        frames.heldGroups = groups.length;
+        frames.heldFrames = groups.reduce((n, g) => n + g.data.length + g.other.length, 0);
         for (const g of groups) for (const f of g.other) sink.enqueue(f);
-        for (const g of groups.slice().reverse()) for (const f of g.data) sink.enqueue(f);
+        // the batches since the connection, newest first (several that came together too), then
+        // the proxy's window (the first group: newest first already)
+        for (const f of groups.slice(1).flatMap((g) => g.data).reverse()) sink.enqueue(f);
+        if (groups.length) for (const f of groups[0].data) sink.enqueue(f);
         for (const g of groups) for (const f of g.trailers) sink.enqueue(f);
         if (e.rest.length) sink.enqueue(e.rest);
         if (e.end === "done") sink.close();

@@ -261,6 +261,39 @@ def test_a_live_batch_takes_every_record_queued_by_then(loop, tmp_path: Path) ->
         LiveProxy.stop_all()
 
 
+def test_a_live_viewer_coming_wakes_the_writer(loop, tmp_path: Path, monkeypatch) -> None:
+    """A live viewer's arrival (its page served: ``LiveProxy.expect_viewer``) makes the host writer
+    drain at once, not at the end of its period (up to a second while nobody watches): the
+    viewer's first records, and the read route's wait for the recording to resume, waited for it
+    (issue 31 bug 6, session 11). The period is made long here, so the drain is the wake's."""
+    from xrflab.logs import host_writer
+    from xrflab.logs.rerun_live import LiveRerun
+    from xrflab.logs.rerun_servers import LiveProxy
+
+    monkeypatch.setattr(host_writer, "MAX_PERIOD_S", 600.0)
+    lp = loop(tmp_path)
+    proxy = LiveProxy.open_for_run(46, "alice")
+    w = HostLogWriter(lp.ch, {}, tmp_path, timing=False)
+    try:
+        stream = LiveRerun(proxy, lp.ch, run_id=46, wake_writer=w.wake)
+        w.set_on_records(stream.feed, fast=stream.watched)
+        w.start()
+        lp.command("initialise", "INITIALISED")
+        lp.command("start", "RUN")
+        lp.wait_cycles(200)
+        assert w.period() > 30, w.period()  # the next periodic drain is far away
+        before = w.drains
+        proxy.expect_viewer()
+        wait_for(lambda: w.drains > before, 20, "the writer's drain once a viewer is coming")
+        wait_for(lambda: stream._names is not None, 20, "the viewer's first records sent")
+    finally:
+        w.finish()
+        if "stream" in locals():
+            stream.close()
+            stream._thread.join(10)
+        LiveProxy.stop_all()
+
+
 def test_live_rerun_stream_sends_nothing_without_a_viewer(loop, tmp_path: Path) -> None:
     """With no viewer on the run's proxy the live stream neither connects nor sends (issue 30
     item 4: work and the rerun SDK's memory for nobody); the log file still gets every record."""

@@ -24,12 +24,14 @@ later, by when the recording is connected and the proxy holds the live edge (iss
 from __future__ import annotations
 
 import contextlib
+import inspect
 import itertools
 import logging
 import queue
 import sys
 import threading
 import time
+import weakref
 from collections.abc import Callable
 from types import EllipsisType
 from typing import TYPE_CHECKING, Any
@@ -180,7 +182,11 @@ def blueprint_storage(names: tuple[str, ...], telemetry: tuple[str, ...], freq: 
 class LiveRerun:
     """One run's live recording: log records (decimated) and telemetry, off the writer's thread."""
 
-    def __init__(self, proxy: LiveProxy, ch: Channels, run_id: int) -> None:
+    def __init__(
+        self, proxy: LiveProxy, ch: Channels, run_id: int, wake_writer: Callable[[], None] | None = None
+    ) -> None:
+        """`wake_writer`: the run's host writer's ``wake`` (its records come every drain period
+        otherwise, up to a second, while nobody watches), called when a viewer is coming."""
         self._rr: Any = None  # the rerun module, imported at the first viewer (_connect)
         self._proxy = proxy
         self._run_id = run_id
@@ -206,8 +212,18 @@ class LiveRerun:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._main, name=f"xrf-rerun-{run_id}", daemon=True)
         self._thread.start()
-        q = self._q  # (only the queue: the proxy outlives the run, the recording must not)
-        proxy.on_viewer = lambda: q.put_nowait(...)
+        # (only the queue and a weak reference to the writer: the proxy outlives the run, the
+        # recording and the writer, which maps the run's shared memory, must not)
+        q = self._q
+        writer = weakref.WeakMethod(wake_writer) if inspect.ismethod(wake_writer) else None
+
+        def on_viewer() -> None:
+            q.put_nowait(...)
+            wake = writer() if writer is not None else None
+            if wake is not None:
+                wake()  # its records now, not at its next drain
+
+        proxy.on_viewer = on_viewer
 
     def watched(self) -> bool:
         return self._proxy.watched()
