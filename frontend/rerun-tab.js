@@ -10,8 +10,9 @@
 // first, so a viewer opened mid-run starts at the live edge (issue 31 bug 6, logs/rerun_servers.py
 // LiveProxy); the whole run so far is its log, opened as .rrd in another viewer tab. From the
 // page's load on (issue 31 bug 6): the viewer's wasm is compiled from its fetch, the live stream
-// is asked for once the viewer's wasm is compiled and handed to the viewer when it asks, and a line says what the tab is
-// doing until the first data is drawn (each below).
+// is asked for once the viewer's wasm is compiled and handed to the viewer when it asks (what came
+// meanwhile newest first), and a line says what the tab is doing until the first data is drawn
+// (each below).
 // The 3D view's tab (viser's page, server/http/viser.py) loads this script too, for Esc.
 "use strict";
 (function () {
@@ -43,6 +44,8 @@
   const wasm = rerunPage && typeof WebAssembly.compileStreaming === "function"
     ? WebAssembly.compileStreaming(fetch(WASM, { credentials: "same-origin" })).catch(() => fetch(WASM, { credentials: "same-origin" }))
     : null;
+  let wasmReady = !wasm;  // the viewer's code is loaded (and compiled): the line's "loading" step ends
+  if (wasm) wasm.then(() => { wasmReady = true; }, () => { wasmReady = true; });
 
   async function post(path, body) {
     const { data, res } = await xrfLib.send("POST", path, body || {});  // frontend/lib.js, loaded before this
@@ -59,7 +62,8 @@
       box.id = id;
       box.setAttribute("role", "status");
       Object.assign(box.style, { position: "fixed", borderRadius: "6px", pointerEvents: "none" }, style);
-      document.body.appendChild(box);
+      // (before the page's body exists: the live tab's line is drawn from this script's start on)
+      (document.body || document.documentElement).appendChild(box);
     }
     return box;
   }
@@ -138,7 +142,8 @@
   // for the test and the benchmark: frames drawn and asked for by the viewer, reads of the live
   // stream with data; when the stream was asked for (by this script, see below), when the viewer
   // asked for it, when its first data was read
-  const frames = { drawn: 0, asked: 0, data: 0, held: 0, streamAt: null, viewerAskedAt: null, answeredAt: null, firstDataAt: null, early: "none" };
+  const frames = { drawn: 0, asked: 0, data: 0, held: 0, streamAt: null, viewerAskedAt: null, answeredAt: null, firstDataAt: null, early: "none",
+    heldGroups: 0, heldFrames: 0 };  // (what the early stream brought before the viewer asked, below)
   const held = new Map();  // our id -> the viewer's callback, waiting for a reason to draw
   let onData = () => {};  // the frame gate's (below): the stream brought data
 
@@ -168,9 +173,88 @@
       headers: { "content-type": "application/grpc-web+proto", "x-grpc-web": "1" },
     });
     response.catch(() => {});  // the viewer reports a failed stream when it reads it
-    early = { ctl, response, timer: setTimeout(() => { if (early) { early.ctl.abort(); early = null; frames.early = "closed"; } }, EARLY_MAX_MS) };
+    const e = { ctl, groups: [], rest: new Uint8Array(0), lastRead: -Infinity, end: null, sink: null };
+    e.response = response.then((res) => { if (res.ok && res.body) holdEarly(e, res.body.getReader()); return res; });
+    e.timer = setTimeout(() => { if (early === e) { e.ctl.abort(); early = null; frames.early = "closed"; } }, EARLY_MAX_MS);
+    early = e;
     frames.streamAt = Date.now();
     frames.early = "asked";
+  }
+
+  // What the stream brings before the viewer asks for it waits here, not in the response, and is
+  // handed over newest first (issue 31 bug 6, session 11). In the response it waited in the order
+  // it came: the proxy's window (newest first) then each batch, and the viewer ingests ~10 ms of
+  // messages a frame, so a viewer whose app started seconds after the tab asked (a loaded machine,
+  // a second opening whose stream was answered at once) drew first what was newest at the
+  // connection: a second opening at load 9-10 drew a sample 2.1 s behind live (bench/README.md,
+  // session 10). The messages are gRPC-web frames (a flag byte, a 4-byte length, the payload);
+  // those that came in one burst (within GROUP_MS: the window, or one batch of the recording) are
+  // a group. Handed over: what is not the run's recorded data first (store info, the blueprint),
+  // then the recording's data that came after the first group, the latest first, then the first
+  // group (the proxy's window, newest first as the proxy sends it), then the trailers if the
+  // stream ended; from then on the bytes go through as they come.
+  const GROUP_MS = 100;
+  function recordingChunk(payload) {  // ReadMessagesResponse{log_msg=1: LogMsg{arrow_msg=2: {store_id=1: {kind=1}}}}, kind 1: a recording
+    let rec = false;
+    const inner = (field, each) => (f, v) => { if (f === field && typeof v !== "number") protoFields(v, each); };
+    protoFields(payload, inner(1, inner(2, inner(1, (f, v) => { if (f === 1 && v === 1) rec = true; }))));
+    return rec;
+  }
+  async function holdEarly(e, reader) {
+    e.reader = reader;
+    try {
+      for (;;) {
+        const { done, value } = await reader.read();
+        if (done) { e.end = "done"; if (e.sink) e.sink.close(); return; }
+        if (e.sink) { e.sink.enqueue(value); continue; }
+        const now = performance.now();
+        if (now - e.lastRead > GROUP_MS) e.groups.push({ data: [], other: [], trailers: [] });
+        e.lastRead = now;
+        const group = e.groups[e.groups.length - 1];
+        let buf = e.rest.length ? concat(e.rest, value) : value, i = 0;
+        while (buf.length - i >= 5) {
+          const n = ((buf[i + 1] << 24) >>> 0) + (buf[i + 2] << 16) + (buf[i + 3] << 8) + buf[i + 4];
+          if (buf.length - i - 5 < n) break;
+          const frame = buf.subarray(i, i + 5 + n);
+          if (buf[i] & 0x80) group.trailers.push(frame);
+          else (recordingChunk(frame.subarray(5)) ? group.data : group.other).push(frame);
+          i += 5 + n;
+        }
+        e.rest = buf.slice(i);
+      }
+    } catch (err) {
+      e.end = err;
+      if (e.sink) e.sink.error(err);
+    }
+  }
+  function concat(a, b) {
+    const out = new Uint8Array(a.length + b.length);
+    out.set(a);
+    out.set(b, a.length);
+    return out;
+  }
+  function handOver(e, res) {
+    if (!res.ok || !res.body) return res;
+    const body = new ReadableStream({
+      start(sink) {
+        const groups = e.groups;
+        e.groups = [];
+        frames.heldGroups = groups.length;
+        frames.heldFrames = groups.reduce((n, g) => n + g.data.length + g.other.length, 0);
+        for (const g of groups) for (const f of g.other) sink.enqueue(f);
+        // the batches since the connection, newest first (several that came together too), then
+        // the proxy's window (the first group: newest first already)
+        for (const f of groups.slice(1).flatMap((g) => g.data).reverse()) sink.enqueue(f);
+        if (groups.length) for (const f of groups[0].data) sink.enqueue(f);
+        for (const g of groups) for (const f of g.trailers) sink.enqueue(f);
+        if (e.rest.length) sink.enqueue(e.rest);
+        if (e.end === "done") sink.close();
+        else if (e.end) sink.error(e.end);
+        else e.sink = sink;
+      },
+      cancel() { e.ctl.abort(); },
+    });
+    return new Response(body, { status: res.status, statusText: res.statusText, headers: res.headers });
   }
   if (live && url.replace(/^rerun\+/, "").replace(/\/proxy$/, "") === location.origin) {
     // As soon as the module is compiled (the loader instantiates it, the app starts ~0.5 s later and
@@ -190,13 +274,13 @@
     const body = early ? await bodyOf(args) : null;
     const method = (args[0] instanceof Request ? args[0].method : (args[1] && args[1].method) || "GET").toUpperCase();
     if (early && method === "POST" && body && body.length === EMPTY_READ.length && body.every((b) => b === 0)) {
-      const { ctl, response, timer } = early;
+      const e = early;
       early = null;
-      clearTimeout(timer);
+      clearTimeout(e.timer);
       frames.early = "used";
       const signal = args[0] instanceof Request ? args[0].signal : args[1] && args[1].signal;
-      if (signal) signal.addEventListener("abort", () => ctl.abort(), { once: true });
-      return response;
+      if (signal) signal.addEventListener("abort", () => e.ctl.abort(), { once: true });
+      return e.response.then((res) => handOver(e, res));
     }
     if (early) { early.ctl.abort(); clearTimeout(early.timer); early = null; frames.early = "not used"; }
     return nativeFetch(...args);
@@ -352,7 +436,8 @@
       background: "rgba(17,24,39,.9)" });
     const what = liveRun === null ? "Live plots" : `Live plots of run ${liveRun}`;
     let step;
-    if (window._handle === undefined) { step = "loading"; box.textContent = `${what}: starting the viewer…`; }
+    if (window._handle === undefined && !wasmReady) { step = "loading"; box.textContent = `${what}: loading the viewer…`; }
+    else if (window._handle === undefined) { step = "starting"; box.textContent = `${what}: starting the viewer…`; }
     else if (frames.firstDataAt === null && frames.answeredAt === null) { step = "connecting"; box.textContent = `${what}: connecting to the live stream…`; }
     else if (frames.firstDataAt === null) { step = "waiting"; box.textContent = `${what}: waiting for the run's data…`; }
     else if (!holdsSample()) { step = "receiving"; box.textContent = `${what}: data arriving, drawing the first plots…`; }
@@ -368,8 +453,10 @@
     box.dataset.step = step;
   }
   if (live) {
-    const start = () => { liveStatus(); statusTimer = setInterval(liveStatus, 250); };
-    if (document.body) start(); else document.addEventListener("DOMContentLoaded", start, { once: true });
+    // At once, not when the page is parsed: the viewer's own script (re_viewer.js) holds the parse
+    // until it has loaded, and the line said nothing meanwhile (issue 31 bug 6, session 11).
+    liveStatus();
+    statusTimer = setInterval(liveStatus, 250);
   }
 
   // The live view is a display, not the data (logs/rerun_live.py, figures from /api/logs/rerun):

@@ -26,7 +26,9 @@ the viewer) and its first data, and the first of the viewer's frames that holds 
 run (its state at the end of each frame callback) with how far behind live that sample was then,
 and when the next frame ended (its pixels are on screen by then). The browser has a profile on
 disk, as a person's has (its HTTP cache keeps the wasm, its code cache the compiled module):
-``--fresh-profile`` for Playwright's off-the-record context instead. ``--reopen S``: the opening
+``--fresh-profile`` for Playwright's off-the-record context instead; ``--cold``: a profile on disk
+that has never loaded the viewer (its files prepared by the appliance over HTTP, no warm-up page
+and no empty viewer in the browser), a person's very first opening. ``--reopen S``: the opening
 measured is a second one (the live viewer opened before until it drew data, closed, S s without
 a viewer).
 
@@ -266,7 +268,8 @@ MARKS = """(() => {
     wasm_fetch_start: r && o + r.fetchStart, wasm_response_start: r && o + r.responseStart,
     wasm_response_end: r && o + r.responseEnd, wasm_transfer_bytes: r && r.transferSize,
     stream_asked: f.streamAt, viewer_asked: f.viewerAskedAt, stream_answered_js: f.answeredAt,
-    stream_first_data: f.firstDataAt, early: f.early, states: window._xrfFrameStates };
+    stream_first_data: f.firstDataAt, early: f.early, held_groups: f.heldGroups, held_frames: f.heldFrames,
+    states: window._xrfFrameStates };
 })()"""
 
 
@@ -279,6 +282,8 @@ def phases(page, opened_ns: int, recording: str) -> dict[str, float]:
     out = {k: v / 1e3 - opened_ns / 1e9 for k, v in raw.items() if isinstance(v, int | float) and v > 1e12}
     out["wasm_transfer_MB"] = (raw.get("wasm_transfer_bytes") or 0) / 1e6
     out["early"] = raw.get("early") or "-"  # the tab script's stream asked for at the page's load
+    # what that early stream brought before the viewer asked: bursts and messages (frontend/rerun-tab.js)
+    out["held"] = f"{raw.get('held_groups', '-')} bursts, {raw.get('held_frames', '-')} messages"
     states = raw.get("states") or []
     for i, (t_ms, n, state) in enumerate(states):
         newest = viewer_newest_ns(bytes(state), recording) if state is not None else None
@@ -393,7 +398,7 @@ FULL_SIZE = "try { localStorage.setItem('xrf-rerun-live-full', '1'); } catch (e)
 ALL_FRAMES = "try { localStorage.setItem('xrf-rerun-live-frames', 'all'); } catch (e) {}"
 
 
-_NOT_TIMES = ("first_drawn_behind", "next_frame_end_behind", "first_drawn_frame", "wasm_transfer_MB", "early")
+_NOT_TIMES = ("first_drawn_behind", "next_frame_end_behind", "first_drawn_frame", "wasm_transfer_MB", "early", "held")
 
 
 def browser_case(
@@ -406,6 +411,7 @@ def browser_case(
     full_size: bool = False,
     all_frames: bool = False,
     fresh_profile: bool = False,
+    cold: bool = False,
     reopen_s: float = 0.0,
     via_runs_s: float | None = None,
     stress_workers: int = 0,
@@ -437,11 +443,15 @@ def browser_case(
             )
         try:
             ctx.add_cookies(session_cookies(server.http, server.url))
-            warm = ctx.new_page()  # the viewer's files prepared and in the cache: not measured
-            warm.goto(server.url + "/rerun/index.html", timeout=600_000)
-            warm.wait_for_function("() => window._handle !== undefined", timeout=600_000)
-            warm.close()
-            empty = empty_viewer(ctx, server.url, min(watch_s, 15.0))
+            if cold:  # the files prepared by the appliance, none of them in this browser's caches
+                assert server.http.get("/rerun/index.html", timeout=600).status_code == 200
+                empty = {"app_start_s": float("nan"), "stalls": [], "fps_median": float("nan")}
+            else:
+                warm = ctx.new_page()  # the viewer's files prepared and in the cache: not measured
+                warm.goto(server.url + "/rerun/index.html", timeout=600_000)
+                warm.wait_for_function("() => window._handle !== undefined", timeout=600_000)
+                warm.close()
+                empty = empty_viewer(ctx, server.url, min(watch_s, 15.0))
             if stress_workers:
                 stress = subprocess.Popen(
                     [
@@ -626,6 +636,11 @@ def main() -> None:
         help="browser case: Playwright's off-the-record context (no disk cache) instead of a profile on disk",
     )
     ap.add_argument(
+        "--cold",
+        action="store_true",
+        help="browser case: a profile on disk that has never loaded the viewer (a person's first opening)",
+    )
+    ap.add_argument(
         "--via-runs-page",
         type=float,
         default=None,
@@ -687,6 +702,7 @@ def main() -> None:
                 args.full_size,
                 args.all_frames,
                 args.fresh_profile,
+                args.cold,
                 args.reopen,
                 args.via_runs_page,
                 args.browser_stress,
@@ -757,7 +773,7 @@ def main() -> None:
                 f"after it ended {ph.get('next_frame_end', float('nan')):.2f} s after opening, "
                 f"{ph.get('next_frame_end_behind', float('nan')):.2f} s behind that sample's time; "
                 f"wasm transferred {ph['wasm_transfer_MB']:.1f} MB (0: from the cache); the stream asked for at "
-                f"the page's load: {ph['early']}"
+                f"the page's load: {ph['early']}, holding {ph['held']} when the viewer asked"
             )
         print("  behind live " + ", ".join(f"{t} s after start: {v:.1f} s" for t, v in b.items()))
         print(

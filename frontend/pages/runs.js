@@ -69,10 +69,43 @@
     return b;
   }
 
+  // The viewer's code in the browser's cache while a live run is listed (issue 31 bug 6, session 11):
+  // "Live plots" is likely soon, and a first opening fetched the viewer's 14 MB of compressed wasm
+  // (43 MB) and its script then, before anything else could happen: seconds over a lab's Wi-Fi.
+  // Read to the end and dropped here (the HTTP cache keeps them, cached a day by the appliance),
+  // once per dashboard; not compiled here: chromium keeps compiled wasm only for a module that has
+  // run (the viewer's first opening), and compiling 43 MB for nothing costs a 2-core machine seconds
+  // of CPU. Nothing is fetched while no run is live: a dashboard that never watches one stays light.
+  const VIEWER_CODE = ["/rerun/re_viewer_bg.wasm", "/rerun/re_viewer.js"];
+  let warmed = false, warmAsked = null;
+  async function warmViewer() {
+    if (warmed) return;
+    warmed = true;
+    for (const path of VIEWER_CODE) {
+      try {
+        // Already in the cache (the viewer was opened before: the usual case): nothing to do. Read
+        // again, the 43 MB cost the dashboard's renderer CPU just when the viewer's tab may start.
+        const cached = await fetch(path, { credentials: "same-origin", mode: "same-origin", cache: "only-if-cached" })
+          .catch(() => null);
+        if (cached && cached.ok) { cached.body.cancel(); continue; }
+        const res = await fetch(path, { credentials: "same-origin" });
+        const reader = res.body.getReader();
+        while (!(await reader.read()).done) { /* into the cache, not into memory */ }
+      } catch (e) { /* the viewer's opening fetches it then */ }
+    }
+  }
+
   async function loadList(el) {
     let runs;
     try { runs = await xrf.api("GET", "/api/logs/runs?limit=200"); } catch (e) { return; }
     xrf.runsList = runs;  // test hook
+    // A live run listed: is it one this user may watch live (and is live streaming on)? Asked once
+    // per run, with `soon` (the appliance prepares for its first viewer, as when the page is shown).
+    const live = runs.find((r) => r.live);
+    if (live && !warmed && warmAsked !== live.id) {
+      warmAsked = live.id;
+      rerunInfo(el, true).then((info) => { if (info.live_running && info.live_allowed) warmViewer(); });
+    }
     const body = el.querySelector("#runs-list");
     // Rows are updated in place, never rebuilt: a table rebuilt every 2 s swallowed clicks (the
     // row under the mouse was replaced between press and release: issue 19).

@@ -192,6 +192,108 @@ def test_live_rerun_stream_takes_records_and_telemetry(loop, tmp_path: Path, cap
     assert LiveProxy.current() is None
 
 
+def test_a_live_batch_takes_every_record_queued_by_then(loop, tmp_path: Path) -> None:
+    """The live recording's thread sends, in a round, every record queued by then (issue 31 bug 6,
+    session 11). It took one drain of the writer per turn: a round that took long (its connection
+    at the first viewer, rerun's import with it: 1-2 s under load) left the drains of that time
+    queued, and the batch it sent held only the oldest of them (1.4 s old at the first viewer,
+    measured), the rest half a second later. Here many drains are queued at once (as behind a
+    slow round), and the first log chunk that reaches the proxy ends with the newest of them."""
+    import httpx
+
+    from xrf_testing.grpcweb import READ_MESSAGES, read_messages
+    from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of
+    from xrflab.logs.rerun_live import SEND_PERIOD_S, LiveRerun
+    from xrflab.logs.rerun_servers import LiveProxy
+
+    lp = loop(tmp_path)
+    proxy = LiveProxy.open_for_run(45, "alice")
+    try:
+        assert proxy.ensure_running()
+        proxy.readers = 1  # watched: the recording connects and sends
+        stream = LiveRerun(proxy, lp.ch, run_id=45)
+        wait_for(lambda: stream.rec is not None, 30, "the recording connected")
+        wait_for(lambda: stream._q.empty(), 10, "the sending thread waiting")
+        time.sleep(2 * SEND_PERIOD_S)  # on purpose: its last round long enough ago that the next sends at once
+        dtype = np.dtype([("seq", "<u8"), ("cycle", "<u8"), ("t_ns", "<i8"), ("value", "<f8")])
+        n, drains = stream._bucket, 40  # whole min/max buckets: none is held back for the next batch
+        t0 = time.monotonic_ns()
+        batches = []
+        for k in range(drains):  # the writer's drains, queued faster than the thread takes them
+            cycles = np.arange(k * n, (k + 1) * n, dtype=np.uint64)
+            rec = np.zeros(n, dtype=dtype)
+            rec["seq"], rec["cycle"], rec["t_ns"], rec["value"] = (
+                cycles,
+                cycles,
+                t0 + cycles.astype(np.int64) * 1000,
+                1.0,
+            )
+            batches.append(rec)
+        for rec in batches:
+            stream.feed(rec)
+        newest = int(batches[-1]["t_ns"][-1]) + stream._wall_offset
+        log_chunks: list[int] = []
+
+        def on_message(payload: bytes) -> None:
+            chunk = chunk_of(payload)
+            if (
+                chunk
+                and chunk.store_kind == STORE_RECORDING
+                and chunk.entity.startswith("/log/")
+                and chunk.newest_time_ns
+            ):
+                log_chunks.append(chunk.newest_time_ns)
+
+        with httpx.Client(base_url=proxy.read_url) as client:
+            # (a few rounds: a batch sent with what the first left behind would come SEND_PERIOD_S later)
+            read_messages(
+                client, READ_MESSAGES, timeout=6 * SEND_PERIOD_S, quiet=4 * SEND_PERIOD_S, on_message=on_message
+            )
+        stream.close()
+        stream._thread.join(10)
+        assert log_chunks, "no log chunk reached the proxy"
+        assert log_chunks == [newest], (
+            f"{len(log_chunks)} batches of the records queued at once, the first ending "
+            f"{(newest - min(log_chunks)) / 1e6:.0f} ms of the loop's time before the newest: not every drain "
+            "queued by then went with the first"
+        )
+    finally:
+        LiveProxy.stop_all()
+
+
+def test_a_live_viewer_coming_wakes_the_writer(loop, tmp_path: Path, monkeypatch) -> None:
+    """A live viewer's arrival (its page served: ``LiveProxy.expect_viewer``) makes the host writer
+    drain at once, not at the end of its period (up to a second while nobody watches): the
+    viewer's first records, and the read route's wait for the recording to resume, waited for it
+    (issue 31 bug 6, session 11). The period is made long here, so the drain is the wake's."""
+    from xrflab.logs import host_writer
+    from xrflab.logs.rerun_live import LiveRerun
+    from xrflab.logs.rerun_servers import LiveProxy
+
+    monkeypatch.setattr(host_writer, "MAX_PERIOD_S", 600.0)
+    lp = loop(tmp_path)
+    proxy = LiveProxy.open_for_run(46, "alice")
+    w = HostLogWriter(lp.ch, {}, tmp_path, timing=False)
+    try:
+        stream = LiveRerun(proxy, lp.ch, run_id=46, wake_writer=w.wake)
+        w.set_on_records(stream.feed, fast=stream.watched)
+        w.start()
+        lp.command("initialise", "INITIALISED")
+        lp.command("start", "RUN")
+        lp.wait_cycles(200)
+        assert w.period() > 30, w.period()  # the next periodic drain is far away
+        before = w.drains
+        proxy.expect_viewer()
+        wait_for(lambda: w.drains > before, 20, "the writer's drain once a viewer is coming")
+        wait_for(lambda: stream._names is not None, 20, "the viewer's first records sent")
+    finally:
+        w.finish()
+        if "stream" in locals():
+            stream.close()
+            stream._thread.join(10)
+        LiveProxy.stop_all()
+
+
 def test_live_rerun_stream_sends_nothing_without_a_viewer(loop, tmp_path: Path) -> None:
     """With no viewer on the run's proxy the live stream neither connects nor sends (issue 30
     item 4: work and the rerun SDK's memory for nobody); the log file still gets every record."""

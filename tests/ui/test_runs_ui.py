@@ -24,6 +24,7 @@ from xrf_testing.harness import (
     shared_builds_root,
     start_server,
     stop_server,
+    wait_for,
 )
 from xrf_testing.net import lan_address
 
@@ -200,6 +201,59 @@ def test_live_plots_from_the_lan_address(server: Server, raw_browser) -> None:
     finally:
         ctx.close()
         http.close()
+        server.stop_run()
+
+
+# The viewer's code, as its page fetches it (frontend/rerun-tab.js, rerun's index.html).
+VIEWER_WASM = "/rerun/re_viewer_bg.wasm"
+
+
+def test_the_runs_page_has_the_live_viewers_code_cached_before_live_plots(
+    server: Server, raw_browser, chromium_path: str, tmp_path: Path
+) -> None:
+    """While a live run is listed, the Runs page gets the viewer's code (14 MB of compressed wasm, its
+    script) into the browser's cache (frontend/pages/runs.js), so the first "Live plots" does not
+    start by downloading it (issue 31 bug 6, session 11); with no live run it fetches nothing. A
+    browser profile on disk, as a person's: Playwright's off-the-record contexts keep no entry that
+    large."""
+    from xrf_testing.harness import CHROMIUM_ARGS, session_cookies
+
+    server.stop_run()
+    assert server.http.get("/rerun/index.html", timeout=600).status_code == 200  # the viewer's files prepared
+    ctx = raw_browser.browser_type.launch_persistent_context(
+        str(tmp_path / "profile"),
+        executable_path=chromium_path,
+        args=CHROMIUM_ARGS,
+        viewport={"width": 1280, "height": 800},
+    )
+    try:
+        ctx.add_cookies(session_cookies(server.http, server.url))
+        fetched: list[str] = []
+        dash = ctx.new_page()
+        dash.on("requestfinished", lambda r: r.url.endswith(VIEWER_WASM) and fetched.append(r.url))
+        with dash.expect_response(lambda r: "/api/logs/runs?" in r.url, timeout=60_000):
+            dash.goto(server.url + "/#runs")
+        dash.wait_for_function("() => Array.isArray(xrf.runsList)", timeout=60_000)
+        assert dash.evaluate("xrf.runsList.some((r) => r.live)") is False
+        assert not fetched, "the Runs page fetched the viewer's code with no live run"
+
+        run = server.start_run(PROBE)
+        with server.ws() as ws:
+            ws.to_run()
+        wait_for(lambda: server.http.get("/api/logs/rerun").json()["live_running"], 30, "the live stream")
+        # (the page's 2 s poll lists the run; request events reach the list inside Playwright calls)
+        wait_for(lambda: dash.evaluate("0") == 0 and fetched, 120, "the Runs page to fetch the viewer's code")
+        with ctx.expect_page(timeout=120_000) as popup:
+            dash.click("#rr-live")
+        viewer = popup.value
+        viewer.wait_for_function("() => window._handle !== undefined", timeout=300_000)
+        transfer = viewer.evaluate(
+            f"performance.getEntriesByType('resource').find((e) => e.name.endsWith('{VIEWER_WASM}')).transferSize"
+        )
+        assert transfer == 0, f"the viewer's first opening fetched {transfer} bytes of its wasm: not from the cache"
+        assert run["id"] == server.http.get("/api/logs/rerun").json()["live_run"]
+    finally:
+        ctx.close()
         server.stop_run()
 
 

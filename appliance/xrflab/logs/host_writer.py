@@ -119,6 +119,7 @@ class HostLogWriter:
         self._stride = 0
         self._dtype: np.dtype | None = None
         self._stop = threading.Event()
+        self._woken = threading.Event()  # drain now, not at the period's end (wake)
         self._lock = threading.Lock()  # one drain at a time (thread vs finish())
         self._halved = 0  # times a drain found the ring fuller than planned (the period halves)
         self.drains = 0  # drains that took records (tests, the footprint benchmark)
@@ -133,6 +134,7 @@ class HostLogWriter:
     def finish(self) -> WriterStats:
         """Stop the thread and drain what is left (the loop may be dead: the mapping is ours)."""
         self._stop.set()
+        self._woken.set()
         if self._thread is not None:
             self._thread.join(5.0)
         self.drain(final=True)
@@ -165,7 +167,15 @@ class HostLogWriter:
                 time.sleep(0.1)
             # A timed sleep, not the doorbell: the loop rings it for its telemetry (50 Hz and
             # more), far more often than a ring of seconds of records needs draining.
-            self._stop.wait(self.period())
+            self._woken.wait(self.period())
+            self._woken.clear()
+
+    def wake(self) -> None:
+        """Drain now rather than at the end of the period: a live viewer is coming (``fast()`` has
+        just turned true; the live stream's ``LiveRerun`` calls it). Without it, the records it
+        waits for came with the next periodic drain, up to ``MAX_PERIOD_S`` later (issue 31 bug 6,
+        session 11: a viewer's first data, and the read route's wait for the recording to resume)."""
+        self._woken.set()
 
     def period(self) -> float:
         """Seconds until the next drain (see the module's docstring)."""

@@ -81,7 +81,7 @@ def start(
         def connect() -> None:
             try:
                 rl.proxy = LiveProxy.open_for_run(run_id, owner)
-                rl.live = LiveRerun(rl.proxy, ch, run_id)
+                rl.live = LiveRerun(rl.proxy, ch, run_id, wake_writer=writer.wake)
                 writer.set_on_records(rl.live.feed, fast=rl.live.watched)
             except Exception:
                 log.exception("live rerun unavailable")

@@ -24,12 +24,14 @@ later, by when the recording is connected and the proxy holds the live edge (iss
 from __future__ import annotations
 
 import contextlib
+import inspect
 import itertools
 import logging
 import queue
 import sys
 import threading
 import time
+import weakref
 from collections.abc import Callable
 from types import EllipsisType
 from typing import TYPE_CHECKING, Any
@@ -180,7 +182,11 @@ def blueprint_storage(names: tuple[str, ...], telemetry: tuple[str, ...], freq: 
 class LiveRerun:
     """One run's live recording: log records (decimated) and telemetry, off the writer's thread."""
 
-    def __init__(self, proxy: LiveProxy, ch: Channels, run_id: int) -> None:
+    def __init__(
+        self, proxy: LiveProxy, ch: Channels, run_id: int, wake_writer: Callable[[], None] | None = None
+    ) -> None:
+        """`wake_writer`: the run's host writer's ``wake`` (its records come every drain period
+        otherwise, up to a second, while nobody watches), called when a viewer is coming."""
         self._rr: Any = None  # the rerun module, imported at the first viewer (_connect)
         self._proxy = proxy
         self._run_id = run_id
@@ -206,8 +212,18 @@ class LiveRerun:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._main, name=f"xrf-rerun-{run_id}", daemon=True)
         self._thread.start()
-        q = self._q  # (only the queue: the proxy outlives the run, the recording must not)
-        proxy.on_viewer = lambda: q.put_nowait(...)
+        # (only the queue and a weak reference to the writer: the proxy outlives the run, the
+        # recording and the writer, which maps the run's shared memory, must not)
+        q = self._q
+        writer = weakref.WeakMethod(wake_writer) if inspect.ismethod(wake_writer) else None
+
+        def on_viewer() -> None:
+            q.put_nowait(...)
+            wake = writer() if writer is not None else None
+            if wake is not None:
+                wake()  # its records now, not at its next drain
+
+        proxy.on_viewer = on_viewer
 
     def watched(self) -> bool:
         return self._proxy.watched()
@@ -375,6 +391,14 @@ class LiveRerun:
                 "telemetry/xeno2ros", indexes=idx, columns=rr.Scalars.columns(scalars=np.column_stack(columns))
             )
 
+    def _take(self, item: np.ndarray | None | EllipsisType, pending: list[np.ndarray]) -> bool:
+        """One item of the queue: records to `pending`; True for the end (close)."""
+        if isinstance(item, np.ndarray):
+            with self._queued_lock:
+                self._queued -= len(item)
+            pending.append(item)
+        return item is None
+
     def _main(self) -> None:
         # Records arrive in small batches (one per writer drain, up to 50 a second); they are
         # sent in one batch per SEND_PERIOD_S: the viewer's cost is per message, and a browser on
@@ -393,11 +417,8 @@ class LiveRerun:
                 item = self._q.get(timeout=wait_s)
             except queue.Empty:
                 item = ...  # nothing new: still time to send what is pending
-            if isinstance(item, np.ndarray):
-                with self._queued_lock:
-                    self._queued -= len(item)
-                pending.append(item)
-            done = item is None or (self._stop.is_set() and self._q.empty())
+            done = self._take(item, pending)
+            done = done or (self._stop.is_set() and self._q.empty())
             if not self.watched():
                 # Nobody reads: drop what came (records queued before the last viewer left, the
                 # parameter changes) and the telemetry reader; a next viewer starts from then.
@@ -414,6 +435,17 @@ class LiveRerun:
                 except Exception:
                     log.exception("live rerun unavailable")
                     return
+            # Everything queued by now goes with this round's batch, not one drain of the writer
+            # a round: a round that took long (the recording's connection at the first viewer,
+            # rerun's import with it: 1-2 s under load) left the drains of that time queued behind
+            # it, and the first batch, sent then, held records that were already 1.4 s old, the
+            # newer ones only 0.5 s later (issue 31 bug 6, session 11).
+            while True:
+                try:
+                    more = self._q.get_nowait()
+                except queue.Empty:
+                    break
+                done = self._take(more, pending) or done
             try:
                 if self._telemetry_reader is None and not self._telemetry_broken:
                     self._telemetry_reader = self._ch.telemetry_reader()
