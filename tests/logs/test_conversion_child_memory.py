@@ -7,24 +7,14 @@ Before: a 600 000-record log's child peaked at 172 (CSV), 196 (Parquet), 344 MB 
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
+from xrf_testing.convert_child import convert_in_child
 from xrf_testing.writers import xrflog_segment
-from xrflab.logs.convert_child import _child_env
 
 VARIABLES = [(f"g{i % 3}_v{i}", 5) for i in range(8)]  # 8 doubles: 88-byte records
-
-# The child's own main, as the appliance starts it, reporting its peak RSS (VmHWM: per process,
-# unlike getrusage's, which a child inherits from its parent at exec).
-_CHILD = (
-    "import sys; from xrflab.logs.convert_child import main; rc = main(sys.argv[1:]); sys.stdout.flush(); "
-    "print([l for l in open('/proc/self/status') if l.startswith('VmHWM')][0].split()[1], file=sys.stderr); "
-    "sys.exit(rc)"
-)
 
 
 def _log(tmp_path: Path, rows: int) -> Path:
@@ -34,24 +24,10 @@ def _log(tmp_path: Path, rows: int) -> Path:
 
 
 def _peak_mb(log: Path, fmt: str, out: Path) -> float:
-    fd = os.open(log, os.O_RDONLY)
-    try:
-        target = "-" if fmt == "csv" else str(out / f"{log.stem}.{fmt}")
-        proc = subprocess.run(
-            [sys.executable, "-c", _CHILD, str(fd), fmt, target, log.name],
-            input=b"[]",
-            pass_fds=(fd,),
-            capture_output=True,
-            env=_child_env(),
-            check=False,
-        )
-    finally:
-        os.close(fd)
-    err = proc.stderr.decode(errors="replace").strip().splitlines()
-    assert proc.returncode == 0, err
+    stdout, _, peak_kb = convert_in_child(log, fmt, "-" if fmt == "csv" else str(out / f"{log.stem}.{fmt}"))
     if fmt == "csv":
-        assert proc.stdout.count(b"\n") == int(log.stem) + 2  # the counts line, the header, the rows
-    return int(err[-1]) / 1024
+        assert stdout.count(b"\n") == int(log.stem) + 2  # the counts line, the header, the rows
+    return peak_kb / 1024
 
 
 @pytest.mark.parametrize("fmt", ["csv", "parquet", "rrd"])

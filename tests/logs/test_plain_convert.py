@@ -9,8 +9,6 @@ import json
 import os
 import random
 import struct
-import subprocess
-import sys
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -18,27 +16,17 @@ from typing import Any
 import numpy as np
 import pytest
 
+from xrf_testing.convert_child import convert_in_child
 from xrf_testing.log_cases import VARIABLES, edge_rows
 from xrf_testing.writers import xrflog_segment
 from xrflab.logs import plain
 from xrflab.logs.convert import convert, iter_csv_chunks, iter_csv_zip_chunks
-from xrflab.logs.convert_child import _child_env
 
 CHANGES: list[dict[str, Any]] = [
     {"run": 3, "cycle": 12, "t": 1795000000.25, "name": "kp", "old": 1.0, "new": 2.5, "who": "alice"},
     {"run": 3, "cycle": 40, "t": 1795000001.5, "name": "ki\u00e9", "old": 0, "new": -1e-9, "who": ""},
     {"run": 3, "cycle": 2**40, "t": 1795000002.0, "name": "a\0b", "old": -0.0, "new": 1e300, "who": "\0"},
 ]
-
-# The child's own main as the appliance runs it, reporting what it mapped and its peak RSS (VmHWM:
-# its own, unlike getrusage's, which a child inherits from its parent at exec).
-_CHILD = (
-    "import sys; from xrflab.logs.convert_child import main; rc = main(sys.argv[1:]); sys.stdout.flush(); "
-    "maps = open('/proc/self/maps').read(); "
-    "print(sorted({m for m in ('libarrow', 'libparquet', 'numpy', 'scipy') if m in maps}), file=sys.stderr); "
-    "print([l for l in open('/proc/self/status') if l.startswith('VmHWM')][0].split()[1], file=sys.stderr); "
-    "sys.exit(rc)"
-)
 
 
 def _edge_log(tmp_path: Path) -> Path:
@@ -70,24 +58,8 @@ def _plan(path: Path) -> plain.Plan:
 
 
 def _child(log: Path, fmt: str, target: str, changes: list[dict[str, Any]] | None = None) -> tuple[bytes, list[str]]:
-    fd = os.open(log, os.O_RDONLY)
-    try:
-        argv = [sys.executable, "-c", _CHILD, str(fd), fmt, target, log.name]
-        if changes and target == "-":
-            argv += ["samples.csv", "changes.csv"]
-        proc = subprocess.run(
-            argv,
-            input=json.dumps(changes or []).encode(),
-            pass_fds=(fd,),
-            capture_output=True,
-            env=_child_env(),
-            check=False,
-        )
-    finally:
-        os.close(fd)
-    err = proc.stderr.decode(errors="replace").strip().splitlines()
-    assert proc.returncode == 0, err
-    return proc.stdout, err[-2:]
+    out, mapped, peak_kb = convert_in_child(log, fmt, target, changes)
+    return out, [mapped, str(peak_kb)]
 
 
 def test_csv_is_arrows_byte_for_byte(tmp_path: Path) -> None:

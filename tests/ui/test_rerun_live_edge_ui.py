@@ -228,21 +228,26 @@ def test_the_first_viewer_of_a_run_opened_from_the_runs_page_starts_at_the_live_
     server.stop_run()
 
 
-def test_a_late_viewer_opens_at_the_live_edge(server: Server, browser) -> None:  # noqa: ANN001
+def _live_run_with_the_viewer_prepared(server: Server, browser) -> tuple[dict, dict]:  # noqa: ANN001
+    """A RELbot run in RUN with its live stream up, the viewer's files prepared first (on the first
+    visit a child process gzips 43 MB of wasm: not part of what the tests look at): (the run, the
+    appliance's /api/logs/rerun answer)."""
     server.stop_run()
     page = browser.new_page(viewport={"width": 1280, "height": 800})
-    # The viewer's files are prepared on the first visit (a child process gzips 43 MB of wasm):
-    # not part of what is measured here.
     page.goto(server.url + "/rerun/index.html", timeout=600_000)
     page.wait_for_function("() => window._handle !== undefined", timeout=300_000)
     page.close()
-
     run = server.start_run("relbot")
     with server.ws() as ws:
         ws.to_run()
     info = wait_for(
         lambda: (i := server.http.get("/api/logs/rerun").json())["live_run"] == run["id"] and i, 30, "the live stream"
     )
+    return run, info
+
+
+def test_a_late_viewer_opens_at_the_live_edge(server: Server, browser) -> None:  # noqa: ANN001
+    run, info = _live_run_with_the_viewer_prepared(server, browser)
     started = time.monotonic()
     wait_for(lambda: time.monotonic() - started >= LATE_S, LATE_S + 5, "the run's age")  # the run's age, on purpose
 
@@ -430,18 +435,7 @@ def test_a_viewer_that_starts_late_is_handed_the_newest_data_first(server: Serve
     the viewer's first frame with the run's samples holds the latest batch. And while the app is
     held back, the tab's line already says what it is doing (before: the line waited for the page's
     parse, which the viewer's own script holds)."""
-    server.stop_run()
-    page = browser.new_page(viewport={"width": 1280, "height": 800})
-    page.goto(server.url + "/rerun/index.html", timeout=600_000)  # the viewer's files prepared: not looked at here
-    page.wait_for_function("() => window._handle !== undefined", timeout=300_000)
-    page.close()
-
-    run = server.start_run("relbot")
-    with server.ws() as ws:
-        ws.to_run()
-    info = wait_for(
-        lambda: (i := server.http.get("/api/logs/rerun").json())["live_run"] == run["id"] and i, 30, "the live stream"
-    )
+    run, info = _live_run_with_the_viewer_prepared(server, browser)
     viewer = browser.new_page(viewport={"width": 1280, "height": 800})
     viewer.add_init_script(FRAME_STATES)
     stream_requests: list[str] = []
