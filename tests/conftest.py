@@ -53,7 +53,7 @@ def _take_snapshot(config: pytest.Config, temp_root: Path) -> object:
 
 
 def _leftovers(snapshot) -> list[str]:
-    snapshot.reclaim_dds()
+    snapshot.reclaim_by_design()
     left = snapshot.leftovers()
     if left:
         snapshot.clean()

@@ -96,3 +96,29 @@ def test_with_xdist_workers_the_controller_checks_once_at_the_end() -> None:
     assert "2 passed" in out.stdout, out.stdout
     assert f"the test session left behind:\n  /dev/shm/{name}\n" in out.stderr, out.stderr
     assert not (SHM / name).exists()
+
+
+def test_library_objects_left_by_design_are_reclaimed_once_nobody_maps_them(tmp_path: Path) -> None:
+    """lttng-ust's wait page (made by every process that loads rclpy: the ROS 2 wheels bundle
+    liblttng-ust) and Fast DDS's segments are removed at the session's end, but not while a
+    process maps one, and nothing else is."""
+    import mmap
+
+    repo = Path(__file__).resolve().parents[2]
+    snap = Snapshot.take(uuid.uuid4().hex, tmp_path, repo)
+    tag = uuid.uuid4().hex[:8]
+    free, mapped, ours = (SHM / f"lttng-ust-wait-{tag}", SHM / f"fastdds_{tag}", SHM / f"xrf-leak-{tag}")
+    for path in (free, mapped, ours):
+        path.write_bytes(b"\0" * mmap.PAGESIZE)
+    with open(mapped, "r+b") as f, mmap.mmap(f.fileno(), mmap.PAGESIZE):
+        try:
+            assert snap.reclaim_by_design() == [free.name]
+            assert not free.exists() and mapped.exists() and ours.exists()
+        finally:
+            for path in (free, ours):
+                path.unlink(missing_ok=True)
+    try:
+        assert snap.reclaim_by_design() == [mapped.name]  # unmapped now
+        assert not mapped.exists()
+    finally:
+        mapped.unlink(missing_ok=True)

@@ -22,8 +22,14 @@ from pathlib import Path
 MARKER = "XRF_TEST_SESSION"
 SHM = Path("/dev/shm")
 # Objects of ours in /dev/shm: run segments and their folders, test segments, Fast DDS's
-# shared-memory transport (the ROS tests), cyclictest's.
-SHM_PREFIXES = ("xrf", "fastdds", "sem.fastdds", "fast_datasharing", "cyclictest")
+# shared-memory transport (the ROS tests), cyclictest's, lttng-ust's wait page (below).
+SHM_PREFIXES = ("xrf", "fastdds", "sem.fastdds", "fast_datasharing", "cyclictest", "lttng-ust-wait")
+# Objects libraries leave by design, removed at the session's end once nobody maps them (as their
+# own tools would): Fast DDS's segments (kept for the next participant, or `fastdds shm clean`),
+# and lttng-ust's wait page (liblttng-ust comes bundled in the ROS 2 wheels: every process that
+# loads rclpy creates /dev/shm/lttng-ust-wait-<major>[-<uid>] to wait for a tracing daemon, and no
+# process removes it; on a fresh machine the suite's ROS tests would leave it behind).
+RECLAIMED = ("fastdds", "sem.fastdds", "lttng-ust-wait")
 # A session a test starts (tests/testing/test_leaks.py, tests/deploy/test_fresh_background.py) runs
 # beside the parent session's other xdist workers, whose appliances make run cgroups and segments
 # that may be empty or unmapped for a moment: the nested session would take them for its own
@@ -211,12 +217,12 @@ class Snapshot:
             busy |= {n for n in names if f"/dev/shm/{n}" in maps}
         return busy
 
-    def reclaim_dds(self) -> list[str]:
-        """Remove the Fast DDS shared-memory objects this session created that no process maps
-        any more. Fast DDS leaves them by design, for the next participant (or `fastdds shm
-        clean`) to reclaim; the ROS tests run it over UDP, but the appliance's bridge still makes
-        data-sharing segments. Only objects nobody maps are removed, as Fast DDS itself would."""
-        stale = {n for n in self.shm_objects() if n.startswith(("fastdds", "sem.fastdds"))}
+    def reclaim_by_design(self) -> list[str]:
+        """Remove the objects of RECLAIMED this session created that no process maps any more.
+        The ROS tests run Fast DDS over UDP, but the appliance's bridge still makes data-sharing
+        segments; lttng-ust's page is made by any process that loads rclpy. Only objects nobody
+        maps are removed, as Fast DDS itself would."""
+        stale = {n for n in self.shm_objects() if n.startswith(RECLAIMED)}
         if not stale:
             return []
         for pid in _pids():

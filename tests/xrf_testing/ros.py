@@ -33,5 +33,5 @@ def isolated_ros_env(lowest: int, highest: int) -> dict[str, str]:
     checkouts, CI jobs) and other machines' ROS 2 traffic cannot reach the tests."""
     domain = random.Random(os.getpid() ^ time.time_ns()).randint(lowest, highest)
     # Fast DDS's shared-memory objects it leaves for a later participant to reclaim are removed at
-    # the session's end (conftest.nothing_left_behind, leaks.Snapshot.reclaim_dds).
+    # the session's end (conftest.nothing_left_behind, leaks.Snapshot.reclaim_by_design).
     return {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(domain)}
