@@ -100,25 +100,39 @@ def test_with_xdist_workers_the_controller_checks_once_at_the_end() -> None:
 
 def test_library_objects_left_by_design_are_reclaimed_once_nobody_maps_them(tmp_path: Path) -> None:
     """lttng-ust's wait page (made by every process that loads rclpy: the ROS 2 wheels bundle
-    liblttng-ust) and Fast DDS's segments are removed at the session's end, but not while a
-    process maps one, and nothing else is."""
+    liblttng-ust) and Fast DDS's segments are removed at the session's end, but not while another
+    process maps one (this one may: the session's own rclpy), and nothing else is."""
     import mmap
 
     repo = Path(__file__).resolve().parents[2]
     snap = Snapshot.take(uuid.uuid4().hex, tmp_path, repo)
     tag = uuid.uuid4().hex[:8]
-    free, mapped, ours = (SHM / f"lttng-ust-wait-{tag}", SHM / f"fastdds_{tag}", SHM / f"xrf-leak-{tag}")
-    for path in (free, mapped, ours):
+    free, own, other, ours = (
+        SHM / f"lttng-ust-wait-{tag}",
+        SHM / f"lttng-ust-wait-{tag}-0",
+        SHM / f"fastdds_{tag}",
+        SHM / f"xrf-leak-{tag}",
+    )
+    for path in (free, own, other, ours):
         path.write_bytes(b"\0" * mmap.PAGESIZE)
-    with open(mapped, "r+b") as f, mmap.mmap(f.fileno(), mmap.PAGESIZE):
-        try:
-            assert snap.reclaim_by_design() == [free.name]
-            assert not free.exists() and mapped.exists() and ours.exists()
-        finally:
-            for path in (free, ours):
-                path.unlink(missing_ok=True)
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            f"import mmap, sys; f = open({str(other)!r}, 'r+b'); m = mmap.mmap(f.fileno(), 0); sys.stdin.read()",
+        ],
+        stdin=subprocess.PIPE,
+    )
     try:
-        assert snap.reclaim_by_design() == [mapped.name]  # unmapped now
-        assert not mapped.exists()
+        with open(own, "r+b") as f, mmap.mmap(f.fileno(), mmap.PAGESIZE):
+            wait_for(lambda: str(other) in Path(f"/proc/{holder.pid}/maps").read_text(), 10, "the holder's mapping")
+            assert snap.reclaim_by_design() == sorted([free.name, own.name])
+            assert not free.exists() and not own.exists() and other.exists() and ours.exists()
+        holder.communicate(b"")  # it unmaps by exiting
+        assert snap.reclaim_by_design() == [other.name]
+        assert not other.exists()
     finally:
-        mapped.unlink(missing_ok=True)
+        holder.kill()
+        holder.wait()
+        for path in (free, own, other, ours):
+            path.unlink(missing_ok=True)

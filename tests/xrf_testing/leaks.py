@@ -220,12 +220,13 @@ class Snapshot:
     def reclaim_by_design(self) -> list[str]:
         """Remove the objects of RECLAIMED this session created that no process maps any more.
         The ROS tests run Fast DDS over UDP, but the appliance's bridge still makes data-sharing
-        segments; lttng-ust's page is made by any process that loads rclpy. Only objects nobody
-        maps are removed, as Fast DDS itself would."""
+        segments; lttng-ust's page is made by any process that loads rclpy (the session's own, when
+        a test imports it in-process). Only objects no other process maps are removed, as Fast DDS
+        itself would (a name removed under this process's mapping leaves the mapping valid)."""
         stale = {n for n in self.shm_objects() if n.startswith(RECLAIMED)}
         if not stale:
             return []
-        for pid in _pids():
+        for pid in _pids() - {os.getpid()}:  # this process (the session's, about to end) may map them
             try:
                 maps = Path(f"/proc/{pid}/maps").read_text()
             except OSError:
