@@ -296,7 +296,7 @@ def test_downloads_list_no_symlink(xrf2_server) -> None:
     thief = r.json()["id"]
     wait_for(
         lambda: server.http.get(f"/api/logs/runs/{thief}").json()["run"]["status"] != "running",
-        timeout=20,
+        timeout=60,  # a start in the run sandbox takes seconds on a loaded 2-core CI host
         what="the short run's end",
     )
     run_dir = server.data_dir / "runs"

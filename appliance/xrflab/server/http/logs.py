@@ -36,7 +36,8 @@ import json
 import os
 import re
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path, PurePosixPath
 from typing import Any, BinaryIO, Literal
 
@@ -65,6 +66,18 @@ MEDIA = {
     "rrd": "application/octet-stream",
 }
 _convert_locks: dict[str, asyncio.Lock] = {}
+
+# A download's conversion waits in a thread for the heavy-child turn (up to HEAVY_WAIT_S) and then
+# for its child. In asyncio's default executor (min(32, cores + 4) threads: 6 on a 2-core VM, 8
+# on a Pi 4) a class downloading at once would hold every thread and stall all else the appliance
+# does off the event loop (a run's end, uploads, the editor's saves). Downloads get a pool of
+# their own: the ones beyond it wait in its queue, without a thread.
+DOWNLOAD_THREADS = 4
+_downloads = ThreadPoolExecutor(max_workers=DOWNLOAD_THREADS, thread_name_prefix="xrf-download")
+
+
+async def _in_download_pool(fn: Callable[..., Any], *args: Any) -> Any:
+    return await asyncio.get_running_loop().run_in_executor(_downloads, fn, *args)
 
 
 # ---- models ---------------------------------------------------------------------------------
@@ -243,7 +256,7 @@ async def _cached(run_dir: str | Path, rel: str, fmt: str, cache: Path, changes:
             for old in cache.glob(f"{key}.*.{fmt}"):  # superseded conversions of a grown file
                 old.unlink(missing_ok=True)
             # An untuned run's download is byte for byte what `xrf decode` writes (no empty table).
-            await asyncio.to_thread(_convert_in_child, run_dir, rel, fmt, target, changes)
+            await _in_download_pool(_convert_in_child, run_dir, rel, fmt, target, changes)
     return target
 
 
@@ -326,7 +339,7 @@ async def download(
         if fmt == "csv":
             zipped = _download_name(row, rel, "zip")
             names = csv_zip_names(PurePosixPath(zipped).stem, row.id)
-            counts, chunks = await asyncio.to_thread(_csv_in_child, row.run_dir, rel, changes, names)
+            counts, chunks = await _in_download_pool(_csv_in_child, row.run_dir, rel, changes, names)
             headers["X-Log-Skipped"] = str(counts["skipped"])
             headers["X-Log-Lost"] = str(counts["lost"])
             headers["X-Param-Changes"] = str(len(changes))
