@@ -126,7 +126,7 @@ def test_the_app_registers_its_observers_in_the_documented_order(tmp_path: Path)
     from xrflab.server.app import create_app
     from xrflab.server.settings import Settings
 
-    settings = Settings(data_dir=tmp_path / "data", port=free_port())
+    settings = Settings(data_dir=tmp_path / "data", port=free_port(), prepare_viewer_at_start=False)
     app = create_app(settings)
 
     async def main() -> tuple[list[str], int]:

@@ -273,6 +273,9 @@ def start_server(data_dir: Path, builds_root: Path, **settings: Any) -> Server:
         "port": port,
         "host": "127.0.0.1",
         "real_bench": False,
+        # Prepared by the first viewer of a test that opens one (test_rerun_viewer_files.py checks the
+        # preparation at start): hundreds of test appliances would otherwise each prepare it.
+        "prepare_viewer_at_start": False,
         **settings,
     }
     env = dict(

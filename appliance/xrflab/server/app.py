@@ -23,6 +23,7 @@ from ..selfcheck_service import SelfCheckService
 from ..viz.scene import VizService
 from .http import errors as http_errors
 from .http import pages as http_pages
+from .http import rerun as rerun_http
 from .http.accounts import router as accounts_router
 from .http.editor import CODEMIRROR_DIR
 from .http.editor import router as editor_router
@@ -106,11 +107,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         )
         # After every observer (lease, ROS bridge) is wired: they hear of the orphaned runs' end.
         recovering = asyncio.create_task(supervisor.recover_orphans(), name="recover-orphans")
+        preparing = (
+            asyncio.create_task(rerun_http.prepare_viewer_at_start(settings), name="prepare-viewer")
+            if settings.prepare_viewer_at_start
+            else None
+        )
         try:
             yield
         finally:
             with contextlib.suppress(Exception):
                 await recovering
+            if preparing is not None:  # a stop while preparing: its child killed, its folder removed
+                preparing.cancel()
+                with contextlib.suppress(BaseException):
+                    await preparing
             await room.close()
             selfcheck.close()
             await asyncio.to_thread(app.state.grading.close)

@@ -73,6 +73,11 @@ class Settings:
     # period more before the older sample of a message reaches a browser (issue 30 item 4).
     telemetry_hz: float = 30.0
     telemetry_per_message: int = 2
+    # The rerun web viewer's files are prepared (copied from `rerun --serve-web`, neutralised,
+    # gzipped: a child of ~100 MB for some seconds) once per rerun version: at the appliance's
+    # start, when it is smallest, rather than at the first live viewer, beside a run and its
+    # recording (issue 30 item 4: the 250 MB budget). Test appliances leave it to the first viewer.
+    prepare_viewer_at_start: bool = True
     timing_period_s: float = 1.0
 
     # Supervision. The loop pauses itself when our heartbeat is older than host_timeout_ms

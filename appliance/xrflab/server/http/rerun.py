@@ -236,9 +236,14 @@ PREPARE_TIMEOUT_S = 300  # a Pi 4 gzips the 43 MB wasm in well under a minute
 
 
 async def _viewer_cache(request: Request) -> Path:
+    return await viewer_cache(request.app.state.settings)
+
+
+async def viewer_cache(settings: Any) -> Path:
+    """The prepared viewer's folder, prepared now if it is not (once per rerun version; also at
+    the appliance's start, ``prepare_viewer_at_start``). Unavailable when it cannot be."""
     import importlib.metadata
 
-    settings = request.app.state.settings
     # The version from the package's metadata: importing rerun only for it costs the appliance
     # tens of MB when no run has imported it yet.
     version = importlib.metadata.version("rerun-sdk")
@@ -257,6 +262,19 @@ async def _viewer_cache(request: Request) -> Path:
         async with heavy_turn():  # not while a download's conversion child runs (logs/convert_child.py)
             await _prepare_in_child(tmp, cache)
     return cache
+
+
+async def prepare_viewer_at_start(settings: Any) -> None:
+    """The appliance's start (server/app.py, ``Settings.prepare_viewer_at_start``): the viewer
+    prepared while the appliance is at its smallest, not at a class's first live viewer, when
+    the appliance, its run and the preparing child (``rerun --serve-web``, ~100 MB) were all
+    there at once: the round-1 peak of bench/appliance/practical.py (issue 30 item 4). Once per
+    rerun version: afterwards the folder is there and this returns at once. A failure is said in
+    the log; the first viewer tries again (and says why to its user)."""
+    try:
+        await viewer_cache(settings)
+    except Unavailable as exc:
+        logging.getLogger("xrflab.rerun").warning("rerun viewer not prepared at start: %s", exc)
 
 
 async def _prepare_in_child(tmp: Path, cache: Path) -> None:
