@@ -515,7 +515,8 @@ class RrdWriter:
 # ---- the recording ------------------------------------------------------------------------------------
 
 
-def _blueprint_indexes(w: RrdWriter, now: int) -> list[Column]:
+def _blueprint_indexes(now: int) -> list[Column]:
+    """The blueprint's time lines, as the SDK sets them: `blueprint` 0 and `log_time` now."""
     return [_index_column("blueprint", False, array("q", [0])), _index_column("log_time", True, array("q", [now]))]
 
 
@@ -534,7 +535,7 @@ def write_blueprint(w: RrdWriter, names: list[str], tuned: bool) -> None:
 
     def one_row(entity: str, columns: list[Column]) -> None:
         ids = w.tuids.rows(1)
-        w.chunk(store, entity, [_row_id_column(ids, 1), *_blueprint_indexes(w, now), *columns], 1)
+        w.chunk(store, entity, [_row_id_column(ids, 1), *_blueprint_indexes(now), *columns], 1)
 
     for vid in view_ids:
         one_row(
@@ -673,9 +674,10 @@ def writable(p: Plan, changes: list[dict[str, Any]]) -> bool:
     return True
 
 
-def write_rrd(p: Plan, f: BinaryIO, recording_id: str, names: list[str], changes: list[dict[str, Any]]) -> None:
+def write_rrd(p: Plan, f: BinaryIO, recording_id: str, changes: list[dict[str, Any]]) -> None:
+    """The blueprint store, then the recording (the order the SDK writes them in)."""
     w = RrdWriter(f)
-    write_blueprint(w, names, tuned=bool(changes))
+    write_blueprint(w, list(p.first.fields), tuned=bool(changes))
     write_recording(w, p, recording_id, changes)
 
 
@@ -689,7 +691,7 @@ def convert(shown: str, fd: int, target: str, changes: list[dict[str, Any]]) -> 
     tmp = dest.with_name(f".{dest.name}.{os.getpid()}.part")
     try:
         with open(tmp, "wb") as f:
-            write_rrd(p, f, Path(shown).name, list(p.first.fields), changes)
+            write_rrd(p, f, Path(shown).name, changes)
         os.replace(tmp, dest)
     finally:
         if tmp.exists():
