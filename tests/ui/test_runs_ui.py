@@ -11,7 +11,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import parse_qs, quote, urlsplit
 
 import pytest
 
@@ -126,8 +126,18 @@ def test_runs_page_lists_runs_and_downloads_a_csv(server: Server, browser, tmp_p
     viewer.wait_for_url("**/rerun/**", wait_until="commit", timeout=300_000)
     assert "fmt%3Drrd" in viewer.url and f"%2Fruns%2F{run['id']}%2F" in viewer.url, viewer.url
     assert "fmt%3Drrd" in page.get_attribute("#rr-link", "href")  # the link to open it again
-    # The viewer reads the download (the child's .rrd, logs/rrdfile.py, not the SDK's): it holds
-    # the log's samples, on the `time` line from its first record to its last.
+    viewer.close()
+    # The web viewer reads the download (the child's .rrd, logs/rrdfile.py, not the SDK's): it holds
+    # the log's samples, on the `time` line from its first record to its last. Handed to it under
+    # a name ending in .rrd: rerun 0.41's viewer refuses to open an http URL without that extension
+    # ("Failed to parse URL"), such as the link above (?fmt=rrd), whatever the file holds.
+    rrd = server.http.get(f"/api/logs/runs/{run['id']}/files/{name}?fmt=rrd")
+    assert rrd.status_code == 200 and rrd.content[:4] == b"RRF2" and rrd.content[8] == 0, rrd.content[:12]
+    viewer = page.context.new_page()
+    viewer.route(
+        "**/xrf-test/run.rrd", lambda route: route.fulfill(body=rrd.content, content_type="application/octet-stream")
+    )
+    viewer.goto(server.url + "/rerun/?url=" + quote(server.url + "/xrf-test/run.rrd", safe=""))
     _viewer_holds_the_log(viewer, server.data_dir / "runs" / str(run["id"]) / name)
     page.context.close()
 
