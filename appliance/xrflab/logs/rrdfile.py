@@ -13,9 +13,13 @@ module writes the same recording itself (plain.py reads the records, a window at
 - each chunk an Arrow IPC stream (a Schema and a RecordBatch message, flatbuffers written here) with
   rerun's column metadata ("sorbet"): the row ids, the ``cycle`` and ``time`` index columns,
   ``Scalars:scalars`` as a list of float64;
-- no RRD footer (the manifest rerun 0.37+ appends for random access: a second Arrow table of chunk
+- no RRD footer (the manifest rerun's own writer appends for random access: a second Arrow table of chunk
   statistics). rerun reads a stream without one (the viewer, ``rerun rrd print``/``compare``,
-  ``RrdReader``); only ``rerun rrd verify`` asks for it unless given ``--check-footers false``.
+  ``RrdReader``); only ``rerun rrd verify`` asks for it unless given ``--check-footers false``
+  (its schema hash is over arrow-rs's own serialisation of a schema: not something to repeat here).
+
+Uncompressed (rerun's one compression, LZ4, is too slow in pure Python): the file is about twice the
+SDK's (bench/README.md, session 12).
 
 What rerun expects here is bound to its version: the constants under "rerun 0.41" below are the one
 place of it, and tests/logs/test_rrd_file.py fails when the pinned SDK no longer reads this file as
