@@ -11,7 +11,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import parse_qs, quote, urlsplit
 
 import pytest
 
@@ -126,7 +126,43 @@ def test_runs_page_lists_runs_and_downloads_a_csv(server: Server, browser, tmp_p
     viewer.wait_for_url("**/rerun/**", wait_until="commit", timeout=300_000)
     assert "fmt%3Drrd" in viewer.url and f"%2Fruns%2F{run['id']}%2F" in viewer.url, viewer.url
     assert "fmt%3Drrd" in page.get_attribute("#rr-link", "href")  # the link to open it again
+    viewer.close()
+    # The web viewer reads the download (the child's .rrd, logs/rrdfile.py, not the SDK's): it holds
+    # the log's samples, on the `time` line from its first record to its last. Handed to it under
+    # a name ending in .rrd: rerun 0.41's viewer refuses to open an http URL without that extension
+    # ("Failed to parse URL"), such as the link above (?fmt=rrd), whatever the file holds.
+    rrd = server.http.get(f"/api/logs/runs/{run['id']}/files/{name}?fmt=rrd")
+    assert rrd.status_code == 200 and rrd.content[:4] == b"RRF2" and rrd.content[8] == 0, rrd.content[:12]
+    viewer = page.context.new_page()
+    viewer.route(
+        "**/xrf-test/run.rrd", lambda route: route.fulfill(body=rrd.content, content_type="application/octet-stream")
+    )
+    viewer.goto(server.url + "/rerun/?url=" + quote(server.url + "/xrf-test/run.rrd", safe=""))
+    _viewer_holds_the_log(viewer, server.data_dir / "runs" / str(run["id"]) / name)
     page.context.close()
+
+
+def _viewer_holds_the_log(viewer, log_path: Path) -> None:  # noqa: ANN001
+    from playwright.sync_api import Error as PlaywrightError
+
+    from xrf_testing.rerun_stream import viewer_time_range
+    from xrflab.logs.reader import open_log
+
+    log = open_log(log_path)
+    want = (
+        int(log.segments[0].wall_ns(log.segments[0].records["t_ns"][:1])[0]),
+        int(log.segments[-1].wall_ns(log.segments[-1].records["t_ns"][-1:])[0]),
+    )
+    held: tuple[int | None, int | None] = (None, None)
+    deadline = time.monotonic() + 120
+    while held != want:
+        assert time.monotonic() < deadline, (held, want)
+        try:
+            state = bytes(viewer.evaluate("Array.from(window._handle.viewer_state())"))
+        except PlaywrightError:  # the viewer's app is not there yet
+            state = b""
+        held = viewer_time_range(state, log_path.name)
+        time.sleep(0.5)
 
 
 def test_live_plots_from_the_lan_address(server: Server, raw_browser) -> None:

@@ -13,7 +13,7 @@ from typing import Any
 
 from xrflab.logs.convert_child import _child_env
 
-LIBS = ("libarrow", "libparquet", "numpy", "scipy")  # what a light child must not map
+LIBS = ("libarrow", "libparquet", "numpy", "scipy", "rerun_bindings")  # what a light child must not map
 
 # Its last two lines on stderr: the LIBS it mapped, and its VmHWM in kB (per process, unlike
 # getrusage's, which a child inherits from its parent at exec).

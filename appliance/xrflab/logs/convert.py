@@ -31,7 +31,6 @@ import functools
 import io
 import json
 import os
-import re
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -49,6 +48,9 @@ from .plain import (  # noqa: F401  (CHANGE_COLUMNS, changes_csv, csv_zip_names:
     zip_csv,
 )
 from .reader import SECONDS_COLUMN, LogFile, Segment, open_log
+
+# The .rrd's names and groups are shared with the light child's writer (rrdfile.py, standard library).
+from .rrdfile import CHANGES_ENTITY, change_text, variable_groups  # noqa: F401  (this module's API too)
 
 FORMATS = ("csv", "mat", "parquet", "rrd")
 CHANGES_META = "xrf.param_changes"  # Parquet key-value metadata
@@ -285,23 +287,6 @@ def _to_parquet(log: LogFile, out: Path, chunk_rows: int, changes: list[dict[str
 # ---- rerun ----------------------------------------------------------------------------------
 
 RRD_FLUSH_CHUNKS = 2  # chunks (reader.CHUNK_BYTES of records each) between flushes of an .rrd
-CHANGES_ENTITY = "params/changes"  # the text log of applied parameter sets (.rrd and the live stream)
-
-
-def change_text(c: dict[str, Any]) -> str:
-    """One change as the rerun text log shows it."""
-    return f"{c['name']}: {c['old']:g} -> {c['new']:g} at cycle {c['cycle']} ({c.get('who', '')})"
-
-
-def variable_groups(names: list[str]) -> dict[str, str]:
-    """name -> group: the part before the first `_` or `.` when two or more variables share it
-    (pos_left, pos_right -> pos); every other variable goes to the group `signals`."""
-    prefix = {n: re.split(r"[_.]", n, maxsplit=1)[0] if re.search(r"[_.]", n) else "" for n in names}
-    counts: dict[str, int] = {}
-    for p in prefix.values():
-        if p:
-            counts[p] = counts.get(p, 0) + 1
-    return {n: p if p and counts[p] >= 2 else "signals" for n, p in prefix.items()}
 
 
 def entity_paths(names: list[str]) -> dict[str, str]:

@@ -230,8 +230,9 @@ def _stream_csv(shown: str, fd: int, changes: list[dict[str, Any]], zip_names: l
 
 
 # The formats the light child writes with the standard library only (logs/plain.py: no NumPy,
-# pyarrow or scipy in the child, ~12 MB instead of 52-56; issue 30 item 4); logs/convert.py does
-# them when plain.py does not read the log (damage, an XRF2 .bin) and does the others.
+# pyarrow or scipy in the child, ~12 MB instead of 52-56; logs/rrdfile.py for .rrd: no NumPy,
+# pyarrow or rerun SDK, ~25 MB instead of 90-118; issue 30 item 4); logs/convert.py does them when
+# plain.py does not read the log (damage, an XRF2 .bin) and does the others (Parquet).
 PLAIN_FORMATS = ("csv", "mat")
 
 
@@ -243,6 +244,11 @@ def main(argv: list[str]) -> int:
             from . import plain
 
             if plain.convert(shown, fd, fmt, target, changes, argv[4:6]):
+                return 0
+        elif fmt == "rrd" and target != "-":
+            from . import rrdfile
+
+            if rrdfile.convert(shown, fd, target, changes):
                 return 0
         from .convert import convert
         from .reader import open_log
