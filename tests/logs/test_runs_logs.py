@@ -97,6 +97,12 @@ def test_round_trip_every_format_matches_xrf_decode(server: Server, tmp_path: Pa
         else:
             # rerun chunks carry fresh random ids: compare what the recordings hold.
             assert _rrd_values(got.content, tmp_path / "api.rrd") == _rrd_values(want, tmp_path / "cli.rrd")
+            # The same download at a URL ending in .rrd, the one rerun's web viewer opens (it
+            # refuses `?fmt=rrd`); a name without the extension is no file of the run.
+            viewer = server.http.get(f"/api/logs/runs/{run['id']}/rrd/{f['name']}.rrd", timeout=120)
+            assert viewer.status_code == 200 and viewer.content == got.content
+            assert server.http.get(f"/api/logs/runs/{run['id']}/rrd/{f['name']}").status_code == 404
+            assert server.http.get(f"/api/logs/runs/{run['id']}/rrd/nothing.xrf.rrd").status_code == 404
     if True:  # the CSV is the streamed one: its numbers read back exactly
         import pyarrow.csv as pcsv
 

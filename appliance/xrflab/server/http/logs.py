@@ -357,6 +357,25 @@ async def download(
     return FileResponse(target, media_type=MEDIA[fmt], headers=headers)
 
 
+# rerun's web viewer (0.41) opens an http(s) URL only when its path ends in a file extension it
+# knows: given `…/files/<log>?fmt=rrd` it said "Failed to parse URL" and showed nothing, whatever
+# the download held. The viewer's links (frontend/pages/runs.js, rerun-tab.js) name the log here,
+# with `.rrd` after its name: the same download, the same checks.
+RRD_FOR_VIEWER = "/api/logs/runs/{run_id}/rrd/{name:path}"
+
+
+@router.get(
+    RRD_FOR_VIEWER,
+    dependencies=[requires(Perm.WATCH)],
+    summary="a log as rerun .rrd at a URL ending in .rrd (what rerun's web viewer opens)",
+    response_class=Response,
+)
+async def rrd_for_viewer(run_id: int, name: str, request: Request) -> Response:
+    if not name.endswith(".rrd"):
+        raise NotFound(f"run {run_id} has no log file {name!r}")
+    return await download(run_id, name.removesuffix(".rrd"), request, "rrd")
+
+
 @router.get(
     "/api/logs/runs/{run_id}/timing",
     dependencies=[requires(Perm.WATCH)],
