@@ -16,7 +16,7 @@ import httpx
 import pytest
 
 from xrf_testing.grpcweb import GRPC_WEB, READ_MESSAGES, read_messages
-from xrf_testing.harness import ADMIN_PASSWORD, ADMIN_USER, Server, login_client, stop_server
+from xrf_testing.harness import ADMIN_PASSWORD, ADMIN_USER, Server, free_port, login_client, stop_server
 from xrf_testing.logs_support import PROBE, start, wait_for
 from xrf_testing.net import established_to, lan_address, listening_addresses
 from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of
@@ -271,6 +271,23 @@ def test_no_live_stream_before_the_first_run(tmp_path: Path) -> None:
         assert r.status_code == 404 and r.headers["grpc-status"] == "5"
         assert urllib.parse.unquote(r.headers["grpc-message"]) == NO_LIVE_STREAM
         assert not live_proxies(s)
+    finally:
+        stop_server(s)
+
+
+def test_the_live_stream_does_not_go_through_a_web_proxy_of_the_environment(tmp_path: Path) -> None:
+    """A lab behind a web proxy sets HTTP_PROXY / ALL_PROXY for every process, the appliance's too.
+    The read route forwards a viewer's stream to the run's proxy on 127.0.0.1, and httpx by default
+    takes its proxy from the environment: that loopback request went to the lab's proxy, and the
+    viewer got a 502 ("the live stream does not answer") instead of the run. Here the
+    environment's proxy is a port nothing listens on."""
+    nowhere = f"http://127.0.0.1:{free_port()}"
+    s = start(tmp_path / "data", env={"HTTP_PROXY": nowhere, "http_proxy": nowhere, "ALL_PROXY": nowhere})
+    try:
+        run_id = run_probe(s)
+        got = read_messages(s.http, READ_MESSAGES, until=lambda d: f"run-{run_id}".encode() in d and b"ratio" in d)
+        assert got.status == 200, (got.status, urllib.parse.unquote(got.headers.get("grpc-message", "")))
+        assert f"run-{run_id}".encode() in got.data and b"ratio" in got.data, got.data[:200]
     finally:
         stop_server(s)
 

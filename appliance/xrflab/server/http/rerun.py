@@ -407,8 +407,13 @@ async def live_stream(method: str, request: Request) -> Response:
         except BaseException:  # cancelled (the appliance stops): no reader any more
             watched.reader_left()
             raise
-    # No read timeout: a live stream is quiet between runs and that is not an error.
-    client = httpx.AsyncClient(timeout=httpx.Timeout(10.0, read=None))
+    # No read timeout: a live stream is quiet between runs and that is not an error. The run's
+    # proxy is plain HTTP on 127.0.0.1: no TLS and no proxy from the environment. With httpx's
+    # defaults, HTTP_PROXY or ALL_PROXY in the appliance's environment (a lab behind a web proxy)
+    # sent this loopback request to that proxy (no live stream at all), and each viewer's request
+    # made a client that loaded the CA bundle on the event loop: 25-110 ms on a 2-core machine,
+    # most of the route's own time before the run's proxy answered (issue 31 bug 6, session 12).
+    client = httpx.AsyncClient(timeout=httpx.Timeout(10.0, read=None), verify=False, trust_env=False)
     try:
         upstream = await client.send(
             client.build_request("POST", f"{proxy.read_url}/{SERVICE}/{method}", content=body, headers=headers),
