@@ -292,6 +292,50 @@ def test_the_live_stream_does_not_go_through_a_web_proxy_of_the_environment(tmp_
         stop_server(s)
 
 
+def test_the_live_page_does_not_wait_for_the_proxy_to_start(tmp_path: Path) -> None:
+    """A live viewer's page starts the run's proxy process (the run's first viewer) and its
+    recording, so that the stream holds the live edge when the viewer's app asks for it seconds
+    later. The page used to be served only once rerun's process listened (0.2-0.5 s under load),
+    and the viewer's whole start waited with it. Here rerun's start is held (the `nice` it is
+    started through waits while a file exists): the page is served all the same, and a stream
+    asked for meanwhile waits for the start and gets the run (not a 502 from a port nobody
+    listens on yet)."""
+    import os
+    import shutil
+    import stat
+
+    hold = tmp_path / "hold"
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    nice = bin_dir / "nice"
+    nice.write_text(f'#!/bin/sh\nwhile [ -e "{hold}" ]; do sleep 0.05; done\nexec {shutil.which("nice")} "$@"\n')
+    nice.chmod(nice.stat().st_mode | stat.S_IXUSR | stat.S_IXGRP | stat.S_IXOTH)
+    s = start(tmp_path / "data", env={"PATH": f"{bin_dir}:{os.environ['PATH']}"})
+    try:
+        assert s.http.get("/rerun/index.html", timeout=600).status_code == 200  # the viewer's files prepared
+        run_id = run_probe(s)
+        live_url = s.http.get("/api/logs/rerun").json()["live_url"]
+        hold.write_text("")
+        page = s.http.get("/rerun/index.html", params={"url": live_url}, timeout=10)
+        assert page.status_code == 200  # (before: it waited for rerun to listen, then gave up after 20 s)
+        got: list = []
+        reader = threading.Thread(
+            target=lambda: got.append(
+                read_messages(s.http, READ_MESSAGES, until=lambda d: f"run-{run_id}".encode() in d and b"ratio" in d)
+            )
+        )
+        reader.start()
+        time.sleep(1.0)  # time passing: the stream's request reaches the route while rerun's start is held
+        hold.unlink()
+        reader.join(60)
+        assert got, "no answer to the stream"
+        assert got[0].status == 200, (got[0].status, urllib.parse.unquote(got[0].headers.get("grpc-message", "")))
+        assert f"run-{run_id}".encode() in got[0].data and b"ratio" in got[0].data, got[0].data[:200]
+    finally:
+        hold.unlink(missing_ok=True)
+        stop_server(s)
+
+
 def _rerun_threads(pid: int) -> int:
     """The rerun SDK's recording threads in process `pid` (RecordingStream, ChunkBatcher::...)."""
     n = 0

@@ -35,6 +35,7 @@ import logging
 import os
 import re
 import shutil
+import threading
 import urllib.parse
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -308,8 +309,12 @@ async def rerun_viewer(asset: str, request: Request) -> Response:
 
         proxy = LiveProxy.current()
         if proxy is not None and ownership.may_see(ownership.user_of(request), proxy.owner):
-            # the proxy's process may have to start (the run's first viewer): not on the event loop
-            await asyncio.to_thread(proxy.expect_viewer)
+            # The proxy's process may have to start (the run's first viewer): on a thread of its
+            # own, and the page served meanwhile. Awaited, the page waited for rerun's process to
+            # listen (0.2-0.5 s at load 8 on a 2-core machine), and the viewer's whole start (its
+            # wasm, its app, its request for the stream) with it; the stream's request comes
+            # seconds later, and the read route waits for a start under way (ensure_running).
+            threading.Thread(target=proxy.expect_viewer, name="xrf-rerun-expect", daemon=True).start()
     headers = {
         "Cache-Control": "no-cache" if asset == "index.html" else "public, max-age=86400",
         "Content-Security-Policy": VIEWER_CSP,
