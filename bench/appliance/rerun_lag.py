@@ -856,14 +856,17 @@ def main() -> None:
     if wire_rows:
         print(
             f"the stream at the wire, as the tab asks for it ({args.ask_after:g} s after the viewer's page; "
-            f"{args.late:g} s into each run, reopened {args.gap:g} s after the last viewer left): s after the request"
+            f"{args.late:g} s into each run, reopened {args.gap:g} s after the last viewer left): the page served "
+            "(s after its request), then s after the stream's request"
         )
         print(
-            f"{'opening':8s} {'load':>5s} {'headers':>8s} {'1st bytes':>9s} {'1st data':>9s} {'its age':>8s} {'burst':>6s}"
+            f"{'opening':8s} {'load':>5s} {'page':>6s} {'headers':>8s} {'1st bytes':>9s} {'1st data':>9s} "
+            f"{'its age':>8s} {'burst':>6s}"
         )
         for which, load, r in wire_rows:
             print(
-                f"{which:8s} {load:5.1f} {r.get('headers_s', float('nan')):8.3f} {r.get('first_bytes_s', float('nan')):9.3f} "
+                f"{which:8s} {load:5.1f} {r['page_s']:6.3f} {r.get('headers_s', float('nan')):8.3f} "
+                f"{r.get('first_bytes_s', float('nan')):9.3f} "
                 f"{r.get('first_data_s', float('nan')):9.3f} {r.get('first_data_age_s', float('nan')):8.3f} "
                 f"{r.get('burst_newest_age_s', float('nan')):6.3f}"
             )
