@@ -149,8 +149,9 @@
 
   // The live stream, asked for just before the viewer asks (issue 31 bug 6): the viewer asks for
   // it only once its app has started (wasm compiled and started: 1.5-3 s on a 2-core machine
-  // without a GPU, more under load), and the stream's first bytes came 0.7-1.5 s after that (the
-  // appliance's route and the run's proxy). So this script sends the very request the viewer
+  // without a GPU, more under load), and the stream's first bytes were read 0.7-1.5 s after that
+  // (session 12: that is this page's main thread, busy with the viewer's start; the appliance
+  // answers 0.03-0.2 s after a request reaches it, bench/README.md). So this script sends the very request the viewer
   // sends (ReadMessages, an empty request, gRPC-web) as soon as the viewer's wasm is compiled,
   // 0.7-0.9 s before the viewer asks, and when the viewer asks it gets this response. Not at the page's load (as at first): what the proxy sends
   // after the connection waits in the response's body in the order it came, and the viewer ingests
@@ -258,8 +259,10 @@
   }
   if (live && url.replace(/^rerun\+/, "").replace(/\/proxy$/, "") === location.origin) {
     // As soon as the module is compiled (the loader instantiates it, the app starts ~0.5 s later and
-    // asks ~0.2-0.6 s after that): ~0.7-0.9 s ahead of the viewer, about what the appliance's route
-    // takes to answer on a loaded 2-core machine. (Without a compiled module: at the page's load.)
+    // asks ~0.2-0.6 s after that): ~0.7-0.9 s ahead of the viewer. (Without a compiled module: at
+    // the page's load.) What this early response brought is read by this page's main thread, which
+    // the viewer's start keeps busy for up to a second or more: bytes that came apart can then be
+    // read together, in the order they came (session 12, bench/README.md).
     if (wasm) wasm.then(askEarly, askEarly); else askEarly();
   }
   async function bodyOf(args) {  // the request body of a fetch(...) call, or null

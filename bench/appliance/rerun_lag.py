@@ -32,6 +32,13 @@ and no empty viewer in the browser), a person's very first opening. ``--reopen S
 measured is a second one (the live viewer opened before until it drew data, closed, S s without
 a viewer).
 
+``wire`` (issue 31 bug 6, session 12): the viewer's stream request at the wire, as its tab makes it:
+the viewer's page (which starts the run's recording), --ask-after s later the stream's request
+(the tab asks once the wasm is compiled), read --read s; in each of --runs runs the run's first
+viewer (the Runs page's ``soon`` before it) and --reopens more, --gap s after the last one left.
+Per opening: the answer's headers, its first bytes and the first data frame with a sample of the
+run (s after the request) and how old that sample was then; p50/max per kind.
+
 Headless cases (at the wire, not what a person sees): headless viewers read the run's live stream
 as the web viewer does, by gRPC-web through the appliance's route (login cookie, same Origin), each
 in a process of its own. Each data frame is decoded as far as its chunk's ``time`` index
@@ -496,22 +503,26 @@ def browser_case(
                 # As a person opens it: the dashboard's Runs page, --via-runs-page s of looking at
                 # it, then its "Live plots" button, which opens the viewer in a tab of its own
                 # (frontend/pages/runs.js). Measured from the click. The samplers go into every page
-                # of the context (only the viewer's tab runs them); the stream's network events are
-                # not seen in a tab opened by the page (the tab script's own marks are).
+                # of the context (only the viewer's tab runs them). The stream's network events:
+                # from a DevTools session on the new tab, opened as soon as the tab exists (its
+                # stream is asked for ~0.6 s or more later); their times are the network layer's,
+                # not the page's main thread, which the viewer's start keeps busy (session 12: the
+                # tab script's own marks of the answer came 0.5-0.8 s after the network's).
                 for script in scripts:
                     ctx.add_init_script("if (location.pathname.startsWith('/rerun/')) {\n" + script + "\n}")
                 dash = ctx.new_page()
                 dash.goto(server.url + "/#runs", timeout=120_000)
                 dash.wait_for_selector("#rr-live", state="visible", timeout=60_000)
                 time.sleep(via_runs_s)  # time passing: a person reads the page, then clicks
-                wire = {}
                 with ctx.expect_page(timeout=120_000) as popup:
                     opened_ns = time.time_ns()
                     dash.click("#rr-live")
                 page = popup.value
+                wire = _stream_timing(ctx, page)
                 page.on("console", lambda m: m.type == "debug" and debug_lines.__setitem__(0, debug_lines[0] + 1))
             page.wait_for_function("() => window._handle !== undefined", timeout=600_000)
             app_ns = time.time_ns()
+            print(f"browser: opened at {opened_ns / 1e9:.4f} (wall s)", file=sys.stderr, flush=True)
             load_at_open = os.getloadavg()[0]
             page.evaluate(SAMPLE)
             cpu0, frames0, t0 = chromium_cpu_s(), page.evaluate("window._xrfFrames.length"), time.monotonic()
@@ -574,6 +585,108 @@ def browser_case(
     }
 
 
+# ---- the wire case: the viewer's stream request, as the tab makes it -----------------------------
+
+
+def opening(server, live_url: str, ask_after_s: float, read_s: float, soon: bool) -> dict:
+    """One opening of the live viewer as its tab does it, at the wire: the Runs page's `soon`
+    (when `soon`), the viewer's page (which starts the run's recording, LiveProxy.expect_viewer),
+    `ask_after_s` later the stream's request (the tab script asks once the viewer's wasm is
+    compiled), read for `read_s`. Wall times (s) after the request: the answer's headers, its
+    first bytes, the first data frame with a sample of the run and how old that sample was when it
+    came, and the newest sample of the first burst (its frames within 0.1 s of the first)."""
+    import urllib.parse
+
+    import httpx
+
+    from xrf_testing.grpcweb import EMPTY_REQUEST, GRPC_WEB, READ_MESSAGES, split_frames
+    from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of
+
+    if soon:
+        server.http.get("/api/logs/rerun", params={"soon": "true"})
+    page_ns = time.time_ns()
+    r = server.http.get("/rerun/index.html?url=" + urllib.parse.quote(live_url, safe=""))
+    assert r.status_code == 200, r.status_code
+    served_ns = time.time_ns()
+    time.sleep(max(0.0, ask_after_s - (served_ns - page_ns) / 1e9))  # time passing: the viewer's wasm compiles
+    out: dict = {"page_s": (served_ns - page_ns) / 1e9}
+    asked_ns = time.time_ns()
+    end = time.monotonic() + read_s
+    first_data = None
+    with server.http.stream(
+        "POST", READ_MESSAGES, content=EMPTY_REQUEST, headers=GRPC_WEB, timeout=httpx.Timeout(10.0, read=30.0)
+    ) as res:
+        out["headers_s"] = (time.time_ns() - asked_ns) / 1e9
+        rest = b""
+        for raw in res.iter_raw():
+            arrival = time.time_ns()
+            out.setdefault("first_bytes_s", (arrival - asked_ns) / 1e9)
+            got, rest = split_frames(rest + raw)
+            for flag, payload in got:
+                chunk = chunk_of(payload) if flag == 0 else None
+                if chunk is None or chunk.store_kind != STORE_RECORDING or chunk.newest_time_ns is None:
+                    continue
+                if first_data is None:
+                    first_data = arrival
+                    out["first_data_s"] = (arrival - asked_ns) / 1e9
+                    out["first_data_age_s"] = (arrival - chunk.newest_time_ns) / 1e9
+                    out["burst_newest_age_s"] = out["first_data_age_s"]
+                elif arrival - first_data <= 100_000_000:
+                    out["burst_newest_age_s"] = min(out["burst_newest_age_s"], (arrival - chunk.newest_time_ns) / 1e9)
+            if time.monotonic() > end:
+                break
+    out["asked_wall"] = asked_ns / 1e9
+    return out
+
+
+def wire_case(
+    server,
+    build: str,
+    runs: int,
+    reopens: int,
+    late_s: float,
+    gap_s: float,
+    ask_after_s: float,
+    read_s: float,
+    stress_workers: int = 0,
+) -> list[tuple[str, float, dict]]:
+    """`runs` runs; in each, --late s in, its first viewer (the Runs page's `soon` 2 s before, as
+    a person looks at the page), then `reopens` more openings, each `gap_s` after the previous
+    one closed: (which, load average, opening())."""
+    import pyarrow  # noqa: F401  (the frames' decoder's: imported before, not inside a measurement)
+
+    server.http.get("/rerun/index.html", timeout=600)  # the viewer's files prepared: not measured
+    rows = []
+    for _ in range(runs):
+        run = start_loop(server, build)
+        stress = None
+        if stress_workers:  # from the run's start, like the browser case's --browser-stress
+            stress = subprocess.Popen(
+                ["stress-ng", "--cpu", str(stress_workers), "--timeout", "600s", "--quiet"], stdout=subprocess.DEVNULL
+            )
+        try:
+            started = time.monotonic()
+            while time.monotonic() - started < late_s - 2:
+                time.sleep(0.2)
+            server.http.get("/api/logs/rerun", params={"soon": "true"})
+            time.sleep(2)  # time passing: a person looks at the Runs page
+            live_url = server.http.get("/api/logs/rerun").json()["live_url"]
+            for i in range(reopens + 1):
+                if i:
+                    time.sleep(gap_s)  # time passing: nobody watches
+                load = os.getloadavg()[0]
+                res = opening(server, live_url, ask_after_s, read_s, soon=False)
+                res["run"] = run["id"]
+                rows.append(("first" if i == 0 else "reopen", load, res))
+                print(f"wire {rows[-1]}", file=sys.stderr, flush=True)
+        finally:
+            if stress is not None:
+                stress.terminate()
+                stress.wait()
+            server.stop_run()
+    return rows
+
+
 def run_case(server, build: str, viewers: int, seconds: float, edge_s: float, stress_cpu: int | None) -> dict:
     stress = None
     if stress_cpu is not None:
@@ -621,7 +734,9 @@ def main() -> None:
     ap.add_argument("--prio", type=int, default=80)
     ap.add_argument("--edge", type=float, default=1.0, help="a viewer is at the live edge within this lag (s)")
     ap.add_argument(
-        "--cases", default="browser,1,n,stress", help="which of browser, 1, n, stress, footprint (RSS; --watch s)"
+        "--cases",
+        default="browser,1,n,stress",
+        help="which of browser, wire, 1, n, stress, footprint (RSS; --watch s)",
     )
     ap.add_argument("--late", type=float, default=60.0, help="browser case: run age when the viewer opens (s)")
     ap.add_argument("--watch", type=float, default=40.0, help="browser case: how long the viewer is sampled (s)")
@@ -663,13 +778,23 @@ def main() -> None:
         help="browser case: measure a second opening: the live viewer opened once before (until it drew data), "
         "closed, and nobody watching for S s",
     )
+    ap.add_argument("--runs", type=int, default=3, help="wire case: runs (each: its first viewer, then --reopens)")
+    ap.add_argument("--reopens", type=int, default=3, help="wire case: openings after the first in each run")
+    ap.add_argument("--gap", type=float, default=10.0, help="wire case: s nobody watches between two openings")
+    ap.add_argument(
+        "--ask-after",
+        type=float,
+        default=0.7,
+        help="wire case: s from the page's request to the stream's (the tab asks once the wasm is compiled)",
+    )
+    ap.add_argument("--read", type=float, default=3.0, help="wire case: s each opening reads the stream")
     args = ap.parse_args()
 
     other = next((c for c in range(os.cpu_count() or 1) if c != args.cpu), None)
     cases = []
     browser = "browser" in args.cases.split(",")
     for name in args.cases.split(","):
-        if name in ("browser", "footprint"):
+        if name in ("browser", "footprint", "wire"):
             continue
         if name == "1":
             cases.append(("1 viewer", 1, None))
@@ -683,6 +808,7 @@ def main() -> None:
     loop_env = {"XRF_PRIO": str(args.prio), "XRF_CPU": str(args.cpu)}
     results = []
     seen = None
+    wire_rows: list[tuple[str, float, dict]] = []
     load_before = os.getloadavg()
     with appliance(loop_env=loop_env) as server:
         if "footprint" in args.cases.split(","):
@@ -690,6 +816,18 @@ def main() -> None:
             for what, app_mb, kids in footprint_case(server, args.build, args.watch):
                 kid = ", ".join(f"rerun --{k} {mb:.0f}" for k, (_, mb) in sorted(kids.items())) or "no rerun child"
                 print(f"  {what:36s} appliance {app_mb:.0f}; {kid}", flush=True)
+        if "wire" in args.cases.split(","):
+            wire_rows = wire_case(
+                server,
+                args.build,
+                args.runs,
+                args.reopens,
+                args.late,
+                args.gap,
+                args.ask_after,
+                args.read,
+                args.browser_stress,
+            )
         if browser:
             w, h = (int(x) for x in args.viewport.lower().split("x"))
             seen = browser_case(
@@ -715,6 +853,31 @@ def main() -> None:
 
     load_after = os.getloadavg()
     print(f"load average (1, 5, 15 min) before: {load_before}, after: {load_after}")
+    if wire_rows:
+        print(
+            f"the stream at the wire, as the tab asks for it ({args.ask_after:g} s after the viewer's page; "
+            f"{args.late:g} s into each run, reopened {args.gap:g} s after the last viewer left): the page served "
+            "(s after its request), then s after the stream's request"
+        )
+        print(
+            f"{'opening':8s} {'load':>5s} {'page':>6s} {'headers':>8s} {'1st bytes':>9s} {'1st data':>9s} "
+            f"{'its age':>8s} {'burst':>6s}"
+        )
+        for which, load, r in wire_rows:
+            print(
+                f"{which:8s} {load:5.1f} {r['page_s']:6.3f} {r.get('headers_s', float('nan')):8.3f} "
+                f"{r.get('first_bytes_s', float('nan')):9.3f} "
+                f"{r.get('first_data_s', float('nan')):9.3f} {r.get('first_data_age_s', float('nan')):8.3f} "
+                f"{r.get('burst_newest_age_s', float('nan')):6.3f}"
+            )
+        for which in ("first", "reopen"):
+            got = [r["first_data_s"] for w, _, r in wire_rows if w == which and "first_data_s" in r]
+            ages = [r["first_data_age_s"] for w, _, r in wire_rows if w == which and "first_data_age_s" in r]
+            if got:
+                print(
+                    f"  {which}: request -> first data frame p50 {pct(got, 50):.3f} s, max {max(got):.3f} s (n={len(got)}); "
+                    f"its newest sample's age p50 {pct(ages, 50):.3f} s, max {max(ages):.3f} s"
+                )
     if seen is not None:
         b, e, th = seen["behind"], seen["empty"], seen["thread"]
 

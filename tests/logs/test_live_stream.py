@@ -16,7 +16,7 @@ import httpx
 import pytest
 
 from xrf_testing.grpcweb import GRPC_WEB, READ_MESSAGES, read_messages
-from xrf_testing.harness import ADMIN_PASSWORD, ADMIN_USER, Server, login_client, stop_server
+from xrf_testing.harness import ADMIN_PASSWORD, ADMIN_USER, Server, free_port, login_client, stop_server
 from xrf_testing.logs_support import PROBE, start, wait_for
 from xrf_testing.net import established_to, lan_address, listening_addresses
 from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of
@@ -272,6 +272,67 @@ def test_no_live_stream_before_the_first_run(tmp_path: Path) -> None:
         assert urllib.parse.unquote(r.headers["grpc-message"]) == NO_LIVE_STREAM
         assert not live_proxies(s)
     finally:
+        stop_server(s)
+
+
+def test_the_live_stream_does_not_go_through_a_web_proxy_of_the_environment(tmp_path: Path) -> None:
+    """A lab behind a web proxy sets HTTP_PROXY / ALL_PROXY for every process, the appliance's too.
+    The read route forwards a viewer's stream to the run's proxy on 127.0.0.1, and httpx by default
+    takes its proxy from the environment: that loopback request went to the lab's proxy, and the
+    viewer got a 502 ("the live stream does not answer") instead of the run. Here the
+    environment's proxy is a port nothing listens on."""
+    nowhere = f"http://127.0.0.1:{free_port()}"
+    s = start(tmp_path / "data", env={"HTTP_PROXY": nowhere, "http_proxy": nowhere, "ALL_PROXY": nowhere})
+    try:
+        run_id = run_probe(s)
+        got = read_messages(s.http, READ_MESSAGES, until=lambda d: f"run-{run_id}".encode() in d and b"ratio" in d)
+        assert got.status == 200, (got.status, urllib.parse.unquote(got.headers.get("grpc-message", "")))
+        assert f"run-{run_id}".encode() in got.data and b"ratio" in got.data, got.data[:200]
+    finally:
+        stop_server(s)
+
+
+def test_the_live_page_does_not_wait_for_the_proxy_to_start(tmp_path: Path) -> None:
+    """A live viewer's page starts the run's proxy process (the run's first viewer) and its
+    recording, so that the stream holds the live edge when the viewer's app asks for it seconds
+    later. The page used to be served only once rerun's process listened (0.2-0.5 s under load),
+    and the viewer's whole start waited with it. Here rerun's start is held (the `nice` it is
+    started through waits while a file exists): the page is served all the same, and a stream
+    asked for meanwhile waits for the start and gets the run (not a 502 from a port nobody
+    listens on yet)."""
+    import os
+    import shutil
+    import stat
+
+    hold = tmp_path / "hold"
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    nice = bin_dir / "nice"
+    nice.write_text(f'#!/bin/sh\nwhile [ -e "{hold}" ]; do sleep 0.05; done\nexec {shutil.which("nice")} "$@"\n')
+    nice.chmod(nice.stat().st_mode | stat.S_IXUSR | stat.S_IXGRP | stat.S_IXOTH)
+    s = start(tmp_path / "data", env={"PATH": f"{bin_dir}:{os.environ['PATH']}"})
+    try:
+        assert s.http.get("/rerun/index.html", timeout=600).status_code == 200  # the viewer's files prepared
+        run_id = run_probe(s)
+        live_url = s.http.get("/api/logs/rerun").json()["live_url"]
+        hold.write_text("")
+        page = s.http.get("/rerun/index.html", params={"url": live_url}, timeout=10)
+        assert page.status_code == 200  # (before: it waited for rerun to listen, then gave up after 20 s)
+        got: list = []
+        reader = threading.Thread(
+            target=lambda: got.append(
+                read_messages(s.http, READ_MESSAGES, until=lambda d: f"run-{run_id}".encode() in d and b"ratio" in d)
+            )
+        )
+        reader.start()
+        time.sleep(1.0)  # time passing: the stream's request reaches the route while rerun's start is held
+        hold.unlink()
+        reader.join(60)
+        assert got, "no answer to the stream"
+        assert got[0].status == 200, (got[0].status, urllib.parse.unquote(got[0].headers.get("grpc-message", "")))
+        assert f"run-{run_id}".encode() in got[0].data and b"ratio" in got[0].data, got[0].data[:200]
+    finally:
+        hold.unlink(missing_ok=True)
         stop_server(s)
 
 

@@ -265,7 +265,8 @@ class WsClient:
 UNCONFINED_UNLESS_ROOT = os.geteuid() != 0
 
 
-def start_server(data_dir: Path, builds_root: Path, **settings: Any) -> Server:
+def start_server(data_dir: Path, builds_root: Path, env: dict[str, str] | None = None, **settings: Any) -> Server:
+    """`env`: added to the appliance's environment (not this process's: its own clients stay as they are)."""
     port = settings.pop("port", None) or free_port()  # a port of its own, or the one given (a restart)
     config = {
         "data_dir": str(data_dir),
@@ -282,6 +283,7 @@ def start_server(data_dir: Path, builds_root: Path, **settings: Any) -> Server:
         os.environ,
         PYTHONPATH=os.pathsep.join([str(REPO_ROOT / "appliance"), str(HERE)]),
         XRF_BOOTSTRAP_ADMIN_PASSWORD=ADMIN_PASSWORD,
+        **(env or {}),
     )
     proc = subprocess.Popen([sys.executable, str(HERE / "serve_for_test.py"), json.dumps(config)], env=env)
     url = f"http://127.0.0.1:{port}"

@@ -112,22 +112,31 @@ class _RerunChild:
         # proxy starting with each run must not delay the supervisor's reaction to that run
         # crashing (outputs off within 100 ms).
         nice = ["nice", "-n", str(RERUN_NICE)] if shutil.which("nice") else []
-        self.proc = proc = _spawn_rerun([*nice, *_rerun_cli(), *args])
+        proc = _spawn_rerun([*nice, *_rerun_cli(), *args])
         deadline = time.monotonic() + 20
         while not all(_listening(p) for p in ports):
             if proc.poll() is not None or time.monotonic() > deadline:
-                self.stop()
+                _end(proc)
                 raise OSError(f"the rerun {what} did not start (exit {proc.poll()})")
             time.sleep(0.05)
+        # Only now: a process that does not listen yet is not running for a reader (a live
+        # viewer's page starts the proxy on a thread and is served meanwhile: its stream's request
+        # must wait for the start under way, not connect to a port nobody listens on).
+        self.proc = proc
 
     def stop(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(5)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        if self.proc is not None:
+            _end(self.proc)
+
+
+def _end(proc: subprocess.Popen[bytes]) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
 
 
 class RerunViewer(_RerunChild):

@@ -35,6 +35,7 @@ import logging
 import os
 import re
 import shutil
+import threading
 import urllib.parse
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -326,8 +327,12 @@ async def rerun_viewer(asset: str, request: Request) -> Response:
 
         proxy = LiveProxy.current()
         if proxy is not None and ownership.may_see(ownership.user_of(request), proxy.owner):
-            # the proxy's process may have to start (the run's first viewer): not on the event loop
-            await asyncio.to_thread(proxy.expect_viewer)
+            # The proxy's process may have to start (the run's first viewer): on a thread of its
+            # own, and the page served meanwhile. Awaited, the page waited for rerun's process to
+            # listen (0.2-0.5 s at load 8 on a 2-core machine), and the viewer's whole start (its
+            # wasm, its app, its request for the stream) with it; the stream's request comes
+            # seconds later, and the read route waits for a start under way (ensure_running).
+            threading.Thread(target=proxy.expect_viewer, name="xrf-rerun-expect", daemon=True).start()
     headers = {
         "Cache-Control": "no-cache" if asset == "index.html" else "public, max-age=86400",
         "Content-Security-Policy": VIEWER_CSP,
@@ -425,8 +430,13 @@ async def live_stream(method: str, request: Request) -> Response:
         except BaseException:  # cancelled (the appliance stops): no reader any more
             watched.reader_left()
             raise
-    # No read timeout: a live stream is quiet between runs and that is not an error.
-    client = httpx.AsyncClient(timeout=httpx.Timeout(10.0, read=None))
+    # No read timeout: a live stream is quiet between runs and that is not an error. The run's
+    # proxy is plain HTTP on 127.0.0.1: no TLS and no proxy from the environment. With httpx's
+    # defaults, HTTP_PROXY or ALL_PROXY in the appliance's environment (a lab behind a web proxy)
+    # sent this loopback request to that proxy (no live stream at all), and each viewer's request
+    # made a client that loaded the CA bundle on the event loop: 25-110 ms on a 2-core machine,
+    # most of the route's own time before the run's proxy answered (issue 31 bug 6, session 12).
+    client = httpx.AsyncClient(timeout=httpx.Timeout(10.0, read=None), verify=False, trust_env=False)
     try:
         upstream = await client.send(
             client.build_request("POST", f"{proxy.read_url}/{SERVICE}/{method}", content=body, headers=headers),
