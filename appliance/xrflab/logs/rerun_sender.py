@@ -62,6 +62,7 @@ from .rrdfile import (
     Field,
     RrdWriter,
     Tuids,
+    Writer,
     _bp,
     _component_meta,
     _int,
@@ -142,7 +143,9 @@ def _boundary(name: str) -> Field:
     return Field(name, _UNION, ((0, "h", _DENSE), (1, "o", _int32_vector([0, 1, 2, 3]))), children=members)
 
 
-def _int32_vector(values: list[int]) -> Any:
+def _int32_vector(values: list[int]) -> Writer:
+    """A flatbuffers vector of int32 (a Union's typeIds)."""
+
     def write(buf: bytearray) -> int:
         while len(buf) % 4:
             buf.append(0)
