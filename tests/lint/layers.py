@@ -68,6 +68,7 @@ LAYER_OF: dict[str, str] = {
     "xrflab.logs.host_writer": "services",  # the host log writer thread (ring -> file)
     "xrflab.logs.rerun_live": "services",  # a run's live rerun recording
     "xrflab.logs.rerun_servers": "services",  # rerun's child processes
+    "xrflab.logs.rerun_sender": "services",  # the live recording's messages, sent to the run's proxy (gRPC-web)
     "xrflab.logs.rerun_files": "services",  # the rerun viewer's files copied (a child of the appliance; starts rerun_servers.RerunViewer)
     "xrflab.doctor": "services",  # the install's checks: run by `xrf doctor` and served by the system route
     "xrflab.projects.service": "services",  # the projects service the app makes: store, builds, versions

@@ -156,7 +156,7 @@ def test_live_rerun_stream_takes_records_and_telemetry(loop, tmp_path: Path, cap
     import httpx
 
     from xrf_testing.grpcweb import READ_MESSAGES, read_messages
-    from xrflab.logs.rerun_live import LiveRerun, live_blueprint
+    from xrflab.logs.rerun_live import LiveRerun
     from xrflab.logs.rerun_servers import LiveProxy
 
     caplog.set_level(logging.ERROR, logger="xrflab.logs.live")
@@ -177,13 +177,20 @@ def test_live_rerun_stream_takes_records_and_telemetry(loop, tmp_path: Path, cap
         assert stream._names == ["cycle_2", "flag", "letter", "count", "ratio", "value"]
         assert stream.dropped == 0
         assert not [r for r in caplog.records if r.levelno >= logging.ERROR], caplog.text
-        keys = (b"run-42", b"cycle_2", b"ratio", b"telemetry/enc")
+        # (and the blueprint, which rerun never drops from the window: the group's view, the telemetry's)
+        keys = (
+            b"run-42",
+            b"cycle_2",
+            b"ratio",
+            b"telemetry/enc",
+            b"log: signals",
+            b"/telemetry/xeno2ros",
+            b"TimeSeries",
+        )
         with httpx.Client(base_url=proxy.read_url) as client:
             got = read_messages(client, READ_MESSAGES, until=lambda d: all(k in d for k in keys))
         for key in keys:
             assert key in got.data, key
-        bp = live_blueprint(stream._names, ["enc", "pwm", "xeno2ros"])
-        assert bp is not None
         # the next run gets a new proxy; the old one is stopped
         nxt = LiveProxy.open_for_run(43, "bob")
         assert proxy.proc.poll() is not None and LiveProxy.current() is nxt and nxt.port != 0

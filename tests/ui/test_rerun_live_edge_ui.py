@@ -119,7 +119,7 @@ FRAME_STATES = """if (location.pathname.startsWith("/rerun/")) (() => {
 
 
 def _rerun_loaded(pid: int) -> bool:
-    """rerun's native library is mapped in process `pid` (the SDK was imported)."""
+    """rerun's native library is mapped in process `pid` (the SDK was imported: never, in the appliance)."""
     return "rerun_bindings" in Path(f"/proc/{pid}/maps").read_text()
 
 
@@ -147,9 +147,8 @@ def test_the_first_viewer_of_a_run_opened_from_the_runs_page_starts_at_the_live_
     the last seconds before the opening (the live edge, newest first), never the run from cycle 0
     (it is LATE_S old); until that frame the tab's line says what it is doing (no empty plots
     without a word); the replay from the run's start is offered beside it, as its log's .rrd in a
-    tab of its own. And the appliance prepared for that first viewer while the Runs page was shown
-    (rerun imported; logs/rerun_live.py prepare_import), not before: an appliance whose run
-    nobody looks at live does not load it. How soon the first sample comes is a figure of
+    tab of its own. And the appliance never loads the rerun SDK, not even for the viewer it streams
+    to (logs/rerun_sender.py; issue 30 item 4). How soon the first sample comes is a figure of
     bench/appliance/rerun_lag.py --via-runs-page (no timing asserted here)."""
     server.stop_run()
     pid = server.proc.pid
@@ -160,7 +159,7 @@ def test_the_first_viewer_of_a_run_opened_from_the_runs_page_starts_at_the_live_
     warm.wait_for_function("() => window._handle !== undefined", timeout=300_000)
     warm.close()
     # (this module's first test: nothing in it has watched a run live yet)
-    assert not _rerun_loaded(pid), "rerun was imported in the appliance before any live viewer"
+    assert not _rerun_loaded(pid), "rerun was imported in the appliance"
 
     run = server.start_run("relbot")
     with server.ws() as ws:
@@ -174,8 +173,6 @@ def test_the_first_viewer_of_a_run_opened_from_the_runs_page_starts_at_the_live_
     assert not _rerun_loaded(pid), "a dashboard's page made the appliance import rerun"
     dash.goto(server.url + "/#runs")
     dash.wait_for_selector("#rr-live", state="visible", timeout=60_000)
-    # The Runs page of a live run: a viewer is likely soon, and the appliance imports rerun now.
-    wait_for(lambda: _rerun_loaded(pid), 60, "rerun imported while the Runs page is shown")
     with dash.context.expect_page(timeout=120_000) as popup:
         opened_ns = time.time_ns()
         dash.click("#rr-live")
@@ -202,6 +199,7 @@ def test_the_first_viewer_of_a_run_opened_from_the_runs_page_starts_at_the_live_
         f"the newest sample of the viewer's first frame with data was {(opened_ns - newest) / 1e9:.1f} s older "
         "than its opening"
     )
+    assert not _rerun_loaded(pid), "the appliance imported rerun to stream to a viewer"
     # Until that frame, the tab said what it was doing (its line over the canvas)...
     assert line_before and all(line_before), line_before
     # ...and the line goes once the first sample is drawn.

@@ -13,6 +13,20 @@ if os.environ.get("XRF_TRACEMALLOC"):  # a benchmark looking for growth: snapsho
 
     install(Path(os.environ["XRF_TRACEMALLOC"]))
 
+if os.environ.get("XRF_IMPORT_LOG"):  # a test asking which packages the appliance imports: their top-level
+    # names, appended to that file as each is first imported (a finder that finds nothing: the
+    # import goes on as without it)
+    class _ImportLog:
+        def __init__(self, path: str) -> None:
+            self.path = path
+
+        def find_spec(self, name: str, path: object = None, target: object = None) -> None:
+            if "." not in name:
+                with open(self.path, "a") as f:
+                    f.write(name + "\n")
+
+    sys.meta_path.insert(0, _ImportLog(os.environ["XRF_IMPORT_LOG"]))  # type: ignore[arg-type]
+
 from xrflab.server.app import create_app  # noqa: E402
 from xrflab.server.cli.serve import serve  # noqa: E402
 from xrflab.server.settings import Settings  # noqa: E402

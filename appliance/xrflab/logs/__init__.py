@@ -15,8 +15,9 @@ itself with open_log when open_log first runs (reader.FORMAT_MODULES).
 
 The appliance's side of a run's logging is not named here: ``live`` (a run's logging, start to
 finish), ``host_writer`` (ring -> file), ``log_channel`` (the shared memory's log ring and layout),
-``record_file`` (whole records only), ``timing_series``, ``rerun_live`` (the live recording) and
-``rerun_servers`` (rerun's child processes).
+``record_file`` (whole records only), ``timing_series``, ``rerun_live`` (the live recording),
+``rerun_sender`` (its messages to the run's proxy, without the rerun SDK) and ``rerun_servers``
+(rerun's child processes).
 """
 
 from __future__ import annotations

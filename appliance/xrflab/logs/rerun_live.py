@@ -13,12 +13,14 @@ counted, when the queue is full). See docs/logging/appliance.md.
 Nothing is sent while no viewer reads the run's proxy (``LiveProxy.readers``, counted by the
 appliance's read route): the proxy keeps only a few seconds for a late viewer anyway (its window,
 rerun_servers.LIVE_WINDOW), and the whole run is in its log, so a stream for nobody was work and
-memory for nobody (issue 30 item 4: ~16 % of the idle appliance's Python time, and the rerun SDK,
-~65 MB RSS, imported at every run's start). The recording connects (and rerun is imported) at the
-first viewer; from then on each batch is the last ``SEND_PERIOD_S`` of records and telemetry, so
+memory for nobody (issue 30 item 4: ~16 % of the idle appliance's Python time). The recording
+connects at the first viewer; from then on each batch is the last ``SEND_PERIOD_S`` of records and telemetry, so
 a viewer that opens gets the live edge within one batch. "First viewer" counts from when a live
 viewer's page is served (``LiveProxy.expect_viewer``): its wasm app starts and connects seconds
 later, by when the recording is connected and the proxy holds the live edge (issue 31 bug 6).
+
+The messages are made and sent by ``rerun_sender.LiveSender`` (gRPC-web to the proxy, one POST per
+batch), not by the rerun SDK: the appliance imports neither rerun nor pyarrow (issue 30 item 4).
 """
 
 from __future__ import annotations
@@ -28,7 +30,6 @@ import inspect
 import itertools
 import logging
 import queue
-import sys
 import threading
 import time
 import weakref
@@ -41,6 +42,7 @@ import numpy as np
 from ..channels.errors import ChannelsCorrupt
 from ..ticks import until_aligned
 from . import logformat
+from .rerun_sender import APPLICATION_ID, LiveSender, escape_part
 from .rerun_servers import LiveProxy
 
 if TYPE_CHECKING:
@@ -69,64 +71,6 @@ SEND_PERIOD_S = 0.5
 IDLE_LOOK_S = 1.0  # with no viewer: how often the sending thread looks for one (on the whole second)
 
 
-_import_started = False
-_import_lock = threading.Lock()
-
-
-def prepare_import() -> None:
-    """Import the rerun SDK on a thread of its own, once per appliance, when a live viewer is
-    likely soon (server/http/rerun.py: the Runs page, which has the "Live plots" button, looked
-    at a live run its user may watch). The run's first viewer otherwise waited for it: the
-    recording imports rerun when it connects (``LiveRerun._connect``), 0.6 s on an idle 2-core VM
-    and 1.5-5 s under load, on the way to the viewer's first data (issue 31 bug 6). Once imported,
-    rerun stays for the appliance's life, as after any first viewer (~60 MB RSS,
-    bench/README.md): so this is not done while no run is live, nor for a dashboard that never
-    opens the Runs page. The import itself is CPU only; nothing streams before a viewer."""
-    global _import_started
-    with _import_lock:
-        if _import_started or "rerun" in sys.modules:
-            return
-        _import_started = True
-
-    def load() -> None:
-        try:
-            import rerun  # noqa: F401
-            import rerun.blueprint  # noqa: F401  (live_blueprint)
-            from rerun.blueprint.api import create_in_memory_blueprint  # noqa: F401  (blueprint_storage)
-        except Exception:  # the recording's own import reports it at the first viewer
-            log.debug("rerun import in advance failed", exc_info=True)
-
-    threading.Thread(target=load, name="xrf-rerun-import", daemon=True).start()
-
-
-def live_blueprint(names: list[str], telemetry: list[str], freq: int = 1000):
-    import rerun as rr
-    import rerun.blueprint as rrb
-
-    from .convert import variable_groups
-
-    # the last LIVE_SPAN_S on either timeline (cycle: at the loop's frequency)
-    span = [
-        rrb.VisibleTimeRange(
-            "cycle",
-            start=rrb.TimeRangeBoundary.cursor_relative(seq=-int(LIVE_SPAN_S * freq)),
-            end=rrb.TimeRangeBoundary.cursor_relative(),
-        ),
-        rrb.VisibleTimeRange(
-            "time",
-            start=rrb.TimeRangeBoundary.cursor_relative(seconds=-LIVE_SPAN_S),
-            end=rrb.TimeRangeBoundary.cursor_relative(),
-        ),
-    ]
-    groups = sorted(set(variable_groups(names).values()))
-    views = [
-        rrb.TimeSeriesView(origin=f"/log/{rr.escape_entity_path_part(g)}", name=f"log: {g}", time_ranges=span)
-        for g in groups
-    ]
-    views += [rrb.TimeSeriesView(origin=f"/telemetry/{t}", name=t, time_ranges=span) for t in telemetry]
-    return rrb.Blueprint(rrb.Grid(*views), rrb.TimePanel(timeline="cycle"), collapse_panels=True)
-
-
 def decimate_minmax(bucket: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Min/max decimation of `values` (rows x series; float) whose rows are grouped by `bucket`
     (runs of equal ids, e.g. cycle // n). Each run becomes at most two rows: its first and its last
@@ -152,31 +96,8 @@ def decimate_minmax(bucket: np.ndarray, values: np.ndarray) -> tuple[np.ndarray,
     return rows[keep], pairs.reshape(-1, values.shape[1])[keep]
 
 
-# The live blueprints' in-memory recordings, one per variable set (and rate), made once. Each
-# `send_blueprint` of the SDK makes a recording of its own that it never frees, not even in the
-# sweep (rerun-io/rerun#2116; measured with 0.41: two threads and its memory per call): one per run
-# watched live, for the appliance's lifetime. A set seen again (the same program run again, the
-# usual case in a practical) reuses its recording; the cap bounds what many different programs
-# keep, and a set past it costs what every one cost before.
-APP_ID = "xrflab"  # the live recordings' application: the viewer keeps one blueprint per app
-_BLUEPRINTS: dict[tuple[tuple[str, ...], tuple[str, ...], int], Any] = {}
-BLUEPRINTS_KEPT = 32
-_blueprints_lock = threading.Lock()
-
-
-def blueprint_storage(names: tuple[str, ...], telemetry: tuple[str, ...], freq: int) -> Any:
-    """The live blueprint of these variables as the SDK sends it (bindings.send_blueprint)."""
-    from rerun.blueprint.api import create_in_memory_blueprint
-
-    key = (names, telemetry, freq)
-    with _blueprints_lock:
-        storage = _BLUEPRINTS.get(key)
-        if storage is None:
-            blueprint = live_blueprint(list(names), list(telemetry), freq)
-            storage = create_in_memory_blueprint(application_id=APP_ID, blueprint=blueprint).storage
-            if len(_BLUEPRINTS) < BLUEPRINTS_KEPT:
-                _BLUEPRINTS[key] = storage
-        return storage
+APP_ID = APPLICATION_ID  # the live recordings' application: the viewer keeps one blueprint per app
+TELEMETRY_VIEWS = ["enc", "pwm", "xeno2ros"]  # the live blueprint's views after the variable groups'
 
 
 class LiveRerun:
@@ -187,7 +108,6 @@ class LiveRerun:
     ) -> None:
         """`wake_writer`: the run's host writer's ``wake`` (its records come every drain period
         otherwise, up to a second, while nobody watches), called when a viewer is coming."""
-        self._rr: Any = None  # the rerun module, imported at the first viewer (_connect)
         self._proxy = proxy
         self._run_id = run_id
         self._ch = ch
@@ -205,7 +125,7 @@ class LiveRerun:
         self._names: list[str] | None = None
         self._groups: dict[str, list[str]] = {}  # log entity -> its variables (record fields)
         self._series: dict[str, list[str]] = {}  # entity -> the series names logged for it
-        self.rec: Any = None  # the run's RecordingStream, from the first viewer on
+        self.rec: LiveSender | None = None  # the run's recording on its proxy, from the first viewer on
         self._telemetry_reader: TelemetryReader | None = None  # while watched: from the newest sample
         self._telemetry_broken = False  # the segment was found corrupt: no more telemetry
         self._texts: queue.SimpleQueue[dict[str, Any]] = queue.SimpleQueue()  # parameter changes
@@ -229,11 +149,9 @@ class LiveRerun:
         return self._proxy.watched()
 
     def _connect(self) -> None:
-        import rerun as rr
-
-        self._rr = rr
-        self.rec = rr.RecordingStream(APP_ID, recording_id=f"run-{self._run_id}")
-        self.rec.connect_grpc(self._proxy.local_url)
+        proxy = self._proxy
+        self.rec = LiveSender(lambda: proxy.read_url, f"run-{self._run_id}")  # (its port may change: a restart)
+        self.rec.connect()
         self._proxy.recording_connected = True  # its window may hold data from now on (LiveProxy.fresh)
 
     def feed(self, records: np.ndarray) -> None:
@@ -256,20 +174,17 @@ class LiveRerun:
             self._texts.put(c)
 
     def _send_texts(self) -> None:
-        from .convert import CHANGES_ENTITY, change_text
+        from .rrdfile import CHANGES_ENTITY, change_text
 
         rows = []
         while not self._texts.empty():
             rows.append(self._texts.get_nowait())
         if not rows:
             return
-        rr = self._rr
-        idx = [
-            rr.TimeColumn("cycle", sequence=np.array([int(c["cycle"]) for c in rows], dtype=np.int64)),
-            rr.TimeColumn("time", timestamp=np.array([float(c["t"]) for c in rows], dtype=np.float64)),
-        ]
-        cols = rr.TextLog.columns(text=[change_text(c) for c in rows], level=["INFO"] * len(rows))
-        self.rec.send_columns(CHANGES_ENTITY, indexes=idx, columns=cols)
+        assert self.rec is not None
+        cycle = np.array([int(c["cycle"]) for c in rows], dtype=np.int64)
+        t_s = np.array([float(c["t"]) for c in rows], dtype=np.float64)
+        self.rec.texts(CHANGES_ENTITY, cycle, t_s, [change_text(c) for c in rows], "INFO")
 
     def close(self, then: Callable[[], None] | None = None) -> None:
         """Stop feeding; flushing to the proxy happens in the background: a slow viewer can hold
@@ -292,33 +207,23 @@ class LiveRerun:
             self._thread.join()
             if self.rec is None:  # never watched: never connected
                 return
-            try:
-                self.rec.flush()
-                self.rec.disconnect()
-            except Exception:
-                pass
-            # The SDK keeps a recording made from Python until a sweep finds it unreferenced
-            # (rerun-io/rerun#2116): two threads and its memory per run watched live, for the
-            # appliance's lifetime (bench/appliance/practical.py). The blueprint's stream is not
-            # freed by it (measured there): one per run watched remains.
-            self.rec = None
+            # (the thread's last round sent everything: each round ends with its POST)
             with contextlib.suppress(Exception):
-                self._rr.bindings.flush_and_cleanup_orphaned_recordings()
+                self.rec.close()
+            self.rec = None
 
         threading.Thread(target=done, name="xrf-rerun-close", daemon=True).start()
 
-    def _indexes(self, cycle: np.ndarray, t_ns: np.ndarray) -> list[Any]:
-        rr = self._rr
-        return [
-            rr.TimeColumn("cycle", sequence=cycle.astype(np.int64)),
-            rr.TimeColumn("time", timestamp=(t_ns.astype(np.int64) + self._wall_offset).view("datetime64[ns]")),
-        ]
+    def _indexes(self, cycle: np.ndarray, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The cycle and time (wall-clock ns) timelines of these rows."""
+        return cycle.astype(np.int64), t_ns.astype(np.int64) + self._wall_offset
 
     def _name_series(self, entity: str, names: list[str]) -> None:
         """The series' names of a multi-series entity, once per set of names (static)."""
         if self._series.get(entity) != names:
             self._series[entity] = names
-            self.rec.log(entity, self._rr.SeriesLines(names=names), static=True)
+            assert self.rec is not None
+            self.rec.series_names(entity, names)
 
     # One message per entity per batch, and rerun's viewer ingests messages for at most 10 ms per
     # frame (re_viewer's receive_messages): a browser drawing a few frames per second (software
@@ -329,16 +234,17 @@ class LiveRerun:
     def _send_records(self, rec: np.ndarray) -> None:
         from .convert import _plain, variable_groups
 
-        rr = self._rr
+        sender = self.rec
+        assert sender is not None
         header = {name for name, _, _ in logformat.RECORD_HEADER}  # seq, cycle, t_ns
         names = [n for n in rec.dtype.names or () if n not in header]
         if names != self._names:
             self._names = names
             self._groups = {}
             for n, g in variable_groups(names).items():
-                self._groups.setdefault(f"log/{rr.escape_entity_path_part(g)}", []).append(n)
-            storage = blueprint_storage(tuple(names), ("enc", "pwm", "xeno2ros"), self._freq)
-            rr.bindings.send_blueprint(storage, True, True, recording=self.rec.to_native())
+                self._groups.setdefault(f"log/{escape_part(g)}", []).append(n)
+            groups = sorted(set(variable_groups(names).values()))
+            sender.blueprint(groups, TELEMETRY_VIEWS, LIVE_SPAN_S, self._freq)
         bucket = rec["cycle"] // self._bucket
         for entity, members in self._groups.items():
             # an array variable (or a char string) is a series per element
@@ -348,12 +254,11 @@ class LiveRerun:
                 [n if c.shape[1] == 1 else f"{n}[{i}]" for n, c in zip(members, cols) for i in range(c.shape[1])],
             )
             rows, values = decimate_minmax(bucket, np.hstack(cols))  # the same rows for every entity
-            idx = self._indexes(rec["cycle"][rows], rec["t_ns"][rows])
-            self.rec.send_columns(entity, indexes=idx, columns=rr.Scalars.columns(scalars=values))
+            sender.scalars(entity, *self._indexes(rec["cycle"][rows], rec["t_ns"][rows]), values)
 
     def _send_telemetry(self) -> None:
-        rr = self._rr
-        if self._telemetry_reader is None:
+        sender = self.rec
+        if self._telemetry_reader is None or sender is None:
             return
         try:
             samples = self._telemetry_reader.read()
@@ -376,7 +281,7 @@ class LiveRerun:
             if values.ndim != 2 or values.shape[1] == 0:
                 continue
             self._name_series(f"telemetry/{key}", [str(i + 1) for i in range(values.shape[1])])
-            self.rec.send_columns(f"telemetry/{key}", indexes=idx, columns=rr.Scalars.columns(scalars=values))
+            sender.scalars(f"telemetry/{key}", *idx, values)
         fields = samples[0].xeno2ros.keys() if isinstance(samples[0].xeno2ros, dict) else []
         plotted, columns = [], []
         for name in fields:
@@ -387,9 +292,7 @@ class LiveRerun:
             plotted.append(name)
         if plotted:
             self._name_series("telemetry/xeno2ros", plotted)
-            self.rec.send_columns(
-                "telemetry/xeno2ros", indexes=idx, columns=rr.Scalars.columns(scalars=np.column_stack(columns))
-            )
+            sender.scalars("telemetry/xeno2ros", *idx, np.column_stack(columns))
 
     def _take(self, item: np.ndarray | None | EllipsisType, pending: list[np.ndarray]) -> bool:
         """One item of the queue: records to `pending`; True for the end (close)."""
@@ -466,6 +369,8 @@ class LiveRerun:
                     last_telemetry = now
                     self._send_telemetry()
                     self._send_texts()
+                if self.rec is not None:  # the round's batch: one POST (a failed one is dropped: LiveSender)
+                    self.rec.flush()
             except Exception:
                 pending.clear()
                 log.exception("live rerun")

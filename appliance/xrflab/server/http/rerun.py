@@ -41,7 +41,7 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
@@ -113,15 +113,10 @@ def _origin(request: Request) -> str:
     dependencies=[requires(Perm.WATCH)],
     summary="where the rerun viewer and the live stream are, for this request's host",
 )
-async def rerun_info(
-    request: Request,
-    soon: bool = Query(
-        False,
-        description="a live viewer is likely soon (the Runs page is shown): when this user's run is live, "
-        "the appliance prepares for its first viewer (imports rerun) now",
-    ),
-) -> dict[str, Any]:
-    from ...logs.rerun_live import LIVE_HZ, LIVE_SPAN_S, prepare_import
+async def rerun_info(request: Request) -> dict[str, Any]:
+    # (The Runs page still asks with `soon=1`: the appliance imported rerun then, ahead of a first
+    # viewer. Its live sender needs no import now (logs/rerun_sender.py): nothing to prepare.)
+    from ...logs.rerun_live import LIVE_HZ, LIVE_SPAN_S
     from ...logs.rerun_servers import LiveProxy
 
     proxy = LiveProxy.current()
@@ -150,10 +145,6 @@ async def rerun_info(
     )
     scheme, hostport = _origin(request).split("://", 1)
     info.update(live_allowed=True, live_url=f"rerun+{scheme}://{hostport}/proxy")
-    if soon and info["live_running"]:
-        # The Runs page asks with `soon` when shown (frontend/pages/runs.js): a live viewer of this
-        # run is likely soon, and its first data waited for rerun's import (issue 31 bug 6).
-        prepare_import()
     return info
 
 
