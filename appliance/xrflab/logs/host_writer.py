@@ -153,6 +153,8 @@ class HostLogWriter:
         except Exception:  # status locked by a loop that died mid-write: the ring knows too
             self.stats.lost = self._chan.dropped()
         self._sample_timing(force=True)
+        if self._timing is not None:
+            self._timing.close()
         return self.stats
 
     def _main(self) -> None:
