@@ -268,28 +268,23 @@ def stage_figures(s: CData, percentiles: tuple[float, ...]) -> list[StageFigures
     timing series takes these once a second: it was most of the host log writer's CPU with the
     appliance idle, issue 30 item 4). Values are the loop's words as int64 (a loop writing more
     than 2**63 gets its own nonsense back; nothing is indexed by them)."""
-    words = np.frombuffer(ffi.buffer(s.hist), dtype=np.int64).reshape(-1, _HIST_WORDS)
-    counts, sums, mins, maxs = words[:, 0], words[:, 1], words[:, 2], words[:, 3]
-    cum = np.cumsum(words[:, 4:], axis=1)
-    lows = _bucket_lows()
-    columns = []
     for p in percentiles:
         if not 0 <= p <= 100:
             raise ValueError("percentile must be within 0..100")
-        rank = p / 100.0 * counts
-        hit = (cum >= rank[:, None]) & (cum > 0)
-        # The first bucket holding the rank, clamped to [min, max] as Histogram.percentile does;
-        # none (the buckets add up to less than the count): max; an empty stage: 0.
-        edge = np.minimum(np.maximum(lows[hit.argmax(axis=1)], mins), maxs)
-        value = np.where(hit.any(axis=1), edge, maxs)
-        columns.append(np.where(counts != 0, value, 0).tolist())
+    words = np.frombuffer(ffi.buffer(s.hist), dtype=np.int64).reshape(-1, _HIST_WORDS)
+    head = words[:, :4]  # count, sum_ns, min_ns, max_ns
+    counts, mins, maxs = head[:, 0:1], head[:, 2:3], head[:, 3:4]
+    cum = np.cumsum(words[:, 4:], axis=1)
+    # The first bucket whose running count reaches the rank (and is not 0: p = 0 is the first
+    # non-empty bucket): the number of buckets before it, all stages and percentiles at once.
+    ranks = np.maximum(counts * (np.array(percentiles, dtype=np.float64) / 100.0), 0.5)
+    first = (cum[:, None, :] < ranks[:, :, None]).sum(axis=2)
+    buckets = cum.shape[1]
+    # Clamped to [min, max] as Histogram.percentile does; none (the buckets add up to less than
+    # the count): max; an empty stage: 0.
+    edge = np.minimum(np.maximum(_bucket_lows()[np.minimum(first, buckets - 1)], mins), maxs)
+    values = np.where(counts != 0, np.where(first < buckets, edge, maxs), 0).tolist()
     return [
-        StageFigures(
-            count=c,
-            sum_ns=sm,
-            min_ns=mn if c else 0,
-            max_ns=mx,
-            percentiles=tuple(col[i] for col in columns),
-        )
-        for i, (c, sm, mn, mx) in enumerate(zip(counts.tolist(), sums.tolist(), mins.tolist(), maxs.tolist()))
+        StageFigures(count=c, sum_ns=sm, min_ns=mn if c else 0, max_ns=mx, percentiles=tuple(v))
+        for (c, sm, mn, mx), v in zip(head.tolist(), values)
     ]
