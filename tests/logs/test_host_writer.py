@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+import threading
 import time
 from pathlib import Path
 
@@ -347,6 +348,41 @@ def test_a_live_viewer_coming_wakes_the_writer(loop, tmp_path: Path, monkeypatch
             stream.close()
             stream._thread.join(10)
         LiveProxy.stop_all()
+
+
+def test_records_go_to_the_live_stream_only_while_someone_takes_them(loop, tmp_path: Path) -> None:
+    # on_records (the live rerun stream) gets the drained records while fast() says a viewer takes
+    # them, and nothing (no copy of them made) while nobody does; every record is in the file
+    # either way (issue 30 item 4: the copy of every record, each drain, with no viewer open).
+    lp = loop(tmp_path)
+    viewer = threading.Event()
+    taken: list[np.ndarray] = []
+    w = HostLogWriter(lp.ch, {}, tmp_path, timing=False)
+    w.set_on_records(taken.append, fast=viewer.is_set)
+    w.start()
+    lp.command("initialise", "INITIALISED")
+    lp.command("start", "RUN")
+    lp.wait_cycles(1500)
+    w.drain()
+    assert taken == []  # nobody watching: nothing handed over
+    viewer.set()
+    w.wake()
+    start = lp.ch.status().log_written
+    wait_for(lambda: sum(len(r) for r in taken) > 0 and taken[-1]["seq"][-1] >= start + 200, 10, "live records")
+    viewer.clear()
+    w.drain()  # after any drain under way (the lock): from here on fast() is false
+    seen = sum(len(r) for r in taken)
+    lp.wait_cycles(500)
+    w.drain()
+    assert sum(len(r) for r in taken) == seen  # the viewer left: nothing more handed over
+    os.kill(lp.proc.pid, signal.SIGKILL)  # the counts then stand still (the mapping is ours)
+    lp.proc.wait(5)
+    stats = w.finish()
+    seqs = np.concatenate([r["seq"] for r in taken])
+    # While watched: every record, in order.
+    assert np.array_equal(seqs, np.arange(seqs[0], seqs[0] + len(seqs), dtype=np.uint64))
+    assert stats.records == lp.ch.status().log_written and stats.lost == 0  # the file has every record
+    assert seqs[0] > 0  # the records drained before the viewer came were not handed over
 
 
 def test_live_rerun_stream_sends_nothing_without_a_viewer(loop, tmp_path: Path) -> None:

@@ -266,12 +266,16 @@ class HostLogWriter:
         # At most two rings' worth a drain: a loop that moves its head as fast as we release
         # cannot keep this thread (and finish(), waiting for the lock) here.
         budget = 2 * self._chan.slots()
+        # The records go to on_records (the live rerun stream) only while someone takes them live
+        # (fast(): a viewer is open); with nobody there the stream drops them anyway, and the copy
+        # of every drained record with its array was work for nobody (issue 30 item 4).
+        live = self._on_records is not None and self._dtype is not None and (self._fast is None or self._fast())
         while taken < budget:
             run = self._chan.peek_run()
             if run is None:
                 break
             buf, n = run
-            if self._on_records is not None and self._dtype is not None:
+            if live and self._on_records is not None:
                 # A copy: the slots are reused as soon as they are released.
                 self._on_records(np.frombuffer(bytes(buf), dtype=self._dtype))
             self._write(buf, n)
