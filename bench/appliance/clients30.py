@@ -223,7 +223,7 @@ def main() -> None:
         per = row["delivered"] or []
         if per:
             print(
-                f"telemetry messages per client per s (two samples each since session 11): "
+                f"telemetry messages per client per s (Settings.telemetry_per_message samples each): "
                 f"min {min(per) / row['seconds']:.1f}, max {max(per) / row['seconds']:.1f}"
             )
     if results["cyclictest"] and results["alone"] and results["clients"]:

@@ -360,6 +360,41 @@ def test_histograms_from_status(shm_name: str) -> None:
         assert hist["cycle"].count == 0 and hist["cycle"].percentile(99) == 0
 
 
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(
+        st.lists(st.tuples(st.integers(0, channels.lib.XRF_HIST_BUCKETS - 1), st.integers(0, 1000)), max_size=12),
+        min_size=8,
+        max_size=8,
+    ),
+    st.lists(st.integers(-5, 5), min_size=8, max_size=8),
+)
+def test_stage_figures_are_what_each_histogram_says(stages, count_skew) -> None:
+    # The timing series' figures from one status copy, all stages at once (status.stage_figures),
+    # against each stage's Histogram: percentiles, count, sum, min and max the same, also where the
+    # count does not add up to the buckets (a loop may write anything there).
+    from xrflab.channels.status import histogram_from_struct, stage_figures
+
+    s = ffi.new("struct xrf_status *")
+    for i, buckets in enumerate(stages):
+        h = s.hist[i]
+        for b, n in buckets:
+            h.buckets[b] += n
+        total = sum(n for _, n in buckets)
+        h.count = max(0, total + count_skew[i])
+        h.sum_ns = 1234 * total
+        h.min_ns = lib.xrf_hist_bucket_low(min((b for b, n in buckets if n), default=0))
+        h.max_ns = lib.xrf_hist_bucket_low(max((b for b, n in buckets if n), default=0)) + 7
+    ps = (0.0, 1.0, 50.0, 90.0, 99.0, 99.9, 100.0)
+    figures = stage_figures(s, ps)
+    assert len(figures) == len(channels.STAGE_NAMES)
+    for i, f in enumerate(figures):
+        h = histogram_from_struct(s.hist[i])
+        assert f.percentiles == tuple(h.percentile(p) for p in ps)
+        assert (f.count, f.max_ns) == (h.count, h.max)
+        assert f.min_ns == h.min and f.sum_ns == s.hist[i].sum_ns
+
+
 # ---- the Channels class -------------------------------------------------------------------------
 
 

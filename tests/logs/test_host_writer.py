@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+import threading
 import time
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from xrf_testing.harness import wait_for
 from xrf_testing.loops import LoopProcess
 from xrflab.logs import open_log
 from xrflab.logs.host_writer import MAX_PERIOD_S, WAIT_MS, HostLogWriter, drain_period
+from xrflab.logs.timing_series import TIMING_FILE, TimingSeries
 
 
 @pytest.fixture
@@ -74,6 +76,60 @@ def test_kill_9_loses_nothing_that_reached_the_ring(loop, tmp_path: Path) -> Non
     assert np.array_equal(log.records["seq"], np.arange(len(log), dtype=np.uint64))
     assert log.segments[0].header["run"] == "7"
     _probe_ok(log.records)
+
+
+def _freeze(lp: LoopProcess) -> None:
+    """SIGSTOP the loop outside a status write (its block then reads whole); SIGCONT to go on."""
+    for _ in range(100):
+        os.kill(lp.proc.pid, signal.SIGSTOP)
+        wait_for(lambda: Path(f"/proc/{lp.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "T", 5)
+        if lp.ch.fresh_status() is not None:
+            return
+        os.kill(lp.proc.pid, signal.SIGCONT)
+        time.sleep(0.01)
+    raise AssertionError("the loop was always stopped mid status write")
+
+
+def test_a_timing_line_is_one_status_copy_and_says_what_the_histograms_say(loop, tmp_path: Path) -> None:
+    # The run's timing series (a line a second, by the host writer's thread) takes the counters
+    # and every stage's figures from one copy of the 33 KB status block (it made two: the
+    # histograms' and the counters'), and its file is opened once (issue 30 item 4).
+    import json
+
+    lp = loop(tmp_path)
+    lp.command("initialise", "INITIALISED")
+    lp.command("start", "RUN")
+    lp.wait_cycles(300)
+    _freeze(lp)  # the histograms hold still: the lines and the check see the same
+    series = TimingSeries(lp.ch, tmp_path)
+    copies = lp.ch.status_copies
+    series.sample(force=True)
+    assert lp.ch.status_copies - copies == 1
+    series.sample(force=True)
+    inode = (tmp_path / TIMING_FILE).stat().st_ino
+    (tmp_path / TIMING_FILE).rename(tmp_path / "moved.jsonl")  # the same file, written on: kept open
+    series.sample(force=True)
+    series.close()
+    assert not (tmp_path / TIMING_FILE).exists() and (tmp_path / "moved.jsonl").stat().st_ino == inode
+    lines = [json.loads(x) for x in (tmp_path / "moved.jsonl").read_text().splitlines()]
+    assert len(lines) == 3
+    status, hists = lp.ch.status(), lp.ch.histograms()
+    first, last = lines[0], lines[-1]
+    assert first["cycles"] == last["cycles"] == status.cycles and last["log_written"] == status.log_written
+    for name, h in hists.items():
+        st = first["stages"][name]
+        if not h.count:
+            assert st == {"n": 0, "mean_ns": None, "p50_ns": None, "p99_ns": None, "max_ns": None}
+            continue
+        assert (st["n"], st["p50_ns"], st["p99_ns"], st["max_ns"]) == (
+            h.count,
+            h.percentile(50),
+            h.percentile(99),
+            h.max,
+        )
+        assert abs(st["mean_ns"] - h.mean) <= 0.05 + 1e-6  # to a tenth of a ns
+        assert last["stages"][name]["n"] == 0  # nothing new since
+    os.kill(lp.proc.pid, signal.SIGCONT)
 
 
 def test_the_drain_period_follows_the_ring_capacity() -> None:
@@ -299,6 +355,41 @@ def test_a_live_viewer_coming_wakes_the_writer(loop, tmp_path: Path, monkeypatch
             stream.close()
             stream._thread.join(10)
         LiveProxy.stop_all()
+
+
+def test_records_go_to_the_live_stream_only_while_someone_takes_them(loop, tmp_path: Path) -> None:
+    # on_records (the live rerun stream) gets the drained records while fast() says a viewer takes
+    # them, and nothing (no copy of them made) while nobody does; every record is in the file
+    # either way (issue 30 item 4: the copy of every record, each drain, with no viewer open).
+    lp = loop(tmp_path)
+    viewer = threading.Event()
+    taken: list[np.ndarray] = []
+    w = HostLogWriter(lp.ch, {}, tmp_path, timing=False)
+    w.set_on_records(taken.append, fast=viewer.is_set)
+    w.start()
+    lp.command("initialise", "INITIALISED")
+    lp.command("start", "RUN")
+    lp.wait_cycles(1500)
+    w.drain()
+    assert taken == []  # nobody watching: nothing handed over
+    viewer.set()
+    w.wake()
+    start = lp.ch.status().log_written
+    wait_for(lambda: sum(len(r) for r in taken) > 0 and taken[-1]["seq"][-1] >= start + 200, 10, "live records")
+    viewer.clear()
+    w.drain()  # after any drain under way (the lock): from here on fast() is false
+    seen = sum(len(r) for r in taken)
+    lp.wait_cycles(500)
+    w.drain()
+    assert sum(len(r) for r in taken) == seen  # the viewer left: nothing more handed over
+    os.kill(lp.proc.pid, signal.SIGKILL)  # the counts then stand still (the mapping is ours)
+    lp.proc.wait(5)
+    stats = w.finish()
+    seqs = np.concatenate([r["seq"] for r in taken])
+    # While watched: every record, in order.
+    assert np.array_equal(seqs, np.arange(seqs[0], seqs[0] + len(seqs), dtype=np.uint64))
+    assert stats.records == lp.ch.status().log_written and stats.lost == 0  # the file has every record
+    assert seqs[0] > 0  # the records drained before the viewer came were not handed over
 
 
 def test_live_rerun_stream_sends_nothing_without_a_viewer(loop, tmp_path: Path) -> None:

@@ -160,6 +160,17 @@ def assert_answers(server: Server) -> None:
     assert time.monotonic() - t < 10.0
 
 
+def test_a_run_folder_of_its_own_is_not_walked(tmp_path: Path) -> None:
+    """The limits guard walks a run folder (in a worker thread, every 2 s) only where it has no
+    file system of its own; where the kernel bounds it, no walk is started at all (it used to be
+    started and to return at once: two threads woken for nothing, issue 30 item 4)."""
+    assert run_limits.RunLimits(tmp_path).walks_disk
+    assert run_limits.RunLimits(tmp_path, disk=run_limits.RunDisk(tmp_path)).walks_disk  # a probe's answer only
+    bounded = run_limits.RunLimits(tmp_path, disk=run_limits.RunDisk(tmp_path, image=tmp_path / "image"))
+    assert not bounded.walks_disk and bounded.watched_disk_over() is None
+    assert not run_limits.RunLimits(tmp_path, disk=run_limits.RunDisk(tmp_path, helper="/run/helper")).walks_disk
+
+
 def test_forked_children_over_the_memory_limit(server: Server, hostile: Any) -> None:
     """Hole 5: four children of 100 MB each, 128 MB for the run: the kernel kills, the run ends
     with `memory`, the appliance is untouched."""

@@ -169,7 +169,7 @@ def test_telemetry_by_its_fields_goes_out_as_its_model_would() -> None:
 
 
 def test_the_public_copy_is_made_only_for_a_client_that_needs_it() -> None:
-    """ownership.scope's public part of telemetry is a function (15 messages a second): with only
+    """ownership.scope's public part of telemetry is a function (7.5 messages a second): with only
     the owner and an educator connected it is never called; with someone else, once a message
     however many of them there are."""
     made: list[int] = []
@@ -274,3 +274,59 @@ def test_monitor_lines_by_their_fields_go_out_as_their_model_would() -> None:
     hub.publish_fields("monitor", fields)
     assert {name: _texts(c) for name, c in clients.items()} == by_model
     assert [len(by_model[n]) for n in ("alice", "bob", "teach")] == [1, 0, 1]
+
+
+def test_the_timing_message_by_its_fields_goes_out_as_its_model_would() -> None:
+    """The timing task's message (timing.timing_message_fields through Hub.publish_fields, once a
+    second while someone takes `timing`): the same text as TimingMessage through publish, to the
+    same clients, from a status and histograms as the loop leaves them."""
+    from xrflab.channels import ffi, lib
+    from xrflab.channels.status import histogram_from_struct, status_from_struct
+    from xrflab.server.runs.timing import timing_message_fields
+    from xrflab.server.ws.messages import Histogram, StageSummary, TimingMessage
+
+    hub, clients = _hub()
+    hub.scope = lambda kind, payload: ownership.scope(kind, payload, lambda run_id: "alice")
+    for c in clients.values():
+        _queued(c)  # the snapshot
+    raw = ffi.new("struct xrf_status *")
+    raw.cycles, raw.missed, raw.log_lost, raw.host_lost = 12_345, 3, 1, 2
+    for i, ns in enumerate((900, 15_000, 70, 0, 2_000_000, 450, 10, 0)):
+        h = raw.hist[i]
+        for k in range(5 if ns else 0):
+            v = ns + 37 * k
+            h.buckets[lib.xrf_hist_bucket(v)] += 1
+            h.count += 1
+            h.sum_ns += v
+            h.min_ns = v if k == 0 else min(h.min_ns, v)
+            h.max_ns = max(h.max_ns, v)
+    s = status_from_struct(raw)
+    from xrflab.channels import STAGE_NAMES
+
+    hists = {name: histogram_from_struct(raw.hist[i]) for i, name in enumerate(STAGE_NAMES)}
+    wake = hists["wakeup"]
+    hub.publish(
+        TimingMessage(
+            run_id=7,
+            cycles=s.cycles,
+            misses=s.missed,
+            cycle_freq=1000,
+            stages={
+                name: StageSummary(
+                    count=h.count, min=h.min, max=h.max, mean=h.mean, p50=h.percentile(50), p99=h.percentile(99)
+                )
+                for name, h in hists.items()
+            },
+            jitter=Histogram(edges=wake.edges, counts=wake.counts),
+            histograms={name: Histogram(edges=h.edges, counts=h.counts) for name, h in hists.items()},
+            telemetry_sent=99,
+            log_lost=s.log_lost,
+            host_lost=s.host_lost,
+        )
+    )
+    by_model = {name: _texts(c) for name, c in clients.items()}
+    fields = timing_message_fields(7, s, hists, 1000, 99)
+    TimingMessage.model_validate(fields)
+    hub.publish_fields("timing", fields)
+    assert {name: _texts(c) for name, c in clients.items()} == by_model
+    assert all(len(t) == 1 for t in by_model.values()) and '"p99":' in by_model["alice"][0]

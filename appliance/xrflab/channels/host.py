@@ -23,7 +23,15 @@ from .errors import ChannelsCorrupt, ChannelsError, StatusBusy
 from .names import HOST_LOST_ACTIONS, STAGE_NAMES
 from .rings import MonitorReader, TelemetryReader
 from .segment import Identity, shm_path
-from .status import Histogram, Status, StatusReader, histogram_from_struct, status_from_struct
+from .status import (
+    Histogram,
+    StageFigures,
+    Status,
+    StatusReader,
+    histogram_from_struct,
+    stage_figures,
+    status_from_struct,
+)
 
 
 def _char_array_fields(ctype: CData) -> set[str]:
@@ -183,6 +191,33 @@ class Channels:
     def histograms(self) -> dict[str, Histogram]:
         s = self._status_struct()
         return {name: histogram_from_struct(s.hist[i]) for i, name in enumerate(STAGE_NAMES)}
+
+    def status_and_histograms(self) -> tuple[Status, dict[str, Histogram]]:
+        """status() and histograms() from one consistent copy of the block (the timing message
+        takes both once a second: one 33 KB copy, not two)."""
+        s = self._status_struct()
+        return status_from_struct(s), {name: histogram_from_struct(s.hist[i]) for i, name in enumerate(STAGE_NAMES)}
+
+    def timing_figures(
+        self, percentiles: tuple[float, ...] = (50.0, 99.0)
+    ) -> tuple[dict[str, int], dict[str, StageFigures]]:
+        """From one consistent copy of the status block: the counters the run's timing series keeps
+        (cycles, missed, log_written, log_lost) and every stage's count, sum, min, max and
+        `percentiles` (status.stage_figures: the values its Histogram gives, without converting
+        the buckets stage by stage, nor the rest of the status)."""
+        s = self._status_struct()
+        counters = {
+            "cycles": int(s.cycles),
+            "missed": int(s.missed),
+            "log_written": int(s.log_written),
+            "log_lost": int(s.log_lost),
+        }
+        return counters, dict(zip(STAGE_NAMES, stage_figures(s, percentiles)))
+
+    @property
+    def status_copies(self) -> int:
+        """Consistent copies of the status block made so far (tests: how often a user copies it)."""
+        return self._status.copies
 
     # -- commands -----------------------------------------------------------------------------
 

@@ -135,6 +135,7 @@ class StatusReader:
         self._odd_seq: int | None = None  # the odd seq those reads last saw, and the loop's
         self._odd_cycles = 0  # cycle count when it was first seen
         self._corrupt = ""
+        self.copies = 0  # consistent copies made (tests: a reader's copies per use, issue 30 item 4)
 
     def read(self) -> CData:
         s = self.read_fresh()
@@ -156,6 +157,7 @@ class StatusReader:
         with self._lock:
             if s is not None:
                 self._last = s
+                self.copies += 1
                 self._locked_since, self._odd_seq = None, None
                 return s
             self._judge_locked()
@@ -240,3 +242,49 @@ def histogram_from_struct(h: CData) -> Histogram:
         edges=edges,
         counts=counts,
     )
+
+
+# struct xrf_hist is count, sum_ns, min_ns, max_ns, then the buckets: all 64-bit words, no padding.
+_HIST_WORDS = 4 + lib.XRF_HIST_BUCKETS
+assert ffi.sizeof("struct xrf_hist") == 8 * _HIST_WORDS
+
+
+@dataclass(frozen=True)
+class StageFigures:
+    """One stage's figures from a status copy, as its Histogram gives them (histogram_from_struct):
+    `percentiles` in the order asked for, each Histogram.percentile's value."""
+
+    count: int
+    sum_ns: int
+    min_ns: int
+    max_ns: int
+    percentiles: tuple[int, ...]
+
+
+def stage_figures(s: CData, percentiles: tuple[float, ...]) -> list[StageFigures]:
+    """Every stage's count, sum, min, max and `percentiles` from a status copy `s`, in STAGE_NAMES'
+    order, with the buckets of all stages as one numpy array: the same values as
+    histogram_from_struct(...).percentile(p), without a Python list of buckets per stage (the run's
+    timing series takes these once a second: it was most of the host log writer's CPU with the
+    appliance idle, issue 30 item 4). Values are the loop's words as int64 (a loop writing more
+    than 2**63 gets its own nonsense back; nothing is indexed by them)."""
+    for p in percentiles:
+        if not 0 <= p <= 100:
+            raise ValueError("percentile must be within 0..100")
+    words = np.frombuffer(ffi.buffer(s.hist), dtype=np.int64).reshape(-1, _HIST_WORDS)
+    head = words[:, :4]  # count, sum_ns, min_ns, max_ns
+    counts, mins, maxs = head[:, 0:1], head[:, 2:3], head[:, 3:4]
+    cum = np.cumsum(words[:, 4:], axis=1)
+    # The first bucket whose running count reaches the rank (and is not 0: p = 0 is the first
+    # non-empty bucket): the number of buckets before it, all stages and percentiles at once.
+    ranks = np.maximum(counts * (np.array(percentiles, dtype=np.float64) / 100.0), 0.5)
+    first = (cum[:, None, :] < ranks[:, :, None]).sum(axis=2)
+    buckets = cum.shape[1]
+    # Clamped to [min, max] as Histogram.percentile does; none (the buckets add up to less than
+    # the count): max; an empty stage: 0.
+    edge = np.minimum(np.maximum(_bucket_lows()[np.minimum(first, buckets - 1)], mins), maxs)
+    values = np.where(counts != 0, np.where(first < buckets, edge, maxs), 0).tolist()
+    return [
+        StageFigures(count=c, sum_ns=sm, min_ns=mn if c else 0, max_ns=mx, percentiles=tuple(v))
+        for (c, sm, mn, mx), v in zip(head.tolist(), values)
+    ]

@@ -29,8 +29,9 @@ file too large) stops logging for the run, cuts the file back to its last comple
 after that are counted as ``unwritten`` so the run record still adds up: ``seq`` of the last
 record + 1 = records in the file + lost + unwritten.
 
-The same thread samples the run's timing series (``timing_series.py``) and hands each drained
-batch of records to ``on_records`` (the live rerun stream, ``rerun_live.py``).
+The same thread samples the run's timing series (``timing_series.py``) and, while someone takes
+them live (``fast()``: a live rerun viewer is open), hands each drained batch of records to
+``on_records`` (the live rerun stream, ``rerun_live.py``); with nobody there no copy is made.
 """
 
 from __future__ import annotations
@@ -153,6 +154,8 @@ class HostLogWriter:
         except Exception:  # status locked by a loop that died mid-write: the ring knows too
             self.stats.lost = self._chan.dropped()
         self._sample_timing(force=True)
+        if self._timing is not None:
+            self._timing.close()
         return self.stats
 
     def _main(self) -> None:
@@ -264,12 +267,16 @@ class HostLogWriter:
         # At most two rings' worth a drain: a loop that moves its head as fast as we release
         # cannot keep this thread (and finish(), waiting for the lock) here.
         budget = 2 * self._chan.slots()
+        # The records go to on_records (the live rerun stream) only while someone takes them live
+        # (fast(): a viewer is open); with nobody there the stream drops them anyway, and the copy
+        # of every drained record with its array was work for nobody (issue 30 item 4).
+        live = self._on_records is not None and self._dtype is not None and (self._fast is None or self._fast())
         while taken < budget:
             run = self._chan.peek_run()
             if run is None:
                 break
             buf, n = run
-            if self._on_records is not None and self._dtype is not None:
+            if live and self._on_records is not None:
                 # A copy: the slots are reused as soon as they are released.
                 self._on_records(np.frombuffer(bytes(buf), dtype=self._dtype))
             self._write(buf, n)

@@ -69,10 +69,12 @@ class Settings:
     # Telemetry to browsers, decimated from the loop's write rate: telemetry_hz samples a second,
     # telemetry_per_message of them in one message (oldest first; the page plays them out at
     # their own spacing): each message costs the appliance a wake-up and a socket write per
-    # dashboard, so 2 halves both for the same 30 samples a second, at the price of one sample
-    # period more before the older sample of a message reaches a browser (issue 30 item 4).
+    # dashboard (most of what one dashboard costs it: the wake-up's cold caches more than the
+    # Python), so 4 quarters both for the same 30 samples a second (7.5 messages), at the price of
+    # three sample periods (100 ms) more before the oldest sample of a message reaches a browser
+    # (issue 30 item 4: the appliance's CPU on a Pi; it was 2, 15 messages, in session 11).
     telemetry_hz: float = 30.0
-    telemetry_per_message: int = 2
+    telemetry_per_message: int = 4
     # The rerun web viewer's files are prepared (copied from `rerun --serve-web`, neutralised,
     # gzipped: a child of ~100 MB for some seconds) once per rerun version: at the appliance's
     # start, when it is smallest, rather than at the first live viewer, beside a run and its
@@ -133,7 +135,7 @@ class Settings:
 
     # WebSocket fan-out.
     max_frame_bytes: int = 64 * 1024
-    client_queue_telemetry: int = 32  # telemetry messages kept per client before dropping oldest (~2 s)
+    client_queue_telemetry: int = 16  # telemetry messages kept per client before dropping oldest (~2 s)
     client_queue_max: int = 2048  # any messages; beyond this the client is disconnected
     slow_client_s: float = 3.0  # dropping continuously this long -> disconnect
     # Kernel send buffer per connection (SO_SNDBUF on the listening socket, inherited by each

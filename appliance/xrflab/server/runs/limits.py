@@ -164,11 +164,19 @@ class RunLimits:
                     return "disk", f"the run folder is full ({what}): the kernel refuses its writes"
         return None
 
+    @property
+    def walks_disk(self) -> bool:
+        """The run folder's size is watched by walking it (watched_disk_over): it has no file
+        system of its own. Where it has one, the limits guard starts no walk at all (a worker
+        thread's wake-up and the event loop's for its answer, every 2 s, for nothing: issue 30
+        item 4)."""
+        return not (self.disk is not None and self.disk.bounded)
+
     def watched_disk_over(self) -> tuple[str, str] | None:
         """Where the `disk` layer is missing (an educator allowed the run without it): the run
         folder's size, walked, over ``run_disk_mb`` stops the run. A watch, not a bound: the run
         writes what it can between two looks (the limits guard looks every 2 s)."""
-        if self.disk is not None and self.disk.bounded:
+        if not self.walks_disk:
             return None
         used = folder_bytes(self.run_dir)
         if used <= self.disk_mb * MB:

@@ -14,12 +14,13 @@ what it costs on a busy core):
   (Supervisor._client_connected).
 - With a dashboard taking telemetry it wakes itself just after the loop publishes the sample
   that completes the next message (`next_publication` + TIMED_MARGIN_NS: the loop publishes at
-  a fixed spacing on our monotonic clock; a message is `per_message` samples due, 2 by default),
-  so it wakes ~15 times a second for a RELbot (dashboards get 30 samples a second of its 50, two
+  a fixed spacing on our monotonic clock; a message is `per_message` samples due, 4 by default),
+  so it wakes ~7.5 times a second for a RELbot (dashboards get 30 samples a second of its 50, four
   a message), the newest sample of each message read within about a millisecond of its
   publication, and neither a thread of ours nor the event loop's self-pipe is woken for the
   samples in between. What the loop published before it (samples, monitor lines, a state
-  change) is read in that batch, at most one message period (67 ms) later.
+  change of its own) is read in that batch, at most one message period (133 ms) later; a
+  command's state is published when the loop took it (server/runs/control.py), not here.
 - With clients that take monitor lines or the state but not telemetry (a dashboard tab that is
   hidden, a tool) it wakes itself every STREAMS_PERIOD_S (10 times a second, sooner should a
   ring fill faster): the doorbell would wake it for every publication of the loop (50 a second

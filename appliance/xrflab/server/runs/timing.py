@@ -12,17 +12,52 @@ nobody is left looking at a run that paused for no reason they can see.
 from __future__ import annotations
 
 import asyncio
+from typing import Any
 
-from ...channels import ChannelsError
+from ...channels import ChannelsError, Status
+from ...channels import Histogram as ChHistogram
 from ...ticks import until_aligned
 from ..ws.hub import Hub
-from ..ws.messages import AlarmMessage, Histogram, StageSummary, TimingMessage
+from ..ws.messages import AlarmMessage, TimingMessage
 from .run import Run
+
+
+def timing_message_fields(
+    run_id: int, s: Status, hists: dict[str, ChHistogram], cycle_freq: int, telemetry_sent: int
+) -> dict[str, Any]:
+    """The wire fields of the TimingMessage of a status and its stages' histograms, as the model
+    dumps them (its fields' order, every field set): built here, not through the model (nine
+    models a second and their dump, for one dashboard: issue 30 item 4)."""
+    wake = hists.get("wakeup")
+    return {
+        "run_id": run_id,
+        "cycles": s.cycles,
+        "misses": s.missed,
+        "cycle_freq": cycle_freq,
+        "stages": {
+            name: {
+                "count": h.count,
+                "min": h.min,
+                "max": h.max,
+                "mean": float(h.mean),
+                "p50": h.percentile(50),
+                "p99": h.percentile(99),
+            }
+            for name, h in hists.items()
+        },
+        "jitter": {"edges": wake.edges, "counts": wake.counts} if wake else {"edges": [], "counts": []},
+        # every stage's histogram (non-empty buckets: lower edge ns, count), for tools
+        "histograms": {name: {"edges": h.edges, "counts": h.counts} for name, h in hists.items()},
+        "telemetry_sent": telemetry_sent,
+        "log_lost": s.log_lost,
+        "host_lost": s.host_lost,
+    }
 
 
 async def timing(run: Run, period_s: float, hub: Hub) -> None:
     ch = run.channels
     assert ch is not None
+    checked = False  # the first message is checked against TimingMessage (Hub.publish_fields)
     while True:
         await asyncio.sleep(until_aligned(period_s))  # with the other once-a-second work
         # The histograms (eight of 512 buckets, converted in Python) and the message only for
@@ -36,38 +71,15 @@ async def timing(run: Run, period_s: float, hub: Hub) -> None:
                     s = ch.status()
                     _host_lost_alarm(run, s.host_lost, s.state_name, hub)
                 continue
-            s = ch.status()
-            hists = ch.histograms()
+            s, hists = ch.status_and_histograms()  # one copy of the status block
         except ChannelsError:
             continue
         _host_lost_alarm(run, s.host_lost, s.state_name, hub)
-        stages = {
-            name: StageSummary(
-                count=h.count,
-                min=h.min,
-                max=h.max,
-                mean=h.mean,
-                p50=h.percentile(50),
-                p99=h.percentile(99),
-            )
-            for name, h in hists.items()
-        }
-        wake = hists.get("wakeup")
-        hub.publish(
-            TimingMessage(
-                run_id=run.row.id,
-                cycles=s.cycles,
-                misses=s.missed,
-                cycle_freq=ch.info["cycle_freq"],
-                stages=stages,
-                jitter=Histogram(edges=wake.edges, counts=wake.counts) if wake else Histogram(edges=[], counts=[]),
-                # every stage's histogram (non-empty buckets: lower edge ns, count), for tools
-                histograms={name: Histogram(edges=h.edges, counts=h.counts) for name, h in hists.items()},
-                telemetry_sent=run.telemetry_sent,
-                log_lost=s.log_lost,
-                host_lost=s.host_lost,
-            )
-        )
+        fields = timing_message_fields(run.row.id, s, hists, ch.info["cycle_freq"], run.telemetry_sent)
+        if not checked:
+            TimingMessage.model_validate(fields)
+            checked = True
+        hub.publish_fields("timing", fields)
         _miss_alarm(run, s.missed, hub)
 
 

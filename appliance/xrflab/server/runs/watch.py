@@ -408,7 +408,7 @@ async def limits_guard(run: Run, limits: RunLimits, settings: Settings, store: R
         looks += 1
         try:
             over = limits.over()
-            if over is None and looks % WATCHED_DISK_EVERY == 0:  # no file system of its own: walked
+            if over is None and limits.walks_disk and looks % WATCHED_DISK_EVERY == 0:  # no file system of its own
                 over = await asyncio.to_thread(limits.watched_disk_over)
         except Exception:  # never let the guard die quietly: the run would go on unwatched
             log.exception("run %s: reading its limits failed", run.row.id)

@@ -15,8 +15,10 @@ Senders build the model (``StateMessage(run_id=..., ...)``; an outgoing model's 
 kind as default, and stays required in the published schema) and hand it to the hub, which takes
 nothing else (``ServerMessage``, ``ReplyMessage``). The model is validated when it is built, so a
 sender whose message does not fit fails there, with the field named, and never reaches a browser.
-Telemetry (15 messages a second of two samples each) is the exception: the reader builds its wire fields and checks the first
-against ``TelemetryMessage`` (``Hub.publish_fields``: the model cost more than the fan-out).
+The streams are the exception: telemetry (7.5 messages a second of four samples each), the
+monitor ring's lines and the timing message (once a second, nine models) are sent as their wire
+fields, built by their producer, the first of a run checked against ``TelemetryMessage``,
+``MonitorMessage``, ``TimingMessage`` (``Hub.publish_fields``: the model cost more than the fan-out).
 On the wire a message has the fields its sender set, nothing else: a field left out is absent (not
 null), as app.js and the room's bench publisher read them (``hub.unpack``: exclude_unset).
 
