@@ -478,7 +478,12 @@
       const r = await fetch(`/api/logs/runs/${run}`, { credentials: "same-origin" });
       const files = r.ok ? (await r.json()).files : [];
       if (!files.length) { const box = document.getElementById("xrf-live-note"); if (box) box.remove(); return; }
-      const path = `/api/logs/runs/${run}/files/${files[0].name.split("/").map(encodeURIComponent).join("/")}?fmt=rrd`;
+      // a link of the viewer's own (it sends no cookie, and opens only a path ending in .rrd:
+      // server/http/logs.py viewer_link)
+      const segs = files[0].name.split("/").map(encodeURIComponent).join("/");
+      const l = await fetch(`/api/logs/runs/${run}/viewer-link/${segs}`, { credentials: "same-origin" });
+      if (!l.ok) return;
+      const path = (await l.json()).path;
       if (!a) {
         const box = document.createElement("div");
         box.id = "xrf-live-note";

@@ -210,7 +210,7 @@
         ${f.error ? `<div class="rejected">${esc(f.error)}</div>` : ""}
         ${f.skipped.length ? `<div class="skipped"><strong>The decoder skipped ${num(f.skipped_bytes)} bytes:</strong><ul>${f.skipped.map((s) => `<li>${esc(s)}</li>`).join("")}</ul></div>` : ""}`;
       div.querySelector(".badge-slot").appendChild(lostBadge(f.lost));
-      div.querySelector(".open-rrd").addEventListener("click", () => openRrd(el, r.id, `${base}?fmt=rrd`));
+      div.querySelector(".open-rrd").addEventListener("click", () => openRrd(el, r.id, f.name));
       box.appendChild(div);
     }
     if (d.timing) {
@@ -278,12 +278,18 @@
     el.querySelector("#rr-what").textContent = `live: run ${info.live_run}` + (info.live_running ? "" : " (ended)");
   }
 
-  async function openRrd(el, id, path) {
+  // rerun's viewer fetches a recording without our cookie and opens only a path ending in .rrd:
+  // it gets a link of its own to this one log (server/http/logs.py viewer_link, valid for an hour).
+  async function openRrd(el, id, name) {
     const ask = ++asked;
     liveShown = null;
     const info = await rerunInfo(el);
     if (ask !== asked || !info.available) return;
-    show(el, location.origin + path, `run ${id} (.rrd)`);
+    const segs = name.split("/").map(encodeURIComponent).join("/");
+    let link;
+    try { link = await xrf.api("GET", `/api/logs/runs/${id}/viewer-link/${segs}`); } catch (e) { return; }
+    if (ask !== asked) return;
+    show(el, location.origin + link.path, `run ${id} (.rrd)`);
   }
 
   xrf.addPage({

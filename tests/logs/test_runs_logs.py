@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import httpx
 import numpy as np
 import pytest
 
@@ -97,12 +98,7 @@ def test_round_trip_every_format_matches_xrf_decode(server: Server, tmp_path: Pa
         else:
             # rerun chunks carry fresh random ids: compare what the recordings hold.
             assert _rrd_values(got.content, tmp_path / "api.rrd") == _rrd_values(want, tmp_path / "cli.rrd")
-            # The same download at a URL ending in .rrd, the one rerun's web viewer opens (it
-            # refuses `?fmt=rrd`); a name without the extension is no file of the run.
-            viewer = server.http.get(f"/api/logs/runs/{run['id']}/rrd/{f['name']}.rrd", timeout=120)
-            assert viewer.status_code == 200 and viewer.content == got.content
-            assert server.http.get(f"/api/logs/runs/{run['id']}/rrd/{f['name']}").status_code == 404
-            assert server.http.get(f"/api/logs/runs/{run['id']}/rrd/nothing.xrf.rrd").status_code == 404
+            _check_viewer_link(server, run["id"], f["name"], got.content)
     if True:  # the CSV is the streamed one: its numbers read back exactly
         import pyarrow.csv as pcsv
 
@@ -111,6 +107,35 @@ def test_round_trip_every_format_matches_xrf_decode(server: Server, tmp_path: Pa
     # The per-second framework timing series is kept beside the log.
     t = server.http.get(f"/api/logs/runs/{run['id']}/timing")
     assert t.status_code == 200 and b'"wakeup"' in t.content
+
+
+def _check_viewer_link(server: Server, run_id: int, name: str, rrd: bytes) -> None:
+    """The link rerun's web viewer is given (it sends no cookie and opens only a path ending in
+    .rrd): the same download without a login, for that log only; anything else about it is a 404."""
+    link = server.http.get(f"/api/logs/runs/{run_id}/viewer-link/{name}")
+    assert link.status_code == 200, link.text
+    path = link.json()["path"]
+    assert path.startswith("/api/logs/viewer/") and path.endswith(".rrd"), path
+    anonymous = httpx.Client(base_url=server.url, timeout=120)
+    try:
+        got = anonymous.get(path)
+        assert got.status_code == 200 and got.content == rrd
+        assert anonymous.head(path).status_code == 200
+        token = path.split("/")[4]
+        user_id, expires, mac = token.split(".")
+        forged = [
+            path.removesuffix(".rrd"),  # not the viewer's name for it
+            path.replace(f"/{run_id}/", f"/{run_id + 1}/"),  # another run, the same link
+            path.replace(token, f"{user_id}.{int(expires) + 1}.{mac}"),  # a longer life
+            path.replace(token, f"{user_id}.{expires}.{'0' * len(mac)}"),
+            path.replace(name, "other.xrf"),  # another file of the run
+        ]
+        for bad in forged:
+            assert anonymous.get(bad).status_code == 404, bad
+        assert anonymous.get(f"/api/logs/runs/{run_id}/files/{name}?fmt=rrd").status_code == 401
+    finally:
+        anonymous.close()
+    assert server.http.get(f"/api/logs/runs/{run_id}/viewer-link/nothing.xrf").status_code == 404
 
 
 def _rerun_threads(pid: int) -> int:

@@ -216,7 +216,7 @@ def test_the_first_viewer_of_a_run_opened_from_the_runs_page_starts_at_the_live_
     href, target, text = link
     replay = urllib.parse.parse_qs(urllib.parse.urlsplit(href).query)["url"][0]
     assert target == "_blank" and f"run {run['id']} from its start" in text, link
-    assert replay.startswith(f"{server.url}/api/logs/runs/{run['id']}/files/") and replay.endswith("?fmt=rrd"), href
+    assert replay.startswith(f"{server.url}/api/logs/viewer/") and replay.endswith(".rrd"), href
     live = urllib.parse.parse_qs(urllib.parse.urlsplit(viewer.url).query)["url"][0]
     assert live.endswith("/proxy") and live != replay, viewer.url
     rrd = server.http.get(replay.removeprefix(server.url))
@@ -342,7 +342,7 @@ def test_a_late_viewer_opens_at_the_live_edge(server: Server, browser) -> None: 
     viewer.wait_for_function("document.getElementById('xrf-replay') !== null", timeout=30_000)
     href = viewer.get_attribute("#xrf-replay", "href")
     target = urllib.parse.parse_qs(urllib.parse.urlsplit(href).query)["url"][0]
-    assert target.startswith(f"{server.url}/api/logs/runs/{run['id']}/files/") and target.endswith("?fmt=rrd"), href
+    assert target.startswith(f"{server.url}/api/logs/viewer/") and target.endswith(".rrd"), href
     rrd = server.http.get(target.removeprefix(server.url))
     assert rrd.status_code == 200 and rrd.content[:4] == b"RRF2", rrd.content[:8]
     # ...and the page says the live view is decimated and where every sample is (figures from the API).

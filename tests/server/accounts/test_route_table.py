@@ -78,6 +78,9 @@ def test_api_routes_are_not_public_except_the_login_ones(tmp_path) -> None:
         "/api/auth/login",
         "/api/auth/token",
         "/room/sso",
+        # rerun's web viewer fetches a finished run's .rrd without the cookie: the link in the path
+        # is the credential (accounts.new_link: one user, one log, an hour; else 404).
+        "/api/logs/viewer/{link}/{run_id}/{name:path}",
     }, public
 
 

@@ -40,6 +40,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path, PurePosixPath
 from typing import Any, BinaryIO, Literal
+from urllib.parse import quote
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse, Response, StreamingResponse
@@ -358,22 +359,44 @@ async def download(
 
 
 # rerun's web viewer (0.41) opens an http(s) URL only when its path ends in a file extension it
-# knows: given `…/files/<log>?fmt=rrd` it said "Failed to parse URL" and showed nothing, whatever
-# the download held. The viewer's links (frontend/pages/runs.js, rerun-tab.js) name the log here,
-# with `.rrd` after its name: the same download, the same checks.
-RRD_FOR_VIEWER = "/api/logs/runs/{run_id}/rrd/{name:path}"
+# knows (given `…/files/<log>?fmt=rrd` it said "Failed to parse URL") and fetches it without the
+# session cookie (a 401): either left "Open in rerun" with an empty viewer. So the page asks for a
+# link to the one log: a path ending in .rrd that carries its own credential (accounts.new_link:
+# this user, this run's log, for VIEWER_LINK_TTL_S), handed to the viewer (frontend/pages/runs.js,
+# rerun-tab.js). The download behind it is the same, with the same checks, as that user.
+VIEWER_LINK_TTL_S = 3600.0
+
+
+def _viewer_scope(run_id: int, name: str) -> str:
+    return f"rrd|{run_id}|{name}"
 
 
 @router.get(
-    RRD_FOR_VIEWER,
+    "/api/logs/runs/{run_id}/viewer-link/{name:path}",
     dependencies=[requires(Perm.WATCH)],
-    summary="a log as rerun .rrd at a URL ending in .rrd (what rerun's web viewer opens)",
+    summary="a link to a log as .rrd that rerun's web viewer can open (its own credential, for an hour)",
+)
+async def viewer_link(run_id: int, name: str, request: Request) -> dict[str, Any]:
+    row = _row(request, run_id)
+    await asyncio.to_thread(_file, row, name)  # a log of the run, or the same 404 as a download
+    accounts = request.app.state.security.accounts
+    link = accounts.new_link(ownership.user_of(request), _viewer_scope(row.id, name), VIEWER_LINK_TTL_S)
+    return {"path": f"/api/logs/viewer/{link}/{row.id}/{quote(name)}.rrd", "expires_s": VIEWER_LINK_TTL_S}
+
+
+@router.api_route(
+    "/api/logs/viewer/{link}/{run_id}/{name:path}",
+    methods=["GET", "HEAD"],  # the viewer may ask HEAD first
+    # Public as a route: the link in the path is the credential (checked below, before anything).
+    dependencies=[requires(Perm.PUBLIC)],
+    summary="a log as .rrd through a viewer link (viewer-link)",
     response_class=Response,
 )
-async def rrd_for_viewer(run_id: int, name: str, request: Request) -> Response:
-    if not name.endswith(".rrd"):
-        raise NotFound(f"run {run_id} has no log file {name!r}")
-    return await download(run_id, name.removesuffix(".rrd"), request, "rrd")
+async def viewer_rrd(link: str, run_id: int, name: str, request: Request) -> Response:
+    name = name.removesuffix(".rrd") if name.endswith(".rrd") else ""
+    if not name or request.app.state.security.resolve_link(request, link, _viewer_scope(run_id, name)) is None:
+        raise NotFound(f"run {run_id} has no log file {name!r}")  # a wrong or old link: as if missing
+    return await download(run_id, name, request, "rrd")
 
 
 @router.get(

@@ -492,13 +492,41 @@ class Accounts:
     # -- device cookies (LoginGuard) --------------------------------------------------------------
 
     def _device_key(self) -> bytes:
+        return self._key("device")
+
+    def _key(self, name: str) -> bytes:
+        """A secret of this appliance, made on first use and kept in the accounts database."""
         with self._lock:
-            r = self._db.execute("SELECT value FROM keys WHERE name='device'").fetchone()
+            r = self._db.execute("SELECT value FROM keys WHERE name=?", (name,)).fetchone()
             if r is None:
                 value = secrets.token_hex(32)
-                self._db.execute("INSERT INTO keys (name, value) VALUES ('device', ?)", (value,))
+                self._db.execute("INSERT INTO keys (name, value) VALUES (?, ?)", (name, value))
                 return bytes.fromhex(value)
         return bytes.fromhex(r[0])
+
+    # -- links: one resource for one user, for a client that sends no cookie ----------------------
+    # rerun's web viewer fetches a recording's URL without the session cookie (a 401 left it
+    # empty), so the page hands it a link that is its own credential: the user, an expiry and a
+    # MAC over them and the one resource (`scope`, e.g. a run's log), with a key of this appliance.
+    # Nothing is stored; a disabled account's links stop working with it.
+
+    def new_link(self, user: User, scope: str, ttl_s: float) -> str:
+        expires = int(time.time() + ttl_s)
+        return f"{user.id}.{expires}.{self._link_mac(user.id, expires, scope)}"
+
+    def link_user(self, link: str, scope: str) -> User | None:
+        """The user of `link` when it was made for `scope` and has not expired, else None."""
+        parts = link.split(".") if len(link) <= 100 else []
+        if len(parts) != 3 or not parts[0].isdigit() or not parts[1].isdigit():
+            return None
+        user_id, expires = int(parts[0]), int(parts[1])
+        if expires < time.time() or not hmac.compare_digest(parts[2], self._link_mac(user_id, expires, scope)):
+            return None
+        user = self.get(user_id)
+        return user if user is not None and not user.disabled else None
+
+    def _link_mac(self, user_id: int, expires: int, scope: str) -> str:
+        return hmac.new(self._key("link"), f"{user_id}|{expires}|{scope}".encode(), hashlib.sha256).hexdigest()[:40]
 
     def _device_mac(self, username: str, nonce: str) -> str:
         return hmac.new(self._device_key(), f"{username}|{nonce}".encode(), hashlib.sha256).hexdigest()[:40]

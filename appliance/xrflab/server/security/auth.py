@@ -136,6 +136,13 @@ class Security:
         conn.scope["xrf_auth"] = result
         return result
 
+    def resolve_link(self, conn: HTTPConnection, link: str, scope: str) -> User | None:
+        """A request that carries a link (accounts.new_link) instead of a login: it acts as the
+        link's user for this request only (routes declared Perm.PUBLIC that take one)."""
+        user = self.accounts.link_user(link, scope) if self.accounts is not None else None
+        conn.scope["xrf_auth"] = (user, "link" if user else "", "")
+        return user
+
 
 def _deny(conn: HTTPConnection, status: int, detail: str) -> Exception:
     if conn.scope["type"] == "websocket":
