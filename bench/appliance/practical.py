@@ -447,6 +447,12 @@ def main() -> int:
         default=1.0,
         help="the peak sampler's period (a child living less than it can be missed; 1 s as in earlier figures)",
     )
+    ap.add_argument(
+        "--viewer-on-demand",
+        action="store_true",
+        help="leave the rerun viewer's preparation to the first live viewer (as before session 12) instead of "
+        "the appliance's start (Settings.prepare_viewer_at_start, the default of `xrf serve`)",
+    )
     ap.add_argument("--json", help="also write the figures to this file")
     a = ap.parse_args()
     ev = {e for e in a.events.split(",") if e}
@@ -473,10 +479,30 @@ def main() -> int:
     traces = Path(a.tracemalloc).resolve() if a.tracemalloc else None
     if traces is not None:
         os.environ[memtrace.ENV] = str(traces)  # the harness's appliance inherits our environment
-    with appliance(loop_env=loop_env) as server, sync_playwright() as p:
+    with appliance(loop_env=loop_env, prepare_viewer_at_start=not a.viewer_on_demand) as server, sync_playwright() as p:
         root = server.proc.pid
         sampler = Sampler(root, a.sample_s)
         sampler.start()
+        if not a.viewer_on_demand:
+            # The appliance's start, as `xrf serve` does it: the rerun viewer's files prepared once
+            # (per rerun version) before the class comes; its own peak is said apart from the rounds'.
+            import importlib.metadata
+
+            from xrflab.server.http.rerun import PREPARED_AS
+
+            ready = (
+                server.data_dir / "rerun-viewer" / f"{importlib.metadata.version('rerun-sdk')}-{PREPARED_AS}" / "ready"
+            )
+            sampler.phase = "start"
+            wait_for(ready.is_file, timeout=600, what="the rerun viewer prepared at the appliance's start")
+            sampler.phase = ""
+            with sampler.lock:
+                start_peak = sampler.phase_peaks.get("start", [0.0, 0.0, 0])
+            print(
+                f"appliance start with the viewer's preparation: peak {start_peak[0]:.1f} MB RSS, "
+                f"{start_peak[1]:.1f} PSS ({int(start_peak[2])} samples)"
+            )
+            sampler.reset()
         browser = p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
         base = snapshot(root)
         maps = [smaps_by_mapping(root)]  # the appliance's mappings at start and after each round

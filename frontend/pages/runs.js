@@ -100,11 +100,11 @@
     try { runs = await xrf.api("GET", "/api/logs/runs?limit=200"); } catch (e) { return; }
     xrf.runsList = runs;  // test hook
     // A live run listed: is it one this user may watch live (and is live streaming on)? Asked once
-    // per run, with `soon` (the appliance prepares for its first viewer, as when the page is shown).
+    // per run: then the viewer's code is put in the HTTP cache (warmViewer).
     const live = runs.find((r) => r.live);
     if (live && !warmed && warmAsked !== live.id) {
       warmAsked = live.id;
-      rerunInfo(el, true).then((info) => { if (info.live_running && info.live_allowed) warmViewer(); });
+      rerunInfo(el).then((info) => { if (info.live_running && info.live_allowed) warmViewer(); });
     }
     const body = el.querySelector("#runs-list");
     // Rows are updated in place, never rebuilt: a table rebuilt every 2 s swallowed clicks (the
@@ -222,8 +222,8 @@
     if (reveal) $("panel-run-logs").scrollIntoView({ block: "nearest" });
   }
 
-  async function rerunInfo(el, soon) {
-    try { rerun = await xrf.api("GET", "/api/logs/rerun" + (soon ? "?soon=true" : "")); } catch (e) { rerun = { available: false, error: e.message }; }
+  async function rerunInfo(el) {
+    try { rerun = await xrf.api("GET", "/api/logs/rerun"); } catch (e) { rerun = { available: false, error: e.message }; }
     const msg = el.querySelector("#rr-message");
     msg.textContent = rerun.available ? "" : "The rerun viewer is not available: " + (rerun.error || "?");
     msg.classList.toggle("hidden", !!rerun.available);
@@ -305,10 +305,8 @@
     },
     show(el) {
       loadList(el);
-      // Where the viewer is, and, when a run of this user's is live, a hint to the appliance that
-      // a live viewer is likely soon: it imports rerun now rather than at the viewer's opening
-      // (issue 31 bug 6; server/http/rerun.py rerun_info). Nothing streams before a viewer opens.
-      rerunInfo(el, true);
+      // Where the viewer is (nothing streams before a viewer opens).
+      rerunInfo(el);
       if (selected) select(el, selected);
       clearInterval(timer);
       timer = setInterval(() => {

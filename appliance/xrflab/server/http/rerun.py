@@ -114,8 +114,6 @@ def _origin(request: Request) -> str:
     summary="where the rerun viewer and the live stream are, for this request's host",
 )
 async def rerun_info(request: Request) -> dict[str, Any]:
-    # (The Runs page still asks with `soon=1`: the appliance imported rerun then, ahead of a first
-    # viewer. Its live sender needs no import now (logs/rerun_sender.py): nothing to prepare.)
     from ...logs.rerun_live import LIVE_HZ, LIVE_SPAN_S
     from ...logs.rerun_servers import LiveProxy
 
