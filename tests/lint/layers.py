@@ -94,6 +94,7 @@ LAYER_OF: dict[str, str] = {
     "xrflab.projects.assignments": "domain",  # an assignment's id, limits and its folder on a bench (no store)
     "xrflab.build": "domain",  # where a project's sources are and how cmake builds them (`xrf build`, the builder)
     "xrflab.ticks": "domain",  # the common whole-second boundaries of the appliance's slow periodic work
+    "xrflab.loopback": "domain",  # httpx clients for the appliance's children on 127.0.0.1 (no proxy, no TLS)
     "xrflab.tied": "domain",  # a process primitive (children die with their parent); knows nothing of the appliance
     "xrflab.records": "domain",  # column(...): a dataclass as a SQLite table and an API model
     "xrflab.plants": "domain",  # the plant table (through the binding)

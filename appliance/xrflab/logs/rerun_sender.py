@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import loopback
 from .rrdfile import (
     _ACTIVATE,
     _BLUEPRINT,
@@ -228,7 +229,7 @@ class LiveSender:
         """The recording's store info and start time (sent with the first batch)."""
         import httpx  # (the appliance's read proxy has it loaded already: server/http/rerun.py)
 
-        self._client = httpx.Client(headers=GRPC_WEB, timeout=httpx.Timeout(TIMEOUT_S, connect=CONNECT_S))
+        self._client = loopback.client(headers=GRPC_WEB, timeout=httpx.Timeout(TIMEOUT_S, connect=CONNECT_S))
         self._enc.store_info(self._store)
         rows = _row_id_column(self._enc.tuids.rows(1), 1)
         self._enc.chunk(self._store, "/__properties", [rows, _int64_list_column(_START, [time.time_ns()])], 1, True)

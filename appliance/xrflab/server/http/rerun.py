@@ -46,6 +46,7 @@ from fastapi.responses import FileResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
 from starlette.background import BackgroundTask
 
+from ... import loopback
 from ...errors import NotFound, Unavailable
 from ...logs.convert_child import heavy_turn
 from ...logs.rerun_files import VIEWER_FILES
@@ -425,7 +426,7 @@ async def live_stream(method: str, request: Request) -> Response:
     # sent this loopback request to that proxy (no live stream at all), and each viewer's request
     # made a client that loaded the CA bundle on the event loop: 25-110 ms on a 2-core machine,
     # most of the route's own time before the run's proxy answered (issue 31 bug 6, session 12).
-    client = httpx.AsyncClient(timeout=httpx.Timeout(10.0, read=None), verify=False, trust_env=False)
+    client = loopback.async_client(timeout=httpx.Timeout(10.0, read=None))
     try:
         upstream = await client.send(
             client.build_request("POST", f"{proxy.read_url}/{SERVICE}/{method}", content=body, headers=headers),

@@ -26,6 +26,7 @@ from fastapi.responses import RedirectResponse, Response, StreamingResponse
 from starlette.background import BackgroundTask
 from starlette.websockets import WebSocketDisconnect
 
+from ... import loopback
 from ...errors import Unavailable, XrfError
 from ...logs.rerun_servers import LIB_SCRIPT, TAB_SCRIPT
 from ..security.auth import Perm, may, requires
@@ -68,7 +69,7 @@ async def viser_http(path: str, request: Request) -> Response:
     if path in ("", "index.html"):
         return await _index(url, request)
     headers = {"accept-encoding": request.headers.get("accept-encoding", "identity")}
-    client = httpx.AsyncClient(timeout=httpx.Timeout(30.0))
+    client = loopback.async_client(timeout=httpx.Timeout(30.0))
     try:
         upstream = await client.send(
             client.build_request("GET", url, params=request.query_params, headers=headers), stream=True
@@ -95,7 +96,7 @@ async def _index(url: str, request: Request) -> Response:
     is not, so that script keeps "Esc stops the run from anywhere" (issue 19) as in rerun's tab."""
     import httpx
 
-    async with httpx.AsyncClient(timeout=httpx.Timeout(30.0)) as client:
+    async with loopback.async_client(timeout=httpx.Timeout(30.0)) as client:
         try:
             r = await client.get(url, params=request.query_params, headers={"accept-encoding": "identity"})
         except httpx.HTTPError as exc:
