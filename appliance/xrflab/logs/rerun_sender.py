@@ -76,6 +76,7 @@ from .rrdfile import (
     _text_list_column,
     _uint8_list_column,
     _uuid_list_column,
+    _view_columns,
 )
 from .rrdfile import escape_part as _escape_ascii
 
@@ -256,15 +257,7 @@ class LiveSender:
             enc.chunk(store, entity, [_row_id_column(enc.tuids.rows(1), 1), *indexes, *columns], 1)
 
         for (name, origin), vid in zip(views, ids):
-            one_row(
-                f"/view/{vid}",
-                _text_list_column(_bp("ViewBlueprint", "class_identifier", "ViewClass"), [["TimeSeries"]]),
-                _text_list_column(
-                    ("rerun.blueprint.archetypes.ViewBlueprint", "ViewBlueprint:display_name", "rerun.components.Name"),
-                    [[name]],
-                ),
-                _text_list_column(_bp("ViewBlueprint", "space_origin", "ViewOrigin"), [[origin]]),
-            )
+            one_row(f"/view/{vid}", *_view_columns("TimeSeries", name, origin))
             one_row(
                 f"/view/{vid}/ViewContents",
                 _text_list_column(_bp("ViewContents", "query", "QueryExpression"), [["$origin/**"]]),

@@ -443,6 +443,19 @@ def _int64_list_column(desc: tuple[str, str, str], values: list[int]) -> Column:
     return Column(_list_field(desc, item), [(n, 0), (n, 0)], [b"", _offsets(n), b"", _le(array("q", values))])
 
 
+def _view_columns(kind: str, name: str, origin: str) -> list[Any]:
+    """A blueprint view's own row: its class, its name and its origin (the .rrd's and the live
+    recording's, logs/rerun_sender.py)."""
+    return [
+        _text_list_column(_bp("ViewBlueprint", "class_identifier", "ViewClass"), [[kind]]),
+        _text_list_column(
+            ("rerun.blueprint.archetypes.ViewBlueprint", "ViewBlueprint:display_name", "rerun.components.Name"),
+            [[name]],
+        ),
+        _text_list_column(_bp("ViewBlueprint", "space_origin", "ViewOrigin"), [[origin]]),
+    ]
+
+
 def _text_list_column(desc: tuple[str, str, str], rows: list[list[str]]) -> Column:
     """A list of strings a row."""
     outer = array("i", [0])
@@ -547,17 +560,7 @@ def write_blueprint(w: RrdWriter, names: list[str], tuned: bool) -> None:
             [_text_list_column(_bp("ViewContents", "query", "QueryExpression"), [["$origin/**"]])],
         )
     for (kind, name, origin), vid in zip(views, view_ids):
-        one_row(
-            f"/view/{vid}",
-            [
-                _text_list_column(_bp("ViewBlueprint", "class_identifier", "ViewClass"), [[kind]]),
-                _text_list_column(
-                    ("rerun.blueprint.archetypes.ViewBlueprint", "ViewBlueprint:display_name", "rerun.components.Name"),
-                    [[name]],
-                ),
-                _text_list_column(_bp("ViewBlueprint", "space_origin", "ViewOrigin"), [[origin]]),
-            ],
-        )
+        one_row(f"/view/{vid}", _view_columns(kind, name, origin))
     one_row(
         f"/container/{container}",
         [
