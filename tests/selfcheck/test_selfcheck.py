@@ -305,7 +305,7 @@ def test_cli_report_marks_and_exit_codes(checker_exe, tmp_path):
         timeout=120,
     )
     assert res.returncode == 1, res.stderr
-    assert "✗ motor.2" in res.stdout and "✓ motor.1" in res.stdout and "– motor.3" in res.stdout
+    assert "✗ motor.2" in res.stdout and "✓ motor.1" in res.stdout and "– motor.3" in res.stdout, res.stdout
     assert "encoder 2 does not count" in res.stdout
     saved = list(tmp_path.glob("*-jiwy.json"))
     assert len(saved) == 1

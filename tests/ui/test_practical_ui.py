@@ -334,8 +334,8 @@ def test_runs_page_keeps_the_users_choice(server: Server, browser) -> None:  # n
     page.wait_for_timeout(5000)
     # one tab, the .rrd: the late answer to "Live plots" and the 2 s poll opened none
     assert len(viewers) == 1 and len(opened) == 1, opened
-    assert "fmt%3Drrd" in opened[0]
-    assert "fmt%3Drrd" in page.get_attribute("#rr-link", "href")
+    assert "%2Fapi%2Flogs%2Fviewer%2F" in opened[0] and opened[0].endswith(".rrd"), opened  # its own link
+    assert "%2Fapi%2Flogs%2Fviewer%2F" in page.get_attribute("#rr-link", "href")
     assert "(.rrd)" in page.inner_text("#rr-what")
     page.context.close()
     assert live["id"] > run["id"]

@@ -49,6 +49,7 @@ OWNED: dict[tuple[str, str], str] = {
     ("GET", "/api/runs/{run_id}"): "run_id",
     ("GET", "/api/logs/runs/{run_id}"): "run_id",
     ("GET", "/api/logs/runs/{run_id}/files/{name:path}"): "run_id",
+    ("GET", "/api/logs/runs/{run_id}/viewer-link/{name:path}"): "run_id",
     ("GET", "/api/logs/runs/{run_id}/timing"): "run_id",
     ("GET", "/api/logs/runs/{run_id}/param-changes"): "run_id",
     ("GET", "/api/projects/{pid}"): "pid",
@@ -79,6 +80,9 @@ SHARED: dict[tuple[str, str], str] = {
     ("GET", "/api/assignments/{aid}/grades.csv"): "educators only",
     ("GET", "/api/project-templates/{template}/download"): "the bundled templates, everyone's",
     ("GET", "/rerun/{asset:path}"): "the rerun viewer's program files",
+    ("GET", "/api/logs/viewer/{link}/{run_id}/{name:path}"): "the link in the path is the credential, one user's "
+    "for one log (made by viewer-link, OWNED above); another run's, file's or a changed link is a 404: "
+    "tests/logs/test_runs_logs.py _check_viewer_link",
     ("GET", "/api/params/{name:path}"): "the current run's parameter by name, every watcher's (issue 28)",
     ("GET", "/viser/{path:path}"): "the 3D view's client files (one scene for the room)",
     ("WS", "/viser/{path:path}"): "the 3D view's scene (one for the room: the robot's motion)",
