@@ -18,7 +18,7 @@ import pytest
 from xrf_testing.convert_child import convert_in_child
 from xrf_testing.log_cases import VARIABLES, edge_rows
 from xrf_testing.writers import xrf2_bin, xrflog_segment
-from xrflab.logs import rrdfile
+from xrflab.logs import rerun_wire
 from xrflab.logs.convert import convert
 
 RERUN = Path(sys.executable).with_name("rerun")
@@ -223,23 +223,24 @@ def test_entity_path_escaping_is_reruns() -> None:
 
     for c in map(chr, range(128)):
         name = f"a{c}b"
-        assert rrdfile.escape_part(name) == rr.escape_entity_path_part(name), repr(c)
+        assert rerun_wire.escape_part(name) == rr.escape_entity_path_part(name), repr(c)
 
 
 def test_a_flatbuffer_reads_back_in_arrow() -> None:
     """The Arrow IPC stream of a chunk, read by pyarrow: types, metadata, values."""
     import pyarrow as pa
 
-    w = rrdfile.Tuids()
+    w = rerun_wire.Tuids()
     n = 3
     values = np.array([1.5, -0.0, np.nan]).astype("<f8").tobytes()
+    pairs = np.array([[1.0, 2.0], [3.0, 4.0], [5.0, -6.0]]).astype("<f8")
     cols = [
-        rrdfile._row_id_column(w.rows(n), n),
-        rrdfile._index_column("cycle", False, rrdfile.array("q", [1, 2, 2])),
-        rrdfile._index_column("time", True, rrdfile.array("q", [5, 4, 6])),
-        rrdfile._scalars_column(values, n),
+        rerun_wire.row_id_column(w.rows(n), n),
+        rerun_wire.index_column("cycle", False, np.array([1, 2, 2], dtype="<i8").tobytes(), True),
+        rerun_wire.index_column("time", True, np.array([5, 4, 6], dtype="<i8").tobytes(), False),
+        rerun_wire.scalars_column(values, n),
     ]
-    stream = b"".join(rrdfile.arrow_stream(cols, n, {"k": "v"}))
+    stream = b"".join(rerun_wire.arrow_stream(cols, n, {"k": "v"}))
     table = pa.ipc.open_stream(stream).read_all()
     assert table.schema.metadata == {b"k": b"v"}
     assert table.schema.field("time").type == pa.timestamp("ns")
@@ -247,5 +248,10 @@ def test_a_flatbuffer_reads_back_in_arrow() -> None:
     assert b"rerun:is_sorted" in table.schema.field("cycle").metadata
     assert b"rerun:is_sorted" not in table.schema.field("time").metadata  # 5, 4, 6: not sorted
     assert table.column("Scalars:scalars").combine_chunks().flatten().to_numpy().tobytes() == values
-    ids = table.column(rrdfile.ROW_ID).to_pylist()
+    # several series a row (the live recording's): a list of that many values a row
+    two = pa.ipc.open_stream(
+        b"".join(rerun_wire.arrow_stream([rerun_wire.scalars_column(pairs.tobytes(), n, 2)], n, {}))
+    )
+    assert two.read_all().column("Scalars:scalars").to_pylist() == pairs.tolist()
+    ids = table.column(rerun_wire.ROW_ID).to_pylist()
     assert ids == sorted(ids) and len(set(ids)) == n

@@ -4,8 +4,8 @@ the run's proxy (rerun_servers.LiveProxy) by gRPC-web over HTTP/1.1, without the
 The SDK (``rr.RecordingStream`` + ``connect_grpc``) was imported in the appliance only for this,
 and with it pyarrow and rerun_bindings: ~55 MB RSS that never left once a viewer had watched a
 run (issue 30 item 4, the appliance's ≤ 250 MB). The messages are the ones a ``.rrd`` carries
-(logs/rrdfile.py writes their Arrow IPC, protobuf and chunk metadata; its primitives are used
-here), the column bodies NumPy's bytes:
+(logs/rerun_wire.py encodes them: Arrow IPC, protobuf and chunk metadata, as for the `.rrd`
+download), the column bodies NumPy's bytes:
 
 - the recording's store info and its ``/__properties`` start time, as the SDK sends them when a
   recording is made;
@@ -28,7 +28,7 @@ with the store info, blueprint and series names again, which a restarted proxy n
 and goes to wherever the proxy listens now (``url`` is asked at each POST).
 
 The protobuf field numbers (rerun's ``sdk_comms.proto``/``log_msg.proto``, 0.41) are here and in
-rrdfile.py; tests/logs/test_live_sender.py fails when the pinned SDK no longer reads what a
+rerun_wire.py; tests/logs/test_live_sender.py fails when the pinned SDK no longer reads what a
 ReadMessages reader gets as what its own sender sent.
 """
 
@@ -44,41 +44,41 @@ from typing import Any
 import numpy as np
 
 from .. import loopback
-from .rrdfile import (
-    _ACTIVATE,
-    _BLUEPRINT,
-    _FLOAT,
-    _INT,
-    _LEVEL,
-    _LIST,
-    _RECORDING,
-    _SCALARS,
-    _START,
-    _TEXT,
-    _TIMESTAMP,
-    _UTF8,
+from .rerun_wire import (
     APPLICATION_ID,
+    BLUEPRINT,
+    DENSE,
     GRID,
+    INT,
+    LEVEL,
+    LIST,
+    NULL,
+    RECORDING,
+    START_TIME,
+    STRUCT,
+    TEXT,
+    UNION,
+    UTF8,
     Column,
     Field,
-    RrdWriter,
+    Messages,
     Tuids,
-    Writer,
-    _bp,
-    _component_meta,
-    _int,
-    _int64_list_column,
-    _list_field,
-    _pb_bytes,
-    _pb_int,
-    _row_id_column,
-    _store_id,
-    _text_list_column,
-    _uint8_list_column,
-    _uuid_list_column,
-    _view_columns,
+    bp,
+    component_meta,
+    escape_part,
+    fb_int32_vector,
+    index_column,
+    int64_list_column,
+    int_type,
+    make_store_id,
+    pb_bytes,
+    row_id_column,
+    scalars_column,
+    text_list_column,
+    uint8_list_column,
+    uuid_list_column,
+    view_columns,
 )
-from .rrdfile import escape_part as _escape_ascii
 
 log = logging.getLogger("xrflab.logs.live")
 
@@ -89,24 +89,22 @@ GRPC_WEB = {"content-type": "application/grpc-web+proto", "x-grpc-web": "1"}
 CONNECT_S = 2.0
 TIMEOUT_S = 5.0
 
-_STRUCT, _UNION, _NULL = 13, 14, 1  # Arrow Type union members (Schema.fbs)
-_DENSE = 1  # UnionMode
 _COLLAPSED = 2  # rerun.blueprint.components.PanelState
 _SERIES_NAMES = ("rerun.archetypes.SeriesLines", "SeriesLines:names", "rerun.components.Name")
-_TIME_RANGES = _bp("VisibleTimeRanges", "ranges", "VisibleTimeRange")
+_TIME_RANGES = bp("VisibleTimeRanges", "ranges", "VisibleTimeRange")
 _CURSOR_RELATIVE = 1  # the TimeRangeBoundary union's member (0 is its null marker)
 
 
-class _Frames(RrdWriter):
-    """rrdfile's writer of messages, each made a gRPC-web data frame of WriteMessages (a
+class _Frames(Messages):
+    """rerun's messages, each made a gRPC-web data frame of WriteMessages (a
     WriteMessagesRequest{log_msg = 1}, the LogMsg's field = the .rrd frame's kind) and kept."""
 
-    def __init__(self) -> None:  # (no stream header: the frames go to a proxy, not a file)
+    def __init__(self) -> None:
         self.tuids = Tuids()
         self.out: list[bytes] = []
 
     def _frame(self, kind: int, parts: list[bytes]) -> None:
-        request = _pb_bytes(1, _pb_bytes(kind, b"".join(parts)))
+        request = pb_bytes(1, pb_bytes(kind, b"".join(parts)))
         self.out.append(b"\x00" + struct.pack(">I", len(request)) + request)
 
     def take(self) -> list[bytes]:
@@ -117,54 +115,27 @@ class _Frames(RrdWriter):
 def _index(name: str, timestamp: bool, values: np.ndarray) -> Column:
     """A timeline's column: int64 sequence, or timestamp in ns since the epoch."""
     v = np.ascontiguousarray(values, dtype="<i8")
-    meta = {"rerun:index_name": name}
-    if len(v) < 2 or bool(np.all(v[1:] >= v[:-1])):
-        meta["rerun:is_sorted"] = "true"
-    meta["rerun:kind"] = "index"
-    kind = (_TIMESTAMP, ((0, "h", 3),)) if timestamp else (_INT, _int(64, True))
-    return Column(Field(name, kind[0], kind[1], meta=meta), [(len(v), 0)], [b"", v.tobytes()])
-
-
-def _scalars(values: np.ndarray) -> Column:
-    """Scalars:scalars: a list of the row's series values (rows x series, float64) a row."""
-    n, k = values.shape
-    item = Field("item", _FLOAT, ((0, "h", 2),))
-    offsets = (np.arange(n + 1, dtype="<i4") * k).tobytes()
-    body = np.ascontiguousarray(values, dtype="<f8").tobytes()
-    return Column(_list_field(_SCALARS, item), [(n, 0), (n * k, 0)], [b"", offsets, b"", body])
+    return index_column(name, timestamp, v.tobytes(), len(v) < 2 or bool(np.all(v[1:] >= v[:-1])))
 
 
 def _boundary(name: str) -> Field:
     """A TimeRangeBoundary: the dense union rerun's blueprint stores (members as the SDK's)."""
     members = (
-        Field("_null_markers", _NULL),
-        Field("CursorRelative", _INT, _int(64, True), nullable=False),
-        Field("Absolute", _INT, _int(64, True), nullable=False),
-        Field("Infinite", _NULL),
+        Field("_null_markers", NULL),
+        Field("CursorRelative", INT, int_type(64, True), nullable=False),
+        Field("Absolute", INT, int_type(64, True), nullable=False),
+        Field("Infinite", NULL),
     )
-    return Field(name, _UNION, ((0, "h", _DENSE), (1, "o", _int32_vector([0, 1, 2, 3]))), children=members)
-
-
-def _int32_vector(values: list[int]) -> Writer:
-    """A flatbuffers vector of int32 (a Union's typeIds)."""
-
-    def write(buf: bytearray) -> int:
-        while len(buf) % 4:
-            buf.append(0)
-        pos = len(buf)
-        buf.extend(struct.pack(f"<I{len(values)}i", len(values), *values))
-        return pos
-
-    return write
+    return Field(name, UNION, ((0, "h", DENSE), (1, "o", fb_int32_vector([0, 1, 2, 3]))), children=members)
 
 
 def _cursor_ranges(ranges: list[tuple[str, int]]) -> Column:
     """VisibleTimeRanges:ranges of one row: for each (timeline, span), from `span` before the
     time cursor to the cursor (TimeRangeBoundary.cursor_relative)."""
     m = len(ranges)
-    timeline = Field("timeline", _UTF8, nullable=False)
-    rng = Field("range", _STRUCT, children=(_boundary("start"), _boundary("end")), nullable=False)
-    item = Field("item", _STRUCT, children=(timeline, rng))
+    timeline = Field("timeline", UTF8, nullable=False)
+    rng = Field("range", STRUCT, children=(_boundary("start"), _boundary("end")), nullable=False)
+    item = Field("item", STRUCT, children=(timeline, rng))
     names = [t.encode() for t, _ in ranges]
     name_offsets = np.cumsum([0] + [len(n) for n in names], dtype="<i4").tobytes()
     types = bytes([_CURSOR_RELATIVE]) * m
@@ -190,15 +161,7 @@ def _cursor_ranges(ranges: list[tuple[str, int]]) -> Column:
         *start_bufs,
         *end_bufs,
     ]
-    return Column(Field(_TIME_RANGES[1], _LIST, children=(item,), meta=_component_meta(_TIME_RANGES)), nodes, buffers)
-
-
-def escape_part(part: str) -> str:
-    """An entity path part as rr.escape_entity_path_part writes it: rrdfile's escaping of ASCII, and
-    a letter or digit beyond ASCII as it is (rerun's `char::is_alphanumeric`; where Python's
-    Unicode tables say otherwise, as \\u{XXXX}, which rerun reads as the same character: the path
-    is the same, only its text differs)."""
-    return "".join(ch if not ch.isascii() and ch.isalnum() else _escape_ascii(ch) for ch in part)
+    return Column(Field(_TIME_RANGES[1], LIST, children=(item,), meta=component_meta(_TIME_RANGES)), nodes, buffers)
 
 
 def _path(entity: str) -> str:
@@ -213,7 +176,7 @@ class LiveSender:
     def __init__(self, url: Callable[[], str], recording_id: str) -> None:
         """`url`: where the proxy listens now (http://127.0.0.1:<port>), asked at each POST."""
         self._url = url
-        self._store = _store_id(_RECORDING, recording_id)
+        self._store = make_store_id(RECORDING, recording_id)
         self._enc = _Frames()
         self._client: Any = None  # httpx.Client, from connect on
         self._pending: list[bytes] = []
@@ -232,8 +195,8 @@ class LiveSender:
 
         self._client = loopback.client(headers=GRPC_WEB, timeout=httpx.Timeout(TIMEOUT_S, connect=CONNECT_S))
         self._enc.store_info(self._store)
-        rows = _row_id_column(self._enc.tuids.rows(1), 1)
-        self._enc.chunk(self._store, "/__properties", [rows, _int64_list_column(_START, [time.time_ns()])], 1, True)
+        rows = row_id_column(self._enc.tuids.rows(1), 1)
+        self._enc.chunk(self._store, "/__properties", [rows, int64_list_column(START_TIME, [time.time_ns()])], 1, True)
         self._head = self._enc.take()
         self._pending += self._head
 
@@ -243,7 +206,7 @@ class LiveSender:
         /telemetry/<name>) in one grid, each the last `span_s` on both timelines (cycle at `freq`),
         the blueprint and selection panels collapsed, the time panel on ``cycle``."""
         enc = self._enc
-        store = _store_id(_BLUEPRINT, f"rec_{uuid.uuid4().hex}")
+        store = make_store_id(BLUEPRINT, f"rec_{uuid.uuid4().hex}")
         enc.store_info(store)
         views = [(f"log: {g}", "/log/" + escape_part(g)) for g in groups]
         views += [(t, f"/telemetry/{t}") for t in telemetry]
@@ -254,37 +217,37 @@ class LiveSender:
 
         def one_row(entity: str, *columns: Column) -> None:
             indexes = [_index("blueprint", False, np.zeros(1, dtype=np.int64)), _index("log_time", True, now)]
-            enc.chunk(store, entity, [_row_id_column(enc.tuids.rows(1), 1), *indexes, *columns], 1)
+            enc.chunk(store, entity, [row_id_column(enc.tuids.rows(1), 1), *indexes, *columns], 1)
 
         for (name, origin), vid in zip(views, ids):
-            one_row(f"/view/{vid}", *_view_columns("TimeSeries", name, origin))
+            one_row(f"/view/{vid}", *view_columns("TimeSeries", name, origin))
             one_row(
                 f"/view/{vid}/ViewContents",
-                _text_list_column(_bp("ViewContents", "query", "QueryExpression"), [["$origin/**"]]),
+                text_list_column(bp("ViewContents", "query", "QueryExpression"), [["$origin/**"]]),
             )
             one_row(f"/view/{vid}/VisibleTimeRanges", ranges)
         one_row(
             f"/container/{container}",
-            _uint8_list_column(_bp("ContainerBlueprint", "container_kind", "ContainerKind"), [GRID]),
-            _text_list_column(_bp("ContainerBlueprint", "contents", "IncludedContent"), [[f"view/{v}" for v in ids]]),
+            uint8_list_column(bp("ContainerBlueprint", "container_kind", "ContainerKind"), [GRID]),
+            text_list_column(bp("ContainerBlueprint", "contents", "IncludedContent"), [[f"view/{v}" for v in ids]]),
         )
         one_row(
             "/viewport",
-            _uuid_list_column(_bp("ViewportBlueprint", "root_container", "RootContainer"), [container.bytes]),
+            uuid_list_column(bp("ViewportBlueprint", "root_container", "RootContainer"), [container.bytes]),
         )
         for panel in ("/blueprint_panel", "/selection_panel"):
-            one_row(panel, _uint8_list_column(_bp("PanelBlueprint", "state", "PanelState"), [_COLLAPSED]))
-        one_row("/time_panel", _text_list_column(_bp("TimePanelBlueprint", "timeline", "TimelineName"), [["cycle"]]))
+            one_row(panel, uint8_list_column(bp("PanelBlueprint", "state", "PanelState"), [_COLLAPSED]))
+        one_row("/time_panel", text_list_column(bp("TimePanelBlueprint", "timeline", "TimelineName"), [["cycle"]]))
         # make_active and make_default (the SDK's send_blueprint(.., True, True))
-        enc._frame(_ACTIVATE, [_pb_bytes(1, store) + _pb_int(2, 1) + _pb_int(3, 1)])
+        enc.activate(store, make_active=True)
         self._blueprint = enc.take()
         self._pending += self._blueprint
 
     def series_names(self, entity: str, names: list[str]) -> None:
         """The names of a multi-series entity's series (static: the SDK's log(.., static=True))."""
         entity = _path(entity)
-        rows = _row_id_column(self._enc.tuids.rows(1), 1)
-        self._enc.chunk(self._store, entity, [rows, _text_list_column(_SERIES_NAMES, [names])], 1, static=True)
+        rows = row_id_column(self._enc.tuids.rows(1), 1)
+        self._enc.chunk(self._store, entity, [rows, text_list_column(_SERIES_NAMES, [names])], 1, static=True)
         (frame,) = self._enc.take()
         self._names[entity] = frame
         self._pending.append(frame)
@@ -294,11 +257,12 @@ class LiveSender:
         n = len(values)
         if n == 0:
             return
+        rows = values.reshape(n, -1)
         columns = [
-            _row_id_column(self._enc.tuids.rows(n), n),
+            row_id_column(self._enc.tuids.rows(n), n),
             _index("cycle", False, cycle),
             _index("time", True, time_ns),
-            _scalars(values.reshape(n, -1)),
+            scalars_column(np.ascontiguousarray(rows, dtype="<f8").tobytes(), n, rows.shape[1]),
         ]
         self._enc.chunk(self._store, _path(entity), columns, n)
         self._pending += self._enc.take()
@@ -311,11 +275,11 @@ class LiveSender:
             return
         time_ns = (np.asarray(t_s, dtype=np.float64) * 1e9).astype("datetime64[ns]").view(np.int64)
         columns = [
-            _row_id_column(self._enc.tuids.rows(n), n),
+            row_id_column(self._enc.tuids.rows(n), n),
             _index("cycle", False, cycle),
             _index("time", True, time_ns),
-            _text_list_column(_LEVEL, [[level]] * n),
-            _text_list_column(_TEXT, [[t] for t in texts]),
+            text_list_column(LEVEL, [[level]] * n),
+            text_list_column(TEXT, [[t] for t in texts]),
         ]
         self._enc.chunk(self._store, _path(entity), columns, n)
         self._pending += self._enc.take()
