@@ -181,13 +181,6 @@ class Channels:
         s = self._status_struct()
         return int(s.state), int(s.cmd_rejected), bool(s.running), int(s.last_error)
 
-    def alarm_counts(self) -> tuple[int, int]:
-        """(status.missed, status.host_lost) from one consistent copy of the status block, without
-        converting the rest (the timing task checks them once a second for its alarms, with nobody
-        taking the timing message)."""
-        s = self._status_struct()
-        return int(s.missed), int(s.host_lost)
-
     def histograms(self) -> dict[str, Histogram]:
         s = self._status_struct()
         return {name: histogram_from_struct(s.hist[i]) for i, name in enumerate(STAGE_NAMES)}

@@ -61,7 +61,11 @@ if TYPE_CHECKING:
 log = logging.getLogger("xrflab.logs.live")
 
 WAIT_MS = 20  # between two drains while someone watches the records live (fast())
-MAX_PERIOD_S = 1.0  # between two drains otherwise: how stale the file on disk may be
+# Between two drains otherwise: how stale the file on disk may be while the run goes on (its end
+# drains the rest: finish(); a live rerun viewer gets WAIT_MS). 4 s of a RELbot's records is a
+# sixteenth of its ring (65 536 slots); it was 1 s (issue 30 item 4: the thread still wakes once a
+# second for the timing series' line, the drain's Python and write now every fourth time).
+MAX_PERIOD_S = 4.0
 RING_MARGIN = 4  # a drain is due when the ring could be a quarter full at one record a cycle
 
 
@@ -159,18 +163,27 @@ class HostLogWriter:
         return self.stats
 
     def _main(self) -> None:
+        next_drain = 0.0  # time.monotonic() of the next drain
         while not self._stop.is_set():
             try:
-                taken = self.drain()
-                if taken > self._chan.slots() // RING_MARGIN > 0:
-                    self._halved += 1  # the loop logs faster than once a cycle: drain more often
+                now = time.monotonic()
+                if now >= next_drain:
+                    taken = self.drain()
+                    if taken > self._chan.slots() // RING_MARGIN > 0:
+                        self._halved += 1  # the loop logs faster than once a cycle: drain more often
+                    next_drain = now + self.period()
                 self._sample_timing()
             except Exception:  # never let a bug end logging silently
                 log.exception("log writer")
                 time.sleep(0.1)
             # A timed sleep, not the doorbell: the loop rings it for its telemetry (50 Hz and
-            # more), far more often than a ring of seconds of records needs draining.
-            self._woken.wait(self.period())
+            # more), far more often than a ring of seconds of records needs draining. Until the
+            # next drain or the timing series' next line (once a second), whichever is first.
+            wait = max(0.0, next_drain - time.monotonic())
+            if self._timing is not None:
+                wait = min(wait, self._timing.due_in())
+            if self._woken.wait(wait):
+                next_drain = 0.0  # wake(): drain now
             self._woken.clear()
 
     def wake(self) -> None:
