@@ -254,7 +254,7 @@ class VizService(RunObserver):
         self._wake = threading.Event()  # a watcher came (viser client, state request) or stop
         self._state_asked = -1e9  # time.monotonic() of the last GET /api/viz/state
         self._viewers = 0  # browsers connected through the appliance's /viser/ proxy
-        self.watch_starts = 0  # times it went from nobody watching to someone (tests: the reader is woken)
+        self.handovers = 0  # batches of samples taken (on_samples): tests, GET /api/viz
         # live
         self.mode = "idle"  # idle | live | replay
         self.run_id: int | None = None
@@ -370,6 +370,7 @@ class VizService(RunObserver):
             "update_hz": UPDATE_HZ,
             "watched": self.watched(),
             "frames": self.frames,
+            "handovers": self.handovers,
         }
 
     # -- telemetry in (supervisor hook, event loop) ---------------------------------------------
@@ -379,6 +380,7 @@ class VizService(RunObserver):
     name = "3D view"
 
     def on_samples(self, run: Any, samples: Any) -> None:
+        self.handovers += 1
         self.on_telemetry(run, samples)
 
     def live(self, run: Any) -> bool:
@@ -572,7 +574,6 @@ class VizService(RunObserver):
         """Nobody watched and now someone does: the run's reader hands the samples over now and
         then as they come (the model is current from then on), not at its next idle batch, up
         to IDLE_PERIOD_S later (server/runs/reader.py). From any thread."""
-        self.watch_starts += 1
         sup = self.supervisor
         if sup is not None:
             sup.wake_reader()
