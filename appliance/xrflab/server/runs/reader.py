@@ -14,12 +14,12 @@ what it costs on a busy core):
   (Supervisor._client_connected), and so does a 3D view that starts to be watched.
 - With a dashboard taking telemetry it wakes itself just after the loop publishes the sample
   that completes the next message (`next_publication` + TIMED_MARGIN_NS: the loop publishes at
-  a fixed spacing on our monotonic clock; a message is `per_message` samples due, 4 by default),
-  so it wakes ~7.5 times a second for a RELbot (dashboards get 30 samples a second of its 50, four
+  a fixed spacing on our monotonic clock; a message is `per_message` samples due, 6 by default),
+  so it wakes ~5 times a second for a RELbot (dashboards get 30 samples a second of its 50, six
   a message), the newest sample of each message read within about a millisecond of its
   publication, and neither a thread of ours nor the event loop's self-pipe is woken for the
   samples in between. What the loop published before it (samples, monitor lines, a state
-  change of its own) is read in that batch, at most one message period (133 ms) later; a
+  change of its own) is read in that batch, at most one message period (200 ms) later; a
   command's state is published when the loop took it (server/runs/control.py), not here.
 - With clients that take monitor lines or the state but not telemetry (a dashboard tab that is
   hidden, a tool), or a 3D view watched with no dashboard, it wakes itself every
