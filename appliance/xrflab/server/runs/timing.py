@@ -63,6 +63,12 @@ async def timing(run: Run, period_s: float, hub: Hub) -> None:
     checked = False  # the first message is checked against TimingMessage (Hub.publish_fields)
     while True:
         await asyncio.sleep(until_aligned(period_s))  # with the other once-a-second work
+        # The run's timing series (timing.jsonl): its sample taken here, where the event loop
+        # wakes anyway, its line written by the host writer's thread at its next drain
+        # (logs/host_writer.py take_timing: that thread wakes every few seconds, not each second).
+        rl = run.logging
+        if rl is not None:
+            rl.writer.take_timing()
         # The histograms (eight of 512 buckets, converted in Python) and the message only for
         # someone who takes `timing`; the deadline-miss alarm below is checked every period.
         wanted = hub.wants("timing")
