@@ -29,7 +29,9 @@ file too large) stops logging for the run, cuts the file back to its last comple
 after that are counted as ``unwritten`` so the run record still adds up: ``seq`` of the last
 record + 1 = records in the file + lost + unwritten.
 
-The same thread samples the run's timing series (``timing_series.py``) and, while someone takes
+The same thread writes the run's timing series (``timing_series.py``: sampled once a second by
+the caller, the appliance's timing task, with ``timing_in_thread`` False; else by this thread)
+and, while someone takes
 them live (``fast()``: a live rerun viewer is open), hands each drained batch of records to
 ``on_records`` (the live rerun stream, ``rerun_live.py``); with nobody there no copy is made.
 """

@@ -1,8 +1,9 @@
 """A run's timing series: the framework's stage histograms, sampled once a second.
 
 Issue 4 item 2, without an rt_core change: the loop keeps cumulative histograms of its cycle
-stages (wake-up jitter included) in the shared memory; the host writer samples them once per
-second into ``timing.jsonl`` in the run folder: per stage the interval's count and mean, and the
+stages (wake-up jitter included) in the shared memory; they are sampled once per second (in the
+appliance by the supervisor's timing task, elsewhere by the host writer's thread) into
+``timing.jsonl`` in the run folder, the lines written at the host writer's drains: per stage the interval's count and mean, and the
 cumulative p50/p99/max, with the run's cycle, miss and log counters. Best effort: a sample that
 cannot be read or written is skipped (a full disk has raised the log alarm already).
 """
