@@ -46,7 +46,8 @@ class TimingSeries:
         self._last = 0.0
         self._last_hist: dict[str, tuple[int, int]] = {}
         self._fd = -1  # timing.jsonl, opened once (close())
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # the pending samples, _last, _closed
+        self._write_lock = threading.Lock()  # the lines: _last_hist and the file, one writer at a time
         self._pending: list[tuple[float, dict[str, int], np.ndarray]] = []  # taken, not written
         self.taken = 0  # samples taken (tests)
         self._closed = False  # the run's end: its last line is written
@@ -75,10 +76,13 @@ class TimingSeries:
 
     def write_pending(self) -> None:
         """The lines of the samples taken and not written yet, in order, in one write."""
-        with self._lock:
-            pending, self._pending = self._pending, []
-            if not pending or self._closed:
-                return
+        # Two locks: take (the event loop, once a second) only waits for the list's hand-over,
+        # never for the figures and the write of the samples before it.
+        with self._write_lock:
+            with self._lock:
+                pending, self._pending = self._pending, []
+                if not pending or self._closed:
+                    return
             out = []
             for t_unix, counters, words in pending:
                 figures = dict(zip(STAGE_NAMES, stage_figures_of(words, (50.0, 99.0))))
@@ -124,9 +128,10 @@ class TimingSeries:
 
     def close(self) -> None:
         """The run's end (after its last line): nothing is taken or written from then on."""
-        with self._lock:
-            self._closed = True
-        self._close_fd()
+        with self._write_lock:
+            with self._lock:
+                self._closed = True
+            self._close_fd()
 
     def _close_fd(self) -> None:
         if self._fd >= 0:
