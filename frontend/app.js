@@ -685,10 +685,10 @@ function pushSample(p, t, values) {
 }
 
 // ---- telemetry: samples played out at their own spacing ----------------------------------------
-// A telemetry message carries several samples, oldest first (Settings.telemetry_per_message: 4,
-// 7.5 messages a second for the 30 samples a second the plots draw: each message costs the
+// A telemetry message carries several samples, oldest first (Settings.telemetry_per_message: 6,
+// 5 messages a second for the 30 samples a second the plots draw: each message costs the
 // appliance a wake-up and a socket write, issue 30 item 4). Drawn all at once the plots would
-// advance in 133 ms steps; so the oldest is drawn on arrival and each later one at its own
+// advance in 200 ms steps; so the oldest is drawn on arrival and each later one at its own
 // distance (its t) after the one before: the plots move at 30 steps a second as with one sample a
 // message, each sample shown one sample period (33 ms) after it arrived at the latest. A message
 // arriving while samples of the one before are still waiting draws those at once first: the

@@ -3,7 +3,7 @@
 when it published it) against the time the WebSocket client received the message carrying it
 (same clock, same machine). RELbot example in RUN at 1 kHz, publishing at its write rate (50 Hz);
 the appliance decimates to the configured browser rate (30 Hz default; --hz 0 = every
-publication), several samples a message (Settings.telemetry_per_message, 4): the older samples of a
+publication), several samples a message (Settings.telemetry_per_message, 6): the older samples of a
 message wait for the newest, so it is reported apart ("newest": the newest sample of each message,
 what a setpoint change's first sight depends on at best; "every sample": all of them).
 

@@ -4,6 +4,7 @@ disk stops logging cleanly (whole records only) while the loop goes on."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -165,6 +166,66 @@ def test_records_are_drained_in_batches_and_none_is_lost(loop, tmp_path: Path) -
     assert log.skipped == [] and log.lost == 0 and len(log) == stats.records
     assert np.array_equal(log.records["seq"], np.arange(len(log), dtype=np.uint64))
     _probe_ok(log.records)
+
+
+def test_the_timing_line_each_second_and_a_drain_every_few(loop, tmp_path: Path) -> None:
+    """Issue 30 item 4, session 13: the writer's thread wakes once a second for the timing
+    series' line, and drains the ring every MAX_PERIOD_S (4 s) of those, not at each (the drain
+    was every second); every record is in the file after the run's end (finish drains the rest)."""
+    lp = loop(tmp_path)
+    w = HostLogWriter(lp.ch, {"run": "9"}, tmp_path)
+    w.start()
+    lp.command("initialise", "INITIALISED")
+    lp.command("start", "RUN")
+    t0 = time.monotonic()
+    lp.wait_cycles(int(lp.ch.info["cycle_freq"]) * 9, timeout=60)
+    period = w.period()
+    drains = w.drains
+    elapsed = time.monotonic() - t0
+    os.kill(lp.proc.pid, signal.SIGKILL)
+    lp.proc.wait(5)
+    stats = w.finish()
+    status = lp.ch.status()
+    assert period == MAX_PERIOD_S == 4.0, period
+    lines = (tmp_path / "timing.jsonl").read_text().splitlines()
+    # a line a second (the run's record), drains a period apart (+ RUN's first records)
+    assert len(lines) >= elapsed - 2, (len(lines), elapsed)
+    assert drains <= elapsed / period + 2, (drains, elapsed)
+    assert stats.failed == "" and stats.lost == 0 and stats.unwritten == 0
+    assert stats.records == status.log_written >= 9 * int(lp.ch.info["cycle_freq"]) // 2
+    log = open_log(Path(stats.files[0]))
+    assert log.lost == 0 and len(log) == stats.records
+    assert np.array_equal(log.records["seq"], np.arange(len(log), dtype=np.uint64))
+
+
+def test_timing_taken_by_the_caller_is_written_at_the_drains(loop, tmp_path: Path) -> None:
+    """Session 13: in the appliance the timing task takes the timing series' samples once a second
+    (take_timing: one status copy each) and the writer's thread writes their lines at its drains,
+    so it wakes for those only (every MAX_PERIOD_S), not once a second; by the run's end every
+    sample taken has its line, in order, the last the final one."""
+    lp = loop(tmp_path)
+    w = HostLogWriter(lp.ch, {"run": "10"}, tmp_path, timing_in_thread=False)
+    w.start()
+    lp.command("initialise", "INITIALISED")
+    lp.command("start", "RUN")
+    t0 = time.monotonic()
+    wakeups, copies = w.wakeups, lp.ch.status_copies
+    for _ in range(9):
+        time.sleep(1.0)  # the caller's second (the timing task's): time passing is the point
+        w.take_timing()
+    taken_copies = lp.ch.status_copies - copies
+    woke = w.wakeups - wakeups
+    elapsed = time.monotonic() - t0
+    os.kill(lp.proc.pid, signal.SIGKILL)
+    lp.proc.wait(5)
+    stats = w.finish()
+    assert taken_copies == 9, taken_copies  # one copy a sample, none by the thread
+    assert woke <= elapsed / MAX_PERIOD_S + 2, (woke, elapsed)  # in its own time: ~9 or more
+    lines = [json.loads(x) for x in (tmp_path / "timing.jsonl").read_text().splitlines()]
+    assert len(lines) == 9 + 1, len(lines)  # and the run's end
+    cycles = [x["cycles"] for x in lines]
+    assert cycles == sorted(cycles) and cycles[-1] == lp.ch.status().cycles
+    assert stats.failed == "" and stats.lost == 0
 
 
 def test_disk_full_stops_logging_cleanly_and_the_loop_goes_on(loop, tmp_path: Path) -> None:

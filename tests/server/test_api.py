@@ -10,7 +10,7 @@ def test_bench_is_simulated(server: Server) -> None:
     assert bench["mode"] == "sim"
     assert bench["sim"] == "relbot"
     assert bench["telemetry_hz"] == 30  # samples a second
-    assert bench["telemetry_per_message"] == 4  # in 7.5 messages a second
+    assert bench["telemetry_per_message"] == 6  # in 5 messages a second
 
 
 def test_builds_list_bundled_examples_and_templates(server: Server) -> None:

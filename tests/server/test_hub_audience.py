@@ -169,7 +169,7 @@ def test_telemetry_by_its_fields_goes_out_as_its_model_would() -> None:
 
 
 def test_the_public_copy_is_made_only_for_a_client_that_needs_it() -> None:
-    """ownership.scope's public part of telemetry is a function (7.5 messages a second): with only
+    """ownership.scope's public part of telemetry is a function (5 messages a second): with only
     the owner and an educator connected it is never called; with someone else, once a message
     however many of them there are."""
     made: list[int] = []

@@ -15,6 +15,8 @@ import os
 import time
 from typing import Any
 
+import numpy as np
+
 from ..msgdef import Codec, MsgError
 from . import commands, segment
 from .binding import CData, c_str, ffi, lib
@@ -25,11 +27,10 @@ from .rings import MonitorReader, TelemetryReader
 from .segment import Identity, shm_path
 from .status import (
     Histogram,
-    StageFigures,
     Status,
     StatusReader,
+    hist_words,
     histogram_from_struct,
-    stage_figures,
     status_from_struct,
 )
 
@@ -181,13 +182,6 @@ class Channels:
         s = self._status_struct()
         return int(s.state), int(s.cmd_rejected), bool(s.running), int(s.last_error)
 
-    def alarm_counts(self) -> tuple[int, int]:
-        """(status.missed, status.host_lost) from one consistent copy of the status block, without
-        converting the rest (the timing task checks them once a second for its alarms, with nobody
-        taking the timing message)."""
-        s = self._status_struct()
-        return int(s.missed), int(s.host_lost)
-
     def histograms(self) -> dict[str, Histogram]:
         s = self._status_struct()
         return {name: histogram_from_struct(s.hist[i]) for i, name in enumerate(STAGE_NAMES)}
@@ -198,13 +192,12 @@ class Channels:
         s = self._status_struct()
         return status_from_struct(s), {name: histogram_from_struct(s.hist[i]) for i, name in enumerate(STAGE_NAMES)}
 
-    def timing_figures(
-        self, percentiles: tuple[float, ...] = (50.0, 99.0)
-    ) -> tuple[dict[str, int], dict[str, StageFigures]]:
-        """From one consistent copy of the status block: the counters the run's timing series keeps
-        (cycles, missed, log_written, log_lost) and every stage's count, sum, min, max and
-        `percentiles` (status.stage_figures: the values its Histogram gives, without converting
-        the buckets stage by stage, nor the rest of the status)."""
+    def timing_words(self) -> tuple[dict[str, int], np.ndarray]:
+        """From one consistent copy of the status block: the counters the run's timing series
+        keeps (cycles, missed, log_written, log_lost) and the stages' histograms as words
+        (status.hist_words); their figures (count, sum, min, max, percentiles: the values each
+        Histogram gives) are made from these by status.stage_figures_of, several samples
+        together (logs/timing_series.py)."""
         s = self._status_struct()
         counters = {
             "cycles": int(s.cycles),
@@ -212,7 +205,7 @@ class Channels:
             "log_written": int(s.log_written),
             "log_lost": int(s.log_lost),
         }
-        return counters, dict(zip(STAGE_NAMES, stage_figures(s, percentiles)))
+        return counters, hist_words(s)
 
     @property
     def status_copies(self) -> int:

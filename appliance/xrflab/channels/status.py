@@ -268,10 +268,21 @@ def stage_figures(s: CData, percentiles: tuple[float, ...]) -> list[StageFigures
     timing series takes these once a second: it was most of the host log writer's CPU with the
     appliance idle, issue 30 item 4). Values are the loop's words as int64 (a loop writing more
     than 2**63 gets its own nonsense back; nothing is indexed by them)."""
+    return stage_figures_of(hist_words(s), percentiles)
+
+
+def hist_words(s: CData) -> np.ndarray:
+    """A copy of the stages' histograms of a status copy `s` as 64-bit words, a row per stage
+    (count, sum_ns, min_ns, max_ns, the buckets): what stage_figures_of takes, kept apart from
+    the status copy (the host writer takes them once a second and makes the lines every few)."""
+    return np.frombuffer(ffi.buffer(s.hist), dtype=np.int64).reshape(-1, _HIST_WORDS).copy()
+
+
+def stage_figures_of(words: np.ndarray, percentiles: tuple[float, ...]) -> list[StageFigures]:
+    """stage_figures of the histograms' words (hist_words)."""
     for p in percentiles:
         if not 0 <= p <= 100:
             raise ValueError("percentile must be within 0..100")
-    words = np.frombuffer(ffi.buffer(s.hist), dtype=np.int64).reshape(-1, _HIST_WORDS)
     head = words[:, :4]  # count, sum_ns, min_ns, max_ns
     counts, mins, maxs = head[:, 0:1], head[:, 2:3], head[:, 3:4]
     cum = np.cumsum(words[:, 4:], axis=1)

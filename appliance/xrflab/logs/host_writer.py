@@ -29,7 +29,9 @@ file too large) stops logging for the run, cuts the file back to its last comple
 after that are counted as ``unwritten`` so the run record still adds up: ``seq`` of the last
 record + 1 = records in the file + lost + unwritten.
 
-The same thread samples the run's timing series (``timing_series.py``) and, while someone takes
+The same thread writes the run's timing series (``timing_series.py``: sampled once a second by
+the caller, the appliance's timing task, with ``timing_in_thread`` False; else by this thread)
+and, while someone takes
 them live (``fast()``: a live rerun viewer is open), hands each drained batch of records to
 ``on_records`` (the live rerun stream, ``rerun_live.py``); with nobody there no copy is made.
 """
@@ -61,7 +63,11 @@ if TYPE_CHECKING:
 log = logging.getLogger("xrflab.logs.live")
 
 WAIT_MS = 20  # between two drains while someone watches the records live (fast())
-MAX_PERIOD_S = 1.0  # between two drains otherwise: how stale the file on disk may be
+# Between two drains otherwise: how stale the file on disk may be while the run goes on (its end
+# drains the rest: finish(); a live rerun viewer gets WAIT_MS). 4 s of a RELbot's records is a
+# sixteenth of its ring (65 536 slots); it was 1 s (issue 30 item 4: the thread still wakes once a
+# second for the timing series' line, the drain's Python and write now every fourth time).
+MAX_PERIOD_S = 4.0
 RING_MARGIN = 4  # a drain is due when the ring could be a quarter full at one record a cycle
 
 
@@ -100,8 +106,13 @@ class HostLogWriter:
         on_note: Callable[[str], None] | None = None,
         on_corrupt: Callable[[ChannelsCorrupt], None] | None = None,
         fast: Callable[[], bool] | None = None,
+        timing_in_thread: bool = True,
     ) -> None:
-        """`fast()`: someone takes the records live (on_records): drain every WAIT_MS then."""
+        """`fast()`: someone takes the records live (on_records): drain every WAIT_MS then.
+        `timing_in_thread` False: the timing series' samples are taken by the caller, once a
+        second (`take_timing`: the appliance's timing task, which wakes then anyway), and this
+        thread writes their lines at its drains, so it does not wake once a second for them."""
+        self._timing_in_thread = timing_in_thread
         self._ch = ch
         self._fast = fast
         self._chan = LogChannel(ch, source)
@@ -124,6 +135,7 @@ class HostLogWriter:
         self._lock = threading.Lock()  # one drain at a time (thread vs finish())
         self._halved = 0  # times a drain found the ring fuller than planned (the period halves)
         self.drains = 0  # drains that took records (tests, the footprint benchmark)
+        self.wakeups = 0  # turns of the thread's loop (tests: how often it wakes)
         self._thread: threading.Thread | None = None
 
     # -- life cycle -------------------------------------------------------------------------
@@ -159,19 +171,44 @@ class HostLogWriter:
         return self.stats
 
     def _main(self) -> None:
+        next_drain = 0.0  # time.monotonic() of the next drain
         while not self._stop.is_set():
+            self.wakeups += 1
             try:
-                taken = self.drain()
-                if taken > self._chan.slots() // RING_MARGIN > 0:
-                    self._halved += 1  # the loop logs faster than once a cycle: drain more often
-                self._sample_timing()
+                now = time.monotonic()
+                if now >= next_drain:
+                    taken = self.drain()
+                    if taken > self._chan.slots() // RING_MARGIN > 0:
+                        self._halved += 1  # the loop logs faster than once a cycle: drain more often
+                    next_drain = now + self.period()
+                    if self._timing is not None and not self._timing_in_thread:
+                        self._timing.write_pending()  # the samples take_timing took meanwhile
+                if self._timing_in_thread:
+                    self._sample_timing()
             except Exception:  # never let a bug end logging silently
                 log.exception("log writer")
                 time.sleep(0.1)
             # A timed sleep, not the doorbell: the loop rings it for its telemetry (50 Hz and
-            # more), far more often than a ring of seconds of records needs draining.
-            self._woken.wait(self.period())
+            # more), far more often than a ring of seconds of records needs draining. Until the
+            # next drain or the timing series' next line (once a second), whichever is first.
+            wait = max(0.0, next_drain - time.monotonic())
+            if self._timing is not None and self._timing_in_thread:
+                wait = min(wait, self._timing.due_in())
+            if self._woken.wait(wait):
+                next_drain = 0.0  # wake(): drain now
             self._woken.clear()
+
+    def take_timing(self) -> None:
+        """A sample of the timing series now, if one is due (`timing_in_thread` False: called
+        once a second by the appliance's timing task); its line is written at the next drain."""
+        if self._timing is not None:
+            self._timing.take()
+
+    def flush_timing(self) -> None:
+        """The lines of the samples taken so far written now (a reader of timing.jsonl of the
+        running run: it is written at the drains, every few seconds, otherwise)."""
+        if self._timing is not None:
+            self._timing.write_pending()
 
     def wake(self) -> None:
         """Drain now rather than at the end of the period: a live viewer is coming (``fast()`` has

@@ -60,7 +60,11 @@ def start(
     timing writer when the loop logs its per-cycle timing). `on_note`: a line for the run's
     console (where a log file went). `on_corrupt`: the loop broke a log channel (the writer of it
     has stopped; the supervisor stops the run)."""
-    writer = HostLogWriter(ch, identity, run_dir, on_alarm=on_alarm, on_note=on_note, on_corrupt=on_corrupt)
+    # The timing series' samples are taken by the supervisor's once-a-second timing task
+    # (server/runs/timing.py, take_timing): the writer's thread then wakes only for its drains.
+    writer = HostLogWriter(
+        ch, identity, run_dir, on_alarm=on_alarm, on_note=on_note, on_corrupt=on_corrupt, timing_in_thread=False
+    )
     writer.start()
     rl = RunLogging(writer, None)
     if log_timing:

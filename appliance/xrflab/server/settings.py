@@ -70,11 +70,12 @@ class Settings:
     # telemetry_per_message of them in one message (oldest first; the page plays them out at
     # their own spacing): each message costs the appliance a wake-up and a socket write per
     # dashboard (most of what one dashboard costs it: the wake-up's cold caches more than the
-    # Python), so 4 quarters both for the same 30 samples a second (7.5 messages), at the price of
-    # three sample periods (100 ms) more before the oldest sample of a message reaches a browser
-    # (issue 30 item 4: the appliance's CPU on a Pi; it was 2, 15 messages, in session 11).
+    # Python), so 6 cuts both to a sixth for the same 30 samples a second (5 messages), at the
+    # price of five sample periods (167 ms) more before the oldest sample of a message reaches a
+    # browser (issue 30 item 4: the appliance's CPU on a Pi; it was 2, 15 messages, in session 11,
+    # and 4, 7.5 messages, in session 12).
     telemetry_hz: float = 30.0
-    telemetry_per_message: int = 4
+    telemetry_per_message: int = 6
     # The rerun web viewer's files are prepared (copied from `rerun --serve-web`, neutralised,
     # gzipped: a child of ~100 MB for some seconds) once per rerun version: at the appliance's
     # start, when it is smallest, rather than at the first live viewer, beside a run and its

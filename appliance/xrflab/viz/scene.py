@@ -54,6 +54,7 @@ UPDATE_HZ = 30.0
 # expects it to move). Otherwise the thread sleeps until one of them wakes it.
 STATE_WATCH_S = 5.0
 TRAIL_SEND_HZ = 5.0
+BULK_MIN = 8  # samples in a batch from which it is taken in numpy (VizService._bulk)
 TRAIL_MAX = 400
 BACKGROUND = (1.0, 1.0, 1.0)
 TRAIL_COLOR = (0.85, 0.35, 0.05)
@@ -253,6 +254,7 @@ class VizService(RunObserver):
         self._wake = threading.Event()  # a watcher came (viser client, state request) or stop
         self._state_asked = -1e9  # time.monotonic() of the last GET /api/viz/state
         self._viewers = 0  # browsers connected through the appliance's /viser/ proxy
+        self.handovers = 0  # batches of samples taken (on_samples): tests, GET /api/viz
         # live
         self.mode = "idle"  # idle | live | replay
         self.run_id: int | None = None
@@ -336,7 +338,14 @@ class VizService(RunObserver):
 
         self.server.scene.set_up_direction("+z")
         self._build_gui()
-        self.server.on_client_connect(lambda _client: self._wake.set())
+        self.server.on_client_connect(self._viser_client)
+
+    def _viser_client(self, _client: Any) -> None:
+        """A viser client connected (viser's thread): as viewer_joined, for one that came to
+        viser's port directly."""
+        self._wake.set()
+        if self._viewers == 0 and time.monotonic() - self._state_asked >= STATE_WATCH_S:
+            self._watch_started()
 
     async def stop(self) -> None:
         self._stop.set()
@@ -361,6 +370,7 @@ class VizService(RunObserver):
             "update_hz": UPDATE_HZ,
             "watched": self.watched(),
             "frames": self.frames,
+            "handovers": self.handovers,
         }
 
     # -- telemetry in (supervisor hook, event loop) ---------------------------------------------
@@ -370,6 +380,7 @@ class VizService(RunObserver):
     name = "3D view"
 
     def on_samples(self, run: Any, samples: Any) -> None:
+        self.handovers += 1
         self.on_telemetry(run, samples)
 
     def live(self, run: Any) -> bool:
@@ -395,24 +406,47 @@ class VizService(RunObserver):
             if run.row.id != self.run_id:
                 self._new_run(run)
             rec = self.recorder
-            t_ns, cycles, encs = _columns(samples)
             model = self.model
-            dins = _dins(samples) if isinstance(model, kin.Cell) else None
-            for i, t in enumerate(t_ns):
-                if rec is None or rec.add(t, cycles[i], encs[i]):
-                    self.samples += 1
-                    self.last_t_ns = t
-                    if dins is not None:
-                        model.update(encs[i], dins[i])  # homes on its switches
-                    elif model is not None:
-                        model.update(encs[i])
-                        self._trail_dirty = True
+            if not self._bulk(samples, rec, model):
+                self._one_by_one(samples, rec, model)
             sp = getattr(run, "setpoint", None) or {}
             if sp != self._setpoint_seen:
                 self._setpoint_seen = dict(sp)
                 self.setpoint = dict(sp)
                 if rec is not None:
                     rec.event(self.last_t_ns, setpoint=self.setpoint)
+
+    def _bulk(self, samples: Any, rec: Recorder | None, model: Any) -> bool:
+        """A batch handed over in bulk (the reader's, with nobody watching: up to IDLE_PERIOD_S of
+        samples) recorded and run through the model in numpy, without a Python object per sample
+        (issue 30 item 4: this was half the idle appliance's Python); True when done, False when
+        the batch is for `_one_by_one` (a few samples, a Cell homing on its switches, samples
+        denser than the recording keeps)."""
+        if len(samples) < BULK_MIN or not hasattr(samples, "arrays") or isinstance(model, kin.Cell):
+            return False
+        t_ns, cycles, encs = samples.arrays()
+        if rec is not None and not rec.add_many(t_ns, cycles, encs):
+            return False
+        self.samples += len(t_ns)
+        self.last_t_ns = int(t_ns[-1])
+        if model is not None:
+            kin.update_many(model, encs)
+            self._trail_dirty = True
+        return True
+
+    def _one_by_one(self, samples: Any, rec: Recorder | None, model: Any) -> None:
+        """Each sample offered to the recording, the kept ones through the model."""
+        t_ns, cycles, encs = _columns(samples)
+        dins = _dins(samples) if isinstance(model, kin.Cell) else None
+        for i, t in enumerate(t_ns):
+            if rec is None or rec.add(t, cycles[i], encs[i]):
+                self.samples += 1
+                self.last_t_ns = t
+                if dins is not None:
+                    model.update(encs[i], dins[i])  # homes on its switches
+                elif model is not None:
+                    model.update(encs[i])
+                    self._trail_dirty = True
 
     def _new_run(self, run: Any) -> None:
         if self.recorder is not None:
@@ -521,14 +555,28 @@ class VizService(RunObserver):
 
     def state_asked(self) -> None:
         """GET /api/viz/state: someone watches the scene through the API (see STATE_WATCH_S)."""
+        was = self.watched()
         self._state_asked = time.monotonic()
         self._wake.set()
+        if not was:
+            self._watch_started()
 
     def viewer_joined(self) -> None:
         """A browser's WebSocket through the /viser/ proxy opened (server/http/viser.py)."""
+        was = self.watched()
         with self._lock:
             self._viewers += 1
         self._wake.set()
+        if not was:
+            self._watch_started()
+
+    def _watch_started(self) -> None:
+        """Nobody watched and now someone does: the run's reader hands the samples over now and
+        then as they come (the model is current from then on), not at its next idle batch, up
+        to IDLE_PERIOD_S later (server/runs/reader.py). From any thread."""
+        sup = self.supervisor
+        if sup is not None:
+            sup.wake_reader()
 
     def viewer_left(self) -> None:
         with self._lock:

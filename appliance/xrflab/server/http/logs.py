@@ -135,6 +135,17 @@ def _record(sup: Any, row: Any) -> dict[str, Any]:
     return d
 
 
+async def _drain_live(request: Request, row: Any, timing: bool = False) -> None:
+    """A log of the running run is downloaded: its host writer drains first, so the file has
+    every record the loop logged until now (it drains every few seconds otherwise, nobody
+    reading: logs/host_writer.py MAX_PERIOD_S); `timing`: the timing series' lines taken so
+    far are written first (they are written at the drains)."""
+    run = _sup(request).current
+    rl = run.logging if run is not None and run.row.id == row.id and not run.ended.is_set() else None
+    if rl is not None:
+        await asyncio.to_thread(rl.writer.flush_timing if timing else rl.writer.drain)
+
+
 def _row(request: Request, run_id: int) -> Any:
     """The run if the requester may read it; someone else's answers as a missing one (404)."""
     return ownership.run_or_404(request, run_id)
@@ -329,6 +340,7 @@ async def download(
 
     row = _row(request, run_id)
     rel = await asyncio.to_thread(_file, row, name)
+    await _drain_live(request, row)
     headers = {"Content-Disposition": f'attachment; filename="{_download_name(row, rel, fmt)}"'}
     changes = await asyncio.to_thread(_changes, request, row.id) if fmt != "raw" else []
     try:
@@ -407,6 +419,7 @@ async def viewer_rrd(link: str, run_id: int, name: str, request: Request) -> Res
 )
 async def timing(run_id: int, request: Request) -> Response:
     row = _row(request, run_id)
+    await _drain_live(request, row, timing=True)
     try:
         fd, st = await asyncio.to_thread(_open_file, row.run_dir, TIMING_FILE)
     except (OSError, RunPathError):  # none, or not a plain file of the run (a link, a FIFO, ...)

@@ -29,6 +29,10 @@ class VizInfo(BaseModel):
     update_hz: float
     watched: bool = Field(description="someone watches (a viser client, or the state polled): the scene updates")
     frames: int = Field(description="scene updates sent so far (none while nobody watches)")
+    handovers: int = Field(
+        description="batches of telemetry the 3D view took from the run's reader so far (every few seconds "
+        "while nobody watches, as they come while someone does)"
+    )
 
 
 class ReplayRequest(BaseModel):

@@ -11,20 +11,22 @@ what it costs on a busy core):
   take to fill at the rate it last saw (at most IDLE_PERIOD_S, on the whole seconds of
   xrflab/ticks.py), so every sample still reaches the run observers (the 3D view's recording)
   and nothing is overwritten unread; a client that connects wakes it at once
-  (Supervisor._client_connected).
+  (Supervisor._client_connected), and so does a 3D view that starts to be watched.
 - With a dashboard taking telemetry it wakes itself just after the loop publishes the sample
   that completes the next message (`next_publication` + TIMED_MARGIN_NS: the loop publishes at
-  a fixed spacing on our monotonic clock; a message is `per_message` samples due, 4 by default),
-  so it wakes ~7.5 times a second for a RELbot (dashboards get 30 samples a second of its 50, four
+  a fixed spacing on our monotonic clock; a message is `per_message` samples due, 6 by default),
+  so it wakes ~5 times a second for a RELbot (dashboards get 30 samples a second of its 50, six
   a message), the newest sample of each message read within about a millisecond of its
   publication, and neither a thread of ours nor the event loop's self-pipe is woken for the
   samples in between. What the loop published before it (samples, monitor lines, a state
-  change of its own) is read in that batch, at most one message period (133 ms) later; a
+  change of its own) is read in that batch, at most one message period (200 ms) later; a
   command's state is published when the loop took it (server/runs/control.py), not here.
 - With clients that take monitor lines or the state but not telemetry (a dashboard tab that is
-  hidden, a tool) it wakes itself every STREAMS_PERIOD_S (10 times a second, sooner should a
-  ring fill faster): the doorbell would wake it for every publication of the loop (50 a second
-  for a RELbot), more often than a visible dashboard does.
+  hidden, a tool), or a 3D view watched with no dashboard, it wakes itself every
+  STREAMS_PERIOD_S (10 times a second, sooner should a ring fill faster): the doorbell would
+  wake it for every publication of the loop (50 a second for a RELbot), more often than a
+  visible dashboard does. A 3D view that starts to be watched wakes it at once
+  (Supervisor.wake_reader), so its model and trail are current from then on.
 - Otherwise it follows the doorbell: a thread of our own sleeps in that futex
   (`doorbell_thread`) and wakes the reader, coalescing bursts into one wake-up. That is where
   the publications' spacing is not known (the first samples, simulated time, whose clock is not
@@ -62,7 +64,13 @@ from .run import Run
 
 log = logging.getLogger("xrflab.supervisor")
 DOORBELL_WAIT_MS = 50  # also the fallback poll period if a loop never rings
-IDLE_PERIOD_S = 1.0  # longest wait between two reads with nobody taking the streams
+# Longest wait between two reads with nobody taking the streams: what it reads then is the 3D
+# view's recording and model (in bulk, viz/scene.py), which nobody watches; 4 s of a RELbot's
+# samples is 200 of the telemetry ring's 1024 (idle_period keeps it under a quarter of any ring).
+# The run's status for the REST routes and the room stays a second old at most (the timing task
+# refreshes it: server/runs/timing.py). It was 1 s (issue 30 item 4: the reader's idle batch
+# was half the idle event loop's Python).
+IDLE_PERIOD_S = 4.0
 IDLE_MIN_S = DOORBELL_WAIT_MS / 1000
 RING_MARGIN = 4  # the idle wait lets a ring fill to a quarter at most
 LIVE_RECHECK_S = 0.25  # how often the reader asks whether the run observers are watched
@@ -247,7 +255,8 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub,
         # The run observers (the 3D view's recording and model) take every sample, but need them
         # at once only while someone watches what they show (lifecycle.live): otherwise they get
         # them in bulk, a quarter of the ring's fill time apart (at most IDLE_PERIOD_S), which
-        # costs one conversion a second instead of one per wake-up (issue 30 item 4).
+        # costs one hand-over (in numpy: viz/scene.py) every few seconds instead of one per
+        # wake-up (issue 30 item 4).
         # Whether they are watched is asked LIVE_RECHECK_S apart, not 30 times a second (the 3D
         # view's answer asks viser for its clients); a view opening gets its samples as they come
         # from a quarter of a second later.
@@ -327,9 +336,11 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub,
         wanted = dashboards or hub.wants("monitor") or hub.wants("state")
         if not dashboards and since > 0:
             run.idle_period = idle_period([(observed.slots, observed_rate), (monitor.slots, len(lines) / since)])
-        if not wanted:
+        if not wanted and not live:
             set_timed(run, time.monotonic_ns() + int(until_aligned(run.idle_period) * 1e9))
         elif not dashboards:
+            # Clients of the state or monitor lines, or a 3D view watched with no dashboard (its
+            # scene then follows the samples 10 times a second, not at each idle batch).
             set_timed(run, time.monotonic_ns() + int(min(STREAMS_PERIOD_S, run.idle_period) * 1e9))
         else:
             expected = (

@@ -78,6 +78,7 @@ class Supervisor:
         # closes them once the event loop runs.
         self._orphans = list(store.orphans)
         hub.on_client.append(self._client_connected)
+        self._loop: asyncio.AbstractEventLoop | None = None  # the event loop the runs' tasks run in
 
     def _client_connected(self) -> None:
         """A dashboard connected: the current run's reader reads now and follows the dashboards'
@@ -85,6 +86,16 @@ class Supervisor:
         run = self.current
         if run is not None:
             run.wake.set()
+
+    def wake_reader(self) -> None:
+        """A run observer started to be watched (the 3D view: a viewer, a state poll): the current
+        run's reader reads now and hands the observers each batch from then on, not at its next
+        idle wake-up, up to IDLE_PERIOD_S later (server/runs/reader.py). From any thread."""
+        run, loop = self.current, self._loop
+        if run is None or loop is None or run.ended.is_set():
+            return
+        with contextlib.suppress(RuntimeError):  # the event loop closed (shutdown)
+            loop.call_soon_threadsafe(run.wake.set)
 
     async def recover_orphans(self) -> None:
         """Close the runs a dead appliance left behind (server/runs/orphans.py). Each orphan keeps the bench
@@ -202,6 +213,7 @@ class Supervisor:
         """The tasks and the doorbell thread of a run whose shared memory is open. The names'
         ends say which stop before the mapping is let go (run_end.MAPPING_TASKS)."""
         rid, hub, settings = run.row.id, self.hub, self.settings
+        self._loop = asyncio.get_running_loop()
         run.tasks.append(asyncio.create_task(run_watch.heartbeat(run, settings), name=f"run{rid}-heartbeat"))
         # "_reader"/"_timing": the names the console has always given them when they fail.
         reader = run_reader.guarded(

@@ -6,7 +6,9 @@ task reads them with the counters and sends one `timing` message: per-stage summ
 wake-up jitter, every stage's histogram (for tools), the telemetry and log counters. New missed
 deadlines since the last period raise a `deadline_miss` alarm that says how many; a loop that
 paused or stopped itself because our heartbeat was late (host_lost) raises `host_lost`, so
-nobody is left looking at a run that paused for no reason they can see.
+nobody is left looking at a run that paused for no reason they can see. With nobody taking the
+timing message it refreshes the run's status instead (announce.refresh_state): the reader reads
+only every few seconds then.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from ...channels import Histogram as ChHistogram
 from ...ticks import until_aligned
 from ..ws.hub import Hub
 from ..ws.messages import AlarmMessage, TimingMessage
+from .announce import refresh_state
 from .run import Run
 
 
@@ -60,15 +63,26 @@ async def timing(run: Run, period_s: float, hub: Hub) -> None:
     checked = False  # the first message is checked against TimingMessage (Hub.publish_fields)
     while True:
         await asyncio.sleep(until_aligned(period_s))  # with the other once-a-second work
+        # The run's timing series (timing.jsonl): its sample taken here, where the event loop
+        # wakes anyway, its line written by the host writer's thread at its next drain
+        # (logs/host_writer.py take_timing: that thread wakes every few seconds, not each second).
+        rl = run.logging
+        if rl is not None:
+            rl.writer.take_timing()
         # The histograms (eight of 512 buckets, converted in Python) and the message only for
         # someone who takes `timing`; the deadline-miss alarm below is checked every period.
         wanted = hub.wants("timing")
         try:
-            if not wanted:  # the alarms' fields, not the whole status converted
-                missed, host_lost = ch.alarm_counts()
-                _miss_alarm(run, missed, hub)
-                if host_lost > run.last_host_lost:  # rare: then the state's name too
-                    s = ch.status()
+            if not wanted:
+                # The run's status refreshed (and its state published should it have changed)
+                # here, once a second, and the alarms taken from it: with nobody connected the
+                # reader reads every IDLE_PERIOD_S (4 s, server/runs/reader.py), and the REST
+                # routes and the room show run.last_status (a quarter of a second old when the
+                # reader keeps it so).
+                refresh_state(run, hub, per_batch=True)
+                s = run.last_status
+                if s is not None:
+                    _miss_alarm(run, s.missed, hub)
                     _host_lost_alarm(run, s.host_lost, s.state_name, hub)
                 continue
             s, hists = ch.status_and_histograms()  # one copy of the status block

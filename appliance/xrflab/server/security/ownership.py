@@ -190,7 +190,7 @@ def scope(topic: str, payload: dict[str, Any], owner_of_run: Callable[[Any], str
     None as the result: the message is the bench's, for everyone who subscribed."""
     if topic == "telemetry":
         # The public copy is made only if a client that may not see the owner's part takes it
-        # (Hub._fan_out): 7.5 messages a second, most often watched by their owner or an educator.
+        # (Hub._fan_out): 5 messages a second, most often watched by their owner or an educator.
         return Scoped(
             owner_of_run(payload.get("run_id")),
             lambda: public_telemetry(payload),

@@ -363,7 +363,7 @@ class Hub:
     def publish_fields(self, message_type: str, fields: dict[str, Any]) -> None:
         """`publish` for a message given as its wire fields (JSON values, the fields its sender
         sets), not a model: for the one stream whose model costs more than the rest of its fan-out
-        (the reader's telemetry, 7.5 messages a second: building and dumping the model ~22 us a
+        (the reader's telemetry, 5 messages a second: building and dumping the model ~22 us a
         message, issue 30 item 4). Its producer checks that its fields fit the model where they
         could go wrong (its first message, server/runs/reader.py) and builds every later one
         the same way; tests/server/test_ws_schema.py checks what a session receives. Listeners

@@ -15,7 +15,7 @@ Senders build the model (``StateMessage(run_id=..., ...)``; an outgoing model's 
 kind as default, and stays required in the published schema) and hand it to the hub, which takes
 nothing else (``ServerMessage``, ``ReplyMessage``). The model is validated when it is built, so a
 sender whose message does not fit fails there, with the field named, and never reaches a browser.
-The streams are the exception: telemetry (7.5 messages a second of four samples each), the
+The streams are the exception: telemetry (5 messages a second of six samples each), the
 monitor ring's lines and the timing message (once a second, nine models) are sent as their wire
 fields, built by their producer, the first of a run checked against ``TelemetryMessage``,
 ``MonitorMessage``, ``TimingMessage`` (``Hub.publish_fields``: the model cost more than the fan-out).
