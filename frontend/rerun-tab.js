@@ -143,7 +143,7 @@
   // stream with data; when the stream was asked for (by this script, see below), when the viewer
   // asked for it, when its first data was read
   const frames = { drawn: 0, asked: 0, data: 0, held: 0, streamAt: null, viewerAskedAt: null, answeredAt: null, firstDataAt: null, early: "none",
-    heldGroups: 0, heldFrames: 0, heldNewestAgeMs: null };  // (what the early stream brought before the viewer read it, below)
+    heldGroups: 0, heldFrames: 0, heldNewestAgeMs: null, worker: null };  // (what the early stream brought before the viewer read it, below)
   const held = new Map();  // our id -> the viewer's callback, waiting for a reason to draw
   let onData = () => {};  // the frame gate's (below): the stream brought data
 
@@ -201,6 +201,7 @@
     let ctl = null, opt = null, ended = null, notify = false, streaming = false, lastRead = -Infinity;
     let groups = [], other = [], trailers = [], rest = new Uint8Array(0);
     const wall = () => performance.timeOrigin + performance.now();
+    const marks = { started: wall() };  // (for the benchmark: when the worker ran, was asked, answered, first read)
     function take(now) {  // now: answer even with nothing held (else once something comes)
       const data = [];
       for (let i = groups.length - 1; i >= 0; i--) data.push(...groups[i].data);  // the latest burst first
@@ -223,6 +224,7 @@
         const { done, value } = await reader.read();
         if (done) return;
         const now = wall();
+        if (!marks.firstRead) { marks.firstRead = now; postMessage({ marks }); }
         if (now - lastRead > opt.groupMs || !groups.length) { groups.push({ at: now, data: [], first }); first = false; }
         lastRead = now;
         const group = groups[groups.length - 1];
@@ -253,6 +255,7 @@
       if (m === "abort") { if (ctl) ctl.abort(); return; }
       if (!m.ask || ctl) return;
       opt = m.ask;
+      marks.asked = wall();
       ctl = new AbortController();
       let res;
       try {
@@ -264,7 +267,8 @@
         postMessage({ head: { error: String(err && err.message || err) } });
         return;
       }
-      postMessage({ head: { status: res.status, statusText: res.statusText, headers: [...res.headers] } });
+      marks.answered = wall();
+      postMessage({ head: { status: res.status, statusText: res.statusText, headers: [...res.headers] }, marks });
       try {
         if (res.body) await read(res);
         ended = "done";
@@ -298,9 +302,11 @@
       worker.onmessage = (ev) => {
         const m = ev.data;
         if (m.head) {
+          frames.worker = m.marks || null;
           if (m.head.error) reject(new TypeError(m.head.error));
           else resolve(m.head);
-        } else if (m.data && e.push) e.push(m);
+        } else if (m.marks) frames.worker = m.marks;
+        else if (m.data && e.push) e.push(m);
         else if (m.data) gotReply(e, m);
       };
       worker.onerror = () => reject(new TypeError("the live stream's worker failed"));
@@ -398,7 +404,8 @@
       frames.early = "used";
       const signal = args[0] instanceof Request ? args[0].signal : args[1] && args[1].signal;
       if (signal) signal.addEventListener("abort", () => closeEarly(e), { once: true });
-      return e.response.then((head) => handOver(e, head), (err) => { closeEarly(e); throw err; });
+      // (the worker's request failed: the viewer's own goes to the network, as without it)
+      return e.response.then((head) => handOver(e, head), () => { closeEarly(e); return nativeFetch(...args); });
     }
     if (early) { closeEarly(early); early = null; frames.early = "not used"; }
     return nativeFetch(...args);

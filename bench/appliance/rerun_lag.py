@@ -295,6 +295,8 @@ MARKS = """(() => {
     stream_asked: f.streamAt, viewer_asked: f.viewerAskedAt, stream_answered_js: f.answeredAt,
     stream_first_data: f.firstDataAt, early: f.early, held_groups: f.heldGroups, held_frames: f.heldFrames,
     held_newest_age_ms: f.heldNewestAgeMs,
+    worker_started: f.worker && f.worker.started, worker_asked: f.worker && f.worker.asked,
+    worker_answered: f.worker && f.worker.answered, worker_first_read: f.worker && f.worker.firstRead,
     states: window._xrfFrameStates, reads: window._xrfReads };
 })()"""
 
