@@ -10,9 +10,9 @@
 // first, so a viewer opened mid-run starts at the live edge (issue 31 bug 6, logs/rerun_servers.py
 // LiveProxy); the whole run so far is its log, opened as .rrd in another viewer tab. From the
 // page's load on (issue 31 bug 6): the viewer's wasm is compiled from its fetch, the live stream
-// is asked for once the viewer's wasm is compiled and handed to the viewer when it asks (what came
-// meanwhile newest first), and a line says what the tab is doing until the first data is drawn
-// (each below).
+// is asked for once the viewer's wasm is compiled, read in a worker, and handed to the viewer when
+// it reads (what came meanwhile newest first), and a line says what the tab is doing until the
+// first data is drawn (each below).
 // The 3D view's tab (viser's page, server/http/viser.py) loads this script too, for Esc.
 "use strict";
 (function () {
@@ -143,126 +143,247 @@
   // stream with data; when the stream was asked for (by this script, see below), when the viewer
   // asked for it, when its first data was read
   const frames = { drawn: 0, asked: 0, data: 0, held: 0, streamAt: null, viewerAskedAt: null, answeredAt: null, firstDataAt: null, early: "none",
-    heldGroups: 0, heldFrames: 0 };  // (what the early stream brought before the viewer asked, below)
+    heldGroups: 0, heldFrames: 0, heldNewestAgeMs: null, worker: null };  // (what the early stream brought before the viewer read it, below)
   const held = new Map();  // our id -> the viewer's callback, waiting for a reason to draw
   let onData = () => {};  // the frame gate's (below): the stream brought data
 
   // The live stream, asked for just before the viewer asks (issue 31 bug 6): the viewer asks for
   // it only once its app has started (wasm compiled and started: 1.5-3 s on a 2-core machine
-  // without a GPU, more under load), and the stream's first bytes were read 0.7-1.5 s after that
-  // (session 12: that is this page's main thread, busy with the viewer's start; the appliance
-  // answers 0.03-0.2 s after a request reaches it, bench/README.md). So this script sends the very request the viewer
-  // sends (ReadMessages, an empty request, gRPC-web) as soon as the viewer's wasm is compiled,
-  // 0.7-0.9 s before the viewer asks, and when the viewer asks it gets this response. Not at the page's load (as at first): what the proxy sends
-  // after the connection waits in the response's body in the order it came, and the viewer ingests
-  // at most 10 ms of messages a frame, so the earlier the connection, the older the samples of the
-  // viewer's first frames (measured with the first viewer of a run: its first frame drew the
-  // recording's first batch, 2.9-3.2 s behind live at load 11, bench/README.md session 10). At the
-  // connection the proxy hands its window newest first, then each batch. Only the first identical
-  // request, on this origin; anything else goes to the network as asked. Not claimed within
-  // EARLY_MAX_MS: closed. (The run's recording starts when this page is served, server-side.)
+  // without a GPU, more under load). So this script sends the very request the viewer sends
+  // (ReadMessages, an empty request, gRPC-web) as soon as the viewer's wasm is compiled, 0.7-0.9 s
+  // before the viewer asks, and when the viewer asks it gets this response. Not at the page's
+  // load (as at first): the earlier the connection, the more the viewer's first frames have to
+  // ingest before the newest samples (session 10). Only the first identical request, on this
+  // origin; anything else goes to the network as asked. Not claimed within EARLY_MAX_MS: closed.
+  // (The run's recording starts when this page is served, server-side.)
+  //
+  // The response is read in a Worker of its own (session 13), not on this page's thread: that
+  // thread is the viewer's, busy for 0.5-3 s with the viewer's start (instantiating its wasm,
+  // its first frames in software WebGL), and a read on it came when the thread was free, not when
+  // the bytes came: the proxy's window and the batches after it, which came seconds apart, were
+  // read as one, in the order they came, and the viewer's first frame drew the window, the oldest
+  // (session 12: 2.16 s behind live). The worker reads each batch when it comes and keeps it
+  // with that time (bursts within GROUP_MS: the window, or one batch of the recording). What it
+  // holds goes to the viewer at the viewer's first read (taken then: what came while this thread
+  // was busy waited in the worker, where it can still be put in order), newest first: what is not
+  // the run's recorded data (store info, the blueprint) in the order it came, then the
+  // recording's bursts, the latest first (each burst's messages in the order they came: the
+  // proxy sends its window newest first), then the trailers if the stream ended. The viewer
+  // ingests ~10 ms of messages per frame: its first frame takes the newest. From then on the
+  // worker sends each read as it comes (taken at each of the viewer's reads instead, the batches
+  // after the first waited for this thread twice each, and a viewer's first frame with data drew
+  // a sample 1.1 s old at its start: bench/README.md, session 13). A burst older than DROP_MS (the
+  // live plots' span) before the newest held is dropped (the first burst, with the recording's
+  // static data, is kept): the live view is a display, every sample is in the run's log (the
+  // replay link). The bytes are moved between the threads, not copied.
   const STREAM_PATH = "/rerun.sdk_comms.v1alpha1.MessageProxyService/ReadMessages";
   const EMPTY_READ = new Uint8Array(5);  // one gRPC-web data frame holding an empty ReadMessagesRequest
   const EARLY_MAX_MS = 120000;
+  const GROUP_MS = 100, DROP_MS = 10000;  // DROP_MS: logs/rerun_live.py LIVE_SPAN_S
+  // A reply of the worker handled this late was waited on by this thread: what came meanwhile is
+  // newer, and is asked for before the reply is handed on (STALE_MS after it was sent).
+  const STALE_MS = 50;
   const nativeFetch = window.fetch.bind(window);
   let early = null;
-  function askEarly() {
-    if (early || frames.viewerAskedAt !== null || frames.early !== "none") return;  // the viewer asked already
-    const ctl = new AbortController();
-    const response = nativeFetch(STREAM_PATH, {
-      method: "POST", credentials: "same-origin", cache: "no-store", signal: ctl.signal, body: EMPTY_READ,
-      headers: { "content-type": "application/grpc-web+proto", "x-grpc-web": "1" },
-    });
-    response.catch(() => {});  // the viewer reports a failed stream when it reads it
-    const e = { ctl, groups: [], rest: new Uint8Array(0), lastRead: -Infinity, end: null, sink: null };
-    e.response = response.then((res) => { if (res.ok && res.body) holdEarly(e, res.body.getReader()); return res; });
-    e.timer = setTimeout(() => { if (early === e) { e.ctl.abort(); early = null; frames.early = "closed"; } }, EARLY_MAX_MS);
-    early = e;
-    frames.streamAt = Date.now();
-    frames.early = "asked";
-  }
 
-  // What the stream brings before the viewer asks for it waits here, not in the response, and is
-  // handed over newest first (issue 31 bug 6, session 11). In the response it waited in the order
-  // it came: the proxy's window (newest first) then each batch, and the viewer ingests ~10 ms of
-  // messages a frame, so a viewer whose app started seconds after the tab asked (a loaded machine,
-  // a second opening whose stream was answered at once) drew first what was newest at the
-  // connection: a second opening at load 9-10 drew a sample 2.1 s behind live (bench/README.md,
-  // session 10). The messages are gRPC-web frames (a flag byte, a 4-byte length, the payload);
-  // those that came in one burst (within GROUP_MS: the window, or one batch of the recording) are
-  // a group. Handed over: what is not the run's recorded data first (store info, the blueprint),
-  // then the recording's data that came after the first group, the latest first, then the first
-  // group (the proxy's window, newest first as the proxy sends it), then the trailers if the
-  // stream ended; from then on the bytes go through as they come.
-  const GROUP_MS = 100;
+  // The worker's code (a blob: the viewer's CSP allows `worker-src blob:`; these functions' source).
   function recordingChunk(payload) {  // ReadMessagesResponse{log_msg=1: LogMsg{arrow_msg=2: {store_id=1: {kind=1}}}}, kind 1: a recording
     let rec = false;
     const inner = (field, each) => (f, v) => { if (f === field && typeof v !== "number") protoFields(v, each); };
     protoFields(payload, inner(1, inner(2, inner(1, (f, v) => { if (f === 1 && v === 1) rec = true; }))));
     return rec;
   }
-  async function holdEarly(e, reader) {
-    e.reader = reader;
-    try {
+  function streamWorker() {
+    // messages: {ask: {url, groupMs, dropMs}}: read the stream; "take": hand over what is held
+    // (at once if anything is, else as soon as something comes); "takeNow": at once, held or not;
+    // "stream": from now on, each read as it comes; "abort". Posts {head}, then per take (and per
+    // read once streaming) {data, other, trailers, groups, newestAt, at, end}.
+    let ctl = null, opt = null, ended = null, notify = false, streaming = false, lastRead = -Infinity;
+    let groups = [], other = [], trailers = [], rest = new Uint8Array(0);
+    const wall = () => performance.timeOrigin + performance.now();
+    const marks = { started: wall() };  // (for the benchmark: when the worker ran, was asked, answered, first read)
+    function take(now) {  // now: answer even with nothing held (else once something comes)
+      const data = [];
+      for (let i = groups.length - 1; i >= 0; i--) data.push(...groups[i].data);  // the latest burst first
+      if (!now && !data.length && !other.length && !trailers.length && ended === null) { notify = true; return; }
+      const newestAt = groups.length ? groups[groups.length - 1].at : null;
+      const out = { data, other, trailers, groups: groups.length, newestAt, at: wall(), end: ended };
+      const moved = [...new Set([...data, ...other, ...trailers].map((f) => f.buffer))];
+      groups = []; other = []; trailers = [];
+      // each frame a view of a read's own buffer (or of a copy): moved, not copied
+      postMessage(out, moved);
+    }
+    function drop(now) {  // bursts older than the live plots' span, but the first (static data)
+      const keep = groups.filter((g, i) => (g.first && i === 0) || now - g.at <= opt.dropMs);
+      groups = keep;
+    }
+    async function read(res) {
+      const reader = res.body.getReader();
+      let first = true;
       for (;;) {
         const { done, value } = await reader.read();
-        if (done) { e.end = "done"; if (e.sink) e.sink.close(); return; }
-        if (e.sink) { e.sink.enqueue(value); continue; }
-        const now = performance.now();
-        if (now - e.lastRead > GROUP_MS) e.groups.push({ data: [], other: [], trailers: [] });
-        e.lastRead = now;
-        const group = e.groups[e.groups.length - 1];
-        let buf = e.rest.length ? concat(e.rest, value) : value, i = 0;
+        if (done) return;
+        const now = wall();
+        if (!marks.firstRead) { marks.firstRead = now; postMessage({ marks }); }
+        if (now - lastRead > opt.groupMs || !groups.length) { groups.push({ at: now, data: [], first }); first = false; }
+        lastRead = now;
+        const group = groups[groups.length - 1];
+        group.at = now;
+        let buf = value, i = 0;
+        if (rest.length) { buf = new Uint8Array(rest.length + value.length); buf.set(rest); buf.set(value, rest.length); }
         while (buf.length - i >= 5) {
           const n = ((buf[i + 1] << 24) >>> 0) + (buf[i + 2] << 16) + (buf[i + 3] << 8) + buf[i + 4];
           if (buf.length - i - 5 < n) break;
           const frame = buf.subarray(i, i + 5 + n);
-          if (buf[i] & 0x80) group.trailers.push(frame);
-          else (recordingChunk(frame.subarray(5)) ? group.data : group.other).push(frame);
+          if (buf[i] & 0x80) trailers.push(frame);
+          else (recordingChunk(frame.subarray(5)) ? group.data : other).push(frame);
           i += 5 + n;
         }
-        e.rest = buf.slice(i);
+        rest = buf.slice(i);  // a copy: the frames' buffer is moved whole
+        drop(now);
+        if (streaming || notify) { notify = false; take(true); }
       }
+    }
+    onmessage = async (ev) => {
+      const m = ev.data;
+      if (m === "take" || m === "takeNow") { take(m === "takeNow"); return; }
+      if (m === "stream") {
+        streaming = true;
+        if (groups.length || other.length || trailers.length || ended !== null) take(true);
+        return;
+      }
+      if (m === "abort") { if (ctl) ctl.abort(); return; }
+      if (!m.ask || ctl) return;
+      opt = m.ask;
+      marks.asked = wall();
+      ctl = new AbortController();
+      let res;
+      try {
+        res = await fetch(opt.url, {
+          method: "POST", credentials: "same-origin", cache: "no-store", signal: ctl.signal, body: new Uint8Array(5),
+          headers: { "content-type": "application/grpc-web+proto", "x-grpc-web": "1" },
+        });
+      } catch (err) {
+        postMessage({ head: { error: String(err && err.message || err) } });
+        return;
+      }
+      marks.answered = wall();
+      postMessage({ head: { status: res.status, statusText: res.statusText, headers: [...res.headers] }, marks });
+      try {
+        if (res.body) await read(res);
+        ended = "done";
+      } catch (err) {
+        ended = String(err && err.message || err);
+      }
+      if (streaming || notify) { notify = false; take(true); }
+    };
+  }
+
+  // The worker is started with the page, not when the stream is asked for: chromium starts a
+  // worker with tasks on this page's thread, and when the wasm is compiled that thread is about to
+  // be busy with the viewer's start (measured: a worker made then fetched only after it).
+  let streamReader = null;
+  function startWorker() {
+    try {
+      const src = [protoFields, recordingChunk, streamWorker].map(String).join("\n") + "\nstreamWorker();";
+      const blobUrl = URL.createObjectURL(new Blob([src], { type: "text/javascript" }));
+      streamReader = new Worker(blobUrl);
+      setTimeout(() => URL.revokeObjectURL(blobUrl), 60000);  // (once the worker has surely loaded it)
     } catch (err) {
-      e.end = err;
-      if (e.sink) e.sink.error(err);
+      streamReader = null;  // no worker (an old browser, a stricter policy): the viewer asks for the stream itself
     }
   }
-  function concat(a, b) {
-    const out = new Uint8Array(a.length + b.length);
-    out.set(a);
-    out.set(b, a.length);
-    return out;
-  }
-  function handOver(e, res) {
-    if (!res.ok || !res.body) return res;
-    const body = new ReadableStream({
-      start(sink) {
-        const groups = e.groups;
-        e.groups = [];
-        frames.heldGroups = groups.length;
-        frames.heldFrames = groups.reduce((n, g) => n + g.data.length + g.other.length, 0);
-        for (const g of groups) for (const f of g.other) sink.enqueue(f);
-        // the batches since the connection, newest first (several that came together too), then
-        // the proxy's window (the first group: newest first already)
-        for (const f of groups.slice(1).flatMap((g) => g.data).reverse()) sink.enqueue(f);
-        if (groups.length) for (const f of groups[0].data) sink.enqueue(f);
-        for (const g of groups) for (const f of g.trailers) sink.enqueue(f);
-        if (e.rest.length) sink.enqueue(e.rest);
-        if (e.end === "done") sink.close();
-        else if (e.end) sink.error(e.end);
-        else e.sink = sink;
-      },
-      cancel() { e.ctl.abort(); },
+  function askEarly() {
+    if (early || frames.viewerAskedAt !== null || frames.early !== "none") return;  // the viewer asked already
+    const worker = streamReader;
+    if (!worker) return;
+    const e = { worker, replies: [], waiting: null, push: null, done: false };
+    e.response = new Promise((resolve, reject) => {
+      worker.onmessage = (ev) => {
+        const m = ev.data;
+        if (m.head) {
+          frames.worker = m.marks || null;
+          if (m.head.error) reject(new TypeError(m.head.error));
+          else resolve(m.head);
+        } else if (m.marks) frames.worker = m.marks;
+        else if (m.data && e.push) e.push(m);
+        else if (m.data) gotReply(e, m);
+      };
+      worker.onerror = () => reject(new TypeError("the live stream's worker failed"));
     });
-    return new Response(body, { status: res.status, statusText: res.statusText, headers: res.headers });
+    e.response.catch(() => {});  // the viewer reports a failed stream when it reads it
+    worker.postMessage({ ask: { url: location.origin + STREAM_PATH, groupMs: GROUP_MS, dropMs: DROP_MS } });
+    e.timer = setTimeout(() => { if (early === e) { closeEarly(e); early = null; frames.early = "closed"; } }, EARLY_MAX_MS);
+    early = e;
+    frames.streamAt = Date.now();
+    frames.early = "asked";
+  }
+  function closeEarly(e) {
+    e.done = true;
+    clearTimeout(e.timer);
+    e.worker.postMessage("abort");
+    e.worker.terminate();
+  }
+  // The first take's reply: handed to the viewer's read, unless this thread handled it STALE_MS or
+  // more after the worker sent it (the thread was busy: more may have come since, newer): then the
+  // worker is asked again (twice at most: a thread always that slow gets what there is), and the
+  // newer reply goes first.
+  function gotReply(e, m) {
+    e.replies.unshift(m);
+    const stale = performance.timeOrigin + performance.now() - m.at >= STALE_MS;
+    if (m.end === null && stale && e.replies.length < 3) { e.worker.postMessage("takeNow"); return; }
+    const replies = e.replies;  // newest first
+    e.replies = [];
+    if (e.waiting) e.waiting(replies);
+    e.waiting = null;
+  }
+  // The viewer's response: its body's first read takes what the worker holds, newest first (above);
+  // from then on the worker sends each read as it comes, put in the body at once (the viewer reads
+  // as it wants, as from the network).
+  function handOver(e, head) {
+    if (head.status < 200 || head.status > 299) { closeEarly(e); return new Response(null, head); }
+    let sink = null, firstTake = true;
+    const put = (replies) => {  // (replies: the newest first)
+      const oldestFirst = [...replies].reverse();
+      const other = oldestFirst.flatMap((r) => r.other), trailers = oldestFirst.flatMap((r) => r.trailers);
+      const data = replies.flatMap((r) => r.data);
+      for (const f of [...other, ...data, ...trailers]) sink.enqueue(f);
+      const end = replies.find((r) => r.end !== null);
+      if (end) {
+        e.push = null;
+        closeEarly(e);
+        if (end.end === "done") sink.close();
+        else sink.error(new TypeError(end.end));
+      }
+      return data.length + other.length;
+    };
+    const body = new ReadableStream({
+      start(controller) { sink = controller; },
+      pull() {  // the viewer reads (the first time: what is held, newest first; later: a no-op)
+        if (!firstTake || e.done) return undefined;
+        firstTake = false;
+        return new Promise((resolve) => {
+          e.waiting = resolve;
+          e.worker.postMessage("take");
+        }).then((replies) => {
+          frames.heldGroups = replies.reduce((n, r) => n + r.groups, 0);
+          const newest = replies.find((r) => r.newestAt !== null);
+          frames.heldNewestAgeMs = newest ? performance.timeOrigin + performance.now() - newest.newestAt : null;
+          frames.heldFrames = put(replies);
+          if (e.done) return;
+          e.push = (m) => put([m]);
+          e.worker.postMessage("stream");
+        });
+      },
+      cancel() { closeEarly(e); },
+    }, { highWaterMark: 0 });
+    return new Response(body, head);
   }
   if (live && url.replace(/^rerun\+/, "").replace(/\/proxy$/, "") === location.origin) {
     // As soon as the module is compiled (the loader instantiates it, the app starts ~0.5 s later and
     // asks ~0.2-0.6 s after that): ~0.7-0.9 s ahead of the viewer. (Without a compiled module: at
-    // the page's load.) What this early response brought is read by this page's main thread, which
-    // the viewer's start keeps busy for up to a second or more: bytes that came apart can then be
-    // read together, in the order they came (session 12, bench/README.md).
+    // the page's load.) Read by the worker (above), started now.
+    startWorker();
     if (wasm) wasm.then(askEarly, askEarly); else askEarly();
   }
   async function bodyOf(args) {  // the request body of a fetch(...) call, or null
@@ -282,10 +403,11 @@
       clearTimeout(e.timer);
       frames.early = "used";
       const signal = args[0] instanceof Request ? args[0].signal : args[1] && args[1].signal;
-      if (signal) signal.addEventListener("abort", () => e.ctl.abort(), { once: true });
-      return e.response.then((res) => handOver(e, res));
+      if (signal) signal.addEventListener("abort", () => closeEarly(e), { once: true });
+      // (the worker's request failed: the viewer's own goes to the network, as without it)
+      return e.response.then((head) => handOver(e, head), () => { closeEarly(e); return nativeFetch(...args); });
     }
-    if (early) { early.ctl.abort(); clearTimeout(early.timer); early = null; frames.early = "not used"; }
+    if (early) { closeEarly(early); early = null; frames.early = "not used"; }
     return nativeFetch(...args);
   }
 

@@ -24,7 +24,14 @@ opening): the wasm's fetch (resource timing), its compile and instantiation (Web
 points), the app's start, the live stream asked for (by the tab script at the page's load, or by
 the viewer) and its first data, and the first of the viewer's frames that holds a sample of the
 run (its state at the end of each frame callback) with how far behind live that sample was then,
-and when the next frame ended (its pixels are on screen by then). The browser has a profile on
+and when the next frame ended (its pixels are on screen by then). "Behind at the first sample
+drawn" = the end of that frame's callback (the viewer ingests and draws in it; its pixels are
+rasterised right after) minus the newest sample its state holds then, in two parts (session 13):
+the frame's own time (its callback's start to its end: the viewer's code and software WebGL,
+which no page script shortens) and how old that sample already was at the frame's start (the
+stream's batching and what the tab handed over first); ``SUMMARY``, one line a run, and
+``TIMELINE``, the frames around it and the reads of a stream on the page's thread (s after the
+opening, KB). The browser has a profile on
 disk, as a person's has (its HTTP cache keeps the wasm, its code cache the compiled module):
 ``--fresh-profile`` for Playwright's off-the-record context instead; ``--cold``: a profile on disk
 that has never loaded the viewer (its files prepared by the appliance over HTTP, no warm-up page
@@ -254,18 +261,29 @@ PHASES = """(() => {
   let handle;
   Object.defineProperty(window, "_handle", { configurable: true, get: () => handle,
     set: (v) => { handle = v; mark("app_started"); } });
+  // each read of a stream on this thread that brought bytes (the tab script's early reads before
+  // session 13, the viewer's): [when, bytes]; the wasm's download is not read this way
+  window._xrfReads = [];
+  const read = ReadableStreamDefaultReader.prototype.read;
+  ReadableStreamDefaultReader.prototype.read = function (...a) {
+    return read.apply(this, a).then((r) => {
+      if (!r.done && r.value && window._xrfReads.length < 400) window._xrfReads.push([now(), r.value.byteLength]);
+      return r;
+    });
+  };
   window._xrfFrameStates = [];
   let last = "", frames = 0, lastT = null;
   const raf = window.requestAnimationFrame.bind(window);
   window.requestAnimationFrame = (cb) => raf((t) => {
+    const began = now();  // the viewer ingests what its stream brought at the start of its frame
     cb(t);
     if (!handle || window._xrfFrameStates.length > 400) return;
     if (t !== lastT) { lastT = t; frames += 1; }  // one frame, however many callbacks it runs
     let st;
     try { st = Array.from(handle.viewer_state()); } catch (e) { return; }
     const key = st.join(",");
-    if (key !== last) { last = key; window._xrfFrameStates.push([now(), frames, st]); }
-    else if (window._xrfFrameStates.length) window._xrfFrameStates.push([now(), frames, null]);
+    if (key !== last) { last = key; window._xrfFrameStates.push([now(), frames, st, began]); }
+    else if (window._xrfFrameStates.length) window._xrfFrameStates.push([now(), frames, null, began]);
   });
 })();"""
 MARKS = """(() => {
@@ -276,7 +294,10 @@ MARKS = """(() => {
     wasm_response_end: r && o + r.responseEnd, wasm_transfer_bytes: r && r.transferSize,
     stream_asked: f.streamAt, viewer_asked: f.viewerAskedAt, stream_answered_js: f.answeredAt,
     stream_first_data: f.firstDataAt, early: f.early, held_groups: f.heldGroups, held_frames: f.heldFrames,
-    states: window._xrfFrameStates };
+    held_newest_age_ms: f.heldNewestAgeMs,
+    worker_started: f.worker && f.worker.started, worker_asked: f.worker && f.worker.asked,
+    worker_answered: f.worker && f.worker.answered, worker_first_read: f.worker && f.worker.firstRead,
+    states: window._xrfFrameStates, reads: window._xrfReads };
 })()"""
 
 
@@ -291,16 +312,41 @@ def phases(page, opened_ns: int, recording: str) -> dict[str, float]:
     out["early"] = raw.get("early") or "-"  # the tab script's stream asked for at the page's load
     # what that early stream brought before the viewer asked: bursts and messages (frontend/rerun-tab.js)
     out["held"] = f"{raw.get('held_groups', '-')} bursts, {raw.get('held_frames', '-')} messages"
+    if raw.get("held_newest_age_ms") is not None:  # (the worker's: when its newest burst came)
+        out["held"] += f", the newest {raw['held_newest_age_ms'] / 1e3:.2f} s old"
     states = raw.get("states") or []
-    for i, (t_ms, n, state) in enumerate(states):
+    for i, (t_ms, n, state, began_ms) in enumerate(states):
         newest = viewer_newest_ns(bytes(state), recording) if state is not None else None
         if newest is not None:
             out["first_drawn"] = t_ms / 1e3 - opened_ns / 1e9
             out["first_drawn_behind"] = t_ms / 1e3 - newest / 1e9
             out["first_drawn_frame"] = n
+            # "behind" in two: the frame's own time (its callback, from its start, where the viewer
+            # ingests, to its end: the viewer's code, software WebGL), and how old the newest sample
+            # it ingested was when the frame began (the stream, and the order it was handed over)
+            out["first_drawn_began"] = began_ms / 1e3 - opened_ns / 1e9
+            out["first_frame_own_s"] = (t_ms - began_ms) / 1e3
+            out["first_drawn_stale"] = began_ms / 1e3 - newest / 1e9
+            # the app's frames before it (s each: a frame that ingests and draws nothing new is short)
+            out["frames_before"] = " ".join(f"{(t - b) / 1e3:.2f}" for t, _, _, b in states[max(0, i - 4) : i])
             # the frame after it: what the first frame drew is on screen when this one ended at the
             # latest (the first plots' shaders may be compiled in either)
-            later = next((t for t, m, _ in states[i + 1 :] if m > n), None)
+            # the frames up to it (s after the opening: began-ended, how old its newest sample was at
+            # its end) and the reads with bytes on the page's thread meanwhile (s, KB)
+            reads = raw.get("reads") or []
+            lines = []
+            for t, _, st, b in states[max(0, i - 4) : i + 3]:
+                nw = viewer_newest_ns(bytes(st), recording) if st is not None else None
+                age = f" newest {t / 1e3 - nw / 1e9:.2f} s old" if nw is not None else ""
+                lines.append(f"frame {b / 1e3 - opened_ns / 1e9:.2f}-{t / 1e3 - opened_ns / 1e9:.2f}{age}")
+            first_ms = states[max(0, i - 4)][3]
+            got = [
+                f"{r / 1e3 - opened_ns / 1e9:.2f}:{kb / 1e3:.0f}"
+                for r, kb in reads
+                if first_ms - 3000 <= r <= t_ms + 1500
+            ]
+            out["timeline"] = "; ".join(lines) + " | reads (s:KB) " + " ".join(got)
+            later = next((t for t, m, _, _ in states[i + 1 :] if m > n), None)
             if later is not None:
                 out["next_frame_end"] = later / 1e3 - opened_ns / 1e9
                 out["next_frame_end_behind"] = later / 1e3 - newest / 1e9
@@ -367,13 +413,15 @@ def empty_viewer(ctx, url: str, watch_s: float) -> dict:
     return {"app_start_s": (app_ns - opened_ns) / 1e9, **thread}
 
 
-def _stream_timing(ctx, page) -> dict[str, int]:
+def _stream_timing(ctx, page) -> tuple[dict[str, int], list[int]]:
     """When the page asked for the live stream and when its first bytes came (wall ns), from the
     DevTools protocol's network events (their own timestamps: Playwright's sync API dispatches
-    events late, while the script sleeps)."""
+    events late, while the script sleeps); and when each of its bytes reached the browser's network
+    layer (wall ns: not delayed by the page's busy main thread)."""
     cdp = ctx.new_cdp_session(page)
     cdp.send("Network.enable")
     out: dict[str, int] = {}
+    arrivals: list[int] = []
     req: dict[str, tuple[float, float]] = {}  # requestId -> (monotonic s, wall s)
 
     def sent(e: dict) -> None:
@@ -392,11 +440,12 @@ def _stream_timing(ctx, page) -> dict[str, int]:
     def data(e: dict) -> None:
         if (t := wall(e)) is not None and e.get("dataLength", 0) > 0:
             out.setdefault("stream_first_bytes", t)
+            arrivals.append(t)
 
     cdp.on("Network.requestWillBeSent", sent)
     cdp.on("Network.responseReceived", answered)
     cdp.on("Network.dataReceived", data)
-    return out
+    return out, arrivals
 
 
 # The tab script's "Full-size view" choice (frontend/rerun-tab.js FULL_KEY), set before the page loads.
@@ -405,7 +454,19 @@ FULL_SIZE = "try { localStorage.setItem('xrf-rerun-live-full', '1'); } catch (e)
 ALL_FRAMES = "try { localStorage.setItem('xrf-rerun-live-frames', 'all'); } catch (e) {}"
 
 
-_NOT_TIMES = ("first_drawn_behind", "next_frame_end_behind", "first_drawn_frame", "wasm_transfer_MB", "early", "held")
+_NOT_TIMES = (
+    "first_drawn_behind",
+    "first_frame_own_s",
+    "first_drawn_stale",
+    "next_frame_end_behind",
+    "first_drawn_frame",
+    "wasm_transfer_MB",
+    "early",
+    "held",
+    "net_gap_s",
+    "frames_before",
+    "timeline",
+)
 
 
 def browser_case(
@@ -495,7 +556,7 @@ def browser_case(
                 page = ctx.new_page()
                 for script in scripts:
                     page.add_init_script(script)
-                wire = _stream_timing(ctx, page)
+                wire, arrivals = _stream_timing(ctx, page)
                 page.on("console", lambda m: m.type == "debug" and debug_lines.__setitem__(0, debug_lines[0] + 1))
                 opened_ns = time.time_ns()
                 page.goto(live, timeout=120_000)
@@ -518,7 +579,7 @@ def browser_case(
                     opened_ns = time.time_ns()
                     dash.click("#rr-live")
                 page = popup.value
-                wire = _stream_timing(ctx, page)
+                wire, arrivals = _stream_timing(ctx, page)
                 page.on("console", lambda m: m.type == "debug" and debug_lines.__setitem__(0, debug_lines[0] + 1))
             page.wait_for_function("() => window._handle !== undefined", timeout=600_000)
             app_ns = time.time_ns()
@@ -532,6 +593,11 @@ def browser_case(
             cpu1, frames1, t1 = chromium_cpu_s(), page.evaluate("window._xrfFrames.length"), time.monotonic()
             raw = page.evaluate("window._xrfSamples")
             marks = phases(page, opened_ns, f"run-{run['id']}")
+            if "first_drawn_began" in marks:  # the stream's newest bytes at the network by then
+                began_ns = opened_ns + marks["first_drawn_began"] * 1e9
+                got = [a for a in arrivals if a <= began_ns]
+                if got:
+                    marks["net_gap_s"] = (began_ns - max(got)) / 1e9
             thread = _thread(page, opened_ns, app_ns)
             gate = page.evaluate("window.xrfRerunTab && xrfRerunTab.frames ? xrfRerunTab.frames() : null")
             canvas = page.evaluate(
@@ -938,6 +1004,17 @@ def main() -> None:
                 f"wasm transferred {ph['wasm_transfer_MB']:.1f} MB (0: from the cache); the stream asked for at "
                 f"the page's load: {ph['early']}, holding {ph['held']} when the viewer asked"
             )
+        if "first_drawn" in ph:
+            # one line per run, to gather distributions
+            print(
+                f"  SUMMARY load {seen['load_at_open']:.1f} app {seen['app_start_s']:.2f} first_drawn "
+                f"{ph['first_drawn']:.2f} behind {ph['first_drawn_behind']:.2f} = own frame "
+                f"{ph['first_frame_own_s']:.2f} + stale at its start {ph['first_drawn_stale']:.2f} (newest bytes at "
+                f"the network {ph.get('net_gap_s', float('nan')):.2f} s before it began); early {ph['early']}, "
+                f"held {ph['held']}; the 4 frames before it {ph['frames_before']} s"
+            )
+        if "timeline" in ph:
+            print(f"  TIMELINE {ph['timeline']}")
         print("  behind live " + ", ".join(f"{t} s after start: {v:.1f} s" for t, v in b.items()))
         print(
             f"  within {args.edge:g} s of live {seen['edge_s']:.1f} s after the app started "

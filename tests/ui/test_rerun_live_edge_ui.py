@@ -36,6 +36,11 @@ opening) is a figure of bench/appliance/rerun_lag.py.
 Every opening (session 11): what the early response brought before the viewer asked is handed over
 newest first, so a viewer whose app starts late draws the latest batch first, not what was newest
 when the tab connected; and the line is there while the viewer's own script still loads.
+
+Off the page's thread (session 13): the early response is read in a worker, each batch when it
+comes, so what came while the page's thread was busy (the viewer's start) is still handed over
+newest first: the page kept busy from the tab's request on, the first of the run's samples handed
+to the viewer is from the newest batch, not the proxy's window from when the page went busy.
 """
 
 from __future__ import annotations
@@ -476,5 +481,91 @@ def test_a_viewer_that_starts_late_is_handed_the_newest_data_first(server: Serve
         f"the viewer's first frame with data held samples at most as new as {behind:.1f} s before it asked for "
         f"the stream (it was held back {HOLD_S:g} s after the tab asked): what waited was handed over oldest first"
     )
+    viewer.close()
+    server.stop_run()
+
+
+# The page's thread is kept busy this long from the moment the tab script asked for the live
+# stream (by a synchronous request the test holds), as the viewer's own start keeps it busy
+# (instantiating its wasm, its first frames in software WebGL: 0.5-3 s on a loaded 2-core VM,
+# bench/README.md session 12). The stream's window and several batches come meanwhile.
+BUSY_S = 6.0
+
+# In the viewer's tab, before its scripts: once the tab script has asked for the live stream, the
+# page's thread is busy until the test answers a synchronous request, and in the same task it asks
+# for the stream as the viewer does (the viewer's own script is held back: this is the request the
+# tab hands its early response to) and keeps what the first reads hand over (2 s of them).
+BUSY_THEN_ASK = """if (location.pathname.startsWith("/rerun/")) (() => {
+  window._xrfHanded = null;
+  const poll = setInterval(() => {
+    const tab = window.xrfRerunTab;
+    if (!tab || !tab.frames || tab.frames().early !== "asked") return;
+    clearInterval(poll);
+    const busy = new XMLHttpRequest();
+    busy.open("GET", "/xrf-test-busy", false);
+    try { busy.send(); } catch (e) { /* the answer does not matter, only when it comes */ }
+    const askedAt = Date.now();
+    fetch("READ_MESSAGES", { method: "POST", body: new Uint8Array(5), credentials: "same-origin",
+      headers: { "content-type": "application/grpc-web+proto", "x-grpc-web": "1" } }).then(async (res) => {
+      const reader = res.body.getReader(), got = [];
+      const timeUp = new Promise((resolve) => setTimeout(() => resolve({ done: true }), 2000));
+      for (;;) {
+        const { done, value } = await Promise.race([reader.read(), timeUp]);
+        if (done) break;
+        got.push(Array.from(value));
+      }
+      reader.cancel();
+      window._xrfHanded = { askedAt, bytes: got.flat() };
+    }).catch((e) => { window._xrfHanded = { error: String(e) }; });
+  }, 0);
+})();""".replace("READ_MESSAGES", READ_MESSAGES)
+
+
+def test_a_busy_page_still_hands_the_newest_batch_first(server: Server, browser) -> None:  # noqa: ANN001
+    """The tab script's early response was read on the page's own thread, which the viewer's start
+    keeps busy: what came meanwhile (the proxy's window, then the batches after it, seconds apart)
+    was read as one, in the order it came, when the thread was free, and handed over so: the
+    viewer's first frame drew the window, the oldest (session 12: 2.16 s behind live). Now it is
+    read in a worker, each batch when it comes, and handed over newest first whatever the page's
+    thread was doing: the first of the run's samples handed to the viewer is from the newest batch
+    held, not the window from when the page's thread went busy (BUSY_S before)."""
+    run, info = _live_run_with_the_viewer_prepared(server, browser)
+    viewer = browser.new_page(viewport={"width": 1280, "height": 800})
+    viewer.add_init_script(BUSY_THEN_ASK)
+    held: list = []
+    viewer.route("**/rerun/re_viewer.js", lambda route: held.append(route))  # the viewer's app: not started
+    busy: list = []
+    viewer.route("**/xrf-test-busy", lambda route: busy.append(route))
+    viewer.goto(
+        server.url + "/rerun/?url=" + urllib.parse.quote(info["live_url"], safe=""),
+        wait_until="commit",
+        timeout=120_000,
+    )
+    # (route handlers run inside Playwright calls: one that needs nothing of the busy page)
+    wait_for(lambda: viewer.context.cookies() is not None and busy, 120, "the page's thread busy after the tab asked")
+    went_busy = time.monotonic()
+    wait_for(lambda: time.monotonic() - went_busy >= BUSY_S, BUSY_S + 5, "the page kept busy")  # on purpose
+    busy[0].fulfill(status=204)
+    handed = wait_for(lambda: viewer.evaluate("window._xrfHanded"), 60, "what the tab handed over")
+    assert "error" not in handed, handed
+    assert viewer.evaluate("xrfRerunTab.frames().early") == "used"
+    asked_ns = handed["askedAt"] * 1_000_000
+    frames, _ = split_frames(bytes(handed["bytes"]))
+    recording = f"run-{run['id']}"
+    times = []
+    for flag, payload in frames:
+        chunk = chunk_of(payload) if flag == 0 else None
+        if chunk is not None and chunk.store_kind == STORE_RECORDING and chunk.newest_time_ns is not None:
+            assert chunk.recording_id == recording, chunk.recording_id
+            times.append(chunk.newest_time_ns)
+    assert times, "the tab handed over none of the run's samples"
+    # What waited was the window from before the page went busy and the batches after it...
+    assert (asked_ns - min(times)) / 1e9 >= BUSY_S / 2, [(asked_ns - t) / 1e9 for t in times]
+    # ...and the first handed over is the newest batch, not that window.
+    assert (asked_ns - times[0]) / 1e9 <= HANDED_S, (
+        f"the first of the run's samples handed to the viewer was {(asked_ns - times[0]) / 1e9:.1f} s older than "
+        f"its request (the page was busy {BUSY_S:g} s before it): handed over in the order it came, oldest first"
+    )
+    held.clear()
     viewer.close()
     server.stop_run()
