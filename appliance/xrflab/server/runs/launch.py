@@ -236,35 +236,43 @@ def announce_unconfined(run: Run, hub: Hub) -> None:
 
 async def open_channels(run: Run, settings: Settings, store: RunStore) -> bool:
     """Map the run's shm once the loop marks it ready, unless the process dies first."""
-    if run.shm_fd >= 0:  # the sealed memfd launch.spawn made
-        opening = asyncio.ensure_future(
-            asyncio.to_thread(Channels.open_fd, run.shm_fd, run.shm, settings.open_timeout_s)
-        )
-    else:
-        opening = asyncio.ensure_future(asyncio.to_thread(Channels.open, run.shm, settings.open_timeout_s))
-    exited = asyncio.ensure_future(run.ended.wait())
+
+    def open_segment(wait_s: float) -> Channels:
+        if run.shm_fd >= 0:  # the sealed memfd launch.spawn made
+            return Channels.open_fd(run.shm_fd, run.shm, wait_s)
+        return Channels.open(run.shm, wait_s)
+
+    opening = asyncio.ensure_future(asyncio.to_thread(open_segment, settings.open_timeout_s))
+    # The process's exit, not the run's end: the end waits for the start (Run.settled). A segment
+    # made ready by a loop that has ended since is still opened: its log is drained at the end.
+    exited = asyncio.ensure_future(run.proc.wait())
     done, _ = await asyncio.wait({opening, exited}, return_when=asyncio.FIRST_COMPLETED)
     exited.cancel()
-    if opening in done and opening.exception() is None:
+    ended_first = opening not in done
+    if ended_first:
+        # The loop ended first. A short run (`max_cycles`) marks its segment ready and ends within
+        # milliseconds, before the opening's next look: ready now means ready for good (the
+        # loop is gone), so one look without waiting says whether it ran.
+        opening.add_done_callback(lambda f: f.exception())  # let the waiting thread finish quietly
+        opening = asyncio.ensure_future(asyncio.to_thread(open_segment, 0.0))
+        await asyncio.wait({opening})
+    if opening.exception() is None:
         ch = opening.result()
-        if run.ended.is_set():
-            return False
         run.channels = ch
         ch.configure_host_timeout(settings.host_timeout_ms, settings.host_timeout_action)
         with contextlib.suppress(StatusBusy):  # mid-write: refresh_state takes it later
             run.last_status = ch.status()
         return True
-    if opening in done and isinstance(opening.exception(), ChannelsCorrupt) and run.report_corrupt is not None:
+    if isinstance(opening.exception(), ChannelsCorrupt) and run.report_corrupt is not None:
         # Ready, but not a segment our runtime writes (a ring's geometry, the info block): the
         # run is stopped as any run that breaks its segment (server/runs/corrupt.py).
         exc = opening.exception()
         assert isinstance(exc, ChannelsCorrupt)
         run.report_corrupt(exc)
         return False
-    if opening in done:  # the loop never made its shm ready: treat as a failed start
+    if not ended_first:  # the loop never made its shm ready: treat as a failed start
         message = f"loop did not open its shared memory: {opening.exception()}"
         run.row = store.update(run.row.id, message=message)
+        run.settled.set()  # the start gives up: the end may follow (terminate waits for it)
         await terminate(run, settings)
-    else:
-        opening.add_done_callback(lambda f: f.exception())  # let the thread finish quietly
-    return False
+    return False  # (ended before its segment was ready: the end says how it ended)

@@ -59,6 +59,10 @@ class Run:
     exited_at: float = 0.0
     safe_at: float = 0.0
     ended: asyncio.Event = field(default_factory=asyncio.Event)
+    # The start is done with the run (Supervisor.start_run: marked running, logging and tasks
+    # started, or given up): its end waits for this, so a loop that ends during its start (a short
+    # run on a loaded machine) is ended after it was started, never started after its end.
+    settled: asyncio.Event = field(default_factory=asyncio.Event)
     tasks: list[asyncio.Task[Any]] = field(default_factory=list)
     setpoint: dict[str, Any] = field(default_factory=dict)
     # doorbell thread <-> reader task (server/runs/reader.py)

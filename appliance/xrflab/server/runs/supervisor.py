@@ -193,19 +193,26 @@ class Supervisor:
                 run.tasks.append(asyncio.create_task(guard, name=f"run{row.id}-limits"))
             run.tasks.append(asyncio.create_task(run_reader.pipe_output(run, self.hub), name=f"run{row.id}-output"))
 
-            opened = await launch.open_channels(run, self.settings, self.store)
+            try:
+                opened = await launch.open_channels(run, self.settings, self.store)
+                if opened:
+                    # Started even when the loop has ended meanwhile (its end waits for `settled`
+                    # and then drains the log as for any run); only its watcher is not.
+                    info = run.channels.info if run.channels else {}
+                    if run.alive:
+                        run_watch.start_watcher(run, self.settings)
+                    run.row = self.store.update(
+                        row.id, status="running", program=info.get("program", ""), cycle_freq=info.get("cycle_freq", 0)
+                    )
+                    self.lifecycle.started(run)  # host logging first: the log writer starts draining now
+                    self._start_tasks(run)
+                    refresh_state(run, self.hub)
+            finally:
+                run.settled.set()
             if not opened:
                 await run.ended.wait()
                 assert self.last_row is not None
                 return self.last_row
-            info = run.channels.info if run.channels else {}
-            run_watch.start_watcher(run, self.settings)
-            run.row = self.store.update(
-                row.id, status="running", program=info.get("program", ""), cycle_freq=info.get("cycle_freq", 0)
-            )
-            self.lifecycle.started(run)  # host logging first: the log writer starts draining now
-            self._start_tasks(run)
-            refresh_state(run, self.hub)
             self.hub.publish(self.run_message(run, "started"))
             return run.row
 
@@ -235,7 +242,11 @@ class Supervisor:
 
     async def _watch_exit(self, run: Run) -> None:
         """The run's last task: its exit (outputs safe), its record, then the browsers."""
-        returncode = await run_watch.wait_for_exit(run, self.settings)
+        returncode = await run_watch.wait_for_exit(run, self.settings)  # outputs safe first
+        # A loop that ended while its start was under way (a short run on a loaded machine): its
+        # end after the start, or the start marked the ended run running and started its logging
+        # and tasks after their end (CI, session 13: a 10-cycle run stayed "running" for good).
+        await run.settled.wait()
         ending = await run_end.record(run, returncode, self.settings, self.store, self.lifecycle)
         self.last_row = run.row
         run_end.announce(run, ending, self.hub)
