@@ -370,10 +370,10 @@ def test_histograms_from_status(shm_name: str) -> None:
     st.lists(st.integers(-5, 5), min_size=8, max_size=8),
 )
 def test_stage_figures_are_what_each_histogram_says(stages, count_skew) -> None:
-    # The timing series' figures from one status copy, all stages at once (status.stage_figures),
+    # The timing series' figures from one status copy, all stages at once (status.stage_figures_of),
     # against each stage's Histogram: percentiles, count, sum, min and max the same, also where the
     # count does not add up to the buckets (a loop may write anything there).
-    from xrflab.channels.status import histogram_from_struct, stage_figures
+    from xrflab.channels.status import hist_words, histogram_from_struct, stage_figures_of
 
     s = ffi.new("struct xrf_status *")
     for i, buckets in enumerate(stages):
@@ -386,7 +386,7 @@ def test_stage_figures_are_what_each_histogram_says(stages, count_skew) -> None:
         h.min_ns = lib.xrf_hist_bucket_low(min((b for b, n in buckets if n), default=0))
         h.max_ns = lib.xrf_hist_bucket_low(max((b for b, n in buckets if n), default=0)) + 7
     ps = (0.0, 1.0, 50.0, 90.0, 99.0, 99.9, 100.0)
-    figures = stage_figures(s, ps)
+    figures = stage_figures_of(hist_words(s), ps)
     assert len(figures) == len(channels.STAGE_NAMES)
     for i, f in enumerate(figures):
         h = histogram_from_struct(s.hist[i])

@@ -261,16 +261,6 @@ class StageFigures:
     percentiles: tuple[int, ...]
 
 
-def stage_figures(s: CData, percentiles: tuple[float, ...]) -> list[StageFigures]:
-    """Every stage's count, sum, min, max and `percentiles` from a status copy `s`, in STAGE_NAMES'
-    order, with the buckets of all stages as one numpy array: the same values as
-    histogram_from_struct(...).percentile(p), without a Python list of buckets per stage (the run's
-    timing series takes these once a second: it was most of the host log writer's CPU with the
-    appliance idle, issue 30 item 4). Values are the loop's words as int64 (a loop writing more
-    than 2**63 gets its own nonsense back; nothing is indexed by them)."""
-    return stage_figures_of(hist_words(s), percentiles)
-
-
 def hist_words(s: CData) -> np.ndarray:
     """A copy of the stages' histograms of a status copy `s` as 64-bit words, a row per stage
     (count, sum_ns, min_ns, max_ns, the buckets): what stage_figures_of takes, kept apart from
@@ -279,7 +269,12 @@ def hist_words(s: CData) -> np.ndarray:
 
 
 def stage_figures_of(words: np.ndarray, percentiles: tuple[float, ...]) -> list[StageFigures]:
-    """stage_figures of the histograms' words (hist_words)."""
+    """Every stage's count, sum, min, max and `percentiles` from its histogram's words (hist_words),
+    in STAGE_NAMES' order, all stages in one numpy pass: the same values as
+    histogram_from_struct(...).percentile(p), without a Python list of buckets per stage (the run's
+    timing series takes these once a second: it was most of the host log writer's CPU with the
+    appliance idle, issue 30 item 4). Values are the loop's words as int64 (a loop writing more
+    than 2**63 gets its own nonsense back; nothing is indexed by them)."""
     for p in percentiles:
         if not 0 <= p <= 100:
             raise ValueError("percentile must be within 0..100")
