@@ -385,6 +385,72 @@ def test_a_live_batch_takes_every_record_queued_by_then(loop, tmp_path: Path) ->
         LiveProxy.stop_all()
 
 
+def test_a_viewers_first_batch_is_the_live_edge_of_what_its_arrival_drained(loop, tmp_path: Path) -> None:
+    """A viewer's arrival wakes the host writer, whose drain hands over all it read since its last
+    drain: up to host_writer.MAX_PERIOD_S (4 s) of records while nobody watched. The viewer's
+    first batch is the last SEND_PERIOD_S of them (the live edge), not all 4 s (CI, session 13:
+    the viewer's first frame began 3.1 s before it was opened). Here 4 s of the loop's records
+    arrive at once at the first viewer; what reaches the proxy starts SEND_PERIOD_S before the
+    newest and ends with it."""
+    import httpx
+
+    from xrf_testing.grpcweb import READ_MESSAGES, read_messages
+    from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of
+    from xrflab.logs.rerun_live import SEND_PERIOD_S, LiveRerun
+    from xrflab.logs.rerun_servers import LiveProxy
+
+    lp = loop(tmp_path)
+    proxy = LiveProxy.open_for_run(47, "alice")
+    try:
+        assert proxy.ensure_running()
+        proxy.readers = 1  # a viewer: the recording connects
+        stream = LiveRerun(proxy, lp.ch, run_id=47)
+        wait_for(lambda: stream.rec is not None, 30, "the recording connected")
+        freq = stream._freq
+        period_ns = 1_000_000_000 // freq
+        dtype = np.dtype([("seq", "<u8"), ("cycle", "<u8"), ("t_ns", "<i8"), ("value", "<f8")])
+        cycles = np.arange(0, MAX_PERIOD_S * freq, dtype=np.uint64)  # one drain of a writer nobody watched
+        rec = np.zeros(len(cycles), dtype=dtype)
+        t0 = time.monotonic_ns()
+        rec["seq"], rec["cycle"], rec["t_ns"], rec["value"] = (
+            cycles,
+            cycles,
+            t0 + cycles.astype(np.int64) * period_ns,
+            1.0,
+        )
+        for part in np.array_split(rec, 40):  # as a drain hands it over: in pieces, at once
+            stream.feed(part)
+        newest = int(rec["t_ns"][-1]) + stream._wall_offset
+        spans: list[tuple[int, int]] = []
+
+        def on_message(payload: bytes) -> None:
+            chunk = chunk_of(payload)
+            if (
+                chunk
+                and chunk.store_kind == STORE_RECORDING
+                and chunk.entity.startswith("/log/")
+                and chunk.newest_time_ns
+            ):
+                assert chunk.oldest_time_ns is not None
+                spans.append((chunk.oldest_time_ns, chunk.newest_time_ns))
+
+        with httpx.Client(base_url=proxy.read_url) as client:
+            read_messages(
+                client, READ_MESSAGES, timeout=6 * SEND_PERIOD_S, quiet=4 * SEND_PERIOD_S, on_message=on_message
+            )
+        stream.close()
+        stream._thread.join(10)
+        assert spans, "no log chunk reached the proxy"
+        oldest = min(o for o, _ in spans)
+        assert max(n for _, n in spans) == newest, "the newest record was not sent"
+        assert newest - oldest < SEND_PERIOD_S * 1e9, (
+            f"the viewer's first records began {(newest - oldest) / 1e9:.2f} s before the newest: "
+            f"more than the live edge ({SEND_PERIOD_S} s)"
+        )
+    finally:
+        LiveProxy.stop_all()
+
+
 def test_a_live_viewer_coming_wakes_the_writer(loop, tmp_path: Path, monkeypatch) -> None:
     """A live viewer's arrival (its page served: ``LiveProxy.expect_viewer``) makes the host writer
     drain at once, not at the end of its period (up to a second while nobody watches): the

@@ -67,6 +67,7 @@ class Chunk:
     entity: str  # rerun:entity_path of the chunk
     columns: list[str]
     newest_time_ns: int | None  # max of the `time` index in it, None without one
+    oldest_time_ns: int | None = None  # min of it, likewise
 
 
 def chunk_of(frame: bytes) -> Chunk | None:
@@ -88,10 +89,11 @@ def chunk_of(frame: bytes) -> Chunk | None:
     if msg.get(2) == COMPRESSION_LZ4:
         payload = pa.decompress(payload, decompressed_size=int(msg.get(3, 0)), codec="lz4_raw")  # type: ignore[arg-type]
     table = ipc.open_stream(pa.py_buffer(payload)).read_all()
-    newest = None
+    newest = oldest = None
     if TIME_COLUMN in table.column_names and table.num_rows:
         values = table.column(TIME_COLUMN).cast(pa.int64())
         newest = int(pa.compute.max(values).as_py())
+        oldest = int(pa.compute.min(values).as_py())
     meta = table.schema.metadata or {}
     recording_id = store_fields.get(2, b"")
     return Chunk(
@@ -100,6 +102,7 @@ def chunk_of(frame: bytes) -> Chunk | None:
         meta.get(b"rerun:entity_path", b"").decode(),
         table.column_names,
         newest,
+        oldest,
     )
 
 

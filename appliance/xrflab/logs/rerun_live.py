@@ -15,7 +15,8 @@ appliance's read route): the proxy keeps only a few seconds for a late viewer an
 rerun_servers.LIVE_WINDOW), and the whole run is in its log, so a stream for nobody was work and
 memory for nobody (issue 30 item 4: ~16 % of the idle appliance's Python time). The recording
 connects at the first viewer; from then on each batch is the last ``SEND_PERIOD_S`` of records and telemetry, so
-a viewer that opens gets the live edge within one batch. "First viewer" counts from when a live
+a viewer that opens gets the live edge within one batch (its first batch too: of the writer's drain that its
+arrival woke, only the last ``SEND_PERIOD_S``). "First viewer" counts from when a live
 viewer's page is served (``LiveProxy.expect_viewer``): its wasm app starts and connects seconds
 later, by when the recording is connected and the proxy holds the live edge (issue 31 bug 6).
 
@@ -308,6 +309,7 @@ class LiveRerun:
         # a student laptop must keep up with the stream (and with the buffer replayed on connect).
         last_telemetry = last_records = 0.0
         pending: list[np.ndarray] = []
+        at_edge = True  # the next records sent are a viewer's first: only the live edge of them
         while True:
             item: np.ndarray | None | EllipsisType
             # Unwatched, nothing is queued (feed drops it): the thread only looks whether a
@@ -326,6 +328,7 @@ class LiveRerun:
                 # Nobody reads: drop what came (records queued before the last viewer left, the
                 # parameter changes) and the telemetry reader; a next viewer starts from then.
                 pending.clear()
+                at_edge = True
                 while not self._texts.empty():
                     self._texts.get_nowait()
                 self._telemetry_reader = None
@@ -353,8 +356,16 @@ class LiveRerun:
                 if self._telemetry_reader is None and not self._telemetry_broken:
                     self._telemetry_reader = self._ch.telemetry_reader()
                 now = time.monotonic()
+                if pending and at_edge:
+                    # A viewer's first records are the writer's drain woken by its arrival: all it
+                    # read since its last drain, up to host_writer.MAX_PERIOD_S (4 s) while nobody
+                    # watched. Sent whole, the viewer's first frame began seconds before it opened
+                    # (CI: 3.1 s); the live edge is the last SEND_PERIOD_S of them, as every later
+                    # batch (the rest is in the run's log and its replay).
+                    pending[:] = _live_edge(pending, int(SEND_PERIOD_S * self._freq))
                 if pending and (done or now - last_records >= SEND_PERIOD_S):
                     last_records = now
+                    at_edge = False
                     runs = _same_dtype_runs(pending)
                     pending.clear()
                     if not done:  # the last bucket may not be complete: it waits for the next batch
@@ -387,6 +398,13 @@ def _split_last_bucket(rec: np.ndarray, bucket: int) -> tuple[np.ndarray, np.nda
     earlier = np.flatnonzero(ids != ids[-1])
     cut = int(earlier[-1]) + 1 if len(earlier) else 0
     return rec[:cut], rec[cut:]
+
+
+def _live_edge(arrays: list[np.ndarray], cycles: int) -> list[np.ndarray]:
+    """The rows of `arrays` (in order) within `cycles` cycles of the newest, dropping arrays left empty."""
+    newest = max(int(a["cycle"][-1]) for a in arrays)
+    kept = [a[a["cycle"].astype(np.int64) > newest - cycles] for a in arrays]
+    return [a for a in kept if len(a)]
 
 
 def _same_dtype_runs(arrays: list[np.ndarray]) -> list[np.ndarray]:
