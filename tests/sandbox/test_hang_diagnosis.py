@@ -10,13 +10,14 @@ says it in words, ``hang-diagnosis.json`` in the run's folder has the details.
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
 
-from xrf_testing.harness import Server, wait_for
+from xrf_testing.harness import UNCONFINED_UNLESS_ROOT, Server, shared_builds_root, start_server, stop_server, wait_for
 from xrf_testing.hostile import project_files
 from xrf_testing.projects_support import targz, upload_and_build
 from xrflab.server.runs import hang_diag
@@ -25,6 +26,15 @@ REPO = Path(__file__).resolve().parents[2]
 FIXTURE = REPO / "tests" / "fixtures" / "hang_controller"
 BASE = REPO / "student_projects" / "templates" / "base"
 SPIN, BLOCK = 1, 2
+
+
+@pytest.fixture(scope="module")
+def server(data_dir: Path) -> Iterator[Server]:
+    """As the sandbox's, but a normal user's appliance may run the controller unconfined (it
+    cannot confine it fully on a machine like the CI's: docs/developers/testing.md)."""
+    s = start_server(data_dir, shared_builds_root(), allow_unconfined=UNCONFINED_UNLESS_ROOT)
+    yield s
+    stop_server(s)
 
 
 @pytest.fixture(scope="module")
