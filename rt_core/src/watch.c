@@ -793,6 +793,8 @@ static int diag_others(struct xrf_watch *w, pid_t self_pid, int *found_pids, int
             const int pid = diag_number(d->name);
             if (pid == 0 || pid == self_pid)
                 continue;
+            if (now_ns() > until)
+                break; /* the time bound, per process: a machine with thousands of threads */
             int tids[XRF_WATCH_DIAG_TASKS];
             const int count = diag_tasks(pid, tids);
             for (int i = 0; i < count && found < XRF_WATCH_DIAG_OTHERS; i++) {
