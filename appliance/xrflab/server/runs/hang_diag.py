@@ -309,7 +309,12 @@ def verdict(threads: list[dict[str, Any]], pid: int, others: list[dict[str, Any]
                 f"{name} was running in user code (state R, {oncpu} µs on its CPU of 10 ms, no system "
                 f"call): a busy loop in the controller, not the kernel{held}"
             )
-        return f"{name} was running (state R, system call {call or '?'}, {oncpu} µs on its CPU of 10 ms){held}"
+        if not call:  # /proc/TID/syscall needs ptrace access to the guest (a root appliance's)
+            return (
+                f"{name} was computing (state R, {oncpu} µs on its CPU of 10 ms; where not readable): a busy "
+                f"loop, most likely in the controller{held}"
+            )
+        return f"{name} was running in the kernel (state R, system call {call}, {oncpu} µs on its CPU of 10 ms){held}"
     if state in ("S", "D"):
         label = _STATES.get(state, state)
         if call in _SLEEPS:
