@@ -122,3 +122,31 @@ def test_what_the_guest_named_its_threads_is_bounded_and_printable() -> None:
     assert len(t["name"]) <= 32 and t["name"].isprintable() and "\n" not in t["name"]
     assert t["state"] == "S" and t["syscall"] == "read" and t["policy"] == "SCHED_FIFO" and t["rt_priority"] == 80
     assert "blocked" in diag["verdict"]
+
+
+def test_a_loop_kept_off_its_cpu_names_who_held_it() -> None:
+    """The loop thread runnable without a tick of CPU time in the 10 ms, another program's real-time
+    thread on its CPU with all of it: the verdict says so and names that thread (its name cut
+    short and printable as the loop's)."""
+
+    def stat(tid: int, name: bytes, state: bytes, cpu: int, prio: int) -> bytes:
+        return (
+            b"%d (" % tid + name + b") " + state + b" 1 1 1 0 -1 0 0 0 0 0" + b" 0" * 25 + b" %d %d 1\n" % (cpu, prio)
+        )
+
+    rec = hang_diag._REC.pack
+    lib = hang_diag.lib
+    raw = b""
+    for kind, tid, data in (
+        (lib.XRF_DIAG_STAT, 100, stat(100, b"relbot", b"R", 1, 80)),
+        (lib.XRF_DIAG_SYSCALL, 100, b"230 0x1 0x1 0x0\n"),
+        (lib.XRF_DIAG_SCHEDSTAT, 100, b"5000000 100 10\n"),
+        (lib.XRF_DIAG_OTHER, 777, stat(777, b"spin\x07\nner", b"R", 1, 99)),
+        (lib.XRF_DIAG_OTHER_SCHEDSTAT, 777, b"1000000 0 1\n"),
+        (lib.XRF_DIAG_SCHEDSTAT2, 100, b"5000000 100 10\n"),
+        (lib.XRF_DIAG_OTHER_SCHEDSTAT2, 777, b"9000000 0 1\n"),
+    ):
+        raw += rec(kind, len(data), tid) + data
+    diag = hang_diag.parse(raw, 100, machine="x86_64")
+    assert "kept off its CPU" in diag["verdict"], diag["verdict"]
+    assert "spin??ner (tid 777, SCHED_FIFO 99, 8000.0 µs on CPU 1)" in diag["verdict"], diag["verdict"]
