@@ -83,6 +83,10 @@ struct xrf_watch {
     int64_t host_beat_t;
     uint32_t late_set;
     int hang_is_exit; /* the late heartbeat's process was exiting (pid_exiting): told as an exit */
+    /* A hang's diagnosis (xrf_watch_diagnosis): written by the watcher thread before `done`,
+     * read by the host after it. Part of the allocation made at start: nothing allocated then. */
+    uint32_t diag_len;
+    uint8_t diag[XRF_WATCH_DIAG_BYTES];
 };
 
 static int64_t now_ns(void);
@@ -654,6 +658,235 @@ static int pid_exiting(pid_t pid)
     return (flags & XRF_PF_EXITING) != 0;
 }
 
+/* --- a hang's diagnosis ------------------------------------------------------------------- */
+
+/* One record: a header and up to `max` bytes of the file at `path` (opened, read once, closed),
+ * appended to the diagnosis if it fits. Files a process's threads expose that take no lock the
+ * loop could hold (no mmap_lock: never maps, smaps, cmdline or environ), each read bounded:
+ * a watcher stuck here could not make the outputs safe. */
+static void diag_file(struct xrf_watch *w, int kind, int tid, const char *path, uint32_t max)
+{
+    struct xrf_watch_diag_rec rec = {.kind = (uint16_t)kind, .len = 0, .tid = tid};
+    if (w->diag_len + sizeof rec + 1 > sizeof w->diag)
+        return;
+    uint32_t room = (uint32_t)(sizeof w->diag - w->diag_len - sizeof rec);
+    if (max > room)
+        max = room;
+    if (max > UINT16_MAX)
+        max = UINT16_MAX;
+    int fd = open(path, O_RDONLY | O_CLOEXEC | O_NONBLOCK);
+    if (fd < 0)
+        return; /* gone, or not ours to read (stack, wchan as another user): left out */
+    uint8_t *data = w->diag + w->diag_len + sizeof rec;
+    uint32_t got = 0;
+    while (got < max) {
+        ssize_t n = read(fd, data + got, max - got);
+        if (n <= 0)
+            break;
+        got += (uint32_t)n;
+    }
+    close(fd);
+    rec.len = (uint16_t)got;
+    memcpy(w->diag + w->diag_len, &rec, sizeof rec);
+    w->diag_len += (uint32_t)(sizeof rec + got);
+}
+
+static void diag_text(struct xrf_watch *w, int kind, const char *text)
+{
+    struct xrf_watch_diag_rec rec = {.kind = (uint16_t)kind, .len = 0, .tid = 0};
+    size_t n = strlen(text);
+    if (w->diag_len + sizeof rec + n > sizeof w->diag)
+        return;
+    rec.len = (uint16_t)n;
+    memcpy(w->diag + w->diag_len, &rec, sizeof rec);
+    memcpy(w->diag + w->diag_len + sizeof rec, text, n);
+    w->diag_len += (uint32_t)(sizeof rec + n);
+}
+
+struct diag_dirent {
+    uint64_t ino;
+    int64_t off;
+    unsigned short reclen;
+    unsigned char type;
+    char name[];
+};
+
+/* A numeric directory entry's value, or 0. */
+static int diag_number(const char *name)
+{
+    char *end = NULL;
+    long v = strtol(name, &end, 10);
+    return end != name && *end == '\0' && v > 0 && v < INT32_MAX ? (int)v : 0;
+}
+
+/* The loop process's thread ids (at most XRF_WATCH_DIAG_TASKS): getdents64 into a stack buffer
+ * (opendir would allocate). */
+static int diag_tasks(pid_t pid, int *tids)
+{
+    char path[48];
+    snprintf(path, sizeof path, "/proc/%d/task", (int)pid);
+    int fd = open(path, O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+    if (fd < 0)
+        return 0;
+    int count = 0;
+    char buf[2048] __attribute__((aligned(8)));
+    for (;;) {
+        long n = syscall(SYS_getdents64, fd, buf, sizeof buf);
+        if (n <= 0)
+            break;
+        for (long off = 0; off < n;) {
+            const struct diag_dirent *d = (const struct diag_dirent *)(buf + off);
+            if (d->reclen == 0)
+                break;
+            off += d->reclen;
+            const int tid = diag_number(d->name);
+            if (tid > 0 && count < XRF_WATCH_DIAG_TASKS)
+                tids[count++] = tid;
+        }
+        if (count >= XRF_WATCH_DIAG_TASKS)
+            break;
+    }
+    close(fd);
+    return count;
+}
+
+/* stat text's state and scheduling policy (fields 3 and 41): after the last ')', the name may
+ * hold anything. 0 when the text is not a stat line. */
+static int diag_stat_fields(const char *buf, char *state, long *policy)
+{
+    const char *p = strrchr(buf, ')');
+    if (p == NULL || p[1] != ' ' || p[2] == '\0')
+        return 0;
+    *state = p[2];
+    p += 3;
+    for (int field = 4; field <= 41; field++) { /* on to the start of field 41 */
+        p = strchr(p, ' ');
+        if (p == NULL)
+            return 0;
+        p++;
+    }
+    *policy = strtol(p, NULL, 10);
+    return 1;
+}
+
+/* Every other process's runnable real-time tasks (state R, SCHED_FIFO/RR/DEADLINE): what can keep
+ * a SCHED_FIFO loop off its CPU. Bounded: at most XRF_WATCH_DIAG_SCAN tasks read, 10 ms. */
+static int diag_others(struct xrf_watch *w, pid_t self_pid, int *found_pids, int *found_tids)
+{
+    const int watcher_tid = (int)syscall(SYS_gettid);
+    const int64_t until = now_ns() + 10000000;
+    int procfd = open("/proc", O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+    if (procfd < 0)
+        return 0;
+    char buf[2048] __attribute__((aligned(8)));
+    int scanned = 0, found = 0;
+    for (;;) {
+        long n = syscall(SYS_getdents64, procfd, buf, sizeof buf);
+        if (n <= 0)
+            break;
+        for (long off = 0;
+             off < n && scanned < XRF_WATCH_DIAG_SCAN && found < XRF_WATCH_DIAG_OTHERS;) {
+            const struct diag_dirent *d = (const struct diag_dirent *)(buf + off);
+            if (d->reclen == 0)
+                break;
+            off += d->reclen;
+            const int pid = diag_number(d->name);
+            if (pid == 0 || pid == self_pid)
+                continue;
+            if (now_ns() > until)
+                break; /* the time bound, per process: a machine with thousands of threads */
+            int tids[XRF_WATCH_DIAG_TASKS];
+            const int count = diag_tasks(pid, tids);
+            for (int i = 0; i < count && found < XRF_WATCH_DIAG_OTHERS; i++) {
+                char path[64], stat[600];
+                if (tids[i] == watcher_tid)
+                    continue; /* this thread: real-time and running, of course */
+                snprintf(path, sizeof path, "/proc/%d/task/%d/stat", pid, tids[i]);
+                int fd = open(path, O_RDONLY | O_CLOEXEC | O_NONBLOCK);
+                if (fd < 0)
+                    continue;
+                ssize_t len = read(fd, stat, sizeof stat - 1);
+                close(fd);
+                scanned++;
+                if (len <= 0)
+                    continue;
+                stat[len] = '\0';
+                char state = 0;
+                long policy = 0;
+                if (diag_stat_fields(stat, &state, &policy) && state == 'R' &&
+                    (policy == SCHED_FIFO || policy == SCHED_RR || policy == 6 /* DEADLINE */)) {
+                    diag_file(w, XRF_DIAG_OTHER, tids[i], path, sizeof stat);
+                    snprintf(path, sizeof path, "/proc/%d/task/%d/schedstat", pid, tids[i]);
+                    diag_file(w, XRF_DIAG_OTHER_SCHEDSTAT, tids[i], path, 96);
+                    found_pids[found] = pid;
+                    found_tids[found] = tids[i];
+                    found++;
+                }
+            }
+        }
+        if (scanned >= XRF_WATCH_DIAG_SCAN || found >= XRF_WATCH_DIAG_OTHERS || now_ns() > until)
+            break;
+    }
+    close(procfd);
+    return found;
+}
+
+/* Where the loop process's threads are at the hang, before the kill: each thread's state and
+ * kernel wait channel, system call, scheduling and context switches (stat, status), its CPU time
+ * and run-queue wait twice 10 ms apart (on a CPU, waiting for one, or asleep), its kernel stack
+ * where readable (root); and the other programs' runnable real-time threads, likewise (who held
+ * the CPU). Small reads and a 10 ms wait, ~15 ms in all, only at a hang, before the kill; the
+ * host turns them into words (server/runs/hang_diag.py) and treats every byte as the guest's (its
+ * threads name themselves). */
+static void diagnose(struct xrf_watch *w, int64_t heartbeat)
+{
+    static const struct {
+        int kind;
+        const char *file;
+        uint32_t max;
+    } files[] = {
+        {XRF_DIAG_STAT, "stat", 600},          {XRF_DIAG_STATUS, "status", 1800},
+        {XRF_DIAG_WCHAN, "wchan", 96},         {XRF_DIAG_SYSCALL, "syscall", 200},
+        {XRF_DIAG_SCHEDSTAT, "schedstat", 96}, {XRF_DIAG_STACK, "stack", 1200},
+    };
+    const pid_t pid = w->cfg.pid;
+    int tids[XRF_WATCH_DIAG_TASKS];
+    char path[96];
+    w->diag_len = 0;
+    const int64_t t0 = now_ns();
+    const int n = diag_tasks(pid, tids);
+    snprintf(path, sizeof path, "/proc/%d/cgroup", (int)pid);
+    diag_file(w, XRF_DIAG_CGROUP, 0, path, 1024);
+    for (int i = 0; i < n; i++) {
+        for (size_t f = 0; f < sizeof files / sizeof files[0]; f++) {
+            snprintf(path, sizeof path, "/proc/%d/task/%d/%s", (int)pid, tids[i], files[f].file);
+            diag_file(w, files[f].kind, tids[i], path, files[f].max);
+        }
+    }
+    int other_pids[XRF_WATCH_DIAG_OTHERS], other_tids[XRF_WATCH_DIAG_OTHERS];
+    const int others = diag_others(w, pid, other_pids, other_tids);
+    /* The second look at the CPU-time counters, 10 ms after the first: they move at the
+     * scheduler's tick (4 ms at 250 Hz) while a task runs, not at all while it waits or sleeps. */
+    struct timespec until;
+    int64_t t_until = t0 + 10000000;
+    until.tv_sec = (time_t)(t_until / 1000000000LL);
+    until.tv_nsec = (long)(t_until % 1000000000LL);
+    clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &until, NULL);
+    const int64_t t1 = now_ns();
+    for (int i = 0; i < n; i++) {
+        snprintf(path, sizeof path, "/proc/%d/task/%d/schedstat", (int)pid, tids[i]);
+        diag_file(w, XRF_DIAG_SCHEDSTAT2, tids[i], path, 96);
+    }
+    for (int i = 0; i < others; i++) {
+        snprintf(path, sizeof path, "/proc/%d/task/%d/schedstat", other_pids[i], other_tids[i]);
+        diag_file(w, XRF_DIAG_OTHER_SCHEDSTAT2, other_tids[i], path, 96);
+    }
+    char meta[128];
+    snprintf(meta, sizeof meta, "%lld %lld %lld %lld", (long long)t0, (long long)t1,
+             (long long)now_ns(), (long long)heartbeat);
+    diag_text(w, XRF_DIAG_META, meta);
+}
+
 static void *watch_thread(void *arg)
 {
     struct xrf_watch *w = arg;
@@ -727,6 +960,8 @@ static void *watch_thread(void *arg)
             w->result.heartbeat_ns = hb;
             if (running && hb > 0 && t - hb > w->cfg.hang_timeout_ns) {
                 w->hang_is_exit = pid_exiting(w->cfg.pid);
+                if (!w->hang_is_exit)
+                    diagnose(w, hb);
                 finish(w, XRF_WATCH_HANG, t);
                 return NULL;
             }
@@ -911,6 +1146,24 @@ int xrf_watch_hold_ready(struct xrf_watch *w, int32_t *channel)
     if (r != 0 && channel != NULL)
         *channel = __atomic_load_n(&w->track_channel, __ATOMIC_RELAXED);
     return r;
+}
+
+uint32_t xrf_watch_diagnosis(struct xrf_watch *w, uint8_t *out, uint32_t cap)
+{
+    if (w == NULL || out == NULL || !__atomic_load_n(&w->done, __ATOMIC_ACQUIRE))
+        return 0;
+    /* Whole records only: a short buffer gets the first ones. */
+    uint32_t len = 0;
+    while (len + sizeof(struct xrf_watch_diag_rec) <= w->diag_len) {
+        struct xrf_watch_diag_rec rec;
+        memcpy(&rec, w->diag + len, sizeof rec);
+        uint32_t next = len + (uint32_t)sizeof rec + rec.len;
+        if (next > w->diag_len || next > cap)
+            break;
+        len = next;
+    }
+    memcpy(out, w->diag, len);
+    return len;
 }
 
 int xrf_watch_result(struct xrf_watch *w, struct xrf_watch_result *out)

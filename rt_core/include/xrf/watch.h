@@ -38,6 +38,36 @@ extern "C" {
 #define XRF_WATCH_LOOP_ENDED 5 /* host_only: the loop ended first, left to the host's watcher */
 
 #define XRF_WATCH_RESET_NOT_TRIED 1 /* reset_status: no spidev configured */
+/* A hang's diagnosis (xrf_watch_diagnosis): where the loop process's threads were when the hang
+ * was declared, read from /proc before the kill. At most this many bytes and threads. */
+#define XRF_WATCH_DIAG_BYTES 49152
+#define XRF_WATCH_DIAG_TASKS 16
+/* Its records, one after the other: struct xrf_watch_diag_rec then `len` bytes as /proc gave
+ * them (the guest's text among them: its threads' names). Kinds: */
+/* META, tid 0: "t0 t1 t2 heartbeat": CLOCK_MONOTONIC ns at the first pass, at the second
+ * schedstat pass and at the end; the loop's last heartbeat. */
+#define XRF_DIAG_META 1
+#define XRF_DIAG_STAT 2       /* /proc/PID/task/TID/stat */
+#define XRF_DIAG_STATUS 3     /* .../status */
+#define XRF_DIAG_WCHAN 4      /* .../wchan */
+#define XRF_DIAG_SYSCALL 5    /* .../syscall ("running" while on a CPU) */
+#define XRF_DIAG_SCHEDSTAT 6  /* .../schedstat: ns on CPU, ns waiting for one, slices */
+#define XRF_DIAG_STACK 7      /* .../stack (root only) */
+#define XRF_DIAG_SCHEDSTAT2 8 /* schedstat again, 10 ms later: running, waiting or asleep */
+#define XRF_DIAG_CGROUP 9     /* /proc/PID/cgroup; tid 0 */
+/* The stat of a task of another process that was runnable (state R) at a real-time policy: who
+ * may have held the loop's CPU (another program's real-time thread). At most
+ * XRF_WATCH_DIAG_OTHERS of them, from a scan of at most XRF_WATCH_DIAG_SCAN tasks. */
+#define XRF_DIAG_OTHER 10
+#define XRF_DIAG_OTHER_SCHEDSTAT 11  /* such a task's schedstat, at the first look */
+#define XRF_DIAG_OTHER_SCHEDSTAT2 12 /* and at the second */
+#define XRF_WATCH_DIAG_OTHERS 16
+#define XRF_WATCH_DIAG_SCAN 4096
+struct xrf_watch_diag_rec {
+    uint16_t kind;
+    uint16_t len;
+    int32_t tid;
+};
 /* spi_device: up to XRF_MAX_BOARDS device paths, comma-separated (xrf_spidev_open). */
 #define XRF_WATCH_SPI_MAX 400
 /* hold on a real bench: how far (rad) past a joint's limit a pose from the counts may read
@@ -166,6 +196,9 @@ void xrf_ico_close(struct xrf_ico_transport *t);
  * then closed: 0, or the -errno of the first that failed and its index (0-based; -1 for the
  * list itself) in *failed (may be NULL). */
 int xrf_spi_probe(const char *devices, uint32_t speed_hz, int32_t *failed);
+/* A hang's diagnosis (XRF_DIAG_* records, read before the kill) into out (at most cap bytes,
+ * whole records only): its length; 0 while watching or when the watcher did not declare a hang. */
+uint32_t xrf_watch_diagnosis(struct xrf_watch *w, uint8_t *out, uint32_t cap);
 /* Copy the result so far; returns its reason (XRF_WATCH_WATCHING while still watching). */
 int xrf_watch_result(struct xrf_watch *w, struct xrf_watch_result *out);
 /* End the watcher and free it. A loop that has already exited is still handled (outputs made

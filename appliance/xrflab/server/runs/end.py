@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import os
 import signal
 import time
@@ -29,12 +30,14 @@ from ...channels import ChannelsError
 from ..settings import Settings
 from ..ws.hub import Hub
 from ..ws.messages import AlarmMessage
-from . import watch_record
+from . import hang_diag, watch_record
 from .announce import ended
 from .lifecycle import RunLifecycle
 from .run import Run, remove_shm
 from .store import END_REASONS, RunStore
 from .watch import LIMIT_REASONS, publish_limit_alarm
+
+log = logging.getLogger("xrflab.supervisor")
 
 # The tasks that read the run's mapping, cancelled before it is let go (by the name's end).
 MAPPING_TASKS = ("heartbeat", "reader", "timing", "limits")
@@ -120,6 +123,10 @@ async def record(run: Run, returncode: int, settings: Settings, store: RunStore,
         message = run.row.message
     elif reason == "hang":
         message = f"loop hung (no cycle for > {settings.hang_timeout_ms} ms), killed"
+    if reason == "hang":
+        # Where the loop was when the watcher gave up on it (server/runs/hang_diag.py): its
+        # verdict in the end note, the whole in the run's folder. Before the cgroup goes.
+        message += await asyncio.to_thread(_diagnose_hang, run)
     elif reason == "self_exit":
         state = last.state_name if last else "?"
         message = f"the controller ended by itself in {state} ({how}) without a stop or quit"
@@ -160,6 +167,25 @@ async def record(run: Run, returncode: int, settings: Settings, store: RunStore,
     # No explicit unmap: a worker thread may still hold the Channels (a command wait); the
     # mapping goes with the last reference, and the name is already unlinked.
     return Ending(reason, crashed, exit_code, exit_signal)
+
+
+def _diagnose_hang(run: Run) -> str:
+    """The hang's diagnosis: written to the run's folder, its summary for the end note ("" if
+    the watcher recorded none: no watcher, or a loop already exiting)."""
+    raw = run.watch.diagnosis if run.watch is not None else b""
+    if not raw and run.watch_final is not None:
+        raw = run.watch_final.diagnosis
+    if not raw:
+        return ""
+    diag = hang_diag.parse(raw, run.row.pid or run.proc.pid)
+    diag["counters"] = hang_diag.cgroup_counters(diag["cgroup"])
+    diag["rt_throttle"] = hang_diag.rt_throttle()
+    try:
+        hang_diag.write(run.run_dir, diag)
+    except (OSError, ValueError) as exc:  # RunPathError: the guest put something in its place
+        log.warning("run %s: %s not written: %s", run.row.id, hang_diag.RECORD, exc)
+    log.warning("run %s hung: %s", run.row.id, diag["verdict"])
+    return f"; {hang_diag.summary(diag)}"
 
 
 def announce(run: Run, ending: Ending, hub: Hub) -> None:

@@ -50,6 +50,9 @@ class WatchResult:
     hold_status: int = 0
     hold_channel: int = 0
     hold_gap_us: int = 0  # -ETIME/-EPROTO: the two count samples' distance in time (µs)
+    # A hang: the watcher's look at the loop's threads before the kill (XRF_DIAG_* records,
+    # server/runs/hang_diag.py reads them); b"" otherwise.
+    diagnosis: bytes = b""
 
     @property
     def acted(self) -> bool:
@@ -109,10 +112,11 @@ def fpga_reset(device: str) -> str:
     return reset_message(lib.xrf_fpga_reset(device.encode(), SPI_SPEED_HZ))
 
 
-def _result(r: Any, brake_channel: int) -> WatchResult:
+def _result(r: Any, brake_channel: int, diagnosis: bytes = b"") -> WatchResult:
     """From a ``struct xrf_watch_result *``; brake_channel: the watcher's (0 unless it brakes)."""
     acted = r.reason in (lib.XRF_WATCH_EXIT, lib.XRF_WATCH_HANG)
     return WatchResult(
+        diagnosis=diagnosis,
         reason=_REASONS.get(r.reason, str(r.reason)),
         sim_forced=bool(r.sim_forced),
         brake_channel=brake_channel if acted else 0,
@@ -210,6 +214,7 @@ class SafetyWatcher:
             raise OSError(-r, f"safety watcher for pid {pid}: {os.strerror(-r)}")
         self._w = out[0]
         self._final: WatchResult | None = None
+        self._diag: bytes | None = None
 
     def _brake(self) -> int:
         return self.brake_channel if self.safe_reaction == "brake" else 0
@@ -235,7 +240,15 @@ class SafetyWatcher:
         c = ffi.new("struct xrf_watch_result *")
         if lib.xrf_watch_result(self._w, c) == lib.XRF_WATCH_WATCHING:
             return None
-        return _result(c, self._brake())
+        return _result(c, self._brake(), self._diagnosis(c))
+
+    def _diagnosis(self, c: Any) -> bytes:
+        """The hang's diagnosis records (the watcher is done and not yet freed), once."""
+        if self._diag is None and c.reason == lib.XRF_WATCH_HANG:
+            buf = ffi.new("uint8_t[]", lib.XRF_WATCH_DIAG_BYTES)
+            n = lib.xrf_watch_diagnosis(self._w, buf, lib.XRF_WATCH_DIAG_BYTES)
+            self._diag = bytes(ffi.buffer(buf, n))
+        return self._diag or b""
 
     def stop(self) -> WatchResult:
         """End the watcher (joins its thread: call off the event loop). A loop that has already
@@ -243,8 +256,10 @@ class SafetyWatcher:
         pose (seconds: the law bounds it). Idempotent."""
         if self._final is None:
             c = ffi.new("struct xrf_watch_result *")
+            if lib.xrf_watch_result(self._w, c) != lib.XRF_WATCH_WATCHING:
+                self._diagnosis(c)  # before the watcher is freed
             lib.xrf_watch_stop(self._w, c)
-            self._final = _result(c, self._brake())
+            self._final = _result(c, self._brake(), self._diag or b"")
             os.close(self._efd)
             self._channels = None
         return self._final
