@@ -123,15 +123,15 @@ async def record(run: Run, returncode: int, settings: Settings, store: RunStore,
         message = run.row.message
     elif reason == "hang":
         message = f"loop hung (no cycle for > {settings.hang_timeout_ms} ms), killed"
-    if reason == "hang":
-        # Where the loop was when the watcher gave up on it (server/runs/hang_diag.py): its
-        # verdict in the end note, the whole in the run's folder. Before the cgroup goes.
-        message += await asyncio.to_thread(_diagnose_hang, run)
     elif reason == "self_exit":
         state = last.state_name if last else "?"
         message = f"the controller ended by itself in {state} ({how}) without a stop or quit"
     else:
         message = f"loop process ended with {how} ({END_REASONS[reason]})"
+    if reason == "hang":
+        # Where the loop was when the watcher gave up on it (server/runs/hang_diag.py): its
+        # verdict in the end note, the whole in the run's folder. Before the cgroup goes.
+        message += await asyncio.to_thread(_diagnose_hang, run)
     safe_ms = (run.safe_at - run.exited_at) * 1000 if run.exited_at and run.safe_at >= run.exited_at else 0.0
     # A `hold` run's arm: what the watcher measured until it was at rest (the largest joint drop,
     # the time to rest), kept with the run as after an appliance's death (watch_record).
