@@ -141,6 +141,7 @@ def test_a_crashing_build_gets_its_reason_and_no_points_for_what_it_did_not_reac
     assert result.earned == checks["runs"].points
 
 
+@pytest.mark.rt_hog  # the variant hangs in a busy loop at real-time priority
 def test_a_hanging_build_is_killed_and_said_to_hang(variant: Path, tmp_path: Path) -> None:
     result = run_variant(variant, 3, tmp_path)
     assert result.status == "hung" and "stopped cycling" in result.reason

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import pytest
 
-from xrf_testing.arm import FAULTS, REST, assert_held_to_rest, build_arm, follow, inject, pose, raise_arm
+from xrf_testing.arm import FAULT_PARAMS, REST, assert_held_to_rest, build_arm, follow, inject, pose, raise_arm
 from xrf_testing.loops import LoopProcess
 from xrflab import plants, profiles
 from xrflab.channels import ffi, lib
@@ -129,7 +129,7 @@ class Bench:
         return pose(self.outputs)
 
 
-@pytest.mark.parametrize("fault", FAULTS)
+@pytest.mark.parametrize("fault", FAULT_PARAMS)
 def test_a_fault_on_a_real_bench_leaves_the_arm_at_rest(arm_loop, arm_exe, fault) -> None:
     def body() -> None:
         lp = arm_loop(arm_exe)

@@ -32,7 +32,7 @@ import pytest
 
 from xrf_testing.arm import (
     DROP_BOUND,
-    FAULTS,
+    FAULT_PARAMS,
     HOLD_S,
     REST,
     assert_held_to_rest,
@@ -53,7 +53,7 @@ def arm_exe(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return build_arm(tmp_path_factory.mktemp("arm-build"))
 
 
-@pytest.mark.parametrize("fault", FAULTS)
+@pytest.mark.parametrize("fault", FAULT_PARAMS)
 def test_a_fault_leaves_the_arm_at_rest_never_dropped(run_loop, arm_exe, fault) -> None:
     lp = run_loop(arm_exe, XRF_TRANSPORT="sim", XRF_SIM="youbot")
     raise_arm(lp)

@@ -216,6 +216,7 @@ def test_a_bad_simulated_time_value_is_refused(examples: dict[str, Path], shm_na
     assert "XRF_VIRTUAL_TIME=fast: use 0, 1 or hold" in proc.stderr + proc.stdout
 
 
+@pytest.mark.rt_hog  # the probe hangs in a busy loop at real-time priority
 def test_a_hung_loop_in_simulated_time_goes_quiet_in_real_time(run_loop, probe_exe: Path) -> None:
     # The watchdog compares the status heartbeat with its own real clock. The loop's clock runs
     # far ahead of it in simulated time: the heartbeat must still be real, or a hang would look

@@ -28,6 +28,9 @@ BASE = REPO / "student_projects" / "templates" / "base"
 SPIN, BLOCK = 1, 2
 
 
+pytestmark = pytest.mark.rt_hog  # a controller hung in a busy loop at real-time priority
+
+
 @pytest.fixture(scope="module")
 def server(data_dir: Path) -> Iterator[Server]:
     """As the sandbox's, but a normal user's appliance may run the controller unconfined (it

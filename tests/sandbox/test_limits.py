@@ -37,11 +37,14 @@ MEMORY, SHM, DISK, FORK_BOMB, SPIN_HANG, SPIN_CRASH, SPIN_ONLY, DISK_LATER = 1, 
 LIMITS = {"run_memory_mb": 128, "run_disk_mb": 64, "run_files": 4096, "run_pids": 48, "runs_total_mb": 4096}
 BOUND_NS = 100_000_000  # outputs safe within 100 ms of the exit (tests/server/test_safety_under_load.py)
 
-pytestmark = pytest.mark.skipif(
-    os.geteuid() != 0,
-    reason="the kernel's limits need root here (cgroup v1 and loop mounts); a non-root appliance's "
-    "missing layers are tested in test_launcher.py",
-)
+pytestmark = [
+    pytest.mark.skipif(
+        os.geteuid() != 0,
+        reason="the kernel's limits need root here (cgroup v1 and loop mounts); a non-root appliance's "
+        "missing layers are tested in test_launcher.py",
+    ),
+    pytest.mark.rt_hog,  # the spinners at real-time priority on the loop's CPU (RLIMIT_RTTIME's cases)
+]
 
 
 def code(mode: int, mb: int = 0) -> int:

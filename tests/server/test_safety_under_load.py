@@ -28,6 +28,9 @@ BOUND_NS = 100_000_000
 CLIENTS = 30
 
 
+pytestmark = pytest.mark.rt_hog  # a hung loop at real-time priority, and both cores loaded on purpose
+
+
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     s = start(tmp_path_factory.mktemp("data"))

@@ -11,6 +11,8 @@ import signal
 import time
 from pathlib import Path
 
+import pytest
+
 from xrflab import plants
 from xrflab.build import build_project
 from xrflab.channels import Channels
@@ -20,6 +22,9 @@ from .harness import Server
 from .loops import LoopProcess
 
 FAULTS = ("segfault", "hang", "exit0", "stopping_never_returns")
+# FAULTS as pytest parameters: the hang (a busy loop at real-time priority on the loop's CPU) is
+# an `rt_hog`, run after the parallel part of the suite, alone (tests/xrf_testing/tiers.py).
+FAULT_PARAMS = [pytest.param(f, marks=pytest.mark.rt_hog) if f == "hang" else f for f in FAULTS]
 REPO = Path(__file__).resolve().parents[2]
 ARM_FAULTS = REPO / "tests/fixtures/arm_faults"
 DROP_BOUND = math.radians(2.0)

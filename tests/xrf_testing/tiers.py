@@ -79,6 +79,12 @@ def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
         "markers", "live: starts a process (appliance, build, loop, browser, broker); not in the fast tier"
     )
+    config.addinivalue_line(
+        "markers",
+        "rt_hog: makes a real-time thread spin on purpose (a hung loop, RLIMIT_RTTIME's spinners); "
+        "`./lab test` runs these after the parallel part, alone (another worker's loop on the same "
+        "CPU got no cycle meanwhile and was declared hung)",
+    )
 
 
 class _Walker:
