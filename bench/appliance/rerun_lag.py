@@ -367,6 +367,19 @@ def phases(page, opened_ns: int, recording: str) -> dict[str, float]:
                 if first_ms - 3000 <= r <= t_ms + 1500
             ]
             out["timeline"] = "; ".join(lines) + " | reads (s:KB) " + " ".join(got)
+            # Its plots: the viewer builds its render pipelines (shader compiles) when it first draws
+            # plots, and that can be a frame or two after the first that holds a sample (session 14:
+            # seen at 0.1-0.6 s after it without the warm-up). No plot with data is on screen before
+            # the last frame that compiled has ended: "plots drawn" is the end of the first frame
+            # holding a sample, or of the last compiling frame that began at or after it (within 5 s),
+            # whichever is later, and "behind" then is against the newest sample the viewer held at
+            # that moment. (With the tab's warm-up every compile is before the run's data.)
+            compiling = [e for b, e, *_ in raw.get("gl_frames") or [] if began_ms <= b <= began_ms + 5000]
+            plots_ms = max([t_ms, *compiling])
+            held_then = [st for t, _, st, *_ in states if st is not None and t <= plots_ms]
+            newest_then = viewer_newest_ns(bytes(held_then[-1]), recording) if held_then else newest
+            out["plots_drawn"] = plots_ms / 1e3 - opened_ns / 1e9
+            out["plots_drawn_behind"] = plots_ms / 1e3 - (newest_then or newest) / 1e9
             later = next((t for t, m, *_ in states[i + 1 :] if m > n), None)
             if later is not None:
                 out["next_frame_end"] = later / 1e3 - opened_ns / 1e9
@@ -490,6 +503,7 @@ _NOT_TIMES = (
     "warmup",
     "gl_frames",
     "first_frame_gl",
+    "plots_drawn_behind",
 )
 
 
@@ -1036,7 +1050,8 @@ def main() -> None:
                 f"{ph['first_frame_own_s']:.2f} + stale at its start {ph['first_drawn_stale']:.2f} (newest bytes at "
                 f"the network {ph.get('net_gap_s', float('nan')):.2f} s before it began); early {ph['early']}, "
                 f"held {ph['held']}; the 4 frames before it {ph['frames_before']} s; shader compiles/links in it "
-                f"{ph['first_frame_gl']}; warm-up {ph['warmup']}"
+                f"{ph['first_frame_gl']}; warm-up {ph['warmup']}; plots drawn {ph['plots_drawn']:.2f} behind "
+                f"{ph['plots_drawn_behind']:.2f}"
             )
         if ph.get("gl_frames"):
             # the frames that compiled shaders (s after the opening + own time: compiles/links): with the
