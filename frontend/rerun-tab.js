@@ -577,8 +577,8 @@
   // its render pipelines when it first draws plots (7 WebGL programs, 14 shaders compiled by SwiftShader on
   // the CPU), so the samples it drew were that much older when they reached the screen
   // (bench/README.md, session 13). So before the run's data, the viewer draws a small recording of
-  // our own with the same kind of views (time series of the live blueprint's shape, made by the
-  // appliance: logs/rerun_warmup.py, GET /api/logs/rerun/warmup.rrd), given to it through a channel
+  // our own with the kind of view the live blueprint has (a time-series plot of two series, made by
+  // the appliance: logs/rerun_warmup.py, GET /api/logs/rerun/warmup.rrd), given to it through a channel
   // of its own (WebHandle.open_channel / send_rrd_to_channel) as soon as its app has started
   // (index.html calls appStarted, server/http/rerun.py). Once a frame has drawn it, the recording is
   // closed (viewer_control: close, by its store id) and only then is the run's stream handed over
@@ -649,8 +649,8 @@
     }
     warmup.state = "sent";
     warmup.sentAt = Date.now();
-    // drawn: a frame ended holding the warm-up's samples (the frame that ingests them draws them),
-    // and one more after it
+    // drawn: a frame ended holding the warm-up's samples (the viewer may draw the plots in that frame
+    // or the next: measured, a frame or two after), and two more after it
     const has = () => { const r = recordings(); return r !== null && r.get(WARMUP_STORE) === true; };
     if (await framesUntil(has, deadline)) {
       for (let i = 0; i < 2; i++) { freeFrames(); await nextFrame(); }
