@@ -11,8 +11,9 @@
 // LiveProxy); the whole run so far is its log, opened as .rrd in another viewer tab. From the
 // page's load on (issue 31 bug 6): the viewer's wasm is compiled from its fetch, the live stream
 // is asked for once the viewer's wasm is compiled, read in a worker, and handed to the viewer when
-// it reads (what came meanwhile newest first), and a line says what the tab is doing until the
-// first data is drawn (each below).
+// it reads (what came meanwhile newest first) and has drawn a warm-up recording of ours (its plots'
+// render pipelines built before the run's data, hidden, then closed), and a line says what the tab
+// is doing until the first data is drawn (each below).
 // The 3D view's tab (viser's page, server/http/viser.py) loads this script too, for Esc.
 "use strict";
 (function () {
@@ -146,6 +147,7 @@
     heldGroups: 0, heldFrames: 0, heldNewestAgeMs: null, worker: null };  // (what the early stream brought before the viewer read it, below)
   const held = new Map();  // our id -> the viewer's callback, waiting for a reason to draw
   let onData = () => {};  // the frame gate's (below): the stream brought data
+  let freeFrames = () => {};  // the frame gate's (below): every frame the viewer asks for drawn, for a while
 
   // The live stream, asked for just before the viewer asks (issue 31 bug 6): the viewer asks for
   // it only once its app has started (wasm compiled and started: 1.5-3 s on a 2-core machine
@@ -184,6 +186,7 @@
   // newer, and is asked for before the reply is handed on (STALE_MS after it was sent).
   const STALE_MS = 50;
   const nativeFetch = window.fetch.bind(window);
+  const pageRaf = window.requestAnimationFrame.bind(window);  // (before the frame gate's, below)
   let early = null;
 
   // The worker's code (a blob: the viewer's CSP allows `worker-src blob:`; these functions' source).
@@ -362,10 +365,11 @@
       pull() {  // the viewer reads (the first time: what is held, newest first; later: a no-op)
         if (!firstTake || e.done) return undefined;
         firstTake = false;
-        return new Promise((resolve) => {
+        // not before the viewer has drawn its warm-up (below): then the newest batch is taken
+        return warmedUp().then(() => new Promise((resolve) => {
           e.waiting = resolve;
           e.worker.postMessage("take");
-        }).then((replies) => {
+        })).then((replies) => {
           frames.heldGroups = replies.reduce((n, r) => n + r.groups, 0);
           const newest = replies.find((r) => r.newestAt !== null);
           frames.heldNewestAgeMs = newest ? performance.timeOrigin + performance.now() - newest.newestAt : null;
@@ -504,6 +508,7 @@
       freeUntil = Math.max(freeUntil, performance.now() + ms);
       releaseAll();
     };
+    freeFrames = () => wake(FREE_MS);
     onData = (first) => {
       if (first) wake(FREE_MS);
       else if (!fresh) { fresh = true; clearTimeout(timer); timer = setTimeout(releaseAll, SETTLE_MS); }
@@ -543,18 +548,152 @@
       else return;  // not what we read: stop
     }
   }
-  function holdsSample() {
+  // The recordings in the viewer's state (store id -> whether it holds a sample yet), or null
+  // when the viewer has no state to give.
+  function recordings() {
     let state;
-    try { state = window._handle.viewer_state(); } catch (e) { return frames.firstDataAt !== null; }
-    let found = false;
+    try { state = window._handle.viewer_state(); } catch (e) { return null; }
+    const out = new Map();
     protoFields(new Uint8Array(state), (f, rec) => {
       if (f !== 3 || typeof rec === "number") return;
-      protoFields(rec, (g, tl) => {
-        if (g === 2 && typeof tl !== "number") protoFields(tl, (h) => { if (h === 3) found = true; });
+      let id = "", sample = false;
+      protoFields(rec, (g, v) => {
+        if (g === 1 && typeof v !== "number") id = new TextDecoder().decode(v);
+        if (g === 2 && typeof v !== "number") protoFields(v, (h) => { if (h === 3) sample = true; });
       });
+      out.set(id, sample);
     });
-    return found;
+    return out;
   }
+  // (the warm-up's recording is not the run's: below)
+  function holdsSample() {
+    const recs = recordings();
+    if (recs === null) return frames.firstDataAt !== null;
+    return [...recs].some(([id, sample]) => sample && id !== WARMUP_STORE);
+  }
+
+  // The warm-up (issue 31 bug 6, session 14). Without a GPU driver the viewer's first frame with
+  // plots took 0.5-1.2 s by itself, and it was the frame with the run's first data: the viewer makes
+  // its render pipelines when it first draws plots (7 WebGL programs, 14 shaders compiled by SwiftShader on
+  // the CPU), so the samples it drew were that much older when they reached the screen
+  // (bench/README.md, session 13). So before the run's data, the viewer draws a small recording of
+  // our own with the kind of view the live blueprint has (a time-series plot of two series, made by
+  // the appliance: logs/rerun_warmup.py, GET /api/logs/rerun/warmup.rrd), given to it through a channel
+  // of its own (WebHandle.open_channel / send_rrd_to_channel) as soon as its app has started
+  // (index.html calls appStarted, server/http/rerun.py). Once a frame has drawn it, the recording is
+  // closed (viewer_control: close, by its store id) and only then is the run's stream handed over
+  // (handOver: the worker holds it meanwhile, and the newest batch goes first): the pipelines stay,
+  // and the frame with the run's first data draws with them. A person never sees the warm-up's
+  // made-up samples: the canvas is hidden (visibility, so the viewer still draws) from before the
+  // warm-up is given to the viewer until the viewer no longer holds it, the tab's line saying
+  // "preparing the plots" meanwhile, and it is a recording of another application
+  // (WARMUP_STORE), never mixed into the run's. If anything fails or takes longer than
+  // WARMUP_MAX_MS, the run's stream is handed over anyway (as before the warm-up).
+  const WARMUP_PATH = "/api/logs/rerun/warmup.rrd";
+  const WARMUP_CHANNEL = "xrf-warmup";
+  const WARMUP_STORE = "Recording:xrflab-warmup:warmup";  // logs/rerun_warmup.py: {kind}:{application}:{recording}
+  const WARMUP_MAX_MS = 8000;
+  const warmup = { state: "none", sentAt: null, drawnAt: null, closedAt: null, error: "" };
+  frames.warmup = warmup;
+  let warmupDone = null, warmupEnd = () => {};
+  if (live) {
+    warmup.state = "waiting";
+    warmupDone = new Promise((resolve) => { warmupEnd = resolve; });
+  }
+  const warmupBytes = live
+    ? nativeFetch(WARMUP_PATH, { credentials: "same-origin" }).then((r) => (r.ok ? r.arrayBuffer() : null)).catch(() => null)
+    : null;
+  function hideCanvas(hide) {
+    let st = document.getElementById("xrf-warmup-hide");
+    if (!st) {
+      st = document.createElement("style");
+      st.id = "xrf-warmup-hide";
+      document.head.appendChild(st);
+    }
+    st.textContent = hide ? "#the_canvas_id { visibility: hidden !important; }" : "";
+  }
+  function pbBytes(field, bytes) {  // a length-delimited protobuf field
+    const out = [field << 3 | 2];
+    for (let n = bytes.length; ; n = Math.floor(n / 128)) { if (n < 128) { out.push(n); break; } out.push(n % 128 | 128); }
+    return [...out, ...bytes];
+  }
+  // ViewerControlRequest{close = 1: CloseRequest{store_ids = 3: ViewerRecordingIds{store_ids = 1}}}
+  // (rerun 0.41's viewer_control.proto)
+  const CLOSE_WARMUP = new Uint8Array(pbBytes(1, pbBytes(3, pbBytes(1, [...new TextEncoder().encode(WARMUP_STORE)]))));
+  const nextFrame = () => new Promise((resolve) => pageRaf(resolve));
+  async function framesUntil(ok, deadline) {  // browser frames (the viewer's free) until ok(), or the deadline
+    while (!ok()) {
+      if (Date.now() > deadline) return false;
+      freeFrames();
+      await nextFrame();
+    }
+    return true;
+  }
+  async function appStarted(handle) {
+    if (warmup.state !== "waiting") return;
+    const started = Date.now(), deadline = started + WARMUP_MAX_MS;
+    const address = location.href;
+    warmup.state = "fetching";
+    const bytes = await warmupBytes;
+    if (!bytes) { warmup.state = "skipped"; warmup.error = "no warm-up recording"; warmupEnd(); return; }
+    hideCanvas(true);
+    try {
+      handle.open_channel(WARMUP_CHANNEL, "XRF Lab warm-up");
+      handle.send_rrd_to_channel(WARMUP_CHANNEL, new Uint8Array(bytes));
+    } catch (e) {
+      warmup.state = "failed";
+      warmup.error = String(e && e.message || e);
+      hideCanvas(false);
+      warmupEnd();
+      return;
+    }
+    warmup.state = "sent";
+    warmup.sentAt = Date.now();
+    // drawn: a frame ended holding the warm-up's samples (the viewer may draw the plots in that frame
+    // or the next: measured, a frame or two after), and two more after it
+    const has = () => { const r = recordings(); return r !== null && r.get(WARMUP_STORE) === true; };
+    if (await framesUntil(has, deadline)) {
+      for (let i = 0; i < 2; i++) { freeFrames(); await nextFrame(); }
+      warmup.drawnAt = Date.now();
+      warmup.state = "drawn";
+    } else warmup.error = "not drawn in time";
+    // Closed whatever happened, and the canvas shown only then: made-up samples are never on
+    // screen, and the run's recording is the only one in the viewer. (Tried again until the viewer
+    // no longer holds it; the run's stream is handed over meanwhile after WARMUP_MAX_MS.)
+    const drawn = warmup.state === "drawn";
+    for (let tries = 1; ; tries++) {
+      try {
+        freeFrames();
+        await handle.viewer_control(CLOSE_WARMUP);
+      } catch (e) {
+        warmup.error = String(e && e.message || e);
+      }
+      const r = recordings();
+      if (r !== null && !r.has(WARMUP_STORE)) break;
+      if (tries === 3) { warmup.state = "not closed"; warmupEnd(); }
+      await new Promise((resolve) => setTimeout(resolve, tries < 3 ? 0 : 1000));
+    }
+    try { handle.close_channel(WARMUP_CHANNEL); } catch (e) { /* closed with its recording */ }
+    if (location.href !== address) history.replaceState(history.state, "", address);  // (the viewer's history)
+    warmup.closedAt = Date.now();
+    warmup.state = drawn ? "done" : "closed undrawn";
+    hideCanvas(false);
+    warmupEnd();
+  }
+  // What the first hand-over of the run's stream waits for: the warm-up's end, at most WARMUP_MAX_MS.
+  // A stream read before the viewer's app has started (not seen: the app reads it once started) is
+  // handed over at once, and then there is no warm-up: made after the run's data, it would be
+  // drawn instead of it.
+  function warmedUp() {
+    if (warmup.state === "waiting") {
+      warmup.state = "skipped";
+      warmup.error = "the stream was read before the app started";
+      warmupEnd();
+    }
+    if (!warmupDone) return Promise.resolve();
+    return Promise.race([warmupDone, new Promise((resolve) => setTimeout(resolve, WARMUP_MAX_MS))]);
+  }
+
   function liveStatus() {
     const box = floating("xrf-live-status", { top: "40px", left: "16px", zIndex: "2147483646",
       padding: "6px 12px", font: "14px system-ui, sans-serif", color: "#e5e7eb",
@@ -563,7 +702,10 @@
     let step;
     if (window._handle === undefined && !wasmReady) { step = "loading"; box.textContent = `${what}: loading the viewer…`; }
     else if (window._handle === undefined) { step = "starting"; box.textContent = `${what}: starting the viewer…`; }
-    else if (frames.firstDataAt === null && frames.answeredAt === null) { step = "connecting"; box.textContent = `${what}: connecting to the live stream…`; }
+    else if (warmup.state === "fetching" || warmup.state === "sent" || warmup.state === "drawn" || warmup.state === "not closed") {
+      // the viewer draws its warm-up, hidden (above): its plots' first frame, before the run's data
+      step = "preparing"; box.textContent = `${what}: preparing the plots…`;
+    } else if (frames.firstDataAt === null && frames.answeredAt === null) { step = "connecting"; box.textContent = `${what}: connecting to the live stream…`; }
     else if (frames.firstDataAt === null) { step = "waiting"; box.textContent = `${what}: waiting for the run's data…`; }
     else if (!holdsSample()) { step = "receiving"; box.textContent = `${what}: data arriving, drawing the first plots…`; }
     else {
@@ -665,5 +807,5 @@
   // test hook; debugMuted(): console.debug lines muted so far (see above);
   // frames(): frames drawn, asked for by the viewer, and reads of the live stream with data (see above)
   // wasm: the viewer's module being compiled (its loader in index.html takes it, see above)
-  window.xrfRerunTab = { stop, live, wasm, consoleDebug, debugMuted: () => debugMuted, frames: () => ({ ...frames, held: held.size }) };
+  window.xrfRerunTab = { stop, live, wasm, appStarted, consoleDebug, debugMuted: () => debugMuted, frames: () => ({ ...frames, held: held.size }) };
 })();

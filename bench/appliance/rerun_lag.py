@@ -271,19 +271,32 @@ PHASES = """(() => {
       return r;
     });
   };
+  // WebGL shader compiles and program links (the viewer makes its render pipelines when it first
+  // draws plots: session 14), counted per frame callback below
+  const gl = window._xrfGl = { compiles: 0, links: 0 };
+  for (const C of [window.WebGL2RenderingContext, window.WebGLRenderingContext]) {
+    if (!C) continue;
+    const compile = C.prototype.compileShader, link = C.prototype.linkProgram;
+    C.prototype.compileShader = function (...a) { gl.compiles += 1; return compile.apply(this, a); };
+    C.prototype.linkProgram = function (...a) { gl.links += 1; return link.apply(this, a); };
+  }
   window._xrfFrameStates = [];
+  window._xrfGlFrames = [];  // [began, ended, compiles, links] of each frame callback that compiled
   let last = "", frames = 0, lastT = null;
   const raf = window.requestAnimationFrame.bind(window);
   window.requestAnimationFrame = (cb) => raf((t) => {
     const began = now();  // the viewer ingests what its stream brought at the start of its frame
+    const c0 = gl.compiles, l0 = gl.links;
     cb(t);
+    const c = gl.compiles - c0, l = gl.links - l0;
+    if ((c || l) && window._xrfGlFrames.length < 100) window._xrfGlFrames.push([began, now(), c, l]);
     if (!handle || window._xrfFrameStates.length > 400) return;
     if (t !== lastT) { lastT = t; frames += 1; }  // one frame, however many callbacks it runs
     let st;
     try { st = Array.from(handle.viewer_state()); } catch (e) { return; }
     const key = st.join(",");
-    if (key !== last) { last = key; window._xrfFrameStates.push([now(), frames, st, began]); }
-    else if (window._xrfFrameStates.length) window._xrfFrameStates.push([now(), frames, null, began]);
+    if (key !== last) { last = key; window._xrfFrameStates.push([now(), frames, st, began, c, l]); }
+    else if (window._xrfFrameStates.length) window._xrfFrameStates.push([now(), frames, null, began, c, l]);
   });
 })();"""
 MARKS = """(() => {
@@ -297,7 +310,9 @@ MARKS = """(() => {
     held_newest_age_ms: f.heldNewestAgeMs,
     worker_started: f.worker && f.worker.started, worker_asked: f.worker && f.worker.asked,
     worker_answered: f.worker && f.worker.answered, worker_first_read: f.worker && f.worker.firstRead,
-    states: window._xrfFrameStates, reads: window._xrfReads };
+    warmup_sent: f.warmup && f.warmup.sentAt, warmup_drawn: f.warmup && f.warmup.drawnAt,
+    warmup_closed: f.warmup && f.warmup.closedAt, warmup_state: f.warmup ? f.warmup.state : "none",
+    gl_frames: window._xrfGlFrames, states: window._xrfFrameStates, reads: window._xrfReads };
 })()"""
 
 
@@ -314,8 +329,13 @@ def phases(page, opened_ns: int, recording: str) -> dict[str, float]:
     out["held"] = f"{raw.get('held_groups', '-')} bursts, {raw.get('held_frames', '-')} messages"
     if raw.get("held_newest_age_ms") is not None:  # (the worker's: when its newest burst came)
         out["held"] += f", the newest {raw['held_newest_age_ms'] / 1e3:.2f} s old"
+    out["warmup"] = raw.get("warmup_state") or "none"  # the tab's warm-up (frontend/rerun-tab.js, session 14)
+    # the frame callbacks that compiled shaders: when (s after the opening), how long, how many
+    out["gl_frames"] = " ".join(
+        f"{b / 1e3 - opened_ns / 1e9:.2f}+{(e - b) / 1e3:.2f}s:{c}/{k}" for b, e, c, k in raw.get("gl_frames") or []
+    )
     states = raw.get("states") or []
-    for i, (t_ms, n, state, began_ms) in enumerate(states):
+    for i, (t_ms, n, state, began_ms, compiles, links) in enumerate(states):
         newest = viewer_newest_ns(bytes(state), recording) if state is not None else None
         if newest is not None:
             out["first_drawn"] = t_ms / 1e3 - opened_ns / 1e9
@@ -327,15 +347,16 @@ def phases(page, opened_ns: int, recording: str) -> dict[str, float]:
             out["first_drawn_began"] = began_ms / 1e3 - opened_ns / 1e9
             out["first_frame_own_s"] = (t_ms - began_ms) / 1e3
             out["first_drawn_stale"] = began_ms / 1e3 - newest / 1e9
+            out["first_frame_gl"] = f"{compiles}/{links}"  # shader compiles / program links in it
             # the app's frames before it (s each: a frame that ingests and draws nothing new is short)
-            out["frames_before"] = " ".join(f"{(t - b) / 1e3:.2f}" for t, _, _, b in states[max(0, i - 4) : i])
+            out["frames_before"] = " ".join(f"{(t - b) / 1e3:.2f}" for t, _, _, b, *_ in states[max(0, i - 4) : i])
             # the frame after it: what the first frame drew is on screen when this one ended at the
             # latest (the first plots' shaders may be compiled in either)
             # the frames up to it (s after the opening: began-ended, how old its newest sample was at
             # its end) and the reads with bytes on the page's thread meanwhile (s, KB)
             reads = raw.get("reads") or []
             lines = []
-            for t, _, st, b in states[max(0, i - 4) : i + 3]:
+            for t, _, st, b, *_ in states[max(0, i - 4) : i + 3]:
                 nw = viewer_newest_ns(bytes(st), recording) if st is not None else None
                 age = f" newest {t / 1e3 - nw / 1e9:.2f} s old" if nw is not None else ""
                 lines.append(f"frame {b / 1e3 - opened_ns / 1e9:.2f}-{t / 1e3 - opened_ns / 1e9:.2f}{age}")
@@ -346,7 +367,20 @@ def phases(page, opened_ns: int, recording: str) -> dict[str, float]:
                 if first_ms - 3000 <= r <= t_ms + 1500
             ]
             out["timeline"] = "; ".join(lines) + " | reads (s:KB) " + " ".join(got)
-            later = next((t for t, m, _, _ in states[i + 1 :] if m > n), None)
+            # Its plots: the viewer builds its render pipelines (shader compiles) when it first draws
+            # plots, and that can be a frame or two after the first that holds a sample (session 14:
+            # seen at 0.1-0.6 s after it without the warm-up). No plot with data is on screen before
+            # the last frame that compiled has ended: "plots drawn" is the end of the first frame
+            # holding a sample, or of the last compiling frame that began at or after it (within 5 s),
+            # whichever is later, and "behind" then is against the newest sample the viewer held at
+            # that moment. (With the tab's warm-up every compile is before the run's data.)
+            compiling = [e for b, e, *_ in raw.get("gl_frames") or [] if began_ms <= b <= began_ms + 5000]
+            plots_ms = max([t_ms, *compiling])
+            held_then = [st for t, _, st, *_ in states if st is not None and t <= plots_ms]
+            newest_then = viewer_newest_ns(bytes(held_then[-1]), recording) if held_then else newest
+            out["plots_drawn"] = plots_ms / 1e3 - opened_ns / 1e9
+            out["plots_drawn_behind"] = plots_ms / 1e3 - (newest_then or newest) / 1e9
+            later = next((t for t, m, *_ in states[i + 1 :] if m > n), None)
             if later is not None:
                 out["next_frame_end"] = later / 1e3 - opened_ns / 1e9
                 out["next_frame_end_behind"] = later / 1e3 - newest / 1e9
@@ -466,6 +500,10 @@ _NOT_TIMES = (
     "net_gap_s",
     "frames_before",
     "timeline",
+    "warmup",
+    "gl_frames",
+    "first_frame_gl",
+    "plots_drawn_behind",
 )
 
 
@@ -1011,8 +1049,14 @@ def main() -> None:
                 f"{ph['first_drawn']:.2f} behind {ph['first_drawn_behind']:.2f} = own frame "
                 f"{ph['first_frame_own_s']:.2f} + stale at its start {ph['first_drawn_stale']:.2f} (newest bytes at "
                 f"the network {ph.get('net_gap_s', float('nan')):.2f} s before it began); early {ph['early']}, "
-                f"held {ph['held']}; the 4 frames before it {ph['frames_before']} s"
+                f"held {ph['held']}; the 4 frames before it {ph['frames_before']} s; shader compiles/links in it "
+                f"{ph['first_frame_gl']}; warm-up {ph['warmup']}; plots drawn {ph['plots_drawn']:.2f} behind "
+                f"{ph['plots_drawn_behind']:.2f}"
             )
+        if ph.get("gl_frames"):
+            # the frames that compiled shaders (s after the opening + own time: compiles/links): with the
+            # warm-up, before the first frame with the run's data (session 14)
+            print(f"  SHADERS {ph['gl_frames']}")
         if "timeline" in ph:
             print(f"  TIMELINE {ph['timeline']}")
         print("  behind live " + ", ".join(f"{t} s after start: {v:.1f} s" for t, v in b.items()))

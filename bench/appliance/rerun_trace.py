@@ -39,8 +39,9 @@ CATEGORIES = [
 
 
 def breakdown(trace: bytes) -> list[str]:
-    """The longest FireAnimationFrame on a renderer main thread: its events by total duration, and
-    the other threads' events in its time window."""
+    """The longest FireAnimationFrame on a renderer main thread (with the tab's warm-up, session 14:
+    the warm-up's frame) and the longest after it: their events by total duration, and the other
+    threads' events in their time windows."""
     data = json.loads(trace)
     events = data["traceEvents"] if isinstance(data, dict) else data
     names: dict[tuple, str] = {}
@@ -50,7 +51,17 @@ def breakdown(trace: bytes) -> list[str]:
     frames = [e for e in events if e.get("name") == "FireAnimationFrame" and e.get("ph") == "X"]
     if not frames:
         return ["no animation frame in the trace"]
-    frame = max(frames, key=lambda e: e.get("dur", 0))
+    longest = max(frames, key=lambda e: e.get("dur", 0))
+    after = [e for e in frames if e["ts"] >= longest["ts"] + longest.get("dur", 0)]
+    out = _one_frame(events, names, longest, "the longest animation frame callback")
+    if after:
+        nxt = max(after, key=lambda e: e.get("dur", 0))
+        gap = (nxt["ts"] - longest["ts"]) / 1e6
+        out += _one_frame(events, names, nxt, f"the longest after it ({gap:.2f} s after its start)")
+    return out
+
+
+def _one_frame(events: list[dict], names: dict[tuple, str], frame: dict, what: str) -> list[str]:
     t0, t1, pid, tid = frame["ts"], frame["ts"] + frame["dur"], frame["pid"], frame["tid"]
     mine: collections.Counter = collections.Counter()
     mine_n: collections.Counter = collections.Counter()
@@ -66,7 +77,7 @@ def breakdown(trace: bytes) -> list[str]:
             key = f"{names.get((e['pid'], None), e['pid'])} / {names.get((e['pid'], e['tid']), e['tid'])} / {e['name']}"
             other[key] += e.get("dur", 0)
             other_n[key] += 1
-    out = [f"the longest animation frame callback: {frame['dur'] / 1e3:.0f} ms; inside it (ms in total, calls):"]
+    out = [f"{what}: {frame['dur'] / 1e3:.0f} ms; inside it (ms in total, calls):"]
     out += [f"  {v / 1e3:8.1f} {mine_n[k]:5d}  {k}" for k, v in mine.most_common(14)]
     out.append("other threads in that window (ms in total, events):")
     out += [f"  {v / 1e3:8.1f} {other_n[k]:5d}  {k}" for k, v in other.most_common(14)]
@@ -130,6 +141,14 @@ def main() -> None:
             f"at its start {marks['first_drawn_stale']:.2f}"
         )
         print(f"  {marks['timeline']}")
+        # WebGL shader compiles / program links in that frame, and every frame that compiled (s after
+        # the opening + its own time: compiles/links); the tab's warm-up's state (session 14)
+        print(
+            f"  shader compiles/links in it: {marks['first_frame_gl']}; warm-up {marks['warmup']}; its plots drawn "
+            f"(pipelines built) {marks['plots_drawn']:.2f} s after the opening, {marks['plots_drawn_behind']:.2f} s behind"
+        )
+    if marks.get("gl_frames"):
+        print(f"  frames that compiled shaders: {marks['gl_frames']}")
     for line in breakdown(trace):
         print(line)
 

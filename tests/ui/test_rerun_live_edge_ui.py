@@ -53,7 +53,15 @@ from pathlib import Path
 
 from xrf_testing.grpcweb import EMPTY_REQUEST, GRPC_WEB, READ_MESSAGES, split_frames
 from xrf_testing.harness import Server, wait_for
-from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of, viewer_newest_ns, viewer_oldest_ns, viewer_time_range
+from xrf_testing.rerun_stream import (
+    STORE_RECORDING,
+    chunk_of,
+    viewer_active,
+    viewer_newest_ns,
+    viewer_oldest_ns,
+    viewer_recordings,
+    viewer_time_range,
+)
 
 # The run streams this long before the viewer opens: the old replay started this far behind. Three
 # times EDGE_S is enough to tell a replay from cycle 0 from the live edge (40 s made this the
@@ -567,5 +575,101 @@ def test_a_busy_page_still_hands_the_newest_batch_first(server: Server, browser)
         f"its request (the page was busy {BUSY_S:g} s before it): handed over in the order it came, oldest first"
     )
     held.clear()
+    viewer.close()
+    server.stop_run()
+
+
+# In the viewer's tab, before its scripts: each frame callback's WebGL shader compiles and program
+# links (the viewer makes its render pipelines when it first draws plots), and at its end the
+# viewer's state, whether its canvas was visible and whether the tab's line was on screen: kept
+# when any of these changed or the frame compiled.
+GL_FRAMES = """if (location.pathname.startsWith("/rerun/")) (() => {
+  const gl = { compiles: 0, links: 0 };
+  for (const C of [window.WebGL2RenderingContext, window.WebGLRenderingContext]) {
+    if (!C) continue;
+    const compile = C.prototype.compileShader, link = C.prototype.linkProgram;
+    C.prototype.compileShader = function (...a) { gl.compiles += 1; return compile.apply(this, a); };
+    C.prototype.linkProgram = function (...a) { gl.links += 1; return link.apply(this, a); };
+  }
+  window._xrfGlFrames = [];
+  let handle, last = "";
+  Object.defineProperty(window, "_handle", { configurable: true, get: () => handle, set: (v) => { handle = v; } });
+  const raf = window.requestAnimationFrame.bind(window);
+  window.requestAnimationFrame = (cb) => raf((t) => {
+    const c0 = gl.compiles, l0 = gl.links;
+    cb(t);
+    if (!handle || window._xrfGlFrames.length > 2000) return;
+    let st;
+    try { st = Array.from(handle.viewer_state()); } catch (e) { return; }
+    const canvas = document.getElementById("the_canvas_id"), line = document.getElementById("xrf-live-status");
+    const visible = !!canvas && getComputedStyle(canvas).visibility === "visible";
+    const shown = !!line && getComputedStyle(line).display !== "none";
+    const c = gl.compiles - c0, l = gl.links - l0, key = st.join(",") + visible + shown;
+    if (c || l || key !== last) { last = key; window._xrfGlFrames.push([c, l, st, visible, shown]); }
+  });
+})();"""
+
+# The tab's warm-up recording (logs/rerun_warmup.py), as the viewer names it.
+WARMUP_STORE = "Recording:xrflab-warmup:warmup"
+
+
+def test_the_viewer_draws_plots_before_the_runs_first_sample_and_never_shows_them(
+    server: Server,
+    browser,  # noqa: ANN001
+) -> None:
+    """Without a GPU driver the viewer's first frame with plots took 0.5-1.2 s by itself: it builds
+    its render pipelines then (WebGL programs compiled in software), and that was the frame with
+    the run's first samples, so they reached the screen that much older (bench/README.md, session
+    13). Now the tab has the viewer draw a small recording of its own first (a time-series plot,
+    GET /api/logs/rerun/warmup.rrd), closes it, and only then hands over the run's stream
+    (frontend/rerun-tab.js, warm-up): the programs are linked in frames before the run's first
+    sample, the frame that draws that sample links none, and a person never sees the made-up
+    plots: the canvas is hidden whenever the viewer holds them (the tab's line says what it does),
+    they are a recording of another application, gone from the viewer before the run's data, and
+    nothing of them is in the run's recording. (How much sooner the sample is on screen is a figure
+    of bench/appliance/rerun_lag.py: no timing here.)"""
+    run_started_ns = time.time_ns()
+    run, info = _live_run_with_the_viewer_prepared(server, browser)
+    viewer = browser.new_page(viewport={"width": 1280, "height": 800})
+    viewer.add_init_script(GL_FRAMES)
+    viewer.goto(server.url + "/rerun/?url=" + urllib.parse.quote(info["live_url"], safe=""), timeout=120_000)
+    viewer.wait_for_function("() => window._handle !== undefined", timeout=300_000)
+    recording = f"run-{run['id']}"
+
+    def first_drawn() -> tuple[int, list] | None:
+        frames = viewer.evaluate("window._xrfGlFrames")
+        for i, (_, _, state, _, _) in enumerate(frames):
+            if viewer_time_range(bytes(state), recording)[1] is not None:
+                return i, frames
+        return None
+
+    first, frames = wait_for(first_drawn, FIRST_S, "the viewer's first frame with the run's samples")
+    before = frames[:first]
+    warm = [f for f in before if viewer_recordings(bytes(f[2])).get(WARMUP_STORE)]
+    # The viewer drew plots before the run's first sample: its warm-up recording held samples in
+    # frames before it, and the viewer linked its programs in those frames...
+    assert warm, "no frame before the run's first sample held the warm-up's plots"
+    assert sum(f[1] for f in before) > 0, [(c, k) for c, k, *_ in before if c or k]
+    # ...so the frame that drew the run's first sample built no render pipeline of its own.
+    compiles, links, state, visible, _ = frames[first]
+    assert (compiles, links) == (0, 0), (
+        f"the frame with the run's first sample compiled {compiles} shaders and linked {links} programs"
+    )
+    # The made-up samples never on screen: whenever the viewer held them, its canvas was hidden and
+    # the tab's line said what it was doing.
+    for *_, st, vis, shown in frames:
+        if WARMUP_STORE in viewer_recordings(bytes(st)):
+            assert not vis and shown, (vis, shown)
+    # From the run's first sample on, the run's recording is the only one, and the active one...
+    assert set(viewer_recordings(bytes(state))) == {f"Recording:xrflab:{recording}"}, viewer_recordings(bytes(state))
+    assert viewer_active(bytes(state)) == f"Recording:xrflab:{recording}", viewer_active(bytes(state))
+    assert visible
+    # ...and holds nothing of the warm-up (its samples are from years before this run).
+    oldest, _ = viewer_time_range(bytes(state), recording)
+    assert oldest is not None and oldest >= run_started_ns, (oldest, run_started_ns)
+    tab = viewer.evaluate("xrfRerunTab.frames()")
+    assert tab["warmup"]["state"] == "done" and tab["early"] == "used", tab["warmup"]
+    later = viewer.evaluate("Array.from(window._handle.viewer_state())")
+    assert WARMUP_STORE not in viewer_recordings(bytes(later))
     viewer.close()
     server.stop_run()

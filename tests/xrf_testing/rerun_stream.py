@@ -150,3 +150,22 @@ def viewer_newest_ns(state: bytes, recording_id: str) -> int | None:
 def viewer_oldest_ns(state: bytes, recording_id: str) -> int | None:
     """The oldest sample the viewer holds (a replay from cycle 0 would make it the run's start)."""
     return viewer_time_range(state, recording_id)[0]
+
+
+def viewer_recordings(state: bytes) -> dict[str, bool]:
+    """Every recording in a viewer_state() answer, by store id (``{kind}:{application}:{recording}``):
+    whether it holds a sample yet (a timeline with a range)."""
+    out: dict[str, bool] = {}
+    for n, rec in fields(state):
+        if n != 3 or not isinstance(rec, bytes):
+            continue
+        store = _field(rec, 1, b"")
+        held = any(m == 2 and isinstance(tl, bytes) and _field(tl, 3) is not None for m, tl in fields(rec))
+        out[store.decode(errors="replace") if isinstance(store, bytes) else ""] = held
+    return out
+
+
+def viewer_active(state: bytes) -> str | None:
+    """The active recording's store id in a viewer_state() answer (``active_store_id = 2``), or None."""
+    active = _field(state, 2)
+    return active.decode(errors="replace") if isinstance(active, bytes) else None

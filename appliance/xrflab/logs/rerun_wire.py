@@ -103,11 +103,11 @@ def pb_tuid(field: int, tuid: tuple[int, int]) -> bytes:
     return pb_bytes(field, b"\x09" + struct.pack("<Q", tuid[0]) + b"\x11" + struct.pack("<Q", tuid[1]))
 
 
-def make_store_id(kind: int, recording_id: str) -> bytes:
+def make_store_id(kind: int, recording_id: str, application_id: str = APPLICATION_ID) -> bytes:
     return (
         pb_int(1, kind)
         + pb_bytes(2, recording_id.encode("utf-8", "surrogateescape"))
-        + pb_bytes(3, pb_bytes(1, APPLICATION_ID.encode()))
+        + pb_bytes(3, pb_bytes(1, application_id.encode()))
     )
 
 

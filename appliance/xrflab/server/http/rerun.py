@@ -16,6 +16,9 @@
   also loads ``/static/rerun-tab.js`` (``TAB_SCRIPT``, after ``/static/lib.js``): the Runs page opens the viewer in a tab of
   its own, where that script makes Esc stop the run (issue 19).
 - ``GET /api/logs/rerun``: where the viewer and the live stream are for this request's host.
+- ``GET /api/logs/rerun/warmup.rrd``: a small recording of our own that the live viewer draws before
+  the run's data and then closes (``logs.rerun_warmup``; frontend/rerun-tab.js): its render
+  pipelines are built then, not in the frame with the run's first samples (issue 31 bug 6).
 - ``POST /rerun.sdk_comms.v1alpha1.MessageProxyService/{ReadMessages,ReadTables}``: the live
   stream. rerun's viewer, given ``rerun+http://<host>:<port>/proxy``, calls these gRPC-web methods
   at the root of ``<host>:<port>`` (its URL parser accepts no path prefix), so they are answered
@@ -147,6 +150,20 @@ async def rerun_info(request: Request) -> dict[str, Any]:
     return info
 
 
+@router.get("/api/logs/rerun/warmup.rrd", dependencies=[requires(Perm.WATCH)], include_in_schema=False)
+async def rerun_warmup() -> Response:
+    """The live viewer's warm-up recording (logs/rerun_warmup.py): drawn by the viewer before the
+    run's data, then closed by the tab (frontend/rerun-tab.js), so that the frame with the run's
+    first samples does not also build the viewer's render pipelines (issue 31 bug 6)."""
+    from ...logs.rerun_warmup import warmup_rrd
+
+    return Response(
+        warmup_rrd(),
+        media_type="application/octet-stream",
+        headers={"Cache-Control": "private, max-age=86400", "X-Content-Type-Options": "nosniff"},
+    )
+
+
 # The viewer's files (rerun_files.VIEWER_FILES), prepared once per rerun version (_viewer_cache);
 # the wasm's URLs pointed at OFFLINE_PREFIX (rerun_files.WASM_URLS).
 # index.html: Google Fonts (the loading text's font; the viewer draws with its own fonts) and the
@@ -165,7 +182,7 @@ VIEWER_CSP = (
 # (same origin: the CSP's script-src 'self' allows it).
 # Part of the prepared copy's folder name: a change to what the preparation does to rerun's files
 # (here: LIB_SCRIPT and TAB_SCRIPT added to index.html) makes appliances prepare their copy again.
-PREPARED_AS = "offline-tab-lib-wasm"
+PREPARED_AS = "offline-tab-lib-wasm-warmup"
 _MEDIA = {
     ".html": "text/html; charset=utf-8",
     ".js": "text/javascript",
@@ -193,11 +210,22 @@ _LOADER_OURS = (
 )
 
 
+# index.html hands the started app's handle to our tab script at once (frontend/rerun-tab.js
+# ``appStarted``: the live viewer's warm-up, issue 31 bug 6), not only as window._handle.
+_APP_STARTED = "        window._handle = handle;\n"
+_APP_STARTED_OURS = _APP_STARTED + (
+    "        if (window.xrfRerunTab && xrfRerunTab.appStarted) xrfRerunTab.appStarted(handle);\n"
+)
+
+
 def neutralise_index(text: str) -> str:
     text = _FONT_LINKS.sub("", text)
     if _LOADER_CALL not in text:  # a newer rerun: its own loader, as shipped
         logging.getLogger("xrflab.rerun").warning("rerun viewer: index.html's wasm loader not found; left as it is")
     text = text.replace(_LOADER_CALL, _LOADER_OURS, 1)
+    if _APP_STARTED not in text:  # a newer rerun: no warm-up (the live view works without it)
+        logging.getLogger("xrflab.rerun").warning("rerun viewer: index.html's app start not found; no warm-up")
+    text = text.replace(_APP_STARTED, _APP_STARTED_OURS, 1)
     text = _SITE_SCRIPT.sub("", text)
     # No bug-report links to GitHub in the viewer's error page: a student reports to the educator.
     text = text.replace("https://github.com/rerun-io/rerun/issues/new/", "#")
