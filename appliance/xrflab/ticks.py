@@ -1,11 +1,14 @@
 """The appliance's common time boundaries for its slow periodic work (issue 30 item 4).
 
 Every task or thread of the appliance that wakes once a second or slower (the reader with
-nobody connected, the timing task, the output poll, uvicorn's tick, the limits guard, the event
-loop's sign of life to the safety watcher, the lease's idle check, the room's enrolment poll,
-the live rerun sender with no viewer) sleeps until the next multiple of its period on the
+nobody connected, the timing task, the limits guard, the event loop's sign of life to the safety
+watcher, the room's enrolment poll) sleeps until the next multiple of its period on the
 monotonic clock, so they wake together rather than each on a timer of its own: on a busy core a
-wake-up of a Python process costs more (its caches gone cold) than the little each does.
+wake-up of a Python process costs more (its caches gone cold) than the little each does. What
+waits for something to happen does not tick at all (session 14): uvicorn's server (its Date
+header is made when read), the lease's idle watch (until the holder's deadline), the live
+rerun sender with no viewer (until one comes), the output poll with nobody taking monitor lines
+(at the reader's idle batch).
 """
 
 from __future__ import annotations

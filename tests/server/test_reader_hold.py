@@ -75,3 +75,42 @@ def test_the_console_poll_goes_with_a_reader_wake_up() -> None:
         await asyncio.wait_for(late, 1.0)
 
     asyncio.run(main())
+
+
+def test_with_nobody_taking_monitor_lines_the_output_poll_waits_for_the_reader(tmp_path) -> None:
+    """With nobody taking monitor lines the loop's output file is polled at the reader's idle
+    batch (`with_reader`, OUTPUT_IDLE_S), not on a timer of its own once a second (issue 30 item
+    4, session 14); a reader wake-up past it lets the poll go, and so does the run's end (the
+    reader's last batch); its own timer only after OUTPUT_IDLE_LATEST_S. A real file, a hub with
+    no client."""
+    import asyncio
+    import time
+    from types import SimpleNamespace
+
+    from xrflab.server.runs import reader
+    from xrflab.server.runs.launch import OUTPUT
+    from xrflab.server.ws.hub import Hub
+
+    (tmp_path / OUTPUT).write_bytes(b"hello\n")
+
+    async def main() -> None:
+        run = SimpleNamespace(
+            run_dir=tmp_path, alive=True, output_due=0.0, output_poll=asyncio.Event(), row=SimpleNamespace(id=1)
+        )
+        task = asyncio.create_task(reader.pipe_output(run, Hub()))  # type: ignore[arg-type]
+        await asyncio.sleep(0.05)  # its first poll, then its wait
+        due = run.output_due
+        assert due > time.monotonic() + reader.OUTPUT_IDLE_S - 0.5, (
+            "with nobody taking monitor lines the output poll waits on a timer of its own, not for the reader"
+        )
+        reader.output_due(run, time.monotonic())  # a reader wake-up before it is due: nothing
+        await asyncio.sleep(0.05)
+        assert run.output_due == due and not task.done()
+        reader.output_due(run, due)  # the reader's first wake-up past it: the poll goes, then waits again
+        await asyncio.sleep(0.05)
+        assert run.output_due > due, "the reader's wake-up did not let the poll go"
+        run.alive = False
+        run.output_poll.set()  # the run's end (the reader's last batch): the last output read, done
+        await asyncio.wait_for(task, 2.0)
+
+    asyncio.run(main())

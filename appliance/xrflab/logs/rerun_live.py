@@ -41,7 +41,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..channels.errors import ChannelsCorrupt
-from ..ticks import until_aligned
 from . import logformat
 from .rerun_sender import APPLICATION_ID, LiveSender, escape_part
 from .rerun_servers import LiveProxy
@@ -69,7 +68,8 @@ BACKLOG_S = 5.0  # at most this much of the loop's records waits for the sending
 # minutes behind; at 0.5 s (2.5x fewer messages, +0.3 s on average at the wire) a viewer opened
 # mid-run reached the live edge in 25 s (bench/appliance/rerun_lag.py, issue 31 bug 6).
 SEND_PERIOD_S = 0.5
-IDLE_LOOK_S = 1.0  # with no viewer: how often the sending thread looks for one (on the whole second)
+# With no viewer the sending thread does not look for one on a timer: a viewer's coming wakes it
+# (``LiveProxy.on_viewer``: its page served, or the first reader joined; issue 30 item 4).
 
 
 def decimate_minmax(bucket: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -145,6 +145,9 @@ class LiveRerun:
                 wake()  # its records now, not at its next drain
 
         proxy.on_viewer = on_viewer
+        # One look now that on_viewer is set: a viewer that joined before (none was called) is
+        # seen by it; one that joins later calls on_viewer.
+        q.put_nowait(...)
 
     def watched(self) -> bool:
         return self._proxy.watched()
@@ -312,12 +315,12 @@ class LiveRerun:
         at_edge = True  # the next records sent are a viewer's first: only the live edge of them
         while True:
             item: np.ndarray | None | EllipsisType
-            # Unwatched, nothing is queued (feed drops it): the thread only looks whether a
-            # viewer came, on the appliance's whole seconds with its other once-a-second work,
-            # not twice a second on a timer of its own (issue 30 item 4). A viewer's first
-            # records (the writer's next drain) end the wait at once; a viewer of a loop that
-            # logs nothing yet (before RUN) gets its telemetry within a second.
-            wait_s = SEND_PERIOD_S if self.rec is not None and self.watched() else until_aligned(IDLE_LOOK_S)
+            # Unwatched, nothing is queued (feed drops it) and the thread sleeps until something
+            # is: a viewer coming (``on_viewer``, its page served or its first reader joined:
+            # `...`) or the run's end (close: None). It looked once a second before, for nobody
+            # (issue 30 item 4: a tenth of the idle appliance's CPU). A viewer of a loop that
+            # logs nothing yet (before RUN) gets its telemetry from that wake-up on.
+            wait_s = SEND_PERIOD_S if self.rec is not None and self.watched() else None
             try:
                 item = self._q.get(timeout=wait_s)
             except queue.Empty:

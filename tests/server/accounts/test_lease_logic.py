@@ -144,3 +144,34 @@ def test_payload_counts_down_the_idle_time() -> None:
     assert 19.0 < left <= 20.0
     # the audit record leaves the timer out (it says what changed, not when it will expire)
     assert all("idle_left_s" not in detail for _, _, detail in b.audit)
+
+
+def test_the_idle_watch_sleeps_until_the_holders_time() -> None:
+    """The idle watch (`watch_idle`) frees an idle holder at its time, and does not look on a
+    timer meanwhile: with nobody holding the bench it waits for a holder, with one it sleeps
+    until the holder's deadline (a drive action moves it later). It looked once a second (issue
+    30 item 4, session 14: a wake-up of the idle appliance's for nobody)."""
+    import asyncio
+
+    async def main() -> None:
+        b = Bench(idle_s=0.6)
+        b.lease.start()
+        try:
+            await asyncio.sleep(1.0)  # the point: time with nobody holding the bench
+            assert b.lease.looks <= 1, f"{b.lease.looks} looks with nobody holding the bench"
+            b.lease.take(ANN)
+            await asyncio.sleep(0.4)
+            b.lease.touch(ANN)  # a drive action: its idle time starts again
+            await asyncio.sleep(0.4)
+            assert b.holder() == "ann"  # 0.8 s after the take, 0.4 s after its last action
+            for _ in range(100):
+                if b.holder() is None:
+                    break
+                await asyncio.sleep(0.05)  # polling: the release at the holder's idle time
+            assert b.holder() is None and b.messages[-1].reason == "idle"
+            # a look when taken, one at the first deadline, one at the touched one, one after freeing
+            assert b.lease.looks <= 5, f"{b.lease.looks} looks for one holder's idle time"
+        finally:
+            b.lease.stop()
+
+    asyncio.run(main())

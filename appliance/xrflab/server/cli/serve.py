@@ -319,35 +319,62 @@ def serve(app: Any, settings: Settings) -> None:
 
 
 def quiet_server(config: Any) -> Any:
-    """uvicorn's Server, ticking once a second instead of ten times.
+    """uvicorn's Server, with no tick at all.
 
     uvicorn's main loop sleeps 0.1 s at a time to see whether a signal asked it to stop, and
     refreshes its Date header every tenth tick: 10 wake-ups a second of the event loop, a sixth
-    of an idle appliance's Python time (py-spy, issue 30 item 4). Here the stop request wakes the
-    loop itself (the signal handler sets an event through the loop), so a stop is as quick as
-    before, and the tick only keeps the Date header to the second."""
+    of an idle appliance's Python time (py-spy, issue 30 item 4). Session 9 made it one a
+    second; it was still about a tenth of the idle event loop's Python (the tick's wait and the
+    header, py-spy, session 14). Here nothing ticks: the stop request wakes the main loop itself
+    (the signal handler sets an event through the event loop), so a stop is as quick as before,
+    and the Date header is made when a response reads it (`DatedState`: formatted once per
+    second that has a response, the same text uvicorn's tick made)."""
     import asyncio
+    import time
+    from email.utils import formatdate
 
     import uvicorn
+    from uvicorn.server import ServerState
 
-    from ...ticks import until_aligned  # with the appliance's other once-a-second work
+    class DatedState(ServerState):
+        """uvicorn's shared state whose default headers (Date and the configured ones) are made
+        when a connection or a response reads them, not by a tick: uvicorn's protocols read
+        `server_state.default_headers` for each response (and each WebSocket handshake)."""
+
+        def __init__(self) -> None:
+            self._second = -1
+            self._headers: list[tuple[bytes, bytes]] = []
+            super().__init__()
+
+        @property
+        def default_headers(self) -> list[tuple[bytes, bytes]]:
+            now = int(time.time())
+            if now != self._second:
+                date = [(b"date", formatdate(now, usegmt=True).encode())] if config.date_header else []
+                self._headers = date + config.encoded_headers
+                self._second = now
+            return self._headers
+
+        @default_headers.setter
+        def default_headers(self, value: list[tuple[bytes, bytes]]) -> None:
+            pass  # (uvicorn's on_tick and ServerState's __init__ set it: made at reading here)
 
     class QuietServer(uvicorn.Server):
         _stop_event: asyncio.Event | None = None
         _loop: asyncio.AbstractEventLoop | None = None
 
+        def __init__(self, config: Any) -> None:
+            super().__init__(config)
+            self.server_state = DatedState()
+
         async def main_loop(self) -> None:
             self._loop = asyncio.get_running_loop()
             self._stop_event = asyncio.Event()
-            counter = 0
-            should_exit = await self.on_tick(counter)
-            while not should_exit:
-                counter = (counter + 10) % 864000  # every tick is on_tick's once-a-second one
-                try:
-                    await asyncio.wait_for(self._stop_event.wait(), until_aligned(1.0))
-                except TimeoutError:
-                    pass
-                should_exit = await self.on_tick(counter)
+            while True:
+                if await self.on_tick(0):
+                    return
+                await self._stop_event.wait()  # set by handle_exit, whatever thread it runs in
+                self._stop_event.clear()
 
         def handle_exit(self, sig: int, frame: Any) -> None:
             super().handle_exit(sig, frame)

@@ -260,7 +260,7 @@ class RunCgroup:
 
     def events(self) -> dict[str, int]:
         """``oom_kill``: processes the kernel killed for the memory limit; ``pids_max``: forks
-        refused for the process limit. Read once a second per run (watch.limits_guard): two
+        refused for the process limit. Read every 4 s per run (watch.limits_guard): two
         small files, nothing else (the memory peak it also read was used by nobody)."""
         if self._event_files is None:  # the paths once (pathlib's joins cost more than the reads)
             mem, pids = self.folder("memory"), self.folder("pids")

@@ -127,6 +127,7 @@ class RunLimits:
     memory_mb: int = 0
     disk_mb: int = 0
     kept_note: str = ""  # what release() kept of the run's file system, for the record
+    looks: int = 0  # how often `over` looked (tests: the guard's period)
 
     def launcher_config(self) -> dict[str, Any]:
         return {
@@ -138,6 +139,7 @@ class RunLimits:
 
     def over(self, exit_signal: int = 0) -> tuple[str, str] | None:
         """(end reason, message) if the run went over one of its limits, else None."""
+        self.looks += 1
         if exit_signal == signal.SIGXCPU:
             return "cpu", (
                 f"a real-time thread of the controller ran {self.rttime_us // 1000} ms without blocking "
@@ -168,14 +170,14 @@ class RunLimits:
     def walks_disk(self) -> bool:
         """The run folder's size is watched by walking it (watched_disk_over): it has no file
         system of its own. Where it has one, the limits guard starts no walk at all (a worker
-        thread's wake-up and the event loop's for its answer, every 2 s, for nothing: issue 30
+        thread's wake-up and the event loop's for its answer, every look, for nothing: issue 30
         item 4)."""
         return not (self.disk is not None and self.disk.bounded)
 
     def watched_disk_over(self) -> tuple[str, str] | None:
         """Where the `disk` layer is missing (an educator allowed the run without it): the run
         folder's size, walked, over ``run_disk_mb`` stops the run. A watch, not a bound: the run
-        writes what it can between two looks (the limits guard looks every 2 s)."""
+        writes what it can between two looks (the limits guard looks every 4 s)."""
         if not self.walks_disk:
             return None
         used = folder_bytes(self.run_dir)

@@ -90,7 +90,12 @@ def idle_period(rates: list[tuple[int, float]]) -> float:
     return max(IDLE_MIN_S, period)
 
 
-OUTPUT_IDLE_S = 1.0  # the output file's poll period with no dashboard connected
+# With nobody taking monitor lines the output file is polled at the reader's first wake-up at
+# least OUTPUT_IDLE_S apart: its idle batch, every 4 s with nobody connected (it was a timer of
+# its own once a second: issue 30 item 4, session 14). The lines go to nobody then; the file
+# keeps everything, and a client connecting lets the poll go at once (Supervisor._client_connected).
+OUTPUT_IDLE_S = 2.0
+OUTPUT_IDLE_LATEST_S = 6.0  # by its own timer, should the reader not wake (no shared memory yet)
 OUTPUT_POLL_S = 0.1  # with one taking monitor lines: at the reader's first wake-up this long apart
 READS_PER_POLL = 64  # 4 MiB of output per poll at most, then the event loop gets its turn
 
@@ -271,6 +276,7 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub,
             observed_at = now
             observed_due = now + idle_period([(observed.slots, observed_rate)])
         if final:
+            run.output_poll.set()  # the console's poll reads the loop's last output now
             if pending and dashboards:  # the last samples due: sent as the run ends
                 send(pending)
             return
@@ -369,8 +375,8 @@ async def read(run: Run, telemetry_hz: float, lifecycle: RunLifecycle, hub: Hub,
 
 async def pipe_output(run: Run, hub: Hub) -> None:
     """Follow the loop's stdout/stderr file into the monitor console. Polled every 100 ms while a
-    dashboard takes monitor lines (at a wake-up of the reader's: `with_reader`), every
-    OUTPUT_IDLE_S otherwise (the file keeps everything; a
+    dashboard takes monitor lines (at a wake-up of the reader's: `with_reader`), at the reader's
+    idle batch otherwise (OUTPUT_IDLE_S; the file keeps everything; a
     console opened later shows lines from then on): this is for people reading, nothing
     safety-related waits on it. What the guest printed is
     bounded on the way (server/runs/output_lines.py): long lines are cut, floods are counted, not queued."""
@@ -409,7 +415,7 @@ async def pipe_output(run: Run, hub: Hub) -> None:
             elif hub.wants("monitor"):
                 await with_reader(run, OUTPUT_POLL_S)
             else:
-                await asyncio.sleep(until_aligned(OUTPUT_IDLE_S))
+                await with_reader(run, OUTPUT_IDLE_S, OUTPUT_IDLE_LATEST_S)
 
 
 def output_due(run: Run, now: float) -> None:
@@ -419,15 +425,16 @@ def output_due(run: Run, now: float) -> None:
         run.output_poll.set()
 
 
-async def with_reader(run: Run, period_s: float) -> None:
+async def with_reader(run: Run, period_s: float, latest_s: float = 0.0) -> None:
     """Until about `period_s` from now, at one of the reader's own wake-ups (it sets
     `run.output_poll` at its first batch past `run.output_due`): the console's poll then costs
     no wake-up of its own (10 a second, a sixth of the appliance's with one dashboard, issue 30
-    item 4). At most half a period later by a timer of its own, should the reader not wake."""
+    item 4). By a timer of its own after `latest_s` (default: half a period later), should the
+    reader not wake. A client connecting, and the run's end, let it go at once."""
     loop = asyncio.get_running_loop()
     run.output_poll.clear()
     run.output_due = time.monotonic() + period_s
-    timer = loop.call_later(period_s * 1.5, run.output_poll.set)
+    timer = loop.call_later(latest_s or period_s * 1.5, run.output_poll.set)
     try:
         await run.output_poll.wait()
     finally:

@@ -82,10 +82,13 @@ class Supervisor:
 
     def _client_connected(self) -> None:
         """A dashboard connected: the current run's reader reads now and follows the dashboards'
-        rate from then on, not from its next idle wake-up (server/runs/reader.py)."""
+        rate from then on, not from its next idle wake-up (server/runs/reader.py); the console's
+        output poll, which waits for the reader's idle batch while nobody takes monitor lines,
+        goes now too (the client's first lines within a poll period, not seconds later)."""
         run = self.current
         if run is not None:
             run.wake.set()
+            run.output_poll.set()
 
     def wake_reader(self) -> None:
         """A run observer started to be watched (the 3D view: a viewer, a state poll): the current
