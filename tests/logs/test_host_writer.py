@@ -451,6 +451,32 @@ def test_a_viewers_first_batch_is_the_live_edge_of_what_its_arrival_drained(loop
         LiveProxy.stop_all()
 
 
+def test_a_reader_joining_with_no_page_served_wakes_the_live_recording(loop, tmp_path: Path) -> None:
+    """The live recording's thread sleeps while nobody watches (no look on a timer: issue 30
+    item 4). A reader that joins with no viewer's page served just before (``expect_viewer``:
+    a page older than its window, a reader of its own) wakes it, and a loop that logs nothing
+    yet (no records to wake it through the writer) still gets its telemetry sent."""
+    from xrflab.logs.rerun_live import LiveRerun
+    from xrflab.logs.rerun_servers import LiveProxy
+
+    lp = loop(tmp_path)
+    proxy = LiveProxy.open_for_run(48, "alice")
+    stream = None
+    try:
+        assert proxy.ensure_running()
+        stream = LiveRerun(proxy, lp.ch, run_id=48)
+        lp.command("initialise", "INITIALISED")  # telemetry, no log records
+        wait_for(lambda: stream._q.empty(), 10, "the sending thread asleep")
+        assert stream.rec is None  # nobody watched: never connected
+        proxy.reader_joined()
+        wait_for(lambda: stream.rec is not None, 20, "the recording connected for the reader")
+    finally:
+        if stream is not None:
+            stream.close()
+            stream._thread.join(10)
+        LiveProxy.stop_all()
+
+
 def test_a_live_viewer_coming_wakes_the_writer(loop, tmp_path: Path, monkeypatch) -> None:
     """A live viewer's arrival (its page served: ``LiveProxy.expect_viewer``) makes the host writer
     drain at once, not at the end of its period (up to a second while nobody watches): the

@@ -345,6 +345,13 @@ class LiveProxy(_RerunChild):
         self.readers += 1
         self._kept_until = 0.0  # counted now: no connecting window needed
         self._expect_met = True  # the page that was loading (if any) has connected
+        if self.readers == 1 and self.on_viewer is not None:
+            # Watched from now on: the recording's thread, asleep while nobody watched (it looks
+            # on no timer), and the host writer's drain wake now. A reader whose page was not
+            # served just before (a viewer's page older than EXPECT_VIEWER_S, a reader of its
+            # own) otherwise waited for the writer's next drain, and got no telemetry at all
+            # from a loop that logs nothing yet.
+            self.on_viewer()
 
     def reader_left(self) -> None:
         """A reader went away (server/http/rerun.py, on the event loop: the stop, if any, happens
