@@ -99,9 +99,10 @@ def _write(path: Path, value: str) -> None:
         os.close(fd)
 
 
-def _counters(path: Path | str) -> dict[str, int]:
-    """A "key value" per line file (memory.events, pids.events, memory.oom_control). Read with one
-    os.read, no text file object: the limits guard reads two of these a second per run."""
+def counters(path: Path | str) -> dict[str, int]:
+    """A "key value" per line file (memory.events, pids.events, cpu.stat, memory.oom_control), or
+    one number (memory.failcnt: as "value"). Read with one os.read, no text file object: the
+    limits guard reads two of these per look per run. At most 64 KiB and 64 lines."""
     out: dict[str, int] = {}
     try:
         fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
@@ -111,10 +112,13 @@ def _counters(path: Path | str) -> dict[str, int]:
             os.close(fd)
     except OSError:
         return out
-    for line in data.splitlines():
-        key, _, value = line.partition(b" ")
+    for line in data.splitlines()[:64]:
+        key, _, value = line.strip().partition(b" ")
         with contextlib.suppress(ValueError):
-            out[key.decode("ascii", "replace")] = int(value)
+            if value:
+                out[key.decode("ascii", "replace")[:40]] = int(value)
+            else:
+                out["value"] = int(key)
     return out
 
 
@@ -270,9 +274,9 @@ class RunCgroup:
                 str(pids / "pids.events"),
             )
         mem_file, pids_file = self._event_files
-        ev = _counters(mem_file)
+        ev = counters(mem_file)
         oom = max(ev.get("oom_kill", 0), ev.get("oom", 0), ev.get("oom_group_kill", 0))
-        return {"oom_kill": oom, "pids_max": _counters(pids_file).get("max", 0)}
+        return {"oom_kill": oom, "pids_max": counters(pids_file).get("max", 0)}
 
     def pids(self) -> list[int]:
         out: set[int] = set()

@@ -34,6 +34,7 @@ from typing import Any
 
 from ...channels import lib
 from ...runfolder import RunFolder
+from . import cgroups
 
 RECORD = "hang-diagnosis.json"  # in the run's folder, beside xrf-watch.json
 _REC = struct.Struct("=HHi")  # struct xrf_watch_diag_rec
@@ -361,29 +362,9 @@ def cgroup_counters(cgroup_lines: list[str]) -> dict[str, dict[str, int]]:
                 "": ("cpu.stat", "memory.events"),
             }[c]
             for name in names:
-                values = _counters(folder / name)
+                values = cgroups.counters(folder / name)
                 if values:
                     out[f"{c or 'v2'}:{parts[2]}/{name}"] = values
-    return out
-
-
-def _counters(path: Path) -> dict[str, int]:
-    out: dict[str, int] = {}
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
-        try:
-            data = os.read(fd, 4096)
-        finally:
-            os.close(fd)
-    except OSError:
-        return out
-    for line in data.splitlines()[:32]:
-        words = line.split()
-        with contextlib.suppress(ValueError, IndexError):
-            if len(words) == 1:
-                out["value"] = int(words[0])
-            else:
-                out[words[0].decode("ascii", "replace")[:40]] = int(words[1])
     return out
 
 
