@@ -347,10 +347,8 @@ class LiveProxy(_RerunChild):
         self._expect_met = True  # the page that was loading (if any) has connected
         if self.readers == 1 and self.on_viewer is not None:
             # Watched from now on: the recording's thread, asleep while nobody watched (it looks
-            # on no timer), and the host writer's drain wake now. A reader whose page was not
-            # served just before (a viewer's page older than EXPECT_VIEWER_S, a reader of its
-            # own) otherwise waited for the writer's next drain, and got no telemetry at all
-            # from a loop that logs nothing yet.
+            # on no timer), and the host writer's drain wake now, whoever counted the reader in
+            # (the read route; a test). One place for it: the read route called it itself.
             self.on_viewer()
 
     def reader_left(self) -> None:

@@ -439,9 +439,9 @@ async def live_stream(method: str, request: Request) -> Response:
     if "grpc-timeout" in request.headers:
         headers["grpc-timeout"] = request.headers["grpc-timeout"]
     watched = proxy  # (narrowed: not None) the run's recording sends while it has readers (logs/rerun_live.py)
-    watched.reader_joined()  # from here: the wait below needs the recording to send
-    if watched.readers == 1 and watched.on_viewer is not None:
-        watched.on_viewer()  # the recording starts sending now, not at its next round
+    # From here the wait below needs the recording to send: the first reader wakes it at once
+    # (LiveProxy.reader_joined: on_viewer), not at its next round.
+    watched.reader_joined()
     if method == "ReadMessages" and not watched.fresh():
         try:
             await _live_edge(request, watched)
