@@ -702,7 +702,11 @@
     let step;
     if (window._handle === undefined && !wasmReady) { step = "loading"; box.textContent = `${what}: loading the viewer…`; }
     else if (window._handle === undefined) { step = "starting"; box.textContent = `${what}: starting the viewer…`; }
-    else if (warmup.state === "fetching" || warmup.state === "sent" || warmup.state === "drawn" || warmup.state === "not closed") {
+    else if (warmup.state === "not closed") {
+      // (not seen: the viewer kept its warm-up after three closes; the canvas stays hidden rather
+      // than show made-up samples, and the person is told what helps)
+      step = "preparing"; box.textContent = `${what}: the viewer did not let go of its warm-up plots; close this tab and open Live plots again`;
+    } else if (warmup.state === "fetching" || warmup.state === "sent" || warmup.state === "drawn") {
       // the viewer draws its warm-up, hidden (above): its plots' first frame, before the run's data
       step = "preparing"; box.textContent = `${what}: preparing the plots…`;
     } else if (frames.firstDataAt === null && frames.answeredAt === null) { step = "connecting"; box.textContent = `${what}: connecting to the live stream…`; }
