@@ -584,7 +584,9 @@
   // closed (viewer_control: close, by its store id) and only then is the run's stream handed over
   // (handOver: the worker holds it meanwhile, and the newest batch goes first): the pipelines stay,
   // and the frame with the run's first data draws with them. A person never sees the warm-up's
-  // made-up samples: the canvas is hidden (visibility, so the viewer still draws) from before the
+  // made-up samples: the canvas is hidden (opacity 0: the viewer still draws, and a click still
+  // focuses it, so Esc from inside the viewer stops the run during the warm-up too; `visibility`
+  // made it unfocusable: tests/ui/test_practical_ui.py) from before the
   // warm-up is given to the viewer until the viewer no longer holds it, the tab's line saying
   // "preparing the plots" meanwhile, and it is a recording of another application
   // (WARMUP_STORE), never mixed into the run's. If anything fails or takes longer than
@@ -610,7 +612,7 @@
       st.id = "xrf-warmup-hide";
       document.head.appendChild(st);
     }
-    st.textContent = hide ? "#the_canvas_id { visibility: hidden !important; }" : "";
+    st.textContent = hide ? "#the_canvas_id { opacity: 0 !important; }" : "";
   }
   function pbBytes(field, bytes) {  // a length-delimited protobuf field
     const out = [field << 3 | 2];

@@ -104,10 +104,13 @@ def test_with_nobody_taking_monitor_lines_the_output_poll_waits_for_the_reader(t
             "with nobody taking monitor lines the output poll waits on a timer of its own, not for the reader"
         )
         reader.output_due(run, time.monotonic())  # a reader wake-up before it is due: nothing
-        await asyncio.sleep(0.05)
+        await asyncio.sleep(0.05)  # on purpose: a turn of the event loop for the poll task (it must not go)
         assert run.output_due == due and not task.done()
         reader.output_due(run, due)  # the reader's first wake-up past it: the poll goes, then waits again
-        await asyncio.sleep(0.05)
+        for _ in range(500):  # (up to 5 s: the poll reads the run's output off the event loop)
+            if run.output_due > due:
+                break
+            await asyncio.sleep(0.01)
         assert run.output_due > due, "the reader's wake-up did not let the poll go"
         run.alive = False
         run.output_poll.set()  # the run's end (the reader's last batch): the last output read, done

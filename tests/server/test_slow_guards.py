@@ -36,7 +36,7 @@ def test_the_limits_guard_looks_every_four_seconds(tmp_path: Path) -> None:
             assert not limits.walks_disk
             store, hub = None, None  # (told only of a run over a limit)
             guard = asyncio.create_task(watch.limits_guard(run, limits, Settings(), store, hub))  # type: ignore[arg-type]
-            await asyncio.sleep(WINDOW_S)
+            await asyncio.sleep(WINDOW_S)  # on purpose: the window whose looks are counted
             assert not guard.done(), guard  # (nothing over: it keeps looking)
             guard.cancel()
             return limits.looks

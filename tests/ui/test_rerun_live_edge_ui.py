@@ -602,7 +602,8 @@ GL_FRAMES = """if (location.pathname.startsWith("/rerun/")) (() => {
     let st;
     try { st = Array.from(handle.viewer_state()); } catch (e) { return; }
     const canvas = document.getElementById("the_canvas_id"), line = document.getElementById("xrf-live-status");
-    const visible = !!canvas && getComputedStyle(canvas).visibility === "visible";
+    const style = canvas ? getComputedStyle(canvas) : null;
+    const visible = !!style && style.visibility === "visible" && style.opacity !== "0";
     const shown = !!line && getComputedStyle(line).display !== "none";
     const c = gl.compiles - c0, l = gl.links - l0, key = st.join(",") + visible + shown;
     if (c || l || key !== last) { last = key; window._xrfGlFrames.push([c, l, st, visible, shown]); }

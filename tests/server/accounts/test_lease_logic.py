@@ -160,9 +160,9 @@ def test_the_idle_watch_sleeps_until_the_holders_time() -> None:
             await asyncio.sleep(1.0)  # the point: time with nobody holding the bench
             assert b.lease.looks <= 1, f"{b.lease.looks} looks with nobody holding the bench"
             b.lease.take(ANN)
-            await asyncio.sleep(0.4)
+            await asyncio.sleep(0.4)  # on purpose: idle time of the holder (below idle_s)
             b.lease.touch(ANN)  # a drive action: its idle time starts again
-            await asyncio.sleep(0.4)
+            await asyncio.sleep(0.4)  # on purpose: idle time again, over idle_s since the take, not since the touch
             assert b.holder() == "ann"  # 0.8 s after the take, 0.4 s after its last action
             for _ in range(100):
                 if b.holder() is None:
