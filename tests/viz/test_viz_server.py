@@ -222,6 +222,13 @@ def test_stage_carriage_follows_the_setpoint(server: Server) -> None:
             time.sleep(0.5)
         assert abs(s["position"] - 0.04) < 0.001, s
         assert s["ghost"] == 0.04
-        t = ws.wait_sample(lambda m: abs(m["xeno2ros"]["position"] - 0.04) < 0.001, 5)
-        assert abs(t["xeno2ros"]["position"] - s["position"]) < 0.001
+        # The view and the example's own measurement agree once the carriage is at rest: read at
+        # different moments while it still settles around the setpoint they were 1.02 mm apart
+        # (CI, session 14), each within 1 mm of it. A view that disagrees never gets closer.
+        for _ in range(20):
+            t = ws.wait_sample(lambda m: abs(m["xeno2ros"]["position"] - 0.04) < 0.001, 5)
+            s = server.http.get("/api/viz/state").json()
+            if abs(t["xeno2ros"]["position"] - s["position"]) < 0.001:
+                break
+        assert abs(t["xeno2ros"]["position"] - s["position"]) < 0.001, (t["xeno2ros"], s)
     server.stop_run()

@@ -455,15 +455,25 @@ async def live_stream(method: str, request: Request) -> Response:
     # made a client that loaded the CA bundle on the event loop: 25-110 ms on a 2-core machine,
     # most of the route's own time before the run's proxy answered (issue 31 bug 6, session 12).
     client = loopback.async_client(timeout=httpx.Timeout(10.0, read=None))
-    try:
-        upstream = await client.send(
-            client.build_request("POST", f"{proxy.read_url}/{SERVICE}/{method}", content=body, headers=headers),
-            stream=True,
-        )
-    except httpx.HTTPError as exc:
+    for attempt in (1, 2):
+        try:
+            upstream = await client.send(
+                client.build_request("POST", f"{proxy.read_url}/{SERVICE}/{method}", content=body, headers=headers),
+                stream=True,
+            )
+            break
+        except httpx.ConnectError as exc:
+            # The process went between its start and this connection (an ended run's proxy, which
+            # runs only while watched: CI saw "All connection attempts failed" under load): started
+            # again once, then the viewer is told.
+            if attempt == 1 and await asyncio.to_thread(proxy.ensure_running):
+                continue
+            error: Exception = exc
+        except httpx.HTTPError as exc:
+            error = exc
         watched.reader_left()
         await client.aclose()
-        return grpc_error(502, UNAVAILABLE, f"the live stream of run {proxy.run_id} does not answer: {exc}")
+        return grpc_error(502, UNAVAILABLE, f"the live stream of run {proxy.run_id} does not answer: {error}")
     _open_streams += 1
     closed = False
 
