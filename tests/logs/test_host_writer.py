@@ -11,6 +11,7 @@ import subprocess
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -60,6 +61,26 @@ def _run_then_kill(lp: LoopProcess, cycles: int) -> None:
     lp.wait_cycles(cycles)
     os.kill(lp.proc.pid, signal.SIGKILL)
     lp.proc.wait(5)
+
+
+def _log_chunk_spans(proxy: Any, timeout: float, quiet: float) -> list[tuple[int, int]]:
+    """(oldest, newest) `time` of each log chunk the run's proxy hands a reader now, in order."""
+    import httpx
+
+    from xrf_testing.grpcweb import READ_MESSAGES, read_messages
+    from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of
+
+    spans: list[tuple[int, int]] = []
+
+    def on_message(payload: bytes) -> None:
+        chunk = chunk_of(payload)
+        if chunk and chunk.store_kind == STORE_RECORDING and chunk.entity.startswith("/log/") and chunk.newest_time_ns:
+            assert chunk.oldest_time_ns is not None
+            spans.append((chunk.oldest_time_ns, chunk.newest_time_ns))
+
+    with httpx.Client(base_url=proxy.read_url) as client:
+        read_messages(client, READ_MESSAGES, timeout=timeout, quiet=quiet, on_message=on_message)
+    return spans
 
 
 def test_kill_9_loses_nothing_that_reached_the_ring(loop, tmp_path: Path) -> None:
@@ -323,10 +344,7 @@ def test_a_live_batch_takes_every_record_queued_by_then(loop, tmp_path: Path) ->
     queued, and the batch it sent held only the oldest of them (1.4 s old at the first viewer,
     measured), the rest half a second later. Here many drains are queued at once (as behind a
     slow round), and the first log chunk that reaches the proxy ends with the newest of them."""
-    import httpx
 
-    from xrf_testing.grpcweb import READ_MESSAGES, read_messages
-    from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of
     from xrflab.logs.rerun_live import SEND_PERIOD_S, LiveRerun
     from xrflab.logs.rerun_servers import LiveProxy
 
@@ -356,23 +374,8 @@ def test_a_live_batch_takes_every_record_queued_by_then(loop, tmp_path: Path) ->
         for rec in batches:
             stream.feed(rec)
         newest = int(batches[-1]["t_ns"][-1]) + stream._wall_offset
-        log_chunks: list[int] = []
-
-        def on_message(payload: bytes) -> None:
-            chunk = chunk_of(payload)
-            if (
-                chunk
-                and chunk.store_kind == STORE_RECORDING
-                and chunk.entity.startswith("/log/")
-                and chunk.newest_time_ns
-            ):
-                log_chunks.append(chunk.newest_time_ns)
-
-        with httpx.Client(base_url=proxy.read_url) as client:
-            # (a few rounds: a batch sent with what the first left behind would come SEND_PERIOD_S later)
-            read_messages(
-                client, READ_MESSAGES, timeout=6 * SEND_PERIOD_S, quiet=4 * SEND_PERIOD_S, on_message=on_message
-            )
+        # (a few rounds: a batch sent with what the first left behind would come SEND_PERIOD_S later)
+        log_chunks = [newest_ns for _, newest_ns in _log_chunk_spans(proxy, 6 * SEND_PERIOD_S, 4 * SEND_PERIOD_S)]
         stream.close()
         stream._thread.join(10)
         assert log_chunks, "no log chunk reached the proxy"
@@ -392,10 +395,7 @@ def test_a_viewers_first_batch_is_the_live_edge_of_what_its_arrival_drained(loop
     the viewer's first frame began 3.1 s before it was opened). Here 4 s of the loop's records
     arrive at once at the first viewer; what reaches the proxy starts SEND_PERIOD_S before the
     newest and ends with it."""
-    import httpx
 
-    from xrf_testing.grpcweb import READ_MESSAGES, read_messages
-    from xrf_testing.rerun_stream import STORE_RECORDING, chunk_of
     from xrflab.logs.rerun_live import SEND_PERIOD_S, LiveRerun
     from xrflab.logs.rerun_servers import LiveProxy
 
@@ -421,23 +421,7 @@ def test_a_viewers_first_batch_is_the_live_edge_of_what_its_arrival_drained(loop
         for part in np.array_split(rec, 40):  # as a drain hands it over: in pieces, at once
             stream.feed(part)
         newest = int(rec["t_ns"][-1]) + stream._wall_offset
-        spans: list[tuple[int, int]] = []
-
-        def on_message(payload: bytes) -> None:
-            chunk = chunk_of(payload)
-            if (
-                chunk
-                and chunk.store_kind == STORE_RECORDING
-                and chunk.entity.startswith("/log/")
-                and chunk.newest_time_ns
-            ):
-                assert chunk.oldest_time_ns is not None
-                spans.append((chunk.oldest_time_ns, chunk.newest_time_ns))
-
-        with httpx.Client(base_url=proxy.read_url) as client:
-            read_messages(
-                client, READ_MESSAGES, timeout=6 * SEND_PERIOD_S, quiet=4 * SEND_PERIOD_S, on_message=on_message
-            )
+        spans = _log_chunk_spans(proxy, 6 * SEND_PERIOD_S, 4 * SEND_PERIOD_S)
         stream.close()
         stream._thread.join(10)
         assert spans, "no log chunk reached the proxy"
