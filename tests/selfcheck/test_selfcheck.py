@@ -32,9 +32,32 @@ from xrflab.selfcheck import (
 REPO = Path(__file__).resolve().parents[2]
 
 
+LOAD_TRIES = 3
+
+
+def held_by_the_machine(report: Report) -> list[str]:
+    """The steps whose warning says this machine, not the bench, was the trouble: a motor step
+    "inconclusive" (a frame gap long enough for its encoder to wrap, in each of the checker's tries)
+    or a slow link timing. Both are what a loaded CI machine gives a healthy simulated bench (CI:
+    the youBot's motor.2 inconclusive with every other test's loop beside it); what the checker
+    says then is tested on purpose with the stall_ms fault below."""
+    return [
+        s.id
+        for s in report.steps
+        if s.status == "warn" and (s.id == "timing" or (s.id.startswith("motor.") and "inconclusive" in s.message))
+    ]
+
+
 def check(profile, faults="", **kw) -> Report:
+    """One self-check on the simulated bench, run again (as the checker's own advice says: "with
+    less else running") while the machine held it, at most LOAD_TRIES times; a bench fault is
+    diagnosed in every try, so it is never retried away. A stall fault asks for the held machine."""
     kw.setdefault("shm", None)
-    return run_selfcheck(profile, transport="sim", faults=faults, **kw)
+    for _ in range(LOAD_TRIES):
+        r = run_selfcheck(profile, transport="sim", faults=faults, **kw)
+        if "stall_ms" in faults or not held_by_the_machine(r):
+            break
+    return r
 
 
 def statuses(report: Report) -> dict[str, str]:

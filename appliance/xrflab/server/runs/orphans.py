@@ -246,8 +246,13 @@ async def watcher_outcome(row: RunRow, settings: Settings) -> watch_record.Read:
     deadline = time.monotonic() + WATCHER_WAIT_S
     while True:
         got = await asyncio.to_thread(watch_record.read, row.run_dir)
-        if not got.pid or not is_watcher(got.pid) or time.monotonic() > deadline:
+        if not got.pid or time.monotonic() > deadline:  # no pid: done (or no record)
             return got
+        if not is_watcher(got.pid):
+            # Gone since the read above: its last record (written before it ended) may be the
+            # "done" one this read just missed (CI: a restart recorded done: False with the arm at
+            # rest). Read once more, after its end.
+            return await asyncio.to_thread(watch_record.read, row.run_dir)
         await asyncio.sleep(0.1)  # polling: xrf-watch is another session's process, no descriptor of ours
 
 
