@@ -14,6 +14,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -393,6 +394,36 @@ def test_stage_figures_are_what_each_histogram_says(stages, count_skew) -> None:
         assert f.percentiles == tuple(h.percentile(p) for p in ps)
         assert (f.count, f.max_ns) == (h.count, h.max)
         assert f.min_ns == h.min and f.sum_ns == s.hist[i].sum_ns
+
+
+_HIST_WORD_COUNT = len(channels.STAGE_NAMES) * (4 + lib.XRF_HIST_BUCKETS)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    st.lists(
+        st.lists(st.tuples(st.integers(0, _HIST_WORD_COUNT - 1), st.integers(0, 1 << 40)), max_size=40),
+        min_size=1,
+        max_size=5,
+    )
+)
+def test_the_figures_of_several_copies_at_once_are_each_copys_own(copies) -> None:
+    # The timing series makes the lines of several samples in one pass (stage_figures_many): each
+    # copy's figures are what stage_figures_of gives for it alone, whatever words the loop wrote
+    # (any word of any stage: counts, sums, min and max included).
+    from xrflab.channels.status import hist_words, stage_figures_many, stage_figures_of
+
+    words = []
+    for pokes in copies:
+        s = ffi.new("struct xrf_status *")
+        w = np.frombuffer(ffi.buffer(s.hist), dtype=np.int64)
+        for at, v in pokes:
+            w[at] = v
+        words.append(hist_words(s))
+    ps = (0.0, 50.0, 99.0, 100.0)
+    together = stage_figures_many(np.stack(words), ps)
+    assert together == [stage_figures_of(w, ps) for w in words]
+    assert len(together) == len(copies) and all(len(f) == len(channels.STAGE_NAMES) for f in together)
 
 
 # ---- the Channels class -------------------------------------------------------------------------

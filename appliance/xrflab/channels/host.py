@@ -22,16 +22,17 @@ from . import commands, segment
 from .binding import CData, c_str, ffi, lib
 from .commands import CommandResult
 from .errors import ChannelsCorrupt, ChannelsError, StatusBusy
-from .names import HOST_LOST_ACTIONS, STAGE_NAMES
+from .names import HOST_LOST_ACTIONS
 from .rings import MonitorReader, TelemetryReader
 from .segment import Identity, shm_path
 from .status import (
     Histogram,
     Status,
     StatusReader,
-    hist_words,
-    histogram_from_struct,
+    histograms_of,
+    state_key_of,
     status_from_struct,
+    timing_words_of,
 )
 
 
@@ -163,6 +164,14 @@ class Channels:
     def _status_struct(self) -> CData:
         return self._status.read()
 
+    def status_copy(self) -> CData:
+        """One consistent copy of the status block (a ``struct xrf_status *``), as status() reads
+        it (the last good copy while the loop writes; StatusBusy, ChannelsCorrupt): for a caller
+        that makes several things of one copy (the timing task once a second: the timing series'
+        sample, the state refresh, the timing message; issue 30 item 4). Read it with
+        status.status_from_struct, state_key_of, timing_words_of, histograms_of."""
+        return self._status.read()
+
     def status(self) -> Status:
         """The status block as of the loop's last complete write; while the loop is in the middle
         of one, the last copy read (ask again for a newer). StatusBusy when none was read yet,
@@ -179,33 +188,20 @@ class Channels:
         """(state, cmd_rejected, running, last_error) from one consistent copy of the status
         block, without converting the rest of it (status() converts ~25 fields through cffi: the
         reader checks this after every batch, 50 times a second with a dashboard open)."""
-        s = self._status_struct()
-        return int(s.state), int(s.cmd_rejected), bool(s.running), int(s.last_error)
+        return state_key_of(self._status_struct())
 
     def histograms(self) -> dict[str, Histogram]:
-        s = self._status_struct()
-        return {name: histogram_from_struct(s.hist[i]) for i, name in enumerate(STAGE_NAMES)}
+        return histograms_of(self._status_struct())
 
     def status_and_histograms(self) -> tuple[Status, dict[str, Histogram]]:
         """status() and histograms() from one consistent copy of the block (the timing message
         takes both once a second: one 33 KB copy, not two)."""
         s = self._status_struct()
-        return status_from_struct(s), {name: histogram_from_struct(s.hist[i]) for i, name in enumerate(STAGE_NAMES)}
+        return status_from_struct(s), histograms_of(s)
 
     def timing_words(self) -> tuple[dict[str, int], np.ndarray]:
-        """From one consistent copy of the status block: the counters the run's timing series
-        keeps (cycles, missed, log_written, log_lost) and the stages' histograms as words
-        (status.hist_words); their figures (count, sum, min, max, percentiles: the values each
-        Histogram gives) are made from these by status.stage_figures_of, several samples
-        together (logs/timing_series.py)."""
-        s = self._status_struct()
-        counters = {
-            "cycles": int(s.cycles),
-            "missed": int(s.missed),
-            "log_written": int(s.log_written),
-            "log_lost": int(s.log_lost),
-        }
-        return counters, hist_words(s)
+        """status.timing_words_of a fresh consistent copy of the status block."""
+        return timing_words_of(self._status_struct())
 
     @property
     def status_copies(self) -> int:

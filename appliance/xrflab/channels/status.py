@@ -29,7 +29,7 @@ import numpy as np
 
 from .binding import CData, c_str, ffi, lib
 from .errors import ChannelsCorrupt, StatusBusy
-from .names import state_name
+from .names import STAGE_NAMES, state_name
 
 # A read that finds the block locked tries again (XRF_STATUS_TRIES copies each in C, a few
 # microseconds when the seq is odd) for at most this long, yielding the CPU between tries (to a
@@ -219,6 +219,31 @@ def status_from_struct(s: CData) -> Status:
     )
 
 
+def state_key_of(s: CData) -> tuple[int, int, bool, int]:
+    """(state, cmd_rejected, running, last_error) of a status copy: what decides whether the
+    dashboards' `state` message changed, without converting the rest of it."""
+    return int(s.state), int(s.cmd_rejected), bool(s.running), int(s.last_error)
+
+
+def histograms_of(s: CData) -> dict[str, Histogram]:
+    """Every stage's Histogram of a status copy, by STAGE_NAMES."""
+    return {name: histogram_from_struct(s.hist[i]) for i, name in enumerate(STAGE_NAMES)}
+
+
+def timing_words_of(s: CData) -> tuple[dict[str, int], np.ndarray]:
+    """Of a status copy: the counters the run's timing series keeps (cycles, missed, log_written,
+    log_lost) and the stages' histograms as words (hist_words); their figures (count, sum, min,
+    max, percentiles: the values each Histogram gives) are made from these by stage_figures_many,
+    several samples together (logs/timing_series.py)."""
+    counters = {
+        "cycles": int(s.cycles),
+        "missed": int(s.missed),
+        "log_written": int(s.log_written),
+        "log_lost": int(s.log_lost),
+    }
+    return counters, hist_words(s)
+
+
 @functools.cache
 def _bucket_lows() -> np.ndarray:
     """Every bucket's lower edge (ns), from rt_core's own function, once."""
@@ -270,17 +295,26 @@ def hist_words(s: CData) -> np.ndarray:
 
 def stage_figures_of(words: np.ndarray, percentiles: tuple[float, ...]) -> list[StageFigures]:
     """Every stage's count, sum, min, max and `percentiles` from its histogram's words (hist_words),
-    in STAGE_NAMES' order, all stages in one numpy pass: the same values as
-    histogram_from_struct(...).percentile(p), without a Python list of buckets per stage (the run's
-    timing series takes these once a second: it was most of the host log writer's CPU with the
-    appliance idle, issue 30 item 4). Values are the loop's words as int64 (a loop writing more
-    than 2**63 gets its own nonsense back; nothing is indexed by them)."""
+    in STAGE_NAMES' order: the same values as histogram_from_struct(...).percentile(p), without a
+    Python list of buckets per stage. One status copy's: stage_figures_many of one."""
+    return stage_figures_many(words[None], percentiles)[0]
+
+
+def stage_figures_many(words: np.ndarray, percentiles: tuple[float, ...]) -> list[list[StageFigures]]:
+    """stage_figures_of for several copies at once: `words` stacked (copies, stages, words), the
+    figures of every copy's stages in one numpy pass. The run's timing series makes the lines of
+    the samples of several seconds together (logs/timing_series.py, at the host writer's drains):
+    a pass per sample cost each drain four times numpy's per-call overhead, most of the idle
+    writer thread's CPU (issue 30 item 4, session 16). Values are the loop's words as int64 (a loop
+    writing more than 2**63 gets its own nonsense back; nothing is indexed by them)."""
     for p in percentiles:
         if not 0 <= p <= 100:
             raise ValueError("percentile must be within 0..100")
-    head = words[:, :4]  # count, sum_ns, min_ns, max_ns
+    copies, stages = words.shape[0], words.shape[1]
+    rows = words.reshape(copies * stages, _HIST_WORDS)
+    head = rows[:, :4]  # count, sum_ns, min_ns, max_ns
     counts, mins, maxs = head[:, 0:1], head[:, 2:3], head[:, 3:4]
-    cum = np.cumsum(words[:, 4:], axis=1)
+    cum = np.cumsum(rows[:, 4:], axis=1)
     # The first bucket whose running count reaches the rank (and is not 0: p = 0 is the first
     # non-empty bucket): the number of buckets before it, all stages and percentiles at once.
     ranks = np.maximum(counts * (np.array(percentiles, dtype=np.float64) / 100.0), 0.5)
@@ -290,7 +324,8 @@ def stage_figures_of(words: np.ndarray, percentiles: tuple[float, ...]) -> list[
     # the count): max; an empty stage: 0.
     edge = np.minimum(np.maximum(_bucket_lows()[np.minimum(first, buckets - 1)], mins), maxs)
     values = np.where(counts != 0, np.where(first < buckets, edge, maxs), 0).tolist()
-    return [
+    figures = [
         StageFigures(count=c, sum_ns=sm, min_ns=mn if c else 0, max_ns=mx, percentiles=tuple(v))
         for (c, sm, mn, mx), v in zip(head.tolist(), values)
     ]
+    return [figures[i * stages : (i + 1) * stages] for i in range(copies)]

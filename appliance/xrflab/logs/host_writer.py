@@ -58,6 +58,7 @@ from .timing_series import TimingSeries
 
 if TYPE_CHECKING:
     from ..channels import Channels
+    from ..channels.binding import CData
 
 # One logger for a run's host logging, whichever module of it speaks (as before the split).
 log = logging.getLogger("xrflab.logs.live")
@@ -198,11 +199,12 @@ class HostLogWriter:
                 next_drain = 0.0  # wake(): drain now
             self._woken.clear()
 
-    def take_timing(self) -> None:
+    def take_timing(self, copy: CData | None = None) -> None:
         """A sample of the timing series now, if one is due (`timing_in_thread` False: called
-        once a second by the appliance's timing task); its line is written at the next drain."""
+        once a second by the appliance's timing task, with its status copy); its line is written
+        at the next drain."""
         if self._timing is not None:
-            self._timing.take()
+            self._timing.take(copy=copy)
 
     def flush_timing(self) -> None:
         """The lines of the samples taken so far written now (a reader of timing.jsonl of the

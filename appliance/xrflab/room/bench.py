@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import logging
+import os
 import secrets
 import shutil
 import ssl
@@ -36,7 +37,7 @@ from ..ticks import until_aligned
 from . import mqtt, payloads, sso
 from .accounts_sync import BenchAccounts
 from .commands import CommandHandler
-from .enrol import REENROL, Enrolment, EnrolmentError, Outdated, read_enrolment
+from .enrol import REENROL, Enrolment, EnrolmentError, Outdated, enrolment_path, read_enrolment
 from .publisher import BenchPublisher, RoomRunObserver, next_boot
 from .services import BenchServices
 from .sso import SsoError, Verifier
@@ -101,9 +102,22 @@ class RoomLink:
             self._poll = asyncio.get_running_loop().create_task(self._wait_for_enrolment(), name="room-enrolment")
 
     async def _wait_for_enrolment(self) -> None:
-        while not self._try_start():
+        # Until `xrf room join` writes the file: one stat of a name made once, not the whole
+        # read's paths and open each poll (a tenth of the idle appliance's event loop, session 16).
+        # Once the name is there, the whole read every poll, as before (a file that is not
+        # usable yet is said once and looked at again).
+        path = os.fspath(enrolment_path(self.settings.data_dir))
+        while True:
             # on the appliance's whole seconds, with its other periodic work (issue 30 item 4)
             await asyncio.sleep(until_aligned(ENROL_POLL_S))
+            try:
+                os.lstat(path)
+            except FileNotFoundError:
+                continue
+            except OSError:
+                pass  # not ours to read, say: read_enrolment says why
+            if self._try_start():
+                return
 
     def _try_start(self) -> bool:
         try:

@@ -16,6 +16,8 @@ from typing import Any, Literal
 
 from ... import channels as chmod
 from ...channels import ChannelsCorrupt, ChannelsError, StatusBusy
+from ...channels.binding import CData
+from ...channels.status import state_key_of, status_from_struct
 from ..ws.hub import Hub
 from ..ws.messages import Rejected, RunMessage, StateMessage
 from .run import Run
@@ -100,27 +102,32 @@ def ended(run: Run) -> tuple[RunMessage, StateMessage]:
 STATUS_REFRESH_S = 0.25  # the longest a reader batch leaves run.last_status unconverted
 
 
-def refresh_state(run: Run, hub: Hub, per_batch: bool = False) -> None:
+def refresh_state(run: Run, hub: Hub, per_batch: bool = False, copy: CData | None = None) -> None:
     """Publish `state` when the state, a rejection, or liveness changed. `per_batch` (the
     reader, after every batch): compare the few fields of the key first and convert the whole
     status only when it changed or STATUS_REFRESH_S passed (run.last_status feeds the `state`
-    snapshot's cycle count and the live log counts: a quarter of a second old at most)."""
+    snapshot's cycle count and the live log counts: a quarter of a second old at most). `copy`:
+    a status copy the caller made just now (Channels.status_copy: the timing task's of the
+    second), read instead of a copy of this call's own."""
     if run.channels is None:
         return
     now = time.monotonic()
     try:
         if per_batch and run.last_status is not None and now - run.last_status_at < STATUS_REFRESH_S:
             try:
-                key = (*run.channels.state_key(), run.alive)
+                key = (*(run.channels.state_key() if copy is None else state_key_of(copy)), run.alive)
             except ChannelsCorrupt:
                 raise
             except ChannelsError:
                 return
             if key == run.last_state_key:
                 return
-        with contextlib.suppress(StatusBusy):
-            run.last_status = run.channels.status()  # while the loop writes it: the last good copy
-            run.last_status_at = now
+        if copy is not None:
+            run.last_status, run.last_status_at = status_from_struct(copy), now
+        else:
+            with contextlib.suppress(StatusBusy):
+                run.last_status = run.channels.status()  # while the loop writes it: the last good copy
+                run.last_status_at = now
     except ChannelsCorrupt as exc:
         # A status block kept locked while the loop runs (channels/status.py): the run is stopped.
         if run.report_corrupt is not None:

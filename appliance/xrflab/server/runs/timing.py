@@ -16,8 +16,9 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
-from ...channels import ChannelsError, Status
+from ...channels import ChannelsCorrupt, ChannelsError, Status
 from ...channels import Histogram as ChHistogram
+from ...channels.status import histograms_of, status_from_struct
 from ...ticks import until_aligned
 from ..ws.hub import Hub
 from ..ws.messages import AlarmMessage, TimingMessage
@@ -63,31 +64,37 @@ async def timing(run: Run, period_s: float, hub: Hub) -> None:
     checked = False  # the first message is checked against TimingMessage (Hub.publish_fields)
     while True:
         await asyncio.sleep(until_aligned(period_s))  # with the other once-a-second work
+        # One copy of the status block for everything below (the series' sample, the state
+        # refresh, the message): a copy each was two 33 KB copies a second (issue 30 item 4).
+        try:
+            copy = ch.status_copy()
+        except ChannelsCorrupt as exc:  # kept locked on purpose: the run is stopped (announce.py)
+            if run.report_corrupt is not None:
+                run.report_corrupt(exc)
+            continue
+        except ChannelsError:
+            continue  # no copy yet (the loop mid-write since the start): the next second
         # The run's timing series (timing.jsonl): its sample taken here, where the event loop
         # wakes anyway, its line written by the host writer's thread at its next drain
         # (logs/host_writer.py take_timing: that thread wakes every few seconds, not each second).
         rl = run.logging
         if rl is not None:
-            rl.writer.take_timing()
+            rl.writer.take_timing(copy)
         # The histograms (eight of 512 buckets, converted in Python) and the message only for
         # someone who takes `timing`; the deadline-miss alarm below is checked every period.
-        wanted = hub.wants("timing")
-        try:
-            if not wanted:
-                # The run's status refreshed (and its state published should it have changed)
-                # here, once a second, and the alarms taken from it: with nobody connected the
-                # reader reads every IDLE_PERIOD_S (4 s, server/runs/reader.py), and the REST
-                # routes and the room show run.last_status (a quarter of a second old when the
-                # reader keeps it so).
-                refresh_state(run, hub, per_batch=True)
-                s = run.last_status
-                if s is not None:
-                    _miss_alarm(run, s.missed, hub)
-                    _host_lost_alarm(run, s.host_lost, s.state_name, hub)
-                continue
-            s, hists = ch.status_and_histograms()  # one copy of the status block
-        except ChannelsError:
+        if not hub.wants("timing"):
+            # The run's status refreshed (and its state published should it have changed)
+            # here, once a second, and the alarms taken from it: with nobody connected the
+            # reader reads every IDLE_PERIOD_S (4 s, server/runs/reader.py), and the REST
+            # routes and the room show run.last_status (a quarter of a second old when the
+            # reader keeps it so).
+            refresh_state(run, hub, per_batch=True, copy=copy)
+            s = run.last_status
+            if s is not None:
+                _miss_alarm(run, s.missed, hub)
+                _host_lost_alarm(run, s.host_lost, s.state_name, hub)
             continue
+        s, hists = status_from_struct(copy), histograms_of(copy)
         _host_lost_alarm(run, s.host_lost, s.state_name, hub)
         fields = timing_message_fields(run.row.id, s, hists, ch.info["cycle_freq"], run.telemetry_sent)
         if not checked:
