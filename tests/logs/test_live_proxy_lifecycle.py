@@ -50,6 +50,11 @@ def test_a_viewer_that_came_and_went_does_not_keep_an_ended_run(proxy: LiveProxy
 
 def test_a_loading_viewer_keeps_it_until_its_window_passes(proxy: LiveProxy, monkeypatch) -> None:
     monkeypatch.setattr(rerun_servers, "EXPECT_VIEWER_S", 1.5)
+    # expect_viewer starts the process as a connecting reader does (ensure_running), which keeps
+    # it for CONNECT_GRACE_S (10 s) too: shortened like the loading window, or the wait below
+    # timed out on a loaded machine, the stop coming 10 s + the process's end after the start
+    # (CI, session 16).
+    monkeypatch.setattr(rerun_servers, "CONNECT_GRACE_S", 1.0)
     proxy.expect_viewer()  # a page is loading and has not connected
     proxy.run_ended()
     assert proxy.running(), "stopped while a viewer's page was loading"

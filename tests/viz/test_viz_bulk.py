@@ -43,6 +43,46 @@ def test_a_model_in_bulk_is_the_model_sample_by_sample(name: str) -> None:
         assert len(one.trail) > 50 and bulk.trail == one.trail
 
 
+@pytest.mark.parametrize("name", ["relbot", "youbot"])
+def test_a_backlog_taken_when_looked_at_is_the_model_sample_by_sample(name: str) -> None:
+    """While nobody watches, the view keeps a batch's rows (kin.Backlog) and runs them through the
+    model when someone looks (or BACKLOG_MAX rows are kept): the model is not moved by a batch
+    kept, and once applied its figures and trail are what sample by sample gives, across
+    batches of odd sizes and the BACKLOG_MAX pass in between; the rows are copies (the ring's
+    slots they were read from are reused)."""
+    profile = profiles.load_profile(name, None)
+    one, later = kin.from_profile(profile), kin.from_profile(profile)
+    fresh = kin.from_profile(profile).state()
+    rng = np.random.default_rng(11)
+    channels = 9 if name == "youbot" else 4
+    raw = (np.cumsum(rng.integers(-900, 2500, size=(kin.BACKLOG_MAX + 1500, channels)), axis=0) % 16384).astype(
+        np.uint16
+    )
+    backlog = kin.Backlog()
+    slot = np.zeros_like(raw[:1000])  # the ring's slots, reused by the next batch
+    applied_at = []
+    start = 0
+    for size in [3, 200, 1000, 1000, 1000, 1000, 999, 294]:
+        chunk = raw[start : start + size]
+        for row in chunk.tolist():
+            one.update(row)
+        view = slot[:size]
+        view[:] = chunk
+        if backlog.add(later, view):
+            applied_at.append(start + size)
+        slot[:] = 0  # the slots reused: a kept view would now read zeros
+        start += size
+        if not applied_at:
+            assert later.state() == fresh  # nothing run through the model yet
+    assert len(applied_at) == 1 and applied_at[0] >= kin.BACKLOG_MAX  # once, when BACKLOG_MAX was reached
+    assert backlog.rows == start - applied_at[0] > 0
+    assert backlog.apply(later) and backlog.rows == 0 and not backlog.apply(later)
+    assert later.state() == one.state()
+    if isinstance(one, kin.DiffDrive):
+        assert isinstance(later, kin.DiffDrive)
+        assert len(one.trail) > 50 and later.trail == one.trail
+
+
 def test_a_recording_in_bulk_has_the_bytes_of_one_by_one(tmp_path: Path) -> None:
     """Batches whose samples are all kept are written in one pack; a denser one (a 1 kHz loop
     publishing every cycle: one kept in 5) is refused in bulk and goes one by one: the file is

@@ -263,6 +263,7 @@ class VizService(RunObserver):
         self.profile_name = ""
         self.message = ""
         self.model: Any = None
+        self._backlog = kin.Backlog()  # the model's samples while nobody looks at it (_model_now)
         self.recorder: Recorder | None = None
         self.setpoint: dict[str, Any] = {}
         self._setpoint_seen: dict[str, Any] = {}
@@ -429,13 +430,20 @@ class VizService(RunObserver):
             return False
         self.samples += len(t_ns)
         self.last_t_ns = int(t_ns[-1])
-        if model is not None:
-            kin.update_many(model, encs)
+        if model is not None and self._backlog.add(model, encs):  # run through it when looked at
             self._trail_dirty = True
         return True
 
+    def _model_now(self) -> Any:
+        """(Under the lock.) The model with every sample taken so far: its backlog (`_bulk`'s,
+        while nobody watched) run through it first."""
+        if self._backlog.apply(self.model):
+            self._trail_dirty = True
+        return self.model
+
     def _one_by_one(self, samples: Any, rec: Recorder | None, model: Any) -> None:
         """Each sample offered to the recording, the kept ones through the model."""
+        self._model_now()  # the samples before these first
         t_ns, cycles, encs = _columns(samples)
         dins = _dins(samples) if isinstance(model, kin.Cell) else None
         for i, t in enumerate(t_ns):
@@ -480,6 +488,7 @@ class VizService(RunObserver):
         self.plant = plant
         self.profile_name = name
         self.message = message
+        self._backlog.drop()  # the last run's samples, for the model replaced here
         self.model = kin.from_profile(profile) if profile else None
         self._trail_dirty = True
 
@@ -487,7 +496,7 @@ class VizService(RunObserver):
 
     def reset_odometry(self) -> bool:
         with self._lock:
-            if not isinstance(self.model, kin.DiffDrive):
+            if not isinstance(self._model_now(), kin.DiffDrive):  # reset after the samples before it
                 return False
             self.model.reset_pose()
             self._trail_dirty = True
@@ -639,7 +648,7 @@ class VizService(RunObserver):
                 f["arm"] = r.arm[i]
                 f["pose"] = dict(zip(("x", "y", "theta"), r.poses[i]))
             return f
-        m = self.model
+        m = self._model_now()
         f = {
             "mode": self.mode,
             "kind": m.kind if m else "",
