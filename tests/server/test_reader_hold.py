@@ -56,7 +56,7 @@ def test_the_console_poll_goes_with_a_reader_wake_up() -> None:
     from xrflab.server.runs.reader import output_due, with_reader
 
     async def main() -> None:
-        run = SimpleNamespace(output_due=0.0, output_poll=asyncio.Event())
+        run = SimpleNamespace(output_due=0.0, output_poll=asyncio.Event(), output_fd=-1, output_read=0)
         waiting = asyncio.create_task(with_reader(run, 30.0))  # type: ignore[arg-type]  # its own timer: 45 s
         await asyncio.sleep(0)  # the task registers what it waits for
         assert run.output_due > time.monotonic() + 29
@@ -95,7 +95,13 @@ def test_with_nobody_taking_monitor_lines_the_output_poll_waits_for_the_reader(t
 
     async def main() -> None:
         run = SimpleNamespace(
-            run_dir=tmp_path, alive=True, output_due=0.0, output_poll=asyncio.Event(), row=SimpleNamespace(id=1)
+            run_dir=tmp_path,
+            alive=True,
+            output_due=0.0,
+            output_poll=asyncio.Event(),
+            row=SimpleNamespace(id=1),
+            output_fd=-1,
+            output_read=0,
         )
         task = asyncio.create_task(reader.pipe_output(run, Hub()))  # type: ignore[arg-type]
         await asyncio.sleep(0.05)  # its first poll, then its wait
@@ -106,14 +112,24 @@ def test_with_nobody_taking_monitor_lines_the_output_poll_waits_for_the_reader(t
         reader.output_due(run, time.monotonic())  # a reader wake-up before it is due: nothing
         await asyncio.sleep(0.05)  # on purpose: a turn of the event loop for the poll task (it must not go)
         assert run.output_due == due and not task.done()
+        # The reader's wake-ups past it: the file has not grown since the poll read it, so the
+        # poll does not go (no step of its task for an unchanged file: session 16) ...
+        assert run.output_read == len(b"hello\n") and run.output_fd >= 0
+        reader.output_due(run, due + 1)
+        await asyncio.sleep(0.05)  # on purpose: a turn of the event loop for the poll task (it must not go)
+        assert run.output_due == due and not run.output_poll.is_set()
+        with (tmp_path / OUTPUT).open("ab") as out:  # ... until the loop writes more
+            out.write(b"more\n")
         reader.output_due(run, due)  # the reader's first wake-up past it: the poll goes, then waits again
         for _ in range(500):  # (up to 5 s: the poll reads the run's output off the event loop)
             if run.output_due > due:
                 break
             await asyncio.sleep(0.01)
         assert run.output_due > due, "the reader's wake-up did not let the poll go"
+        assert run.output_read == len(b"hello\nmore\n")
         run.alive = False
         run.output_poll.set()  # the run's end (the reader's last batch): the last output read, done
         await asyncio.wait_for(task, 2.0)
+        assert run.output_fd == -1  # the file closed with the task: nothing looks at its number
 
     asyncio.run(main())

@@ -17,7 +17,7 @@ from typing import Any, Literal
 from ... import channels as chmod
 from ...channels import ChannelsCorrupt, ChannelsError, StatusBusy
 from ...channels.binding import CData
-from ...channels.status import state_key_of, status_from_struct
+from ...channels.status import status_from_struct
 from ..ws.hub import Hub
 from ..ws.messages import Rejected, RunMessage, StateMessage
 from .run import Run
@@ -99,14 +99,19 @@ def ended(run: Run) -> tuple[RunMessage, StateMessage]:
     )
 
 
-STATUS_REFRESH_S = 0.25  # the longest a reader batch leaves run.last_status unconverted
+# The longest a reader batch leaves run.last_status unconverted: the timing task refreshes it
+# once a second from its own copy (server/runs/timing.py), the reader after a batch whose samples
+# say the state changed, or when it is this old (a rejection or an error without a state change
+# is seen within it; a command's own answer refreshes at once). 0.25 s made a conversion of the
+# whole status 2-3 times a second with a dashboard open (issue 30 item 4, session 16).
+STATUS_REFRESH_S = 1.0
 
 
 def refresh_state(run: Run, hub: Hub, per_batch: bool = False, copy: CData | None = None) -> None:
     """Publish `state` when the state, a rejection, or liveness changed. `per_batch` (the
     reader, after every batch): compare the few fields of the key first and convert the whole
     status only when it changed or STATUS_REFRESH_S passed (run.last_status feeds the `state`
-    snapshot's cycle count and the live log counts: a quarter of a second old at most). `copy`:
+    snapshot's cycle count and the live log counts: STATUS_REFRESH_S old at most). `copy`:
     a status copy the caller made just now (Channels.status_copy: the timing task's of the
     second), read instead of a copy of this call's own."""
     if run.channels is None:
@@ -115,7 +120,7 @@ def refresh_state(run: Run, hub: Hub, per_batch: bool = False, copy: CData | Non
     try:
         if per_batch and run.last_status is not None and now - run.last_status_at < STATUS_REFRESH_S:
             try:
-                key = (*(run.channels.state_key() if copy is None else state_key_of(copy)), run.alive)
+                key = (*run.channels.state_key(), run.alive)
             except ChannelsCorrupt:
                 raise
             except ChannelsError:

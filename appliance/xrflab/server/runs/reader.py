@@ -48,9 +48,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import time
 from collections.abc import Awaitable, Callable
-from typing import Any, Literal
+from typing import Any, BinaryIO, Literal
 
 from ...channels import ChannelsCorrupt, StatusBusy
 from ...ticks import until_aligned
@@ -97,6 +98,11 @@ def idle_period(rates: list[tuple[int, float]]) -> float:
 OUTPUT_IDLE_S = 2.0
 OUTPUT_IDLE_LATEST_S = 6.0  # by its own timer, should the reader not wake (no shared memory yet)
 OUTPUT_POLL_S = 0.1  # with one taking monitor lines: at the reader's first wake-up this long apart
+# ... once the file has grown (an fstat at that wake-up, output_due); by its own timer this long
+# after the last poll otherwise (the reader not waking, or a file that does not grow: the poll of
+# an unchanged file was a task step 7 times a second with a dashboard, a tenth of the event
+# loop's CPU with one: issue 30 item 4, session 16).
+OUTPUT_POLL_LATEST_S = 1.0
 READS_PER_POLL = 64  # 4 MiB of output per poll at most, then the event loop gets its turn
 
 
@@ -393,35 +399,59 @@ async def pipe_output(run: Run, hub: Hub) -> None:
             publish([note], "appliance")
 
     with open_output(run.run_dir) as f:  # through the run folder's helper: never a link the loop put there
-        while True:
-            alive = run.alive  # sampled before reading, so the last output is not missed
-            lines: list[str] = []
-            # Catch up with the file, a bounded amount per poll so a flood cannot hold the event
-            # loop; the console gets at most lines_per_poll of it.
-            for _ in range(READS_PER_POLL):
-                chunk = f.read(65536)
-                cutter.feed(chunk, lines)
-                if len(chunk) < 65536:
-                    break
-            caught_up = len(chunk) < 65536
-            if caught_up and not alive:
-                cutter.flush(lines)
-            publish(lines)
-            say_skipped()
-            if caught_up and not alive:
-                return
-            if not caught_up:
-                await asyncio.sleep(0.01)
-            elif hub.wants("monitor"):
-                await with_reader(run, OUTPUT_POLL_S)
-            else:
-                await with_reader(run, OUTPUT_IDLE_S, OUTPUT_IDLE_LATEST_S)
+        run.output_fd = f.fileno()  # the reader looks whether it grew (output_due)
+        try:
+            await _follow_output(run, hub, f, cutter, publish, say_skipped)
+        finally:
+            run.output_fd = -1
+
+
+async def _follow_output(
+    run: Run,
+    hub: Hub,
+    f: BinaryIO,
+    cutter: OutputLines,
+    publish: Callable[[list[str]], None],
+    say_skipped: Callable[[], None],
+) -> None:
+    """pipe_output's polls of the open file `f`, until the run has ended and it is read whole."""
+    while True:
+        alive = run.alive  # sampled before reading, so the last output is not missed
+        lines: list[str] = []
+        # Catch up with the file, a bounded amount per poll so a flood cannot hold the event
+        # loop; the console gets at most lines_per_poll of it.
+        for _ in range(READS_PER_POLL):
+            chunk = f.read(65536)
+            cutter.feed(chunk, lines)
+            if len(chunk) < 65536:
+                break
+        run.output_read = f.tell()
+        caught_up = len(chunk) < 65536
+        if caught_up and not alive:
+            cutter.flush(lines)
+        publish(lines)
+        say_skipped()
+        if caught_up and not alive:
+            return
+        if not caught_up:
+            await asyncio.sleep(0.01)
+        elif hub.wants("monitor"):
+            await with_reader(run, OUTPUT_POLL_S, OUTPUT_POLL_LATEST_S)
+        else:
+            await with_reader(run, OUTPUT_IDLE_S, OUTPUT_IDLE_LATEST_S)
 
 
 def output_due(run: Run, now: float) -> None:
     """At each of the reader's wake-ups (time.monotonic() `now`): the console's output poll
-    waiting in `with_reader` is let go once it is due, to run in this same wake-up."""
+    waiting in `with_reader` is let go once it is due and the file has grown since its last read
+    (or shrunk: a loop may truncate it), to run in this same wake-up."""
     if run.output_due and now >= run.output_due:
+        if run.output_fd >= 0:
+            try:
+                if os.fstat(run.output_fd).st_size == run.output_read:
+                    return  # nothing new: no step of the console's task for it
+            except OSError:
+                pass  # the poll says what is wrong
         run.output_poll.set()
 
 

@@ -78,6 +78,10 @@ class Run:
     # (time.monotonic(); 0: none waits), which sets output_poll (server/runs/reader.py, with_reader).
     output_due: float = 0.0
     output_poll: asyncio.Event = field(default_factory=asyncio.Event)
+    # The console's output file (pipe_output's descriptor; -1: not open) and how far it has read
+    # it: the reader lets the poll go only once the file has grown (reader.output_due).
+    output_fd: int = -1
+    output_read: int = 0
     idle_wake: threading.Event = field(default_factory=threading.Event)
     thread: threading.Thread | None = None
     last_state_key: tuple[Any, ...] | None = None

@@ -18,7 +18,7 @@ from typing import Any
 
 from ...channels import ChannelsCorrupt, ChannelsError, Status
 from ...channels import Histogram as ChHistogram
-from ...channels.status import histograms_of, status_from_struct
+from ...channels.status import histograms_of
 from ...ticks import until_aligned
 from ..ws.hub import Hub
 from ..ws.messages import AlarmMessage, TimingMessage
@@ -80,22 +80,22 @@ async def timing(run: Run, period_s: float, hub: Hub) -> None:
         rl = run.logging
         if rl is not None:
             rl.writer.take_timing(copy)
+        # The run's status refreshed from this copy (and its state published should it have
+        # changed), once a second: the REST routes and the room show run.last_status, and with
+        # nobody connected the reader reads only every IDLE_PERIOD_S (4 s, server/runs/reader.py);
+        # with a dashboard the reader refreshes it on a state change in its samples
+        # (announce.STATUS_REFRESH_S).
+        refresh_state(run, hub, copy=copy)  # the whole copy converted: s below is this second's
+        s = run.last_status
+        if s is None:
+            continue
+        _host_lost_alarm(run, s.host_lost, s.state_name, hub)
         # The histograms (eight of 512 buckets, converted in Python) and the message only for
         # someone who takes `timing`; the deadline-miss alarm below is checked every period.
         if not hub.wants("timing"):
-            # The run's status refreshed (and its state published should it have changed)
-            # here, once a second, and the alarms taken from it: with nobody connected the
-            # reader reads every IDLE_PERIOD_S (4 s, server/runs/reader.py), and the REST
-            # routes and the room show run.last_status (a quarter of a second old when the
-            # reader keeps it so).
-            refresh_state(run, hub, per_batch=True, copy=copy)
-            s = run.last_status
-            if s is not None:
-                _miss_alarm(run, s.missed, hub)
-                _host_lost_alarm(run, s.host_lost, s.state_name, hub)
+            _miss_alarm(run, s.missed, hub)
             continue
-        s, hists = status_from_struct(copy), histograms_of(copy)
-        _host_lost_alarm(run, s.host_lost, s.state_name, hub)
+        hists = histograms_of(copy)
         fields = timing_message_fields(run.row.id, s, hists, ch.info["cycle_freq"], run.telemetry_sent)
         if not checked:
             TimingMessage.model_validate(fields)
