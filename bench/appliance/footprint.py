@@ -394,6 +394,12 @@ def main() -> int:
     ap.add_argument("--soak-minutes", type=float, default=0.0, help="idle + one dashboard, RSS every minute")
     ap.add_argument("--calibrate", action="store_true", help="only print this machine's CPython ns/iteration")
     ap.add_argument("--json", help="also write the figures to this file")
+    ap.add_argument(
+        "--task-cpu",
+        metavar="PREFIX",
+        help="also time the appliance's event loop per asyncio task (bench/appliance/task_cpu/): "
+        "snapshots in PREFIX.<pid>, read with task_cpu_report.py",
+    )
     ap.add_argument("--ws-worker", nargs=3, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.ws_worker:
@@ -429,7 +435,11 @@ def main() -> int:
 
     chromium = shutil.which("chromium") or "/usr/bin/chromium"
     results: dict[str, list[dict]] = {}
-    with appliance() as server, sync_playwright() as p:
+    env = None
+    if a.task_cpu:
+        # After the harness's own path (start_server): the timer's folder, its sitecustomize.
+        env = {"PYTHONPATH": str(Path(__file__).resolve().parent / "task_cpu"), "XRF_TASK_CPU_OUT": a.task_cpu}
+    with appliance(env=env) as server, sync_playwright() as p:
         browser = p.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
         ctx = browser.new_context(viewport={"width": 1400, "height": 1000})
         ctx.add_cookies(session_cookies(server.http, server.url))

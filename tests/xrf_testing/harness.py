@@ -279,11 +279,15 @@ def start_server(data_dir: Path, builds_root: Path, env: dict[str, str] | None =
         "prepare_viewer_at_start": False,
         **settings,
     }
+    extra = dict(env or {})
+    # A PYTHONPATH given goes after the appliance's and this folder's (a benchmark's timer:
+    # bench/appliance/task_cpu).
+    path = [str(REPO_ROOT / "appliance"), str(HERE), *filter(None, [extra.pop("PYTHONPATH", "")])]
     env = dict(
         os.environ,
-        PYTHONPATH=os.pathsep.join([str(REPO_ROOT / "appliance"), str(HERE)]),
+        PYTHONPATH=os.pathsep.join(path),
         XRF_BOOTSTRAP_ADMIN_PASSWORD=ADMIN_PASSWORD,
-        **(env or {}),
+        **extra,
     )
     proc = subprocess.Popen([sys.executable, str(HERE / "serve_for_test.py"), json.dumps(config)], env=env)
     url = f"http://127.0.0.1:{port}"
