@@ -25,7 +25,7 @@ TIMING_VARS = ["wakeup_ns", "fpga_ns", "data_ns", "cmd_ns", "monitor_ns", "hook_
 def _hists(lp: LoopProcess) -> dict[str, tuple[int, int, int]]:
     """(count, sum_ns, max_ns) per stage, exact (Channels.histograms() gives the mean only). Plain
     ints: a field of the cffi status struct does not keep the struct alive."""
-    st = lp.ch._status_struct()
+    st = lp.ch.status_copy()
     return {
         name: (int(st.hist[i].count), int(st.hist[i].sum_ns), int(st.hist[i].max_ns))
         for i, name in enumerate(STAGE_NAMES)

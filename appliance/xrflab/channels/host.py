@@ -161,9 +161,6 @@ class Channels:
 
     # -- status -------------------------------------------------------------------------------
 
-    def _status_struct(self) -> CData:
-        return self._status.read()
-
     def status_copy(self) -> CData:
         """One consistent copy of the status block (a ``struct xrf_status *``), as status() reads
         it (the last good copy while the loop writes; StatusBusy, ChannelsCorrupt): for a caller
@@ -176,7 +173,7 @@ class Channels:
         """The status block as of the loop's last complete write; while the loop is in the middle
         of one, the last copy read (ask again for a newer). StatusBusy when none was read yet,
         ChannelsCorrupt when the block is kept locked on purpose (channels/status.py)."""
-        return status_from_struct(self._status_struct())
+        return status_from_struct(self.status_copy())
 
     def fresh_status(self) -> Status | None:
         """The status as of now, or None while the loop is in the middle of writing it (ask
@@ -188,20 +185,14 @@ class Channels:
         """(state, cmd_rejected, running, last_error) from one consistent copy of the status
         block, without converting the rest of it (status() converts ~25 fields through cffi: the
         reader checks this after every batch, 50 times a second with a dashboard open)."""
-        return state_key_of(self._status_struct())
+        return state_key_of(self.status_copy())
 
     def histograms(self) -> dict[str, Histogram]:
-        return histograms_of(self._status_struct())
-
-    def status_and_histograms(self) -> tuple[Status, dict[str, Histogram]]:
-        """status() and histograms() from one consistent copy of the block (the timing message
-        takes both once a second: one 33 KB copy, not two)."""
-        s = self._status_struct()
-        return status_from_struct(s), histograms_of(s)
+        return histograms_of(self.status_copy())
 
     def timing_words(self) -> tuple[dict[str, int], np.ndarray]:
         """status.timing_words_of a fresh consistent copy of the status block."""
-        return timing_words_of(self._status_struct())
+        return timing_words_of(self.status_copy())
 
     @property
     def status_copies(self) -> int:
