@@ -229,19 +229,23 @@
     W.shown = { t0, t1, zero, points: xs.length };
   }
 
-  // The layout can move the scope's panel after the plot was sized (the table beside it filled
-  // in, the page shown at another width) without a resize event (CI: a scope built at the left
-  // edge, then pushed right, 1782 px in a 1280 px window): its width is checked twice a second.
-  let fitAt = 0;
-  function fitPlot(now) {
-    if (!W.plot || now - fitAt < 500) return;
-    fitAt = now;
+  // The layout can resize the scope's panel after the plot was sized (the page's grid applied,
+  // the window narrowed past the one-column width) without a resize event (CI: a scope built
+  // before the grid, 1782 px in a 1280 px window): the panel is watched and the plot refitted
+  // before the next paint. Anything else that leaves it too wide is caught twice a second.
+  function fitPlot() {
+    if (!W.plot || !visible()) return;
     const want = plotWidth();
     if (Math.abs(want - W.plot.width) > 2) W.plot.setSize({ width: want, height: 260 });
   }
+  function watchPanelSize() {
+    const panel = q("watch-scope-panel");
+    if (panel && typeof ResizeObserver !== "undefined") new ResizeObserver(fitPlot).observe(panel);
+  }
+  let fitAt = 0;
 
   function frame(now) {
-    if (visible()) fitPlot(now || 0);
+    if (now - fitAt >= 500) { fitAt = now; fitPlot(); }
     if (W.dirty && visible()) {
       W.dirty = false;
       renderTable(false);
@@ -303,7 +307,6 @@
 
   function init(root) {
     W.root = root;
-    document.head.append(el("link", { rel: "stylesheet", href: "/static/pages/watch.css" }));
     root.classList.add("watch-page");
     root.innerHTML = `
       <section class="panel" id="watch-table-panel">
@@ -335,7 +338,7 @@
     if (xrf.paramsPanel) xrf.paramsPanel(root);  // the Parameters panel beside the scope (pages/params.js)
     q("watch-window").addEventListener("change", () => { W.dirty = true; renderPlot(true); });
     setSchema(xrf.schema || {});
-    buildTable(); buildTriggerSelect(); buildPlot();
+    buildTable(); buildTriggerSelect(); buildPlot(); watchPanelSize();
     window.addEventListener("resize", () => { if (W.plot && visible()) W.plot.setSize({ width: plotWidth(), height: 260 }); });
     requestAnimationFrame(frame);
   }

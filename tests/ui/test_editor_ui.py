@@ -237,6 +237,25 @@ def test_watch_values_freeze_and_trigger(server: Server, browser) -> None:  # no
     # A scope left too wide by a layout change (no resize event comes) is fitted again.
     page.evaluate("xrfWatch.plot.setSize({width: 2000, height: 260})")
     page.wait_for_function("document.documentElement.scrollWidth <= window.innerWidth", timeout=5000)
+    # The scope's column narrowed by the layout (as when the page's grid is applied after the plot
+    # was built): refitted before the next paint, not at the next twice-a-second check.
+    fits_after_two_frames = page.evaluate(
+        """() => new Promise((done) => {
+          const page = document.querySelector('.watch-page');
+          const before = xrfWatch.plot.width;
+          page.style.gridTemplateColumns = 'minmax(320px, 3fr) minmax(0, 2fr)';
+          requestAnimationFrame(() => requestAnimationFrame(() => {
+            const panel = document.getElementById('watch-scope-panel').getBoundingClientRect();
+            const plot = document.querySelector('#watch-plot .uplot').getBoundingClientRect();
+            page.style.gridTemplateColumns = '';
+            done({ before, after: xrfWatch.plot.width, fits: plot.right <= panel.right });
+          }));
+        })"""
+    )
+    assert fits_after_two_frames["fits"] and fits_after_two_frames["after"] < fits_after_two_frames["before"], (
+        fits_after_two_frames
+    )
+    page.wait_for_function("document.documentElement.scrollWidth <= window.innerWidth", timeout=5000)
     first = page.evaluate(val)
     # plotted by default: the run's Xeno2Ros fields
     assert page.evaluate("xrfWatch.plotKeys") == ["x.pos_left", "x.pos_right"]
