@@ -50,9 +50,14 @@
 
   async function loadCodeMirror() {
     if (window.CodeMirror) return;
-    document.head.append(el("link", { rel: "stylesheet", href: CM_BASE + "lib/codemirror.css" }));
+    // Its stylesheet before the editor is made: CodeMirror measures its lines and gutter then.
+    const style = new Promise((resolve, reject) => {
+      const l = el("link", { rel: "stylesheet", href: CM_BASE + "lib/codemirror.css" });
+      l.onload = resolve; l.onerror = () => reject(new Error("could not load " + l.href));
+      document.head.append(l);
+    });
     await loadScript(CM_BASE + CM_FILES[0]);  // the modes and addons register with it
-    await Promise.all(CM_FILES.slice(1).map((f) => loadScript(CM_BASE + f)));
+    await Promise.all([style, ...CM_FILES.slice(1).map((f) => loadScript(CM_BASE + f))]);
   }
 
   function modeFor(path) {
@@ -430,7 +435,6 @@
   // ---- page ----------------------------------------------------------------------------------------
 
   function init(root) {
-    document.head.append(el("link", { rel: "stylesheet", href: "/static/pages/editor.css" }));
     root.classList.add("editor-page");
     root.innerHTML = `
       <section class="panel" id="ed-side">

@@ -22,13 +22,6 @@
   const dur = (s) => s == null ? "–" : s < 60 ? s.toFixed(1) + " s" : s < 3600 ? `${Math.floor(s / 60)} min ${Math.round(s % 60)} s` : `${(s / 3600).toFixed(1)} h`;
   const num = (n) => (n == null ? "–" : Number(n).toLocaleString("en-US"));
 
-  function css() {
-    if (document.querySelector('link[href="/static/pages/runs.css"]')) return;
-    const l = document.createElement("link");
-    l.rel = "stylesheet"; l.href = "/static/pages/runs.css";
-    document.head.appendChild(l);
-  }
-
   function html(el) {
     el.innerHTML = `
       <section class="panel wide" id="panel-runs">
@@ -298,7 +291,6 @@
     order: 20,
     init(el) {
       el0 = el;
-      css();
       html(el);
       xrf.on("run", () => { if (!el.classList.contains("hidden")) { loadList(el); if (selected) select(el, selected); } });
       xrf.on("alarm", (m) => { if (m.kind === "log" && !el.classList.contains("hidden")) loadList(el); });

@@ -4,11 +4,6 @@
 "use strict";
 
 (function () {
-  if (!document.querySelector('link[href="/static/pages/selfcheck.css"]')) {  // shared with system.js
-    const css = document.createElement("link");
-    css.rel = "stylesheet"; css.href = "/static/pages/selfcheck.css";
-    document.head.append(css);
-  }
   const $ = (id) => document.getElementById(id);
   const esc = xrf.esc;  // frontend/lib.js
   const MARK = { pass: "✓", warn: "!", fail: "✗", skipped: "–" };

@@ -3,11 +3,6 @@
 "use strict";
 
 (function () {
-  if (!document.querySelector('link[href="/static/pages/selfcheck.css"]')) {  // shared with selfcheck.js
-    const css = document.createElement("link");
-    css.rel = "stylesheet"; css.href = "/static/pages/selfcheck.css";
-    document.head.append(css);
-  }
   const $ = (id) => document.getElementById(id);
   const esc = xrf.esc;  // frontend/lib.js
   const LABEL = { ok: "ok", warning: "warning", failure: "FAILURE", "not checked": "not checked" };
