@@ -281,7 +281,9 @@ def test_publish_and_collect_from_the_page(lab: Lab, chromium_path: str) -> None
         page.fill("#login-user", TEACHER)
         page.fill("#login-pass", TEACHER_PW)
         page.click("#login-submit")
-        page.wait_for_selector("#room-assign-form")
+        # room.js has run (its handlers attached), not only the form parsed: a click on a form
+        # that had none yet submitted it natively, reloading the page (CI: no note in 30 s).
+        page.wait_for_function("window.xrfRoom !== undefined")
         page.fill("#room-assign-name", "Page lab")
         page.select_option("#room-assign-template", "20sim")
         page.click("#room-assign-publish")

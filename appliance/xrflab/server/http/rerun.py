@@ -462,18 +462,25 @@ async def live_stream(method: str, request: Request) -> Response:
                 stream=True,
             )
             break
-        except httpx.ConnectError as exc:
-            # The process went between its start and this connection (an ended run's proxy, which
-            # runs only while watched: CI saw "All connection attempts failed" under load): started
-            # again once, then the viewer is told.
+        except httpx.TransportError as exc:
+            # The process went between its start and this request (an ended run's proxy, which
+            # runs only while watched: CI saw "All connection attempts failed" under load, and once
+            # a connection closed under the request, an httpx error without a message): started
+            # again if it has to be and asked once more (ReadMessages only reads), then the viewer
+            # is told.
+            logging.getLogger("xrflab.rerun").info(
+                "live stream of run %s, attempt %d: %s: %s", proxy.run_id, attempt, type(exc).__name__, exc
+            )
+            error: Exception = exc
             if attempt == 1 and await asyncio.to_thread(proxy.ensure_running):
                 continue
-            error: Exception = exc
         except httpx.HTTPError as exc:
             error = exc
         watched.reader_left()
         await client.aclose()
-        return grpc_error(502, UNAVAILABLE, f"the live stream of run {proxy.run_id} does not answer: {error}")
+        # (the type too: a connection reset's httpx.ReadError says nothing else)
+        why = f"{type(error).__name__}: {error}".rstrip(": ")
+        return grpc_error(502, UNAVAILABLE, f"the live stream of run {proxy.run_id} does not answer: {why}")
     _open_streams += 1
     closed = False
 
