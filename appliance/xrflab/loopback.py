@@ -26,3 +26,11 @@ def async_client(**kw: Any) -> httpx.AsyncClient:
     import httpx
 
     return httpx.AsyncClient(**_LOOPBACK, **kw)
+
+
+def why_failed(exc: BaseException) -> str:
+    """A failed loopback request in words for the one who asked: the error's type and its message
+    (a connection closed under the request is an httpx.ReadError with no message at all: CI, a
+    live viewer's 502 that said "does not answer:" and nothing more)."""
+    text = str(exc).strip()
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__

@@ -14,6 +14,7 @@ import pytest
 from xrf_testing.harness import Server
 from xrflab import profiles
 from xrflab.channels import Channels
+from xrflab.server.runs.reader import IDLE_PERIOD_S
 from xrflab.viz import kinematics as kin
 from xrflab.viz.recorder import Recorder, load_recording
 
@@ -137,19 +138,22 @@ def test_nobody_watching_the_samples_come_every_few_seconds_and_a_viewer_gets_th
         wait_cycles(ch, 2000)  # the reader has seen the rings' rates
         # Nobody watching (STATE_WATCH_S after any earlier state poll: this test polls none yet).
         assert not server.http.get("/api/viz").json()["watched"]
-        before = handovers(server)
+        # Counted against the wall clock the reader's timers run on: a loaded machine stretches
+        # the loop's 12 s (CI: one handover more than 12 s allow).
+        before, t0 = handovers(server), time.monotonic()
         wait_cycles(ch, 12_000)
-        idle = handovers(server) - before
-        assert 1 <= idle <= 4, idle
+        idle, wall = handovers(server) - before, time.monotonic() - t0
+        assert 1 <= idle <= wall / IDLE_PERIOD_S + 1, (idle, wall)  # every second, it was ~wall
         # Watched through the state (no WebSocket client): the samples as they are read.
         state = server.http.get("/api/viz/state").json()
         assert state["watched"]
-        before = handovers(server)
+        before, t0 = handovers(server), time.monotonic()
         for _ in range(6):  # 3 s of the loop's time, the state polled as the 3D page does
             wait_cycles(ch, 500)
             server.http.get("/api/viz/state")
-        watched = handovers(server) - before
-        assert watched >= 12, watched  # 10 a second; at each idle batch it was 0 or 1
+        watched, wall = handovers(server) - before, time.monotonic() - t0
+        # 10 a second (2.5: a loaded machine's margin); at each idle batch it was ~wall / 4
+        assert watched >= 2.5 * wall, (watched, wall)
         cycle_now = ch.status().cycles
     finally:
         ch.close()

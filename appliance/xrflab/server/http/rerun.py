@@ -469,7 +469,7 @@ async def live_stream(method: str, request: Request) -> Response:
             # again if it has to be and asked once more (ReadMessages only reads), then the viewer
             # is told.
             logging.getLogger("xrflab.rerun").info(
-                "live stream of run %s, attempt %d: %s: %s", proxy.run_id, attempt, type(exc).__name__, exc
+                "live stream of run %s, attempt %d: %s", proxy.run_id, attempt, loopback.why_failed(exc)
             )
             error: Exception = exc
             if attempt == 1 and await asyncio.to_thread(proxy.ensure_running):
@@ -478,8 +478,7 @@ async def live_stream(method: str, request: Request) -> Response:
             error = exc
         watched.reader_left()
         await client.aclose()
-        # (the type too: a connection reset's httpx.ReadError says nothing else)
-        why = f"{type(error).__name__}: {error}".rstrip(": ")
+        why = loopback.why_failed(error)
         return grpc_error(502, UNAVAILABLE, f"the live stream of run {proxy.run_id} does not answer: {why}")
     _open_streams += 1
     closed = False

@@ -76,7 +76,7 @@ async def viser_http(path: str, request: Request) -> Response:
         )
     except httpx.HTTPError as exc:
         await client.aclose()
-        raise XrfError(f"the 3D view does not answer: {exc}", 502) from None  # bad gateway
+        raise XrfError(f"the 3D view does not answer: {loopback.why_failed(exc)}", 502) from None  # bad gateway
 
     async def close() -> None:
         await upstream.aclose()
@@ -100,7 +100,7 @@ async def _index(url: str, request: Request) -> Response:
         try:
             r = await client.get(url, params=request.query_params, headers={"accept-encoding": "identity"})
         except httpx.HTTPError as exc:
-            raise XrfError(f"the 3D view does not answer: {exc}", 502) from None  # bad gateway
+            raise XrfError(f"the 3D view does not answer: {loopback.why_failed(exc)}", 502) from None  # bad gateway
     text = r.text
     tags = "".join(f'<script src="{src}"></script>\n' for src in TAB_SCRIPTS)
     text = text.replace("</head>", tags + "</head>", 1) if "</head>" in text else tags + text
